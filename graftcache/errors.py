@@ -1,0 +1,25 @@
+"""Exception types. Every user-facing failure names the file, episode, frame or key it concerns."""
+
+
+class GraftcacheError(Exception):
+    """Base class: the CLI prints these as one line and exits non-zero (no traceback)."""
+
+
+class DatasetError(GraftcacheError):
+    """A dataset on disk is missing, malformed or inconsistent with its metadata."""
+
+
+class EncoderError(GraftcacheError):
+    """An encoder name, weights file or configuration cannot be resolved."""
+
+
+class CacheError(GraftcacheError):
+    """A feature cache is missing, incomplete, locked, stale or does not match the request."""
+
+
+class BackboneError(GraftcacheError):
+    """A policy checkpoint or backbone configuration cannot be loaded or grafted."""
+
+
+class FitError(GraftcacheError):
+    """A fit request is inconsistent with the cache it names (width, dataset, suite, controls)."""

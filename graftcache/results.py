@@ -1,0 +1,104 @@
+"""The results table: one row per (cell, seed, control), declared once and validated on every write.
+
+A *cell* is (backbone, policy, encoder cache, suite, objective, hyper-parameters); `run_id` hashes the
+cell together with seed and control so a rerun can skip rows it already has.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from collections.abc import Iterable, Mapping
+from pathlib import Path
+from typing import Any
+
+import polars as pl
+
+from graftcache.errors import GraftcacheError
+
+SCHEMA: dict[str, pl.DataType] = {
+    "run_id": pl.String,
+    "backbone": pl.String,            # "smolvla" | "pi05"
+    "policy": pl.String,              # hub id, local path or "tiny"
+    "policy_sha256": pl.String,
+    "encoder": pl.String,             # registry name; native controls: the tower's name, e.g. "smolvla-native"
+    "cache_key": pl.String,
+    "suite": pl.String,
+    "seed": pl.Int64,
+    "control": pl.String,             # "none" for the plain graft
+    "pool_grid": pl.String,           # e.g. "8x8"
+    "objective": pl.String,           # "flow" | "align" | "eval" (native control)
+    "steps": pl.Int64,
+    "lr": pl.Float64,
+    "batch_size": pl.Int64,
+    "train_loss_final": pl.Float64,
+    "eval_mse": pl.Float64,           # full chunk, normalised action units
+    "eval_mse_first": pl.Float64,     # first action of the chunk, normalised units
+    "eval_mse_raw": pl.Float64,       # full chunk, raw action units
+    "n_eval_frames": pl.Int64,
+    "n_eval_episodes": pl.Int64,
+    "eval_split_seed": pl.Int64,
+    "wall_s": pl.Float64,
+    "device": pl.String,
+    "random_init": pl.Boolean,        # any random-init weights in the encoder or the backbone
+    "graftcache_version": pl.String,
+    "command": pl.String,             # the command line that produced the row
+}
+
+CONTROLS_NATIVE = ("native",)
+
+
+def empty() -> pl.DataFrame:
+    """An empty results table with the declared schema."""
+    return pl.DataFrame(schema=SCHEMA)
+
+
+def make_run_id(cell: Mapping[str, Any]) -> str:
+    """Stable id of a cell + seed + control: sha256 of its canonical JSON, 16 hex chars."""
+    blob = json.dumps(dict(cell), sort_keys=True, default=str).encode()
+    return hashlib.sha256(blob).hexdigest()[:16]
+
+
+def validate(rows: pl.DataFrame) -> pl.DataFrame:
+    """Return `rows` cast to SCHEMA; raise naming the missing/extra columns or null run_ids."""
+    missing = [c for c in SCHEMA if c not in rows.columns]
+    extra = [c for c in rows.columns if c not in SCHEMA]
+    if missing or extra:
+        raise GraftcacheError(f"results rows do not match the schema: missing {missing}, unexpected {extra}")
+    out = rows.select([pl.col(c).cast(t, strict=True) for c, t in SCHEMA.items()])
+    if out["run_id"].null_count():
+        raise GraftcacheError("results rows with a null run_id")
+    return out
+
+
+def read(path: str | Path) -> pl.DataFrame:
+    """Read a results Parquet file (an absent file is an empty table)."""
+    path = Path(path)
+    if not path.exists():
+        return empty()
+    try:
+        return validate(pl.read_parquet(path))
+    except GraftcacheError as e:
+        raise GraftcacheError(f"{path}: {e}") from None
+
+
+def done_run_ids(path: str | Path) -> set[str]:
+    """run_ids already present in a results file: those cells are skipped on rerun."""
+    return set(read(path)["run_id"].to_list())
+
+
+def append(path: str | Path, rows: Iterable[Mapping[str, Any]] | pl.DataFrame) -> pl.DataFrame:
+    """Validate `rows` and append them to the Parquet file atomically (write temp, then rename).
+
+    A row whose run_id is already present replaces the old one, so a file never holds duplicates.
+    """
+    path = Path(path)
+    new = validate(rows if isinstance(rows, pl.DataFrame) else pl.DataFrame(list(rows), schema=SCHEMA))
+    old = read(path)
+    table = pl.concat([old.filter(~pl.col("run_id").is_in(new["run_id"].implode())), new])
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    table.write_parquet(tmp)
+    os.replace(tmp, path)
+    return table
