@@ -1,0 +1,24 @@
+# The two commands a new user needs (see README): `make demo` and `make test`.
+# Both set up .venv first (scripts/setup.sh is idempotent) and run fully offline.
+export HF_HUB_OFFLINE := 1
+export HF_DATASETS_OFFLINE := 1
+export TRANSFORMERS_OFFLINE := 1
+
+.PHONY: setup demo test test-fast bench
+
+setup:
+	bash scripts/setup.sh
+
+demo: setup
+	.venv/bin/graftcache demo
+
+test: setup
+	.venv/bin/python -m pytest -q
+
+test-fast: setup
+	.venv/bin/python -m pytest -q -m "not slow"
+
+bench: setup
+	.venv/bin/python benchmarks/bench_reader.py
+	.venv/bin/python benchmarks/bench_extract.py
+	.venv/bin/python benchmarks/bench_fit.py

@@ -1,0 +1,69 @@
+"""`graftcache ls | info KEY | verify KEY`: inspect and check feature caches."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+from rich.console import Console
+from rich.table import Table
+
+from graftcache.cli.common import add_cache_flag
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("ls", help="list feature caches", description="List feature caches under the cache root.")
+    add_cache_flag(p)
+    p.set_defaults(func=run_ls)
+    p = sub.add_parser("info", help="print a cache's manifest", description="Print the manifest of cache KEY as JSON.")
+    p.add_argument("key")
+    add_cache_flag(p)
+    p.set_defaults(func=run_info)
+    p = sub.add_parser("verify", help="re-check a cache's checksums and completeness",
+                       description="Re-read every block of cache KEY and compare with its checksums. "
+                       "Exit code 0: complete and intact; 1: incomplete or corrupt.")
+    p.add_argument("key")
+    add_cache_flag(p)
+    p.set_defaults(func=run_verify)
+
+
+def _open(args: argparse.Namespace):
+    from graftcache.store import FeatureCache, cache_root
+
+    return FeatureCache(cache_root(args.cache) / args.key)
+
+
+def run_ls(args: argparse.Namespace) -> int:
+    from graftcache.store import cache_root, list_caches
+
+    root = cache_root(args.cache)
+    table = Table(title=f"feature caches in {root}")
+    for col in ("key", "dataset", "encoder", "weights", "grids", "cameras", "frames", "size", "status"):
+        table.add_column(col)
+    for c in list_caches(root):
+        m = c.manifest
+        weights = "random-init" if m.get("random_init") else m["weights"].get("source", "?")
+        status = "complete" if c.complete else ("incomplete" if c.initialized else "initialising")
+        table.add_row(c.key, m["dataset"]["repo_id"] or m["dataset"]["source"], m["encoder"]["name"], weights,
+                      ",".join(m["grids"] + list(m.get("extras", {}))), ",".join(m["cameras"]), str(m["n_frames"]),
+                      f"{c.size_bytes() / 2**20:.1f} MiB", status)
+    Console().print(table)
+    return 0
+
+
+def run_info(args: argparse.Namespace) -> int:
+    c = _open(args)
+    print(json.dumps({**c.manifest, "complete": c.complete, "layout": {k: v for k, v in c.layout.items()
+                                                                      if k != "static_checksums"}},
+                     indent=2, default=str))
+    return 0
+
+
+def run_verify(args: argparse.Namespace) -> int:
+    c = _open(args)
+    problems = c.verify()
+    for p in problems:
+        print(p)
+    if not problems:
+        print(f"{c.key}: complete, {c.n_frames} frames, all checksums match")
+    return 0 if not problems else 1

@@ -1,0 +1,64 @@
+"""`graftcache extract`: stage 1, pooled encoder features for every frame of a LeRobot dataset."""
+
+from __future__ import annotations
+
+import argparse
+
+from graftcache.cli.common import add_cache_flag, add_device_flags, parse_int_list
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "extract",
+        help="decode every frame once, run an encoder, pool, store fp16 features in Zarr",
+        description="Decode every frame of a LeRobot dataset once, run the encoder, pool to the requested "
+        "grids and store the features with a provenance manifest. Rerunning the same command reuses a "
+        "complete cache or resumes an interrupted one.",
+    )
+    p.add_argument("--encoder", required=True,
+                   help="registry name (siglip, dinov2-s, mobilenetv2, ...), timm:<name> or hf:<id-or-path>")
+    p.add_argument("--dataset", required=True, help="local LeRobot dataset folder or a hub repo id in the local HF cache")
+    p.add_argument("--weights", default=None, help="local weights file/folder instead of the hub id")
+    p.add_argument("--random-init", action="store_true", help="random weights (labelled random-init everywhere)")
+    p.add_argument("--seed", type=int, default=0, help="seed for --random-init (default 0)")
+    p.add_argument("--policy", default=None, help="policy for native towers (smolvla-native, pi05-native): hub id, folder or 'tiny'")
+    p.add_argument("--grids", default="8x8", help="pooled grids, e.g. 8x8,16x16 (default 8x8: SmolVLA's grid)")
+    p.add_argument("--cameras", default=None, help="comma-separated camera names (default: all)")
+    p.add_argument("--episodes", default=None, help="episode subset, e.g. 0-9,20")
+    p.add_argument("--batch-size", type=int, default=32)
+    p.add_argument("--num-workers", type=int, default=2, help="decode worker processes (0: decode in-process)")
+    p.add_argument("--compute-dtype", default="fp32", choices=("fp32", "bf16"),
+                   help="encoder compute precision (bf16 autocast); part of the cache key")
+    p.add_argument("--block-frames", type=int, default=256, help="frames per Zarr shard / resumable unit")
+    p.add_argument("--no-progress", action="store_true")
+    add_cache_flag(p)
+    add_device_flags(p, dtype_help="stored feature dtype (default fp16)")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from graftcache.extract import ExtractRequest, extract
+    from graftcache.pooling import parse_grids
+
+    req = ExtractRequest(
+        dataset=args.dataset,
+        encoder=args.encoder,
+        grids=tuple(parse_grids(args.grids)),
+        cameras=tuple(c.strip() for c in args.cameras.split(",")) if args.cameras else None,
+        episodes=parse_int_list(args.episodes) if args.episodes else None,
+        weights=args.weights,
+        random_init=args.random_init,
+        seed=args.seed,
+        policy=args.policy,
+        dtype=args.dtype,
+        compute_dtype=args.compute_dtype,
+        device=args.device,
+        batch_size=args.batch_size,
+        num_workers=args.num_workers,
+        block_frames=args.block_frames,
+        cache=args.cache,
+        progress=not args.no_progress,
+    )
+    result = extract(req)
+    print(result.key)
+    return 0

@@ -1,0 +1,332 @@
+"""Stage 1: decode every frame once, encode, pool, and persist fp16 features with provenance.
+
+Data flow (forward only): worker processes decode whole episodes (PyAV / PNG, one thread each)
+-> the main process fills a block buffer of `block_frames` frames -> the encoder runs on batches
+inside the block -> pooled grids are written by a writer thread while the next block is encoded.
+Blocks already marked done in the cache are never decoded again, so a rerun after Ctrl-C or
+SIGKILL continues from what is durably written, and batch composition (aligned to blocks) is the
+same as in an uninterrupted run, which makes the final bytes identical.
+"""
+
+from __future__ import annotations
+
+import platform
+import queue
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from importlib.metadata import PackageNotFoundError, version
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import polars as pl
+import torch
+from torch.utils.data import DataLoader, Dataset
+from tqdm import tqdm
+
+import graftcache
+from graftcache.datasets import LeRobotSource, open_dataset, suite_of
+from graftcache.encoders import get_spec, load_encoder
+from graftcache.errors import DatasetError, GraftcacheError
+from graftcache.pooling import format_grid, pool_grid
+from graftcache.runtime import autocast, resolve_device, resolve_dtype, set_main_threads, single_thread_worker
+from graftcache.store import FORMAT_VERSION, FeatureCache, cache_key, cache_root
+from graftcache.store.cache import STORAGE_DTYPES, ArraySpec, to_storage
+from graftcache.store.lock import exclusive
+
+SUITES = ("libero_spatial", "libero_object", "libero_goal", "libero_10", "libero_90", "unknown")
+VERSIONED_PACKAGES = ("torch", "timm", "transformers", "lerobot", "zarr", "numcodecs", "av", "numpy")
+
+
+@dataclass(frozen=True)
+class ExtractRequest:
+    """Everything `graftcache extract` needs. Fields after `dtype` do not change the numbers."""
+
+    dataset: str
+    encoder: str
+    grids: tuple[tuple[int, int], ...] = ((8, 8),)
+    cameras: tuple[str, ...] | None = None
+    episodes: tuple[int, ...] | None = None
+    weights: str | None = None
+    random_init: bool = False
+    seed: int = 0
+    policy: str | None = None  # native towers (smolvla-native, pi05-native) come from a policy
+    dtype: str = "fp16"
+    compute_dtype: str = "fp32"
+    device: str = "cpu"
+    batch_size: int = 32
+    num_workers: int = 2
+    block_frames: int = 256
+    cache: str | None = None
+    progress: bool = True
+    extra_manifest: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class ExtractResult:
+    key: str
+    path: Path
+    reused: bool
+    n_frames: int
+    frames_encoded: int
+    wall_s: float
+
+
+def _versions() -> dict[str, str]:
+    out = {"python": platform.python_version()}
+    for pkg in VERSIONED_PACKAGES:
+        try:
+            out[pkg] = version(pkg)
+        except PackageNotFoundError:
+            out[pkg] = "absent"
+    return out
+
+
+def build_index(source: LeRobotSource, episodes: Sequence[int]) -> pl.DataFrame:
+    """Per-frame index + low-dim table in cache order, with the LIBERO suite of each task."""
+    table = source.lowdim(list(episodes))
+    task_suite = [SUITES.index(suite_of(t)) for t in source.meta.tasks]
+    return table.sort(["episode_index", "frame_index"]).with_columns(
+        pl.col("task_index").map_elements(lambda i: task_suite[i], return_dtype=pl.Int64).alias("suite_index")
+    )
+
+
+def build_manifest(req: ExtractRequest, source: LeRobotSource, encoder: Any, episodes: Sequence[int],
+                   cameras: Sequence[str], n_frames: int) -> dict[str, Any]:
+    """Provenance manifest. Identity fields (see store.key) decide the cache key."""
+    meta = source.meta
+    desc = encoder.describe()
+    winfo = dict(encoder.weights_info)
+    extras = {name: list(shape) for name, shape in getattr(encoder, "extra_shapes", {}).items()}
+    return {
+        "format_version": FORMAT_VERSION,
+        "graftcache_version": graftcache.__version__,
+        "created_at": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "dataset": {
+            "source": str(req.dataset),
+            "root": str(meta.root),
+            "repo_id": meta.repo_id,
+            "revision": meta.revision,
+            "codebase_version": meta.codebase_version,
+            "fps": meta.fps,
+            "n_episodes_total": len(meta.episodes),
+            "n_frames_total": meta.n_frames,
+        },
+        "dataset_fingerprint": {"codebase_version": meta.codebase_version, **meta.fingerprint},
+        "episodes": None if len(episodes) == len(meta.episodes) else [int(e) for e in episodes],
+        "cameras": list(cameras),
+        "camera_keys": {c: meta.camera_keys[c] for c in cameras},
+        "encoder": desc,
+        "weights": winfo,
+        "weights_sha256": winfo["sha256"],
+        "random_init": bool(winfo.get("random_init", False)),
+        "grids": [format_grid(g) for g in req.grids],
+        "extras": extras,
+        "dtype": req.dtype,
+        "compute_dtype": req.compute_dtype,
+        "n_frames": n_frames,
+        "tasks": list(meta.tasks),
+        "suites": list(SUITES),
+        "state_key": meta.state_key,
+        "action_key": meta.action_key,
+        "versions": _versions(),
+        "run": {"device": req.device, "batch_size": req.batch_size, "num_workers": req.num_workers,
+                "command": " ".join(sys.argv)},
+        **req.extra_manifest,
+    }
+
+
+class _EpisodeFrames(Dataset):
+    """Decodes one whole episode per item (all requested cameras) inside a worker process."""
+
+    def __init__(self, source: LeRobotSource, episodes: Sequence[int], cameras: Sequence[str]) -> None:
+        self.source, self.episodes, self.cameras = source, list(episodes), list(cameras)
+
+    def __len__(self) -> int:
+        return len(self.episodes)
+
+    def __getitem__(self, i: int) -> tuple[int, dict[str, np.ndarray]]:
+        ep = self.episodes[i]
+        return ep, self.source.decode_episode(ep, self.cameras)
+
+
+def _episode_stream(source: LeRobotSource, episodes: Sequence[int], cameras: Sequence[str],
+                    num_workers: int) -> Iterator[tuple[int, dict[str, np.ndarray]]]:
+    ds = _EpisodeFrames(source, episodes, cameras)
+    if num_workers == 0:
+        yield from (ds[i] for i in range(len(ds)))
+        return
+    loader = DataLoader(ds, batch_size=None, shuffle=False, num_workers=num_workers,
+                        worker_init_fn=single_thread_worker, prefetch_factor=2, persistent_workers=False,
+                        multiprocessing_context="spawn" if sys.platform == "darwin" else None)
+    yield from loader
+
+
+class _Writer:
+    """Writes finished blocks on a background thread (Blosc and file I/O release the GIL), so
+    encoding of block k+1 overlaps the compression and write of block k. At most one block waits."""
+
+    def __init__(self, cache: FeatureCache) -> None:
+        self.cache = cache
+        self.queue: queue.Queue = queue.Queue(maxsize=1)
+        self.error: BaseException | None = None
+        self.thread = threading.Thread(target=self._run, daemon=True)
+        self.thread.start()
+
+    def _run(self) -> None:
+        while (item := self.queue.get()) is not None:
+            if self.error is None:
+                try:
+                    self.cache.write_block(*item)
+                except BaseException as e:  # surfaced in the main thread by put()/close()
+                    self.error = e
+
+    def put(self, block: int, data: dict[str, np.ndarray]) -> None:
+        if self.error:
+            raise self.error
+        self.queue.put((block, data))
+
+    def close(self) -> None:
+        self.queue.put(None)
+        self.thread.join()
+        if self.error:
+            raise self.error
+
+
+def encode_frames(encoder: Any, frames: np.ndarray, grids: Sequence[tuple[int, int]], *, batch_size: int,
+                  device: torch.device, compute: torch.dtype, dtype: str) -> dict[str, np.ndarray]:
+    """Encode uint8 frames [N,H,W,3] in batches; returns {grid name or extra name: stored array}."""
+    outs: dict[str, list[np.ndarray]] = {}
+    has_extras = bool(getattr(encoder, "extra_shapes", None))
+    for s in range(0, len(frames), batch_size):
+        x = torch.from_numpy(frames[s:s + batch_size]).to(device)
+        with torch.inference_mode(), autocast(device, compute):
+            x = encoder.preprocess(x)
+            if has_extras:
+                grid, extras = encoder.forward_with_extras(x)
+            else:
+                grid, extras = encoder.forward_grid(x), {}
+        for g in grids:
+            outs.setdefault(format_grid(g), []).append(to_storage(pool_grid(grid.float(), g), dtype))
+        for name, tokens in extras.items():
+            outs.setdefault(name, []).append(to_storage(tokens.float(), dtype))
+    return {k: np.concatenate(v) for k, v in outs.items()}
+
+
+def _plan(index: pl.DataFrame, cache: FeatureCache) -> tuple[list[int], np.ndarray]:
+    """Episodes that still have frames in unfinished blocks, and each cache row's block id."""
+    bf = int(cache.layout["block_frames"])
+    rows_block = np.arange(index.height) // bf
+    todo = sorted(set(range(int(cache.layout["n_blocks"]))) - cache.blocks_done())
+    needed = index.filter(pl.Series(np.isin(rows_block, todo)))["episode_index"].unique(maintain_order=True)
+    return needed.to_list(), rows_block
+
+
+def extract(req: ExtractRequest, log: Callable[[str], None] = print) -> ExtractResult:
+    """Run stage 1 for one (dataset, encoder) request; reuse or resume the cache when it exists."""
+    t0 = time.perf_counter()
+    set_main_threads()
+    device = resolve_device(req.device)
+    compute = resolve_dtype(req.compute_dtype)
+    if req.dtype not in STORAGE_DTYPES:
+        raise GraftcacheError(f"--dtype {req.dtype!r}: choose one of {', '.join(STORAGE_DTYPES)}")
+    source = open_dataset(req.dataset)
+    meta = source.meta
+    cameras = list(req.cameras or meta.cameras)
+    for cam in cameras:
+        if cam not in meta.cameras:
+            raise DatasetError(f"{meta.root}: camera {cam!r} not in dataset; available: {', '.join(meta.cameras)}")
+    all_eps = [e.index for e in meta.episodes]
+    episodes = list(req.episodes) if req.episodes else all_eps
+    unknown = sorted(set(episodes) - set(all_eps))
+    if unknown:
+        raise DatasetError(f"{meta.root}: episodes {unknown[:5]} not in dataset ({len(all_eps)} episodes)")
+    episodes = sorted(set(episodes))
+
+    spec = get_spec(req.encoder)
+    encoder = load_encoder(spec, weights=req.weights, random_init=req.random_init, seed=req.seed,
+                           device=device, policy=req.policy)
+    index = build_index(source, episodes)
+    manifest = build_manifest(req, source, encoder, episodes, cameras, index.height)
+    key = cache_key(manifest)
+    root = cache_root(req.cache)
+    path = root / key
+    if manifest["random_init"]:
+        log(f"note: encoder {spec.name} uses RANDOM-INIT weights (seed {req.seed}); the manifest says so")
+
+    with exclusive(root / f"{key}.lock", on_wait=lambda pid: log(f"waiting: {key} is being written by pid {pid}")):
+        cache = _open_or_create(path, manifest, index, encoder, cameras, req, log)
+        if cache.complete:
+            log(f"reusing complete cache {key} ({cache.n_frames} frames)")
+            return ExtractResult(key, path, True, cache.n_frames, 0, time.perf_counter() - t0)
+        encoded = _fill(cache, source, index, encoder, cameras, req, device, compute)
+        cache.finalize()
+    wall = time.perf_counter() - t0
+    log(f"wrote {key}: {cache.n_frames} frames x {len(cameras)} cameras in {wall:.1f}s -> {path}")
+    return ExtractResult(key, path, False, cache.n_frames, encoded, wall)
+
+
+def _open_or_create(path: Path, manifest: dict[str, Any], index: pl.DataFrame, encoder: Any,
+                    cameras: Sequence[str], req: ExtractRequest, log: Callable[[str], None]) -> FeatureCache:
+    if (path / "zarr.json").exists():
+        cache = FeatureCache(path)
+        if cache.initialized and cache.matches(manifest):
+            if not cache.complete:
+                log(f"resuming {path.name}: {len(cache.blocks_done())}/{cache.layout['n_blocks']} blocks already written")
+            return cache
+        log(f"{path.name}: discarding an unfinished initialisation")
+    width = encoder.spec.width
+    arrays = [ArraySpec(f"features/{cam}/{format_grid(g)}", (g[0] * g[1], width)) for cam in cameras for g in req.grids]
+    arrays += [ArraySpec(f"features/{cam}/{name}", tuple(shape))
+               for cam in cameras for name, shape in manifest["extras"].items()]
+    return FeatureCache.create(path, manifest, arrays, index, block_frames=req.block_frames)
+
+
+def _fill(cache: FeatureCache, source: LeRobotSource, index: pl.DataFrame, encoder: Any, cameras: Sequence[str],
+          req: ExtractRequest, device: torch.device, compute: torch.dtype) -> int:
+    """Decode the episodes of unfinished blocks, encode block by block, hand blocks to the writer."""
+    needed, rows_block = _plan(index, cache)
+    todo = sorted(set(range(int(cache.layout["n_blocks"]))) - cache.blocks_done())
+    ep_rows = {ep: np.flatnonzero(index["episode_index"].to_numpy() == ep) for ep in needed}
+    shapes = {cam: source.meta.image_shape[cam] for cam in cameras}
+    buffers: dict[int, dict[str, np.ndarray]] = {}
+    filled: dict[int, int] = {}
+    writer = _Writer(cache)
+    bar = tqdm(total=sum(cache.block_range(b)[1] - cache.block_range(b)[0] for b in todo), unit="frame",
+               desc=f"extract {cache.key}", disable=not req.progress, dynamic_ncols=True)
+    encoded = 0
+    try:
+        for ep, frames in _episode_stream(source, needed, cameras, req.num_workers):
+            rows = ep_rows[ep]
+            for cam in cameras:
+                if frames[cam].shape[0] != len(rows):
+                    raise DatasetError(f"{source.meta.root}: episode {ep} camera {cam} decoded "
+                                       f"{frames[cam].shape[0]} frames, metadata says {len(rows)}")
+            for block in np.unique(rows_block[rows]):
+                block = int(block)
+                if block not in todo:
+                    continue
+                start, stop = cache.block_range(block)
+                buf = buffers.setdefault(block, {c: np.empty((stop - start, *shapes[c]), np.uint8) for c in cameras})
+                sel = rows[(rows >= start) & (rows < stop)]
+                src = sel - rows[0]
+                for cam in cameras:
+                    buf[cam][sel - start] = frames[cam][src]
+                filled[block] = filled.get(block, 0) + len(sel)
+                if filled[block] == stop - start:
+                    buf = buffers.pop(block)
+                    data = {f"features/{cam}/{name}": arr
+                            for cam in cameras
+                            for name, arr in encode_frames(encoder, buf[cam], req.grids, batch_size=req.batch_size,
+                                                           device=device, compute=compute, dtype=req.dtype).items()}
+                    writer.put(block, data)
+                    encoded += stop - start
+                    bar.update(stop - start)
+        writer.close()
+    finally:
+        bar.close()
+    return encoded

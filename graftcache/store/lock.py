@@ -1,0 +1,39 @@
+"""An advisory file lock so that two extract processes never write the same key at once.
+
+fcntl.flock is released by the kernel when the holder dies (even on SIGKILL), so a crashed run
+never leaves a stale lock behind.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import os
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+from graftcache.errors import CacheError
+
+
+@contextmanager
+def exclusive(path: Path, *, wait: bool = True, on_wait: callable = None) -> Iterator[None]:
+    """Hold an exclusive lock on `path` (created if absent). If busy: wait (calling `on_wait(pid)`)
+    or raise CacheError naming the holder."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = Path(path).read_text().strip() or "?"
+            if not wait:
+                raise CacheError(f"{path}: cache is being written by another process (pid {holder})") from None
+            if on_wait is not None:
+                on_wait(holder)
+            fcntl.flock(fd, fcntl.LOCK_EX)
+        os.ftruncate(fd, 0)
+        os.write(fd, str(os.getpid()).encode())
+        yield
+    finally:
+        fcntl.flock(fd, fcntl.LOCK_UN)
+        os.close(fd)

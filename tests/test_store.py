@@ -1,0 +1,149 @@
+"""Cache store: layout, checksums, completeness, key identity, locking."""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import time
+from pathlib import Path
+
+import numpy as np
+import polars as pl
+import pytest
+import torch
+
+from graftcache.errors import CacheError
+from graftcache.store import FeatureCache, cache_key, cache_root, list_caches
+from graftcache.store.cache import ArraySpec, from_storage, to_storage
+from graftcache.store.lock import exclusive
+
+N, T, C = 70, 4, 6
+
+
+def _index(n: int = N) -> pl.DataFrame:
+    rng = np.random.default_rng(0)
+    return pl.DataFrame({
+        "index": np.arange(n), "episode_index": np.arange(n) // 10, "frame_index": np.arange(n) % 10,
+        "task_index": (np.arange(n) // 20) % 2, "suite_index": np.zeros(n, int),
+        "timestamp": (np.arange(n) % 10) / 10.0,
+        "state": rng.random((n, 8), dtype=np.float32).tolist(), "action": rng.random((n, 7), dtype=np.float32).tolist(),
+    })
+
+
+def _manifest(**over) -> dict:
+    m = {"format_version": 1, "dataset_fingerprint": {"info": "a"}, "episodes": None, "cameras": ["image"],
+         "encoder": {"name": "toy", "model_id": "x"}, "weights_sha256": "w", "grids": ["2x2"], "extras": {},
+         "dtype": "fp16", "compute_dtype": "fp32", "run": {"batch_size": 8}}
+    m.update(over)
+    return m
+
+
+def _filled(path: Path, dtype: str = "fp16") -> tuple[FeatureCache, np.ndarray]:
+    cache = FeatureCache.create(path, _manifest(dtype=dtype), [ArraySpec("features/image/2x2", (T, C))], _index(),
+                                block_frames=32)
+    data = torch.randn(N, T, C, generator=torch.Generator().manual_seed(1))
+    for b in range(cache.layout["n_blocks"]):
+        s, e = cache.block_range(b)
+        cache.write_block(b, {"features/image/2x2": to_storage(data[s:e], dtype)})
+    return cache, data
+
+
+def test_roundtrip_and_verify(tmp_path: Path) -> None:
+    cache, data = _filled(tmp_path / "k")
+    assert cache.layout["n_blocks"] == 3 and cache.block_range(2) == (64, 70)
+    assert not cache.complete
+    cache.finalize()
+    assert cache.complete and cache.verify() == []
+    got = FeatureCache(tmp_path / "k").read_features("image", "2x2")
+    assert got.dtype == torch.float16 and got.shape == (N, T, C)
+    assert torch.equal(got, data.half())
+    rows = cache.read_features("image", "2x2", np.array([3, 40, 69]))
+    assert torch.equal(rows, data.half()[[3, 40, 69]])
+    idx = cache.index()
+    assert idx.height == N and idx["episode_index"].to_list() == (np.arange(N) // 10).tolist()
+    assert np.allclose(np.stack(idx["state"].to_numpy()), np.asarray(_index()["state"].to_list()))
+
+
+def test_bf16_storage_roundtrip(tmp_path: Path) -> None:
+    cache, data = _filled(tmp_path / "k", dtype="bf16")
+    cache.finalize()
+    got = cache.read_features("image", "2x2")
+    assert got.dtype == torch.bfloat16 and torch.equal(got, data.bfloat16())
+    assert torch.equal(from_storage(to_storage(data, "bf16"), "bf16"), data.bfloat16())
+
+
+def test_finalize_refuses_missing_blocks(tmp_path: Path) -> None:
+    cache = FeatureCache.create(tmp_path / "k", _manifest(), [ArraySpec("features/image/2x2", (T, C))], _index(),
+                                block_frames=32)
+    cache.write_block(0, {"features/image/2x2": np.zeros((32, T, C), np.float16)})
+    with pytest.raises(CacheError, match=r"blocks \[1, 2\] not written"):
+        cache.finalize()
+    assert not cache.complete
+    assert "incomplete (2 of 3 blocks not written)" in cache.verify()[0]
+
+
+def test_verify_detects_corruption(tmp_path: Path) -> None:
+    cache, _ = _filled(tmp_path / "k")
+    cache.finalize()
+    arr = cache.group["features/image/2x2"]
+    arr[40] = np.ones((T, C), np.float16)  # silent change after completion
+    problems = FeatureCache(tmp_path / "k").verify()
+    assert problems == [f"k: features/image/2x2 frames 32-63 checksum mismatch"]
+
+
+def test_write_block_rejects_wrong_shapes(tmp_path: Path) -> None:
+    cache = FeatureCache.create(tmp_path / "k", _manifest(), [ArraySpec("features/image/2x2", (T, C))], _index(),
+                                block_frames=32)
+    with pytest.raises(CacheError, match="block 2 of features/image/2x2 has 32 frames, expected 6"):
+        cache.write_block(2, {"features/image/2x2": np.zeros((32, T, C), np.float16)})
+    with pytest.raises(CacheError, match="expected"):
+        cache.write_block(0, {"features/other/2x2": np.zeros((32, T, C), np.float16)})
+
+
+def test_key_ignores_provenance_but_not_numbers() -> None:
+    base = cache_key(_manifest())
+    assert base.startswith("toy-")
+    assert cache_key(_manifest(run={"batch_size": 64, "num_workers": 0})) == base
+    assert cache_key(_manifest(created_at="later")) == base
+    for change in ({"grids": ["4x4"]}, {"dtype": "bf16"}, {"weights_sha256": "v"}, {"episodes": [0, 1]},
+                   {"cameras": ["image", "image2"]}, {"dataset_fingerprint": {"info": "b"}},
+                   {"compute_dtype": "bf16"}):
+        assert cache_key(_manifest(**change)) != base, change
+
+
+def test_cache_root_resolution(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    assert cache_root(tmp_path / "x") == tmp_path / "x"
+    monkeypatch.setenv("GRAFTCACHE_HOME", str(tmp_path / "env"))
+    assert cache_root() == tmp_path / "env"
+    monkeypatch.delenv("GRAFTCACHE_HOME")
+    assert cache_root() == Path.home() / ".cache" / "graftcache"
+
+
+def test_list_caches_skips_other_folders(tmp_path: Path) -> None:
+    _filled(tmp_path / "a")
+    (tmp_path / "not-a-cache").mkdir()
+    assert [c.key for c in list_caches(tmp_path)] == ["a"]
+    assert list_caches(tmp_path / "absent") == []
+
+
+def _hold(path: str, ready, release) -> None:
+    with exclusive(Path(path)):
+        ready.set()
+        release.wait(10)
+
+
+def test_lock_excludes_second_writer(tmp_path: Path) -> None:
+    ctx = mp.get_context("spawn")
+    ready, release = ctx.Event(), ctx.Event()
+    proc = ctx.Process(target=_hold, args=(str(tmp_path / "k.lock"), ready, release))
+    proc.start()
+    try:
+        assert ready.wait(30)
+        with pytest.raises(CacheError, match=rf"being written by another process \(pid {proc.pid}\)"):
+            with exclusive(tmp_path / "k.lock", wait=False):
+                pass
+    finally:
+        release.set()
+        proc.join(10)
+    t0 = time.time()
+    with exclusive(tmp_path / "k.lock", wait=False):
+        assert time.time() - t0 < 5
