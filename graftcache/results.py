@@ -36,6 +36,7 @@ SCHEMA: dict[str, pl.DataType] = {
     "eval_mse": pl.Float64,           # full chunk, normalised action units
     "eval_mse_first": pl.Float64,     # first action of the chunk, normalised units
     "eval_mse_raw": pl.Float64,       # full chunk, raw action units
+    "eval_mse_episodes": pl.List(pl.Float64),  # per held-out episode (episode order), for bootstraps
     "n_eval_frames": pl.Int64,
     "n_eval_episodes": pl.Int64,
     "eval_split_seed": pl.Int64,

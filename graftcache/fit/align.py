@@ -1,0 +1,79 @@
+"""The `align` objective (beyond the paper): fit the projector in closed form.
+
+Instead of back-propagating the policy's flow loss, regress the native tower's post-connector
+tokens (cached by `graftcache extract --encoder <backbone>-native`) on the LayerNorm'd candidate
+tokens at the same grid positions: ridge regression with a bias, solved from streamed sufficient
+statistics (X^T X, X^T Y, sums), so memory is O(C^2 + C*D) whatever the number of frames. The
+projector then holds LN(weight=1, bias=0) -> Linear(W, b) and is scored with the same offline
+action MSE as a `flow` fit. One linear solve replaces hundreds of backward passes through the LM.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+from graftcache.errors import FitError
+from graftcache.pooling import pool_grid
+
+RIDGE_ALPHA = 1e-3
+STREAM_ROWS = 4096
+
+
+def _as_grid(tokens: torch.Tensor, grid: tuple[int, int]) -> torch.Tensor:
+    """[N, T, D] tokens on a square grid -> pooled to `grid` (identity when T already matches)."""
+    n, t, d = tokens.shape
+    if t == grid[0] * grid[1]:
+        return tokens
+    side = int(round(t**0.5))
+    if side * side != t:
+        raise FitError(f"align: native tokens ({t}) are not a square grid; cannot pool to {grid}")
+    return pool_grid(tokens.reshape(n, side, side, d), grid)
+
+
+@torch.no_grad()
+def fit_ridge(projector: nn.Module, sources: list[torch.Tensor], targets: list[torch.Tensor],
+              grid: tuple[int, int], alpha: float = RIDGE_ALPHA) -> float:
+    """Set `projector` (a GraftProjector) to the ridge solution; returns the train R^2.
+
+    `sources[i]` [N, T, C] candidate features and `targets[i]` [N, T', D] native tokens of camera i.
+    """
+    c = projector.in_features
+    d = projector.out_features
+    xtx = torch.zeros(c, c, dtype=torch.float64)
+    xty = torch.zeros(c, d, dtype=torch.float64)
+    sx = torch.zeros(c, dtype=torch.float64)
+    sy = torch.zeros(d, dtype=torch.float64)
+    syy = torch.zeros((), dtype=torch.float64)
+    n = 0
+    for src, tgt in zip(sources, targets, strict=True):
+        tgt = _as_grid(tgt.float(), grid)
+        if tgt.shape[:2] != src.shape[:2]:
+            raise FitError(f"align: candidate tokens {tuple(src.shape[:2])} and native tokens "
+                           f"{tuple(tgt.shape[:2])} do not line up")
+        x_all = src.reshape(-1, c)
+        y_all = tgt.reshape(-1, d)
+        for s in range(0, x_all.shape[0], STREAM_ROWS):
+            x = F.layer_norm(x_all[s:s + STREAM_ROWS].float(), (c,)).double()
+            y = y_all[s:s + STREAM_ROWS].double()
+            xtx += x.T @ x
+            xty += x.T @ y
+            sx += x.sum(0)
+            sy += y.sum(0)
+            syy += (y * y).sum()
+            n += x.shape[0]
+    mx, my = sx / n, sy / n
+    cxx = xtx - n * torch.outer(mx, mx)
+    cxy = xty - n * torch.outer(mx, my)
+    lam = alpha * torch.trace(cxx) / c
+    w = torch.linalg.solve(cxx + lam * torch.eye(c, dtype=torch.float64), cxy)  # [C, D]
+    b = my - mx @ w
+    projector.norm.weight.fill_(1.0)
+    projector.norm.bias.zero_()
+    projector.proj.weight.copy_(w.T.float())
+    projector.proj.bias.copy_(b.float())
+    sst = syy - n * (my * my).sum()
+    # residual sum of squares: sst - 2 w.cxy + w.cxx.w, with cxx w = cxy - lam w at the ridge optimum
+    rss = sst - (cxy * w).sum() - lam * (w * w).sum()
+    return float(1.0 - rss / sst)

@@ -1,0 +1,143 @@
+"""Stage 2 data path: everything a fit needs comes from the feature cache, never from videos.
+
+A `FrameTable` holds, for the frames of one suite, the pooled features per camera (kept in the
+stored precision to halve memory), the state, the action chunk starting at each frame with its
+padding mask, and the task index. The held-out split is by episode within each task, with a fixed
+split seed that is recorded in every results row.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import polars as pl
+import torch
+
+from graftcache.errors import FitError
+from graftcache.pooling import format_grid, pool_grid
+from graftcache.store import FeatureCache
+
+
+@dataclass(frozen=True)
+class Split:
+    """Episode split, per task: `eval_fraction` of each task's episodes (at least one when a task
+    has two or more) are held out, chosen by a generator seeded with `seed`."""
+
+    train_episodes: tuple[int, ...]
+    eval_episodes: tuple[int, ...]
+    seed: int
+    eval_fraction: float
+
+
+def split_episodes(index: pl.DataFrame, *, eval_fraction: float, seed: int) -> Split:
+    """Split the episodes of `index` (columns episode_index, task_index) by task."""
+    if not 0.0 < eval_fraction < 1.0:
+        raise FitError(f"--eval-fraction must be in (0, 1), got {eval_fraction}")
+    rng = np.random.default_rng(seed)
+    per_task = (index.group_by("task_index").agg(pl.col("episode_index").unique().sort()).sort("task_index"))
+    train, held = [], []
+    for episodes in per_task["episode_index"].to_list():
+        order = rng.permutation(len(episodes))
+        n_eval = max(1, round(eval_fraction * len(episodes))) if len(episodes) >= 2 else 0
+        held += [episodes[i] for i in order[:n_eval]]
+        train += [episodes[i] for i in order[n_eval:]]
+    if not held:
+        raise FitError("no episode can be held out: every task has a single episode")
+    return Split(tuple(sorted(train)), tuple(sorted(held)), seed, eval_fraction)
+
+
+@dataclass
+class FrameTable:
+    """In-memory training/eval material for one suite, from the cache only."""
+
+    rows: np.ndarray                    # cache row ids, [N]
+    episode_index: np.ndarray           # [N]
+    features: dict[str, torch.Tensor]   # camera -> [N, T, C] stored precision
+    state: torch.Tensor                 # [N, S] float32 (raw units)
+    actions: torch.Tensor               # [N, chunk, A] float32 (raw units)
+    action_pad: torch.Tensor            # [N, chunk] bool, True past the episode end
+    task_index: torch.Tensor            # [N] int64
+    tasks: tuple[str, ...]
+
+    def __len__(self) -> int:
+        return len(self.rows)
+
+    def subset(self, episodes: Sequence[int]) -> FrameTable:
+        keep = np.flatnonzero(np.isin(self.episode_index, np.asarray(episodes)))
+        t = torch.from_numpy(keep)
+        return FrameTable(self.rows[keep], self.episode_index[keep], {c: f[t] for c, f in self.features.items()},
+                          self.state[t], self.actions[t], self.action_pad[t], self.task_index[t], self.tasks)
+
+
+def suite_index_table(cache: FeatureCache, suite: str) -> pl.DataFrame:
+    """The cache index restricted to one LIBERO suite; a suite with no episodes is an error."""
+    suites = cache.manifest["suites"]
+    if suite not in suites:
+        raise FitError(f"unknown suite {suite!r}; known: {', '.join(suites)}")
+    idx = cache.index().with_row_index("row")
+    sub = idx.filter(pl.col("suite_index") == suites.index(suite))
+    if sub.height == 0:
+        present = sorted({suites[i] for i in idx["suite_index"].unique().to_list()})
+        raise FitError(f"cache {cache.key}: suite {suite!r} has no episodes (present: {', '.join(present)})")
+    return sub
+
+
+def read_grid(cache: FeatureCache, camera: str, grid: tuple[int, int], rows: np.ndarray) -> torch.Tensor:
+    """Features of `camera` pooled to `grid`: the stored grid if present, else pooled from the
+    finest stored grid (exact when the stored grid is a multiple of the requested one)."""
+    name = format_grid(grid)
+    stored = [g for g in cache.manifest["grids"]]
+    if name in stored:
+        return cache.read_features(camera, name, rows)
+    finest = max(stored, key=lambda g: int(g.split("x")[0]) * int(g.split("x")[1]))
+    h, w = (int(v) for v in finest.split("x"))
+    src = cache.read_features(camera, finest, rows)
+    pooled = pool_grid(src.float().reshape(len(rows), h, w, -1), grid)
+    return pooled.to(src.dtype)
+
+
+def action_chunks(actions: np.ndarray, episode: np.ndarray, chunk: int) -> tuple[np.ndarray, np.ndarray]:
+    """For each frame, the next `chunk` actions of the same episode, padded with the last action.
+
+    Frames must be in episode order, consecutive within an episode. Returns (chunks [N, chunk, A],
+    pad [N, chunk] True where the step lies past the episode end).
+    """
+    n = len(actions)
+    starts = np.r_[0, np.flatnonzero(np.diff(episode)) + 1]
+    ends = np.r_[starts[1:], n]
+    ep_end = np.repeat(ends, ends - starts)  # exclusive end of each frame's episode
+    steps = np.arange(n)[:, None] + np.arange(chunk)[None, :]
+    pad = steps >= ep_end[:, None]
+    steps = np.minimum(steps, ep_end[:, None] - 1)
+    return actions[steps], pad
+
+
+def load_frames(cache: FeatureCache, suite: str, *, cameras: Sequence[str], grid: tuple[int, int] | None,
+                chunk: int, extra: str | None = None) -> FrameTable:
+    """All frames of `suite` with features at `grid` (or the stored extra array `extra`, e.g. the
+    native tower's post-connector tokens)."""
+    sub = suite_index_table(cache, suite)
+    rows = sub["row"].to_numpy()
+    episode = sub["episode_index"].to_numpy()
+    missing = [c for c in cameras if c not in cache.manifest["cameras"]]
+    if missing:
+        raise FitError(f"cache {cache.key} has no camera {missing}; it has {cache.manifest['cameras']}")
+    if extra is not None:
+        feats = {c: cache.read_features(c, extra, rows) for c in cameras}
+    else:
+        assert grid is not None
+        feats = {c: read_grid(cache, c, grid, rows) for c in cameras}
+    acts = np.stack(sub["action"].to_numpy()).astype(np.float32)
+    chunks, pad = action_chunks(acts, episode, chunk)
+    return FrameTable(
+        rows=rows,
+        episode_index=episode,
+        features=feats,
+        state=torch.from_numpy(np.stack(sub["state"].to_numpy()).astype(np.float32)),
+        actions=torch.from_numpy(chunks),
+        action_pad=torch.from_numpy(pad),
+        task_index=torch.from_numpy(sub["task_index"].to_numpy().astype(np.int64)),
+        tasks=tuple(cache.manifest["tasks"]),
+    )

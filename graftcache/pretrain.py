@@ -1,0 +1,156 @@
+"""Natively train a tiny backbone (all parameters, its own vision tower, on pixels).
+
+The frozen-backbone diagnostic is only meaningful on a backbone whose image tokens matter. No
+released SmolVLA / pi0.5 weights can be fetched here, so `graftcache train-tiny` trains lerobot's
+own policy classes at tiny sizes on a LeRobot dataset (the bundled LIBERO sample by default) with
+the policy's own flow loss. This is the one place outside stage 1 that decodes video: it trains the
+backbone, not a graft. The result is a regular lerobot checkpoint folder (safetensors + processors
+with the dataset's normalisation statistics), keyed by dataset content and training recipe and
+reproducible from the seed, so `--policy tiny` finds it again.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import polars as pl
+import torch
+import torch.nn.functional as F
+from tqdm import tqdm
+
+from graftcache.backbones import TinySpec, get_backbone
+from graftcache.datasets import open_dataset
+from graftcache.fit.data import action_chunks
+from graftcache.fit.loop import flow_time
+from graftcache.fit.lookup import tiny_policy_dir
+from graftcache.runtime import resolve_device, set_main_threads
+
+
+@dataclass(frozen=True)
+class TinyTrainConfig:
+    steps: int = 600
+    batch_size: int = 32
+    lr: float = 1e-3
+    weight_decay: float = 1e-4
+    seed: int = 0
+    image_size: int = 128  # frames are resized once to this (>= every tiny tower's input)
+
+    def as_dict(self, backbone: str) -> dict:
+        return {"backbone": backbone, **asdict(self)}
+
+
+DEFAULT_TINY_TRAIN = TinyTrainConfig()
+
+
+def dataset_stats(table: pl.DataFrame) -> dict[str, dict[str, torch.Tensor]]:
+    """lerobot-format normalisation statistics of state and action (mean/std/min/max/q01/q99)."""
+    out = {}
+    for key, col in (("observation.state", "state"), ("action", "action")):
+        x = np.stack(table[col].to_numpy()).astype(np.float64)
+        out[key] = {
+            "mean": x.mean(0), "std": np.maximum(x.std(0), 1e-6), "min": x.min(0), "max": x.max(0),
+            "q01": np.quantile(x, 0.01, axis=0), "q99": np.quantile(x, 0.99, axis=0),
+        }
+        out[key] = {k: torch.as_tensor(v, dtype=torch.float32) for k, v in out[key].items()}
+    return out
+
+
+def policy_pixels(frames_u8: torch.Tensor, size: int) -> torch.Tensor:
+    """uint8 frames [N, H, W, 3] -> uint8 [N, 3, size, size] (antialiased bilinear).
+
+    Shared by native training and the native-tower encoders, so the tower sees identically
+    prepared pixels when it is trained and when its features are cached.
+    """
+    x = frames_u8.permute(0, 3, 1, 2).float()
+    x = F.interpolate(x, size=(size, size), mode="bilinear", antialias=True, align_corners=False)
+    return x.round().clamp(0, 255).to(torch.uint8)
+
+
+def _decode_all(dataset: str, cameras: tuple[str, ...], size: int, log: Callable[[str], None]):
+    """Every frame of every camera, resized once to `size` (uint8 [N, 3, size, size]), in dataset order."""
+    source = open_dataset(dataset)
+    episodes = [e.index for e in source.meta.episodes]
+    frames: dict[str, list[torch.Tensor]] = {c: [] for c in cameras}
+    for ep in tqdm(episodes, desc="decode", leave=False):
+        decoded = source.decode_episode(ep, list(cameras))
+        for c in cameras:
+            frames[c].append(policy_pixels(torch.from_numpy(decoded[c]), size))
+    table = source.lowdim(episodes).sort(["episode_index", "frame_index"])
+    log(f"decoded {table.height} frames x {len(cameras)} cameras from {source.meta.root}")
+    return source, {c: torch.cat(v) for c, v in frames.items()}, table
+
+
+def _unfreeze_all(policy: torch.nn.Module) -> None:
+    """Native training trains everything: lift lerobot's default freezing flags and grads."""
+    for module in policy.modules():
+        for flag in ("freeze_vision_encoder", "train_expert_only"):
+            if hasattr(module, flag) and isinstance(getattr(module, flag), bool):
+                setattr(module, flag, False)
+    for p in policy.parameters():
+        p.requires_grad_(True)
+
+
+def train_tiny(backbone: str, dataset: str, *, cfg: TinyTrainConfig = DEFAULT_TINY_TRAIN, cache: str | None = None,
+               device: str = "cpu", out: str | Path | None = None, force: bool = False,
+               log: Callable[[str], None] = print) -> Path:
+    """Train (or reuse) the tiny `backbone` natively on `dataset`; returns the checkpoint folder."""
+    from graftcache.fit.lookup import dataset_fingerprint
+    from graftcache.store import cache_root
+
+    set_main_threads()
+    dev = resolve_device(device)
+    folder = Path(out) if out else tiny_policy_dir(cache_root(cache), backbone, dataset_fingerprint(dataset),
+                                                   cfg.as_dict(backbone))
+    if (folder / "config.json").exists() and not force:
+        log(f"reusing natively trained tiny {backbone}: {folder}")
+        return folder
+    t0 = time.perf_counter()
+    source, frames, table = _decode_all(dataset, ("image", "image2"), cfg.image_size, log)
+    meta = source.meta
+    spec = TinySpec(cameras=tuple(meta.cameras[:2]), state_dim=meta.state_dim, action_dim=meta.action_dim,
+                    seed=cfg.seed)
+    adapter = get_backbone(backbone).load("tiny", device=str(dev), dataset_stats=dataset_stats(table), tiny=spec)
+    policy = adapter.policy
+    _unfreeze_all(policy)
+    n_params = sum(p.numel() for p in policy.parameters())
+    log(f"training tiny {backbone} natively: {n_params:,} parameters, all trainable, {cfg.steps} steps")
+    episode = table["episode_index"].to_numpy()
+    acts, pad = action_chunks(np.stack(table["action"].to_numpy()).astype(np.float32), episode, adapter.chunk_size)
+    actions, action_pad = torch.from_numpy(acts), torch.from_numpy(pad)
+    state = torch.from_numpy(np.stack(table["state"].to_numpy()).astype(np.float32))
+    tasks = [meta.tasks[i] for i in table["task_index"].to_list()]
+    opt = torch.optim.AdamW([p for p in policy.parameters()], lr=cfg.lr, weight_decay=cfg.weight_decay)
+    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=cfg.lr, total_steps=cfg.steps, pct_start=0.1)
+    g = torch.Generator().manual_seed(cfg.seed)
+    policy.train()
+    bar = tqdm(range(cfg.steps), desc=f"train-tiny {backbone}", dynamic_ncols=True)
+    losses = []
+    for _ in bar:
+        pos = torch.randint(0, len(table), (cfg.batch_size,), generator=g)
+        raw = {f"observation.images.{c}": frames[c][pos].float() / 255.0 for c in spec.cameras}
+        raw.update({"observation.state": state[pos], "action": actions[pos], "action_is_pad": action_pad[pos],
+                    "task": [tasks[int(i)] for i in pos]})
+        batch = adapter.prepare(raw)
+        loss = adapter.loss(batch, noise=adapter.sample_noise(cfg.batch_size, generator=g),
+                            time=flow_time(cfg.batch_size, g).to(dev)).mean()
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(policy.parameters(), 1.0)
+        opt.step()
+        sched.step()
+        losses.append(float(loss))
+        bar.set_postfix(loss=f"{np.mean(losses[-20:]):.4f}")
+    adapter.save(folder)
+    record = {"backbone": backbone, "dataset": str(dataset), "dataset_root": str(meta.root),
+              "config": cfg.as_dict(backbone), "final_loss": float(np.mean(losses[-max(1, cfg.steps // 10):])),
+              "wall_s": time.perf_counter() - t0, "random_init": True,
+              "note": "tiny architecture, random init, trained natively by graftcache (not released weights)"}
+    (folder / "graftcache_pretrain.json").write_text(json.dumps(record, indent=2))
+    log(f"saved natively trained tiny {backbone} to {folder} (final loss {record['final_loss']:.4f}, "
+        f"{record['wall_s']:.0f}s)")
+    return folder

@@ -1,0 +1,253 @@
+"""graftcache.analysis on hand-built tables whose answers are worked out in tests/analysis_fixtures.py."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import polars as pl
+import pytest
+from analysis_fixtures import PLAIN_MSE, full_table, plain_rows, row, table
+
+from graftcache import analysis as A
+from graftcache.errors import GraftcacheError
+
+
+@pytest.fixture(scope="module")
+def results() -> pl.DataFrame:
+    return full_table()
+
+
+def _one(frame: pl.DataFrame, **where) -> dict:
+    hit = frame.filter(*(pl.col(k) == v for k, v in where.items()))
+    assert len(hit) == 1, (where, hit)
+    return hit.row(0, named=True)
+
+
+def test_seed_summary_statistics_and_missing_cells(results):
+    s = A.seed_summary(results)
+    r = _one(s, backbone="smolvla", suite="libero_spatial", encoder="siglip")
+    assert r["n"] == 3 and r["status"] == "ok" and r["seeds"] == [0, 1, 2]
+    assert r["mean"] == pytest.approx(1.1) and r["std"] == pytest.approx(0.1)
+    assert (r["min"], r["max"]) == (1.0, 1.2)
+    # an encoder run on smolvla only is an explicit missing row on pi05, not an absent one
+    gone = _one(s, backbone="pi05", suite="libero_goal", encoder="siglip")
+    assert gone["status"] == "missing" and gone["n"] == 0 and gone["mean"] is None
+    single = _one(s, backbone="pi05", suite="libero_10", encoder="resnet18")
+    assert single["status"] == "single seed" and single["std"] is None
+    # 2 backbones x 12 (suite, encoder) pairs; controls are not plain-graft cells
+    assert len(s) == 24 and "smolvla-native" not in s["encoder"].to_list()
+
+
+def test_invalid_mse_is_counted_not_averaged():
+    t = table(
+        plain_rows({("smolvla", "s", "a"): [1.0, 2.0]})
+        + [row("smolvla", "s", "a", 2, float("nan")), row("smolvla", "s", "a", 3, None)]
+    )
+    r = _one(A.seed_summary(t), encoder="a")
+    assert (r["n"], r["n_rows"], r["n_invalid"], r["mean"]) == (2, 4, 2, 1.5)
+    problems = A.missing_cells(t)["problem"].to_list()
+    assert problems == ["2 row(s) with null or non-finite eval_mse"]
+
+
+def test_rankings_ties_share_the_lowest_rank(results):
+    r = A.rankings(results).filter(pl.col("suite") == "libero_10", pl.col("backbone") == "smolvla")
+    assert dict(zip(r["encoder"], r["rank"])) == {"dinov2-s": 1, "siglip": 1, "resnet18": 3}
+    missing = _one(A.rankings(results), backbone="pi05", suite="libero_goal", encoder="siglip")
+    assert missing["rank"] is None
+    assert (
+        _one(A.rankings(results), backbone="pi05", suite="libero_goal", encoder="dinov2-s")["n_ranked"] == 1
+    )
+
+
+def test_near_tie_band(results):
+    band = A.near_tie_band(results)
+    spatial = band.filter(pl.col("backbone") == "pi05", pl.col("suite") == "libero_spatial")
+    assert set(spatial["best"]) == {"dinov2-s"}
+    tier = dict(zip(spatial["encoder"], spatial["in_band"]))
+    assert tier == {"dinov2-s": True, "siglip": True, "resnet18": False}
+    p = dict(zip(spatial["encoder"], spatial["p_worse"]))
+    assert p["dinov2-s"] is None and 0.3 < p["siglip"] < 0.95 and p["resnet18"] == 1.0
+    assert set(spatial["basis"]) == {"seeds"}
+    # every siglip seed above every dinov2-s seed: separable with certainty
+    obj = _one(band, backbone="pi05", suite="libero_object", encoder="siglip")
+    assert (obj["p_worse"], obj["in_band"]) == (1.0, False)
+
+
+def test_single_seed_band_is_exact_ties_and_flagged(results):
+    ten = A.near_tie_band(results).filter(pl.col("backbone") == "pi05", pl.col("suite") == "libero_10")
+    assert dict(zip(ten["encoder"], ten["in_band"])) == {"dinov2-s": True, "siglip": True, "resnet18": False}
+    assert set(ten["basis"]) == {"exact ties only (single seed)"}
+    assert set(ten["best"]) == {"dinov2-s"}  # alphabetical first among the tied best
+
+
+def test_band_missing_cell_is_null_not_dropped(results):
+    r = _one(A.near_tie_band(results), backbone="pi05", suite="libero_goal", encoder="resnet18")
+    assert r["in_band"] is None and r["basis"] == "missing"
+
+
+def test_band_is_deterministic_and_seeded():
+    # overlapping seeds, so p_worse is a genuine Monte-Carlo estimate
+    t = table(plain_rows({("smolvla", "s", "a"): [1.0, 1.3, 1.6], ("smolvla", "s", "b"): [1.1, 1.5, 1.9]}))
+    p = [
+        A.near_tie_band(t, seed=s, n_boot=500).filter(pl.col("encoder") == "b")["p_worse"][0]
+        for s in (0, 0, 1)
+    ]
+    assert p[0] == p[1] and p[0] != p[2]
+    # row order does not matter
+    shuffled = t.sample(fraction=1.0, shuffle=True, seed=3)
+    assert A.near_tie_band(shuffled, n_boot=500).filter(pl.col("encoder") == "b")["p_worse"][0] == p[0]
+
+
+def test_band_bootstraps_episodes_when_rows_carry_them():
+    # one seed each: without episodes b (1.1 > 1.0) is out; its episodes overlap a's, so with them it is in
+    t = table([row("smolvla", "s", "a", 0, 1.0), row("smolvla", "s", "b", 0, 1.1)]).with_columns(
+        pl.Series(A.EPISODE_COLUMN, [[1.0, 1.4, 0.6, 1.0], [1.1, 0.7, 1.5, 1.1]], dtype=pl.List(pl.Float64))
+    )
+    with_ep = _one(A.near_tie_band(t), encoder="b")
+    assert with_ep["in_band"] is True and with_ep["basis"] == "episodes (single seed)"
+    without = _one(A.near_tie_band(t.with_columns(pl.lit(None, dtype=pl.List(pl.Float64)).alias(A.EPISODE_COLUMN))),
+                   encoder="b")
+    assert without["in_band"] is False and without["basis"] == "exact ties only (single seed)"
+
+
+def test_transfer_verdicts(results):
+    v = A.transfer_verdicts(results)
+    assert v["suite"].to_list() == ["libero_10", "libero_goal", "libero_object", "libero_spatial"]
+    spatial = _one(v, suite="libero_spatial")
+    assert spatial["small_winner"] == "siglip" and spatial["large_winner"] == "dinov2-s"
+    assert spatial["large_band"] == ["dinov2-s", "siglip"] and spatial["verdict"] == A.TRANSFERS
+    assert spatial["basis"] == "seeds" and spatial["note"] is None
+    obj = _one(v, suite="libero_object")
+    assert obj["verdict"] == A.DOES_NOT_TRANSFER and obj["large_band"] == ["dinov2-s"]
+    goal = _one(v, suite="libero_goal")
+    assert goal["verdict"] == A.INSUFFICIENT and goal["n_common"] == 1 and goal["small_winner"] is None
+    assert "resnet18 (only SmolVLA)" in goal["note"] and "siglip (only SmolVLA)" in goal["note"]
+    ten = _one(v, suite="libero_10")
+    assert ten["small_winner"] == "dinov2-s, siglip" and ten["verdict"] == A.TRANSFERS
+    assert ten["basis"] == "exact ties only (single seed)"
+
+
+def test_transfer_left_out_encoder_is_named_and_excluded():
+    cells = {k: v for k, v in PLAIN_MSE.items() if k[1] == "libero_spatial"}
+    cells[("pi05", "libero_spatial", "vit-b")] = [0.1, 0.1, 0.1]  # would be best on pi05, absent on smolvla
+    v = _one(A.transfer_verdicts(table(plain_rows(cells))), suite="libero_spatial")
+    assert (
+        v["verdict"] == A.TRANSFERS and "vit-b (only pi0.5)" in v["note"] and "vit-b" not in v["large_band"]
+    )
+
+
+def test_one_backbone_gives_insufficient_data_everywhere(results):
+    small_only = results.filter(pl.col("backbone") == "smolvla")
+    v = A.transfer_verdicts(small_only)
+    assert len(v) == 4 and set(v["verdict"]) == {A.INSUFFICIENT}
+    assert all("needs two backbones" in n for n in v["note"])
+    assert A.kendall_tau(small_only)["tau_b"].null_count() == 4
+    assert A.seed_pairings(small_only)["disagree"].null_count() == 4
+    assert A.seed_disagreement_counts(small_only)["n_pairings"].to_list() == [0, 0, 0, 0]
+
+
+def test_seed_pairings_and_counts(results):
+    pairs = A.seed_pairings(results)
+    spatial = pairs.filter(pl.col("suite") == "libero_spatial").sort("seed")
+    assert spatial["disagree"].to_list() == [False, True, True]
+    assert spatial["large_top1"].to_list() == ["siglip", "dinov2-s", "dinov2-s"]
+    ten = pairs.filter(pl.col("suite") == "libero_10").sort("seed")
+    assert ten["disagree"].to_list() == [False, None, None]  # seed 0: tie {dinov2-s, siglip} shares siglip
+    assert ten["note"][1] == "seed 1 not run on pi0.5"
+    counts = {r["suite"]: r for r in A.seed_disagreement_counts(results).iter_rows(named=True)}
+    assert (counts["libero_spatial"]["n_disagree"], counts["libero_spatial"]["n_pairings"]) == (2, 3)
+    assert counts["libero_object"]["fraction_disagree"] == 1.0
+    assert (counts["libero_goal"]["n_pairings"], counts["libero_goal"]["n_unpaired"]) == (0, 3)
+    assert counts["libero_goal"]["fraction_disagree"] is None
+
+
+def test_tau_b_against_hand_values_and_scipy():
+    assert A.tau_b([1, 2, 3], [2, 1, 3]) == pytest.approx(1 / 3)
+    assert A.tau_b([2, 2, 4], [1, 1, 2]) == pytest.approx(1.0)
+    assert A.tau_b([1, 1, 1], [1, 2, 3]) is None and A.tau_b([1], [1]) is None
+    stats = pytest.importorskip("scipy.stats")
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        x, y = rng.integers(0, 4, 8), rng.integers(0, 4, 8)
+        want = stats.kendalltau(x, y, variant="b").statistic
+        got = A.tau_b(x, y)
+        assert (got is None and math.isnan(want)) or got == pytest.approx(want)
+
+
+def test_kendall_tau_per_suite(results):
+    tau = {r["suite"]: r for r in A.kendall_tau(results).iter_rows(named=True)}
+    assert tau["libero_spatial"]["tau_b"] == pytest.approx(1 / 3)
+    assert tau["libero_object"]["tau_b"] == pytest.approx(-1 / 3)
+    assert tau["libero_10"]["tau_b"] == pytest.approx(1.0)
+    assert tau["libero_goal"]["tau_b"] is None and "fewer than two" in tau["libero_goal"]["note"]
+
+
+def test_wrapper_non_neutrality(results):
+    w = A.wrapper_non_neutrality(results)
+    small = _one(w, backbone="smolvla")
+    assert small["non_neutrality"] == pytest.approx(0.2) and small[
+        "non_neutrality_seed_std"
+    ] == pytest.approx(0.1)
+    assert small["native_encoder"] == "smolvla-native" and (small["native_n"], small["native_graft_n"]) == (
+        1,
+        3,
+    )
+    large = _one(w, backbone="pi05")
+    assert large["non_neutrality"] is None and large["note"] == "no valid native-graft rows"
+    assert len(A.wrapper_non_neutrality(results, by_suite=False)) == 2
+
+
+def test_controls_distance(results):
+    c = A.controls_distance(results)
+    sig = _one(c, backbone="smolvla", suite="libero_spatial", encoder="siglip", control="zero-image")
+    assert sig["distance"] == pytest.approx((3.1 - 1.1) / 3.1) and sig["within_noise"] is False
+    shuf = _one(c, backbone="smolvla", suite="libero_spatial", encoder="siglip", control="shuffled-image")
+    assert shuf["distance"] == pytest.approx((2.2 - 1.1) / 2.2)
+    res = _one(c, backbone="smolvla", suite="libero_spatial", encoder="resnet18", control="zero-image")
+    assert res["distance"] == pytest.approx((3.05 - 3.1) / 3.05) and res["within_noise"] is True
+    gap = _one(c, backbone="smolvla", suite="libero_spatial", encoder="dinov2-s", control="zero-image")
+    assert (
+        gap["distance"] is None and gap["within_noise"] is None and gap["note"] == "no valid zero-image rows"
+    )
+    # controls=None picks up every encoder-level control in the table, never the native ones
+    assert set(A.controls_distance(results, controls=None)["control"]) == {"zero-image", "shuffled-image"}
+
+
+def test_control_rows_without_plain_rows_are_reported():
+    t = table(
+        plain_rows({("smolvla", "s", "a"): [1.0]})
+        + [row("smolvla", "s", "zero", 0, 2.0, control="zero-image")]
+    )
+    r = _one(A.controls_distance(t, controls=["zero-image"]), encoder="zero")
+    assert r["enc_mse"] is None and r["note"] == "no valid plain-graft rows for this encoder"
+
+
+def test_missing_cells_lists_every_gap(results):
+    m = A.missing_cells(results)
+    assert set(m.filter(pl.col("backbone") == "pi05", pl.col("suite") == "libero_goal")["encoder"]) == {
+        "siglip",
+        "resnet18",
+    }
+    assert len(m) == 2  # pi05/libero_10 ran seed 0 only for every encoder: nothing lacks a seed there
+    t = table(plain_rows({("smolvla", "s", "a"): [1.0, 1.1, 1.2], ("smolvla", "s", "b"): [1.0, 1.1]}))
+    assert A.missing_cells(t).row(0, named=True)["problem"] == "missing seed(s) 2"
+
+
+def test_analyze_bundles_and_rejects_mixed_recipes(results):
+    a = A.analyze(results, n_boot=200)
+    assert a.backbones == ["smolvla", "pi05"] and len(a.suites) == 4
+    assert len(a.verdicts) == 4 and set(a.controls["control"]) == {"zero-image", "shuffled-image"}
+    mixed = pl.concat(
+        [results, table([row("smolvla", "libero_spatial", "siglip", 0, 9.0, objective="align")])]
+    )
+    with pytest.raises(GraftcacheError, match="differing in objective"):
+        A.analyze(mixed)
+
+
+def test_empty_and_malformed_tables():
+    empty = table([])
+    a = A.analyze(empty)
+    assert len(a.band) == 0 and len(a.verdicts) == 0 and len(a.controls) == 0
+    with pytest.raises(GraftcacheError, match="eval_mse"):
+        A.seed_summary(empty.drop("eval_mse"))
