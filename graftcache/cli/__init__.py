@@ -14,7 +14,7 @@ from importlib import import_module
 
 from graftcache import __version__
 
-COMMANDS = ("extract", "caches", "fit", "train_tiny", "sweep", "report", "demo")
+COMMANDS = ("extract", "caches", "train_tiny", "fit", "sweep", "report", "demo")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -1,0 +1,142 @@
+"""pi0.5 (lerobot 0.4.4, PaliGemma gemma_2b + gemma_300m expert) as a graftable backbone.
+
+Vision path (modeling_pi05.py:1131, 634, 429): `_preprocess_images` pads/resizes to 224 px and
+rescales to [-1, 1]; `embed_image` = PaliGemma `get_image_features`: SigLIP So400m/14 (16x16 patches
+x 1152) -> multi_modal_projector Linear(1152 -> 2048) = 256 tokens x 2048 per camera, no further
+scaling (with the fork semantics supplied by pi05_compat). The graft replaces SigLIP with a
+pass-through and the projector with the graft projector.
+
+The prompt embeds the state discretised into 256 bins ("Task: ..., State: ...;\\nAction: "), so
+tokens are made per batch by lerobot's preprocessor, not once per task.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import nn
+
+from graftcache.backbones.base import TOKEN_MASK, TOKENS, BackboneAdapter
+from graftcache.backbones.checkpoint import cached_repo
+from graftcache.backbones.pi05_compat import ensure_pi05_runtime
+from graftcache.backbones.tiny import (
+    Pi05TinyGeometry,
+    TinySpec,
+    build_tiny_pi05,
+    paligemma_tiny_tokenizer,
+    pi05_processors,
+    pi05_tiny_sizes,
+)
+
+PALIGEMMA_TOKENIZER = "google/paligemma-3b-pt-224"  # hard-coded by processor_pi05.py:145
+
+
+class PI05Adapter(BackboneAdapter):
+    name = "pi05"
+    image_method = "_preprocess_images"
+    token_steps = ("Pi05PrepareStateTokenizerProcessorStep", "TokenizerProcessorStep")
+    prompt_uses_state = True
+
+    # ------------------------------------------------------------------------------ construction
+    @classmethod
+    def _build_tiny(cls, spec: TinySpec, stats: dict | None, device: str):
+        geometry = Pi05TinyGeometry()
+        policy, pre, post = build_tiny_pi05(spec, stats, device, geometry)
+        return policy, pre, post, {"backbone": cls.name, "geometry": geometry}
+
+    @classmethod
+    def _load_policy(cls, folder: Path, config, marker: dict | None) -> nn.Module:
+        ensure_pi05_runtime()
+        from lerobot.policies.pi05.modeling_pi05 import PI05Policy
+
+        if marker is None:
+            return PI05Policy.from_pretrained(folder, config=config, strict=True)
+        with pi05_tiny_sizes(marker["geometry"]):
+            return PI05Policy.from_pretrained(folder, config=config, strict=True)
+
+    @classmethod
+    def _checkpoint_key_map(cls, policy: nn.Module):
+        """Mirror PI05Policy.from_pretrained: openpi key fixes, then a "model." prefix."""
+
+        def key_map(shapes: dict) -> dict:
+            fixed = policy._fix_pytorch_state_dict_keys(shapes, policy.config)
+            return {k if k.startswith("model.") else f"model.{k}": v for k, v in fixed.items()}
+
+        return key_map
+
+    @classmethod
+    def _tokenizer(cls, marker: dict | None):
+        if marker is not None:
+            return paligemma_tiny_tokenizer()
+        from transformers import AutoTokenizer
+
+        return AutoTokenizer.from_pretrained(cached_repo(PALIGEMMA_TOKENIZER, "pi0.5's tokenizer"))
+
+    @classmethod
+    def _processor_overrides(cls, config, marker: dict | None, device: str) -> tuple[dict, dict]:
+        pre, post = super()._processor_overrides(config, marker, device)
+        pre["tokenizer_processor"] = {"tokenizer": cls._tokenizer(marker)}
+        # lerobot 0.4.4 saves this step's config as {} (no get_config), so a reload would pad the
+        # state to the default 32 dims and change every prompt of a policy with another max_state_dim.
+        pre["pi05_prepare_state_tokenizer_processor_step"] = {"max_state_dim": config.max_state_dim}
+        return pre, post
+
+    @classmethod
+    def _make_processors(cls, config, stats: dict, marker: dict | None):
+        return pi05_processors(config, stats, cls._tokenizer(marker))
+
+    # ------------------------------------------------------------------------------ geometry
+    @property
+    def _paligemma(self) -> nn.Module:
+        return self.policy.model.paligemma_with_expert.paligemma.model  # PaliGemmaModel
+
+    @property
+    def native_grid(self) -> tuple[int, int]:
+        side = self.config.image_resolution[0] // self._paligemma.config.vision_config.patch_size
+        return side, side
+
+    @property
+    def lm_width(self) -> int:
+        return self._paligemma.config.text_config.hidden_size
+
+    @property
+    def embed_scale(self) -> float:
+        return 1.0
+
+    @property
+    def num_steps(self) -> int:
+        return self.config.num_inference_steps
+
+    # ------------------------------------------------------------------------------ surgery
+    def _vision_slots(self) -> tuple[nn.Module, str, str]:
+        return self._paligemma, "vision_tower", "multi_modal_projector"
+
+    def _tower_and_connector(self) -> tuple[nn.Module, nn.Module]:
+        return self._paligemma.vision_tower, self._paligemma.multi_modal_projector
+
+    # ------------------------------------------------------------------------------ objectives
+    def _flow_losses(self, batch: Mapping[str, Any], noise, time) -> torch.Tensor:
+        policy = self.policy
+        images, img_masks = policy._preprocess_images(batch)
+        return policy.model.forward(
+            images, img_masks, batch[TOKENS], batch[TOKEN_MASK], policy.prepare_action(batch), noise, time
+        )
+
+    def _predict_chunk(self, batch: Mapping[str, Any], noise: torch.Tensor, num_steps: int) -> torch.Tensor:
+        return self.policy.predict_action_chunk(dict(batch), noise=noise, num_steps=num_steps)
+
+    # ------------------------------------------------------------------------------ reporting
+    def _module_groups(self) -> dict[str, nn.Module | tuple[nn.Module, ...]]:
+        model, pg = self.policy.model, self._paligemma
+        return {
+            "vision tower": pg.vision_tower,
+            "graft projector" if self.grafted else "connector": pg.multi_modal_projector,
+            "language model": pg.language_model,
+            "action expert": model.paligemma_with_expert.gemma_expert,
+            "action/time projections": (model.action_in_proj, model.action_out_proj,
+                                        model.time_mlp_in, model.time_mlp_out),
+        }
+

@@ -1,0 +1,130 @@
+"""SmolVLA (lerobot 0.4.4, SmolVLM2-500M backbone) as a graftable backbone.
+
+Vision path (modeling_smolvla.py:403, 625; smolvlm_with_expert.py:179-192): `prepare_images`
+pads/resizes to 512 px and rescales to [-1, 1]; `embed_image` runs SigLIP-B/16 (32x32 patches x 768),
+then the connector (pixel shuffle x4 -> Linear(12288 -> 960)) = 64 tokens x 960 per camera, which
+`embed_prefix` multiplies by sqrt(960). The graft replaces SigLIP with a pass-through and the
+connector with the projector; lerobot's sqrt(width) scaling still applies after it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import nn
+
+from graftcache.backbones.base import TOKEN_MASK, TOKENS, BackboneAdapter
+from graftcache.backbones.checkpoint import cached_repo
+from graftcache.backbones.tiny import TinySpec, build_tiny_smolvla
+from graftcache.backbones.tiny_assets import SMOLVLM_DIR
+
+
+class SmolVLAAdapter(BackboneAdapter):
+    name = "smolvla"
+    image_method = "prepare_images"
+    token_steps = ("SmolVLANewLineProcessor", "TokenizerProcessorStep")
+
+    # ------------------------------------------------------------------------------ construction
+    @classmethod
+    def _build_tiny(cls, spec: TinySpec, stats: dict | None, device: str):
+        policy, pre, post = build_tiny_smolvla(spec, stats, device)
+        return policy, pre, post, {"backbone": cls.name, "geometry": None}
+
+    @classmethod
+    def _load_policy(cls, folder: Path, config, marker: dict | None) -> nn.Module:
+        from lerobot.policies.smolvla.modeling_smolvla import SmolVLAPolicy
+
+        # The policy's safetensors hold every VLM weight: do not make lerobot load SmolVLM2's own
+        # weights first (bf16, and they would have to be in the cache). Config + processor suffice.
+        config.load_vlm_weights = False
+        if marker is not None:
+            config.vlm_model_name = str(SMOLVLM_DIR)
+        elif not Path(config.vlm_model_name).is_dir():
+            cached_repo(config.vlm_model_name, "SmolVLA's VLM config/processor")
+        return SmolVLAPolicy.from_pretrained(folder, config=config)
+
+    @classmethod
+    def _processor_overrides(cls, config, marker: dict | None, device: str) -> tuple[dict, dict]:
+        pre, post = super()._processor_overrides(config, marker, device)
+        if marker is not None:  # the saved tokenizer path points into the package that saved it
+            from transformers import AutoTokenizer
+
+            pre["tokenizer_processor"] = {"tokenizer": AutoTokenizer.from_pretrained(SMOLVLM_DIR)}
+        return pre, post
+
+    @classmethod
+    def _make_processors(cls, config, stats: dict, marker: dict | None):
+        from lerobot.policies.smolvla.processor_smolvla import make_smolvla_pre_post_processors
+
+        return make_smolvla_pre_post_processors(config, dataset_stats=stats)
+
+    # ------------------------------------------------------------------------------ geometry
+    @property
+    def _vlm(self) -> nn.Module:
+        return self.policy.model.vlm_with_expert.get_vlm_model()
+
+    @property
+    def native_grid(self) -> tuple[int, int]:
+        vision = self._vlm.config.vision_config
+        side = vision.image_size // vision.patch_size // self._vlm.config.scale_factor
+        return side, side
+
+    @property
+    def lm_width(self) -> int:
+        return self._vlm.config.text_config.hidden_size
+
+    @property
+    def embed_scale(self) -> float:
+        return float(self.lm_width) ** 0.5
+
+    @property
+    def num_steps(self) -> int:
+        return self.config.num_steps
+
+    # ------------------------------------------------------------------------------ surgery
+    def _vision_slots(self) -> tuple[nn.Module, str, str]:
+        return self._vlm, "vision_model", "connector"
+
+    def _tower_and_connector(self) -> tuple[nn.Module, nn.Module]:
+        return self._vlm.vision_model, self._vlm.connector
+
+    # ------------------------------------------------------------------------------ objectives
+    def _flow_losses(self, batch: Mapping[str, Any], noise, time) -> torch.Tensor:
+        policy = self.policy
+        images, img_masks = policy.prepare_images(batch)
+        return policy.model.forward(
+            images, img_masks, batch[TOKENS], batch[TOKEN_MASK], policy.prepare_state(batch),
+            policy.prepare_action(batch), noise, time,
+        )
+
+    def _predict_chunk(self, batch: Mapping[str, Any], noise: torch.Tensor, num_steps: int) -> torch.Tensor:
+        with _num_steps(self.config, num_steps):
+            return self.policy.predict_action_chunk(dict(batch), noise=noise)
+
+    # ------------------------------------------------------------------------------ reporting
+    def _module_groups(self) -> dict[str, nn.Module | tuple[nn.Module, ...]]:
+        model, vlm = self.policy.model, self._vlm
+        return {
+            "vision tower": vlm.vision_model,
+            "graft projector" if self.grafted else "connector": vlm.connector,
+            "language model": vlm.text_model,
+            "action expert": model.vlm_with_expert.lm_expert,
+            "state projection": model.state_proj,
+            "action/time projections": (model.action_in_proj, model.action_out_proj,
+                                        model.action_time_mlp_in, model.action_time_mlp_out),
+        }
+
+
+@contextlib.contextmanager
+def _num_steps(config, steps: int):
+    """SmolVLA's sampler reads `config.num_steps` (it takes no argument); set it for one call."""
+    saved, config.num_steps = config.num_steps, steps
+    try:
+        yield
+    finally:
+        config.num_steps = saved
+

@@ -1,0 +1,130 @@
+"""Generate the small tokenizer/config folders shipped under graftcache/resources/tiny/ (run once).
+
+Why shipped files instead of building them at import time: byte-level BPE training is fast, but its
+merges may change between `tokenizers` releases, and a natively trained tiny backbone saved today
+must still see the same token ids next year. So the files are generated once by this script,
+committed (~100 KB), and loaded offline by `graftcache.backbones.tiny`.
+
+    python -m graftcache.backbones.tiny_assets          # rewrites graftcache/resources/tiny/
+
+Two folders:
+- `smolvlm/`: usable as `SmolVLAConfig.vlm_model_name`. SmolVLA reads `AutoConfig`, `AutoProcessor`
+  (only `tokenizer.fake_image_token_id` / `global_image_token_id`) and `AutoTokenizer` from it.
+  The config fixes the tiny SmolVLM geometry (SigLIP 128 px / patch 16 -> 8x8 patches, pixel
+  shuffle 2 -> 4x4 = 16 tokens per camera, Llama text model 192 wide x 4 layers).
+- `paligemma/`: a PaliGemma-style tokenizer (<pad>=0, <eos>=1, <bos>=2, prepends <bos>) that
+  replaces the gated `google/paligemma-3b-pt-224` tokenizer lerobot's pi0.5 processor hard-codes.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+TINY_ROOT = Path(__file__).resolve().parent.parent / "resources" / "tiny"
+SMOLVLM_DIR = TINY_ROOT / "smolvlm"
+PALIGEMMA_DIR = TINY_ROOT / "paligemma"
+
+VOCAB_SIZE = 1024
+SMOLVLM_SPECIALS = (
+    "<|endoftext|>", "<|im_start|>", "<|im_end|>",
+    "<fake_token_around_image>", "<image>", "<global-img>", "<end_of_utterance>",
+)
+PALIGEMMA_SPECIALS = ("<pad>", "<eos>", "<bos>", "<unk>", "<image>")
+
+# SmolVLM geometry baked into smolvlm/config.json.
+SMOLVLM_GEOMETRY = {
+    "image_size": 128, "patch_size": 16, "scale_factor": 2,
+    "vision_hidden": 96, "vision_layers": 2, "vision_heads": 3, "vision_intermediate": 384,
+    "text_hidden": 192, "text_layers": 4, "text_heads": 6, "text_kv_heads": 2, "text_intermediate": 512,
+}
+
+
+def _corpus() -> list[str]:
+    """LIBERO instructions plus the pi0.5 prompt scaffolding and state bins, so both tokenise compactly."""
+    tasks_file = TINY_ROOT.parent / "libero_suite_tasks.json"
+    tasks = [t for suite in json.loads(tasks_file.read_text()).values() for t in suite]
+    numbers = " ".join(str(i) for i in range(256))
+    scaffold = [f"Task: {t}, State: {numbers};\nAction: " for t in tasks[:8]]
+    return (tasks + [t + "\n" for t in tasks] + scaffold) * 4
+
+
+def _train_bpe(specials: tuple[str, ...]):
+    from tokenizers import Tokenizer, decoders, models, pre_tokenizers, trainers
+
+    tok = Tokenizer(models.BPE(unk_token=None))
+    tok.pre_tokenizer = pre_tokenizers.ByteLevel(add_prefix_space=False)
+    tok.decoder = decoders.ByteLevel()
+    trainer = trainers.BpeTrainer(
+        vocab_size=VOCAB_SIZE, special_tokens=list(specials),
+        initial_alphabet=pre_tokenizers.ByteLevel.alphabet(), show_progress=False,
+    )
+    tok.train_from_iterator(_corpus(), trainer=trainer)
+    return tok
+
+
+def write_smolvlm(out: Path = SMOLVLM_DIR) -> Path:
+    from transformers import PreTrainedTokenizerFast, SmolVLMConfig
+    from transformers.models.smolvlm import SmolVLMImageProcessor, SmolVLMProcessor
+    from transformers.models.smolvlm.video_processing_smolvlm import SmolVLMVideoProcessor
+
+    g = SMOLVLM_GEOMETRY
+    tok = PreTrainedTokenizerFast(
+        tokenizer_object=_train_bpe(SMOLVLM_SPECIALS),
+        bos_token="<|im_start|>", eos_token="<end_of_utterance>", pad_token="<|im_end|>",
+        unk_token="<|endoftext|>",
+        extra_special_tokens={
+            "fake_image_token": "<fake_token_around_image>", "image_token": "<image>",
+            "global_image_token": "<global-img>", "end_of_utterance_token": "<end_of_utterance>",
+        },
+    )
+    cfg = SmolVLMConfig(
+        image_token_id=tok.convert_tokens_to_ids("<image>"),
+        scale_factor=g["scale_factor"],
+        pad_token_id=tok.pad_token_id,
+        vision_config={
+            "hidden_size": g["vision_hidden"], "intermediate_size": g["vision_intermediate"],
+            "num_hidden_layers": g["vision_layers"], "num_attention_heads": g["vision_heads"],
+            "image_size": g["image_size"], "patch_size": g["patch_size"],
+        },
+        text_config={
+            "model_type": "llama", "hidden_size": g["text_hidden"], "intermediate_size": g["text_intermediate"],
+            "num_hidden_layers": g["text_layers"], "num_attention_heads": g["text_heads"],
+            "num_key_value_heads": g["text_kv_heads"], "head_dim": g["text_hidden"] // g["text_heads"],
+            "vocab_size": len(tok), "max_position_embeddings": 2048, "rope_theta": 100000.0,
+            "rms_norm_eps": 1e-5, "pad_token_id": tok.pad_token_id,
+        },
+    )
+    out.mkdir(parents=True, exist_ok=True)
+    cfg.save_pretrained(out)
+    tokens_per_image = (g["image_size"] // g["patch_size"]) ** 2 // g["scale_factor"] ** 2
+    SmolVLMProcessor(
+        image_processor=SmolVLMImageProcessor(
+            size={"longest_edge": g["image_size"]}, max_image_size={"longest_edge": g["image_size"]}
+        ),
+        tokenizer=tok,
+        video_processor=SmolVLMVideoProcessor(),
+        image_seq_len=tokens_per_image,
+    ).save_pretrained(out)
+    return out
+
+
+def write_paligemma(out: Path = PALIGEMMA_DIR) -> Path:
+    from tokenizers import processors
+    from transformers import PreTrainedTokenizerFast
+
+    bpe = _train_bpe(PALIGEMMA_SPECIALS)
+    bpe.post_processor = processors.TemplateProcessing(
+        single="<bos> $A", pair="<bos> $A $B", special_tokens=[("<bos>", bpe.token_to_id("<bos>"))]
+    )
+    tok = PreTrainedTokenizerFast(
+        tokenizer_object=bpe, bos_token="<bos>", eos_token="<eos>", pad_token="<pad>", unk_token="<unk>"
+    )
+    out.mkdir(parents=True, exist_ok=True)
+    tok.save_pretrained(out)
+    return out
+
+
+if __name__ == "__main__":
+    for d in (write_smolvlm(), write_paligemma()):
+        print(d, sorted(p.name for p in d.iterdir()), sum(p.stat().st_size for p in d.iterdir()), "bytes")

@@ -1,0 +1,67 @@
+"""`graftcache fit`: train only the projector into a frozen backbone from cached features."""
+
+from __future__ import annotations
+
+import argparse
+
+from graftcache.cli.common import add_cache_flag, parse_int_list
+
+
+def parse_seeds(text: str) -> tuple[int, ...]:
+    """'3' -> (0, 1, 2); '0,1,2' or '0-4' -> those seeds."""
+    if text.isdigit():
+        return tuple(range(int(text)))
+    return parse_int_list(text)
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("fit", help="fit projector-only grafts (seeds x controls) from a cache, one row per cell",
+                       description="Train only LayerNorm + Linear into a frozen SmolVLA / pi0.5 from cached features, "
+                       "across seeds and controls, and score offline action MSE on held-out episodes. Finished cells "
+                       "in --results are skipped.")
+    p.add_argument("--backbone", required=True, choices=("smolvla", "pi05"))
+    p.add_argument("--policy", default="tiny",
+                   help="hub id (HF cache), local checkpoint folder, or 'tiny' (the natively trained tiny backbone)")
+    p.add_argument("--encoder", required=True, help="encoder whose cache to graft (registry name)")
+    p.add_argument("--dataset", default=None, help="dataset the cache must come from (path or hub id)")
+    p.add_argument("--cache-key", default=None, help="use this cache (when several match)")
+    p.add_argument("--native-cache-key", default=None, help="native tower cache for native controls / align")
+    p.add_argument("--suite", required=True, help="LIBERO suite, e.g. libero_spatial")
+    p.add_argument("--seeds", default="3", help="'3' (seeds 0-2) or a list '0,1,2'")
+    p.add_argument("--controls", default="",
+                   help="comma list: native, native-graft, zero-image, shuffled-image, pool-HxW, lora")
+    p.add_argument("--objective", default="flow", choices=("flow", "align"),
+                   help="flow: the policy's loss; align: closed-form ridge onto the native tokens (cheap screening)")
+    p.add_argument("--steps", type=int, default=300)
+    p.add_argument("--lr", type=float, default=1e-3)
+    p.add_argument("--batch-size", type=int, default=16)
+    p.add_argument("--eval-fraction", type=float, default=0.2, help="held-out share of each task's episodes")
+    p.add_argument("--eval-split-seed", type=int, default=0)
+    p.add_argument("--eval-episodes", type=int, default=None, dest="eval_frames_cap",
+                   help=argparse.SUPPRESS)
+    p.add_argument("--eval-frames", type=int, default=None, help="cap on scored held-out frames (evenly spaced)")
+    p.add_argument("--num-denoise-steps", type=int, default=None)
+    p.add_argument("--lora-rank", type=int, default=8)
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--dtype", default="fp32", choices=("fp32", "bf16", "fp16"), help="compute dtype (autocast)")
+    p.add_argument("--results", default="results.parquet")
+    p.add_argument("--out", default=None, help="run folder for projectors (default: <cache>/runs)")
+    p.add_argument("--no-progress", action="store_true")
+    add_cache_flag(p)
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from graftcache.fit.run import Fitter, FitRequest
+
+    req = FitRequest(
+        backbone=args.backbone, encoder=args.encoder, suite=args.suite, policy=args.policy, dataset=args.dataset,
+        cache_key=args.cache_key, native_cache_key=args.native_cache_key, seeds=parse_seeds(args.seeds),
+        controls=tuple(c.strip() for c in args.controls.split(",") if c.strip()), objective=args.objective,
+        steps=args.steps, lr=args.lr, batch_size=args.batch_size, eval_fraction=args.eval_fraction,
+        eval_split_seed=args.eval_split_seed, eval_frames=args.eval_frames,
+        num_denoise_steps=args.num_denoise_steps, lora_rank=args.lora_rank, device=args.device, dtype=args.dtype,
+        results=args.results, out=args.out, cache=args.cache, progress=not args.no_progress,
+    )
+    Fitter(req).run()
+    return 0

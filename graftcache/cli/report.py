@@ -1,0 +1,22 @@
+"""`graftcache report`: rankings, transfer verdicts and figures from a results file."""
+
+from __future__ import annotations
+
+import argparse
+import shlex
+import sys
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("report", help="write report.md/report.html with figures from a results file",
+                       description="Turn a results Parquet file into rankings, near-tie bands, transfer verdicts, "
+                       "control comparisons and figures (report.md, report.html, PNGs).")
+    p.add_argument("results", help="results Parquet file written by fit/sweep/demo")
+    p.add_argument("--out", default="report", help="output folder (default: report/)")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from graftcache.report import report_command
+
+    return report_command(args.results, args.out, command=shlex.join(["graftcache", *sys.argv[1:]]))

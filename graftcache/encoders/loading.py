@@ -1,0 +1,102 @@
+"""Weight provenance and offline resolution shared by the builders.
+
+Nothing here downloads: a hub id is looked up in the local Hugging Face cache (read at call time,
+so tests and CLIs can redirect it) and the files found there are what gets loaded and hashed. The
+sha256 recorded in the manifest is always of the bytes actually used: the weights file(s), or for a
+random init the state_dict tensors themselves.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+from collections.abc import Iterable, Iterator, Mapping
+from pathlib import Path
+
+import torch
+
+from graftcache.datasets.resolve import hub_cache
+from graftcache.encoders.spec import EncoderSpec
+from graftcache.errors import EncoderError
+
+# transformers' own preference order: safetensors (single or sharded) before pickled .bin.
+HF_WEIGHT_FILES = ("model.safetensors", "model.safetensors.index.json", "pytorch_model.bin",
+                   "pytorch_model.bin.index.json")
+
+
+def sha256_file(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while chunk := f.read(1 << 20):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def sha256_files(paths: Iterable[Path]) -> str:
+    """One file: its sha256. Several (sharded checkpoints): sha256 of the "name sha256" lines, by name."""
+    paths = sorted(paths, key=lambda p: p.name)
+    if len(paths) == 1:
+        return sha256_file(paths[0])
+    lines = "".join(f"{p.name} {sha256_file(p)}\n" for p in paths)
+    return hashlib.sha256(lines.encode()).hexdigest()
+
+
+def sha256_state_dict(state: Mapping[str, torch.Tensor]) -> str:
+    """Hash of tensors in key order (name, dtype, shape and raw bytes), for weights that have no file."""
+    h = hashlib.sha256()
+    for key, t in state.items():
+        t = t.detach().to("cpu").contiguous()
+        h.update(f"{key}|{t.dtype}|{tuple(t.shape)}\n".encode())
+        h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes())
+    return h.hexdigest()
+
+
+@contextlib.contextmanager
+def seeded(seed: int) -> Iterator[None]:
+    """Deterministic parameter init (same seed -> identical weights) without disturbing the caller's RNG."""
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        yield
+
+
+def hub_snapshot(repo_id: str) -> tuple[Path, str] | None:
+    """The cached snapshot folder of a model repo (refs/main, else a single snapshot) and its revision."""
+    repo_dir = hub_cache() / ("models--" + repo_id.replace("/", "--"))
+    ref = repo_dir / "refs" / "main"
+    if ref.is_file():
+        rev = ref.read_text().strip()
+        if (repo_dir / "snapshots" / rev).is_dir():
+            return repo_dir / "snapshots" / rev, rev
+    snaps = sorted(p for p in (repo_dir / "snapshots").glob("*") if p.is_dir()) if repo_dir.is_dir() else []
+    return (snaps[0], snaps[0].name) if len(snaps) == 1 else None
+
+
+def hf_weight_files(folder: Path) -> list[Path]:
+    """The weight file(s) transformers would load from a model folder (shards listed by the index)."""
+    for name in HF_WEIGHT_FILES:
+        path = folder / name
+        if path.is_file():
+            if name.endswith(".index.json"):
+                shards = sorted(set(json.loads(path.read_text())["weight_map"].values()))
+                return [folder / s for s in shards]
+            return [path]
+    return []
+
+
+def missing_hub_weights(spec: EncoderSpec, repo_id: str, what: str) -> EncoderError:
+    """The one error for "the default weights are not on this machine", with the ways out."""
+    where = hub_cache() / ("models--" + repo_id.replace("/", "--"))
+    return EncoderError(f"encoder {spec.name!r}: {what} for hub repo {repo_id!r} not found in the local Hugging "
+                        f"Face cache ({where}); nothing is downloaded. Put the model there (e.g. `hf download "
+                        f"{repo_id}` where there is network), or pass --weights PATH, or --random-init")
+
+
+def require_file(spec: EncoderSpec, path: Path, suffixes: tuple[str, ...] = (".safetensors",)) -> Path:
+    """A user-given weights file must exist and be of a format that cannot execute code."""
+    if not path.is_file():
+        raise EncoderError(f"encoder {spec.name!r}: weights file {path} does not exist")
+    if path.suffix not in suffixes:
+        raise EncoderError(f"encoder {spec.name!r}: weights file {path} must be {' or '.join(suffixes)} "
+                           f"(pickled checkpoints are not loaded; convert with safetensors.torch.save_file)")
+    return path

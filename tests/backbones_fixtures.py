@@ -1,0 +1,85 @@
+"""Shared helpers for the backbone and graft tests: tiny adapters, stats and raw batches."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import pytest
+import torch
+
+from graftcache.backbones import TinySpec, load_backbone
+from graftcache.backbones.base import BackboneAdapter
+from graftcache.graft import GraftProjector, feature_key
+
+SPEC = TinySpec()
+ENC_DIM = 48
+TASKS = (
+    "pick up the black bowl between the plate and the ramekin and place it on the plate",
+    "open the middle drawer of the cabinet",
+    "put the bowl on the stove",
+)
+
+
+def lowdim_stats(state_dim: int = SPEC.state_dim, action_dim: int = SPEC.action_dim) -> dict:
+    """lerobot-format stats with every field the SmolVLA (MEAN_STD) and pi0.5 (QUANTILES) processors read."""
+    def fields(n: int, scale: float) -> dict[str, torch.Tensor]:
+        return {
+            "mean": torch.full((n,), 0.1), "std": torch.full((n,), scale),
+            "min": torch.full((n,), -2 * scale), "max": torch.full((n,), 2 * scale),
+            "q01": torch.full((n,), -1.5 * scale), "q99": torch.full((n,), 1.5 * scale),
+        }
+
+    return {"observation.state": fields(state_dim, 0.5), "action": fields(action_dim, 0.8)}
+
+
+def tiny(name: str, seed: int = 0) -> BackboneAdapter:
+    return load_backbone(name, "tiny", dataset_stats=lowdim_stats(), tiny=TinySpec(seed=seed))
+
+
+def grafted(name: str, enc_dim: int = ENC_DIM, seed: int = 0) -> BackboneAdapter:
+    adapter = tiny(name, seed)
+    torch.manual_seed(seed)
+    adapter.graft(GraftProjector(enc_dim, adapter.lm_width))
+    return adapter
+
+
+def raw_lowdim(adapter: BackboneAdapter, batch: int, seed: int = 0) -> dict:
+    """Raw (unnormalised) state, action chunk, padding flags and task strings."""
+    g = torch.Generator().manual_seed(seed)
+    pad = torch.zeros(batch, adapter.chunk_size, dtype=torch.bool)
+    pad[0, -3:] = True  # the first sample ran off the end of its episode
+    return {
+        "observation.state": torch.randn(batch, adapter.state_dim, generator=g) * 0.5,
+        "action": torch.randn(batch, adapter.chunk_size, adapter.action_dim, generator=g) * 0.8,
+        "action_is_pad": pad,
+        "task": [TASKS[i % len(TASKS)] for i in range(batch)],
+    }
+
+
+def raw_features(adapter: BackboneAdapter, batch: int, enc_dim: int = ENC_DIM, seed: int = 0) -> dict:
+    """A raw batch with cached features [B, T, enc_dim] per camera at the backbone's native grid."""
+    g = torch.Generator().manual_seed(seed + 1)
+    tokens = adapter.native_grid[0] * adapter.native_grid[1]
+    feats = {feature_key(c): torch.randn(batch, tokens, enc_dim, generator=g) for c in adapter.cameras}
+    return {**feats, **raw_lowdim(adapter, batch, seed)}
+
+
+def raw_images(adapter: BackboneAdapter, batch: int, seed: int = 0, size: int = 96) -> dict:
+    """A raw batch with pixels [B, 3, H, W] in [0, 1] per camera (the native, ungrafted policy)."""
+    g = torch.Generator().manual_seed(seed + 2)
+    images = {k: torch.rand(batch, 3, size, size, generator=g) for k in adapter.camera_keys}
+    return {**images, **raw_lowdim(adapter, batch, seed)}
+
+
+def fixed_noise_time(adapter: BackboneAdapter, batch: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+    g = torch.Generator().manual_seed(seed + 3)
+    return adapter.sample_noise(batch, g), torch.rand(batch, generator=g) * 0.9 + 0.05
+
+
+@pytest.fixture(autouse=True)
+def one_torch_thread() -> Iterator[None]:
+    """Tiny models on a shared 2-core machine: one intra-op thread is 3-10x faster than two under load."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)

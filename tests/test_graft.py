@@ -1,0 +1,87 @@
+"""graftcache.graft: the projector, the pass-through tower, freezing and the freeze report."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from torch import nn
+
+from graftcache.graft import (
+    FreezeReport,
+    GraftProjector,
+    IdentityProjector,
+    PassThroughTower,
+    feature_key,
+    freeze_all_but,
+    freeze_report,
+)
+
+
+def test_feature_key_strips_the_image_prefix() -> None:
+    assert feature_key("image2") == "observation.vis_feats.image2"
+    assert feature_key("observation.images.wrist_image") == "observation.vis_feats.wrist_image"
+
+
+def test_projector_is_layernorm_then_linear() -> None:
+    torch.manual_seed(0)
+    proj = GraftProjector(6, 10)
+    x = torch.randn(2, 5, 6)
+    expected = proj.proj(nn.functional.layer_norm(x, (6,), proj.norm.weight, proj.norm.bias))
+    assert proj(x).shape == (2, 5, 10)
+    torch.testing.assert_close(proj(x), expected)
+    # the LayerNorm makes the projector blind to a per-token affine change of the features
+    torch.testing.assert_close(proj(3 * x + 1), proj(x), atol=1e-4, rtol=1e-4)
+    assert (proj.in_features, proj.out_features) == (6, 10)
+
+
+def test_projector_accepts_half_precision_cached_features() -> None:
+    proj = GraftProjector(4, 3)
+    out = proj(torch.randn(2, 7, 4).to(torch.float16))
+    assert out.dtype == torch.float32 and out.shape == (2, 7, 3)
+
+
+def test_identity_projector_feeds_tokens_unchanged() -> None:
+    x = torch.randn(2, 3, 8, dtype=torch.bfloat16)
+    ident = IdentityProjector(8)
+    assert torch.equal(ident(x), x.float())
+    assert list(ident.parameters()) == [] and ident.out_features == 8
+
+
+def test_pass_through_tower_returns_its_input_and_has_a_dtype() -> None:
+    tower = PassThroughTower()
+    x = torch.randn(2, 16, 5)
+    assert tower(x, patch_attention_mask=None).last_hidden_state is x
+    assert tower.dtype == torch.float32
+    assert tower.to(torch.bfloat16).dtype == torch.bfloat16
+    assert list(tower.parameters()) == [] and tower.state_dict() == {}
+
+
+def test_freeze_all_but_leaves_only_the_given_module_trainable() -> None:
+    model = nn.Sequential(nn.Linear(3, 4), nn.Linear(4, 2))
+    extra = nn.Linear(2, 2)
+    freeze_all_but(model, model[1])
+    assert [p.requires_grad for p in model.parameters()] == [False, False, True, True]
+    freeze_all_but(model, extra)  # a module outside the model: the model is then fully frozen
+    assert not any(p.requires_grad for p in model.parameters())
+    assert all(p.requires_grad for p in extra.parameters())
+
+
+def test_freeze_report_counts_each_parameter_once_and_reports_the_rest() -> None:
+    shared = nn.Linear(4, 4, bias=False)
+    model = nn.ModuleDict({"a": nn.Sequential(shared, nn.Linear(4, 2)), "b": shared, "c": nn.Linear(2, 1)})
+    freeze_all_but(model, model["c"])
+    report = freeze_report({"a": model["a"], "tied": model["b"], "ab": (model["a"], model["b"])}, model)
+    assert isinstance(report, FreezeReport)
+    rows = {r.module: (r.params, r.trainable) for r in report.rows}
+    assert rows == {"a": (16 + 10, 0), "tied": (0, 0), "ab": (0, 0), "other": (3, 3)}
+    assert report.total == sum(p.numel() for p in model.parameters()) == 29
+    assert report.trainable == 3
+    text = str(report)
+    assert "other" in text and "trainable" in text and "29" in text
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
+def test_projector_gradients_flow(dtype: torch.dtype) -> None:
+    proj = GraftProjector(5, 3)
+    proj(torch.randn(4, 2, 5).to(dtype)).sum().backward()
+    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in proj.proj.parameters())
