@@ -25,20 +25,26 @@ def _bare(name: str) -> Encoder:
 @pytest.mark.parametrize(("name", "hw"), [("dinov2-s", (256, 256)), ("clip-b16", (256, 256)),
                                           ("mobilenetv2", (300, 300)), ("siglip2", (240, 320))])
 def test_resize_matches_pil(name: str, hw: tuple[int, int]) -> None:
-    """Antialiased tensor resize == PIL's resize (the reference recipe) to within PIL's uint8 rounding."""
+    """Antialiased tensor resize == PIL's resize (the reference recipe), per channel in PIL's float mode.
+
+    PIL's 8-bit resize rounds to uint8 between its horizontal and vertical passes (up to ~2 px levels
+    off for bicubic); its float mode ("F") runs the same filter without rounding, so the two must agree
+    to a hundredth of a pixel level.
+    """
     enc = _bare(name)
     spec = enc.spec
     frames = random_frames(3, *hw, seed=1)
     x = enc.preprocess(frames)
     assert x.shape == (3, 3, spec.image_size, spec.image_size) and x.dtype == torch.float32
     mean, std = np.array(spec.mean), np.array(spec.std)
+    size = (spec.image_size, spec.image_size)
     for i in range(3):
-        ref = Image.fromarray(frames[i].numpy()).resize((spec.image_size, spec.image_size),
-                                                        PIL_RESAMPLE[spec.interpolation])
-        ref_px = np.asarray(ref).astype(np.float64)
+        px = frames[i].numpy().astype(np.float32)
+        ref_px = np.stack([np.asarray(Image.fromarray(px[..., c], mode="F").resize(size, PIL_RESAMPLE[spec.interpolation]))
+                           for c in range(3)], axis=-1).clip(0, 255)
         ours_px = (x[i].permute(1, 2, 0).double().numpy() * std + mean) * 255
         diff = np.abs(ours_px - ref_px)
-        assert diff.max() < 1.5 and diff.mean() < 0.5, (diff.max(), diff.mean())
+        assert diff.max() < 0.01, (diff.max(), diff.mean())
 
 
 def test_no_resize_when_frames_have_the_input_size() -> None:
