@@ -20,10 +20,10 @@ from pathlib import Path
 import numpy as np
 import polars as pl
 import torch
-import torch.nn.functional as F
 from tqdm import tqdm
 
 from graftcache.backbones import TinySpec, get_backbone
+from graftcache.backbones.native import policy_pixels
 from graftcache.datasets import open_dataset
 from graftcache.fit.data import action_chunks
 from graftcache.fit.loop import flow_time
@@ -58,17 +58,6 @@ def dataset_stats(table: pl.DataFrame) -> dict[str, dict[str, torch.Tensor]]:
         }
         out[key] = {k: torch.as_tensor(v, dtype=torch.float32) for k, v in out[key].items()}
     return out
-
-
-def policy_pixels(frames_u8: torch.Tensor, size: int) -> torch.Tensor:
-    """uint8 frames [N, H, W, 3] -> uint8 [N, 3, size, size] (antialiased bilinear).
-
-    Shared by native training and the native-tower encoders, so the tower sees identically
-    prepared pixels when it is trained and when its features are cached.
-    """
-    x = frames_u8.permute(0, 3, 1, 2).float()
-    x = F.interpolate(x, size=(size, size), mode="bilinear", antialias=True, align_corners=False)
-    return x.round().clamp(0, 255).to(torch.uint8)
 
 
 def _decode_all(dataset: str, cameras: tuple[str, ...], size: int, log: Callable[[str], None]):

@@ -100,7 +100,9 @@ class BackboneAdapter(ABC):
             if dataset_stats is None:
                 raise BackboneError(f"{folder}: no {PREPROCESSOR_FILE}; pass dataset_stats to build the processors")
             processors = cls._make_processors(policy.config, dataset_stats, marker)
-        return cls(policy.to(device), *processors, source=str(source), random_init=False, tiny_marker=marker)
+        # A tiny checkpoint is never released weights: random init, at most trained natively on a sample.
+        return cls(policy.to(device), *processors, source=str(source), random_init=marker is not None,
+                   tiny_marker=marker)
 
     @classmethod
     def _read_config(cls, folder: Path):

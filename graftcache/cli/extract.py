@@ -21,7 +21,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--weights", default=None, help="local weights file/folder instead of the hub id")
     p.add_argument("--random-init", action="store_true", help="random weights (labelled random-init everywhere)")
     p.add_argument("--seed", type=int, default=0, help="seed for --random-init (default 0)")
-    p.add_argument("--policy", default=None, help="policy for native towers (smolvla-native, pi05-native): hub id, folder or 'tiny'")
+    p.add_argument("--policy", default=None,
+                   help="policy for native towers (smolvla-native, pi05-native): hub id, checkpoint folder, or 'tiny' "
+                   "(the tiny backbone natively trained on --dataset by `graftcache train-tiny`)")
     p.add_argument("--grids", default="8x8", help="pooled grids, e.g. 8x8,16x16 (default 8x8: SmolVLA's grid)")
     p.add_argument("--cameras", default=None, help="comma-separated camera names (default: all)")
     p.add_argument("--episodes", default=None, help="episode subset, e.g. 0-9,20")
@@ -34,6 +36,18 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     add_cache_flag(p)
     add_device_flags(p, dtype_help="stored feature dtype (default fp16)")
     p.set_defaults(func=run)
+
+
+def _policy(args: argparse.Namespace) -> str | None:
+    """`--policy tiny` names the tiny backbone natively trained on this dataset: find its folder."""
+    if args.policy != "tiny":
+        return args.policy
+    from graftcache.backbones.native import NATIVE_SUFFIX
+    from graftcache.fit.lookup import dataset_fingerprint, resolve_policy
+    from graftcache.store import cache_root
+
+    backbone = args.encoder.removesuffix(NATIVE_SUFFIX)
+    return resolve_policy(backbone, "tiny", dataset_fingerprint(args.dataset), cache_root(args.cache), args.dataset)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -49,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
         weights=args.weights,
         random_init=args.random_init,
         seed=args.seed,
-        policy=args.policy,
+        policy=_policy(args),
         dtype=args.dtype,
         compute_dtype=args.compute_dtype,
         device=args.device,

@@ -86,7 +86,7 @@ def load_encoder(spec: EncoderSpec | str, *, weights: str | Path | None = None, 
     dev = device if isinstance(device, torch.device) else resolve_device(device)
     encoder.to(dev).eval().requires_grad_(False)
     encoder.compute_dtype = resolve_dtype(dtype) if isinstance(dtype, str) else dtype
-    s = spec.image_size
+    s = encoder.spec.image_size  # builders may measure a more specific spec (native towers)
     encoder.forward_grid(torch.zeros(1, 3, s, s, device=dev))  # a wrong checkpoint fails here, not mid-extraction
     return encoder
 

@@ -11,15 +11,11 @@ import hashlib
 import json
 from pathlib import Path
 
+from graftcache.backbones.native import native_name as native_encoder_name
 from graftcache.errors import FitError
 from graftcache.store import FeatureCache, list_caches
 
 TINY_POLICIES = "policies"
-
-
-def native_encoder_name(backbone: str) -> str:
-    """Registry name of a backbone's own vision tower, e.g. "smolvla-native"."""
-    return f"{backbone}-native"
 
 
 def dataset_fingerprint(dataset: str) -> dict:
