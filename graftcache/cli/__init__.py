@@ -25,13 +25,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"graftcache {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name in COMMANDS:
-        try:
-            module = import_module(f"graftcache.cli.{name}")
-        except ModuleNotFoundError as e:
-            if e.name == f"graftcache.cli.{name}":
-                continue  # command not shipped in this build
-            raise
-        module.add_parser(sub)
+        import_module(f"graftcache.cli.{name}").add_parser(sub)
     return parser
 
 

@@ -69,9 +69,10 @@ def _check_width(cache: FeatureCache) -> None:
     enc = cache.manifest["encoder"]
     name = enc["name"]
     try:
-        spec_width = get_spec(name).width
+        # width 0: measured per loaded model (native towers), so the manifest's own spec is the reference
+        spec_width = get_spec(name).width or enc["width"]
     except Exception:
-        spec_width = enc["width"]  # parametric/native entries: the manifest's own spec is the reference
+        spec_width = enc["width"]  # parametric entries: the manifest's own spec is the reference
     for path, shape in cache.layout["arrays"].items():
         if path.rsplit("/", 1)[-1] in cache.manifest.get("extras", {}):
             continue

@@ -53,6 +53,25 @@ def cache_root(explicit: str | Path | None = None) -> Path:
     return Path(env).expanduser() if env else Path.home() / ".cache" / "graftcache"
 
 
+def _take_rows(arr: zarr.Array, rows: np.ndarray, block_frames: int) -> np.ndarray:
+    """`arr[rows]` for an index array, read one shard-sized span at a time.
+
+    zarr's orthogonal selection on sharded arrays costs ~50 ms per shard in chunk bookkeeping (4.6 s
+    for 1k rows here); slicing the span of the wanted rows inside each shard and indexing in numpy
+    reads the same bytes and holds at most one shard beyond the result in memory.
+    """
+    out = np.empty((len(rows), *arr.shape[1:]), dtype=arr.dtype)
+    order = np.argsort(rows, kind="stable")
+    ordered = rows[order]
+    blocks = ordered // block_frames
+    for block in np.unique(blocks):
+        sel = blocks == block
+        wanted = ordered[sel]
+        lo, hi = int(wanted[0]), int(wanted[-1]) + 1
+        out[order[sel]] = arr[lo:hi][wanted - lo]
+    return out
+
+
 def _compressor(itemsize: int) -> BloscCodec:
     return BloscCodec(cname="zstd", clevel=3, shuffle="shuffle", typesize=itemsize)
 
@@ -262,7 +281,7 @@ class FeatureCache:
         elif isinstance(rows, slice):
             values = arr[rows]
         else:
-            values = arr.get_orthogonal_selection((np.asarray(rows),))
+            values = _take_rows(arr, np.asarray(rows), int(self.layout["block_frames"]))
         return from_storage(values, self.manifest["dtype"])
 
     def index(self) -> pl.DataFrame:

@@ -1,0 +1,32 @@
+"""`graftcache sweep RECIPE`: a grid from a TOML recipe (cli/paper.toml, cli/demo.toml)."""
+
+from __future__ import annotations
+
+import argparse
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("sweep", help="run a grid of extracts and fits from a TOML recipe (resumable)",
+                       description="Extract every missing cache, then fit every missing cell of the grid a recipe "
+                       "describes (encoders x suites x backbones x seeds + controls). Rows already in the results "
+                       "file are skipped, so an interrupted sweep continues where it stopped.")
+    p.add_argument("recipe", help="TOML recipe, e.g. cli/paper.toml")
+    p.add_argument("--dry-run", action="store_true", help="check the recipe and print the grid, run nothing")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from graftcache.sweep import load_recipe, run_sweep
+
+    recipe = load_recipe(args.recipe)
+    if args.dry_run:
+        print(f"{recipe.path}: {recipe.n_cells} rows -> {recipe.results}")
+        print(f"  dataset   {recipe.dataset}")
+        print(f"  backbones {', '.join(f'{b.name} ({b.policy})' for b in recipe.backbones)}")
+        print(f"  encoders  {', '.join(e.label for e in recipe.encoders)}")
+        print(f"  suites    {', '.join(recipe.suites)}; seeds {', '.join(map(str, recipe.seeds))}")
+        print(f"  controls  {', '.join(recipe.controls) or '(none)'}; objective {recipe.objective}")
+        return 0
+    run_sweep(recipe)
+    print(recipe.results)
+    return 0

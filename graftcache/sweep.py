@@ -1,0 +1,279 @@
+"""Sweeps: a TOML recipe (cli/*.toml) of encoders x suites x backbones x seeds + controls, run as
+missing caches first, then missing cells.
+
+Everything a sweep does is an ordinary command underneath (`train-tiny`, `extract`, `fit`), so each
+step reuses what exists: complete caches are found by key, trained tiny backbones by dataset and
+recipe, and finished cells by `run_id` in the results file. Rerunning a sweep after an interruption
+therefore continues where it stopped, and rerunning a finished one only reads.
+
+Recipe keys (unknown keys are errors, so a typo never silently falls back to a default):
+
+    name, dataset, results, cache, device, suites, seeds, controls, objective
+    [[backbones]]  name, policy ("tiny" = natively trained on `dataset`, else hub id or folder)
+    [[encoders]]   name, weights, random_init, seed
+    [extract]      batch_size, num_workers, dtype, compute_dtype, cameras, block_frames
+    [fit]          steps, lr, batch_size, eval_fraction, eval_split_seed, eval_frames, num_denoise_steps,
+                   lora_rank, dtype
+    [train_tiny]   steps, batch_size, lr, seed (only for backbones with policy = "tiny")
+
+Relative paths in `dataset` are resolved against the recipe's folder when they exist there, so a
+recipe in cli/ can name ../data/libero_sample; anything else is passed on (a hub repo id).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import tomllib
+from collections.abc import Callable, Iterator, Mapping
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Any
+
+from tqdm import tqdm
+
+from graftcache.errors import GraftcacheError
+from graftcache.fit.controls import get_control
+from graftcache.pooling import format_grid
+
+
+class RecipeError(GraftcacheError):
+    """A sweep recipe that cannot be run as written (names the file and the key)."""
+
+
+@dataclass(frozen=True)
+class EncoderEntry:
+    name: str
+    weights: str | None = None
+    random_init: bool = False
+    seed: int = 0
+
+    @property
+    def label(self) -> str:
+        return f"{self.name} (random-init, seed {self.seed})" if self.random_init else self.name
+
+
+@dataclass(frozen=True)
+class BackboneEntry:
+    name: str
+    policy: str = "tiny"
+
+
+@dataclass(frozen=True)
+class ExtractSettings:
+    batch_size: int = 32
+    num_workers: int = 2
+    dtype: str = "fp16"
+    compute_dtype: str = "fp32"
+    cameras: tuple[str, ...] | None = None
+    block_frames: int = 256
+
+
+@dataclass(frozen=True)
+class FitSettings:
+    steps: int = 300
+    lr: float = 1e-3
+    batch_size: int = 16
+    eval_fraction: float = 0.2
+    eval_split_seed: int = 0
+    eval_frames: int | None = None
+    num_denoise_steps: int | None = None
+    lora_rank: int = 8
+    dtype: str = "fp32"
+
+
+@dataclass(frozen=True)
+class TinySettings:
+    steps: int | None = None
+    batch_size: int | None = None
+    lr: float | None = None
+    seed: int | None = None
+
+
+@dataclass(frozen=True)
+class Recipe:
+    """One sweep, as read from a TOML file."""
+
+    name: str
+    dataset: str
+    results: str
+    suites: tuple[str, ...]
+    backbones: tuple[BackboneEntry, ...]
+    encoders: tuple[EncoderEntry, ...]
+    seeds: tuple[int, ...]
+    controls: tuple[str, ...] = ()
+    objective: str = "flow"
+    cache: str | None = None
+    device: str = "cpu"
+    extract: ExtractSettings = field(default_factory=ExtractSettings)
+    fit: FitSettings = field(default_factory=FitSettings)
+    train_tiny: TinySettings = field(default_factory=TinySettings)
+    path: str = ""
+
+    @property
+    def n_cells(self) -> int:
+        """Results rows the grid asks for (native controls count once per encoder, as rows do)."""
+        return len(self.backbones) * len(self.encoders) * len(self.suites) * len(self.seeds) * (1 + len(self.controls))
+
+
+_SECTIONS = {"extract": ExtractSettings, "fit": FitSettings, "train_tiny": TinySettings}
+_LISTS = {"backbones": BackboneEntry, "encoders": EncoderEntry}
+_REQUIRED = ("name", "dataset", "results", "suites", "backbones", "encoders", "seeds")
+
+
+def _build(cls: type, data: Mapping[str, Any], where: str) -> Any:
+    """A frozen dataclass from a TOML table; unknown or missing keys name the place in the recipe."""
+    known = {f.name for f in fields(cls)}
+    unknown = sorted(set(data) - known)
+    if unknown:
+        raise RecipeError(f"{where}: unknown key(s) {', '.join(unknown)}; known: {', '.join(sorted(known))}")
+    values = {k: tuple(v) if isinstance(v, list) else v for k, v in data.items()}
+    try:
+        return cls(**values)
+    except TypeError as e:
+        raise RecipeError(f"{where}: {e}") from None
+
+
+def _resolve_dataset(dataset: str, recipe_dir: Path) -> str:
+    candidate = recipe_dir / dataset
+    return str(candidate.resolve()) if not Path(dataset).is_absolute() and candidate.exists() else dataset
+
+
+def load_recipe(path: str | Path) -> Recipe:
+    """Read and check a sweep recipe; errors name the file and the offending key."""
+    path = Path(path)
+    try:
+        data = tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise RecipeError(f"{path}: no such recipe file") from None
+    except tomllib.TOMLDecodeError as e:
+        raise RecipeError(f"{path}: not valid TOML ({e})") from None
+    missing = [k for k in _REQUIRED if k not in data]
+    if missing:
+        raise RecipeError(f"{path}: missing key(s) {', '.join(missing)}")
+    top = {k: v for k, v in data.items() if k not in _SECTIONS and k not in _LISTS}
+    top["backbones"] = tuple(_build(BackboneEntry, b, f"{path} [[backbones]] #{i + 1}")
+                             for i, b in enumerate(data["backbones"]))
+    top["encoders"] = tuple(_build(EncoderEntry, e, f"{path} [[encoders]] #{i + 1}")
+                            for i, e in enumerate(data["encoders"]))
+    for section, cls in _SECTIONS.items():
+        top[section] = _build(cls, data.get(section, {}), f"{path} [{section}]")
+    top["dataset"] = _resolve_dataset(str(data["dataset"]), path.resolve().parent)
+    recipe = _build(Recipe, {**top, "path": str(path)}, str(path))
+    for control in recipe.controls:
+        try:
+            get_control(control)
+        except GraftcacheError as e:
+            raise RecipeError(f"{path}: controls: {e}") from None
+    if not recipe.seeds or not recipe.suites or not recipe.encoders or not recipe.backbones:
+        raise RecipeError(f"{path}: suites, seeds, encoders and backbones must each list at least one entry")
+    return recipe
+
+
+# ------------------------------------------------------------------------------------------- running
+@dataclass
+class SweepState:
+    """What the sweep resolved on the way: policy folders, native grids, cache keys."""
+
+    policies: dict[str, str] = field(default_factory=dict)           # backbone -> policy folder / id
+    native_grids: dict[str, tuple[int, int]] = field(default_factory=dict)
+    encoder_caches: dict[EncoderEntry, str] = field(default_factory=dict)
+    native_caches: dict[str, str] = field(default_factory=dict)      # backbone -> native tower cache key
+    commands: dict[str, str] = field(default_factory=dict)           # what produced each cache / policy
+
+
+def _needs_native(recipe: Recipe) -> bool:
+    return recipe.objective == "align" or any(get_control(c).uses_native_cache for c in recipe.controls)
+
+
+def _pool_grids(recipe: Recipe) -> list[tuple[int, int]]:
+    return [g for g in (get_control(c).grid for c in recipe.controls) if g is not None]
+
+
+def prepare_policies(recipe: Recipe, state: SweepState, log: Callable[[str], None]) -> None:
+    """Train (or reuse) tiny backbones, then read each backbone's native token grid."""
+    from graftcache.backbones import load_backbone
+    from graftcache.pretrain import DEFAULT_TINY_TRAIN, train_tiny
+
+    for entry in recipe.backbones:
+        policy = entry.policy
+        if policy == "tiny":
+            overrides = {k: v for k, v in dataclasses.asdict(recipe.train_tiny).items() if v is not None}
+            cfg = dataclasses.replace(DEFAULT_TINY_TRAIN, **overrides)
+            policy = str(train_tiny(entry.name, recipe.dataset, cfg=cfg, cache=recipe.cache, device=recipe.device,
+                                    log=log))
+            state.commands[f"policy {entry.name}"] = (f"graftcache train-tiny --backbone {entry.name} "
+                                                     f"--dataset {recipe.dataset} --steps {cfg.steps}")
+        state.policies[entry.name] = policy
+        state.native_grids[entry.name] = load_backbone(entry.name, policy, device=recipe.device).native_grid
+
+
+def _extract(recipe: Recipe, encoder: str, grids: list[tuple[int, int]], log: Callable[[str], None], **kw: Any) -> str:
+    from graftcache.extract import ExtractRequest, extract
+
+    s = recipe.extract
+    req = ExtractRequest(dataset=recipe.dataset, encoder=encoder, grids=tuple(dict.fromkeys(grids)), cameras=s.cameras,
+                         dtype=s.dtype, compute_dtype=s.compute_dtype, device=recipe.device, batch_size=s.batch_size,
+                         num_workers=s.num_workers, block_frames=s.block_frames, cache=recipe.cache, **kw)
+    return extract(req, log=log).key
+
+
+def prepare_caches(recipe: Recipe, state: SweepState, log: Callable[[str], None]) -> None:
+    """Extract every encoder at every grid the grid of fits reads, plus the native towers if needed."""
+    grids = sorted(set(state.native_grids.values()) | set(_pool_grids(recipe)))
+    grid_text = ",".join(format_grid(g) for g in grids)
+    for enc in recipe.encoders:
+        state.encoder_caches[enc] = _extract(recipe, enc.name, grids, log, weights=enc.weights,
+                                             random_init=enc.random_init, seed=enc.seed)
+        flags = " --random-init --seed {}".format(enc.seed) if enc.random_init else (
+            f" --weights {enc.weights}" if enc.weights else "")
+        state.commands[state.encoder_caches[enc]] = (f"graftcache extract --encoder {enc.name}{flags} "
+                                                     f"--dataset {recipe.dataset} --grids {grid_text}")
+    if not _needs_native(recipe):
+        return
+    from graftcache.backbones.native import native_name
+
+    for backbone, policy in state.policies.items():
+        grid = state.native_grids[backbone]
+        key = _extract(recipe, native_name(backbone), [grid], log, policy=policy)
+        state.native_caches[backbone] = key
+        state.commands[key] = (f"graftcache extract --encoder {native_name(backbone)} --policy {policy} "
+                               f"--dataset {recipe.dataset} --grids {format_grid(grid)}")
+
+
+def fit_requests(recipe: Recipe, state: SweepState) -> Iterator[tuple[str, Any]]:
+    """(label, FitRequest) per (backbone, encoder, suite), all seeds in one request so that the cached
+    features are read once per request, in a stable order."""
+    from graftcache.fit.run import FitRequest
+
+    f = recipe.fit
+    for backbone in recipe.backbones:
+        for enc in recipe.encoders:
+            for suite in recipe.suites:
+                yield f"{backbone.name}/{enc.label}/{suite}", FitRequest(
+                    backbone=backbone.name, encoder=enc.name, suite=suite, policy=state.policies[backbone.name],
+                    dataset=recipe.dataset, cache_key=state.encoder_caches[enc],
+                    native_cache_key=state.native_caches.get(backbone.name), seeds=recipe.seeds,
+                    controls=recipe.controls, objective=recipe.objective, steps=f.steps, lr=f.lr,
+                    batch_size=f.batch_size, eval_fraction=f.eval_fraction, eval_split_seed=f.eval_split_seed,
+                    eval_frames=f.eval_frames, num_denoise_steps=f.num_denoise_steps, lora_rank=f.lora_rank,
+                    device=recipe.device, dtype=f.dtype, results=recipe.results, cache=recipe.cache,
+                    progress=False, command=f"graftcache sweep {recipe.path}")
+
+
+def run_sweep(recipe: Recipe, log: Callable[[str], None] = tqdm.write) -> SweepState:
+    """Policies, then caches, then every missing cell; one progress bar over the grid's rows."""
+    from graftcache.fit.run import Fitter
+
+    state = SweepState()
+    log(f"sweep {recipe.name}: {len(recipe.backbones)} backbone(s) x {len(recipe.encoders)} encoder(s) x "
+        f"{len(recipe.suites)} suite(s) x {len(recipe.seeds)} seed(s) x {1 + len(recipe.controls)} control(s) "
+        f"= {recipe.n_cells} rows -> {recipe.results}")
+    prepare_policies(recipe, state, log)
+    prepare_caches(recipe, state, log)
+    per_request = len(recipe.seeds) * (1 + len(recipe.controls))
+    with tqdm(total=recipe.n_cells, desc=f"sweep {recipe.name}", unit="row", dynamic_ncols=True) as bar:
+        for label, req in fit_requests(recipe, state):
+            bar.set_postfix_str(label)
+            Fitter(req, log=log).run()
+            bar.update(per_request)
+    return state
