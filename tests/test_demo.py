@@ -1,0 +1,68 @@
+"""`graftcache demo` end to end, as the README runs it: offline, fresh cache root, real bundled sample.
+Then a rerun that reuses every cache and cell, and the analysis notebook executed on the demo's results."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import polars as pl
+import pytest
+from notebook_fixtures import execute_notebook
+
+from graftcache import results
+from graftcache.store import list_caches
+
+GRAFTCACHE = Path(sys.executable).with_name("graftcache")
+
+
+def _demo(home: Path, cwd: Path) -> tuple[subprocess.CompletedProcess, float]:
+    env = {**os.environ, "GRAFTCACHE_HOME": str(home), "HF_HUB_OFFLINE": "1", "PYTHONUNBUFFERED": "1"}
+    t0 = time.perf_counter()
+    run = subprocess.run([str(GRAFTCACHE), "demo"], cwd=cwd, env=env, capture_output=True, text=True, timeout=2400)
+    assert run.returncode == 0, run.stderr[-4000:]
+    return run, time.perf_counter() - t0
+
+
+@pytest.mark.slow
+def test_demo_runs_offline_reuses_everything_and_feeds_the_notebook(tmp_path: Path,
+                                                                    monkeypatch: pytest.MonkeyPatch) -> None:
+    home = tmp_path / "home"
+    first, first_s = _demo(home, tmp_path)
+    table = results.read(home / "demo" / "results.parquet")
+    # 2 backbones x 3 encoders x 2 suites x 2 seeds x (plain + 4 controls), numbers from this run
+    assert table.height == 120
+    assert set(table["backbone"]) == {"smolvla", "pi05"}
+    assert set(table["suite"]) == {"libero_spatial", "libero_object"}
+    assert {"mobilenetv2", "efficientnet-lite0", "smolvla-native", "pi05-native"} <= set(table["encoder"])
+    assert table["eval_mse"].is_finite().all() and (table["n_eval_frames"] > 0).all()
+    assert table["random_init"].all()  # tiny backbones are never released weights
+    report = home / "demo" / "report"
+    md = (report / "report.md").read_text()
+    assert "random-init" in md.lower() and "proxy" in md.lower()
+    assert sorted(p.suffix for p in report.glob("*.png")) and (report / "report.html").is_file()
+    assert f"report: {report / 'report.md'}" in first.stdout
+    caches = {c.key for c in list_caches(home)}
+    assert len(caches) == 5  # three encoders + two native towers, all complete
+    print(f"demo wall time {first_s:.0f}s")
+
+    again, again_s = _demo(home, tmp_path)
+    log = again.stdout + again.stderr
+    assert "wrote " not in log and "training tiny" not in log
+    assert log.count("skip ") == 120
+    assert {c.key for c in list_caches(home)} == caches
+    rerun = results.read(home / "demo" / "results.parquet")
+    assert rerun.sort("run_id").select("run_id", "eval_mse").equals(table.sort("run_id").select("run_id", "eval_mse"))
+    assert again_s < first_s / 3
+
+    run = execute_notebook(home / "demo" / "results.parquet", tmp_path, monkeypatch)
+    assert not run.errors
+    assert "120 rows; backbones ['smolvla', 'pi05']" in run.text
+    assert run.figures == 3
+    native = table.filter(pl.col("control") == "native").group_by("backbone").agg(pl.col("eval_mse").mean())
+    zero = table.filter(pl.col("control") == "zero-image").group_by("backbone").agg(pl.col("eval_mse").mean())
+    joined = native.join(zero, on="backbone", suffix="_zero")
+    assert (joined["eval_mse"] < joined["eval_mse_zero"]).all()  # the tiny backbones use vision

@@ -1,0 +1,115 @@
+"""Sweep recipes: parsing and its errors, and a whole small sweep (train-tiny -> extract -> fit -> rows)
+that a rerun skips entirely."""
+
+from __future__ import annotations
+
+import textwrap
+from pathlib import Path
+
+import polars as pl
+import pytest
+from datasets_fixtures import Written, v3_video  # noqa: F401  (session fixture)
+
+from graftcache import results
+from graftcache.cli import main
+from graftcache.sweep import RecipeError, load_recipe, run_sweep
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _write(tmp_path: Path, text: str) -> Path:
+    path = tmp_path / "recipe.toml"
+    path.write_text(textwrap.dedent(text))
+    return path
+
+
+BASE = """
+    name = "t"
+    dataset = "{dataset}"
+    results = "{results}"
+    suites = ["libero_spatial"]
+    seeds = [0]
+    controls = {controls}
+    [[backbones]]
+    name = "smolvla"
+    [[encoders]]
+    name = "timm:vit_tiny_patch16_224"
+    random_init = true
+    seed = 3
+"""
+
+
+@pytest.mark.parametrize("name", ["demo.toml", "paper.toml"])
+def test_shipped_recipes_parse(name: str) -> None:
+    recipe = load_recipe(ROOT / "cli" / name)
+    assert {b.name for b in recipe.backbones} == {"smolvla", "pi05"}
+    assert set(recipe.suites) == {"libero_spatial", "libero_object"}
+    assert {"native", "native-graft", "zero-image", "shuffled-image"} <= set(recipe.controls)
+    assert recipe.n_cells == 2 * len(recipe.encoders) * 2 * len(recipe.seeds) * (1 + len(recipe.controls))
+    if name == "demo.toml":  # the bundled sample, found relative to the recipe's folder
+        assert recipe.dataset == str((ROOT / "data" / "libero_sample").resolve())
+        assert {"mobilenetv2", "efficientnet-lite0"} <= {e.name for e in recipe.encoders}
+        assert any(e.random_init for e in recipe.encoders)
+    else:
+        assert recipe.dataset == "lerobot/libero" and len(recipe.seeds) == 3 and len(recipe.encoders) >= 4
+
+
+def test_unknown_missing_and_invalid_keys_name_file_and_key(tmp_path: Path) -> None:
+    base = BASE.format(dataset="x", results="r.parquet", controls='["native"]')
+    with pytest.raises(RecipeError, match=r"recipe.toml \[fit\]: unknown key\(s\) stepz"):
+        load_recipe(_write(tmp_path, base + "[fit]\nstepz = 3\n"))
+    with pytest.raises(RecipeError, match=r"\[\[encoders\]\] #2: unknown key\(s\) nmae"):
+        load_recipe(_write(tmp_path, base + '[[encoders]]\nnmae = "siglip"\n'))
+    with pytest.raises(RecipeError, match="missing key.*seeds"):
+        load_recipe(_write(tmp_path, base.replace("seeds = [0]", "")))
+    with pytest.raises(RecipeError, match="controls: unknown control 'blur'"):
+        load_recipe(_write(tmp_path, BASE.format(dataset="x", results="r", controls='["blur"]')))
+    with pytest.raises(RecipeError, match="not valid TOML"):
+        load_recipe(_write(tmp_path, "name = \n"))
+    with pytest.raises(RecipeError, match="no such recipe file"):
+        load_recipe(tmp_path / "absent.toml")
+    assert main(["sweep", str(tmp_path / "absent.toml")]) == 2
+
+
+def test_hub_ids_pass_through_and_local_folders_resolve(tmp_path: Path) -> None:
+    (tmp_path / "ds").mkdir()
+    local = load_recipe(_write(tmp_path, BASE.format(dataset="ds", results="r", controls="[]")))
+    assert local.dataset == str((tmp_path / "ds").resolve())
+    hub = load_recipe(_write(tmp_path, BASE.format(dataset="lerobot/libero", results="r", controls="[]")))
+    assert hub.dataset == "lerobot/libero"
+
+
+def test_small_sweep_end_to_end_then_rerun_skips(tmp_path: Path, v3_video: Written,  # noqa: F811
+                                                 capsys: pytest.CaptureFixture) -> None:
+    out = tmp_path / "results.parquet"
+    top = f'cache = "{tmp_path / "cache"}"\n'  # top-level keys go before the first table
+    text = top + BASE.format(dataset=v3_video.root, results=out, controls='["native", "zero-image"]') + textwrap.dedent("""
+        [extract]
+        batch_size = 8
+        num_workers = 0
+        [fit]
+        steps = 2
+        batch_size = 4
+        eval_frames = 4
+        num_denoise_steps = 2
+        [train_tiny]
+        steps = 2
+        batch_size = 4
+    """)
+    recipe = load_recipe(_write(tmp_path, text))
+    lines: list[str] = []
+    state = run_sweep(recipe, log=lines.append)
+    rows = results.read(out)
+    assert rows.height == recipe.n_cells == 3
+    assert sorted(rows["control"].to_list()) == ["native", "none", "zero-image"]
+    assert rows.filter(pl.col("control") == "native")["encoder"].to_list() == ["smolvla-native"]
+    assert rows["random_init"].all() and (rows["suite"] == "libero_spatial").all()
+    assert set(state.commands) >= {"policy smolvla", *state.encoder_caches.values(), *state.native_caches.values()}
+    assert rows.filter(pl.col("control") == "none")["cache_key"].item() == state.encoder_caches[recipe.encoders[0]]
+
+    again: list[str] = []
+    run_sweep(recipe, log=again.append)
+    assert results.read(out).height == 3
+    assert sum("skip" in line for line in again) == 3
+    assert any("reusing complete cache" in line for line in again)
+    assert any("reusing natively trained tiny smolvla" in line for line in again)
