@@ -110,9 +110,17 @@ class Recipe:
     path: str = ""
 
     @property
-    def n_cells(self) -> int:
-        """Results rows the grid asks for (native controls count once per encoder, as rows do)."""
+    def n_fits(self) -> int:
+        """(seed, control) cells the sweep visits: per encoder, the plain graft and every control."""
         return len(self.backbones) * len(self.encoders) * len(self.suites) * len(self.seeds) * (1 + len(self.controls))
+
+    @property
+    def n_rows(self) -> int:
+        """Distinct results rows: controls that read the native tower's cache (native, native-graft) do
+        not depend on the candidate encoder, so they make one row per (backbone, suite, seed)."""
+        native = sum(get_control(c).uses_native_cache for c in self.controls)
+        per_seed = len(self.encoders) * (1 + len(self.controls) - native) + native
+        return len(self.backbones) * len(self.suites) * len(self.seeds) * per_seed
 
 
 _SECTIONS = {"extract": ExtractSettings, "fit": FitSettings, "train_tiny": TinySettings}
@@ -267,11 +275,11 @@ def run_sweep(recipe: Recipe, log: Callable[[str], None] = tqdm.write) -> SweepS
     state = SweepState()
     log(f"sweep {recipe.name}: {len(recipe.backbones)} backbone(s) x {len(recipe.encoders)} encoder(s) x "
         f"{len(recipe.suites)} suite(s) x {len(recipe.seeds)} seed(s) x {1 + len(recipe.controls)} control(s) "
-        f"= {recipe.n_cells} rows -> {recipe.results}")
+        f"= {recipe.n_fits} cells, {recipe.n_rows} distinct rows -> {recipe.results}")
     prepare_policies(recipe, state, log)
     prepare_caches(recipe, state, log)
     per_request = len(recipe.seeds) * (1 + len(recipe.controls))
-    with tqdm(total=recipe.n_cells, desc=f"sweep {recipe.name}", unit="row", dynamic_ncols=True) as bar:
+    with tqdm(total=recipe.n_fits, desc=f"sweep {recipe.name}", unit="cell", dynamic_ncols=True) as bar:
         for label, req in fit_requests(recipe, state):
             bar.set_postfix_str(label)
             Fitter(req, log=log).run()

@@ -45,7 +45,9 @@ def test_shipped_recipes_parse(name: str) -> None:
     assert {b.name for b in recipe.backbones} == {"smolvla", "pi05"}
     assert set(recipe.suites) == {"libero_spatial", "libero_object"}
     assert {"native", "native-graft", "zero-image", "shuffled-image"} <= set(recipe.controls)
-    assert recipe.n_cells == 2 * len(recipe.encoders) * 2 * len(recipe.seeds) * (1 + len(recipe.controls))
+    assert recipe.n_fits == 2 * len(recipe.encoders) * 2 * len(recipe.seeds) * (1 + len(recipe.controls))
+    native = len({"native", "native-graft"} & set(recipe.controls))
+    assert recipe.n_rows == 2 * 2 * len(recipe.seeds) * (len(recipe.encoders) * (1 + len(recipe.controls) - native) + native)
     if name == "demo.toml":  # the bundled sample, found relative to the recipe's folder
         assert recipe.dataset == str((ROOT / "data" / "libero_sample").resolve())
         assert {"mobilenetv2", "efficientnet-lite0"} <= {e.name for e in recipe.encoders}
@@ -100,7 +102,7 @@ def test_small_sweep_end_to_end_then_rerun_skips(tmp_path: Path, v3_video: Writt
     lines: list[str] = []
     state = run_sweep(recipe, log=lines.append)
     rows = results.read(out)
-    assert rows.height == recipe.n_cells == 3
+    assert rows.height == recipe.n_rows == recipe.n_fits == 3
     assert sorted(rows["control"].to_list()) == ["native", "none", "zero-image"]
     assert rows.filter(pl.col("control") == "native")["encoder"].to_list() == ["smolvla-native"]
     assert rows["random_init"].all() and (rows["suite"] == "libero_spatial").all()

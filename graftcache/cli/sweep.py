@@ -20,7 +20,7 @@ def run(args: argparse.Namespace) -> int:
 
     recipe = load_recipe(args.recipe)
     if args.dry_run:
-        print(f"{recipe.path}: {recipe.n_cells} rows -> {recipe.results}")
+        print(f"{recipe.path}: {recipe.n_fits} cells, {recipe.n_rows} distinct rows -> {recipe.results}")
         print(f"  dataset   {recipe.dataset}")
         print(f"  backbones {', '.join(f'{b.name} ({b.policy})' for b in recipe.backbones)}")
         print(f"  encoders  {', '.join(e.label for e in recipe.encoders)}")
