@@ -47,7 +47,10 @@ def run_ls(args: argparse.Namespace) -> int:
         table.add_row(c.key, m["dataset"]["repo_id"] or m["dataset"]["source"], m["encoder"]["name"], weights,
                       ",".join(m["grids"] + list(m.get("extras", {}))), ",".join(m["cameras"]), str(m["n_frames"]),
                       f"{c.size_bytes() / 2**20:.1f} MiB", status)
-    Console().print(table)
+    console = Console()
+    if not console.is_terminal:  # piped or captured: print whole keys instead of folding to 80 columns
+        console = Console(width=240)
+    console.print(table)
     return 0
 
 

@@ -1,0 +1,227 @@
+"""Stage 1 end to end: `extract()` against an independent computation, cache keys and reuse, the
+copied index / low-dim columns, resume after SIGKILL (byte-identical), bad inputs, ls/info/verify."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import timm
+import torch
+import torch.nn.functional as F
+from datasets_fixtures import LENGTHS, TASKS, Written, v3_image, v3_video, write_lerobot  # noqa: F401
+from PIL import Image
+
+from graftcache.cli import main
+from graftcache.errors import GraftcacheError
+from graftcache.extract import ExtractRequest, extract
+from graftcache.store import FeatureCache, list_caches
+
+ENCODER = "timm:vit_tiny_patch16_224"  # a real ViT architecture, cheap on CPU
+GRAFTCACHE = Path(sys.executable).with_name("graftcache")
+
+
+def _req(dataset: Path, cache: Path, **kw) -> ExtractRequest:
+    base = dict(dataset=str(dataset), encoder=ENCODER, grids=((2, 2), (7, 7)), random_init=True, seed=0,
+                num_workers=0, batch_size=8, cache=str(cache), progress=False)
+    return ExtractRequest(**{**base, **kw})
+
+
+def _quiet(_: str) -> None:
+    pass
+
+
+@pytest.fixture(scope="module")
+def extracted(v3_image: Written, tmp_path_factory: pytest.TempPathFactory):  # noqa: F811
+    root = tmp_path_factory.mktemp("cache")
+    return _req(v3_image.root, root), extract(_req(v3_image.root, root), log=_quiet)
+
+
+def _reference_features(frames: np.ndarray, model: torch.nn.Module, grid: tuple[int, int]) -> np.ndarray:
+    """Written here, independently of graftcache: PIL float resize, timm's mean/std, forward_features,
+    drop the prefix token, adaptive average pool."""
+    cfg = timm.data.resolve_data_config({}, model=model)
+    size = cfg["input_size"][-1]
+    mean, std = np.array(cfg["mean"]), np.array(cfg["std"])
+    pixels = []
+    for frame in frames:
+        chans = [np.asarray(Image.fromarray(frame[..., c].astype(np.float32), mode="F").resize((size, size), Image.BICUBIC))
+                 for c in range(3)]
+        x = (np.clip(np.stack(chans, -1), 0, 255) / 255 - mean) / std
+        pixels.append(torch.from_numpy(x.transpose(2, 0, 1)).float())
+    with torch.no_grad():
+        tokens = model.forward_features(torch.stack(pixels))[:, model.num_prefix_tokens:]
+    side = int(tokens.shape[1] ** 0.5)
+    fmap = tokens.reshape(len(frames), side, side, -1).permute(0, 3, 1, 2)
+    return F.adaptive_avg_pool2d(fmap, grid).flatten(2).transpose(1, 2).numpy()
+
+
+def test_features_equal_an_independent_computation(extracted, v3_image: Written) -> None:  # noqa: F811
+    req, result = extracted
+    cache = FeatureCache(result.path)
+    assert cache.complete and result.n_frames == sum(LENGTHS) and not result.reused
+    # the same random-init weights, put into a model built here
+    from graftcache.encoders import load_encoder
+
+    model = timm.create_model("vit_tiny_patch16_224", pretrained=False, num_classes=0)
+    model.load_state_dict(load_encoder(ENCODER, random_init=True, seed=0).model.state_dict())
+    model.eval()
+    for c, key in enumerate(v3_image.cameras):
+        frames = np.concatenate([v3_image.frames[ep, key] for ep in range(len(LENGTHS))])
+        cam = key.rsplit(".", 1)[-1]
+        for grid in ((2, 2), (7, 7)):
+            want = _reference_features(frames, model, grid)
+            got = cache.read_features(cam, f"{grid[0]}x{grid[1]}").float().numpy()
+            assert got.dtype == np.float32 and got.shape == want.shape == (len(frames), grid[0] * grid[1], 192)
+            np.testing.assert_allclose(got, want, rtol=1e-2, atol=1e-2)
+
+
+def test_index_lowdim_and_manifest_are_copied_in(extracted, v3_image: Written) -> None:  # noqa: F811
+    _, result = extracted
+    cache = FeatureCache(result.path)
+    index = cache.index()
+    assert index["episode_index"].to_list() == [ep for ep, n in enumerate(LENGTHS) for _ in range(n)]
+    assert index["frame_index"].to_list() == [t for n in LENGTHS for t in range(n)]
+    state = np.stack(index["state"].to_numpy())
+    np.testing.assert_array_equal(state, np.concatenate([v3_image.state[ep] for ep in range(len(LENGTHS))]))
+    action = np.stack(index["action"].to_numpy())
+    np.testing.assert_array_equal(action, np.concatenate([v3_image.action[ep] for ep in range(len(LENGTHS))]))
+    m = cache.manifest
+    assert [m["tasks"][i] for i in index["task_index"].to_list()] == [TASKS[ep] for ep, n in enumerate(LENGTHS)
+                                                                       for _ in range(n)]
+    assert m["suites"][index["suite_index"][0]] == "libero_spatial"
+    assert m["random_init"] is True and m["weights"]["seed"] == 0 and len(m["weights_sha256"]) == 64
+    assert m["dataset"]["codebase_version"] == "v3.0" and m["dtype"] == "fp16"
+    assert m["encoder"]["preprocessing"]["mean"] == [0.5, 0.5, 0.5]
+    assert set(m["versions"]) >= {"torch", "timm", "transformers", "lerobot", "zarr"}
+    json.dumps(m)
+
+
+def test_cache_key_follows_the_numbers_only(extracted, v3_image: Written) -> None:  # noqa: F811
+    req, result = extracted
+    same = extract(_req(v3_image.root, Path(req.cache), batch_size=3, num_workers=1), log=_quiet)
+    assert same.key == result.key and same.reused and same.frames_encoded == 0
+    keys = {result.key}
+    for change in ({"grids": ((2, 2),)}, {"seed": 1}, {"dtype": "fp32"}, {"episodes": (0, 2)}, {"cameras": ("image",)}):
+        with pytest.MonkeyPatch.context():
+            r = extract(_req(v3_image.root, Path(req.cache), **change), log=_quiet)
+        assert r.key not in keys, change
+        keys.add(r.key)
+
+
+@pytest.fixture(scope="module")
+def long_dataset(tmp_path_factory: pytest.TempPathFactory) -> Written:
+    """Three 40-frame episodes: enough blocks to interrupt extraction half way."""
+    import datasets_fixtures
+
+    root = tmp_path_factory.mktemp("long") / "ds"
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(datasets_fixtures, "LENGTHS", (40, 40, 40))
+        mp.setenv("HF_DATASETS_CACHE", str(root.parent / "hf_datasets"))
+        return write_lerobot(root, video=True)
+
+
+def _cli_extract(dataset: Path, cache: Path) -> list[str]:
+    return [str(GRAFTCACHE), "extract", "--encoder", "resnet18", "--random-init", "--dataset", str(dataset),
+            "--grids", "2x2", "--block-frames", "4", "--batch-size", "4", "--num-workers", "1", "--cache", str(cache),
+            "--no-progress"]
+
+
+@pytest.mark.slow
+def test_sigkill_then_rerun_is_byte_identical_to_an_uninterrupted_run(long_dataset: Written, tmp_path: Path) -> None:
+    env = {**os.environ, "HF_HUB_OFFLINE": "1"}
+    killed_root, clean_root = tmp_path / "killed", tmp_path / "clean"
+    proc = subprocess.Popen(_cli_extract(long_dataset.root, killed_root), env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE)
+    deadline = time.monotonic() + 300
+    done: set[int] = set()
+    while time.monotonic() < deadline and proc.poll() is None:
+        caches = list(killed_root.glob("resnet18-*/zarr.json")) if killed_root.exists() else []
+        if caches:
+            try:
+                done = FeatureCache(caches[0].parent).blocks_done()
+            except GraftcacheError:
+                done = set()  # still initialising
+        if len(done) >= 3:
+            proc.send_signal(signal.SIGKILL)
+            break
+        time.sleep(0.02)
+    proc.wait()
+    assert proc.returncode == -signal.SIGKILL, "extraction finished before it could be interrupted"
+    (cache,) = list_caches(killed_root)
+    assert not cache.complete and 3 <= len(cache.blocks_done()) < cache.layout["n_blocks"]
+    assert main(["verify", cache.key, "--cache", str(killed_root)]) == 1  # incomplete is a failing verdict
+
+    resumed = subprocess.run(_cli_extract(long_dataset.root, killed_root), env=env, capture_output=True, text=True)
+    assert resumed.returncode == 0, resumed.stderr
+    assert "resuming" in resumed.stdout
+    clean = subprocess.run(_cli_extract(long_dataset.root, clean_root), env=env, capture_output=True, text=True)
+    assert clean.returncode == 0, clean.stderr
+    a, b = FeatureCache(killed_root / cache.key), FeatureCache(clean_root / cache.key)
+    assert a.complete and b.complete
+    for cam in ("image", "image2"):
+        assert a.group[f"features/{cam}/2x2"][...].tobytes() == b.group[f"features/{cam}/2x2"][...].tobytes()
+    assert main(["verify", cache.key, "--cache", str(killed_root)]) == 0
+
+
+def test_ls_info_verify(extracted, capsys: pytest.CaptureFixture) -> None:
+    req, result = extracted
+    assert main(["ls", "--cache", req.cache]) == 0
+    out = capsys.readouterr().out
+    assert result.key[:12] in out and "complete" in out and "random-init" in out
+    assert main(["info", result.key, "--cache", req.cache]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["complete"] is True and info["encoder"]["name"] == ENCODER
+    assert main(["verify", result.key, "--cache", req.cache]) == 0
+    assert "all checksums match" in capsys.readouterr().out
+    assert main(["verify", "no-such-key", "--cache", req.cache]) == 2
+    assert "no-such-key" in capsys.readouterr().err
+
+
+def test_verify_names_a_corrupted_block(v3_image: Written, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:  # noqa: F811
+    result = extract(_req(v3_image.root, tmp_path, grids=((2, 2),), block_frames=6), log=_quiet)
+    cache = FeatureCache(result.path)
+    arr = cache.group["features/image/2x2"]
+    arr[7] = arr[7] + 1  # flip values inside block 1
+    assert main(["verify", result.key, "--cache", str(tmp_path)]) == 1
+    assert "features/image/2x2 frames 6-11 checksum mismatch" in capsys.readouterr().out
+
+
+def _bad(tmp_path: Path, dataset: Path, capsys: pytest.CaptureFixture, *extra: str) -> str:
+    cache = tmp_path / "cache"
+    code = main(["extract", "--encoder", ENCODER, "--random-init", "--dataset", str(dataset), "--grids", "2x2",
+                 "--num-workers", "0", "--no-progress", "--cache", str(cache), *extra])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and len(err.splitlines()) == 1, err
+    assert not cache.exists() or not [c for c in list_caches(cache) if c.complete]
+    return err
+
+
+def test_bad_inputs_give_one_line_errors_and_nothing_complete(v3_video: Written, tmp_path: Path,  # noqa: F811
+                                                                capsys: pytest.CaptureFixture) -> None:
+    import shutil
+
+    assert f"{tmp_path / 'absent'}: no such dataset folder" in _bad(tmp_path, tmp_path / "absent", capsys)
+    broken = tmp_path / "broken"
+    shutil.copytree(v3_video.root, broken)
+    info = json.loads((broken / "meta" / "info.json").read_text())
+    (broken / "meta" / "info.json").write_text(json.dumps({**info, "codebase_version": "v9.9"}))
+    assert "v9.9" in _bad(tmp_path, broken, capsys)
+    (broken / "meta" / "info.json").write_text(json.dumps(info))
+    assert "'wrist'" in _bad(tmp_path, broken, capsys, "--cameras", "wrist")
+    (broken / "meta" / "info.json").unlink()
+    assert f"{broken / 'meta' / 'info.json'}: missing" in _bad(tmp_path, broken, capsys)
+
+    short = tmp_path / "short"
+    shutil.copytree(v3_video.root, short)
+    (video,) = (short / "videos" / "observation.images.image2").rglob("*.mp4")
+    video.write_bytes(video.read_bytes()[: video.stat().st_size // 3])
+    err = _bad(tmp_path, short, capsys)
+    assert video.name in err and "episode" in err
