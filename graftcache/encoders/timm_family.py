@@ -55,9 +55,9 @@ def create(spec: EncoderSpec, file: Path | None = None) -> nn.Module:
         kwargs["img_size"] = spec.image_size  # ViTs: position table sized (or resampled) for the input
     if file is None:
         return timm.create_model(spec.model_id, pretrained=False, **kwargs)
-    try:
+    try:  # num_classes=0: timm drops any classifier in the file, so headless feature checkpoints load too
         return timm.create_model(spec.model_id, pretrained=True, pretrained_cfg_overlay={"file": str(file)},
-                                 **kwargs)
+                                 num_classes=0, **kwargs)
     except (RuntimeError, KeyError, ValueError) as e:
         first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
         raise EncoderError(f"encoder {spec.name!r}: {file} does not load into timm {spec.model_id}: {first}") from e
