@@ -45,6 +45,8 @@ TOKEN_MASK = "observation.language.attention_mask"
 STATE = "observation.state"
 ACTION = "action"
 ACTION_PAD = "action_is_pad"
+#: Projections of a Llama / Gemma decoder layer that the `lora` control adapts (attention and MLP).
+LORA_TARGETS = ("q_proj", "k_proj", "v_proj", "o_proj", "gate_proj", "up_proj", "down_proj")
 
 
 def is_empty_camera(key: str) -> bool:
@@ -395,6 +397,22 @@ class BackboneAdapter(ABC):
     @abstractmethod
     def _module_groups(self) -> dict[str, nn.Module | tuple[nn.Module, ...]]:
         """Named parts of the policy for the freeze report."""
+
+    def add_lora(self, rank: int, alpha: float | None = None) -> None:
+        """The `lora` control: peft LoRA adapters on the language model's projections, trained together
+        with the projector. The adapters are injected in place (lerobot calls the layers' projections
+        directly, not the LM's forward); their B matrices start at zero, so before training the policy
+        computes exactly what the plain graft does. Only the adapters become trainable in the LM."""
+        from peft import LoraConfig, inject_adapter_in_model
+
+        if not self.grafted:
+            raise BackboneError(f"{self.name}: add LoRA after graft(), so the projector and adapters train together")
+        lm = self._module_groups()["language model"]
+        config = LoraConfig(r=rank, lora_alpha=alpha or rank, lora_dropout=0.0, bias="none",
+                            target_modules=list(LORA_TARGETS))
+        inject_adapter_in_model(config, lm)
+        for name, param in lm.named_parameters():
+            param.requires_grad_("lora_" in name)
 
     def freeze_report(self) -> FreezeReport:
         return freeze_report(self._module_groups(), self.policy)

@@ -1,0 +1,203 @@
+"""Stage 2 end to end from real caches: every control writes one schema-valid row, only the projector
+(and LoRA) train, reruns are bit-identical and skipped, projectors are saved, and errors name the problem."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import polars as pl
+import pytest
+import torch
+from backbones_fixtures import tiny
+from datasets_fixtures import Written, v3_image, v3_video  # noqa: F401  (session fixtures)
+from safetensors.torch import load_file
+
+from graftcache import results
+from graftcache.backbones import load_backbone
+from graftcache.backbones.native import native_name
+from graftcache.cli import main
+from graftcache.errors import FitError
+from graftcache.extract import ExtractRequest, extract
+from graftcache.fit.controls import get_control
+from graftcache.fit.data import load_frames, split_episodes, suite_index_table
+from graftcache.fit.loop import TrainConfig, camera_map, train
+from graftcache.fit.run import Fitter, FitRequest
+from graftcache.graft import GraftProjector
+from graftcache.store import FeatureCache
+
+ENCODER = "timm:vit_tiny_patch16_224"
+CONTROLS = ("native", "native-graft", "zero-image", "shuffled-image", "pool-2x2", "lora")
+
+
+def _quiet(_: str) -> None:
+    pass
+
+
+class World:
+    """A dataset, tiny policy checkpoints and the caches a fit reads, built once per module."""
+
+    def __init__(self, root: Path, dataset: Written) -> None:
+        self.root, self.dataset = root, dataset
+        self.cache = root / "cache"
+        self.policies = {}
+        for name in ("smolvla", "pi05"):
+            self.policies[name] = root / f"policy_{name}"
+            tiny(name).save(self.policies[name])
+        common = dict(dataset=str(dataset.root), num_workers=0, batch_size=8, cache=str(self.cache), progress=False)
+        self.encoder_key = extract(ExtractRequest(encoder=ENCODER, grids=((4, 4), (2, 2)), random_init=True,
+                                                  **common), log=_quiet).key
+        self.native_keys = {name: extract(ExtractRequest(encoder=native_name(name), grids=((4, 4),),
+                                                         policy=str(folder), **common), log=_quiet).key
+                            for name, folder in self.policies.items()}
+
+    def request(self, backbone: str = "smolvla", **kw) -> FitRequest:
+        base = dict(backbone=backbone, encoder=ENCODER, suite="libero_spatial", policy=str(self.policies[backbone]),
+                    dataset=str(self.dataset.root), seeds=(0,), steps=3, batch_size=4, eval_fraction=0.5,
+                    eval_frames=4, num_denoise_steps=2, cache=str(self.cache), progress=False,
+                    results=str(self.root / "results.parquet"), out=str(self.root / "runs"), command="pytest")
+        return FitRequest(**{**base, **kw})
+
+
+@pytest.fixture(scope="module")
+def world(v3_video: Written, tmp_path_factory: pytest.TempPathFactory) -> World:  # noqa: F811
+    return World(tmp_path_factory.mktemp("fit"), v3_video)
+
+
+def test_every_control_writes_one_schema_valid_row(world: World, tmp_path: Path) -> None:
+    out = tmp_path / "r.parquet"
+    lines: list[str] = []
+    rows = Fitter(world.request(controls=CONTROLS, results=str(out)), log=lines.append).run()
+    table = results.read(out)  # validated against results.SCHEMA
+    assert table.height == len(rows) == 1 + len(CONTROLS)
+    by = {r["control"]: r for r in table.iter_rows(named=True)}
+    assert set(by) == {"none", *CONTROLS}
+    assert by["native"]["encoder"] == by["native-graft"]["encoder"] == "smolvla-native"
+    assert by["native"]["objective"] == "eval" and by["native"]["steps"] == 0
+    assert by["native"]["cache_key"] == world.native_keys["smolvla"]
+    assert by["none"]["cache_key"] == world.encoder_key and by["none"]["encoder"] == ENCODER
+    assert by["pool-2x2"]["pool_grid"] == "2x2" and by["none"]["pool_grid"] == "4x4"
+    assert by["zero-image"]["eval_mse"] != by["none"]["eval_mse"]
+    for row in by.values():
+        assert row["random_init"] and row["suite"] == "libero_spatial" and row["n_eval_frames"] == 4
+        assert np.isfinite(row["eval_mse"]) and row["eval_mse_raw"] >= 0 and row["n_eval_episodes"] == 1
+        assert row["policy_sha256"] and row["graftcache_version"] and row["device"] == "cpu"
+    # Prismatic's habit: every cell logs which modules are frozen and which train
+    assert sum(line.startswith("cell ") and "graft projector" in line for line in lines) == 1 + len(CONTROLS)
+    lora_log = next(line for line in lines if f"cell {by['lora']['run_id']}" in line)
+    assert "partial" in lora_log  # LoRA makes part of the language model trainable
+
+
+def test_pi05_controls_run_too(world: World, tmp_path: Path) -> None:
+    out = tmp_path / "r.parquet"
+    Fitter(world.request("pi05", controls=("native", "zero-image"), results=str(out)), log=_quiet).run()
+    table = results.read(out)
+    assert sorted(table["control"]) == ["native", "none", "zero-image"]
+    assert table.filter(pl.col("control") == "native")["encoder"].item() == "pi05-native"
+
+
+@pytest.mark.parametrize("lora", [False, True])
+def test_training_changes_only_the_projector_and_lora(world: World, lora: bool) -> None:
+    cache = FeatureCache(world.cache / world.encoder_key)
+    adapter = load_backbone("smolvla", world.policies["smolvla"])
+    cams = camera_map(adapter, cache.manifest["cameras"])
+    table = load_frames(cache, "libero_spatial", cameras=list(cams.values()), grid=(4, 4), chunk=adapter.chunk_size)
+    adapter.graft(GraftProjector(192, adapter.lm_width))
+    if lora:
+        adapter.add_lora(rank=4)
+    before = {k: v.clone() for k, v in adapter.policy.state_dict().items()}
+    train(adapter, table, cams, TrainConfig(steps=3, batch_size=4, progress=False, lr=1e-2), seed=0, log=_quiet)
+    after = adapter.policy.state_dict()
+    changed = {k for k in before if not torch.equal(before[k], after[k])}
+    trainable = {n for n, p in adapter.policy.named_parameters() if p.requires_grad}
+    assert changed and changed <= trainable
+    assert all("connector" in k or "lora_" in k for k in changed)
+    assert any("lora_" in k for k in changed) == lora
+    assert any("connector.proj.weight" in k for k in changed)
+
+
+def test_rerun_is_bit_identical_and_a_finished_cell_is_skipped(world: World, tmp_path: Path) -> None:
+    req = world.request(controls=("shuffled-image",), results=str(tmp_path / "a.parquet"), out=str(tmp_path / "runs"))
+    first = Fitter(req, log=_quiet).run()
+    second = Fitter(world.request(controls=("shuffled-image",), results=str(tmp_path / "b.parquet")), log=_quiet).run()
+    for a, b in zip(first, second, strict=True):
+        assert a["run_id"] == b["run_id"]
+        assert a["eval_mse"] == b["eval_mse"] and a["train_loss_final"] == b["train_loss_final"]
+        assert a["eval_mse_episodes"] == b["eval_mse_episodes"]
+    lines: list[str] = []
+    assert Fitter(req, log=lines.append).run() == []
+    assert sum(line.startswith("skip ") for line in lines) == 2
+    assert results.read(req.results).height == 2
+
+    folder = tmp_path / "runs" / first[0]["run_id"]
+    weights = load_file(str(folder / "projector.safetensors"))
+    assert set(weights) == {f"model.vlm_with_expert.vlm.model.connector.{n}" for n in
+                            ("norm.weight", "norm.bias", "proj.weight", "proj.bias")}
+    sidecar = json.loads((folder / "projector.json").read_text())
+    assert sidecar["run_id"] == first[0]["run_id"] and sidecar["cell"]["control"] == "none"
+    train_eps, eval_eps = set(sidecar["split"]["train_episodes"]), set(sidecar["split"]["eval_episodes"])
+    assert train_eps and eval_eps and not train_eps & eval_eps and train_eps | eval_eps == {0, 2}
+    assert sidecar["split"]["seed"] == 0
+
+
+def test_split_holds_out_episodes_within_each_task() -> None:
+    index = pl.DataFrame({"episode_index": [e for e in range(12) for _ in range(3)],
+                          "task_index": [e % 3 for e in range(12) for _ in range(3)]})
+    split = split_episodes(index, eval_fraction=0.25, seed=7)
+    assert len(split.eval_episodes) == 3 and len(split.train_episodes) == 9
+    assert sorted(e % 3 for e in split.eval_episodes) == [0, 1, 2]  # one per task
+    assert split == split_episodes(index, eval_fraction=0.25, seed=7)
+    assert split != split_episodes(index, eval_fraction=0.25, seed=8)
+
+
+def test_align_fits_in_closed_form(world: World, tmp_path: Path) -> None:
+    rows = Fitter(world.request(objective="align", results=str(tmp_path / "r.parquet")), log=_quiet).run()
+    (row,) = rows
+    assert row["objective"] == "align" and row["steps"] == 0 and 0.0 <= row["train_loss_final"] <= 1.0
+    assert np.isfinite(row["eval_mse"])
+
+
+def _set_manifest(cache: FeatureCache, **changes) -> dict:
+    old = cache.manifest
+    cache.group.attrs["manifest"] = {**old, **changes}
+    return old
+
+
+def test_errors_name_the_problem(world: World, v3_image: Written, tmp_path: Path) -> None:  # noqa: F811
+    with pytest.raises(FitError, match=r"suite 'libero_goal' has no episodes \(present: libero_object, libero_spatial\)"):
+        Fitter(world.request(suite="libero_goal"), log=_quiet)
+    with pytest.raises(FitError, match="unknown control 'blur'"):
+        Fitter(world.request(controls=("blur",)), log=_quiet)
+    with pytest.raises(FitError, match="another dataset"):
+        Fitter(world.request(dataset=str(v3_image.root), cache_key=world.encoder_key), log=_quiet)
+    only_encoder = tmp_path / "only_encoder"
+    shutil.copytree(world.cache / world.encoder_key, only_encoder / world.encoder_key)
+    with pytest.raises(FitError, match="no complete cache of encoder 'smolvla-native'.*needed for native controls"):
+        Fitter(world.request(controls=("native",), cache=str(only_encoder)), log=_quiet)
+
+    cache = FeatureCache(world.cache / world.encoder_key)
+    old = _set_manifest(cache, encoder={**cache.manifest["encoder"], "name": "resnet18"})
+    try:
+        with pytest.raises(FitError, match="192 wide but encoder 'resnet18' is 512 wide"):
+            Fitter(world.request(encoder="resnet18", cache_key=world.encoder_key), log=_quiet)
+    finally:
+        cache.group.attrs["manifest"] = old
+
+
+def test_cli_fit_end_to_end(world: World, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    out = tmp_path / "cli.parquet"
+    args = ["fit", "--backbone", "smolvla", "--policy", str(world.policies["smolvla"]), "--encoder", ENCODER,
+            "--dataset", str(world.dataset.root), "--suite", "libero_spatial", "--seeds", "2", "--controls",
+            "zero-image", "--steps", "2", "--batch-size", "4", "--eval-fraction", "0.5", "--eval-frames", "4",
+            "--num-denoise-steps", "2", "--cache", str(world.cache), "--results", str(out), "--no-progress"]
+    assert main(args) == 0
+    table = results.read(out)
+    assert sorted(zip(table["seed"], table["control"])) == [(0, "none"), (0, "zero-image"), (1, "none"),
+                                                             (1, "zero-image")]
+    assert "eval_mse" in capsys.readouterr().out
+    args[args.index("libero_spatial")] = "libero_goal"
+    assert main(args) == 2
+    assert "libero_goal" in capsys.readouterr().err
+    assert get_control("pool-3x5").grid == (3, 5)
