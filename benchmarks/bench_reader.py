@@ -20,7 +20,6 @@ os.environ["OMP_NUM_THREADS"] = "1"
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
 import argparse  # noqa: E402
-import platform  # noqa: E402
 import tempfile  # noqa: E402
 import time  # noqa: E402
 from dataclasses import dataclass  # noqa: E402
@@ -32,10 +31,11 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from torch.utils.data import DataLoader, Dataset  # noqa: E402
 
+from common import DEFAULT_DATASET, machine, warm_page_cache  # noqa: E402
+
 from graftcache.datasets import LeRobotSource, open_dataset  # noqa: E402
 from graftcache.runtime import single_thread_worker  # noqa: E402
 
-DEFAULT_DATASET = Path(__file__).resolve().parents[1] / "data" / "libero_sample"
 
 
 class Episodes(Dataset):
@@ -93,13 +93,6 @@ def synthesize(root: Path, episodes: int, length: int) -> Path:
     return root
 
 
-def warm_page_cache(root: Path) -> None:
-    """Read every data/video file once so neither side pays cold-disk reads."""
-    for f in root.rglob("*"):
-        if f.is_file() and f.suffix in (".mp4", ".parquet"):
-            f.read_bytes()
-
-
 @dataclass(frozen=True)
 class Rate:
     """One timed configuration: camera frames, wall seconds and (in-process runs) CPU seconds."""
@@ -144,15 +137,6 @@ def time_lerobot(root: Path, backend: str | None, items: int, workers: int, cams
     loader = DataLoader(torch.utils.data.Subset(ds, idx), batch_size=None, num_workers=workers,
                         worker_init_fn=single_thread_worker)
     return timed(lambda: sum(cams for _ in loader), False)
-
-
-def machine() -> str:
-    model = next((ln.split(":", 1)[1].strip() for ln in Path("/proc/cpuinfo").read_text().splitlines()
-                  if ln.startswith("model name")), platform.processor())
-    import lerobot
-
-    return (f"{os.cpu_count()} cores, {model}; torch {torch.__version__}, av {av.__version__}, "
-            f"lerobot {lerobot.__version__}, OMP_NUM_THREADS={os.environ['OMP_NUM_THREADS']}")
 
 
 def main() -> None:

@@ -73,7 +73,8 @@ class ExtractResult:
     reused: bool
     n_frames: int
     frames_encoded: int
-    wall_s: float
+    wall_s: float          # the whole call: opening the dataset, loading the encoder, encoding, finalising
+    encode_s: float = 0.0  # decode + encode + write of the missing blocks (the steady-state part)
 
 
 def _versions() -> dict[str, str]:
@@ -263,11 +264,13 @@ def extract(req: ExtractRequest, log: Callable[[str], None] = print) -> ExtractR
         if cache.complete:
             log(f"reusing complete cache {key} ({cache.n_frames} frames)")
             return ExtractResult(key, path, True, cache.n_frames, 0, time.perf_counter() - t0)
+        t_fill = time.perf_counter()
         encoded = _fill(cache, source, index, encoder, cameras, req, device, compute)
+        encode_s = time.perf_counter() - t_fill
         cache.finalize()
     wall = time.perf_counter() - t0
     log(f"wrote {key}: {cache.n_frames} frames x {len(cameras)} cameras in {wall:.1f}s -> {path}")
-    return ExtractResult(key, path, False, cache.n_frames, encoded, wall)
+    return ExtractResult(key, path, False, cache.n_frames, encoded, wall, encode_s)
 
 
 def _open_or_create(path: Path, manifest: dict[str, Any], index: pl.DataFrame, encoder: Any,

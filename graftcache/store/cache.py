@@ -73,7 +73,11 @@ def _take_rows(arr: zarr.Array, rows: np.ndarray, block_frames: int) -> np.ndarr
 
 
 def _compressor(itemsize: int) -> BloscCodec:
-    return BloscCodec(cname="zstd", clevel=3, shuffle="shuffle", typesize=itemsize)
+    """Blosc zstd level 1 with byte shuffle. Measured on cached MobileNetV2 fp16 features (2-core Xeon):
+    level 1 encodes at ~225 MB/s with ratio 1.51, level 3 at ~85 MB/s with ratio 1.48, lz4 at ~750 MB/s
+    with ratio 1.05. Compression runs beside the encoder on the same cores, so level 3 cost extraction
+    ~8% of its throughput for no smaller files."""
+    return BloscCodec(cname="zstd", clevel=1, shuffle="shuffle", typesize=itemsize)
 
 
 def _sha256(a: np.ndarray) -> str:
