@@ -55,13 +55,15 @@ def fit_ridge(projector: nn.Module, sources: list[torch.Tensor], targets: list[t
         x_all = src.reshape(-1, c)
         y_all = tgt.reshape(-1, d)
         for s in range(0, x_all.shape[0], STREAM_ROWS):
-            x = F.layer_norm(x_all[s:s + STREAM_ROWS].float(), (c,)).double()
-            y = y_all[s:s + STREAM_ROWS].double()
-            xtx += x.T @ x
-            xty += x.T @ y
-            sx += x.sum(0)
-            sy += y.sum(0)
-            syy += (y * y).sum()
+            # float32 products per chunk (2x the float64 GEMM speed; chunk sums of layer-normed rows agree
+            # with float64 to ~1e-7), accumulated across chunks in float64
+            x = F.layer_norm(x_all[s:s + STREAM_ROWS].float(), (c,))
+            y = y_all[s:s + STREAM_ROWS].float()
+            xtx += (x.T @ x).double()
+            xty += (x.T @ y).double()
+            sx += x.sum(0, dtype=torch.float64)
+            sy += y.sum(0, dtype=torch.float64)
+            syy += (y.double() * y.double()).sum()
             n += x.shape[0]
     mx, my = sx / n, sy / n
     cxx = xtx - n * torch.outer(mx, mx)

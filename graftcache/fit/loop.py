@@ -89,7 +89,7 @@ def train(adapter, table: FrameTable, cams: Mapping[str, str], cfg: TrainConfig,
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
-        losses.append(float(loss))
+        losses.append(loss.item())
         bar.set_postfix(loss=f"{losses[-1]:.4f}")
     tail = losses[-max(1, len(losses) // 10):]
     return float(np.mean(tail))
