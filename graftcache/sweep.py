@@ -13,8 +13,8 @@ Recipe keys (unknown keys are errors, so a typo never silently falls back to a d
     [[encoders]]   name, weights, random_init, seed
     [extract]      batch_size, num_workers, dtype, compute_dtype, cameras, block_frames
     [fit]          steps, lr, batch_size, eval_fraction, eval_split_seed, eval_frames, num_denoise_steps,
-                   lora_rank, dtype
-    [train_tiny]   steps, batch_size, lr, seed (only for backbones with policy = "tiny")
+                   lora_rank, dtype, out
+    [train_tiny]   steps, batch_size, lr, weight_decay, seed, image_size (backbones with policy = "tiny")
 
 Relative paths in `dataset` are resolved against the recipe's folder when they exist there, so a
 recipe in cli/ can name ../data/libero_sample; anything else is passed on (a hub repo id).
@@ -58,35 +58,15 @@ class BackboneEntry:
     policy: str = "tiny"
 
 
-@dataclass(frozen=True)
-class ExtractSettings:
-    batch_size: int = 32
-    num_workers: int = 2
-    dtype: str = "fp16"
-    compute_dtype: str = "fp32"
-    cameras: tuple[str, ...] | None = None
-    block_frames: int = 256
-
-
-@dataclass(frozen=True)
-class FitSettings:
-    steps: int = 300
-    lr: float = 1e-3
-    batch_size: int = 16
-    eval_fraction: float = 0.2
-    eval_split_seed: int = 0
-    eval_frames: int | None = None
-    num_denoise_steps: int | None = None
-    lora_rank: int = 8
-    dtype: str = "fp32"
-
-
-@dataclass(frozen=True)
-class TinySettings:
-    steps: int | None = None
-    batch_size: int | None = None
-    lr: float | None = None
-    seed: int | None = None
+#: Settings a recipe's [extract] / [fit] / [train_tiny] tables may set: fields of the request the sweep
+#: builds (ExtractRequest, FitRequest, TinyTrainConfig), whose own defaults apply to anything left out.
+#: The rest of each request (dataset, encoder, backbone, seeds, ...) comes from the grid itself.
+SECTION_KEYS: dict[str, tuple[str, ...]] = {
+    "extract": ("batch_size", "num_workers", "dtype", "compute_dtype", "cameras", "block_frames"),
+    "fit": ("steps", "lr", "batch_size", "eval_fraction", "eval_split_seed", "eval_frames", "num_denoise_steps",
+            "lora_rank", "dtype", "out"),
+    "train_tiny": ("steps", "batch_size", "lr", "weight_decay", "seed", "image_size"),
+}
 
 
 @dataclass(frozen=True)
@@ -104,9 +84,9 @@ class Recipe:
     objective: str = "flow"
     cache: str | None = None
     device: str = "cpu"
-    extract: ExtractSettings = field(default_factory=ExtractSettings)
-    fit: FitSettings = field(default_factory=FitSettings)
-    train_tiny: TinySettings = field(default_factory=TinySettings)
+    extract: Mapping[str, Any] = field(default_factory=dict)     # ExtractRequest overrides
+    fit: Mapping[str, Any] = field(default_factory=dict)         # FitRequest overrides
+    train_tiny: Mapping[str, Any] = field(default_factory=dict)  # TinyTrainConfig overrides
     path: str = ""
 
     @property
@@ -123,7 +103,6 @@ class Recipe:
         return len(self.backbones) * len(self.suites) * len(self.seeds) * per_seed
 
 
-_SECTIONS = {"extract": ExtractSettings, "fit": FitSettings, "train_tiny": TinySettings}
 _LISTS = {"backbones": BackboneEntry, "encoders": EncoderEntry}
 _REQUIRED = ("name", "dataset", "results", "suites", "backbones", "encoders", "seeds")
 
@@ -139,6 +118,16 @@ def _build(cls: type, data: Mapping[str, Any], where: str) -> Any:
         return cls(**values)
     except TypeError as e:
         raise RecipeError(f"{where}: {e}") from None
+
+
+def _section(data: Mapping[str, Any], section: str, where: str) -> dict[str, Any]:
+    """A settings table as request overrides; keys outside SECTION_KEYS[section] name the place."""
+    table = data.get(section, {})
+    unknown = sorted(set(table) - set(SECTION_KEYS[section]))
+    if unknown:
+        raise RecipeError(f"{where} [{section}]: unknown key(s) {', '.join(unknown)}; known: "
+                          f"{', '.join(sorted(SECTION_KEYS[section]))}")
+    return {k: tuple(v) if isinstance(v, list) else v for k, v in table.items()}
 
 
 def _resolve_dataset(dataset: str, recipe_dir: Path) -> str:
@@ -158,13 +147,13 @@ def load_recipe(path: str | Path) -> Recipe:
     missing = [k for k in _REQUIRED if k not in data]
     if missing:
         raise RecipeError(f"{path}: missing key(s) {', '.join(missing)}")
-    top = {k: v for k, v in data.items() if k not in _SECTIONS and k not in _LISTS}
+    top = {k: v for k, v in data.items() if k not in SECTION_KEYS and k not in _LISTS}
     top["backbones"] = tuple(_build(BackboneEntry, b, f"{path} [[backbones]] #{i + 1}")
                              for i, b in enumerate(data["backbones"]))
     top["encoders"] = tuple(_build(EncoderEntry, e, f"{path} [[encoders]] #{i + 1}")
                             for i, e in enumerate(data["encoders"]))
-    for section, cls in _SECTIONS.items():
-        top[section] = _build(cls, data.get(section, {}), f"{path} [{section}]")
+    for section in SECTION_KEYS:
+        top[section] = _section(data, section, str(path))
     top["dataset"] = _resolve_dataset(str(data["dataset"]), path.resolve().parent)
     recipe = _build(Recipe, {**top, "path": str(path)}, str(path))
     for control in recipe.controls:
@@ -205,8 +194,7 @@ def prepare_policies(recipe: Recipe, state: SweepState, log: Callable[[str], Non
     for entry in recipe.backbones:
         policy = entry.policy
         if policy == "tiny":
-            overrides = {k: v for k, v in dataclasses.asdict(recipe.train_tiny).items() if v is not None}
-            cfg = dataclasses.replace(DEFAULT_TINY_TRAIN, **overrides)
+            cfg = dataclasses.replace(DEFAULT_TINY_TRAIN, **recipe.train_tiny)
             policy = str(train_tiny(entry.name, recipe.dataset, cfg=cfg, cache=recipe.cache, device=recipe.device,
                                     log=log))
             state.commands[f"policy {entry.name}"] = (f"graftcache train-tiny --backbone {entry.name} "
@@ -218,10 +206,8 @@ def prepare_policies(recipe: Recipe, state: SweepState, log: Callable[[str], Non
 def _extract(recipe: Recipe, encoder: str, grids: list[tuple[int, int]], log: Callable[[str], None], **kw: Any) -> str:
     from graftcache.extract import ExtractRequest, extract
 
-    s = recipe.extract
-    req = ExtractRequest(dataset=recipe.dataset, encoder=encoder, grids=tuple(dict.fromkeys(grids)), cameras=s.cameras,
-                         dtype=s.dtype, compute_dtype=s.compute_dtype, device=recipe.device, batch_size=s.batch_size,
-                         num_workers=s.num_workers, block_frames=s.block_frames, cache=recipe.cache, **kw)
+    req = ExtractRequest(dataset=recipe.dataset, encoder=encoder, grids=tuple(dict.fromkeys(grids)),
+                         device=recipe.device, cache=recipe.cache, **recipe.extract, **kw)
     return extract(req, log=log).key
 
 
@@ -253,7 +239,6 @@ def fit_requests(recipe: Recipe, state: SweepState) -> Iterator[tuple[str, Any]]
     features are read once per request, in a stable order."""
     from graftcache.fit.run import FitRequest
 
-    f = recipe.fit
     for backbone in recipe.backbones:
         for enc in recipe.encoders:
             for suite in recipe.suites:
@@ -261,11 +246,9 @@ def fit_requests(recipe: Recipe, state: SweepState) -> Iterator[tuple[str, Any]]
                     backbone=backbone.name, encoder=enc.name, suite=suite, policy=state.policies[backbone.name],
                     dataset=recipe.dataset, cache_key=state.encoder_caches[enc],
                     native_cache_key=state.native_caches.get(backbone.name), seeds=recipe.seeds,
-                    controls=recipe.controls, objective=recipe.objective, steps=f.steps, lr=f.lr,
-                    batch_size=f.batch_size, eval_fraction=f.eval_fraction, eval_split_seed=f.eval_split_seed,
-                    eval_frames=f.eval_frames, num_denoise_steps=f.num_denoise_steps, lora_rank=f.lora_rank,
-                    device=recipe.device, dtype=f.dtype, results=recipe.results, cache=recipe.cache,
-                    progress=False, command=f"graftcache sweep {recipe.path}")
+                    controls=recipe.controls, objective=recipe.objective, device=recipe.device,
+                    results=recipe.results, cache=recipe.cache, progress=False,
+                    command=f"graftcache sweep {recipe.path}", **recipe.fit)
 
 
 def run_sweep(recipe: Recipe, log: Callable[[str], None] = tqdm.write) -> SweepState:

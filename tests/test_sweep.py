@@ -12,7 +12,7 @@ from datasets_fixtures import Written, v3_video  # noqa: F401  (session fixture)
 
 from graftcache import results
 from graftcache.cli import main
-from graftcache.sweep import RecipeError, load_recipe, run_sweep
+from graftcache.sweep import SECTION_KEYS, RecipeError, load_recipe, run_sweep
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -54,6 +54,17 @@ def test_shipped_recipes_parse(name: str) -> None:
         assert any(e.random_init for e in recipe.encoders)
     else:
         assert recipe.dataset == "lerobot/libero" and len(recipe.seeds) == 3 and len(recipe.encoders) >= 4
+
+
+def test_section_keys_are_fields_of_the_requests_they_override() -> None:
+    from dataclasses import fields
+
+    from graftcache.extract import ExtractRequest
+    from graftcache.fit.run import FitRequest
+    from graftcache.pretrain import TinyTrainConfig
+
+    for section, cls in (("extract", ExtractRequest), ("fit", FitRequest), ("train_tiny", TinyTrainConfig)):
+        assert set(SECTION_KEYS[section]) <= {f.name for f in fields(cls)}, section
 
 
 def test_unknown_missing_and_invalid_keys_name_file_and_key(tmp_path: Path) -> None:
