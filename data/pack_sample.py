@@ -1,17 +1,16 @@
 #!/usr/bin/env python
-"""Pack the npz episodes from data/render_sample.py into a LeRobot v3.0 dataset with lerobot 0.4.4.
+"""Pack the npz episodes from data/render_sample.py into a LeRobot v3.0 dataset with lerobot's own writer.
 
 Runs in the project venv, offline: LeRobotDataset.create -> add_frame -> save_episode -> finalize, in
 video mode (AV1 mp4 per camera, like lerobot/libero). Afterwards it reopens the result with
 LeRobotDataset and checks episode/frame/task counts and that decoded frames match the rendered ones.
 
-Why the encoder is wrapped: lerobot 0.4.4 exposes only `vcodec` (and encoder threads) on `create`; its
-keyframe interval (g=2) and crf (30) are hard-wired into the call its writer makes. g=2 roughly doubles
-the file size of these short clips and the sample must stay small enough to commit, so the writer's
-`encode_video_frames` is swapped, for the duration of the packing only, for the same function with our
-g / crf / preset. Every episode still starts on a keyframe (each is encoded separately before lerobot
-concatenates them), so per-episode seeking is unaffected; only random access inside an episode decodes
-a few more frames.
+Why the keyframe interval is set: lerobot's default (g=2) roughly doubles the file size of these short
+clips and the sample must stay small enough to commit, so `create` gets an RGBEncoderConfig with our
+g / crf / preset (lerobot 0.6; the committed sample was packed with lerobot 0.4.4, whose writer had the
+same settings hard-wired and was patched for the packing). Every episode still starts on a keyframe
+(each is encoded separately before lerobot concatenates them), so per-episode seeking is unaffected;
+only random access inside an episode decodes a few more frames.
 """
 
 from __future__ import annotations
@@ -24,16 +23,12 @@ import argparse  # noqa: E402
 import json  # noqa: E402
 import shutil  # noqa: E402
 import time  # noqa: E402
-from contextlib import contextmanager  # noqa: E402
-from functools import partial  # noqa: E402
 from pathlib import Path  # noqa: E402
-from unittest import mock  # noqa: E402
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
-from lerobot.datasets import lerobot_dataset  # noqa: E402
+from lerobot.configs.video import RGBEncoderConfig  # noqa: E402
 from lerobot.datasets.lerobot_dataset import LeRobotDataset  # noqa: E402
-from lerobot.datasets.video_utils import encode_video_frames  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 CAMERAS = {"observation.images.image": "image", "observation.images.image2": "image2"}  # key -> npz array
@@ -52,28 +47,19 @@ def features(size: int) -> dict:
     }
 
 
-@contextmanager
-def video_encoder(g: int, crf: int, preset: int):
-    """Make lerobot's episode writer encode with our keyframe interval / crf / preset (see module doc)."""
-    tuned = partial(encode_video_frames, g=g, crf=crf, preset=preset)
-    with mock.patch.object(lerobot_dataset, "encode_video_frames", tuned):
-        yield
-
-
 def pack(manifest: dict, npz_dir: Path, args: argparse.Namespace) -> LeRobotDataset:
     ds = LeRobotDataset.create(repo_id=args.repo_id, fps=10, features=features(manifest["size"]),
-                               root=args.out, robot_type="panda", use_videos=True, vcodec=args.vcodec,
+                               root=args.out, robot_type="panda", use_videos=True,
+                               rgb_encoder=RGBEncoderConfig(vcodec=args.vcodec, g=args.gop, crf=args.crf,
+                                                            preset=args.preset),
                                encoder_threads=args.encoder_threads)
-    with video_encoder(args.gop, args.crf, args.preset):
-        for rec in tqdm(manifest["episodes"], desc="packing", unit="ep"):
-            z = np.load(npz_dir / rec["file"])
-            for t in range(len(z["action"])):
-                frame = {key: z[arr][t] for key, arr in CAMERAS.items()}
-                ds.add_frame({**frame, "observation.state": z["state"][t], "action": z["action"][t],
-                              "task": str(z["task"])})
-            # In-process encoding: a process pool would not see the patched encoder and the
-            # machine is shared anyway.
-            ds.save_episode(parallel_encoding=False)
+    for rec in tqdm(manifest["episodes"], desc="packing", unit="ep"):
+        z = np.load(npz_dir / rec["file"])
+        for t in range(len(z["action"])):
+            frame = {key: z[arr][t] for key, arr in CAMERAS.items()}
+            ds.add_frame({**frame, "observation.state": z["state"][t], "action": z["action"][t],
+                          "task": str(z["task"])})
+        ds.save_episode(parallel_encoding=False)  # in-process: the machine is shared anyway
     ds.finalize()
     return ds
 

@@ -14,10 +14,9 @@ import dataclasses
 import time
 from pathlib import Path
 
-from tqdm import tqdm
-
 import graftcache
 from graftcache.errors import GraftcacheError
+from graftcache.progress import write
 from graftcache.report import ReportPaths, write_report
 from graftcache.store import cache_root
 from graftcache.sweep import load_recipe, run_sweep
@@ -38,5 +37,5 @@ def run_demo(recipe_path: str | Path | None = None, out: str | Path | None = Non
     report_dir = Path(out) if out else Path(recipe.results).parent / "report"
     commands = {"demo": f"graftcache demo --recipe {path}", "sweep": f"graftcache sweep {path}", **state.commands}
     paths = write_report(recipe.results, report_dir, commands=commands)
-    tqdm.write(f"demo finished in {time.perf_counter() - t0:.0f}s")
+    write(f"demo finished in {time.perf_counter() - t0:.0f}s")
     return paths

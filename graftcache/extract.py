@@ -16,24 +16,32 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from datetime import datetime, timezone
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import polars as pl
 import torch
 from torch.utils.data import DataLoader, Dataset
-from tqdm import tqdm
 
 import graftcache
+from graftcache.checks import EPISODES, NON_NEGATIVE, POSITIVE, Rule, check_fields
 from graftcache.datasets import LeRobotSource, open_dataset, suite_of
 from graftcache.encoders import get_spec, load_encoder
 from graftcache.errors import DatasetError, GraftcacheError
 from graftcache.pooling import format_grid, pool_grid
-from graftcache.runtime import autocast, resolve_device, resolve_dtype, set_main_threads, single_thread_worker
+from graftcache.progress import progress
+from graftcache.runtime import (
+    autocast,
+    resolve_compute_dtype,
+    resolve_device,
+    resolve_dtype,
+    set_main_threads,
+    single_thread_worker,
+)
 from graftcache.store import FORMAT_VERSION, FeatureCache, cache_key, cache_root
 from graftcache.store.cache import STORAGE_DTYPES, ArraySpec, to_storage
 from graftcache.store.lock import exclusive
@@ -44,7 +52,8 @@ VERSIONED_PACKAGES = ("torch", "timm", "transformers", "lerobot", "zarr", "numco
 
 @dataclass(frozen=True)
 class ExtractRequest:
-    """Everything `graftcache extract` needs. Fields after `dtype` do not change the numbers."""
+    """Everything `graftcache extract` needs. Fields up to `compute_dtype` change the numbers (and the key);
+    the ones after it do not."""
 
     dataset: str
     encoder: str
@@ -55,8 +64,9 @@ class ExtractRequest:
     random_init: bool = False
     seed: int = 0
     policy: str | None = None  # native towers (smolvla-native, pi05-native) come from a policy
+    frame_stride: int = 1  # features for frames whose frame_index % frame_stride == 0 (actions stay full rate)
     dtype: str = "fp16"
-    compute_dtype: str = "fp32"
+    compute_dtype: str = "auto"  # resolved per device by runtime.resolve_compute_dtype before anything is keyed
     device: str = "cpu"
     batch_size: int = 32
     num_workers: int = 2
@@ -64,6 +74,17 @@ class ExtractRequest:
     cache: str | None = None
     progress: bool = True
     extra_manifest: dict[str, Any] = field(default_factory=dict)
+
+    RULES: ClassVar[dict[str, Rule]] = {"seed": NON_NEGATIVE, "batch_size": POSITIVE, "num_workers": NON_NEGATIVE,
+                                        "block_frames": POSITIVE, "episodes": EPISODES,
+                                        "frame_stride": POSITIVE}
+
+    def __post_init__(self) -> None:
+        self.check(vars(self))
+
+    @classmethod
+    def check(cls, values: dict[str, Any]) -> None:
+        check_fields(values, cls.RULES)
 
 
 @dataclass(frozen=True)
@@ -119,6 +140,7 @@ def build_manifest(req: ExtractRequest, source: LeRobotSource, encoder: Any, epi
         },
         "dataset_fingerprint": {"codebase_version": meta.codebase_version, **meta.fingerprint},
         "episodes": None if len(episodes) == len(meta.episodes) else [int(e) for e in episodes],
+        "frame_stride": req.frame_stride,
         "cameras": list(cameras),
         "camera_keys": {c: meta.camera_keys[c] for c in cameras},
         "encoder": desc,
@@ -144,27 +166,44 @@ def build_manifest(req: ExtractRequest, source: LeRobotSource, encoder: Any, epi
 class _EpisodeFrames(Dataset):
     """Decodes one whole episode per item (all requested cameras) inside a worker process."""
 
-    def __init__(self, source: LeRobotSource, episodes: Sequence[int], cameras: Sequence[str]) -> None:
-        self.source, self.episodes, self.cameras = source, list(episodes), list(cameras)
+    def __init__(self, source: LeRobotSource, episodes: Sequence[int], cameras: Sequence[str], stride: int) -> None:
+        self.source, self.episodes, self.cameras, self.stride = source, list(episodes), list(cameras), stride
+        self.lengths = {e.index: e.length for e in source.meta.episodes}
 
     def __len__(self) -> int:
         return len(self.episodes)
 
-    def __getitem__(self, i: int) -> tuple[int, dict[str, np.ndarray]]:
+    def __getitem__(self, i: int) -> tuple[int, dict[str, np.ndarray] | str]:
+        """(episode, frames), or (episode, one-line error text): an exception raised in a worker process
+        would reach the main process wrapped in torch's multi-line "Caught ... in DataLoader worker"
+        report, so decode errors travel back as values and are raised there as DatasetError."""
         ep = self.episodes[i]
-        return ep, self.source.decode_episode(ep, self.cameras)
+        try:
+            frames = self.source.decode_episode(ep, self.cameras)
+            for cam, video in frames.items():
+                if video.shape[0] != self.lengths[ep]:
+                    raise DatasetError(f"{self.source.meta.root}: episode {ep} camera {cam} decoded "
+                                       f"{video.shape[0]} frames, metadata says {self.lengths[ep]}")
+            # keyframes only (frame_index % stride == 0), so only they cross the process boundary
+            return ep, {cam: video[:: self.stride] for cam, video in frames.items()}
+        except DatasetError as e:
+            return ep, str(e)
+        except Exception as e:  # a decoder library's own error on a damaged file
+            return ep, f"{self.source.meta.root}: episode {ep}: cannot decode ({type(e).__name__}: {e})"
 
 
-def _episode_stream(source: LeRobotSource, episodes: Sequence[int], cameras: Sequence[str],
-                    num_workers: int) -> Iterator[tuple[int, dict[str, np.ndarray]]]:
-    ds = _EpisodeFrames(source, episodes, cameras)
-    if num_workers == 0:
-        yield from (ds[i] for i in range(len(ds)))
-        return
-    loader = DataLoader(ds, batch_size=None, shuffle=False, num_workers=num_workers,
-                        worker_init_fn=single_thread_worker, prefetch_factor=2, persistent_workers=False,
-                        multiprocessing_context="spawn" if sys.platform == "darwin" else None)
-    yield from loader
+def _episode_stream(source: LeRobotSource, episodes: Sequence[int], cameras: Sequence[str], num_workers: int,
+                    stride: int) -> Iterator[tuple[int, dict[str, np.ndarray]]]:
+    ds = _EpisodeFrames(source, episodes, cameras, stride)
+    items: Iterator[tuple[int, dict[str, np.ndarray] | str]] = (ds[i] for i in range(len(ds)))
+    if num_workers:
+        items = iter(DataLoader(ds, batch_size=None, shuffle=False, num_workers=num_workers,
+                                worker_init_fn=single_thread_worker, prefetch_factor=2, persistent_workers=False,
+                                multiprocessing_context="spawn" if sys.platform == "darwin" else None))
+    for ep, frames in items:
+        if isinstance(frames, str):
+            raise DatasetError(" ".join(frames.split()))
+        yield ep, frames
 
 
 class _Writer:
@@ -232,6 +271,7 @@ def extract(req: ExtractRequest, log: Callable[[str], None] = print) -> ExtractR
     t0 = time.perf_counter()
     set_main_threads()
     device = resolve_device(req.device)
+    req = replace(req, compute_dtype=resolve_compute_dtype(req.compute_dtype, device))  # never "auto" in a key
     compute = resolve_dtype(req.compute_dtype)
     if req.dtype not in STORAGE_DTYPES:
         raise GraftcacheError(f"--dtype {req.dtype!r}: choose one of {', '.join(STORAGE_DTYPES)}")
@@ -251,7 +291,8 @@ def extract(req: ExtractRequest, log: Callable[[str], None] = print) -> ExtractR
     spec = get_spec(req.encoder)
     encoder = load_encoder(spec, weights=req.weights, random_init=req.random_init, seed=req.seed,
                            device=device, policy=req.policy)
-    index = build_index(source, episodes)
+    stream = build_index(source, episodes)
+    index = stream.filter(pl.col("frame_index") % req.frame_stride == 0)
     manifest = build_manifest(req, source, encoder, episodes, cameras, index.height)
     key = cache_key(manifest)
     root = cache_root(req.cache)
@@ -260,7 +301,7 @@ def extract(req: ExtractRequest, log: Callable[[str], None] = print) -> ExtractR
         log(f"note: encoder {spec.name} uses RANDOM-INIT weights (seed {req.seed}); the manifest says so")
 
     with exclusive(root / f"{key}.lock", on_wait=lambda pid: log(f"waiting: {key} is being written by pid {pid}")):
-        cache = _open_or_create(path, manifest, index, encoder, cameras, req, log)
+        cache = _open_or_create(path, manifest, index, stream, encoder, cameras, req, log)
         if cache.complete:
             log(f"reusing complete cache {key} ({cache.n_frames} frames)")
             return ExtractResult(key, path, True, cache.n_frames, 0, time.perf_counter() - t0)
@@ -273,10 +314,12 @@ def extract(req: ExtractRequest, log: Callable[[str], None] = print) -> ExtractR
     return ExtractResult(key, path, False, cache.n_frames, encoded, wall, encode_s)
 
 
-def _open_or_create(path: Path, manifest: dict[str, Any], index: pl.DataFrame, encoder: Any,
+def _open_or_create(path: Path, manifest: dict[str, Any], index: pl.DataFrame, stream: pl.DataFrame, encoder: Any,
                     cameras: Sequence[str], req: ExtractRequest, log: Callable[[str], None]) -> FeatureCache:
     if (path / "zarr.json").exists():
         cache = FeatureCache(path)
+        if cache.initialized:  # never resume or reuse features of other data under this key (e.g. a copied cache)
+            cache.check_dataset(manifest["dataset_fingerprint"], req.dataset)
         if cache.initialized and cache.matches(manifest):
             if not cache.complete:
                 log(f"resuming {path.name}: {len(cache.blocks_done())}/{cache.layout['n_blocks']} blocks already written")
@@ -286,7 +329,8 @@ def _open_or_create(path: Path, manifest: dict[str, Any], index: pl.DataFrame, e
     arrays = [ArraySpec(f"features/{cam}/{format_grid(g)}", (g[0] * g[1], width)) for cam in cameras for g in req.grids]
     arrays += [ArraySpec(f"features/{cam}/{name}", tuple(shape))
                for cam in cameras for name, shape in manifest["extras"].items()]
-    return FeatureCache.create(path, manifest, arrays, index, block_frames=req.block_frames)
+    return FeatureCache.create(path, manifest, arrays, index, block_frames=req.block_frames,
+                               action_stream=stream.select("episode_index", "frame_index", "action"))
 
 
 def _fill(cache: FeatureCache, source: LeRobotSource, index: pl.DataFrame, encoder: Any, cameras: Sequence[str],
@@ -299,16 +343,12 @@ def _fill(cache: FeatureCache, source: LeRobotSource, index: pl.DataFrame, encod
     buffers: dict[int, dict[str, np.ndarray]] = {}
     filled: dict[int, int] = {}
     writer = _Writer(cache)
-    bar = tqdm(total=sum(cache.block_range(b)[1] - cache.block_range(b)[0] for b in todo), unit="frame",
-               desc=f"extract {cache.key}", disable=not req.progress, dynamic_ncols=True)
+    bar = progress(total=sum(cache.block_range(b)[1] - cache.block_range(b)[0] for b in todo), unit="frame",
+                   desc=f"extract {cache.key}", enabled=req.progress)
     encoded = 0
     try:
-        for ep, frames in _episode_stream(source, needed, cameras, req.num_workers):
-            rows = ep_rows[ep]
-            for cam in cameras:
-                if frames[cam].shape[0] != len(rows):
-                    raise DatasetError(f"{source.meta.root}: episode {ep} camera {cam} decoded "
-                                       f"{frames[cam].shape[0]} frames, metadata says {len(rows)}")
+        for ep, frames in _episode_stream(source, needed, cameras, req.num_workers, req.frame_stride):
+            rows = ep_rows[ep]  # the episode's keyframes, in order: the decoded frames after the stride
             for block in np.unique(rows_block[rows]):
                 block = int(block)
                 if block not in todo:

@@ -11,24 +11,28 @@ reproducible from the seed, so `--policy tiny` finds it again.
 
 from __future__ import annotations
 
+import functools
 import json
+import math
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
+from typing import Any, ClassVar
 
 import numpy as np
 import polars as pl
 import torch
-from tqdm import tqdm
 
 from graftcache.backbones import TinySpec, get_backbone
+from graftcache.checks import NON_NEGATIVE, POSITIVE, Rule, check_fields
 from graftcache.backbones.native import policy_pixels
 from graftcache.datasets import open_dataset
 from graftcache.fit.data import action_chunks
 from graftcache.fit.loop import flow_time
-from graftcache.fit.lookup import tiny_policy_dir
-from graftcache.runtime import resolve_device, set_main_threads
+from graftcache.fit.lookup import TINY_RECORD, tiny_policy_dir
+from graftcache.progress import progress
+from graftcache.runtime import autocast, resolve_compute_dtype, resolve_device, resolve_dtype, set_main_threads
 
 
 @dataclass(frozen=True)
@@ -39,9 +43,38 @@ class TinyTrainConfig:
     weight_decay: float = 1e-4
     seed: int = 0
     image_size: int = 128  # frames are resized once to this (>= every tiny tower's input)
+    warmup: float = 0.1    # share of the steps with a linear warm-up, then cosine decay to 0
+    compute_dtype: str = "auto"  # resolved (runtime.resolve_compute_dtype) before it keys the checkpoint
+
+    RULES: ClassVar[dict[str, Rule]] = {"steps": POSITIVE, "batch_size": POSITIVE, "lr": POSITIVE,
+                                        "weight_decay": NON_NEGATIVE, "seed": NON_NEGATIVE, "image_size": POSITIVE,
+                                        "warmup": (lambda v: 0 <= v < 1, "must be in [0, 1)")}
+
+    def __post_init__(self) -> None:
+        self.check(vars(self))
+
+    @classmethod
+    def check(cls, values: dict[str, Any]) -> None:
+        check_fields(values, cls.RULES)
 
     def as_dict(self, backbone: str) -> dict:
         return {"backbone": backbone, **asdict(self)}
+
+
+def warmup_cosine(steps: int, warmup: float) -> Callable[[int], float]:
+    """LR multiplier per step: linear warm-up over max(1, warmup * steps) steps, then cosine to 0.
+
+    Defined for every step count >= 1 (torch's OneCycleLR divides by zero for e.g. 10 steps at 10% warm-up).
+    """
+    ramp = max(1, round(warmup * steps))
+
+    def factor(step: int) -> float:
+        if step < ramp:
+            return (step + 1) / ramp
+        rest = max(1, steps - ramp)
+        return 0.5 * (1.0 + math.cos(math.pi * min(1.0, (step - ramp + 1) / rest)))
+
+    return factor
 
 
 DEFAULT_TINY_TRAIN = TinyTrainConfig()
@@ -60,12 +93,15 @@ def dataset_stats(table: pl.DataFrame) -> dict[str, dict[str, torch.Tensor]]:
     return out
 
 
+@functools.lru_cache(maxsize=1)
 def _decode_all(dataset: str, cameras: tuple[str, ...], size: int, log: Callable[[str], None]):
-    """Every frame of every camera, resized once to `size` (uint8 [N, 3, size, size]), in dataset order."""
+    """Every frame of every camera, resized once to `size` (uint8 [N, 3, size, size]), in dataset order.
+
+    Kept for the next call with the same arguments (a sweep trains both tiny backbones on one dataset)."""
     source = open_dataset(dataset)
     episodes = [e.index for e in source.meta.episodes]
     frames: dict[str, list[torch.Tensor]] = {c: [] for c in cameras}
-    for ep in tqdm(episodes, desc="decode", leave=False):
+    for ep in progress(episodes, desc="decode", unit="episode", leave=False):
         decoded = source.decode_episode(ep, list(cameras))
         for c in cameras:
             frames[c].append(policy_pixels(torch.from_numpy(decoded[c]), size))
@@ -93,8 +129,10 @@ def train_tiny(backbone: str, dataset: str, *, cfg: TinyTrainConfig = DEFAULT_TI
 
     set_main_threads()
     dev = resolve_device(device)
-    folder = Path(out) if out else tiny_policy_dir(cache_root(cache), backbone, dataset_fingerprint(dataset),
-                                                   cfg.as_dict(backbone))
+    cfg = replace(cfg, compute_dtype=resolve_compute_dtype(cfg.compute_dtype, dev))
+    compute = resolve_dtype(cfg.compute_dtype)
+    fingerprint = dataset_fingerprint(dataset)
+    folder = Path(out) if out else tiny_policy_dir(cache_root(cache), backbone, fingerprint, cfg.as_dict(backbone))
     if (folder / "config.json").exists() and not force:
         log(f"reusing natively trained tiny {backbone}: {folder}")
         return folder
@@ -107,17 +145,18 @@ def train_tiny(backbone: str, dataset: str, *, cfg: TinyTrainConfig = DEFAULT_TI
     policy = adapter.policy
     _unfreeze_all(policy)
     n_params = sum(p.numel() for p in policy.parameters())
-    log(f"training tiny {backbone} natively: {n_params:,} parameters, all trainable, {cfg.steps} steps")
+    log(f"training tiny {backbone} natively: {n_params:,} parameters, all trainable, {cfg.steps} steps, "
+        f"compute {cfg.compute_dtype}")
     episode = table["episode_index"].to_numpy()
     acts, pad = action_chunks(np.stack(table["action"].to_numpy()).astype(np.float32), episode, adapter.chunk_size)
     actions, action_pad = torch.from_numpy(acts), torch.from_numpy(pad)
     state = torch.from_numpy(np.stack(table["state"].to_numpy()).astype(np.float32))
     tasks = [meta.tasks[i] for i in table["task_index"].to_list()]
     opt = torch.optim.AdamW([p for p in policy.parameters()], lr=cfg.lr, weight_decay=cfg.weight_decay)
-    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=cfg.lr, total_steps=cfg.steps, pct_start=0.1)
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, warmup_cosine(cfg.steps, cfg.warmup))
     g = torch.Generator().manual_seed(cfg.seed)
     policy.train()
-    bar = tqdm(range(cfg.steps), desc=f"train-tiny {backbone}", dynamic_ncols=True)
+    bar = progress(range(cfg.steps), desc=f"train-tiny {backbone}", unit="step")
     losses = []
     for _ in bar:
         pos = torch.randint(0, len(table), (cfg.batch_size,), generator=g)
@@ -125,8 +164,9 @@ def train_tiny(backbone: str, dataset: str, *, cfg: TinyTrainConfig = DEFAULT_TI
         raw.update({"observation.state": state[pos], "action": actions[pos], "action_is_pad": action_pad[pos],
                     "task": [tasks[int(i)] for i in pos]})
         batch = adapter.prepare(raw)
-        loss = adapter.loss(batch, noise=adapter.sample_noise(cfg.batch_size, generator=g),
-                            time=flow_time(cfg.batch_size, g).to(dev)).mean()
+        with autocast(dev, compute):
+            loss = adapter.loss(batch, noise=adapter.sample_noise(cfg.batch_size, generator=g),
+                                time=flow_time(cfg.batch_size, g).to(dev)).mean()
         opt.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(policy.parameters(), 1.0)
@@ -136,10 +176,11 @@ def train_tiny(backbone: str, dataset: str, *, cfg: TinyTrainConfig = DEFAULT_TI
         bar.set_postfix(loss=f"{np.mean(losses[-20:]):.4f}")
     adapter.save(folder)
     record = {"backbone": backbone, "dataset": str(dataset), "dataset_root": str(meta.root),
+              "dataset_fingerprint": fingerprint,
               "config": cfg.as_dict(backbone), "final_loss": float(np.mean(losses[-max(1, cfg.steps // 10):])),
               "wall_s": time.perf_counter() - t0, "random_init": True,
               "note": "tiny architecture, random init, trained natively by graftcache (not released weights)"}
-    (folder / "graftcache_pretrain.json").write_text(json.dumps(record, indent=2))
+    (folder / TINY_RECORD).write_text(json.dumps(record, indent=2))
     log(f"saved natively trained tiny {backbone} to {folder} (final loss {record['final_loss']:.4f}, "
         f"{record['wall_s']:.0f}s)")
     return folder

@@ -42,12 +42,19 @@ SCHEMA: dict[str, pl.DataType] = {
     "eval_split_seed": pl.Int64,
     "wall_s": pl.Float64,
     "device": pl.String,
+    "compute_dtype": pl.String,       # resolved model compute dtype ("bf16" | "fp32"), never "auto"
     "random_init": pl.Boolean,        # any random-init weights in the encoder or the backbone
     "graftcache_version": pl.String,
     "command": pl.String,             # the command line that produced the row
 }
 
 CONTROLS_NATIVE = ("native",)
+
+# What a report needs of a table: enough to place every MSE in the (backbone, suite, encoder, control, seed)
+# grid. Tables from older versions, other tools or a paper need only these (conform fills the other SCHEMA
+# columns with nulls; without eval_mse_episodes the report's bootstrap resamples seeds only). Writing rows
+# (validate, append) still demands every SCHEMA column.
+REPORT_COLUMNS = ("backbone", "suite", "encoder", "control", "seed", "eval_mse")
 
 
 def empty() -> pl.DataFrame:
@@ -73,6 +80,30 @@ def validate(rows: pl.DataFrame) -> pl.DataFrame:
     return out
 
 
+def conform(rows: pl.DataFrame) -> pl.DataFrame:
+    """The lenient reading of a table for analysis: REPORT_COLUMNS required (and their keys non-null),
+    absent SCHEMA columns added as nulls, columns outside SCHEMA dropped, everything cast to SCHEMA."""
+    missing = [c for c in REPORT_COLUMNS if c not in rows.columns]
+    if missing:
+        raise GraftcacheError(
+            f"results table lacks column(s) {', '.join(missing)} (a report needs {', '.join(REPORT_COLUMNS)})"
+        )
+    columns = []
+    for name, dtype in SCHEMA.items():
+        if name not in rows.columns:
+            columns.append(pl.repeat(None, len(rows), dtype=dtype, eager=True).alias(name))
+            continue
+        try:
+            columns.append(rows[name].cast(dtype, strict=True))
+        except pl.exceptions.PolarsError:
+            raise GraftcacheError(f"column {name} ({rows[name].dtype}) cannot be read as {dtype}") from None
+    out = pl.DataFrame(columns)
+    keys = [c for c in REPORT_COLUMNS if c != "eval_mse" and out[c].null_count()]
+    if keys:
+        raise GraftcacheError(f"null values in key column(s) {', '.join(keys)}")
+    return out
+
+
 def read(path: str | Path) -> pl.DataFrame:
     """Read a results Parquet file (an absent file is an empty table)."""
     path = Path(path)
@@ -82,6 +113,33 @@ def read(path: str | Path) -> pl.DataFrame:
         return validate(pl.read_parquet(path))
     except GraftcacheError as e:
         raise GraftcacheError(f"{path}: {e}") from None
+    except (pl.exceptions.PolarsError, OSError) as e:
+        reason = "empty file" if not path.stat().st_size else (str(e).splitlines() or [type(e).__name__])[0]
+        raise GraftcacheError(f"{path}: not a Parquet results table ({reason}); pass another --results") from None
+
+
+def read_for_report(path: str | Path) -> pl.DataFrame:
+    """Read any results table a report can use (see REPORT_COLUMNS), conformed to SCHEMA.
+
+    Unlike `read`, nothing here is silent: an absent, empty or non-Parquet file, a table without rows and
+    one lacking a needed column are GraftcacheErrors naming the file, since a report of nothing must not
+    look like a report.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise GraftcacheError(f"{path}: no results file (run `graftcache sweep` or `graftcache demo` first)")
+    try:
+        rows = pl.read_parquet(path)
+    except (pl.exceptions.PolarsError, OSError) as e:
+        reason = "empty file" if not path.stat().st_size else (str(e).splitlines() or [type(e).__name__])[0]
+        raise GraftcacheError(f"{path}: not a Parquet results table ({reason})") from None
+    try:
+        table = conform(rows)
+    except GraftcacheError as e:
+        raise GraftcacheError(f"{path}: {e}") from None
+    if not len(table):
+        raise GraftcacheError(f"{path}: no rows")
+    return table
 
 
 def done_run_ids(path: str | Path) -> set[str]:

@@ -11,10 +11,14 @@ Recipe keys (unknown keys are errors, so a typo never silently falls back to a d
     name, dataset, results, cache, device, suites, seeds, controls, objective
     [[backbones]]  name, policy ("tiny" = natively trained on `dataset`, else hub id or folder)
     [[encoders]]   name, weights, random_init, seed
-    [extract]      batch_size, num_workers, dtype, compute_dtype, cameras, block_frames
+    [extract]      batch_size, num_workers, dtype, compute_dtype, cameras, block_frames, frame_stride
     [fit]          steps, lr, batch_size, eval_fraction, eval_split_seed, eval_frames, num_denoise_steps,
-                   lora_rank, dtype, out
-    [train_tiny]   steps, batch_size, lr, weight_decay, seed, image_size (backbones with policy = "tiny")
+                   lora_rank, compute_dtype, out
+    [train_tiny]   steps, batch_size, lr, weight_decay, seed, image_size, warmup, compute_dtype
+                   (backbones with policy = "tiny")
+
+Every value is checked against the type of the request field it sets (a string where a number, list
+or boolean belongs is an error naming file, table and key), and the requests check their ranges.
 
 Relative paths in `dataset` are resolved against the recipe's folder when they exist there, so a
 recipe in cli/ can name ../data/libero_sample; anything else is passed on (a hub repo id).
@@ -24,16 +28,18 @@ from __future__ import annotations
 
 import dataclasses
 import tomllib
+import types
+import typing
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
-from tqdm import tqdm
-
+from graftcache.backbones.pool import BackbonePool
 from graftcache.errors import GraftcacheError
 from graftcache.fit.controls import get_control
 from graftcache.pooling import format_grid
+from graftcache.progress import progress, write
 
 
 class RecipeError(GraftcacheError):
@@ -62,10 +68,10 @@ class BackboneEntry:
 #: builds (ExtractRequest, FitRequest, TinyTrainConfig), whose own defaults apply to anything left out.
 #: The rest of each request (dataset, encoder, backbone, seeds, ...) comes from the grid itself.
 SECTION_KEYS: dict[str, tuple[str, ...]] = {
-    "extract": ("batch_size", "num_workers", "dtype", "compute_dtype", "cameras", "block_frames"),
+    "extract": ("batch_size", "num_workers", "dtype", "compute_dtype", "cameras", "block_frames", "frame_stride"),
     "fit": ("steps", "lr", "batch_size", "eval_fraction", "eval_split_seed", "eval_frames", "num_denoise_steps",
-            "lora_rank", "dtype", "out"),
-    "train_tiny": ("steps", "batch_size", "lr", "weight_decay", "seed", "image_size"),
+            "lora_rank", "compute_dtype", "out"),
+    "train_tiny": ("steps", "batch_size", "lr", "weight_decay", "seed", "image_size", "warmup", "compute_dtype"),
 }
 
 
@@ -107,27 +113,86 @@ _LISTS = {"backbones": BackboneEntry, "encoders": EncoderEntry}
 _REQUIRED = ("name", "dataset", "results", "suites", "backbones", "encoders", "seeds")
 
 
+def _matches(value: Any, hint: Any) -> bool:
+    """Whether a TOML value (lists already turned into tuples) fits a dataclass field's type hint."""
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if hint is Any:
+        return True
+    if origin in (typing.Union, types.UnionType):
+        return any(_matches(value, a) for a in args)
+    if hint is type(None):
+        return value is None
+    if origin is tuple:
+        if not isinstance(value, tuple):
+            return False
+        if len(args) == 2 and args[1] is Ellipsis:
+            return all(_matches(v, args[0]) for v in value)
+        return len(args) == len(value) and all(_matches(v, a) for v, a in zip(value, args))
+    if origin is not None:  # Mapping[...], dict[...]
+        return isinstance(value, origin)
+    if hint is float:
+        return isinstance(value, (int, float)) and not isinstance(value, bool)
+    if hint is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    return isinstance(value, hint)
+
+
+def _type_name(hint: Any) -> str:
+    return getattr(hint, "__name__", None) or str(hint).replace("typing.", "")
+
+
+def _typed(cls: type, values: Mapping[str, Any], where: str) -> dict[str, Any]:
+    """`values` (TOML lists as tuples) after checking each against `cls`'s field types."""
+    hints = typing.get_type_hints(cls)
+    out = {k: _tuples(v) for k, v in values.items()}
+    for key, value in out.items():
+        if key in hints and not _matches(value, hints[key]):
+            raise RecipeError(f"{where}: {key} = {value!r} is not a {_type_name(hints[key])}")
+    return out
+
+
+def _tuples(value: Any) -> Any:
+    return tuple(_tuples(v) for v in value) if isinstance(value, list) else value
+
+
 def _build(cls: type, data: Mapping[str, Any], where: str) -> Any:
-    """A frozen dataclass from a TOML table; unknown or missing keys name the place in the recipe."""
+    """A frozen dataclass from a TOML table; unknown, missing or mistyped keys name the place in the recipe."""
     known = {f.name for f in fields(cls)}
     unknown = sorted(set(data) - known)
     if unknown:
         raise RecipeError(f"{where}: unknown key(s) {', '.join(unknown)}; known: {', '.join(sorted(known))}")
-    values = {k: tuple(v) if isinstance(v, list) else v for k, v in data.items()}
     try:
-        return cls(**values)
+        return cls(**_typed(cls, data, where))
     except TypeError as e:
         raise RecipeError(f"{where}: {e}") from None
 
 
+def _section_classes() -> dict[str, type]:
+    """The request each settings table overrides (imported on use: they pull in torch)."""
+    from graftcache.extract import ExtractRequest
+    from graftcache.fit.run import FitRequest
+    from graftcache.pretrain import TinyTrainConfig
+
+    return {"extract": ExtractRequest, "fit": FitRequest, "train_tiny": TinyTrainConfig}
+
+
 def _section(data: Mapping[str, Any], section: str, where: str) -> dict[str, Any]:
-    """A settings table as request overrides; keys outside SECTION_KEYS[section] name the place."""
+    """A settings table as request overrides; keys outside SECTION_KEYS[section] or of the wrong type,
+    and values the request refuses, name the place."""
     table = data.get(section, {})
     unknown = sorted(set(table) - set(SECTION_KEYS[section]))
     if unknown:
         raise RecipeError(f"{where} [{section}]: unknown key(s) {', '.join(unknown)}; known: "
                           f"{', '.join(sorted(SECTION_KEYS[section]))}")
-    return {k: tuple(v) if isinstance(v, list) else v for k, v in table.items()}
+    cls = _section_classes()[section]
+    values = _typed(cls, table, f"{where} [{section}]")
+    problem = getattr(cls, "check", None)
+    if problem is not None:
+        try:
+            problem(values)
+        except GraftcacheError as e:
+            raise RecipeError(f"{where} [{section}]: {e}") from None
+    return values
 
 
 def _resolve_dataset(dataset: str, recipe_dir: Path) -> str:
@@ -186,9 +251,8 @@ def _pool_grids(recipe: Recipe) -> list[tuple[int, int]]:
     return [g for g in (get_control(c).grid for c in recipe.controls) if g is not None]
 
 
-def prepare_policies(recipe: Recipe, state: SweepState, log: Callable[[str], None]) -> None:
+def prepare_policies(recipe: Recipe, state: SweepState, backbones: BackbonePool, log: Callable[[str], None]) -> None:
     """Train (or reuse) tiny backbones, then read each backbone's native token grid."""
-    from graftcache.backbones import load_backbone
     from graftcache.pretrain import DEFAULT_TINY_TRAIN, train_tiny
 
     for entry in recipe.backbones:
@@ -200,7 +264,7 @@ def prepare_policies(recipe: Recipe, state: SweepState, log: Callable[[str], Non
             state.commands[f"policy {entry.name}"] = (f"graftcache train-tiny --backbone {entry.name} "
                                                      f"--dataset {recipe.dataset} --steps {cfg.steps}")
         state.policies[entry.name] = policy
-        state.native_grids[entry.name] = load_backbone(entry.name, policy, device=recipe.device).native_grid
+        state.native_grids[entry.name] = backbones.get(entry.name, policy, recipe.device).native_grid
 
 
 def _extract(recipe: Recipe, encoder: str, grids: list[tuple[int, int]], log: Callable[[str], None], **kw: Any) -> str:
@@ -251,20 +315,20 @@ def fit_requests(recipe: Recipe, state: SweepState) -> Iterator[tuple[str, Any]]
                     command=f"graftcache sweep {recipe.path}", **recipe.fit)
 
 
-def run_sweep(recipe: Recipe, log: Callable[[str], None] = tqdm.write) -> SweepState:
+def run_sweep(recipe: Recipe, log: Callable[[str], None] = write) -> SweepState:
     """Policies, then caches, then every missing cell; one progress bar over the grid's rows."""
     from graftcache.fit.run import Fitter
 
-    state = SweepState()
+    state, backbones = SweepState(), BackbonePool()
     log(f"sweep {recipe.name}: {len(recipe.backbones)} backbone(s) x {len(recipe.encoders)} encoder(s) x "
         f"{len(recipe.suites)} suite(s) x {len(recipe.seeds)} seed(s) x {1 + len(recipe.controls)} control(s) "
         f"= {recipe.n_fits} cells, {recipe.n_rows} distinct rows -> {recipe.results}")
-    prepare_policies(recipe, state, log)
+    prepare_policies(recipe, state, backbones, log)
     prepare_caches(recipe, state, log)
     per_request = len(recipe.seeds) * (1 + len(recipe.controls))
-    with tqdm(total=recipe.n_fits, desc=f"sweep {recipe.name}", unit="cell", dynamic_ncols=True) as bar:
+    with progress(total=recipe.n_fits, desc=f"sweep {recipe.name}", unit="cell") as bar:
         for label, req in fit_requests(recipe, state):
             bar.set_postfix_str(label)
-            Fitter(req, log=log).run()
+            Fitter(req, log=log, backbones=backbones).run()
             bar.update(per_request)
     return state

@@ -3,14 +3,22 @@
 Encoders siglip, dinov2-s, resnet18; backbones smolvla (small) and pi05 (large); seeds 0, 1, 2.
 
 - libero_spatial: smolvla ranks siglip < dinov2-s < resnet18; on pi05 dinov2-s is best but siglip's seeds
-  overlap it (in the top tier), resnet18 is far off -> transfers; tau_b = 1/3; seed pairings: seed 0
-  agrees (siglip/siglip), seeds 1 and 2 disagree (siglip/dinov2-s).
+  overlap it (in the top tier), resnet18 is far off -> smolvla -> pi05 transfers; the pi05 winner dinov2-s
+  is outside the smolvla tier {siglip} -> pi05 -> smolvla does not; tau_b = 1/3; seed pairings: seed 0
+  agrees (siglip/siglip), seeds 1 and 2 disagree (siglip/dinov2-s); seed-level cells: seed 0 transfers both
+  ways, seeds 1 and 2 neither way.
 - libero_object: smolvla winner siglip; on pi05 every siglip seed is worse than every dinov2-s seed
-  -> does not transfer; tau_b = -1/3; all three seed pairings disagree.
-- libero_goal: siglip and resnet18 only on smolvla -> one shared encoder -> insufficient data.
-- libero_10: siglip and dinov2-s tie for first on smolvla (means 2.0); pi05 has seed 0 only with siglip ==
-  dinov2-s == 1.0 < resnet18 -> single-seed tier = exact ties {dinov2-s, siglip} -> transfers (flagged);
-  tau_b = 1.0 (a pair tied on both sides).
+  -> does not transfer, either way (tiers {dinov2-s} on pi05, {siglip} on smolvla); tau_b = -1/3; all three
+  seed pairings disagree, no seed-level cell transfers.
+- libero_goal: siglip and resnet18 only on smolvla -> one shared encoder -> insufficient data both ways.
+- libero_10: siglip and dinov2-s tie for first on smolvla (means 2.0, both in its tier); pi05 has seed 0
+  only with siglip == dinov2-s == 1.0 < resnet18 -> single-seed tier = exact ties {dinov2-s, siglip} ->
+  transfers both ways (smolvla -> pi05 flagged); tau_b = 1.0 (a pair tied on both sides). Seed 0 alone:
+  smolvla top-1 siglip (1.0) is in pi05's tie -> transfers; pi05's tied winners are not both in smolvla's
+  seed-0 tier {siglip} -> does not; seeds 1 and 2 were not run on pi05 -> insufficient data.
+So 3 of 6 judged comparisons transfer (2 insufficient) and 3 of 14 judged seed-level cells (10 insufficient).
+
+BOTH_WAYS_MSE and NEAR_TIE_MSE (below) are smaller tables for one question each.
 Controls on smolvla/libero_spatial: zero-image and shuffled-image for siglip (far), zero-image for
 resnet18 (within noise); native 1.0 and native-graft seeds 1.1/1.2/1.3 -> non-neutrality 0.2;
 pi05/libero_spatial has native 2.0 but no native-graft.
@@ -18,11 +26,13 @@ pi05/libero_spatial has native 2.0 but no native-graft.
 
 from __future__ import annotations
 
+import itertools
 from typing import Any
 
+import numpy as np
 import polars as pl
 
-from graftcache.results import SCHEMA, make_run_id, validate
+from graftcache.results import REPORT_COLUMNS, SCHEMA, make_run_id, validate
 
 PLAIN_MSE: dict[tuple[str, str, str], list[float]] = {
     ("smolvla", "libero_spatial", "siglip"): [1.0, 1.1, 1.2],
@@ -126,3 +136,54 @@ def write_results(path, frame: pl.DataFrame | None = None):
     """Write a results Parquet file (the hand-built table by default) and return its path."""
     (frame if frame is not None else full_table()).write_parquet(path)
     return path
+
+
+# Encoders a, b, c; seeds 0, 1, 2. Tiers follow from exact_p_greater (the bootstrap enumerated exhaustively).
+# s1: smolvla a < b < c, all separated -> tier {a}; pi05 b best (mean 1.333), a (1.433) overlaps it
+#     (P = 0.687) -> tier {a, b}: smolvla -> pi05 transfers, pi05 -> smolvla does not.
+#     Per seed: seed 0 pi05 top-1 a (1.0 < 1.2) -> transfers both ways; seeds 1, 2 pi05 top-1 b -> neither.
+# s2: smolvla a best, b overlaps it (P = 0.770) -> tier {a, b}; pi05 b best, a and c separated -> tier {b}:
+#     smolvla -> pi05 does not transfer, pi05 -> smolvla transfers.
+#     Per seed: smolvla top-1 always a, pi05 top-1 always b -> no cell transfers either way.
+# Comparisons: 2 of 4 transfer; seed-level cells: 2 of 12.
+BOTH_WAYS_MSE: dict[tuple[str, str, str], list[float]] = {
+    ("smolvla", "s1", "a"): [1.0, 1.1, 1.2],
+    ("smolvla", "s1", "b"): [2.0, 2.1, 2.2],
+    ("smolvla", "s1", "c"): [3.0, 3.1, 3.2],
+    ("pi05", "s1", "a"): [1.0, 1.6, 1.7],
+    ("pi05", "s1", "b"): [1.2, 1.3, 1.5],
+    ("pi05", "s1", "c"): [5.0, 5.0, 5.0],
+    ("smolvla", "s2", "a"): [1.0, 1.1, 1.2],
+    ("smolvla", "s2", "b"): [1.05, 1.15, 1.25],
+    ("smolvla", "s2", "c"): [3.0, 3.0, 3.0],
+    ("pi05", "s2", "a"): [2.0, 2.1, 2.2],
+    ("pi05", "s2", "b"): [1.0, 1.1, 1.2],
+    ("pi05", "s2", "c"): [3.0, 3.0, 3.0],
+}
+
+# smolvla a far ahead of b -> tier {a}; pi05 b best (1.4) but a (1.5) overlaps it (P = 0.624) -> pi05's tier
+# holds every encoder: smolvla -> pi05 is a near-tie band (the old code called it "transfers");
+# pi05 -> smolvla: b is outside {a} -> does not transfer.
+NEAR_TIE_MSE: dict[tuple[str, str, str], list[float]] = {
+    ("smolvla", "s", "a"): [1.0, 1.1, 1.2],
+    ("smolvla", "s", "b"): [2.0, 2.1, 2.2],
+    ("pi05", "s", "a"): [1.0, 1.5, 2.0],
+    ("pi05", "s", "b"): [1.2, 1.4, 1.6],
+}
+
+
+def exact_p_greater(x: list[float], y: list[float]) -> float:
+    """P(mean(x*) > mean(y*)) over every equally likely bootstrap resample of x and of y, enumerated."""
+    mx = np.array([np.mean(t) for t in itertools.product(x, repeat=len(x))])
+    my = np.array([np.mean(t) for t in itertools.product(y, repeat=len(y))])
+    return float((mx[:, None] > my[None, :]).mean())
+
+
+def minimal_table(cells: dict[tuple[str, str, str], list[float]]) -> pl.DataFrame:
+    """Only results.REPORT_COLUMNS, as a table typed in from a paper would have them (seed as Int32)."""
+    rows = [
+        {"backbone": b, "suite": s, "encoder": e, "control": "none", "seed": seed, "eval_mse": v}
+        for (b, s, e), vals in cells.items()
+        for seed, v in enumerate(vals)
+    ]
+    return pl.DataFrame(rows, schema_overrides={"seed": pl.Int32}).select(REPORT_COLUMNS)

@@ -79,8 +79,14 @@ def write_lerobot(root: Path, *, video: bool, vcodec: str = "libsvtav1", small_f
     features = {key: {"dtype": dtype, **hwc} for key in V3_CAMERAS}
     features["observation.state"] = {"dtype": "float32", "shape": (8,), "names": None}
     features["action"] = {"dtype": "float32", "shape": (7,), "names": None}
+    try:  # lerobot >= 0.5 takes the codec in an encoder config, 0.4 as a keyword
+        from lerobot.configs.video import RGBEncoderConfig
+
+        codec = {"rgb_encoder": RGBEncoderConfig(vcodec=vcodec)}
+    except ImportError:
+        codec = {"vcodec": vcodec}
     ds = LeRobotDataset.create(repo_id=repo_id, fps=FPS, features=features, root=root, robot_type="panda",
-                               use_videos=video, vcodec=vcodec)
+                               use_videos=video, **codec)
     if small_files:
         ds.meta.update_chunk_settings(data_files_size_in_mb=0.001, video_files_size_in_mb=0.001)
     written = Written(root=root, repo_id=repo_id, cameras=V3_CAMERAS)

@@ -7,10 +7,21 @@ import math
 import numpy as np
 import polars as pl
 import pytest
-from analysis_fixtures import PLAIN_MSE, full_table, plain_rows, row, table
+from analysis_fixtures import (
+    BOTH_WAYS_MSE,
+    NEAR_TIE_MSE,
+    PLAIN_MSE,
+    exact_p_greater,
+    full_table,
+    minimal_table,
+    plain_rows,
+    row,
+    table,
+)
 
 from graftcache import analysis as A
 from graftcache.errors import GraftcacheError
+from graftcache.results import REPORT_COLUMNS, SCHEMA
 
 
 @pytest.fixture(scope="module")
@@ -113,38 +124,120 @@ def test_band_bootstraps_episodes_when_rows_carry_them():
 
 def test_transfer_verdicts(results):
     v = A.transfer_verdicts(results)
-    assert v["suite"].to_list() == ["libero_10", "libero_goal", "libero_object", "libero_spatial"]
-    spatial = _one(v, suite="libero_spatial")
-    assert spatial["small_winner"] == "siglip" and spatial["large_winner"] == "dinov2-s"
-    assert spatial["large_band"] == ["dinov2-s", "siglip"] and spatial["verdict"] == A.TRANSFERS
+    suites = ["libero_10", "libero_goal", "libero_object", "libero_spatial"]
+    assert v["suite"].to_list() == [s for s in suites for _ in range(2)]  # both directions
+    assert v["source"].to_list() == ["smolvla", "pi05"] * 4  # small -> large first
+    assert v["target"].to_list() == ["pi05", "smolvla"] * 4
+    spatial = _one(v, suite="libero_spatial", source="smolvla")
+    assert spatial["source_winner"] == "siglip" and spatial["target_winner"] == "dinov2-s"
+    assert spatial["target_band"] == ["dinov2-s", "siglip"] and spatial["verdict"] == A.TRANSFERS
     assert spatial["basis"] == "seeds" and spatial["note"] is None
-    obj = _one(v, suite="libero_object")
-    assert obj["verdict"] == A.DOES_NOT_TRANSFER and obj["large_band"] == ["dinov2-s"]
-    goal = _one(v, suite="libero_goal")
-    assert goal["verdict"] == A.INSUFFICIENT and goal["n_common"] == 1 and goal["small_winner"] is None
-    assert "resnet18 (only SmolVLA)" in goal["note"] and "siglip (only SmolVLA)" in goal["note"]
-    ten = _one(v, suite="libero_10")
-    assert ten["small_winner"] == "dinov2-s, siglip" and ten["verdict"] == A.TRANSFERS
+    back = _one(v, suite="libero_spatial", source="pi05")
+    assert (back["source_winner"], back["target_band"], back["verdict"]) == (
+        "dinov2-s", ["siglip"], A.DOES_NOT_TRANSFER
+    )
+    obj = _one(v, suite="libero_object", source="smolvla")
+    assert obj["verdict"] == A.DOES_NOT_TRANSFER and obj["target_band"] == ["dinov2-s"]
+    assert _one(v, suite="libero_object", source="pi05")["verdict"] == A.DOES_NOT_TRANSFER
+    for source in ("smolvla", "pi05"):
+        goal = _one(v, suite="libero_goal", source=source)
+        assert goal["verdict"] == A.INSUFFICIENT and goal["n_common"] == 1 and goal["source_winner"] is None
+        assert "resnet18 (only SmolVLA)" in goal["note"] and "siglip (only SmolVLA)" in goal["note"]
+    ten = _one(v, suite="libero_10", source="smolvla")
+    assert ten["source_winner"] == "dinov2-s, siglip" and ten["verdict"] == A.TRANSFERS
     assert ten["basis"] == "exact ties only (single seed)"
+    ten_back = _one(v, suite="libero_10", source="pi05")
+    assert ten_back["source_winner"] == "dinov2-s, siglip" and ten_back["verdict"] == A.TRANSFERS
+    assert ten_back["target_band"] == ["dinov2-s", "siglip"] and ten_back["basis"] == "seeds"
 
 
 def test_transfer_left_out_encoder_is_named_and_excluded():
     cells = {k: v for k, v in PLAIN_MSE.items() if k[1] == "libero_spatial"}
     cells[("pi05", "libero_spatial", "vit-b")] = [0.1, 0.1, 0.1]  # would be best on pi05, absent on smolvla
-    v = _one(A.transfer_verdicts(table(plain_rows(cells))), suite="libero_spatial")
+    v = _one(A.transfer_verdicts(table(plain_rows(cells))), suite="libero_spatial", source="smolvla")
     assert (
-        v["verdict"] == A.TRANSFERS and "vit-b (only pi0.5)" in v["note"] and "vit-b" not in v["large_band"]
+        v["verdict"] == A.TRANSFERS and "vit-b (only pi0.5)" in v["note"] and "vit-b" not in v["target_band"]
     )
+
+
+def test_both_directions_are_judged_and_counted():
+    # the design assumptions of BOTH_WAYS_MSE, checked by enumerating the bootstrap (not by graftcache)
+    m = BOTH_WAYS_MSE
+    assert exact_p_greater(m[("pi05", "s1", "a")], m[("pi05", "s1", "b")]) < 0.8
+    assert exact_p_greater(m[("smolvla", "s2", "b")], m[("smolvla", "s2", "a")]) < 0.8
+    assert exact_p_greater(m[("smolvla", "s1", "b")], m[("smolvla", "s1", "a")]) == 1.0
+    assert exact_p_greater(m[("pi05", "s2", "a")], m[("pi05", "s2", "b")]) == 1.0
+    t = table(plain_rows(BOTH_WAYS_MSE))
+    v = {(r["suite"], r["source"]): r["verdict"] for r in A.transfer_verdicts(t).iter_rows(named=True)}
+    assert v == {
+        ("s1", "smolvla"): A.TRANSFERS,
+        ("s1", "pi05"): A.DOES_NOT_TRANSFER,
+        ("s2", "smolvla"): A.DOES_NOT_TRANSFER,
+        ("s2", "pi05"): A.TRANSFERS,
+    }
+    cells = A.seed_verdicts(t)
+    assert len(cells) == 12  # 2 suites x 3 seeds x 2 directions
+    transferring = cells.filter(pl.col("verdict") == A.TRANSFERS).select("suite", "seed", "source").rows()
+    assert sorted(transferring) == [("s1", 0, "pi05"), ("s1", 0, "smolvla")]
+    assert set(cells["basis"]) == {"exact ties only (single seed)"}
+    overall = A.verdict_counts(A.transfer_verdicts(t)).row(0, named=True)
+    assert (overall["n_transfers"], overall["n_judged"], overall["n_does_not_transfer"]) == (2, 4, 2)
+    seed_level = A.verdict_counts(cells).row(0, named=True)
+    assert (seed_level["n_transfers"], seed_level["n_judged"], seed_level["n_insufficient"]) == (2, 12, 0)
+    per = {(r["suite"], r["source"]): (r["n_transfers"], r["n_judged"])
+           for r in A.verdict_counts(cells, ("suite", "source")).iter_rows(named=True)}
+    assert per == {("s1", "smolvla"): (1, 3), ("s1", "pi05"): (1, 3), ("s2", "smolvla"): (0, 3),
+                   ("s2", "pi05"): (0, 3)}
+
+
+def test_fixture_counts_with_insufficient_cells(results):
+    c = A.verdict_counts(A.transfer_verdicts(results)).row(0, named=True)
+    assert (c["n_transfers"], c["n_judged"], c["n_insufficient"]) == (3, 6, 2)
+    cells = A.seed_verdicts(results)
+    s = A.verdict_counts(cells).row(0, named=True)
+    assert (s["n_transfers"], s["n_judged"], s["n_insufficient"]) == (3, 14, 10)
+    assert _one(cells, suite="libero_10", seed=1, source="smolvla")["note"] == "seed 1 not run on pi0.5"
+
+
+def test_a_tier_holding_every_encoder_is_a_near_tie_not_a_transfer():
+    m = NEAR_TIE_MSE
+    assert exact_p_greater(m[("pi05", "s", "a")], m[("pi05", "s", "b")]) < 0.8  # pi05 cannot separate a, b
+    v = A.transfer_verdicts(table(plain_rows(NEAR_TIE_MSE)))
+    forward = _one(v, source="smolvla")
+    assert forward["verdict"] == A.NEAR_TIE != A.TRANSFERS and forward["target_band"] == ["b", "a"]
+    assert _one(v, source="pi05")["verdict"] == A.DOES_NOT_TRANSFER
+    assert A.NEAR_TIE in A.VERDICTS and len(set(A.VERDICTS)) == 4
+    assert A.verdict_counts(v).row(0, named=True)["n_near_tie"] == 1
+
+
+def test_minimal_table_is_analysed_with_a_seed_level_bootstrap():
+    minimal = minimal_table(BOTH_WAYS_MSE)
+    assert minimal.columns == list(REPORT_COLUMNS)
+    a = A.analyze(minimal, n_boot=500)
+    assert set(a.results.columns) == set(SCHEMA) and a.results["command"].null_count() == len(minimal)
+    assert a.episode_coverage == (0, 12)
+    assert set(a.band["basis"]) == {"seeds"}
+    full = A.analyze(table(plain_rows(BOTH_WAYS_MSE)), n_boot=500)
+    assert a.verdicts.equals(full.verdicts) and a.seed_verdicts.equals(full.seed_verdicts)
+
+
+def test_episode_coverage_counts_cells_with_episodes():
+    t = table([row("smolvla", "s", "a", 0, 1.0), row("smolvla", "s", "b", 0, 1.1)]).with_columns(
+        pl.Series(A.EPISODE_COLUMN, [[1.0, 1.0], None], dtype=pl.List(pl.Float64))
+    )
+    assert A.episode_coverage(t) == (1, 2)
 
 
 def test_one_backbone_gives_insufficient_data_everywhere(results):
     small_only = results.filter(pl.col("backbone") == "smolvla")
     v = A.transfer_verdicts(small_only)
-    assert len(v) == 4 and set(v["verdict"]) == {A.INSUFFICIENT}
+    assert len(v) == 8 and set(v["verdict"]) == {A.INSUFFICIENT}
     assert all("needs two backbones" in n for n in v["note"])
     assert A.kendall_tau(small_only)["tau_b"].null_count() == 4
     assert A.seed_pairings(small_only)["disagree"].null_count() == 4
     assert A.seed_disagreement_counts(small_only)["n_pairings"].to_list() == [0, 0, 0, 0]
+    cells = A.seed_verdicts(small_only)
+    assert len(cells) == 24 and set(cells["verdict"]) == {A.INSUFFICIENT}
 
 
 def test_seed_pairings_and_counts(results):
@@ -237,7 +330,8 @@ def test_missing_cells_lists_every_gap(results):
 def test_analyze_bundles_and_rejects_mixed_recipes(results):
     a = A.analyze(results, n_boot=200)
     assert a.backbones == ["smolvla", "pi05"] and len(a.suites) == 4
-    assert len(a.verdicts) == 4 and set(a.controls["control"]) == {"zero-image", "shuffled-image"}
+    assert len(a.verdicts) == 8 and set(a.controls["control"]) == {"zero-image", "shuffled-image"}
+    assert len(a.seed_verdicts) == 24  # 4 suites x 3 seeds x 2 directions
     mixed = pl.concat(
         [results, table([row("smolvla", "libero_spatial", "siglip", 0, 9.0, objective="align")])]
     )

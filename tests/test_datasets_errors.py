@@ -175,3 +175,26 @@ def test_dropped_frame_is_reported_as_missing(tmp_path: Path) -> None:
         out.mux(stream.encode())
     msg = _error(open_dataset(written.root).decode_episode, 1, [PI_CAMERAS[0]])
     assert str(path) in msg and "short video: episode 1 frame 3 (t=0.300 s) is missing; decoded 6/7 frames" in msg
+
+
+def test_decode_error_in_a_worker_process_is_one_line(v3_video: Written, tmp_path: Path) -> None:
+    """A damaged video met by a decode worker (--num-workers 1): one line naming file and episode, not torch's
+    multi-line "Caught DatasetError in DataLoader worker process 0 ... Original Traceback" report."""
+    import subprocess
+    import sys
+
+    root = _copy(v3_video, tmp_path)
+    path, row = _video_of_last_episode(root, V3_CAMERAS[0])
+    data = path.read_bytes()
+    path.write_bytes(data[: int(len(data) * 0.85)])
+    exe = Path(sys.executable).parent / "graftcache"
+    done = subprocess.run([str(exe), "extract", "--encoder", "timm:vit_tiny_patch16_224", "--random-init",
+                           "--dataset", str(root), "--num-workers", "1", "--grids", "2x2", "--cache",
+                           str(tmp_path / "cache"), "--no-progress"], capture_output=True, text=True, timeout=600)
+    lines = done.stderr.strip().splitlines()
+    assert done.returncode == 2 and "Traceback" not in done.stderr and "Caught" not in done.stderr, done.stderr
+    assert lines[-1].startswith("graftcache extract: error: ") and str(path) in lines[-1]
+    assert f"episode {row['episode_index']}" in lines[-1]
+    assert not any((tmp_path / "cache").glob("*/zarr.json")) or all(
+        not json.loads((p.parent / "zarr.json").read_text())["attributes"].get("complete")
+        for p in (tmp_path / "cache").glob("*/zarr.json"))

@@ -34,7 +34,9 @@ def test_v20_pi_layout_meta(v2_pi: Written) -> None:
     assert m.tasks == (TASKS[0], TASKS[1])
     assert [(e.index, e.length, e.task_index, e.dataset_from_index) for e in m.episodes] == [
         (0, 5, 0, 0), (1, 7, 1, 5), (2, 6, 0, 12)]
-    assert set(m.fingerprint) == {"meta/info.json", "meta/tasks.jsonl", "meta/episodes.jsonl"}
+    # the identity covers the metadata and every data file (PNG frames live in the per-episode parquets)
+    assert list(m.fingerprint["files"]) == ["meta/info.json", "meta/tasks.jsonl", "meta/episodes.jsonl",
+                                            *(f"data/chunk-000/episode_{e:06d}.parquet" for e in range(3))]
 
 
 def test_v20_pi_layout_frames_bit_exact_and_lowdim(v2_pi: Written) -> None:

@@ -99,8 +99,12 @@ def test_meta(v3_video: Written) -> None:  # noqa: F811
     assert [(e.index, e.length, e.task_index, e.dataset_from_index) for e in m.episodes] == [
         (0, 5, 0, 0), (1, 7, 1, 5), (2, 6, 0, 12)]
     assert m.n_frames == sum(LENGTHS)
-    assert set(m.fingerprint) == {"meta/info.json", "meta/tasks.parquet", "meta/episodes/chunk-000/file-000.parquet"}
-    assert m.fingerprint["meta/info.json"] == hashlib.sha256((v3_video.root / "meta/info.json").read_bytes()).hexdigest()
+    files = m.fingerprint["files"]
+    assert set(files) == {"meta/info.json", "meta/tasks.parquet", "meta/episodes/chunk-000/file-000.parquet",
+                          "data/chunk-000/file-000.parquet", *(f"videos/{k}/chunk-000/file-000.mp4" for k in V3_CAMERAS)}
+    for rel, entry in files.items():
+        data = (v3_video.root / rel).read_bytes()
+        assert entry == {"size": len(data), "sha256": hashlib.sha256(data).hexdigest()}, rel
 
 
 @pytest.mark.parametrize("name", ["v3_video", "v3_image"])

@@ -201,3 +201,58 @@ def test_cli_fit_end_to_end(world: World, tmp_path: Path, capsys: pytest.Capture
     assert main(args) == 2
     assert "libero_goal" in capsys.readouterr().err
     assert get_control("pool-3x5").grid == (3, 5)
+
+
+def test_one_backbone_load_serves_every_cell_and_finished_cells_load_nothing(world: World, tmp_path: Path) -> None:
+    from graftcache.backbones.pool import BackbonePool
+
+    pool = BackbonePool()
+    req = world.request(seeds=(0, 1), controls=("zero-image", "lora", "native"), results=str(tmp_path / "r.parquet"))
+    rows = Fitter(req, log=_quiet, backbones=pool).run()
+    assert len(rows) == 8 and pool.loads == 1  # 8 cells, one load
+    rerun = BackbonePool()
+    lines: list[str] = []
+    assert Fitter(req, log=lines.append, backbones=rerun).run() == []
+    assert rerun.loads == 0 and sum(line.startswith("skip ") for line in lines) == 8
+    # the shared, reset backbone gives exactly what a freshly loaded one gives, LoRA cell included
+    fresh = {r["control"]: r for r in Fitter(world.request(seeds=(1,), controls=("zero-image", "lora", "native"),
+                                                             results=str(tmp_path / "f.parquet")), log=_quiet).run()}
+    for row in rows[4:]:
+        assert row["eval_mse"] == fresh[row["control"]]["eval_mse"], row["control"]
+
+
+def test_reset_restores_the_loaded_policy(world: World) -> None:
+    adapter = load_backbone("smolvla", world.policies["smolvla"])
+    before = {k: v.clone() for k, v in adapter.policy.state_dict().items()}
+    modules = {n: type(m) for n, m in adapter.policy.named_modules()}
+    grads = {n: p.requires_grad for n, p in adapter.policy.named_parameters()}
+    adapter.graft(GraftProjector(192, adapter.lm_width))
+    adapter.add_lora(rank=2)
+    with torch.no_grad():  # even an in-place change to a frozen weight is undone
+        next(adapter.policy.parameters()).add_(1.0)
+    adapter.reset()
+    assert not adapter.grafted and "prepare_images" not in adapter.policy.__dict__
+    assert {n: type(m) for n, m in adapter.policy.named_modules()} == modules
+    assert {n: p.requires_grad for n, p in adapter.policy.named_parameters()} == grads
+    after = adapter.policy.state_dict()
+    assert after.keys() == before.keys() and all(torch.equal(after[k], before[k]) for k in before)
+
+
+def test_frame_stride_thins_features_not_actions(world: World, tmp_path: Path) -> None:
+    """A stride-2 cache holds every other frame; its action chunks equal the full cache's for those frames."""
+    common = dict(dataset=str(world.dataset.root), num_workers=1, batch_size=8, cache=str(world.cache),
+                  progress=False, encoder=ENCODER, grids=((4, 4),), random_init=True)
+    full = FeatureCache(world.cache / extract(ExtractRequest(**common), log=_quiet).key)
+    strided = FeatureCache(world.cache / extract(ExtractRequest(frame_stride=2, **common), log=_quiet).key)
+    assert strided.key != full.key and strided.manifest["frame_stride"] == 2
+    idx = strided.index()
+    assert (idx["frame_index"].to_numpy() % 2 == 0).all()
+    keep = np.flatnonzero(full.index()["frame_index"].to_numpy() % 2 == 0)
+    assert len(idx) == len(keep) < full.n_frames
+    a = load_frames(full, "libero_spatial", cameras=["image"], grid=(4, 4), chunk=5)
+    b = load_frames(strided, "libero_spatial", cameras=["image"], grid=(4, 4), chunk=5)
+    pos = np.flatnonzero(np.isin(a.rows, keep))
+    assert torch.equal(b.actions, a.actions[pos]) and torch.equal(b.action_pad, a.action_pad[pos])
+    assert torch.equal(b.features["image"], a.features["image"][torch.from_numpy(pos)])
+    with pytest.raises(FitError, match="different frames"):
+        Fitter(world.request(cache_key=strided.key, controls=("native",)), log=_quiet)

@@ -2,16 +2,20 @@
 
 from __future__ import annotations
 
+import itertools
 import re
 
 import numpy as np
 import polars as pl
 import pytest
-from analysis_fixtures import full_table, write_results
+from analysis_fixtures import NEAR_TIE_MSE, full_table, minimal_table, plain_rows, table, write_results
+from matplotlib.text import Text
 from PIL import Image
 
-from graftcache import report
+from graftcache import analysis, report
+from graftcache.cli import main
 from graftcache.errors import GraftcacheError
+from graftcache.results import REPORT_COLUMNS
 
 VERDICTS = (
     "On libero_spatial, the SmolVLA winner (siglip) is in pi0.5's top tier: the ranking transfers.",
@@ -20,6 +24,13 @@ VERDICTS = (
     ("On libero_10, the SmolVLA winners (dinov2-s, siglip) are in pi0.5's top tier: the ranking transfers. "
      "[pi0.5 top tier basis: exact ties only (single seed)]"),
     "On libero_goal, transfer cannot be judged (insufficient data): 1 encoder(s) on both backbones",
+    # the other direction, and the counts (worked out in tests/analysis_fixtures.py)
+    ("On libero_spatial, the pi0.5 winner (dinov2-s) is not in SmolVLA's top tier (siglip): "
+     "the ranking does not transfer. Seed level: 1 of 3 cells transfer."),
+    ("On libero_object, the pi0.5 winner (dinov2-s) is not in SmolVLA's top tier (siglip): "
+     "the ranking does not transfer. Seed level: 0 of 3 cells transfer."),
+    ("the ranking transfers in 3 of 6 comparisons (suite × direction) and 3 of 14 seed-level cells "
+     "(suite × direction × seed)."),
 )
 
 
@@ -116,3 +127,113 @@ def test_report_command_reads_a_file(tmp_path, capsys):
     assert str(tmp_path / "out" / "report.html") in capsys.readouterr().out
     with pytest.raises(GraftcacheError, match="no results file"):
         report.report_command(tmp_path / "absent.parquet", tmp_path / "out")
+
+
+def test_transfer_table_states_seed_level_counts(written):
+    _, md, _ = written
+    assert ("| libero_spatial | SmolVLA → pi0.5 | siglip | dinov2-s, siglip | 3 | 1 of 3 | 0.33 | 2 of 3 | "
+            "transfers |  |") in md
+    assert ("| libero_10 | pi0.5 → SmolVLA | dinov2-s, siglip | dinov2-s, siglip | 3 | "
+            "0 of 1 (2 insufficient data) |") in md
+    assert ("| libero_10 | 1 | SmolVLA → pi0.5 | — | — | insufficient data | — | "
+            "seed 1 not run on pi0.5 |") in md
+
+
+def test_near_tie_band_is_reported_as_such(tmp_path):
+    md = report.write_report(table(plain_rows(NEAR_TIE_MSE)), tmp_path, n_boot=500).markdown.read_text()
+    assert ("On s, every shared encoder is in pi0.5's top tier (b, a): a seed-sensitive near-tie band, "
+            "so the SmolVLA winner (a) landing in it is not a transfer.") in md
+    assert "the ranking transfers." not in md and "| near-tie band |" in md
+    assert "Other verdicts — near-tie band (not a transfer): 1 comparison, 0 cells; does not transfer:" in md
+
+
+def test_minimal_schema_file_reports_with_a_seed_level_bootstrap(tmp_path):
+    path = tmp_path / "paper.parquet"
+    foreign = pl.lit("Table 2").alias("source")  # a column graftcache does not know
+    minimal_table(NEAR_TIE_MSE).with_columns(foreign).write_parquet(path)
+    assert report.report_command(path, tmp_path / "out") == 0
+    md = (tmp_path / "out" / "report.md").read_text()
+    assert "- Per-episode MSEs: none (seed-level bootstrap, see Method)." in md
+    assert "- Seed-level bootstrap: no row carries per-episode MSEs (`eval_mse_episodes`)" in md
+    assert "Columns without values (absent or all null): run_id, policy," in md
+    assert "| SmolVLA | s | a | 1 | 1.1 ± 0.1 | 3 |" in md and "| seeds |" in md
+
+
+@pytest.mark.parametrize("column", REPORT_COLUMNS)
+def test_table_lacking_a_needed_column_is_one_named_error(tmp_path, column):
+    path = tmp_path / "old.parquet"
+    full_table().drop(column).write_parquet(path)
+    with pytest.raises(GraftcacheError) as err:
+        report.report_command(path, tmp_path / "out")
+    assert str(err.value).startswith(f"{path}: results table lacks column(s) {column} (a report needs")
+    assert "\n" not in str(err.value) and not (tmp_path / "out" / "report.md").exists()
+
+
+def test_table_with_every_column_but_the_optional_ones_reports(tmp_path):
+    older = full_table().drop("eval_mse_episodes", "n_eval_episodes", "command")
+    path = write_results(tmp_path / "old.parquet", older)
+    assert report.report_command(path, tmp_path / "out") == 0
+    assert "Columns without values (absent or all null): eval_mse_episodes, n_eval_episodes" in (
+        tmp_path / "out" / "report.md"
+    ).read_text()
+
+
+@pytest.mark.parametrize(
+    ("content", "says"),
+    [
+        (b"", "not a Parquet results table (empty file)"),
+        (b"backbone,suite\nsmolvla,libero_spatial\n", "not a Parquet results table (parquet:"),
+        (None, "no rows"),
+    ],
+    ids=["empty", "csv", "zero-rows"],
+)
+def test_unusable_file_is_one_line_naming_it(tmp_path, capsys, content, says):
+    path = tmp_path / "results.parquet"
+    if content is None:
+        full_table().head(0).write_parquet(path)
+    else:
+        path.write_bytes(content)
+    assert main(["report", str(path), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith(f"graftcache report: error: {path}: {says}"), err
+    assert not (tmp_path / "out" / "report.md").exists()
+
+
+CLOSE_MSE = {  # means 0.72 and 0.76 (and 0.74): bars from zero make them look equal
+    (b, s, e): [m - 0.004, m, m + 0.004]
+    for b in ("smolvla", "pi05")
+    for s in ("libero_spatial", "libero_object")
+    for e, m in (("timm:vit_tiny_patch16_224", 0.72), ("efficientnet-lite0", 0.74), ("mobilenetv2", 0.76))
+}
+
+
+def test_mse_axis_starts_near_the_data_not_at_zero(tmp_path):
+    fig = report.figure_mse(analysis.analyze(table(plain_rows(CLOSE_MSE)), n_boot=200))
+    fig.savefig(tmp_path / "mse.png")
+    _assert_real_png(tmp_path / "mse.png")
+    panels = [ax for ax in fig.axes if ax.get_visible()]
+    assert len(panels) == 4
+    for ax in panels:
+        lo, hi = ax.get_xlim()
+        assert 0.6 < lo < 0.716 and 0.764 < hi < 0.9, (lo, hi)  # every seed inside, zero far outside
+        assert (0.76 - 0.72) / (hi - lo) > 0.5  # the spread between encoders fills most of the axis
+
+
+def _overlapping_texts(fig) -> list[tuple[str, str]]:
+    """Pairs of drawn texts (tick labels, annotations, titles) whose boxes intersect on the canvas."""
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    texts = []
+    for ax in fig.axes:
+        ticks = [t for axis in (ax.xaxis, ax.yaxis) if axis.get_visible() for t in axis.get_ticklabels()]
+        for t in [*ticks, *ax.texts, ax.title]:
+            if isinstance(t, Text) and t.get_visible() and t.get_text().strip():
+                texts.append((t.get_text(), t.get_window_extent(renderer)))
+    return [(a, b) for (a, ba), (b, bb) in itertools.combinations(texts, 2) if ba.overlaps(bb)]
+
+
+def test_rank_transfer_names_do_not_overprint_rank_labels():
+    fig = report.figure_rank_transfer(analysis.analyze(table(plain_rows(CLOSE_MSE)), n_boot=200))
+    assert _overlapping_texts(fig) == []
+    labels = [t.get_text() for ax in fig.axes for t in ax.get_yticklabels()]
+    assert "timm:vit_tiny_patch16_224  1" in labels and "1  timm:vit_tiny_patch16_224" in labels

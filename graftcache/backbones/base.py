@@ -7,8 +7,9 @@ included); it re-implements no model code. It adds what graftcache needs around 
 - `graft(projector)`: vision tower -> pass-through, connector -> projector, everything else frozen;
 - `prepare(raw)`: a raw batch (cached features or pixels, raw state/action, task strings) through
   lerobot's preprocessor, with task strings tokenised once per task where the prompt allows it;
-- `loss(batch)`: per-sample flow-matching loss with padded action steps masked (lerobot 0.4.4's
-  SmolVLA reads the misspelt `actions_id_pad` and would count them);
+- `loss(batch)`: per-sample flow-matching loss with padded action steps masked (lerobot's policies
+  return the unreduced per-element loss from `model.forward`, so the masking is done here, once, the
+  same way for both backbones);
 - `predict(batch, noise)`: the normalised action chunk, deterministic for fixed noise;
 - `native_patch_grid` / `native_tokens`: the native tower's outputs for the native controls.
 
@@ -29,6 +30,7 @@ from torch import nn
 
 from graftcache.backbones.checkpoint import (
     PREPROCESSOR_FILE,
+    follow_umask,
     load_processors,
     quiet,
     resolve_source,
@@ -73,6 +75,10 @@ class BackboneAdapter(ABC):
         self.projector: nn.Module | None = None
         self._sha256: str | None = None
         self._task_cache: dict[str, tuple[torch.Tensor, torch.Tensor]] = {}
+        self._pristine: dict[str, torch.Tensor] | None = None  # CPU copy of the loaded weights (see reset())
+        self._undo: list[tuple[nn.Module, str, nn.Module]] = []  # (owner, attribute, original module)
+        self._requires_grad: dict[str, bool] = {}
+        self._lora_host: nn.Module | None = None
 
     # ------------------------------------------------------------------------------ construction
     @classmethod
@@ -158,6 +164,7 @@ class BackboneAdapter(ABC):
         self.postprocessor.save_pretrained(folder)
         if self.tiny_marker is not None:
             write_marker(folder, self.tiny_marker["backbone"], self.tiny_marker["geometry"])
+        follow_umask(folder)  # safetensors writes 0600 files; a shared policy must be readable by the team
         return folder
 
     # ------------------------------------------------------------------------------ geometry
@@ -227,13 +234,38 @@ class BackboneAdapter(ABC):
         if width != self.lm_width:
             raise BackboneError(f"{self.name}: projector outputs width {width}, the LM expects {self.lm_width}")
         _ = self.policy_sha256  # pin the hash of the loaded weights before the surgery changes them
+        if self._pristine is None:
+            self._pristine = {k: v.detach().to("cpu", copy=True) for k, v in self.policy.state_dict().items()}
+        self._requires_grad = {n: p.requires_grad for n, p in self.policy.named_parameters()}
         owner, tower, connector = self._vision_slots()
         projector = projector.to(self.device)
-        setattr(owner, tower, PassThroughTower().to(self.device))
-        setattr(owner, connector, projector)
+        self._replace(owner, tower, PassThroughTower().to(self.device))
+        self._replace(owner, connector, projector)
         setattr(self.policy, self.image_method, self._feature_images)
         freeze_all_but(self.policy, projector)
         self.projector = projector
+
+    def _replace(self, owner: nn.Module, attribute: str, module: nn.Module) -> None:
+        """setattr that remembers the module it replaced, so reset() can undo the surgery."""
+        self._undo.append((owner, attribute, getattr(owner, attribute)))
+        setattr(owner, attribute, module)
+
+    def reset(self) -> None:
+        """Back to the policy as loaded: undo graft and LoRA surgery, restore the requires_grad flags and
+        the weights from the CPU copy kept at the first graft(). Lets one loaded backbone serve every
+        cell of a run (a released pi0.5 is 3.3B parameters: reloading it per cell costs more than a fit)."""
+        while self._undo:
+            owner, attribute, original = self._undo.pop()
+            setattr(owner, attribute, original)
+        self.policy.__dict__.pop(self.image_method, None)  # the instance override set by graft()
+        if self._lora_host is not None:
+            self._lora_host.__dict__.pop("peft_config", None)
+            self._lora_host = None
+        for name, param in self.policy.named_parameters():
+            param.requires_grad_(self._requires_grad.get(name, param.requires_grad))
+        if self._pristine is not None:
+            self.policy.load_state_dict(self._pristine, strict=True)
+        self.projector = None
 
     def _feature_images(self, batch: Mapping[str, Any]) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
         """Grafted stand-in for the policy's image preparation: cached features instead of pixels."""
@@ -326,7 +358,7 @@ class BackboneAdapter(ABC):
         if self.prompt_uses_state:
             raise BackboneError(f"{self.name} prompts embed the discretised state: tokenise per batch with prepare()")
         from lerobot.processor.converters import create_transition
-        from lerobot.processor.core import TransitionKey
+        from lerobot.processor import TransitionKey
 
         for task in dict.fromkeys(tasks):
             if task not in self._task_cache:
@@ -362,6 +394,9 @@ class BackboneAdapter(ABC):
 
         `noise` [B, chunk, max_action_dim] and `time` [B] default to the model's own samplers (global RNG).
         """
+        batch_size = batch[STATE].shape[0]
+        noise = self.sample_noise(batch_size) if noise is None else noise
+        time = self.policy.model.sample_time(batch_size, self.device) if time is None else time
         losses = self._flow_losses(batch, noise, time)[:, :, : self.action_dim]
         pad = batch.get(ACTION_PAD)
         valid = torch.ones(losses.shape[:2], device=losses.device) if pad is None else (~pad.bool()).float()
@@ -411,6 +446,12 @@ class BackboneAdapter(ABC):
         config = LoraConfig(r=rank, lora_alpha=alpha or rank, lora_dropout=0.0, bias="none",
                             target_modules=list(LORA_TARGETS))
         inject_adapter_in_model(config, lm)
+        self._lora_host = lm  # peft records its config on the module: dropped again by reset()
+        for owner in list(lm.modules()):
+            for attribute, child in list(owner.named_children()):
+                base = getattr(child, "base_layer", None)
+                if isinstance(base, nn.Module):  # a peft LoRA layer wrapping the original projection
+                    self._undo.append((owner, attribute, base))
         for name, param in lm.named_parameters():
             param.requires_grad_("lora_" in name)
 

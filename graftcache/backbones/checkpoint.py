@@ -13,6 +13,7 @@ import hashlib
 import io
 import logging
 import os
+import stat
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -53,10 +54,21 @@ def resolve_source(source: str | Path, what: str = "policy checkpoint") -> Path:
     """A local checkpoint folder as given, or a hub id resolved to its cached snapshot folder."""
     path = Path(source).expanduser()
     if path.is_dir():
-        return path
+        return check_readable(path, what)
     if path.exists() or str(source).startswith((".", "/", "~")) or str(source).count("/") != 1:
         raise BackboneError(f"{what} {str(source)!r}: no such folder, and not a hub id of the form org/name")
-    return cached_repo(str(source), what)
+    return check_readable(cached_repo(str(source), what), what)
+
+
+def check_readable(folder: Path, what: str = "policy checkpoint") -> Path:
+    """`folder`, or a one-line BackboneError naming a file in it this user cannot read (e.g. a checkpoint
+    another user saved 0600 into a shared root), instead of lerobot's misleading FileNotFoundError."""
+    for p in sorted(folder.iterdir()):
+        if p.is_file() and not os.access(p, os.R_OK):
+            st = p.stat()
+            raise BackboneError(f"{what} {p}: not readable by this user (mode {stat.filemode(st.st_mode)}, owner uid "
+                                f"{st.st_uid}); its owner can run: chmod -R go+rX {folder}")
+    return folder
 
 
 def weights_file(folder: Path) -> Path:
@@ -134,3 +146,37 @@ def state_dict_sha256(module: nn.Module) -> str:
         digest.update(f"{name}|{t.dtype}|{tuple(t.shape)}|".encode())
         digest.update(t.reshape(-1).view(torch.uint8).numpy())
     return digest.hexdigest()
+
+
+def current_umask() -> int:
+    """The process umask, read without changing it where the kernel reports it (Linux /proc)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    mask = os.umask(0o022)  # elsewhere: the classic read-by-setting (restored at once)
+    os.umask(mask)
+    return mask
+
+
+def follow_umask(path: str | Path) -> None:
+    """Give `path` (a file, or every file under a folder) the mode an ordinary write would have given it:
+    0o666 minus the umask (plus any execute bits it had).
+
+    safetensors >= 0.8 writes through a temporary file created 0600 and renamed into place, so a
+    checkpoint (`model.safetensors`, the processors' state files) or projector saved into a shared root
+    would be unreadable by the group even where the umask allows it; call this after such writes.
+    Files this user does not own are left as they are.
+    """
+    path = Path(path)
+    want = 0o666 & ~current_umask()
+    for p in ([path] if path.is_file() else [q for q in path.rglob("*") if q.is_file()]):
+        try:
+            st = p.stat()
+            mode = want | (st.st_mode & 0o111)
+            if st.st_uid == os.getuid() and st.st_mode & 0o777 != mode:
+                os.chmod(p, mode)
+        except OSError:
+            pass

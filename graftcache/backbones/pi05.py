@@ -1,10 +1,11 @@
-"""pi0.5 (lerobot 0.4.4, PaliGemma gemma_2b + gemma_300m expert) as a graftable backbone.
+"""pi0.5 (lerobot 0.6, PaliGemma gemma_2b + gemma_300m expert) as a graftable backbone.
 
-Vision path (modeling_pi05.py:1131, 634, 429): `_preprocess_images` pads/resizes to 224 px and
-rescales to [-1, 1]; `embed_image` = PaliGemma `get_image_features`: SigLIP So400m/14 (16x16 patches
-x 1152) -> multi_modal_projector Linear(1152 -> 2048) = 256 tokens x 2048 per camera, no further
-scaling (with the fork semantics supplied by pi05_compat). The graft replaces SigLIP with a
-pass-through and the projector with the graft projector.
+Vision path (modeling_pi05.py:952, 483, 284): `_preprocess_images` pads/resizes to 224 px and
+rescales to [-1, 1]; `embed_image` = PaliGemma `get_image_features(...).pooler_output`: SigLIP
+So400m/14 (16x16 patches x 1152) -> multi_modal_projector Linear(1152 -> 2048) = 256 tokens x 2048
+per camera, no further scaling. lerobot 0.6 carries its own adaRMS Gemma (policies/pi_gemma.py), so
+pi0.5 runs on stock transformers. The graft replaces SigLIP with a pass-through and the projector
+with the graft projector.
 
 The prompt embeds the state discretised into 256 bins ("Task: ..., State: ...;\\nAction: "), so
 tokens are made per batch by lerobot's preprocessor, not once per task.
@@ -21,7 +22,6 @@ from torch import nn
 
 from graftcache.backbones.base import TOKEN_MASK, TOKENS, BackboneAdapter
 from graftcache.backbones.checkpoint import cached_repo
-from graftcache.backbones.pi05_compat import ensure_pi05_runtime
 from graftcache.backbones.tiny import (
     Pi05TinyGeometry,
     TinySpec,
@@ -49,7 +49,6 @@ class PI05Adapter(BackboneAdapter):
 
     @classmethod
     def _load_policy(cls, folder: Path, config, marker: dict | None) -> nn.Module:
-        ensure_pi05_runtime()
         from lerobot.policies.pi05.modeling_pi05 import PI05Policy
 
         if marker is None:
@@ -62,8 +61,10 @@ class PI05Adapter(BackboneAdapter):
         """Mirror PI05Policy.from_pretrained: openpi key fixes, then a "model." prefix."""
 
         def key_map(shapes: dict) -> dict:
-            fixed = policy._fix_pytorch_state_dict_keys(shapes, policy.config)
-            return {k if k.startswith("model.") else f"model.{k}": v for k, v in fixed.items()}
+            # lerobot's fix-up takes tensors (it clones lm_head into embed_tokens): meta tensors cost nothing
+            meta = {k: torch.empty(v, device="meta") for k, v in shapes.items()}
+            fixed = policy._fix_pytorch_state_dict_keys(meta, policy.config)
+            return {k if k.startswith("model.") else f"model.{k}": tuple(v.shape) for k, v in fixed.items()}
 
         return key_map
 
@@ -79,9 +80,6 @@ class PI05Adapter(BackboneAdapter):
     def _processor_overrides(cls, config, marker: dict | None, device: str) -> tuple[dict, dict]:
         pre, post = super()._processor_overrides(config, marker, device)
         pre["tokenizer_processor"] = {"tokenizer": cls._tokenizer(marker)}
-        # lerobot 0.4.4 saves this step's config as {} (no get_config), so a reload would pad the
-        # state to the default 32 dims and change every prompt of a policy with another max_state_dim.
-        pre["pi05_prepare_state_tokenizer_processor_step"] = {"max_state_dim": config.max_state_dim}
         return pre, post
 
     @classmethod

@@ -1,4 +1,4 @@
-"""SmolVLA (lerobot 0.4.4, SmolVLM2-500M backbone) as a graftable backbone.
+"""SmolVLA (lerobot 0.6, SmolVLM2-500M backbone) as a graftable backbone.
 
 Vision path (modeling_smolvla.py:403, 625; smolvlm_with_expert.py:179-192): `prepare_images`
 pads/resizes to 512 px and rescales to [-1, 1]; `embed_image` runs SigLIP-B/16 (32x32 patches x 768),
@@ -26,7 +26,7 @@ from graftcache.backbones.tiny_assets import SMOLVLM_DIR
 class SmolVLAAdapter(BackboneAdapter):
     name = "smolvla"
     image_method = "prepare_images"
-    token_steps = ("SmolVLANewLineProcessor", "TokenizerProcessorStep")
+    token_steps = ("NewLineTaskProcessorStep", "TokenizerProcessorStep")
 
     # ------------------------------------------------------------------------------ construction
     @classmethod

@@ -12,8 +12,9 @@ gates that start open.
   vocabulary shrunk from 257152 to 1024 (the tiny tokenizer has 771 tokens).
 
 pi0.5 hard-codes its sizes (`get_gemma_config` knows two variants; PaliGemma's projector width and
-the 257152-token vocabulary are fixed in `PaliGemmaWithExpertModel.__init__`), so `pi05_tiny_sizes`
-rebinds three module-level names of lerobot's modeling_pi05 while a tiny policy is constructed or
+the 257152-token vocabulary are fixed in `PaliGemmaWithExpertModel.__init__`, lerobot 0.6
+modeling_pi05.py:158-242), so `pi05_tiny_sizes` rebinds three module-level names of lerobot's
+modeling_pi05 (the variant table and its PiGemma model classes) while a tiny policy is constructed or
 loaded. A tiny checkpoint folder carries `graftcache_tiny.json` so loading knows to do the same.
 """
 
@@ -134,7 +135,8 @@ def pi05_tiny_sizes(geometry: Pi05TinyGeometry) -> Iterator[None]:
         "gemma_2b": m05.GemmaConfig(g.lm_width, g.depth, g.lm_mlp, 8, 1, g.head_dim),
         "gemma_300m": m05.GemmaConfig(g.expert_width, g.depth, g.expert_mlp, 8, 1, g.head_dim),
     }
-    saved = m05.get_gemma_config, m05.PaliGemmaForConditionalGeneration, m05.GemmaForCausalLM
+    names = ("get_gemma_config", "PaliGemmaForConditionalGenerationWithPiGemma", "PiGemmaForCausalLM")
+    saved = tuple(getattr(m05, n) for n in names)
     real_paligemma, real_gemma = saved[1], saved[2]
 
     def paligemma(config):
@@ -142,19 +144,21 @@ def pi05_tiny_sizes(geometry: Pi05TinyGeometry) -> Iterator[None]:
         vision.hidden_size, vision.intermediate_size = g.vision_width, g.vision_mlp
         vision.num_hidden_layers, vision.num_attention_heads = g.vision_layers, g.vision_heads
         vision.patch_size, vision.projection_dim = g.patch_size, g.lm_width
-        config.text_config.vocab_size = g.vocab_size
+        config._vocab_size = config.text_config.vocab_size = g.vocab_size
+        config.image_token_index = g.vocab_size - 1
         return real_paligemma(config=config)
 
     def gemma(config):
         config.vocab_size = g.vocab_size
         return real_gemma(config=config)
 
-    m05.get_gemma_config = variants.__getitem__
-    m05.PaliGemmaForConditionalGeneration, m05.GemmaForCausalLM = paligemma, gemma
+    for name, value in zip(names, (variants.__getitem__, paligemma, gemma)):
+        setattr(m05, name, value)
     try:
         yield
     finally:
-        m05.get_gemma_config, m05.PaliGemmaForConditionalGeneration, m05.GemmaForCausalLM = saved
+        for name, value in zip(names, saved):
+            setattr(m05, name, value)
 
 
 def pi05_tiny_config(spec: TinySpec, geometry: Pi05TinyGeometry, device: str):
@@ -174,7 +178,7 @@ def _open_adarms_gates(policy) -> None:
     pi0.5 barely sees its images. Open them: small random modulation, gate bias 1."""
     for module in policy.modules():
         dense = getattr(module, "dense", None)
-        if type(module).__name__ == "GemmaRMSNorm" and dense is not None:
+        if type(module).__name__ == "PiGemmaRMSNorm" and dense is not None:
             torch.nn.init.normal_(dense.weight, std=0.02)
             torch.nn.init.zeros_(dense.bias)
             dense.bias.data[2 * module.dim:].fill_(1.0)
@@ -197,9 +201,6 @@ def build_tiny_pi05(spec: TinySpec, stats: dict | None, device: str, geometry: P
     """Random-init tiny pi0.5 + its lerobot pre/post processors (deterministic for `spec.seed`)."""
     from lerobot.policies.pi05.modeling_pi05 import PI05Policy
 
-    from graftcache.backbones.pi05_compat import ensure_pi05_runtime
-
-    ensure_pi05_runtime()
     geometry = geometry or Pi05TinyGeometry()
     config = pi05_tiny_config(spec, geometry, device)
     with torch.random.fork_rng(devices=[]), pi05_tiny_sizes(geometry):

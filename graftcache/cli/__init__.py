@@ -7,12 +7,17 @@ A GraftcacheError becomes one line on stderr and exit code 2; Ctrl-C says how to
 from __future__ import annotations
 
 import argparse
+import errno
 import os
 import sys
 from collections.abc import Sequence
 from importlib import import_module
 
 from graftcache import __version__
+
+#: OSErrors that describe the user's machine (disk full, permissions, read-only file system), not a bug:
+#: one line naming the file, like any other bad input.
+ENVIRONMENT_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EACCES, errno.EPERM, errno.EROFS})
 
 COMMANDS = ("extract", "caches", "train_tiny", "fit", "sweep", "report", "demo")
 
@@ -38,6 +43,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         return int(args.func(args) or 0)
     except GraftcacheError as e:
         print(f"graftcache {args.command}: error: {e}", file=sys.stderr)
+        return 2
+    except OSError as e:
+        if e.errno not in ENVIRONMENT_ERRNOS:
+            raise
+        where = f" ({e.filename})" if e.filename else ""
+        hint = "; free space and run the same command again to resume" if e.errno == errno.ENOSPC else ""
+        print(f"graftcache {args.command}: error: {e.strerror}{where}{hint}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"graftcache {args.command}: interrupted; run the same command again to resume", file=sys.stderr)

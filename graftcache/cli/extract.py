@@ -4,7 +4,14 @@ from __future__ import annotations
 
 import argparse
 
-from graftcache.cli.common import add_cache_flag, add_device_flags, parse_int_list
+from graftcache.cli.common import (
+    add_cache_flag,
+    add_compute_dtype_flag,
+    add_device_flags,
+    int_list,
+    nonneg_int,
+    positive_int,
+)
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -20,18 +27,20 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--dataset", required=True, help="local LeRobot dataset folder or a hub repo id in the local HF cache")
     p.add_argument("--weights", default=None, help="local weights file/folder instead of the hub id")
     p.add_argument("--random-init", action="store_true", help="random weights (labelled random-init everywhere)")
-    p.add_argument("--seed", type=int, default=0, help="seed for --random-init (default 0)")
+    p.add_argument("--seed", type=nonneg_int, default=0, help="seed for --random-init (default 0)")
     p.add_argument("--policy", default=None,
                    help="policy for native towers (smolvla-native, pi05-native): hub id, checkpoint folder, or 'tiny' "
                    "(the tiny backbone natively trained on --dataset by `graftcache train-tiny`)")
     p.add_argument("--grids", default="8x8", help="pooled grids, e.g. 8x8,16x16 (default 8x8: SmolVLA's grid)")
     p.add_argument("--cameras", default=None, help="comma-separated camera names (default: all)")
-    p.add_argument("--episodes", default=None, help="episode subset, e.g. 0-9,20")
-    p.add_argument("--batch-size", type=int, default=32)
-    p.add_argument("--num-workers", type=int, default=2, help="decode worker processes (0: decode in-process)")
-    p.add_argument("--compute-dtype", default="fp32", choices=("fp32", "bf16"),
-                   help="encoder compute precision (bf16 autocast); part of the cache key")
-    p.add_argument("--block-frames", type=int, default=256, help="frames per Zarr shard / resumable unit")
+    p.add_argument("--episodes", type=int_list, default=None, help="episode subset, e.g. 0-9,20")
+    p.add_argument("--frame-stride", type=positive_int, default=1, metavar="K",
+                   help="features for every K-th frame of each episode (frame_index %% K == 0); actions stay at the "
+                   "full rate for action chunks. Part of the cache key (default 1: every frame)")
+    p.add_argument("--batch-size", type=positive_int, default=32)
+    p.add_argument("--num-workers", type=nonneg_int, default=2, help="decode worker processes (0: decode in-process)")
+    add_compute_dtype_flag(p)
+    p.add_argument("--block-frames", type=positive_int, default=256, help="frames per Zarr shard / resumable unit")
     p.add_argument("--no-progress", action="store_true")
     add_cache_flag(p)
     add_device_flags(p, dtype_help="stored feature dtype (default fp16)")
@@ -59,7 +68,8 @@ def run(args: argparse.Namespace) -> int:
         encoder=args.encoder,
         grids=tuple(parse_grids(args.grids)),
         cameras=tuple(c.strip() for c in args.cameras.split(",")) if args.cameras else None,
-        episodes=parse_int_list(args.episodes) if args.episodes else None,
+        episodes=args.episodes,
+        frame_stride=args.frame_stride,
         weights=args.weights,
         random_init=args.random_init,
         seed=args.seed,

@@ -7,6 +7,7 @@ because meta/info.json `features` has the same shape in v2.0, v2.1 and v3.0.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -53,8 +54,19 @@ class DatasetMeta:
     action_dim: int
     tasks: tuple[str, ...]
     episodes: tuple[EpisodeMeta, ...]
-    fingerprint: dict[str, str]
     n_frames: int
+    identity_files: tuple[Path, ...]  # metadata files, then every data parquet and mp4 the episodes use
+
+    @functools.cached_property
+    def fingerprint(self) -> dict[str, dict[str, dict[str, int | str]]]:
+        """{"files": {path relative to root: {"size", "sha256"}}} over `identity_files` (see identity.py).
+
+        Computed on first use, not when the dataset is opened: the first time a dataset is seen this
+        reads every byte of it; later runs reuse the remembered hashes of unchanged files.
+        """
+        from graftcache.datasets.identity import content_identity
+
+        return content_identity(self.root, self.identity_files)
 
 
 @dataclass(frozen=True)

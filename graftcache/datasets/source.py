@@ -6,7 +6,6 @@ workers in microseconds; each `decode_episode` call opens, decodes and closes it
 
 from __future__ import annotations
 
-import hashlib
 import json
 from pathlib import Path
 from typing import Any, Callable, Sequence
@@ -78,10 +77,18 @@ def open_dataset(source: str | Path, *, decode_threads: int = 1) -> LeRobotSourc
         action_dim=feats.action_dim,
         tasks=layout.tasks,
         episodes=layout.episodes,
-        fingerprint={p.relative_to(root).as_posix(): _sha256(p) for p in layout.meta_files},
         n_frames=sum(e.length for e in layout.episodes),
+        identity_files=identity_files(layout, video_keys),
     )
     return LeRobotSource(meta, layout.files, decode_threads=decode_threads)
+
+
+def identity_files(layout: Layout, video_keys: Sequence[str]) -> tuple[Path, ...]:
+    """What a dataset's identity covers: its metadata files, then every data parquet and every mp4 of
+    the video cameras that the episodes use (each once, in episode order)."""
+    data = [f.data for f in layout.files]
+    videos = [f.videos[key].path for key in video_keys for f in layout.files]
+    return tuple(dict.fromkeys([*layout.meta_files, *data, *videos]))
 
 
 class LeRobotSource:
@@ -170,11 +177,3 @@ class LeRobotSource:
             return self._short[camera]
         raise DatasetError(f"{self.meta.root}: no camera {camera!r}; available: "
                            + ", ".join(f"{s} ({k})" for s, k in self.meta.camera_keys.items()))
-
-
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with path.open("rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()

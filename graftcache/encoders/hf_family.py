@@ -151,7 +151,8 @@ def _load(spec: EncoderSpec, arch: HFArch, origin: Path, *args: Any, **kwargs: A
     except (OSError, RuntimeError, ValueError) as e:
         first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
         raise EncoderError(f"encoder {spec.name!r}: {origin} does not load into {arch.model_cls}: {first}") from e
-    missing = info["missing_keys"] + [k for k, *_ in info["mismatched_keys"]]
+    # transformers 5 reports sets (mismatched entries are (key, checkpoint shape, model shape)); sort for a stable message
+    missing = sorted(info["missing_keys"]) + sorted(k for k, *_ in info["mismatched_keys"])
     if missing:
         raise EncoderError(f"encoder {spec.name!r}: {origin} leaves {len(missing)} weights of {arch.model_cls} "
                            f"unset (first: {missing[0]}); is it a {spec.model_id} checkpoint?")

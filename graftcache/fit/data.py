@@ -114,6 +114,21 @@ def action_chunks(actions: np.ndarray, episode: np.ndarray, chunk: int) -> tuple
     return actions[steps], pad
 
 
+def frame_chunks(cache: FeatureCache, frames: pl.DataFrame, chunk: int) -> tuple[np.ndarray, np.ndarray]:
+    """Action chunks [N, chunk, A] and pad masks [N, chunk] of `frames` (rows of the cache index), taken
+    from the cache's full-rate action stream, so a frame stride thins the observations, not the actions."""
+    stream = cache.action_stream().sort("episode_index", "frame_index")
+    all_chunks, all_pad = action_chunks(np.stack(stream["action"].to_numpy()).astype(np.float32),
+                                        stream["episode_index"].to_numpy(), chunk)
+    key = stream.select("episode_index", "frame_index").with_row_index("pos")
+    pos = frames.select("episode_index", "frame_index").join(key, on=["episode_index", "frame_index"], how="left",
+                                                            maintain_order="left")["pos"]
+    if pos.null_count():
+        raise FitError(f"cache {cache.key}: {pos.null_count()} frame(s) have no entry in the action stream")
+    pos = pos.to_numpy()
+    return all_chunks[pos], all_pad[pos]
+
+
 def load_frames(cache: FeatureCache, suite: str, *, cameras: Sequence[str], grid: tuple[int, int] | None,
                 chunk: int, extra: str | None = None) -> FrameTable:
     """All frames of `suite` with features at `grid` (or the stored extra array `extra`, e.g. the
@@ -129,8 +144,7 @@ def load_frames(cache: FeatureCache, suite: str, *, cameras: Sequence[str], grid
     else:
         assert grid is not None
         feats = {c: read_grid(cache, c, grid, rows) for c in cameras}
-    acts = np.stack(sub["action"].to_numpy()).astype(np.float32)
-    chunks, pad = action_chunks(acts, episode, chunk)
+    chunks, pad = frame_chunks(cache, sub, chunk)
     return FrameTable(
         rows=rows,
         episode_index=episode,

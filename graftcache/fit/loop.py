@@ -13,10 +13,10 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
 from graftcache.fit.data import FrameTable
 from graftcache.graft import feature_key
+from graftcache.progress import progress
 from graftcache.runtime import autocast
 from graftcache.scoring import Score, frame_noise, predict_in_batches, score_chunks
 
@@ -78,7 +78,7 @@ def train(adapter, table: FrameTable, cams: Mapping[str, str], cfg: TrainConfig,
     device = adapter.device
     adapter.policy.train()
     losses = []
-    bar = tqdm(range(cfg.steps), desc="fit", disable=not cfg.progress, leave=False, dynamic_ncols=True)
+    bar = progress(range(cfg.steps), desc="fit", unit="step", enabled=cfg.progress, leave=False)
     for _ in bar:
         pos = torch.randint(0, len(table), (cfg.batch_size,), generator=g).numpy()
         batch = adapter.prepare(raw_batch(adapter, table, pos, cams, features=features))

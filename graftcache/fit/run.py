@@ -1,20 +1,22 @@
 """Stage 2 orchestration: caches -> cells (seed x control) -> one results row per cell.
 
-A cell is fitted against a freshly loaded frozen policy (graft surgery mutates it), from cached
-features only. Finished cells (same run_id in the results file) are skipped, so reruns and sweeps
-resume where they stopped. The projector of every trained cell is saved as safetensors with a JSON
+A cell is fitted against the frozen policy, loaded once per run and reset to its pristine state
+between cells (graft surgery mutates it), from cached features only. Finished cells (same run_id in
+the results file) are skipped before anything is loaded, so reruns and sweeps resume where they
+stopped and a finished grid only reads. The projector of every trained cell is saved as safetensors with a JSON
 sidecar in the run folder.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import sys
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
@@ -22,7 +24,9 @@ from safetensors.torch import save_file
 
 import graftcache
 from graftcache import results
-from graftcache.backbones import load_backbone
+from graftcache.backbones.checkpoint import follow_umask
+from graftcache.backbones.pool import BackbonePool
+from graftcache.checks import FRACTION, NON_NEGATIVE, POSITIVE, SEEDS, Rule, check_fields
 from graftcache.errors import FitError
 from graftcache.fit.align import fit_ridge
 from graftcache.fit.controls import Control, get_control, transform_features
@@ -31,7 +35,7 @@ from graftcache.fit.loop import TrainConfig, camera_map, evaluate, train
 from graftcache.fit.lookup import find_cache, native_encoder_name, resolve_policy
 from graftcache.graft import GraftProjector, IdentityProjector
 from graftcache.pooling import format_grid
-from graftcache.runtime import resolve_device, resolve_dtype, set_main_threads
+from graftcache.runtime import resolve_compute_dtype, resolve_device, resolve_dtype, set_main_threads
 from graftcache.store import FeatureCache, cache_root
 
 OBJECTIVES = ("flow", "align")
@@ -58,12 +62,24 @@ class FitRequest:
     num_denoise_steps: int | None = None
     lora_rank: int = 8
     device: str = "cpu"
-    dtype: str = "fp32"
+    compute_dtype: str = "auto"  # resolved per device (runtime.resolve_compute_dtype) before it reaches a row
     results: str = "results.parquet"
     out: str | None = None
     cache: str | None = None
     progress: bool = True
     command: str = field(default_factory=lambda: " ".join(["graftcache", *sys.argv[1:]]))
+
+    RULES: ClassVar[dict[str, Rule]] = {
+        "seeds": SEEDS, "steps": POSITIVE, "lr": POSITIVE, "batch_size": POSITIVE, "eval_fraction": FRACTION,
+        "eval_split_seed": NON_NEGATIVE, "eval_frames": POSITIVE, "num_denoise_steps": POSITIVE, "lora_rank": POSITIVE,
+    }
+
+    def __post_init__(self) -> None:
+        self.check(vars(self))
+
+    @classmethod
+    def check(cls, values: dict[str, Any]) -> None:
+        check_fields(values, cls.RULES)
 
 
 @dataclass
@@ -95,19 +111,27 @@ def _split(table: FrameTable, split: Split) -> tuple[FrameTable, FrameTable]:
 class Fitter:
     """Runs every cell of a FitRequest; `run()` returns the rows it wrote."""
 
-    def __init__(self, req: FitRequest, log: Callable[[str], None] = print) -> None:
+    def __init__(self, req: FitRequest, log: Callable[[str], None] = print,
+                 backbones: BackbonePool | None = None) -> None:
         if req.objective not in OBJECTIVES:
             raise FitError(f"--objective {req.objective!r}: choose one of {', '.join(OBJECTIVES)}")
-        self.req, self.log = req, log
-        self.root = cache_root(req.cache)
         self.device = resolve_device(req.device)
-        self.dtype = resolve_dtype(req.dtype)
+        self.req = req = dataclasses.replace(req, compute_dtype=resolve_compute_dtype(req.compute_dtype, self.device))
+        self.log = log
+        self.backbones = backbones or BackbonePool()
+        self.root = cache_root(req.cache)
+        self.dtype = resolve_dtype(req.compute_dtype)
         self.controls = [get_control(c) for c in dict.fromkeys(("none", *req.controls))]
         self.cache = find_cache(self.root, req.encoder, dataset=req.dataset, key=req.cache_key)
         needs_native = req.objective == "align" or any(c.uses_native_cache for c in self.controls)
         self.native_cache = (find_cache(self.root, native_encoder_name(req.backbone), dataset=req.dataset,
                                         key=req.native_cache_key, same_dataset_as=self.cache, for_what="native "
                                         "controls and the align objective") if needs_native else None)
+        if self.native_cache is not None:
+            strides = {c.manifest.get("frame_stride") or 1 for c in (self.cache, self.native_cache)}
+            if len(strides) > 1:
+                raise FitError(f"caches {self.cache.key} and {self.native_cache.key} hold different frames (frame "
+                               f"strides {sorted(strides)}); extract both with the same --frame-stride")
         self.policy_folder = resolve_policy(req.backbone, req.policy, self.cache.manifest["dataset_fingerprint"],
                                             self.root, self.cache.manifest["dataset"]["source"])
         self.index = suite_index_table(self.cache, req.suite)
@@ -119,7 +143,7 @@ class Fitter:
 
     # ---------------------------------------------------------------- loading
     def _adapter(self):
-        return load_backbone(self.req.backbone, self.policy_folder, device=str(self.device))
+        return self.backbones.get(self.req.backbone, self.policy_folder, str(self.device))
 
     def _material(self, adapter, control: Control) -> _Material:
         grid = control.grid or adapter.native_grid
@@ -141,20 +165,22 @@ class Fitter:
         return self._materials[key]
 
     # ---------------------------------------------------------------- cells
-    def cell(self, control: Control, seed: int, mat: _Material, policy_id: str) -> dict[str, Any]:
+    def cell(self, control: Control, seed: int, policy_id: str) -> dict[str, Any]:
+        """What identifies a results row (hashed into its run_id); computable without loading anything."""
         objective = "eval" if not control.train else self.req.objective
         trained = control.train
+        source = self.native_cache if control.uses_native_cache else self.cache
         return {
-            "backbone": self.req.backbone, "policy": policy_id, "cache_key": mat.cache.key,
+            "backbone": self.req.backbone, "policy": policy_id, "cache_key": source.key,
             "suite": self.req.suite, "seed": seed, "control": control.name,
-            "pool_grid": format_grid(mat.grid) if mat.grid else "native", "objective": objective,
+            "pool_grid": format_grid(control.grid) if control.grid else "native", "objective": objective,
             "steps": self.req.steps if trained and objective == "flow" else 0,
             "lr": self.req.lr if trained and objective == "flow" else 0.0,
             "batch_size": self.req.batch_size if trained and objective == "flow" else 0,
             "lora_rank": self.req.lora_rank if control.lora else 0,
             "eval_fraction": self.req.eval_fraction, "eval_split_seed": self.req.eval_split_seed,
             "eval_frames": self.req.eval_frames, "num_denoise_steps": self.req.num_denoise_steps,
-            "dtype": self.req.dtype,
+            "compute_dtype": self.req.compute_dtype,
         }
 
     def run(self) -> list[dict[str, Any]]:
@@ -164,15 +190,16 @@ class Fitter:
         policy_id = self.req.policy if self.req.policy != "tiny" else f"tiny:{Path(self.policy_folder).name}"
         for seed in self.req.seeds:
             for control in self.controls:
-                probe = self._adapter()
-                mat = self._material(probe, control)
-                cell = self.cell(control, seed, mat, policy_id)
+                cell = self.cell(control, seed, policy_id)
                 run_id = results.make_run_id(cell)
                 if run_id in done:
-                    self.log(f"skip {self.req.backbone}/{mat.encoder}/{self.req.suite} seed {seed} "
+                    encoder = (self.native_cache if control.uses_native_cache else self.cache).manifest["encoder"]
+                    self.log(f"skip {self.req.backbone}/{encoder['name']}/{self.req.suite} seed {seed} "
                              f"control {control.name}: already in {self.req.results}")
                     continue
-                row = self._run_cell(probe, control, seed, mat, cell, run_id)
+                adapter = self._adapter()
+                mat = self._material(adapter, control)
+                row = self._run_cell(adapter, control, seed, mat, cell, run_id)
                 results.append(self.req.results, [row])
                 rows.append(row)
                 self.log(f"{row['backbone']}/{row['encoder']}/{row['suite']} seed {seed} control {control.name}: "
@@ -210,14 +237,14 @@ class Fitter:
         return {
             "run_id": run_id, "backbone": self.req.backbone, "policy": cell["policy"],
             "policy_sha256": adapter.policy_sha256, "encoder": encoder, "cache_key": mat.cache.key,
-            "suite": self.req.suite, "seed": seed, "control": control.name, "pool_grid": cell["pool_grid"],
+            "suite": self.req.suite, "seed": seed, "control": control.name, "pool_grid": format_grid(mat.grid),
             "objective": cell["objective"], "steps": cell["steps"], "lr": cell["lr"],
             "batch_size": cell["batch_size"], "train_loss_final": loss, "eval_mse": score.mse,
             "eval_mse_first": score.mse_first, "eval_mse_raw": score.mse_raw,
             "eval_mse_episodes": [score.per_episode[e] for e in sorted(score.per_episode)],
             "n_eval_frames": score.n_frames,
             "n_eval_episodes": len(score.per_episode), "eval_split_seed": self.req.eval_split_seed,
-            "wall_s": wall, "device": str(self.device),
+            "wall_s": wall, "device": str(self.device), "compute_dtype": self.req.compute_dtype,
             "random_init": bool(mat.cache.manifest.get("random_init") or adapter.random_init),
             "graftcache_version": graftcache.__version__, "command": self.req.command,
         }
@@ -230,6 +257,7 @@ class Fitter:
         folder.mkdir(parents=True, exist_ok=True)
         trainable = {n: p.detach().cpu().contiguous() for n, p in adapter.policy.named_parameters() if p.requires_grad}
         save_file(trainable, str(folder / "projector.safetensors"))
+        follow_umask(folder / "projector.safetensors")
         sidecar = {"run_id": run_id, "cell": cell, "split": asdict(self.split),
                    "freeze": str(adapter.freeze_report()), "graftcache_version": graftcache.__version__}
         (folder / "projector.json").write_text(json.dumps(sidecar, indent=2, default=str))

@@ -10,6 +10,7 @@
 """
 
 from graftcache.store.cache import FeatureCache, cache_root, list_caches
-from graftcache.store.key import FORMAT_VERSION, cache_key, identity_of
+from graftcache.store.key import FORMAT_VERSION, IdentityDifference, cache_key, compare_identity, identity_of
 
-__all__ = ["FORMAT_VERSION", "FeatureCache", "cache_key", "cache_root", "identity_of", "list_caches"]
+__all__ = ["FORMAT_VERSION", "FeatureCache", "IdentityDifference", "cache_key", "cache_root", "compare_identity",
+           "identity_of", "list_caches"]

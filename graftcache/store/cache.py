@@ -34,9 +34,10 @@ import zarr
 from zarr.codecs import BloscCodec
 
 from graftcache.errors import CacheError
-from graftcache.store.key import identity_of
+from graftcache.store.key import IdentityDifference, compare_identity, identity_of
 
 INNER_CHUNK_BYTES = 4 << 20
+ACTION_STREAM = "action_stream"  # group of the full-rate actions (see FeatureCache.create)
 STORAGE_DTYPES: dict[str, np.dtype] = {
     "fp16": np.dtype(np.float16),
     "fp32": np.dtype(np.float32),
@@ -124,11 +125,15 @@ class FeatureCache:
         index: pl.DataFrame,
         *,
         block_frames: int,
+        action_stream: pl.DataFrame | None = None,
     ) -> FeatureCache:
         """Create the group, its arrays, and write the index and low-dim columns.
 
         `index` has one row per cached frame in cache order with columns index, episode_index,
         frame_index, task_index, suite_index, timestamp, state (array), action (array).
+        `action_stream` (columns episode_index, frame_index, action) is every frame of the cached episodes
+        at the dataset's full rate (default: `index` itself): with a frame stride only every k-th frame has
+        features, but an action chunk is the next actions at full rate (stored as ACTION_STREAM/*).
         Anything already at `path` (an interrupted initialisation) is removed first.
         """
         path = Path(path)
@@ -164,6 +169,13 @@ class FeatureCache:
         for name in ("state", "action"):
             values = np.asarray(index[name].to_list(), dtype=np.float32).reshape(n, -1)
             static_sums[f"lowdim/{name}"] = cls._write_static(group, f"lowdim/{name}", values)
+        stream = index if action_stream is None else action_stream
+        for name in ("episode_index", "frame_index"):
+            static_sums[f"{ACTION_STREAM}/{name}"] = cls._write_static(group, f"{ACTION_STREAM}/{name}",
+                                                                      stream[name].to_numpy())
+        static_sums[f"{ACTION_STREAM}/action"] = cls._write_static(
+            group, f"{ACTION_STREAM}/action",
+            np.asarray(stream["action"].to_list(), dtype=np.float32).reshape(stream.height, -1))
         layout = {
             "block_frames": block_frames,
             "n_frames": n,
@@ -218,6 +230,21 @@ class FeatureCache:
     def matches(self, manifest: Mapping[str, Any]) -> bool:
         """Whether this cache holds exactly what `manifest` asks for."""
         return identity_of(self.manifest) == identity_of(manifest)
+
+    def dataset_difference(self, fingerprint: Mapping[str, Any]) -> IdentityDifference | None:
+        """The first file where the dataset this cache was extracted from differs from `fingerprint`
+        (a dataset's current `dataset_fingerprint`), or None when they are the same dataset."""
+        return compare_identity(self.manifest["dataset_fingerprint"], fingerprint)
+
+    def check_dataset(self, fingerprint: Mapping[str, Any], dataset: str | None = None) -> None:
+        """Raise CacheError (one line, naming the first differing file) unless this cache was extracted
+        from the dataset whose current identity is `fingerprint`. For every use of an existing cache with
+        a dataset: resuming an extraction, sharing a cache."""
+        diff = self.dataset_difference(fingerprint)
+        if diff is not None:
+            recorded = self.manifest.get("dataset", {}).get("source", "?")
+            raise CacheError(f"cache {self.key} does not match dataset {dataset or recorded}: it was extracted "
+                             f"from {recorded} with different content; first differing file: {diff}")
 
     # ------------------------------------------------------------------ writing
     def _marker(self, block: int) -> Path:
@@ -287,6 +314,17 @@ class FeatureCache:
         else:
             values = _take_rows(arr, np.asarray(rows), int(self.layout["block_frames"]))
         return from_storage(values, self.manifest["dtype"])
+
+    def action_stream(self) -> pl.DataFrame:
+        """Every frame's action of the cached episodes at the dataset's full rate (episode_index,
+        frame_index, action), for action chunks; caches made before frame strides existed hold every
+        frame, so their low-dim columns are that stream."""
+        if ACTION_STREAM not in self.group:
+            return self.index().select("episode_index", "frame_index", "action")
+        values = self.group[f"{ACTION_STREAM}/action"][...]
+        return pl.DataFrame({name: self.group[f"{ACTION_STREAM}/{name}"][...]
+                             for name in ("episode_index", "frame_index")}).with_columns(
+            pl.Series("action", values, dtype=pl.Array(pl.Float32, values.shape[1])))
 
     def index(self) -> pl.DataFrame:
         """Per-frame index and low-dim columns, in cache order."""

@@ -4,6 +4,12 @@ The key hashes exactly the fields that change the numbers (dataset content finge
 subset, encoder recipe, weights, grids, dtypes, cameras, cache format) and nothing that does not
 (batch size, worker count, device, cache folder, dataset path). Two users who extract the same
 dataset with the same encoder therefore land on the same key and can share the folder.
+
+The dataset part (`dataset_fingerprint`) is the dataset's content identity: size and sha256 of its
+metadata files and of every data parquet and video the episodes use (graftcache.datasets.identity), so a
+dataset edited under unchanged metadata gets another key. `compare_identity` names the first file in
+which a recorded identity differs from a dataset's current one, for every place that uses an existing
+cache with a dataset (fit --dataset, resuming an extraction, sharing).
 """
 
 from __future__ import annotations
@@ -11,6 +17,7 @@ from __future__ import annotations
 import hashlib
 import json
 from collections.abc import Mapping
+from dataclasses import dataclass
 from typing import Any
 
 FORMAT_VERSION = 1
@@ -20,6 +27,7 @@ IDENTITY_FIELDS = (
     "format_version",
     "dataset_fingerprint",
     "episodes",
+    "frame_stride",
     "cameras",
     "encoder",
     "weights_sha256",
@@ -32,7 +40,9 @@ IDENTITY_FIELDS = (
 
 def identity_of(manifest: Mapping[str, Any]) -> dict[str, Any]:
     """The identity sub-dict of a manifest (canonical JSON types)."""
-    return json.loads(json.dumps({k: manifest[k] for k in IDENTITY_FIELDS}, sort_keys=True, default=str))
+    # .get: a field added after a cache was made (e.g. frame_stride) reads as None, so such a cache keeps its
+    # identity and is never taken for one made with an explicit value
+    return json.loads(json.dumps({k: manifest.get(k) for k in IDENTITY_FIELDS}, sort_keys=True, default=str))
 
 
 def cache_key(manifest: Mapping[str, Any]) -> str:
@@ -40,3 +50,74 @@ def cache_key(manifest: Mapping[str, Any]) -> str:
     blob = json.dumps(identity_of(manifest), sort_keys=True, separators=(",", ":")).encode()
     name = str(manifest["encoder"]["name"]).replace(":", "_").replace("/", "_")
     return f"{name}-{hashlib.sha256(blob).hexdigest()[:16]}"
+
+
+@dataclass(frozen=True)
+class IdentityDifference:
+    """The first place where two dataset identities differ: a file (or field) and how."""
+
+    path: str
+    detail: str
+
+    def __str__(self) -> str:
+        return f"{self.path} ({self.detail})"
+
+
+def compare_identity(recorded: Mapping[str, Any], current: Mapping[str, Any]) -> IdentityDifference | None:
+    """None when `recorded` (e.g. a cache manifest's `dataset_fingerprint`) equals `current`; otherwise
+    the first differing file (metadata files first, then data and videos in path order).
+
+    An identity recorded before data files were hashed (no "files" entry: metadata sha256 only) never
+    equals a current one; the difference names a changed metadata file if there is one, else the first
+    file it did not cover.
+    """
+    recorded, current = _canonical(recorded), _canonical(current)
+    if recorded == current:
+        return None
+    if "files" not in recorded and "files" not in current:  # two metadata-only identities
+        recorded, current = _flat(recorded), _flat(current)
+    now = current.get("files", {})
+    if "files" not in recorded:  # metadata-only identity of graftcache before content hashing
+        old = {k: {"sha256": v} for k, v in recorded.items() if k != "codebase_version"}
+        for rel in _ordered(old):
+            if rel not in now:
+                return IdentityDifference(rel, "recorded, not in the dataset now")
+            if old[rel]["sha256"] != now[rel].get("sha256"):
+                return _changed(rel, old[rel], now[rel])
+        first = next((r for r in _ordered(now) if r not in old), "(dataset identity)")
+        return IdentityDifference(first, "not covered: the cache recorded only the metadata files' hashes "
+                                         "(made before graftcache hashed data and video files)")
+    was = recorded.get("files", {})
+    for rel in _ordered({**was, **now}):
+        if rel not in now:
+            return IdentityDifference(rel, "recorded, not in the dataset now")
+        if rel not in was:
+            return IdentityDifference(rel, "in the dataset now, not recorded")
+        if was[rel] != now[rel]:
+            return _changed(rel, was[rel], now[rel])
+    for field in sorted(set(recorded) | set(current)):
+        if field != "files" and recorded.get(field) != current.get(field):
+            return IdentityDifference(field, f"{recorded.get(field)} recorded, {current.get(field)} now")
+    return None
+
+
+def _flat(identity: Mapping[str, Any]) -> dict[str, Any]:
+    """A metadata-only identity ({"codebase_version", path: sha256}) in the current shape."""
+    return {"codebase_version": identity.get("codebase_version"),
+            "files": {k: {"sha256": v} for k, v in identity.items() if k != "codebase_version"}}
+
+
+def _canonical(identity: Mapping[str, Any]) -> dict[str, Any]:
+    return json.loads(json.dumps(dict(identity), sort_keys=True, default=str))
+
+
+def _ordered(files: Mapping[str, Any]) -> list[str]:
+    """Metadata files first, then everything else, each in path order."""
+    return sorted(files, key=lambda rel: (not rel.startswith("meta/"), rel))
+
+
+def _changed(rel: str, was: Mapping[str, Any], now: Mapping[str, Any]) -> IdentityDifference:
+    if "size" in was and was.get("size") != now.get("size"):
+        return IdentityDifference(rel, f"size {was['size']} recorded, {now.get('size')} now")
+    return IdentityDifference(rel, f"sha256 {str(was.get('sha256'))[:12]}... recorded, "
+                                   f"{str(now.get('sha256'))[:12]}... now")

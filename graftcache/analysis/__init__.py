@@ -1,0 +1,176 @@
+"""Questions asked of a results table, one function each: polars in, polars out.
+
+A table needs only graftcache.results.REPORT_COLUMNS (backbone, suite, encoder, control, seed, eval_mse);
+`analyze` fills every other SCHEMA column with nulls, so tables from older versions, other tools or a
+paper are analysed like the ones `graftcache fit` writes.
+
+The paper's question is whether the ranking of vision encoders found on a small frozen backbone (SmolVLA)
+transfers to a large one (pi0.5), and back. Seeds are few and offline MSE is noisy, so "the winner" is
+compared against a *top tier*: every encoder whose MSE cannot be separated from the best one's under a
+bootstrap.
+
+Statistics (stated once here, cited by the report):
+- the unit of replication is the seed (projector init + data order); when rows carry per-episode MSEs in
+  the list column `eval_mse_episodes`, the bootstrap is two-level (seeds, then held-out episodes within
+  each drawn seed), otherwise it resamples seeds only (a seed-level bootstrap; `episode_coverage` says
+  which cells had episodes);
+- encoder e is in the top tier of a (backbone, suite) unless P(mean_e* > mean_best*) >= confidence over
+  `n_boot` independent bootstrap replicates of both cells (a one-sided test at `confidence`, 95% by default);
+- with a single seed and no episodes the bootstrap is degenerate, so the tier is the exact ties of the best
+  mean; such rows are flagged in `basis`;
+- every replicate draw comes from a generator seeded by (seed, backbone, suite, encoder), so results are
+  deterministic and do not depend on row order;
+- transfer is tested in both directions (small -> large and large -> small), per suite and per seed-level
+  cell (one seed's rows alone); a target tier that holds every shared encoder is a near-tie band, not a
+  transfer (see graftcache.analysis.transfer).
+
+Missing cells are never dropped: they appear as rows with null statistics and a `status`/`note`, and a
+verdict that cannot be reached is "insufficient data". Non-finite eval_mse (a diverged fit) counts as invalid.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import polars as pl
+
+from graftcache.analysis.controls import CONTROLS_SCHEMA, controls_distance, wrapper_non_neutrality
+from graftcache.analysis.stats import BASIS_MISSING, BOOT_SEED, CONFIDENCE, N_BOOT, SOLID_BASES, tau_b
+from graftcache.analysis.summaries import (
+    duplicate_rows,
+    episode_coverage,
+    missing_cells,
+    near_tie_band,
+    rankings,
+    seed_summary,
+)
+from graftcache.analysis.table import (
+    BACKBONE_LABELS,
+    CELL,
+    EPISODE_COLUMN,
+    GROUP,
+    LARGE,
+    NATIVE,
+    NATIVE_GRAFT,
+    NOT_ENCODER_CONTROLS,
+    PLAIN,
+    RECIPE_COLUMNS,
+    SHUFFLED_IMAGE,
+    SMALL,
+    ZERO_IMAGE,
+    backbone_label,
+)
+from graftcache.analysis.transfer import (
+    COUNT_COLUMNS,
+    DOES_NOT_TRANSFER,
+    INSUFFICIENT,
+    NEAR_TIE,
+    PAIRING_SCHEMA,
+    SEED_VERDICT_SCHEMA,
+    TRANSFERS,
+    VERDICT_SCHEMA,
+    VERDICTS,
+    kendall_tau,
+    seed_disagreement_counts,
+    seed_pairings,
+    seed_verdicts,
+    transfer_verdicts,
+    two_backbone_gap,
+    verdict_counts,
+)
+from graftcache.errors import GraftcacheError
+from graftcache.results import conform
+
+__all__ = [
+    "BACKBONE_LABELS", "BASIS_MISSING", "BOOT_SEED", "CELL", "CONFIDENCE", "CONTROLS_SCHEMA", "COUNT_COLUMNS",
+    "DOES_NOT_TRANSFER", "EPISODE_COLUMN", "GROUP", "INSUFFICIENT", "LARGE", "NATIVE", "NATIVE_GRAFT",
+    "NEAR_TIE", "NOT_ENCODER_CONTROLS", "N_BOOT", "PAIRING_SCHEMA", "PLAIN", "RECIPE_COLUMNS",
+    "SEED_VERDICT_SCHEMA", "SHUFFLED_IMAGE", "SMALL", "SOLID_BASES", "TRANSFERS", "VERDICTS",
+    "VERDICT_SCHEMA", "ZERO_IMAGE", "Analysis", "analyze", "backbone_label", "controls_distance",
+    "duplicate_rows", "episode_coverage", "kendall_tau", "missing_cells", "near_tie_band", "rankings",
+    "seed_disagreement_counts", "seed_pairings", "seed_summary", "seed_verdicts", "tau_b",
+    "transfer_verdicts", "two_backbone_gap", "verdict_counts", "wrapper_non_neutrality",
+]
+
+
+@dataclass(frozen=True)
+class Analysis:
+    """Every table the report and notebook show, computed once from one results table."""
+
+    results: pl.DataFrame  # every SCHEMA column (absent ones null)
+    small: str
+    large: str
+    confidence: float
+    n_boot: int
+    seed: int
+    band: pl.DataFrame  # seed_summary + rank + top tier, per (backbone, suite, encoder)
+    verdicts: pl.DataFrame  # per (suite, direction)
+    seed_verdicts: pl.DataFrame  # per (suite, seed, direction)
+    pairings: pl.DataFrame
+    disagreements: pl.DataFrame
+    tau: pl.DataFrame
+    wrapper: pl.DataFrame
+    controls: pl.DataFrame  # every encoder-level control in the table
+    missing: pl.DataFrame
+
+    @property
+    def backbones(self) -> list[str]:
+        """Backbones with plain-graft rows, small and large first, then any others by name."""
+        have = set(self.band["backbone"].to_list())
+        return [b for b in (self.small, self.large) if b in have] + sorted(have - {self.small, self.large})
+
+    @property
+    def transfer_gap(self) -> str | None:
+        """Why the transfer question cannot be asked (fewer than two backbones), or None."""
+        return two_backbone_gap(self.results, self.small, self.large)
+
+    @property
+    def suites(self) -> list[str]:
+        return sorted(set(self.band["suite"].to_list()))
+
+    @property
+    def episode_coverage(self) -> tuple[int, int]:
+        """(plain-graft cells bootstrapped over episodes too, plain-graft cells with valid rows)."""
+        return episode_coverage(self.results)
+
+
+def analyze(
+    results: pl.DataFrame,
+    *,
+    small: str = SMALL,
+    large: str = LARGE,
+    confidence: float = CONFIDENCE,
+    n_boot: int = N_BOOT,
+    seed: int = BOOT_SEED,
+) -> Analysis:
+    """All questions at once, on the table conformed to SCHEMA (results.conform: absent columns null).
+
+    Raises GraftcacheError when rows share (backbone, suite, encoder, control, seed) - the table mixes
+    recipes (objective, lr, ...) and must be filtered to one before ranking."""
+    results = conform(results)
+    dup = duplicate_rows(results)
+    if len(dup):
+        first = dup.row(0, named=True)
+        raise GraftcacheError(
+            f"{len(dup)} (backbone, suite, encoder, control, seed) keys have several rows, e.g. "
+            f"{first['backbone']}/{first['suite']}/{first['encoder']}/{first['control']}"
+            f"/seed {first['seed']} "
+            f"differing in {', '.join(first['differing']) or 'nothing (duplicate rows)'}: "
+            "filter the table to one recipe"
+        )
+    boot = {"confidence": confidence, "n_boot": n_boot, "seed": seed}
+    pair = {"small": small, "large": large}
+    return Analysis(
+        results=results,
+        **pair,
+        **boot,
+        band=near_tie_band(results, **boot),
+        verdicts=transfer_verdicts(results, **pair, **boot),
+        seed_verdicts=seed_verdicts(results, **pair, **boot),
+        pairings=seed_pairings(results, **pair),
+        disagreements=seed_disagreement_counts(results, **pair),
+        tau=kendall_tau(results, **pair),
+        wrapper=wrapper_non_neutrality(results),
+        controls=controls_distance(results, controls=None, **boot),
+        missing=missing_cells(results),
+    )

@@ -1,0 +1,29 @@
+"""Range rules for request fields, declared beside each request and checked in one place.
+
+Requests (ExtractRequest, FitRequest, TinyTrainConfig) carry a `RULES` table; their `__post_init__`
+and the sweep recipe reader both call `check_fields`, so a count of 0 or a negative seed is a
+one-line error naming the field before any work starts, whichever way the request was made.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from typing import Any
+
+from graftcache.errors import GraftcacheError
+
+Rule = tuple[Callable[[Any], bool], str]
+
+POSITIVE: Rule = (lambda v: v > 0, "must be > 0")
+NON_NEGATIVE: Rule = (lambda v: v >= 0, "must be >= 0")
+FRACTION: Rule = (lambda v: 0 < v < 1, "must be between 0 and 1 (exclusive)")
+SEEDS: Rule = (lambda v: len(v) > 0 and all(s >= 0 for s in v), "must list at least one seed, each >= 0")
+EPISODES: Rule = (lambda v: len(v) > 0 and all(e >= 0 for e in v), "must list at least one episode index >= 0")
+
+
+def check_fields(values: Mapping[str, Any], rules: Mapping[str, Rule]) -> None:
+    """Raise GraftcacheError for the first value (None means 'default', never checked) that breaks its rule."""
+    for name, (ok, text) in rules.items():
+        value = values.get(name)
+        if value is not None and not ok(value):
+            raise GraftcacheError(f"{name} = {value!r} {text}")

@@ -1,0 +1,93 @@
+"""Figures and the written report (report.md + report.html) from a results table.
+
+The report is built once as a list of blocks (document.py) by sections (sections.py) that draw figures
+(figures.py), and rendered twice (render.py), so the Markdown and the HTML can never say different things.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+
+import polars as pl
+
+from graftcache import analysis as A
+from graftcache import results as R
+from graftcache.report.document import Block, Heading, Image
+from graftcache.report.figures import FIGURES, figure_controls, figure_mse, figure_rank_transfer
+from graftcache.report.render import render_html, render_markdown
+from graftcache.report.sections import (
+    PROXY_NOTE,
+    SECTIONS,
+    bootstrap_sentence,
+    header,
+    provenance_section,
+    random_init_warning,
+    transfer_summary,
+    verdict_sentences,
+)
+
+__all__ = [
+    "FIGURES", "PROXY_NOTE", "TITLE", "ReportPaths", "bootstrap_sentence", "figure_controls", "figure_mse",
+    "figure_rank_transfer", "render_html", "render_markdown", "report_command", "transfer_summary",
+    "verdict_sentences", "write_report",
+]
+
+TITLE = "graftcache report: does the encoder ranking transfer across backbones?"
+
+
+@dataclass(frozen=True)
+class ReportPaths:
+    markdown: Path
+    html: Path
+    figures: tuple[Path, ...]
+
+
+def write_report(
+    results: pl.DataFrame | str | Path,
+    out_dir: str | Path,
+    *,
+    commands: Mapping[str, str] | None = None,
+    small: str = A.SMALL,
+    large: str = A.LARGE,
+    confidence: float = A.CONFIDENCE,
+    n_boot: int = A.N_BOOT,
+    seed: int = A.BOOT_SEED,
+) -> ReportPaths:
+    """Analyse a results table (or Parquet path) and write report.md, report.html and PNG figures to out_dir.
+
+    The table needs only results.REPORT_COLUMNS; a path is read with results.read_for_report, so an absent,
+    empty, non-Parquet or row-less file is a GraftcacheError naming it. `commands` (name -> command line)
+    are cited at the top of the provenance section, e.g. the sweep and report invocations; every row's own
+    `command` and `cache_key` are listed there too.
+    """
+    source = str(results) if isinstance(results, (str, Path)) else "in-memory table"
+    table = R.read_for_report(results) if isinstance(results, (str, Path)) else results
+    a = A.analyze(table, small=small, large=large, confidence=confidence, n_boot=n_boot, seed=seed)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    for name in FIGURES:  # a rerun must not leave a stale figure the new report no longer shows
+        (out / name).unlink(missing_ok=True)
+    blocks: list[Block] = [Heading(TITLE, 1), *random_init_warning(a), *header(a, source)]
+    for section in SECTIONS:
+        blocks += section(a, out)
+    blocks += provenance_section(a, commands)
+    md, page = out / "report.md", out / "report.html"
+    md.write_text(render_markdown(blocks, out), encoding="utf-8")
+    page.write_text(render_html(blocks, out, TITLE), encoding="utf-8")
+    figures = tuple(out / b.name for b in blocks if isinstance(b, Image))
+    return ReportPaths(md, page, figures)
+
+
+def report_command(results_path: str | Path, out_dir: str | Path, *, command: str | None = None) -> int:
+    """`graftcache report RESULTS --out DIR`: write the report, print where it is, return the exit code.
+
+    Every unusable results file is a GraftcacheError (the CLI prints it as one line); `command` is the
+    exact invocation to cite in the report (the CLI passes its argv), defaulting to the canonical form.
+    """
+    path = Path(results_path)
+    cited = command or f"graftcache report {path} --out {out_dir}"
+    paths = write_report(path, out_dir, commands={"report": cited})
+    print(f"report: {paths.markdown}\n        {paths.html}")
+    return 0
