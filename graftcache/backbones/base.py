@@ -38,6 +38,7 @@ from graftcache.backbones.checkpoint import (
     verify_weights,
     weights_file,
 )
+from graftcache.backbones.released import is_random_release
 from graftcache.backbones.tiny import TinySpec, read_marker, write_marker
 from graftcache.errors import BackboneError
 from graftcache.graft import FreezeReport, PassThroughTower, feature_key, freeze_all_but, freeze_report
@@ -108,8 +109,10 @@ class BackboneAdapter(ABC):
             if dataset_stats is None:
                 raise BackboneError(f"{folder}: no {PREPROCESSOR_FILE}; pass dataset_stats to build the processors")
             processors = cls._make_processors(policy.config, dataset_stats, marker)
-        # A tiny checkpoint is never released weights: random init, at most trained natively on a sample.
-        return cls(policy.to(device), *processors, source=str(source), random_init=marker is not None,
+        # A tiny checkpoint is never released weights: random init, at most trained natively on a sample;
+        # nor is one written at the released geometry by graftcache.backbones.released.
+        random_init = marker is not None or is_random_release(folder)
+        return cls(policy.to(device), *processors, source=str(source), random_init=random_init,
                    tiny_marker=marker)
 
     @classmethod
@@ -202,10 +205,24 @@ class BackboneAdapter(ABC):
         """Width of the padded action vectors the flow model works in (noise has this width)."""
         return self.config.max_action_dim
 
-    @property
-    @abstractmethod
+    @functools.cached_property
     def native_grid(self) -> tuple[int, int]:
         """Per-camera token grid the LM sees natively (post-connector)."""
+        return self._grid_of_config(self.config, self.tiny_marker)
+
+    @classmethod
+    def read_native_grid(cls, source: str | Path) -> tuple[int, int]:
+        """The native token grid of a checkpoint from its config alone: a sweep needs it to key its caches,
+        and a finished sweep must not load a 3B-parameter policy to learn it."""
+        if str(source) == "tiny":
+            raise BackboneError(f"{cls.name}: an in-memory tiny policy has no checkpoint to read; load it")
+        folder = resolve_source(source)
+        return cls._grid_of_config(cls._read_config(folder), read_marker(folder))
+
+    @classmethod
+    @abstractmethod
+    def _grid_of_config(cls, config, marker: dict | None) -> tuple[int, int]:
+        """Per-camera post-connector token grid implied by a policy config (and the tiny marker)."""
 
     @property
     @abstractmethod

@@ -91,9 +91,15 @@ class PI05Adapter(BackboneAdapter):
     def _paligemma(self) -> nn.Module:
         return self.policy.model.paligemma_with_expert.paligemma.model  # PaliGemmaModel
 
-    @property
-    def native_grid(self) -> tuple[int, int]:
-        side = self.config.image_resolution[0] // self._paligemma.config.vision_config.patch_size
+    @classmethod
+    def _grid_of_config(cls, config, marker: dict | None) -> tuple[int, int]:
+        if marker is not None:
+            patch = marker["geometry"].patch_size
+        else:  # lerobot builds PaliGemma's default vision config (So400m/14) and changes only the image size
+            from transformers.models.auto import CONFIG_MAPPING
+
+            patch = CONFIG_MAPPING["paligemma"]().vision_config.patch_size
+        side = config.image_resolution[0] // patch
         return side, side
 
     @property

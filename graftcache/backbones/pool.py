@@ -7,6 +7,7 @@ cells costs one load per backbone, and cells that are already done load nothing 
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -17,13 +18,15 @@ if TYPE_CHECKING:
 
 
 class BackbonePool:
-    def __init__(self) -> None:
+    def __init__(self, log: Callable[[str], None] = print) -> None:
         self._loaded: dict[tuple[str, str, str], BackboneAdapter] = {}
+        self.log = log
 
     def get(self, name: str, policy: str | Path, device: str) -> BackboneAdapter:
         """The backbone `name` loaded from `policy` on `device`, reset to its state as loaded."""
         key = (name, str(policy), str(device))
         if key not in self._loaded:
+            self.log(f"loading backbone {name} from {policy} on {device}")
             self._loaded[key] = load_backbone(name, policy, device=str(device))
         adapter = self._loaded[key]
         adapter.reset()

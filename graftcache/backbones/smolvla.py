@@ -41,11 +41,26 @@ class SmolVLAAdapter(BackboneAdapter):
         # The policy's safetensors hold every VLM weight: do not make lerobot load SmolVLM2's own
         # weights first (bf16, and they would have to be in the cache). Config + processor suffice.
         config.load_vlm_weights = False
-        if marker is not None:
-            config.vlm_model_name = str(SMOLVLM_DIR)
-        elif not Path(config.vlm_model_name).is_dir():
-            cached_repo(config.vlm_model_name, "SmolVLA's VLM config/processor")
+        config.vlm_model_name = str(cls._vlm_folder(config, marker))
         return SmolVLAPolicy.from_pretrained(folder, config=config)
+
+    @classmethod
+    def _vlm_folder(cls, config, marker: dict | None) -> Path:
+        """The SmolVLM config/processor folder the policy is built from (the shipped tiny one, a local
+        folder, or the hub id's snapshot in the local HF cache)."""
+        if marker is not None:
+            return SMOLVLM_DIR
+        if Path(config.vlm_model_name).is_dir():
+            return Path(config.vlm_model_name)
+        return cached_repo(config.vlm_model_name, "SmolVLA's VLM config/processor")
+
+    @classmethod
+    def _grid_of_config(cls, config, marker: dict | None) -> tuple[int, int]:
+        from transformers import AutoConfig
+
+        vlm = AutoConfig.from_pretrained(cls._vlm_folder(config, marker))
+        side = vlm.vision_config.image_size // vlm.vision_config.patch_size // vlm.scale_factor
+        return side, side
 
     @classmethod
     def _processor_overrides(cls, config, marker: dict | None, device: str) -> tuple[dict, dict]:
@@ -66,12 +81,6 @@ class SmolVLAAdapter(BackboneAdapter):
     @property
     def _vlm(self) -> nn.Module:
         return self.policy.model.vlm_with_expert.get_vlm_model()
-
-    @property
-    def native_grid(self) -> tuple[int, int]:
-        vision = self._vlm.config.vision_config
-        side = vision.image_size // vision.patch_size // self._vlm.config.scale_factor
-        return side, side
 
     @property
     def lm_width(self) -> int:

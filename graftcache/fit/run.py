@@ -118,7 +118,7 @@ class Fitter:
         self.device = resolve_device(req.device)
         self.req = req = dataclasses.replace(req, compute_dtype=resolve_compute_dtype(req.compute_dtype, self.device))
         self.log = log
-        self.backbones = backbones or BackbonePool()
+        self.backbones = backbones or BackbonePool(log)
         self.root = cache_root(req.cache)
         self.dtype = resolve_dtype(req.compute_dtype)
         self.controls = [get_control(c) for c in dict.fromkeys(("none", *req.controls))]
