@@ -1,14 +1,15 @@
 """Range rules for request fields, declared beside each request and checked in one place.
 
-Requests (ExtractRequest, FitRequest, TinyTrainConfig) carry a `RULES` table; their `__post_init__`
-and the sweep recipe reader both call `check_fields`, so a count of 0 or a negative seed is a
-one-line error naming the field before any work starts, whichever way the request was made.
+Requests (ExtractRequest, FitRequest, TinyTrainConfig) derive from `Checked` and declare a `RULES`
+table; their construction and the sweep recipe reader (`cls.check(overrides)`) both apply it, so a
+count of 0 or a negative seed is a one-line error naming the field before any work starts, whichever
+way the request was made.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
-from typing import Any
+from typing import Any, ClassVar
 
 from graftcache.errors import GraftcacheError
 
@@ -27,3 +28,16 @@ def check_fields(values: Mapping[str, Any], rules: Mapping[str, Rule]) -> None:
         value = values.get(name)
         if value is not None and not ok(value):
             raise GraftcacheError(f"{name} = {value!r} {text}")
+
+
+class Checked:
+    """Mixin for request dataclasses: `RULES` checked at construction and on a dict of overrides."""
+
+    RULES: ClassVar[dict[str, Rule]] = {}
+
+    def __post_init__(self) -> None:
+        self.check(vars(self))
+
+    @classmethod
+    def check(cls, values: Mapping[str, Any]) -> None:
+        check_fields(values, cls.RULES)

@@ -28,7 +28,7 @@ import torch
 from torch.utils.data import DataLoader, Dataset
 
 import graftcache
-from graftcache.checks import EPISODES, NON_NEGATIVE, POSITIVE, Rule, check_fields
+from graftcache.checks import EPISODES, NON_NEGATIVE, POSITIVE, Checked, Rule
 from graftcache.datasets import LeRobotSource, open_dataset, suite_of
 from graftcache.encoders import get_spec, load_encoder
 from graftcache.errors import DatasetError, GraftcacheError
@@ -51,7 +51,7 @@ VERSIONED_PACKAGES = ("torch", "timm", "transformers", "lerobot", "zarr", "numco
 
 
 @dataclass(frozen=True)
-class ExtractRequest:
+class ExtractRequest(Checked):
     """Everything `graftcache extract` needs. Fields up to `compute_dtype` change the numbers (and the key);
     the ones after it do not."""
 
@@ -78,13 +78,6 @@ class ExtractRequest:
     RULES: ClassVar[dict[str, Rule]] = {"seed": NON_NEGATIVE, "batch_size": POSITIVE, "num_workers": NON_NEGATIVE,
                                         "block_frames": POSITIVE, "episodes": EPISODES,
                                         "frame_stride": POSITIVE}
-
-    def __post_init__(self) -> None:
-        self.check(vars(self))
-
-    @classmethod
-    def check(cls, values: dict[str, Any]) -> None:
-        check_fields(values, cls.RULES)
 
 
 @dataclass(frozen=True)

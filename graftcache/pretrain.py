@@ -18,14 +18,14 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import ClassVar
 
 import numpy as np
 import polars as pl
 import torch
 
 from graftcache.backbones import TinySpec, get_backbone
-from graftcache.checks import NON_NEGATIVE, POSITIVE, Rule, check_fields
+from graftcache.checks import NON_NEGATIVE, POSITIVE, Checked, Rule
 from graftcache.backbones.native import policy_pixels
 from graftcache.datasets import open_dataset
 from graftcache.fit.data import action_chunks
@@ -36,7 +36,7 @@ from graftcache.runtime import autocast, resolve_compute_dtype, resolve_device, 
 
 
 @dataclass(frozen=True)
-class TinyTrainConfig:
+class TinyTrainConfig(Checked):
     steps: int = 300  # enough for the tiny backbones to use vision on the sample (native beats zero-image)
     batch_size: int = 32
     lr: float = 1e-3
@@ -49,13 +49,6 @@ class TinyTrainConfig:
     RULES: ClassVar[dict[str, Rule]] = {"steps": POSITIVE, "batch_size": POSITIVE, "lr": POSITIVE,
                                         "weight_decay": NON_NEGATIVE, "seed": NON_NEGATIVE, "image_size": POSITIVE,
                                         "warmup": (lambda v: 0 <= v < 1, "must be in [0, 1)")}
-
-    def __post_init__(self) -> None:
-        self.check(vars(self))
-
-    @classmethod
-    def check(cls, values: dict[str, Any]) -> None:
-        check_fields(values, cls.RULES)
 
     def as_dict(self, backbone: str) -> dict:
         return {"backbone": backbone, **asdict(self)}

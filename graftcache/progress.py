@@ -80,10 +80,6 @@ class LogProgress:
             self._line()
         self._closed = True
 
-    @staticmethod
-    def write(text: str) -> None:
-        print(text, flush=True)
-
 
 def progress(iterable: Iterable[T] | None = None, *, total: float | None = None, desc: str = "", unit: str = "it",
              enabled: bool = True, leave: bool = True) -> Any:

@@ -186,12 +186,10 @@ def _section(data: Mapping[str, Any], section: str, where: str) -> dict[str, Any
                           f"{', '.join(sorted(SECTION_KEYS[section]))}")
     cls = _section_classes()[section]
     values = _typed(cls, table, f"{where} [{section}]")
-    problem = getattr(cls, "check", None)
-    if problem is not None:
-        try:
-            problem(values)
-        except GraftcacheError as e:
-            raise RecipeError(f"{where} [{section}]: {e}") from None
+    try:
+        cls.check(values)
+    except GraftcacheError as e:
+        raise RecipeError(f"{where} [{section}]: {e}") from None
     return values
 
 

@@ -117,7 +117,8 @@ def action_chunks(actions: np.ndarray, episode: np.ndarray, chunk: int) -> tuple
 def frame_chunks(cache: FeatureCache, frames: pl.DataFrame, chunk: int) -> tuple[np.ndarray, np.ndarray]:
     """Action chunks [N, chunk, A] and pad masks [N, chunk] of `frames` (rows of the cache index), taken
     from the cache's full-rate action stream, so a frame stride thins the observations, not the actions."""
-    stream = cache.action_stream().sort("episode_index", "frame_index")
+    episodes = frames["episode_index"].unique().implode()
+    stream = cache.action_stream().filter(pl.col("episode_index").is_in(episodes)).sort("episode_index", "frame_index")
     all_chunks, all_pad = action_chunks(np.stack(stream["action"].to_numpy()).astype(np.float32),
                                         stream["episode_index"].to_numpy(), chunk)
     key = stream.select("episode_index", "frame_index").with_row_index("pos")

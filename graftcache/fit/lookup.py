@@ -136,9 +136,11 @@ def resolve_policy(backbone: str, policy: str, fingerprint: dict, root: Path, da
         raise FitError(f"no natively trained tiny {backbone} for dataset {dataset_name} in {root / TINY_POLICIES}; "
                        f"run: graftcache train-tiny --backbone {backbone} --dataset {dataset_name}")
     if len(found) > 1:
-        default = {k: v for k, v in DEFAULT_TINY_TRAIN.as_dict(backbone).items() if k != "compute_dtype"}
-        found = [(f, r) for f, r in found
-                 if {k: v for k, v in r.get("config", {}).items() if k != "compute_dtype"} == default] or found
+        def recipe(config: dict) -> dict:  # the compute dtype is resolved per machine, not part of the recipe
+            return {k: v for k, v in config.items() if k != "compute_dtype"}
+
+        default = recipe(DEFAULT_TINY_TRAIN.as_dict(backbone))
+        found = [(f, r) for f, r in found if recipe(r.get("config", {})) == default] or found
     if len(found) > 1:
         raise FitError(f"several tiny {backbone} checkpoints for dataset {dataset_name}: "
                        f"{', '.join(str(f) for f, _ in found)}; pass one folder as --policy")

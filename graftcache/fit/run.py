@@ -26,7 +26,7 @@ import graftcache
 from graftcache import results
 from graftcache.backbones.checkpoint import follow_umask
 from graftcache.backbones.pool import BackbonePool
-from graftcache.checks import FRACTION, NON_NEGATIVE, POSITIVE, SEEDS, Rule, check_fields
+from graftcache.checks import FRACTION, NON_NEGATIVE, POSITIVE, SEEDS, Checked, Rule
 from graftcache.errors import FitError
 from graftcache.fit.align import fit_ridge
 from graftcache.fit.controls import Control, get_control, transform_features
@@ -42,7 +42,7 @@ OBJECTIVES = ("flow", "align")
 
 
 @dataclass(frozen=True)
-class FitRequest:
+class FitRequest(Checked):
     backbone: str
     encoder: str
     suite: str
@@ -73,13 +73,6 @@ class FitRequest:
         "seeds": SEEDS, "steps": POSITIVE, "lr": POSITIVE, "batch_size": POSITIVE, "eval_fraction": FRACTION,
         "eval_split_seed": NON_NEGATIVE, "eval_frames": POSITIVE, "num_denoise_steps": POSITIVE, "lora_rank": POSITIVE,
     }
-
-    def __post_init__(self) -> None:
-        self.check(vars(self))
-
-    @classmethod
-    def check(cls, values: dict[str, Any]) -> None:
-        check_fields(values, cls.RULES)
 
 
 @dataclass
@@ -142,12 +135,16 @@ class Fitter:
         self._materials: dict[tuple, _Material] = {}
 
     # ---------------------------------------------------------------- loading
+    def _source(self, control: Control) -> FeatureCache:
+        """The cache a control reads: the native tower's for the native controls, else the encoder's."""
+        return self.native_cache if control.uses_native_cache else self.cache
+
     def _adapter(self):
         return self.backbones.get(self.req.backbone, self.policy_folder, str(self.device))
 
     def _material(self, adapter, control: Control) -> _Material:
         grid = control.grid or adapter.native_grid
-        source = self.native_cache if control.uses_native_cache else self.cache
+        source = self._source(control)
         extra = "connector" if control.features == "native-tokens" else None
         key = (source.key, extra, None if extra else grid)
         if key not in self._materials:
@@ -169,7 +166,7 @@ class Fitter:
         """What identifies a results row (hashed into its run_id); computable without loading anything."""
         objective = "eval" if not control.train else self.req.objective
         trained = control.train
-        source = self.native_cache if control.uses_native_cache else self.cache
+        source = self._source(control)
         return {
             "backbone": self.req.backbone, "policy": policy_id, "cache_key": source.key,
             "suite": self.req.suite, "seed": seed, "control": control.name,
@@ -193,7 +190,7 @@ class Fitter:
                 cell = self.cell(control, seed, policy_id)
                 run_id = results.make_run_id(cell)
                 if run_id in done:
-                    encoder = (self.native_cache if control.uses_native_cache else self.cache).manifest["encoder"]
+                    encoder = self._source(control).manifest["encoder"]
                     self.log(f"skip {self.req.backbone}/{encoder['name']}/{self.req.suite} seed {seed} "
                              f"control {control.name}: already in {self.req.results}")
                     continue
