@@ -23,6 +23,9 @@ from graftcache import analysis as A
 from graftcache.errors import GraftcacheError
 from graftcache.results import REPORT_COLUMNS, SCHEMA
 
+# fewer bootstrap replicates than the default, for speed
+MEDIUM, STEADY = A.BootSettings(n_boot=200), A.BootSettings(n_boot=500)
+
 
 @pytest.fixture(scope="module")
 def results() -> pl.DataFrame:
@@ -101,13 +104,20 @@ def test_band_is_deterministic_and_seeded():
     # overlapping seeds, so p_worse is a genuine Monte-Carlo estimate
     t = table(plain_rows({("smolvla", "s", "a"): [1.0, 1.3, 1.6], ("smolvla", "s", "b"): [1.1, 1.5, 1.9]}))
     p = [
-        A.near_tie_band(t, seed=s, n_boot=500).filter(pl.col("encoder") == "b")["p_worse"][0]
+        A.near_tie_band(t, boot=A.BootSettings(n_boot=500, seed=s)).filter(pl.col("encoder") == "b")["p_worse"][0]
         for s in (0, 0, 1)
     ]
     assert p[0] == p[1] and p[0] != p[2]
     # row order does not matter
     shuffled = t.sample(fraction=1.0, shuffle=True, seed=3)
-    assert A.near_tie_band(shuffled, n_boot=500).filter(pl.col("encoder") == "b")["p_worse"][0] == p[0]
+    assert A.near_tie_band(shuffled, boot=STEADY).filter(pl.col("encoder") == "b")["p_worse"][0] == p[0]
+
+
+def test_boot_settings_are_checked_and_carried():
+    assert A.analyze(table(plain_rows(NEAR_TIE_MSE)), boot=MEDIUM).boot == A.BootSettings(0.95, 200, 0)
+    for field, bad, rule in (("confidence", 1.0, "between 0 and 1"), ("n_boot", 0, "> 0"), ("seed", -1, ">= 0")):
+        with pytest.raises(GraftcacheError, match=f"^{field} = {bad!r} must be {rule}"):
+            A.BootSettings(**{field: bad})
 
 
 def test_band_bootstraps_episodes_when_rows_carry_them():
@@ -213,11 +223,11 @@ def test_a_tier_holding_every_encoder_is_a_near_tie_not_a_transfer():
 def test_minimal_table_is_analysed_with_a_seed_level_bootstrap():
     minimal = minimal_table(BOTH_WAYS_MSE)
     assert minimal.columns == list(REPORT_COLUMNS)
-    a = A.analyze(minimal, n_boot=500)
+    a = A.analyze(minimal, boot=STEADY)
     assert set(a.results.columns) == set(SCHEMA) and a.results["command"].null_count() == len(minimal)
     assert a.episode_coverage == (0, 12)
     assert set(a.band["basis"]) == {"seeds"}
-    full = A.analyze(table(plain_rows(BOTH_WAYS_MSE)), n_boot=500)
+    full = A.analyze(table(plain_rows(BOTH_WAYS_MSE)), boot=STEADY)
     assert a.verdicts.equals(full.verdicts) and a.seed_verdicts.equals(full.seed_verdicts)
 
 
@@ -328,7 +338,7 @@ def test_missing_cells_lists_every_gap(results):
 
 
 def test_analyze_bundles_and_rejects_mixed_recipes(results):
-    a = A.analyze(results, n_boot=200)
+    a = A.analyze(results, boot=MEDIUM)
     assert a.backbones == ["smolvla", "pi05"] and len(a.suites) == 4
     assert len(a.verdicts) == 8 and set(a.controls["control"]) == {"zero-image", "shuffled-image"}
     assert len(a.seed_verdicts) == 24  # 4 suites x 3 seeds x 2 directions

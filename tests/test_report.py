@@ -17,6 +17,9 @@ from graftcache.cli import main
 from graftcache.errors import GraftcacheError
 from graftcache.results import REPORT_COLUMNS
 
+# fewer bootstrap replicates than the default, for speed
+QUICK, MEDIUM, STEADY = (analysis.BootSettings(n_boot=n) for n in (100, 200, 500))
+
 VERDICTS = (
     "On libero_spatial, the SmolVLA winner (siglip) is in pi0.5's top tier: the ranking transfers.",
     ("On libero_object, the SmolVLA winner (siglip) is not in pi0.5's top tier (dinov2-s): "
@@ -38,7 +41,7 @@ VERDICTS = (
 def written(tmp_path_factory):
     out = tmp_path_factory.mktemp("report")
     paths = report.write_report(
-        full_table(), out, commands={"sweep": "graftcache sweep cli/paper.toml"}, n_boot=500
+        full_table(), out, commands={"sweep": "graftcache sweep cli/paper.toml"}, boot=STEADY
     )
     return paths, paths.markdown.read_text(), paths.html.read_text()
 
@@ -68,6 +71,7 @@ def test_markdown_states_verdicts_proxy_and_provenance(written):
     for sentence in VERDICTS:
         assert sentence in md
     assert "validation MSE is a weak predictor of rollout success" in md
+    assert "≥ 0.95 over 500 bootstrap replicates (seed 0)" in md  # the settings passed, not the defaults
     assert "Warning: random-init" not in md
     assert "- sweep: `graftcache sweep cli/paper.toml`" in md
     # every row's command and cache key is cited
@@ -89,7 +93,7 @@ def test_html_is_self_contained_and_says_the_same(written):
 
 
 def test_random_init_rows_trigger_the_warning(tmp_path):
-    paths = report.write_report(full_table(random_init_for=("pi05", "resnet18")), tmp_path, n_boot=100)
+    paths = report.write_report(full_table(random_init_for=("pi05", "resnet18")), tmp_path, boot=QUICK)
     md = paths.markdown.read_text()
     assert "> **Warning: random-init weights**" in md
     assert "> - pi0.5 (`pi05`): resnet18 (7 rows)" in md
@@ -99,7 +103,7 @@ def test_random_init_rows_trigger_the_warning(tmp_path):
 
 def test_one_backbone_says_transfer_needs_two(tmp_path):
     small_only = full_table().filter(pl.col("backbone") == "smolvla")
-    paths = report.write_report(small_only, tmp_path, n_boot=100)
+    paths = report.write_report(small_only, tmp_path, boot=QUICK)
     md = paths.markdown.read_text()
     assert "The transfer question needs two backbones (SmolVLA and pi0.5); present: SmolVLA" in md
     assert "ranking transfers" not in md and "Seed-level agreement" not in md
@@ -107,9 +111,9 @@ def test_one_backbone_says_transfer_needs_two(tmp_path):
 
 
 def test_rerun_removes_stale_figures(tmp_path):
-    report.write_report(full_table(), tmp_path, n_boot=100)
+    report.write_report(full_table(), tmp_path, boot=QUICK)
     assert (tmp_path / "rank_transfer.png").exists()
-    report.write_report(full_table().filter(pl.col("backbone") == "pi05"), tmp_path, n_boot=100)
+    report.write_report(full_table().filter(pl.col("backbone") == "pi05"), tmp_path, boot=QUICK)
     assert not (tmp_path / "rank_transfer.png").exists() and not (tmp_path / "controls.png").exists()
 
 
@@ -140,7 +144,7 @@ def test_transfer_table_states_seed_level_counts(written):
 
 
 def test_near_tie_band_is_reported_as_such(tmp_path):
-    md = report.write_report(table(plain_rows(NEAR_TIE_MSE)), tmp_path, n_boot=500).markdown.read_text()
+    md = report.write_report(table(plain_rows(NEAR_TIE_MSE)), tmp_path, boot=STEADY).markdown.read_text()
     assert ("On s, every shared encoder is in pi0.5's top tier (b, a): a seed-sensitive near-tie band, "
             "so the SmolVLA winner (a) landing in it is not a transfer.") in md
     assert "the ranking transfers." not in md and "| near-tie band |" in md
@@ -208,7 +212,7 @@ CLOSE_MSE = {  # means 0.72 and 0.76 (and 0.74): bars from zero make them look e
 
 
 def test_mse_axis_starts_near_the_data_not_at_zero(tmp_path):
-    fig = report.figure_mse(analysis.analyze(table(plain_rows(CLOSE_MSE)), n_boot=200))
+    fig = report.figure_mse(analysis.analyze(table(plain_rows(CLOSE_MSE)), boot=MEDIUM))
     fig.savefig(tmp_path / "mse.png")
     _assert_real_png(tmp_path / "mse.png")
     panels = [ax for ax in fig.axes if ax.get_visible()]
@@ -233,7 +237,7 @@ def _overlapping_texts(fig) -> list[tuple[str, str]]:
 
 
 def test_rank_transfer_names_do_not_overprint_rank_labels():
-    fig = report.figure_rank_transfer(analysis.analyze(table(plain_rows(CLOSE_MSE)), n_boot=200))
+    fig = report.figure_rank_transfer(analysis.analyze(table(plain_rows(CLOSE_MSE)), boot=MEDIUM))
     assert _overlapping_texts(fig) == []
     labels = [t.get_text() for ax in fig.axes for t in ax.get_yticklabels()]
     assert "timm:vit_tiny_patch16_224  1" in labels and "1  timm:vit_tiny_patch16_224" in labels

@@ -15,11 +15,12 @@ Statistics (stated once here, cited by the report):
   each drawn seed), otherwise it resamples seeds only (a seed-level bootstrap; `episode_coverage` says
   which cells had episodes);
 - encoder e is in the top tier of a (backbone, suite) unless P(mean_e* > mean_best*) >= confidence over
-  `n_boot` independent bootstrap replicates of both cells (a one-sided test at `confidence`, 95% by default);
+  `n_boot` independent bootstrap replicates of both cells (a one-sided test at `confidence`; both, and the
+  generator `seed`, are the fields of BootSettings, which holds their defaults);
 - with a single seed and no episodes the bootstrap is degenerate, so the tier is the exact ties of the best
   mean; such rows are flagged in `basis`;
-- every replicate draw comes from a generator seeded by (seed, backbone, suite, encoder), so results are
-  deterministic and do not depend on row order;
+- every replicate draw comes from a generator seeded by (seed, control, backbone, suite, encoder), so
+  results are deterministic and do not depend on row order;
 - transfer is tested in both directions (small -> large and large -> small), per suite and per seed-level
   cell (one seed's rows alone); a target tier that holds every shared encoder is a near-tie band, not a
   transfer (see graftcache.analysis.transfer).
@@ -34,60 +35,30 @@ from dataclasses import dataclass
 
 import polars as pl
 
+from graftcache.analysis.agreement import PAIRING_SCHEMA, kendall_tau, seed_disagreement_counts, seed_pairings
 from graftcache.analysis.controls import CONTROLS_SCHEMA, controls_distance, wrapper_non_neutrality
-from graftcache.analysis.stats import BASIS_MISSING, BOOT_SEED, CONFIDENCE, N_BOOT, SOLID_BASES, tau_b
+from graftcache.analysis.stats import BASIS_MISSING, SOLID_BASES, BootSettings, tau_b
 from graftcache.analysis.summaries import (
-    duplicate_rows,
-    episode_coverage,
-    missing_cells,
-    near_tie_band,
-    rankings,
-    seed_summary,
+    duplicate_rows, episode_coverage, missing_cells, near_tie_band, rankings, seed_summary,
 )
 from graftcache.analysis.table import (
-    BACKBONE_LABELS,
-    CELL,
-    EPISODE_COLUMN,
-    GROUP,
-    LARGE,
-    NATIVE,
-    NATIVE_GRAFT,
-    NOT_ENCODER_CONTROLS,
-    PLAIN,
-    RECIPE_COLUMNS,
-    SHUFFLED_IMAGE,
-    SMALL,
-    ZERO_IMAGE,
-    backbone_label,
+    BACKBONE_LABELS, CELL, EPISODE_COLUMN, GROUP, LARGE, NATIVE, NATIVE_GRAFT, NOT_ENCODER_CONTROLS, PLAIN,
+    RECIPE_COLUMNS, SHUFFLED_IMAGE, SMALL, ZERO_IMAGE, backbone_label,
 )
 from graftcache.analysis.transfer import (
-    COUNT_COLUMNS,
-    DOES_NOT_TRANSFER,
-    INSUFFICIENT,
-    NEAR_TIE,
-    PAIRING_SCHEMA,
-    SEED_VERDICT_SCHEMA,
-    TRANSFERS,
-    VERDICT_SCHEMA,
-    VERDICTS,
-    kendall_tau,
-    seed_disagreement_counts,
-    seed_pairings,
-    seed_verdicts,
-    transfer_verdicts,
-    two_backbone_gap,
-    verdict_counts,
+    COUNT_COLUMNS, DOES_NOT_TRANSFER, INSUFFICIENT, NEAR_TIE, SEED_VERDICT_SCHEMA, TRANSFERS, VERDICT_SCHEMA,
+    VERDICTS, seed_verdicts, transfer_verdicts, two_backbone_gap, verdict_counts,
 )
 from graftcache.errors import GraftcacheError
 from graftcache.results import conform
 
 __all__ = [
-    "BACKBONE_LABELS", "BASIS_MISSING", "BOOT_SEED", "CELL", "CONFIDENCE", "CONTROLS_SCHEMA", "COUNT_COLUMNS",
-    "DOES_NOT_TRANSFER", "EPISODE_COLUMN", "GROUP", "INSUFFICIENT", "LARGE", "NATIVE", "NATIVE_GRAFT",
-    "NEAR_TIE", "NOT_ENCODER_CONTROLS", "N_BOOT", "PAIRING_SCHEMA", "PLAIN", "RECIPE_COLUMNS",
-    "SEED_VERDICT_SCHEMA", "SHUFFLED_IMAGE", "SMALL", "SOLID_BASES", "TRANSFERS", "VERDICTS",
-    "VERDICT_SCHEMA", "ZERO_IMAGE", "Analysis", "analyze", "backbone_label", "controls_distance",
-    "duplicate_rows", "episode_coverage", "kendall_tau", "missing_cells", "near_tie_band", "rankings",
+    "BACKBONE_LABELS", "BASIS_MISSING", "CELL", "CONTROLS_SCHEMA", "COUNT_COLUMNS", "DOES_NOT_TRANSFER",
+    "EPISODE_COLUMN", "GROUP", "INSUFFICIENT", "LARGE", "NATIVE", "NATIVE_GRAFT", "NEAR_TIE",
+    "NOT_ENCODER_CONTROLS", "PAIRING_SCHEMA", "PLAIN", "RECIPE_COLUMNS", "SEED_VERDICT_SCHEMA",
+    "SHUFFLED_IMAGE", "SMALL", "SOLID_BASES", "TRANSFERS", "VERDICTS", "VERDICT_SCHEMA", "ZERO_IMAGE",
+    "Analysis", "BootSettings", "analyze", "backbone_label", "controls_distance", "duplicate_rows",
+    "episode_coverage", "kendall_tau", "missing_cells", "near_tie_band", "rankings",
     "seed_disagreement_counts", "seed_pairings", "seed_summary", "seed_verdicts", "tau_b",
     "transfer_verdicts", "two_backbone_gap", "verdict_counts", "wrapper_non_neutrality",
 ]
@@ -100,9 +71,7 @@ class Analysis:
     results: pl.DataFrame  # every SCHEMA column (absent ones null)
     small: str
     large: str
-    confidence: float
-    n_boot: int
-    seed: int
+    boot: BootSettings
     band: pl.DataFrame  # seed_summary + rank + top tier, per (backbone, suite, encoder)
     verdicts: pl.DataFrame  # per (suite, direction)
     seed_verdicts: pl.DataFrame  # per (suite, seed, direction)
@@ -135,13 +104,7 @@ class Analysis:
 
 
 def analyze(
-    results: pl.DataFrame,
-    *,
-    small: str = SMALL,
-    large: str = LARGE,
-    confidence: float = CONFIDENCE,
-    n_boot: int = N_BOOT,
-    seed: int = BOOT_SEED,
+    results: pl.DataFrame, *, small: str = SMALL, large: str = LARGE, boot: BootSettings = BootSettings()
 ) -> Analysis:
     """All questions at once, on the table conformed to SCHEMA (results.conform: absent columns null).
 
@@ -158,19 +121,18 @@ def analyze(
             f"differing in {', '.join(first['differing']) or 'nothing (duplicate rows)'}: "
             "filter the table to one recipe"
         )
-    boot = {"confidence": confidence, "n_boot": n_boot, "seed": seed}
     pair = {"small": small, "large": large}
     return Analysis(
         results=results,
         **pair,
-        **boot,
-        band=near_tie_band(results, **boot),
-        verdicts=transfer_verdicts(results, **pair, **boot),
-        seed_verdicts=seed_verdicts(results, **pair, **boot),
+        boot=boot,
+        band=near_tie_band(results, boot=boot),
+        verdicts=transfer_verdicts(results, **pair, boot=boot),
+        seed_verdicts=seed_verdicts(results, **pair, boot=boot),
         pairings=seed_pairings(results, **pair),
         disagreements=seed_disagreement_counts(results, **pair),
         tau=kendall_tau(results, **pair),
         wrapper=wrapper_non_neutrality(results),
-        controls=controls_distance(results, controls=None, **boot),
+        controls=controls_distance(results, controls=None, boot=boot),
         missing=missing_cells(results),
     )

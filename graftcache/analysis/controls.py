@@ -7,7 +7,7 @@ from collections.abc import Sequence
 
 import polars as pl
 
-from graftcache.analysis.stats import BOOT_SEED, CONFIDENCE, N_BOOT, Bootstrap, prob_greater
+from graftcache.analysis.stats import Bootstrap, BootSettings, prob_greater
 from graftcache.analysis.summaries import seed_summary
 from graftcache.analysis.table import (
     CELL,
@@ -102,26 +102,24 @@ def controls_distance(
     results: pl.DataFrame,
     *,
     controls: Sequence[str] | None = (ZERO_IMAGE, SHUFFLED_IMAGE),
-    confidence: float = CONFIDENCE,
-    n_boot: int = N_BOOT,
-    seed: int = BOOT_SEED,
+    boot: BootSettings = BootSettings(),
 ) -> pl.DataFrame:
     """Does the encoder matter at all? For each encoder and control (rows of that control carry the encoder
     whose features they replace), distance = (mse_control - mse_enc) / mse_control: the fraction of the
     control's error the encoder removes (> 0 encoder helps).
 
-    `p_better` = P(mean_enc* < mean_control*) under the bootstrap; `within_noise` = p_better < confidence,
-    i.e. the encoder is not separable from the control (for zero-image: the image features add nothing
-    measurable). controls=None takes every encoder-level control in the table (pool-HxW, lora, ...).
-    Every requested control gets a row per (backbone, suite, encoder) seen with plain or control rows;
-    a missing side gives nulls and a note.
+    `p_better` = P(mean_enc* < mean_control*) under the bootstrap; `within_noise` =
+    p_better < boot.confidence, i.e. the encoder is not separable from the control (for zero-image: the
+    image features add nothing measurable). controls=None takes every encoder-level control in the table
+    (pool-HxW, lora, ...). Every requested control gets a row per (backbone, suite, encoder) seen with plain
+    or control rows; a missing side gives nulls and a note.
     """
     check(results)
     if controls is None:
         present = set(results["control"].unique().to_list())
         controls = sorted(present - set(NOT_ENCODER_CONTROLS))
     plain = seed_summary(results).filter(pl.col("n_rows") > 0)
-    boots = {c: Bootstrap(results, c, n_boot, seed) for c in (PLAIN, *controls)}
+    boots = {c: Bootstrap(results, c, boot) for c in (PLAIN, *controls)}
     sums = {c: seed_summary(results, c).filter(pl.col("n_rows") > 0) for c in controls}
     cells = pl.concat([plain.select(CELL), *(s.select(CELL) for s in sums.values())]).unique().sort(CELL)
     stats = {
@@ -145,7 +143,7 @@ def controls_distance(
                 if ctl_mse > 0:
                     rec["distance"] = (ctl_mse - enc_mse) / ctl_mse
                 p, rec["basis"] = prob_greater(boots[control], key, boots[PLAIN], key)
-                rec["p_better"], rec["within_noise"] = p, p < confidence
+                rec["p_better"], rec["within_noise"] = p, p < boot.confidence
             else:
                 rec["note"] = (
                     f"no valid {control} rows"

@@ -9,15 +9,25 @@ import math
 import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 import polars as pl
 
 from graftcache.analysis.table import CELL, EPISODE_COLUMN, control_rows
+from graftcache.checks import FRACTION, NON_NEGATIVE, POSITIVE, Checked, Rule
 
-CONFIDENCE = 0.95
-N_BOOT = 2000
-BOOT_SEED = 0
+
+@dataclass(frozen=True)
+class BootSettings(Checked):
+    """How every top tier and control comparison is bootstrapped: the one home of these defaults, passed
+    whole from the report and notebook down to each question so that no function restates them."""
+
+    confidence: float = 0.95  # one-sided: separable when P(worse) >= confidence
+    n_boot: int = 2000  # replicates per cell
+    seed: int = 0  # with the cell's name, seeds each cell's generator
+
+    RULES: ClassVar[dict[str, Rule]] = {"confidence": FRACTION, "n_boot": POSITIVE, "seed": NON_NEGATIVE}
 
 # What a comparison's uncertainty rests on (the `basis` column); anything but SOLID_BASES is flagged.
 BASIS_SEEDS = "seeds"
@@ -83,15 +93,16 @@ def _basis(n_a: int, n_b: int, episodes: bool) -> str:
 class Bootstrap:
     """Bootstrap replicates per cell, drawn once and reused for every comparison that involves the cell."""
 
-    def __init__(self, results: pl.DataFrame, control: str, n_boot: int, seed: int) -> None:
+    def __init__(self, results: pl.DataFrame, control: str, settings: BootSettings) -> None:
         self.cells = cells_of(control_rows(results, control))
-        self.tag, self.n_boot, self.seed = control, n_boot, seed
+        self.tag, self.settings = control, settings
         self._cache: dict[tuple[tuple[str, ...], bool], np.ndarray] = {}
 
     def means(self, key: tuple[str, ...], with_episodes: bool) -> np.ndarray:
         if (key, with_episodes) not in self._cache:
-            rng = _rng(self.seed, self.tag, *key)
-            self._cache[key, with_episodes] = _boot_means(self.cells[key], rng, self.n_boot, with_episodes)
+            rng = _rng(self.settings.seed, self.tag, *key)
+            n_boot = self.settings.n_boot
+            self._cache[key, with_episodes] = _boot_means(self.cells[key], rng, n_boot, with_episodes)
         return self._cache[key, with_episodes]
 
     def has_episodes(self, key: tuple[str, ...]) -> bool:

@@ -4,15 +4,7 @@ from __future__ import annotations
 
 import polars as pl
 
-from graftcache.analysis.stats import (
-    BASIS_MISSING,
-    BOOT_SEED,
-    CONFIDENCE,
-    N_BOOT,
-    Bootstrap,
-    cells_of,
-    prob_greater,
-)
+from graftcache.analysis.stats import BASIS_MISSING, Bootstrap, BootSettings, cells_of, prob_greater
 from graftcache.analysis.table import CELL, GROUP, PLAIN, RECIPE_COLUMNS, check, control_rows
 
 
@@ -84,18 +76,16 @@ def rankings(results: pl.DataFrame) -> pl.DataFrame:
     )
 
 
-def near_tie_band(
-    results: pl.DataFrame, *, confidence: float = CONFIDENCE, n_boot: int = N_BOOT, seed: int = BOOT_SEED
-) -> pl.DataFrame:
+def near_tie_band(results: pl.DataFrame, *, boot: BootSettings = BootSettings()) -> pl.DataFrame:
     """rankings plus the top tier per (backbone, suite).
 
     Columns added: `best` (lowest mean; alphabetical first among exact ties), `p_worse` =
     P(mean_enc* > mean_best*) under the bootstrap (null for the best itself and for missing cells),
-    `in_band` = p_worse < confidence (null when the cell is missing), `basis` (see the graftcache.analysis
-    docstring).
+    `in_band` = p_worse < boot.confidence (null when the cell is missing), `basis` (see the
+    graftcache.analysis docstring).
     """
     ranks = rankings(results)
-    boot = Bootstrap(results, PLAIN, n_boot, seed)
+    replicates = Bootstrap(results, PLAIN, boot)
     records = []
     for (backbone, suite), group in ranks.group_by(GROUP, maintain_order=True):
         ranked = group.drop_nulls("mean").sort("mean", "encoder")
@@ -111,10 +101,10 @@ def near_tie_band(
                 "basis": BASIS_MISSING,
             }
             key = (backbone, suite, enc)
-            if key in boot.cells and best is not None:
+            if key in replicates.cells and best is not None:
                 kb = (backbone, suite, best)
-                p, rec["basis"] = prob_greater(boot, key, boot, kb)
-                rec["p_worse"], rec["in_band"] = (None, True) if enc == best else (p, p < confidence)
+                p, rec["basis"] = prob_greater(replicates, key, replicates, kb)
+                rec["p_worse"], rec["in_band"] = (None, True) if enc == best else (p, p < boot.confidence)
             records.append(rec)
     band = pl.DataFrame(
         records,
@@ -151,7 +141,6 @@ def missing_cells(results: pl.DataFrame) -> pl.DataFrame:
         if lacking and row["n"]:
             records.append({**where, "problem": "missing seed(s) " + ", ".join(map(str, lacking))})
     return pl.DataFrame(records, schema={**dict.fromkeys(CELL, pl.String), "problem": pl.String})
-
 
 
 def episode_coverage(results: pl.DataFrame) -> tuple[int, int]:

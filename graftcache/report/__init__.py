@@ -1,7 +1,8 @@
 """Figures and the written report (report.md + report.html) from a results table.
 
-The report is built once as a list of blocks (document.py) by sections (sections.py) that draw figures
-(figures.py), and rendered twice (render.py), so the Markdown and the HTML can never say different things.
+The report is built once as a list of blocks (document.py) by sections (sections.py) that say things in
+sentences (sentences.py) and tables (tables.py) and draw figures (figures.py), and rendered twice
+(render.py), so the Markdown and the HTML can never say different things.
 """
 
 from __future__ import annotations
@@ -17,16 +18,8 @@ from graftcache import results as R
 from graftcache.report.document import Block, Heading, Image
 from graftcache.report.figures import FIGURES, figure_controls, figure_mse, figure_rank_transfer
 from graftcache.report.render import render_html, render_markdown
-from graftcache.report.sections import (
-    PROXY_NOTE,
-    SECTIONS,
-    bootstrap_sentence,
-    header,
-    provenance_section,
-    random_init_warning,
-    transfer_summary,
-    verdict_sentences,
-)
+from graftcache.report.sections import SECTIONS, header, provenance_section, random_init_warning
+from graftcache.report.sentences import PROXY_NOTE, bootstrap_sentence, transfer_summary, verdict_sentences
 
 __all__ = [
     "FIGURES", "PROXY_NOTE", "TITLE", "ReportPaths", "bootstrap_sentence", "figure_controls", "figure_mse",
@@ -51,9 +44,7 @@ def write_report(
     commands: Mapping[str, str] | None = None,
     small: str = A.SMALL,
     large: str = A.LARGE,
-    confidence: float = A.CONFIDENCE,
-    n_boot: int = A.N_BOOT,
-    seed: int = A.BOOT_SEED,
+    boot: A.BootSettings = A.BootSettings(),
 ) -> ReportPaths:
     """Analyse a results table (or Parquet path) and write report.md, report.html and PNG figures to out_dir.
 
@@ -64,7 +55,7 @@ def write_report(
     """
     source = str(results) if isinstance(results, (str, Path)) else "in-memory table"
     table = R.read_for_report(results) if isinstance(results, (str, Path)) else results
-    a = A.analyze(table, small=small, large=large, confidence=confidence, n_boot=n_boot, seed=seed)
+    a = A.analyze(table, small=small, large=large, boot=boot)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     for name in FIGURES:  # a rerun must not leave a stale figure the new report no longer shows

@@ -91,7 +91,7 @@ def figure_mse(a: A.Analysis) -> Figure | None:
     fig.legend(
         handles=[
             Line2D([], [], ls="", marker="D", color=TIER_COLOR,
-                   label=f"top tier mean (not separable from best, {a.confidence:.0%})"),
+                   label=f"top tier mean (not separable from best, {a.boot.confidence:.0%})"),
             Line2D([], [], ls="", marker="D", color=OTHER_COLOR, label="mean outside top tier"),
             Line2D([], [], color="0.3", label="min–max over seeds"),
             Line2D([], [], ls="", marker="o", color="black", markersize=4, label="per-seed MSE"),

@@ -1,0 +1,115 @@
+"""The report's tables as data: each is a tuple of (header, formatter) columns over one Analysis frame."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+
+import polars as pl
+
+from graftcache import analysis as A
+from graftcache.report.document import Table
+from graftcache.report.sentences import direction, seed_counts
+
+
+def _num(x: float | None, fmt: str = ".4g") -> str:
+    return "—" if x is None else format(x, fmt)
+
+
+def _pct(x: float | None) -> str:
+    return "—" if x is None else f"{100 * x:+.1f}%"
+
+
+def _yes(x: bool | None) -> str:
+    return "—" if x is None else ("yes" if x else "no")
+
+
+def _code(text: object) -> str:
+    return f"`{text}`" if text else "—"
+
+
+def in_backbone_order(a: A.Analysis, frame: pl.DataFrame) -> pl.DataFrame:
+    """Small backbone first, then large, then others; the frame's own order within a backbone is kept."""
+    order = {b: i for i, b in enumerate(a.backbones)}
+    key = pl.col("backbone").replace_strict(order, default=len(order), return_dtype=pl.Int64)
+    return frame.sort(key, maintain_order=True)
+
+
+Row = Mapping[str, object]
+Column = tuple[str, Callable[[Row], str]]
+
+
+def _col(name: str, fmt: Callable[[object], str] = str) -> Callable[[Row], str]:
+    """Read one column of a row dict and format it; null -> '—' unless the formatter handles it."""
+    return lambda r: "—" if r[name] is None and fmt is str else fmt(r[name])
+
+
+def table_block(frame: pl.DataFrame, columns: tuple[Column, ...]) -> Table:
+    """A Table block from a frame and (header, formatter) pairs: the column layout is data, not code."""
+    rows = tuple(tuple(f(r) for _, f in columns) for r in frame.iter_rows(named=True))
+    return Table(tuple(h for h, _ in columns), rows)
+
+
+BACKBONE: Column = ("backbone", _col("backbone", A.backbone_label))
+NOTE: Column = ("note", lambda r: r["note"] or "")
+DIRECTION: Column = ("direction", lambda r: direction(r["source"], r["target"]))
+TARGET_TIER: Column = ("target top tier", lambda r: ", ".join(r["target_band"] or []) or "—")
+
+MSE_COLUMNS: tuple[Column, ...] = (
+    BACKBONE, ("suite", _col("suite")), ("encoder", _col("encoder")), ("rank", _col("rank")),
+    ("mean ± std", lambda r: "—" if r["mean"] is None else f"{r['mean']:.4g} ± {_num(r['std'])}"),
+    ("n", _col("n")), ("min", _col("min", _num)), ("max", _col("max", _num)),
+    ("top tier", _col("in_band", _yes)), ("P(worse than best)", _col("p_worse", lambda x: _num(x, ".3f"))),
+    ("basis", _col("basis")),
+)
+WRAPPER_COLUMNS: tuple[Column, ...] = (
+    BACKBONE, ("suite", _col("suite")), ("native tower", _col("native_encoder")),
+    ("native MSE (n)", lambda r: f"{_num(r['native_mse'])} ({r['native_n']})"),
+    ("native-graft MSE (n)", lambda r: f"{_num(r['native_graft_mse'])} ({r['native_graft_n']})"),
+    ("non-neutrality", _col("non_neutrality", _pct)),
+    ("seed spread", _col("non_neutrality_seed_std", _pct)), NOTE,
+)
+CONTROL_COLUMNS: tuple[Column, ...] = (
+    BACKBONE, ("suite", _col("suite")), ("encoder", _col("encoder")), ("control", _col("control")),
+    ("encoder MSE (n)", lambda r: f"{_num(r['enc_mse'])} ({r['enc_n']})"),
+    ("control MSE (n)", lambda r: f"{_num(r['control_mse'])} ({r['control_n']})"),
+    ("distance", _col("distance", _pct)), ("P(encoder better)", _col("p_better", lambda x: _num(x, ".3f"))),
+    ("within noise", _col("within_noise", _yes)), NOTE,
+)
+MISSING_COLUMNS: tuple[Column, ...] = (
+    BACKBONE, ("suite", _col("suite")), ("encoder", _col("encoder")), ("problem", _col("problem")),
+)
+PROVENANCE_COLUMNS: tuple[Column, ...] = (
+    ("backbone", _col("backbone")), ("suite", _col("suite")), ("encoder", _col("encoder")),
+    ("control", _col("control")), ("seed", _col("seed")), ("eval_mse", _col("eval_mse", _num)),
+    ("cache key", _col("cache_key", _code)), ("command", _col("command", _code)),
+)
+SEED_COLUMNS: tuple[Column, ...] = (
+    ("suite", _col("suite")), ("seed", _col("seed")), DIRECTION, ("source top-1", _col("source_winner")),
+    TARGET_TIER, ("verdict", _col("verdict")), ("basis", _col("basis")), NOTE,
+)
+
+
+def transfer_columns(a: A.Analysis) -> tuple[Column, ...]:
+    tau = dict(a.tau.select("suite", "tau_b").iter_rows())
+    dis = {r["suite"]: r for r in a.disagreements.iter_rows(named=True)}
+    cells = seed_counts(a)
+
+    def disagreeing(r: Row) -> str:
+        d = dis[r["suite"]]
+        unpaired = f" ({d['n_unpaired']} unpaired)" if d["n_unpaired"] else ""
+        return f"{d['n_disagree']} of {d['n_pairings']}{unpaired}"
+
+    def seed_level(r: Row) -> str:
+        c = cells.get((r["suite"], r["source"]))
+        if c is None:
+            return "—"
+        unjudged = c[A.COUNT_COLUMNS[A.INSUFFICIENT]]
+        counted = f"{c['n_transfers']} of {c['n_judged']}"
+        return counted + (f" ({unjudged} {A.INSUFFICIENT})" if unjudged else "")
+
+    return (
+        ("suite", _col("suite")), DIRECTION, ("source winner", _col("source_winner")), TARGET_TIER,
+        ("shared encoders", _col("n_common")), ("seed-level cells transferring", seed_level),
+        ("Kendall τb", lambda r: _num(tau.get(r["suite"]), ".2f")),
+        ("seed pairings disagreeing on top-1", disagreeing), ("verdict", _col("verdict")), NOTE,
+    )
