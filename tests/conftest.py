@@ -1,4 +1,8 @@
-"""Test-wide settings: fully offline, caches in temporary folders, no GPU assumptions."""
+"""Test-wide settings: fully offline, caches in temporary folders, no GPU assumptions.
+
+Every fixture is available to every test module by argument: the ones shared across modules live in the
+plugins below (tests/fixtures/), plain helpers in tests/helpers/ (imported normally).
+"""
 
 from __future__ import annotations
 
@@ -11,6 +15,8 @@ os.environ["TRANSFORMERS_OFFLINE"] = "1"
 os.environ.setdefault("TOKENIZERS_PARALLELISM", "false")
 
 import pytest  # noqa: E402
+
+pytest_plugins = ("fixtures.datasets", "fixtures.torch_threads")
 
 
 @pytest.fixture(autouse=True)

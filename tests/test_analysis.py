@@ -1,4 +1,4 @@
-"""graftcache.analysis on hand-built tables whose answers are worked out in tests/analysis_fixtures.py."""
+"""graftcache.analysis on hand-built tables whose answers are worked out in tests/helpers/tables.py."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import math
 import numpy as np
 import polars as pl
 import pytest
-from analysis_fixtures import (
+from helpers.tables import (
     BOTH_WAYS_MSE,
     NEAR_TIE_MSE,
     PLAIN_MSE,

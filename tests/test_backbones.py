@@ -6,21 +6,13 @@ import math
 
 import pytest
 import torch
-from backbones_fixtures import (
-    ENC_DIM,
-    SPEC,
-    TASKS,
-    fixed_noise_time,
-    grafted,
-    one_torch_thread,  # noqa: F401  (autouse fixture)
-    raw_features,
-    raw_images,
-    tiny,
-)
+from helpers.backbones import ENC_DIM, SPEC, TASKS, fixed_noise_time, grafted, raw_features, raw_images, tiny
 
 from graftcache.backbones import BACKBONES, get_backbone
 from graftcache.errors import BackboneError
 from graftcache.graft import GraftProjector, IdentityProjector, feature_key
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")  # tests/fixtures/torch_threads.py
 
 NAMES = ("smolvla", "pi05")
 

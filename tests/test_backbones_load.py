@@ -9,20 +9,15 @@ from pathlib import Path
 
 import pytest
 import torch
-from backbones_fixtures import (
-    fixed_noise_time,
-    lowdim_stats,
-    one_torch_thread,  # noqa: F401  (autouse fixture)
-    raw_features,
-    raw_images,
-    tiny,
-)
+from helpers.backbones import fixed_noise_time, lowdim_stats, raw_features, raw_images, tiny
 from safetensors.torch import load_file, save_file
 
 from graftcache.backbones import get_backbone, load_backbone
 from graftcache.backbones.tiny import TINY_MARKER
 from graftcache.errors import BackboneError
 from graftcache.graft import GraftProjector
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")  # tests/fixtures/torch_threads.py
 
 NAMES = ("smolvla", "pi05")
 

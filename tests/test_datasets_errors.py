@@ -11,17 +11,7 @@ from pathlib import Path
 import av
 import pyarrow.parquet as pq
 import pytest
-from datasets_fixtures import (  # noqa: F401  (session fixtures)
-    FPS,
-    LENGTHS,
-    PI_CAMERAS,
-    V3_CAMERAS,
-    Written,
-    v2_pi,
-    v3_image,
-    v3_video,
-    write_v2,
-)
+from helpers.datasets import FPS, LENGTHS, PI_CAMERAS, V3_CAMERAS, Written, write_v2
 
 from graftcache.datasets import open_dataset
 from graftcache.errors import DatasetError

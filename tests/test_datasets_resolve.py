@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from datasets_fixtures import LENGTHS, PI_CAMERAS, Written, v2_pi  # noqa: F401
+from helpers.datasets import LENGTHS, PI_CAMERAS, Written
 
 from graftcache.datasets import open_dataset
 from graftcache.errors import DatasetError

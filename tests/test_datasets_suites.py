@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import pytest
-from datasets_fixtures import Written, v2_pi  # noqa: F401
+from helpers.datasets import Written
 
 from graftcache.datasets import open_dataset, suite_of
 from graftcache.datasets.suites import suite_tasks
@@ -38,5 +38,5 @@ def test_unknown(text: str) -> None:
     assert suite_of(text) == "unknown"
 
 
-def test_suites_of_a_dataset(v2_pi: Written) -> None:  # noqa: F811
+def test_suites_of_a_dataset(v2_pi: Written) -> None:
     assert [suite_of(t) for t in open_dataset(v2_pi.root).meta.tasks] == ["libero_spatial", "libero_object"]

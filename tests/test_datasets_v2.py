@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import polars as pl
-from datasets_fixtures import FPS, LENGTHS, PI_CAMERAS, TASKS, Written, plain_decode, v2_pi, write_v2  # noqa: F401
+from helpers.datasets import FPS, LENGTHS, PI_CAMERAS, TASKS, Written, plain_decode, write_v2
 
 from graftcache.datasets import open_dataset
 

@@ -11,18 +11,7 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 import torch
-from datasets_fixtures import (  # noqa: F401  (session fixtures)
-    FPS,
-    LENGTHS,
-    TASKS,
-    V3_CAMERAS,
-    Written,
-    plain_decode,
-    v3_image,
-    v3_video,
-    v3_video_split,
-    write_lerobot,
-)
+from helpers.datasets import FPS, LENGTHS, TASKS, V3_CAMERAS, Written, plain_decode, write_lerobot
 
 from graftcache.datasets import open_dataset
 from graftcache.runtime import single_thread_worker
@@ -66,7 +55,7 @@ def test_other_lerobot_codecs(vcodec: str, tmp_path: Path) -> None:
     _assert_video_exact(write_lerobot(tmp_path / vcodec, video=True, vcodec=vcodec))
 
 
-def test_image_mode_is_bit_exact(v3_image: Written) -> None:  # noqa: F811
+def test_image_mode_is_bit_exact(v3_image: Written) -> None:
     src = open_dataset(v3_image.root)
     assert src.meta.camera_storage == {"image": "image", "image2": "image"}
     for ep, length in enumerate(LENGTHS):
@@ -75,7 +64,7 @@ def test_image_mode_is_bit_exact(v3_image: Written) -> None:  # noqa: F811
         np.testing.assert_array_equal(got["image2"], v3_image.frames[ep, V3_CAMERAS[1]])
 
 
-def test_image_rows_spanning_row_groups(v3_image: Written, tmp_path: Path) -> None:  # noqa: F811
+def test_image_rows_spanning_row_groups(v3_image: Written, tmp_path: Path) -> None:
     """Episodes that start and end mid row group are still cut exactly."""
     root = shutil.copytree(v3_image.root, tmp_path / "ds")
     data = root / "data/chunk-000/file-000.parquet"
@@ -86,7 +75,7 @@ def test_image_rows_spanning_row_groups(v3_image: Written, tmp_path: Path) -> No
         np.testing.assert_array_equal(src.decode_episode(ep, ["image2"])["image2"], v3_image.frames[ep, V3_CAMERAS[1]])
 
 
-def test_meta(v3_video: Written) -> None:  # noqa: F811
+def test_meta(v3_video: Written) -> None:
     m = open_dataset(v3_video.root).meta
     assert (m.codebase_version, m.fps, m.repo_id, m.revision) == ("v3.0", FPS, None, None)
     assert m.root == v3_video.root.resolve() and m.source == str(v3_video.root)
@@ -131,7 +120,7 @@ def test_agrees_with_lerobot_dataset(name: str, request: pytest.FixtureRequest) 
             np.testing.assert_array_equal(ours, theirs)
 
 
-def test_lowdim_subset_equals_source(v3_video_split: Written) -> None:  # noqa: F811
+def test_lowdim_subset_equals_source(v3_video_split: Written) -> None:
     src = open_dataset(v3_video_split.root)
     low = src.lowdim([2, 0])
     assert low.columns == ["index", "episode_index", "frame_index", "timestamp", "task_index", "state", "action"]
@@ -144,7 +133,7 @@ def test_lowdim_subset_equals_source(v3_video_split: Written) -> None:  # noqa: 
     np.testing.assert_array_equal(low["action"].to_numpy(), np.concatenate([v3_video_split.action[0], v3_video_split.action[2]]))
 
 
-def test_camera_by_key_or_short_name(v3_video: Written) -> None:  # noqa: F811
+def test_camera_by_key_or_short_name(v3_video: Written) -> None:
     src = open_dataset(v3_video.root)
     by_key = src.decode_episode(1, [V3_CAMERAS[1]])
     by_short = src.decode_episode(1, ["image2"])
@@ -163,7 +152,7 @@ class _Episodes(torch.utils.data.Dataset):
         return self.src.decode_episode(self.src.meta.episodes[i].index, self.src.meta.cameras)
 
 
-def test_source_pickles_and_decodes_in_workers(v3_video_split: Written) -> None:  # noqa: F811
+def test_source_pickles_and_decodes_in_workers(v3_video_split: Written) -> None:
     src = open_dataset(v3_video_split.root)
     clone = pickle.loads(pickle.dumps(src))
     assert clone.meta == src.meta

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import polars as pl
 import pytest
-from notebook_fixtures import execute_notebook
+from helpers.notebook import execute_notebook
 
 from graftcache import results
 from graftcache.store import list_caches

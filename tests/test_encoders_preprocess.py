@@ -10,7 +10,7 @@ import torch
 from PIL import Image
 from torch import nn
 
-from encoders_fixtures import random_frames
+from helpers.encoders import random_frames
 from graftcache.encoders import Encoder, get_spec
 from graftcache.errors import EncoderError
 

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from encoders_fixtures import REV, fake_hub_snapshot, photo, random_frames
+from helpers.encoders import REV, fake_hub_snapshot, photo, random_frames
 from PIL import Image
 from safetensors.torch import save_file
 

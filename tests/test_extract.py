@@ -16,7 +16,7 @@ import pytest
 import timm
 import torch
 import torch.nn.functional as F
-from datasets_fixtures import LENGTHS, TASKS, Written, v3_image, v3_video, write_lerobot  # noqa: F401
+from helpers.datasets import LENGTHS, TASKS, Written, build_lerobot
 from PIL import Image
 
 from graftcache.cli import main
@@ -39,7 +39,7 @@ def _quiet(_: str) -> None:
 
 
 @pytest.fixture(scope="module")
-def extracted(v3_image: Written, tmp_path_factory: pytest.TempPathFactory):  # noqa: F811
+def extracted(v3_image: Written, tmp_path_factory: pytest.TempPathFactory):
     root = tmp_path_factory.mktemp("cache")
     return _req(v3_image.root, root), extract(_req(v3_image.root, root), log=_quiet)
 
@@ -63,7 +63,7 @@ def _reference_features(frames: np.ndarray, model: torch.nn.Module, grid: tuple[
     return F.adaptive_avg_pool2d(fmap, grid).flatten(2).transpose(1, 2).numpy()
 
 
-def test_features_equal_an_independent_computation(extracted, v3_image: Written) -> None:  # noqa: F811
+def test_features_equal_an_independent_computation(extracted, v3_image: Written) -> None:
     req, result = extracted
     cache = FeatureCache(result.path)
     assert cache.complete and result.n_frames == sum(LENGTHS) and not result.reused
@@ -83,7 +83,7 @@ def test_features_equal_an_independent_computation(extracted, v3_image: Written)
             np.testing.assert_allclose(got, want, rtol=1e-2, atol=1e-2)
 
 
-def test_index_lowdim_and_manifest_are_copied_in(extracted, v3_image: Written) -> None:  # noqa: F811
+def test_index_lowdim_and_manifest_are_copied_in(extracted, v3_image: Written) -> None:
     _, result = extracted
     cache = FeatureCache(result.path)
     index = cache.index()
@@ -104,14 +104,13 @@ def test_index_lowdim_and_manifest_are_copied_in(extracted, v3_image: Written) -
     json.dumps(m)
 
 
-def test_cache_key_follows_the_numbers_only(extracted, v3_image: Written) -> None:  # noqa: F811
+def test_cache_key_follows_the_numbers_only(extracted, v3_image: Written) -> None:
     req, result = extracted
     same = extract(_req(v3_image.root, Path(req.cache), batch_size=3, num_workers=1), log=_quiet)
     assert same.key == result.key and same.reused and same.frames_encoded == 0
     keys = {result.key}
     for change in ({"grids": ((2, 2),)}, {"seed": 1}, {"dtype": "fp32"}, {"episodes": (0, 2)}, {"cameras": ("image",)}):
-        with pytest.MonkeyPatch.context():
-            r = extract(_req(v3_image.root, Path(req.cache), **change), log=_quiet)
+        r = extract(_req(v3_image.root, Path(req.cache), **change), log=_quiet)
         assert r.key not in keys, change
         keys.add(r.key)
 
@@ -119,13 +118,7 @@ def test_cache_key_follows_the_numbers_only(extracted, v3_image: Written) -> Non
 @pytest.fixture(scope="module")
 def long_dataset(tmp_path_factory: pytest.TempPathFactory) -> Written:
     """Three 40-frame episodes: enough blocks to interrupt extraction half way."""
-    import datasets_fixtures
-
-    root = tmp_path_factory.mktemp("long") / "ds"
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(datasets_fixtures, "LENGTHS", (40, 40, 40))
-        mp.setenv("HF_DATASETS_CACHE", str(root.parent / "hf_datasets"))
-        return write_lerobot(root, video=True)
+    return build_lerobot(tmp_path_factory, "long", video=True, lengths=(40, 40, 40))
 
 
 def _cli_extract(dataset: Path, cache: Path) -> list[str]:
@@ -185,7 +178,7 @@ def test_ls_info_verify(extracted, capsys: pytest.CaptureFixture) -> None:
     assert "no-such-key" in capsys.readouterr().err
 
 
-def test_verify_names_a_corrupted_block(v3_image: Written, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:  # noqa: F811
+def test_verify_names_a_corrupted_block(v3_image: Written, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     result = extract(_req(v3_image.root, tmp_path, grids=((2, 2),), block_frames=6), log=_quiet)
     cache = FeatureCache(result.path)
     arr = cache.group["features/image/2x2"]
@@ -204,7 +197,7 @@ def _bad(tmp_path: Path, dataset: Path, capsys: pytest.CaptureFixture, *extra: s
     return err
 
 
-def test_bad_inputs_give_one_line_errors_and_nothing_complete(v3_video: Written, tmp_path: Path,  # noqa: F811
+def test_bad_inputs_give_one_line_errors_and_nothing_complete(v3_video: Written, tmp_path: Path,
                                                                 capsys: pytest.CaptureFixture) -> None:
     import shutil
 

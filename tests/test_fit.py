@@ -11,8 +11,8 @@ import numpy as np
 import polars as pl
 import pytest
 import torch
-from backbones_fixtures import tiny
-from datasets_fixtures import Written, v3_image, v3_video  # noqa: F401  (session fixtures)
+from helpers.backbones import tiny
+from helpers.datasets import Written
 from safetensors.torch import load_file
 
 from graftcache import results
@@ -62,7 +62,7 @@ class World:
 
 
 @pytest.fixture(scope="module")
-def world(v3_video: Written, tmp_path_factory: pytest.TempPathFactory) -> World:  # noqa: F811
+def world(v3_video: Written, tmp_path_factory: pytest.TempPathFactory) -> World:
     return World(tmp_path_factory.mktemp("fit"), v3_video)
 
 
@@ -165,7 +165,7 @@ def _set_manifest(cache: FeatureCache, **changes) -> dict:
     return old
 
 
-def test_errors_name_the_problem(world: World, v3_image: Written, tmp_path: Path) -> None:  # noqa: F811
+def test_errors_name_the_problem(world: World, v3_image: Written, tmp_path: Path) -> None:
     with pytest.raises(FitError, match=r"suite 'libero_goal' has no episodes \(present: libero_object, libero_spatial\)"):
         Fitter(world.request(suite="libero_goal"), log=_quiet)
     with pytest.raises(FitError, match="unknown control 'blur'"):

@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from backbones_fixtures import tiny
-from datasets_fixtures import Written, v3_video  # noqa: F401  (session fixture)
+from helpers.backbones import tiny
+from helpers.datasets import Written
 
 from graftcache.backbones.native import native_name, policy_pixels
 from graftcache.encoders import get_spec, load_encoder
@@ -53,7 +53,7 @@ def test_outputs_equal_the_policy_tower_and_connector(saved: tuple[str, Path]) -
     assert encoder.extra_shapes["connector"] == tuple(extras["connector"].shape[1:])
 
 
-def test_extract_stores_grid_and_connector_tokens(saved: tuple[str, Path], v3_video: Written,  # noqa: F811
+def test_extract_stores_grid_and_connector_tokens(saved: tuple[str, Path], v3_video: Written,
                                                   tmp_path: Path) -> None:
     name, folder = saved
     result = extract(ExtractRequest(dataset=str(v3_video.root), encoder=native_name(name), grids=((2, 2),),

@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from analysis_fixtures import write_results
-from notebook_fixtures import NOTEBOOK, execute_notebook, nbformat
+from helpers.notebook import NOTEBOOK, execute_notebook, nbformat
+from helpers.tables import write_results
 
 
 def test_notebook_is_stored_without_outputs():

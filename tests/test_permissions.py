@@ -109,7 +109,7 @@ def test_an_unreadable_checkpoint_file_is_one_clear_error(tmp_path: Path, monkey
 
 def test_saved_policies_and_projectors_follow_the_umask(tmp_path: Path) -> None:
     """safetensors writes 0600 files; graftcache's saves must leave them readable under umask 022."""
-    from backbones_fixtures import tiny
+    from helpers.backbones import tiny
 
     previous = os.umask(0o022)
     try:

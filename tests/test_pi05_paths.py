@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import pytest
 import torch
-from backbones_fixtures import one_torch_thread, raw_images, tiny  # noqa: F401  (autouse fixture)
+from helpers.backbones import raw_images, tiny
 
 from graftcache.backbones.base import TOKEN_MASK, TOKENS
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")  # tests/fixtures/torch_threads.py
 
 
 def _velocities(adapter, x_t: torch.Tensor, time: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, int, int]:

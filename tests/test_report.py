@@ -1,4 +1,4 @@
-"""graftcache.report on the hand-built tables of tests/analysis_fixtures.py."""
+"""graftcache.report on the hand-built tables of tests/helpers/tables.py."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import re
 import numpy as np
 import polars as pl
 import pytest
-from analysis_fixtures import NEAR_TIE_MSE, full_table, minimal_table, plain_rows, table, write_results
+from helpers.tables import NEAR_TIE_MSE, full_table, minimal_table, plain_rows, table, write_results
 from matplotlib.text import Text
 from PIL import Image
 
@@ -27,7 +27,7 @@ VERDICTS = (
     ("On libero_10, the SmolVLA winners (dinov2-s, siglip) are in pi0.5's top tier: the ranking transfers. "
      "[pi0.5 top tier basis: exact ties only (single seed)]"),
     "On libero_goal, transfer cannot be judged (insufficient data): 1 encoder(s) on both backbones",
-    # the other direction, and the counts (worked out in tests/analysis_fixtures.py)
+    # the other direction, and the counts (worked out in tests/helpers/tables.py)
     ("On libero_spatial, the pi0.5 winner (dinov2-s) is not in SmolVLA's top tier (siglip): "
      "the ranking does not transfer. Seed level: 1 of 3 cells transfer."),
     ("On libero_object, the pi0.5 winner (dinov2-s) is not in SmolVLA's top tier (siglip): "

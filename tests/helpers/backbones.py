@@ -2,9 +2,6 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator
-
-import pytest
 import torch
 
 from graftcache.backbones import TinySpec, load_backbone
@@ -74,12 +71,3 @@ def raw_images(adapter: BackboneAdapter, batch: int, seed: int = 0, size: int = 
 def fixed_noise_time(adapter: BackboneAdapter, batch: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
     g = torch.Generator().manual_seed(seed + 3)
     return adapter.sample_noise(batch, g), torch.rand(batch, generator=g) * 0.9 + 0.05
-
-
-@pytest.fixture(autouse=True)
-def one_torch_thread() -> Iterator[None]:
-    """Tiny models on a shared 2-core machine: one intra-op thread is 3-10x faster than two under load."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)

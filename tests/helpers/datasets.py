@@ -1,5 +1,8 @@
 """Real LeRobot datasets on disk for the datasets tests, tiny (64x64, 3 episodes, 18 frames).
 
+The session-wide copies tests take as fixtures (v3_video, v3_video_split, v3_image, v2_pi) are built by
+tests/fixtures/datasets.py with these writers.
+
 v3.0 datasets are written by lerobot 0.4.4's own `LeRobotDataset.create` (video or image mode);
 v2.0 / v2.1 datasets are written by hand with pyarrow (+ PyAV for mp4) in the layouts of
 physical-intelligence/libero (v2.0, PNG in parquet, keys image / wrist_image / state / actions) and of
@@ -69,8 +72,9 @@ def make_lowdim(episode: int, length: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def write_lerobot(root: Path, *, video: bool, vcodec: str = "libsvtav1", small_files: bool = False,
-                  repo_id: str = "local/fixture") -> Written:
-    """A v3.0 dataset written by lerobot itself; `small_files` forces one data/video file per episode."""
+                  repo_id: str = "local/fixture", lengths: tuple[int, ...] = LENGTHS) -> Written:
+    """A v3.0 dataset written by lerobot itself (episode i has lengths[i] frames and task TASKS[i]);
+    `small_files` forces one data/video file per episode."""
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
@@ -90,7 +94,7 @@ def write_lerobot(root: Path, *, video: bool, vcodec: str = "libsvtav1", small_f
     if small_files:
         ds.meta.update_chunk_settings(data_files_size_in_mb=0.001, video_files_size_in_mb=0.001)
     written = Written(root=root, repo_id=repo_id, cameras=V3_CAMERAS)
-    for ep, length in enumerate(LENGTHS):
+    for ep, length in enumerate(lengths):
         for c, key in enumerate(V3_CAMERAS):
             written.frames[ep, key] = make_frames(ep, length, c, noise=not video)
         written.state[ep], written.action[ep] = make_lowdim(ep, length)
@@ -189,36 +193,11 @@ def plain_decode(path: Path, from_ts: float, to_ts: float) -> np.ndarray:
     return np.stack(frames)
 
 
-# ---- session-wide datasets (built once; tests that modify one copy it first) -------------------------
-
-
-def _build(tmp_path_factory: pytest.TempPathFactory, name: str, **kwargs: object) -> Written:
+def build_lerobot(tmp_path_factory: pytest.TempPathFactory, name: str, **kwargs: object) -> Written:
+    """write_lerobot into a fresh temp folder, with lerobot's and datasets' caches kept inside the test temp
+    dir (whatever the calling test's environment says)."""
     base = tmp_path_factory.getbasetemp()
-    with pytest.MonkeyPatch.context() as mp:  # lerobot / datasets caches stay inside the test temp dir
+    with pytest.MonkeyPatch.context() as mp:
         mp.setenv("HF_HOME", str(base / "hf_home"))
         mp.setenv("HF_DATASETS_CACHE", str(base / "hf_home" / "datasets"))
         return write_lerobot(tmp_path_factory.mktemp("ds") / name, **kwargs)
-
-
-@pytest.fixture(scope="session")
-def v3_video(tmp_path_factory: pytest.TempPathFactory) -> Written:
-    """lerobot default: AV1 (libsvtav1), all episodes concatenated in one mp4 per camera."""
-    return _build(tmp_path_factory, "v3_video", video=True)
-
-
-@pytest.fixture(scope="session")
-def v3_video_split(tmp_path_factory: pytest.TempPathFactory) -> Written:
-    """AV1 with tiny file-size limits: one data parquet and one mp4 per episode (file_index 0, 1, 2)."""
-    return _build(tmp_path_factory, "v3_video_split", video=True, small_files=True)
-
-
-@pytest.fixture(scope="session")
-def v3_image(tmp_path_factory: pytest.TempPathFactory) -> Written:
-    """Image mode: PNG bytes in data/chunk-000/file-000.parquet."""
-    return _build(tmp_path_factory, "v3_image", video=False)
-
-
-@pytest.fixture(scope="session")
-def v2_pi(tmp_path_factory: pytest.TempPathFactory) -> Written:
-    """v2.0, physical-intelligence/libero layout (image, wrist_image, state, actions; PNG in parquet)."""
-    return write_v2(tmp_path_factory.mktemp("ds") / "v2_pi")
