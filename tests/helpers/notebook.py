@@ -11,7 +11,7 @@ import pytest
 nbformat = pytest.importorskip("nbformat")
 nbclient = pytest.importorskip("nbclient")
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 NOTEBOOK = ROOT / "notebooks" / "analysis.ipynb"
 
 
@@ -28,7 +28,9 @@ def execute_notebook(results: Path, workdir: Path, monkeypatch: pytest.MonkeyPat
     monkeypatch.setenv("PYTHONPATH", os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")])))
     monkeypatch.setenv("MPLBACKEND", "agg")
     nb = nbformat.read(NOTEBOOK, as_version=4)
-    nb.cells[1].source = nb.cells[1].source.replace("N_BOOT, BOOT_SEED = 0.95, 2000,", f"N_BOOT, BOOT_SEED = 0.95, {n_boot},")
+    params = nb.cells[1].source
+    assert "BOOTSTRAP = {}" in params, "the parameter cell no longer sets BOOTSTRAP"
+    nb.cells[1].source = params.replace("BOOTSTRAP = {}", f'BOOTSTRAP = {{"n_boot": {n_boot}}}')
     nbclient.NotebookClient(nb, timeout=300, kernel_name="python3",
                             resources={"metadata": {"path": str(workdir)}}).execute()
     outputs = [o for c in nb.cells if c.cell_type == "code" for o in c.outputs]

@@ -1,0 +1,183 @@
+"""The docs cite only code that exists: every path, dotted name and contract member in
+docs/ARCHITECTURE.md, README.md and data/README.md is looked up, so a doc that drifts fails here.
+
+The citation convention (stated at the top of docs/ARCHITECTURE.md): paths from the repository root,
+Python objects as dotted names from the package, and contract blocks headed `graftcache.x.Class ...:`
+whose indented lines name that class's members.
+"""
+
+from __future__ import annotations
+
+import ast
+import dataclasses
+import importlib
+import inspect
+import re
+import textwrap
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+DOCS = ("docs/ARCHITECTURE.md", "README.md", "data/README.md")
+# the repository's top-level folders: a citation starting with one of them is a path that must exist
+TOP_DIRS = (".ci", "benchmarks", "cli", "data", "docs", "graftcache", "notebooks", "scripts", "tests")
+FILE_SUFFIXES = ("py", "md", "html", "toml", "json", "ipynb", "sh", "parquet", "png", "safetensors", "txt")
+
+PATH = re.compile(r"(?<![\w./~$<>-])((?:" + "|".join(map(re.escape, TOP_DIRS)) + r")/[\w./-]*)")
+DOTTED = re.compile(r"(?<![\w./-])graftcache(?:\.[A-Za-z_]\w*)+")
+BACKTICKED = re.compile(r"`([^`\n]+)`")
+HEADER = re.compile(r"^( {4,})(graftcache(?:\.\w+)+)\b[^:#]*:\s*$")
+MEMBER = re.compile(r"^\s*(?:def\s+)?([A-Za-z_]\w*)\s*[:(]")
+
+
+def _module_names() -> set[str]:
+    return {p.stem for p in (ROOT / "graftcache").iterdir() if p.suffix == ".py" or (p / "__init__.py").is_file()}
+
+
+def _import_prefix(dotted: str) -> tuple[object, list[str]]:
+    """The longest importable module prefix of a dotted name, and the attribute names after it."""
+    parts = dotted.split(".")
+    for i in range(len(parts), 0, -1):
+        name = ".".join(parts[:i])
+        try:
+            return importlib.import_module(name), parts[i:]
+        except ModuleNotFoundError as e:
+            if e.name != name:  # the module exists but one of its own imports is missing: a real error
+                raise
+    raise AssertionError(f"no importable prefix in {dotted}")
+
+
+def _instance_attributes(cls: type) -> set[str]:
+    """Names assigned as `self.<name> = ...` in the methods of cls and its graftcache bases."""
+    names: set[str] = set()
+    for klass in inspect.getmro(cls):
+        if not klass.__module__.startswith("graftcache"):
+            continue
+        for node in ast.walk(ast.parse(textwrap.dedent(inspect.getsource(klass)))):
+            targets = node.targets if isinstance(node, ast.Assign) else \
+                [node.target] if isinstance(node, (ast.AnnAssign, ast.AugAssign)) else []
+            for target in targets:
+                names |= {n.attr for n in ast.walk(target) if isinstance(n, ast.Attribute)
+                          and isinstance(n.value, ast.Name) and n.value.id == "self"}
+    return names
+
+
+def _has_member(obj: object, name: str) -> bool:
+    """An attribute, or for a class also a dataclass field, an annotation or an attribute set on self."""
+    if hasattr(obj, name):
+        return True
+    if not inspect.isclass(obj):
+        return False
+    if dataclasses.is_dataclass(obj) and name in {f.name for f in dataclasses.fields(obj)}:
+        return True
+    annotated = set().union(*(getattr(k, "__annotations__", {}) for k in inspect.getmro(obj)))
+    return name in annotated or name in _instance_attributes(obj)
+
+
+def _resolve(dotted: str) -> object:
+    obj, attrs = _import_prefix(dotted)
+    for attr in attrs:
+        if not _has_member(obj, attr):
+            raise AttributeError(attr)
+        obj = getattr(obj, attr, None)
+    return obj
+
+
+def _module_map_files(text: str) -> list[str]:
+    """Bare file names in the module map, as paths under the folder their line (or the line above) names:
+    `graftcache/fit/   run.py (...), data.py` cites graftcache/fit/run.py and graftcache/fit/data.py."""
+    section = text.split("## Module map", 1)[1].split("\n## ", 1)[0] if "## Module map" in text else ""
+    files, folder = [], None
+    for line in section.splitlines():
+        head = re.match(r"^ {4}(\S+/)\s", line)
+        if head:
+            folder = head.group(1)
+        elif not line.startswith(" " * 5):
+            folder = None
+        if folder:
+            files += [folder + name for name in re.findall(r"(?<![\w/.])(\w+\.py)\b", line)]
+    return files
+
+
+def problems(text: str) -> list[str]:
+    """Every citation in `text` that does not resolve, one line each (empty when the doc is true)."""
+    out = []
+    for path in sorted({m.rstrip(".,") for m in PATH.findall(text)} | set(_module_map_files(text))):
+        if not (ROOT / path).exists():
+            out.append(f"path {path} does not exist")
+    for dotted in sorted(set(DOTTED.findall(text))):
+        try:
+            _resolve(dotted)
+        except (AttributeError, AssertionError) as e:
+            out.append(f"{dotted}: no {e}")
+    modules = _module_names()
+    for span in sorted(set(BACKTICKED.findall(text))):
+        short = re.match(r"^(\w+)\.(\w+)", span)
+        if short and short.group(1) in modules and short.group(2) not in FILE_SUFFIXES:
+            out.append(f"`{span}`: cite objects from the package root (graftcache.{span})")
+        if re.search(r"\.py:\w", span):
+            out.append(f"`{span}`: cite objects as dotted names, not file.py:symbol")
+    lines = text.splitlines()
+    for i, line in enumerate(lines):
+        head = HEADER.match(line)
+        if not head:
+            continue
+        owner = _resolve(head.group(2))
+        for body in lines[i + 1:]:
+            if body.strip() and len(body) - len(body.lstrip()) <= len(head.group(1)):
+                break
+            for part in body.split("#", 1)[0].split(";"):
+                member = MEMBER.match(part)
+                if member and not _has_member(owner, member.group(1)):
+                    out.append(f"{head.group(2)} has no member {member.group(1)}")
+    return out
+
+
+def test_top_level_folders_exist() -> None:
+    assert [d for d in TOP_DIRS if not (ROOT / d).is_dir()] == []
+
+
+@pytest.mark.parametrize("doc", DOCS)
+def test_every_citation_resolves(doc: str) -> None:
+    assert problems((ROOT / doc).read_text(encoding="utf-8")) == []
+
+
+def test_architecture_cites_enough_to_be_checked() -> None:
+    """The patterns find the citations the doc is made of (a pattern that matched nothing would pass)."""
+    text = (ROOT / "docs/ARCHITECTURE.md").read_text(encoding="utf-8")
+    assert len(set(DOTTED.findall(text))) >= 40
+    assert len(set(PATH.findall(text))) >= 25
+    assert {"graftcache/fit/run.py", "graftcache/report/render.py"} <= set(_module_map_files(text))
+    headers = [m.group(2) for line in text.splitlines() if (m := HEADER.match(line))]
+    assert "graftcache.encoders.EncoderSpec" in headers and len(headers) >= 6
+
+
+def test_drift_is_caught() -> None:
+    """Each way a doc drifted before (a renamed function, a method that never existed, a field the dict
+    does not have, a file that moved, a short-form citation) is reported."""
+    drifted = """
+See `graftcache.results.append_rows` and `graftcache/fit/nowhere.py`, `store.compare_identity` and
+`extract.py:extract`.
+
+## Module map
+
+    graftcache/fit/                   run.py, gone.py
+
+## Contracts
+
+    graftcache.encoders.Encoder:
+        spec: EncoderSpec
+        def extra_outputs(...)      # native towers only
+    graftcache.encoders.EncoderSpec (frozen dataclass):
+        name: str; wheel: str
+"""
+    assert problems(drifted) == [
+        "path graftcache/fit/gone.py does not exist",
+        "path graftcache/fit/nowhere.py does not exist",
+        "graftcache.results.append_rows: no append_rows",
+        "`extract.py:extract`: cite objects as dotted names, not file.py:symbol",
+        "`store.compare_identity`: cite objects from the package root (graftcache.store.compare_identity)",
+        "graftcache.encoders.Encoder has no member extra_outputs",
+        "graftcache.encoders.EncoderSpec has no member wheel",
+    ]
