@@ -104,7 +104,7 @@ class Recipe:
     def n_rows(self) -> int:
         """Distinct results rows: controls that read the native tower's cache (native, native-graft) do
         not depend on the candidate encoder, so they make one row per (backbone, suite, seed)."""
-        native = sum(get_control(c).uses_native_cache for c in self.controls)
+        native = sum(get_control(c).native_cache for c in self.controls)
         per_seed = len(self.encoders) * (1 + len(self.controls) - native) + native
         return len(self.backbones) * len(self.suites) * len(self.seeds) * per_seed
 
@@ -242,7 +242,7 @@ class SweepState:
 
 
 def _needs_native(recipe: Recipe) -> bool:
-    return recipe.objective == "align" or any(get_control(c).uses_native_cache for c in recipe.controls)
+    return recipe.objective == "align" or any(get_control(c).native_cache for c in recipe.controls)
 
 
 def _pool_grids(recipe: Recipe) -> list[tuple[int, int]]:

@@ -17,13 +17,13 @@ from safetensors.torch import load_file
 
 from graftcache import results
 from graftcache.backbones import load_backbone
-from graftcache.backbones.native import native_name
+from graftcache.backbone_table import native_name
 from graftcache.cli import main
 from graftcache.errors import FitError
 from graftcache.extract import ExtractRequest, extract
 from graftcache.fit.controls import get_control
 from graftcache.fit.data import load_frames, split_episodes, suite_index_table
-from graftcache.fit.loop import TrainConfig, camera_map, train
+from graftcache.fit.loop import camera_map, train
 from graftcache.fit.run import Fitter, FitRequest
 from graftcache.graft import GraftProjector
 from graftcache.store import FeatureCache
@@ -108,7 +108,7 @@ def test_training_changes_only_the_projector_and_lora(world: World, lora: bool) 
     if lora:
         adapter.add_lora(rank=4)
     before = {k: v.clone() for k, v in adapter.policy.state_dict().items()}
-    train(adapter, table, cams, TrainConfig(steps=3, batch_size=4, progress=False, lr=1e-2), seed=0, log=_quiet)
+    train(adapter, table, cams, steps=3, batch_size=4, lr=1e-2, seed=0, show=False)
     after = adapter.policy.state_dict()
     changed = {k for k in before if not torch.equal(before[k], after[k])}
     trainable = {n for n, p in adapter.policy.named_parameters() if p.requires_grad}

@@ -34,7 +34,7 @@ from graftcache.backbones.released import (
     hub_cache,
     write_random_weights,
 )
-from graftcache.fit.lookup import resolve_policy
+from graftcache.backbones.tiny_record import resolve_policy
 from graftcache.graft import GraftProjector, feature_key
 
 SMOLVLA = "graftcache-tests/smolvla-libero-random"

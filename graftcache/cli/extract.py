@@ -51,12 +51,12 @@ def _policy(args: argparse.Namespace) -> str | None:
     """`--policy tiny` names the tiny backbone natively trained on this dataset: find its folder."""
     if args.policy != "tiny":
         return args.policy
-    from graftcache.backbones.native import NATIVE_SUFFIX
-    from graftcache.fit.lookup import dataset_fingerprint, resolve_policy
+    from graftcache.backbone_table import backbone_of_native
+    from graftcache.backbones.tiny_record import resolve_policy
+    from graftcache.fit.lookup import dataset_fingerprint
     from graftcache.store import cache_root
 
-    backbone = args.encoder.removesuffix(NATIVE_SUFFIX)
-    return resolve_policy(backbone, "tiny", dataset_fingerprint(args.dataset), cache_root(args.cache), args.dataset)
+    return resolve_policy(backbone_of_native(args.encoder), "tiny", dataset_fingerprint(args.dataset), cache_root(args.cache), args.dataset)
 
 
 def run(args: argparse.Namespace) -> int:
