@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from backbones_fixtures import one_torch_thread, raw_images, tiny  # noqa: F401  (autouse fixture)
 
-from graftcache.backbones.base import TOKEN_MASK, TOKENS
+from graftcache.backbones.batches import TOKEN_MASK, TOKENS
 
 
 def _velocities(adapter, x_t: torch.Tensor, time: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, int, int]:

@@ -25,7 +25,7 @@ import torch
 from torch import nn
 
 from graftcache.backbones import load_backbone
-from graftcache.backbones.base import TOKEN_MASK, TOKENS
+from graftcache.backbones.batches import TOKEN_MASK, TOKENS
 from graftcache.backbones.pool import BackbonePool
 from graftcache.backbones.released import (
     RANDOM_MARKER,

@@ -20,7 +20,8 @@ from typing import Any
 import torch
 from torch import nn
 
-from graftcache.backbones.base import TOKEN_MASK, TOKENS, BackboneAdapter
+from graftcache.backbones.base import BackboneAdapter
+from graftcache.backbones.batches import TOKEN_MASK, TOKENS
 from graftcache.backbones.checkpoint import cached_repo
 from graftcache.backbones.tiny import (
     Pi05TinyGeometry,
@@ -118,8 +119,6 @@ class PI05Adapter(BackboneAdapter):
     def _vision_slots(self) -> tuple[nn.Module, str, str]:
         return self._paligemma, "vision_tower", "multi_modal_projector"
 
-    def _tower_and_connector(self) -> tuple[nn.Module, nn.Module]:
-        return self._paligemma.vision_tower, self._paligemma.multi_modal_projector
 
     # ------------------------------------------------------------------------------ objectives
     def _flow_losses(self, batch: Mapping[str, Any], noise, time) -> torch.Tensor:

@@ -17,7 +17,8 @@ from typing import Any
 import torch
 from torch import nn
 
-from graftcache.backbones.base import TOKEN_MASK, TOKENS, BackboneAdapter
+from graftcache.backbones.base import BackboneAdapter
+from graftcache.backbones.batches import TOKEN_MASK, TOKENS
 from graftcache.backbones.checkpoint import cached_repo
 from graftcache.backbones.tiny import TinySpec, build_tiny_smolvla
 from graftcache.backbones.tiny_assets import SMOLVLM_DIR
@@ -98,8 +99,6 @@ class SmolVLAAdapter(BackboneAdapter):
     def _vision_slots(self) -> tuple[nn.Module, str, str]:
         return self._vlm, "vision_model", "connector"
 
-    def _tower_and_connector(self) -> tuple[nn.Module, nn.Module]:
-        return self._vlm.vision_model, self._vlm.connector
 
     # ------------------------------------------------------------------------------ objectives
     def _flow_losses(self, batch: Mapping[str, Any], noise, time) -> torch.Tensor:
