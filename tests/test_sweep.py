@@ -12,7 +12,8 @@ from datasets_fixtures import Written, v3_video  # noqa: F401  (session fixture)
 
 from graftcache import results
 from graftcache.cli import main
-from graftcache.sweep import SECTION_KEYS, RecipeError, load_recipe, run_sweep
+from graftcache.recipe import SECTION_KEYS, RecipeError, load_recipe
+from graftcache.sweep import run_sweep
 
 ROOT = Path(__file__).resolve().parents[1]
 
