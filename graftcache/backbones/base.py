@@ -22,6 +22,7 @@ Batches (after `prepare`) are lerobot batches with cached features under `observ
 from __future__ import annotations
 
 import functools
+import operator
 from abc import ABC, abstractmethod
 from pathlib import Path
 from typing import Any, ClassVar, Self
@@ -57,6 +58,10 @@ class BackboneAdapter(GraftSurgery, PromptBatches, FlowObjective, ABC):
 
     name: ClassVar[str]
     image_method: ClassVar[str]              # policy method turning a batch into (images, masks)
+    vision_slots: ClassVar[tuple[str, str]]  # (tower attribute, connector attribute) of `_vision_owner`
+    steps_field: ClassVar[str]               # config field holding the default number of denoising steps
+    #: Freeze-report groups after the tower and connector: name -> attribute paths from the adapter.
+    module_paths: ClassVar[dict[str, tuple[str, ...]]]
     token_steps: ClassVar[tuple[str, ...]]   # preprocessor steps that build the prompt tokens
     prompt_uses_state: ClassVar[bool] = False
 
@@ -239,9 +244,24 @@ class BackboneAdapter(GraftSurgery, PromptBatches, FlowObjective, ABC):
         prepared, _ = getattr(type(self.policy), self.image_method)(self.policy, {self.camera_keys[0]: images.to(self.device)})
         return prepared[0]
 
+    @property
     @abstractmethod
+    def _vision_owner(self) -> nn.Module:
+        """The module holding the vision tower and the connector (as `vision_slots` attributes)."""
+
     def _vision_slots(self) -> tuple[nn.Module, str, str]:
         """(module owning the tower, tower attribute, connector attribute)."""
+        return self._vision_owner, *self.vision_slots
+
+    def _module_groups(self) -> dict[str, nn.Module | tuple[nn.Module, ...]]:
+        """Named parts of the policy for the freeze report (a group of one path is that module)."""
+        tower, connector = self._tower_and_connector()
+        groups: dict[str, nn.Module | tuple[nn.Module, ...]] = {
+            "vision tower": tower, "graft projector" if self.grafted else "connector": connector}
+        for name, paths in self.module_paths.items():
+            modules = tuple(operator.attrgetter(p)(self) for p in paths)
+            groups[name] = modules[0] if len(modules) == 1 else modules
+        return groups
 
     def _tower_and_connector(self) -> tuple[nn.Module, nn.Module]:
         """The native vision tower and connector modules."""

@@ -48,9 +48,9 @@ class FlowObjective(ABC):
         """The policy's `predict_action_chunk` with the given noise and number of denoising steps."""
 
     @property
-    @abstractmethod
     def num_steps(self) -> int:
         """Default number of denoising steps (from the policy config)."""
+        return getattr(self.config, self.steps_field)
 
     def predict(self, batch: Mapping[str, Any], noise: torch.Tensor | None = None,
                 num_steps: int | None = None) -> torch.Tensor:
