@@ -67,12 +67,12 @@ def memo_dirs() -> list[Path]:
 class HashStats:
     """What the last `content_identity` call did (for timing and tests)."""
 
-    files: int = 0
-    bytes_total: int = 0
-    hashed_files: int = 0
+    files: int = 0         # files in the identity
+    bytes_total: int = 0   # their total size
+    hashed_files: int = 0  # read and hashed by this call (new or changed since the memo)
     hashed_bytes: int = 0
-    from_memo: int = 0
-    from_hub: int = 0
+    from_memo: int = 0     # taken from the hash sidecar (size, mtime, ctime and inode unchanged)
+    from_hub: int = 0      # taken from the hub's own record (blob name or download metadata)
 
 
 #: Stats of the most recent `content_identity` call in this process.
