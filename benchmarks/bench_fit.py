@@ -27,12 +27,12 @@ import torch
 from common import DEFAULT_DATASET, machine, median_seconds, warm_page_cache
 
 from graftcache.backbones import load_backbone
-from graftcache.backbones.native import native_name
+from graftcache.backbone_table import native_name
 from graftcache.encoders import load_encoder
 from graftcache.extract import ExtractRequest, extract
 from graftcache.fit.align import fit_ridge
 from graftcache.fit.data import load_frames
-from graftcache.fit.loop import TrainConfig, camera_map, flow_time, raw_batch, train
+from graftcache.fit.loop import camera_map, flow_time, raw_batch, train
 from graftcache.fit.run import Fitter, FitRequest
 from graftcache.graft import GraftProjector, feature_key
 from graftcache.pooling import pool_grid
@@ -136,8 +136,7 @@ def main() -> None:
         targets = load_frames(native, SUITE, cameras=list(cams.values()), grid=None, chunk=adapter.chunk_size,
                               extra="connector")
         t0 = time.perf_counter()
-        train(adapter, table, cams, TrainConfig(steps=a.steps, batch_size=a.batch_size, progress=False), 0,
-              log=_quiet)
+        train(adapter, table, cams, steps=a.steps, batch_size=a.batch_size, lr=FitRequest.lr, seed=0, show=False)
         train_s = time.perf_counter() - t0
         projector = GraftProjector(width, adapter.lm_width)
         ridge_s = median_seconds(lambda: fit_ridge(projector, [table.features[c] for c in cams.values()],

@@ -19,7 +19,8 @@ from graftcache.errors import GraftcacheError
 from graftcache.progress import write
 from graftcache.report import ReportPaths, write_report
 from graftcache.store import cache_root
-from graftcache.sweep import load_recipe, run_sweep
+from graftcache.recipe import load_recipe
+from graftcache.sweep import run_sweep
 
 DEFAULT_RECIPE = Path(graftcache.__file__).resolve().parents[1] / "cli" / "demo.toml"
 

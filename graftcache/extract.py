@@ -16,11 +16,11 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from datetime import datetime, timezone
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any
 
 import numpy as np
 import polars as pl
@@ -28,12 +28,13 @@ import torch
 from torch.utils.data import DataLoader, Dataset
 
 import graftcache
-from graftcache.checks import EPISODES, NON_NEGATIVE, POSITIVE, Checked, Rule
 from graftcache.datasets import LeRobotSource, open_dataset, suite_of
+from graftcache.datasets.suites import SUITES
 from graftcache.encoders import get_spec, load_encoder
 from graftcache.errors import DatasetError, GraftcacheError
 from graftcache.pooling import format_grid, pool_grid
 from graftcache.progress import progress
+from graftcache.requests import ExtractRequest
 from graftcache.runtime import (
     autocast,
     resolve_compute_dtype,
@@ -46,38 +47,7 @@ from graftcache.store import FORMAT_VERSION, FeatureCache, cache_key, cache_root
 from graftcache.store.cache import STORAGE_DTYPES, ArraySpec, to_storage
 from graftcache.store.lock import exclusive
 
-SUITES = ("libero_spatial", "libero_object", "libero_goal", "libero_10", "libero_90", "unknown")
 VERSIONED_PACKAGES = ("torch", "timm", "transformers", "lerobot", "zarr", "numcodecs", "av", "numpy")
-
-
-@dataclass(frozen=True)
-class ExtractRequest(Checked):
-    """Everything `graftcache extract` needs. Fields up to `compute_dtype` change the numbers (and the key);
-    the ones after it do not."""
-
-    dataset: str
-    encoder: str
-    grids: tuple[tuple[int, int], ...] = ((8, 8),)
-    cameras: tuple[str, ...] | None = None
-    episodes: tuple[int, ...] | None = None
-    weights: str | None = None
-    random_init: bool = False
-    seed: int = 0
-    policy: str | None = None  # native towers (smolvla-native, pi05-native) come from a policy
-    frame_stride: int = 1  # features for frames whose frame_index % frame_stride == 0 (actions stay full rate)
-    dtype: str = "fp16"
-    compute_dtype: str = "auto"  # resolved per device by runtime.resolve_compute_dtype before anything is keyed
-    device: str = "cpu"
-    batch_size: int = 32
-    num_workers: int = 2
-    block_frames: int = 256
-    cache: str | None = None
-    progress: bool = True
-    extra_manifest: dict[str, Any] = field(default_factory=dict)
-
-    RULES: ClassVar[dict[str, Rule]] = {"seed": NON_NEGATIVE, "batch_size": POSITIVE, "num_workers": NON_NEGATIVE,
-                                        "block_frames": POSITIVE, "episodes": EPISODES,
-                                        "frame_stride": POSITIVE}
 
 
 @dataclass(frozen=True)
@@ -131,7 +101,7 @@ def build_manifest(req: ExtractRequest, source: LeRobotSource, encoder: Any, epi
             "n_episodes_total": len(meta.episodes),
             "n_frames_total": meta.n_frames,
         },
-        "dataset_fingerprint": {"codebase_version": meta.codebase_version, **meta.fingerprint},
+        "dataset_fingerprint": meta.identity,
         "episodes": None if len(episodes) == len(meta.episodes) else [int(e) for e in episodes],
         "frame_stride": req.frame_stride,
         "cameras": list(cameras),

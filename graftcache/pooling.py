@@ -43,6 +43,12 @@ def parse_grids(text: str) -> list[tuple[int, int]]:
     return grids
 
 
+def parse_grid(name: str) -> tuple[int, int]:
+    """"8x8" -> (8, 8), the inverse of `format_grid`."""
+    (grid,) = parse_grids(name)
+    return grid
+
+
 def format_grid(grid: tuple[int, int]) -> str:
     """(8, 8) -> "8x8", the name of a pooled grid in the cache and in results."""
     return f"{grid[0]}x{grid[1]}"

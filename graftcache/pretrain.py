@@ -12,46 +12,29 @@ reproducible from the seed, so `--policy tiny` finds it again.
 from __future__ import annotations
 
 import functools
-import json
 import math
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, replace
+from dataclasses import replace
 from pathlib import Path
-from typing import ClassVar
 
 import numpy as np
 import polars as pl
 import torch
 
 from graftcache.backbones import TinySpec, get_backbone
-from graftcache.checks import NON_NEGATIVE, POSITIVE, Checked, Rule
 from graftcache.backbones.native import policy_pixels
+from graftcache.backbones.tiny_record import policy_dir, write_record
 from graftcache.datasets import open_dataset
 from graftcache.fit.data import action_chunks
-from graftcache.fit.loop import flow_time
-from graftcache.fit.lookup import TINY_RECORD, tiny_policy_dir
+from graftcache.fit.lookup import dataset_fingerprint
+from graftcache.fit.loop import optimise
 from graftcache.progress import progress
-from graftcache.runtime import autocast, resolve_compute_dtype, resolve_device, resolve_dtype, set_main_threads
+from graftcache.requests import DEFAULT_TINY_TRAIN, TinyTrainConfig
+from graftcache.runtime import resolve_compute_dtype, resolve_device, resolve_dtype, set_main_threads
+from graftcache.store import cache_root
 
-
-@dataclass(frozen=True)
-class TinyTrainConfig(Checked):
-    steps: int = 300  # enough for the tiny backbones to use vision on the sample (native beats zero-image)
-    batch_size: int = 32
-    lr: float = 1e-3
-    weight_decay: float = 1e-4
-    seed: int = 0
-    image_size: int = 128  # frames are resized once to this (>= every tiny tower's input)
-    warmup: float = 0.1    # share of the steps with a linear warm-up, then cosine decay to 0
-    compute_dtype: str = "auto"  # resolved (runtime.resolve_compute_dtype) before it keys the checkpoint
-
-    RULES: ClassVar[dict[str, Rule]] = {"steps": POSITIVE, "batch_size": POSITIVE, "lr": POSITIVE,
-                                        "weight_decay": NON_NEGATIVE, "seed": NON_NEGATIVE, "image_size": POSITIVE,
-                                        "warmup": (lambda v: 0 <= v < 1, "must be in [0, 1)")}
-
-    def as_dict(self, backbone: str) -> dict:
-        return {"backbone": backbone, **asdict(self)}
+__all__ = ["DEFAULT_TINY_TRAIN", "TinyTrainConfig", "dataset_stats", "train_tiny", "warmup_cosine"]
 
 
 def warmup_cosine(steps: int, warmup: float) -> Callable[[int], float]:
@@ -68,9 +51,6 @@ def warmup_cosine(steps: int, warmup: float) -> Callable[[int], float]:
         return 0.5 * (1.0 + math.cos(math.pi * min(1.0, (step - ramp + 1) / rest)))
 
     return factor
-
-
-DEFAULT_TINY_TRAIN = TinyTrainConfig()
 
 
 def dataset_stats(table: pl.DataFrame) -> dict[str, dict[str, torch.Tensor]]:
@@ -117,15 +97,12 @@ def train_tiny(backbone: str, dataset: str, *, cfg: TinyTrainConfig = DEFAULT_TI
                device: str = "cpu", out: str | Path | None = None, force: bool = False,
                log: Callable[[str], None] = print) -> Path:
     """Train (or reuse) the tiny `backbone` natively on `dataset`; returns the checkpoint folder."""
-    from graftcache.fit.lookup import dataset_fingerprint
-    from graftcache.store import cache_root
-
     set_main_threads()
     dev = resolve_device(device)
     cfg = replace(cfg, compute_dtype=resolve_compute_dtype(cfg.compute_dtype, dev))
     compute = resolve_dtype(cfg.compute_dtype)
     fingerprint = dataset_fingerprint(dataset)
-    folder = Path(out) if out else tiny_policy_dir(cache_root(cache), backbone, fingerprint, cfg.as_dict(backbone))
+    folder = Path(out) if out else policy_dir(cache_root(cache), backbone, fingerprint, cfg)
     if (folder / "config.json").exists() and not force:
         log(f"reusing natively trained tiny {backbone}: {folder}")
         return folder
@@ -145,35 +122,25 @@ def train_tiny(backbone: str, dataset: str, *, cfg: TinyTrainConfig = DEFAULT_TI
     actions, action_pad = torch.from_numpy(acts), torch.from_numpy(pad)
     state = torch.from_numpy(np.stack(table["state"].to_numpy()).astype(np.float32))
     tasks = [meta.tasks[i] for i in table["task_index"].to_list()]
-    opt = torch.optim.AdamW([p for p in policy.parameters()], lr=cfg.lr, weight_decay=cfg.weight_decay)
-    sched = torch.optim.lr_scheduler.LambdaLR(opt, warmup_cosine(cfg.steps, cfg.warmup))
-    g = torch.Generator().manual_seed(cfg.seed)
-    policy.train()
-    bar = progress(range(cfg.steps), desc=f"train-tiny {backbone}", unit="step")
-    losses = []
-    for _ in bar:
-        pos = torch.randint(0, len(table), (cfg.batch_size,), generator=g)
+
+    def sample(pos: torch.Tensor) -> dict:
         raw = {f"observation.images.{c}": frames[c][pos].float() / 255.0 for c in spec.cameras}
         raw.update({"observation.state": state[pos], "action": actions[pos], "action_is_pad": action_pad[pos],
                     "task": [tasks[int(i)] for i in pos]})
-        batch = adapter.prepare(raw)
-        with autocast(dev, compute):
-            loss = adapter.loss(batch, noise=adapter.sample_noise(cfg.batch_size, generator=g),
-                                time=flow_time(cfg.batch_size, g).to(dev)).mean()
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(policy.parameters(), 1.0)
-        opt.step()
-        sched.step()
-        losses.append(loss.item())
-        bar.set_postfix(loss=f"{np.mean(losses[-20:]):.4f}")
+        return raw
+
+    opt = torch.optim.AdamW([p for p in policy.parameters()], lr=cfg.lr, weight_decay=cfg.weight_decay)
+    losses = optimise(adapter, sample, len(table), steps=cfg.steps, batch_size=cfg.batch_size, optimizer=opt,
+                      scheduler=torch.optim.lr_scheduler.LambdaLR(opt, warmup_cosine(cfg.steps, cfg.warmup)),
+                      clip_norm=1.0, generator=torch.Generator().manual_seed(cfg.seed), dtype=compute,
+                      desc=f"train-tiny {backbone}")
     adapter.save(folder)
     record = {"backbone": backbone, "dataset": str(dataset), "dataset_root": str(meta.root),
               "dataset_fingerprint": fingerprint,
               "config": cfg.as_dict(backbone), "final_loss": float(np.mean(losses[-max(1, cfg.steps // 10):])),
               "wall_s": time.perf_counter() - t0, "random_init": True,
               "note": "tiny architecture, random init, trained natively by graftcache (not released weights)"}
-    (folder / TINY_RECORD).write_text(json.dumps(record, indent=2))
+    write_record(folder, record)
     log(f"saved natively trained tiny {backbone} to {folder} (final loss {record['final_loss']:.4f}, "
         f"{record['wall_s']:.0f}s)")
     return folder

@@ -6,8 +6,6 @@ cell together with seed and control so a rerun can skip rows it already has.
 
 from __future__ import annotations
 
-import hashlib
-import json
 import os
 from collections.abc import Iterable, Mapping
 from pathlib import Path
@@ -16,6 +14,7 @@ from typing import Any
 import polars as pl
 
 from graftcache.errors import GraftcacheError
+from graftcache.hashing import sha256_json
 
 SCHEMA: dict[str, pl.DataType] = {
     "run_id": pl.String,
@@ -64,8 +63,7 @@ def empty() -> pl.DataFrame:
 
 def make_run_id(cell: Mapping[str, Any]) -> str:
     """Stable id of a cell + seed + control: sha256 of its canonical JSON, 16 hex chars."""
-    blob = json.dumps(dict(cell), sort_keys=True, default=str).encode()
-    return hashlib.sha256(blob).hexdigest()[:16]
+    return sha256_json(dict(cell))[:16]
 
 
 def validate(rows: pl.DataFrame) -> pl.DataFrame:

@@ -16,7 +16,7 @@ from safetensors.torch import save_file
 
 from graftcache.encoders import get_spec, list_encoders, load_encoder
 from graftcache.encoders import wheels
-from graftcache.encoders.loading import sha256_file
+from graftcache.hashing import sha256_file
 from graftcache.errors import EncoderError
 
 HF_ENTRIES = ["siglip", "siglip2", "dinov2-s", "dinov2-s-reg", "clip-b16", "resnet18"]

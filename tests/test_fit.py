@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 from pathlib import Path
@@ -17,14 +18,14 @@ from safetensors.torch import load_file
 
 from graftcache import results
 from graftcache.backbones import load_backbone
-from graftcache.backbones.native import native_name
+from graftcache.backbone_table import native_name
 from graftcache.cli import main
 from graftcache.errors import FitError
 from graftcache.extract import ExtractRequest, extract
 from graftcache.fit.controls import get_control
 from graftcache.fit.data import load_frames, split_episodes, suite_index_table
-from graftcache.fit.loop import TrainConfig, camera_map, train
-from graftcache.fit.run import Fitter, FitRequest
+from graftcache.fit.loop import camera_map, train
+from graftcache.fit.run import Cell, Fitter, FitRequest
 from graftcache.graft import GraftProjector
 from graftcache.store import FeatureCache
 
@@ -108,7 +109,7 @@ def test_training_changes_only_the_projector_and_lora(world: World, lora: bool) 
     if lora:
         adapter.add_lora(rank=4)
     before = {k: v.clone() for k, v in adapter.policy.state_dict().items()}
-    train(adapter, table, cams, TrainConfig(steps=3, batch_size=4, progress=False, lr=1e-2), seed=0, log=_quiet)
+    train(adapter, table, cams, steps=3, batch_size=4, lr=1e-2, seed=0, show=False)
     after = adapter.policy.state_dict()
     changed = {k for k in before if not torch.equal(before[k], after[k])}
     trainable = {n for n, p in adapter.policy.named_parameters() if p.requires_grad}
@@ -263,3 +264,31 @@ def test_native_grid_is_read_from_the_config_without_loading(world: World, name:
     from graftcache.backbones import get_backbone
 
     assert get_backbone(name).read_native_grid(world.policies[name]) == load_backbone(name, world.policies[name]).native_grid
+
+
+def test_cell_run_ids_are_those_earlier_versions_wrote() -> None:
+    """Finished rows are recognised by run_id: a Cell must hash exactly as the cell dicts of earlier versions
+    did (values computed with graftcache 96508ef's `results.make_run_id` on the same cells)."""
+    plain = Cell(backbone="smolvla", policy="tiny:tiny-smolvla-0123456789ab", cache_key="siglip-0123456789abcdef",
+                 suite="libero_spatial", seed=1, control="none", pool_grid="native", objective="flow", steps=300,
+                 lr=1e-3, batch_size=16, lora_rank=0, eval_fraction=0.2, eval_split_seed=0, eval_frames=None,
+                 num_denoise_steps=None, compute_dtype="fp32")
+    native = dataclasses.replace(plain, control="native", objective="eval", steps=0, lr=0.0, batch_size=0,
+                                 cache_key="smolvla-native-00aa", seed=0)
+    lora = dataclasses.replace(plain, control="lora", lora_rank=8, eval_frames=40, num_denoise_steps=4)
+    assert (plain.run_id, native.run_id, lora.run_id) == ("5082b969d4674126", "6e88627958ecfde7", "ac9a5e61c4e617cd")
+
+
+def test_cell_row_takes_each_column_from_measurements_then_cell_then_request() -> None:
+    cell = Cell(backbone="pi05", policy="org/p", cache_key="k", suite="libero_goal", seed=2, control="zero-image",
+                pool_grid="native", objective="align", steps=0, lr=0.0, batch_size=0, lora_rank=0, eval_fraction=0.2,
+                eval_split_seed=3, eval_frames=None, num_denoise_steps=None, compute_dtype="bf16")
+    req = FitRequest(backbone="pi05", encoder="siglip", suite="libero_goal", steps=123, command="graftcache fit x")
+    measured = {c: f"m-{c}" for c in results.SCHEMA if c not in ("backbone", "seed", "steps", "command", "lr")}
+    row = cell.row(req, measured)
+    assert list(row) == list(results.SCHEMA)
+    assert (row["backbone"], row["seed"], row["steps"], row["lr"], row["command"]) == \
+        ("pi05", 2, 0, 0.0, "graftcache fit x")  # the cell's recorded schedule wins over the request's
+    assert row["eval_mse"] == "m-eval_mse" and row["pool_grid"] == "m-pool_grid"
+    with pytest.raises(FitError, match="results column 'eval_mse'"):
+        cell.row(req, {k: v for k, v in measured.items() if k != "eval_mse"})

@@ -6,15 +6,8 @@ import pytest
 import torch
 from torch import nn
 
-from graftcache.graft import (
-    FreezeReport,
-    GraftProjector,
-    IdentityProjector,
-    PassThroughTower,
-    feature_key,
-    freeze_all_but,
-    freeze_report,
-)
+from graftcache.backbones.surgery import FreezeReport, PassThroughTower, freeze_all_but, freeze_report
+from graftcache.graft import GraftProjector, IdentityProjector, feature_key
 
 
 def test_feature_key_strips_the_image_prefix() -> None:

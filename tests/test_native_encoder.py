@@ -12,7 +12,8 @@ import torch
 from helpers.backbones import tiny
 from helpers.datasets import Written
 
-from graftcache.backbones.native import native_name, policy_pixels
+from graftcache.backbone_table import native_name
+from graftcache.backbones.native import policy_pixels
 from graftcache.encoders import get_spec, load_encoder
 from graftcache.errors import EncoderError
 from graftcache.extract import ExtractRequest, extract

@@ -6,7 +6,7 @@ import pytest
 import torch
 from helpers.backbones import raw_images, tiny
 
-from graftcache.backbones.base import TOKEN_MASK, TOKENS
+from graftcache.backbones.batches import TOKEN_MASK, TOKENS
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")  # tests/fixtures/torch_threads.py
 

@@ -25,7 +25,7 @@ import torch
 from torch import nn
 
 from graftcache.backbones import load_backbone
-from graftcache.backbones.base import TOKEN_MASK, TOKENS
+from graftcache.backbones.batches import TOKEN_MASK, TOKENS
 from graftcache.backbones.pool import BackbonePool
 from graftcache.backbones.released import (
     RANDOM_MARKER,
@@ -34,7 +34,7 @@ from graftcache.backbones.released import (
     hub_cache,
     write_random_weights,
 )
-from graftcache.fit.lookup import resolve_policy
+from graftcache.backbones.tiny_record import resolve_policy
 from graftcache.graft import GraftProjector, feature_key
 
 SMOLVLA = "graftcache-tests/smolvla-libero-random"

@@ -12,7 +12,8 @@ from helpers.datasets import Written
 
 from graftcache import results
 from graftcache.cli import main
-from graftcache.sweep import SECTION_KEYS, RecipeError, load_recipe, run_sweep
+from graftcache.recipe import SECTION_KEYS, RecipeError, load_recipe
+from graftcache.sweep import run_sweep
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -1,4 +1,4 @@
-"""Backbone registry: "smolvla" | "pi05" -> adapter class (see base.BackboneAdapter).
+"""Backbone registry: a name from graftcache.backbone_table -> adapter class (see base.BackboneAdapter).
 
 Adapters are imported on first use: importing lerobot costs ~5 s, which commands such as
 `graftcache ls` should not pay.
@@ -6,29 +6,22 @@ Adapters are imported on first use: importing lerobot costs ~5 s, which commands
 
 from __future__ import annotations
 
-import importlib
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from graftcache.backbone_table import BACKBONES
 from graftcache.backbones.tiny import TinySpec
 from graftcache.errors import BackboneError
+from graftcache.lazy import import_string
 
 if TYPE_CHECKING:
     from graftcache.backbones.base import BackboneAdapter
 
-BACKBONES: dict[str, str] = {
-    "smolvla": "graftcache.backbones.smolvla:SmolVLAAdapter",
-    "pi05": "graftcache.backbones.pi05:PI05Adapter",
-}
-
-
 def get_backbone(name: str) -> type[BackboneAdapter]:
     """The adapter class registered under `name`."""
-    try:
-        module, attr = BACKBONES[name].split(":")
-    except KeyError:
-        raise BackboneError(f"unknown backbone {name!r}; choose one of {', '.join(BACKBONES)}") from None
-    return getattr(importlib.import_module(module), attr)
+    if name not in BACKBONES:
+        raise BackboneError(f"unknown backbone {name!r}; choose one of {', '.join(BACKBONES)}")
+    return import_string(BACKBONES[name])
 
 
 def load_backbone(name: str, source: str | Path, *, device: str = "cpu", dataset_stats: dict | None = None,

@@ -1,7 +1,9 @@
 """The backbone interface: one lerobot VLA policy, frozen, with the graft surgery and the objectives.
 
 An adapter wraps lerobot's own policy object and its own pre/post processors (normalisation stats
-included); it re-implements no model code. It adds what graftcache needs around them:
+included); it re-implements no model code. It adds what graftcache needs around them, one job per
+module: loading, geometry and the native tower here; `graft`/`reset`/`add_lora` in surgery.py;
+`prepare`/`task_tokens` in batches.py; `loss`/`predict` in objectives.py:
 
 - `load(source)`: "tiny", a hub id from the local HF cache, or a local checkpoint folder;
 - `graft(projector)`: vision tower -> pass-through, connector -> projector, everything else frozen;
@@ -20,14 +22,15 @@ Batches (after `prepare`) are lerobot batches with cached features under `observ
 from __future__ import annotations
 
 import functools
+import operator
 from abc import ABC, abstractmethod
-from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, ClassVar, Self
 
 import torch
 from torch import nn
 
+from graftcache.backbones.batches import ACTION, STATE, PromptBatches
 from graftcache.backbones.checkpoint import (
     PREPROCESSOR_FILE,
     follow_umask,
@@ -38,18 +41,11 @@ from graftcache.backbones.checkpoint import (
     verify_weights,
     weights_file,
 )
+from graftcache.backbones.objectives import FlowObjective
 from graftcache.backbones.released import is_random_release
+from graftcache.backbones.surgery import GraftSurgery
 from graftcache.backbones.tiny import TinySpec, read_marker, write_marker
 from graftcache.errors import BackboneError
-from graftcache.graft import FreezeReport, PassThroughTower, feature_key, freeze_all_but, freeze_report
-
-TOKENS = "observation.language.tokens"
-TOKEN_MASK = "observation.language.attention_mask"
-STATE = "observation.state"
-ACTION = "action"
-ACTION_PAD = "action_is_pad"
-#: Projections of a Llama / Gemma decoder layer that the `lora` control adapts (attention and MLP).
-LORA_TARGETS = ("q_proj", "k_proj", "v_proj", "o_proj", "gate_proj", "up_proj", "down_proj")
 
 
 def is_empty_camera(key: str) -> bool:
@@ -57,11 +53,15 @@ def is_empty_camera(key: str) -> bool:
     return key.rsplit(".", 1)[-1].startswith("empty_camera_")
 
 
-class BackboneAdapter(ABC):
+class BackboneAdapter(GraftSurgery, PromptBatches, FlowObjective, ABC):
     """A frozen lerobot VLA policy that a projector can be grafted onto."""
 
     name: ClassVar[str]
     image_method: ClassVar[str]              # policy method turning a batch into (images, masks)
+    vision_slots: ClassVar[tuple[str, str]]  # (tower attribute, connector attribute) of `_vision_owner`
+    steps_field: ClassVar[str]               # config field holding the default number of denoising steps
+    #: Freeze-report groups after the tower and connector: name -> attribute paths from the adapter.
+    module_paths: ClassVar[dict[str, tuple[str, ...]]]
     token_steps: ClassVar[tuple[str, ...]]   # preprocessor steps that build the prompt tokens
     prompt_uses_state: ClassVar[bool] = False
 
@@ -234,76 +234,6 @@ class BackboneAdapter(ABC):
     def embed_scale(self) -> float:
         """Factor lerobot applies to image tokens after the connector (and so after a graft projector)."""
 
-    # ------------------------------------------------------------------------------ surgery
-    @abstractmethod
-    def _vision_slots(self) -> tuple[nn.Module, str, str]:
-        """(module owning the tower, tower attribute, connector attribute)."""
-
-    @property
-    def grafted(self) -> bool:
-        return self.projector is not None
-
-    def graft(self, projector: nn.Module) -> None:
-        """Replace tower and connector, read images from cached features, freeze all but `projector`."""
-        if self.grafted:
-            raise BackboneError(f"{self.name}: already grafted")
-        width = getattr(projector, "out_features", None)
-        if width != self.lm_width:
-            raise BackboneError(f"{self.name}: projector outputs width {width}, the LM expects {self.lm_width}")
-        _ = self.policy_sha256  # pin the hash of the loaded weights before the surgery changes them
-        if self._pristine is None:
-            self._pristine = {k: v.detach().to("cpu", copy=True) for k, v in self.policy.state_dict().items()}
-        self._requires_grad = {n: p.requires_grad for n, p in self.policy.named_parameters()}
-        owner, tower, connector = self._vision_slots()
-        projector = projector.to(self.device)
-        self._replace(owner, tower, PassThroughTower().to(self.device))
-        self._replace(owner, connector, projector)
-        setattr(self.policy, self.image_method, self._feature_images)
-        freeze_all_but(self.policy, projector)
-        self.projector = projector
-
-    def _replace(self, owner: nn.Module, attribute: str, module: nn.Module) -> None:
-        """setattr that remembers the module it replaced, so reset() can undo the surgery."""
-        self._undo.append((owner, attribute, getattr(owner, attribute)))
-        setattr(owner, attribute, module)
-
-    def reset(self) -> None:
-        """Back to the policy as loaded: undo graft and LoRA surgery, restore the requires_grad flags and
-        the weights from the CPU copy kept at the first graft(). Lets one loaded backbone serve every
-        cell of a run (a released pi0.5 is 3.3B parameters: reloading it per cell costs more than a fit)."""
-        while self._undo:
-            owner, attribute, original = self._undo.pop()
-            setattr(owner, attribute, original)
-        self.policy.__dict__.pop(self.image_method, None)  # the instance override set by graft()
-        if self._lora_host is not None:
-            self._lora_host.__dict__.pop("peft_config", None)
-            self._lora_host = None
-        for name, param in self.policy.named_parameters():
-            param.requires_grad_(self._requires_grad.get(name, param.requires_grad))
-        if self._pristine is not None:
-            self.policy.load_state_dict(self._pristine, strict=True)
-        self.projector = None
-
-    def _feature_images(self, batch: Mapping[str, Any]) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
-        """Grafted stand-in for the policy's image preparation: cached features instead of pixels."""
-        feats = {k: batch.get(feature_key(k)) for k in self.camera_keys}
-        first = None
-        for key, f in feats.items():
-            if f is None:
-                raise BackboneError(f"{self.name} batch has no {feature_key(key)} (camera {key})")
-            if f.ndim != 3 or f.shape[-1] != self.projector.in_features:
-                raise BackboneError(
-                    f"{feature_key(key)}: expected [B, T, {self.projector.in_features}] features, got {tuple(f.shape)}"
-                )
-            first = f if first is None else first
-        images, masks = [], []
-        for key in self.config.image_features:
-            f = feats.get(key)
-            real = f is not None
-            images.append(f if real else torch.zeros_like(first))
-            masks.append(torch.full((first.shape[0],), real, dtype=torch.bool, device=first.device))
-        return images, masks
-
     # ------------------------------------------------------------------------------ native tower
     def _native_pixels(self, images: torch.Tensor) -> torch.Tensor:
         """[B, 3, H, W] in [0, 1] -> the tower's input, through the policy's own image preparation."""
@@ -314,9 +244,29 @@ class BackboneAdapter(ABC):
         prepared, _ = getattr(type(self.policy), self.image_method)(self.policy, {self.camera_keys[0]: images.to(self.device)})
         return prepared[0]
 
+    @property
     @abstractmethod
+    def _vision_owner(self) -> nn.Module:
+        """The module holding the vision tower and the connector (as `vision_slots` attributes)."""
+
+    def _vision_slots(self) -> tuple[nn.Module, str, str]:
+        """(module owning the tower, tower attribute, connector attribute)."""
+        return self._vision_owner, *self.vision_slots
+
+    def _module_groups(self) -> dict[str, nn.Module | tuple[nn.Module, ...]]:
+        """Named parts of the policy for the freeze report (a group of one path is that module)."""
+        tower, connector = self._tower_and_connector()
+        groups: dict[str, nn.Module | tuple[nn.Module, ...]] = {
+            "vision tower": tower, "graft projector" if self.grafted else "connector": connector}
+        for name, paths in self.module_paths.items():
+            modules = tuple(operator.attrgetter(p)(self) for p in paths)
+            groups[name] = modules[0] if len(modules) == 1 else modules
+        return groups
+
     def _tower_and_connector(self) -> tuple[nn.Module, nn.Module]:
         """The native vision tower and connector modules."""
+        owner, tower, connector = self._vision_slots()
+        return getattr(owner, tower), getattr(owner, connector)
 
     @torch.no_grad()
     def native_patch_grid(self, images: torch.Tensor) -> torch.Tensor:
@@ -334,146 +284,6 @@ class BackboneAdapter(ABC):
         pixels = self._native_pixels(images)
         return connector(tower(pixels.to(tower.dtype)).last_hidden_state).float()
 
-    # ------------------------------------------------------------------------------ batches
-    def prepare(self, raw: Mapping[str, Any]) -> dict[str, Any]:
-        """Raw batch -> policy batch via lerobot's preprocessor (normalisation, tokens, device).
-
-        `raw` holds `observation.vis_feats.<camera>` [B, T, C] (grafted) or `observation.images.<camera>`
-        [B, 3, H, W] in [0, 1] (native policy), `observation.state` [B, S] and `task` (list of B
-        strings), plus for training `action` [B, chunk, A] and `action_is_pad` [B, chunk].
-        """
-        batch = dict(raw)
-        wanted = [feature_key(k) if self.grafted else k for k in self.camera_keys] + [STATE, "task"]
-        missing = [k for k in wanted if k not in batch]
-        if missing:
-            raise BackboneError(f"{self.name} batch is missing {', '.join(missing)}")
-        if self.prompt_uses_state:
-            return self.preprocessor(batch)
-        tasks = batch.pop("task")
-        tasks = [tasks] if isinstance(tasks, str) else list(tasks)
-        out = self._preprocessor_without_tokens(batch)
-        ids, mask = self.task_tokens(tasks)
-        out[TOKENS], out[TOKEN_MASK], out["task"] = ids.to(self.device), mask.to(self.device), tasks
-        return out
-
-    @functools.cached_property
-    def _token_steps(self) -> list:
-        return [s for s in self.preprocessor.steps if type(s).__name__ in self.token_steps]
-
-    @functools.cached_property
-    def _preprocessor_without_tokens(self):
-        pre = self.preprocessor
-        steps = [s for s in pre.steps if type(s).__name__ not in self.token_steps]
-        return type(pre)(steps=steps, name=pre.name, to_transition=pre.to_transition, to_output=pre.to_output)
-
-    def task_tokens(self, tasks: Sequence[str]) -> tuple[torch.Tensor, torch.Tensor]:
-        """Token ids [N, L] and attention mask [N, L] for task strings, tokenised once per distinct task.
-
-        Padding follows the preprocessor's tokenizer step (e.g. SmolVLA pads to the longest prompt of
-        the batch), so the result equals lerobot's own per-batch tokenisation.
-        """
-        if self.prompt_uses_state:
-            raise BackboneError(f"{self.name} prompts embed the discretised state: tokenise per batch with prepare()")
-        from lerobot.processor.converters import create_transition
-        from lerobot.processor import TransitionKey
-
-        for task in dict.fromkeys(tasks):
-            if task not in self._task_cache:
-                transition = create_transition(observation={}, complementary_data={"task": [task]})
-                for step in self._token_steps:
-                    transition = step(transition)
-                obs = transition[TransitionKey.OBSERVATION]
-                self._task_cache[task] = (obs[TOKENS][0].cpu(), obs[TOKEN_MASK][0].cpu())
-        tokenizer_step = self._token_steps[-1]
-        rows = [self._task_cache[t] for t in tasks]
-        length = max(len(ids) for ids, _ in rows)
-        ids = torch.full((len(rows), length), tokenizer_step.input_tokenizer.pad_token_id, dtype=torch.long)
-        mask = torch.zeros((len(rows), length), dtype=torch.bool)
-        for i, (row_ids, row_mask) in enumerate(rows):
-            cols = slice(0, len(row_ids)) if tokenizer_step.padding_side == "right" else slice(length - len(row_ids), length)
-            ids[i, cols], mask[i, cols] = row_ids, row_mask
-        return ids, mask
-
-    def sample_noise(self, batch_size: int, generator: torch.Generator | None = None) -> torch.Tensor:
-        """Flow-matching start noise [B, chunk, max_action_dim] (on CPU from `generator`, then moved)."""
-        noise = torch.randn(batch_size, self.chunk_size, self.max_action_dim, generator=generator)
-        return noise.to(self.device)
-
-    # ------------------------------------------------------------------------------ objectives
-    @abstractmethod
-    def _flow_losses(self, batch: Mapping[str, Any], noise: torch.Tensor | None,
-                     time: torch.Tensor | None) -> torch.Tensor:
-        """lerobot's per-element flow-matching loss [B, chunk, max_action_dim] (no masking)."""
-
-    def loss(self, batch: Mapping[str, Any], noise: torch.Tensor | None = None,
-             time: torch.Tensor | None = None) -> torch.Tensor:
-        """Per-sample flow loss [B]: mean over real action dims and the chunk steps that are not padding.
-
-        `noise` [B, chunk, max_action_dim] and `time` [B] default to the model's own samplers (global RNG).
-        """
-        batch_size = batch[STATE].shape[0]
-        noise = self.sample_noise(batch_size) if noise is None else noise
-        time = self.policy.model.sample_time(batch_size, self.device) if time is None else time
-        losses = self._flow_losses(batch, noise, time)[:, :, : self.action_dim]
-        pad = batch.get(ACTION_PAD)
-        valid = torch.ones(losses.shape[:2], device=losses.device) if pad is None else (~pad.bool()).float()
-        per_step = losses.mean(dim=2)
-        return (per_step * valid).sum(dim=1) / valid.sum(dim=1).clamp(min=1.0)
-
-    @abstractmethod
-    def _predict_chunk(self, batch: Mapping[str, Any], noise: torch.Tensor, num_steps: int) -> torch.Tensor:
-        """The policy's `predict_action_chunk` with the given noise and number of denoising steps."""
-
-    @property
-    @abstractmethod
-    def num_steps(self) -> int:
-        """Default number of denoising steps (from the policy config)."""
-
-    def predict(self, batch: Mapping[str, Any], noise: torch.Tensor | None = None,
-                num_steps: int | None = None) -> torch.Tensor:
-        """Normalised action chunk [B, chunk, action_dim]; deterministic for a fixed `noise`."""
-        batch = {k: v for k, v in batch.items() if k not in (ACTION, ACTION_PAD)}
-        if noise is None:
-            noise = self.sample_noise(batch[STATE].shape[0])
-        was_training = self.policy.training
-        try:
-            return self._predict_chunk(batch, noise.to(self.device), num_steps or self.num_steps)
-        finally:
-            self.policy.train(was_training)
-
-    def unnormalize(self, actions: torch.Tensor) -> torch.Tensor:
-        """Normalised action chunk -> raw action units, through lerobot's postprocessor."""
-        return self.postprocessor(actions)
-
-    # ------------------------------------------------------------------------------ reporting
-    @abstractmethod
-    def _module_groups(self) -> dict[str, nn.Module | tuple[nn.Module, ...]]:
-        """Named parts of the policy for the freeze report."""
-
-    def add_lora(self, rank: int, alpha: float | None = None) -> None:
-        """The `lora` control: peft LoRA adapters on the language model's projections, trained together
-        with the projector. The adapters are injected in place (lerobot calls the layers' projections
-        directly, not the LM's forward); their B matrices start at zero, so before training the policy
-        computes exactly what the plain graft does. Only the adapters become trainable in the LM."""
-        from peft import LoraConfig, inject_adapter_in_model
-
-        if not self.grafted:
-            raise BackboneError(f"{self.name}: add LoRA after graft(), so the projector and adapters train together")
-        lm = self._module_groups()["language model"]
-        config = LoraConfig(r=rank, lora_alpha=alpha or rank, lora_dropout=0.0, bias="none",
-                            target_modules=list(LORA_TARGETS))
-        inject_adapter_in_model(config, lm)
-        self._lora_host = lm  # peft records its config on the module: dropped again by reset()
-        for owner in list(lm.modules()):
-            for attribute, child in list(owner.named_children()):
-                base = getattr(child, "base_layer", None)
-                if isinstance(base, nn.Module):  # a peft LoRA layer wrapping the original projection
-                    self._undo.append((owner, attribute, base))
-        for name, param in lm.named_parameters():
-            param.requires_grad_("lora_" in name)
-
-    def freeze_report(self) -> FreezeReport:
-        return freeze_report(self._module_groups(), self.policy)
 
     @property
     def policy_sha256(self) -> str:

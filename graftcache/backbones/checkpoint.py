@@ -9,7 +9,6 @@ every load is followed by a key/shape comparison against the safetensors file.
 from __future__ import annotations
 
 import contextlib
-import hashlib
 import io
 import logging
 import os
@@ -17,22 +16,15 @@ import stat
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
-import torch
 from torch import nn
 
 from graftcache.errors import BackboneError
+from graftcache.hashing import sha256_tensors
+from graftcache.hub_cache import hub_cache, repo_dir
 
 WEIGHTS_FILE = "model.safetensors"
 PREPROCESSOR_FILE = "policy_preprocessor.json"
 POSTPROCESSOR_FILE = "policy_postprocessor.json"
-
-
-def hub_cache_dir() -> Path:
-    """The HF hub cache as the environment says now (huggingface_hub reads it only at import)."""
-    if os.environ.get("HF_HUB_CACHE"):
-        return Path(os.environ["HF_HUB_CACHE"])
-    home = os.environ.get("HF_HOME") or Path.home() / ".cache" / "huggingface"
-    return Path(home) / "hub"
 
 
 def cached_repo(repo_id: str, what: str) -> Path:
@@ -40,13 +32,13 @@ def cached_repo(repo_id: str, what: str) -> Path:
     from huggingface_hub import snapshot_download
     from huggingface_hub.errors import HFValidationError, LocalEntryNotFoundError
 
-    cache = hub_cache_dir()
+    cache = hub_cache()
     try:
         return Path(snapshot_download(repo_id=repo_id, cache_dir=cache, local_files_only=True))
     except (LocalEntryNotFoundError, HFValidationError, OSError):
         raise BackboneError(
             f"{what} {repo_id!r} is neither a local folder nor in the Hugging Face cache {cache} "
-            f"(looked for {cache / ('models--' + repo_id.replace('/', '--'))}); download it first"
+            f"(looked for {repo_dir(repo_id, cache=cache)}); download it first"
         ) from None
 
 
@@ -140,12 +132,7 @@ def load_processors(folder: Path, pre_overrides: dict, post_overrides: dict):
 
 def state_dict_sha256(module: nn.Module) -> str:
     """sha256 over (name, dtype, shape, bytes) of every state-dict tensor, in sorted name order."""
-    digest = hashlib.sha256()
-    for name, tensor in sorted(module.state_dict().items()):
-        t = tensor.detach().to("cpu").contiguous()
-        digest.update(f"{name}|{t.dtype}|{tuple(t.shape)}|".encode())
-        digest.update(t.reshape(-1).view(torch.uint8).numpy())
-    return digest.hexdigest()
+    return sha256_tensors(sorted(module.state_dict().items()), header_end="|")
 
 
 def current_umask() -> int:

@@ -1,4 +1,4 @@
-"""Native vision towers as encoder registry entries: `smolvla-native`, `pi05-native`.
+"""Building the native vision towers the encoder catalog declares: `smolvla-native`, `pi05-native`.
 
 The native controls need the released tower's own outputs in the cache, computed once like any
 other encoder's: its pre-connector patch grid (pooled like every grid, for `native-graft`) and its
@@ -9,40 +9,23 @@ the tower is re-implemented.
 
 The spec is policy-specific (a released SmolVLA tower is SigLIP at 512 px with a 32x32x768 grid, a
 tiny one is far smaller), so the builder returns an encoder whose spec is measured on the loaded
-policy; the manifest records that spec and the policy's weights hash.
+policy; the manifest records that spec and the policy's weights hash. The catalog (stage 1) names
+`build_native` by import string, so this module is imported only when a native tower is built.
 """
 
 from __future__ import annotations
 
-import json
 from dataclasses import replace
-from functools import partial
 from pathlib import Path
 
 import torch
 import torch.nn.functional as F
 
+from graftcache.backbone_table import backbone_of_native
 from graftcache.backbones import get_backbone
-from graftcache.encoders import Encoder, EncoderSpec, LoadRequest, register_encoder, weights_info
+from graftcache.backbones.tiny_record import trained_image_size
+from graftcache.encoders import Encoder, EncoderSpec, LoadRequest, weights_info
 from graftcache.errors import EncoderError
-
-#: Frames enter released policies at the dataset's resolution (LIBERO: 256x256); the policy resizes.
-RELEASED_INPUT_SIZE = 256
-NATIVE_SUFFIX = "-native"
-
-
-def native_name(backbone: str) -> str:
-    """Registry name of a backbone's own vision tower, e.g. "smolvla-native"."""
-    return f"{backbone}{NATIVE_SUFFIX}"
-
-
-def _input_size(folder: Path | None) -> int:
-    """Pixel size the tower was trained on: a natively trained tiny checkpoint records it, released
-    policies take the dataset's frames as they are."""
-    record = folder / "graftcache_pretrain.json" if folder is not None else None
-    if record is not None and record.is_file():
-        return int(json.loads(record.read_text())["config"]["image_size"])
-    return RELEASED_INPUT_SIZE
 
 
 def policy_pixels(frames_u8: torch.Tensor, size: int) -> torch.Tensor:
@@ -82,16 +65,19 @@ class NativeEncoder(Encoder):
         return self.forward_grid(x), {"connector": tokens.float()}
 
 
-def build_native(spec: EncoderSpec, req: LoadRequest, *, backbone: str) -> NativeEncoder:
-    """Load the policy named by `--policy` and measure its tower's grid and connector shapes."""
+def build_native(spec: EncoderSpec, req: LoadRequest) -> NativeEncoder:
+    """Load the policy named by `--policy` and measure its tower's grid and connector shapes. The pixel
+    size is the one a natively trained tiny checkpoint records, else the catalog's (released policies
+    take the dataset's frames as they are)."""
+    backbone = backbone_of_native(spec.name)
     if req.policy is None:
         raise EncoderError(f"encoder {spec.name!r} needs --policy (a hub id, a checkpoint folder, or the folder "
                            f"printed by `graftcache train-tiny --backbone {backbone}`)")
     if req.weights is not None or req.random_init:
         raise EncoderError(f"encoder {spec.name!r} takes its weights from --policy, not --weights/--random-init")
     adapter = get_backbone(backbone).load(req.policy)
-    folder = Path(req.policy) if Path(req.policy).is_dir() else None
-    size = _input_size(folder)
+    folder = Path(req.policy)
+    size = (trained_image_size(folder) if folder.is_dir() else None) or spec.image_size
     probe = torch.zeros(1, 3, size, size)
     grid = adapter.native_patch_grid(probe)
     tokens = adapter.native_tokens(probe)
@@ -102,16 +88,3 @@ def build_native(spec: EncoderSpec, req: LoadRequest, *, backbone: str) -> Nativ
     encoder = NativeEncoder(measured, adapter, info)
     encoder.extra_shapes = {"connector": (tokens.shape[1], tokens.shape[2])}
     return encoder
-
-
-def _register(backbone: str) -> None:
-    spec = EncoderSpec(name=native_name(backbone), library="native", model_id=f"{backbone} vision tower",
-                       image_size=RELEASED_INPUT_SIZE, mean=(0.0, 0.0, 0.0), std=(1.0, 1.0, 1.0),
-                       interpolation="bilinear", grid=(0, 0), width=0, prefix_tokens=0,
-                       pretrained_source="policy", tokens="policy vision tower last_hidden_state (pre-connector); "
-                       "extra 'connector': post-connector tokens before the LM's embed scale")
-    register_encoder(spec, partial(build_native, backbone=backbone))
-
-
-for _name in ("smolvla", "pi05"):
-    _register(_name)

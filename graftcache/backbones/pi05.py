@@ -20,7 +20,8 @@ from typing import Any
 import torch
 from torch import nn
 
-from graftcache.backbones.base import TOKEN_MASK, TOKENS, BackboneAdapter
+from graftcache.backbones.base import BackboneAdapter
+from graftcache.backbones.batches import TOKEN_MASK, TOKENS
 from graftcache.backbones.checkpoint import cached_repo
 from graftcache.backbones.tiny import (
     Pi05TinyGeometry,
@@ -36,6 +37,8 @@ PALIGEMMA_TOKENIZER = "google/paligemma-3b-pt-224"  # hard-coded by processor_pi
 
 class PI05Adapter(BackboneAdapter):
     name = "pi05"
+    vision_slots = ("vision_tower", "multi_modal_projector")
+    steps_field = "num_inference_steps"
     image_method = "_preprocess_images"
     token_steps = ("Pi05PrepareStateTokenizerProcessorStep", "TokenizerProcessorStep")
     prompt_uses_state = True
@@ -88,7 +91,7 @@ class PI05Adapter(BackboneAdapter):
 
     # ------------------------------------------------------------------------------ geometry
     @property
-    def _paligemma(self) -> nn.Module:
+    def _vision_owner(self) -> nn.Module:
         return self.policy.model.paligemma_with_expert.paligemma.model  # PaliGemmaModel
 
     @classmethod
@@ -104,22 +107,11 @@ class PI05Adapter(BackboneAdapter):
 
     @property
     def lm_width(self) -> int:
-        return self._paligemma.config.text_config.hidden_size
+        return self._vision_owner.config.text_config.hidden_size
 
     @property
     def embed_scale(self) -> float:
         return 1.0
-
-    @property
-    def num_steps(self) -> int:
-        return self.config.num_inference_steps
-
-    # ------------------------------------------------------------------------------ surgery
-    def _vision_slots(self) -> tuple[nn.Module, str, str]:
-        return self._paligemma, "vision_tower", "multi_modal_projector"
-
-    def _tower_and_connector(self) -> tuple[nn.Module, nn.Module]:
-        return self._paligemma.vision_tower, self._paligemma.multi_modal_projector
 
     # ------------------------------------------------------------------------------ objectives
     def _flow_losses(self, batch: Mapping[str, Any], noise, time) -> torch.Tensor:
@@ -133,14 +125,10 @@ class PI05Adapter(BackboneAdapter):
         return self.policy.predict_action_chunk(dict(batch), noise=noise, num_steps=num_steps)
 
     # ------------------------------------------------------------------------------ reporting
-    def _module_groups(self) -> dict[str, nn.Module | tuple[nn.Module, ...]]:
-        model, pg = self.policy.model, self._paligemma
-        return {
-            "vision tower": pg.vision_tower,
-            "graft projector" if self.grafted else "connector": pg.multi_modal_projector,
-            "language model": pg.language_model,
-            "action expert": model.paligemma_with_expert.gemma_expert,
-            "action/time projections": (model.action_in_proj, model.action_out_proj,
-                                        model.time_mlp_in, model.time_mlp_out),
-        }
+    module_paths = {
+        "language model": ("_vision_owner.language_model",),
+        "action expert": ("policy.model.paligemma_with_expert.gemma_expert",),
+        "action/time projections": tuple(f"policy.model.{m}" for m in (
+            "action_in_proj", "action_out_proj", "time_mlp_in", "time_mlp_out")),
+    }
 

@@ -34,8 +34,11 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from graftcache.backbones.checkpoint import follow_umask, hub_cache_dir, quiet
+from graftcache.backbones.checkpoint import follow_umask, quiet
 from graftcache.backbones.tiny_assets import PALIGEMMA_DIR, SMOLVLM_DIR
+from graftcache.hashing import sha256_file
+from graftcache.hub_cache import hub_cache as default_hub_cache
+from graftcache.hub_cache import repo_dir
 
 RANDOM_MARKER = "graftcache_random_init.json"
 SMOLVLM_REPO = "HuggingFaceTB/SmolVLM2-500M-Video-Instruct"  # SmolVLAConfig.vlm_model_name's default
@@ -118,20 +121,12 @@ def hub_cache(cache: Path) -> Iterator[None]:
 
 
 # ---------------------------------------------------------------------------------------------- hub layout
-def _sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with path.open("rb") as f:
-        while block := f.read(1 << 24):
-            digest.update(block)
-    return digest.hexdigest()
-
-
 def publish(staging: Path, repo_id: str, cache: Path) -> Path:
     """Move the files of `staging` into the hub cache as the snapshot `refs/main` points to; returns it.
     The revision is a hash of the contents, so rebuilding identical files gives the same snapshot."""
-    repo = cache / f"models--{repo_id.replace('/', '--')}"
+    repo = repo_dir(repo_id, cache=cache)
     files = sorted(p for p in staging.rglob("*") if p.is_file())
-    blobs = {p: _sha256(p) for p in files}
+    blobs = {p: sha256_file(p) for p in files}
     listing = "".join(f"{p.relative_to(staging)}:{h};" for p, h in blobs.items())
     revision = hashlib.sha1(listing.encode()).hexdigest()
     snapshot = repo / "snapshots" / revision
@@ -297,7 +292,7 @@ def build_smolvla(repo_id: str, *, cache: Path | None = None, recipe: Recipe = L
     from lerobot.policies.smolvla.modeling_smolvla import SmolVLAPolicy
     from lerobot.policies.smolvla.processor_smolvla import make_smolvla_pre_post_processors
 
-    cache = Path(cache or hub_cache_dir())
+    cache = Path(cache or default_hub_cache())
     inputs, outputs = _features(recipe)
     with hub_cache(cache), quiet():
         write_smolvlm2(cache)
@@ -321,7 +316,7 @@ def build_pi05(repo_id: str, *, cache: Path | None = None, recipe: Recipe = LIBE
     from lerobot.policies.pi05.modeling_pi05 import PI05Policy
     from lerobot.policies.pi05.processor_pi05 import make_pi05_pre_post_processors
 
-    cache = Path(cache or hub_cache_dir())
+    cache = Path(cache or default_hub_cache())
     inputs, outputs = _features(recipe)
     mean_std = {"VISUAL": NormalizationMode.IDENTITY, "STATE": NormalizationMode.MEAN_STD,
                 "ACTION": NormalizationMode.MEAN_STD}  # the LIBERO recipe's normalisation

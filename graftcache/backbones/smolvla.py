@@ -17,7 +17,8 @@ from typing import Any
 import torch
 from torch import nn
 
-from graftcache.backbones.base import TOKEN_MASK, TOKENS, BackboneAdapter
+from graftcache.backbones.base import BackboneAdapter
+from graftcache.backbones.batches import TOKEN_MASK, TOKENS
 from graftcache.backbones.checkpoint import cached_repo
 from graftcache.backbones.tiny import TinySpec, build_tiny_smolvla
 from graftcache.backbones.tiny_assets import SMOLVLM_DIR
@@ -25,6 +26,8 @@ from graftcache.backbones.tiny_assets import SMOLVLM_DIR
 
 class SmolVLAAdapter(BackboneAdapter):
     name = "smolvla"
+    vision_slots = ("vision_model", "connector")
+    steps_field = "num_steps"
     image_method = "prepare_images"
     token_steps = ("NewLineTaskProcessorStep", "TokenizerProcessorStep")
 
@@ -79,27 +82,16 @@ class SmolVLAAdapter(BackboneAdapter):
 
     # ------------------------------------------------------------------------------ geometry
     @property
-    def _vlm(self) -> nn.Module:
+    def _vision_owner(self) -> nn.Module:
         return self.policy.model.vlm_with_expert.get_vlm_model()
 
     @property
     def lm_width(self) -> int:
-        return self._vlm.config.text_config.hidden_size
+        return self._vision_owner.config.text_config.hidden_size
 
     @property
     def embed_scale(self) -> float:
         return float(self.lm_width) ** 0.5
-
-    @property
-    def num_steps(self) -> int:
-        return self.config.num_steps
-
-    # ------------------------------------------------------------------------------ surgery
-    def _vision_slots(self) -> tuple[nn.Module, str, str]:
-        return self._vlm, "vision_model", "connector"
-
-    def _tower_and_connector(self) -> tuple[nn.Module, nn.Module]:
-        return self._vlm.vision_model, self._vlm.connector
 
     # ------------------------------------------------------------------------------ objectives
     def _flow_losses(self, batch: Mapping[str, Any], noise, time) -> torch.Tensor:
@@ -115,17 +107,13 @@ class SmolVLAAdapter(BackboneAdapter):
             return self.policy.predict_action_chunk(dict(batch), noise=noise)
 
     # ------------------------------------------------------------------------------ reporting
-    def _module_groups(self) -> dict[str, nn.Module | tuple[nn.Module, ...]]:
-        model, vlm = self.policy.model, self._vlm
-        return {
-            "vision tower": vlm.vision_model,
-            "graft projector" if self.grafted else "connector": vlm.connector,
-            "language model": vlm.text_model,
-            "action expert": model.vlm_with_expert.lm_expert,
-            "state projection": model.state_proj,
-            "action/time projections": (model.action_in_proj, model.action_out_proj,
-                                        model.action_time_mlp_in, model.action_time_mlp_out),
-        }
+    module_paths = {
+        "language model": ("_vision_owner.text_model",),
+        "action expert": ("policy.model.vlm_with_expert.lm_expert",),
+        "state projection": ("policy.model.state_proj",),
+        "action/time projections": tuple(f"policy.model.{m}" for m in (
+            "action_in_proj", "action_out_proj", "action_time_mlp_in", "action_time_mlp_out")),
+    }
 
 
 @contextlib.contextmanager

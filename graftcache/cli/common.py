@@ -1,15 +1,23 @@
 """Flags and value parsers shared by several commands, defined once.
 
 Values are checked by type and range here, at parse time, so a bad flag is argparse's one-line
-usage error before any work starts (never a traceback from deep inside a run).
+usage error before any work starts (never a traceback from deep inside a run). A flag that sets a
+request field (graftcache.requests) takes its default from that field (`add_field`), and the request
+is built from the parsed namespace by field name (`request_from`), so a field's default has one home.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 from collections.abc import Callable
+from typing import Any, TypeVar
 
 from graftcache.runtime import COMPUTE_DTYPES
+
+R = TypeVar("R")
+#: What the parser itself puts in every namespace (the subcommand's name and handler): never request fields.
+PARSER_KEYS = frozenset({"command", "func"})
 
 SEEDS_HELP = ("how many seeds: N runs seeds 0..N-1 (N >= 1); a comma list or range such as 0,2 or 0-4 "
               "names the seeds instead. For one particular seed use --seed, e.g. --seed 0")
@@ -74,6 +82,22 @@ def int_list(text: str) -> tuple[int, ...]:
     return tuple(sorted(out))
 
 
+def name_list(text: str) -> tuple[str, ...]:
+    """'a, b,c' -> ("a", "b", "c") (empty parts dropped)."""
+    return tuple(part.strip() for part in text.split(",") if part.strip())
+
+
+def grids_value(text: str) -> tuple[tuple[int, int], ...]:
+    """'8x8,16x16' -> ((8, 8), (16, 16)); a malformed grid is argparse's usage error."""
+    from graftcache.errors import GraftcacheError
+    from graftcache.pooling import parse_grids
+
+    try:
+        return tuple(parse_grids(text))
+    except GraftcacheError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+
+
 def seeds_value(text: str) -> tuple[int, ...]:
     """--seeds: a bare integer N is a count (seeds 0..N-1); a comma list or a range lists the seeds."""
     text = text.strip()
@@ -86,11 +110,42 @@ def seeds_value(text: str) -> tuple[int, ...]:
     return int_list(text)
 
 
-def add_seed_flags(p: argparse.ArgumentParser, *, default_count: int) -> None:
+def default_of(request: type, name: str) -> Any:
+    """The default of a request dataclass field: its one home, for the flag that sets it."""
+    spec = {f.name: f for f in dataclasses.fields(request)}[name]
+    return spec.default_factory() if spec.default_factory is not dataclasses.MISSING else spec.default
+
+
+def _shown(value: Any) -> str:
+    return ",".join(map(str, value)) if isinstance(value, tuple) else str(value)
+
+
+def add_field(p: argparse.ArgumentParser, request: type, name: str, *aliases: str, help: str = "",
+              shown: str | None = None, **kw: Any) -> None:
+    """`--<name>` for a request field, defaulting to the field's default (named in the help unless None;
+    `shown` overrides how it is written)."""
+    default = default_of(request, name)
+    if default is not None and kw.get("action") not in ("store_true", "store_false"):
+        help = f"{help} (default {shown or _shown(default)})".strip()
+    p.add_argument(f"--{name.replace('_', '-')}", *aliases, dest=name, default=default, help=help or None, **kw)
+
+
+def request_from(request: type[R], args: argparse.Namespace, **values: Any) -> R:
+    """The request whose fields are the namespace's values of the same name, then `values`."""
+    names = {f.name for f in dataclasses.fields(request)} - PARSER_KEYS - set(values)
+    return request(**{n: v for n, v in vars(args).items() if n in names}, **values)
+
+
+def add_seed_flags(p: argparse.ArgumentParser, request: type) -> None:
     group = p.add_mutually_exclusive_group()
-    group.add_argument("--seeds", type=seeds_value, default=tuple(range(default_count)), metavar="N|LIST",
-                       help=f"{SEEDS_HELP} (default {default_count})")
+    default = default_of(request, "seeds")
+    group.add_argument("--seeds", type=seeds_value, default=default, metavar="N|LIST",
+                       help=f"{SEEDS_HELP} (default: seeds {_shown(default)})")
     group.add_argument("--seed", type=int_list, dest="seeds", metavar="LIST", help=SEED_LIST_HELP)
+
+
+def add_progress_flag(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bars or lines")
 
 
 def add_cache_flag(p: argparse.ArgumentParser) -> None:
@@ -98,13 +153,11 @@ def add_cache_flag(p: argparse.ArgumentParser) -> None:
                    help="cache root (default: $GRAFTCACHE_HOME or ~/.cache/graftcache)")
 
 
-def add_compute_dtype_flag(p: argparse.ArgumentParser, *aliases: str) -> None:
-    p.add_argument("--compute-dtype", *aliases, dest="compute_dtype", default="auto", choices=COMPUTE_DTYPES,
-                   help="model compute precision. auto (default): bf16 where the device computes it natively "
-                        "(CUDA with bf16, CPUs with AVX512-BF16/AMX), else fp32. The resolved dtype is recorded "
-                        "in manifests, keys and rows")
+def add_compute_dtype_flag(p: argparse.ArgumentParser, request: type, *aliases: str) -> None:
+    add_field(p, request, "compute_dtype", *aliases, choices=COMPUTE_DTYPES,
+              help="model compute precision. auto: bf16 where the device computes it natively (CUDA with bf16, "
+                   "CPUs with AVX512-BF16/AMX), else fp32. The resolved dtype is recorded in manifests, keys and rows")
 
 
-def add_device_flags(p: argparse.ArgumentParser, *, dtype_help: str) -> None:
-    p.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N (default: cpu)")
-    p.add_argument("--dtype", default="fp16", choices=("fp16", "bf16", "fp32"), help=dtype_help)
+def add_device_flag(p: argparse.ArgumentParser, request: type) -> None:
+    add_field(p, request, "device", help="cpu, cuda or cuda:N")

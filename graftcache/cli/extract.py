@@ -4,14 +4,23 @@ from __future__ import annotations
 
 import argparse
 
+from graftcache.backbone_table import BACKBONES, native_name
 from graftcache.cli.common import (
     add_cache_flag,
     add_compute_dtype_flag,
-    add_device_flags,
+    add_device_flag,
+    add_field,
+    add_progress_flag,
+    grids_value,
     int_list,
+    name_list,
     nonneg_int,
     positive_int,
+    request_from,
 )
+from graftcache.pooling import format_grid
+from graftcache.requests import ExtractRequest
+from graftcache.runtime import DTYPES
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -25,25 +34,27 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--encoder", required=True,
                    help="registry name (siglip, dinov2-s, mobilenetv2, ...), timm:<name> or hf:<id-or-path>")
     p.add_argument("--dataset", required=True, help="local LeRobot dataset folder or a hub repo id in the local HF cache")
-    p.add_argument("--weights", default=None, help="local weights file/folder instead of the hub id")
-    p.add_argument("--random-init", action="store_true", help="random weights (labelled random-init everywhere)")
-    p.add_argument("--seed", type=nonneg_int, default=0, help="seed for --random-init (default 0)")
-    p.add_argument("--policy", default=None,
-                   help="policy for native towers (smolvla-native, pi05-native): hub id, checkpoint folder, or 'tiny' "
-                   "(the tiny backbone natively trained on --dataset by `graftcache train-tiny`)")
-    p.add_argument("--grids", default="8x8", help="pooled grids, e.g. 8x8,16x16 (default 8x8: SmolVLA's grid)")
-    p.add_argument("--cameras", default=None, help="comma-separated camera names (default: all)")
-    p.add_argument("--episodes", type=int_list, default=None, help="episode subset, e.g. 0-9,20")
-    p.add_argument("--frame-stride", type=positive_int, default=1, metavar="K",
-                   help="features for every K-th frame of each episode (frame_index %% K == 0); actions stay at the "
-                   "full rate for action chunks. Part of the cache key (default 1: every frame)")
-    p.add_argument("--batch-size", type=positive_int, default=32)
-    p.add_argument("--num-workers", type=nonneg_int, default=2, help="decode worker processes (0: decode in-process)")
-    add_compute_dtype_flag(p)
-    p.add_argument("--block-frames", type=positive_int, default=256, help="frames per Zarr shard / resumable unit")
-    p.add_argument("--no-progress", action="store_true")
+    add_field(p, ExtractRequest, "weights", help="local weights file/folder instead of the hub id")
+    add_field(p, ExtractRequest, "random_init", action="store_true", help="random weights (labelled random-init everywhere)")
+    add_field(p, ExtractRequest, "seed", type=nonneg_int, help="seed for --random-init")
+    add_field(p, ExtractRequest, "policy",
+              help=f"policy for native towers ({', '.join(native_name(b) for b in BACKBONES)}): hub id, checkpoint "
+              "folder, or 'tiny' (the tiny backbone natively trained on --dataset by `graftcache train-tiny`)")
+    add_field(p, ExtractRequest, "grids", type=grids_value, shown=",".join(map(format_grid, ExtractRequest.grids)),
+              help="pooled grids, e.g. 8x8,16x16 (8x8: SmolVLA's grid)")
+    add_field(p, ExtractRequest, "cameras", type=name_list, help="comma-separated camera names (default: all)")
+    add_field(p, ExtractRequest, "episodes", type=int_list, help="episode subset, e.g. 0-9,20")
+    add_field(p, ExtractRequest, "frame_stride", type=positive_int, metavar="K",
+              help="features for every K-th frame of each episode (frame_index %% K == 0); actions stay at the "
+              "full rate for action chunks. Part of the cache key (1: every frame)")
+    add_field(p, ExtractRequest, "batch_size", type=positive_int)
+    add_field(p, ExtractRequest, "num_workers", type=nonneg_int, help="decode worker processes (0: decode in-process)")
+    add_compute_dtype_flag(p, ExtractRequest)
+    add_field(p, ExtractRequest, "block_frames", type=positive_int, help="frames per Zarr shard / resumable unit")
+    add_progress_flag(p)
     add_cache_flag(p)
-    add_device_flags(p, dtype_help="stored feature dtype (default fp16)")
+    add_device_flag(p, ExtractRequest)
+    add_field(p, ExtractRequest, "dtype", choices=tuple(DTYPES), help="stored feature dtype")
     p.set_defaults(func=run)
 
 
@@ -51,38 +62,17 @@ def _policy(args: argparse.Namespace) -> str | None:
     """`--policy tiny` names the tiny backbone natively trained on this dataset: find its folder."""
     if args.policy != "tiny":
         return args.policy
-    from graftcache.backbones.native import NATIVE_SUFFIX
-    from graftcache.fit.lookup import dataset_fingerprint, resolve_policy
+    from graftcache.backbone_table import backbone_of_native
+    from graftcache.backbones.tiny_record import resolve_policy
+    from graftcache.fit.lookup import dataset_fingerprint
     from graftcache.store import cache_root
 
-    backbone = args.encoder.removesuffix(NATIVE_SUFFIX)
-    return resolve_policy(backbone, "tiny", dataset_fingerprint(args.dataset), cache_root(args.cache), args.dataset)
+    return resolve_policy(backbone_of_native(args.encoder), "tiny", dataset_fingerprint(args.dataset),
+                          cache_root(args.cache), args.dataset)
 
 
 def run(args: argparse.Namespace) -> int:
-    from graftcache.extract import ExtractRequest, extract
-    from graftcache.pooling import parse_grids
+    from graftcache.extract import extract
 
-    req = ExtractRequest(
-        dataset=args.dataset,
-        encoder=args.encoder,
-        grids=tuple(parse_grids(args.grids)),
-        cameras=tuple(c.strip() for c in args.cameras.split(",")) if args.cameras else None,
-        episodes=args.episodes,
-        frame_stride=args.frame_stride,
-        weights=args.weights,
-        random_init=args.random_init,
-        seed=args.seed,
-        policy=_policy(args),
-        dtype=args.dtype,
-        compute_dtype=args.compute_dtype,
-        device=args.device,
-        batch_size=args.batch_size,
-        num_workers=args.num_workers,
-        block_frames=args.block_frames,
-        cache=args.cache,
-        progress=not args.no_progress,
-    )
-    result = extract(req)
-    print(result.key)
+    print(extract(request_from(ExtractRequest, args, policy=_policy(args))).key)
     return 0

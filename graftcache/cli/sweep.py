@@ -16,7 +16,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from graftcache.sweep import load_recipe, run_sweep
+    from graftcache.recipe import load_recipe
+    from graftcache.sweep import run_sweep
 
     recipe = load_recipe(args.recipe)
     if args.dry_run:

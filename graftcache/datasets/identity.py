@@ -29,7 +29,6 @@ Comparing a recorded identity with the current one (which file differs first) is
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import re
@@ -41,23 +40,14 @@ from pathlib import Path
 from typing import Any
 
 from graftcache.errors import DatasetError
+from graftcache.hashing import sha256_bytes, sha256_file
 
 #: Environment variable naming the folder of hash sidecars (default: see `memo_dirs`).
 MEMO_ENV = "GRAFTCACHE_HASH_MEMO"
 MEMO_DIR = "file-hashes"
 _SHA256 = re.compile(r"^[0-9a-f]{64}$")
-_READ = 1 << 20
 #: Thread count for hashing (hashlib releases the GIL on large updates, so threads use several cores/disks).
 HASH_THREADS = max(1, min(8, os.cpu_count() or 1))
-
-
-def sha256_file(path: Path) -> str:
-    """sha256 of a file's bytes, read in 1 MiB blocks."""
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        while block := f.read(_READ):
-            h.update(block)
-    return h.hexdigest()
 
 
 def memo_dirs() -> list[Path]:
@@ -77,12 +67,12 @@ def memo_dirs() -> list[Path]:
 class HashStats:
     """What the last `content_identity` call did (for timing and tests)."""
 
-    files: int = 0
-    bytes_total: int = 0
-    hashed_files: int = 0
+    files: int = 0         # files in the identity
+    bytes_total: int = 0   # their total size
+    hashed_files: int = 0  # read and hashed by this call (new or changed since the memo)
     hashed_bytes: int = 0
-    from_memo: int = 0
-    from_hub: int = 0
+    from_memo: int = 0     # taken from the hash sidecar (size, mtime, ctime and inode unchanged)
+    from_hub: int = 0      # taken from the hub's own record (blob name or download metadata)
 
 
 #: Stats of the most recent `content_identity` call in this process.
@@ -199,7 +189,7 @@ class _Memo:
 
     def __init__(self, root: Path) -> None:
         real_root = os.path.realpath(root)
-        name = f"{hashlib.sha256(real_root.encode()).hexdigest()[:16]}.json"
+        name = f"{sha256_bytes(real_root.encode())[:16]}.json"
         self.paths = [d / name for d in memo_dirs()]
         self.root = real_root
         self.entries: dict[str, list] = {}

@@ -68,6 +68,11 @@ class DatasetMeta:
 
         return content_identity(self.root, self.identity_files)
 
+    @property
+    def identity(self) -> dict[str, Any]:
+        """What a cache manifest records as `dataset_fingerprint`: the format version and the content."""
+        return {"codebase_version": self.codebase_version, **self.fingerprint}
+
 
 @dataclass(frozen=True)
 class Features:

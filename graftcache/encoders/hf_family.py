@@ -25,12 +25,12 @@ from graftcache.encoders.loading import (
     missing_hub_weights,
     require_file,
     seeded,
-    sha256_file,
     sha256_files,
     sha256_state_dict,
 )
 from graftcache.encoders.spec import EncoderSpec, LoadRequest, weights_info
 from graftcache.errors import EncoderError
+from graftcache.hashing import sha256_file
 
 _RESAMPLE = {2: "bilinear", 3: "bicubic"}  # PIL resample codes in preprocessor_config.json
 

@@ -9,28 +9,20 @@ random init the state_dict tensors themselves.
 from __future__ import annotations
 
 import contextlib
-import hashlib
 import json
 from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
 
 import torch
 
-from graftcache.datasets.resolve import hub_cache
 from graftcache.encoders.spec import EncoderSpec
 from graftcache.errors import EncoderError
+from graftcache.hashing import sha256_bytes, sha256_file, sha256_tensors
+from graftcache.hub_cache import repo_dir
 
 # transformers' own preference order: safetensors (single or sharded) before pickled .bin.
 HF_WEIGHT_FILES = ("model.safetensors", "model.safetensors.index.json", "pytorch_model.bin",
                    "pytorch_model.bin.index.json")
-
-
-def sha256_file(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        while chunk := f.read(1 << 20):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 def sha256_files(paths: Iterable[Path]) -> str:
@@ -39,17 +31,12 @@ def sha256_files(paths: Iterable[Path]) -> str:
     if len(paths) == 1:
         return sha256_file(paths[0])
     lines = "".join(f"{p.name} {sha256_file(p)}\n" for p in paths)
-    return hashlib.sha256(lines.encode()).hexdigest()
+    return sha256_bytes(lines.encode())
 
 
 def sha256_state_dict(state: Mapping[str, torch.Tensor]) -> str:
     """Hash of tensors in key order (name, dtype, shape and raw bytes), for weights that have no file."""
-    h = hashlib.sha256()
-    for key, t in state.items():
-        t = t.detach().to("cpu").contiguous()
-        h.update(f"{key}|{t.dtype}|{tuple(t.shape)}\n".encode())
-        h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes())
-    return h.hexdigest()
+    return sha256_tensors(state.items(), header_end="\n")
 
 
 @contextlib.contextmanager
@@ -62,13 +49,13 @@ def seeded(seed: int) -> Iterator[None]:
 
 def hub_snapshot(repo_id: str) -> tuple[Path, str] | None:
     """The cached snapshot folder of a model repo (refs/main, else a single snapshot) and its revision."""
-    repo_dir = hub_cache() / ("models--" + repo_id.replace("/", "--"))
-    ref = repo_dir / "refs" / "main"
+    folder = repo_dir(repo_id)
+    ref = folder / "refs" / "main"
     if ref.is_file():
         rev = ref.read_text().strip()
-        if (repo_dir / "snapshots" / rev).is_dir():
-            return repo_dir / "snapshots" / rev, rev
-    snaps = sorted(p for p in (repo_dir / "snapshots").glob("*") if p.is_dir()) if repo_dir.is_dir() else []
+        if (folder / "snapshots" / rev).is_dir():
+            return folder / "snapshots" / rev, rev
+    snaps = sorted(p for p in (folder / "snapshots").glob("*") if p.is_dir()) if folder.is_dir() else []
     return (snaps[0], snaps[0].name) if len(snaps) == 1 else None
 
 
@@ -86,7 +73,7 @@ def hf_weight_files(folder: Path) -> list[Path]:
 
 def missing_hub_weights(spec: EncoderSpec, repo_id: str, what: str) -> EncoderError:
     """The one error for "the default weights are not on this machine", with the ways out."""
-    where = hub_cache() / ("models--" + repo_id.replace("/", "--"))
+    where = repo_dir(repo_id)
     return EncoderError(f"encoder {spec.name!r}: {what} for hub repo {repo_id!r} not found in the local Hugging "
                         f"Face cache ({where}); nothing is downloaded. Put the model there (e.g. `hf download "
                         f"{repo_id}` where there is network), or pass --weights PATH, or --random-init")

@@ -1,6 +1,7 @@
 """Name -> (EncoderSpec, builder), plus parametric families (`timm:<name>`, `hf:<id or folder>`)
-resolved when looked up. Other packages add entries with `register_encoder` (the backbones package
-registers its native towers this way), so no lookup code ever branches on a name.
+resolved when looked up, so no lookup code ever branches on a name. A builder may be an import string
+("module:function", imported when that encoder is built): the native towers are declared here in stage 1
+but built by graftcache.backbones.native, which stage 1 never imports.
 """
 
 from __future__ import annotations
@@ -12,15 +13,19 @@ from pathlib import Path
 import torch
 
 from graftcache.encoders.encoder import Encoder
-from graftcache.encoders.spec import Builder, EncoderSpec, LoadRequest
+from graftcache.encoders.spec import EncoderSpec, LoadRequest
 from graftcache.errors import EncoderError
+from graftcache.lazy import import_string
 from graftcache.runtime import resolve_device, resolve_dtype
+
+Builder = Callable[[EncoderSpec, LoadRequest], Encoder]
+"""Builds an Encoder for a spec from a request; registered next to the spec (no if-chains)."""
 
 
 @dataclass(frozen=True)
 class _Entry:
     spec: EncoderSpec
-    builder: Builder
+    builder: Builder | str  # a callable, or "module:function" imported when the encoder is built
 
 
 @dataclass(frozen=True)
@@ -33,7 +38,7 @@ _ENTRIES: dict[str, _Entry] = {}
 _FAMILIES: dict[str, _Family] = {}
 
 
-def register_encoder(spec: EncoderSpec, builder: Builder) -> None:
+def register_encoder(spec: EncoderSpec, builder: Builder | str) -> None:
     """Add a named encoder. Re-registering the same name with a different spec or builder is an error."""
     if ":" in spec.name:
         raise EncoderError(f"encoder name {spec.name!r}: ':' is reserved for parametric families "
@@ -93,7 +98,8 @@ def load_encoder(spec: EncoderSpec | str, *, weights: str | Path | None = None, 
 
 def _builder_of(spec: EncoderSpec) -> Builder:
     if spec.name in _ENTRIES:
-        return _ENTRIES[spec.name].builder
+        builder = _ENTRIES[spec.name].builder
+        return import_string(builder) if isinstance(builder, str) else builder
     prefix = spec.name.partition(":")[0]
     if prefix in _FAMILIES:
         return _FAMILIES[prefix].builder

@@ -6,13 +6,9 @@ manifest can record exactly what produced the cached numbers.
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
-
-if TYPE_CHECKING:
-    from graftcache.encoders.encoder import Encoder
+from typing import Any
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -79,7 +75,3 @@ class LoadRequest:
 def weights_info(source: str, ref: str, sha256: str, *, seed: int | None = None) -> dict[str, Any]:
     """The manifest's record of the weights actually used (see docs/ARCHITECTURE.md)."""
     return {"source": source, "ref": ref, "sha256": sha256, "seed": seed, "random_init": source == "random-init"}
-
-
-Builder = Callable[[EncoderSpec, LoadRequest], "Encoder"]
-"""Builds an Encoder for a spec from a request; registered next to the spec (no if-chains)."""

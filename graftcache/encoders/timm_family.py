@@ -23,11 +23,11 @@ from graftcache.encoders.loading import (
     missing_hub_weights,
     require_file,
     seeded,
-    sha256_file,
     sha256_state_dict,
 )
 from graftcache.encoders.spec import INTERPOLATIONS, EncoderSpec, LoadRequest, weights_info
 from graftcache.errors import EncoderError
+from graftcache.hashing import sha256_file
 
 CNN_TOKENS = "timm forward_features(): last feature map, before global pooling and head"
 VIT_TOKENS = "timm forward_features(): patch tokens after the final norm; prefix tokens dropped"

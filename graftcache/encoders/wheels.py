@@ -17,10 +17,10 @@ from typing import Any
 import torch
 from torch import nn
 
-from graftcache.encoders.loading import sha256_file
 from graftcache.encoders.spec import EncoderSpec, weights_info
 from graftcache.encoders.timm_family import create
 from graftcache.errors import EncoderError
+from graftcache.hashing import sha256_file
 
 
 @dataclass(frozen=True)

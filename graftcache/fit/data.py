@@ -16,7 +16,7 @@ import polars as pl
 import torch
 
 from graftcache.errors import FitError
-from graftcache.pooling import format_grid, pool_grid
+from graftcache.pooling import format_grid, parse_grid, pool_grid
 from graftcache.store import FeatureCache
 
 
@@ -64,11 +64,21 @@ class FrameTable:
     def __len__(self) -> int:
         return len(self.rows)
 
+    def take(self, positions: np.ndarray) -> FrameTable:
+        """The frames at `positions` (the one way a table is narrowed: episode split, eval cap)."""
+        t = torch.from_numpy(positions)
+        return FrameTable(self.rows[positions], self.episode_index[positions],
+                          {c: f[t] for c, f in self.features.items()}, self.state[t], self.actions[t],
+                          self.action_pad[t], self.task_index[t], self.tasks)
+
     def subset(self, episodes: Sequence[int]) -> FrameTable:
-        keep = np.flatnonzero(np.isin(self.episode_index, np.asarray(episodes)))
-        t = torch.from_numpy(keep)
-        return FrameTable(self.rows[keep], self.episode_index[keep], {c: f[t] for c, f in self.features.items()},
-                          self.state[t], self.actions[t], self.action_pad[t], self.task_index[t], self.tasks)
+        return self.take(np.flatnonzero(np.isin(self.episode_index, np.asarray(episodes))))
+
+    def evenly(self, max_frames: int | None) -> FrameTable:
+        """At most `max_frames` evenly spaced frames (deterministic), the whole table otherwise."""
+        if max_frames is None or len(self) <= max_frames:
+            return self
+        return self.take(np.linspace(0, len(self) - 1, max_frames).round().astype(int))
 
 
 def suite_index_table(cache: FeatureCache, suite: str) -> pl.DataFrame:
@@ -88,11 +98,9 @@ def read_grid(cache: FeatureCache, camera: str, grid: tuple[int, int], rows: np.
     """Features of `camera` pooled to `grid`: the stored grid if present, else pooled from the
     finest stored grid (exact when the stored grid is a multiple of the requested one)."""
     name = format_grid(grid)
-    stored = [g for g in cache.manifest["grids"]]
-    if name in stored:
+    if name in cache.manifest["grids"]:
         return cache.read_features(camera, name, rows)
-    finest = max(stored, key=lambda g: int(g.split("x")[0]) * int(g.split("x")[1]))
-    h, w = (int(v) for v in finest.split("x"))
+    (h, w), finest = max(((parse_grid(g), g) for g in cache.manifest["grids"]), key=lambda s: s[0][0] * s[0][1])
     src = cache.read_features(camera, finest, rows)
     pooled = pool_grid(src.float().reshape(len(rows), h, w, -1), grid)
     return pooled.to(src.dtype)

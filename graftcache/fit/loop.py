@@ -1,15 +1,17 @@
-"""The `flow` objective: train only the projector (and LoRA, for that control) with the policy's
-own flow-matching loss, then score the denoised chunks of held-out frames.
+"""The flow-matching training step, written once, and the scoring pass.
 
-Determinism: projector init, batch order, flow noise and flow time all come from generators
-seeded by the cell's seed, so a CPU rerun is bit-identical. Time is drawn like lerobot's
-`sample_time` (Beta(1.5, 1) scaled to [0.001, 1]) by inverse-CDF sampling from our generator.
+`fit` (projector, plus LoRA for that control) and `train-tiny` (the whole tiny policy, graftcache.pretrain)
+both run `optimise`: draw a batch, the policy's own flow loss with padded steps masked, one optimiser
+step. `train` and `evaluate` are the fit's use of it on a FrameTable of cached features.
+
+Determinism: batch order, flow noise and flow time all come from one generator seeded by the caller
+(the cell's seed), so a CPU rerun is bit-identical. Time is drawn like lerobot's `sample_time`
+(Beta(1.5, 1) scaled to [0.001, 1]) by inverse-CDF sampling from that generator.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -20,17 +22,7 @@ from graftcache.progress import progress
 from graftcache.runtime import autocast
 from graftcache.scoring import Score, frame_noise, predict_in_batches, score_chunks
 
-
-@dataclass(frozen=True)
-class TrainConfig:
-    steps: int = 300
-    lr: float = 1e-3
-    batch_size: int = 16
-    weight_decay: float = 0.0
-    eval_batch_size: int = 64
-    num_denoise_steps: int | None = None
-    dtype: torch.dtype = torch.float32
-    progress: bool = True
+EVAL_BATCH_SIZE = 64
 
 
 def camera_map(adapter, cache_cameras: list[str]) -> dict[str, str]:
@@ -65,39 +57,56 @@ def flow_time(batch_size: int, generator: torch.Generator) -> torch.Tensor:
     return u.pow(1.0 / 1.5) * 0.999 + 0.001
 
 
-def train(adapter, table: FrameTable, cams: Mapping[str, str], cfg: TrainConfig, seed: int,
-          features: Mapping[str, torch.Tensor] | None = None,
-          log: Callable[[str], None] = print) -> float:
-    """Optimise the trainable parameters (projector, LoRA) for `cfg.steps`; returns the mean loss
-    of the last 10% of steps."""
-    params = [p for p in adapter.policy.parameters() if p.requires_grad]
-    if not params or cfg.steps == 0:
-        return float("nan")
-    opt = torch.optim.AdamW(params, lr=cfg.lr, weight_decay=cfg.weight_decay)
-    g = torch.Generator().manual_seed(seed)
+def optimise(adapter, sample: Callable[[torch.Tensor], dict], n: int, *, steps: int, batch_size: int,
+             optimizer: torch.optim.Optimizer, generator: torch.Generator, dtype: torch.dtype,
+             scheduler: torch.optim.lr_scheduler.LRScheduler | None = None, clip_norm: float | None = None,
+             desc: str = "fit", show: bool = True, leave: bool = True) -> list[float]:
+    """`steps` flow-matching steps on the optimizer's parameters; returns the loss of every step.
+
+    Each step draws `batch_size` of `n` rows from `generator`, makes the raw batch with `sample(rows)`,
+    then noise and flow time from the same generator, in that order.
+    """
     device = adapter.device
+    params = [p for group in optimizer.param_groups for p in group["params"]]
     adapter.policy.train()
-    losses = []
-    bar = progress(range(cfg.steps), desc="fit", unit="step", enabled=cfg.progress, leave=False)
+    losses: list[float] = []
+    bar = progress(range(steps), desc=desc, unit="step", enabled=show, leave=leave)
     for _ in bar:
-        pos = torch.randint(0, len(table), (cfg.batch_size,), generator=g).numpy()
-        batch = adapter.prepare(raw_batch(adapter, table, pos, cams, features=features))
-        noise = adapter.sample_noise(cfg.batch_size, generator=g)
-        time = flow_time(cfg.batch_size, g).to(device)
-        with autocast(device, cfg.dtype):
+        pos = torch.randint(0, n, (batch_size,), generator=generator)
+        batch = adapter.prepare(sample(pos))
+        noise = adapter.sample_noise(batch_size, generator=generator)
+        time = flow_time(batch_size, generator).to(device)
+        with autocast(device, dtype):
             loss = adapter.loss(batch, noise=noise, time=time).mean()
-        opt.zero_grad(set_to_none=True)
+        optimizer.zero_grad(set_to_none=True)
         loss.backward()
-        opt.step()
+        if clip_norm is not None:
+            torch.nn.utils.clip_grad_norm_(params, clip_norm)
+        optimizer.step()
+        if scheduler is not None:
+            scheduler.step()
         losses.append(loss.item())
-        bar.set_postfix(loss=f"{losses[-1]:.4f}")
-    tail = losses[-max(1, len(losses) // 10):]
-    return float(np.mean(tail))
+        bar.set_postfix(loss=f"{np.mean(losses[-20:]):.4f}")
+    return losses
+
+
+def train(adapter, table: FrameTable, cams: Mapping[str, str], *, steps: int, batch_size: int, lr: float,
+          seed: int, dtype: torch.dtype = torch.float32, features: Mapping[str, torch.Tensor] | None = None,
+          show: bool = True) -> float:
+    """Optimise the trainable parameters (projector, LoRA) with AdamW; returns the mean loss of the last
+    10% of steps (NaN when nothing is trainable)."""
+    params = [p for p in adapter.policy.parameters() if p.requires_grad]
+    if not params:
+        return float("nan")
+    losses = optimise(adapter, lambda pos: raw_batch(adapter, table, pos.numpy(), cams, features=features), len(table),
+                      steps=steps, batch_size=batch_size, optimizer=torch.optim.AdamW(params, lr=lr, weight_decay=0.0),
+                      generator=torch.Generator().manual_seed(seed), dtype=dtype, show=show, leave=False)
+    return float(np.mean(losses[-max(1, len(losses) // 10):]))
 
 
 @torch.no_grad()
-def evaluate(adapter, table: FrameTable, cams: Mapping[str, str], cfg: TrainConfig,
-             features: Mapping[str, torch.Tensor] | None = None) -> Score:
+def evaluate(adapter, table: FrameTable, cams: Mapping[str, str], *, dtype: torch.dtype = torch.float32,
+             num_denoise_steps: int | None = None, features: Mapping[str, torch.Tensor] | None = None) -> Score:
     """Offline action MSE of the denoised chunk on every frame of `table` (fixed noise per frame)."""
     adapter.policy.eval()
     device = adapter.device
@@ -105,12 +114,10 @@ def evaluate(adapter, table: FrameTable, cams: Mapping[str, str], cfg: TrainConf
 
     def predict(pos: np.ndarray, z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         batch = adapter.prepare(raw_batch(adapter, table, pos, cams, features=features))
-        with autocast(device, cfg.dtype):
-            pred = adapter.predict(batch, noise=z, num_steps=cfg.num_denoise_steps)
+        with autocast(device, dtype):
+            pred = adapter.predict(batch, noise=z, num_steps=num_denoise_steps)
         return batch["action"], pred
 
-    target, pred = predict_in_batches(predict, table.rows, noise, cfg.eval_batch_size)
-    pad = table.action_pad
-    target_raw = table.actions
+    target, pred = predict_in_batches(predict, table.rows, noise, EVAL_BATCH_SIZE)
     pred_raw = adapter.unnormalize(pred.to(device)).float().cpu()
-    return score_chunks(pred, target.float(), pred_raw, target_raw, pad, table.episode_index)
+    return score_chunks(pred, target.float(), pred_raw, table.actions, table.action_pad, table.episode_index)

@@ -17,7 +17,6 @@ Layout choices (why):
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import shutil
@@ -34,6 +33,7 @@ import zarr
 from zarr.codecs import BloscCodec
 
 from graftcache.errors import CacheError
+from graftcache.hashing import sha256_bytes
 from graftcache.store.key import IdentityDifference, compare_identity, identity_of
 
 INNER_CHUNK_BYTES = 4 << 20
@@ -82,7 +82,7 @@ def _compressor(itemsize: int) -> BloscCodec:
 
 
 def _sha256(a: np.ndarray) -> str:
-    return hashlib.sha256(np.ascontiguousarray(a).tobytes()).hexdigest()
+    return sha256_bytes(np.ascontiguousarray(a).tobytes())
 
 
 def to_storage(t: torch.Tensor, dtype: str) -> np.ndarray:

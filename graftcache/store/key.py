@@ -14,11 +14,12 @@ cache with a dataset (fit --dataset, resuming an extraction, sharing).
 
 from __future__ import annotations
 
-import hashlib
 import json
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
+
+from graftcache.hashing import sha256_json
 
 FORMAT_VERSION = 1
 
@@ -47,9 +48,8 @@ def identity_of(manifest: Mapping[str, Any]) -> dict[str, Any]:
 
 def cache_key(manifest: Mapping[str, Any]) -> str:
     """`<encoder-name>-<16 hex>`: readable prefix + sha256 of the canonical identity JSON."""
-    blob = json.dumps(identity_of(manifest), sort_keys=True, separators=(",", ":")).encode()
     name = str(manifest["encoder"]["name"]).replace(":", "_").replace("/", "_")
-    return f"{name}-{hashlib.sha256(blob).hexdigest()[:16]}"
+    return f"{name}-{sha256_json(identity_of(manifest), compact=True)[:16]}"
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,26 @@
+"""The backbone registry's table: name -> adapter class, as import strings (data only).
+
+Every place that names a backbone (the backbone loader, the native towers in the encoder catalog, the
+CLI's choices, recipes) reads the names from here; the adapters themselves, which import lerobot, are
+imported only when a backbone is used (graftcache.backbones.get_backbone).
+"""
+
+from __future__ import annotations
+
+BACKBONES: dict[str, str] = {
+    "smolvla": "graftcache.backbones.smolvla:SmolVLAAdapter",
+    "pi05": "graftcache.backbones.pi05:PI05Adapter",
+}
+
+#: A backbone's own vision tower is the encoder `<backbone>-native` (stage 1 caches it like any encoder).
+NATIVE_SUFFIX = "-native"
+
+
+def native_name(backbone: str) -> str:
+    """Registry name of a backbone's own vision tower, e.g. "smolvla-native"."""
+    return f"{backbone}{NATIVE_SUFFIX}"
+
+
+def backbone_of_native(encoder: str) -> str:
+    """The backbone whose tower a native encoder name denotes ("smolvla-native" -> "smolvla")."""
+    return encoder.removesuffix(NATIVE_SUFFIX)

@@ -1,0 +1,215 @@
+"""Sweep recipes: a TOML file (cli/*.toml) of encoders x suites x backbones x seeds + controls, read and
+checked before anything runs (graftcache.sweep runs it).
+
+Recipe keys (unknown keys are errors, so a typo never silently falls back to a default):
+
+    name, dataset, results, cache, device, suites, seeds, controls, objective
+    [[backbones]]  name, policy ("tiny" = natively trained on `dataset`, else hub id or folder)
+    [[encoders]]   name, weights, random_init, seed
+    [extract]      fields of ExtractRequest  } except those the grid sets (GRID_FIELDS): e.g. batch_size,
+    [fit]          fields of FitRequest      } dtype, frame_stride; steps, lr, eval_frames, lora_rank;
+    [train_tiny]   fields of TinyTrainConfig } steps, seed (backbones with policy = "tiny")
+
+Every value is checked against the type of the request field it sets (a string where a number, list
+or boolean belongs is an error naming file, table and key), and the requests check their ranges.
+
+Relative paths in `dataset` are resolved against the recipe's folder when they exist there, so a
+recipe in cli/ can name ../data/libero_sample; anything else is passed on (a hub repo id).
+"""
+
+from __future__ import annotations
+
+import tomllib
+import types
+import typing
+from collections.abc import Mapping
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Any
+
+from graftcache.errors import GraftcacheError
+from graftcache.fit.controls import get_control
+from graftcache.requests import ExtractRequest, FitRequest, TinyTrainConfig
+
+
+class RecipeError(GraftcacheError):
+    """A sweep recipe that cannot be run as written (names the file and the key)."""
+
+
+@dataclass(frozen=True)
+class EncoderEntry:
+    name: str
+    weights: str | None = None
+    random_init: bool = False
+    seed: int = 0
+
+    @property
+    def label(self) -> str:
+        return f"{self.name} (random-init, seed {self.seed})" if self.random_init else self.name
+
+
+@dataclass(frozen=True)
+class BackboneEntry:
+    name: str
+    policy: str = "tiny"
+
+
+#: The request each settings table overrides; its own defaults apply to anything the table leaves out.
+SECTIONS: dict[str, type] = {"extract": ExtractRequest, "fit": FitRequest, "train_tiny": TinyTrainConfig}
+#: Request fields the sweep sets from the grid itself (dataset, encoder, backbone, seeds, ...), never from a table.
+GRID_FIELDS: dict[str, frozenset[str]] = {
+    "extract": frozenset({"dataset", "encoder", "grids", "episodes", "weights", "random_init", "seed", "policy",
+                          "device", "cache", "progress", "extra_manifest"}),
+    "fit": frozenset({"backbone", "encoder", "suite", "policy", "dataset", "cache_key", "native_cache_key", "seeds",
+                      "controls", "objective", "device", "results", "cache", "progress", "command"}),
+    "train_tiny": frozenset(),
+}
+#: Settings a recipe's [extract] / [fit] / [train_tiny] tables may set: every other field of the request.
+SECTION_KEYS: dict[str, tuple[str, ...]] = {
+    section: tuple(f.name for f in fields(cls) if f.name not in GRID_FIELDS[section]) for section, cls in SECTIONS.items()
+}
+
+
+@dataclass(frozen=True)
+class Recipe:
+    """One sweep, as read from a TOML file."""
+
+    name: str
+    dataset: str
+    results: str
+    suites: tuple[str, ...]
+    backbones: tuple[BackboneEntry, ...]
+    encoders: tuple[EncoderEntry, ...]
+    seeds: tuple[int, ...]
+    controls: tuple[str, ...] = ()
+    objective: str = "flow"
+    cache: str | None = None
+    device: str = "cpu"
+    extract: Mapping[str, Any] = field(default_factory=dict)     # ExtractRequest overrides
+    fit: Mapping[str, Any] = field(default_factory=dict)         # FitRequest overrides
+    train_tiny: Mapping[str, Any] = field(default_factory=dict)  # TinyTrainConfig overrides
+    path: str = ""
+
+    @property
+    def n_fits(self) -> int:
+        """(seed, control) cells the sweep visits: per encoder, the plain graft and every control."""
+        return len(self.backbones) * len(self.encoders) * len(self.suites) * len(self.seeds) * (1 + len(self.controls))
+
+    @property
+    def n_rows(self) -> int:
+        """Distinct results rows: controls that read the native tower's cache (native, native-graft) do
+        not depend on the candidate encoder, so they make one row per (backbone, suite, seed)."""
+        native = sum(get_control(c).native_cache for c in self.controls)
+        per_seed = len(self.encoders) * (1 + len(self.controls) - native) + native
+        return len(self.backbones) * len(self.suites) * len(self.seeds) * per_seed
+
+
+_LISTS = {"backbones": BackboneEntry, "encoders": EncoderEntry}
+_REQUIRED = ("name", "dataset", "results", "suites", "backbones", "encoders", "seeds")
+
+
+def _matches(value: Any, hint: Any) -> bool:
+    """Whether a TOML value (lists already turned into tuples) fits a dataclass field's type hint."""
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if hint is Any:
+        return True
+    if origin in (typing.Union, types.UnionType):
+        return any(_matches(value, a) for a in args)
+    if hint is type(None):
+        return value is None
+    if origin is tuple:
+        if not isinstance(value, tuple):
+            return False
+        if len(args) == 2 and args[1] is Ellipsis:
+            return all(_matches(v, args[0]) for v in value)
+        return len(args) == len(value) and all(_matches(v, a) for v, a in zip(value, args))
+    if origin is not None:  # Mapping[...], dict[...]
+        return isinstance(value, origin)
+    if hint is float:
+        return isinstance(value, (int, float)) and not isinstance(value, bool)
+    if hint is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    return isinstance(value, hint)
+
+
+def _type_name(hint: Any) -> str:
+    return getattr(hint, "__name__", None) or str(hint).replace("typing.", "")
+
+
+def _typed(cls: type, values: Mapping[str, Any], where: str) -> dict[str, Any]:
+    """`values` (TOML lists as tuples) after checking each against `cls`'s field types."""
+    hints = typing.get_type_hints(cls)
+    out = {k: _tuples(v) for k, v in values.items()}
+    for key, value in out.items():
+        if key in hints and not _matches(value, hints[key]):
+            raise RecipeError(f"{where}: {key} = {value!r} is not a {_type_name(hints[key])}")
+    return out
+
+
+def _tuples(value: Any) -> Any:
+    return tuple(_tuples(v) for v in value) if isinstance(value, list) else value
+
+
+def _build(cls: type, data: Mapping[str, Any], where: str) -> Any:
+    """A frozen dataclass from a TOML table; unknown, missing or mistyped keys name the place in the recipe."""
+    known = {f.name for f in fields(cls)}
+    unknown = sorted(set(data) - known)
+    if unknown:
+        raise RecipeError(f"{where}: unknown key(s) {', '.join(unknown)}; known: {', '.join(sorted(known))}")
+    try:
+        return cls(**_typed(cls, data, where))
+    except TypeError as e:
+        raise RecipeError(f"{where}: {e}") from None
+
+
+def _section(data: Mapping[str, Any], section: str, where: str) -> dict[str, Any]:
+    """A settings table as request overrides; keys outside SECTION_KEYS[section] or of the wrong type,
+    and values the request refuses, name the place."""
+    table = data.get(section, {})
+    unknown = sorted(set(table) - set(SECTION_KEYS[section]))
+    if unknown:
+        raise RecipeError(f"{where} [{section}]: unknown key(s) {', '.join(unknown)}; known: "
+                          f"{', '.join(sorted(SECTION_KEYS[section]))}")
+    cls = SECTIONS[section]
+    values = _typed(cls, table, f"{where} [{section}]")
+    try:
+        cls.check(values)
+    except GraftcacheError as e:
+        raise RecipeError(f"{where} [{section}]: {e}") from None
+    return values
+
+
+def _resolve_dataset(dataset: str, recipe_dir: Path) -> str:
+    candidate = recipe_dir / dataset
+    return str(candidate.resolve()) if not Path(dataset).is_absolute() and candidate.exists() else dataset
+
+
+def load_recipe(path: str | Path) -> Recipe:
+    """Read and check a sweep recipe; errors name the file and the offending key."""
+    path = Path(path)
+    try:
+        data = tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise RecipeError(f"{path}: no such recipe file") from None
+    except tomllib.TOMLDecodeError as e:
+        raise RecipeError(f"{path}: not valid TOML ({e})") from None
+    missing = [k for k in _REQUIRED if k not in data]
+    if missing:
+        raise RecipeError(f"{path}: missing key(s) {', '.join(missing)}")
+    top = {k: v for k, v in data.items() if k not in SECTION_KEYS and k not in _LISTS}
+    top["backbones"] = tuple(_build(BackboneEntry, b, f"{path} [[backbones]] #{i + 1}")
+                             for i, b in enumerate(data["backbones"]))
+    top["encoders"] = tuple(_build(EncoderEntry, e, f"{path} [[encoders]] #{i + 1}")
+                            for i, e in enumerate(data["encoders"]))
+    for section in SECTION_KEYS:
+        top[section] = _section(data, section, str(path))
+    top["dataset"] = _resolve_dataset(str(data["dataset"]), path.resolve().parent)
+    recipe = _build(Recipe, {**top, "path": str(path)}, str(path))
+    for control in recipe.controls:
+        try:
+            get_control(control)
+        except GraftcacheError as e:
+            raise RecipeError(f"{path}: controls: {e}") from None
+    if not recipe.seeds or not recipe.suites or not recipe.encoders or not recipe.backbones:
+        raise RecipeError(f"{path}: suites, seeds, encoders and backbones must each list at least one entry")
+    return recipe

@@ -1,0 +1,105 @@
+"""What each command is asked to do: the request dataclasses, in one light module.
+
+Each field's default lives here and only here: the CLI derives its flags' defaults from these fields
+(cli/common.py `default_of`), the sweep recipe's settings tables are these fields, and the range rules
+(checks.py) are declared beside them. Nothing here imports torch or the models, so building the CLI's
+parser stays cheap.
+"""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import asdict, dataclass, field
+from typing import Any, ClassVar
+
+from graftcache.checks import EPISODES, FRACTION, NON_NEGATIVE, POSITIVE, SEEDS, Checked, Rule
+
+
+@dataclass(frozen=True)
+class ExtractRequest(Checked):
+    """Everything `graftcache extract` needs. Fields up to and including `compute_dtype` change the numbers
+    (they are part of the cache key, compute_dtype once resolved); the ones after it do not."""
+
+    dataset: str
+    encoder: str
+    grids: tuple[tuple[int, int], ...] = ((8, 8),)
+    cameras: tuple[str, ...] | None = None
+    episodes: tuple[int, ...] | None = None
+    weights: str | None = None
+    random_init: bool = False
+    seed: int = 0
+    policy: str | None = None  # native towers (smolvla-native, pi05-native) come from a policy
+    frame_stride: int = 1  # features for frames whose frame_index % frame_stride == 0 (actions stay full rate)
+    dtype: str = "fp16"
+    compute_dtype: str = "auto"  # resolved per device by runtime.resolve_compute_dtype before anything is keyed
+    device: str = "cpu"
+    batch_size: int = 32
+    num_workers: int = 2
+    block_frames: int = 256
+    cache: str | None = None
+    progress: bool = True
+    extra_manifest: dict[str, Any] = field(default_factory=dict)
+
+    RULES: ClassVar[dict[str, Rule]] = {"seed": NON_NEGATIVE, "batch_size": POSITIVE, "num_workers": NON_NEGATIVE,
+                                        "block_frames": POSITIVE, "episodes": EPISODES,
+                                        "frame_stride": POSITIVE}
+
+
+@dataclass(frozen=True)
+class FitRequest(Checked):
+    """Everything `graftcache fit` needs: one (backbone, encoder, suite) over seeds and controls."""
+
+    backbone: str
+    encoder: str
+    suite: str
+    policy: str = "tiny"
+    dataset: str | None = None
+    cache_key: str | None = None
+    native_cache_key: str | None = None
+    seeds: tuple[int, ...] = (0, 1, 2)
+    controls: tuple[str, ...] = ()
+    objective: str = "flow"
+    steps: int = 300
+    lr: float = 1e-3
+    batch_size: int = 16
+    eval_fraction: float = 0.2
+    eval_split_seed: int = 0
+    eval_frames: int | None = None
+    num_denoise_steps: int | None = None
+    lora_rank: int = 8
+    device: str = "cpu"
+    compute_dtype: str = "auto"  # resolved per device (runtime.resolve_compute_dtype) before it reaches a row
+    results: str = "results.parquet"
+    out: str | None = None
+    cache: str | None = None
+    progress: bool = True
+    command: str = field(default_factory=lambda: " ".join(["graftcache", *sys.argv[1:]]))
+
+    RULES: ClassVar[dict[str, Rule]] = {
+        "seeds": SEEDS, "steps": POSITIVE, "lr": POSITIVE, "batch_size": POSITIVE, "eval_fraction": FRACTION,
+        "eval_split_seed": NON_NEGATIVE, "eval_frames": POSITIVE, "num_denoise_steps": POSITIVE, "lora_rank": POSITIVE,
+    }
+
+
+@dataclass(frozen=True)
+class TinyTrainConfig(Checked):
+    """The recipe of `graftcache train-tiny` (it keys the checkpoint folder, with the dataset's identity)."""
+
+    steps: int = 300  # enough for the tiny backbones to use vision on the sample (native beats zero-image)
+    batch_size: int = 32
+    lr: float = 1e-3
+    weight_decay: float = 1e-4
+    seed: int = 0
+    image_size: int = 128  # frames are resized once to this (>= every tiny tower's input)
+    warmup: float = 0.1    # share of the steps with a linear warm-up, then cosine decay to 0
+    compute_dtype: str = "auto"  # resolved (runtime.resolve_compute_dtype) before it keys the checkpoint
+
+    RULES: ClassVar[dict[str, Rule]] = {"steps": POSITIVE, "batch_size": POSITIVE, "lr": POSITIVE,
+                                        "weight_decay": NON_NEGATIVE, "seed": NON_NEGATIVE, "image_size": POSITIVE,
+                                        "warmup": (lambda v: 0 <= v < 1, "must be in [0, 1)")}
+
+    def as_dict(self, backbone: str) -> dict:
+        return {"backbone": backbone, **asdict(self)}
+
+
+DEFAULT_TINY_TRAIN = TinyTrainConfig()
