@@ -43,8 +43,8 @@ def _import_prefix(dotted: str) -> tuple[object, list[str]]:
         try:
             return importlib.import_module(name), parts[i:]
         except ModuleNotFoundError as e:
-            if e.name != name:  # the module exists but one of its own imports is missing: a real error
-                raise
+            if e.name is None or not (name + ".").startswith(e.name + "."):
+                raise  # the module exists but one of its own imports is missing: a real error
     raise AssertionError(f"no importable prefix in {dotted}")
 
 
