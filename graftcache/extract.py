@@ -31,7 +31,8 @@ import graftcache
 from graftcache.checks import EPISODES, NON_NEGATIVE, POSITIVE, Checked, Rule
 from graftcache.datasets import LeRobotSource, open_dataset, suite_of
 from graftcache.encoders import get_spec, load_encoder
-from graftcache.errors import DatasetError, GraftcacheError
+from graftcache.errors import DatasetError, EncoderError, GraftcacheError
+from graftcache.nonfinite import DROP_FLAG, KEEP_FLAG, lowdim_problem, nonfinite_rows
 from graftcache.pooling import format_grid, pool_grid
 from graftcache.progress import progress
 from graftcache.runtime import (
@@ -43,7 +44,7 @@ from graftcache.runtime import (
     single_thread_worker,
 )
 from graftcache.store import FORMAT_VERSION, FeatureCache, cache_key, cache_root
-from graftcache.store.cache import STORAGE_DTYPES, ArraySpec, to_storage
+from graftcache.store.cache import STORAGE_DTYPES, ArraySpec, from_storage, to_storage
 from graftcache.store.lock import exclusive
 
 SUITES = ("libero_spatial", "libero_object", "libero_goal", "libero_10", "libero_90", "unknown")
@@ -73,6 +74,7 @@ class ExtractRequest(Checked):
     block_frames: int = 256
     cache: str | None = None
     progress: bool = True
+    allow_nonfinite: bool = False  # cache NaN/inf state/action/features instead of refusing (fit then refuses)
     extra_manifest: dict[str, Any] = field(default_factory=dict)
 
     RULES: ClassVar[dict[str, Rule]] = {"seed": NON_NEGATIVE, "batch_size": POSITIVE, "num_workers": NON_NEGATIVE,
@@ -285,6 +287,12 @@ def extract(req: ExtractRequest, log: Callable[[str], None] = print) -> ExtractR
     encoder = load_encoder(spec, weights=req.weights, random_init=req.random_init, seed=req.seed,
                            device=device, policy=req.policy)
     stream = build_index(source, episodes)
+    problem = lowdim_problem(stream)
+    if problem and not req.allow_nonfinite:
+        raise DatasetError(f"{meta.root}: {problem}; nothing was cached. Exclude those episodes with --episodes, "
+                           f"or pass {KEEP_FLAG} and drop the frames at fit with {DROP_FLAG}")
+    if problem:
+        log(f"note: keeping non-finite values ({KEEP_FLAG}): {problem}")
     index = stream.filter(pl.col("frame_index") % req.frame_stride == 0)
     manifest = build_manifest(req, source, encoder, episodes, cameras, index.height)
     key = cache_key(manifest)
@@ -359,6 +367,8 @@ def _fill(cache: FeatureCache, source: LeRobotSource, index: pl.DataFrame, encod
                             for cam in cameras
                             for name, arr in encode_frames(encoder, buf[cam], req.grids, batch_size=req.batch_size,
                                                            device=device, compute=compute, dtype=req.dtype).items()}
+                    if not req.allow_nonfinite:
+                        _check_features(data, index, start, req.dtype, cache.key)
                     writer.put(block, data)
                     encoded += stop - start
                     bar.update(stop - start)
@@ -366,3 +376,16 @@ def _fill(cache: FeatureCache, source: LeRobotSource, index: pl.DataFrame, encod
     finally:
         bar.close()
     return encoded
+
+
+def _check_features(data: dict[str, np.ndarray], index: pl.DataFrame, start: int, dtype: str, key: str) -> None:
+    """EncoderError naming the first frame of a block whose stored features hold a NaN/inf (before the block
+    is written, so the cache never holds it and is never marked complete)."""
+    for name, values in data.items():
+        bad = nonfinite_rows(from_storage(values, dtype))
+        if bad.any():
+            row = index.row(start + int(np.flatnonzero(bad)[0]), named=True)
+            raise EncoderError(f"cache {key}: {name} is NaN/inf for episode {row['episode_index']} frame "
+                               f"{row['frame_index']} ({int(bad.sum())} frame(s) in frames {start}-"
+                               f"{start + len(bad) - 1}); the cache stays incomplete. Values past {dtype}'s range? "
+                               f"try --dtype fp32, or pass {KEEP_FLAG} to keep them")

@@ -12,6 +12,7 @@ from graftcache.cli.common import (
     nonneg_int,
     positive_int,
 )
+from graftcache.nonfinite import DROP_FLAG, KEEP_FLAG
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -42,6 +43,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     add_compute_dtype_flag(p)
     p.add_argument("--block-frames", type=positive_int, default=256, help="frames per Zarr shard / resumable unit")
     p.add_argument("--no-progress", action="store_true")
+    p.add_argument(KEEP_FLAG, dest="allow_nonfinite", action="store_true",
+                   help="cache frames whose state, action or features hold NaN/inf instead of refusing the dataset "
+                   f"(`fit` then refuses the cache unless {DROP_FLAG} drops those frames)")
     add_cache_flag(p)
     add_device_flags(p, dtype_help="stored feature dtype (default fp16)")
     p.set_defaults(func=run)
@@ -82,6 +86,7 @@ def run(args: argparse.Namespace) -> int:
         block_frames=args.block_frames,
         cache=args.cache,
         progress=not args.no_progress,
+        allow_nonfinite=args.allow_nonfinite,
     )
     result = extract(req)
     print(result.key)

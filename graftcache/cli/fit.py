@@ -13,6 +13,7 @@ from graftcache.cli.common import (
     positive_float,
     positive_int,
 )
+from graftcache.nonfinite import DROP_FLAG
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -46,6 +47,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--results", default="results.parquet")
     p.add_argument("--out", default=None, help="run folder for projectors (default: <cache>/runs)")
     p.add_argument("--no-progress", action="store_true")
+    p.add_argument(DROP_FLAG, dest="drop_nonfinite", action="store_true",
+                   help="drop frames whose features, state or action chunk hold NaN/inf (a cache holding any is "
+                   "refused otherwise); the results row records how many (n_dropped_nonfinite)")
     add_cache_flag(p)
     p.set_defaults(func=run)
 
@@ -61,7 +65,7 @@ def run(args: argparse.Namespace) -> int:
         eval_split_seed=args.eval_split_seed, eval_frames=args.eval_frames,
         num_denoise_steps=args.num_denoise_steps, lora_rank=args.lora_rank, device=args.device,
         compute_dtype=args.compute_dtype, results=args.results, out=args.out, cache=args.cache,
-        progress=not args.no_progress,
+        progress=not args.no_progress, drop_nonfinite=args.drop_nonfinite,
     )
     Fitter(req).run()
     return 0

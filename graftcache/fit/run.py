@@ -30,7 +30,14 @@ from graftcache.checks import FRACTION, NON_NEGATIVE, POSITIVE, SEEDS, Checked, 
 from graftcache.errors import FitError
 from graftcache.fit.align import fit_ridge
 from graftcache.fit.controls import Control, get_control, transform_features
-from graftcache.fit.data import FrameTable, Split, load_frames, split_episodes, suite_index_table
+from graftcache.fit.data import (
+    FrameTable,
+    Split,
+    drop_nonfinite,
+    load_frames,
+    split_episodes,
+    suite_index_table,
+)
 from graftcache.fit.loop import TrainConfig, camera_map, evaluate, train
 from graftcache.fit.lookup import find_cache, native_encoder_name, resolve_policy
 from graftcache.graft import GraftProjector, IdentityProjector
@@ -67,6 +74,7 @@ class FitRequest(Checked):
     out: str | None = None
     cache: str | None = None
     progress: bool = True
+    drop_nonfinite: bool = False  # drop frames with NaN/inf (features, state, action chunk) instead of refusing
     command: str = field(default_factory=lambda: " ".join(["graftcache", *sys.argv[1:]]))
 
     RULES: ClassVar[dict[str, Rule]] = {
@@ -85,16 +93,14 @@ class _Material:
     encoder: str
     grid: tuple[int, int] | None
     targets: tuple[FrameTable, FrameTable] | None = None  # native tokens, for `align`
+    dropped: int = 0  # frames dropped for NaN/inf (--drop-nonfinite)
 
 
 def _evaluate_subset(table: FrameTable, max_frames: int | None) -> FrameTable:
     """At most `max_frames` evenly spaced eval frames (deterministic), whole table otherwise."""
     if max_frames is None or len(table) <= max_frames:
         return table
-    keep = np.linspace(0, len(table) - 1, max_frames).round().astype(int)
-    t = torch.from_numpy(keep)
-    return FrameTable(table.rows[keep], table.episode_index[keep], {c: f[t] for c, f in table.features.items()},
-                      table.state[t], table.actions[t], table.action_pad[t], table.task_index[t], table.tasks)
+    return table.take(np.linspace(0, len(table) - 1, max_frames).round().astype(int))
 
 
 def _split(table: FrameTable, split: Split) -> tuple[FrameTable, FrameTable]:
@@ -149,14 +155,22 @@ class Fitter:
         key = (source.key, extra, None if extra else grid)
         if key not in self._materials:
             cams = list(camera_map(adapter, source.manifest["cameras"]).values())
-            table = load_frames(source, self.req.suite, cameras=cams, grid=None if extra else grid,
-                                chunk=adapter.chunk_size, extra=extra)
+            drop = self.req.drop_nonfinite
+            loaded = load_frames(source, self.req.suite, cameras=cams, grid=None if extra else grid,
+                                 chunk=adapter.chunk_size, extra=extra)
+            table, _ = drop_nonfinite(loaded, source, drop=drop)
+            native = None
+            if self.req.objective == "align" and control.projector == "graft":
+                native, _ = drop_nonfinite(load_frames(self.native_cache, self.req.suite, cameras=cams, grid=None,
+                                                       chunk=adapter.chunk_size, extra="connector"),
+                                           self.native_cache, drop=drop)
+                both = np.intersect1d(table.rows, native.rows)  # features and targets: the same frames
+                table, native = (t.take(np.flatnonzero(np.isin(t.rows, both))) for t in (table, native))
             tr, ev = _split(table, self.split)
             encoder = source.manifest["encoder"]["name"]
-            mat = _Material(tr, _evaluate_subset(ev, self.req.eval_frames), source, encoder, grid)
-            if self.req.objective == "align" and control.projector == "graft":
-                native = load_frames(self.native_cache, self.req.suite, cameras=cams, grid=None,
-                                     chunk=adapter.chunk_size, extra="connector")
+            mat = _Material(tr, _evaluate_subset(ev, self.req.eval_frames), source, encoder, grid,
+                            dropped=len(loaded) - len(table))
+            if native is not None:
                 mat.targets = _split(native, self.split)
             self._materials[key] = mat
         return self._materials[key]
@@ -243,7 +257,8 @@ class Fitter:
             "n_eval_episodes": len(score.per_episode), "eval_split_seed": self.req.eval_split_seed,
             "wall_s": wall, "device": str(self.device), "compute_dtype": self.req.compute_dtype,
             "random_init": bool(mat.cache.manifest.get("random_init") or adapter.random_init),
-            "graftcache_version": graftcache.__version__, "command": self.req.command,
+            "n_dropped_nonfinite": mat.dropped, "graftcache_version": graftcache.__version__,
+            "command": self.req.command,
         }
 
     def _save_projector(self, adapter, run_id: str, cell: dict, control: Control) -> None:
