@@ -96,12 +96,12 @@ class BackboneAdapter(ABC):
                 policy, pre, post, marker = cls._build_tiny(tiny or TinySpec(), dataset_stats, device)
             return cls(policy, pre, post, source="tiny", random_init=True, tiny_marker=marker)
         folder = resolve_source(source)
-        weights = weights_file(folder)  # header read first: a file that is not safetensors is one line, not lerobot's
         marker = read_marker(folder)
         if marker is not None and marker["backbone"] != cls.name:
             raise BackboneError(f"{folder}: a tiny {marker['backbone']} checkpoint, not {cls.name}")
         config = cls._read_config(folder)
         config.device = device
+        weights = weights_file(folder)  # header read before lerobot's load: a non-safetensors file is one line
         with quiet():  # lerobot's loading chatter, and pi0.5's key renaming warns per vision key
             policy = cls._load_policy(folder, config, marker)
             verify_weights(policy, weights, cls._checkpoint_key_map(policy))
