@@ -10,6 +10,7 @@ same as in an uninterrupted run, which makes the final bytes identical.
 
 from __future__ import annotations
 
+import errno
 import platform
 import queue
 import sys
@@ -31,7 +32,8 @@ import graftcache
 from graftcache.datasets import LeRobotSource, open_dataset, suite_of
 from graftcache.datasets.suites import SUITES
 from graftcache.encoders import get_spec, load_encoder
-from graftcache.errors import DatasetError, GraftcacheError
+from graftcache.errors import CacheError, DatasetError, EncoderError, GraftcacheError
+from graftcache.nonfinite import DROP_FLAG, KEEP_FLAG, lowdim_problem, nonfinite_rows
 from graftcache.pooling import format_grid, pool_grid
 from graftcache.progress import progress
 from graftcache.requests import ExtractRequest
@@ -44,9 +46,11 @@ from graftcache.runtime import (
     single_thread_worker,
 )
 from graftcache.store import FORMAT_VERSION, FeatureCache, cache_key, cache_root
-from graftcache.store.cache import STORAGE_DTYPES, ArraySpec, to_storage
+from graftcache.store.cache import STORAGE_DTYPES, ArraySpec, from_storage, to_storage
 from graftcache.store.lock import exclusive
 
+#: errnos of a full disk or quota: the extraction stops with a resumable one-line error.
+OUT_OF_SPACE = frozenset({errno.ENOSPC, errno.EDQUOT})
 VERSIONED_PACKAGES = ("torch", "timm", "transformers", "lerobot", "zarr", "numcodecs", "av", "numpy")
 
 
@@ -255,6 +259,12 @@ def extract(req: ExtractRequest, log: Callable[[str], None] = print) -> ExtractR
     encoder = load_encoder(spec, weights=req.weights, random_init=req.random_init, seed=req.seed,
                            device=device, policy=req.policy)
     stream = build_index(source, episodes)
+    problem = lowdim_problem(stream)
+    if problem and not req.allow_nonfinite:
+        raise DatasetError(f"{meta.root}: {problem}; nothing was cached. Exclude those episodes with --episodes, "
+                           f"or pass {KEEP_FLAG} and drop the frames at fit with {DROP_FLAG}")
+    if problem:
+        log(f"note: keeping non-finite values ({KEEP_FLAG}): {problem}")
     index = stream.filter(pl.col("frame_index") % req.frame_stride == 0)
     manifest = build_manifest(req, source, encoder, episodes, cameras, index.height)
     key = cache_key(manifest)
@@ -269,9 +279,14 @@ def extract(req: ExtractRequest, log: Callable[[str], None] = print) -> ExtractR
             log(f"reusing complete cache {key} ({cache.n_frames} frames)")
             return ExtractResult(key, path, True, cache.n_frames, 0, time.perf_counter() - t0)
         t_fill = time.perf_counter()
-        encoded = _fill(cache, source, index, encoder, cameras, req, device, compute)
+        try:
+            encoded = _fill(cache, source, index, encoder, cameras, req, device, compute)
+            cache.finalize()
+        except OSError as e:
+            if e.errno not in OUT_OF_SPACE:
+                raise
+            raise CacheError(_out_of_space(cache, e)) from None
         encode_s = time.perf_counter() - t_fill
-        cache.finalize()
     wall = time.perf_counter() - t0
     log(f"wrote {key}: {cache.n_frames} frames x {len(cameras)} cameras in {wall:.1f}s -> {path}")
     return ExtractResult(key, path, False, cache.n_frames, encoded, wall, encode_s)
@@ -329,6 +344,8 @@ def _fill(cache: FeatureCache, source: LeRobotSource, index: pl.DataFrame, encod
                             for cam in cameras
                             for name, arr in encode_frames(encoder, buf[cam], req.grids, batch_size=req.batch_size,
                                                            device=device, compute=compute, dtype=req.dtype).items()}
+                    if not req.allow_nonfinite:
+                        _check_features(data, index, start, req.dtype, cache.key)
                     writer.put(block, data)
                     encoded += stop - start
                     bar.update(stop - start)
@@ -336,3 +353,31 @@ def _fill(cache: FeatureCache, source: LeRobotSource, index: pl.DataFrame, encod
     finally:
         bar.close()
     return encoded
+
+
+def _check_features(data: dict[str, np.ndarray], index: pl.DataFrame, start: int, dtype: str, key: str) -> None:
+    """EncoderError naming the first frame of a block whose stored features hold a NaN/inf (before the block
+    is written, so the cache never holds it and is never marked complete)."""
+    for name, values in data.items():
+        bad = nonfinite_rows(from_storage(values, dtype))
+        if bad.any():
+            row = index.row(start + int(np.flatnonzero(bad)[0]), named=True)
+            raise EncoderError(f"cache {key}: {name} is NaN/inf for episode {row['episode_index']} frame "
+                               f"{row['frame_index']} ({int(bad.sum())} frame(s) in frames {start}-"
+                               f"{start + len(bad) - 1}); the cache stays incomplete. Values past {dtype}'s range? "
+                               f"try --dtype fp32, or pass {KEEP_FLAG} to keep them")
+
+
+def _out_of_space(cache: FeatureCache, error: OSError) -> str:
+    """One line for a full disk: how much the blocks still to write need (uncompressed bytes per frame, an upper
+    bound: blocks already on disk say how well they compress), and that rerunning resumes."""
+    done = cache.blocks_done()
+    todo = [b for b in range(int(cache.layout["n_blocks"])) if b not in done]
+    frames = sum(stop - start for start, stop in map(cache.block_range, todo))
+    itemsize = STORAGE_DTYPES[cache.manifest["dtype"]].itemsize
+    per_frame = sum(int(np.prod(shape)) * itemsize for shape in cache.layout["arrays"].values())
+    where = f" writing {error.filename}" if error.filename else ""
+    return (f"cache {cache.key}: {error.strerror}{where}; {frames} of {cache.n_frames} frames are not written yet, "
+            f"needing up to {frames * per_frame / 2**20:.1f} MiB ({per_frame} bytes per frame before compression) on "
+            f"the file system of {cache.path}. Blocks already written are kept: free space and run the same command "
+            f"again to resume")

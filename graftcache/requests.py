@@ -38,6 +38,7 @@ class ExtractRequest(Checked):
     block_frames: int = 256
     cache: str | None = None
     progress: bool = True
+    allow_nonfinite: bool = False  # cache NaN/inf state/action/features instead of refusing (fit then refuses)
     extra_manifest: dict[str, Any] = field(default_factory=dict)
 
     RULES: ClassVar[dict[str, Rule]] = {"seed": NON_NEGATIVE, "batch_size": POSITIVE, "num_workers": NON_NEGATIVE,
@@ -73,6 +74,7 @@ class FitRequest(Checked):
     out: str | None = None
     cache: str | None = None
     progress: bool = True
+    drop_nonfinite: bool = False  # drop frames with NaN/inf (features, state, action chunk) instead of refusing
     command: str = field(default_factory=lambda: " ".join(["graftcache", *sys.argv[1:]]))
 
     RULES: ClassVar[dict[str, Rule]] = {

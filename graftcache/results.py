@@ -43,6 +43,7 @@ SCHEMA: dict[str, pl.DataType] = {
     "device": pl.String,
     "compute_dtype": pl.String,       # resolved model compute dtype ("bf16" | "fp32"), never "auto"
     "random_init": pl.Boolean,        # any random-init weights in the encoder or the backbone
+    "n_dropped_nonfinite": pl.Int64,  # suite frames dropped for NaN/inf by `fit --drop-nonfinite` (0: none)
     "graftcache_version": pl.String,
     "command": pl.String,             # the command line that produced the row
 }

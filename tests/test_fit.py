@@ -23,7 +23,7 @@ from graftcache.cli import main
 from graftcache.errors import FitError
 from graftcache.extract import ExtractRequest, extract
 from graftcache.fit.controls import get_control
-from graftcache.fit.data import load_frames, split_episodes, suite_index_table
+from graftcache.fit.data import load_frames, split_episodes
 from graftcache.fit.loop import camera_map, train
 from graftcache.fit.run import Cell, Fitter, FitRequest
 from graftcache.graft import GraftProjector

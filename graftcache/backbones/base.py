@@ -101,9 +101,10 @@ class BackboneAdapter(GraftSurgery, PromptBatches, FlowObjective, ABC):
             raise BackboneError(f"{folder}: a tiny {marker['backbone']} checkpoint, not {cls.name}")
         config = cls._read_config(folder)
         config.device = device
+        weights = weights_file(folder)  # header read before lerobot's load: a non-safetensors file is one line
         with quiet():  # lerobot's loading chatter, and pi0.5's key renaming warns per vision key
             policy = cls._load_policy(folder, config, marker)
-            verify_weights(policy, weights_file(folder), cls._checkpoint_key_map(policy))
+            verify_weights(policy, weights, cls._checkpoint_key_map(policy))
         processors = load_processors(folder, *cls._processor_overrides(policy.config, marker, device))
         if processors is None:
             if dataset_stats is None:

@@ -64,9 +64,18 @@ def check_readable(folder: Path, what: str = "policy checkpoint") -> Path:
 
 
 def weights_file(folder: Path) -> Path:
+    """The checkpoint's weights file, its safetensors header read, so a file that is not one is a one-line
+    error naming it before lerobot loads it."""
+    from safetensors import SafetensorError, safe_open
+
     path = folder / WEIGHTS_FILE
     if not path.is_file():
         raise BackboneError(f"{folder}: no {WEIGHTS_FILE} (not a lerobot policy checkpoint)")
+    try:
+        with safe_open(str(path), framework="pt"):
+            pass
+    except SafetensorError as e:
+        raise BackboneError(f"{path}: not a safetensors file ({e})") from None
     return path
 
 
@@ -98,9 +107,12 @@ def verify_weights(policy: nn.Module, file: Path, key_map: Callable[[dict], dict
     wrong = [f"{k} {tuple(state[k].shape)} vs {shapes[k]}" for k in state
              if k in shapes and tuple(state[k].shape) != tuple(shapes[k])]
     if missing or wrong:
-        detail = "; ".join([*(f"missing {k}" for k in missing[:3]), *(f"shape {w}" for w in wrong[:3])])
+        unexpected = [k for k in shapes if k not in state]  # named only: lerobot drops some keys on purpose
+        detail = "; ".join([*(f"missing {k}" for k in missing[:3]), *(f"shape {w}" for w in wrong[:3]),
+                            *(f"unexpected {k}" for k in unexpected[:3])])
         raise BackboneError(
-            f"{file}: checkpoint does not match the policy ({len(missing)} missing, {len(wrong)} mis-shaped): {detail}"
+            f"{file}: checkpoint does not match the policy ({len(missing)} missing, {len(wrong)} mis-shaped, "
+            f"{len(unexpected)} unexpected): {detail}"
         )
 
 

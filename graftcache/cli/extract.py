@@ -21,6 +21,7 @@ from graftcache.cli.common import (
 from graftcache.pooling import format_grid
 from graftcache.requests import ExtractRequest
 from graftcache.runtime import DTYPES
+from graftcache.nonfinite import DROP_FLAG
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -52,6 +53,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     add_compute_dtype_flag(p, ExtractRequest)
     add_field(p, ExtractRequest, "block_frames", type=positive_int, help="frames per Zarr shard / resumable unit")
     add_progress_flag(p)
+    add_field(p, ExtractRequest, "allow_nonfinite", action="store_true",
+              help="cache frames whose state, action or features hold NaN/inf instead of refusing the dataset "
+              f"(`fit` then refuses the cache unless {DROP_FLAG} drops those frames)")
     add_cache_flag(p)
     add_device_flag(p, ExtractRequest)
     add_field(p, ExtractRequest, "dtype", choices=tuple(DTYPES), help="stored feature dtype")

@@ -56,6 +56,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     add_field(p, FitRequest, "results")
     add_field(p, FitRequest, "out", help="run folder for projectors (default: <cache>/runs)")
     add_progress_flag(p)
+    add_field(p, FitRequest, "drop_nonfinite", action="store_true",
+              help="drop frames whose features, state or action chunk hold NaN/inf (a cache holding any is "
+              "refused otherwise); the results row records how many (n_dropped_nonfinite)")
     add_cache_flag(p)
     p.set_defaults(func=run)
 

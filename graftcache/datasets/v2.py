@@ -11,7 +11,7 @@ import json
 from pathlib import Path
 from typing import Any, Sequence
 
-from graftcache.datasets.layout import EpisodeFiles, Layout, VideoSpan
+from graftcache.datasets.layout import EpisodeFiles, Layout, VideoSpan, template_path
 from graftcache.datasets.meta import EpisodeMeta
 from graftcache.errors import DatasetError
 
@@ -46,8 +46,9 @@ def load(root: Path, info: dict[str, Any], video_keys: Sequence[str]) -> Layout:
         start += length
         fmt = {"episode_chunk": ep // chunks_size, "episode_index": ep}
         files.append(EpisodeFiles(
-            data=root / data_tpl.format(**fmt),
-            videos={key: VideoSpan(root / video_tpl.format(video_key=key, **fmt), 0.0) for key in video_keys},
+            data=template_path(root, "data_path", data_tpl, ep, **fmt),
+            videos={key: VideoSpan(template_path(root, "video_path", video_tpl, ep, video_key=key, **fmt), 0.0)
+                    for key in video_keys},
         ))
     return Layout(tasks=tasks, episodes=tuple(episodes), files=tuple(files),
                   meta_files=(root / "meta" / "info.json", tasks_path, episodes_path))

@@ -12,7 +12,7 @@ from typing import Any, Sequence
 
 import pyarrow.parquet as pq
 
-from graftcache.datasets.layout import EpisodeFiles, Layout, VideoSpan
+from graftcache.datasets.layout import EpisodeFiles, Layout, VideoSpan, template_path
 from graftcache.datasets.meta import EpisodeMeta
 from graftcache.errors import DatasetError
 
@@ -38,13 +38,13 @@ def load(root: Path, info: dict[str, Any], video_keys: Sequence[str]) -> Layout:
         episodes.append(EpisodeMeta(index=ep, length=int(row["length"]),
                                     task_index=_task_of(row["tasks"], task_index, ep, tasks_path),
                                     dataset_from_index=int(row["dataset_from_index"])))
-        data = root / info["data_path"].format(chunk_index=int(row["data/chunk_index"]),
-                                               file_index=int(row["data/file_index"]))
+        data = template_path(root, "data_path", info.get("data_path"), ep, chunk_index=int(row["data/chunk_index"]),
+                             file_index=int(row["data/file_index"]))
         videos = {
             key: VideoSpan(
-                path=root / info["video_path"].format(video_key=key,
-                                                      chunk_index=int(row[f"videos/{key}/chunk_index"]),
-                                                      file_index=int(row[f"videos/{key}/file_index"])),
+                path=template_path(root, "video_path", info.get("video_path"), ep, video_key=key,
+                                   chunk_index=int(row[f"videos/{key}/chunk_index"]),
+                                   file_index=int(row[f"videos/{key}/file_index"])),
                 from_timestamp=float(row[f"videos/{key}/from_timestamp"]),
             )
             for key in video_keys

@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from safetensors.torch import load_file
+from safetensors import SafetensorError
 from torch import nn
 
 from graftcache.encoders.encoder import Encoder, feature_map_to_grid, tokens_to_grid
@@ -22,7 +22,9 @@ from graftcache.encoders.hf_archs import HFArch, arch_of
 from graftcache.encoders.loading import (
     hf_weight_files,
     hub_snapshot,
+    first_line,
     missing_hub_weights,
+    read_safetensors,
     require_file,
     seeded,
     sha256_files,
@@ -59,7 +61,7 @@ def build(spec: EncoderSpec, req: LoadRequest, *, arch: HFArch, config: Callable
         model, info = _from_folder(spec, arch, Path(req.weights), "file", str(req.weights))
     elif req.weights is not None:
         path = require_file(spec, Path(req.weights))
-        model = _load(spec, arch, path, None, config=config(), state_dict=load_file(path))
+        model = _load(spec, arch, path, None, config=config(), state_dict=read_safetensors(spec, path))
         info = weights_info("file", str(path), sha256_file(path))
     else:
         folder, source, ref = default_folder(spec)
@@ -148,14 +150,16 @@ def _load(spec: EncoderSpec, arch: HFArch, origin: Path, *args: Any, **kwargs: A
     try:
         model, info = arch.model_class().from_pretrained(*args, output_loading_info=True, dtype=torch.float32,
                                                          **kwargs)
-    except (OSError, RuntimeError, ValueError) as e:
-        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-        raise EncoderError(f"encoder {spec.name!r}: {origin} does not load into {arch.model_cls}: {first}") from e
+    except (OSError, RuntimeError, ValueError, SafetensorError) as e:
+        raise EncoderError(f"encoder {spec.name!r}: {origin} does not load into {arch.model_cls}: "
+                           f"{first_line(e)}") from e
     # transformers 5 reports sets (mismatched entries are (key, checkpoint shape, model shape)); sort for a stable message
     missing = sorted(info["missing_keys"]) + sorted(k for k, *_ in info["mismatched_keys"])
     if missing:
+        unexpected = sorted(info["unexpected_keys"])
+        extra = f"; {len(unexpected)} unexpected (first: {', '.join(unexpected[:3])})" if unexpected else ""
         raise EncoderError(f"encoder {spec.name!r}: {origin} leaves {len(missing)} weights of {arch.model_cls} "
-                           f"unset (first: {missing[0]}); is it a {spec.model_id} checkpoint?")
+                           f"unset (first: {', '.join(missing[:3])}){extra}; is it a {spec.model_id} checkpoint?")
     return model
 
 

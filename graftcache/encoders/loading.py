@@ -14,6 +14,8 @@ from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
 
 import torch
+from safetensors import SafetensorError
+from safetensors.torch import load_file
 
 from graftcache.encoders.spec import EncoderSpec
 from graftcache.errors import EncoderError
@@ -87,3 +89,32 @@ def require_file(spec: EncoderSpec, path: Path, suffixes: tuple[str, ...] = (".s
         raise EncoderError(f"encoder {spec.name!r}: weights file {path} must be {' or '.join(suffixes)} "
                            f"(pickled checkpoints are not loaded; convert with safetensors.torch.save_file)")
     return path
+
+
+def read_safetensors(spec: EncoderSpec, path: Path) -> dict[str, torch.Tensor]:
+    """The tensors of a safetensors file; a file that is not one is a one-line error naming it."""
+    try:
+        return load_file(path)
+    except SafetensorError as e:
+        raise EncoderError(f"encoder {spec.name!r}: {path} is not a safetensors file ({first_line(e)})") from None
+
+
+def first_line(error: BaseException) -> str:
+    """The first line of an exception's message (library errors often append pages of detail)."""
+    text = str(error).strip()
+    return text.splitlines()[0] if text else type(error).__name__
+
+
+def key_mismatch(expected: Mapping[str, torch.Tensor], found: Mapping[str, torch.Tensor],
+                 error: BaseException | None = None, shown: int = 3) -> str:
+    """'N missing (first: ...), M unexpected (first: ...), K mis-shaped (...)' between a model's state dict and
+    a checkpoint's tensors; `error`'s first line when the keys agree (a checkpoint filter failed instead)."""
+    missing = [k for k in expected if k not in found]
+    unexpected = [k for k in found if k not in expected]
+    shaped = [f"{k} {tuple(found[k].shape)} vs {tuple(v.shape)}" for k, v in expected.items()
+              if k in found and tuple(found[k].shape) != tuple(v.shape)]
+    parts = [f"{len(keys)} {what} (first: {', '.join(keys[:shown])})"
+             for what, keys in (("missing", missing), ("unexpected", unexpected), ("mis-shaped", shaped)) if keys]
+    if parts:
+        return "; ".join(parts)
+    return first_line(error) if error is not None else "keys and shapes agree"

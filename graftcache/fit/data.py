@@ -16,6 +16,7 @@ import polars as pl
 import torch
 
 from graftcache.errors import FitError
+from graftcache.nonfinite import DROP_FLAG, nonfinite_rows
 from graftcache.pooling import format_grid, parse_grid, pool_grid
 from graftcache.store import FeatureCache
 
@@ -164,3 +165,24 @@ def load_frames(cache: FeatureCache, suite: str, *, cameras: Sequence[str], grid
         task_index=torch.from_numpy(sub["task_index"].to_numpy().astype(np.int64)),
         tasks=tuple(cache.manifest["tasks"]),
     )
+
+
+def drop_nonfinite(table: FrameTable, cache: FeatureCache, *, drop: bool) -> tuple[FrameTable, int]:
+    """`table` without the frames whose features, state or action chunk hold a NaN/inf, and how many those
+    were. Without `drop` any such frame is a FitError naming the cache, episode and frame: a NaN would flow
+    into the normalisation, the loss and the MSE. (Caches extracted before stage 1 refused them, or with
+    `extract --allow-nonfinite`, can hold them.)"""
+    parts = {"state": table.state, "action chunk": table.actions,
+             **{f"features/{c}": f for c, f in table.features.items()}}
+    bad = {name: nonfinite_rows(values) for name, values in parts.items()}
+    any_bad = np.logical_or.reduce(list(bad.values()))
+    if not any_bad.any():
+        return table, 0
+    if not drop:
+        name = next(n for n, b in bad.items() if b.any())
+        at = int(np.flatnonzero(bad[name])[0])
+        frame = int(cache.index()["frame_index"][int(table.rows[at])])
+        raise FitError(f"cache {cache.key}: {name} is NaN/inf at episode {int(table.episode_index[at])} frame {frame} "
+                       f"({int(any_bad.sum())} of {len(table)} frame(s) non-finite); pass {DROP_FLAG} to drop them "
+                       f"(the results row records how many)")
+    return table.take(np.flatnonzero(~any_bad)), int(any_bad.sum())

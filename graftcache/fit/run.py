@@ -20,6 +20,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 from safetensors.torch import save_file
 
@@ -31,7 +32,7 @@ from graftcache.backbones.pool import BackbonePool
 from graftcache.backbones.tiny_record import resolve_policy
 from graftcache.errors import FitError
 from graftcache.fit.controls import Control, get_control
-from graftcache.fit.data import FrameTable, load_frames, split_episodes, suite_index_table
+from graftcache.fit.data import FrameTable, drop_nonfinite, load_frames, split_episodes, suite_index_table
 from graftcache.fit.lookup import find_cache
 from graftcache.fit.loop import camera_map, evaluate
 from graftcache.fit.objectives import EVAL_ONLY, OBJECTIVES, Fitting, Objective
@@ -93,6 +94,7 @@ class _Material:
     encoder: str
     grid: tuple[int, int]
     targets: FrameTable | None = None  # native tokens of the train split, for objectives that need them
+    dropped: int = 0  # frames dropped for NaN/inf (--drop-nonfinite)
 
 
 class Fitter:
@@ -177,14 +179,21 @@ class Fitter:
         key = (source.key, control.extra, None if control.extra else grid)
         if key not in self._materials:
             cams = list(camera_map(adapter, source.manifest["cameras"]).values())
-            table = load_frames(source, self.req.suite, cameras=cams, grid=None if control.extra else grid,
-                                chunk=adapter.chunk_size, extra=control.extra)
+            drop = self.req.drop_nonfinite
+            loaded = load_frames(source, self.req.suite, cameras=cams, grid=None if control.extra else grid,
+                                 chunk=adapter.chunk_size, extra=control.extra)
+            table, _ = drop_nonfinite(loaded, source, drop=drop)
+            native = None
+            if self._objective(control).needs_native:
+                native, _ = drop_nonfinite(load_frames(self.native_cache, self.req.suite, cameras=cams, grid=None,
+                                                       chunk=adapter.chunk_size, extra="connector"),
+                                           self.native_cache, drop=drop)
+                both = np.intersect1d(table.rows, native.rows)  # features and targets: the same frames
+                table, native = (t.take(np.flatnonzero(np.isin(t.rows, both))) for t in (table, native))
             mat = _Material(table.subset(self.split.train_episodes),
                             table.subset(self.split.eval_episodes).evenly(self.req.eval_frames), source,
-                            source.manifest["encoder"]["name"], grid)
-            if self._objective(control).needs_native:
-                native = load_frames(self.native_cache, self.req.suite, cameras=cams, grid=None,
-                                     chunk=adapter.chunk_size, extra="connector")
+                            source.manifest["encoder"]["name"], grid, dropped=len(loaded) - len(table))
+            if native is not None:
                 mat.targets = native.subset(self.split.train_episodes)
             self._materials[key] = mat
         return self._materials[key]
@@ -213,7 +222,7 @@ class Fitter:
             "eval_mse_episodes": [score.per_episode[e] for e in sorted(score.per_episode)],
             "n_eval_frames": score.n_frames, "n_eval_episodes": len(score.per_episode), "wall_s": wall,
             "device": str(self.device), "random_init": bool(mat.cache.manifest.get("random_init") or adapter.random_init),
-            "graftcache_version": graftcache.__version__,
+            "n_dropped_nonfinite": mat.dropped, "graftcache_version": graftcache.__version__,
         })
 
     def _save_projector(self, adapter, cell: Cell) -> None:

@@ -1,0 +1,302 @@
+"""Issue 14's probes, each run through the CLI as a subprocess (`python -m graftcache`), as a skeptical user
+would: a bad input ends in a non-zero exit with one line naming the file / episode / frame / key / cache and
+no traceback, and no cache is marked complete; copying and resuming succeed.
+
+Fixtures are cheap: the 3-episode, 64x64 lerobot-written dataset of datasets_fixtures, random-init
+ResNet-18 caches of it and a tiny SmolVLA checkpoint, built once per module.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import polars as pl
+import pytest
+import timm
+from helpers.backbones import tiny
+from helpers.datasets import Written
+from safetensors.torch import save_file
+
+from graftcache import results
+from graftcache.extract import ExtractRequest, extract
+from graftcache.store import FeatureCache, list_caches
+
+#: ~7 min on 2 shared cores: each row starts a Python that imports torch, transformers and lerobot.
+pytestmark = pytest.mark.slow
+
+ENCODER = "resnet18"
+NAN_EPISODE, NAN_FRAME = 0, 3  # episode 0 is libero_spatial in the fixture dataset
+#: Fails the block writes after the first with ENOSPC, then runs the CLI: a disk that fills mid-extraction.
+DISK_FULL = """
+import errno, sys
+from graftcache.store.cache import FeatureCache
+write = FeatureCache.write_block
+def full(self, block, data):
+    if block >= 1:
+        raise OSError(errno.ENOSPC, "No space left on device", str(self.path / "features"))
+    write(self, block, data)
+FeatureCache.write_block = full
+from graftcache.cli import main
+sys.exit(main(sys.argv[1:]))
+"""
+#: Rows that the store layer of the s3 branch (issue 11) makes pass: checksum-on-read in stage 2 and `ls` with a
+#: broken cache. Remove this mark once that branch is merged (strict: an unexpected pass fails the run).
+AFTER_S3 = pytest.mark.xfail(strict=True, reason="store layer of issue 11 (branch s3)")
+
+
+def _save(path: Path, state: dict) -> Path:
+    save_file({k: v.contiguous() for k, v in state.items()}, str(path))
+    return path
+
+
+def _with_state_nan(src: Path, dst: Path) -> Path:
+    """A copy of the dataset with one NaN in the state of episode NAN_EPISODE, frame NAN_FRAME."""
+    shutil.copytree(src, dst)
+    for f in (dst / "data").rglob("*.parquet"):
+        df = pl.read_parquet(f)
+        state = np.stack(df["observation.state"].to_numpy()).copy()
+        hit = ((df["episode_index"] == NAN_EPISODE) & (df["frame_index"] == NAN_FRAME)).to_numpy()
+        state[hit, 2] = np.nan
+        df.with_columns(pl.Series("observation.state", state, dtype=df["observation.state"].dtype)).write_parquet(f)
+    return dst
+
+
+#: A one-encoder sweep recipe; each probe replaces one of its values with a string of the wrong type.
+RECIPE = """name = "probe"
+dataset = "{ds}"
+results = "{base}/sweep.parquet"
+suites = ["libero_spatial"]
+{seeds}
+[[backbones]]
+name = "smolvla"
+policy = "tiny"
+[[encoders]]
+name = "resnet18"
+{random_init}
+{section}
+"""
+RECIPE_DEFAULTS = {"seeds": "seeds = [0]", "random_init": "random_init = true", "section": ""}
+RECIPES = {
+    "batch_size_str": {"section": '[extract]\nbatch_size = "8"'},
+    "seeds_str": {"seeds": 'seeds = "0,1"'},
+    "steps_str": {"section": '[fit]\nsteps = "x"'},
+    "random_init_str": {"random_init": 'random_init = "false"'},
+}
+
+
+@dataclass
+class World:
+    """Paths the probes name, as a dict for str.format."""
+
+    paths: dict[str, str]
+    clean_key: str
+    nan_key: str
+
+
+@pytest.fixture(scope="module")
+def world(v3_video: Written, tmp_path_factory: pytest.TempPathFactory) -> World:  # noqa: F811
+    base = tmp_path_factory.mktemp("probes")
+    ds = base / "ds"
+    shutil.copytree(v3_video.root, ds)
+    nan_ds = _with_state_nan(v3_video.root, base / "ds_nan")
+    evil = base / "ds_evil"
+    shutil.copytree(v3_video.root, evil)
+    info = json.loads((evil / "meta" / "info.json").read_text())
+    info["video_path"] = "../ds/" + info["video_path"]  # a real dataset's videos, outside this root
+    (evil / "meta" / "info.json").write_text(json.dumps(info))
+
+    policy = tiny("smolvla").save(base / "policy")
+    bad_policy = base / "bad_policy"
+    shutil.copytree(policy, bad_policy)
+    (bad_policy / "model.safetensors").write_bytes(b"\xff" * 64)
+
+    full = timm.create_model("resnet18", pretrained=False).state_dict()
+    _save(base / "timm_resnet18.safetensors", full)
+    _save(base / "partial.safetensors", {k: v for k, v in full.items() if k != "layer4.1.bn2.weight"})
+    _save(base / "wrong_arch.safetensors", timm.create_model("mobilenetv2_100", pretrained=False).state_dict())
+    (base / "garbage.safetensors").write_bytes(b"\xff" * 64)
+    (base / "not_parquet.parquet").write_text("run_id,eval_mse\nx,1\n")
+    (base / "empty.parquet").write_bytes(b"")
+
+    common = dict(encoder=ENCODER, random_init=True, num_workers=0, batch_size=8, progress=False)
+    clean = extract(ExtractRequest(dataset=str(ds), cache=str(base / "cache"), **common), log=lambda _: None).key
+    nan = extract(ExtractRequest(dataset=str(nan_ds), cache=str(base / "nan_cache"), allow_nonfinite=True, **common),
+                  log=lambda _: None).key
+    paths = {"base": str(base), "ds": str(ds), "nan_ds": str(nan_ds), "evil": str(evil), "policy": str(policy),
+             "bad_policy": str(bad_policy), "cache": str(base / "cache"), "nan_cache": str(base / "nan_cache")}
+    for name, parts in RECIPES.items():
+        path = base / f"{name}.toml"
+        path.write_text(RECIPE.format(**paths, **{**RECIPE_DEFAULTS, **parts}))
+        paths[name] = str(path)
+    return World(paths, clean, nan)
+
+
+@dataclass(frozen=True)
+class Probe:
+    """One command of the issue: CLI args (str.format'ed with the world's paths, `root` a fresh cache root,
+    `out` a fresh results file) and the texts its one-line error must contain."""
+
+    args: str
+    names: tuple[str, ...]
+    succeeds: bool = False
+    inject: str | None = None
+
+
+FIT = ("fit --backbone smolvla --policy {policy} --encoder resnet18 --suite libero_spatial --seed 0 --steps 2 "
+       "--batch-size 4 --eval-fraction 0.5 --eval-frames 4 --num-denoise-steps 2 --no-progress --results {out}")
+EXTRACT = "extract --encoder resnet18 --random-init --dataset {ds} --num-workers 0 --no-progress --cache {root}"
+TIMM = "extract --encoder timm:resnet18 --dataset {ds} --num-workers 0 --no-progress --cache {root} --weights "
+
+PROBES: dict[str, Probe] = {
+    "extract --batch-size 0": Probe(EXTRACT + " --batch-size 0", ("--batch-size", "must be >= 1")),
+    "extract --block-frames 0": Probe(EXTRACT + " --block-frames 0", ("--block-frames", "must be >= 1")),
+    "extract --episodes -1": Probe(EXTRACT + " --episodes -1", ("--episodes", "'-1'")),
+    "extract --device foo": Probe(EXTRACT + " --device foo", ("foo",)),
+    "timm weights of another model": Probe(TIMM + "{base}/wrong_arch.safetensors",
+                                           ("wrong_arch.safetensors", "missing (first: conv1.weight")),
+    "timm weights with a key missing": Probe(TIMM + "{base}/partial.safetensors",
+                                             ("partial.safetensors", "1 missing (first: layer4.1.bn2.weight)")),
+    "timm weights not safetensors": Probe(TIMM + "{base}/garbage.safetensors",
+                                          ("garbage.safetensors", "not a readable weights file")),
+    "wheel encoder with other weights": Probe(
+        "extract --encoder mobilenetv2 --dataset {ds} --num-workers 0 --no-progress --cache {root} "
+        "--weights {base}/timm_resnet18.safetensors", ("timm_resnet18.safetensors", "mobilenetv2_100", "missing")),
+    "transformers weights of another model": Probe(EXTRACT.replace(" --random-init", "")
+                                                   + " --weights {base}/timm_resnet18.safetensors",
+                                                   ("timm_resnet18.safetensors", "unset (first:", "unexpected")),
+    "transformers weights not safetensors": Probe(EXTRACT.replace(" --random-init", "")
+                                                  + " --weights {base}/garbage.safetensors",
+                                                  ("garbage.safetensors", "not a safetensors file")),
+    "native tower checkpoint not safetensors": Probe(
+        "extract --encoder smolvla-native --policy {bad_policy} --dataset {ds} --num-workers 0 --cache {root}",
+        ("bad_policy/model.safetensors", "not a safetensors file")),
+    "NaN in the state column": Probe(EXTRACT.replace("{ds}", "{nan_ds}"),
+                                     (f"episode {NAN_EPISODE} frame {NAN_FRAME}", "state[2] is nan")),
+    "video_path template leaving the root": Probe(EXTRACT.replace("{ds}", "{evil}"),
+                                                  ("meta/info.json", "video_path", "outside the dataset root")),
+    "disk full during extract": Probe(EXTRACT + " --block-frames 8", ("No space left", "MiB", "resume"),
+                                      inject=DISK_FULL),
+    "fit --seeds -1": Probe(FIT + " --cache {cache} --seeds -1".replace("--seed 0 ", ""), ("--seeds", "-1")),
+    "fit --results not Parquet": Probe(FIT.replace("{out}", "{base}/not_parquet.parquet") + " --cache {cache}",
+                                       ("not_parquet.parquet", "not a Parquet results table")),
+    "fit on a cache with NaN": Probe(FIT + " --cache {nan_cache}",
+                                     ("state is NaN/inf", f"episode {NAN_EPISODE} frame {NAN_FRAME}",
+                                      "--drop-nonfinite")),
+    "report on an empty file": Probe("report {base}/empty.parquet --out {root}", ("empty.parquet", "empty file")),
+    "report on a non-Parquet file": Probe("report {base}/not_parquet.parquet --out {root}", ("not_parquet.parquet",)),
+    "sweep batch_size = \"8\"": Probe("sweep {batch_size_str} --dry-run", ("batch_size_str.toml", "batch_size")),
+    "sweep seeds = \"0,1\"": Probe("sweep {seeds_str} --dry-run", ("seeds_str.toml", "seeds")),
+    "sweep steps = \"x\"": Probe("sweep {steps_str} --dry-run", ("steps_str.toml", "steps")),
+    "sweep random_init = \"false\"": Probe("sweep {random_init_str} --dry-run", ("random_init_str.toml",
+                                                                                "random_init")),
+}
+
+
+def _cli(args: list[str], inject: str | None = None) -> subprocess.CompletedProcess:
+    cmd = [sys.executable, "-c", inject, *args] if inject else [sys.executable, "-m", "graftcache", *args]
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+
+
+def _complete(root: Path) -> list[str]:
+    return [c.key for c in list_caches(root) if c.complete]
+
+
+@pytest.mark.parametrize("name", list(PROBES))
+def test_probe_is_one_line_error(name: str, world: World, tmp_path: Path) -> None:
+    probe = PROBES[name]
+    root, out = tmp_path / "cache", tmp_path / "results.parquet"
+    args = probe.args.format(**world.paths, root=root, out=out).split()
+    done = _cli(args, probe.inject)
+    last = done.stderr.strip().splitlines()[-1] if done.stderr.strip() else ""
+    assert done.returncode != 0 and "Traceback" not in done.stderr, done.stderr[-3000:]
+    assert last.startswith(("graftcache", "usage")), done.stderr[-3000:]
+    for text in probe.names:
+        assert text in last, f"{text!r} not in {last!r}"
+    assert not _complete(root) and not out.exists()
+
+
+def test_disk_full_extract_resumes_once_there_is_space(world: World, tmp_path: Path) -> None:
+    args = PROBES["disk full during extract"].args.format(**world.paths, root=tmp_path).split()
+    failed = _cli(args, DISK_FULL)
+    assert failed.returncode == 2 and "Traceback" not in failed.stderr
+    cache = list_caches(tmp_path)[0]
+    assert not cache.complete and cache.blocks_done() == {0}  # the first block survives the full disk
+    frames = cache.n_frames - 8
+    per_frame = 2 * 64 * 512 * 2  # 2 cameras x 8x8 tokens x 512 channels x fp16
+    assert f"{frames} of {cache.n_frames} frames are not written yet, needing up to " \
+           f"{frames * per_frame / 2**20:.1f} MiB" in failed.stderr
+    resumed = _cli(args)
+    assert resumed.returncode == 0, resumed.stderr
+    assert _cli(["verify", cache.key, "--cache", str(tmp_path)]).returncode == 0
+
+
+def test_fit_drops_nonfinite_frames_only_when_asked(world: World, tmp_path: Path) -> None:
+    out = tmp_path / "results.parquet"
+    args = (FIT + " --cache {nan_cache} --drop-nonfinite").format(**world.paths, out=out).split()
+    done = _cli(args)
+    assert done.returncode == 0, done.stderr[-3000:]
+    row = results.read(out).row(0, named=True)
+    assert row["n_dropped_nonfinite"] == 1 and np.isfinite(row["eval_mse"])
+    clean = _cli((FIT + " --cache {cache}").format(**world.paths, out=tmp_path / "clean.parquet").split())
+    assert clean.returncode == 0 and results.read(tmp_path / "clean.parquet")["n_dropped_nonfinite"].to_list() == [0]
+
+
+def test_a_copied_cache_is_found_and_verifies(world: World, tmp_path: Path) -> None:
+    shutil.copytree(Path(world.paths["cache"]) / world.clean_key, tmp_path / world.clean_key)
+    done = _cli(["verify", world.clean_key, "--cache", str(tmp_path)])
+    assert done.returncode == 0 and "all checksums match" in done.stdout, done.stdout + done.stderr
+
+
+@AFTER_S3
+def test_fit_refuses_a_flipped_byte_in_a_shard(world: World, tmp_path: Path) -> None:
+    shutil.copytree(Path(world.paths["cache"]) / world.clean_key, tmp_path / world.clean_key)
+    shard = next(p for p in sorted((tmp_path / world.clean_key / "features").rglob("*")) if p.is_file()
+                 and p.name != "zarr.json")
+    data = bytearray(shard.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    shard.write_bytes(bytes(data))
+    out = tmp_path / "results.parquet"
+    done = _cli((FIT + " --cache " + str(tmp_path)).format(**world.paths, out=out).split())
+    last = done.stderr.strip().splitlines()[-1] if done.stderr.strip() else ""
+    assert done.returncode != 0 and "Traceback" not in done.stderr, done.stderr[-3000:]
+    assert world.clean_key in last and "features/" in last and not out.exists()
+
+
+@AFTER_S3
+def test_ls_lists_healthy_caches_and_flags_a_broken_one(world: World, tmp_path: Path) -> None:
+    shutil.copytree(Path(world.paths["cache"]) / world.clean_key, tmp_path / world.clean_key)
+    broken = tmp_path / "resnet18-broken"
+    shutil.copytree(Path(world.paths["cache"]) / world.clean_key, broken)
+    (broken / "zarr.json").write_text("{ not json")
+    done = _cli(["ls", "--cache", str(tmp_path)])
+    assert "Traceback" not in done.stderr, done.stderr[-3000:]
+    assert world.clean_key in done.stdout and "resnet18-broken" in done.stdout + done.stderr
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root ignores file modes")
+def test_fit_on_a_read_only_cache_root_is_one_line(world: World, tmp_path: Path) -> None:
+    root = tmp_path / "ro"
+    shutil.copytree(Path(world.paths["cache"]), root)
+    root.chmod(0o555)
+    try:
+        done = _cli((FIT + " --cache " + str(root)).format(**world.paths, out=tmp_path / "r.parquet").split())
+    finally:
+        root.chmod(0o755)
+    assert "Traceback" not in done.stderr, done.stderr[-3000:]
+    assert done.returncode == 0 or str(root) in done.stderr.strip().splitlines()[-1]
+
+
+def test_extracted_caches_hold_what_the_probes_assume(world: World) -> None:
+    """The fixtures themselves: the NaN cache holds exactly one non-finite state, the clean one none."""
+    nan = FeatureCache(Path(world.paths["nan_cache"]) / world.nan_key).index()
+    bad = ~np.isfinite(np.stack(nan["state"].to_numpy())).all(axis=1)
+    assert nan.filter(pl.Series(bad)).select("episode_index", "frame_index").rows() == [(NAN_EPISODE, NAN_FRAME)]
+    clean = FeatureCache(Path(world.paths["cache"]) / world.clean_key).index()
+    assert np.isfinite(np.stack(clean["state"].to_numpy())).all()
