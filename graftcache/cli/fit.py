@@ -46,6 +46,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--results", default="results.parquet")
     p.add_argument("--out", default=None, help="run folder for projectors (default: <cache>/runs)")
     p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--accept-numerics-drift", action="store_true",
+                   help="fit even when this environment computes a cache's features differently from the one that "
+                        "made it (its numerics fingerprint); each row records the measured drift")
     add_cache_flag(p)
     p.set_defaults(func=run)
 
@@ -61,7 +64,7 @@ def run(args: argparse.Namespace) -> int:
         eval_split_seed=args.eval_split_seed, eval_frames=args.eval_frames,
         num_denoise_steps=args.num_denoise_steps, lora_rank=args.lora_rank, device=args.device,
         compute_dtype=args.compute_dtype, results=args.results, out=args.out, cache=args.cache,
-        progress=not args.no_progress,
+        progress=not args.no_progress, accept_numerics_drift=args.accept_numerics_drift,
     )
     Fitter(req).run()
     return 0

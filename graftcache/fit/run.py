@@ -27,6 +27,7 @@ from graftcache import results
 from graftcache.backbones.checkpoint import follow_umask
 from graftcache.backbones.pool import BackbonePool
 from graftcache.checks import FRACTION, NON_NEGATIVE, POSITIVE, SEEDS, Checked, Rule
+from graftcache.encoders.fingerprint import NumericsCheck, check_numerics
 from graftcache.errors import FitError
 from graftcache.fit.align import fit_ridge
 from graftcache.fit.controls import Control, get_control, transform_features
@@ -67,6 +68,7 @@ class FitRequest(Checked):
     out: str | None = None
     cache: str | None = None
     progress: bool = True
+    accept_numerics_drift: bool = False  # fit caches this environment would compute differently (rows record it)
     command: str = field(default_factory=lambda: " ".join(["graftcache", *sys.argv[1:]]))
 
     RULES: ClassVar[dict[str, Rule]] = {
@@ -133,6 +135,7 @@ class Fitter:
                                      num_denoise_steps=req.num_denoise_steps, dtype=self.dtype,
                                      progress=req.progress)
         self._materials: dict[tuple, _Material] = {}
+        self._numerics: dict[str, NumericsCheck] = {}  # cache key -> verdict, checked before the first cell runs
 
     # ---------------------------------------------------------------- loading
     def _source(self, control: Control) -> FeatureCache:
@@ -160,6 +163,28 @@ class Fitter:
                 mat.targets = _split(native, self.split)
             self._materials[key] = mat
         return self._materials[key]
+
+    # ---------------------------------------------------------------- numerics
+    def _check_numerics(self) -> None:
+        """Recompute every cache's numerics probe here, once, before the first cell that runs (a finished grid
+        loads nothing). Drift is refused unless `accept_numerics_drift`; an unchecked cache is a warning."""
+        for cache in (self.cache, self.native_cache):
+            if cache is None or cache.key in self._numerics:
+                continue
+            check = self._numerics[cache.key] = check_numerics(cache, device=self.device)
+            if check.status == "unchecked":
+                self.log(f"warning: {check.line()}; its rows record numerics_drift as null")
+            elif check.status == "drift" and not self.req.accept_numerics_drift:
+                check.require_match("fit refuses it; pass --accept-numerics-drift to fit anyway "
+                                    "(rows record the drift)")
+            elif check.status == "drift":
+                self.log(f"warning: {check.line()}; fitting anyway (--accept-numerics-drift), rows record the drift")
+
+    def _drift(self, mat: _Material) -> float | None:
+        """Largest numerics drift over the caches a cell reads; None when one of them could not be checked."""
+        caches = [mat.cache, *([self.native_cache] if mat.targets is not None else [])]
+        drifts = [self._numerics[c.key].drift for c in caches]
+        return None if None in drifts else max(drifts)
 
     # ---------------------------------------------------------------- cells
     def cell(self, control: Control, seed: int, policy_id: str) -> dict[str, Any]:
@@ -194,6 +219,7 @@ class Fitter:
                     self.log(f"skip {self.req.backbone}/{encoder['name']}/{self.req.suite} seed {seed} "
                              f"control {control.name}: already in {self.req.results}")
                     continue
+                self._check_numerics()
                 adapter = self._adapter()
                 mat = self._material(adapter, control)
                 row = self._run_cell(adapter, control, seed, mat, cell, run_id)
@@ -243,6 +269,7 @@ class Fitter:
             "n_eval_episodes": len(score.per_episode), "eval_split_seed": self.req.eval_split_seed,
             "wall_s": wall, "device": str(self.device), "compute_dtype": self.req.compute_dtype,
             "random_init": bool(mat.cache.manifest.get("random_init") or adapter.random_init),
+            "numerics_drift": self._drift(mat),
             "graftcache_version": graftcache.__version__, "command": self.req.command,
         }
 
