@@ -218,7 +218,15 @@ def world(v3_image: Written, tmp_path_factory: pytest.TempPathFactory) -> World:
     return World(tmp_path_factory.mktemp("numerics_fit"), v3_image)
 
 
-def test_fit_refuses_drift_unless_accepted_and_records_it(world: World, tmp_path: Path,
+def _cli_fit(world: World, results_file: Path, *flags: str) -> int:
+    return main(["fit", "--backbone", "smolvla", "--policy", str(world.policy), "--encoder", ENCODER,
+                 "--suite", "libero_spatial", "--seed", "0", "--steps", "1", "--batch-size", "4",
+                 "--eval-fraction", "0.5", "--eval-frames", "2", "--num-denoise-steps", "1", "--no-progress",
+                 "--cache", str(world.cache.path.parent), "--results", str(results_file),
+                 "--out", str(results_file.parent / "runs"), *flags])
+
+
+def test_fit_refuses_drift_unless_accepted_and_records_it(world: World, tmp_path: Path, capsys: pytest.CaptureFixture,
                                                          monkeypatch: pytest.MonkeyPatch) -> None:
     nudge(monkeypatch)
     lines: list[str] = []
@@ -226,21 +234,22 @@ def test_fit_refuses_drift_unless_accepted_and_records_it(world: World, tmp_path
                                             f"pass --accept-numerics-drift"):
         Fitter(world.request(tmp_path), log=lines.append).run()
     assert not (tmp_path / "results.parquet").exists() and not any(ln.startswith("cell ") for ln in lines)
-    measured = fp.check_numerics(world.cache).drift
-    rows = Fitter(world.request(tmp_path, accept_numerics_drift=True), log=lines.append).run()
-    assert rows[0]["numerics_drift"] == pytest.approx(measured, rel=1e-3) and measured > fp.TOLERANCE["fp32"]
-    assert results.read(tmp_path / "results.parquet")["numerics_drift"].to_list() == [rows[0]["numerics_drift"]]
-    assert any(ln.startswith(f"warning: cache {world.cache.key}") and "fitting anyway" in ln for ln in lines)
+    capsys.readouterr()
+    assert _cli_fit(world, tmp_path / "r.parquet") == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith(f"graftcache fit: error: cache {world.cache.key}: this environment")
+    assert _cli_fit(world, tmp_path / "r.parquet", "--accept-numerics-drift") == 0
+    assert f"warning: cache {world.cache.key}: this environment" in capsys.readouterr().out
+    measured = fp.check_numerics(world.cache)
+    assert measured.status == "drift" and measured.drift > fp.TOLERANCE["fp32"]
+    (row,) = results.read(tmp_path / "r.parquet").iter_rows(named=True)
+    assert row["numerics_drift"] == pytest.approx(measured.drift, rel=1e-3)
 
 
 def test_fit_in_an_unchanged_environment_records_no_drift(world: World, tmp_path: Path) -> None:
-    assert main(["fit", "--backbone", "smolvla", "--policy", str(world.policy), "--encoder", ENCODER,
-                 "--suite", "libero_spatial", "--seed", "0", "--steps", "1", "--batch-size", "4",
-                 "--eval-fraction", "0.5", "--eval-frames", "2", "--num-denoise-steps", "1", "--no-progress",
-                 "--cache", str(world.cache.path.parent), "--results", str(tmp_path / "r.parquet"),
-                 "--out", str(tmp_path / "runs"), "--accept-numerics-drift"]) == 0
-    (drift,) = results.read(tmp_path / "r.parquet")["numerics_drift"].to_list()
-    assert 0 <= drift <= fp.TOLERANCE["fp32"]
+    (row,) = Fitter(world.request(tmp_path), log=_quiet).run()
+    assert 0 <= row["numerics_drift"] <= fp.TOLERANCE["fp32"]
+    assert results.read(tmp_path / "results.parquet")["numerics_drift"].to_list() == [row["numerics_drift"]]
 
 
 def test_caches_and_results_from_before_the_fingerprint_keep_working(world: World, tmp_path: Path) -> None:
