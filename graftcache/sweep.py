@@ -70,7 +70,7 @@ class BackboneEntry:
 SECTION_KEYS: dict[str, tuple[str, ...]] = {
     "extract": ("batch_size", "num_workers", "dtype", "compute_dtype", "cameras", "block_frames", "frame_stride"),
     "fit": ("steps", "lr", "batch_size", "eval_fraction", "eval_split_seed", "eval_frames", "num_denoise_steps",
-            "lora_rank", "compute_dtype", "out"),
+            "lora_rank", "compute_dtype", "out", "accept_numerics_drift"),
     "train_tiny": ("steps", "batch_size", "lr", "weight_decay", "seed", "image_size", "warmup", "compute_dtype"),
 }
 
