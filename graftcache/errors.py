@@ -17,6 +17,10 @@ class CacheError(GraftcacheError):
     """A feature cache is missing, incomplete, locked, stale or does not match the request."""
 
 
+class NumericsError(CacheError):
+    """This environment computes different features than the one that made a cache (its numerics fingerprint)."""
+
+
 class BackboneError(GraftcacheError):
     """A policy checkpoint or backbone configuration cannot be loaded or grafted."""
 

@@ -11,7 +11,6 @@ same as in an uninterrupted run, which makes the final bytes identical.
 from __future__ import annotations
 
 import errno
-import platform
 import queue
 import sys
 import threading
@@ -19,7 +18,6 @@ import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, replace
 from datetime import datetime, timezone
-from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from typing import Any
 
@@ -32,6 +30,13 @@ import graftcache
 from graftcache.datasets import LeRobotSource, open_dataset, suite_of
 from graftcache.datasets.suites import SUITES
 from graftcache.encoders import get_spec, load_encoder
+from graftcache.encoders.fingerprint import (
+    MANIFEST_FIELD,
+    NO_FINGERPRINT,
+    compare,
+    fingerprint,
+    library_versions,
+)
 from graftcache.errors import CacheError, DatasetError, EncoderError, GraftcacheError
 from graftcache.nonfinite import DROP_FLAG, KEEP_FLAG, lowdim_problem, nonfinite_rows
 from graftcache.pooling import format_grid, pool_grid
@@ -51,7 +56,6 @@ from graftcache.store.lock import exclusive
 
 #: errnos of a full disk or quota: the extraction stops with a resumable one-line error.
 OUT_OF_SPACE = frozenset({errno.ENOSPC, errno.EDQUOT})
-VERSIONED_PACKAGES = ("torch", "timm", "transformers", "lerobot", "zarr", "numcodecs", "av", "numpy")
 
 
 @dataclass(frozen=True)
@@ -65,16 +69,6 @@ class ExtractResult:
     encode_s: float = 0.0  # decode + encode + write of the missing blocks (the steady-state part)
 
 
-def _versions() -> dict[str, str]:
-    out = {"python": platform.python_version()}
-    for pkg in VERSIONED_PACKAGES:
-        try:
-            out[pkg] = version(pkg)
-        except PackageNotFoundError:
-            out[pkg] = "absent"
-    return out
-
-
 def build_index(source: LeRobotSource, episodes: Sequence[int]) -> pl.DataFrame:
     """Per-frame index + low-dim table in cache order, with the LIBERO suite of each task."""
     table = source.lowdim(list(episodes))
@@ -85,8 +79,9 @@ def build_index(source: LeRobotSource, episodes: Sequence[int]) -> pl.DataFrame:
 
 
 def build_manifest(req: ExtractRequest, source: LeRobotSource, encoder: Any, episodes: Sequence[int],
-                   cameras: Sequence[str], n_frames: int) -> dict[str, Any]:
-    """Provenance manifest. Identity fields (see store.key) decide the cache key."""
+                   cameras: Sequence[str], n_frames: int, numerics: dict[str, Any]) -> dict[str, Any]:
+    """Provenance manifest. Identity fields (see store.key) decide the cache key; the numerics fingerprint
+    (encoders/fingerprint.py) is not one of them: it decides whether this environment may extend the cache."""
     meta = source.meta
     desc = encoder.describe()
     winfo = dict(encoder.weights_info)
@@ -123,7 +118,8 @@ def build_manifest(req: ExtractRequest, source: LeRobotSource, encoder: Any, epi
         "suites": list(SUITES),
         "state_key": meta.state_key,
         "action_key": meta.action_key,
-        "versions": _versions(),
+        "versions": library_versions(),
+        MANIFEST_FIELD: numerics,
         "run": {"device": req.device, "batch_size": req.batch_size, "num_workers": req.num_workers,
                 "command": " ".join(sys.argv)},
         **req.extra_manifest,
@@ -208,15 +204,10 @@ def encode_frames(encoder: Any, frames: np.ndarray, grids: Sequence[tuple[int, i
                   device: torch.device, compute: torch.dtype, dtype: str) -> dict[str, np.ndarray]:
     """Encode uint8 frames [N,H,W,3] in batches; returns {grid name or extra name: stored array}."""
     outs: dict[str, list[np.ndarray]] = {}
-    has_extras = bool(getattr(encoder, "extra_shapes", None))
     for s in range(0, len(frames), batch_size):
         x = torch.from_numpy(frames[s:s + batch_size]).to(device)
         with torch.inference_mode(), autocast(device, compute):
-            x = encoder.preprocess(x)
-            if has_extras:
-                grid, extras = encoder.forward_with_extras(x)
-            else:
-                grid, extras = encoder.forward_grid(x), {}
+            grid, extras = encoder.forward_with_extras(encoder.preprocess(x))
         for g in grids:
             outs.setdefault(format_grid(g), []).append(to_storage(pool_grid(grid.float(), g), dtype))
         for name, tokens in extras.items():
@@ -266,7 +257,8 @@ def extract(req: ExtractRequest, log: Callable[[str], None] = print) -> ExtractR
     if problem:
         log(f"note: keeping non-finite values ({KEEP_FLAG}): {problem}")
     index = stream.filter(pl.col("frame_index") % req.frame_stride == 0)
-    manifest = build_manifest(req, source, encoder, episodes, cameras, index.height)
+    manifest = build_manifest(req, source, encoder, episodes, cameras, index.height,
+                              fingerprint(encoder, req.compute_dtype, device))
     key = cache_key(manifest)
     root = cache_root(req.cache)
     path = root / key
@@ -299,6 +291,7 @@ def _open_or_create(path: Path, manifest: dict[str, Any], index: pl.DataFrame, s
         if cache.initialized:  # never resume or reuse features of other data under this key (e.g. a copied cache)
             cache.check_dataset(manifest["dataset_fingerprint"], req.dataset)
         if cache.initialized and cache.matches(manifest):
+            _check_numerics(cache, manifest, log)
             if not cache.complete:
                 log(f"resuming {path.name}: {len(cache.blocks_done())}/{cache.layout['n_blocks']} blocks already written")
             return cache
@@ -309,6 +302,25 @@ def _open_or_create(path: Path, manifest: dict[str, Any], index: pl.DataFrame, s
                for cam in cameras for name, shape in manifest["extras"].items()]
     return FeatureCache.create(path, manifest, arrays, index, block_frames=req.block_frames,
                                action_stream=stream.select("episode_index", "frame_index", "action"))
+
+
+def _check_numerics(cache: FeatureCache, manifest: dict[str, Any], log: Callable[[str], None]) -> None:
+    """Resuming is refused when this environment computes other features than the one that began the cache
+    (the fingerprint was just computed for `manifest`); reusing a complete cache only says so, since `fit`
+    checks again and nothing is written here. A cache without a fingerprint (older graftcache) is used with a
+    warning."""
+    recorded = cache.manifest.get(MANIFEST_FIELD)
+    if not recorded:
+        log(f"warning: cache {cache.key}: {NO_FINGERPRINT}")
+        return
+    check = compare(cache.key, recorded, manifest[MANIFEST_FIELD], cache.manifest.get("versions"))
+    if check.status == "match":
+        return
+    if cache.complete or check.status == "unchecked":
+        log(f"warning: {check.line()}")
+        return
+    check.require_match(f"resuming would mix features of two environments in one cache; delete {cache.path} "
+                        f"to re-extract it here")
 
 
 def _fill(cache: FeatureCache, source: LeRobotSource, index: pl.DataFrame, encoder: Any, cameras: Sequence[str],

@@ -75,6 +75,7 @@ class FitRequest(Checked):
     cache: str | None = None
     progress: bool = True
     drop_nonfinite: bool = False  # drop frames with NaN/inf (features, state, action chunk) instead of refusing
+    accept_numerics_drift: bool = False  # fit caches this environment would compute differently (rows record it)
     command: str = field(default_factory=lambda: " ".join(["graftcache", *sys.argv[1:]]))
 
     RULES: ClassVar[dict[str, Rule]] = {

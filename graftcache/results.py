@@ -44,11 +44,17 @@ SCHEMA: dict[str, pl.DataType] = {
     "compute_dtype": pl.String,       # resolved model compute dtype ("bf16" | "fp32"), never "auto"
     "random_init": pl.Boolean,        # any random-init weights in the encoder or the backbone
     "n_dropped_nonfinite": pl.Int64,  # suite frames dropped for NaN/inf by `fit --drop-nonfinite` (0: none)
+    "numerics_drift": pl.Float64,     # largest numerics-probe difference / its RMS over the cell's caches, as
+                                      # recomputed by this environment (encoders/fingerprint.py); null: unchecked
     "graftcache_version": pl.String,
     "command": pl.String,             # the command line that produced the row
 }
 
 CONTROLS_NATIVE = ("native",)
+
+# Columns added to SCHEMA after results files were first written: reading an older file adds them as nulls, so
+# its cells are still skipped and new rows can still be appended to it.
+ADDED_COLUMNS = ("numerics_drift",)
 
 # What a report needs of a table: enough to place every MSE in the (backbone, suite, encoder, control, seed)
 # grid. Tables from older versions, other tools or a paper need only these (conform fills the other SCHEMA
@@ -109,7 +115,9 @@ def read(path: str | Path) -> pl.DataFrame:
     if not path.exists():
         return empty()
     try:
-        return validate(pl.read_parquet(path))
+        rows = pl.read_parquet(path)
+        older = [pl.lit(None, dtype=SCHEMA[c]).alias(c) for c in ADDED_COLUMNS if c not in rows.columns]
+        return validate(rows.with_columns(older))
     except GraftcacheError as e:
         raise GraftcacheError(f"{path}: {e}") from None
     except (pl.exceptions.PolarsError, OSError) as e:

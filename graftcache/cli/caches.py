@@ -23,6 +23,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                        description="Re-read every block of cache KEY and compare with its checksums. "
                        "Exit code 0: complete and intact; 1: incomplete or corrupt.")
     p.add_argument("key")
+    p.add_argument("--numerics", action="store_true",
+                   help="also recompute the cache's numerics probe here (loads its encoder) and print the largest "
+                        "difference and the library versions that differ; drift or no fingerprint: exit code 1")
     add_cache_flag(p)
     p.set_defaults(func=run_verify)
 
@@ -69,4 +72,11 @@ def run_verify(args: argparse.Namespace) -> int:
         print(p)
     if not problems:
         print(f"{c.key}: complete, {c.n_frames} frames, all checksums match")
-    return 0 if not problems else 1
+    numerics_ok = True
+    if args.numerics:
+        from graftcache.encoders.fingerprint import check_numerics
+
+        check = check_numerics(c)
+        print(check.line())
+        numerics_ok = check.status == "match"
+    return 0 if not problems and numerics_ok else 1

@@ -59,6 +59,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     add_field(p, FitRequest, "drop_nonfinite", action="store_true",
               help="drop frames whose features, state or action chunk hold NaN/inf (a cache holding any is "
               "refused otherwise); the results row records how many (n_dropped_nonfinite)")
+    add_field(p, FitRequest, "accept_numerics_drift", action="store_true",
+              help="fit even when this environment computes a cache's features differently from the one that "
+              "made it (its numerics fingerprint); each row records the measured drift")
     add_cache_flag(p)
     p.set_defaults(func=run)
 

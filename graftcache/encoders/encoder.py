@@ -63,6 +63,11 @@ class Encoder(nn.Module):
                                f"(are the weights for {self.spec.model_id}?)")
         return grid.float()
 
+    def forward_with_extras(self, x: torch.Tensor) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """(patch grid, extra token arrays by name): everything a cache stores of a frame. Only native
+        towers have extras (their post-connector tokens)."""
+        return self.forward_grid(x), {}
+
     def forward(self, frames_u8: torch.Tensor) -> torch.Tensor:
         return self.forward_grid(self.preprocess(frames_u8))
 

@@ -30,6 +30,7 @@ from graftcache.backbone_table import native_name
 from graftcache.backbones.checkpoint import follow_umask
 from graftcache.backbones.pool import BackbonePool
 from graftcache.backbones.tiny_record import resolve_policy
+from graftcache.encoders.fingerprint import NumericsCheck, check_numerics
 from graftcache.errors import FitError
 from graftcache.fit.controls import Control, get_control
 from graftcache.fit.data import FrameTable, drop_nonfinite, load_frames, split_episodes, suite_index_table
@@ -127,6 +128,7 @@ class Fitter:
         self.index = suite_index_table(self.cache, req.suite)
         self.split = split_episodes(self.index, eval_fraction=req.eval_fraction, seed=req.eval_split_seed)
         self._materials: dict[tuple, _Material] = {}
+        self._numerics: dict[str, NumericsCheck] = {}  # cache key -> verdict, checked before the first cell runs
 
     # ---------------------------------------------------------------- cells
     def _source(self, control: Control) -> FeatureCache:
@@ -135,6 +137,28 @@ class Fitter:
 
     def _objective(self, control: Control) -> Objective:
         return self.objective if control.train else EVAL_ONLY
+
+    # ---------------------------------------------------------------- numerics
+    def _check_numerics(self) -> None:
+        """Recompute every cache's numerics probe here, once, before the first cell that runs (a finished grid
+        loads nothing). Drift is refused unless `accept_numerics_drift`; an unchecked cache is a warning."""
+        for cache in (self.cache, self.native_cache):
+            if cache is None or cache.key in self._numerics:
+                continue
+            check = self._numerics[cache.key] = check_numerics(cache, device=self.device)
+            if check.status == "unchecked":
+                self.log(f"warning: {check.line()}; its rows record numerics_drift as null")
+            elif check.status == "drift" and not self.req.accept_numerics_drift:
+                check.require_match("fit refuses it; pass --accept-numerics-drift to fit anyway "
+                                    "(rows record the drift)")
+            elif check.status == "drift":
+                self.log(f"warning: {check.line()}; fitting anyway (--accept-numerics-drift), rows record the drift")
+
+    def _drift(self, mat: _Material) -> float | None:
+        """Largest numerics drift over the caches a cell reads; None when one of them could not be checked."""
+        caches = [mat.cache, *([self.native_cache] if mat.targets is not None else [])]
+        drifts = [self._numerics[c.key].drift for c in caches]
+        return None if None in drifts else max(drifts)
 
     def cell(self, control: Control, seed: int, policy_id: str) -> Cell:
         """What identifies a results row (hashed into its run_id); computable without loading anything."""
@@ -162,6 +186,7 @@ class Fitter:
                     self.log(f"skip {self.req.backbone}/{encoder['name']}/{self.req.suite} seed {seed} "
                              f"control {control.name}: already in {self.req.results}")
                     continue
+                self._check_numerics()
                 adapter = self.backbones.get(self.req.backbone, self.policy_folder, str(self.device))
                 row = self._run_cell(adapter, control, cell, self._material(adapter, control))
                 results.append(self.req.results, [row])
@@ -222,7 +247,7 @@ class Fitter:
             "eval_mse_episodes": [score.per_episode[e] for e in sorted(score.per_episode)],
             "n_eval_frames": score.n_frames, "n_eval_episodes": len(score.per_episode), "wall_s": wall,
             "device": str(self.device), "random_init": bool(mat.cache.manifest.get("random_init") or adapter.random_init),
-            "n_dropped_nonfinite": mat.dropped, "graftcache_version": graftcache.__version__,
+            "n_dropped_nonfinite": mat.dropped, "numerics_drift": self._drift(mat), "graftcache_version": graftcache.__version__,
         })
 
     def _save_projector(self, adapter, cell: Cell) -> None:
