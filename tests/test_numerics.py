@@ -13,19 +13,19 @@ import numpy as np
 import pytest
 import torch
 import transformers
-from backbones_fixtures import tiny
-from datasets_fixtures import Written, v3_image  # noqa: F401  (session fixture)
+from helpers.backbones import tiny
+from helpers.datasets import Written
 from transformers.models.smolvlm import modeling_smolvlm
 
 import graftcache.extract
 from graftcache import results
-from graftcache.backbones.native import native_name
+from graftcache.backbone_table import native_name
 from graftcache.cli import main
 from graftcache.encoders import fingerprint as fp
 from graftcache.encoders import registry
 from graftcache.errors import NumericsError
 from graftcache.extract import ExtractRequest, extract
-from graftcache.fit.run import Fitter, FitRequest
+from graftcache.fit.run import FitRequest, Fitter
 from graftcache.store import FeatureCache
 
 ENCODER = "timm:vit_tiny_patch16_224"  # a real ViT architecture, cheap on CPU

@@ -2,7 +2,7 @@
 would: a bad input ends in a non-zero exit with one line naming the file / episode / frame / key / cache and
 no traceback, and no cache is marked complete; copying and resuming succeed.
 
-Fixtures are cheap: the 3-episode, 64x64 lerobot-written dataset of datasets_fixtures, random-init
+Fixtures are cheap: the 3-episode, 64x64 lerobot-written dataset of tests/fixtures/datasets.py, random-init
 ResNet-18 caches of it and a tiny SmolVLA checkpoint, built once per module.
 """
 
