@@ -31,7 +31,7 @@ import graftcache
 from graftcache.checks import EPISODES, NON_NEGATIVE, POSITIVE, Checked, Rule
 from graftcache.datasets import LeRobotSource, open_dataset, suite_of
 from graftcache.encoders import get_spec, load_encoder
-from graftcache.errors import DatasetError, GraftcacheError
+from graftcache.errors import CacheError, DatasetError, GraftcacheError
 from graftcache.pooling import format_grid, pool_grid
 from graftcache.progress import progress
 from graftcache.runtime import (
@@ -42,9 +42,8 @@ from graftcache.runtime import (
     set_main_threads,
     single_thread_worker,
 )
-from graftcache.store import FORMAT_VERSION, FeatureCache, cache_key, cache_root
+from graftcache.store import FORMAT_VERSION, FeatureCache, Root, cache_key, open_root
 from graftcache.store.cache import STORAGE_DTYPES, ArraySpec, to_storage
-from graftcache.store.lock import exclusive
 
 SUITES = ("libero_spatial", "libero_object", "libero_goal", "libero_10", "libero_90", "unknown")
 VERSIONED_PACKAGES = ("torch", "timm", "transformers", "lerobot", "zarr", "numcodecs", "av", "numpy")
@@ -83,7 +82,7 @@ class ExtractRequest(Checked):
 @dataclass(frozen=True)
 class ExtractResult:
     key: str
-    path: Path
+    path: Path | str  # a folder, or the URL of a cache in an object store
     reused: bool
     n_frames: int
     frames_encoded: int
@@ -288,42 +287,62 @@ def extract(req: ExtractRequest, log: Callable[[str], None] = print) -> ExtractR
     index = stream.filter(pl.col("frame_index") % req.frame_stride == 0)
     manifest = build_manifest(req, source, encoder, episodes, cameras, index.height)
     key = cache_key(manifest)
-    root = cache_root(req.cache)
-    path = root / key
+    root = open_root(req.cache)
+    path = root.location(key)
     if manifest["random_init"]:
         log(f"note: encoder {spec.name} uses RANDOM-INIT weights (seed {req.seed}); the manifest says so")
 
-    with exclusive(root / f"{key}.lock", on_wait=lambda pid: log(f"waiting: {key} is being written by pid {pid}")):
-        cache = _open_or_create(path, manifest, index, stream, encoder, cameras, req, log)
-        if cache.complete:
-            log(f"reusing complete cache {key} ({cache.n_frames} frames)")
-            return ExtractResult(key, path, True, cache.n_frames, 0, time.perf_counter() - t0)
-        t_fill = time.perf_counter()
-        encoded = _fill(cache, source, index, encoder, cameras, req, device, compute)
-        encode_s = time.perf_counter() - t_fill
-        cache.finalize()
-    wall = time.perf_counter() - t0
-    log(f"wrote {key}: {cache.n_frames} frames x {len(cameras)} cameras in {wall:.1f}s -> {path}")
-    return ExtractResult(key, path, False, cache.n_frames, encoded, wall, encode_s)
+    done = _complete(root, key, manifest, req)  # reusing takes no writer lock: a read-only root serves it
+    if done is None:
+        with root.writer(key, on_wait=lambda who: log(f"waiting: {key} is being written by {who}")) as held:
+            cache = _open_or_create(root, key, manifest, index, stream, encoder, cameras, req, log)
+            if not cache.complete:
+                t_fill = time.perf_counter()
+                encoded = _fill(cache, source, index, encoder, cameras, req, device, compute)
+                encode_s = time.perf_counter() - t_fill
+                held.check()  # an object-store lease can have been taken over: never publish over another writer
+                cache.finalize()
+                wall = time.perf_counter() - t0
+                log(f"wrote {key}: {cache.n_frames} frames x {len(cameras)} cameras in {wall:.1f}s -> {path}")
+                return ExtractResult(key, path, False, cache.n_frames, encoded, wall, encode_s)
+        done = cache
+    log(f"reusing complete cache {key} ({done.n_frames} frames)")
+    return ExtractResult(key, path, True, done.n_frames, 0, time.perf_counter() - t0)
 
 
-def _open_or_create(path: Path, manifest: dict[str, Any], index: pl.DataFrame, stream: pl.DataFrame, encoder: Any,
-                    cameras: Sequence[str], req: ExtractRequest, log: Callable[[str], None]) -> FeatureCache:
-    if (path / "zarr.json").exists():
-        cache = FeatureCache(path)
+def _complete(root: Root, key: str, manifest: dict[str, Any], req: ExtractRequest) -> FeatureCache | None:
+    """The finished cache of this request, opened read-only, or None when there is work to do."""
+    try:
+        cache = root.open(key)
+    except CacheError:  # absent, or an initialisation that never wrote its manifest
+        return None
+    if not (cache.initialized and cache.complete and cache.matches(manifest)):
+        return None
+    cache.check_dataset(manifest["dataset_fingerprint"], req.dataset)
+    return cache
+
+
+def _open_or_create(root: Root, key: str, manifest: dict[str, Any], index: pl.DataFrame, stream: pl.DataFrame,
+                    encoder: Any, cameras: Sequence[str], req: ExtractRequest,
+                    log: Callable[[str], None]) -> FeatureCache:
+    try:
+        cache = root.open(key, writable=True)
+    except CacheError:
+        cache = None
+    if cache is not None:
         if cache.initialized:  # never resume or reuse features of other data under this key (e.g. a copied cache)
             cache.check_dataset(manifest["dataset_fingerprint"], req.dataset)
         if cache.initialized and cache.matches(manifest):
             if not cache.complete:
-                log(f"resuming {path.name}: {len(cache.blocks_done())}/{cache.layout['n_blocks']} blocks already written")
+                log(f"resuming {key}: {len(cache.blocks_done())}/{cache.layout['n_blocks']} blocks already written")
             return cache
-        log(f"{path.name}: discarding an unfinished initialisation")
+        log(f"{key}: discarding an unfinished initialisation")
     width = encoder.spec.width
     arrays = [ArraySpec(f"features/{cam}/{format_grid(g)}", (g[0] * g[1], width)) for cam in cameras for g in req.grids]
     arrays += [ArraySpec(f"features/{cam}/{name}", tuple(shape))
                for cam in cameras for name, shape in manifest["extras"].items()]
-    return FeatureCache.create(path, manifest, arrays, index, block_frames=req.block_frames,
-                               action_stream=stream.select("episode_index", "frame_index", "action"))
+    return FeatureCache.create(root.location(key), manifest, arrays, index, block_frames=req.block_frames,
+                               action_stream=stream.select("episode_index", "frame_index", "action"), root=root)
 
 
 def _fill(cache: FeatureCache, source: LeRobotSource, index: pl.DataFrame, encoder: Any, cameras: Sequence[str],

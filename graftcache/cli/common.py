@@ -94,8 +94,9 @@ def add_seed_flags(p: argparse.ArgumentParser, *, default_count: int) -> None:
 
 
 def add_cache_flag(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--cache", metavar="DIR", default=None,
-                   help="cache root (default: $GRAFTCACHE_HOME or ~/.cache/graftcache)")
+    p.add_argument("--cache", metavar="DIR|URL", default=None,
+                   help="cache root: a folder or an s3:// gs:// az:// URL "
+                   "(default: $GRAFTCACHE_HOME or ~/.cache/graftcache)")
 
 
 def add_compute_dtype_flag(p: argparse.ArgumentParser, *aliases: str) -> None:
