@@ -328,7 +328,7 @@ class FeatureCache:
 
     def _checked_block(self, arr: zarr.Array, name: str, block: int) -> np.ndarray:
         start, stop = self.block_range(block)
-        where = f"cache {self.path}: {name} block {block} (frames {start}-{stop - 1})"
+        where = f"cache {self.path}: {name} frames {start}-{stop - 1} (block {block})"
         hint = f"run `graftcache verify {self.key}` to list every bad block, then extract or pull it again"
         try:
             values = arr[start:stop]
@@ -394,7 +394,7 @@ class FeatureCache:
             try:
                 got = _sha256(self.group[name][...])
             except Exception as e:  # a damaged chunk fails to decode
-                problems.append((f"{name}/", f"{self.key}: {name} unreadable ({type(e).__name__}: {e})"))
+                problems.append((f"{name}/", f"{self.key}: {name} unreadable ({type(e).__name__})"))
                 continue
             if got != expected:
                 problems.append((f"{name}/", f"{self.key}: {name} checksum mismatch"))
@@ -406,12 +406,12 @@ class FeatureCache:
                 try:
                     got = _sha256(arr[start:stop])
                 except Exception as e:  # a corrupt shard fails to decode
-                    problems.append((shard, f"{self.key}: {name} block {block} (frames {start}-{stop - 1}, "
-                                            f"{shard}) unreadable ({type(e).__name__}: {e})"))
+                    problems.append((shard, f"{self.key}: {name} frames {start}-{stop - 1} unreadable (block {block}, "
+                                            f"{shard}; {type(e).__name__}: {' '.join(str(e).split())})"))
                     continue
                 if got != expected:
-                    problems.append((shard, f"{self.key}: {name} block {block} (frames {start}-{stop - 1}, "
-                                            f"{shard}) checksum mismatch"))
+                    problems.append((shard, f"{self.key}: {name} frames {start}-{stop - 1} checksum mismatch "
+                                            f"(block {block}, {shard})"))
         return problems
 
     def size_bytes(self) -> int:
