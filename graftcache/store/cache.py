@@ -25,6 +25,7 @@ import hashlib
 import json
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
+from functools import cached_property
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
@@ -97,18 +98,23 @@ class FeatureCache:
                  writable: bool = True) -> None:
         if root is None or key is None:
             root, key = split_location(location)
-        self.path, self.root, self._key = location, root, key
+        self.path, self.root, self._key, self._writable = location, root, key, writable
         raw = root.get(f"{key}/{GROUP_META}")
         if raw is None:
             raise CacheError(f"{location}: no feature cache here (zarr.json missing)")
         try:
-            meta = json.loads(raw)
-            if not isinstance(meta["attributes"]["manifest"]["encoder"]["name"], str):
+            self._opened_attrs = json.loads(raw)["attributes"]
+            if not isinstance(self._opened_attrs["manifest"]["encoder"]["name"], str):
                 raise TypeError("encoder name is not a string")
         except (ValueError, KeyError, TypeError) as e:
             raise CacheError(f"{location}: zarr.json is not a feature cache's ({type(e).__name__}: {e})") from None
-        self.group = zarr.open_group(store=root.zarr_store(key, read_only=not writable),
-                                     mode="r+" if writable else "r", zarr_format=3)
+
+    @cached_property
+    def group(self) -> zarr.Group:
+        """The Zarr group, opened on first use: listing caches and reading manifests (ls, choosing a cache
+        for a fit) needs only the zarr.json read above, so a remote root's other objects are not touched."""
+        return zarr.open_group(store=self.root.zarr_store(self.key, read_only=not self._writable),
+                               mode="r+" if self._writable else "r", zarr_format=3)
 
     # ------------------------------------------------------------------ creation
     @classmethod
@@ -193,11 +199,13 @@ class FeatureCache:
     # ------------------------------------------------------------------ properties
     @property
     def attrs(self) -> dict[str, Any]:
-        return dict(self.group.attrs)
+        """The group attributes: as opened until the group is used, then the group's own (they change when
+        this process writes them)."""
+        return dict(self.group.attrs) if "group" in self.__dict__ else dict(self._opened_attrs)
 
     @property
     def manifest(self) -> dict[str, Any]:
-        return dict(self.group.attrs["manifest"])
+        return dict(self.attrs["manifest"])
 
     @property
     def key(self) -> str:
@@ -205,15 +213,15 @@ class FeatureCache:
 
     @property
     def layout(self) -> dict[str, Any]:
-        return dict(self.group.attrs.get("layout", {}))
+        return dict(self.attrs.get("layout", {}))
 
     @property
     def initialized(self) -> bool:
-        return bool(self.group.attrs.get("initialized", False))
+        return bool(self.attrs.get("initialized", False))
 
     @property
     def complete(self) -> bool:
-        return bool(self.group.attrs.get("complete", False))
+        return bool(self.attrs.get("complete", False))
 
     @property
     def n_frames(self) -> int:
