@@ -201,7 +201,8 @@ def test_two_concurrent_writers_on_one_key(where: str, request: pytest.FixtureRe
                                            v3_image: Written) -> None:  # noqa: F811
     root = request.getfixturevalue("s3") if where == "s3" else str(tmp_path / "root")
     cmd = [str(GRAFTCACHE), "extract", "--dataset", str(v3_image.root), "--encoder", ENCODER, "--random-init",
-           "--grids", "2x2", "--num-workers", "0", "--batch-size", "8", "--block-frames", "2", "--no-progress",
+           "--grids", "2x2", "--episodes", "0", "--num-workers", "0", "--batch-size", "8", "--block-frames", "2",
+           "--no-progress",
            "--cache", root]
     procs = [subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True) for _ in range(2)]
     outs = [p.communicate(timeout=300)[0] for p in procs]

@@ -44,7 +44,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--device", default="cpu")
     add_compute_dtype_flag(p, "--dtype")
     p.add_argument("--results", default="results.parquet")
-    p.add_argument("--out", default=None, help="run folder for projectors (default: runs/ beside --results; never the cache root)")
+    p.add_argument("--out", default=None,
+                   help="run folder for projectors (default: runs/ beside --results; never the cache root)")
     p.add_argument("--no-progress", action="store_true")
     add_cache_flag(p)
     p.set_defaults(func=run)
