@@ -135,6 +135,12 @@ def test_push_and_pull_both_ways_verified_and_idempotent(s3: str, local: tuple[P
     assert pulled.complete and pulled.verify() == []
     for name, values in _features(FeatureCache(root / key)).items():
         np.testing.assert_array_equal(pulled.group[name][...], values)
+    shard = tmp_path / "pulled" / key / "features" / "image" / "2x2" / "c" / "4" / "0" / "0"
+    damaged = bytearray(shard.read_bytes())
+    damaged[len(damaged) // 3] ^= 0x01
+    shard.write_bytes(bytes(damaged))
+    repaired = copy_cache(open_root(s3), open_root(tmp_path / "pulled"), key, log=_quiet)
+    assert repaired.objects == 1 and not repaired.skipped and pulled.verify() == []  # only the damaged shard
     # a pulled cache pushes to another prefix: both directions through the CLI
     assert main(["push", key, f"{s3}-mirror", "--cache", str(tmp_path / "pulled")]) == 0
     assert FeatureCache(f"{s3}-mirror/{key}").verify() == []

@@ -2,7 +2,8 @@
 
 Protocol, the same in both directions and on every store:
 1. The source must be complete. A destination cache with the same key but another identity is refused;
-   one that is complete and verifies is left alone (nothing copied).
+   one that is complete and verifies is left alone (nothing copied); a complete one with damaged objects
+   loses them and is copied again.
 2. Under the destination's writer lock/lease, the source's zarr.json is written with `complete: false`
    first (so the destination reads as an incomplete cache, never as a finished one), then every other
    object the destination lacks (or holds at another size) is copied whole; objects the source does not
@@ -46,9 +47,13 @@ def copy_cache(src_root: Root, dst_root: Root, key: str, log: Callable[[str], No
         if identity_of(existing.manifest) != identity_of(src.manifest):
             raise CacheError(f"{existing.path} holds another cache under key {key} (its manifest differs from "
                              f"{src.path}'s); refusing to overwrite it")
-        if existing.complete and not existing.verify():
-            log(f"{key}: already complete and verified at {dst_root}")
-            return Transfer(key, 0, 0, 0, True)
+        if existing.complete:
+            damaged = existing.damage(existing.attrs["checksums"])
+            if not damaged:
+                log(f"{key}: already complete and verified at {dst_root}")
+                return Transfer(key, 0, 0, 0, True)
+            log(f"{key}: {len(damaged)} damaged object(s) at {dst_root}, first: {damaged[0][1]}; copying them again")
+            _drop(dst_root, key, damaged)
     final_meta = src_root.get(f"{key}/{GROUP_META}")
     pending = json.loads(final_meta)
     pending["attributes"]["complete"] = False
@@ -73,11 +78,7 @@ def copy_cache(src_root: Root, dst_root: Root, key: str, log: Callable[[str], No
             copied = sum(pool.map(copy, todo))
         damage = dst_root.open(key).damage(src.attrs["checksums"])
         if damage:
-            for obj, _ in damage:
-                if obj.endswith("/"):
-                    dst_root.delete_prefix(f"{key}/{obj}")
-                else:
-                    dst_root.delete([f"{key}/{obj}"])
+            _drop(dst_root, key, damage)
             raise CacheError(f"copy of {key} from {src_root} to {dst_root} failed verification: {damage[0][1]}"
                              + (f" (and {len(damage) - 1} more)" if len(damage) > 1 else "")
                              + f"; the destination stays incomplete; check the source: graftcache verify {key} "
@@ -86,6 +87,15 @@ def copy_cache(src_root: Root, dst_root: Root, key: str, log: Callable[[str], No
         dst_root.put(f"{key}/{GROUP_META}", final_meta)  # complete, published last
     log(f"{key}: copied {len(todo)} objects ({copied / 2**20:.1f} MiB) from {src_root} to {dst_root}, verified")
     return Transfer(key, len(todo), copied, len(wanted) - len(todo), False)
+
+
+def _drop(root: Root, key: str, damage: list[tuple[str, str]]) -> None:
+    """Delete damaged shards and static-array folders, so the next copy fetches them again."""
+    for obj, _ in damage:
+        if obj.endswith("/"):
+            root.delete_prefix(f"{key}/{obj}")
+        else:
+            root.delete([f"{key}/{obj}"])
 
 
 def _existing(root: Root, key: str) -> FeatureCache | None:
