@@ -299,9 +299,16 @@ def test_ls_flags_a_broken_cache_and_lists_the_healthy_ones(local: tuple[Path, s
     shutil.copytree(root / key, tmp_path / key)
     shutil.copytree(root / key, tmp_path / "damaged")
     (tmp_path / "damaged" / "zarr.json").write_text('{"zarr_format": 3, "attributes": {"manifest": ')
+    shutil.copytree(root / key, tmp_path / "partial")
+    partial = FeatureCache(tmp_path / "partial")
+    partial.group.attrs["manifest"] = {k: v for k, v in partial.manifest.items() if k != "n_frames"}
     assert main(["ls", "--cache", str(tmp_path)]) == 0
     out = capsys.readouterr().out
-    assert key in out and "BROKEN" in out and "damaged" in out
-    assert [c.key for c in list_caches(tmp_path)] == [key]
+    rows = {line.split()[1]: line for line in out.splitlines() if line.startswith("│") and len(line.split()) > 2}
+    assert "complete" in rows[key] and "BROKEN" not in rows[key]
+    assert "BROKEN" in rows["damaged"] and "BROKEN" in rows["partial"]
+    flat = " ".join(out.replace("│", " ").split())  # a long reason wraps inside its cell
+    assert "zarr.json is not a feature cache" in flat and "KeyError: 'n_frames'" in flat
+    assert [c.key for c in list_caches(tmp_path)] == [key, "partial"]
     assert torch.equal(FeatureCache(tmp_path / key).read_features("image", "2x2"),
                        FeatureCache(root / key).read_features("image", "2x2"))
