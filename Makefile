@@ -22,3 +22,4 @@ bench: setup
 	.venv/bin/python benchmarks/bench_reader.py
 	.venv/bin/python benchmarks/bench_extract.py
 	.venv/bin/python benchmarks/bench_fit.py
+	.venv/bin/python benchmarks/bench_store.py

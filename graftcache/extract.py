@@ -50,9 +50,8 @@ from graftcache.runtime import (
     set_main_threads,
     single_thread_worker,
 )
-from graftcache.store import FORMAT_VERSION, FeatureCache, cache_key, cache_root
+from graftcache.store import FORMAT_VERSION, FeatureCache, Root, cache_key, open_root
 from graftcache.store.cache import STORAGE_DTYPES, ArraySpec, from_storage, to_storage
-from graftcache.store.lock import exclusive
 
 #: errnos of a full disk or quota: the extraction stops with a resumable one-line error.
 OUT_OF_SPACE = frozenset({errno.ENOSPC, errno.EDQUOT})
@@ -61,7 +60,7 @@ OUT_OF_SPACE = frozenset({errno.ENOSPC, errno.EDQUOT})
 @dataclass(frozen=True)
 class ExtractResult:
     key: str
-    path: Path
+    path: Path | str  # a folder, or the URL of a cache in an object store
     reused: bool
     n_frames: int
     frames_encoded: int
@@ -260,48 +259,70 @@ def extract(req: ExtractRequest, log: Callable[[str], None] = print) -> ExtractR
     manifest = build_manifest(req, source, encoder, episodes, cameras, index.height,
                               fingerprint(encoder, req.compute_dtype, device))
     key = cache_key(manifest)
-    root = cache_root(req.cache)
-    path = root / key
+    root = open_root(req.cache)
+    path = root.location(key)
     if manifest["random_init"]:
         log(f"note: encoder {spec.name} uses RANDOM-INIT weights (seed {req.seed}); the manifest says so")
 
-    with exclusive(root / f"{key}.lock", on_wait=lambda pid: log(f"waiting: {key} is being written by pid {pid}")):
-        cache = _open_or_create(path, manifest, index, stream, encoder, cameras, req, log)
-        if cache.complete:
-            log(f"reusing complete cache {key} ({cache.n_frames} frames)")
-            return ExtractResult(key, path, True, cache.n_frames, 0, time.perf_counter() - t0)
-        t_fill = time.perf_counter()
-        try:
-            encoded = _fill(cache, source, index, encoder, cameras, req, device, compute)
-            cache.finalize()
-        except OSError as e:
-            if e.errno not in OUT_OF_SPACE:
-                raise
-            raise CacheError(_out_of_space(cache, e)) from None
-        encode_s = time.perf_counter() - t_fill
-    wall = time.perf_counter() - t0
-    log(f"wrote {key}: {cache.n_frames} frames x {len(cameras)} cameras in {wall:.1f}s -> {path}")
-    return ExtractResult(key, path, False, cache.n_frames, encoded, wall, encode_s)
+    done = _complete(root, key, manifest, req)  # reusing takes no writer lock: a read-only root serves it
+    if done is not None:
+        _check_numerics(done, manifest, log)
+    else:
+        with root.writer(key, on_wait=lambda who: log(f"waiting: {key} is being written by {who}")) as held:
+            cache = _open_or_create(root, key, manifest, index, stream, encoder, cameras, req, log)
+            if not cache.complete:
+                t_fill = time.perf_counter()
+                try:
+                    encoded = _fill(cache, source, index, encoder, cameras, req, device, compute)
+                    encode_s = time.perf_counter() - t_fill
+                    held.check()  # an object-store lease can have been taken over: never publish over another writer
+                    cache.finalize()
+                except OSError as e:
+                    if e.errno not in OUT_OF_SPACE:
+                        raise
+                    raise CacheError(_out_of_space(cache, e)) from None
+                wall = time.perf_counter() - t0
+                log(f"wrote {key}: {cache.n_frames} frames x {len(cameras)} cameras in {wall:.1f}s -> {path}")
+                return ExtractResult(key, path, False, cache.n_frames, encoded, wall, encode_s)
+        done = cache
+    log(f"reusing complete cache {key} ({done.n_frames} frames)")
+    return ExtractResult(key, path, True, done.n_frames, 0, time.perf_counter() - t0)
 
 
-def _open_or_create(path: Path, manifest: dict[str, Any], index: pl.DataFrame, stream: pl.DataFrame, encoder: Any,
-                    cameras: Sequence[str], req: ExtractRequest, log: Callable[[str], None]) -> FeatureCache:
-    if (path / "zarr.json").exists():
-        cache = FeatureCache(path)
+def _complete(root: Root, key: str, manifest: dict[str, Any], req: ExtractRequest) -> FeatureCache | None:
+    """The finished cache of this request, opened read-only, or None when there is work to do."""
+    try:
+        cache = root.open(key)
+    except CacheError:  # absent, or an initialisation that never wrote its manifest
+        return None
+    if not (cache.initialized and cache.complete and cache.matches(manifest)):
+        return None
+    cache.check_dataset(manifest["dataset_fingerprint"], req.dataset)
+    return cache
+
+
+def _open_or_create(root: Root, key: str, manifest: dict[str, Any], index: pl.DataFrame, stream: pl.DataFrame,
+                    encoder: Any, cameras: Sequence[str], req: ExtractRequest,
+                    log: Callable[[str], None]) -> FeatureCache:
+    try:
+        cache = root.open(key, writable=True)
+    except CacheError:
+        cache = None
+    if cache is not None:
         if cache.initialized:  # never resume or reuse features of other data under this key (e.g. a copied cache)
             cache.check_dataset(manifest["dataset_fingerprint"], req.dataset)
         if cache.initialized and cache.matches(manifest):
             _check_numerics(cache, manifest, log)
             if not cache.complete:
-                log(f"resuming {path.name}: {len(cache.blocks_done())}/{cache.layout['n_blocks']} blocks already written")
+                log(f"resuming {key}: {len(cache.blocks_done())}/{cache.layout['n_blocks']} blocks already written")
             return cache
-        log(f"{path.name}: discarding an unfinished initialisation")
+        log(f"{key}: discarding an unfinished initialisation")
     width = encoder.spec.width
     arrays = [ArraySpec(f"features/{cam}/{format_grid(g)}", (g[0] * g[1], width)) for cam in cameras for g in req.grids]
     arrays += [ArraySpec(f"features/{cam}/{name}", tuple(shape))
                for cam in cameras for name, shape in manifest["extras"].items()]
-    return FeatureCache.create(path, manifest, arrays, index, block_frames=req.block_frames,
-                               action_stream=stream.select("episode_index", "frame_index", "action"))
+    return FeatureCache.create(root.location(key), manifest, arrays, index, block_frames=req.block_frames,
+                               action_stream=stream.select("episode_index", "frame_index", "action"), root=root)
 
 
 def _check_numerics(cache: FeatureCache, manifest: dict[str, Any], log: Callable[[str], None]) -> None:

@@ -87,7 +87,7 @@ def test_verify_detects_corruption(tmp_path: Path) -> None:
     arr = cache.group["features/image/2x2"]
     arr[40] = np.ones((T, C), np.float16)  # silent change after completion
     problems = FeatureCache(tmp_path / "k").verify()
-    assert problems == ["k: features/image/2x2 frames 32-63 checksum mismatch"]
+    assert problems == ["k: features/image/2x2 frames 32-63 checksum mismatch (block 1, features/image/2x2/c/1/0/0)"]
 
 
 def test_write_block_rejects_wrong_shapes(tmp_path: Path) -> None:

@@ -1,12 +1,30 @@
-"""Row-indexed reads from sharded caches (`FeatureCache.read_features(rows=...)`) equal numpy indexing."""
+"""Row-indexed reads from sharded caches (`FeatureCache.read_features(rows=...)`) equal numpy indexing, on the
+first read of a block (whole block, checksum-checked) and on later ones (the rows' span only)."""
 
 from __future__ import annotations
 
 import numpy as np
+import polars as pl
 import pytest
-import zarr
+import torch
 
-from graftcache.store.cache import _take_rows
+from graftcache.store.cache import ArraySpec, FeatureCache
+
+N, T, C = 100, 4, 3
+
+
+def _cache(path) -> tuple[FeatureCache, np.ndarray]:
+    values = np.random.default_rng(0).standard_normal((N, T, C)).astype(np.float16)
+    index = pl.DataFrame({"index": np.arange(N), "episode_index": np.arange(N) // 10, "frame_index": np.arange(N) % 10,
+                          "task_index": np.zeros(N, int), "suite_index": np.zeros(N, int),
+                          "timestamp": np.zeros(N), "state": [[0.0]] * N, "action": [[0.0]] * N})
+    manifest = {"encoder": {"name": "toy"}, "dtype": "fp16"}
+    cache = FeatureCache.create(path, manifest, [ArraySpec("features/image/2x2", (T, C))], index, block_frames=32)
+    for b in range(cache.layout["n_blocks"]):
+        s, e = cache.block_range(b)
+        cache.write_block(b, {"features/image/2x2": values[s:e]})
+    cache.finalize()
+    return cache, values
 
 
 @pytest.mark.parametrize("rows", [
@@ -15,11 +33,9 @@ from graftcache.store.cache import _take_rows
     np.array([99]),
     np.array([], dtype=np.int64),
 ])
-def test_take_rows_equals_numpy_indexing(tmp_path, rows: np.ndarray) -> None:
-    values = np.random.default_rng(0).standard_normal((100, 4, 3)).astype(np.float16)
-    arr = zarr.create_array(tmp_path / "a.zarr", shape=values.shape, dtype=values.dtype, chunks=(8, 4, 3),
-                            shards=(32, 4, 3))
-    arr[...] = values
-    got = _take_rows(arr, rows, block_frames=32)
-    assert got.shape == (len(rows), 4, 3) and got.dtype == np.float16
-    np.testing.assert_array_equal(got, values[rows])
+def test_read_rows_equals_numpy_indexing(tmp_path, rows: np.ndarray) -> None:
+    cache, values = _cache(tmp_path / "k")
+    for _ in range(2):  # first read checks whole blocks, the second reads spans of verified blocks
+        got = cache.read_features("image", "2x2", rows)
+        assert got.shape == (len(rows), T, C) and got.dtype == torch.float16
+        np.testing.assert_array_equal(got.numpy(), values[rows])

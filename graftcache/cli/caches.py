@@ -31,25 +31,32 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def _open(args: argparse.Namespace):
-    from graftcache.store import FeatureCache, cache_root
+    from graftcache.store import open_root
 
-    return FeatureCache(cache_root(args.cache) / args.key)
+    return open_root(args.cache).open(args.key)
 
 
 def run_ls(args: argparse.Namespace) -> int:
-    from graftcache.store import cache_root, list_caches
+    """Healthy caches as a table; a cache that cannot be opened is a row saying why (never a crash)."""
+    from graftcache.store import open_root, scan_caches
 
-    root = cache_root(args.cache)
+    root = open_root(args.cache)
     table = Table(title=f"feature caches in {root}")
     for col in ("key", "dataset", "encoder", "weights", "grids", "cameras", "frames", "size", "status"):
         table.add_column(col)
-    for c in list_caches(root):
+    caches, broken = scan_caches(root)
+    for c in caches:
         m = c.manifest
-        weights = "random-init" if m.get("random_init") else m["weights"].get("source", "?")
-        status = "complete" if c.complete else ("incomplete" if c.initialized else "initialising")
-        table.add_row(c.key, m["dataset"]["repo_id"] or m["dataset"]["source"], m["encoder"]["name"], weights,
-                      ",".join(m["grids"] + list(m.get("extras", {}))), ",".join(m["cameras"]), str(m["n_frames"]),
-                      f"{c.size_bytes() / 2**20:.1f} MiB", status)
+        try:
+            weights = "random-init" if m.get("random_init") else m["weights"].get("source", "?")
+            status = "complete" if c.complete else ("incomplete" if c.initialized else "initialising")
+            table.add_row(c.key, m["dataset"]["repo_id"] or m["dataset"]["source"], m["encoder"]["name"], weights,
+                          ",".join(m["grids"] + list(m.get("extras", {}))), ",".join(m["cameras"]),
+                          str(m["n_frames"]), f"{c.size_bytes() / 2**20:.1f} MiB", status)
+        except (KeyError, TypeError, AttributeError) as e:  # a manifest missing the fields a row shows
+            table.add_row(c.key, *[""] * 7, f"BROKEN: manifest lacks {type(e).__name__}: {e}")
+    for b in broken:
+        table.add_row(b.key, *[""] * 7, f"BROKEN: {b.reason}")
     console = Console()
     if not console.is_terminal:  # piped or captured: print whole keys instead of folding to 80 columns
         console = Console(width=240)

@@ -149,8 +149,9 @@ def add_progress_flag(p: argparse.ArgumentParser) -> None:
 
 
 def add_cache_flag(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--cache", metavar="DIR", default=None,
-                   help="cache root (default: $GRAFTCACHE_HOME or ~/.cache/graftcache)")
+    p.add_argument("--cache", metavar="DIR|URL", default=None,
+                   help="cache root: a folder or an s3:// gs:// az:// URL "
+                   "(default: $GRAFTCACHE_HOME or ~/.cache/graftcache)")
 
 
 def add_compute_dtype_flag(p: argparse.ArgumentParser, request: type, *aliases: str) -> None:

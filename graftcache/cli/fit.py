@@ -54,7 +54,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     add_device_flag(p, FitRequest)
     add_compute_dtype_flag(p, FitRequest, "--dtype")
     add_field(p, FitRequest, "results")
-    add_field(p, FitRequest, "out", help="run folder for projectors (default: <cache>/runs)")
+    add_field(p, FitRequest, "out", help="run folder for projectors (default: runs/ beside --results; never the cache root)")
     add_progress_flag(p)
     add_field(p, FitRequest, "drop_nonfinite", action="store_true",
               help="drop frames whose features, state or action chunk hold NaN/inf (a cache holding any is "

@@ -41,6 +41,7 @@ from graftcache.pooling import format_grid
 from graftcache.requests import FitRequest
 from graftcache.runtime import resolve_compute_dtype, resolve_device, resolve_dtype, set_main_threads
 from graftcache.store import FeatureCache, cache_root
+from graftcache.store.readthrough import reading_root
 
 __all__ = ["Cell", "FitRequest", "Fitter"]
 
@@ -110,7 +111,7 @@ class Fitter:
         self.objective = OBJECTIVES[req.objective]
         self.log = log
         self.backbones = backbones or BackbonePool(log)
-        self.root = cache_root(req.cache)
+        self.root = reading_root(req.cache)  # only read: stage 2 never writes into a cache root
         self.dtype = resolve_dtype(req.compute_dtype)
         self.controls = [get_control(c) for c in dict.fromkeys(("none", *req.controls))]
         self.cache = find_cache(self.root, req.encoder, dataset=req.dataset, key=req.cache_key)
@@ -124,7 +125,7 @@ class Fitter:
                 raise FitError(f"caches {self.cache.key} and {self.native_cache.key} hold different frames (frame "
                                f"strides {sorted(strides)}); extract both with the same --frame-stride")
         self.policy_folder = resolve_policy(req.backbone, req.policy, self.cache.manifest["dataset_fingerprint"],
-                                            self.root, self.cache.manifest["dataset"]["source"])
+                                            cache_root(req.cache), self.cache.manifest["dataset"]["source"])
         self.index = suite_index_table(self.cache, req.suite)
         self.split = split_episodes(self.index, eval_fraction=req.eval_fraction, seed=req.eval_split_seed)
         self._materials: dict[tuple, _Material] = {}
@@ -251,7 +252,7 @@ class Fitter:
         })
 
     def _save_projector(self, adapter, cell: Cell) -> None:
-        folder = (Path(self.req.out) if self.req.out else self.root / "runs") / cell.run_id
+        folder = (Path(self.req.out) if self.req.out else Path(self.req.results).parent / "runs") / cell.run_id
         folder.mkdir(parents=True, exist_ok=True)
         trainable = {n: p.detach().cpu().contiguous() for n, p in adapter.policy.named_parameters() if p.requires_grad}
         save_file(trainable, str(folder / "projector.safetensors"))

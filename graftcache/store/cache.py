@@ -13,15 +13,18 @@ Layout choices (why):
 - A block is "done" only when a marker holding the sha256 of every array's block bytes has been
   written (atomically) after the data. `complete` is set in the group attributes only after every
   block has a marker; the checksums then move into the attributes and `verify` re-reads them.
+  The attributes live in the group's zarr.json, one object written whole, so publishing `complete` is a
+  single atomic put on a local disk and on an object store alike (graftcache.store.roots).
+- Stage 2 checks every block it reads against its checksum, once per block per process (`_VERIFIED`),
+  reading whole blocks for that: a corrupt shard is a one-line CacheError naming cache, array and block.
 """
 
 from __future__ import annotations
 
 import json
-import os
-import shutil
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
+from functools import cached_property
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
@@ -35,6 +38,7 @@ from zarr.codecs import BloscCodec
 from graftcache.errors import CacheError
 from graftcache.hashing import sha256_bytes
 from graftcache.store.key import IdentityDifference, compare_identity, identity_of
+from graftcache.store.roots import GROUP_META, Root, open_root, split_location
 
 INNER_CHUNK_BYTES = 4 << 20
 ACTION_STREAM = "action_stream"  # group of the full-rate actions (see FeatureCache.create)
@@ -44,33 +48,12 @@ STORAGE_DTYPES: dict[str, np.dtype] = {
     "bf16": np.dtype(np.uint16),  # numpy has no bfloat16: raw bits, tagged in the array attributes
 }
 PROGRESS_DIR = "_progress"
+_VERIFIED: set[tuple[str, str, int]] = set()  # (cache location, array, block) checked in this process
 
 
-def cache_root(explicit: str | Path | None = None) -> Path:
-    """`--cache DIR`, else `$GRAFTCACHE_HOME`, else `~/.cache/graftcache`."""
-    if explicit:
-        return Path(explicit).expanduser()
-    env = os.environ.get("GRAFTCACHE_HOME")
-    return Path(env).expanduser() if env else Path.home() / ".cache" / "graftcache"
-
-
-def _take_rows(arr: zarr.Array, rows: np.ndarray, block_frames: int) -> np.ndarray:
-    """`arr[rows]` for an index array, read one shard-sized span at a time.
-
-    zarr's orthogonal selection on sharded arrays costs ~50 ms per shard in chunk bookkeeping (4.6 s
-    for 1k rows here); slicing the span of the wanted rows inside each shard and indexing in numpy
-    reads the same bytes and holds at most one shard beyond the result in memory.
-    """
-    out = np.empty((len(rows), *arr.shape[1:]), dtype=arr.dtype)
-    order = np.argsort(rows, kind="stable")
-    ordered = rows[order]
-    blocks = ordered // block_frames
-    for block in np.unique(blocks):
-        sel = blocks == block
-        wanted = ordered[sel]
-        lo, hi = int(wanted[0]), int(wanted[-1]) + 1
-        out[order[sel]] = arr[lo:hi][wanted - lo]
-    return out
+def forget_verified() -> None:
+    """Check every block again on its next read (benchmarks time the first read of a process)."""
+    _VERIFIED.clear()
 
 
 def _compressor(itemsize: int) -> BloscCodec:
@@ -107,13 +90,31 @@ class ArraySpec:
 
 
 class FeatureCache:
-    """A cache folder. Open existing ones with `FeatureCache(path)`; make new ones with `create`."""
+    """One cache: `FeatureCache(path or URL)`, or `root.open(key)`; make new ones with `create`.
 
-    def __init__(self, path: str | Path) -> None:
-        self.path = Path(path)
-        if not (self.path / "zarr.json").exists():
-            raise CacheError(f"{self.path}: no feature cache here (zarr.json missing)")
-        self.group = zarr.open_group(str(self.path), mode="r+")
+    `writable=False` opens the group read-only (ls, info, verify, fit): nothing is ever written."""
+
+    def __init__(self, location: str | Path, *, root: Root | None = None, key: str | None = None,
+                 writable: bool = True) -> None:
+        if root is None or key is None:
+            root, key = split_location(location)
+        self.path, self.root, self._key, self._writable = location, root, key, writable
+        raw = root.get(f"{key}/{GROUP_META}")
+        if raw is None:
+            raise CacheError(f"{location}: no feature cache here (zarr.json missing)")
+        try:
+            self._opened_attrs = json.loads(raw)["attributes"]
+            if not isinstance(self._opened_attrs["manifest"]["encoder"]["name"], str):
+                raise TypeError("encoder name is not a string")
+        except (ValueError, KeyError, TypeError) as e:
+            raise CacheError(f"{location}: zarr.json is not a feature cache's ({type(e).__name__}: {e})") from None
+
+    @cached_property
+    def group(self) -> zarr.Group:
+        """The Zarr group, opened on first use: listing caches and reading manifests (ls, choosing a cache
+        for a fit) needs only the zarr.json read above, so a remote root's other objects are not touched."""
+        return zarr.open_group(store=self.root.zarr_store(self.key, read_only=not self._writable),
+                               mode="r+" if self._writable else "r", zarr_format=3)
 
     # ------------------------------------------------------------------ creation
     @classmethod
@@ -126,6 +127,7 @@ class FeatureCache:
         *,
         block_frames: int,
         action_stream: pl.DataFrame | None = None,
+        root: Root | None = None,
     ) -> FeatureCache:
         """Create the group, its arrays, and write the index and low-dim columns.
 
@@ -136,13 +138,13 @@ class FeatureCache:
         features, but an action chunk is the next actions at full rate (stored as ACTION_STREAM/*).
         Anything already at `path` (an interrupted initialisation) is removed first.
         """
-        path = Path(path)
-        if path.exists():
-            shutil.rmtree(path)
+        parent, key = split_location(path)
+        root = root or parent
+        root.delete_prefix(f"{key}/")
         n = index.height
         dtype = manifest["dtype"]
         np_dtype = STORAGE_DTYPES[dtype]
-        group = zarr.open_group(str(path), mode="w", zarr_format=3)
+        group = zarr.open_group(store=root.zarr_store(key, read_only=False), mode="w", zarr_format=3)
         group.attrs.update({"manifest": dict(manifest), "initialized": False, "complete": False})
         arrays = list(arrays)
         for spec in arrays:
@@ -184,7 +186,7 @@ class FeatureCache:
             "static_checksums": static_sums,
         }
         group.attrs.update({"layout": layout, "initialized": True})
-        return cls(path)
+        return cls(path, root=root, key=key)
 
     @staticmethod
     def _write_static(group: zarr.Group, name: str, values: np.ndarray) -> str:
@@ -197,27 +199,29 @@ class FeatureCache:
     # ------------------------------------------------------------------ properties
     @property
     def attrs(self) -> dict[str, Any]:
-        return dict(self.group.attrs)
+        """The group attributes: as opened until the group is used, then the group's own (they change when
+        this process writes them)."""
+        return dict(self.group.attrs) if "group" in self.__dict__ else dict(self._opened_attrs)
 
     @property
     def manifest(self) -> dict[str, Any]:
-        return dict(self.group.attrs["manifest"])
+        return dict(self.attrs["manifest"])
 
     @property
     def key(self) -> str:
-        return self.path.name
+        return self._key
 
     @property
     def layout(self) -> dict[str, Any]:
-        return dict(self.group.attrs.get("layout", {}))
+        return dict(self.attrs.get("layout", {}))
 
     @property
     def initialized(self) -> bool:
-        return bool(self.group.attrs.get("initialized", False))
+        return bool(self.attrs.get("initialized", False))
 
     @property
     def complete(self) -> bool:
-        return bool(self.group.attrs.get("complete", False))
+        return bool(self.attrs.get("complete", False))
 
     @property
     def n_frames(self) -> int:
@@ -247,17 +251,15 @@ class FeatureCache:
                              f"from {recorded} with different content; first differing file: {diff}")
 
     # ------------------------------------------------------------------ writing
-    def _marker(self, block: int) -> Path:
-        return self.path / PROGRESS_DIR / f"block-{block:06d}.json"
+    def _marker(self, block: int) -> str:
+        return f"{self.key}/{PROGRESS_DIR}/block-{block:06d}.json"
 
     def blocks_done(self) -> set[int]:
         """Blocks with a durable marker (their data was fully written before the marker)."""
         if self.complete:
             return set(range(int(self.layout["n_blocks"])))
-        d = self.path / PROGRESS_DIR
-        if not d.exists():
-            return set()
-        return {int(p.stem.split("-")[1]) for p in d.glob("block-*.json")}
+        return {int(rel.rsplit("-", 1)[1].split(".")[0])
+                for rel in self.root.sizes(f"{self.key}/{PROGRESS_DIR}/") if rel.endswith(".json")}
 
     def write_block(self, block: int, data: Mapping[str, np.ndarray]) -> None:
         """Write every feature array's slice for `block`, then its checksum marker (atomically)."""
@@ -272,11 +274,7 @@ class FeatureCache:
                                  f"expected {stop - start}")
             self.group[name][start:stop] = values
             sums[name] = _sha256(values)
-        marker = self._marker(block)
-        marker.parent.mkdir(exist_ok=True)
-        tmp = marker.with_suffix(".tmp")
-        tmp.write_text(json.dumps(sums))
-        os.replace(tmp, marker)
+        self.root.put(self._marker(block), json.dumps(sums).encode())
 
     def finalize(self) -> None:
         """Mark complete: requires a marker for every block; moves checksums into the attributes."""
@@ -286,7 +284,7 @@ class FeatureCache:
             raise CacheError(f"{self.path}: cannot mark complete, blocks {missing[:5]} not written")
         sums: dict[str, list[str]] = {name: [] for name in self.layout["arrays"]}
         for block in range(n_blocks):
-            per = json.loads(self._marker(block).read_text())
+            per = json.loads(self.root.get(self._marker(block)))
             for name in sums:
                 sums[name].append(per[name])
         self.group.attrs.update({
@@ -294,7 +292,7 @@ class FeatureCache:
             "complete": True,
             "completed_at": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         })
-        shutil.rmtree(self.path / PROGRESS_DIR, ignore_errors=True)
+        self.root.delete_prefix(f"{self.key}/{PROGRESS_DIR}/")
 
     # ------------------------------------------------------------------ reading
     def feature_path(self, camera: str, name: str) -> str:
@@ -306,14 +304,64 @@ class FeatureCache:
 
     def read_features(self, camera: str, name: str, rows: np.ndarray | slice | None = None) -> torch.Tensor:
         """Features of `camera` at grid/extra `name` ('8x8', 'connector'), as a tensor in stored precision."""
-        arr = self.group[self.feature_path(camera, name)]
+        path = self.feature_path(camera, name)
         if rows is None:
-            values = arr[...]
+            rows = np.arange(self.n_frames)
         elif isinstance(rows, slice):
-            values = arr[rows]
-        else:
-            values = _take_rows(arr, np.asarray(rows), int(self.layout["block_frames"]))
-        return from_storage(values, self.manifest["dtype"])
+            rows = np.arange(self.n_frames)[rows]
+        return from_storage(self._read_rows(path, np.asarray(rows)), self.manifest["dtype"])
+
+    def _read_rows(self, name: str, rows: np.ndarray) -> np.ndarray:
+        """`arr[rows]` read one block at a time, each block checked against its checksum the first time this
+        process reads it (whole, which is what the checksum covers); later reads take the rows' span only.
+
+        zarr's orthogonal selection on sharded arrays costs ~50 ms per shard in chunk bookkeeping (4.6 s
+        for 1k rows here); slicing inside each shard and indexing in numpy reads the same bytes and holds at
+        most one shard beyond the result in memory.
+        """
+        arr = self.group[name]
+        out = np.empty((len(rows), *arr.shape[1:]), dtype=arr.dtype)
+        order = np.argsort(rows, kind="stable")
+        ordered = rows[order]
+        blocks = ordered // int(self.layout["block_frames"])
+        wanted_blocks = [int(b) for b in np.unique(blocks)]
+        self.root.fetch(self.key, [f"{name}/{arr.metadata.encode_chunk_key((b,) + (0,) * (arr.ndim - 1))}"
+                                   for b in wanted_blocks])
+        for block in wanted_blocks:
+            sel = blocks == block
+            wanted = ordered[sel]
+            if self.complete and (str(self.path), name, block) not in _VERIFIED:
+                lo, hi = self.block_range(block)
+                values = self._checked_block(arr, name, block)
+            else:
+                lo, hi = int(wanted[0]), int(wanted[-1]) + 1
+                values = arr[lo:hi]
+            out[order[sel]] = values[wanted - lo]
+        return out
+
+    def _checked_block(self, arr: zarr.Array, name: str, block: int) -> np.ndarray:
+        start, stop = self.block_range(block)
+        where = f"cache {self.path}: {name} frames {start}-{stop - 1} (block {block})"
+        hint = f"run `graftcache verify {self.key}` to list every bad block, then extract or pull it again"
+        try:
+            values = arr[start:stop]
+        except Exception as e:  # a damaged shard fails to decode
+            raise CacheError(f"{where} is unreadable ({type(e).__name__}); {hint}") from None
+        if _sha256(values) != self.attrs["checksums"][name][block]:
+            raise CacheError(f"{where} does not match its stored checksum; {hint}")
+        _VERIFIED.add((str(self.path), name, block))
+        return values
+
+    def _static(self, name: str) -> np.ndarray:
+        """A small whole array (index, low-dim, action stream), checked against its checksum once per process."""
+        values = self.group[name][...]
+        expected = self.layout.get("static_checksums", {}).get(name)
+        if self.complete and expected and (str(self.path), name, -1) not in _VERIFIED:
+            if _sha256(values) != expected:
+                raise CacheError(f"cache {self.path}: {name} does not match its stored checksum; "
+                                 f"run `graftcache verify {self.key}`")
+            _VERIFIED.add((str(self.path), name, -1))
+        return values
 
     def action_stream(self) -> pl.DataFrame:
         """Every frame's action of the cached episodes at the dataset's full rate (episode_index,
@@ -321,19 +369,19 @@ class FeatureCache:
         frame, so their low-dim columns are that stream."""
         if ACTION_STREAM not in self.group:
             return self.index().select("episode_index", "frame_index", "action")
-        values = self.group[f"{ACTION_STREAM}/action"][...]
-        return pl.DataFrame({name: self.group[f"{ACTION_STREAM}/{name}"][...]
+        values = self._static(f"{ACTION_STREAM}/action")
+        return pl.DataFrame({name: self._static(f"{ACTION_STREAM}/{name}")
                              for name in ("episode_index", "frame_index")}).with_columns(
             pl.Series("action", values, dtype=pl.Array(pl.Float32, values.shape[1])))
 
     def index(self) -> pl.DataFrame:
         """Per-frame index and low-dim columns, in cache order."""
-        cols = {name: self.group[f"index/{name}"][...]
+        cols = {name: self._static(f"index/{name}")
                 for name in ("index", "episode_index", "frame_index", "task_index", "suite_index")}
-        cols["timestamp"] = self.group["lowdim/timestamp"][...]
+        cols["timestamp"] = self._static("lowdim/timestamp")
         df = pl.DataFrame(cols)
         for name in ("state", "action"):
-            values = self.group[f"lowdim/{name}"][...]
+            values = self._static(f"lowdim/{name}")
             df = df.with_columns(pl.Series(name, values, dtype=pl.Array(pl.Float32, values.shape[1])))
         return df
 
@@ -348,29 +396,62 @@ class FeatureCache:
         if not self.complete:
             todo = int(self.layout["n_blocks"]) - len(self.blocks_done())
             return [f"{self.key}: incomplete ({todo} of {self.layout['n_blocks']} blocks not written)"]
+        return [p for _, p in self.damage(self.attrs["checksums"])]
+
+    def damage(self, checksums: Mapping[str, list[str]]) -> list[tuple[str, str]]:
+        """(object, problem) for every static array and feature block that does not read back as the layout's
+        static checksums and `checksums` (the feature blocks') say; the object (a shard, or a static array's
+        folder ending in '/') is what to fetch again."""
         problems = []
         for name, expected in self.layout["static_checksums"].items():
-            if _sha256(self.group[name][...]) != expected:
-                problems.append(f"{self.key}: {name} checksum mismatch")
-        for name, sums in self.attrs["checksums"].items():
+            try:
+                got = _sha256(self.group[name][...])
+            except Exception as e:  # a damaged chunk fails to decode
+                problems.append((f"{name}/", f"{self.key}: {name} unreadable ({type(e).__name__})"))
+                continue
+            if got != expected:
+                problems.append((f"{name}/", f"{self.key}: {name} checksum mismatch"))
+        for name, sums in checksums.items():
             arr = self.group[name]
             for block, expected in enumerate(sums):
                 start, stop = self.block_range(block)
+                shard = f"{name}/{arr.metadata.encode_chunk_key((block,) + (0,) * (arr.ndim - 1))}"
                 try:
                     got = _sha256(arr[start:stop])
                 except Exception as e:  # a corrupt shard fails to decode
-                    problems.append(f"{self.key}: {name} frames {start}-{stop - 1} unreadable ({e})")
+                    problems.append((shard, f"{self.key}: {name} frames {start}-{stop - 1} unreadable (block {block}, "
+                                            f"{shard}; {type(e).__name__}: {' '.join(str(e).split())})"))
                     continue
                 if got != expected:
-                    problems.append(f"{self.key}: {name} frames {start}-{stop - 1} checksum mismatch")
+                    problems.append((shard, f"{self.key}: {name} frames {start}-{stop - 1} checksum mismatch "
+                                            f"(block {block}, {shard})"))
         return problems
 
     def size_bytes(self) -> int:
-        return sum(p.stat().st_size for p in self.path.rglob("*") if p.is_file())
+        return sum(self.root.sizes(f"{self.key}/").values())
 
 
-def list_caches(root: Path) -> list[FeatureCache]:
-    """Every cache folder under `root` (sorted by key); folders that are not caches are skipped."""
-    if not root.exists():
-        return []
-    return [FeatureCache(p) for p in sorted(root.iterdir()) if (p / "zarr.json").exists()]
+@dataclass(frozen=True)
+class BrokenCache:
+    """A folder under a root that looks like a cache (it has a zarr.json) but cannot be opened."""
+
+    key: str
+    reason: str
+
+
+def scan_caches(root: str | Path | Root) -> tuple[list[FeatureCache], list[BrokenCache]]:
+    """Every cache under `root` (sorted by key), opened read-only, and those that cannot be opened (a corrupt
+    zarr.json or manifest), each with the one-line reason; folders without zarr.json are not caches."""
+    root = open_root(root)
+    good, broken = [], []
+    for key in root.keys():
+        try:
+            good.append(root.open(key))
+        except CacheError as e:
+            broken.append(BrokenCache(key, str(e)))
+    return good, broken
+
+
+def list_caches(root: str | Path | Root) -> list[FeatureCache]:
+    """The caches under `root` that open (sorted by key); broken ones are left out (`scan_caches` names them)."""
+    return scan_caches(root)[0]

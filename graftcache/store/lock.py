@@ -1,22 +1,31 @@
 """An advisory file lock so that two extract processes never write the same key at once.
 
 fcntl.flock is released by the kernel when the holder dies (even on SIGKILL), so a crashed run
-never leaves a stale lock behind.
+never leaves a stale lock behind. Only writers take it: readers (ls, info, verify, fit) never create a file
+in the root, so a root the user cannot write serves them.
 """
 
 from __future__ import annotations
 
 import fcntl
 import os
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
 from graftcache.errors import CacheError
 
 
+class Held:
+    """What `exclusive` yields: a kernel lock is never taken over while held, so `check` has nothing to do
+    (an object-store lease's `check` does)."""
+
+    def check(self) -> None:
+        return None
+
+
 @contextmanager
-def exclusive(path: Path, *, wait: bool = True, on_wait: callable = None) -> Iterator[None]:
+def exclusive(path: Path, *, wait: bool = True, on_wait: Callable[[str], None] | None = None) -> Iterator[Held]:
     """Hold an exclusive lock on `path` (created if absent). If busy: wait (calling `on_wait(pid)`)
     or raise CacheError naming the holder."""
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -33,7 +42,7 @@ def exclusive(path: Path, *, wait: bool = True, on_wait: callable = None) -> Ite
             fcntl.flock(fd, fcntl.LOCK_EX)
         os.ftruncate(fd, 0)
         os.write(fd, str(os.getpid()).encode())
-        yield
+        yield Held()
     finally:
         fcntl.flock(fd, fcntl.LOCK_UN)
         os.close(fd)

@@ -1,0 +1,268 @@
+"""Cache roots: a local folder or an object-store URL, behind one small interface.
+
+A root holds one Zarr v3 group per cache key (`<root>/<key>/...`). Everything the cache format needs
+beyond Zarr itself is four operations on whole objects (get, put, put-if-absent, list/delete a prefix),
+so the same layout, manifest, checksums and complete-last protocol serve every store.
+
+Object stores go through obstore (`zarr.storage.ObjectStore`), not fsspec + s3fs, because:
+- obstore is one self-contained wheel; s3fs pulls aiobotocore, which pins botocore to a narrow range that
+  conflicts with boto3 (moto's) and breaks `pip check` in scripts/setup.sh;
+- it has put-if-absent (`mode="create"`, S3 If-None-Match) as a first-class call, which the writer lease
+  and publishing need on stores without locks;
+- s3://, gs://, az:// (and http(s)://) URLs, credentials and endpoints come from each store's standard
+  environment (AWS_*, incl. AWS_ENDPOINT_URL; GOOGLE_*; AZURE_*). hf:// is not an object_store scheme.
+Local folders keep zarr's LocalStore (temp file + rename per object) and plain files.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import uuid
+from abc import ABC, abstractmethod
+from contextlib import AbstractContextManager
+from pathlib import Path
+from typing import Any, Callable
+
+from zarr.abc.store import Store
+
+from graftcache.errors import CacheError
+
+GROUP_META = "zarr.json"
+ENV_HOME = "GRAFTCACHE_HOME"
+
+
+def is_url(spec: str | Path) -> bool:
+    return "://" in str(spec)
+
+
+def default_home() -> Path:
+    return Path.home() / ".cache" / "graftcache"
+
+
+class Root(ABC):
+    """Where caches live. `rel` paths are `<key>/<path inside the cache>`, '/'-separated."""
+
+    @property
+    @abstractmethod
+    def url(self) -> str:
+        """How the user names this root (a path or a URL)."""
+
+    def __str__(self) -> str:
+        return self.url
+
+    def location(self, key: str) -> str | Path:
+        return f"{self.url.rstrip('/')}/{key}"
+
+    @abstractmethod
+    def zarr_store(self, key: str, *, read_only: bool) -> Store:
+        """The Zarr store of one cache."""
+
+    @abstractmethod
+    def get(self, rel: str) -> bytes | None:
+        """The object's bytes, or None when absent."""
+
+    @abstractmethod
+    def put(self, rel: str, data: bytes, *, if_absent: bool = False) -> bool:
+        """Write one object whole (readers see the old or the new bytes, never a part). With `if_absent`,
+        False (and nothing written) when the object already exists."""
+
+    @abstractmethod
+    def sizes(self, prefix: str) -> dict[str, int]:
+        """Every object under `prefix` ('<key>/' or '<key>.lease/'), as rel path -> bytes."""
+
+    @abstractmethod
+    def delete(self, rels: list[str]) -> None:
+        """Remove these objects (absent ones are no error)."""
+
+    @abstractmethod
+    def keys(self) -> list[str]:
+        """Names of the top-level folders that hold a group's zarr.json, sorted."""
+
+    @abstractmethod
+    def writer(self, key: str, on_wait: Callable[[str], None] | None = None) -> AbstractContextManager[Any]:
+        """Held while one process writes `key`: a second writer waits, then finds the key complete."""
+
+    def delete_prefix(self, prefix: str) -> None:
+        self.delete(list(self.sizes(prefix)))
+
+    def fetch(self, key: str, rels: list[str]) -> None:
+        """Make these objects of cache `key` local before Zarr reads them; only a read-through root has work."""
+
+    def open(self, key: str, *, writable: bool = False):
+        from graftcache.store.cache import FeatureCache
+
+        return FeatureCache(self.location(key), root=self, key=key, writable=writable)
+
+
+class LocalRoot(Root):
+    def __init__(self, path: Path) -> None:
+        self.path = path
+
+    @property
+    def url(self) -> str:
+        return str(self.path)
+
+    def location(self, key: str) -> Path:
+        return self.path / key
+
+    def zarr_store(self, key: str, *, read_only: bool) -> Store:
+        from zarr.storage import LocalStore
+
+        return LocalStore(self.path / key, read_only=read_only)
+
+    def get(self, rel: str) -> bytes | None:
+        try:
+            return (self.path / rel).read_bytes()
+        except FileNotFoundError:
+            return None
+
+    def get_size(self, rel: str) -> int | None:
+        try:
+            return (self.path / rel).stat().st_size
+        except FileNotFoundError:
+            return None
+
+    def put(self, rel: str, data: bytes, *, if_absent: bool = False) -> bool:
+        target = self.path / rel
+        target.parent.mkdir(parents=True, exist_ok=True)
+        tmp = target.parent / f".{target.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}"
+        try:
+            tmp.write_bytes(data)  # an ordinary create: the mode follows the umask, as zarr's own files do
+            if not if_absent:
+                os.replace(tmp, target)
+                return True
+            try:
+                os.link(tmp, target)  # atomic put-if-absent on POSIX file systems
+            except FileExistsError:
+                return False
+            return True
+        finally:
+            tmp.unlink(missing_ok=True)
+
+    def sizes(self, prefix: str) -> dict[str, int]:
+        base = self.path / prefix
+        if not base.is_dir():
+            return {}
+        return {p.relative_to(self.path).as_posix(): p.stat().st_size for p in base.rglob("*")
+                if p.is_file() and not p.name.startswith(".")}
+
+    def delete(self, rels: list[str]) -> None:
+        for rel in rels:
+            (self.path / rel).unlink(missing_ok=True)
+
+    def delete_prefix(self, prefix: str) -> None:
+        shutil.rmtree(self.path / prefix, ignore_errors=True)
+
+    def keys(self) -> list[str]:
+        if not self.path.is_dir():
+            return []
+        return sorted(p.name for p in self.path.iterdir() if (p / GROUP_META).exists())
+
+    def writer(self, key: str, on_wait: Callable[[str], None] | None = None) -> AbstractContextManager[Any]:
+        from graftcache.store.lock import exclusive
+
+        return exclusive(self.path / f"{key}.lock", on_wait=on_wait)
+
+
+class ObjectRoot(Root):
+    """s3://bucket/prefix, gs://..., az://...: one obstore store for the root, one per cache for Zarr."""
+
+    def __init__(self, url: str) -> None:
+        self._url = url.rstrip("/")
+        self.store = _obstore(self._url)
+
+    @property
+    def url(self) -> str:
+        return self._url
+
+    def zarr_store(self, key: str, *, read_only: bool) -> Store:
+        from zarr.storage import ObjectStore
+
+        return ObjectStore(_obstore(f"{self._url}/{key}"), read_only=read_only)
+
+    def get(self, rel: str) -> bytes | None:
+        import obstore
+        from obstore.exceptions import NotFoundError
+
+        try:
+            return bytes(obstore.get(self.store, rel).bytes())
+        except (NotFoundError, FileNotFoundError):
+            return None
+
+    def put(self, rel: str, data: bytes, *, if_absent: bool = False) -> bool:
+        import obstore
+        from obstore.exceptions import AlreadyExistsError, PreconditionError
+
+        try:
+            obstore.put(self.store, rel, data, mode="create" if if_absent else "overwrite")
+        except (AlreadyExistsError, PreconditionError):
+            return False
+        return True
+
+    def sizes(self, prefix: str) -> dict[str, int]:
+        import obstore
+
+        return {m["path"]: int(m["size"]) for batch in obstore.list(self.store, prefix) for m in batch
+                if m["path"].startswith(prefix)}
+
+    def delete(self, rels: list[str]) -> None:
+        import obstore
+
+        for start in range(0, len(rels), 1000):
+            obstore.delete(self.store, rels[start:start + 1000])
+
+    def keys(self) -> list[str]:
+        import obstore
+
+        listed = obstore.list_with_delimiter(self.store)
+        return sorted(p.rstrip("/") for p in listed["common_prefixes"]
+                      if self.get(f"{p.rstrip('/')}/{GROUP_META}") is not None)
+
+    def writer(self, key: str, on_wait: Callable[[str], None] | None = None) -> AbstractContextManager[Any]:
+        from graftcache.store.lease import Lease
+
+        return Lease(self, key, on_wait=on_wait)
+
+
+def _obstore(url: str):
+    """An obstore store for `url`, configured from the environment; http:// endpoints (S3-compatible
+    servers on a LAN or loopback) are allowed when AWS_ENDPOINT_URL names one."""
+    from obstore.store import from_url
+
+    options = {}
+    if os.environ.get("AWS_ENDPOINT_URL", "").startswith("http://"):
+        options["client_options"] = {"allow_http": True}
+    try:
+        return from_url(url, **options)
+    except Exception as e:  # unknown scheme, bad bucket name, missing configuration
+        raise CacheError(f"{url}: cannot open this cache root ({type(e).__name__}: {e})") from None
+
+
+def cache_root(explicit: str | Path | None = None) -> Path:
+    """The local folder for things that are never shared through a remote root (tiny policies, demo
+    results, the read-through cache): `--cache DIR` when it is a folder, else $GRAFTCACHE_HOME when it
+    is a folder, else ~/.cache/graftcache."""
+    for spec in (explicit, os.environ.get(ENV_HOME)):
+        if spec and not is_url(spec):
+            return Path(spec).expanduser()
+    return default_home()
+
+
+def open_root(explicit: str | Path | Root | None = None) -> Root:
+    """`--cache DIR|URL`, else $GRAFTCACHE_HOME, else ~/.cache/graftcache."""
+    if isinstance(explicit, Root):
+        return explicit
+    spec = explicit or os.environ.get(ENV_HOME) or default_home()
+    return ObjectRoot(str(spec)) if is_url(spec) else LocalRoot(Path(spec).expanduser())
+
+
+def split_location(location: str | Path) -> tuple[Root, str]:
+    """A cache's location (a folder or a URL) as (root, key)."""
+    text = str(location).rstrip("/")
+    if is_url(text):
+        parent, _, key = text.rpartition("/")
+        return ObjectRoot(parent), key
+    path = Path(text)
+    return LocalRoot(path.parent), path.name
+
