@@ -46,11 +46,6 @@ FeatureCache.write_block = full
 from graftcache.cli import main
 sys.exit(main(sys.argv[1:]))
 """
-#: Rows that the store layer of the s3 branch (issue 11) makes pass: checksum-on-read in stage 2 and `ls` with a
-#: broken cache. Remove this mark once that branch is merged (strict: an unexpected pass fails the run).
-AFTER_S3 = pytest.mark.xfail(strict=True, reason="store layer of issue 11 (branch s3)")
-
-
 def _save(path: Path, state: dict) -> Path:
     save_file({k: v.contiguous() for k, v in state.items()}, str(path))
     return path
@@ -254,7 +249,6 @@ def test_a_copied_cache_is_found_and_verifies(world: World, tmp_path: Path) -> N
     assert done.returncode == 0 and "all checksums match" in done.stdout, done.stdout + done.stderr
 
 
-@AFTER_S3
 def test_fit_refuses_a_flipped_byte_in_a_shard(world: World, tmp_path: Path) -> None:
     shutil.copytree(Path(world.paths["cache"]) / world.clean_key, tmp_path / world.clean_key)
     shard = next(p for p in sorted((tmp_path / world.clean_key / "features").rglob("*")) if p.is_file()
@@ -269,7 +263,6 @@ def test_fit_refuses_a_flipped_byte_in_a_shard(world: World, tmp_path: Path) -> 
     assert world.clean_key in last and "features/" in last and not out.exists()
 
 
-@AFTER_S3
 def test_ls_lists_healthy_caches_and_flags_a_broken_one(world: World, tmp_path: Path) -> None:
     shutil.copytree(Path(world.paths["cache"]) / world.clean_key, tmp_path / world.clean_key)
     broken = tmp_path / "resnet18-broken"
