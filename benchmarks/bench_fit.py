@@ -26,14 +26,14 @@ import numpy as np
 import torch
 from common import DEFAULT_DATASET, machine, median_seconds, warm_page_cache
 
-from graftcache.backbones import load_backbone
 from graftcache.backbone_table import native_name
+from graftcache.backbones import load_backbone
 from graftcache.encoders import load_encoder
 from graftcache.extract import ExtractRequest, extract
 from graftcache.fit.align import fit_ridge
 from graftcache.fit.data import load_frames
 from graftcache.fit.loop import camera_map, flow_time, raw_batch, train
-from graftcache.fit.run import Fitter, FitRequest
+from graftcache.fit.run import FitRequest, Fitter
 from graftcache.graft import GraftProjector, feature_key
 from graftcache.pooling import pool_grid
 from graftcache.pretrain import dataset_stats

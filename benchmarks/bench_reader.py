@@ -28,13 +28,11 @@ from typing import Callable  # noqa: E402
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
-from torch.utils.data import DataLoader, Dataset  # noqa: E402
-
 from common import DEFAULT_DATASET, machine, warm_page_cache  # noqa: E402
+from torch.utils.data import DataLoader, Dataset  # noqa: E402
 
 from graftcache.datasets import LeRobotSource, open_dataset  # noqa: E402
 from graftcache.runtime import single_thread_worker  # noqa: E402
-
 
 
 class Episodes(Dataset):

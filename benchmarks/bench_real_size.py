@@ -41,8 +41,8 @@ from common import DEFAULT_DATASET, machine, median_seconds, warm_page_cache  # 
 
 from graftcache.backbones import load_backbone  # noqa: E402
 from graftcache.backbones.released import BUILDERS, LIBERO, built_here, hub_cache  # noqa: E402
-from graftcache.datasets import open_dataset  # noqa: E402
 from graftcache.backbones.surgery import freeze_all_but  # noqa: E402
+from graftcache.datasets import open_dataset  # noqa: E402
 from graftcache.graft import GraftProjector, feature_key  # noqa: E402
 from graftcache.runtime import (  # noqa: E402
     autocast,

@@ -35,7 +35,6 @@ from concurrent.futures import ThreadPoolExecutor  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
-
 from common import DEFAULT_DATASET, machine  # noqa: E402
 
 from graftcache.datasets import open_dataset  # noqa: E402
@@ -123,7 +122,7 @@ def main() -> None:
         key, cameras, suites = make_cache(work / "local", args.dataset, args.width)
         total = sum(local.sizes(f"{key}/").values())
         objects = sorted(local.sizes(f"{key}/"))
-        print(f"cache: {local.open(key).n_frames} frames, cameras {cameras}, 8x8 x {args.width} fp16, "
+        print(f"cache: {FeatureCache.in_root(local, key).n_frames} frames, cameras {cameras}, 8x8 x {args.width} fp16, "
               f"{len(objects)} objects, {total / 2**20:.1f} MiB; suites {suites}")
 
         s3 = open_root(f"s3://{bucket}/push")

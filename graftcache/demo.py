@@ -17,9 +17,9 @@ from pathlib import Path
 import graftcache
 from graftcache.errors import GraftcacheError
 from graftcache.progress import write
+from graftcache.recipe import load_recipe
 from graftcache.report import ReportPaths, write_report
 from graftcache.store import cache_root
-from graftcache.recipe import load_recipe
 from graftcache.sweep import run_sweep
 
 DEFAULT_RECIPE = Path(graftcache.__file__).resolve().parents[1] / "cli" / "demo.toml"

@@ -292,7 +292,7 @@ def extract(req: ExtractRequest, log: Callable[[str], None] = print) -> ExtractR
 def _complete(root: Root, key: str, manifest: dict[str, Any], req: ExtractRequest) -> FeatureCache | None:
     """The finished cache of this request, opened read-only, or None when there is work to do."""
     try:
-        cache = root.open(key)
+        cache = FeatureCache.in_root(root, key)
     except CacheError:  # absent, or an initialisation that never wrote its manifest
         return None
     if not (cache.initialized and cache.complete and cache.matches(manifest)):
@@ -305,7 +305,7 @@ def _open_or_create(root: Root, key: str, manifest: dict[str, Any], index: pl.Da
                     encoder: Any, cameras: Sequence[str], req: ExtractRequest,
                     log: Callable[[str], None]) -> FeatureCache:
     try:
-        cache = root.open(key, writable=True)
+        cache = FeatureCache.in_root(root, key, writable=True)
     except CacheError:
         cache = None
     if cache is not None:

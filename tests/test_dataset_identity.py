@@ -20,7 +20,7 @@ import pyarrow.parquet as pq
 import pytest
 
 from graftcache.datasets import identity, open_dataset
-from graftcache.errors import CacheError
+from graftcache.errors import CacheError, DatasetError
 from graftcache.store import cache_key, compare_identity
 
 SAMPLE = Path(__file__).resolve().parents[1] / "data" / "libero_sample"
@@ -158,8 +158,6 @@ def test_a_shared_home_not_writable_falls_back_to_the_user_cache(sample: Path, t
 
 
 def test_a_missing_data_file_is_named(sample: Path, memo: Path) -> None:
-    from graftcache.errors import DatasetError
-
     (sample / VIDEO).unlink()
     meta = open_dataset(sample).meta  # opening still works; the identity needs every file
     with pytest.raises(DatasetError, match=f"{sample / VIDEO}: missing"):
@@ -233,11 +231,12 @@ def test_a_metadata_only_identity_of_older_caches_never_matches() -> None:
 
 
 # ------------------------------------------------------------------------------------------ caches
-def _extract(dataset: Path, cache: Path, log: list[str]):
+def _extract(dataset: Path, cache: Path, log: list[str], allow_nonfinite: bool = False):
     from graftcache.extract import ExtractRequest, extract
 
     req = ExtractRequest(dataset=str(dataset), encoder=ENCODER, grids=((2, 2),), episodes=(0,), cameras=("image",),
-                         random_init=True, seed=0, num_workers=0, batch_size=16, cache=str(cache), progress=False)
+                         random_init=True, seed=0, num_workers=0, batch_size=16, cache=str(cache), progress=False,
+                         allow_nonfinite=allow_nonfinite)
     return extract(req, log=log.append)
 
 
@@ -265,10 +264,13 @@ def test_nan_edited_copy_gets_its_own_cache_and_stale_caches_are_refused(
     with monkeypatch.context() as mp:
         mp.setattr(graftcache.extract, "cache_key", lambda manifest: clean.key)
         with pytest.raises(CacheError, match=f"first differing file: {DATA}"):
-            _extract(sample, cache, log)
+            _extract(sample, cache, log, allow_nonfinite=True)
 
+    # the NaNs themselves are refused by default, naming episode and frame; --allow-nonfinite caches them
+    with pytest.raises(DatasetError, match="episode 0 frame 0: state"):
+        _extract(sample, cache, log)
     log.clear()
-    edited = _extract(sample, cache, log)
+    edited = _extract(sample, cache, log, allow_nonfinite=True)
     assert edited.key != clean.key and not edited.reused and edited.frames_encoded > 0
     assert not any("reusing complete cache" in line for line in log)
     from graftcache.store import FeatureCache

@@ -7,10 +7,10 @@ import json
 import numpy as np
 import pytest
 import torch
+from helpers.encoders import random_frames
 from PIL import Image
 from torch import nn
 
-from helpers.encoders import random_frames
 from graftcache.encoders import Encoder, get_spec
 from graftcache.errors import EncoderError
 

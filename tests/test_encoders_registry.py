@@ -14,10 +14,9 @@ from helpers.encoders import REV, fake_hub_snapshot, photo, random_frames
 from PIL import Image
 from safetensors.torch import save_file
 
-from graftcache.encoders import get_spec, list_encoders, load_encoder
-from graftcache.encoders import wheels
-from graftcache.hashing import sha256_file
+from graftcache.encoders import get_spec, list_encoders, load_encoder, wheels
 from graftcache.errors import EncoderError
+from graftcache.hashing import sha256_file
 
 HF_ENTRIES = ["siglip", "siglip2", "dinov2-s", "dinov2-s-reg", "clip-b16", "resnet18"]
 HF_BIG = ["dinov2-b", "resnet50"]  # same code path, larger: run in the slow lane

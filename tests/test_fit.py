@@ -17,15 +17,15 @@ from helpers.datasets import Written
 from safetensors.torch import load_file
 
 from graftcache import results
-from graftcache.backbones import load_backbone
 from graftcache.backbone_table import native_name
+from graftcache.backbones import load_backbone
 from graftcache.cli import main
 from graftcache.errors import FitError
 from graftcache.extract import ExtractRequest, extract
 from graftcache.fit.controls import get_control
 from graftcache.fit.data import load_frames, split_episodes
 from graftcache.fit.loop import camera_map, train
-from graftcache.fit.run import Cell, Fitter, FitRequest
+from graftcache.fit.run import Cell, FitRequest, Fitter
 from graftcache.graft import GraftProjector
 from graftcache.store import FeatureCache
 

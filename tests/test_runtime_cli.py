@@ -16,8 +16,8 @@ from graftcache import runtime
 from graftcache.cli import build_parser
 from graftcache.cli.common import int_list, seeds_value
 from graftcache.errors import GraftcacheError
-from graftcache.progress import LogProgress, progress
 from graftcache.pretrain import TinyTrainConfig, warmup_cosine
+from graftcache.progress import LogProgress, progress
 
 SAMPLE = Path(__file__).resolve().parents[1] / "data" / "libero_sample"
 

@@ -199,7 +199,7 @@ def test_a_flipped_byte_in_a_remote_shard_is_named_and_refused(
     pulled = FeatureCache(tmp_path / "pulled" / key)
     assert not pulled.complete and not (tmp_path / "pulled" / shard).exists()
     with pytest.raises(CacheError, match=r"features/image/2x2 frames 6-7 \(block 3\)"):  # checksum on read
-        reading_root(s3).open(key).read_features("image", "2x2", np.arange(18))
+        FeatureCache.in_root(reading_root(s3), key).read_features("image", "2x2", np.arange(18))
 
 
 @pytest.mark.parametrize("where", ["local", "s3"])

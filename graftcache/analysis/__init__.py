@@ -39,15 +39,42 @@ from graftcache.analysis.agreement import PAIRING_SCHEMA, kendall_tau, seed_disa
 from graftcache.analysis.controls import CONTROLS_SCHEMA, controls_distance, wrapper_non_neutrality
 from graftcache.analysis.stats import BASIS_MISSING, SOLID_BASES, BootSettings, tau_b
 from graftcache.analysis.summaries import (
-    duplicate_rows, episode_coverage, missing_cells, near_tie_band, rankings, seed_summary,
+    duplicate_rows,
+    episode_coverage,
+    missing_cells,
+    near_tie_band,
+    rankings,
+    seed_summary,
 )
 from graftcache.analysis.table import (
-    BACKBONE_LABELS, CELL, EPISODE_COLUMN, GROUP, LARGE, NATIVE, NATIVE_GRAFT, NOT_ENCODER_CONTROLS, PLAIN,
-    RECIPE_COLUMNS, SHUFFLED_IMAGE, SMALL, ZERO_IMAGE, backbone_label,
+    BACKBONE_LABELS,
+    CELL,
+    EPISODE_COLUMN,
+    GROUP,
+    LARGE,
+    NATIVE,
+    NATIVE_GRAFT,
+    NOT_ENCODER_CONTROLS,
+    PLAIN,
+    RECIPE_COLUMNS,
+    SHUFFLED_IMAGE,
+    SMALL,
+    ZERO_IMAGE,
+    backbone_label,
 )
 from graftcache.analysis.transfer import (
-    COUNT_COLUMNS, DOES_NOT_TRANSFER, INSUFFICIENT, NEAR_TIE, SEED_VERDICT_SCHEMA, TRANSFERS, VERDICT_SCHEMA,
-    VERDICTS, seed_verdicts, transfer_verdicts, two_backbone_gap, verdict_counts,
+    COUNT_COLUMNS,
+    DOES_NOT_TRANSFER,
+    INSUFFICIENT,
+    NEAR_TIE,
+    SEED_VERDICT_SCHEMA,
+    TRANSFERS,
+    VERDICT_SCHEMA,
+    VERDICTS,
+    seed_verdicts,
+    transfer_verdicts,
+    two_backbone_gap,
+    verdict_counts,
 )
 from graftcache.errors import GraftcacheError
 from graftcache.results import conform

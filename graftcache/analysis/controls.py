@@ -7,7 +7,7 @@ from collections.abc import Sequence
 
 import polars as pl
 
-from graftcache.analysis.stats import Bootstrap, BootSettings, prob_greater
+from graftcache.analysis.stats import BootSettings, Bootstrap, prob_greater
 from graftcache.analysis.summaries import seed_summary
 from graftcache.analysis.table import (
     CELL,

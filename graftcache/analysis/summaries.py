@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import polars as pl
 
-from graftcache.analysis.stats import BASIS_MISSING, Bootstrap, BootSettings, cells_of, prob_greater
+from graftcache.analysis.stats import BASIS_MISSING, BootSettings, Bootstrap, cells_of, prob_greater
 from graftcache.analysis.table import CELL, GROUP, PLAIN, RECIPE_COLUMNS, check, control_rows
 
 

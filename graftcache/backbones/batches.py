@@ -66,8 +66,8 @@ class PromptBatches:
         """
         if self.prompt_uses_state:
             raise BackboneError(f"{self.name} prompts embed the discretised state: tokenise per batch with prepare()")
-        from lerobot.processor.converters import create_transition
         from lerobot.processor import TransitionKey
+        from lerobot.processor.converters import create_transition
 
         for task in dict.fromkeys(tasks):
             if task not in self._task_cache:

@@ -31,9 +31,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def _open(args: argparse.Namespace):
-    from graftcache.store import open_root
+    from graftcache.store import FeatureCache, open_root
 
-    return open_root(args.cache).open(args.key)
+    return FeatureCache.in_root(open_root(args.cache), args.key)
 
 
 def run_ls(args: argparse.Namespace) -> int:

@@ -18,10 +18,10 @@ from graftcache.cli.common import (
     positive_int,
     request_from,
 )
+from graftcache.nonfinite import DROP_FLAG
 from graftcache.pooling import format_grid
 from graftcache.requests import ExtractRequest
 from graftcache.runtime import DTYPES
-from graftcache.nonfinite import DROP_FLAG
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:

@@ -20,9 +20,9 @@ from torch import nn
 from graftcache.encoders.encoder import Encoder, feature_map_to_grid, tokens_to_grid
 from graftcache.encoders.hf_archs import HFArch, arch_of
 from graftcache.encoders.loading import (
+    first_line,
     hf_weight_files,
     hub_snapshot,
-    first_line,
     missing_hub_weights,
     read_safetensors,
     require_file,

@@ -9,12 +9,13 @@ file. The stored width is checked against the registry entry.
 
 from __future__ import annotations
 
+from pathlib import Path
 
 from graftcache.backbone_table import NATIVE_SUFFIX
 from graftcache.datasets import open_dataset
 from graftcache.encoders import get_spec
 from graftcache.errors import FitError
-from graftcache.store import FeatureCache, Root, list_caches
+from graftcache.store import FeatureCache, Root, list_caches, open_root
 
 
 def dataset_fingerprint(dataset: str) -> dict:
@@ -28,15 +29,16 @@ def _dataset_identity(dataset: str) -> tuple[dict, str]:
     return meta.identity, str(meta.root)
 
 
-def find_cache(root: Root, encoder: str, *, dataset: str | None = None, key: str | None = None,
+def find_cache(root: Root | str | Path, encoder: str, *, dataset: str | None = None, key: str | None = None,
                same_dataset_as: FeatureCache | None = None, for_what: str = "the graft") -> FeatureCache:
     """The one complete cache of `encoder` (for `dataset`), or a clear error saying how to make it."""
+    root = open_root(root)
     wanted_fp, wanted_root = _dataset_identity(dataset) if dataset else (None, None)
     if same_dataset_as is not None:
         wanted_fp = same_dataset_as.manifest["dataset_fingerprint"]
         wanted_root = same_dataset_as.manifest["dataset"].get("root")
     if key:
-        cache = root.open(key)
+        cache = FeatureCache.in_root(root, key)
         if cache.manifest["encoder"]["name"] != encoder:
             raise FitError(f"cache {key} holds encoder {cache.manifest['encoder']['name']!r}, not {encoder!r}")
         candidates = [cache]

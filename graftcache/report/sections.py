@@ -13,11 +13,23 @@ from graftcache import results as R
 from graftcache.report.document import Alert, Block, Bullets, Heading, Image, Paragraph
 from graftcache.report.figures import FIGURES
 from graftcache.report.sentences import (
-    PROXY_NOTE, SEED_LEVEL_BOOTSTRAP, bootstrap_sentence, direction, transfer_summary, verdict_sentences,
+    PROXY_NOTE,
+    SEED_LEVEL_BOOTSTRAP,
+    bootstrap_sentence,
+    direction,
+    transfer_summary,
+    verdict_sentences,
 )
 from graftcache.report.tables import (
-    CONTROL_COLUMNS, MISSING_COLUMNS, MSE_COLUMNS, PROVENANCE_COLUMNS, SEED_COLUMNS, WRAPPER_COLUMNS,
-    in_backbone_order, table_block, transfer_columns,
+    CONTROL_COLUMNS,
+    MISSING_COLUMNS,
+    MSE_COLUMNS,
+    PROVENANCE_COLUMNS,
+    SEED_COLUMNS,
+    WRAPPER_COLUMNS,
+    in_backbone_order,
+    table_block,
+    transfer_columns,
 )
 
 

@@ -24,8 +24,8 @@ from __future__ import annotations
 import json
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
-from functools import cached_property
 from datetime import datetime, timezone
+from functools import cached_property
 from pathlib import Path
 from typing import Any
 
@@ -90,9 +90,14 @@ class ArraySpec:
 
 
 class FeatureCache:
-    """One cache: `FeatureCache(path or URL)`, or `root.open(key)`; make new ones with `create`.
+    """One cache: `FeatureCache(path or URL)`, or `FeatureCache.in_root(root, key)`; make new ones with `create`.
 
     `writable=False` opens the group read-only (ls, info, verify, fit): nothing is ever written."""
+
+    @classmethod
+    def in_root(cls, root: Root, key: str, *, writable: bool = False) -> FeatureCache:
+        """The cache `key` of an opened root (its objects read and written through that root)."""
+        return cls(root.location(key), root=root, key=key, writable=writable)
 
     def __init__(self, location: str | Path, *, root: Root | None = None, key: str | None = None,
                  writable: bool = True) -> None:
@@ -446,7 +451,7 @@ def scan_caches(root: str | Path | Root) -> tuple[list[FeatureCache], list[Broke
     good, broken = [], []
     for key in root.keys():
         try:
-            good.append(root.open(key))
+            good.append(FeatureCache.in_root(root, key))
         except CacheError as e:
             broken.append(BrokenCache(key, str(e)))
     return good, broken

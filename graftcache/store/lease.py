@@ -16,16 +16,24 @@ import socket
 import threading
 import time
 import uuid
-from collections.abc import Callable
-from typing import TYPE_CHECKING
+from collections.abc import Callable, Mapping
+from typing import Protocol
 
 from graftcache.errors import CacheError
 
-if TYPE_CHECKING:
-    from graftcache.store.roots import ObjectRoot
-
 LEASE_ENV = "GRAFTCACHE_LEASE_S"
 LEASE_S = 30.0  # expiry of an unrenewed lease; renewed every third of it
+
+
+class LeaseStore(Protocol):
+    """What a lease needs of its root (an object-store root implements it): a name, listing, reads and
+    put-if-absent writes."""
+
+    @property
+    def url(self) -> str: ...
+    def sizes(self, prefix: str) -> Mapping[str, int]: ...
+    def get(self, rel: str) -> bytes | None: ...
+    def put(self, rel: str, data: bytes, *, if_absent: bool = False) -> bool: ...
 
 
 def lease_seconds() -> float:
@@ -33,7 +41,7 @@ def lease_seconds() -> float:
 
 
 class Lease:
-    def __init__(self, root: ObjectRoot, key: str, on_wait: Callable[[str], None] | None = None) -> None:
+    def __init__(self, root: LeaseStore, key: str, on_wait: Callable[[str], None] | None = None) -> None:
         self.root, self.key, self.on_wait = root, key, on_wait
         self.owner = f"{socket.gethostname()}:{os.getpid()}:{uuid.uuid4().hex[:8]}"
         self.generation = -1

@@ -89,11 +89,6 @@ class Root(ABC):
     def fetch(self, key: str, rels: list[str]) -> None:
         """Make these objects of cache `key` local before Zarr reads them; only a read-through root has work."""
 
-    def open(self, key: str, *, writable: bool = False):
-        from graftcache.store.cache import FeatureCache
-
-        return FeatureCache(self.location(key), root=self, key=key, writable=writable)
-
 
 class LocalRoot(Root):
     def __init__(self, path: Path) -> None:

@@ -39,7 +39,7 @@ class Transfer:
 
 
 def copy_cache(src_root: Root, dst_root: Root, key: str, log: Callable[[str], None] = print) -> Transfer:
-    src = src_root.open(key)
+    src = FeatureCache.in_root(src_root, key)
     if not src.complete:
         raise CacheError(f"cache {src.path} is not complete; only complete caches are pushed or pulled")
     existing = _existing(dst_root, key)
@@ -76,7 +76,7 @@ def copy_cache(src_root: Root, dst_root: Root, key: str, log: Callable[[str], No
 
         with ThreadPoolExecutor(COPY_THREADS) as pool:
             copied = sum(pool.map(copy, todo))
-        damage = dst_root.open(key).damage(src.attrs["checksums"])
+        damage = FeatureCache.in_root(dst_root, key).damage(src.attrs["checksums"])
         if damage:
             _drop(dst_root, key, damage)
             raise CacheError(f"copy of {key} from {src_root} to {dst_root} failed verification: {damage[0][1]}"
@@ -102,6 +102,6 @@ def _existing(root: Root, key: str) -> FeatureCache | None:
     """The destination's cache under `key`, or None when there is none or its zarr.json cannot be read
     (an interrupted copy's or a damaged one: rewritten by this copy)."""
     try:
-        return root.open(key)
+        return FeatureCache.in_root(root, key)
     except CacheError:
         return None
