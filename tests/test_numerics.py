@@ -109,7 +109,7 @@ def test_compare_judges_relative_to_the_recorded_scale_per_dtype() -> None:
 
 # ------------------------------------------------------------------------------------------------ extraction
 @pytest.fixture(scope="module")
-def made(v3_image: Written, tmp_path_factory: pytest.TempPathFactory) -> FeatureCache:  # noqa: F811
+def made(v3_image: Written, tmp_path_factory: pytest.TempPathFactory) -> FeatureCache:
     root = tmp_path_factory.mktemp("numerics_cache")
     return FeatureCache(extract(_req(v3_image.root, root), log=_quiet).path)
 
@@ -152,7 +152,7 @@ def _interrupted(dataset: Path, root: Path, monkeypatch: pytest.MonkeyPatch) -> 
     return path
 
 
-def test_resuming_in_a_perturbed_environment_is_refused(v3_image: Written, tmp_path: Path,  # noqa: F811
+def test_resuming_in_a_perturbed_environment_is_refused(v3_image: Written, tmp_path: Path,
                                                         monkeypatch: pytest.MonkeyPatch) -> None:
     path = _interrupted(v3_image.root, tmp_path, monkeypatch)
     nudge(monkeypatch)
@@ -164,7 +164,7 @@ def test_resuming_in_a_perturbed_environment_is_refused(v3_image: Written, tmp_p
     assert not FeatureCache(path).complete
 
 
-def test_resuming_in_the_same_environment_finishes_the_cache(v3_image: Written, tmp_path: Path,  # noqa: F811
+def test_resuming_in_the_same_environment_finishes_the_cache(v3_image: Written, tmp_path: Path,
                                                              monkeypatch: pytest.MonkeyPatch,
                                                              made: FeatureCache) -> None:
     path = _interrupted(v3_image.root, tmp_path, monkeypatch)
@@ -175,7 +175,7 @@ def test_resuming_in_the_same_environment_finishes_the_cache(v3_image: Written, 
                                   made.read_features("image", "2x2").numpy())
 
 
-def test_reusing_a_complete_cache_in_a_perturbed_environment_warns(made: FeatureCache, v3_image: Written,  # noqa: F811
+def test_reusing_a_complete_cache_in_a_perturbed_environment_warns(made: FeatureCache, v3_image: Written,
                                                                    monkeypatch: pytest.MonkeyPatch) -> None:
     nudge(monkeypatch)
     lines: list[str] = []
@@ -193,6 +193,26 @@ def test_verify_reports_the_difference(made: FeatureCache, monkeypatch: pytest.M
     check = fp.check_numerics(made)
     assert f"largest probe difference {check.largest:.3g} in the grid output" in out[1]
     assert check.status == "drift" and check.drift > fp.TOLERANCE["fp32"]
+
+
+def test_pull_and_push_refuse_drift_unless_accepted(made: FeatureCache, tmp_path: Path,
+                                                   monkeypatch: pytest.MonkeyPatch,
+                                                   capsys: pytest.CaptureFixture) -> None:
+    source = str(made.path.parent)
+    assert main(["pull", made.key, source, "--cache", str(tmp_path / "same")]) == 0  # unchanged: copied
+    assert FeatureCache(tmp_path / "same" / made.key).complete
+    nudge(monkeypatch)
+    capsys.readouterr()
+    for command, args in (("pull", [made.key, source, "--cache", str(tmp_path / "pulled")]),
+                          ("push", [made.key, str(tmp_path / "pushed"), "--cache", source])):
+        assert main([command, *args]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and f"cache {made.key}: this environment computes different features" in err
+        assert f"{command} refuses it; pass --accept-numerics-drift" in err
+    assert not (tmp_path / "pulled" / made.key).exists() and not (tmp_path / "pushed" / made.key).exists()
+    assert main(["pull", made.key, source, "--cache", str(tmp_path / "pulled"), "--accept-numerics-drift"]) == 0
+    assert "pull goes on (--accept-numerics-drift)" in capsys.readouterr().out
+    assert FeatureCache(tmp_path / "pulled" / made.key).complete
 
 
 # ------------------------------------------------------------------------------------------------ fit
@@ -214,7 +234,7 @@ class World:
 
 
 @pytest.fixture(scope="module")
-def world(v3_image: Written, tmp_path_factory: pytest.TempPathFactory) -> World:  # noqa: F811
+def world(v3_image: Written, tmp_path_factory: pytest.TempPathFactory) -> World:
     return World(tmp_path_factory.mktemp("numerics_fit"), v3_image)
 
 
@@ -274,7 +294,7 @@ def test_caches_and_results_from_before_the_fingerprint_keep_working(world: Worl
 
 
 # ------------------------------------------------------------------------------------------------ native towers
-def test_smolvla_position_id_drift_is_caught_in_one_line(v3_image: Written, tmp_path: Path,  # noqa: F811
+def test_smolvla_position_id_drift_is_caught_in_one_line(v3_image: Written, tmp_path: Path,
                                                          capsys: pytest.CaptureFixture) -> None:
     policy = tmp_path / "policy"
     tiny("smolvla").save(policy)

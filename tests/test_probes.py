@@ -9,7 +9,6 @@ ResNet-18 caches of it and a tiny SmolVLA checkpoint, built once per module.
 from __future__ import annotations
 
 import json
-import os
 import shutil
 import subprocess
 import sys
@@ -273,17 +272,8 @@ def test_ls_lists_healthy_caches_and_flags_a_broken_one(world: World, tmp_path: 
     assert world.clean_key in done.stdout and "resnet18-broken" in done.stdout + done.stderr
 
 
-@pytest.mark.skipif(os.geteuid() == 0, reason="root ignores file modes")
-def test_fit_on_a_read_only_cache_root_is_one_line(world: World, tmp_path: Path) -> None:
-    root = tmp_path / "ro"
-    shutil.copytree(Path(world.paths["cache"]), root)
-    root.chmod(0o555)
-    try:
-        done = _cli((FIT + " --cache " + str(root)).format(**world.paths, out=tmp_path / "r.parquet").split())
-    finally:
-        root.chmod(0o755)
-    assert "Traceback" not in done.stderr, done.stderr[-3000:]
-    assert done.returncode == 0 or str(root) in done.stderr.strip().splitlines()[-1]
+# fit on a read-only cache root: tests/test_store_remote.py runs ls/info/verify/fit as uid nobody on a root it
+# cannot write and asserts they succeed and leave it unchanged.
 
 
 def test_extracted_caches_hold_what_the_probes_assume(world: World) -> None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 
 from graftcache.cli.common import add_cache_flag
+from graftcache.encoders.fingerprint import ACCEPT_FLAG
 
 # command -> (help, description, the other root's name, whether --cache is the source)
 DIRECTIONS: dict[str, tuple[str, str, str, bool]] = {
@@ -23,14 +24,22 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         p.add_argument("key")
         p.add_argument(other, help=f"{other} root: a folder or an s3:// gs:// az:// URL")
         add_cache_flag(p)
+        p.add_argument(ACCEPT_FLAG, dest="accept_numerics_drift", action="store_true",
+                       help="copy even when this environment computes the cache's features differently from the one "
+                       "that made it (its numerics fingerprint, recomputed here before copying)")
         p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    from graftcache.store import open_root
+    from graftcache.encoders.fingerprint import check_numerics
+    from graftcache.store import FeatureCache, open_root
     from graftcache.store.transfer import copy_cache
 
     _, _, other, from_cache = DIRECTIONS[args.command]
     here, there = open_root(args.cache), open_root(getattr(args, other))
-    copy_cache(*((here, there) if from_cache else (there, here)), args.key)
+    source, dest = (here, there) if from_cache else (there, here)
+    # the numbers must be what this environment computes before they are handed on or taken in
+    check_numerics(FeatureCache.in_root(source, args.key)).enforce(args.command, accept=args.accept_numerics_drift,
+                                                                    log=print)
+    copy_cache(source, dest, args.key)
     return 0

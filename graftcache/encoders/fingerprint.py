@@ -20,7 +20,7 @@ import base64
 import hashlib
 import math
 import platform
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from importlib.metadata import PackageNotFoundError, version
 from typing import TYPE_CHECKING, Any
@@ -44,6 +44,8 @@ SKETCH_TOKENS = 32
 SKETCH_DIMS = 8
 #: largest |difference| / RMS of the recorded sketch that still counts as the same numbers, per compute dtype:
 #: fp32 allows CUDA's TF32 convolutions vs CPU (~1e-3), bf16 / fp16 their rounding across kernels and devices
+#: the flag of every command that refuses a drifted cache unless told
+ACCEPT_FLAG = "--accept-numerics-drift"
 TOLERANCE = {"fp32": 2e-3, "fp16": 1e-2, "bf16": 5e-2}
 #: what a cache made before graftcache recorded fingerprints is, for every check
 NO_FINGERPRINT = "it has no numerics fingerprint (made before graftcache recorded one), so its features cannot " \
@@ -148,6 +150,16 @@ class NumericsCheck:
         """Raise NumericsError (this line + what to do) when the numbers drifted."""
         if self.status == "drift":
             raise NumericsError(f"{self.line()}; {remedy}")
+
+    def enforce(self, command: str, *, accept: bool, log: Callable[[str], None]) -> None:
+        """What a command that uses a cache does with the verdict (fit, push, pull): drift is refused unless
+        `accept` (the user's --accept-numerics-drift), then said; an unchecked cache is a warning."""
+        if self.status == "unchecked":
+            log(f"warning: {self.line()}")
+        elif self.status == "drift" and not accept:
+            self.require_match(f"{command} refuses it; pass {ACCEPT_FLAG} to {command} anyway")
+        elif self.status == "drift":
+            log(f"warning: {self.line()}; {command} goes on ({ACCEPT_FLAG})")
 
 
 def compare(cache: str, recorded: Mapping[str, Any], current: Mapping[str, Any],

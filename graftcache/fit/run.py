@@ -147,13 +147,7 @@ class Fitter:
             if cache is None or cache.key in self._numerics:
                 continue
             check = self._numerics[cache.key] = check_numerics(cache, device=self.device)
-            if check.status == "unchecked":
-                self.log(f"warning: {check.line()}; its rows record numerics_drift as null")
-            elif check.status == "drift" and not self.req.accept_numerics_drift:
-                check.require_match("fit refuses it; pass --accept-numerics-drift to fit anyway "
-                                    "(rows record the drift)")
-            elif check.status == "drift":
-                self.log(f"warning: {check.line()}; fitting anyway (--accept-numerics-drift), rows record the drift")
+            check.enforce("fit", accept=self.req.accept_numerics_drift, log=self.log)  # rows record the drift
 
     def _drift(self, mat: _Material) -> float | None:
         """Largest numerics drift over the caches a cell reads; None when one of them could not be checked."""
