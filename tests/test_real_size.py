@@ -156,10 +156,11 @@ def test_pi05_released_layout_loads_by_hub_id_at_real_geometry(real_hub: Path,
     with weights_left_in_the_file(monkeypatch):
         adapter = load_backbone("pi05", PI05)  # config, processors, tokenizer, weights check: the real path
     assert adapter.random_init and adapter.source == PI05
-    text = adapter._paligemma.config.text_config
+    paligemma = adapter.policy.model.paligemma_with_expert.paligemma.model  # lerobot's own PaliGemmaModel
+    text = paligemma.config.text_config
     assert (text.num_attention_heads, text.num_key_value_heads, text.head_dim) == (8, 1, 256)
     assert (text.hidden_size, text.num_hidden_layers, text.vocab_size) == (2048, 18, 257152)
-    assert adapter._paligemma.language_model.embed_tokens.weight.shape == (257152, 2048)
+    assert paligemma.language_model.embed_tokens.weight.shape == (257152, 2048)
     assert adapter.native_grid == (16, 16) and adapter.lm_width == 2048 and adapter.embed_scale == 1.0
     assert list(adapter.config.image_features) == [
         "observation.images.image", "observation.images.image2", "observation.images.empty_camera_0"]

@@ -151,11 +151,12 @@ class NumericsCheck:
         if self.status == "drift":
             raise NumericsError(f"{self.line()}; {remedy}")
 
-    def enforce(self, command: str, *, accept: bool, log: Callable[[str], None]) -> None:
+    def enforce(self, command: str, *, accept: bool, log: Callable[[str], None], unchecked: str = "") -> None:
         """What a command that uses a cache does with the verdict (fit, push, pull): drift is refused unless
-        `accept` (the user's --accept-numerics-drift), then said; an unchecked cache is a warning."""
+        `accept` (the user's --accept-numerics-drift), then said; an unchecked cache is a warning (plus what the
+        command does about it, `unchecked`)."""
         if self.status == "unchecked":
-            log(f"warning: {self.line()}")
+            log(f"warning: {self.line()}" + (f"; {unchecked}" if unchecked else ""))
         elif self.status == "drift" and not accept:
             self.require_match(f"{command} refuses it; pass {ACCEPT_FLAG} to {command} anyway")
         elif self.status == "drift":

@@ -147,7 +147,8 @@ class Fitter:
             if cache is None or cache.key in self._numerics:
                 continue
             check = self._numerics[cache.key] = check_numerics(cache, device=self.device)
-            check.enforce("fit", accept=self.req.accept_numerics_drift, log=self.log)  # rows record the drift
+            check.enforce("fit", accept=self.req.accept_numerics_drift, log=self.log,  # rows record the drift
+                          unchecked="its rows record numerics_drift as null")
 
     def _drift(self, mat: _Material) -> float | None:
         """Largest numerics drift over the caches a cell reads; None when one of them could not be checked."""
