@@ -117,7 +117,7 @@ def run_sweep(recipe: Recipe, log: Callable[[str], None] = write) -> SweepState:
     """Policies, then caches, then every missing cell; one progress bar over the grid's rows."""
     from graftcache.fit.run import Fitter
 
-    state, backbones = SweepState(), BackbonePool(log)
+    state, backbones, numerics = SweepState(), BackbonePool(log), {}
     log(f"sweep {recipe.name}: {len(recipe.backbones)} backbone(s) x {len(recipe.encoders)} encoder(s) x "
         f"{len(recipe.suites)} suite(s) x {len(recipe.seeds)} seed(s) x {1 + len(recipe.controls)} control(s) "
         f"= {recipe.n_fits} cells, {recipe.n_rows} distinct rows -> {recipe.results}")
@@ -127,6 +127,6 @@ def run_sweep(recipe: Recipe, log: Callable[[str], None] = write) -> SweepState:
     with progress(total=recipe.n_fits, desc=f"sweep {recipe.name}", unit="cell") as bar:
         for label, req in fit_requests(recipe, state):
             bar.set_postfix_str(label)
-            Fitter(req, log=log, backbones=backbones).run()
+            Fitter(req, log=log, backbones=backbones, numerics=numerics).run()
             bar.update(per_request)
     return state
