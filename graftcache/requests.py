@@ -13,6 +13,7 @@ from dataclasses import asdict, dataclass, field
 from typing import Any, ClassVar
 
 from graftcache.checks import EPISODES, FRACTION, NON_NEGATIVE, POSITIVE, SEEDS, Checked, Rule
+from graftcache.pooling import NATIVE, valid_grid_names
 
 
 @dataclass(frozen=True)
@@ -22,7 +23,7 @@ class ExtractRequest(Checked):
 
     dataset: str
     encoder: str
-    grids: tuple[tuple[int, int], ...] = ((8, 8),)
+    grids: tuple[str, ...] = (NATIVE,)  # grid names: the encoder's own grid unpooled, and/or pooled "HxW" grids
     cameras: tuple[str, ...] | None = None
     episodes: tuple[int, ...] | None = None
     weights: str | None = None
@@ -43,7 +44,8 @@ class ExtractRequest(Checked):
 
     RULES: ClassVar[dict[str, Rule]] = {"seed": NON_NEGATIVE, "batch_size": POSITIVE, "num_workers": NON_NEGATIVE,
                                         "block_frames": POSITIVE, "episodes": EPISODES,
-                                        "frame_stride": POSITIVE}
+                                        "frame_stride": POSITIVE,
+                                        "grids": (valid_grid_names, f"must name grids: {NATIVE} or HxW, e.g. {NATIVE},4x4")}
 
 
 @dataclass(frozen=True)

@@ -8,6 +8,7 @@ split seed that is recorded in every results row.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -18,7 +19,11 @@ import torch
 from graftcache.errors import FitError
 from graftcache.nonfinite import DROP_FLAG, nonfinite_rows
 from graftcache.pooling import format_grid, parse_grid, pool_grid
+from graftcache.runtime import resolve_dtype
 from graftcache.store import FeatureCache
+
+#: How much of a stored grid (as fp32) `read_grid` holds at a time while it pools to a coarser one.
+POOL_CHUNK_BYTES = 2**28
 
 
 @dataclass(frozen=True)
@@ -96,15 +101,36 @@ def suite_index_table(cache: FeatureCache, suite: str) -> pl.DataFrame:
 
 
 def read_grid(cache: FeatureCache, camera: str, grid: tuple[int, int], rows: np.ndarray) -> torch.Tensor:
-    """Features of `camera` pooled to `grid`: the stored grid if present, else pooled from the
-    finest stored grid (exact when the stored grid is a multiple of the requested one)."""
+    """Features of `camera` at `grid` for cache rows `rows`, [len(rows), H*W, C] in stored precision: the grid
+    itself when the cache stores it, else adaptive-average-pooled at read time from the encoder's own grid as
+    the manifest names it (`native_grid`; caches from before it record none: the finest stored grid).
+
+    What pooling here costs in precision: extraction pools the fp32 activations and rounds the mean once to
+    the stored dtype; here the stored, already rounded values are averaged in fp32 and the mean rounded
+    again. Each input is off by at most half a unit in the last place (fp16: 2^-11 relative, bf16: 2^-8),
+    and so is each rounded mean, so a value differs from the extract-time pooled one by at most 3 x 2^-11
+    (fp16; bf16: 3 x 2^-8) of the largest magnitude in its pooling window: about one fp16 step. fp32
+    caches pool exactly what extraction would have. Exact-multiple grids (16x16 -> 8x8) average whole
+    blocks of cells; others average overlapping windows.
+
+    The stored grid is read and pooled `POOL_CHUNK_BYTES` of fp32 at a time (whole cache blocks), so a
+    suite of 16x16x768 frames never sits in memory unpooled.
+    """
     name = format_grid(grid)
-    if name in cache.manifest["grids"]:
+    stored = cache.manifest["grids"]
+    if name in stored:
         return cache.read_features(camera, name, rows)
-    (h, w), finest = max(((parse_grid(g), g) for g in cache.manifest["grids"]), key=lambda s: s[0][0] * s[0][1])
-    src = cache.read_features(camera, finest, rows)
-    pooled = pool_grid(src.float().reshape(len(rows), h, w, -1), grid)
-    return pooled.to(src.dtype)
+    source = cache.manifest.get("native_grid") or max(stored, key=lambda g: math.prod(parse_grid(g)))
+    (h, w), width = parse_grid(source), cache.layout["arrays"][cache.feature_path(camera, source)][-1]
+    block = int(cache.layout["block_frames"])
+    per_chunk = block * max(1, POOL_CHUNK_BYTES // (block * h * w * width * 4))
+    rows = np.asarray(rows)
+    out = torch.empty((len(rows), grid[0] * grid[1], width), dtype=resolve_dtype(cache.manifest["dtype"]))
+    for chunk in np.unique(rows // per_chunk):
+        at = np.flatnonzero(rows // per_chunk == chunk)
+        src = cache.read_features(camera, source, rows[at])
+        out[torch.from_numpy(at)] = pool_grid(src.float().reshape(len(at), h, w, width), grid).to(out.dtype)
+    return out
 
 
 def action_chunks(actions: np.ndarray, episode: np.ndarray, chunk: int) -> tuple[np.ndarray, np.ndarray]:
