@@ -7,8 +7,11 @@ Recipe keys (unknown keys are errors, so a typo never silently falls back to a d
     [[backbones]]  name, policy ("tiny" = natively trained on `dataset`, else hub id or folder)
     [[encoders]]   name, weights, random_init, seed
     [extract]      fields of ExtractRequest  } except those the grid sets (GRID_FIELDS): e.g. batch_size,
-    [fit]          fields of FitRequest      } dtype, frame_stride; steps, lr, eval_frames, lora_rank;
+    [fit]          fields of FitRequest      } dtype, frame_stride, grids; steps, lr, eval_frames, lora_rank;
     [train_tiny]   fields of TinyTrainConfig } steps, seed (backbones with policy = "tiny")
+
+[extract] grids (default ["native"]: each encoder's own patch grid, pooled at read time to whatever a fit
+reads) is for storing pooled grids as well or instead, e.g. ["native", "4x4"] (graftcache.sweep.encoder_grids).
 
 Every value is checked against the type of the request field it sets (a string where a number, list
 or boolean belongs is an error naming file, table and key), and the requests check their ranges.
@@ -58,7 +61,7 @@ class BackboneEntry:
 SECTIONS: dict[str, type] = {"extract": ExtractRequest, "fit": FitRequest, "train_tiny": TinyTrainConfig}
 #: Request fields the sweep sets from the grid itself (dataset, encoder, backbone, seeds, ...), never from a table.
 GRID_FIELDS: dict[str, frozenset[str]] = {
-    "extract": frozenset({"dataset", "encoder", "grids", "episodes", "weights", "random_init", "seed", "policy",
+    "extract": frozenset({"dataset", "encoder", "episodes", "weights", "random_init", "seed", "policy",
                           "device", "cache", "progress", "extra_manifest"}),
     "fit": frozenset({"backbone", "encoder", "suite", "policy", "dataset", "cache_key", "native_cache_key", "seeds",
                       "controls", "objective", "device", "results", "cache", "progress", "command"}),
