@@ -48,9 +48,9 @@ class World:
             self.policies[name] = root / f"policy_{name}"
             tiny(name).save(self.policies[name])
         common = dict(dataset=str(dataset.root), num_workers=0, batch_size=8, cache=str(self.cache), progress=False)
-        self.encoder_key = extract(ExtractRequest(encoder=ENCODER, grids=((4, 4), (2, 2)), random_init=True,
-                                                  **common), log=_quiet).key
-        self.native_keys = {name: extract(ExtractRequest(encoder=native_name(name), grids=((4, 4),),
+        # the encoder's own 14x14 grid alone (the default): the fits pool it to 4x4 (both tiny backbones) and 2x2
+        self.encoder_key = extract(ExtractRequest(encoder=ENCODER, random_init=True, **common), log=_quiet).key
+        self.native_keys = {name: extract(ExtractRequest(encoder=native_name(name), grids=("4x4",),
                                                          policy=str(folder), **common), log=_quiet).key
                             for name, folder in self.policies.items()}
 
@@ -80,6 +80,8 @@ def test_every_control_writes_one_schema_valid_row(world: World, tmp_path: Path)
     assert by["native"]["cache_key"] == world.native_keys["smolvla"]
     assert by["none"]["cache_key"] == world.encoder_key and by["none"]["encoder"] == ENCODER
     assert by["pool-2x2"]["pool_grid"] == "2x2" and by["none"]["pool_grid"] == "4x4"
+    assert FeatureCache(world.cache / world.encoder_key).manifest["grids"] == ["14x14"]  # both pooled at read time
+    assert by["pool-2x2"]["eval_mse"] != by["none"]["eval_mse"]
     assert by["zero-image"]["eval_mse"] != by["none"]["eval_mse"]
     for row in by.values():
         assert row["random_init"] and row["suite"] == "libero_spatial" and row["n_eval_frames"] == 4
@@ -242,7 +244,7 @@ def test_reset_restores_the_loaded_policy(world: World) -> None:
 def test_frame_stride_thins_features_not_actions(world: World, tmp_path: Path) -> None:
     """A stride-2 cache holds every other frame; its action chunks equal the full cache's for those frames."""
     common = dict(dataset=str(world.dataset.root), num_workers=1, batch_size=8, cache=str(world.cache),
-                  progress=False, encoder=ENCODER, grids=((4, 4),), random_init=True)
+                  progress=False, encoder=ENCODER, random_init=True)
     full = FeatureCache(world.cache / extract(ExtractRequest(**common), log=_quiet).key)
     strided = FeatureCache(world.cache / extract(ExtractRequest(frame_stride=2, **common), log=_quiet).key)
     assert strided.key != full.key and strided.manifest["frame_stride"] == 2
