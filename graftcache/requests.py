@@ -63,12 +63,14 @@ class FitRequest(Checked):
     steps: int = 300
     lr: float = 1e-3
     batch_size: int = 16
+    buffer_mib: int = 2048  # training features held at once (shuffle buffer; with --num-workers x 2 prefetched blocks)
     eval_fraction: float = 0.2
     eval_split_seed: int = 0
     eval_frames: int | None = None
     num_denoise_steps: int | None = None
     lora_rank: int = 8
     device: str = "cpu"
+    num_workers: int = 2  # processes reading the cache ahead of the model (the numbers do not depend on it)
     compute_dtype: str = "auto"  # resolved per device (runtime.resolve_compute_dtype) before it reaches a row
     results: str = "results.parquet"
     out: str | None = None
@@ -79,7 +81,8 @@ class FitRequest(Checked):
     command: str = field(default_factory=lambda: " ".join(["graftcache", *sys.argv[1:]]))
 
     RULES: ClassVar[dict[str, Rule]] = {
-        "seeds": SEEDS, "steps": POSITIVE, "lr": POSITIVE, "batch_size": POSITIVE, "eval_fraction": FRACTION,
+        "seeds": SEEDS, "steps": POSITIVE, "lr": POSITIVE, "batch_size": POSITIVE, "buffer_mib": POSITIVE,
+        "num_workers": NON_NEGATIVE, "eval_fraction": FRACTION,
         "eval_split_seed": NON_NEGATIVE, "eval_frames": POSITIVE, "num_denoise_steps": POSITIVE, "lora_rank": POSITIVE,
     }
 
