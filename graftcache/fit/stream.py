@@ -57,10 +57,13 @@ class FeatureSource:
         missing = [c for c in cameras if c not in cache.manifest["cameras"]]
         if missing:
             raise FitError(f"cache {cache.key} has no camera {missing}; it has {cache.manifest['cameras']}")
-        return cls(cache.root.url, cache.key, tuple(cameras), None if extra else grid, extra)
+        source = cls(cache.root.url, cache.key, tuple(cameras), None if extra else grid, extra)
+        _OPEN.setdefault((os.getpid(), source.root, source.key), cache)  # this process reads through its own handle
+        return source
 
     def open(self) -> FeatureCache:
-        """This process's handle on the cache (opened once per process, never shared across a fork)."""
+        """This process's handle on the cache: the one it was made from, else opened once per process (a worker
+        never uses its parent's, whose store clients do not survive a fork)."""
         at = (os.getpid(), self.root, self.key)
         if at not in _OPEN:
             _OPEN[at] = FeatureCache.in_root(reading_root(self.root), self.key, writable=False)
@@ -112,7 +115,8 @@ class Chunk:
     owners: np.ndarray                 # [n] split positions (low-dim rows) the frames go with
     features: tuple[Features, ...]     # per source
     dropped: np.ndarray                # cache rows of the owners left out for NaN/inf features (drop_nonfinite)
-    fetched: int = 0                   # bytes a remote root copied locally for this chunk
+    fetched: int = 0                   # bytes a worker's remote root copied locally for this chunk (a root read in
+                                       # the consumer's process counts its own)
     verified: frozenset = field(default_factory=frozenset)  # blocks checked for this chunk
 
 
@@ -165,7 +169,7 @@ class ChunkStream(IterableDataset):
 
     def read(self, planned: Planned) -> Chunk:
         before = verified_blocks()
-        roots = [src.open().root for src, _ in self.sources]
+        roots = [src.open().root for src, _ in self.sources] if get_worker_info() is not None else []
         fetched = sum(getattr(r, "fetched_bytes", 0) for r in roots)
         feats = tuple(src.read(rows[pos]) for (src, rows), pos in zip(self.sources, planned.reads, strict=True))
         bad = np.zeros(len(planned.owners), dtype=bool)

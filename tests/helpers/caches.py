@@ -50,3 +50,32 @@ def synthetic_cache(path: Path, lengths: Sequence[int], *, grid: tuple[int, int]
         cache.write_block(b, data)
     cache.finalize()
     return FeatureCache(path, writable=False)
+
+
+def dataset_cache(path: Path, dataset: str | Path, suite: str, *, grid: tuple[int, int], width: int,
+                  block_frames: int = 256) -> FeatureCache:
+    """A complete fp16 cache of `dataset`'s `suite` episodes as `extract` lays it out (the dataset's own index,
+    low-dim and action columns), with seeded random features at `grid`, `width` wide, for every camera: what a
+    fit reads of a real cache, without paying for decoding and encoding (the fit cannot tell the difference).
+    One random block is written for every block (memory and read costs do not depend on the values)."""
+    from graftcache.datasets import open_dataset, suite_of
+    from graftcache.datasets.suites import SUITES
+    from graftcache.extract import build_index
+
+    source = open_dataset(str(dataset))
+    meta = source.meta
+    episodes = [e.index for e in meta.episodes if suite_of(meta.tasks[e.task_index]) == suite]
+    index = build_index(source, episodes)
+    name = f"{grid[0]}x{grid[1]}"
+    manifest = {"encoder": {"name": f"synthetic-{width}", "width": width}, "dtype": "fp16",
+                "cameras": list(meta.cameras), "grids": [name], "extras": {}, "suites": list(SUITES),
+                "tasks": list(meta.tasks), "dataset": {"source": str(dataset), "root": str(meta.root)},
+                "dataset_fingerprint": {"files": {}}, "random_init": True}
+    cache = FeatureCache.create(path, manifest, [ArraySpec(f"features/{c}/{name}", (grid[0] * grid[1], width))
+                                                 for c in meta.cameras], index, block_frames=block_frames)
+    block = np.random.default_rng(0).standard_normal((block_frames, grid[0] * grid[1], width)).astype(np.float16)
+    for b in range(cache.layout["n_blocks"]):
+        start, stop = cache.block_range(b)
+        cache.write_block(b, {f"features/{c}/{name}": block[:stop - start] for c in meta.cameras})
+    cache.finalize()
+    return FeatureCache(path, writable=False)
