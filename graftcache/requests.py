@@ -13,6 +13,7 @@ from dataclasses import asdict, dataclass, field
 from typing import Any, ClassVar
 
 from graftcache.checks import EPISODES, FRACTION, NON_NEGATIVE, POSITIVE, SEEDS, Checked, Rule
+from graftcache.errors import GraftcacheError
 from graftcache.pooling import NATIVE, valid_grid_names
 
 
@@ -65,12 +66,14 @@ class FitRequest(Checked):
     steps: int = 300
     lr: float = 1e-3
     batch_size: int = 16
+    buffer_mib: int = 2048  # training features held at once (shuffle buffer; with --num-workers x 2 prefetched blocks)
     eval_fraction: float = 0.2
     eval_split_seed: int = 0
     eval_frames: int | None = None
     num_denoise_steps: int | None = None
     lora_rank: int = 8
     device: str = "cpu"
+    num_workers: int = 2  # processes reading the cache ahead of the model (the numbers do not depend on it)
     compute_dtype: str = "auto"  # resolved per device (runtime.resolve_compute_dtype) before it reaches a row
     results: str = "results.parquet"
     out: str | None = None
@@ -81,9 +84,32 @@ class FitRequest(Checked):
     command: str = field(default_factory=lambda: " ".join(["graftcache", *sys.argv[1:]]))
 
     RULES: ClassVar[dict[str, Rule]] = {
-        "seeds": SEEDS, "steps": POSITIVE, "lr": POSITIVE, "batch_size": POSITIVE, "eval_fraction": FRACTION,
+        "seeds": SEEDS, "steps": POSITIVE, "lr": POSITIVE, "batch_size": POSITIVE, "buffer_mib": POSITIVE,
+        "num_workers": NON_NEGATIVE, "eval_fraction": FRACTION,
         "eval_split_seed": NON_NEGATIVE, "eval_frames": POSITIVE, "num_denoise_steps": POSITIVE, "lora_rank": POSITIVE,
     }
+
+
+@dataclass(frozen=True)
+class TileRequest(Checked):
+    """What `graftcache tile` builds: a dataset of `preset`'s dimensions, or of `episodes` episodes (and
+    `frames` frames; default: the source's mean length times `episodes`) over the source's tasks."""
+
+    source: str
+    dest: str
+    preset: str | None = None  # a name of graftcache.datasets.tile.PRESETS ("libero": lerobot/libero's counts)
+    episodes: int | None = None
+    frames: int | None = None
+    seed: int = 0  # episode lengths and window positions
+
+    RULES: ClassVar[dict[str, Rule]] = {"episodes": POSITIVE, "frames": POSITIVE, "seed": NON_NEGATIVE}
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if (self.preset is None) == (self.episodes is None):
+            raise GraftcacheError("tile needs exactly one of preset and episodes")
+        if self.frames is not None and self.episodes is None:
+            raise GraftcacheError("frames goes with episodes (a preset fixes its own frame counts)")
 
 
 @dataclass(frozen=True)
