@@ -151,6 +151,16 @@ def test_rerun_is_bit_identical_and_a_finished_cell_is_skipped(world: World, tmp
     assert sidecar["split"]["seed"] == 0
 
 
+def test_rows_do_not_depend_on_how_many_processes_read_the_cache(world: World, tmp_path: Path) -> None:
+    """The stream's chunk order is fixed by the seed, not by the readers: in-process and two workers agree bit
+    for bit (and the cell, hence the run_id, does not name the worker count)."""
+    rows = {w: Fitter(world.request(controls=("shuffled-image",), num_workers=w, results=str(tmp_path / f"{w}.parquet")),
+                      log=_quiet).run() for w in (0, 2)}
+    for a, b in zip(rows[0], rows[2], strict=True):
+        assert a["run_id"] == b["run_id"] and a["train_loss_final"] == b["train_loss_final"]
+        assert a["eval_mse"] == b["eval_mse"] and a["eval_mse_episodes"] == b["eval_mse_episodes"]
+
+
 def test_split_holds_out_episodes_within_each_task() -> None:
     index = pl.DataFrame({"episode_index": [e for e in range(12) for _ in range(3)],
                           "task_index": [e % 3 for e in range(12) for _ in range(3)]})

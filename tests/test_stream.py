@@ -23,6 +23,7 @@ from graftcache.fit.feed import SplitFeed
 from graftcache.fit.loop import EVAL_BATCH_SIZE, camera_map, evaluate
 from graftcache.fit.stream import Chunk, FeatureSource, StreamStats, read_chunks
 from graftcache.graft import GraftProjector, feature_key
+from graftcache.nonfinite import nonfinite_rows
 from graftcache.scoring import frame_noise
 from graftcache.store import FeatureCache
 
@@ -101,6 +102,17 @@ def test_shuffle_buffer_holds_its_capacity_and_draws_each_frame_once(cache: Feat
     assert len(set(first.tolist())) == len(first)  # no frame drawn twice before the epoch is through
     with closing(read_chunks(feed.features(seed=1), 0)) as chunks, pytest.raises(FitError, match="batch of 21"):
         ShuffleBuffer(chunks, capacity).draw(21, g)
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16, torch.float32, torch.float64])
+def test_nonfinite_rows_read_from_the_bits_agree_with_isfinite(dtype: torch.dtype) -> None:
+    x = torch.randn(40, 3, 5).to(dtype) * 100
+    x[3, 1, 2], x[7, 0, 0], x[9, 2, 4] = float("nan"), float("inf"), -float("inf")
+    x[11, 0, 0], x[12, 2, 1], x[13, 1, 1] = torch.finfo(dtype).max, -torch.finfo(dtype).max, torch.finfo(dtype).tiny
+    want = (~torch.isfinite(x)).reshape(40, -1).any(1).numpy()
+    assert want.sum() == 3 and np.array_equal(nonfinite_rows(x), want)
+    if dtype != torch.bfloat16:  # numpy has no bfloat16
+        assert np.array_equal(nonfinite_rows(x.numpy()), want)
 
 
 def test_buffer_size_comes_from_mib_within_one_batch_and_the_split() -> None:
