@@ -9,6 +9,8 @@ Recipe keys (unknown keys are errors, so a typo never silently falls back to a d
     [extract]      fields of ExtractRequest  } except those the grid sets (GRID_FIELDS): e.g. batch_size,
     [fit]          fields of FitRequest      } dtype, frame_stride; steps, lr, eval_frames, lora_rank;
     [train_tiny]   fields of TinyTrainConfig } steps, seed (backbones with policy = "tiny")
+    [executor]     fields of ExecutorSettings: where extractions and cells run (executor = "ray", address,
+                   gpus_per_task, ...); `graftcache sweep --executor ...` flags override them
 
 Every value is checked against the type of the request field it sets (a string where a number, list
 or boolean belongs is an error naming file, table and key), and the requests check their ranges.
@@ -28,8 +30,9 @@ from pathlib import Path
 from typing import Any
 
 from graftcache.errors import GraftcacheError
+from graftcache.executors import check_executor
 from graftcache.fit.controls import get_control
-from graftcache.requests import ExtractRequest, FitRequest, TinyTrainConfig
+from graftcache.requests import ExecutorSettings, ExtractRequest, FitRequest, TinyTrainConfig
 
 
 class RecipeError(GraftcacheError):
@@ -55,7 +58,8 @@ class BackboneEntry:
 
 
 #: The request each settings table overrides; its own defaults apply to anything the table leaves out.
-SECTIONS: dict[str, type] = {"extract": ExtractRequest, "fit": FitRequest, "train_tiny": TinyTrainConfig}
+SECTIONS: dict[str, type] = {"extract": ExtractRequest, "fit": FitRequest, "train_tiny": TinyTrainConfig,
+                             "executor": ExecutorSettings}
 #: Request fields the sweep sets from the grid itself (dataset, encoder, backbone, seeds, ...), never from a table.
 GRID_FIELDS: dict[str, frozenset[str]] = {
     "extract": frozenset({"dataset", "encoder", "grids", "episodes", "weights", "random_init", "seed", "policy",
@@ -63,6 +67,7 @@ GRID_FIELDS: dict[str, frozenset[str]] = {
     "fit": frozenset({"backbone", "encoder", "suite", "policy", "dataset", "cache_key", "native_cache_key", "seeds",
                       "controls", "objective", "device", "results", "cache", "progress", "command"}),
     "train_tiny": frozenset(),
+    "executor": frozenset(),
 }
 #: Settings a recipe's [extract] / [fit] / [train_tiny] tables may set: every other field of the request.
 SECTION_KEYS: dict[str, tuple[str, ...]] = {
@@ -88,7 +93,12 @@ class Recipe:
     extract: Mapping[str, Any] = field(default_factory=dict)     # ExtractRequest overrides
     fit: Mapping[str, Any] = field(default_factory=dict)         # FitRequest overrides
     train_tiny: Mapping[str, Any] = field(default_factory=dict)  # TinyTrainConfig overrides
+    executor: Mapping[str, Any] = field(default_factory=dict)    # ExecutorSettings overrides
     path: str = ""
+
+    @property
+    def executor_settings(self) -> ExecutorSettings:
+        return ExecutorSettings(**self.executor)
 
     @property
     def n_fits(self) -> int:
@@ -205,6 +215,10 @@ def load_recipe(path: str | Path) -> Recipe:
         top[section] = _section(data, section, str(path))
     top["dataset"] = _resolve_dataset(str(data["dataset"]), path.resolve().parent)
     recipe = _build(Recipe, {**top, "path": str(path)}, str(path))
+    try:
+        check_executor(recipe.executor_settings.executor)
+    except GraftcacheError as e:
+        raise RecipeError(f"{path} [executor]: {e}") from None
     for control in recipe.controls:
         try:
             get_control(control)

@@ -15,12 +15,12 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from graftcache.backbone_table import native_name
-from graftcache.backbones.pool import BackbonePool
+from graftcache.executors import Executor, get_executor
 from graftcache.fit.controls import get_control
 from graftcache.pooling import format_grid
 from graftcache.progress import progress, write
 from graftcache.recipe import EncoderEntry, Recipe
-from graftcache.requests import DEFAULT_TINY_TRAIN, ExtractRequest, FitRequest
+from graftcache.requests import DEFAULT_TINY_TRAIN, ExecutorSettings, ExtractRequest, FitRequest
 
 
 def command_line(command: str, **flags: Any) -> str:
@@ -70,20 +70,19 @@ def prepare_policies(recipe: Recipe, state: SweepState, log: Callable[[str], Non
         state.native_grids[entry.name] = get_backbone(entry.name).read_native_grid(policy)
 
 
-def _extract(recipe: Recipe, encoder: str, grids: list[tuple[int, int]], log: Callable[[str], None], **kw: Any) -> str:
-    from graftcache.extract import extract
-
+def _extract(recipe: Recipe, executor: Executor, encoder: str, grids: list[tuple[int, int]],
+             log: Callable[[str], None], **kw: Any) -> str:
     req = ExtractRequest(dataset=recipe.dataset, encoder=encoder, grids=tuple(dict.fromkeys(grids)),
                          device=recipe.device, cache=recipe.cache, **recipe.extract, **kw)
-    return extract(req, log=log).key
+    return executor.extract(req, log).key
 
 
-def prepare_caches(recipe: Recipe, state: SweepState, log: Callable[[str], None]) -> None:
+def prepare_caches(recipe: Recipe, state: SweepState, log: Callable[[str], None], executor: Executor) -> None:
     """Extract every encoder at every grid the grid of fits reads, plus the native towers if needed."""
     grids = sorted(set(state.native_grids.values()) | set(_pool_grids(recipe)))
     grid_text = ",".join(format_grid(g) for g in grids)
     for enc in recipe.encoders:
-        state.encoder_caches[enc] = _extract(recipe, enc.name, grids, log, weights=enc.weights,
+        state.encoder_caches[enc] = _extract(recipe, executor, enc.name, grids, log, weights=enc.weights,
                                              random_init=enc.random_init, seed=enc.seed)
         state.commands[state.encoder_caches[enc]] = command_line(
             "extract", encoder=enc.name, random_init=enc.random_init, seed=enc.seed if enc.random_init else None,
@@ -92,7 +91,7 @@ def prepare_caches(recipe: Recipe, state: SweepState, log: Callable[[str], None]
         return
     for backbone, policy in state.policies.items():
         grid = state.native_grids[backbone]
-        key = _extract(recipe, native_name(backbone), [grid], log, policy=policy)
+        key = _extract(recipe, executor, native_name(backbone), [grid], log, policy=policy)
         state.native_caches[backbone] = key
         state.commands[key] = command_line("extract", encoder=native_name(backbone), policy=policy,
                                            dataset=recipe.dataset, grids=format_grid(grid))
@@ -113,20 +112,17 @@ def fit_requests(recipe: Recipe, state: SweepState) -> Iterator[tuple[str, Any]]
                     command=f"graftcache sweep {recipe.path}", **recipe.fit)
 
 
-def run_sweep(recipe: Recipe, log: Callable[[str], None] = write) -> SweepState:
-    """Policies, then caches, then every missing cell; one progress bar over the grid's rows."""
-    from graftcache.fit.run import Fitter
-
-    state, backbones = SweepState(), BackbonePool(log)
+def run_sweep(recipe: Recipe, log: Callable[[str], None] = write, settings: ExecutorSettings | None = None) -> SweepState:
+    """Policies, then caches, then every missing cell, on the executor `settings` name (default: the recipe's
+    [executor] table); one progress bar over the grid's cells."""
+    settings = settings or recipe.executor_settings
+    executor = get_executor(settings)
+    state = SweepState()
     log(f"sweep {recipe.name}: {len(recipe.backbones)} backbone(s) x {len(recipe.encoders)} encoder(s) x "
         f"{len(recipe.suites)} suite(s) x {len(recipe.seeds)} seed(s) x {1 + len(recipe.controls)} control(s) "
-        f"= {recipe.n_fits} cells, {recipe.n_rows} distinct rows -> {recipe.results}")
+        f"= {recipe.n_fits} cells, {recipe.n_rows} distinct rows -> {recipe.results} ({settings.executor} executor)")
     prepare_policies(recipe, state, log)
-    prepare_caches(recipe, state, log)
-    per_request = len(recipe.seeds) * (1 + len(recipe.controls))
+    prepare_caches(recipe, state, log, executor)
     with progress(total=recipe.n_fits, desc=f"sweep {recipe.name}", unit="cell") as bar:
-        for label, req in fit_requests(recipe, state):
-            bar.set_postfix_str(label)
-            Fitter(req, log=log, backbones=backbones).run()
-            bar.update(per_request)
+        executor.fit(list(fit_requests(recipe, state)), log, bar)
     return state
