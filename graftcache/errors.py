@@ -27,3 +27,8 @@ class BackboneError(GraftcacheError):
 
 class FitError(GraftcacheError):
     """A fit request is inconsistent with the cache it names (width, dataset, suite, controls)."""
+
+
+class ExecutorError(GraftcacheError):
+    """A distributed executor cannot do the work: no cluster at the address, a task the cluster cannot place,
+    a task lost more often than it may be retried."""

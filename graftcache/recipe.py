@@ -9,6 +9,8 @@ Recipe keys (unknown keys are errors, so a typo never silently falls back to a d
     [extract]      fields of ExtractRequest  } except those the grid sets (GRID_FIELDS): e.g. batch_size,
     [fit]          fields of FitRequest      } dtype, frame_stride, grids; steps, lr, eval_frames, lora_rank;
     [train_tiny]   fields of TinyTrainConfig } steps, seed (backbones with policy = "tiny")
+    [executor]     fields of ExecutorSettings: where extractions and cells run (executor = "ray", address,
+                   gpus_per_task, ...); `graftcache sweep --executor ...` flags override them
 
 [extract] grids (default ["native"]: each encoder's own patch grid, pooled at read time to whatever a fit
 reads) is for storing pooled grids as well or instead, e.g. ["native", "4x4"] (graftcache.sweep.encoder_grids).
@@ -31,8 +33,9 @@ from pathlib import Path
 from typing import Any
 
 from graftcache.errors import GraftcacheError
+from graftcache.executors import check_executor
 from graftcache.fit.controls import get_control
-from graftcache.requests import ExtractRequest, FitRequest, TinyTrainConfig
+from graftcache.requests import ExecutorSettings, ExtractRequest, FitRequest, TinyTrainConfig
 
 
 class RecipeError(GraftcacheError):
@@ -58,7 +61,8 @@ class BackboneEntry:
 
 
 #: The request each settings table overrides; its own defaults apply to anything the table leaves out.
-SECTIONS: dict[str, type] = {"extract": ExtractRequest, "fit": FitRequest, "train_tiny": TinyTrainConfig}
+SECTIONS: dict[str, type] = {"extract": ExtractRequest, "fit": FitRequest, "train_tiny": TinyTrainConfig,
+                             "executor": ExecutorSettings}
 #: Request fields the sweep sets from the grid itself (dataset, encoder, backbone, seeds, ...), never from a table.
 GRID_FIELDS: dict[str, frozenset[str]] = {
     "extract": frozenset({"dataset", "encoder", "episodes", "weights", "random_init", "seed", "policy",
@@ -66,6 +70,7 @@ GRID_FIELDS: dict[str, frozenset[str]] = {
     "fit": frozenset({"backbone", "encoder", "suite", "policy", "dataset", "cache_key", "native_cache_key", "seeds",
                       "controls", "objective", "device", "results", "cache", "progress", "command"}),
     "train_tiny": frozenset(),
+    "executor": frozenset(),
 }
 #: Settings a recipe's [extract] / [fit] / [train_tiny] tables may set: every other field of the request.
 SECTION_KEYS: dict[str, tuple[str, ...]] = {
@@ -91,7 +96,12 @@ class Recipe:
     extract: Mapping[str, Any] = field(default_factory=dict)     # ExtractRequest overrides
     fit: Mapping[str, Any] = field(default_factory=dict)         # FitRequest overrides
     train_tiny: Mapping[str, Any] = field(default_factory=dict)  # TinyTrainConfig overrides
+    executor: Mapping[str, Any] = field(default_factory=dict)    # ExecutorSettings overrides
     path: str = ""
+
+    @property
+    def executor_settings(self) -> ExecutorSettings:
+        return ExecutorSettings(**self.executor)
 
     @property
     def n_fits(self) -> int:
@@ -208,6 +218,10 @@ def load_recipe(path: str | Path) -> Recipe:
         top[section] = _section(data, section, str(path))
     top["dataset"] = _resolve_dataset(str(data["dataset"]), path.resolve().parent)
     recipe = _build(Recipe, {**top, "path": str(path)}, str(path))
+    try:
+        check_executor(recipe.executor_settings.executor)
+    except GraftcacheError as e:
+        raise RecipeError(f"{path} [executor]: {e}") from None
     for control in recipe.controls:
         try:
             get_control(control)

@@ -90,6 +90,27 @@ class FitRequest(Checked):
     }
 
 
+#: Ray's num_gpus: a share of one GPU (several tasks on one device) or whole GPUs.
+GPU_SHARE: Rule = (lambda v: v >= 0 and (v <= 1 or float(v).is_integer()), "must be between 0 and 1 or a whole number")
+
+
+@dataclass(frozen=True)
+class ExecutorSettings(Checked):
+    """Where `extract` and `sweep` run their work (graftcache/executors/): in this process, or as Ray tasks on
+    a cluster that sees the same cache root and results folder. Nothing here changes a number: the caches,
+    run_ids and rows are the same under every executor."""
+
+    executor: str = "local"
+    address: str | None = None  # ray: a running cluster ("auto", "ray://head:10001"); None starts one here
+    gpus_per_task: float | None = None  # ray: None = 1 when the device is cuda, else 0; a fraction shares a GPU
+    cpus_per_task: float = 1.0  # ray: also the task's torch thread count (Ray sets OMP_NUM_THREADS from it)
+    shards: int | None = None  # ray extract: tasks per cache; None = as many as the cluster runs at once
+    max_retries: int = 3  # ray: reruns of a task whose worker or node died (never of an error the task raised)
+
+    RULES: ClassVar[dict[str, Rule]] = {"gpus_per_task": GPU_SHARE, "cpus_per_task": POSITIVE, "shards": POSITIVE,
+                                        "max_retries": NON_NEGATIVE}
+
+
 @dataclass(frozen=True)
 class TileRequest(Checked):
     """What `graftcache tile` builds: a dataset of `preset`'s dimensions, or of `episodes` episodes (and

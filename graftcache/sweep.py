@@ -21,13 +21,13 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from graftcache.backbone_table import native_name
-from graftcache.backbones.pool import BackbonePool
 from graftcache.errors import GraftcacheError
+from graftcache.executors import Executor, get_executor
 from graftcache.fit.controls import get_control
 from graftcache.pooling import NATIVE, format_grid, grid_names
 from graftcache.progress import progress, write
 from graftcache.recipe import EncoderEntry, Recipe
-from graftcache.requests import DEFAULT_TINY_TRAIN, ExtractRequest, FitRequest
+from graftcache.requests import DEFAULT_TINY_TRAIN, ExecutorSettings, ExtractRequest, FitRequest
 
 
 def command_line(command: str, **flags: Any) -> str:
@@ -78,12 +78,11 @@ def prepare_policies(recipe: Recipe, state: SweepState, log: Callable[[str], Non
         state.native_grids[entry.name] = get_backbone(entry.name).read_native_grid(policy)
 
 
-def _extract(recipe: Recipe, encoder: str, grids: tuple[str, ...], log: Callable[[str], None], **kw: Any) -> str:
-    from graftcache.extract import extract
-
+def _extract(recipe: Recipe, executor: Executor, encoder: str, grids: tuple[str, ...], log: Callable[[str], None],
+             **kw: Any) -> str:
     req = ExtractRequest(dataset=recipe.dataset, encoder=encoder, device=recipe.device, cache=recipe.cache,
                          **_extract_settings(recipe, grids), **kw)
-    return extract(req, log=log).key
+    return executor.extract(req, log).key
 
 
 def _extract_settings(recipe: Recipe, grids: tuple[str, ...]) -> dict[str, Any]:
@@ -105,12 +104,12 @@ def encoder_grids(recipe: Recipe, state: SweepState) -> tuple[str, ...]:
     return names
 
 
-def prepare_caches(recipe: Recipe, state: SweepState, log: Callable[[str], None]) -> None:
+def prepare_caches(recipe: Recipe, state: SweepState, log: Callable[[str], None], executor: Executor) -> None:
     """Extract every encoder once (`encoder_grids`), plus the native towers at their backbones' token grids
     if a control or the objective needs them."""
     grids = encoder_grids(recipe, state)
     for enc in recipe.encoders:
-        state.encoder_caches[enc] = _extract(recipe, enc.name, grids, log, weights=enc.weights,
+        state.encoder_caches[enc] = _extract(recipe, executor, enc.name, grids, log, weights=enc.weights,
                                              random_init=enc.random_init, seed=enc.seed)
         state.commands[state.encoder_caches[enc]] = command_line(
             "extract", encoder=enc.name, random_init=enc.random_init, seed=enc.seed if enc.random_init else None,
@@ -120,7 +119,7 @@ def prepare_caches(recipe: Recipe, state: SweepState, log: Callable[[str], None]
         return
     for backbone, policy in state.policies.items():
         grid = (format_grid(state.native_grids[backbone]),)
-        key = _extract(recipe, native_name(backbone), grid, log, policy=policy)
+        key = _extract(recipe, executor, native_name(backbone), grid, log, policy=policy)
         state.native_caches[backbone] = key
         state.commands[key] = command_line("extract", encoder=native_name(backbone), policy=policy,
                                            dataset=recipe.dataset, **_extract_settings(recipe, grid))
@@ -141,20 +140,17 @@ def fit_requests(recipe: Recipe, state: SweepState) -> Iterator[tuple[str, Any]]
                     command=f"graftcache sweep {recipe.path}", **recipe.fit)
 
 
-def run_sweep(recipe: Recipe, log: Callable[[str], None] = write) -> SweepState:
-    """Policies, then caches, then every missing cell; one progress bar over the grid's rows."""
-    from graftcache.fit.run import Fitter
-
-    state, backbones, numerics = SweepState(), BackbonePool(log), {}
+def run_sweep(recipe: Recipe, log: Callable[[str], None] = write, settings: ExecutorSettings | None = None) -> SweepState:
+    """Policies, then caches, then every missing cell, on the executor `settings` name (default: the recipe's
+    [executor] table); one progress bar over the grid's cells."""
+    settings = settings or recipe.executor_settings
+    executor = get_executor(settings)
+    state = SweepState()
     log(f"sweep {recipe.name}: {len(recipe.backbones)} backbone(s) x {len(recipe.encoders)} encoder(s) x "
         f"{len(recipe.suites)} suite(s) x {len(recipe.seeds)} seed(s) x {1 + len(recipe.controls)} control(s) "
-        f"= {recipe.n_fits} cells, {recipe.n_rows} distinct rows -> {recipe.results}")
+        f"= {recipe.n_fits} cells, {recipe.n_rows} distinct rows -> {recipe.results} ({settings.executor} executor)")
     prepare_policies(recipe, state, log)
-    prepare_caches(recipe, state, log)
-    per_request = len(recipe.seeds) * (1 + len(recipe.controls))
+    prepare_caches(recipe, state, log, executor)
     with progress(total=recipe.n_fits, desc=f"sweep {recipe.name}", unit="cell") as bar:
-        for label, req in fit_requests(recipe, state):
-            bar.set_postfix_str(label)
-            Fitter(req, log=log, backbones=backbones, numerics=numerics).run()
-            bar.update(per_request)
+        executor.fit(list(fit_requests(recipe, state)), log, bar)
     return state

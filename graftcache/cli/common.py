@@ -54,6 +54,16 @@ def positive_float(text: str) -> float:
     return value
 
 
+def nonneg_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"{value} must be >= 0")
+    return value
+
+
 def fraction(text: str) -> float:
     """argparse type: a number strictly between 0 and 1."""
     value = positive_float(text)
@@ -122,13 +132,21 @@ def _shown(value: Any) -> str:
 
 
 def add_field(p: argparse.ArgumentParser, request: type, name: str, *aliases: str, help: str = "",
-              shown: str | None = None, **kw: Any) -> None:
+              shown: str | None = None, overrides: bool = False, **kw: Any) -> None:
     """`--<name>` for a request field, defaulting to the field's default (named in the help unless None;
-    `shown` overrides how it is written)."""
+    `shown` overrides how it is written). With `overrides` the flag overrides a value read elsewhere (a
+    recipe): it is absent from the namespace unless given (see `given`)."""
     default = default_of(request, name)
     if default is not None and kw.get("action") not in ("store_true", "store_false"):
         help = f"{help} (default {shown or _shown(default)})".strip()
-    p.add_argument(f"--{name.replace('_', '-')}", *aliases, dest=name, default=default, help=help or None, **kw)
+    p.add_argument(f"--{name.replace('_', '-')}", *aliases, dest=name, help=help or None,
+                   default=argparse.SUPPRESS if overrides else default, **kw)
+
+
+def given(request: type, args: argparse.Namespace) -> dict[str, Any]:
+    """The fields of `request` set on the command line by flags made with `add_field(..., overrides=True)`."""
+    names = {f.name for f in dataclasses.fields(request)} - PARSER_KEYS
+    return {n: v for n, v in vars(args).items() if n in names}
 
 
 def request_from(request: type[R], args: argparse.Namespace, **values: Any) -> R:
@@ -159,6 +177,29 @@ def add_compute_dtype_flag(p: argparse.ArgumentParser, request: type, *aliases: 
     add_field(p, request, "compute_dtype", *aliases, choices=COMPUTE_DTYPES,
               help="model compute precision. auto: bf16 where the device computes it natively (CUDA with bf16, "
                    "CPUs with AVX512-BF16/AMX), else fp32. The resolved dtype is recorded in manifests, keys and rows")
+
+
+def add_executor_flags(p: argparse.ArgumentParser, *, overrides: bool = False) -> None:
+    """Where the work runs (ExecutorSettings; all but --executor apply to --executor ray only). `overrides`: the
+    flags override a recipe's [executor] table, whose values (else the defaults shown) hold where none is given."""
+    from graftcache.executors import EXECUTORS
+    from graftcache.requests import ExecutorSettings
+
+    def flag(name: str, **kw: Any) -> None:
+        add_field(p, ExecutorSettings, name, overrides=overrides, **kw)
+
+    flag("executor", choices=tuple(EXECUTORS),
+         help="local: this process; ray: Ray tasks (every node must see the dataset, the cache root and the "
+         "results folder: a shared file system or an s3:// cache root)")
+    flag("address", metavar="ADDR", help="a running Ray cluster to join (auto, ray://HOST:10001); "
+         "default: start a Ray instance on this machine")
+    flag("gpus_per_task", type=nonneg_float, metavar="G",
+         help="GPUs per task; a fraction shares one GPU between tasks (default: 1 with --device cuda, else 0)")
+    flag("cpus_per_task", type=positive_float, metavar="C", help="CPUs per task, also its torch threads")
+    flag("shards", type=positive_int, metavar="N",
+         help="tasks per extraction (default: as many as the cluster runs at once)")
+    flag("max_retries", type=nonneg_int, metavar="N",
+         help="reruns of a task whose worker or node died (a task that raised an error is not rerun)")
 
 
 def add_device_flag(p: argparse.ArgumentParser, request: type) -> None:

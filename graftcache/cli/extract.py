@@ -9,6 +9,7 @@ from graftcache.cli.common import (
     add_cache_flag,
     add_compute_dtype_flag,
     add_device_flag,
+    add_executor_flags,
     add_field,
     add_progress_flag,
     grids_value,
@@ -20,7 +21,7 @@ from graftcache.cli.common import (
 )
 from graftcache.nonfinite import DROP_FLAG
 from graftcache.pooling import NATIVE
-from graftcache.requests import ExtractRequest
+from graftcache.requests import ExecutorSettings, ExtractRequest
 from graftcache.runtime import DTYPES
 
 
@@ -62,6 +63,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     add_cache_flag(p)
     add_device_flag(p, ExtractRequest)
     add_field(p, ExtractRequest, "dtype", choices=tuple(DTYPES), help="stored feature dtype")
+    add_executor_flags(p)
     p.set_defaults(func=run)
 
 
@@ -79,7 +81,8 @@ def _policy(args: argparse.Namespace) -> str | None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from graftcache.extract import extract
+    from graftcache.executors import get_executor
 
-    print(extract(request_from(ExtractRequest, args, policy=_policy(args))).key)
+    executor = get_executor(request_from(ExecutorSettings, args))
+    print(executor.extract(request_from(ExtractRequest, args, policy=_policy(args)), log=print).key)
     return 0

@@ -3,6 +3,10 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
+
+from graftcache.cli.common import add_executor_flags, given
+from graftcache.requests import ExecutorSettings
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -12,6 +16,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                        "file are skipped, so an interrupted sweep continues where it stopped.")
     p.add_argument("recipe", help="TOML recipe, e.g. cli/paper.toml")
     p.add_argument("--dry-run", action="store_true", help="check the recipe and print the grid, run nothing")
+    add_executor_flags(p, overrides=True)
     p.set_defaults(func=run)
 
 
@@ -20,6 +25,7 @@ def run(args: argparse.Namespace) -> int:
     from graftcache.sweep import run_sweep
 
     recipe = load_recipe(args.recipe)
+    settings = dataclasses.replace(recipe.executor_settings, **given(ExecutorSettings, args))
     if args.dry_run:
         print(f"{recipe.path}: {recipe.n_fits} cells, {recipe.n_rows} distinct rows -> {recipe.results}")
         print(f"  dataset   {recipe.dataset}")
@@ -27,7 +33,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"  encoders  {', '.join(e.label for e in recipe.encoders)}")
         print(f"  suites    {', '.join(recipe.suites)}; seeds {', '.join(map(str, recipe.seeds))}")
         print(f"  controls  {', '.join(recipe.controls) or '(none)'}; objective {recipe.objective}")
+        print(f"  executor  {settings.executor}" + (f" at {settings.address}" if settings.address else ""))
         return 0
-    run_sweep(recipe)
+    run_sweep(recipe, settings=settings)
     print(recipe.results)
     return 0

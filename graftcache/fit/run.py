@@ -184,28 +184,43 @@ class Fitter:
             num_denoise_steps=req.num_denoise_steps, compute_dtype=req.compute_dtype,
         )
 
+    @property
+    def policy_id(self) -> str:
+        """How rows name the policy: as given, or `tiny:<folder>` for the tiny policy trained on this dataset."""
+        return self.req.policy if self.req.policy != "tiny" else f"tiny:{Path(self.policy_folder).name}"
+
+    def cells(self) -> list[tuple[Control, int, Cell]]:
+        """Every (control, seed) of the request with its identity, in the order `run` visits them."""
+        return [(control, seed, self.cell(control, seed, self.policy_id))
+                for seed in self.req.seeds for control in self.controls]
+
     def run(self) -> list[dict[str, Any]]:
+        """Every missing cell, one after the other, each row appended to the results file as it finishes."""
         set_main_threads()
         done = results.done_run_ids(self.req.results)
         rows = []
-        policy_id = self.req.policy if self.req.policy != "tiny" else f"tiny:{Path(self.policy_folder).name}"
-        for seed in self.req.seeds:
-            for control in self.controls:
-                cell = self.cell(control, seed, policy_id)
-                if cell.run_id in done:
-                    encoder = self._source(control).manifest["encoder"]
-                    self.log(f"skip {self.req.backbone}/{encoder['name']}/{self.req.suite} seed {seed} "
-                             f"control {control.name}: already in {self.req.results}")
-                    continue
-                self._check_numerics()
-                adapter = self.backbones.get(self.req.backbone, self.policy_folder, str(self.device))
-                row = self._run_cell(adapter, control, cell, self._material(adapter, control))
-                results.append(self.req.results, [row])
-                rows.append(row)
-                self.log(f"{row['backbone']}/{row['encoder']}/{row['suite']} seed {seed} control {control.name}: "
-                         f"eval_mse {row['eval_mse']:.4f} (first {row['eval_mse_first']:.4f}, raw "
-                         f"{row['eval_mse_raw']:.5f}) on {row['n_eval_frames']} frames, {row['wall_s']:.1f}s")
+        for control, seed, cell in self.cells():
+            if cell.run_id in done:
+                encoder = self._source(control).manifest["encoder"]
+                self.log(f"skip {self.req.backbone}/{encoder['name']}/{self.req.suite} seed {seed} "
+                         f"control {control.name}: already in {self.req.results}")
+                continue
+            row = self.run_cell(control, seed)
+            results.append(self.req.results, [row])
+            rows.append(row)
         return rows
+
+    def run_cell(self, control: Control, seed: int) -> dict[str, Any]:
+        """Fit and score one cell (any control, any seed: the others are not run) and return its row without
+        writing it, so that a distributed sweep's driver stays the results file's only writer."""
+        self._check_numerics()
+        adapter = self.backbones.get(self.req.backbone, self.policy_folder, str(self.device))
+        cell = self.cell(control, seed, self.policy_id)
+        row = self._run_cell(adapter, control, cell, self._material(adapter, control))
+        self.log(f"{row['backbone']}/{row['encoder']}/{row['suite']} seed {seed} control {control.name}: "
+                 f"eval_mse {row['eval_mse']:.4f} (first {row['eval_mse_first']:.4f}, raw "
+                 f"{row['eval_mse_raw']:.5f}) on {row['n_eval_frames']} frames, {row['wall_s']:.1f}s")
+        return row
 
     # ---------------------------------------------------------------- one cell
     def _material(self, adapter, control: Control) -> _Material:

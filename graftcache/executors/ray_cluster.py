@@ -1,0 +1,120 @@
+"""Ray plumbing for the ray executor's two jobs: joining or starting a cluster, what each task asks for, the
+settings a driver must fix before its tasks run anywhere, and waiting on tasks so that a task's failure
+reaches the user as the one-line error it raised.
+
+Imported only when the ray executor is chosen (graftcache/executors/__init__.py names it by import string).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Iterator, Mapping
+from pathlib import Path
+from typing import Any
+
+import ray
+import ray.exceptions
+
+from graftcache.errors import ExecutorError, GraftcacheError
+from graftcache.executors import Log
+from graftcache.requests import ExecutorSettings
+from graftcache.runtime import AUTO, resolve_compute_dtype, resolve_device
+from graftcache.store.roots import is_url, open_root
+
+#: What a worker needs to behave like this process: the offline switches and where hub files, tiny policies
+#: and caches live, plus the object store's endpoint and region. Handed to the workers as the job's runtime_env
+#: when this process starts or joins the cluster. Credentials are not: each node brings its own (AWS_*, ...).
+FORWARDED_ENV = ("HF_HUB_OFFLINE", "HF_DATASETS_OFFLINE", "TRANSFORMERS_OFFLINE", "HF_HOME", "HF_HUB_CACHE",
+                 "HF_LEROBOT_HOME", "GRAFTCACHE_HOME", "TOKENIZERS_PARALLELISM", "AWS_ENDPOINT_URL", "AWS_REGION",
+                 "AWS_DEFAULT_REGION")
+
+
+def connect(settings: ExecutorSettings, log: Log) -> None:
+    """Join the cluster at `settings.address`, or start a Ray instance on this machine; a process already
+    connected (a notebook, the tests) keeps its connection and its runtime_env."""
+    if ray.is_initialized():
+        return
+    env = {name: os.environ[name] for name in FORWARDED_ENV if name in os.environ}
+    # a local instance started for one command needs no dashboard (a cluster's own `ray start` has one)
+    local = {} if settings.address else {"include_dashboard": False}
+    log(f"ray: {'joining ' + settings.address if settings.address else 'starting a local Ray instance'}")
+    try:
+        ray.init(address=settings.address, runtime_env={"env_vars": env}, **local)
+    except (ConnectionError, RuntimeError, ValueError) as e:
+        raise ExecutorError(f"--address {settings.address}: cannot start or join Ray "
+                            f"({' '.join(str(e).split())[:300]})") from None
+
+
+def task_options(settings: ExecutorSettings, device: str) -> dict[str, Any]:
+    """Ray's options for one task on `device`: its CPUs and GPUs, retried when its worker or node dies (system
+    failures), never when it raised: a GraftcacheError is bad input and would fail again."""
+    if device.startswith("cuda:"):
+        raise ExecutorError(f"--device {device} with the ray executor: Ray gives each task its GPUs "
+                            f"(CUDA_VISIBLE_DEVICES); pass --device cuda")
+    gpus = settings.gpus_per_task if settings.gpus_per_task is not None else float(device == "cuda")
+    if device == "cuda" and not gpus:
+        raise ExecutorError("--device cuda with --gpus-per-task 0: a task would get no GPU")
+    return {"num_cpus": settings.cpus_per_task, "num_gpus": gpus, "max_retries": settings.max_retries,
+            "retry_exceptions": False}
+
+
+def slots(options: Mapping[str, Any]) -> int:
+    """How many tasks with these options the cluster runs at once (its GPUs, else its CPUs, over one task's
+    share); a cluster that cannot place one such task is an error here rather than a task pending forever."""
+    kind, need = ("GPU", options["num_gpus"]) if options["num_gpus"] else ("CPU", options["num_cpus"])
+    have = ray.cluster_resources().get(kind, 0.0)
+    n = math.floor(have / need + 1e-9)
+    if n < 1:
+        raise ExecutorError(f"the Ray cluster has {have:g} {kind}(s), a task asks for {need:g}")
+    return n
+
+
+def local_path(value: str | None) -> str | None:
+    """An existing local path made absolute (a worker's working folder is not this process's), anything else
+    (a hub id, a URL, None) as given."""
+    return str(Path(value).resolve()) if value and not is_url(value) and Path(value).exists() else value
+
+
+def shared_root(cache: str | None) -> str:
+    """The cache root every task uses, named so that any process resolves it to the same place: a URL as
+    is, a folder absolute; the default ($GRAFTCACHE_HOME, ~/.cache/graftcache) is decided here, once."""
+    url = open_root(cache).url
+    return url if is_url(url) else str(Path(url).resolve())
+
+
+@ray.remote
+def _resolve_compute_dtype(name: str, device: str) -> str:
+    return resolve_compute_dtype(name, resolve_device(device))
+
+
+def worker_compute_dtype(name: str, device: str, options: Mapping[str, Any]) -> str:
+    """`auto` resolved where the tasks run, by one task with their resources: cache keys and run_ids hold
+    the resolved dtype, which a CPU-only head node would decide differently than the GPUs that compute."""
+    if name != AUTO:
+        return name
+    ((_, resolved),) = finished({_resolve_compute_dtype.options(**options).remote(name, device): "compute dtype"})
+    return resolved
+
+
+def finished[R](tasks: Mapping[ray.ObjectRef, R]) -> Iterator[tuple[R, Any]]:
+    """(tag, result) of each task as it finishes. A task that raised a GraftcacheError (or an OSError such as a
+    full disk) raises it here as itself, one line, not Ray's remote traceback; a task lost more often than it
+    may be retried is an ExecutorError. Either way, and when the caller stops early, the rest are cancelled."""
+    pending = list(tasks)
+    try:
+        while pending:
+            (ready,), pending = ray.wait(pending, num_returns=1)
+            try:
+                value = ray.get(ready)
+            except ray.exceptions.RayTaskError as e:
+                if isinstance(e.cause, (GraftcacheError, OSError)):
+                    raise e.cause from None
+                raise
+            except ray.exceptions.RayError as e:
+                first = (str(e).strip().splitlines() or [type(e).__name__])[0]
+                raise ExecutorError(f"{tasks[ready]}: {type(e).__name__}: {first}") from None
+            yield tasks[ready], value
+    finally:
+        for ref in pending:
+            ray.cancel(ref, force=True)
