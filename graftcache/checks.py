@@ -1,6 +1,6 @@
 """Range rules for request fields, declared beside each request and checked in one place.
 
-Requests (ExtractRequest, FitRequest, TinyTrainConfig) derive from `Checked` and declare a `RULES`
+Requests (ExtractRequest, FitRequest, TinyTrainConfig, TileRequest) derive from `Checked` and declare a `RULES`
 table; their construction and the sweep recipe reader (`cls.check(overrides)`) both apply it, so a
 count of 0 or a negative seed is a one-line error naming the field before any work starts, whichever
 way the request was made.

@@ -13,6 +13,7 @@ from dataclasses import asdict, dataclass, field
 from typing import Any, ClassVar
 
 from graftcache.checks import EPISODES, FRACTION, NON_NEGATIVE, POSITIVE, SEEDS, Checked, Rule
+from graftcache.errors import GraftcacheError
 
 
 @dataclass(frozen=True)
@@ -82,6 +83,28 @@ class FitRequest(Checked):
         "seeds": SEEDS, "steps": POSITIVE, "lr": POSITIVE, "batch_size": POSITIVE, "eval_fraction": FRACTION,
         "eval_split_seed": NON_NEGATIVE, "eval_frames": POSITIVE, "num_denoise_steps": POSITIVE, "lora_rank": POSITIVE,
     }
+
+
+@dataclass(frozen=True)
+class TileRequest(Checked):
+    """What `graftcache tile` builds: a dataset of `preset`'s dimensions, or of `episodes` episodes (and
+    `frames` frames; default: the source's mean length times `episodes`) over the source's tasks."""
+
+    source: str
+    dest: str
+    preset: str | None = None  # a name of graftcache.datasets.tile.PRESETS ("libero": lerobot/libero's counts)
+    episodes: int | None = None
+    frames: int | None = None
+    seed: int = 0  # episode lengths and window positions
+
+    RULES: ClassVar[dict[str, Rule]] = {"episodes": POSITIVE, "frames": POSITIVE, "seed": NON_NEGATIVE}
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if (self.preset is None) == (self.episodes is None):
+            raise GraftcacheError("tile needs exactly one of preset and episodes")
+        if self.frames is not None and self.episodes is None:
+            raise GraftcacheError("frames goes with episodes (a preset fixes its own frame counts)")
 
 
 @dataclass(frozen=True)
