@@ -12,7 +12,7 @@ import sys
 from dataclasses import asdict, dataclass, field
 from typing import Any, ClassVar
 
-from graftcache.checks import EPISODES, FRACTION, NON_NEGATIVE, POSITIVE, SEEDS, Checked, Rule
+from graftcache.checks import EPISODES, FRACTION, NON_NEGATIVE, POSITIVE, SEEDS, SHARD, Checked, Rule
 from graftcache.errors import GraftcacheError
 
 
@@ -37,6 +37,7 @@ class ExtractRequest(Checked):
     batch_size: int = 32
     num_workers: int = 2
     block_frames: int = 256
+    shard: tuple[int, int] | None = None  # (i, N): write only shard i of N's blocks (graftcache/extract.py)
     cache: str | None = None
     progress: bool = True
     allow_nonfinite: bool = False  # cache NaN/inf state/action/features instead of refusing (fit then refuses)
@@ -44,7 +45,7 @@ class ExtractRequest(Checked):
 
     RULES: ClassVar[dict[str, Rule]] = {"seed": NON_NEGATIVE, "batch_size": POSITIVE, "num_workers": NON_NEGATIVE,
                                         "block_frames": POSITIVE, "episodes": EPISODES,
-                                        "frame_stride": POSITIVE}
+                                        "frame_stride": POSITIVE, "shard": SHARD}
 
 
 @dataclass(frozen=True)

@@ -32,8 +32,13 @@ def single_thread_worker(*_: object) -> None:
 
 
 def set_main_threads(n: int | None = None) -> int:
-    """Give the main (model) process `n` intra-op threads (default: all cores); returns the count used."""
-    n = n or os.cpu_count() or 1
+    """Give the main (model) process `n` intra-op threads; returns the count used.
+
+    Default: $OMP_NUM_THREADS when set, else every core. Several model processes on one machine (extract
+    --shard, Ray tasks: Ray sets it from each task's CPUs) must share the cores: with more threads than cores,
+    torch's threads spin against each other (measured: 2 threads per process under load were 10x slower
+    than 1)."""
+    n = n or int(os.environ.get("OMP_NUM_THREADS") or 0) or os.cpu_count() or 1
     torch.set_num_threads(n)
     return n
 
