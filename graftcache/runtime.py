@@ -39,7 +39,11 @@ def granted_cpus() -> int:
 
 
 def set_main_threads(n: int | None = None) -> int:
-    """Give the main (model) process `n` intra-op threads (default: the cores it was granted); returns the count."""
+    """Give the main (model) process `n` intra-op threads (default: the cores it was granted); returns the count.
+
+    Several model processes on one machine (extract --shard, Ray tasks) must share the cores: with more threads
+    than cores, torch's threads spin against each other (measured: 2 threads per process under load were 10x
+    slower than 1)."""
     n = n or granted_cpus()
     torch.set_num_threads(n)
     return n
