@@ -34,7 +34,7 @@ FLAGS = ("--encoder", ENCODER, "--random-init", "--dataset", str(SAMPLE), "--epi
 
 
 def _req(cache: Path, **kw) -> ExtractRequest:
-    return ExtractRequest(dataset=str(SAMPLE), encoder=ENCODER, random_init=True, episodes=(0, 1), grids=((2, 2),),
+    return ExtractRequest(dataset=str(SAMPLE), encoder=ENCODER, random_init=True, episodes=(0, 1), grids=("2x2",),
                           block_frames=8, batch_size=8, num_workers=0, progress=False, cache=str(cache), **kw)
 
 
