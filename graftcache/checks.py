@@ -1,6 +1,6 @@
 """Range rules for request fields, declared beside each request and checked in one place.
 
-Requests (ExtractRequest, FitRequest, TinyTrainConfig) derive from `Checked` and declare a `RULES`
+Requests (ExtractRequest, FitRequest, TinyTrainConfig, TileRequest) derive from `Checked` and declare a `RULES`
 table; their construction and the sweep recipe reader (`cls.check(overrides)`) both apply it, so a
 count of 0 or a negative seed is a one-line error naming the field before any work starts, whichever
 way the request was made.
@@ -20,6 +20,7 @@ NON_NEGATIVE: Rule = (lambda v: v >= 0, "must be >= 0")
 FRACTION: Rule = (lambda v: 0 < v < 1, "must be between 0 and 1 (exclusive)")
 SEEDS: Rule = (lambda v: len(v) > 0 and all(s >= 0 for s in v), "must list at least one seed, each >= 0")
 EPISODES: Rule = (lambda v: len(v) > 0 and all(e >= 0 for e in v), "must list at least one episode index >= 0")
+SHARD: Rule = (lambda v: len(v) == 2 and 0 <= v[0] < v[1], "must be i/N with 0 <= i < N")
 
 
 def check_fields(values: Mapping[str, Any], rules: Mapping[str, Rule]) -> None:

@@ -66,6 +66,7 @@ class ExtractResult:
     frames_encoded: int
     wall_s: float          # the whole call: opening the dataset, loading the encoder, encoding, finalising
     encode_s: float = 0.0  # decode + encode + write of the missing blocks (the steady-state part)
+    complete: bool = True  # False only from a shard that finished its blocks while other shards' are missing
 
 
 def build_index(source: LeRobotSource, episodes: Sequence[int]) -> pl.DataFrame:
@@ -214,12 +215,11 @@ def encode_frames(encoder: Any, frames: np.ndarray, grids: Sequence[tuple[int, i
     return {k: np.concatenate(v) for k, v in outs.items()}
 
 
-def _plan(index: pl.DataFrame, cache: FeatureCache) -> tuple[list[int], np.ndarray]:
-    """Episodes that still have frames in unfinished blocks, and each cache row's block id."""
+def _plan(index: pl.DataFrame, cache: FeatureCache, todo: Sequence[int]) -> tuple[list[int], np.ndarray]:
+    """Episodes that have frames in the blocks `todo`, and each cache row's block id."""
     bf = int(cache.layout["block_frames"])
     rows_block = np.arange(index.height) // bf
-    todo = sorted(set(range(int(cache.layout["n_blocks"]))) - cache.blocks_done())
-    needed = index.filter(pl.Series(np.isin(rows_block, todo)))["episode_index"].unique(maintain_order=True)
+    needed = index.filter(pl.Series(np.isin(rows_block, list(todo))))["episode_index"].unique(maintain_order=True)
     return needed.to_list(), rows_block
 
 
@@ -268,25 +268,116 @@ def extract(req: ExtractRequest, log: Callable[[str], None] = print) -> ExtractR
     if done is not None:
         _check_numerics(done, manifest, log)
     else:
-        with root.writer(key, on_wait=lambda who: log(f"waiting: {key} is being written by {who}")) as held:
-            cache = _open_or_create(root, key, manifest, index, stream, encoder, cameras, req, log)
-            if not cache.complete:
-                t_fill = time.perf_counter()
-                try:
-                    encoded = _fill(cache, source, index, encoder, cameras, req, device, compute)
-                    encode_s = time.perf_counter() - t_fill
-                    held.check()  # an object-store lease can have been taken over: never publish over another writer
-                    cache.finalize()
-                except OSError as e:
-                    if e.errno not in OUT_OF_SPACE:
-                        raise
-                    raise CacheError(_out_of_space(cache, e)) from None
-                wall = time.perf_counter() - t0
-                log(f"wrote {key}: {cache.n_frames} frames x {len(cameras)} cameras in {wall:.1f}s -> {path}")
-                return ExtractResult(key, path, False, cache.n_frames, encoded, wall, encode_s)
-        done = cache
+        writing = _Writing(root, key, manifest, source, index, stream, encoder, cameras, req, device, compute, log, t0)
+        result = writing.whole() if req.shard is None else writing.shard(*req.shard)
+        if result is not None:
+            return result
+        done = FeatureCache.in_root(root, key)
     log(f"reusing complete cache {key} ({done.n_frames} frames)")
     return ExtractResult(key, path, True, done.n_frames, 0, time.perf_counter() - t0)
+
+
+def shard_blocks(n_blocks: int, shard: int, shards: int) -> range:
+    """Shard `shard` of `shards`: a contiguous range of blocks (the shards' ranges cover every block once and
+    differ in size by one at most). Contiguous, because episodes cross block boundaries: a shard decodes
+    every episode overlapping its blocks, and only those at its two ends are decoded by a neighbour too."""
+    return range(shard * n_blocks // shards, (shard + 1) * n_blocks // shards)
+
+
+@dataclass
+class _Writing:
+    """Writing the blocks of one cache that is not complete yet, by this process alone (`whole`) or as one of
+    N shard processes (`shard`)."""
+
+    root: Root
+    key: str
+    manifest: dict[str, Any]
+    source: LeRobotSource
+    index: pl.DataFrame
+    stream: pl.DataFrame
+    encoder: Any
+    cameras: list[str]
+    req: ExtractRequest
+    device: torch.device
+    compute: torch.dtype
+    log: Callable[[str], None]
+    t0: float
+
+    def _waiting(self, who: str) -> None:
+        self.log(f"waiting: {self.key} is being written by {who}")
+
+    def _open(self) -> FeatureCache:
+        return _open_or_create(self.root, self.key, self.manifest, self.index, self.stream, self.encoder,
+                               self.cameras, self.req, self.log)
+
+    def _fill(self, cache: FeatureCache, blocks: Sequence[int]) -> int:
+        try:
+            return _fill(cache, self.source, self.index, self.encoder, self.cameras, blocks, self.req, self.device,
+                         self.compute)
+        except OSError as e:
+            if e.errno not in OUT_OF_SPACE:
+                raise
+            raise CacheError(_out_of_space(cache, e)) from None
+
+    def whole(self) -> ExtractResult | None:
+        """Every block under the writer lock (held from initialisation to `complete`); None when another
+        writer completed the cache meanwhile."""
+        with self.root.writer(self.key, on_wait=self._waiting) as held:
+            cache = self._open()
+            if cache.complete:
+                return None
+            t_fill = time.perf_counter()
+            encoded = self._fill(cache, range(int(cache.layout["n_blocks"])))
+            encode_s = time.perf_counter() - t_fill
+            held.check()  # an object-store lease can have been taken over: never publish over another writer
+            cache.finalize()
+        return self._wrote(cache, encoded, encode_s)
+
+    def shard(self, shard: int, shards: int) -> ExtractResult | None:
+        """The blocks of shard `shard` of `shards`, then `complete` if every shard's blocks are durable.
+
+        The writer lock is held only to initialise the cache (exactly once: later shards find it initialised
+        and check their numerics against its manifest) and to finalise it; the blocks are written under a
+        lock of this shard alone (`<key>.shard-i-of-N`), so shards write concurrently and two processes never
+        fill one shard. Whichever shard finds every block durable finalises, under the writer lock, after
+        re-reading the attributes: a second finisher finds `complete` and does nothing. Rerunning a shard
+        resumes it (written blocks are skipped). Shards of different N, or a whole run beside shards, would
+        only write some blocks twice (the same bytes): fill one key either whole or as shards of one N."""
+        with self.root.writer(self.key, on_wait=self._waiting):
+            cache = self._open()
+        if cache.complete:
+            return None
+        n_blocks = int(cache.layout["n_blocks"])
+        mine = shard_blocks(n_blocks, shard, shards)
+        name = f"{self.key}.shard-{shard}-of-{shards}"
+        t_fill = time.perf_counter()
+        with self.root.writer(name, on_wait=lambda who: self.log(f"waiting: shard {shard}/{shards} of {self.key} "
+                                                                   f"is being written by {who}")):
+            encoded = self._fill(cache, mine)
+        encode_s = time.perf_counter() - t_fill
+        missing = set(range(n_blocks)) - cache.blocks_done()
+        if missing:
+            unfinished = [i for i in range(shards) if missing & set(shard_blocks(n_blocks, i, shards))]
+            self.log(f"shard {shard}/{shards} of {self.key}: its {len(mine)} block(s) are written; the cache still "
+                     f"misses {len(missing)} of {n_blocks} blocks, of {len(unfinished)} of {shards} shards "
+                     f"({', '.join(map(str, unfinished[:10]))}{', ...' if len(unfinished) > 10 else ''}); "
+                     "the last shard to finish marks it complete")
+            return ExtractResult(self.key, self.root.location(self.key), False, cache.n_frames, encoded,
+                                 time.perf_counter() - self.t0, encode_s, complete=False)
+        with self.root.writer(self.key, on_wait=self._waiting) as held:
+            cache = FeatureCache.in_root(self.root, self.key, writable=True)  # attributes as they are now
+            if cache.complete:
+                self.log(f"shard {shard}/{shards} of {self.key}: another shard marked the cache complete")
+            else:
+                held.check()
+                cache.finalize()
+        return self._wrote(cache, encoded, encode_s)
+
+    def _wrote(self, cache: FeatureCache, encoded: int, encode_s: float) -> ExtractResult:
+        wall = time.perf_counter() - self.t0
+        self.log(f"wrote {self.key}: {cache.n_frames} frames x {len(self.cameras)} cameras in {wall:.1f}s -> "
+                 f"{self.root.location(self.key)}")
+        return ExtractResult(self.key, self.root.location(self.key), False, cache.n_frames, encoded, wall, encode_s)
 
 
 def _complete(root: Root, key: str, manifest: dict[str, Any], req: ExtractRequest) -> FeatureCache | None:
@@ -314,7 +405,8 @@ def _open_or_create(root: Root, key: str, manifest: dict[str, Any], index: pl.Da
         if cache.initialized and cache.matches(manifest):
             _check_numerics(cache, manifest, log)
             if not cache.complete:
-                log(f"resuming {key}: {len(cache.blocks_done())}/{cache.layout['n_blocks']} blocks already written")
+                who = "resuming" if req.shard is None else f"shard {req.shard[0]}/{req.shard[1]} of"
+                log(f"{who} {key}: {len(cache.blocks_done())}/{cache.layout['n_blocks']} blocks already written")
             return cache
         log(f"{key}: discarding an unfinished initialisation")
     width = encoder.spec.width
@@ -345,14 +437,16 @@ def _check_numerics(cache: FeatureCache, manifest: dict[str, Any], log: Callable
 
 
 def _fill(cache: FeatureCache, source: LeRobotSource, index: pl.DataFrame, encoder: Any, cameras: Sequence[str],
-          req: ExtractRequest, device: torch.device, compute: torch.dtype) -> int:
-    """Decode the episodes of unfinished blocks, encode block by block, hand blocks to the writer."""
-    needed, rows_block = _plan(index, cache)
-    todo = sorted(set(range(int(cache.layout["n_blocks"]))) - cache.blocks_done())
+          blocks: Sequence[int], req: ExtractRequest, device: torch.device, compute: torch.dtype) -> int:
+    """Decode the episodes of the unfinished blocks among `blocks`, encode block by block, hand blocks to the
+    writer; returns the frames encoded."""
+    todo = sorted(set(blocks) - cache.blocks_done())
+    needed, rows_block = _plan(index, cache, todo)
     ep_rows = {ep: np.flatnonzero(index["episode_index"].to_numpy() == ep) for ep in needed}
     shapes = {cam: source.meta.image_shape[cam] for cam in cameras}
     buffers: dict[int, dict[str, np.ndarray]] = {}
     filled: dict[int, int] = {}
+    todo_set = set(todo)
     writer = _Writer(cache)
     bar = progress(total=sum(cache.block_range(b)[1] - cache.block_range(b)[0] for b in todo), unit="frame",
                    desc=f"extract {cache.key}", enabled=req.progress)
@@ -362,7 +456,7 @@ def _fill(cache: FeatureCache, source: LeRobotSource, index: pl.DataFrame, encod
             rows = ep_rows[ep]  # the episode's keyframes, in order: the decoded frames after the stride
             for block in np.unique(rows_block[rows]):
                 block = int(block)
-                if block not in todo:
+                if block not in todo_set:
                     continue
                 start, stop = cache.block_range(block)
                 buf = buffers.setdefault(block, {c: np.empty((stop - start, *shapes[c]), np.uint8) for c in cameras})

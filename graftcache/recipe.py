@@ -60,10 +60,11 @@ class BackboneEntry:
 #: The request each settings table overrides; its own defaults apply to anything the table leaves out.
 SECTIONS: dict[str, type] = {"extract": ExtractRequest, "fit": FitRequest, "train_tiny": TinyTrainConfig,
                              "executor": ExecutorSettings}
-#: Request fields the sweep sets from the grid itself (dataset, encoder, backbone, seeds, ...), never from a table.
+#: Request fields the sweep sets from the grid itself (dataset, encoder, backbone, seeds, ...), never from a table
+#: (nor `shard`: a sweep needs whole caches, so it never extracts one shard of one).
 GRID_FIELDS: dict[str, frozenset[str]] = {
     "extract": frozenset({"dataset", "encoder", "grids", "episodes", "weights", "random_init", "seed", "policy",
-                          "device", "cache", "progress", "extra_manifest"}),
+                          "device", "cache", "progress", "extra_manifest", "shard"}),
     "fit": frozenset({"backbone", "encoder", "suite", "policy", "dataset", "cache_key", "native_cache_key", "seeds",
                       "controls", "objective", "device", "results", "cache", "progress", "command"}),
     "train_tiny": frozenset(),

@@ -12,7 +12,8 @@ import sys
 from dataclasses import asdict, dataclass, field
 from typing import Any, ClassVar
 
-from graftcache.checks import EPISODES, FRACTION, NON_NEGATIVE, POSITIVE, SEEDS, Checked, Rule
+from graftcache.checks import EPISODES, FRACTION, NON_NEGATIVE, POSITIVE, SEEDS, SHARD, Checked, Rule
+from graftcache.errors import GraftcacheError
 
 
 @dataclass(frozen=True)
@@ -36,6 +37,7 @@ class ExtractRequest(Checked):
     batch_size: int = 32
     num_workers: int = 2
     block_frames: int = 256
+    shard: tuple[int, int] | None = None  # (i, N): write only shard i of N's blocks (graftcache/extract.py)
     cache: str | None = None
     progress: bool = True
     allow_nonfinite: bool = False  # cache NaN/inf state/action/features instead of refusing (fit then refuses)
@@ -43,7 +45,7 @@ class ExtractRequest(Checked):
 
     RULES: ClassVar[dict[str, Rule]] = {"seed": NON_NEGATIVE, "batch_size": POSITIVE, "num_workers": NON_NEGATIVE,
                                         "block_frames": POSITIVE, "episodes": EPISODES,
-                                        "frame_stride": POSITIVE}
+                                        "frame_stride": POSITIVE, "shard": SHARD}
 
 
 @dataclass(frozen=True)
@@ -103,6 +105,28 @@ class ExecutorSettings(Checked):
 
     RULES: ClassVar[dict[str, Rule]] = {"gpus_per_task": GPU_SHARE, "cpus_per_task": POSITIVE, "shards": POSITIVE,
                                         "max_retries": NON_NEGATIVE}
+
+
+@dataclass(frozen=True)
+class TileRequest(Checked):
+    """What `graftcache tile` builds: a dataset of `preset`'s dimensions, or of `episodes` episodes (and
+    `frames` frames; default: the source's mean length times `episodes`) over the source's tasks."""
+
+    source: str
+    dest: str
+    preset: str | None = None  # a name of graftcache.datasets.tile.PRESETS ("libero": lerobot/libero's counts)
+    episodes: int | None = None
+    frames: int | None = None
+    seed: int = 0  # episode lengths and window positions
+
+    RULES: ClassVar[dict[str, Rule]] = {"episodes": POSITIVE, "frames": POSITIVE, "seed": NON_NEGATIVE}
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if (self.preset is None) == (self.episodes is None):
+            raise GraftcacheError("tile needs exactly one of preset and episodes")
+        if self.frames is not None and self.episodes is None:
+            raise GraftcacheError("frames goes with episodes (a preset fixes its own frame counts)")
 
 
 @dataclass(frozen=True)

@@ -25,6 +25,7 @@ from graftcache.encoders import fingerprint as fp
 from graftcache.encoders import registry
 from graftcache.errors import NumericsError
 from graftcache.extract import ExtractRequest, extract
+from graftcache.fit import run as run_module
 from graftcache.fit.run import FitRequest, Fitter
 from graftcache.store import FeatureCache
 
@@ -270,6 +271,24 @@ def test_fit_in_an_unchanged_environment_records_no_drift(world: World, tmp_path
     (row,) = Fitter(world.request(tmp_path), log=_quiet).run()
     assert 0 <= row["numerics_drift"] <= fp.TOLERANCE["fp32"]
     assert results.read(tmp_path / "results.parquet")["numerics_drift"].to_list() == [row["numerics_drift"]]
+
+
+def test_fitters_sharing_verdicts_probe_each_cache_once_and_each_enforces(world: World, tmp_path: Path,
+                                                                         monkeypatch: pytest.MonkeyPatch) -> None:
+    calls: list[str] = []
+    real = run_module.check_numerics
+    monkeypatch.setattr(run_module, "check_numerics", lambda cache, **kw: calls.append(cache.key) or real(cache, **kw))
+    shared: dict = {}
+    Fitter(world.request(tmp_path / "a"), log=_quiet, numerics=shared).run()
+    Fitter(world.request(tmp_path / "b", seeds=(1,)), log=_quiet, numerics=shared).run()
+    assert calls == [world.cache.key] and shared[world.cache.key].status == "match"
+    nudge(monkeypatch)
+    drifted = {world.cache.key: fp.check_numerics(world.cache)}
+    assert drifted[world.cache.key].status == "drift"
+    for folder in ("c", "d"):  # a shared drift verdict is refused by every request that reads the cache
+        with pytest.raises(NumericsError, match=f"^cache {world.cache.key}: this environment computes different"):
+            Fitter(world.request(tmp_path / folder), log=_quiet, numerics=drifted).run()
+    assert calls == [world.cache.key]
 
 
 def test_caches_and_results_from_before_the_fingerprint_keep_working(world: World, tmp_path: Path) -> None:

@@ -24,6 +24,7 @@ import numpy as np
 import pytest
 import torch
 from helpers.backbones import tiny
+from helpers.caches import assert_same_cache, folder_files
 from helpers.datasets import Written
 
 from graftcache.cli import main
@@ -119,6 +120,21 @@ def test_extract_into_s3_equals_local_and_ls_info_verify_read_it(
     assert main(["verify", result.key, "--cache", s3]) == 0
     assert "all checksums match" in capsys.readouterr().out
     assert extract(_req(v3_image.root, s3), log=_quiet).reused
+
+
+def test_sharded_extract_into_s3_equals_one_local_process(s3: str, local: tuple[Path, str],
+                                                          v3_image: Written) -> None:
+    root, key = local
+    lines: list[str] = []
+    assert not extract(_req(v3_image.root, s3, shard=(1, 2)), log=lines.append).complete
+    assert "misses 4 of 9 blocks, of 1 of 2 shards (0)" in lines[-1]
+    last = extract(_req(v3_image.root, s3, shard=(0, 2)), log=_quiet)
+    assert last.complete and not last.reused and last.key == key and last.frames_encoded == 8  # 4 blocks of 2
+    objects = _bucket_objects(s3)
+    assert_same_cache({rel[len(key) + 1:]: data for rel, data in objects.items() if rel.startswith(f"{key}/")},
+                      folder_files(root / key))
+    leases = {rel.split("/")[0] for rel in objects if not rel.startswith(f"{key}/")}
+    assert leases == {f"{key}.lease", f"{key}.shard-0-of-2.lease", f"{key}.shard-1-of-2.lease"}  # beside the cache
 
 
 def test_push_and_pull_both_ways_verified_and_idempotent(s3: str, local: tuple[Path, str], tmp_path: Path) -> None:

@@ -92,6 +92,18 @@ def int_list(text: str) -> tuple[int, ...]:
     return tuple(sorted(out))
 
 
+def shard_value(text: str) -> tuple[int, int]:
+    """'i/N' -> (i, N) with 0 <= i < N: shard i of N (extract --shard)."""
+    index, slash, count = text.partition("/")
+    try:
+        value = (int(index), int(count)) if slash else None
+    except ValueError:
+        value = None
+    if value is None or not 0 <= value[0] < value[1]:
+        raise argparse.ArgumentTypeError(f"{text!r} is not i/N with 0 <= i < N (e.g. 0/4 ... 3/4)")
+    return value
+
+
 def name_list(text: str) -> tuple[str, ...]:
     """'a, b,c' -> ("a", "b", "c") (empty parts dropped)."""
     return tuple(part.strip() for part in text.split(",") if part.strip())

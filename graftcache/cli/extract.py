@@ -18,6 +18,7 @@ from graftcache.cli.common import (
     nonneg_int,
     positive_int,
     request_from,
+    shard_value,
 )
 from graftcache.nonfinite import DROP_FLAG
 from graftcache.pooling import format_grid
@@ -53,6 +54,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     add_field(p, ExtractRequest, "num_workers", type=nonneg_int, help="decode worker processes (0: decode in-process)")
     add_compute_dtype_flag(p, ExtractRequest)
     add_field(p, ExtractRequest, "block_frames", type=positive_int, help="frames per Zarr shard / resumable unit")
+    add_field(p, ExtractRequest, "shard", type=shard_value, metavar="i/N",
+              help="write only the i-th of N contiguous ranges of blocks, so that N processes (or machines sharing "
+              "an object-store root) extract one cache together; the last to finish marks it complete. Not part "
+              "of the cache key; rerun a shard to resume it")
     add_progress_flag(p)
     add_field(p, ExtractRequest, "allow_nonfinite", action="store_true",
               help="cache frames whose state, action or features hold NaN/inf instead of refusing the dataset "

@@ -18,12 +18,13 @@ class LocalExecutor:
         return extract(req, log=log)
 
     def fit(self, requests: Sequence[tuple[str, FitRequest]], log: Log, bar: Any) -> None:
-        """One Fitter per request, all sharing one BackbonePool (each backbone loaded once per run)."""
+        """One Fitter per request, all sharing one BackbonePool and numerics verdicts (each backbone loaded and
+        each cache's numerics probe recomputed once per run)."""
         from graftcache.backbones.pool import BackbonePool
         from graftcache.fit.run import Fitter
 
-        backbones = BackbonePool(log)
+        backbones, numerics = BackbonePool(log), {}
         for label, req in requests:
             bar.set_postfix_str(label)
-            Fitter(req, log=log, backbones=backbones).run()
+            Fitter(req, log=log, backbones=backbones, numerics=numerics).run()
             bar.update(len(req.seeds) * (1 + len(req.controls)))

@@ -103,7 +103,9 @@ class Fitter:
     """Runs every cell of a FitRequest; `run()` returns the rows it wrote."""
 
     def __init__(self, req: FitRequest, log: Callable[[str], None] = print,
-                 backbones: BackbonePool | None = None) -> None:
+                 backbones: BackbonePool | None = None, numerics: dict[str, NumericsCheck] | None = None) -> None:
+        """`backbones` and `numerics` (cache key -> verdict) may be shared by the Fitters of one process (a
+        sweep), so each policy is loaded and each cache's numerics probe recomputed once per process."""
         if req.objective not in OBJECTIVES:
             raise FitError(f"--objective {req.objective!r}: choose one of {', '.join(OBJECTIVES)}")
         self.device = resolve_device(req.device)
@@ -129,7 +131,8 @@ class Fitter:
         self.index = suite_index_table(self.cache, req.suite)
         self.split = split_episodes(self.index, eval_fraction=req.eval_fraction, seed=req.eval_split_seed)
         self._materials: dict[tuple, _Material] = {}
-        self._numerics: dict[str, NumericsCheck] = {}  # cache key -> verdict, checked before the first cell runs
+        self._numerics = {} if numerics is None else numerics  # cache key -> verdict, before the first cell runs
+        self._enforced: set[str] = set()  # verdicts this request has acted on (refused, warned)
 
     # ---------------------------------------------------------------- cells
     def _source(self, control: Control) -> FeatureCache:
@@ -144,9 +147,12 @@ class Fitter:
         """Recompute every cache's numerics probe here, once, before the first cell that runs (a finished grid
         loads nothing). Drift is refused unless `accept_numerics_drift`; an unchecked cache is a warning."""
         for cache in (self.cache, self.native_cache):
-            if cache is None or cache.key in self._numerics:
+            if cache is None or cache.key in self._enforced:
                 continue
-            check = self._numerics[cache.key] = check_numerics(cache, device=self.device)
+            if cache.key not in self._numerics:
+                self._numerics[cache.key] = check_numerics(cache, device=self.device)
+            check = self._numerics[cache.key]
+            self._enforced.add(cache.key)
             check.enforce("fit", accept=self.req.accept_numerics_drift, log=self.log,  # rows record the drift
                           unchecked="its rows record numerics_drift as null")
 

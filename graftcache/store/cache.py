@@ -48,6 +48,8 @@ STORAGE_DTYPES: dict[str, np.dtype] = {
     "bf16": np.dtype(np.uint16),  # numpy has no bfloat16: raw bits, tagged in the array attributes
 }
 PROGRESS_DIR = "_progress"
+#: zarr's LocalStore writes `<object>.<uuid>.partial` and renames it; a writer killed mid-write leaves one behind.
+PARTIAL_SUFFIX = ".partial"
 _VERIFIED: set[tuple[str, str, int]] = set()  # (cache location, array, block) checked in this process
 
 
@@ -292,6 +294,9 @@ class FeatureCache:
             per = json.loads(self.root.get(self._marker(block)))
             for name in sums:
                 sums[name].append(per[name])
+        # what killed writers left half-written (their blocks were rewritten since): a complete cache holds exactly
+        # the files of an uninterrupted run, and push never copies the leftovers
+        self.root.delete([rel for rel in self.root.sizes(f"{self.key}/") if rel.endswith(PARTIAL_SUFFIX)])
         self.group.attrs.update({
             "checksums": sums,
             "complete": True,
