@@ -86,7 +86,7 @@ def main() -> None:
     print(f"bare forward: {bare:.1f} images/s ({a.encoder}, batch {a.batch_size}, {a.compute_dtype}, median of "
           f"{a.repeats} batches)")
 
-    common = dict(dataset=str(meta.root), encoder=a.encoder, random_init=a.random_init, grids=((8, 8), (4, 4)),
+    common = dict(dataset=str(meta.root), encoder=a.encoder, random_init=a.random_init, grids=("8x8", "4x4"),
                   batch_size=a.batch_size, compute_dtype=a.compute_dtype, num_workers=a.num_workers, progress=False)
     with tempfile.TemporaryDirectory(prefix="bench_extract_") as tmp:
         result = extract(ExtractRequest(**common, cache=f"{tmp}/full"), log=lambda _: None)

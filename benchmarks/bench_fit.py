@@ -80,13 +80,13 @@ def main() -> None:
         root = Path(tmp)
         common = dict(dataset=str(a.dataset), episodes=episodes, num_workers=1, batch_size=32, compute_dtype="bf16",
                       cache=str(root / "cache"), progress=False)
-        enc_key = extract(ExtractRequest(encoder=a.encoder, grids=((4, 4),), random_init=a.random_init, **common),
+        enc_key = extract(ExtractRequest(encoder=a.encoder, grids=("4x4",), random_init=a.random_init, **common),
                           log=_quiet).key
         cache = FeatureCache(root / "cache" / enc_key)
         stats = dataset_stats(cache.index())
         policy_dir = root / "policy"
         load_backbone("smolvla", "tiny", dataset_stats=stats).save(policy_dir)
-        native_key = extract(ExtractRequest(encoder=native_name("smolvla"), grids=((4, 4),), policy=str(policy_dir),
+        native_key = extract(ExtractRequest(encoder=native_name("smolvla"), grids=("4x4",), policy=str(policy_dir),
                                             **common), log=_quiet).key
 
         adapter = load_backbone("smolvla", policy_dir)

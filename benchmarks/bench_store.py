@@ -9,8 +9,8 @@ random fp16 features at SmolVLA's 8x8 grid for both cameras (width C, default 38
 encoder made the numbers, and extracting real ones would time the encoder. The S3 server is moto's (`moto_server`
 in the venv) in its own process on 127.0.0.1, so client and server do not share a GIL.
 
-Fit data path = `graftcache.fit.data.load_frames` for one suite (features of both cameras, state, action
-chunks), every block checked against its checksum as stage 2 does. For S3: "cold" starts from an empty local
+Fit data path = one pass of a fit's feature stream over one suite (`graftcache.fit.stream`, read in this process:
+features of both cameras, low-dim rows), every block checked against its checksum as stage 2 does. For S3: "cold" starts from an empty local
 read-through copy, "warm" reuses it. Push/pull = `graftcache.store.transfer.copy_cache` (copy + verify at the
 destination + publish); the plain copy moves the same objects with the same 8 threads, no checks.
 """
@@ -39,7 +39,9 @@ from common import DEFAULT_DATASET, machine  # noqa: E402
 
 from graftcache.datasets import open_dataset  # noqa: E402
 from graftcache.extract import build_index  # noqa: E402
-from graftcache.fit.data import load_frames  # noqa: E402
+from graftcache.fit.data import load_lowdim  # noqa: E402
+from graftcache.fit.feed import SplitFeed  # noqa: E402
+from graftcache.fit.stream import FeatureSource, read_chunks  # noqa: E402
 from graftcache.store import FeatureCache, open_root  # noqa: E402
 from graftcache.store.cache import ArraySpec, forget_verified  # noqa: E402
 from graftcache.store.readthrough import ReadThroughRoot  # noqa: E402
@@ -71,11 +73,14 @@ def make_cache(root: Path, dataset: str, width: int) -> tuple[str, list[str], li
 
 
 def frames_per_s(root: Root, cameras: list[str], suite: str, repeats: int) -> tuple[float, int]:
+    """One pass of a fit's stream over the suite (every block checked, in this process), as frames/s."""
     times, n = [], 0
     for _ in range(repeats):
         forget_verified()
         t0 = time.perf_counter()
-        n = len(load_frames(root.open("bench"), suite, cameras=cameras, grid=GRID, chunk=CHUNK))
+        cache = FeatureCache.in_root(root, "bench")
+        feed = SplitFeed(load_lowdim(cache, suite, chunk=CHUNK), FeatureSource.of(cache, cameras, GRID), BLOCK)
+        n = sum(len(c.owners) for c in read_chunks(feed.features(seed=None), 0))
         times.append(time.perf_counter() - t0)
     return n / statistics.median(times), n
 

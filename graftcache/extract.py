@@ -1,8 +1,9 @@
-"""Stage 1: decode every frame once, encode, pool, and persist fp16 features with provenance.
+"""Stage 1: decode every frame once, encode, and persist fp16 features with provenance: the encoder's own
+patch grid (`--grids native`, the default) and any pooled grids asked for.
 
 Data flow (forward only): worker processes decode whole episodes (PyAV / PNG, one thread each)
 -> the main process fills a block buffer of `block_frames` frames -> the encoder runs on batches
-inside the block -> pooled grids are written by a writer thread while the next block is encoded.
+inside the block -> the grids are written by a writer thread while the next block is encoded.
 Blocks already marked done in the cache are never decoded again, so a rerun after Ctrl-C or
 SIGKILL continues from what is durably written, and batch composition (aligned to blocks) is the
 same as in an uninterrupted run, which makes the final bytes identical.
@@ -39,7 +40,7 @@ from graftcache.encoders.fingerprint import (
 )
 from graftcache.errors import CacheError, DatasetError, EncoderError, GraftcacheError
 from graftcache.nonfinite import DROP_FLAG, KEEP_FLAG, lowdim_problem, nonfinite_rows
-from graftcache.pooling import format_grid, pool_grid
+from graftcache.pooling import format_grid, parse_grid, pool_grid, resolve_grids
 from graftcache.progress import progress
 from graftcache.requests import ExtractRequest
 from graftcache.runtime import (
@@ -81,9 +82,13 @@ def build_index(source: LeRobotSource, episodes: Sequence[int]) -> pl.DataFrame:
 def build_manifest(req: ExtractRequest, source: LeRobotSource, encoder: Any, episodes: Sequence[int],
                    cameras: Sequence[str], n_frames: int, numerics: dict[str, Any]) -> dict[str, Any]:
     """Provenance manifest. Identity fields (see store.key) decide the cache key; the numerics fingerprint
-    (encoders/fingerprint.py) is not one of them: it decides whether this environment may extend the cache."""
+    (encoders/fingerprint.py) is not one of them: it decides whether this environment may extend the cache.
+    `req.grids` are resolved names (never "native"); `native_grid` says which of them is the encoder's own grid,
+    stored unpooled (None when only pooled grids are stored), for stage 2 to pool from. It is provenance: the
+    encoder's grid and the stored grids, both in the key, already decide it."""
     meta = source.meta
     desc = encoder.describe()
+    native = format_grid(encoder.spec.grid)
     winfo = dict(encoder.weights_info)
     extras = {name: list(shape) for name, shape in getattr(encoder, "extra_shapes", {}).items()}
     return {
@@ -109,7 +114,8 @@ def build_manifest(req: ExtractRequest, source: LeRobotSource, encoder: Any, epi
         "weights": winfo,
         "weights_sha256": winfo["sha256"],
         "random_init": bool(winfo.get("random_init", False)),
-        "grids": [format_grid(g) for g in req.grids],
+        "grids": list(req.grids),
+        "native_grid": native if native in req.grids else None,
         "extras": extras,
         "dtype": req.dtype,
         "compute_dtype": req.compute_dtype,
@@ -248,6 +254,8 @@ def extract(req: ExtractRequest, log: Callable[[str], None] = print) -> ExtractR
     spec = get_spec(req.encoder)
     encoder = load_encoder(spec, weights=req.weights, random_init=req.random_init, seed=req.seed,
                            device=device, policy=req.policy)
+    # "native" -> the encoder's own grid (measured for native towers), so the key never depends on the spelling
+    req = replace(req, grids=tuple(map(format_grid, resolve_grids(req.grids, encoder.spec.grid))))
     stream = build_index(source, episodes)
     problem = lowdim_problem(stream)
     if problem and not req.allow_nonfinite:
@@ -410,7 +418,8 @@ def _open_or_create(root: Root, key: str, manifest: dict[str, Any], index: pl.Da
             return cache
         log(f"{key}: discarding an unfinished initialisation")
     width = encoder.spec.width
-    arrays = [ArraySpec(f"features/{cam}/{format_grid(g)}", (g[0] * g[1], width)) for cam in cameras for g in req.grids]
+    grids = list(map(parse_grid, req.grids))
+    arrays = [ArraySpec(f"features/{cam}/{format_grid(g)}", (g[0] * g[1], width)) for cam in cameras for g in grids]
     arrays += [ArraySpec(f"features/{cam}/{name}", tuple(shape))
                for cam in cameras for name, shape in manifest["extras"].items()]
     return FeatureCache.create(root.location(key), manifest, arrays, index, block_frames=req.block_frames,
@@ -442,6 +451,7 @@ def _fill(cache: FeatureCache, source: LeRobotSource, index: pl.DataFrame, encod
     writer; returns the frames encoded."""
     todo = sorted(set(blocks) - cache.blocks_done())
     needed, rows_block = _plan(index, cache, todo)
+    grids = list(map(parse_grid, req.grids))
     ep_rows = {ep: np.flatnonzero(index["episode_index"].to_numpy() == ep) for ep in needed}
     shapes = {cam: source.meta.image_shape[cam] for cam in cameras}
     buffers: dict[int, dict[str, np.ndarray]] = {}
@@ -469,7 +479,7 @@ def _fill(cache: FeatureCache, source: LeRobotSource, index: pl.DataFrame, encod
                     buf = buffers.pop(block)
                     data = {f"features/{cam}/{name}": arr
                             for cam in cameras
-                            for name, arr in encode_frames(encoder, buf[cam], req.grids, batch_size=req.batch_size,
+                            for name, arr in encode_frames(encoder, buf[cam], grids, batch_size=req.batch_size,
                                                            device=device, compute=compute, dtype=req.dtype).items()}
                     if not req.allow_nonfinite:
                         _check_features(data, index, start, req.dtype, cache.key)

@@ -16,12 +16,27 @@ KEEP_FLAG = "--allow-nonfinite"
 DROP_FLAG = "--drop-nonfinite"
 
 
+#: Float dtype -> (unsigned view, exponent bits): a value is NaN or inf exactly when its bits without the sign
+#: are at least its all-ones exponent.
+_EXPONENT: dict[torch.dtype, tuple[type, int]] = {
+    torch.float16: (np.uint16, 0x7C00), torch.bfloat16: (np.uint16, 0x7F80),
+    torch.float32: (np.uint32, 0x7F800000), torch.float64: (np.uint64, 0x7FF0000000000000),
+}
+_SIGNED = {2: torch.int16, 4: torch.int32, 8: torch.int64}
+
+
 def nonfinite_rows(values: np.ndarray | torch.Tensor) -> np.ndarray:
-    """Bool [N]: rows of `values` ([N, ...], any float dtype incl. bf16 tensors) holding a NaN or an inf."""
+    """Bool [N]: rows of `values` ([N, ...], any float dtype incl. bf16 tensors) holding a NaN or an inf.
+
+    Read from the bits (magnitude >= the all-ones exponent), not with `torch.isfinite`: on CPU that runs ~30x
+    slower on fp16 tensors, and stage 2 checks every chunk of features it streams."""
     t = values if isinstance(values, torch.Tensor) else torch.from_numpy(np.ascontiguousarray(values))
-    if not t.is_floating_point():
+    if not t.is_floating_point() or t.numel() == 0:
         return np.zeros(t.shape[0], dtype=bool)
-    return (~torch.isfinite(t)).reshape(t.shape[0], -1).any(dim=1).numpy()
+    unsigned, exponent = _EXPONENT[t.dtype]
+    bits = t.contiguous().view(_SIGNED[t.element_size()]).numpy().view(unsigned).reshape(t.shape[0], -1)
+    magnitude = np.bitwise_and(bits, unsigned(np.iinfo(unsigned).max >> 1))
+    return magnitude.max(axis=1) >= exponent
 
 
 def lowdim_problem(table: pl.DataFrame, columns: tuple[str, ...] = ("state", "action")) -> str | None:

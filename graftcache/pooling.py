@@ -1,25 +1,37 @@
-"""Pool an encoder's patch grid to the token grid a backbone expects (8x8 SmolVLA, 16x16 pi0.5).
+"""Pool an encoder's patch grid to the token grid a backbone expects (8x8 SmolVLA, 16x16 pi0.5), and
+name grids: "HxW", or NATIVE for the encoder's own patch grid.
 
 Adaptive average pooling keeps every encoder comparable at a fixed token count without learning
 anything: when the native grid is a multiple of the target, each token is the exact mean of its
 block of cells; pooling to a finer grid than the native one only repeats (or, for non-multiples,
-blends neighbouring) cells and adds no information.
+blends neighbouring) cells and adds no information. So a cache stores the encoder's own grid by default
+(NATIVE) and stage 2 pools it to whatever grid a fit reads (graftcache.fit.data.read_grid).
+
+The grid names are read by graftcache/requests.py, which stays free of torch: torch is imported where
+pooling runs, not with this module.
 """
 
 from __future__ import annotations
 
 import re
-
-import torch
-import torch.nn.functional as F
+from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 from graftcache.errors import GraftcacheError
 
+if TYPE_CHECKING:
+    import torch
+
 _GRID = re.compile(r"^\s*(\d+)\s*x\s*(\d+)\s*$")
+#: The grid name of the encoder's own patch grid (EncoderSpec.grid), stored unpooled: the default of
+#: `extract --grids`. Resolved to the encoder's HxW (`resolve_grids`) before anything is keyed.
+NATIVE = "native"
 
 
 def pool_grid(grid: torch.Tensor, out: tuple[int, int]) -> torch.Tensor:
     """[B,H,W,C] -> [B, out_h*out_w, C], adaptive average pooling, tokens in row-major order."""
+    import torch.nn.functional as F
+
     if grid.ndim != 4:
         raise GraftcacheError(f"pool_grid expects a [B,H,W,C] grid, got shape {tuple(grid.shape)}")
     b, h, w, c = grid.shape
@@ -29,15 +41,20 @@ def pool_grid(grid: torch.Tensor, out: tuple[int, int]) -> torch.Tensor:
     return grid.reshape(b, oh * ow, c)
 
 
+def _hxw(part: str) -> tuple[int, int] | None:
+    """" 8x8" -> (8, 8); None unless positive H and W."""
+    m = _GRID.match(part)
+    return (int(m[1]), int(m[2])) if m and int(m[1]) > 0 and int(m[2]) > 0 else None
+
+
 def parse_grids(text: str) -> list[tuple[int, int]]:
     """"8x8,16x16" -> [(8, 8), (16, 16)] (order kept, duplicates dropped)."""
     grids: list[tuple[int, int]] = []
     for part in text.split(","):
-        m = _GRID.match(part)
-        if not m or int(m[1]) < 1 or int(m[2]) < 1:
+        g = _hxw(part)
+        if g is None:
             raise GraftcacheError(f"grid {part.strip()!r} in {text!r}: expected HxW with positive sizes, "
                                   f"e.g. 8x8,16x16")
-        g = (int(m[1]), int(m[2]))
         if g not in grids:
             grids.append(g)
     return grids
@@ -52,3 +69,27 @@ def parse_grid(name: str) -> tuple[int, int]:
 def format_grid(grid: tuple[int, int]) -> str:
     """(8, 8) -> "8x8", the name of a pooled grid in the cache and in results."""
     return f"{grid[0]}x{grid[1]}"
+
+
+def grid_names(text: str) -> tuple[str, ...]:
+    """"native, 8x8,8x8" -> ("native", "8x8"): the grids `extract --grids` names, normalised (order kept,
+    duplicates dropped), NATIVE still unresolved; a malformed name is a GraftcacheError."""
+    names: list[str] = []
+    for part in text.split(","):
+        g = _hxw(part)
+        if g is None and part.strip() != NATIVE:
+            raise GraftcacheError(f"grid {part.strip()!r} in {text!r}: expected {NATIVE} (the encoder's own patch "
+                                  f"grid) or HxW with positive sizes, e.g. {NATIVE},4x4")
+        names.append(NATIVE if g is None else format_grid(g))
+    return tuple(dict.fromkeys(names))
+
+
+def valid_grid_names(names: Sequence[str]) -> bool:
+    """At least one entry, each a grid name (NATIVE or HxW): the rule of ExtractRequest.grids."""
+    return bool(names) and all(isinstance(n, str) and (n.strip() == NATIVE or _hxw(n)) for n in names)
+
+
+def resolve_grids(names: Sequence[str], native: tuple[int, int]) -> list[tuple[int, int]]:
+    """Grid names -> grids, NATIVE as the encoder's `native` grid, duplicates dropped (order kept): `native` and
+    the encoder's grid spelled out store the same arrays under the same cache key."""
+    return list(dict.fromkeys(native if n == NATIVE else parse_grid(n) for text in names for n in grid_names(text)))

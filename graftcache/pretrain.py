@@ -123,14 +123,16 @@ def train_tiny(backbone: str, dataset: str, *, cfg: TinyTrainConfig = DEFAULT_TI
     state = torch.from_numpy(np.stack(table["state"].to_numpy()).astype(np.float32))
     tasks = [meta.tasks[i] for i in table["task_index"].to_list()]
 
-    def sample(pos: torch.Tensor) -> dict:
+    def draw(generator: torch.Generator) -> dict:
+        """A batch of frames drawn with replacement (decoded frames are all in memory here)."""
+        pos = torch.randint(0, len(table), (cfg.batch_size,), generator=generator)
         raw = {f"observation.images.{c}": frames[c][pos].float() / 255.0 for c in spec.cameras}
         raw.update({"observation.state": state[pos], "action": actions[pos], "action_is_pad": action_pad[pos],
                     "task": [tasks[int(i)] for i in pos]})
         return raw
 
     opt = torch.optim.AdamW([p for p in policy.parameters()], lr=cfg.lr, weight_decay=cfg.weight_decay)
-    losses = optimise(adapter, sample, len(table), steps=cfg.steps, batch_size=cfg.batch_size, optimizer=opt,
+    losses = optimise(adapter, draw, steps=cfg.steps, batch_size=cfg.batch_size, optimizer=opt,
                       scheduler=torch.optim.lr_scheduler.LambdaLR(opt, warmup_cosine(cfg.steps, cfg.warmup)),
                       clip_norm=1.0, generator=torch.Generator().manual_seed(cfg.seed), dtype=compute,
                       desc=f"train-tiny {backbone}")

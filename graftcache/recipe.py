@@ -7,10 +7,13 @@ Recipe keys (unknown keys are errors, so a typo never silently falls back to a d
     [[backbones]]  name, policy ("tiny" = natively trained on `dataset`, else hub id or folder)
     [[encoders]]   name, weights, random_init, seed
     [extract]      fields of ExtractRequest  } except those the grid sets (GRID_FIELDS): e.g. batch_size,
-    [fit]          fields of FitRequest      } dtype, frame_stride; steps, lr, eval_frames, lora_rank;
+    [fit]          fields of FitRequest      } dtype, frame_stride, grids; steps, lr, eval_frames, lora_rank;
     [train_tiny]   fields of TinyTrainConfig } steps, seed (backbones with policy = "tiny")
     [executor]     fields of ExecutorSettings: where extractions and cells run (executor = "ray", address,
                    gpus_per_task, ...); `graftcache sweep --executor ...` flags override them
+
+[extract] grids (default ["native"]: each encoder's own patch grid, pooled at read time to whatever a fit
+reads) is for storing pooled grids as well or instead, e.g. ["native", "4x4"] (graftcache.sweep.encoder_grids).
 
 Every value is checked against the type of the request field it sets (a string where a number, list
 or boolean belongs is an error naming file, table and key), and the requests check their ranges.
@@ -63,7 +66,7 @@ SECTIONS: dict[str, type] = {"extract": ExtractRequest, "fit": FitRequest, "trai
 #: Request fields the sweep sets from the grid itself (dataset, encoder, backbone, seeds, ...), never from a table
 #: (nor `shard`: a sweep needs whole caches, so it never extracts one shard of one).
 GRID_FIELDS: dict[str, frozenset[str]] = {
-    "extract": frozenset({"dataset", "encoder", "grids", "episodes", "weights", "random_init", "seed", "policy",
+    "extract": frozenset({"dataset", "encoder", "episodes", "weights", "random_init", "seed", "policy",
                           "device", "cache", "progress", "extra_manifest", "shard"}),
     "fit": frozenset({"backbone", "encoder", "suite", "policy", "dataset", "cache_key", "native_cache_key", "seeds",
                       "controls", "objective", "device", "results", "cache", "progress", "command"}),

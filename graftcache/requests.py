@@ -14,6 +14,7 @@ from typing import Any, ClassVar
 
 from graftcache.checks import EPISODES, FRACTION, NON_NEGATIVE, POSITIVE, SEEDS, SHARD, Checked, Rule
 from graftcache.errors import GraftcacheError
+from graftcache.pooling import NATIVE, valid_grid_names
 
 
 @dataclass(frozen=True)
@@ -23,7 +24,7 @@ class ExtractRequest(Checked):
 
     dataset: str
     encoder: str
-    grids: tuple[tuple[int, int], ...] = ((8, 8),)
+    grids: tuple[str, ...] = (NATIVE,)  # grid names: the encoder's own grid unpooled, and/or pooled "HxW" grids
     cameras: tuple[str, ...] | None = None
     episodes: tuple[int, ...] | None = None
     weights: str | None = None
@@ -45,7 +46,8 @@ class ExtractRequest(Checked):
 
     RULES: ClassVar[dict[str, Rule]] = {"seed": NON_NEGATIVE, "batch_size": POSITIVE, "num_workers": NON_NEGATIVE,
                                         "block_frames": POSITIVE, "episodes": EPISODES,
-                                        "frame_stride": POSITIVE, "shard": SHARD}
+                                        "frame_stride": POSITIVE, "shard": SHARD,
+                                        "grids": (valid_grid_names, f"must name grids: {NATIVE} or HxW, e.g. {NATIVE},4x4")}
 
 
 @dataclass(frozen=True)
@@ -65,12 +67,14 @@ class FitRequest(Checked):
     steps: int = 300
     lr: float = 1e-3
     batch_size: int = 16
+    buffer_mib: int = 2048  # training features held at once (shuffle buffer; with --num-workers x 2 prefetched blocks)
     eval_fraction: float = 0.2
     eval_split_seed: int = 0
     eval_frames: int | None = None
     num_denoise_steps: int | None = None
     lora_rank: int = 8
     device: str = "cpu"
+    num_workers: int = 2  # processes reading the cache ahead of the model (the numbers do not depend on it)
     compute_dtype: str = "auto"  # resolved per device (runtime.resolve_compute_dtype) before it reaches a row
     results: str = "results.parquet"
     out: str | None = None
@@ -81,7 +85,8 @@ class FitRequest(Checked):
     command: str = field(default_factory=lambda: " ".join(["graftcache", *sys.argv[1:]]))
 
     RULES: ClassVar[dict[str, Rule]] = {
-        "seeds": SEEDS, "steps": POSITIVE, "lr": POSITIVE, "batch_size": POSITIVE, "eval_fraction": FRACTION,
+        "seeds": SEEDS, "steps": POSITIVE, "lr": POSITIVE, "batch_size": POSITIVE, "buffer_mib": POSITIVE,
+        "num_workers": NON_NEGATIVE, "eval_fraction": FRACTION,
         "eval_split_seed": NON_NEGATIVE, "eval_frames": POSITIVE, "num_denoise_steps": POSITIVE, "lora_rank": POSITIVE,
     }
 
@@ -105,6 +110,28 @@ class ExecutorSettings(Checked):
 
     RULES: ClassVar[dict[str, Rule]] = {"gpus_per_task": GPU_SHARE, "cpus_per_task": POSITIVE, "shards": POSITIVE,
                                         "max_retries": NON_NEGATIVE}
+
+
+@dataclass(frozen=True)
+class TileRequest(Checked):
+    """What `graftcache tile` builds: a dataset of `preset`'s dimensions, or of `episodes` episodes (and
+    `frames` frames; default: the source's mean length times `episodes`) over the source's tasks."""
+
+    source: str
+    dest: str
+    preset: str | None = None  # a name of graftcache.datasets.tile.PRESETS ("libero": lerobot/libero's counts)
+    episodes: int | None = None
+    frames: int | None = None
+    seed: int = 0  # episode lengths and window positions
+
+    RULES: ClassVar[dict[str, Rule]] = {"episodes": POSITIVE, "frames": POSITIVE, "seed": NON_NEGATIVE}
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if (self.preset is None) == (self.episodes is None):
+            raise GraftcacheError("tile needs exactly one of preset and episodes")
+        if self.frames is not None and self.episodes is None:
+            raise GraftcacheError("frames goes with episodes (a preset fixes its own frame counts)")
 
 
 @dataclass(frozen=True)

@@ -31,6 +31,7 @@ SCHEMA: dict[str, pl.DataType] = {
     "steps": pl.Int64,
     "lr": pl.Float64,
     "batch_size": pl.Int64,
+    "buffer_mib": pl.Int64,           # shuffle buffer of a flow fit, MiB of features (0: trains nothing / align)
     "train_loss_final": pl.Float64,
     "eval_mse": pl.Float64,           # full chunk, normalised action units
     "eval_mse_first": pl.Float64,     # first action of the chunk, normalised units
@@ -43,7 +44,9 @@ SCHEMA: dict[str, pl.DataType] = {
     "device": pl.String,
     "compute_dtype": pl.String,       # resolved model compute dtype ("bf16" | "fp32"), never "auto"
     "random_init": pl.Boolean,        # any random-init weights in the encoder or the backbone
-    "n_dropped_nonfinite": pl.Int64,  # suite frames dropped for NaN/inf by `fit --drop-nonfinite` (0: none)
+    "n_dropped_nonfinite": pl.Int64,  # frames dropped for NaN/inf by `fit --drop-nonfinite` (0: none): the suite's
+                                      # with NaN/inf state or action chunk, plus those whose features the cell read
+                                      # and found NaN/inf (features are checked as they stream)
     "numerics_drift": pl.Float64,     # largest numerics-probe difference / its RMS over the cell's caches, as
                                       # recomputed by this environment (encoders/fingerprint.py); null: unchecked
     "graftcache_version": pl.String,
@@ -54,7 +57,7 @@ CONTROLS_NATIVE = ("native",)
 
 # Columns added to SCHEMA after results files were first written: reading an older file adds them as nulls, so
 # its cells are still skipped and new rows can still be appended to it.
-ADDED_COLUMNS = ("numerics_drift",)
+ADDED_COLUMNS = ("numerics_drift", "buffer_mib")
 
 # What a report needs of a table: enough to place every MSE in the (backbone, suite, encoder, control, seed)
 # grid. Tables from older versions, other tools or a paper need only these (conform fills the other SCHEMA

@@ -31,14 +31,20 @@ def single_thread_worker(*_: object) -> None:
     torch.set_num_threads(1)
 
 
-def set_main_threads(n: int | None = None) -> int:
-    """Give the main (model) process `n` intra-op threads; returns the count used.
+def granted_cpus() -> int:
+    """The cores this process was given: OMP_NUM_THREADS where a scheduler set it (Ray sets it to a task's
+    num_cpus, so two tasks on one node do not both take every core), else all of them."""
+    granted = os.environ.get("OMP_NUM_THREADS", "")
+    return int(granted) if granted.isdigit() and int(granted) > 0 else os.cpu_count() or 1
 
-    Default: $OMP_NUM_THREADS when set, else every core. Several model processes on one machine (extract
-    --shard, Ray tasks: Ray sets it from each task's CPUs) must share the cores: with more threads than cores,
-    torch's threads spin against each other (measured: 2 threads per process under load were 10x slower
-    than 1)."""
-    n = n or int(os.environ.get("OMP_NUM_THREADS") or 0) or os.cpu_count() or 1
+
+def set_main_threads(n: int | None = None) -> int:
+    """Give the main (model) process `n` intra-op threads (default: the cores it was granted); returns the count.
+
+    Several model processes on one machine (extract --shard, Ray tasks) must share the cores: with more threads
+    than cores, torch's threads spin against each other (measured: 2 threads per process under load were 10x
+    slower than 1)."""
+    n = n or granted_cpus()
     torch.set_num_threads(n)
     return n
 

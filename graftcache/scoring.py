@@ -9,7 +9,6 @@ Offline action MSE is a proxy: it is known to predict closed-loop success only w
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -50,15 +49,3 @@ def score_chunks(pred_norm: torch.Tensor, target_norm: torch.Tensor, pred_raw: t
     raw = masked_mse(pred_raw, target_raw, pad)
     per_ep = {int(e): float(per_frame[torch.from_numpy(episodes == e)].mean()) for e in np.unique(episodes)}
     return Score(float(per_frame.mean()), float(first.mean()), float(raw.mean()), len(per_frame), per_ep)
-
-
-def predict_in_batches(predict: Callable[[np.ndarray, torch.Tensor], tuple[torch.Tensor, torch.Tensor]],
-                       rows: np.ndarray, noise: torch.Tensor, batch_size: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Run `predict(positions, noise) -> (normalised target, normalised prediction)` over all rows."""
-    preds, targets = [], []
-    for s in range(0, len(rows), batch_size):
-        pos = np.arange(s, min(s + batch_size, len(rows)))
-        target, pred = predict(pos, noise[pos])
-        preds.append(pred.float().cpu())
-        targets.append(target.float().cpu())
-    return torch.cat(targets), torch.cat(preds)

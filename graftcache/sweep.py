@@ -5,6 +5,12 @@ step reuses what exists: complete caches are found by key, trained tiny backbone
 recipe, and finished cells by `run_id` in the results file. Rerunning a sweep after an interruption
 therefore continues where it stopped, and rerunning a finished one only reads. What produced each cache
 and policy is kept as the equivalent command line, for the report.
+
+Each encoder is extracted once, at its own patch grid (`extract --grids native`) unless the recipe's [extract]
+table names `grids`: one cache serves every backbone, pool control and the align objective, each pooled from
+it at read time (graftcache.fit.data.read_grid). A native tower's cache serves its own backbone only, so it
+stores that backbone's token grid, the one grid its controls read (a released SmolVLA tower's own grid is
+32x32, sixteen times the 8x8 that native-graft reads).
 """
 
 from __future__ import annotations
@@ -15,9 +21,10 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from graftcache.backbone_table import native_name
+from graftcache.errors import GraftcacheError
 from graftcache.executors import Executor, get_executor
 from graftcache.fit.controls import get_control
-from graftcache.pooling import format_grid
+from graftcache.pooling import NATIVE, format_grid, grid_names
 from graftcache.progress import progress, write
 from graftcache.recipe import EncoderEntry, Recipe
 from graftcache.requests import DEFAULT_TINY_TRAIN, ExecutorSettings, ExtractRequest, FitRequest
@@ -30,7 +37,8 @@ def command_line(command: str, **flags: Any) -> str:
         if value is None or value is False:
             continue
         flag = f"--{name.replace('_', '-')}"
-        parts.append(flag if value is True else f"{flag} {value}")
+        shown = ",".join(map(str, value)) if isinstance(value, tuple) else value  # lists as the CLI parses them
+        parts.append(flag if value is True else f"{flag} {shown}")
     return " ".join(parts)
 
 
@@ -70,31 +78,51 @@ def prepare_policies(recipe: Recipe, state: SweepState, log: Callable[[str], Non
         state.native_grids[entry.name] = get_backbone(entry.name).read_native_grid(policy)
 
 
-def _extract(recipe: Recipe, executor: Executor, encoder: str, grids: list[tuple[int, int]],
-             log: Callable[[str], None], **kw: Any) -> str:
-    req = ExtractRequest(dataset=recipe.dataset, encoder=encoder, grids=tuple(dict.fromkeys(grids)),
-                         device=recipe.device, cache=recipe.cache, **recipe.extract, **kw)
+def _extract(recipe: Recipe, executor: Executor, encoder: str, grids: tuple[str, ...], log: Callable[[str], None],
+             **kw: Any) -> str:
+    req = ExtractRequest(dataset=recipe.dataset, encoder=encoder, device=recipe.device, cache=recipe.cache,
+                         **_extract_settings(recipe, grids), **kw)
     return executor.extract(req, log).key
 
 
+def _extract_settings(recipe: Recipe, grids: tuple[str, ...]) -> dict[str, Any]:
+    """The recipe's [extract] table with the grids a cache stores: request fields, and the command's flags."""
+    return {**recipe.extract, "grids": grids}
+
+
+def encoder_grids(recipe: Recipe, state: SweepState) -> tuple[str, ...]:
+    """The grids every encoder's cache stores: the recipe's [extract] grids, by default the encoder's own grid
+    alone. Explicit grids without `native` must include every grid the fits read (each backbone's token grid
+    and each pool control's): pooling a coarser stored grid up to one of them would only repeat cells."""
+    names = grid_names(",".join(recipe.extract.get("grids", ExtractRequest.grids)))
+    if NATIVE not in names:
+        read = sorted(set(state.native_grids.values()) | set(_pool_grids(recipe)))
+        missing = [format_grid(g) for g in read if format_grid(g) not in names]
+        if missing:
+            raise GraftcacheError(f"{recipe.path} [extract]: grids = {list(names)} lacks {', '.join(missing)}, which "
+                                  f"the fits read; add them, or {NATIVE!r} to pool them from the encoder's own grid")
+    return names
+
+
 def prepare_caches(recipe: Recipe, state: SweepState, log: Callable[[str], None], executor: Executor) -> None:
-    """Extract every encoder at every grid the grid of fits reads, plus the native towers if needed."""
-    grids = sorted(set(state.native_grids.values()) | set(_pool_grids(recipe)))
-    grid_text = ",".join(format_grid(g) for g in grids)
+    """Extract every encoder once (`encoder_grids`), plus the native towers at their backbones' token grids
+    if a control or the objective needs them."""
+    grids = encoder_grids(recipe, state)
     for enc in recipe.encoders:
         state.encoder_caches[enc] = _extract(recipe, executor, enc.name, grids, log, weights=enc.weights,
                                              random_init=enc.random_init, seed=enc.seed)
         state.commands[state.encoder_caches[enc]] = command_line(
             "extract", encoder=enc.name, random_init=enc.random_init, seed=enc.seed if enc.random_init else None,
-            weights=None if enc.random_init else enc.weights, dataset=recipe.dataset, grids=grid_text)
+            weights=None if enc.random_init else enc.weights, dataset=recipe.dataset,
+            **_extract_settings(recipe, grids))
     if not _needs_native(recipe):
         return
     for backbone, policy in state.policies.items():
-        grid = state.native_grids[backbone]
-        key = _extract(recipe, executor, native_name(backbone), [grid], log, policy=policy)
+        grid = (format_grid(state.native_grids[backbone]),)
+        key = _extract(recipe, executor, native_name(backbone), grid, log, policy=policy)
         state.native_caches[backbone] = key
         state.commands[key] = command_line("extract", encoder=native_name(backbone), policy=policy,
-                                           dataset=recipe.dataset, grids=format_grid(grid))
+                                           dataset=recipe.dataset, **_extract_settings(recipe, grid))
 
 
 def fit_requests(recipe: Recipe, state: SweepState) -> Iterator[tuple[str, Any]]:

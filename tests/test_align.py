@@ -18,7 +18,9 @@ def test_ridge_recovers_a_known_projection_on_every_camera() -> None:
     sources = [torch.randn(300, 4, c, generator=g) * 3 + 1 for _ in range(2)]  # two cameras, 2x2 grids
     targets = [F.layer_norm(s, (c,)) @ w + b for s in sources]
     projector = GraftProjector(c, d)
-    r2 = fit_ridge(projector, sources, targets, (2, 2), alpha=1e-8)
+    # streamed in chunks of 100 frames, as a fit feeds it
+    pairs = [(s[i:i + 100], t[i:i + 100]) for s, t in zip(sources, targets, strict=True) for i in range(0, 300, 100)]
+    r2 = fit_ridge(projector, pairs, (2, 2), alpha=1e-8)
     assert r2 == pytest.approx(1.0, abs=1e-6)
     with torch.no_grad():
         for s, t in zip(sources, targets, strict=True):
@@ -29,7 +31,7 @@ def test_ridge_pools_finer_native_tokens_and_reports_partial_fit() -> None:
     g = torch.Generator().manual_seed(1)
     src = torch.randn(200, 4, 8, generator=g)
     native = torch.randn(200, 16, 5, generator=g)  # a 4x4 native grid, pooled to the graft's 2x2
-    r2 = fit_ridge(GraftProjector(8, 5), [src], [native], (2, 2))
+    r2 = fit_ridge(GraftProjector(8, 5), [(src, native)], (2, 2))
     assert 0.0 <= r2 < 0.2  # unrelated noise: little variance explained
     with pytest.raises(FitError, match="do not line up"):
-        fit_ridge(GraftProjector(8, 5), [src[:100]], [native], (2, 2))
+        fit_ridge(GraftProjector(8, 5), [(src[:100], native)], (2, 2))

@@ -234,7 +234,7 @@ def test_a_metadata_only_identity_of_older_caches_never_matches() -> None:
 def _extract(dataset: Path, cache: Path, log: list[str], allow_nonfinite: bool = False):
     from graftcache.extract import ExtractRequest, extract
 
-    req = ExtractRequest(dataset=str(dataset), encoder=ENCODER, grids=((2, 2),), episodes=(0,), cameras=("image",),
+    req = ExtractRequest(dataset=str(dataset), encoder=ENCODER, grids=("2x2",), episodes=(0,), cameras=("image",),
                          random_init=True, seed=0, num_workers=0, batch_size=16, cache=str(cache), progress=False,
                          allow_nonfinite=allow_nonfinite)
     return extract(req, log=log.append)

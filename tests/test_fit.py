@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import shutil
+from contextlib import closing
 from pathlib import Path
 
 import numpy as np
@@ -23,8 +24,11 @@ from graftcache.cli import main
 from graftcache.errors import FitError
 from graftcache.extract import ExtractRequest, extract
 from graftcache.fit.controls import get_control
-from graftcache.fit.data import load_frames, split_episodes
+from graftcache.fit.buffer import ShuffleBuffer
+from graftcache.fit.data import load_lowdim, split_episodes
+from graftcache.fit.feed import SplitFeed
 from graftcache.fit.loop import camera_map, train
+from graftcache.fit.stream import FeatureSource, read_chunks
 from graftcache.fit.run import Cell, FitRequest, Fitter
 from graftcache.graft import GraftProjector
 from graftcache.store import FeatureCache
@@ -48,9 +52,9 @@ class World:
             self.policies[name] = root / f"policy_{name}"
             tiny(name).save(self.policies[name])
         common = dict(dataset=str(dataset.root), num_workers=0, batch_size=8, cache=str(self.cache), progress=False)
-        self.encoder_key = extract(ExtractRequest(encoder=ENCODER, grids=((4, 4), (2, 2)), random_init=True,
-                                                  **common), log=_quiet).key
-        self.native_keys = {name: extract(ExtractRequest(encoder=native_name(name), grids=((4, 4),),
+        # the encoder's own 14x14 grid alone (the default): the fits pool it to 4x4 (both tiny backbones) and 2x2
+        self.encoder_key = extract(ExtractRequest(encoder=ENCODER, random_init=True, **common), log=_quiet).key
+        self.native_keys = {name: extract(ExtractRequest(encoder=native_name(name), grids=("4x4",),
                                                          policy=str(folder), **common), log=_quiet).key
                             for name, folder in self.policies.items()}
 
@@ -80,6 +84,8 @@ def test_every_control_writes_one_schema_valid_row(world: World, tmp_path: Path)
     assert by["native"]["cache_key"] == world.native_keys["smolvla"]
     assert by["none"]["cache_key"] == world.encoder_key and by["none"]["encoder"] == ENCODER
     assert by["pool-2x2"]["pool_grid"] == "2x2" and by["none"]["pool_grid"] == "4x4"
+    assert FeatureCache(world.cache / world.encoder_key).manifest["grids"] == ["14x14"]  # both pooled at read time
+    assert by["pool-2x2"]["eval_mse"] != by["none"]["eval_mse"]
     assert by["zero-image"]["eval_mse"] != by["none"]["eval_mse"]
     for row in by.values():
         assert row["random_init"] and row["suite"] == "libero_spatial" and row["n_eval_frames"] == 4
@@ -104,12 +110,14 @@ def test_training_changes_only_the_projector_and_lora(world: World, lora: bool) 
     cache = FeatureCache(world.cache / world.encoder_key)
     adapter = load_backbone("smolvla", world.policies["smolvla"])
     cams = camera_map(adapter, cache.manifest["cameras"])
-    table = load_frames(cache, "libero_spatial", cameras=list(cams.values()), grid=(4, 4), chunk=adapter.chunk_size)
+    feed = SplitFeed(load_lowdim(cache, "libero_spatial", chunk=adapter.chunk_size),
+                     FeatureSource.of(cache, list(cams.values()), (4, 4)), cache.layout["block_frames"])
     adapter.graft(GraftProjector(192, adapter.lm_width))
     if lora:
         adapter.add_lora(rank=4)
     before = {k: v.clone() for k, v in adapter.policy.state_dict().items()}
-    train(adapter, table, cams, steps=3, batch_size=4, lr=1e-2, seed=0, show=False)
+    with closing(read_chunks(feed.features(seed=0), num_workers=0)) as chunks:
+        train(adapter, feed.low, ShuffleBuffer(chunks, 8), cams, steps=3, batch_size=4, lr=1e-2, seed=0, show=False)
     after = adapter.policy.state_dict()
     changed = {k for k in before if not torch.equal(before[k], after[k])}
     trainable = {n for n, p in adapter.policy.named_parameters() if p.requires_grad}
@@ -141,6 +149,16 @@ def test_rerun_is_bit_identical_and_a_finished_cell_is_skipped(world: World, tmp
     train_eps, eval_eps = set(sidecar["split"]["train_episodes"]), set(sidecar["split"]["eval_episodes"])
     assert train_eps and eval_eps and not train_eps & eval_eps and train_eps | eval_eps == {0, 2}
     assert sidecar["split"]["seed"] == 0
+
+
+def test_rows_do_not_depend_on_how_many_processes_read_the_cache(world: World, tmp_path: Path) -> None:
+    """The stream's chunk order is fixed by the seed, not by the readers: in-process and two workers agree bit
+    for bit (and the cell, hence the run_id, does not name the worker count)."""
+    rows = {w: Fitter(world.request(controls=("shuffled-image",), num_workers=w, results=str(tmp_path / f"{w}.parquet")),
+                      log=_quiet).run() for w in (0, 2)}
+    for a, b in zip(rows[0], rows[2], strict=True):
+        assert a["run_id"] == b["run_id"] and a["train_loss_final"] == b["train_loss_final"]
+        assert a["eval_mse"] == b["eval_mse"] and a["eval_mse_episodes"] == b["eval_mse_episodes"]
 
 
 def test_split_holds_out_episodes_within_each_task() -> None:
@@ -242,7 +260,7 @@ def test_reset_restores_the_loaded_policy(world: World) -> None:
 def test_frame_stride_thins_features_not_actions(world: World, tmp_path: Path) -> None:
     """A stride-2 cache holds every other frame; its action chunks equal the full cache's for those frames."""
     common = dict(dataset=str(world.dataset.root), num_workers=1, batch_size=8, cache=str(world.cache),
-                  progress=False, encoder=ENCODER, grids=((4, 4),), random_init=True)
+                  progress=False, encoder=ENCODER, random_init=True)
     full = FeatureCache(world.cache / extract(ExtractRequest(**common), log=_quiet).key)
     strided = FeatureCache(world.cache / extract(ExtractRequest(frame_stride=2, **common), log=_quiet).key)
     assert strided.key != full.key and strided.manifest["frame_stride"] == 2
@@ -250,11 +268,13 @@ def test_frame_stride_thins_features_not_actions(world: World, tmp_path: Path) -
     assert (idx["frame_index"].to_numpy() % 2 == 0).all()
     keep = np.flatnonzero(full.index()["frame_index"].to_numpy() % 2 == 0)
     assert len(idx) == len(keep) < full.n_frames
-    a = load_frames(full, "libero_spatial", cameras=["image"], grid=(4, 4), chunk=5)
-    b = load_frames(strided, "libero_spatial", cameras=["image"], grid=(4, 4), chunk=5)
+    a = load_lowdim(full, "libero_spatial", chunk=5)
+    b = load_lowdim(strided, "libero_spatial", chunk=5)
     pos = np.flatnonzero(np.isin(a.rows, keep))
-    assert torch.equal(b.actions, a.actions[pos]) and torch.equal(b.action_pad, a.action_pad[pos])
-    assert torch.equal(b.features["image"], a.features["image"][torch.from_numpy(pos)])
+    for got, want in zip(b.action_chunks(np.arange(len(b))), a.action_chunks(pos), strict=True):
+        assert torch.equal(got, want)
+    read = {c.key: FeatureSource.of(c, ["image"], (4, 4)).read for c in (full, strided)}
+    assert torch.equal(read[strided.key](b.rows)["image"], read[full.key](a.rows[pos])["image"])
     with pytest.raises(FitError, match="different frames"):
         Fitter(world.request(cache_key=strided.key, controls=("native",)), log=_quiet)
 
@@ -266,22 +286,26 @@ def test_native_grid_is_read_from_the_config_without_loading(world: World, name:
     assert get_backbone(name).read_native_grid(world.policies[name]) == load_backbone(name, world.policies[name]).native_grid
 
 
-def test_cell_run_ids_are_those_earlier_versions_wrote() -> None:
-    """Finished rows are recognised by run_id: a Cell must hash exactly as the cell dicts of earlier versions
-    did (values computed with graftcache 96508ef's `results.make_run_id` on the same cells)."""
+def test_cell_run_ids_are_pinned() -> None:
+    """Finished rows are recognised by run_id: a Cell must hash the same in every later version. The pins changed
+    once on purpose, when fits began to stream (issue 12): `buffer_mib` joined the cell (the shuffle buffer decides
+    which frames a batch holds), and batches are drawn without replacement from that buffer where they were drawn
+    with replacement from the whole split, so rows of earlier versions hold other numbers and must not be taken
+    for this version's. (Values computed with `results.make_run_id` of the commit that added `buffer_mib`.)"""
     plain = Cell(backbone="smolvla", policy="tiny:tiny-smolvla-0123456789ab", cache_key="siglip-0123456789abcdef",
                  suite="libero_spatial", seed=1, control="none", pool_grid="native", objective="flow", steps=300,
-                 lr=1e-3, batch_size=16, lora_rank=0, eval_fraction=0.2, eval_split_seed=0, eval_frames=None,
-                 num_denoise_steps=None, compute_dtype="fp32")
+                 lr=1e-3, batch_size=16, buffer_mib=2048, lora_rank=0, eval_fraction=0.2, eval_split_seed=0,
+                 eval_frames=None, num_denoise_steps=None, compute_dtype="fp32")
     native = dataclasses.replace(plain, control="native", objective="eval", steps=0, lr=0.0, batch_size=0,
-                                 cache_key="smolvla-native-00aa", seed=0)
+                                 buffer_mib=0, cache_key="smolvla-native-00aa", seed=0)
     lora = dataclasses.replace(plain, control="lora", lora_rank=8, eval_frames=40, num_denoise_steps=4)
-    assert (plain.run_id, native.run_id, lora.run_id) == ("5082b969d4674126", "6e88627958ecfde7", "ac9a5e61c4e617cd")
+    assert (plain.run_id, native.run_id, lora.run_id) == ("cf8c82a71171e0ad", "a2cc541a64717af9", "adf8bb9823f4d57c")
 
 
 def test_cell_row_takes_each_column_from_measurements_then_cell_then_request() -> None:
     cell = Cell(backbone="pi05", policy="org/p", cache_key="k", suite="libero_goal", seed=2, control="zero-image",
-                pool_grid="native", objective="align", steps=0, lr=0.0, batch_size=0, lora_rank=0, eval_fraction=0.2,
+                pool_grid="native", objective="align", steps=0, lr=0.0, batch_size=0, buffer_mib=0, lora_rank=0,
+                eval_fraction=0.2,
                 eval_split_seed=3, eval_frames=None, num_denoise_steps=None, compute_dtype="bf16")
     req = FitRequest(backbone="pi05", encoder="siglip", suite="libero_goal", steps=123, command="graftcache fit x")
     measured = {c: f"m-{c}" for c in results.SCHEMA if c not in ("backbone", "seed", "steps", "command", "lr")}

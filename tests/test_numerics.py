@@ -38,7 +38,7 @@ def _quiet(_: str) -> None:
 
 
 def _req(dataset: Path, cache: Path, **kw) -> ExtractRequest:
-    base = dict(dataset=str(dataset), encoder=ENCODER, grids=((2, 2),), random_init=True, seed=0, num_workers=0,
+    base = dict(dataset=str(dataset), encoder=ENCODER, grids=("2x2",), random_init=True, seed=0, num_workers=0,
                 batch_size=4, block_frames=4, cache=str(cache), progress=False, compute_dtype="fp32")
     return ExtractRequest(**{**base, **kw})
 
@@ -224,7 +224,7 @@ class World:
         self.root, self.dataset = root, dataset
         self.policy = root / "policy"
         tiny("smolvla").save(self.policy)
-        self.cache = FeatureCache(extract(_req(dataset.root, root / "cache", grids=((4, 4),)), log=_quiet).path)
+        self.cache = FeatureCache(extract(_req(dataset.root, root / "cache", grids=("4x4",)), log=_quiet).path)
 
     def request(self, tmp: Path, **kw) -> FitRequest:
         base = dict(backbone="smolvla", encoder=ENCODER, suite="libero_spatial", policy=str(self.policy),

@@ -1,4 +1,4 @@
-"""pool_grid against hand-written block means; grid-string parsing."""
+"""pool_grid against hand-written block means; grid-string parsing, `native` included."""
 
 from __future__ import annotations
 
@@ -6,7 +6,8 @@ import pytest
 import torch
 
 from graftcache.errors import GraftcacheError
-from graftcache.pooling import format_grid, parse_grids, pool_grid
+from graftcache.pooling import format_grid, grid_names, parse_grids, pool_grid, resolve_grids
+from graftcache.requests import ExtractRequest
 
 
 def _block_mean(grid: torch.Tensor, out: tuple[int, int]) -> torch.Tensor:
@@ -57,3 +58,21 @@ def test_parse_grids() -> None:
 def test_parse_grids_rejects(text: str) -> None:
     with pytest.raises(GraftcacheError, match="expected HxW"):
         parse_grids(text)
+
+
+def test_grid_names_resolve_native_to_the_encoders_grid() -> None:
+    assert grid_names(" native, 4 x 4,4x4,native") == ("native", "4x4")
+    assert resolve_grids(("native",), (16, 16)) == [(16, 16)]
+    assert resolve_grids(("native", "16x16", "4x4"), (16, 16)) == resolve_grids(("16x16", "4x4"), (16, 16)) \
+        == [(16, 16), (4, 4)]
+    assert resolve_grids(("4x4", "native"), (8, 8)) == [(4, 4), (8, 8)]
+    with pytest.raises(GraftcacheError, match="grid 'natve' in 'natve,4x4': expected native"):
+        grid_names("natve,4x4")
+    with pytest.raises(GraftcacheError, match="expected HxW"):  # a pool-HxW control has no native spelling
+        parse_grids("native")
+
+
+@pytest.mark.parametrize("grids", [(), ("4y4",), ("native", ""), ((4, 4),)])
+def test_extract_request_refuses_what_names_no_grid(grids: tuple) -> None:
+    with pytest.raises(GraftcacheError, match=r"grids = .* must name grids: native or HxW"):
+        ExtractRequest(dataset="d", encoder="e", grids=grids)

@@ -84,7 +84,7 @@ def _put_object(url: str, rel: str, data: bytes) -> None:
 
 
 def _req(dataset: Path, cache: str | Path, **kw) -> ExtractRequest:
-    base = dict(dataset=str(dataset), encoder=ENCODER, grids=((2, 2),), random_init=True, num_workers=0,
+    base = dict(dataset=str(dataset), encoder=ENCODER, grids=("2x2",), random_init=True, num_workers=0,
                 batch_size=8, block_frames=2, cache=str(cache), progress=False)
     return ExtractRequest(**{**base, **kw})
 
@@ -237,7 +237,7 @@ def test_two_concurrent_writers_on_one_key(where: str, request: pytest.FixtureRe
 def test_fit_reads_a_remote_cache_through_local_copies(
         s3: str, v3_image: Written, tmp_path: Path) -> None:  # noqa: F811
     root = tmp_path / "local"
-    key = extract(_req(v3_image.root, root, grids=((4, 4), (2, 2))), log=_quiet).key
+    key = extract(_req(v3_image.root, root, grids=("4x4", "2x2")), log=_quiet).key
     copy_cache(open_root(root), open_root(s3), key, log=_quiet)
     _put_object(s3, "junk/zarr.json", b"{not json")  # a broken cache beside it: listed as broken, never used
     assert [b.key for b in scan_caches(s3)[1]] == ["junk"]

@@ -3,6 +3,7 @@ that a rerun skips entirely."""
 
 from __future__ import annotations
 
+import shlex
 import textwrap
 from pathlib import Path
 
@@ -12,8 +13,10 @@ from helpers.datasets import Written
 
 from graftcache import results
 from graftcache.cli import main
+from graftcache.errors import GraftcacheError
 from graftcache.recipe import SECTION_KEYS, RecipeError, load_recipe
-from graftcache.sweep import run_sweep
+from graftcache.store import FeatureCache, list_caches
+from graftcache.sweep import SweepState, encoder_grids, run_sweep
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -91,6 +94,23 @@ def test_unknown_missing_and_invalid_keys_name_file_and_key(tmp_path: Path) -> N
     assert main(["sweep", str(tmp_path / "absent.toml")]) == 2
 
 
+def test_extract_grids_default_to_native_and_explicit_ones_must_cover_the_fits(tmp_path: Path) -> None:
+    base = BASE.format(dataset="x", results="r", controls='["pool-2x2"]')
+    state = SweepState(native_grids={"smolvla": (4, 4)})
+    assert encoder_grids(load_recipe(_write(tmp_path, base)), state) == ("native",)
+    explicit = load_recipe(_write(tmp_path, base + '[extract]\ngrids = ["native", " 3x3"]\n'))
+    assert explicit.extract["grids"] == ("native", " 3x3") and encoder_grids(explicit, state) == ("native", "3x3")
+    covered = load_recipe(_write(tmp_path, base + '[extract]\ngrids = ["4x4", "2x2"]\n'))
+    assert encoder_grids(covered, state) == ("4x4", "2x2")
+    short = load_recipe(_write(tmp_path, base + '[extract]\ngrids = ["2x2"]\n'))
+    with pytest.raises(GraftcacheError, match=r"recipe.toml \[extract\]: grids = \['2x2'\] lacks 4x4, which the fits"):
+        encoder_grids(short, state)
+    with pytest.raises(RecipeError, match=r"recipe.toml \[extract\]: grids = \('4y4',\) must name grids: native or HxW"):
+        load_recipe(_write(tmp_path, base + '[extract]\ngrids = ["4y4"]\n'))
+    with pytest.raises(RecipeError, match=r"\[extract\]: grids = \(\(4, 4\),\) is not a tuple"):
+        load_recipe(_write(tmp_path, base + '[extract]\ngrids = [[4, 4]]\n'))
+
+
 def test_hub_ids_pass_through_and_local_folders_resolve(tmp_path: Path) -> None:
     (tmp_path / "ds").mkdir()
     local = load_recipe(_write(tmp_path, BASE.format(dataset="ds", results="r", controls="[]")))
@@ -103,7 +123,7 @@ def test_small_sweep_end_to_end_then_rerun_skips(tmp_path: Path, v3_video: Writt
                                                  capsys: pytest.CaptureFixture) -> None:
     out = tmp_path / "results.parquet"
     top = f'cache = "{tmp_path / "cache"}"\n'  # top-level keys go before the first table
-    text = top + BASE.format(dataset=v3_video.root, results=out, controls='["native", "zero-image"]') + textwrap.dedent("""
+    text = top + BASE.format(dataset=v3_video.root, results=out, controls='["native", "pool-2x2"]') + textwrap.dedent("""
         [extract]
         batch_size = 8
         num_workers = 0
@@ -120,13 +140,25 @@ def test_small_sweep_end_to_end_then_rerun_skips(tmp_path: Path, v3_video: Writt
     lines: list[str] = []
     state = run_sweep(recipe, log=lines.append)
     rows = results.read(out)
-    # 1 backbone x 1 encoder x 1 suite x 1 seed x (plain, native, zero-image): 3 cells, 3 rows written
+    # 1 backbone x 1 encoder x 1 suite x 1 seed x (plain, native, pool-2x2): 3 cells, 3 rows written
     assert rows.height == recipe.n_rows == recipe.n_fits == 3
-    assert sorted(rows["control"].to_list()) == ["native", "none", "zero-image"]
+    assert sorted(rows["control"].to_list()) == ["native", "none", "pool-2x2"]
     assert rows.filter(pl.col("control") == "native")["encoder"].to_list() == ["smolvla-native"]
     assert rows["random_init"].all() and (rows["suite"] == "libero_spatial").all()
     assert set(state.commands) >= {"policy smolvla", *state.encoder_caches.values(), *state.native_caches.values()}
-    assert rows.filter(pl.col("control") == "none")["cache_key"].item() == state.encoder_caches[recipe.encoders[0]]
+    # one cache for the encoder, its own 14x14 grid alone, read at the backbone's 4x4 and the control's 2x2
+    key = state.encoder_caches[recipe.encoders[0]]
+    (cache,) = [c for c in list_caches(tmp_path / "cache") if c.manifest["encoder"]["name"] == recipe.encoders[0].name]
+    assert cache.key == key and cache.manifest["grids"] == ["14x14"] and cache.manifest["native_grid"] == "14x14"
+    grafts = rows.filter(pl.col("encoder") == recipe.encoders[0].name).sort("control")
+    assert grafts["cache_key"].to_list() == [key, key] and grafts["pool_grid"].to_list() == ["4x4", "2x2"]
+    native = FeatureCache(tmp_path / "cache" / state.native_caches["smolvla"])
+    assert native.manifest["grids"] == ["4x4"] and "connector" in native.manifest["extras"]  # its backbone's grid
+    # the recorded commands rebuild the very caches the sweep made
+    for made in (key, native.key):
+        assert "--grids" in state.commands[made] and "--batch-size 8 --num-workers 0" in state.commands[made]
+        assert main([*shlex.split(state.commands[made])[1:], "--cache", str(tmp_path / "cache"), "--no-progress"]) == 0
+        assert capsys.readouterr().out.strip().splitlines()[-1] == made
 
     again: list[str] = []
     run_sweep(recipe, log=again.append)

@@ -109,13 +109,14 @@ def name_list(text: str) -> tuple[str, ...]:
     return tuple(part.strip() for part in text.split(",") if part.strip())
 
 
-def grids_value(text: str) -> tuple[tuple[int, int], ...]:
-    """'8x8,16x16' -> ((8, 8), (16, 16)); a malformed grid is argparse's usage error."""
+def grids_value(text: str) -> tuple[str, ...]:
+    """'native, 4x4' -> ("native", "4x4") (graftcache.pooling.grid_names); a malformed grid is argparse's usage
+    error."""
     from graftcache.errors import GraftcacheError
-    from graftcache.pooling import parse_grids
+    from graftcache.pooling import grid_names
 
     try:
-        return tuple(parse_grids(text))
+        return grid_names(text)
     except GraftcacheError as e:
         raise argparse.ArgumentTypeError(str(e)) from None
 

@@ -21,7 +21,7 @@ from graftcache.cli.common import (
     shard_value,
 )
 from graftcache.nonfinite import DROP_FLAG
-from graftcache.pooling import format_grid
+from graftcache.pooling import NATIVE
 from graftcache.requests import ExecutorSettings, ExtractRequest
 from graftcache.runtime import DTYPES
 
@@ -29,10 +29,11 @@ from graftcache.runtime import DTYPES
 def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "extract",
-        help="decode every frame once, run an encoder, pool, store fp16 features in Zarr",
-        description="Decode every frame of a LeRobot dataset once, run the encoder, pool to the requested "
-        "grids and store the features with a provenance manifest. Rerunning the same command reuses a "
-        "complete cache or resumes an interrupted one.",
+        help="decode every frame once, run an encoder, store its fp16 patch grid in Zarr",
+        description="Decode every frame of a LeRobot dataset once, run the encoder and store its own patch grid "
+        "(and any pooled grids asked for) with a provenance manifest. Stage 2 pools the stored grid to each "
+        "backbone's token grid when it reads it. Rerunning the same command reuses a complete cache or resumes "
+        "an interrupted one.",
     )
     p.add_argument("--encoder", required=True,
                    help="registry name (siglip, dinov2-s, mobilenetv2, ...), timm:<name> or hf:<id-or-path>")
@@ -43,8 +44,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     add_field(p, ExtractRequest, "policy",
               help=f"policy for native towers ({', '.join(native_name(b) for b in BACKBONES)}): hub id, checkpoint "
               "folder, or 'tiny' (the tiny backbone natively trained on --dataset by `graftcache train-tiny`)")
-    add_field(p, ExtractRequest, "grids", type=grids_value, shown=",".join(map(format_grid, ExtractRequest.grids)),
-              help="pooled grids, e.g. 8x8,16x16 (8x8: SmolVLA's grid)")
+    add_field(p, ExtractRequest, "grids", type=grids_value,
+              help=f"grids to store: {NATIVE} (the encoder's own patch grid, unpooled; `fit` pools it to each "
+              f"backbone's token grid as it reads it) and/or pooled HxW grids, e.g. {NATIVE},4x4 or 8x8,16x16. "
+              f"{NATIVE} and the encoder's grid spelled out make the same cache")
     add_field(p, ExtractRequest, "cameras", type=name_list, help="comma-separated camera names (default: all)")
     add_field(p, ExtractRequest, "episodes", type=int_list, help="episode subset, e.g. 0-9,20")
     add_field(p, ExtractRequest, "frame_stride", type=positive_int, metavar="K",

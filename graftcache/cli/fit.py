@@ -46,12 +46,17 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     add_field(p, FitRequest, "steps", type=positive_int)
     add_field(p, FitRequest, "lr", type=positive_float)
     add_field(p, FitRequest, "batch_size", type=positive_int)
+    add_field(p, FitRequest, "buffer_mib", type=positive_int,
+              help="MiB of training features held in the shuffle buffer: with --num-workers x 2 prefetched cache "
+              "blocks, what bounds the fit's memory whatever the suite's size (more mixes episodes better)")
     add_field(p, FitRequest, "eval_fraction", type=fraction, help="held-out share of each task's episodes")
     add_field(p, FitRequest, "eval_split_seed", type=nonneg_int)
     add_field(p, FitRequest, "eval_frames", type=positive_int, help="cap on scored held-out frames (evenly spaced)")
     add_field(p, FitRequest, "num_denoise_steps", type=positive_int)
     add_field(p, FitRequest, "lora_rank", type=positive_int)
     add_device_flag(p, FitRequest)
+    add_field(p, FitRequest, "num_workers", type=nonneg_int,
+              help="processes reading and pooling cached features ahead of the model (0: in this process)")
     add_compute_dtype_flag(p, FitRequest, "--dtype")
     add_field(p, FitRequest, "results")
     add_field(p, FitRequest, "out", help="run folder for projectors (default: runs/ beside --results; never the cache root)")

@@ -18,8 +18,8 @@ class LocalExecutor:
         return extract(req, log=log)
 
     def fit(self, requests: Sequence[tuple[str, FitRequest]], log: Log, bar: Any) -> None:
-        """One Fitter per request, all sharing one BackbonePool and numerics verdicts (each backbone loaded and
-        each cache's numerics probe recomputed once per run)."""
+        """One Fitter per request, all sharing one BackbonePool and one set of numerics verdicts (each backbone
+        loaded and each cache's numerics probe recomputed once per run)."""
         from graftcache.backbones.pool import BackbonePool
         from graftcache.fit.run import Fitter
 

@@ -3,12 +3,15 @@
 Instead of back-propagating the policy's flow loss, regress the native tower's post-connector
 tokens (cached by `graftcache extract --encoder <backbone>-native`) on the LayerNorm'd candidate
 tokens at the same grid positions: ridge regression with a bias, solved from streamed sufficient
-statistics (X^T X, X^T Y, sums), so memory is O(C^2 + C*D) whatever the number of frames. The
+statistics (X^T X, X^T Y, sums) fed chunk by chunk from the cache, so memory is O(C^2 + C*D) whatever the
+number of frames. The
 projector then holds LN(weight=1, bias=0) -> Linear(W, b) and is scored with the same offline
 action MSE as a `flow` fit. One linear solve replaces hundreds of backward passes through the LM.
 """
 
 from __future__ import annotations
+
+from collections.abc import Iterable
 
 import torch
 from torch import nn
@@ -33,11 +36,12 @@ def _as_grid(tokens: torch.Tensor, grid: tuple[int, int]) -> torch.Tensor:
 
 
 @torch.no_grad()
-def fit_ridge(projector: nn.Module, sources: list[torch.Tensor], targets: list[torch.Tensor],
-              grid: tuple[int, int], alpha: float = RIDGE_ALPHA) -> float:
+def fit_ridge(projector: nn.Module, pairs: Iterable[tuple[torch.Tensor, torch.Tensor]], grid: tuple[int, int],
+              alpha: float = RIDGE_ALPHA) -> float:
     """Set `projector` (a GraftProjector) to the ridge solution; returns the train R^2.
 
-    `sources[i]` [N, T, C] candidate features and `targets[i]` [N, T', D] native tokens of camera i.
+    `pairs` streams (candidate features [n, T, C], native tokens [n, T', D]) of the same frames and camera, a
+    chunk at a time (graftcache.fit.stream): only the statistics are kept.
     """
     c = projector.in_features
     d = projector.out_features
@@ -47,7 +51,7 @@ def fit_ridge(projector: nn.Module, sources: list[torch.Tensor], targets: list[t
     sy = torch.zeros(d, dtype=torch.float64)
     syy = torch.zeros((), dtype=torch.float64)
     n = 0
-    for src, tgt in zip(sources, targets, strict=True):
+    for src, tgt in pairs:
         tgt = _as_grid(tgt.float(), grid)
         if tgt.shape[:2] != src.shape[:2]:
             raise FitError(f"align: candidate tokens {tuple(src.shape[:2])} and native tokens "
@@ -65,6 +69,8 @@ def fit_ridge(projector: nn.Module, sources: list[torch.Tensor], targets: list[t
             sy += y.sum(0, dtype=torch.float64)
             syy += (y.double() * y.double()).sum()
             n += x.shape[0]
+    if n == 0:
+        raise FitError("align: no frames to fit")
     mx, my = sx / n, sy / n
     cxx = xtx - n * torch.outer(mx, mx)
     cxy = xty - n * torch.outer(mx, my)

@@ -4,12 +4,14 @@
 - native          the released tower, no graft: cached post-connector tokens fed as-is (eval only)
 - native-graft    the native tower's own patch grid through the wrapper (measures wrapper non-neutrality)
 - zero-image      all-zero features: what the backbone does with no visual information
-- shuffled-image  features of other frames (a fixed permutation within each split)
+- shuffled-image  features of other frames (a fixed pairing of frames within each split, see `shuffle`)
 - pool-HxW        the candidate encoder pooled to another grid
 - lora            LoRA adapters on the LM trained together with the projector
 
-Each control owns its projector (how cached features become LM tokens) and its feature transform
-(what it does to one split's features), so the fit only calls them.
+Each control owns its projector (how cached features become LM tokens), its feature transform (what it does
+to a batch's features) and its pairing (which frame's features go with which frame's state, action and target:
+a split's features are streamed, never held, so a shuffle is a pairing applied to the low-dim rows, not a
+permutation of a feature tensor), so the fit only calls them.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -25,29 +28,60 @@ from graftcache.graft import GraftProjector, IdentityProjector
 from graftcache.pooling import format_grid, parse_grids
 
 SHUFFLE_SEED_OFFSET = 7919
+SHUFFLE_GROUP = 64  # frames that exchange features as a group (see shuffle)
 
 Features = dict[str, torch.Tensor]  # camera -> [N, T, C]
 Projector = Callable[[int, int], nn.Module]  # (feature width, LM width) -> the module grafted in
-Transform = Callable[[Features, int], Features]  # (one split's features, seed) -> what the policy sees
+Transform = Callable[[Features], Features]  # a batch's features -> what the policy sees
+Pairing = Callable[[int, int], "np.ndarray | None"]  # (frames of a split, seed) -> frame r sees features of [r]
 
 
-def keep(features: Features, seed: int) -> Features:
+def keep(features: Features) -> Features:
     return features
 
 
-def zero(features: Features, seed: int) -> Features:
+def zero(features: Features) -> Features:
     return {c: torch.zeros_like(f) for c, f in features.items()}
 
 
-def shuffle(features: Features, seed: int) -> Features:
-    """Features of other frames: a fixed permutation (from `seed`) in which no frame keeps its own."""
-    n = next(iter(features.values())).shape[0]
+def own(n: int, seed: int) -> None:
+    """Every frame sees its own features (no pairing)."""
+
+
+def derangement(n: int, generator: torch.Generator) -> torch.Tensor:
+    """A permutation of n (> 1) in which nothing stays in place: a seeded random one, its fixed points then
+    moved (several: rotated among themselves; one: swapped with its neighbour)."""
+    perm = torch.randperm(n, generator=generator)
+    fixed = torch.nonzero(perm == torch.arange(n)).flatten()
+    if n > 1 and len(fixed) > 1:
+        perm[fixed] = perm[fixed].roll(1)
+    elif n > 1 and len(fixed) == 1:
+        i, j = int(fixed[0]), (int(fixed[0]) + 1) % n
+        perm[i], perm[j] = perm[j].clone(), perm[i].clone()
+    return perm
+
+
+def shuffle(n: int, seed: int) -> np.ndarray:
+    """Features of other frames: frame r of a split (cache order) sees the features of frame pairing[r], a fixed
+    permutation (from `seed`) in which no frame keeps its own.
+
+    Frames exchange features by groups of SHUFFLE_GROUP consecutive frames (the last group takes the remainder):
+    each group sees a seeded arrangement of another group's frames (a derangement of the groups, when there
+    are at least two equal ones), else a derangement of its own. A group of a split is a run of one or two
+    episodes, so a frame's features come from another episode, at a random time of it; and the frames one
+    chunk of features goes with lie in a few runs, so `align` reads both sides run by run instead of frame by
+    frame across the whole split.
+    """
     g = torch.Generator().manual_seed(seed + SHUFFLE_SEED_OFFSET)
-    perm = torch.randperm(n, generator=g)
-    fixed = perm == torch.arange(n)
-    if n > 1 and fixed.any():
-        perm[fixed] = perm[fixed].roll(1) if fixed.sum() > 1 else perm[(torch.nonzero(fixed)[0] + 1) % n]
-    return {c: f[perm] for c, f in features.items()}
+    equal = max(1, n // SHUFFLE_GROUP) - 1   # groups of exactly SHUFFLE_GROUP; the last one takes the rest
+    others = derangement(equal, g) if equal >= 2 else torch.arange(equal)
+    out = np.empty(n, dtype=np.int64)
+    for group, partner in enumerate(others.tolist()):
+        within = torch.randperm(SHUFFLE_GROUP, generator=g) if partner != group else derangement(SHUFFLE_GROUP, g)
+        out[group * SHUFFLE_GROUP:(group + 1) * SHUFFLE_GROUP] = partner * SHUFFLE_GROUP + within.numpy()
+    start = equal * SHUFFLE_GROUP
+    out[start:] = start + derangement(n - start, g).numpy()
+    return out
 
 
 def identity(width: int, lm_width: int) -> nn.Module:
@@ -61,7 +95,8 @@ def identity(width: int, lm_width: int) -> nn.Module:
 class Control:
     name: str
     projector: Projector = GraftProjector
-    transform: Transform = keep
+    transform: Transform = keep     # applied to every batch's features
+    pairing: Pairing = own          # which frame's features each frame sees
     native_cache: bool = False      # reads the native tower's cache instead of the candidate encoder's
     extra: str | None = None        # reads this stored extra array instead of a pooled grid
     train: bool = True              # False: evaluated as loaded (its cell's objective is "eval")
@@ -74,7 +109,7 @@ CONTROLS: dict[str, Control] = {
     "native": Control("native", projector=identity, native_cache=True, extra="connector", train=False),
     "native-graft": Control("native-graft", native_cache=True),
     "zero-image": Control("zero-image", transform=zero),
-    "shuffled-image": Control("shuffled-image", transform=shuffle),
+    "shuffled-image": Control("shuffled-image", pairing=shuffle),
     "lora": Control("lora", lora=True),
 }
 POOL_PREFIX = "pool-"

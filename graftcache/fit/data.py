@@ -1,13 +1,14 @@
 """Stage 2 data path: everything a fit needs comes from the feature cache, never from videos.
 
-A `FrameTable` holds, for the frames of one suite, the pooled features per camera (kept in the
-stored precision to halve memory), the state, the action chunk starting at each frame with its
-padding mask, and the task index. The held-out split is by episode within each task, with a fixed
-split seed that is recorded in every results row.
+Only the low-dim part of a suite is held in memory (`LowDim`: state, task, where each frame's action chunk
+lies in the action stream); features are read chunk by chunk where they are used (graftcache.fit.stream,
+through `read_grid`). The held-out split is by episode within each task, with a fixed split seed that is
+recorded in every results row.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -18,7 +19,11 @@ import torch
 from graftcache.errors import FitError
 from graftcache.nonfinite import DROP_FLAG, nonfinite_rows
 from graftcache.pooling import format_grid, parse_grid, pool_grid
+from graftcache.runtime import resolve_dtype
 from graftcache.store import FeatureCache
+
+#: How much of a stored grid (as fp32) `read_grid` holds at a time while it pools to a coarser one.
+POOL_CHUNK_BYTES = 2**28
 
 
 @dataclass(frozen=True)
@@ -50,36 +55,56 @@ def split_episodes(index: pl.DataFrame, *, eval_fraction: float, seed: int) -> S
 
 
 @dataclass
-class FrameTable:
-    """In-memory training/eval material for one suite, from the cache only."""
+class LowDim:
+    """The in-memory part of a suite's frames: ~120 bytes a frame (16 MB for every LIBERO frame), never features.
 
-    rows: np.ndarray                    # cache row ids, [N]
-    episode_index: np.ndarray           # [N]
-    features: dict[str, torch.Tensor]   # camera -> [N, T, C] stored precision
-    state: torch.Tensor                 # [N, S] float32 (raw units)
-    actions: torch.Tensor               # [N, chunk, A] float32 (raw units)
-    action_pad: torch.Tensor            # [N, chunk] bool, True past the episode end
-    task_index: torch.Tensor            # [N] int64
+    Action chunks are not stored per frame ([chunk, A] floats would be 1.4 KB a frame at lerobot's chunk of 50):
+    each frame keeps where it starts in the suite's full-rate action stream and where its episode ends there,
+    and `action_chunks` builds the chunks of a batch when the batch is drawn.
+    """
+
+    rows: np.ndarray            # cache row ids [N]
+    index: np.ndarray           # dataset frame index [N]: the same frame in every cache of one dataset
+    episode_index: np.ndarray   # [N]
+    frame_index: np.ndarray     # [N]
+    state: torch.Tensor         # [N, S] float32 (raw units)
+    task_index: torch.Tensor    # [N] int64
+    stream_start: np.ndarray    # [N] the frame's position in `actions`
+    stream_end: np.ndarray      # [N] exclusive end of the frame's episode in `actions`
+    actions: torch.Tensor       # [M, A] float32: the full-rate action stream of the suite's episodes (shared)
+    chunk: int                  # steps of an action chunk
     tasks: tuple[str, ...]
 
     def __len__(self) -> int:
         return len(self.rows)
 
-    def take(self, positions: np.ndarray) -> FrameTable:
-        """The frames at `positions` (the one way a table is narrowed: episode split, eval cap)."""
+    def take(self, positions: np.ndarray) -> LowDim:
+        """The frames at `positions` (the one way a table is narrowed: episode split, eval cap, non-finite drops)."""
         t = torch.from_numpy(positions)
-        return FrameTable(self.rows[positions], self.episode_index[positions],
-                          {c: f[t] for c, f in self.features.items()}, self.state[t], self.actions[t],
-                          self.action_pad[t], self.task_index[t], self.tasks)
+        return LowDim(self.rows[positions], self.index[positions], self.episode_index[positions],
+                      self.frame_index[positions], self.state[t], self.task_index[t], self.stream_start[positions],
+                      self.stream_end[positions], self.actions, self.chunk, self.tasks)
 
-    def subset(self, episodes: Sequence[int]) -> FrameTable:
+    def subset(self, episodes: Sequence[int]) -> LowDim:
         return self.take(np.flatnonzero(np.isin(self.episode_index, np.asarray(episodes))))
 
-    def evenly(self, max_frames: int | None) -> FrameTable:
+    def evenly(self, max_frames: int | None) -> LowDim:
         """At most `max_frames` evenly spaced frames (deterministic), the whole table otherwise."""
         if max_frames is None or len(self) <= max_frames:
             return self
         return self.take(np.linspace(0, len(self) - 1, max_frames).round().astype(int))
+
+    def action_chunks(self, positions: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+        """(chunks [k, chunk, A], pad [k, chunk]) of the frames at `positions`: the next `chunk` actions of the
+        frame's episode at full rate, padded with the episode's last action (pad True past the episode end)."""
+        steps, pad = chunk_steps(self.stream_start[positions], self.stream_end[positions], self.chunk)
+        return self.actions[torch.from_numpy(steps)], torch.from_numpy(pad)
+
+    def nonfinite(self) -> dict[str, np.ndarray]:
+        """Bool [N] per low-dim part ("state", "action chunk"): frames holding a NaN/inf there."""
+        bad_action = np.r_[0, np.cumsum(nonfinite_rows(self.actions))]
+        last = np.minimum(self.stream_start + self.chunk, self.stream_end)  # a chunk's padding repeats last-1
+        return {"state": nonfinite_rows(self.state), "action chunk": bad_action[last] > bad_action[self.stream_start]}
 
 
 def suite_index_table(cache: FeatureCache, suite: str) -> pl.DataFrame:
@@ -96,15 +121,44 @@ def suite_index_table(cache: FeatureCache, suite: str) -> pl.DataFrame:
 
 
 def read_grid(cache: FeatureCache, camera: str, grid: tuple[int, int], rows: np.ndarray) -> torch.Tensor:
-    """Features of `camera` pooled to `grid`: the stored grid if present, else pooled from the
-    finest stored grid (exact when the stored grid is a multiple of the requested one)."""
+    """Features of `camera` at `grid` for cache rows `rows`, [len(rows), H*W, C] in stored precision: the grid
+    itself when the cache stores it, else adaptive-average-pooled at read time from the encoder's own grid as
+    the manifest names it (`native_grid`; caches from before it record none: the finest stored grid).
+
+    What pooling here costs in precision: extraction pools the fp32 activations and rounds the mean once to
+    the stored dtype; here the stored, already rounded values are averaged in fp32 and the mean rounded
+    again. Each input is off by at most half a unit in the last place (fp16: 2^-11 relative, bf16: 2^-8),
+    and so is each rounded mean, so a value differs from the extract-time pooled one by at most 3 x 2^-11
+    (fp16; bf16: 3 x 2^-8) of the largest magnitude in its pooling window: about one fp16 step. fp32
+    caches pool exactly what extraction would have. Exact-multiple grids (16x16 -> 8x8) average whole
+    blocks of cells; others average overlapping windows.
+
+    The stored grid is read and pooled `POOL_CHUNK_BYTES` of fp32 at a time (whole cache blocks), so a
+    suite of 16x16x768 frames never sits in memory unpooled.
+    """
     name = format_grid(grid)
-    if name in cache.manifest["grids"]:
+    stored = cache.manifest["grids"]
+    if name in stored:
         return cache.read_features(camera, name, rows)
-    (h, w), finest = max(((parse_grid(g), g) for g in cache.manifest["grids"]), key=lambda s: s[0][0] * s[0][1])
-    src = cache.read_features(camera, finest, rows)
-    pooled = pool_grid(src.float().reshape(len(rows), h, w, -1), grid)
-    return pooled.to(src.dtype)
+    source = cache.manifest.get("native_grid") or max(stored, key=lambda g: math.prod(parse_grid(g)))
+    (h, w), width = parse_grid(source), cache.layout["arrays"][cache.feature_path(camera, source)][-1]
+    block = int(cache.layout["block_frames"])
+    per_chunk = block * max(1, POOL_CHUNK_BYTES // (block * h * w * width * 4))
+    rows = np.asarray(rows)
+    out = torch.empty((len(rows), grid[0] * grid[1], width), dtype=resolve_dtype(cache.manifest["dtype"]))
+    for chunk in np.unique(rows // per_chunk):
+        at = np.flatnonzero(rows // per_chunk == chunk)
+        src = cache.read_features(camera, source, rows[at])
+        out[torch.from_numpy(at)] = pool_grid(src.float().reshape(len(at), h, w, width), grid).to(out.dtype)
+    return out
+
+
+def chunk_steps(start: np.ndarray, end: np.ndarray, chunk: int) -> tuple[np.ndarray, np.ndarray]:
+    """The action chunk rule, written once: for frames starting at `start` in an action sequence whose episode
+    ends (exclusive) at `end`, the positions of the next `chunk` actions, past the end repeating the episode's
+    last action, and pad [k, chunk] True for those steps."""
+    steps = start[:, None] + np.arange(chunk)[None, :]
+    return np.minimum(steps, end[:, None] - 1), steps >= end[:, None]
 
 
 def action_chunks(actions: np.ndarray, episode: np.ndarray, chunk: int) -> tuple[np.ndarray, np.ndarray]:
@@ -116,73 +170,58 @@ def action_chunks(actions: np.ndarray, episode: np.ndarray, chunk: int) -> tuple
     n = len(actions)
     starts = np.r_[0, np.flatnonzero(np.diff(episode)) + 1]
     ends = np.r_[starts[1:], n]
-    ep_end = np.repeat(ends, ends - starts)  # exclusive end of each frame's episode
-    steps = np.arange(n)[:, None] + np.arange(chunk)[None, :]
-    pad = steps >= ep_end[:, None]
-    steps = np.minimum(steps, ep_end[:, None] - 1)
+    steps, pad = chunk_steps(np.arange(n), np.repeat(ends, ends - starts), chunk)
     return actions[steps], pad
 
 
-def frame_chunks(cache: FeatureCache, frames: pl.DataFrame, chunk: int) -> tuple[np.ndarray, np.ndarray]:
-    """Action chunks [N, chunk, A] and pad masks [N, chunk] of `frames` (rows of the cache index), taken
-    from the cache's full-rate action stream, so a frame stride thins the observations, not the actions."""
-    episodes = frames["episode_index"].unique().implode()
-    stream = cache.action_stream().filter(pl.col("episode_index").is_in(episodes)).sort("episode_index", "frame_index")
-    all_chunks, all_pad = action_chunks(np.stack(stream["action"].to_numpy()).astype(np.float32),
-                                        stream["episode_index"].to_numpy(), chunk)
-    key = stream.select("episode_index", "frame_index").with_row_index("pos")
-    pos = frames.select("episode_index", "frame_index").join(key, on=["episode_index", "frame_index"], how="left",
-                                                            maintain_order="left")["pos"]
-    if pos.null_count():
-        raise FitError(f"cache {cache.key}: {pos.null_count()} frame(s) have no entry in the action stream")
-    pos = pos.to_numpy()
-    return all_chunks[pos], all_pad[pos]
-
-
-def load_frames(cache: FeatureCache, suite: str, *, cameras: Sequence[str], grid: tuple[int, int] | None,
-                chunk: int, extra: str | None = None) -> FrameTable:
-    """All frames of `suite` with features at `grid` (or the stored extra array `extra`, e.g. the
-    native tower's post-connector tokens)."""
+def load_lowdim(cache: FeatureCache, suite: str, *, chunk: int) -> LowDim:
+    """Every frame of `suite` (index, state, task, where its action chunk lies in the full-rate action stream):
+    a frame stride thins the observations, not the actions."""
     sub = suite_index_table(cache, suite)
-    rows = sub["row"].to_numpy()
-    episode = sub["episode_index"].to_numpy()
-    missing = [c for c in cameras if c not in cache.manifest["cameras"]]
-    if missing:
-        raise FitError(f"cache {cache.key} has no camera {missing}; it has {cache.manifest['cameras']}")
-    if extra is not None:
-        feats = {c: cache.read_features(c, extra, rows) for c in cameras}
-    else:
-        assert grid is not None
-        feats = {c: read_grid(cache, c, grid, rows) for c in cameras}
-    chunks, pad = frame_chunks(cache, sub, chunk)
-    return FrameTable(
-        rows=rows,
-        episode_index=episode,
-        features=feats,
+    episodes = sub["episode_index"].unique().implode()
+    stream = (cache.action_stream().filter(pl.col("episode_index").is_in(episodes))
+              .sort("episode_index", "frame_index").with_row_index("pos"))
+    ends = stream.group_by("episode_index").agg(pl.len().alias("n"), pl.col("pos").min().alias("first"))
+    key = stream.select("episode_index", "frame_index", "pos").join(ends, on="episode_index")
+    at = sub.select("episode_index", "frame_index").join(key, on=["episode_index", "frame_index"], how="left",
+                                                        maintain_order="left")
+    if at["pos"].null_count():
+        raise FitError(f"cache {cache.key}: {at['pos'].null_count()} frame(s) have no entry in the action stream")
+    return LowDim(
+        rows=sub["row"].to_numpy().astype(np.int64),
+        index=sub["index"].to_numpy().astype(np.int64),
+        episode_index=sub["episode_index"].to_numpy().astype(np.int64),
+        frame_index=sub["frame_index"].to_numpy().astype(np.int64),
         state=torch.from_numpy(np.stack(sub["state"].to_numpy()).astype(np.float32)),
-        actions=torch.from_numpy(chunks),
-        action_pad=torch.from_numpy(pad),
         task_index=torch.from_numpy(sub["task_index"].to_numpy().astype(np.int64)),
+        stream_start=at["pos"].to_numpy().astype(np.int64),
+        stream_end=(at["first"] + at["n"]).to_numpy().astype(np.int64),
+        actions=torch.from_numpy(np.stack(stream["action"].to_numpy()).astype(np.float32)),
+        chunk=chunk,
         tasks=tuple(cache.manifest["tasks"]),
     )
 
 
-def drop_nonfinite(table: FrameTable, cache: FeatureCache, *, drop: bool) -> tuple[FrameTable, int]:
-    """`table` without the frames whose features, state or action chunk hold a NaN/inf, and how many those
-    were. Without `drop` any such frame is a FitError naming the cache, episode and frame: a NaN would flow
-    into the normalisation, the loss and the MSE. (Caches extracted before stage 1 refused them, or with
-    `extract --allow-nonfinite`, can hold them.)"""
-    parts = {"state": table.state, "action chunk": table.actions,
-             **{f"features/{c}": f for c, f in table.features.items()}}
-    bad = {name: nonfinite_rows(values) for name, values in parts.items()}
+def nonfinite_message(cache: FeatureCache | str, what: str, episode: int, frame: int, count: str) -> str:
+    """The one-line refusal of a non-finite frame, naming cache, part, episode and frame."""
+    key = cache if isinstance(cache, str) else cache.key
+    return (f"cache {key}: {what} is NaN/inf at episode {episode} frame {frame} ({count}); pass {DROP_FLAG} to drop "
+            f"such frames (the results row records how many)")
+
+
+def drop_nonfinite(low: LowDim, cache: FeatureCache, *, drop: bool) -> tuple[LowDim, int]:
+    """`low` without the frames whose state or action chunk hold a NaN/inf, and how many those were. Without
+    `drop` any such frame is a FitError naming the cache, episode and frame: a NaN would flow into the
+    normalisation, the loss and the MSE. (Caches extracted before stage 1 refused them, or with
+    `extract --allow-nonfinite`, can hold them.) Features are checked chunk by chunk as they stream
+    (graftcache.fit.stream), since they are never all in memory."""
+    bad = low.nonfinite()
     any_bad = np.logical_or.reduce(list(bad.values()))
     if not any_bad.any():
-        return table, 0
+        return low, 0
     if not drop:
         name = next(n for n, b in bad.items() if b.any())
         at = int(np.flatnonzero(bad[name])[0])
-        frame = int(cache.index()["frame_index"][int(table.rows[at])])
-        raise FitError(f"cache {cache.key}: {name} is NaN/inf at episode {int(table.episode_index[at])} frame {frame} "
-                       f"({int(any_bad.sum())} of {len(table)} frame(s) non-finite); pass {DROP_FLAG} to drop them "
-                       f"(the results row records how many)")
-    return table.take(np.flatnonzero(~any_bad)), int(any_bad.sum())
+        raise FitError(nonfinite_message(cache, name, int(low.episode_index[at]), int(low.frame_index[at]),
+                                         f"{int(any_bad.sum())} of {len(low)} frame(s) non-finite"))
+    return low.take(np.flatnonzero(~any_bad)), int(any_bad.sum())

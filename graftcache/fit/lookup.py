@@ -64,7 +64,7 @@ def find_cache(root: Root | str | Path, encoder: str, *, dataset: str | None = N
         where = f" for dataset {dataset}" if dataset else ""
         hint = f"graftcache extract --encoder {encoder} --dataset {dataset or 'PATH'}"
         if encoder.endswith(NATIVE_SUFFIX):
-            hint += " --policy POLICY --grids 8x8"
+            hint += " --policy POLICY"
         state = " (an incomplete one exists: rerun extract to finish it)" if candidates else ""
         raise FitError(f"no complete cache of encoder {encoder!r}{where} in {root}{state}, needed for {for_what}; "
                        f"run: {hint}")

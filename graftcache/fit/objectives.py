@@ -9,15 +9,20 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
+from contextlib import closing
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
+import numpy as np
 import torch
 
 from graftcache.fit.align import fit_ridge
-from graftcache.fit.data import FrameTable
+from graftcache.fit.buffer import ShuffleBuffer, buffer_frames
+from graftcache.fit.controls import Control
+from graftcache.fit.feed import SplitFeed
 from graftcache.fit.loop import train
+from graftcache.fit.stream import FeatureSource, StreamStats, read_chunks
 from graftcache.requests import FitRequest
 
 if TYPE_CHECKING:
@@ -26,29 +31,38 @@ if TYPE_CHECKING:
 
 @dataclass(frozen=True)
 class Fitting:
-    """What an objective fits from: the grafted adapter, the split's tables and transformed features."""
+    """What an objective fits from: the grafted adapter and the train split as it streams."""
 
     adapter: BackboneAdapter
     req: FitRequest
-    train: FrameTable
-    features: Mapping[str, torch.Tensor]       # train features after the control's transform
-    cams: Mapping[str, str]                    # policy camera key -> cache camera
-    targets: FrameTable | None                 # native post-connector tokens of the train split (align)
+    control: Control
+    train: SplitFeed                            # the train split, paired by the control
+    cams: Mapping[str, str]                     # policy camera key -> cache camera
+    targets: tuple[FeatureSource, np.ndarray] | None  # native post-connector tokens, their cache row per train frame
     grid: tuple[int, int]
     seed: int
     dtype: torch.dtype
+    stats: StreamStats                          # what the streams dropped and copied
 
 
 def _flow(f: Fitting) -> float:
-    return train(f.adapter, f.train, f.cams, steps=f.req.steps, batch_size=f.req.batch_size, lr=f.req.lr, seed=f.seed,
-                 dtype=f.dtype, features=f.features, show=f.req.progress)
+    capacity = buffer_frames(f.req.buffer_mib, f.train.source.frame_bytes(), f.req.batch_size, len(f.train.low))
+    with closing(read_chunks(f.train.features(seed=f.seed), f.req.num_workers, f.stats)) as chunks:
+        buffer = ShuffleBuffer(chunks, capacity, empty_limit=f.train.n_chunks)
+        return train(f.adapter, f.train.low, buffer, f.cams, steps=f.req.steps, batch_size=f.req.batch_size,
+                     lr=f.req.lr, seed=f.seed, transform=f.control.transform, dtype=f.dtype, show=f.req.progress)
 
 
 def _align(f: Fitting) -> float:
     cameras = list(f.cams.values())
-    r2 = fit_ridge(f.adapter.projector, [f.features[c] for c in cameras], [f.targets.features[c] for c in cameras],
-                   f.grid)
-    return 1.0 - r2
+
+    def pairs(chunks: Iterator) -> Iterator[tuple[torch.Tensor, torch.Tensor]]:
+        for chunk in chunks:
+            seen, native = f.control.transform(chunk.features[0]), chunk.features[1]
+            yield from ((seen[c], native[c]) for c in cameras)
+
+    with closing(read_chunks(f.train.with_targets(*f.targets), f.req.num_workers, f.stats)) as chunks:
+        return 1.0 - fit_ridge(f.adapter.projector, pairs(chunks), f.grid)
 
 
 def _nothing(f: Fitting) -> float:
@@ -59,7 +73,7 @@ def _nothing(f: Fitting) -> float:
 class Objective:
     name: str
     fit: Callable[[Fitting], float]   # fits the grafted projector; returns the final training loss
-    scheduled: bool = False           # steps / lr / batch_size are part of its cells (else recorded as 0)
+    scheduled: bool = False           # steps / lr / batch_size / buffer_mib are part of its cells (else 0)
     needs_native: bool = False        # reads the native tower's cache (its regression targets)
 
 

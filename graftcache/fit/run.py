@@ -16,11 +16,13 @@ import dataclasses
 import json
 import time
 from collections.abc import Callable, Mapping
+from contextlib import closing
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import polars as pl
 import torch
 from safetensors.torch import save_file
 
@@ -33,15 +35,17 @@ from graftcache.backbones.tiny_record import resolve_policy
 from graftcache.encoders.fingerprint import NumericsCheck, check_numerics
 from graftcache.errors import FitError
 from graftcache.fit.controls import Control, get_control
-from graftcache.fit.data import FrameTable, drop_nonfinite, load_frames, split_episodes, suite_index_table
+from graftcache.fit.data import LowDim, drop_nonfinite, load_lowdim, split_episodes, suite_index_table
+from graftcache.fit.feed import SplitFeed
 from graftcache.fit.lookup import find_cache
 from graftcache.fit.loop import camera_map, evaluate
 from graftcache.fit.objectives import EVAL_ONLY, OBJECTIVES, Fitting, Objective
+from graftcache.fit.stream import FeatureSource, StreamStats, read_chunks
 from graftcache.pooling import format_grid
 from graftcache.requests import FitRequest
 from graftcache.runtime import resolve_compute_dtype, resolve_device, resolve_dtype, set_main_threads
 from graftcache.store import FeatureCache, cache_root
-from graftcache.store.readthrough import reading_root
+from graftcache.store.readthrough import ReadThroughRoot, reading_root
 
 __all__ = ["Cell", "FitRequest", "Fitter"]
 
@@ -62,6 +66,7 @@ class Cell:
     steps: int
     lr: float
     batch_size: int
+    buffer_mib: int
     lora_rank: int
     eval_fraction: float
     eval_split_seed: int
@@ -88,15 +93,18 @@ class Cell:
 
 @dataclass
 class _Material:
-    """What one (request, control) reads: split tables of features + the encoder identity."""
+    """What one (request, control) reads: the splits' low-dim rows, where their features stream from, and the
+    encoder identity. Features are never held: each cell streams them (graftcache.fit.stream)."""
 
-    train: FrameTable
-    eval: FrameTable
+    train: LowDim
+    eval: LowDim
+    source: FeatureSource
     cache: FeatureCache
     encoder: str
     grid: tuple[int, int]
-    targets: FrameTable | None = None  # native tokens of the train split, for objectives that need them
-    dropped: int = 0  # frames dropped for NaN/inf (--drop-nonfinite)
+    targets: FeatureSource | None = None    # native tokens, for objectives that need them
+    target_rows: np.ndarray | None = None   # the native cache's row of every train frame
+    dropped: int = 0  # suite frames dropped for a NaN/inf state or action chunk (--drop-nonfinite)
 
 
 class Fitter:
@@ -170,7 +178,8 @@ class Fitter:
             backbone=req.backbone, policy=policy_id, cache_key=self._source(control).key, suite=req.suite, seed=seed,
             control=control.name, pool_grid=format_grid(control.grid) if control.grid else "native",
             objective=objective.name, steps=req.steps if scheduled else 0, lr=req.lr if scheduled else 0.0,
-            batch_size=req.batch_size if scheduled else 0, lora_rank=req.lora_rank if control.lora else 0,
+            batch_size=req.batch_size if scheduled else 0, buffer_mib=req.buffer_mib if scheduled else 0,
+            lora_rank=req.lora_rank if control.lora else 0,
             eval_fraction=req.eval_fraction, eval_split_seed=req.eval_split_seed, eval_frames=req.eval_frames,
             num_denoise_steps=req.num_denoise_steps, compute_dtype=req.compute_dtype,
         )
@@ -215,45 +224,56 @@ class Fitter:
 
     # ---------------------------------------------------------------- one cell
     def _material(self, adapter, control: Control) -> _Material:
-        """The split feature tables a control reads, loaded once per (cache, array) and kept for the next cell."""
+        """The splits' low-dim rows a control reads, loaded once per (cache, array) and kept for the next cell."""
         grid = control.grid or adapter.native_grid
         source = self._source(control)
         key = (source.key, control.extra, None if control.extra else grid)
         if key not in self._materials:
             cams = list(camera_map(adapter, source.manifest["cameras"]).values())
-            drop = self.req.drop_nonfinite
-            loaded = load_frames(source, self.req.suite, cameras=cams, grid=None if control.extra else grid,
-                                 chunk=adapter.chunk_size, extra=control.extra)
-            table, _ = drop_nonfinite(loaded, source, drop=drop)
-            native = None
-            if self._objective(control).needs_native:
-                native, _ = drop_nonfinite(load_frames(self.native_cache, self.req.suite, cameras=cams, grid=None,
-                                                       chunk=adapter.chunk_size, extra="connector"),
-                                           self.native_cache, drop=drop)
-                both = np.intersect1d(table.rows, native.rows)  # features and targets: the same frames
-                table, native = (t.take(np.flatnonzero(np.isin(t.rows, both))) for t in (table, native))
-            mat = _Material(table.subset(self.split.train_episodes),
-                            table.subset(self.split.eval_episodes).evenly(self.req.eval_frames), source,
-                            source.manifest["encoder"]["name"], grid, dropped=len(loaded) - len(table))
-            if native is not None:
-                mat.targets = native.subset(self.split.train_episodes)
+            low, dropped = drop_nonfinite(load_lowdim(source, self.req.suite, chunk=adapter.chunk_size), source,
+                                          drop=self.req.drop_nonfinite)
+            target_rows = None
+            if self._objective(control).needs_native:  # features and targets: the same frames, by dataset index
+                native = suite_index_table(self.native_cache, self.req.suite)
+                at = pl.DataFrame({"index": low.index}).join(native.select("index", "row"), on="index", how="left",
+                                                             maintain_order="left")["row"]
+                low = low.take(np.flatnonzero(at.is_not_null().to_numpy()))
+                target_rows = at.drop_nulls().to_numpy().astype(np.int64)
+            train_at = np.flatnonzero(np.isin(low.episode_index, self.split.train_episodes))
+            mat = _Material(low.take(train_at), low.subset(self.split.eval_episodes).evenly(self.req.eval_frames),
+                            FeatureSource.of(source, cams, grid, control.extra), source,
+                            source.manifest["encoder"]["name"], grid, dropped=dropped)
+            if target_rows is not None:
+                mat.targets = FeatureSource.of(self.native_cache, cams, None, "connector")
+                mat.target_rows = target_rows[train_at]
             self._materials[key] = mat
         return self._materials[key]
+
+    def _feed(self, mat: _Material, low: LowDim, control: Control, seed: int) -> SplitFeed:
+        """A split as a cell streams it, paired by the control (seeded per split as the cell's seed says)."""
+        return SplitFeed(low, mat.source, int(mat.cache.layout["block_frames"]), control.pairing(len(low), seed),
+                         drop=self.req.drop_nonfinite)
 
     def _run_cell(self, adapter, control: Control, cell: Cell, mat: _Material) -> dict[str, Any]:
         t0 = time.perf_counter()
         torch.manual_seed(cell.seed)
-        width = next(iter(mat.train.features.values())).shape[-1]
+        width = mat.source.frame_shape(mat.source.cameras[0])[1]
         adapter.graft(control.projector(width, adapter.lm_width))
         if control.lora:
             adapter.add_lora(rank=self.req.lora_rank)
         self.log(f"cell {cell.run_id}: {adapter.freeze_report()}")
-        cams = camera_map(adapter, list(mat.train.features))
+        cams = camera_map(adapter, list(mat.source.cameras))
+        stats = StreamStats()
         loss = self._objective(control).fit(Fitting(
-            adapter=adapter, req=self.req, train=mat.train, features=control.transform(mat.train.features, cell.seed),
-            cams=cams, targets=mat.targets, grid=mat.grid, seed=cell.seed, dtype=self.dtype))
-        score = evaluate(adapter, mat.eval, cams, dtype=self.dtype, num_denoise_steps=self.req.num_denoise_steps,
-                         features=control.transform(mat.eval.features, cell.seed + 1))
+            adapter=adapter, req=self.req, control=control, train=self._feed(mat, mat.train, control, cell.seed),
+            cams=cams, targets=(mat.targets, mat.target_rows) if mat.targets is not None else None, grid=mat.grid,
+            seed=cell.seed, dtype=self.dtype, stats=stats))
+        with closing(read_chunks(self._feed(mat, mat.eval, control, cell.seed + 1).features(seed=None),
+                                 self.req.num_workers, stats)) as chunks:
+            score = evaluate(adapter, mat.eval, chunks, cams, transform=control.transform, dtype=self.dtype,
+                             num_denoise_steps=self.req.num_denoise_steps)
+        if isinstance(self.root, ReadThroughRoot):  # what the reading processes copied locally for this fit
+            self.root.fetched_bytes += stats.fetched
         wall = time.perf_counter() - t0
         if control.train:
             self._save_projector(adapter, cell)
@@ -264,7 +284,8 @@ class Fitter:
             "eval_mse_episodes": [score.per_episode[e] for e in sorted(score.per_episode)],
             "n_eval_frames": score.n_frames, "n_eval_episodes": len(score.per_episode), "wall_s": wall,
             "device": str(self.device), "random_init": bool(mat.cache.manifest.get("random_init") or adapter.random_init),
-            "n_dropped_nonfinite": mat.dropped, "numerics_drift": self._drift(mat), "graftcache_version": graftcache.__version__,
+            "n_dropped_nonfinite": mat.dropped + len(stats.dropped), "numerics_drift": self._drift(mat),
+            "graftcache_version": graftcache.__version__,
         })
 
     def _save_projector(self, adapter, cell: Cell) -> None:

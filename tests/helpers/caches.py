@@ -1,10 +1,87 @@
-"""Comparing two feature caches file by file (a folder, or the objects of a bucket under a key)."""
+"""Feature caches for tests: synthetic ones written with the store's own writer (seeded random features at any
+size, real index / low-dim / action-stream columns, for stage 2's data path without an encoder), and comparing two
+caches file by file (a folder, or the objects of a bucket under a key)."""
 
 from __future__ import annotations
 
 import json
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
+
+import numpy as np
+import polars as pl
+
+from graftcache.store import FeatureCache
+from graftcache.store.cache import ArraySpec
+
+SUITES = ["libero_spatial", "libero_object", "libero_goal", "libero_10", "libero_90", "unknown"]
+TASKS = ["put the bowl on the plate", "open the drawer", "turn on the stove"]
+CAMERAS = ("image", "image2")
+
+
+def synthetic_cache(path: Path, lengths: Sequence[int], *, grid: tuple[int, int] = (4, 4), width: int = 8,
+                    block_frames: int = 8, state_dim: int = 8, action_dim: int = 7, seed: int = 0,
+                    nan_at: tuple[int, int] | None = None) -> FeatureCache:
+    """A complete fp16 cache of episodes of `lengths` (task = episode % 3, all libero_spatial), features
+    N(0, 1) at `grid`; `nan_at` (episode, frame) puts a NaN into that frame's `image` features."""
+    rng = np.random.default_rng(seed)
+    episode = np.repeat(np.arange(len(lengths)), lengths)
+    frame = np.concatenate([np.arange(n) for n in lengths])
+    n = len(episode)
+    index = pl.DataFrame({
+        "index": np.arange(n), "episode_index": episode, "frame_index": frame, "task_index": episode % len(TASKS),
+        "suite_index": np.zeros(n, dtype=np.int64), "timestamp": frame / 10.0,
+        "state": rng.standard_normal((n, state_dim)).astype(np.float32),
+        "action": rng.standard_normal((n, action_dim)).astype(np.float32),
+    }).with_columns(pl.col("state").cast(pl.Array(pl.Float32, state_dim)),
+                    pl.col("action").cast(pl.Array(pl.Float32, action_dim)))
+    name = f"{grid[0]}x{grid[1]}"
+    manifest = {"encoder": {"name": "synthetic", "width": width}, "dtype": "fp16", "cameras": list(CAMERAS),
+                "grids": [name], "extras": {}, "suites": SUITES, "tasks": TASKS, "dataset": {"source": "synthetic"},
+                "dataset_fingerprint": {"files": {}}}
+    cache = FeatureCache.create(path, manifest, [ArraySpec(f"features/{c}/{name}", (grid[0] * grid[1], width))
+                                                 for c in CAMERAS], index, block_frames=block_frames)
+    for b in range(cache.layout["n_blocks"]):
+        start, stop = cache.block_range(b)
+        data = {f"features/{c}/{name}": rng.standard_normal((stop - start, grid[0] * grid[1], width))
+                .astype(np.float16) for c in CAMERAS}
+        if nan_at is not None:
+            row = int(np.flatnonzero((episode == nan_at[0]) & (frame == nan_at[1]))[0])
+            if start <= row < stop:
+                data[f"features/image/{name}"][row - start, 0, 0] = np.nan
+        cache.write_block(b, data)
+    cache.finalize()
+    return FeatureCache(path, writable=False)
+
+
+def dataset_cache(path: Path, dataset: str | Path, suite: str, *, grid: tuple[int, int], width: int,
+                  block_frames: int = 256) -> FeatureCache:
+    """A complete fp16 cache of `dataset`'s `suite` episodes as `extract` lays it out (the dataset's own index,
+    low-dim and action columns), with seeded random features at `grid`, `width` wide, for every camera: what a
+    fit reads of a real cache, without paying for decoding and encoding (the fit cannot tell the difference).
+    One random block is written for every block (memory and read costs do not depend on the values)."""
+    from graftcache.datasets import open_dataset, suite_of
+    from graftcache.datasets.suites import SUITES
+    from graftcache.extract import build_index
+
+    source = open_dataset(str(dataset))
+    meta = source.meta
+    episodes = [e.index for e in meta.episodes if suite_of(meta.tasks[e.task_index]) == suite]
+    index = build_index(source, episodes)
+    name = f"{grid[0]}x{grid[1]}"
+    manifest = {"encoder": {"name": f"synthetic-{width}", "width": width}, "dtype": "fp16",
+                "cameras": list(meta.cameras), "grids": [name], "extras": {}, "suites": list(SUITES),
+                "tasks": list(meta.tasks), "dataset": {"source": str(dataset), "root": str(meta.root)},
+                "dataset_fingerprint": {"files": {}}, "random_init": True}
+    cache = FeatureCache.create(path, manifest, [ArraySpec(f"features/{c}/{name}", (grid[0] * grid[1], width))
+                                                 for c in meta.cameras], index, block_frames=block_frames)
+    block = np.random.default_rng(0).standard_normal((block_frames, grid[0] * grid[1], width)).astype(np.float16)
+    for b in range(cache.layout["n_blocks"]):
+        start, stop = cache.block_range(b)
+        cache.write_block(b, {f"features/{c}/{name}": block[:stop - start] for c in meta.cameras})
+    cache.finalize()
+    return FeatureCache(path, writable=False)
+
 
 #: Group attributes that record when and how a run happened, not what it computed: two runs of one request
 #: (one process or several shards, here or into a bucket) differ in these and nothing else.

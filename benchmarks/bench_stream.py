@@ -1,0 +1,165 @@
+#!/usr/bin/env python
+"""The fit's feature stream: random-batch read throughput against what a GPU fit step consumes, the read cost of
+the stream's unit, and peak memory against the shuffle buffer's size.
+
+    python benchmarks/bench_stream.py [--frames 2048] [--width 768] [--workers 1,2] [--batch-size 64]
+
+Synthetic cache (the store does not care what encoder made the numbers): seeded random fp16 features of two
+cameras at pi0.5's 16x16 grid, `--width` wide (768: SigLIP-B, pi0.5's and most candidates' width), blocks of 256
+frames as `extract` writes them. Prints:
+- frames/s of training batches (`--batch-size`) drawn from the shuffle buffer over the stream, for the 16x16 grid
+  (pi0.5) and the 8x8 grid (SmolVLA) pooled from it in the workers (as read_grid pools a finer stored grid), per
+  worker count, first epoch (every block checked against its checksum) and second epoch; against the frames/s a
+  fit step consumes on a GPU. That figure is assumed, not measured here: lerobot documents SmolVLA training at
+  ~0.5-0.7 s per step at batch 64 on one A100, i.e. <= ~128 frames/s; target >= 5x that;
+- the read cost per frame of a whole block against runs of 32 rows inside a block (why a chunk is a block);
+- peak RSS of a process streaming 200 batches, per `--buffer-mib` (the fit's memory flag), in a fresh
+  subprocess each (ru_maxrss of the consumer; workers hold at most their prefetched blocks).
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("HF_HUB_OFFLINE", "1")
+
+import argparse  # noqa: E402
+import resource  # noqa: E402
+import subprocess  # noqa: E402
+import sys  # noqa: E402
+import tempfile  # noqa: E402
+import time  # noqa: E402
+from contextlib import closing  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+import polars as pl  # noqa: E402
+import torch  # noqa: E402
+from common import machine  # noqa: E402
+
+from graftcache.fit.buffer import ShuffleBuffer, buffer_frames  # noqa: E402
+from graftcache.fit.data import load_lowdim  # noqa: E402
+from graftcache.fit.feed import SplitFeed  # noqa: E402
+from graftcache.fit.stream import FeatureSource, read_chunks  # noqa: E402
+from graftcache.store import FeatureCache  # noqa: E402
+from graftcache.store.cache import ArraySpec, forget_verified  # noqa: E402
+
+CAMERAS = ("image", "image2")
+BLOCK = 256
+GPU_FRAMES_PER_S = 128  # lerobot's SmolVLA figure: ~0.5 s per step of 64 frames on one A100 (assumed, see above)
+EPISODE = 128  # frames per synthetic episode
+
+
+def make_cache(path: Path, frames: int, width: int) -> FeatureCache:
+    episode = np.arange(frames) // EPISODE
+    frame = np.arange(frames) % EPISODE
+    rng = np.random.default_rng(0)
+    index = pl.DataFrame({"index": np.arange(frames), "episode_index": episode, "frame_index": frame,
+                          "task_index": episode % 10, "suite_index": np.zeros(frames, dtype=np.int64),
+                          "timestamp": frame / 10.0, "state": rng.standard_normal((frames, 8)).astype(np.float32),
+                          "action": rng.standard_normal((frames, 7)).astype(np.float32)}).with_columns(
+        pl.col("state").cast(pl.Array(pl.Float32, 8)), pl.col("action").cast(pl.Array(pl.Float32, 7)))
+    manifest = {"encoder": {"name": "bench"}, "dtype": "fp16", "cameras": list(CAMERAS), "grids": ["16x16"],
+                "extras": {}, "suites": ["libero_spatial"], "tasks": [f"task {i}" for i in range(10)],
+                "dataset": {"source": "bench"}}
+    cache = FeatureCache.create(path, manifest, [ArraySpec(f"features/{c}/16x16", (256, width)) for c in CAMERAS],
+                                index, block_frames=BLOCK)
+    for b in range(cache.layout["n_blocks"]):
+        start, stop = cache.block_range(b)
+        cache.write_block(b, {f"features/{c}/16x16": rng.standard_normal((stop - start, 256, width))
+                              .astype(np.float16) for c in CAMERAS})
+    cache.finalize()
+    return FeatureCache(path, writable=False)
+
+
+def feed_of(cache: FeatureCache, grid: tuple[int, int]) -> SplitFeed:
+    return SplitFeed(load_lowdim(cache, "libero_spatial", chunk=50), FeatureSource.of(cache, CAMERAS, grid), BLOCK)
+
+
+def batches_per_s(feed: SplitFeed, workers: int, batch: int, frames: int, mib: int) -> float:
+    """Frames/s of `frames` frames of batches drawn from the buffer (its fill included)."""
+    capacity = buffer_frames(mib, feed.source.frame_bytes(), batch, len(feed.low))
+    g = torch.Generator().manual_seed(0)
+    t0 = time.perf_counter()
+    with closing(read_chunks(feed.features(seed=0), workers)) as chunks:
+        buffer = ShuffleBuffer(chunks, capacity)
+        for _ in range(frames // batch):
+            buffer.draw(batch, g)
+    return frames / (time.perf_counter() - t0)
+
+
+def read_cost(cache: FeatureCache, run: int, repeats: int = 3) -> float:
+    """Seconds per frame reading `run` consecutive rows of each block (blocks already checked)."""
+    rows = np.concatenate([np.arange(b * BLOCK, b * BLOCK + run) for b in range(cache.layout["n_blocks"])])
+    best = float("inf")
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        for b in range(cache.layout["n_blocks"]):
+            cache.read_features("image", "16x16", rows[b * run:(b + 1) * run])
+        best = min(best, time.perf_counter() - t0)
+    return best / len(rows)
+
+
+RSS_CHILD = """
+import resource, sys, torch
+from contextlib import closing
+sys.path.insert(0, {bench!r})
+from bench_stream import feed_of
+from graftcache.fit.buffer import ShuffleBuffer, buffer_frames
+from graftcache.fit.stream import read_chunks
+from graftcache.store import FeatureCache
+feed = feed_of(FeatureCache({path!r}, writable=False), (16, 16))
+capacity = buffer_frames({mib}, feed.source.frame_bytes(), 64, len(feed.low))
+g = torch.Generator().manual_seed(0)
+with closing(read_chunks(feed.features(seed=0), {workers})) as chunks:
+    buffer = ShuffleBuffer(chunks, capacity)
+    for _ in range(200):
+        buffer.draw(64, g)
+print(capacity, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
+"""
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--frames", type=int, default=2048, help="frames in the synthetic cache")
+    ap.add_argument("--width", type=int, default=768)
+    ap.add_argument("--workers", default="1,2")
+    ap.add_argument("--batch-size", type=int, default=64)
+    ap.add_argument("--buffer-mib", type=int, default=512, help="buffer of the throughput runs")
+    ap.add_argument("--rss-mib", default="64,256,1024")
+    a = ap.parse_args()
+    print(f"machine: {machine()}")
+    print("lscpu: " + next((ln.split(":", 1)[1].strip() for ln in subprocess.run(
+        ["lscpu"], capture_output=True, text=True).stdout.splitlines() if ln.startswith("Model name")), "?"))
+    torch.set_num_threads(1)
+    with tempfile.TemporaryDirectory(prefix="bench_stream_") as tmp:
+        t0 = time.perf_counter()
+        cache = make_cache(Path(tmp) / "bench", a.frames, a.width)
+        mb = cache.size_bytes() / 2**20
+        print(f"cache: {a.frames} frames x 2 cameras x 16x16 x {a.width} fp16 = "
+              f"{a.frames * 2 * 256 * a.width * 2 / 2**20:.0f} MiB raw, {mb:.0f} MiB stored, "
+              f"written in {time.perf_counter() - t0:.0f}s")
+        target = 5 * GPU_FRAMES_PER_S
+        for grid in ((16, 16), (8, 8)):
+            feed = feed_of(cache, grid)
+            for workers in (int(w) for w in a.workers.split(",")):
+                forget_verified()
+                first = batches_per_s(feed, workers, a.batch_size, len(feed.low), a.buffer_mib)
+                second = batches_per_s(feed, workers, a.batch_size, len(feed.low), a.buffer_mib)
+                print(f"grid {grid[0]}x{grid[1]}, {workers} worker(s): {first:.0f} frames/s first epoch (checksums), "
+                      f"{second:.0f} frames/s after; {min(first, second) / GPU_FRAMES_PER_S:.1f}x the assumed GPU "
+                      f"step's {GPU_FRAMES_PER_S} frames/s (target >= 5x = {target})")
+        for run in (32, BLOCK):
+            print(f"read cost, runs of {run} rows per block: {read_cost(cache, run) * 1e3:.2f} ms/frame (one camera)")
+        bench = str(Path(__file__).resolve().parent)
+        for mib in (int(m) for m in a.rss_mib.split(",")):
+            code = RSS_CHILD.format(bench=bench, path=str(cache.path), mib=mib, workers=2)
+            done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+            capacity, rss_kib = (int(v) for v in done.stdout.split()[-2:])
+            children = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+            print(f"--buffer-mib {mib}: buffer {capacity} frames; peak RSS {rss_kib / 1024:.0f} MiB (largest "
+                  f"process so far, workers included: {children / 1024:.0f} MiB)")
+
+
+if __name__ == "__main__":
+    main()

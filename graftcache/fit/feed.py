@@ -1,0 +1,47 @@
+"""What each consumer of a split streams: which frames' features a chunk reads, and which frames they go with.
+
+A control's pairing (graftcache.fit.controls) says that frame r sees the features of frame pairing[r]. Training
+and scoring read features block by block and hand each frame's features to the frame that sees them
+(pairing^-1), so the pairing costs nothing; `align` reads, block by block of its targets, the features those
+frames see (a few runs, see graftcache.fit.controls.shuffle).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from graftcache.fit.data import LowDim
+from graftcache.fit.stream import ChunkStream, FeatureSource, Planned, block_chunks
+
+
+@dataclass(frozen=True)
+class SplitFeed:
+    """One split (its low-dim rows, read from `source`'s cache) as the consumers stream it."""
+
+    low: LowDim
+    source: FeatureSource
+    block_frames: int                    # of the source's cache
+    pairing: np.ndarray | None = None    # frame r sees the features of frame pairing[r]; None: its own
+    drop: bool = False                   # drop frames with NaN/inf features instead of refusing
+
+    def _blocks(self) -> list[np.ndarray]:
+        return block_chunks(self.low.rows, self.block_frames)
+
+    def features(self, seed: int | None) -> ChunkStream:
+        """Each block's frames' features, with the frames that see them: forever in a new order each epoch
+        (`seed`), or once in cache order (None)."""
+        seen_by = np.argsort(self.pairing) if self.pairing is not None else None
+        plan = [Planned(pos if seen_by is None else seen_by[pos], (pos,)) for pos in self._blocks()]
+        return ChunkStream(self.low, [(self.source, self.low.rows)], plan, seed=seed, drop=self.drop)
+
+    def with_targets(self, targets: FeatureSource, target_rows: np.ndarray) -> ChunkStream:
+        """Once in cache order: each block's frames' targets (`targets` at `target_rows`, one per frame) as the
+        second source, the features those frames see as the first."""
+        plan = [Planned(pos, (pos if self.pairing is None else self.pairing[pos], pos)) for pos in self._blocks()]
+        return ChunkStream(self.low, [(self.source, self.low.rows), (targets, target_rows)], plan, drop=self.drop)
+
+    @property
+    def n_chunks(self) -> int:
+        return len(self._blocks())

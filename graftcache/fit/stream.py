@@ -1,0 +1,239 @@
+"""Features streamed out of a cache in chunks, read by prefetching worker processes.
+
+A fit never holds a split's features: at LIBERO scale (pi0.5's 16x16 grid, 768 wide, fp16, two cameras:
+~0.8 MB a frame) a suite is 40-80 GB. Workers read chunks, pool them to the cell's grid
+(graftcache.fit.data.read_grid), check them for NaN/inf and hand them over; the consumer keeps what it needs
+(a bounded shuffle buffer for training, predictions for scoring, sufficient statistics for `align`).
+
+The unit is a chunk: the wanted frames of one cache block (`block_chunks`). A block is one zarr shard, the unit
+a block checksum covers (stage 2 reads a block whole the first time it checks it) and the unit a remote root
+copies locally (graftcache.store.readthrough), so a chunk costs one shard read; benchmarks/bench_stream.py
+measures what smaller runs inside a block would save.
+
+Determinism: the chunk order is a pure function of (seed, epoch), chunk k is read by worker k mod W, and torch's
+DataLoader takes items from IterableDataset workers round-robin, so the consumer sees chunk 0, 1, 2, ... for
+any W and any timing. A GraftcacheError raised in a worker comes back as data (`Failure`) and is raised again
+in the consumer with its own type and one-line message (torch would wrap it in a traceback).
+"""
+
+from __future__ import annotations
+
+import itertools
+import os
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from torch.utils.data import DataLoader, IterableDataset, get_worker_info
+
+from graftcache.errors import FitError, GraftcacheError
+from graftcache.fit.data import LowDim, nonfinite_message, read_grid
+from graftcache.nonfinite import nonfinite_rows
+from graftcache.runtime import single_thread_worker
+from graftcache.store import FeatureCache
+from graftcache.store.cache import STORAGE_DTYPES, trust_verified, verified_blocks
+from graftcache.store.readthrough import reading_root
+
+PREFETCH_CHUNKS = 2  # chunks each worker reads ahead: with the consumer's one, what the stream holds beyond its buffer
+Features = dict[str, torch.Tensor]  # camera -> [n, T, C] in stored precision
+_OPEN: dict[tuple[int, str, str], FeatureCache] = {}  # (process, root, key) -> the cache this process opened
+
+
+@dataclass(frozen=True)
+class FeatureSource:
+    """One array of some cameras of a cache, named by location so that each worker opens it itself (a remote
+    root through its own local copies): a grid (pooled from a stored grid by read_grid) or a stored extra."""
+
+    root: str
+    key: str
+    cameras: tuple[str, ...]
+    grid: tuple[int, int] | None = None
+    extra: str | None = None  # e.g. "connector": the native tower's post-connector tokens
+
+    @classmethod
+    def of(cls, cache: FeatureCache, cameras: Sequence[str], grid: tuple[int, int] | None,
+           extra: str | None = None) -> FeatureSource:
+        missing = [c for c in cameras if c not in cache.manifest["cameras"]]
+        if missing:
+            raise FitError(f"cache {cache.key} has no camera {missing}; it has {cache.manifest['cameras']}")
+        source = cls(cache.root.url, cache.key, tuple(cameras), None if extra else grid, extra)
+        _OPEN.setdefault((os.getpid(), source.root, source.key), cache)  # this process reads through its own handle
+        return source
+
+    def open(self) -> FeatureCache:
+        """This process's handle on the cache: the one it was made from, else opened once per process (a worker
+        never uses its parent's, whose store clients do not survive a fork)."""
+        at = (os.getpid(), self.root, self.key)
+        if at not in _OPEN:
+            _OPEN[at] = FeatureCache.in_root(reading_root(self.root), self.key, writable=False)
+        return _OPEN[at]
+
+    def read(self, rows: np.ndarray) -> Features:
+        cache = self.open()
+        if self.extra is not None:
+            return {c: cache.read_features(c, self.extra, rows) for c in self.cameras}
+        return {c: read_grid(cache, c, self.grid, rows) for c in self.cameras}
+
+    def frame_shape(self, camera: str) -> tuple[int, int]:
+        """(tokens, width) of one frame of `camera` as read (after pooling)."""
+        cache = self.open()
+        if self.extra is not None:
+            tokens, width = cache.layout["arrays"][cache.feature_path(camera, self.extra)]
+            return int(tokens), int(width)
+        stored = next(cache.feature_path(camera, g) for g in cache.manifest["grids"])
+        return self.grid[0] * self.grid[1], int(cache.layout["arrays"][stored][-1])
+
+    def frame_bytes(self) -> int:
+        """Bytes of one frame as read (every camera, after pooling, in stored precision)."""
+        itemsize = STORAGE_DTYPES[self.open().manifest["dtype"]].itemsize
+        return sum(int(np.prod(self.frame_shape(c))) for c in self.cameras) * itemsize
+
+
+@dataclass(frozen=True)
+class Planned:
+    """One chunk to read: per source, the split positions whose features it reads (source i reads
+    `reads[i]`), and `owners`: the position whose low-dim row (or target) each frame goes with."""
+
+    owners: np.ndarray
+    reads: tuple[np.ndarray, ...]
+
+
+def block_chunks(rows: np.ndarray, block_frames: int, positions: np.ndarray | None = None) -> list[np.ndarray]:
+    """`positions` (default: all) of a table whose cache rows are `rows`, grouped by cache block, in cache order."""
+    positions = np.arange(len(rows)) if positions is None else np.asarray(positions)
+    positions = positions[np.argsort(rows[positions], kind="stable")]
+    blocks = rows[positions] // block_frames
+    cuts = np.flatnonzero(np.diff(blocks)) + 1
+    return [p for p in np.split(positions, cuts) if len(p)]
+
+
+@dataclass
+class Chunk:
+    """What a worker hands over: features of the frames it read and kept, with the positions they go with."""
+
+    owners: np.ndarray                 # [n] split positions (low-dim rows) the frames go with
+    features: tuple[Features, ...]     # per source
+    dropped: np.ndarray                # cache rows of the owners left out for NaN/inf features (drop_nonfinite)
+    fetched: int = 0                   # bytes a worker's remote root copied locally for this chunk (a root read in
+                                       # the consumer's process counts its own)
+    verified: frozenset = field(default_factory=frozenset)  # blocks checked for this chunk
+
+
+@dataclass(frozen=True)
+class Failure:
+    """A GraftcacheError raised in a worker, carried to the consumer as data."""
+
+    kind: type
+    message: str
+
+
+@dataclass
+class StreamStats:
+    """What the consumer learns from the chunks it took: frames dropped for NaN/inf, bytes copied locally."""
+
+    dropped: set[int] = field(default_factory=set)  # cache rows
+    fetched: int = 0
+
+
+class ChunkStream(IterableDataset):
+    """The planned chunks, once in plan order (`seed` None), or forever in a new seeded order each epoch."""
+
+    def __init__(self, low: LowDim, sources: Sequence[tuple[FeatureSource, np.ndarray]], plan: Sequence[Planned],
+                 *, seed: int | None = None, drop: bool = False) -> None:
+        """`low`: the split the positions index; `sources`: (source, its cache row of every split position);
+        `drop`: drop frames with NaN/inf features instead of refusing them."""
+        if seed is not None and not plan:
+            raise FitError("nothing to stream: the split has no frames")
+        self.low, self.sources, self.plan, self.seed, self.drop = low, tuple(sources), list(plan), seed, drop
+
+    def order(self) -> Iterator[Planned]:
+        if self.seed is None:
+            yield from self.plan
+            return
+        for epoch in itertools.count():
+            for i in np.random.default_rng((self.seed, epoch)).permutation(len(self.plan)):
+                yield self.plan[i]
+
+    def __iter__(self) -> Iterator[Chunk | Failure]:
+        info = get_worker_info()
+        worker, workers = (info.id, info.num_workers) if info is not None else (0, 1)
+        for k, planned in enumerate(self.order()):
+            if k % workers != worker:
+                continue
+            try:
+                yield self.read(planned)
+            except GraftcacheError as e:
+                yield Failure(type(e), str(e))
+                return
+
+    def read(self, planned: Planned) -> Chunk:
+        before = verified_blocks()
+        roots = [src.open().root for src, _ in self.sources] if get_worker_info() is not None else []
+        fetched = sum(getattr(r, "fetched_bytes", 0) for r in roots)
+        feats = tuple(src.read(rows[pos]) for (src, rows), pos in zip(self.sources, planned.reads, strict=True))
+        bad = np.zeros(len(planned.owners), dtype=bool)
+        for (src, _), pos, per_camera in zip(self.sources, planned.reads, feats, strict=True):
+            for camera, values in per_camera.items():
+                rows_bad = nonfinite_rows(values)
+                if rows_bad.any() and not self.drop:
+                    at = pos[int(np.flatnonzero(rows_bad)[0])]
+                    raise FitError(nonfinite_message(src.key, f"features/{camera}", int(self.low.episode_index[at]),
+                                                     int(self.low.frame_index[at]), f"{int(rows_bad.sum())} of "
+                                                     f"the {len(pos)} frame(s) read with it"))
+                bad |= rows_bad
+        if bad.any():
+            keep = torch.from_numpy(~bad)
+            feats = tuple({c: v[keep] for c, v in per_camera.items()} for per_camera in feats)
+        fetched = sum(getattr(r, "fetched_bytes", 0) for r in roots) - fetched
+        return Chunk(planned.owners[~bad], feats, self.low.rows[planned.owners[bad]], fetched,
+                     verified_blocks() - before)
+
+
+def read_chunks(stream: ChunkStream, num_workers: int, stats: StreamStats | None = None) -> Iterator[Chunk]:
+    """The stream's chunks in order, read by `num_workers` prefetching processes (0: in this process). The blocks
+    a worker checked count as checked here, so the next workers forked for this fit do not check them again."""
+    loader = DataLoader(stream, batch_size=None, num_workers=num_workers,
+                        worker_init_fn=single_thread_worker if num_workers else None,
+                        prefetch_factor=PREFETCH_CHUNKS if num_workers else None)
+    for item in loader:
+        if isinstance(item, Failure):
+            raise item.kind(item.message)
+        trust_verified(item.verified)
+        if stats is not None:
+            stats.dropped.update(int(p) for p in item.dropped)
+            stats.fetched += item.fetched
+        yield item
+
+
+class FrameQueue:
+    """The frames of a chunk iterator as a queue: `take(k)` returns the next k (fewer only when the chunks end)."""
+
+    def __init__(self, chunks: Iterator[Chunk], *, empty_limit: int | None = None) -> None:
+        """`empty_limit`: this many chunks in a row with no frame left (all dropped) is an error, not a hang."""
+        self._chunks, self._empty_limit = chunks, empty_limit
+        self._chunk: Chunk | None = None
+        self._at = 0
+
+    def take(self, k: int) -> tuple[np.ndarray, tuple[Features, ...]] | None:
+        """(owners [n], per-source features [n, ...]) of the next n = k frames; None when nothing is left."""
+        owners, parts, empty = [], [], 0
+        while k > 0:
+            if self._chunk is None or self._at == len(self._chunk.owners):
+                self._chunk, self._at = next(self._chunks, None), 0
+                if self._chunk is None:
+                    break
+                empty = empty + 1 if not len(self._chunk.owners) else 0
+                if self._empty_limit is not None and empty >= self._empty_limit:
+                    raise FitError(f"{empty} chunks in a row kept no frame: every frame's features are NaN/inf")
+                continue
+            n = min(k, len(self._chunk.owners) - self._at)
+            cut = slice(self._at, self._at + n)
+            owners.append(self._chunk.owners[cut])
+            parts.append(tuple({c: v[cut] for c, v in per.items()} for per in self._chunk.features))
+            self._at += n
+            k -= n
+        if not owners:
+            return None
+        feats = tuple({c: torch.cat([p[i][c] for p in parts]) for c in parts[0][i]} for i in range(len(parts[0])))
+        return np.concatenate(owners), feats
