@@ -66,4 +66,4 @@ def extract_cache(req: ExtractRequest, settings: ExecutorSettings, log: Log) -> 
     log(f"{'reusing' if not encoded else 'wrote'} {first.key}: {first.n_frames} frames, {encoded} encoded by "
         f"{n} shard(s) in {wall:.1f}s -> {first.path}")
     return ExtractResult(first.key, first.path, all(s.reused for s in shards), first.n_frames, encoded, wall,
-                         max(s.encode_s for s in shards))
+                         max(s.encode_s for s in shards), complete=True)

@@ -20,6 +20,7 @@ import ray
 
 from graftcache import results
 from graftcache.backbones.pool import BackbonePool
+from graftcache.encoders.fingerprint import NumericsCheck
 from graftcache.errors import ExecutorError
 from graftcache.executors import Log
 from graftcache.executors.ray_cluster import (
@@ -36,9 +37,11 @@ from graftcache.fit.run import Fitter
 from graftcache.requests import ExecutorSettings, FitRequest
 from graftcache.runtime import set_main_threads
 
-#: A worker process's backbones (loaded on first use) and its last request's Fitter: the worker's next cell of the
-#: same request reuses the loaded backbone and feature tables, as the local executor's next cell does.
+#: A worker process's backbones (loaded on first use), numerics verdicts (cache key -> NumericsCheck) and its last
+#: request's Fitter: the worker's next cell reuses the loaded backbone, the checked caches and, of the same request,
+#: the feature tables, as the local executor's next cell does.
 _POOL = BackbonePool()
+_NUMERICS: dict[str, NumericsCheck] = {}
 _FITTER: dict[FitRequest, Fitter] = {}
 
 
@@ -48,7 +51,7 @@ def fit_cell(req: FitRequest, control: str, seed: int) -> dict[str, Any]:
     set_main_threads()  # the CPUs Ray granted this task (it sets OMP_NUM_THREADS from num_cpus)
     if req not in _FITTER:
         _FITTER.clear()
-        _FITTER[req] = Fitter(req, backbones=_POOL)
+        _FITTER[req] = Fitter(req, backbones=_POOL, numerics=_NUMERICS)
     return _FITTER[req].run_cell(get_control(control), seed)
 
 
