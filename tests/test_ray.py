@@ -215,7 +215,7 @@ def test_a_worker_killed_mid_cell_costs_only_its_cell(ray_cluster: str, local_sw
 def test_ray_extract_in_shard_tasks_writes_the_local_bytes(ray_cluster: str, v3_video: Written, tmp_path: Path,
                                                            monkeypatch: pytest.MonkeyPatch) -> None:
     req = ExtractRequest(dataset=str(v3_video.root), encoder="timm:vit_tiny_patch16_224", random_init=True,
-                         grids=((2, 2),), block_frames=4, batch_size=4, num_workers=0, progress=False)  # 5 blocks
+                         grids=("2x2",), block_frames=4, batch_size=4, num_workers=0, progress=False)  # 5 blocks
     monkeypatch.setenv("OMP_NUM_THREADS", "1")  # one torch thread, as in a Ray task given 1 CPU: the same float sums
     local = extract(dataclasses.replace(req, cache=str(tmp_path / "local")), log=lambda _: None)
     lines: list[str] = []
