@@ -102,10 +102,9 @@ class Planned:
     reads: tuple[np.ndarray, ...]
 
 
-def block_chunks(rows: np.ndarray, block_frames: int, positions: np.ndarray | None = None) -> list[np.ndarray]:
-    """`positions` (default: all) of a table whose cache rows are `rows`, grouped by cache block, in cache order."""
-    positions = np.arange(len(rows)) if positions is None else np.asarray(positions)
-    positions = positions[np.argsort(rows[positions], kind="stable")]
+def block_chunks(rows: np.ndarray, block_frames: int) -> list[np.ndarray]:
+    """The positions of a table whose cache rows are `rows`, grouped by cache block, in cache order."""
+    positions = np.argsort(rows, kind="stable")
     blocks = rows[positions] // block_frames
     cuts = np.flatnonzero(np.diff(blocks)) + 1
     return [p for p in np.split(positions, cuts) if len(p)]
