@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import tempfile
 import time
+from contextlib import closing
 from pathlib import Path
 
 import numpy as np
@@ -31,9 +32,12 @@ from graftcache.backbones import load_backbone
 from graftcache.encoders import load_encoder
 from graftcache.extract import ExtractRequest, extract
 from graftcache.fit.align import fit_ridge
-from graftcache.fit.data import load_frames
+from graftcache.fit.buffer import ShuffleBuffer
+from graftcache.fit.data import load_lowdim
+from graftcache.fit.feed import SplitFeed
 from graftcache.fit.loop import camera_map, flow_time, raw_batch, train
 from graftcache.fit.run import FitRequest, Fitter
+from graftcache.fit.stream import FeatureSource, read_chunks
 from graftcache.graft import GraftProjector, feature_key
 from graftcache.pooling import pool_grid
 from graftcache.pretrain import dataset_stats
@@ -91,14 +95,20 @@ def main() -> None:
 
         adapter = load_backbone("smolvla", policy_dir)
         cams = camera_map(adapter, cache.manifest["cameras"])
-        table = load_frames(cache, SUITE, cameras=list(cams.values()), grid=(4, 4), chunk=adapter.chunk_size)
-        width = next(iter(table.features.values())).shape[-1]
+        low = load_lowdim(cache, SUITE, chunk=adapter.chunk_size)
+        source = FeatureSource.of(cache, list(cams.values()), (4, 4))
+        feats = source.read(low.rows)  # the sample's suite is small: the step timings read from memory
+        width = source.frame_shape(source.cameras[0])[1]
+
+        def cached_raw(pos: np.ndarray) -> dict:
+            return raw_batch(low, pos, {c: f[torch.from_numpy(pos)] for c, f in feats.items()}, cams)
+
         adapter.graft(GraftProjector(width, adapter.lm_width))
         opt = torch.optim.AdamW([q for q in adapter.policy.parameters() if q.requires_grad], lr=1e-3)
         adapter.policy.train()
         g = torch.Generator().manual_seed(0)
-        n = len(table)
-        cached = median_seconds(step_fn(adapter, opt, lambda pos: raw_batch(adapter, table, pos % n, cams),
+        n = len(low)
+        cached = median_seconds(step_fn(adapter, opt, lambda pos: cached_raw(pos % n),
                                         a.batch_size, g), a.repeats)
         print(f"flow step from the cache: {cached * 1e3:.0f} ms (batch {a.batch_size}, median of {a.repeats})")
 
@@ -106,11 +116,11 @@ def main() -> None:
 
         online_ds = LeRobotDataset("local/bench", root=a.dataset, video_backend="pyav")
         encoder = load_encoder(a.encoder, random_init=a.random_init)
-        dataset_rows = table.rows  # cache row == dataset index (the cache keeps dataset order)
+        dataset_rows = low.rows  # cache row == dataset index (the cache keeps dataset order)
 
         def online_raw(pos: np.ndarray) -> dict:
             items = [online_ds[int(dataset_rows[i % n])] for i in pos]
-            raw = raw_batch(adapter, table, pos % n, cams)
+            raw = cached_raw(pos % n)
             for key, cam in cams.items():
                 frames = torch.stack([(it[f"observation.images.{cam}"] * 255).round().to(torch.uint8) for it in items])
                 with torch.inference_mode(), autocast(torch.device("cpu"), torch.bfloat16):
@@ -133,14 +143,17 @@ def main() -> None:
               f"ratio {flow_row['wall_s'] / align_row['wall_s']:.0f}x")
 
         native = FeatureCache(root / "cache" / native_key)
-        targets = load_frames(native, SUITE, cameras=list(cams.values()), grid=None, chunk=adapter.chunk_size,
-                              extra="connector")
+        targets = FeatureSource.of(native, source.cameras, None, "connector").read(
+            load_lowdim(native, SUITE, chunk=adapter.chunk_size).rows)
+        feed = SplitFeed(low, source, cache.layout["block_frames"])
         t0 = time.perf_counter()
-        train(adapter, table, cams, steps=a.steps, batch_size=a.batch_size, lr=FitRequest.lr, seed=0, show=False)
+        with closing(read_chunks(feed.features(seed=0), 0)) as chunks:
+            train(adapter, low, ShuffleBuffer(chunks, len(low)), cams, steps=a.steps, batch_size=a.batch_size,
+                  lr=FitRequest.lr, seed=0, show=False)
         train_s = time.perf_counter() - t0
         projector = GraftProjector(width, adapter.lm_width)
-        ridge_s = median_seconds(lambda: fit_ridge(projector, [table.features[c] for c in cams.values()],
-                                                   [targets.features[c] for c in cams.values()], (4, 4)), 5)
+        ridge_s = median_seconds(lambda: fit_ridge(projector, [(feats[c], targets[c]) for c in cams.values()],
+                                                   (4, 4)), 5)
         print(f"fit only: flow training {train_s:.1f}s, ridge {ridge_s * 1e3:.0f} ms ({width}-wide features: the ridge "
               f"costs O(rows x width^2)); ratio {train_s / ridge_s:.0f}x (target >= 100)")
 

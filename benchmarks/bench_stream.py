@@ -19,30 +19,26 @@ frames as `extract` writes them. Prints:
 
 from __future__ import annotations
 
-import os
+import argparse
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from contextlib import closing
+from pathlib import Path
 
-os.environ.setdefault("HF_HUB_OFFLINE", "1")
+import numpy as np
+import polars as pl
+import torch
+from common import machine
 
-import argparse  # noqa: E402
-import resource  # noqa: E402
-import subprocess  # noqa: E402
-import sys  # noqa: E402
-import tempfile  # noqa: E402
-import time  # noqa: E402
-from contextlib import closing  # noqa: E402
-from pathlib import Path  # noqa: E402
-
-import numpy as np  # noqa: E402
-import polars as pl  # noqa: E402
-import torch  # noqa: E402
-from common import machine  # noqa: E402
-
-from graftcache.fit.buffer import ShuffleBuffer, buffer_frames  # noqa: E402
-from graftcache.fit.data import load_lowdim  # noqa: E402
-from graftcache.fit.feed import SplitFeed  # noqa: E402
-from graftcache.fit.stream import FeatureSource, read_chunks  # noqa: E402
-from graftcache.store import FeatureCache  # noqa: E402
-from graftcache.store.cache import ArraySpec, forget_verified  # noqa: E402
+from graftcache.fit.buffer import ShuffleBuffer, buffer_frames
+from graftcache.fit.data import load_lowdim
+from graftcache.fit.feed import SplitFeed
+from graftcache.fit.stream import FeatureSource, read_chunks
+from graftcache.store import FeatureCache
+from graftcache.store.cache import ArraySpec, forget_verified
 
 CAMERAS = ("image", "image2")
 BLOCK = 256
@@ -130,7 +126,7 @@ def main() -> None:
     a = ap.parse_args()
     print(f"machine: {machine()}")
     print("lscpu: " + next((ln.split(":", 1)[1].strip() for ln in subprocess.run(
-        ["lscpu"], capture_output=True, text=True).stdout.splitlines() if ln.startswith("Model name")), "?"))
+        ["lscpu"], capture_output=True, text=True, check=False).stdout.splitlines() if ln.startswith("Model name")), "?"))
     torch.set_num_threads(1)
     with tempfile.TemporaryDirectory(prefix="bench_stream_") as tmp:
         t0 = time.perf_counter()

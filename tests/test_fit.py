@@ -23,13 +23,13 @@ from graftcache.backbones import load_backbone
 from graftcache.cli import main
 from graftcache.errors import FitError
 from graftcache.extract import ExtractRequest, extract
-from graftcache.fit.controls import get_control
 from graftcache.fit.buffer import ShuffleBuffer
+from graftcache.fit.controls import get_control
 from graftcache.fit.data import load_lowdim, split_episodes
 from graftcache.fit.feed import SplitFeed
 from graftcache.fit.loop import camera_map, train
-from graftcache.fit.stream import FeatureSource, read_chunks
 from graftcache.fit.run import Cell, FitRequest, Fitter
+from graftcache.fit.stream import FeatureSource, read_chunks
 from graftcache.graft import GraftProjector
 from graftcache.store import FeatureCache
 

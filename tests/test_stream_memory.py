@@ -2,13 +2,13 @@
 
 Two real `python -m graftcache fit` processes with the same settings, one on a cache of the bundled sample's
 libero_spatial suite (1x: 18 episodes, 912 frames), one on a cache of a dataset with 8x the sample's episodes
-(graftcache.datasets.tile: windows of the sample's frames, 144 libero_spatial episodes, ~7.3k frames). The caches
+(graftcache.datasets.tile: windows of the sample's frames, ~144 libero_spatial episodes, ~7.2k frames). The caches
 are laid out as `extract` writes them, with each dataset's own index, low-dim and action columns, and random
 features (tests/helpers/caches.py: decoding 8x the sample's AV1 frames alone would take minutes here, and a fit
 cannot tell random features from an encoder's). Features are 4x4 (the tiny SmolVLA's grid) x 2048 fp16 for each of
-two cameras: 128 KiB a frame, 0.11 GiB for the 1x suite and 0.89 GiB at 8x. The design this replaced held every
-frame of the suite plus a copy of each split, ~0.23 GiB at 1x and ~1.8 GiB at 8x over a process of ~0.9 GiB: a
-ratio of ~2.4, twice the 1.25 bound. Streaming with a 32 MiB buffer holds the same few blocks at both sizes.
+two cameras: 128 KiB a frame, 0.11 GiB for the 1x suite and 0.88 GiB at 8x. Measured on the same two caches with
+the same flags less the two it lacked (2-core AMD EPYC): the in-memory design this replaced peaked at 1.14 GiB at 1x and 1.82 GiB at 8x,
+a ratio of 1.60 that fails the 1.25 bound; streaming with a 32 MiB buffer peaked at 1.14 GiB at both sizes.
 """
 
 from __future__ import annotations

@@ -19,6 +19,8 @@ in the consumer with its own type and one-line message (torch would wrap it in a
 from __future__ import annotations
 
 import itertools
+import multiprocessing
+import multiprocessing.context
 import os
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
@@ -34,6 +36,7 @@ from graftcache.runtime import single_thread_worker
 from graftcache.store import FeatureCache
 from graftcache.store.cache import STORAGE_DTYPES, trust_verified, verified_blocks
 from graftcache.store.readthrough import reading_root
+from graftcache.store.roots import is_url
 
 PREFETCH_CHUNKS = 2  # chunks each worker reads ahead: with the consumer's one, what the stream holds beyond its buffer
 Features = dict[str, torch.Tensor]  # camera -> [n, T, C] in stored precision
@@ -99,10 +102,9 @@ class Planned:
     reads: tuple[np.ndarray, ...]
 
 
-def block_chunks(rows: np.ndarray, block_frames: int, positions: np.ndarray | None = None) -> list[np.ndarray]:
-    """`positions` (default: all) of a table whose cache rows are `rows`, grouped by cache block, in cache order."""
-    positions = np.arange(len(rows)) if positions is None else np.asarray(positions)
-    positions = positions[np.argsort(rows[positions], kind="stable")]
+def block_chunks(rows: np.ndarray, block_frames: int) -> list[np.ndarray]:
+    """The positions of a table whose cache rows are `rows`, grouped by cache block, in cache order."""
+    positions = np.argsort(rows, kind="stable")
     blocks = rows[positions] // block_frames
     cuts = np.flatnonzero(np.diff(blocks)) + 1
     return [p for p in np.split(positions, cuts) if len(p)]
@@ -190,12 +192,24 @@ class ChunkStream(IterableDataset):
                      verified_blocks() - before)
 
 
+def _fresh_context() -> multiprocessing.context.BaseContext:
+    """Workers for an object-store root start from a fork server, not from this process: an object-store client
+    runs a runtime of threads that a forked child lacks, so a worker forked from a process that already read
+    the store waits forever on its first request (zarr's own event loop is reset at fork, local roots are safe
+    to fork). The server imports the stream once; each worker is a cheap fork of it."""
+    context = multiprocessing.get_context("forkserver")
+    context.set_forkserver_preload([__name__])
+    return context
+
+
 def read_chunks(stream: ChunkStream, num_workers: int, stats: StreamStats | None = None) -> Iterator[Chunk]:
     """The stream's chunks in order, read by `num_workers` prefetching processes (0: in this process). The blocks
     a worker checked count as checked here, so the next workers forked for this fit do not check them again."""
+    remote = any(is_url(src.root) for src, _ in stream.sources)
     loader = DataLoader(stream, batch_size=None, num_workers=num_workers,
                         worker_init_fn=single_thread_worker if num_workers else None,
-                        prefetch_factor=PREFETCH_CHUNKS if num_workers else None)
+                        prefetch_factor=PREFETCH_CHUNKS if num_workers else None,
+                        multiprocessing_context=_fresh_context() if remote and num_workers else None)
     for item in loader:
         if isinstance(item, Failure):
             raise item.kind(item.message)
