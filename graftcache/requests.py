@@ -135,28 +135,6 @@ class TileRequest(Checked):
 
 
 @dataclass(frozen=True)
-class TileRequest(Checked):
-    """What `graftcache tile` builds: a dataset of `preset`'s dimensions, or of `episodes` episodes (and
-    `frames` frames; default: the source's mean length times `episodes`) over the source's tasks."""
-
-    source: str
-    dest: str
-    preset: str | None = None  # a name of graftcache.datasets.tile.PRESETS ("libero": lerobot/libero's counts)
-    episodes: int | None = None
-    frames: int | None = None
-    seed: int = 0  # episode lengths and window positions
-
-    RULES: ClassVar[dict[str, Rule]] = {"episodes": POSITIVE, "frames": POSITIVE, "seed": NON_NEGATIVE}
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        if (self.preset is None) == (self.episodes is None):
-            raise GraftcacheError("tile needs exactly one of preset and episodes")
-        if self.frames is not None and self.episodes is None:
-            raise GraftcacheError("frames goes with episodes (a preset fixes its own frame counts)")
-
-
-@dataclass(frozen=True)
 class TinyTrainConfig(Checked):
     """The recipe of `graftcache train-tiny` (it keys the checkpoint folder, with the dataset's identity)."""
 
