@@ -5,8 +5,11 @@ reach the executors (recipe table, flags) and that Ray is imported only when cho
 
 from __future__ import annotations
 
+import builtins
 import dataclasses
+import importlib
 import os
+import pickle
 import signal
 import subprocess
 import sys
@@ -136,6 +139,21 @@ def test_ray_task_options_refuse_what_ray_cannot_place() -> None:
         task_options(ExecutorSettings(executor="ray"), "cuda:1")
     with pytest.raises(ExecutorError, match="--device cuda with --gpus-per-task 0: a task would get no GPU"):
         task_options(ExecutorSettings(executor="ray", gpus_per_task=0), "cuda")
+
+
+@pytest.mark.parametrize("module, name", [("graftcache.executors.ray_fit", "fit_cell"),
+                                          ("graftcache.executors.ray_extract", "extract_shard")])
+def test_ray_tasks_ship_their_function_by_reference(module: str, name: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A task's function travels as "module.name", so a worker keeps its own module state (loaded backbones), and
+    nothing of the driver's goes with it: not even a `print` that something in the driver has replaced, which a
+    function shipped by value (with its globals' objects) cannot pickle."""
+    from ray import cloudpickle
+
+    task_module = importlib.import_module(module)
+    monkeypatch.setattr(builtins, "print", lambda *args, **kwargs: None)
+    shipped = cloudpickle.dumps(getattr(task_module, f"{name}_task")._function)
+    assert pickle.loads(shipped) is getattr(task_module, name)
+    assert len(shipped) < 200, len(shipped)
 
 
 @pytest.mark.slow

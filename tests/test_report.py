@@ -177,7 +177,7 @@ def test_table_with_every_column_but_the_optional_ones_reports(tmp_path):
     older = full_table().drop("eval_mse_episodes", "n_eval_episodes", "command")
     path = write_results(tmp_path / "old.parquet", older)
     assert report.report_command(path, tmp_path / "out") == 0
-    assert "Columns without values (absent or all null): eval_mse_episodes, n_eval_episodes" in (
+    assert "- Columns without values (absent or all null): eval_mse_episodes, n_eval_episodes, command.\n" in (
         tmp_path / "out" / "report.md"
     ).read_text()
 

@@ -34,9 +34,13 @@ from graftcache.extract import ExtractResult, extract
 from graftcache.requests import ExecutorSettings, ExtractRequest
 
 
-@ray.remote
 def extract_shard(req: ExtractRequest) -> ExtractResult:
+    """One shard's blocks (`req.shard`), extracted in a Ray worker (run as `extract_shard_task`)."""
     return extract(req)
+
+
+#: The Ray task of `extract_shard`, kept apart so that cloudpickle ships the function by reference (see ray_fit).
+extract_shard_task = ray.remote(extract_shard)
 
 
 def shared_request(req: ExtractRequest, compute_dtype: str) -> ExtractRequest:
@@ -55,7 +59,7 @@ def extract_cache(req: ExtractRequest, settings: ExecutorSettings, log: Log) -> 
     req = shared_request(req, worker_compute_dtype(req.compute_dtype, req.device, options))
     log(f"ray: extract {req.encoder} as {n} shard task(s), {options['num_gpus']:g} GPU and {options['num_cpus']:g} "
         f"CPU each")
-    tasks = {extract_shard.options(**options).remote(dataclasses.replace(req, shard=(i, n))): f"shard {i}/{n}"
+    tasks = {extract_shard_task.options(**options).remote(dataclasses.replace(req, shard=(i, n))): f"shard {i}/{n}"
              for i in range(n)}
     shards = [result for _, result in finished(tasks)]
     if not any(s.complete for s in shards):

@@ -45,14 +45,19 @@ _NUMERICS: dict[str, NumericsCheck] = {}
 _FITTER: dict[FitRequest, Fitter] = {}
 
 
-@ray.remote
 def fit_cell(req: FitRequest, control: str, seed: int) -> dict[str, Any]:
-    """The row of one cell, its projector saved under the request's run folder."""
+    """The row of one cell, its projector saved under the request's run folder (run as `fit_cell_task`)."""
     set_main_threads()  # the CPUs Ray granted this task (it sets OMP_NUM_THREADS from num_cpus)
     if req not in _FITTER:
         _FITTER.clear()
         _FITTER[req] = Fitter(req, backbones=_POOL, numerics=_NUMERICS)
     return _FITTER[req].run_cell(get_control(control), seed)
+
+
+#: The Ray task of `fit_cell`. The plain function stays the module's attribute so that cloudpickle ships it by
+#: reference: the worker imports this module and keeps its own `_POOL`, `_NUMERICS` and `_FITTER`. Decorating
+#: `fit_cell` itself would ship it by value, with copies of those globals (the driver's, holding its `print`).
+fit_cell_task = ray.remote(fit_cell)
 
 
 def shared_request(req: FitRequest, compute_dtype: str) -> FitRequest:
@@ -85,7 +90,7 @@ def fit(requests: Sequence[tuple[str, FitRequest]], settings: ExecutorSettings, 
                 cells[cell.run_id] = (label, req, control.name, seed)
     bar.update(sum(len(r.seeds) * (1 + len(r.controls)) for _, r in requests) - len(cells))
     log(f"ray: {len(cells)} cell task(s) to run; the other cells are in the results file already")
-    tasks = {fit_cell.options(**options[req.device]).remote(req, control, seed): run_id
+    tasks = {fit_cell_task.options(**options[req.device]).remote(req, control, seed): run_id
              for run_id, (_, req, control, seed) in cells.items()}
     for run_id, row in finished(tasks):
         label, req, control, seed = cells[run_id]

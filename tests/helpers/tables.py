@@ -75,7 +75,7 @@ def command(backbone: str, suite: str, encoder: str, control: str, seed: int) ->
 
 
 def row(backbone: str, suite: str, encoder: str, seed: int, eval_mse: float | None, **over: Any) -> dict:
-    """One complete SCHEMA row; keyword overrides replace any column."""
+    """One SCHEMA row, every column but `eval_mse_episodes` filled; keyword overrides replace any column."""
     control = over.get("control", "none")
     cell = {"backbone": backbone, "suite": suite, "encoder": encoder, "seed": seed, "control": control}
     base = {
@@ -89,6 +89,7 @@ def row(backbone: str, suite: str, encoder: str, seed: int, eval_mse: float | No
         "steps": 100,
         "lr": 1e-3,
         "batch_size": 8,
+        "buffer_mib": 0 if control == "native" else 2048,
         "train_loss_final": 0.5,
         "eval_mse": eval_mse,
         "eval_mse_first": eval_mse,
@@ -98,7 +99,10 @@ def row(backbone: str, suite: str, encoder: str, seed: int, eval_mse: float | No
         "eval_split_seed": 0,
         "wall_s": 1.0,
         "device": "cpu",
+        "compute_dtype": "fp32",
         "random_init": False,
+        "n_dropped_nonfinite": 0,
+        "numerics_drift": 0.0,
         "graftcache_version": "0.1.0",
         "command": command(backbone, suite, encoder, control, seed),
     }
