@@ -11,7 +11,9 @@ frames as `extract` writes them. Prints:
   (pi0.5) and the 8x8 grid (SmolVLA) pooled from it in the workers (as read_grid pools a finer stored grid), per
   worker count, first epoch (every block checked against its checksum) and second epoch; against the frames/s a
   fit step consumes on a GPU. That figure is assumed, not measured here: lerobot documents SmolVLA training at
-  ~0.5-0.7 s per step at batch 64 on one A100, i.e. <= ~128 frames/s; target >= 5x that;
+  ~0.5-0.7 s per step at batch 64 on one A100, i.e. <= ~128 frames/s; target >= 5x that. The 16x16 grid is
+  also set against pi0.5's grafted step as measured on an H100 (bf16, features from a cache:
+  benchmarks/results/bench_real_size_pi05_h100_bf16.json, written by bench_real_size.py), its largest batch;
 - the read cost per frame of a whole block against runs of 32 rows inside a block (why a chunk is a block);
 - peak RSS of a process streaming 200 batches, per `--buffer-mib` (the fit's memory flag), in a fresh
   subprocess each (ru_maxrss of the consumer; workers hold at most their prefetched blocks).
@@ -20,6 +22,7 @@ frames as `extract` writes them. Prints:
 from __future__ import annotations
 
 import argparse
+import json
 import resource
 import subprocess
 import sys
@@ -43,7 +46,17 @@ from graftcache.store.cache import ArraySpec, forget_verified
 CAMERAS = ("image", "image2")
 BLOCK = 256
 GPU_FRAMES_PER_S = 128  # lerobot's SmolVLA figure: ~0.5 s per step of 64 frames on one A100 (assumed, see above)
+PI05_MEASURED = Path(__file__).resolve().parent / "results" / "bench_real_size_pi05_h100_bf16.json"
 EPISODE = 128  # frames per synthetic episode
+
+
+def measured_pi05() -> tuple[float, str]:
+    """(frames/s, what it is) of pi0.5's grafted training step on cached features at its largest measured batch."""
+    record = json.loads(PI05_MEASURED.read_text())
+    step = max((r for r in record["results"] if r["phase"] == "cached step"), key=lambda r: r["batch"])
+    gpu = next((part for part in record["machine"].split("; ") if part.startswith("NVIDIA")), record["device"])
+    return step["batch"] / step["seconds"], (f"pi0.5 grafted step measured on an {gpu} ({record['compute_dtype']}, "
+                                             f"batch {step['batch']}: {step['seconds']:.3f} s)")
 
 
 def make_cache(path: Path, frames: int, width: int) -> FeatureCache:
@@ -136,6 +149,7 @@ def main() -> None:
               f"{a.frames * 2 * 256 * a.width * 2 / 2**20:.0f} MiB raw, {mb:.0f} MiB stored, "
               f"written in {time.perf_counter() - t0:.0f}s")
         target = 5 * GPU_FRAMES_PER_S
+        pi05_rate, pi05_what = measured_pi05()
         for grid in ((16, 16), (8, 8)):
             feed = feed_of(cache, grid)
             for workers in (int(w) for w in a.workers.split(",")):
@@ -145,6 +159,9 @@ def main() -> None:
                 print(f"grid {grid[0]}x{grid[1]}, {workers} worker(s): {first:.0f} frames/s first epoch (checksums), "
                       f"{second:.0f} frames/s after; {min(first, second) / GPU_FRAMES_PER_S:.1f}x the assumed GPU "
                       f"step's {GPU_FRAMES_PER_S} frames/s (target >= 5x = {target})")
+                if grid == (16, 16):
+                    print(f"  {min(first, second) / pi05_rate:.1f}x the {pi05_what} = {pi05_rate:.0f} frames/s "
+                          f"(target >= 5x = {5 * pi05_rate:.0f})")
         for run in (32, BLOCK):
             print(f"read cost, runs of {run} rows per block: {read_cost(cache, run) * 1e3:.2f} ms/frame (one camera)")
         bench = str(Path(__file__).resolve().parent)
