@@ -67,7 +67,8 @@ class FitRequest(Checked):
     steps: int = 300
     lr: float = 1e-3
     batch_size: int = 16
-    buffer_mib: int = 2048  # training features held at once (shuffle buffer; with --num-workers x 2 prefetched blocks)
+    buffer_mib: int = 2048  # training features held at once (shuffle buffer; with --num-workers x 2 prefetched blocks;
+    # with --num-workers 0, as much again of blocks kept for the next cells)
     eval_fraction: float = 0.2
     eval_split_seed: int = 0
     eval_frames: int | None = None

@@ -4,6 +4,7 @@ in workers, and scoring from a stream against a computation written here."""
 
 from __future__ import annotations
 
+import pickle
 from collections.abc import Iterator
 from contextlib import closing
 from itertools import islice
@@ -21,7 +22,7 @@ from graftcache.fit.controls import SHUFFLE_GROUP, shuffle
 from graftcache.fit.data import LowDim, load_lowdim
 from graftcache.fit.feed import SplitFeed
 from graftcache.fit.loop import EVAL_BATCH_SIZE, camera_map, evaluate
-from graftcache.fit.stream import Chunk, FeatureSource, StreamStats, read_chunks
+from graftcache.fit.stream import BlockMemo, Chunk, FeatureSource, StreamStats, read_chunks
 from graftcache.graft import GraftProjector, feature_key
 from graftcache.nonfinite import nonfinite_rows
 from graftcache.scoring import frame_noise
@@ -211,3 +212,53 @@ def test_streamed_scoring_equals_scoring_written_out_here(cache: FeatureCache) -
     for episode in np.unique(low.episode_index):
         assert score.per_episode[int(episode)] == pytest.approx(per_frame[low.episode_index == episode].mean(),
                                                                  rel=1e-5)
+
+
+def test_a_memo_reads_each_block_once_returns_the_direct_values_and_keeps_to_its_budget(
+        cache: FeatureCache, monkeypatch: pytest.MonkeyPatch) -> None:
+    source = FeatureSource.of(cache, CAMERAS, (2, 2))
+    reads: list[tuple[str, list[int]]] = []
+    direct = FeatureSource.read_camera
+    monkeypatch.setattr(FeatureSource, "read_camera",
+                        lambda self, camera, rows: reads.append((camera, rows.tolist())) or direct(self, camera, rows))
+    rows = np.array([17, 3, 40, 5, 18, 41])  # blocks 2, 0, 5, 0, 2, 5: out of order, repeated
+    tokens, width = source.frame_shape(CAMERAS[0])
+    block_bytes = BLOCK * tokens * width * 2  # fp16
+
+    memo = BlockMemo(budget=1 << 20)
+    kept = memo.read(source, rows)
+    whole = [list(range(b * BLOCK, (b + 1) * BLOCK)) for b in (0, 2, 5)]
+    assert reads == [(c, r) for c in CAMERAS for r in whole]  # each camera's blocks, whole, once
+    assert memo.nbytes == 3 * len(CAMERAS) * block_bytes
+    for camera in CAMERAS:
+        assert torch.equal(kept[camera], direct(source, camera, rows))  # bit for bit what streaming reads
+        torch.testing.assert_close(kept[camera], _pooled(cache, rows, camera))
+    reads.clear()
+    again = memo.read(source, np.array([23, 0, 16]))
+    assert reads == []  # blocks 2 and 0 were kept
+    assert all(torch.equal(again[c], direct(source, c, np.array([23, 0, 16]))) for c in CAMERAS)
+
+    one = BlockMemo(budget=block_bytes)  # room for one block: the least recently used goes
+    values = one.read(source, rows)
+    assert one.nbytes == block_bytes
+    assert all(torch.equal(values[c], kept[c]) for c in CAMERAS)
+
+    reads.clear()
+    none = BlockMemo(budget=block_bytes - 1)  # a block it could never keep: read as asked, nothing kept
+    values = none.read(source, rows)
+    assert reads == [(c, rows.tolist()) for c in CAMERAS] and none.nbytes == 0
+    assert all(torch.equal(values[c], kept[c]) for c in CAMERAS)
+
+
+def test_a_memo_never_travels_to_a_worker(cache: FeatureCache) -> None:
+    low = load_lowdim(cache, "libero_spatial", chunk=5)
+    memo = BlockMemo(budget=1 << 20)
+    stream = SplitFeed(low, FeatureSource.of(cache, CAMERAS, (2, 2)), BLOCK, memo=memo).features(seed=0)
+    assert stream.memo is memo and pickle.loads(pickle.dumps(stream)).memo is None
+    first = _chunks(stream, 0, 3)
+    kept = memo.nbytes
+    assert kept > 0  # read in this process: kept
+    second = _chunks(stream, 2, 6)  # read by workers: the same chunks, and the next ones are not kept here
+    assert memo.nbytes == kept
+    assert all(torch.equal(a.features[0][c], b.features[0][c]) for a, b in zip(first, second[:3], strict=True)
+               for c in CAMERAS)

@@ -48,7 +48,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     add_field(p, FitRequest, "batch_size", type=positive_int)
     add_field(p, FitRequest, "buffer_mib", type=positive_int,
               help="MiB of training features held in the shuffle buffer: with --num-workers x 2 prefetched cache "
-              "blocks, what bounds the fit's memory whatever the suite's size (more mixes episodes better)")
+              "blocks, what bounds the fit's memory whatever the suite's size (more mixes episodes better); reading in "
+              "this process (--num-workers 0), up to as much again of read blocks is kept for the next cells")
     add_field(p, FitRequest, "eval_fraction", type=fraction, help="held-out share of each task's episodes")
     add_field(p, FitRequest, "eval_split_seed", type=nonneg_int)
     add_field(p, FitRequest, "eval_frames", type=positive_int, help="cap on scored held-out frames (evenly spaced)")

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from graftcache.fit.data import LowDim
-from graftcache.fit.stream import ChunkStream, FeatureSource, Planned, block_chunks
+from graftcache.fit.stream import BlockMemo, ChunkStream, FeatureSource, Planned, block_chunks
 
 
 @dataclass(frozen=True)
@@ -25,6 +25,7 @@ class SplitFeed:
     block_frames: int                    # of the source's cache
     pairing: np.ndarray | None = None    # frame r sees the features of frame pairing[r]; None: its own
     drop: bool = False                   # drop frames with NaN/inf features instead of refusing
+    memo: BlockMemo | None = None        # blocks kept for the next streams, when read in this process
 
     def _blocks(self) -> list[np.ndarray]:
         return block_chunks(self.low.rows, self.block_frames)
@@ -34,13 +35,15 @@ class SplitFeed:
         (`seed`), or once in cache order (None)."""
         seen_by = np.argsort(self.pairing) if self.pairing is not None else None
         plan = [Planned(pos if seen_by is None else seen_by[pos], (pos,)) for pos in self._blocks()]
-        return ChunkStream(self.low, [(self.source, self.low.rows)], plan, seed=seed, drop=self.drop)
+        return ChunkStream(self.low, [(self.source, self.low.rows)], plan, seed=seed, drop=self.drop,
+                           memo=self.memo)
 
     def with_targets(self, targets: FeatureSource, target_rows: np.ndarray) -> ChunkStream:
         """Once in cache order: each block's frames' targets (`targets` at `target_rows`, one per frame) as the
         second source, the features those frames see as the first."""
         plan = [Planned(pos, (pos if self.pairing is None else self.pairing[pos], pos)) for pos in self._blocks()]
-        return ChunkStream(self.low, [(self.source, self.low.rows), (targets, target_rows)], plan, drop=self.drop)
+        return ChunkStream(self.low, [(self.source, self.low.rows), (targets, target_rows)], plan, drop=self.drop,
+                           memo=self.memo)
 
     @property
     def n_chunks(self) -> int:

@@ -34,13 +34,14 @@ from graftcache.backbones.pool import BackbonePool
 from graftcache.backbones.tiny_record import resolve_policy
 from graftcache.encoders.fingerprint import NumericsCheck, check_numerics
 from graftcache.errors import FitError
+from graftcache.fit.buffer import MIB
 from graftcache.fit.controls import Control, get_control
 from graftcache.fit.data import LowDim, drop_nonfinite, load_lowdim, split_episodes, suite_index_table
 from graftcache.fit.feed import SplitFeed
 from graftcache.fit.lookup import find_cache
 from graftcache.fit.loop import camera_map, evaluate
 from graftcache.fit.objectives import EVAL_ONLY, OBJECTIVES, Fitting, Objective
-from graftcache.fit.stream import FeatureSource, StreamStats, read_chunks
+from graftcache.fit.stream import BlockMemo, FeatureSource, StreamStats, read_chunks
 from graftcache.pooling import format_grid
 from graftcache.requests import FitRequest
 from graftcache.runtime import resolve_compute_dtype, resolve_device, resolve_dtype, set_main_threads
@@ -141,6 +142,8 @@ class Fitter:
         self._materials: dict[tuple, _Material] = {}
         self._numerics = {} if numerics is None else numerics  # cache key -> verdict, before the first cell runs
         self._enforced: set[str] = set()  # verdicts this request has acted on (refused, warned)
+        # reading in this process, the blocks cells read are kept for the next cells, up to another --buffer-mib
+        self._memo = BlockMemo(req.buffer_mib * MIB) if req.num_workers == 0 else None
 
     # ---------------------------------------------------------------- cells
     def _source(self, control: Control) -> FeatureCache:
@@ -252,7 +255,7 @@ class Fitter:
     def _feed(self, mat: _Material, low: LowDim, control: Control, seed: int) -> SplitFeed:
         """A split as a cell streams it, paired by the control (seeded per split as the cell's seed says)."""
         return SplitFeed(low, mat.source, int(mat.cache.layout["block_frames"]), control.pairing(len(low), seed),
-                         drop=self.req.drop_nonfinite)
+                         drop=self.req.drop_nonfinite, memo=self._memo)
 
     def _run_cell(self, adapter, control: Control, cell: Cell, mat: _Material) -> dict[str, Any]:
         t0 = time.perf_counter()

@@ -22,6 +22,7 @@ import itertools
 import multiprocessing
 import multiprocessing.context
 import os
+from collections import OrderedDict
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 
@@ -73,10 +74,13 @@ class FeatureSource:
         return _OPEN[at]
 
     def read(self, rows: np.ndarray) -> Features:
+        return {c: self.read_camera(c, rows) for c in self.cameras}
+
+    def read_camera(self, camera: str, rows: np.ndarray) -> torch.Tensor:
         cache = self.open()
         if self.extra is not None:
-            return {c: cache.read_features(c, self.extra, rows) for c in self.cameras}
-        return {c: read_grid(cache, c, self.grid, rows) for c in self.cameras}
+            return cache.read_features(camera, self.extra, rows)
+        return read_grid(cache, camera, self.grid, rows)
 
     def frame_shape(self, camera: str) -> tuple[int, int]:
         """(tokens, width) of one frame of `camera` as read (after pooling)."""
@@ -91,6 +95,54 @@ class FeatureSource:
         """Bytes of one frame as read (every camera, after pooling, in stored precision)."""
         itemsize = STORAGE_DTYPES[self.open().manifest["dtype"]].itemsize
         return sum(int(np.prod(self.frame_shape(c))) for c in self.cameras) * itemsize
+
+
+class BlockMemo:
+    """Whole blocks this process has read, as a source reads them (pooled), kept for the cells after the one that
+    read them, up to `budget` bytes (the least recently used go first).
+
+    The cells of one (backbone, encoder, suite) read the same blocks again and again: every control and seed,
+    for training and for scoring. On a small cache reading is most of a cell (the demo's 8x8x1280 native grids:
+    ~0.45 s of a ~2.9 s cell). Only reading in this process can keep them: workers are new processes for each
+    stream, so a memo never travels to one (ChunkStream drops it when pickled).
+    """
+
+    def __init__(self, budget: int) -> None:
+        self.budget, self.nbytes = budget, 0
+        self._blocks: OrderedDict[tuple[FeatureSource, str, int], torch.Tensor] = OrderedDict()
+
+    def read(self, source: FeatureSource, rows: np.ndarray) -> Features:
+        """`source.read(rows)`, the same values, from kept blocks where it can."""
+        cache = source.open()
+        block_frames = int(cache.layout["block_frames"])
+        itemsize = STORAGE_DTYPES[cache.manifest["dtype"]].itemsize
+        out: Features = {}
+        for camera in source.cameras:
+            if not len(rows) or block_frames * int(np.prod(source.frame_shape(camera))) * itemsize > self.budget:
+                out[camera] = source.read_camera(camera, rows)  # nothing to keep, or a block it could never keep
+                continue
+            blocks = rows // block_frames
+            for b in np.unique(blocks):
+                at = np.flatnonzero(blocks == b)
+                whole = self._block(source, camera, int(b))
+                if camera not in out:
+                    out[camera] = torch.empty((len(rows), *whole.shape[1:]), dtype=whole.dtype)
+                out[camera][torch.from_numpy(at)] = whole[torch.from_numpy(rows[at] - int(b) * block_frames)]
+        return out
+
+    def _block(self, source: FeatureSource, camera: str, block: int) -> torch.Tensor:
+        key = (source, camera, block)
+        if key in self._blocks:
+            self._blocks.move_to_end(key)
+            return self._blocks[key]
+        lo, hi = source.open().block_range(block)
+        values = source.read_camera(camera, np.arange(lo, hi))
+        self._blocks[key] = values
+        self.nbytes += values.numel() * values.element_size()
+        while self.nbytes > self.budget:
+            _, old = self._blocks.popitem(last=False)
+            self.nbytes -= old.numel() * old.element_size()
+        return values
 
 
 @dataclass(frozen=True)
@@ -142,12 +194,17 @@ class ChunkStream(IterableDataset):
     """The planned chunks, once in plan order (`seed` None), or forever in a new seeded order each epoch."""
 
     def __init__(self, low: LowDim, sources: Sequence[tuple[FeatureSource, np.ndarray]], plan: Sequence[Planned],
-                 *, seed: int | None = None, drop: bool = False) -> None:
+                 *, seed: int | None = None, drop: bool = False, memo: BlockMemo | None = None) -> None:
         """`low`: the split the positions index; `sources`: (source, its cache row of every split position);
-        `drop`: drop frames with NaN/inf features instead of refusing them."""
+        `drop`: drop frames with NaN/inf features instead of refusing them; `memo`: blocks kept across streams
+        when read in this process."""
         if seed is not None and not plan:
             raise FitError("nothing to stream: the split has no frames")
         self.low, self.sources, self.plan, self.seed, self.drop = low, tuple(sources), list(plan), seed, drop
+        self.memo = memo
+
+    def __getstate__(self) -> dict:
+        return {**self.__dict__, "memo": None}  # a worker reads for itself; the memo stays with its process
 
     def order(self) -> Iterator[Planned]:
         if self.seed is None:
@@ -173,7 +230,8 @@ class ChunkStream(IterableDataset):
         before = verified_blocks()
         roots = [src.open().root for src, _ in self.sources] if get_worker_info() is not None else []
         fetched = sum(getattr(r, "fetched_bytes", 0) for r in roots)
-        feats = tuple(src.read(rows[pos]) for (src, rows), pos in zip(self.sources, planned.reads, strict=True))
+        feats = tuple(self.memo.read(src, rows[pos]) if self.memo else src.read(rows[pos])
+                      for (src, rows), pos in zip(self.sources, planned.reads, strict=True))
         bad = np.zeros(len(planned.owners), dtype=bool)
         for (src, _), pos, per_camera in zip(self.sources, planned.reads, feats, strict=True):
             for camera, values in per_camera.items():
