@@ -91,10 +91,10 @@ class FeatureSource:
         stored = next(cache.feature_path(camera, g) for g in cache.manifest["grids"])
         return self.grid[0] * self.grid[1], int(cache.layout["arrays"][stored][-1])
 
-    def frame_bytes(self) -> int:
-        """Bytes of one frame as read (every camera, after pooling, in stored precision)."""
+    def frame_bytes(self, cameras: Sequence[str] | None = None) -> int:
+        """Bytes of one frame as read (after pooling, in stored precision) of `cameras`, default every camera."""
         itemsize = STORAGE_DTYPES[self.open().manifest["dtype"]].itemsize
-        return sum(int(np.prod(self.frame_shape(c))) for c in self.cameras) * itemsize
+        return sum(int(np.prod(self.frame_shape(c))) for c in (self.cameras if cameras is None else cameras)) * itemsize
 
 
 class BlockMemo:
@@ -113,12 +113,10 @@ class BlockMemo:
 
     def read(self, source: FeatureSource, rows: np.ndarray) -> Features:
         """`source.read(rows)`, the same values, from kept blocks where it can."""
-        cache = source.open()
-        block_frames = int(cache.layout["block_frames"])
-        itemsize = STORAGE_DTYPES[cache.manifest["dtype"]].itemsize
+        block_frames = int(source.open().layout["block_frames"])
         out: Features = {}
         for camera in source.cameras:
-            if not len(rows) or block_frames * int(np.prod(source.frame_shape(camera))) * itemsize > self.budget:
+            if not len(rows) or block_frames * source.frame_bytes([camera]) > self.budget:
                 out[camera] = source.read_camera(camera, rows)  # nothing to keep, or a block it could never keep
                 continue
             blocks = rows // block_frames
@@ -230,7 +228,7 @@ class ChunkStream(IterableDataset):
         before = verified_blocks()
         roots = [src.open().root for src, _ in self.sources] if get_worker_info() is not None else []
         fetched = sum(getattr(r, "fetched_bytes", 0) for r in roots)
-        feats = tuple(self.memo.read(src, rows[pos]) if self.memo else src.read(rows[pos])
+        feats = tuple(self.memo.read(src, rows[pos]) if self.memo is not None else src.read(rows[pos])
                       for (src, rows), pos in zip(self.sources, planned.reads, strict=True))
         bad = np.zeros(len(planned.owners), dtype=bool)
         for (src, _), pos, per_camera in zip(self.sources, planned.reads, feats, strict=True):
