@@ -8,27 +8,79 @@ way the request was made.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
-from typing import Any, ClassVar
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any, ClassVar, Union
 
 from graftcache.errors import GraftcacheError
 
-Rule = tuple[Callable[[Any], bool], str]
+#: The largest seed anything accepts: results store seeds as Int64 (graftcache.results.SCHEMA), and every RNG
+#: a seed feeds takes it, with the small offsets the fits add (torch.manual_seed up to 2**64 - 1,
+#: numpy.random.default_rng any non-negative int).
+MAX_SEED = 2**63 - 1
+
+
+@dataclass(frozen=True)
+class IntList:
+    """Rule of a list of distinct ints in 0..`high`, one to `most` of them (seeds, episode indices).
+
+    Its bounds are readable, so the CLI can refuse a range such as 0-100000000000 before expanding it
+    (graftcache.cli.common.int_list) with the very bounds the request checks."""
+
+    what: str
+    high: int
+    most: int
+
+    def problem(self, values: Sequence[int]) -> str | None:
+        """Why `values` breaks the rule (one phrase), or None."""
+        if not values:
+            return f"must list at least one {self.what}"
+        if len(values) > self.most:
+            return f"lists {len(values)} {self.what}s; at most {self.most}"
+        seen: set[int] = set()
+        for v in values:
+            if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v <= self.high:
+                return f"has {self.what} {v!r}: each must be an integer in 0..{self.high}"
+            if v in seen:
+                return f"repeats {self.what} {v}: each must be listed once"
+            seen.add(v)
+        return None
+
+
+#: (test, why): the phrase, or a function that makes it, when the text lists what is only known on use.
+Rule = Union[tuple[Callable[[Any], bool], Union[str, Callable[[], str]]], IntList]
 
 POSITIVE: Rule = (lambda v: v > 0, "must be > 0")
 NON_NEGATIVE: Rule = (lambda v: v >= 0, "must be >= 0")
 FRACTION: Rule = (lambda v: 0 < v < 1, "must be between 0 and 1 (exclusive)")
-SEEDS: Rule = (lambda v: len(v) > 0 and all(s >= 0 for s in v), "must list at least one seed, each >= 0")
-EPISODES: Rule = (lambda v: len(v) > 0 and all(e >= 0 for e in v), "must list at least one episode index >= 0")
+SEED: Rule = (lambda v: 0 <= v <= MAX_SEED, f"must be in 0..{MAX_SEED} (results store seeds as Int64)")
+#: A million fits is more than any machine runs; a million ints is still cheap to hold while checking.
+SEEDS = IntList("seed", MAX_SEED, 1_000_000)
+EPISODES = IntList("episode", 2**63 - 1, 10_000_000)
 SHARD: Rule = (lambda v: len(v) == 2 and 0 <= v[0] < v[1], "must be i/N with 0 <= i < N")
 
 
 def check_fields(values: Mapping[str, Any], rules: Mapping[str, Rule]) -> None:
     """Raise GraftcacheError for the first value (None means 'default', never checked) that breaks its rule."""
-    for name, (ok, text) in rules.items():
+    for name, rule in rules.items():
         value = values.get(name)
-        if value is not None and not ok(value):
-            raise GraftcacheError(f"{name} = {value!r} {text}")
+        if value is None:
+            continue
+        if isinstance(rule, IntList):
+            problem = rule.problem(value)
+        else:
+            ok, text = rule
+            problem = None if ok(value) else text() if callable(text) else text
+        if problem:
+            raise GraftcacheError(f"{name} = {_shown(value)} {problem}")
+
+
+def _shown(value: Any, width: int = 80) -> str:
+    """repr of a value, cut to `width` characters: a list of a million seeds stays one short line."""
+    if isinstance(value, tuple) and len(value) > 8:
+        return f"({', '.join(map(repr, value[:8]))}, ... {len(value)} in all)"
+    text = repr(value)
+    return text if len(text) <= width else f"{text[:width - 5]} ...{text[-1]}"
 
 
 class Checked:

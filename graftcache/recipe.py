@@ -32,6 +32,7 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
+from graftcache.backbone_table import BACKBONES
 from graftcache.errors import GraftcacheError
 from graftcache.executors import check_executor
 from graftcache.fit.controls import get_control
@@ -230,4 +231,42 @@ def load_recipe(path: str | Path) -> Recipe:
             raise RecipeError(f"{path}: controls: {e}") from None
     if not recipe.seeds or not recipe.suites or not recipe.encoders or not recipe.backbones:
         raise RecipeError(f"{path}: suites, seeds, encoders and backbones must each list at least one entry")
+    _check_grid(recipe, path)
     return recipe
+
+
+def _check_grid(recipe: Recipe, path: Path) -> None:
+    """The grid's axes by the rules of the requests they become (seeds, suites, controls: FitRequest.RULES; an
+    encoder's seed: ExtractRequest.RULES), and no entry twice: a repeated seed, suite, encoder or backbone
+    would visit its cells twice (each written once), so the counts the sweep reports would be wrong."""
+    for key, values in (("seeds", recipe.seeds), ("controls", recipe.controls)):
+        _rule(FitRequest, key, values, str(path))
+    for suite in recipe.suites:
+        _rule(FitRequest, "suite", suite, f"{path}: suites")
+    for i, enc in enumerate(recipe.encoders):
+        _rule(ExtractRequest, "seed", enc.seed, f"{path} [[encoders]] #{i + 1}")
+    for i, entry in enumerate(recipe.backbones):
+        if entry.name not in BACKBONES:
+            raise RecipeError(f"{path} [[backbones]] #{i + 1}: unknown backbone {entry.name!r}; known: "
+                              f"{', '.join(BACKBONES)}")
+    for key, entries in (("suites", recipe.suites), ("encoders", tuple(map(_same_cache, recipe.encoders))),
+                         ("backbones", recipe.backbones)):
+        first: dict[Any, int] = {}
+        for i, entry in enumerate(entries):
+            if entry in first:
+                which = (f"suites lists {entry!r} twice" if key == "suites" else
+                         f"#{first[entry] + 1} and #{i + 1} of [[{key}]] are the same")
+                raise RecipeError(f"{path}: {which}; list each once")
+            first[entry] = i
+
+
+def _same_cache(enc: EncoderEntry) -> tuple:
+    """What decides an encoder entry's cache: the seed only for random-init weights, the weights only otherwise."""
+    return (enc.name, True, enc.seed) if enc.random_init else (enc.name, False, enc.weights)
+
+
+def _rule(cls: type, key: str, value: Any, where: str) -> None:
+    try:
+        cls.check({key: value})
+    except GraftcacheError as e:
+        raise RecipeError(f"{where}: {e}") from None

@@ -12,7 +12,7 @@ import sys
 from dataclasses import asdict, dataclass, field
 from typing import Any, ClassVar
 
-from graftcache.checks import EPISODES, FRACTION, NON_NEGATIVE, POSITIVE, SEEDS, SHARD, Checked, Rule
+from graftcache.checks import EPISODES, FRACTION, NON_NEGATIVE, POSITIVE, SEED, SEEDS, SHARD, Checked, Rule
 from graftcache.errors import GraftcacheError
 from graftcache.pooling import NATIVE, valid_grid_names
 
@@ -44,10 +44,23 @@ class ExtractRequest(Checked):
     allow_nonfinite: bool = False  # cache NaN/inf state/action/features instead of refusing (fit then refuses)
     extra_manifest: dict[str, Any] = field(default_factory=dict)
 
-    RULES: ClassVar[dict[str, Rule]] = {"seed": NON_NEGATIVE, "batch_size": POSITIVE, "num_workers": NON_NEGATIVE,
+    RULES: ClassVar[dict[str, Rule]] = {"seed": SEED, "batch_size": POSITIVE, "num_workers": NON_NEGATIVE,
                                         "block_frames": POSITIVE, "episodes": EPISODES,
                                         "frame_stride": POSITIVE, "shard": SHARD,
                                         "grids": (valid_grid_names, f"must name grids: {NATIVE} or HxW, e.g. {NATIVE},4x4")}
+
+
+def _suites() -> tuple[str, ...]:
+    from graftcache.datasets.suites import SUITES  # imported when a suite is checked: the package loads polars
+
+    return SUITES
+
+
+#: A suite a cache can record (graftcache.datasets.suites.SUITES), so a typo is refused before any cache is made.
+SUITE: Rule = (lambda v: v in _suites(), lambda: f"is not a suite; choose one of {', '.join(_suites())}")
+#: Controls besides the plain graft ("none"), which every request runs anyway: each once.
+CONTROL_LIST: Rule = (lambda v: len(set(v)) == len(v) and "none" not in v,
+                      "must name each control once, and not none (the plain graft always runs)")
 
 
 @dataclass(frozen=True)
@@ -86,9 +99,9 @@ class FitRequest(Checked):
     command: str = field(default_factory=lambda: " ".join(["graftcache", *sys.argv[1:]]))
 
     RULES: ClassVar[dict[str, Rule]] = {
-        "seeds": SEEDS, "steps": POSITIVE, "lr": POSITIVE, "batch_size": POSITIVE, "buffer_mib": POSITIVE,
+        "seeds": SEEDS, "suite": SUITE, "controls": CONTROL_LIST, "steps": POSITIVE, "lr": POSITIVE, "batch_size": POSITIVE, "buffer_mib": POSITIVE,
         "num_workers": NON_NEGATIVE, "eval_fraction": FRACTION,
-        "eval_split_seed": NON_NEGATIVE, "eval_frames": POSITIVE, "num_denoise_steps": POSITIVE, "lora_rank": POSITIVE,
+        "eval_split_seed": SEED, "eval_frames": POSITIVE, "num_denoise_steps": POSITIVE, "lora_rank": POSITIVE,
     }
 
 
@@ -125,7 +138,7 @@ class TileRequest(Checked):
     frames: int | None = None
     seed: int = 0  # episode lengths and window positions
 
-    RULES: ClassVar[dict[str, Rule]] = {"episodes": POSITIVE, "frames": POSITIVE, "seed": NON_NEGATIVE}
+    RULES: ClassVar[dict[str, Rule]] = {"episodes": POSITIVE, "frames": POSITIVE, "seed": SEED}
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -149,7 +162,7 @@ class TinyTrainConfig(Checked):
     compute_dtype: str = "auto"  # resolved (runtime.resolve_compute_dtype) before it keys the checkpoint
 
     RULES: ClassVar[dict[str, Rule]] = {"steps": POSITIVE, "batch_size": POSITIVE, "lr": POSITIVE,
-                                        "weight_decay": NON_NEGATIVE, "seed": NON_NEGATIVE, "image_size": POSITIVE,
+                                        "weight_decay": NON_NEGATIVE, "seed": SEED, "image_size": POSITIVE,
                                         "warmup": (lambda v: 0 <= v < 1, "must be in [0, 1)")}
 
     def as_dict(self, backbone: str) -> dict:

@@ -98,8 +98,9 @@ def test_timestamps_outside_video(v3_video: Written, tmp_path: Path) -> None:
     root = _copy(v3_video, tmp_path)
     ep_file = root / "meta/episodes/chunk-000/file-000.parquet"
     table = pq.read_table(ep_file)
-    col = f"videos/{V3_CAMERAS[0]}/from_timestamp"
-    table = table.set_column(table.column_names.index(col), col, [[0.0, 0.5, 1.5]])
+    for col, values in (("from_timestamp", [0.0, 0.5, 1.5]), ("to_timestamp", [0.5, 1.2, 2.1])):  # spans = lengths
+        col = f"videos/{V3_CAMERAS[0]}/{col}"
+        table = table.set_column(table.column_names.index(col), col, [values])
     pq.write_table(table, ep_file)
     path, _ = _video_of_last_episode(root, V3_CAMERAS[0])
     msg = _error(open_dataset(root).decode_episode, 2, ["image"])

@@ -13,6 +13,8 @@ import dataclasses
 from collections.abc import Callable
 from typing import Any, TypeVar
 
+from graftcache.checks import SEEDS, IntList, check_fields
+from graftcache.errors import GraftcacheError
 from graftcache.runtime import COMPUTE_DTYPES
 
 R = TypeVar("R")
@@ -72,9 +74,12 @@ def fraction(text: str) -> float:
     return value
 
 
-def int_list(text: str) -> tuple[int, ...]:
-    """'0,1,2', '0-9' or '0-3,7' -> sorted distinct non-negative ints; anything else is an ArgumentTypeError."""
-    out: set[int] = set()
+def int_list(text: str, rule: IntList = SEEDS) -> tuple[int, ...]:
+    """'0,1,2', '0-9' or '0-3,7' -> sorted distinct non-negative ints; anything else is an ArgumentTypeError.
+
+    The ranges are measured before they are expanded, against `rule`'s bounds (the request field's rule, e.g.
+    FitRequest.RULES["seeds"]), so 0-100000000000 is refused at once instead of filling memory."""
+    ranges: list[tuple[int, int]] = []
     for part in text.split(","):
         part = part.strip()
         if not part:
@@ -86,10 +91,25 @@ def int_list(text: str) -> tuple[int, ...]:
             raise argparse.ArgumentTypeError(f"{text!r}: {part!r} is not N or N-M with N, M >= 0") from None
         if first < 0 or last < first:
             raise argparse.ArgumentTypeError(f"{text!r}: {part!r} is not an ascending range of non-negative ints")
-        out.update(range(first, last + 1))
-    if not out:
+        if last > rule.high:
+            raise argparse.ArgumentTypeError(f"{text!r}: {last} is past the largest {rule.what}, {rule.high}")
+        ranges.append((first, last))
+    if not ranges:
         raise argparse.ArgumentTypeError(f"{text!r} names no value")
-    return tuple(sorted(out))
+    count = sum(last - first + 1 for first, last in ranges)  # an upper bound: overlaps count twice
+    if count > rule.most:
+        raise argparse.ArgumentTypeError(f"{text!r} names {count} {rule.what}s; at most {rule.most}")
+    return tuple(sorted({v for first, last in ranges for v in range(first, last + 1)}))
+
+
+def ints(rule: IntList) -> Callable[[str], tuple[int, ...]]:
+    """argparse type: `int_list` bounded by `rule` (a request field's IntList rule)."""
+
+    def parse(text: str) -> tuple[int, ...]:
+        return int_list(text, rule)
+
+    parse.__name__ = f"{rule.what} list"
+    return parse
 
 
 def shard_value(text: str) -> tuple[int, int]:
@@ -121,16 +141,19 @@ def grids_value(text: str) -> tuple[str, ...]:
         raise argparse.ArgumentTypeError(str(e)) from None
 
 
-def seeds_value(text: str) -> tuple[int, ...]:
-    """--seeds: a bare integer N is a count (seeds 0..N-1); a comma list or a range lists the seeds."""
+def seeds_value(text: str, rule: IntList = SEEDS) -> tuple[int, ...]:
+    """--seeds: a bare integer N is a count (seeds 0..N-1, at most `rule.most`); a comma list or a range lists
+    the seeds."""
     text = text.strip()
     if text.isdigit():
         n = int(text)
         if n < 1:
             raise argparse.ArgumentTypeError(
                 f"{text!r}: --seeds N counts seeds and needs N >= 1; to run seed {n} alone use --seed {n}")
+        if n > rule.most:
+            raise argparse.ArgumentTypeError(f"{text!r}: --seeds N counts seeds; at most {rule.most}")
         return tuple(range(n))
-    return int_list(text)
+    return int_list(text, rule)
 
 
 def default_of(request: type, name: str) -> Any:
@@ -149,10 +172,29 @@ def add_field(p: argparse.ArgumentParser, request: type, name: str, *aliases: st
     `shown` overrides how it is written). With `overrides` the flag overrides a value read elsewhere (a
     recipe): it is absent from the namespace unless given (see `given`)."""
     default = default_of(request, name)
+    rule = getattr(request, "RULES", {}).get(name)
+    if rule is not None and "type" in kw:
+        kw["type"] = _ruled(kw["type"], name, rule)
     if default is not None and kw.get("action") not in ("store_true", "store_false"):
         help = f"{help} (default {shown or _shown(default)})".strip()
     p.add_argument(f"--{name.replace('_', '-')}", *aliases, dest=name, help=help or None,
                    default=argparse.SUPPRESS if overrides else default, **kw)
+
+
+def _ruled(parse: Callable[[str], Any], name: str, rule: Any) -> Callable[[str], Any]:
+    """argparse type: `parse`, then the request field's rule (graftcache.checks), so a flag is refused at parse
+    time by the one rule that also checks recipes and requests made in code."""
+
+    def checked(text: str) -> Any:
+        value = parse(text)
+        try:
+            check_fields({name: value}, {name: rule})
+        except GraftcacheError as e:
+            raise argparse.ArgumentTypeError(str(e)) from None
+        return value
+
+    checked.__name__ = getattr(parse, "__name__", name)
+    return checked
 
 
 def given(request: type, args: argparse.Namespace) -> dict[str, Any]:
@@ -170,9 +212,10 @@ def request_from(request: type[R], args: argparse.Namespace, **values: Any) -> R
 def add_seed_flags(p: argparse.ArgumentParser, request: type) -> None:
     group = p.add_mutually_exclusive_group()
     default = default_of(request, "seeds")
-    group.add_argument("--seeds", type=seeds_value, default=default, metavar="N|LIST",
+    rule = request.RULES["seeds"]
+    group.add_argument("--seeds", type=lambda text: seeds_value(text, rule), default=default, metavar="N|LIST",
                        help=f"{SEEDS_HELP} (default: seeds {_shown(default)})")
-    group.add_argument("--seed", type=int_list, dest="seeds", metavar="LIST", help=SEED_LIST_HELP)
+    group.add_argument("--seed", type=ints(rule), dest="seeds", metavar="LIST", help=SEED_LIST_HELP)
 
 
 def add_progress_flag(p: argparse.ArgumentParser) -> None:

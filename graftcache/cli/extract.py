@@ -13,7 +13,7 @@ from graftcache.cli.common import (
     add_field,
     add_progress_flag,
     grids_value,
-    int_list,
+    ints,
     name_list,
     nonneg_int,
     positive_int,
@@ -49,7 +49,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
               f"backbone's token grid as it reads it) and/or pooled HxW grids, e.g. {NATIVE},4x4 or 8x8,16x16. "
               f"{NATIVE} and the encoder's grid spelled out make the same cache")
     add_field(p, ExtractRequest, "cameras", type=name_list, help="comma-separated camera names (default: all)")
-    add_field(p, ExtractRequest, "episodes", type=int_list, help="episode subset, e.g. 0-9,20")
+    add_field(p, ExtractRequest, "episodes", type=ints(ExtractRequest.RULES["episodes"]),
+              help="episode subset, e.g. 0-9,20")
     add_field(p, ExtractRequest, "frame_stride", type=positive_int, metavar="K",
               help="features for every K-th frame of each episode (frame_index %% K == 0); actions stay at the "
               "full rate for action chunks. Part of the cache key (1: every frame)")

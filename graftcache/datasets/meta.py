@@ -26,12 +26,18 @@ _CHANNEL_NAMES = ("channel", "channels", "c")
 
 @dataclass(frozen=True)
 class EpisodeMeta:
-    """One episode: its id, frame count, (first) task and the global index of its first frame."""
+    """One episode: its id, frame count, (first) task and the global index of its first frame; `task_indices`
+    every task its metadata lists (first = task_index), which its frames' task_index must come from."""
 
     index: int
     length: int
     task_index: int
     dataset_from_index: int
+    task_indices: tuple[int, ...] = ()
+
+    @property
+    def tasks_listed(self) -> tuple[int, ...]:
+        return self.task_indices or (self.task_index,)
 
 
 @dataclass(frozen=True)

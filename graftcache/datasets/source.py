@@ -60,6 +60,8 @@ def open_dataset(source: str | Path, *, decode_threads: int = 1) -> LeRobotSourc
     feats = parse_features(info, info_path)
     video_keys = [feats.camera_keys[c] for c in feats.cameras if feats.camera_storage[c] == "video"]
     layout = READERS[version](root, info, video_keys)
+    if not layout.episodes:
+        raise DatasetError(f"{root}: the dataset has no episodes (its meta/ folder lists none)")
     meta = DatasetMeta(
         source=str(source),
         root=root,
@@ -156,10 +158,16 @@ class LeRobotSource:
             raise DatasetError(f"{m.root}: cannot read low-dim columns from {len(paths)} data file(s): "
                                f"{str(e).splitlines()[0]}") from None
         counts = dict(df.group_by("episode_index").len().iter_rows())
-        for ep, _ in chosen:
+        tasks = dict(df.group_by("episode_index").agg(pl.col("task_index").unique().sort()).iter_rows())
+        for ep, files in chosen:
             if counts.get(ep.index, 0) != ep.length:
-                raise DatasetError(f"{self._files[self._position[ep.index]].data}: episode {ep.index} has "
+                raise DatasetError(f"{files.data}: episode {ep.index} has "
                                    f"{counts.get(ep.index, 0)} rows, metadata says length {ep.length}")
+            stray = sorted(set(tasks[ep.index]) - set(ep.tasks_listed))
+            if stray:
+                listed = ", ".join(f"{i} ({m.tasks[i]!r})" for i in ep.tasks_listed)
+                raise DatasetError(f"{files.data}: episode {ep.index}'s frames have task_index {stray}, which its "
+                                   f"metadata's tasks list does not name (it lists task_index {listed})")
         return df
 
     def _episode(self, episode_index: int) -> tuple[EpisodeMeta, EpisodeFiles]:

@@ -39,10 +39,13 @@ def load(root: Path, info: dict[str, Any], video_keys: Sequence[str]) -> Layout:
             raise DatasetError(f"{episodes_path}: row {row} lacks episode_index or length")
         ep, length = int(row["episode_index"]), int(row["length"])
         ep_tasks = row.get("tasks") or []
-        if not ep_tasks or ep_tasks[0] not in task_index:
+        if not ep_tasks or any(t not in task_index for t in ep_tasks):
             raise DatasetError(f"{episodes_path}: episode {ep} task {ep_tasks!r} is not listed in {tasks_path}")
-        episodes.append(EpisodeMeta(index=ep, length=length, task_index=task_index[ep_tasks[0]],
-                                    dataset_from_index=start))
+        if length < 1:
+            raise DatasetError(f"{episodes_path}: episode {ep} has length {length}")
+        listed = tuple(task_index[t] for t in ep_tasks)
+        episodes.append(EpisodeMeta(index=ep, length=length, task_index=listed[0], dataset_from_index=start,
+                                    task_indices=listed))
         start += length
         fmt = {"episode_chunk": ep // chunks_size, "episode_index": ep}
         files.append(EpisodeFiles(

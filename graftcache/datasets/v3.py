@@ -30,14 +30,15 @@ def load(root: Path, info: dict[str, Any], video_keys: Sequence[str]) -> Layout:
     columns = ["episode_index", "tasks", "length", "data/chunk_index", "data/file_index", "dataset_from_index"]
     for key in video_keys:
         columns += [f"videos/{key}/chunk_index", f"videos/{key}/file_index", f"videos/{key}/from_timestamp"]
-    rows = sorted((row for f in ep_files for row in _read_rows(f, columns)), key=lambda r: r["episode_index"])
+    rows = sorted(((f, row) for f in ep_files for row in _read_rows(f, columns)), key=lambda fr: fr[1]["episode_index"])
 
     episodes, files = [], []
-    for row in rows:
+    for ep_file, row in rows:
         ep = int(row["episode_index"])
-        episodes.append(EpisodeMeta(index=ep, length=int(row["length"]),
-                                    task_index=_task_of(row["tasks"], task_index, ep, tasks_path),
-                                    dataset_from_index=int(row["dataset_from_index"])))
+        _check_extent(row, ep_file, float(info["fps"]), video_keys)
+        tasks_of = _tasks_of(row["tasks"], task_index, ep, tasks_path)
+        episodes.append(EpisodeMeta(index=ep, length=int(row["length"]), task_index=tasks_of[0],
+                                    dataset_from_index=int(row["dataset_from_index"]), task_indices=tasks_of))
         data = template_path(root, "data_path", info.get("data_path"), ep, chunk_index=int(row["data/chunk_index"]),
                              file_index=int(row["data/file_index"]))
         videos = {
@@ -68,15 +69,42 @@ def _read_tasks(path: Path) -> tuple[str, ...]:
 
 
 def _read_rows(path: Path, columns: list[str]) -> list[dict[str, Any]]:
+    """The episode rows of one metadata file: `columns`, and the optional ones that restate an episode's extent."""
     names = pq.read_schema(path).names
     missing = [c for c in columns if c not in names]
     if missing:
         raise DatasetError(f"{path}: missing episode column(s) {', '.join(missing)}")
-    return pq.read_table(path, columns=columns).to_pylist()
+    optional = [c for c in names if c == "dataset_to_index" or (c.startswith("videos/") and c.endswith("/to_timestamp"))]
+    return pq.read_table(path, columns=columns + optional).to_pylist()
 
 
-def _task_of(episode_tasks: list[str] | None, task_index: dict[str, int], episode: int, tasks_path: Path) -> int:
-    """The episode's first task; LIBERO episodes have exactly one."""
-    if not episode_tasks or episode_tasks[0] not in task_index:
+def _tasks_of(episode_tasks: list[str] | None, task_index: dict[str, int], episode: int,
+              tasks_path: Path) -> tuple[int, ...]:
+    """The task_index of every task the episode row lists, its first task first (LIBERO episodes have one)."""
+    if not episode_tasks or any(t not in task_index for t in episode_tasks):
         raise DatasetError(f"episode {episode}: task {episode_tasks!r} is not listed in {tasks_path}")
-    return task_index[episode_tasks[0]]
+    return tuple(task_index[t] for t in episode_tasks)
+
+
+#: How far (in frames) a camera's from..to_timestamp span may be from `length`: a whole frame contradicts it.
+_EXTENT_FRAMES = 1.0
+
+
+def _check_extent(row: dict[str, Any], path: Path, fps: float, video_keys: Sequence[str]) -> None:
+    """An episode row whose own columns disagree on its length is refused: `dataset_to_index` -
+    `dataset_from_index`, and per camera `to_timestamp` - `from_timestamp` times fps, must give `length`
+    (the timestamps to within less than a frame). Reading on would decode the wrong span of a video or
+    pair features with the rows of another episode."""
+    ep, length = int(row["episode_index"]), int(row["length"])
+    if length < 1:
+        raise DatasetError(f"{path}: episode {ep} has length {length}")
+    end = row.get("dataset_to_index")
+    if end is not None and int(end) - int(row["dataset_from_index"]) != length:
+        raise DatasetError(f"{path}: episode {ep} spans dataset rows {row['dataset_from_index']}..{end} "
+                           f"({int(end) - int(row['dataset_from_index'])} rows), but its length is {length}")
+    for key in video_keys:
+        start, stop = row[f"videos/{key}/from_timestamp"], row.get(f"videos/{key}/to_timestamp")
+        if stop is not None and abs((float(stop) - float(start)) * fps - length) >= _EXTENT_FRAMES:
+            raise DatasetError(f"{path}: episode {ep} camera {key}: from_timestamp {start:.3f} s to to_timestamp "
+                               f"{stop:.3f} s is {(float(stop) - float(start)) * fps:.1f} frames at {fps:g} fps, but "
+                               f"its length is {length} frames")
