@@ -28,6 +28,7 @@ import torch
 from torch.utils.data import DataLoader, Dataset
 
 import graftcache
+from graftcache import budget
 from graftcache.datasets import LeRobotSource, open_dataset, suite_of
 from graftcache.datasets.suites import SUITES
 from graftcache.encoders import get_spec, load_encoder
@@ -256,6 +257,8 @@ def extract(req: ExtractRequest, log: Callable[[str], None] = print) -> ExtractR
                            device=device, policy=req.policy)
     # "native" -> the encoder's own grid (measured for native towers), so the key never depends on the spelling
     req = replace(req, grids=tuple(map(format_grid, resolve_grids(req.grids, encoder.spec.grid))))
+    n_frames = sum(-(-e.length // req.frame_stride) for e in meta.episodes if e.index in set(episodes))
+    check_memory(req, meta, cameras, encoder.spec.width, n_frames, device)
     stream = build_index(source, episodes)
     problem = lowdim_problem(stream)
     if problem and not req.allow_nonfinite:
@@ -276,6 +279,7 @@ def extract(req: ExtractRequest, log: Callable[[str], None] = print) -> ExtractR
     if done is not None:
         _check_numerics(done, manifest, log)
     else:
+        _check_disk(root, key, manifest, req, len(cameras) * _stored_bytes(req, encoder.spec.width), index.height)
         writing = _Writing(root, key, manifest, source, index, stream, encoder, cameras, req, device, compute, log, t0)
         result = writing.whole() if req.shard is None else writing.shard(*req.shard)
         if result is not None:
@@ -283,6 +287,52 @@ def extract(req: ExtractRequest, log: Callable[[str], None] = print) -> ExtractR
         done = FeatureCache.in_root(root, key)
     log(f"reusing complete cache {key} ({done.n_frames} frames)")
     return ExtractResult(key, path, True, done.n_frames, 0, time.perf_counter() - t0)
+
+
+def _stored_bytes(req: ExtractRequest, width: int) -> int:
+    """Bytes one camera's features of one frame take in the cache before compression (every stored grid)."""
+    return sum(h * w for h, w in map(parse_grid, req.grids)) * width * STORAGE_DTYPES[req.dtype].itemsize
+
+
+def check_memory(req: ExtractRequest, meta: Any, cameras: Sequence[str], width: int, n_frames: int,
+                  device: torch.device) -> None:
+    """Refuse before any work an extraction whose blocks cannot be held: up to three blocks of stored features
+    at once (one encoded, one queued, one being written; `_Writer`), a block of decoded frames, and a batch's
+    grids pooled in fp32 (and their copy as the stored dtype). Encoder activations come on top."""
+    block = min(req.block_frames, max(n_frames, 1))
+    batch = min(req.batch_size, block)
+    largest = max(h * w for h, w in map(parse_grid, req.grids))
+    pixels = sum(int(np.prod(meta.image_shape[c])) for c in cameras)
+    host = block * (3 * len(cameras) * _stored_bytes(req, width) + pixels)
+    pooled = 2 * batch * largest * width * 4
+    hint = "store coarser --grids (fits pool the encoder's own grid as they read it), or lower --block-frames"
+    what = (f"{block} frames a block x {len(cameras)} camera(s) of grids {', '.join(req.grids)} x "
+            f"{width} channels")
+    if device.type == "cuda":
+        budget.require(f"{what} (a batch of {batch} pooled on {device})", pooled,
+                       *budget.available_memory(device), hint + " or --batch-size")
+        pooled = 0
+    budget.require(what, host + pooled, *budget.available_memory("cpu"), hint + " or --batch-size")
+
+
+def _check_disk(root: Root, key: str, manifest: dict[str, Any], req: ExtractRequest, per_frame: int,
+                n_frames: int) -> None:
+    """Refuse before writing a cache whose unwritten frames cannot fit the free space of its file system
+    (bytes before compression: features of float noise barely compress). Frames of blocks a matching
+    unfinished cache already holds are not counted again."""
+    free = budget.free_disk(root.location(key))
+    if free is None:
+        return
+    todo = n_frames
+    try:
+        partial = FeatureCache.in_root(root, key)
+        if partial.initialized and partial.matches(manifest):
+            todo -= sum(stop - start for start, stop in map(partial.block_range, partial.blocks_done()))
+    except CacheError:
+        pass
+    budget.require(f"cache {key}: {todo} frames x {per_frame} bytes a frame", todo * per_frame, free[0],
+                   f"the free space of the file system of {root.location(key)}",
+                   "free space, pick a --cache on a larger disk, or store coarser --grids or --dtype")
 
 
 def shard_blocks(n_blocks: int, shard: int, shards: int) -> range:

@@ -15,18 +15,22 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                        "describes (encoders x suites x backbones x seeds + controls). Rows already in the results "
                        "file are skipped, so an interrupted sweep continues where it stopped.")
     p.add_argument("recipe", help="TOML recipe, e.g. cli/paper.toml")
-    p.add_argument("--dry-run", action="store_true", help="check the recipe and print the grid, run nothing")
+    p.add_argument("--dry-run", action="store_true",
+                   help="run every check the sweep runs before its first step (recipe, dataset, suites' splits, "
+                   "encoders, memory) and print the grid; train, extract and fit nothing")
     add_executor_flags(p, overrides=True)
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    from graftcache.preflight import check_sweep
     from graftcache.recipe import load_recipe
     from graftcache.sweep import run_sweep
 
     recipe = load_recipe(args.recipe)
     settings = dataclasses.replace(recipe.executor_settings, **given(ExecutorSettings, args))
     if args.dry_run:
+        notes = check_sweep(recipe)  # every check the run makes before its first step (graftcache/preflight.py)
         print(f"{recipe.path}: {recipe.n_fits} cells, {recipe.n_rows} distinct rows -> {recipe.results}")
         print(f"  dataset   {recipe.dataset}")
         print(f"  backbones {', '.join(f'{b.name} ({b.policy})' for b in recipe.backbones)}")
@@ -34,6 +38,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"  suites    {', '.join(recipe.suites)}; seeds {', '.join(map(str, recipe.seeds))}")
         print(f"  controls  {', '.join(recipe.controls) or '(none)'}; objective {recipe.objective}")
         print(f"  executor  {settings.executor}" + (f" at {settings.address}" if settings.address else ""))
+        for line in notes:
+            print(f"  {line}")
         return 0
     run_sweep(recipe, settings=settings)
     print(recipe.results)

@@ -201,3 +201,34 @@ def build_lerobot(tmp_path_factory: pytest.TempPathFactory, name: str, **kwargs:
         mp.setenv("HF_HOME", str(base / "hf_home"))
         mp.setenv("HF_DATASETS_CACHE", str(base / "hf_home" / "datasets"))
         return write_lerobot(tmp_path_factory.mktemp("ds") / name, **kwargs)
+
+
+def set_episode_meta(root: Path, episode: int, **values: object) -> Path:
+    """Overwrite fields of one episode's metadata row in place (v3.0: its meta/episodes parquet row, whose
+    columns are named as lerobot names them, e.g. "tasks", "videos/<key>/to_timestamp"; v2.x: its
+    meta/episodes.jsonl line); returns the file edited."""
+    jsonl = root / "meta" / "episodes.jsonl"
+    if jsonl.is_file():
+        rows = [json.loads(line) for line in jsonl.read_text().splitlines() if line.strip()]
+        rows = [{**r, **values} if r["episode_index"] == episode else r for r in rows]
+        jsonl.write_text("".join(json.dumps(r) + "\n" for r in rows))
+        return jsonl
+    for path in sorted((root / "meta" / "episodes").rglob("*.parquet")):
+        table = pq.read_table(path)
+        rows = table.to_pylist()
+        if any(r["episode_index"] == episode for r in rows):
+            rows = [{**r, **values} if r["episode_index"] == episode else r for r in rows]
+            pq.write_table(pa.Table.from_pylist(rows, schema=table.schema), path)
+            return path
+    raise KeyError(f"{root}: no episode {episode}")
+
+
+def drop_episodes(root: Path) -> None:
+    """Empty a dataset's episode metadata (no episode rows, the files and their columns kept)."""
+    jsonl = root / "meta" / "episodes.jsonl"
+    if jsonl.is_file():
+        jsonl.write_text("")
+        return
+    for path in (root / "meta" / "episodes").rglob("*.parquet"):
+        table = pq.read_table(path)
+        pq.write_table(table.slice(0, 0), path)
