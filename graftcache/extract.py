@@ -279,7 +279,8 @@ def extract(req: ExtractRequest, log: Callable[[str], None] = print) -> ExtractR
     if done is not None:
         _check_numerics(done, manifest, log)
     else:
-        _check_disk(root, key, manifest, req, len(cameras) * _stored_bytes(req, encoder.spec.width), index.height)
+        per_frame = len(cameras) * _stored_bytes(req, encoder.spec.width)
+        _check_disk(root, key, manifest, req, per_frame, index.height)
         writing = _Writing(root, key, manifest, source, index, stream, encoder, cameras, req, device, compute, log, t0)
         result = writing.whole() if req.shard is None else writing.shard(*req.shard)
         if result is not None:

@@ -3,9 +3,9 @@ after extracting), found from the recipe, the dataset's metadata and the encoder
 
 `run_sweep` runs `check_sweep` first and `graftcache sweep --dry-run` runs it and stops, so a recipe the
 dry run passes is not refused by these checks halfway through the real run. What it builds to check is what
-the run builds: the ExtractRequest of every cache and the FitRequest of every (backbone, encoder, suite), whose
-RULES apply; the suites' held-out split (graftcache.fit.data.split_episodes) on the dataset's episodes; every
-encoder's spec and each extraction's memory (graftcache.extract.check_memory).
+the run builds: the ExtractRequest of every cache and the FitRequest of every (backbone, encoder, suite),
+whose RULES apply; the suites' held-out split (graftcache.fit.data.split_episodes) on the dataset's
+episodes; every encoder's spec and each extraction's memory (graftcache.extract.check_memory).
 """
 
 from __future__ import annotations
@@ -34,11 +34,12 @@ R = TypeVar("R")
 def check_sweep(recipe: Recipe) -> list[str]:
     """Raise the first thing the sweep would refuse; return what was found, a line each, for the dry run."""
     if recipe.objective not in OBJECTIVES:
-        raise RecipeError(f"{recipe.path}: objective {recipe.objective!r}: choose one of {', '.join(OBJECTIVES)}")
+        raise RecipeError(f"{recipe.path}: objective {recipe.objective!r}: choose one of "
+                          f"{', '.join(OBJECTIVES)}")
     device = resolve_device(recipe.device)
     meta = open_dataset(recipe.dataset).meta  # missing, malformed, self-contradicting or empty: refused here
-    extracts = [_extract_request(recipe, enc.name, weights=enc.weights, random_init=enc.random_init, seed=enc.seed)
-                for enc in recipe.encoders]
+    extracts = [_extract_request(recipe, enc.name, weights=enc.weights, random_init=enc.random_init,
+                                 seed=enc.seed) for enc in recipe.encoders]
     if recipe.objective == "align" or any(get_control(c).native_cache for c in recipe.controls):
         extracts += [_extract_request(recipe, native_name(b.name)) for b in recipe.backbones]
     fits = [_fit_request(recipe, backbone.name, backbone.policy, enc.name, suite)
@@ -46,13 +47,13 @@ def check_sweep(recipe: Recipe) -> list[str]:
     notes = [f"contents  {len(meta.episodes)} episodes, {meta.n_frames} frames, cameras "
              f"{', '.join(meta.cameras)}"]
     for suite, episodes in _suite_episodes(recipe, meta).items():
-        fit = fits[0]  # the split depends on the suite and the [fit] settings alone, the same in every request
+        fit = fits[0]  # the split depends on the suite and the [fit] settings alone
         try:
             split = split_episodes(episodes, eval_fraction=fit.eval_fraction, seed=fit.eval_split_seed)
         except GraftcacheError as e:
             raise RecipeError(f"{recipe.path}: suite {suite!r} of {meta.root}: {e}") from None
-        notes.append(f"suite     {suite}: {len(split.train_episodes)} train / {len(split.eval_episodes)} held-out "
-                     "episodes")
+        notes.append(f"suite     {suite}: {len(split.train_episodes)} train / {len(split.eval_episodes)} "
+                     "held-out episodes")
     from graftcache.extract import check_memory  # imports torch: once the cheap checks have passed
 
     for req in extracts:
@@ -61,18 +62,18 @@ def check_sweep(recipe: Recipe) -> list[str]:
             continue  # a native tower's grid and width are measured from its policy, which may not exist yet
         grids = tuple(map(format_grid, resolve_grids(req.grids, spec.grid)))
         frames = sum(-(-e.length // req.frame_stride) for e in meta.episodes)
-        check_memory(dataclasses.replace(req, grids=grids), meta, list(req.cameras or meta.cameras), spec.width,
-                     frames, device)
+        check_memory(dataclasses.replace(req, grids=grids), meta, list(req.cameras or meta.cameras),
+                     spec.width, frames, device)
     return notes
 
 
 def _suite_episodes(recipe: Recipe, meta: DatasetMeta) -> dict[str, pl.DataFrame]:
-    """Per recipe suite, its episodes (episode_index, task_index) in the dataset; a suite it lacks is refused."""
+    """Per recipe suite, its episodes (episode_index, task_index) in the dataset; one it lacks is an error."""
     suite_of_task = [suite_of(t) for t in meta.tasks]
     table = pl.DataFrame({"episode_index": [e.index for e in meta.episodes],
                           "task_index": [e.task_index for e in meta.episodes]})
-    table = table.with_columns(pl.col("task_index").map_elements(lambda i: suite_of_task[i], return_dtype=pl.String)
-                               .alias("suite"))
+    table = table.with_columns(
+        pl.col("task_index").map_elements(lambda i: suite_of_task[i], return_dtype=pl.String).alias("suite"))
     out = {}
     for suite in recipe.suites:
         episodes = table.filter(pl.col("suite") == suite)
@@ -92,9 +93,10 @@ def _extract_request(recipe: Recipe, encoder: str, **kw: Any) -> ExtractRequest:
 
 def _fit_request(recipe: Recipe, backbone: str, policy: str, encoder: str, suite: str) -> FitRequest:
     return _made(recipe, "fit", lambda: FitRequest(
-        backbone=backbone, encoder=encoder, suite=suite, policy=policy, dataset=recipe.dataset, seeds=recipe.seeds,
-        controls=recipe.controls, objective=recipe.objective, device=recipe.device, results=recipe.results,
-        cache=recipe.cache, progress=False, command=f"graftcache sweep {recipe.path}", **recipe.fit))
+        backbone=backbone, encoder=encoder, suite=suite, policy=policy, dataset=recipe.dataset,
+        seeds=recipe.seeds, controls=recipe.controls, objective=recipe.objective, device=recipe.device,
+        results=recipe.results, cache=recipe.cache, progress=False, command=f"graftcache sweep {recipe.path}",
+        **recipe.fit))
 
 
 def _made(recipe: Recipe, section: str, build: Callable[[], R]) -> R:

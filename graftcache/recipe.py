@@ -261,7 +261,7 @@ def _check_grid(recipe: Recipe, path: Path) -> None:
 
 
 def _same_cache(enc: EncoderEntry) -> tuple:
-    """What decides an encoder entry's cache: the seed only for random-init weights, the weights only otherwise."""
+    """What decides an encoder entry's cache: its seed for random-init weights, else its weights."""
     return (enc.name, True, enc.seed) if enc.random_init else (enc.name, False, enc.weights)
 
 

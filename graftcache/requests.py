@@ -51,12 +51,12 @@ class ExtractRequest(Checked):
 
 
 def _suites() -> tuple[str, ...]:
-    from graftcache.datasets.suites import SUITES  # imported when a suite is checked: the package loads polars
+    from graftcache.datasets.suites import SUITES  # imported on use: the package loads polars
 
     return SUITES
 
 
-#: A suite a cache can record (graftcache.datasets.suites.SUITES), so a typo is refused before any cache is made.
+#: A suite a cache can record (graftcache.datasets.suites.SUITES): a typo is refused before any cache is made.
 SUITE: Rule = (lambda v: v in _suites(), lambda: f"is not a suite; choose one of {', '.join(_suites())}")
 #: Controls besides the plain graft ("none"), which every request runs anyway: each once.
 CONTROL_LIST: Rule = (lambda v: len(set(v)) == len(v) and "none" not in v,
@@ -99,9 +99,10 @@ class FitRequest(Checked):
     command: str = field(default_factory=lambda: " ".join(["graftcache", *sys.argv[1:]]))
 
     RULES: ClassVar[dict[str, Rule]] = {
-        "seeds": SEEDS, "suite": SUITE, "controls": CONTROL_LIST, "steps": POSITIVE, "lr": POSITIVE, "batch_size": POSITIVE, "buffer_mib": POSITIVE,
-        "num_workers": NON_NEGATIVE, "eval_fraction": FRACTION,
-        "eval_split_seed": SEED, "eval_frames": POSITIVE, "num_denoise_steps": POSITIVE, "lora_rank": POSITIVE,
+        "seeds": SEEDS, "suite": SUITE, "controls": CONTROL_LIST, "steps": POSITIVE, "lr": POSITIVE,
+        "batch_size": POSITIVE, "buffer_mib": POSITIVE, "num_workers": NON_NEGATIVE,
+        "eval_fraction": FRACTION, "eval_split_seed": SEED, "eval_frames": POSITIVE,
+        "num_denoise_steps": POSITIVE, "lora_rank": POSITIVE,
     }
 
 

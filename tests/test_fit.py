@@ -316,3 +316,26 @@ def test_cell_row_takes_each_column_from_measurements_then_cell_then_request() -
     assert row["eval_mse"] == "m-eval_mse" and row["pool_grid"] == "m-pool_grid"
     with pytest.raises(FitError, match="results column 'eval_mse'"):
         cell.row(req, {k: v for k, v in measured.items() if k != "eval_mse"})
+
+
+def test_a_batch_past_memory_is_refused_before_training(world: World, tmp_path: Path,
+                                                        capsys: pytest.CaptureFixture) -> None:
+    """`--batch-size 100000` was OOM-killed after 82 s at 24 GB: now one line with the estimate and the limit,
+    and no row. What a frame costs is measured; 100000 frames need at least their fp32 features, 2 cameras of
+    4x4 tokens x 192 channels (the encoder's 14x14 grid pooled to the tiny backbone's 4x4)."""
+    from graftcache import budget
+
+    out = tmp_path / "r.parquet"
+    args = ["fit", "--backbone", "smolvla", "--policy", str(world.policies["smolvla"]), "--encoder", ENCODER,
+            "--dataset", str(world.dataset.root), "--suite", "libero_spatial", "--seed", "0", "--steps", "2",
+            "--eval-fraction", "0.5", "--num-workers", "0", "--cache", str(world.cache), "--results", str(out),
+            "--no-progress", "--batch-size", "100000", "--cache-key", world.encoder_key]
+    assert main(args) == 2
+    line = capsys.readouterr().err.strip()
+    assert "Traceback" not in line and len(line.splitlines()) == 1, line
+    assert line.startswith("graftcache fit: error: a training step of --batch-size 100000 (")
+    assert "a frame, measured on a 2-frame step of features image 16x192, image2 16x192)" in line
+    need = line.split("needs about ")[1].split(",")[0]
+    assert float(need.split()[0]) * 1024 ** ["MiB", "GiB", "TiB"].index(need.split()[1]) >= 100000 * 2 * 16 * 192 * 4 / 2**20
+    have, limit = budget.available_memory("cpu")
+    assert f"but {limit} is " in line and line.endswith("; lower --batch-size") and not out.exists()

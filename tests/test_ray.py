@@ -98,9 +98,10 @@ def _assert_same_rows(recipe: Recipe, local: pl.DataFrame) -> None:
     assert set(rows["command"]) == {f"graftcache sweep {recipe.path}"}
 
 
-def test_recipe_table_and_flags_choose_the_executor(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
-    path = tmp_path / "r.toml"
-    base = textwrap.dedent(RECIPE).format(dataset="x", results="r.parquet", cache="c", steps=1)
+def test_recipe_table_and_flags_choose_the_executor(tmp_path: Path, v2_pi: Written,
+                                                    capsys: pytest.CaptureFixture) -> None:
+    path = tmp_path / "r.toml"  # a dataset that exists: the dry run opens it, as the sweep would
+    base = textwrap.dedent(RECIPE).format(dataset=v2_pi.root, results="r.parquet", cache="c", steps=1)
     path.write_text(base + '[executor]\nexecutor = "ray"\naddress = "ray://head:10001"\ngpus_per_task = 0.25\n')
     recipe = load_recipe(path)
     assert recipe.executor_settings == ExecutorSettings(executor="ray", address="ray://head:10001", gpus_per_task=0.25)

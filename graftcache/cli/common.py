@@ -182,7 +182,7 @@ def add_field(p: argparse.ArgumentParser, request: type, name: str, *aliases: st
 
 
 def _ruled(parse: Callable[[str], Any], name: str, rule: Any) -> Callable[[str], Any]:
-    """argparse type: `parse`, then the request field's rule (graftcache.checks), so a flag is refused at parse
+    """argparse type: `parse`, then the request field's rule (graftcache.checks): a flag is refused at parse
     time by the one rule that also checks recipes and requests made in code."""
 
     def checked(text: str) -> Any:
@@ -213,8 +213,8 @@ def add_seed_flags(p: argparse.ArgumentParser, request: type) -> None:
     group = p.add_mutually_exclusive_group()
     default = default_of(request, "seeds")
     rule = request.RULES["seeds"]
-    group.add_argument("--seeds", type=lambda text: seeds_value(text, rule), default=default, metavar="N|LIST",
-                       help=f"{SEEDS_HELP} (default: seeds {_shown(default)})")
+    group.add_argument("--seeds", type=lambda text: seeds_value(text, rule), default=default,
+                       metavar="N|LIST", help=f"{SEEDS_HELP} (default: seeds {_shown(default)})")
     group.add_argument("--seed", type=ints(rule), dest="seeds", metavar="LIST", help=SEED_LIST_HELP)
 
 

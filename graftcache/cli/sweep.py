@@ -16,8 +16,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                        "file are skipped, so an interrupted sweep continues where it stopped.")
     p.add_argument("recipe", help="TOML recipe, e.g. cli/paper.toml")
     p.add_argument("--dry-run", action="store_true",
-                   help="run every check the sweep runs before its first step (recipe, dataset, suites' splits, "
-                   "encoders, memory) and print the grid; train, extract and fit nothing")
+                   help="run every check the sweep runs before its first step (recipe, dataset, suites' "
+                   "splits, encoders, memory) and print the grid; train, extract and fit nothing")
     add_executor_flags(p, overrides=True)
     p.set_defaults(func=run)
 
@@ -30,7 +30,7 @@ def run(args: argparse.Namespace) -> int:
     recipe = load_recipe(args.recipe)
     settings = dataclasses.replace(recipe.executor_settings, **given(ExecutorSettings, args))
     if args.dry_run:
-        notes = check_sweep(recipe)  # every check the run makes before its first step (graftcache/preflight.py)
+        notes = check_sweep(recipe)  # every check the run makes before its first step
         print(f"{recipe.path}: {recipe.n_fits} cells, {recipe.n_rows} distinct rows -> {recipe.results}")
         print(f"  dataset   {recipe.dataset}")
         print(f"  backbones {', '.join(f'{b.name} ({b.policy})' for b in recipe.backbones)}")

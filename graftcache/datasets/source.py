@@ -166,8 +166,9 @@ class LeRobotSource:
             stray = sorted(set(tasks[ep.index]) - set(ep.tasks_listed))
             if stray:
                 listed = ", ".join(f"{i} ({m.tasks[i]!r})" for i in ep.tasks_listed)
-                raise DatasetError(f"{files.data}: episode {ep.index}'s frames have task_index {stray}, which its "
-                                   f"metadata's tasks list does not name (it lists task_index {listed})")
+                raise DatasetError(f"{files.data}: episode {ep.index}'s frames have task_index {stray}, "
+                                   "which its metadata's tasks list does not name (it lists task_index "
+                                   f"{listed})")
         return df
 
     def _episode(self, episode_index: int) -> tuple[EpisodeMeta, EpisodeFiles]:

@@ -30,7 +30,8 @@ def load(root: Path, info: dict[str, Any], video_keys: Sequence[str]) -> Layout:
     columns = ["episode_index", "tasks", "length", "data/chunk_index", "data/file_index", "dataset_from_index"]
     for key in video_keys:
         columns += [f"videos/{key}/chunk_index", f"videos/{key}/file_index", f"videos/{key}/from_timestamp"]
-    rows = sorted(((f, row) for f in ep_files for row in _read_rows(f, columns)), key=lambda fr: fr[1]["episode_index"])
+    rows = sorted(((f, row) for f in ep_files for row in _read_rows(f, columns)),
+                  key=lambda file_row: file_row[1]["episode_index"])
 
     episodes, files = [], []
     for ep_file, row in rows:
@@ -69,12 +70,13 @@ def _read_tasks(path: Path) -> tuple[str, ...]:
 
 
 def _read_rows(path: Path, columns: list[str]) -> list[dict[str, Any]]:
-    """The episode rows of one metadata file: `columns`, and the optional ones that restate an episode's extent."""
+    """The episode rows of one metadata file: `columns`, and the optional ones restating its extent."""
     names = pq.read_schema(path).names
     missing = [c for c in columns if c not in names]
     if missing:
         raise DatasetError(f"{path}: missing episode column(s) {', '.join(missing)}")
-    optional = [c for c in names if c == "dataset_to_index" or (c.startswith("videos/") and c.endswith("/to_timestamp"))]
+    optional = [c for c in names
+                if c == "dataset_to_index" or (c.startswith("videos/") and c.endswith("/to_timestamp"))]
     return pq.read_table(path, columns=columns + optional).to_pylist()
 
 
@@ -104,7 +106,8 @@ def _check_extent(row: dict[str, Any], path: Path, fps: float, video_keys: Seque
                            f"({int(end) - int(row['dataset_from_index'])} rows), but its length is {length}")
     for key in video_keys:
         start, stop = row[f"videos/{key}/from_timestamp"], row.get(f"videos/{key}/to_timestamp")
-        if stop is not None and abs((float(stop) - float(start)) * fps - length) >= _EXTENT_FRAMES:
-            raise DatasetError(f"{path}: episode {ep} camera {key}: from_timestamp {start:.3f} s to to_timestamp "
-                               f"{stop:.3f} s is {(float(stop) - float(start)) * fps:.1f} frames at {fps:g} fps, but "
-                               f"its length is {length} frames")
+        frames = None if stop is None else (float(stop) - float(start)) * fps
+        if frames is not None and abs(frames - length) >= _EXTENT_FRAMES:
+            raise DatasetError(f"{path}: episode {ep} camera {key}: from_timestamp {start:.3f} s to "
+                               f"to_timestamp {stop:.3f} s is {frames:.1f} frames at {fps:g} fps, but its "
+                               f"length is {length} frames")

@@ -41,6 +41,7 @@ from graftcache.fit.feed import SplitFeed
 from graftcache.fit.lookup import find_cache
 from graftcache.fit.loop import camera_map, evaluate
 from graftcache.fit.objectives import EVAL_ONLY, OBJECTIVES, Fitting, Objective
+from graftcache.fit.step_memory import check_step_memory
 from graftcache.fit.stream import BlockMemo, FeatureSource, StreamStats, read_chunks
 from graftcache.pooling import format_grid
 from graftcache.requests import FitRequest
@@ -266,6 +267,9 @@ class Fitter:
             adapter.add_lora(rank=self.req.lora_rank)
         self.log(f"cell {cell.run_id}: {adapter.freeze_report()}")
         cams = camera_map(adapter, list(mat.source.cameras))
+        if control.train and self._objective(control).scheduled:  # refused here, not OOM-killed later
+            check_step_memory(adapter, mat.train, cams, mat.source, batch_size=self.req.batch_size,
+                              buffer_mib=self.req.buffer_mib, dtype=self.dtype)
         stats = StreamStats()
         loss = self._objective(control).fit(Fitting(
             adapter=adapter, req=self.req, control=control, train=self._feed(mat, mat.train, control, cell.seed),

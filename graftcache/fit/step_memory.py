@@ -1,0 +1,76 @@
+"""What one training step of a fit holds in memory, measured before the first step, so a batch that cannot fit
+(`fit --batch-size 100000`) is refused in one line instead of being killed by the kernel minutes later.
+
+The estimate is three parts, all proportional to the batch: the shuffle buffer (at least one batch of stored
+features, graftcache.fit.buffer.buffer_frames), the batch's features as the policy reads them (fp32), and the
+activations the backward pass keeps. The last is measured, not modelled: one forward of the policy's loss on
+a 1-frame and on a 2-frame batch, counting every tensor autograd saves (each storage once); the difference is
+what a frame adds, whatever the backbone, its grid, width, LoRA or compute dtype. Weights saved for the
+backward pass are in both and cancel. Peak use during backward is higher, so the estimate is a lower bound:
+a refusal is never wrong.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import numpy as np
+import torch
+
+from graftcache.budget import available_memory, require, size
+from graftcache.fit.buffer import buffer_frames
+from graftcache.fit.data import LowDim
+from graftcache.fit.loop import flow_time, raw_batch
+from graftcache.fit.stream import FeatureSource
+from graftcache.runtime import autocast
+
+
+def saved_bytes(adapter, low: LowDim, cams: Mapping[str, str], shapes: Mapping[str, tuple[int, int]],
+                frames: int, dtype: torch.dtype) -> int:
+    """Bytes autograd keeps for backward after the loss of a `frames`-frame batch (zero features, the first
+    training frame's low-dim row), each storage counted once. Eval mode, no dropout masks: a lower bound."""
+    storages: dict[int, int] = {}
+
+    def pack(t: torch.Tensor) -> torch.Tensor:
+        storage = t.untyped_storage()
+        storages[storage.data_ptr()] = storage.nbytes()
+        return t
+
+    features = {cam: torch.zeros(frames, *shapes[cam]) for cam in set(cams.values())}
+    generator = torch.Generator().manual_seed(0)
+    training = adapter.policy.training
+    cuda = [adapter.device] if adapter.device.type == "cuda" else []
+    # the cell's seeded global RNG and the policy's mode are left as they were: the fit after it is unchanged
+    with torch.random.fork_rng(devices=cuda), torch.autograd.graph.saved_tensors_hooks(pack, lambda t: t):
+        adapter.policy.eval()
+        try:
+            batch = adapter.prepare(raw_batch(low, np.zeros(frames, dtype=np.int64), features, cams))
+            noise = adapter.sample_noise(frames, generator=generator)
+            time = flow_time(frames, generator).to(adapter.device)
+            with autocast(adapter.device, dtype):
+                adapter.loss(batch, noise=noise, time=time).mean()
+        finally:
+            adapter.policy.train(training)
+    return sum(storages.values())
+
+
+def check_step_memory(adapter, low: LowDim, cams: Mapping[str, str], source: FeatureSource, *,
+                      batch_size: int, buffer_mib: int, dtype: torch.dtype) -> None:
+    """BudgetError (one line: the estimate, what a frame costs, the limit) when a step of `batch_size` cannot
+    fit."""
+    shapes = {cam: source.frame_shape(cam) for cam in set(cams.values())}
+    two, one = (saved_bytes(adapter, low, cams, shapes, frames, dtype) for frames in (2, 1))
+    per_frame = max(0, two - one)
+    per_frame += sum(tokens * width * 4 for tokens, width in shapes.values())  # the batch's features in fp32
+    held = buffer_frames(buffer_mib, source.frame_bytes(), batch_size, len(low)) * source.frame_bytes()
+    grid = ", ".join(f"{cam} {t}x{w}" for cam, (t, w) in sorted(shapes.items()))
+    what = (f"a training step of --batch-size {batch_size} ({size(per_frame)} a frame, measured on a 2-frame "
+            f"step of features {grid})")
+    hint = "lower --batch-size"
+    if adapter.device.type == "cuda":
+        require(what, batch_size * per_frame, *available_memory(adapter.device), hint)
+        require(f"the shuffle buffer ({size(held)}) of --batch-size {batch_size}", held,
+                *available_memory("cpu"), hint + " or --buffer-mib")
+    else:
+        require(f"{what} with its shuffle buffer ({size(held)})", held + batch_size * per_frame,
+                *available_memory("cpu"), hint)
