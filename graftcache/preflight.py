@@ -1,7 +1,8 @@
 """A sweep's checks before any work: whatever the real run would refuse later (after training a tiny policy,
 after extracting), found from the recipe, the dataset's metadata and the encoders' specs alone.
 
-`run_sweep` runs `check_sweep` first and `graftcache sweep --dry-run` runs it and stops, so a recipe the
+`graftcache.sweep.check_sweep` runs `check_inputs`, then the checks that need the sweep's own logic;
+`run_sweep` runs it first and `graftcache sweep --dry-run` runs it and stops, so a recipe the
 dry run passes is not refused by these checks halfway through the real run. What it builds to check is what
 the run builds: the ExtractRequest of every cache and the FitRequest of every (backbone, encoder, suite),
 whose RULES apply; the suites' held-out split (graftcache.fit.data.split_episodes) on the dataset's
@@ -31,7 +32,7 @@ from graftcache.runtime import resolve_device
 R = TypeVar("R")
 
 
-def check_sweep(recipe: Recipe) -> list[str]:
+def check_inputs(recipe: Recipe) -> list[str]:
     """Raise the first thing the sweep would refuse; return what was found, a line each, for the dry run."""
     if recipe.objective not in OBJECTIVES:
         raise RecipeError(f"{recipe.path}: objective {recipe.objective!r}: choose one of "

@@ -140,11 +140,24 @@ def fit_requests(recipe: Recipe, state: SweepState) -> Iterator[tuple[str, Any]]
                     command=f"graftcache sweep {recipe.path}", **recipe.fit)
 
 
+def check_sweep(recipe: Recipe) -> list[str]:
+    """Everything the sweep would refuse on its way, before its first step (graftcache.preflight.check_inputs),
+    and the grids its caches store against every backbone's token grid (`encoder_grids`) once the policies'
+    grids can be read without training one; returns what was found, a line each, for `--dry-run`."""
+    from graftcache.backbones import get_backbone
+    from graftcache.preflight import check_inputs
+
+    notes = check_inputs(recipe)
+    read = [b for b in recipe.backbones if b.policy != "tiny"]  # a missing checkpoint is refused here
+    grids = {b.name: get_backbone(b.name).read_native_grid(b.policy) for b in read}
+    if len(read) == len(recipe.backbones):
+        encoder_grids(recipe, SweepState(native_grids=grids))
+    return notes
+
+
 def run_sweep(recipe: Recipe, log: Callable[[str], None] = write, settings: ExecutorSettings | None = None) -> SweepState:
     """Policies, then caches, then every missing cell, on the executor `settings` name (default: the recipe's
     [executor] table); one progress bar over the grid's cells."""
-    from graftcache.preflight import check_sweep
-
     check_sweep(recipe)  # what a later step would refuse, refused before the first (what --dry-run runs)
     settings = settings or recipe.executor_settings
     executor = get_executor(settings)

@@ -12,6 +12,7 @@ import textwrap
 from pathlib import Path
 
 import pytest
+from helpers.backbones import tiny
 from helpers.datasets import Written
 
 from graftcache import budget
@@ -57,6 +58,8 @@ BAD = {
                             "suite 'libero_object' of {root}: no episode can be held out"),
     "unknown_objective": ({"objective": "mse"}, "objective 'mse': choose one of"),
     "unknown_encoder": ({"encoders": '[[encoders]]\nname = "no-such-encoder"\n'}, "unknown encoder 'no-such-encoder'"),
+    "missing_policy": ({"backbones": '[[backbones]]\nname = "pi05"\npolicy = "/nonexistent/policy"\n'},
+                       "policy checkpoint '/nonexistent/policy': no such folder"),
     "grid_past_memory": ({"tables": '[extract]\ngrids = ["100000x100000"]\n'},
                          "2 camera(s) of grids 100000x100000 x 192 channels needs about"),
 }
@@ -87,7 +90,8 @@ def test_dry_run_refuses_what_the_run_refuses_before_any_work(case: str, v2_pi: 
     path = _recipe(tmp_path, v2_pi.root, **changes)
     expected = expected.format(root=v2_pi.root)
     dry = _one_line(["sweep", "--dry-run", str(path)], capsys)
-    assert dry.startswith(f"graftcache sweep: error: {path}") or case in ("unknown_encoder", "grid_past_memory")
+    assert dry.startswith(f"graftcache sweep: error: {path}") or case in ("unknown_encoder", "grid_past_memory",
+                                                                                 "missing_policy")
     assert expected in dry, dry
     assert _one_line(["sweep", str(path)], capsys) == dry  # the real run: the same line, before its first step
     _nothing_made(tmp_path)
@@ -103,6 +107,23 @@ def test_dry_run_of_a_good_recipe_prints_the_grid_and_makes_nothing(v2_pi: Writt
     assert "contents  3 episodes, 18 frames, cameras image, wrist_image" in out
     assert "suite     libero_spatial: 1 train / 1 held-out episodes" in out
     _nothing_made(tmp_path)
+
+
+def test_dry_run_checks_the_stored_grids_against_a_checkpoint_s_grid(v2_pi: Written, tmp_path: Path,
+                                                                      capsys: pytest.CaptureFixture) -> None:
+    """Explicit [extract] grids must hold each backbone's token grid (the tiny smolvla's 4x4): with a
+    checkpoint folder the grid is read from its config, so the dry run refuses what the run would refuse
+    only after training and extracting."""
+    policy = tiny("smolvla").save(tmp_path / "policy")
+    backbone = f'policy = "{policy}"'
+    path = _recipe(tmp_path, v2_pi.root, backbones=backbone, controls="[]", tables='[extract]\ngrids = ["2x2"]\n')
+    line = _one_line(["sweep", "--dry-run", str(path)], capsys)
+    assert line == (f"graftcache sweep: error: {path} [extract]: grids = ['2x2'] lacks 4x4, which the fits read; "
+                    "add them, or 'native' to pool them from the encoder's own grid")
+    assert _one_line(["sweep", str(path)], capsys) == line
+    _nothing_made(tmp_path)
+    path = _recipe(tmp_path, v2_pi.root, backbones=backbone, controls="[]", tables='[extract]\ngrids = ["4x4"]\n')
+    assert main(["sweep", "--dry-run", str(path)]) == 0
 
 
 FIT = ["fit", "--backbone", "smolvla", "--encoder", "e", "--suite", "libero_spatial"]

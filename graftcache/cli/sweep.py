@@ -23,9 +23,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from graftcache.preflight import check_sweep
     from graftcache.recipe import load_recipe
-    from graftcache.sweep import run_sweep
+    from graftcache.sweep import check_sweep, run_sweep
 
     recipe = load_recipe(args.recipe)
     settings = dataclasses.replace(recipe.executor_settings, **given(ExecutorSettings, args))
