@@ -339,3 +339,15 @@ def test_a_batch_past_memory_is_refused_before_training(world: World, tmp_path: 
     assert float(need.split()[0]) * 1024 ** ["MiB", "GiB", "TiB"].index(need.split()[1]) >= 100000 * 2 * 16 * 192 * 4 / 2**20
     have, limit = budget.available_memory("cpu")
     assert f"but {limit} is " in line and line.endswith("; lower --batch-size") and not out.exists()
+
+
+def test_the_largest_seed_feeds_every_rng_and_its_row(world: World, tmp_path: Path) -> None:
+    """2**63 - 1 (graftcache.checks.MAX_SEED): the results column is Int64, and the RNGs a cell seeds with it
+    (torch, the shuffled-image control's offset generator, the stream's numpy order) all take it."""
+    from graftcache.checks import MAX_SEED
+
+    out = tmp_path / "r.parquet"
+    req = world.request(seeds=(MAX_SEED,), steps=1, controls=("shuffled-image",), results=str(out),
+                        cache_key=world.encoder_key)
+    Fitter(req, log=_quiet).run()
+    assert results.read(out)["seed"].to_list() == [MAX_SEED, MAX_SEED]
