@@ -29,7 +29,7 @@ from torch.utils.data import DataLoader, Dataset
 
 import graftcache
 from graftcache import budget
-from graftcache.datasets import LeRobotSource, open_dataset, suite_of
+from graftcache.datasets import DatasetMeta, LeRobotSource, open_dataset, suite_of
 from graftcache.datasets.suites import SUITES
 from graftcache.encoders import get_spec, load_encoder
 from graftcache.encoders.fingerprint import (
@@ -257,7 +257,8 @@ def extract(req: ExtractRequest, log: Callable[[str], None] = print) -> ExtractR
                            device=device, policy=req.policy)
     # "native" -> the encoder's own grid (measured for native towers), so the key never depends on the spelling
     req = replace(req, grids=tuple(map(format_grid, resolve_grids(req.grids, encoder.spec.grid))))
-    n_frames = sum(-(-e.length // req.frame_stride) for e in meta.episodes if e.index in set(episodes))
+    chosen = set(episodes)
+    n_frames = sum(-(-e.length // req.frame_stride) for e in meta.episodes if e.index in chosen)
     check_memory(req, meta, cameras, encoder.spec.width, n_frames, device)
     stream = build_index(source, episodes)
     problem = lowdim_problem(stream)
@@ -295,8 +296,8 @@ def _stored_bytes(req: ExtractRequest, width: int) -> int:
     return sum(h * w for h, w in map(parse_grid, req.grids)) * width * STORAGE_DTYPES[req.dtype].itemsize
 
 
-def check_memory(req: ExtractRequest, meta: Any, cameras: Sequence[str], width: int, n_frames: int,
-                  device: torch.device) -> None:
+def check_memory(req: ExtractRequest, meta: DatasetMeta, cameras: Sequence[str], width: int, n_frames: int,
+                 device: torch.device) -> None:
     """Refuse before any work an extraction whose blocks cannot be held: up to three blocks of stored features
     at once (one encoded, one queued, one being written; `_Writer`), a block of decoded frames, and a batch's
     grids pooled in fp32 (and their copy as the stored dtype). Encoder activations come on top."""

@@ -21,6 +21,7 @@ from graftcache.backbone_table import native_name
 from graftcache.datasets import DatasetMeta, open_dataset, suite_of
 from graftcache.encoders import get_spec
 from graftcache.errors import GraftcacheError
+from graftcache.extract import check_memory
 from graftcache.fit.controls import get_control
 from graftcache.fit.data import split_episodes
 from graftcache.fit.objectives import OBJECTIVES
@@ -55,8 +56,6 @@ def check_inputs(recipe: Recipe) -> list[str]:
             raise RecipeError(f"{recipe.path}: suite {suite!r} of {meta.root}: {e}") from None
         notes.append(f"suite     {suite}: {len(split.train_episodes)} train / {len(split.eval_episodes)} "
                      "held-out episodes")
-    from graftcache.extract import check_memory  # imports torch: once the cheap checks have passed
-
     for req in extracts:
         spec = get_spec(req.encoder)  # an unknown encoder name is refused before any policy is trained
         if spec.library == "native":
