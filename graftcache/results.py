@@ -10,10 +10,10 @@ flock may not) around read -> merge -> write a temporary file -> fsync -> rename
 it renames only while it still holds the lease. A rename is atomic, and readers read the file through one
 open descriptor, so a reader sees the old table or the new one, never a torn file. Why not one part per
 writer that readers merge: every reader of a `.parquet` path (the report, notebooks, users' own polars code)
-would need to change, for a cost this design pays only per append (about 10 ms a row at 10k rows: see
-benchmarks/bench_results.py), which a cell's minutes of training dwarf.
+would need to change, to save a cost paid once per cell (22 ms a row at 10k rows on 2 AMD EPYC cores, most of
+it the fsync: benchmarks/bench_results.py), which the cell's minutes of training dwarf.
 
-A row that cannot be written (a read-only place, a directory at the path) is kept in its cell's run folder
+A row that cannot be written (a read-only place, a full disk) is kept in its cell's run folder
 (`keep_row`) and merged later with `merge` (`graftcache merge-rows`). `cell_claim` is the lease a process
 holds while it computes a cell, so that two fits or sweeps writing one file never compute the same cell.
 """
@@ -300,6 +300,21 @@ def keep_row(folder: str | Path, row: Mapping[str, Any]) -> Path:
     finally:
         tmp.unlink(missing_ok=True)
     return kept
+
+
+def append_or_keep(path: str | Path, row: Mapping[str, Any], folder: str | Path) -> None:
+    """Append one cell's row; a row the results file cannot take is kept in the cell's run folder `folder`
+    (`keep_row`), and the ResultsError says where it is and how to merge it."""
+    try:
+        append(path, [row])
+    except ResultsError as e:
+        try:
+            kept = keep_row(folder, row)
+        except OSError as k:
+            raise ResultsError(f"{e}; the row of cell {row['run_id']} could not be kept either "
+                               f"({k.strerror or k})") from None
+        raise ResultsError(f"{e}; the row of cell {row['run_id']} is kept in {kept}: once {path} can be written, "
+                           f"merge it with `graftcache merge-rows {kept} --results {path}`") from None
 
 
 def merge(path: str | Path, kept: Sequence[str | Path]) -> pl.DataFrame:

@@ -146,8 +146,10 @@ def test_a_row_the_results_file_cannot_take_is_kept_in_the_run_folder(world: Pat
         assert list(ro.iterdir()) == []  # no temporary file, no lock
     err = one_line_error(capsys)
     (kept,) = runs.glob("*/row.parquet")
-    assert f"{ro / 'results.parquet'}: cannot write the results file" in err
-    assert f"is kept in {kept}: merge it with `graftcache merge-rows {kept} --results FILE`" in err
+    target = ro / "results.parquet"
+    assert f"{target}: cannot write the results file" in err
+    assert err.endswith(f"is kept in {kept}: once {target} can be written, merge it with "
+                        f"`graftcache merge-rows {kept} --results {target}`")
     row_kept = results.read(kept)
     assert row_kept.height == 1 and row_kept["seed"].to_list() == [0] and (kept.parent / "projector.safetensors").is_file()
     assert kept.parent.name == row_kept["run_id"][0]

@@ -33,7 +33,7 @@ from graftcache.backbones.checkpoint import follow_umask
 from graftcache.backbones.pool import BackbonePool
 from graftcache.backbones.tiny_record import resolve_policy
 from graftcache.encoders.fingerprint import NumericsCheck, check_numerics
-from graftcache.errors import FitError, ResultsError
+from graftcache.errors import FitError
 from graftcache.file_lease import FileLease
 from graftcache.fit.buffer import MIB
 from graftcache.fit.controls import Control, get_control
@@ -223,7 +223,9 @@ class Fitter:
                     continue
                 try:
                     if not self._skip(control, cell, results.done_run_ids(self.req.results)):
-                        rows.append(self._write(self.run_cell(control, seed), cell))
+                        row = self.run_cell(control, seed)
+                        results.append_or_keep(self.req.results, row, self.run_folder(cell))
+                        rows.append(row)
                 finally:
                     claim.release()
             if busy:
@@ -242,26 +244,11 @@ class Fitter:
 
     def _claim(self, claim: FileLease) -> bool:
         """Take a cell's claim; where no claim can be made (a read-only place) the cell runs unclaimed, and its
-        row is then kept by `_write`."""
+        row is then kept by results.append_or_keep."""
         try:
             return claim.try_acquire()
         except OSError:
             return True
-
-    def _write(self, row: dict[str, Any], cell: Cell) -> dict[str, Any]:
-        """Append the row; a row the results file cannot take is kept in the cell's run folder, and the one-line
-        error says where and how to merge it."""
-        try:
-            results.append(self.req.results, [row])
-        except ResultsError as e:
-            try:
-                kept = results.keep_row(self._run_folder(cell), row)
-            except OSError as k:
-                raise ResultsError(f"{e}; the row of cell {cell.run_id} could not be kept either "
-                                   f"({k.strerror or k})") from None
-            raise ResultsError(f"{e}; the row of cell {cell.run_id} is kept in {kept}: merge it with "
-                               f"`graftcache merge-rows {kept} --results FILE`") from None
-        return row
 
     def run_cell(self, control: Control, seed: int) -> dict[str, Any]:
         """Fit and score one cell (any control, any seed: the others are not run) and return its row without
@@ -341,12 +328,12 @@ class Fitter:
             "graftcache_version": graftcache.__version__,
         })
 
-    def _run_folder(self, cell: Cell) -> Path:
+    def run_folder(self, cell: Cell) -> Path:
         """Where a cell's projector (and a row its results file could not take) is kept."""
         return (Path(self.req.out) if self.req.out else Path(self.req.results).parent / "runs") / cell.run_id
 
     def _save_projector(self, adapter, cell: Cell) -> None:
-        folder = self._run_folder(cell)
+        folder = self.run_folder(cell)
         folder.mkdir(parents=True, exist_ok=True)
         trainable = {n: p.detach().cpu().contiguous() for n, p in adapter.policy.named_parameters() if p.requires_grad}
         save_file(trainable, str(folder / "projector.safetensors"))
