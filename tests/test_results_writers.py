@@ -227,7 +227,7 @@ def test_a_lease_is_taken_over_only_from_a_dead_or_silent_holder(tmp_path: Path,
     assert leftovers(tmp_path) == []
 
 
-def _recipe(tmp_path: Path, dataset: Path, policy: Path, shared: Path) -> Path:
+def _recipe(tmp_path: Path, dataset: Path, shared: Path) -> Path:
     path = tmp_path / "recipe.toml"
     path.write_text(textwrap.dedent(f"""
         name = "twice"
@@ -239,7 +239,6 @@ def _recipe(tmp_path: Path, dataset: Path, policy: Path, shared: Path) -> Path:
         controls = ["zero-image"]
         [[backbones]]
         name = "smolvla"
-        policy = "{policy}"
         [[encoders]]
         name = "timm:vit_tiny_patch16_224"
         random_init = true
@@ -252,15 +251,17 @@ def _recipe(tmp_path: Path, dataset: Path, policy: Path, shared: Path) -> Path:
         num_workers = 0
         eval_frames = 4
         num_denoise_steps = 1
+        [train_tiny]
+        steps = 2
+        batch_size = 4
     """))
     return path
 
 
-@pytest.mark.slow  # ~1 min: two sweep processes (torch imports), one extraction, four cells
+@pytest.mark.slow  # ~1 min: two sweep processes (torch imports), one tiny policy, one extraction, four cells
 def test_two_sweeps_of_one_recipe_compute_each_cell_once(v3_video: Written, tmp_path: Path) -> None:
-    tiny("smolvla").save(tmp_path / "policy")
     shared = tmp_path / "results.parquet"
-    recipe = _recipe(tmp_path, v3_video.root, tmp_path / "policy", shared)
+    recipe = _recipe(tmp_path, v3_video.root, shared)
     sweeps = [subprocess.Popen([sys.executable, "-m", "graftcache", "sweep", str(recipe)],
                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV) for _ in range(2)]
     outs = [proc.communicate(timeout=600) for proc in sweeps]
@@ -271,4 +272,8 @@ def test_two_sweeps_of_one_recipe_compute_each_cell_once(v3_video: Written, tmp_
     computed = [line.split()[1].rstrip(":") for out, err in outs for line in (out + err).splitlines()
                 if line.startswith("cell ") and "being computed" not in line]
     assert sorted(computed) == sorted(table["run_id"].to_list())  # each of the 4 cells once, over both sweeps
+    logs = [out + err for out, err in outs]
+    # the tiny policy is trained by one sweep and reused by the other, which waited for it
+    assert sum("training tiny smolvla natively" in log for log in logs) == 1
+    assert sum("reusing natively trained tiny smolvla" in log for log in logs) == 1
     assert leftovers(tmp_path) == []
