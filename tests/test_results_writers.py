@@ -161,6 +161,9 @@ def test_a_row_the_results_file_cannot_take_is_kept_in_the_run_folder(world: Pat
     assert results.read(merged).equals(row_kept)
     with pytest.raises(ResultsError, match="no results file at"):
         results.merge(merged, [tmp_path / "absent.parquet"])
+    (tmp_path / "junk.parquet").write_text("not parquet")
+    assert main(["merge-rows", str(tmp_path / "junk.parquet"), "--results", str(merged)]) == 2
+    assert f"{tmp_path / 'junk.parquet'}: not a Parquet results table" in one_line_error(capsys)
     # the merged cell is then finished: the fit skips it
     assert main(fit_args(world, merged, "0", runs)) == 0
     assert "skip " in capsys.readouterr().out
