@@ -195,7 +195,8 @@ def read(path: str | Path) -> pl.DataFrame:
     except GraftcacheError as e:
         raise ResultsError(f"{path}: {e}") from None
     except (pl.exceptions.PolarsError, OSError) as e:
-        raise ResultsError(f"{path}: not a Parquet results table ({_reason(e, path)}); pass another --results") from None
+        raise ResultsError(f"{path}: not a Parquet results table ({_reason(e, path)}); "
+                           "pass another --results") from None
 
 
 def read_for_report(path: str | Path) -> pl.DataFrame:
