@@ -34,6 +34,7 @@ from graftcache.backbones.pool import BackbonePool
 from graftcache.backbones.tiny_record import resolve_policy
 from graftcache.encoders.fingerprint import NumericsCheck, check_numerics
 from graftcache.errors import FitError
+from graftcache.file_lease import FileLease
 from graftcache.fit.buffer import MIB
 from graftcache.fit.controls import Control, get_control
 from graftcache.fit.data import LowDim, drop_nonfinite, load_lowdim, split_episodes, suite_index_table
@@ -198,20 +199,56 @@ class Fitter:
                 for seed in self.req.seeds for control in self.controls]
 
     def run(self) -> list[dict[str, Any]]:
-        """Every missing cell, one after the other, each row appended to the results file as it finishes."""
+        """Every missing cell, one after the other, each row appended to the results file as it finishes.
+
+        Other processes (fits, sweeps, here or on other machines) may write the same results file: a cell is
+        computed only under its claim (results.cell_claim), so a cell another process is computing is left
+        for later, then skipped once its row is in the file (or computed here if that process died)."""
         set_main_threads()
         done = results.done_run_ids(self.req.results)
         rows = []
-        for control, seed, cell in self.cells():
-            if cell.run_id in done:
-                encoder = self._source(control).manifest["encoder"]
-                self.log(f"skip {self.req.backbone}/{encoder['name']}/{self.req.suite} seed {seed} "
-                         f"control {control.name}: already in {self.req.results}")
-                continue
-            row = self.run_cell(control, seed)
-            results.append(self.req.results, [row])
-            rows.append(row)
+        pending = [(control, seed, cell) for control, seed, cell in self.cells() if not self._skip(control, cell, done)]
+        claims = {cell.run_id: results.cell_claim(self.req.results, cell.run_id) for _, _, cell in pending}
+        told: set[str] = set()
+        while pending:
+            busy = []
+            for control, seed, cell in pending:
+                claim = claims[cell.run_id]
+                if not self._claim(claim):
+                    if cell.run_id not in told:
+                        self.log(f"cell {cell.run_id} (seed {seed} control {control.name}) is being computed by "
+                                 f"{claim.holder()}: waiting for its row")
+                        told.add(cell.run_id)
+                    busy.append((control, seed, cell))
+                    continue
+                try:
+                    if not self._skip(control, cell, results.done_run_ids(self.req.results)):
+                        row = self.run_cell(control, seed)
+                        results.append_or_keep(self.req.results, row, self.run_folder(cell))
+                        rows.append(row)
+                finally:
+                    claim.release()
+            if busy:
+                time.sleep(1.0)
+            pending = busy
         return rows
+
+    def _skip(self, control: Control, cell: Cell, done: set[str]) -> bool:
+        """Whether the cell's row is in the results file already (said so in the log)."""
+        if cell.run_id not in done:
+            return False
+        encoder = self._source(control).manifest["encoder"]
+        self.log(f"skip {self.req.backbone}/{encoder['name']}/{self.req.suite} seed {cell.seed} "
+                 f"control {control.name}: already in {self.req.results}")
+        return True
+
+    def _claim(self, claim: FileLease) -> bool:
+        """Take a cell's claim; where no claim can be made (a read-only place) the cell runs unclaimed, and its
+        row is then kept by results.append_or_keep."""
+        try:
+            return claim.try_acquire()
+        except OSError:
+            return True
 
     def run_cell(self, control: Control, seed: int) -> dict[str, Any]:
         """Fit and score one cell (any control, any seed: the others are not run) and return its row without
@@ -291,8 +328,12 @@ class Fitter:
             "graftcache_version": graftcache.__version__,
         })
 
+    def run_folder(self, cell: Cell) -> Path:
+        """Where a cell's projector (and a row its results file could not take) is kept."""
+        return (Path(self.req.out) if self.req.out else Path(self.req.results).parent / "runs") / cell.run_id
+
     def _save_projector(self, adapter, cell: Cell) -> None:
-        folder = (Path(self.req.out) if self.req.out else Path(self.req.results).parent / "runs") / cell.run_id
+        folder = self.run_folder(cell)
         folder.mkdir(parents=True, exist_ok=True)
         trainable = {n: p.detach().cpu().contiguous() for n, p in adapter.policy.named_parameters() if p.requires_grad}
         save_file(trainable, str(folder / "projector.safetensors"))
