@@ -253,6 +253,9 @@ def extract(req: ExtractRequest, log: Callable[[str], None] = print) -> ExtractR
     episodes = sorted(set(episodes))
 
     spec = get_spec(req.encoder)
+    if req.camera_map is not None and spec.library != "native":  # other encoders serve any policy's cameras
+        raise EncoderError(f"encoder {spec.name!r} takes no --camera-map (only native towers do; `fit` takes the "
+                           "map for the cache of any encoder)")
     encoder = load_encoder(spec, weights=req.weights, random_init=req.random_init, seed=req.seed,
                            device=device, policy=req.policy)
     _check_policy_cameras(req, encoder, cameras, meta.root, log)
@@ -290,13 +293,9 @@ def extract(req: ExtractRequest, log: Callable[[str], None] = print) -> ExtractR
 def _check_policy_cameras(req: ExtractRequest, encoder: Any, cameras: Sequence[str], root: Path,
                           log: Callable[[str], None]) -> None:
     """A native tower's cache is read by its own policy, camera by camera: refuse one whose cameras that policy
-    cannot read (graftcache/cameras.py: by name, or as `camera_map` says) before decoding a frame. Other encoders
-    serve any policy, so a camera map means nothing to them."""
+    cannot read (graftcache/cameras.py: by name, or as `camera_map` says) before decoding a frame."""
     policy = getattr(encoder, "policy_cameras", None)
     if policy is None:
-        if req.camera_map is not None:
-            raise GraftcacheError(f"--camera-map {req.camera_map}: encoder {req.encoder!r} is no policy's native "
-                                  "tower; the map is given to `fit` (and to native-tower extracts)")
         return
     mapping = match_cameras(policy, cameras, req.camera_map, policy_name=str(req.policy),
                             cache_name=f"dataset {root}" + (" (--cameras)" if req.cameras else ""))

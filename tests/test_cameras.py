@@ -125,7 +125,7 @@ def test_native_extract_refuses_differing_names_unless_mapped(world: World, tmp_
     # a map means nothing to an encoder that serves any policy: refused, not ignored
     assert main(["extract", "--encoder", ENCODER, "--random-init", "--dataset", str(world.dataset.root),
                  "--camera-map", MAP, "--num-workers", "0", "--cache", str(cache), "--no-progress"]) == 2
-    assert "no policy's native tower" in _one_error_line(capsys)
+    assert f"encoder '{ENCODER}' takes no --camera-map" in _one_error_line(capsys)
     # fit reads both caches through the one map; the native control's row records it too
     (encoder_cache,) = [c for c in list_caches(world.cache) if c.manifest["dataset"]["root"] == str(world.dataset.root)]
     shutil.copytree(world.cache / encoder_cache.key, cache / encoder_cache.key)
