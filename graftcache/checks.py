@@ -20,6 +20,7 @@ NON_NEGATIVE: Rule = (lambda v: v >= 0, "must be >= 0")
 FRACTION: Rule = (lambda v: 0 < v < 1, "must be between 0 and 1 (exclusive)")
 SEEDS: Rule = (lambda v: len(v) > 0 and all(s >= 0 for s in v), "must list at least one seed, each >= 0")
 EPISODES: Rule = (lambda v: len(v) > 0 and all(e >= 0 for e in v), "must list at least one episode index >= 0")
+NAMES: Rule = (lambda v: len(v) > 0 and len(set(v)) == len(v), "must name at least one, each once")
 SHARD: Rule = (lambda v: len(v) == 2 and 0 <= v[0] < v[1], "must be i/N with 0 <= i < N")
 
 

@@ -69,6 +69,8 @@ SCHEMA: dict[str, pl.DataType] = {
                                       # and found NaN/inf (features are checked as they stream)
     "numerics_drift": pl.Float64,     # largest numerics-probe difference / its RMS over the cell's caches, as
                                       # recomputed by this environment (encoders/fingerprint.py); null: unchecked
+    "camera_map": pl.String,          # which cache camera fed each policy camera, e.g. "image=agentview,image2=
+                                      # eye_in_hand" (graftcache/cameras.py); also when every name matched
     "graftcache_version": pl.String,
     "command": pl.String,             # the command line that produced the row
 }
@@ -77,7 +79,7 @@ CONTROLS_NATIVE = ("native",)
 
 # Columns added to SCHEMA after results files were first written: reading an older file adds them as nulls, so
 # its cells are still skipped and new rows can still be appended to it.
-ADDED_COLUMNS = ("numerics_drift", "buffer_mib")
+ADDED_COLUMNS = ("numerics_drift", "buffer_mib", "camera_map")
 
 # What a report needs of a table: enough to place every MSE in the (backbone, suite, encoder, control, seed)
 # grid. Tables from older versions, other tools or a paper need only these (conform fills the other SCHEMA

@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from graftcache.backbone_table import native_name
+from graftcache.cameras import match_cameras
 from graftcache.errors import GraftcacheError
 from graftcache.executors import Executor, get_executor
 from graftcache.file_lease import FileLease
@@ -96,9 +97,24 @@ def prepare_policies(recipe: Recipe, state: SweepState, log: Callable[[str], Non
                 policy = str(train_tiny(entry.name, recipe.dataset, cfg=cfg, cache=recipe.cache,
                                         device=recipe.device, log=log))
             state.commands[f"policy {entry.name}"] = command_line("train-tiny", backbone=entry.name,
-                                                                  dataset=recipe.dataset, steps=cfg.steps)
+                                                                  dataset=recipe.dataset, steps=cfg.steps,
+                                                                  cameras=cfg.cameras)
         state.policies[entry.name] = policy
         state.native_grids[entry.name] = get_backbone(entry.name).read_native_grid(policy)
+    check_cameras(recipe, state)
+
+
+def check_cameras(recipe: Recipe, state: SweepState) -> None:
+    """Every policy's cameras against those its caches will hold (the recipe's [extract] cameras, else the
+    dataset's), by name or as the recipe's camera_map says, before anything is extracted: a mismatch found by
+    the first fit would come after every extraction."""
+    from graftcache.backbones import get_backbone
+    from graftcache.datasets import open_dataset
+
+    cameras = recipe.extract.get("cameras") or open_dataset(recipe.dataset).meta.cameras
+    for backbone, policy in state.policies.items():
+        match_cameras(get_backbone(backbone).read_cameras(policy), cameras, recipe.camera_map, policy_name=policy,
+                      cache_name=f"dataset {recipe.dataset}")
 
 
 def _extract(recipe: Recipe, executor: Executor, encoder: str, grids: tuple[str, ...], log: Callable[[str], None],
@@ -142,10 +158,12 @@ def prepare_caches(recipe: Recipe, state: SweepState, log: Callable[[str], None]
         return
     for backbone, policy in state.policies.items():
         grid = (format_grid(state.native_grids[backbone]),)
-        key = _extract(recipe, executor, native_name(backbone), grid, log, policy=policy)
+        key = _extract(recipe, executor, native_name(backbone), grid, log, policy=policy,
+                       camera_map=recipe.camera_map)
         state.native_caches[backbone] = key
         state.commands[key] = command_line("extract", encoder=native_name(backbone), policy=policy,
-                                           dataset=recipe.dataset, **_extract_settings(recipe, grid))
+                                           dataset=recipe.dataset, camera_map=recipe.camera_map,
+                                           **_extract_settings(recipe, grid))
 
 
 def fit_requests(recipe: Recipe, state: SweepState) -> Iterator[tuple[str, Any]]:
@@ -157,7 +175,8 @@ def fit_requests(recipe: Recipe, state: SweepState) -> Iterator[tuple[str, Any]]
                 yield f"{backbone.name}/{enc.label}/{suite}", FitRequest(
                     backbone=backbone.name, encoder=enc.name, suite=suite, policy=state.policies[backbone.name],
                     dataset=recipe.dataset, cache_key=state.encoder_caches[enc],
-                    native_cache_key=state.native_caches.get(backbone.name), seeds=recipe.seeds,
+                    native_cache_key=state.native_caches.get(backbone.name), camera_map=recipe.camera_map,
+                    seeds=recipe.seeds,
                     controls=recipe.controls, objective=recipe.objective, device=recipe.device,
                     results=recipe.results, cache=recipe.cache, progress=False,
                     command=f"graftcache sweep {recipe.path}", **recipe.fit)

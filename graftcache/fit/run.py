@@ -29,9 +29,11 @@ from safetensors.torch import save_file
 import graftcache
 from graftcache import results
 from graftcache.backbone_table import native_name
+from graftcache.backbones import get_backbone
 from graftcache.backbones.checkpoint import follow_umask
 from graftcache.backbones.pool import BackbonePool
 from graftcache.backbones.tiny_record import resolve_policy
+from graftcache.cameras import format_camera_map, match_cameras, renames
 from graftcache.encoders.fingerprint import NumericsCheck, check_numerics
 from graftcache.errors import FitError
 from graftcache.file_lease import FileLease
@@ -40,7 +42,7 @@ from graftcache.fit.controls import Control, get_control
 from graftcache.fit.data import LowDim, drop_nonfinite, load_lowdim, split_episodes, suite_index_table
 from graftcache.fit.feed import SplitFeed
 from graftcache.fit.lookup import find_cache
-from graftcache.fit.loop import camera_map, evaluate
+from graftcache.fit.loop import evaluate
 from graftcache.fit.objectives import EVAL_ONLY, OBJECTIVES, Fitting, Objective
 from graftcache.fit.stream import BlockMemo, FeatureSource, StreamStats, read_chunks
 from graftcache.pooling import format_grid
@@ -55,7 +57,12 @@ __all__ = ["Cell", "FitRequest", "Fitter"]
 @dataclass(frozen=True)
 class Cell:
     """What identifies one results row. Its fields, by name and value, are the bytes of the row's
-    run_id: renaming or retyping one would make finished rows unrecognisable, so never do."""
+    run_id: renaming or retyping one would make finished rows unrecognisable, so never do.
+
+    `camera_map` is the one field left out of the run_id when it is None: a cell whose policy cameras are each
+    fed by the cache camera of the same name (the policy and the cache, both in the cell, already decide that),
+    so such rows keep the run_ids they had before cameras could be mapped. A mapping that renames changes which
+    frames feed a slot, so it is hashed: two mappings of one cache never share a row."""
 
     backbone: str
     policy: str
@@ -75,10 +82,14 @@ class Cell:
     eval_frames: int | None
     num_denoise_steps: int | None
     compute_dtype: str
+    camera_map: str | None = None  # canonical text, only when a policy camera is fed by another name
 
     @property
     def run_id(self) -> str:
-        return results.make_run_id(asdict(self))
+        cell = asdict(self)
+        if cell["camera_map"] is None:
+            del cell["camera_map"]
+        return results.make_run_id(cell)
 
     def row(self, req: FitRequest, measured: Mapping[str, Any]) -> dict[str, Any]:
         """The results row: each SCHEMA column from what the cell measured, else the cell, else the request
@@ -138,6 +149,7 @@ class Fitter:
                                f"strides {sorted(strides)}); extract both with the same --frame-stride")
         self.policy_folder = resolve_policy(req.backbone, req.policy, self.cache.manifest["dataset_fingerprint"],
                                             cache_root(req.cache), self.cache.manifest["dataset"]["source"])
+        self.cameras = self._match_cameras()
         self.index = suite_index_table(self.cache, req.suite)
         self.split = split_episodes(self.index, eval_fraction=req.eval_fraction, seed=req.eval_split_seed)
         self._materials: dict[tuple, _Material] = {}
@@ -145,6 +157,19 @@ class Fitter:
         self._enforced: set[str] = set()  # verdicts this request has acted on (refused, warned)
         # reading in this process, the blocks cells read are kept for the next cells, up to another --buffer-mib
         self._memo = BlockMemo(req.buffer_mib * MIB) if req.num_workers == 0 else None
+
+    def _match_cameras(self) -> dict[str, str]:
+        """Policy camera -> the cache camera feeding it (graftcache/cameras.py: by name unless `camera_map` says
+        otherwise), read from the policy's config and checked against every cache the fit reads."""
+        policy = get_backbone(self.req.backbone).read_cameras(self.policy_folder)
+        mapping: dict[str, str] = {}
+        for cache in (self.cache, self.native_cache):
+            if cache is not None:
+                mapping = match_cameras(policy, cache.manifest["cameras"], self.req.camera_map,
+                                        policy_name=str(self.policy_folder), cache_name=f"cache {cache.key}")
+        if renames(mapping):
+            self.log(f"cameras mapped as asked (policy=cache): {format_camera_map(mapping)}")
+        return mapping
 
     # ---------------------------------------------------------------- cells
     def _source(self, control: Control) -> FeatureCache:
@@ -186,6 +211,7 @@ class Fitter:
             lora_rank=req.lora_rank if control.lora else 0,
             eval_fraction=req.eval_fraction, eval_split_seed=req.eval_split_seed, eval_frames=req.eval_frames,
             num_denoise_steps=req.num_denoise_steps, compute_dtype=req.compute_dtype,
+            camera_map=format_camera_map(self.cameras) if renames(self.cameras) else None,
         )
 
     @property
@@ -269,7 +295,7 @@ class Fitter:
         source = self._source(control)
         key = (source.key, control.extra, None if control.extra else grid)
         if key not in self._materials:
-            cams = list(camera_map(adapter, source.manifest["cameras"]).values())
+            cams = list(self.cameras.values())
             low, dropped = drop_nonfinite(load_lowdim(source, self.req.suite, chunk=adapter.chunk_size), source,
                                           drop=self.req.drop_nonfinite)
             target_rows = None
@@ -302,7 +328,7 @@ class Fitter:
         if control.lora:
             adapter.add_lora(rank=self.req.lora_rank)
         self.log(f"cell {cell.run_id}: {adapter.freeze_report()}")
-        cams = camera_map(adapter, list(mat.source.cameras))
+        cams = self.cameras
         stats = StreamStats()
         loss = self._objective(control).fit(Fitting(
             adapter=adapter, req=self.req, control=control, train=self._feed(mat, mat.train, control, cell.seed),
@@ -325,7 +351,7 @@ class Fitter:
             "n_eval_frames": score.n_frames, "n_eval_episodes": len(score.per_episode), "wall_s": wall,
             "device": str(self.device), "random_init": bool(mat.cache.manifest.get("random_init") or adapter.random_init),
             "n_dropped_nonfinite": mat.dropped + len(stats.dropped), "numerics_drift": self._drift(mat),
-            "graftcache_version": graftcache.__version__,
+            "camera_map": format_camera_map(self.cameras), "graftcache_version": graftcache.__version__,
         })
 
     def run_folder(self, cell: Cell) -> Path:
