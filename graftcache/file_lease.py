@@ -32,7 +32,7 @@ from pathlib import Path
 
 from graftcache.store.lease import lease_seconds
 
-POLL_S = 0.005  # first wait between tries; doubles up to MAX_POLL_S (a results append holds it ~10 ms)
+POLL_S = 0.005  # first wait between tries; doubles up to MAX_POLL_S (a results append holds it ~20 ms)
 MAX_POLL_S = 0.1
 
 
