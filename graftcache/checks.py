@@ -57,6 +57,7 @@ SEED: Rule = (lambda v: 0 <= v <= MAX_SEED, f"must be in 0..{MAX_SEED} (results 
 #: A million fits is more than any machine runs; a million ints is still cheap to hold while checking.
 SEEDS = IntList("seed", MAX_SEED, 1_000_000)
 EPISODES = IntList("episode", 2**63 - 1, 10_000_000)
+NAMES: Rule = (lambda v: len(v) > 0 and len(set(v)) == len(v), "must name at least one, each once")
 SHARD: Rule = (lambda v: len(v) == 2 and 0 <= v[0] < v[1], "must be i/N with 0 <= i < N")
 
 

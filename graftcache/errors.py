@@ -32,3 +32,8 @@ class FitError(GraftcacheError):
 class ExecutorError(GraftcacheError):
     """A distributed executor cannot do the work: no cluster at the address, a task the cluster cannot place,
     a task lost more often than it may be retried."""
+
+
+class ResultsError(GraftcacheError):
+    """A results file cannot be read or written: not Parquet, a directory, a read-only place, a value its
+    column cannot hold without changing it."""

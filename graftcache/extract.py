@@ -29,6 +29,7 @@ from torch.utils.data import DataLoader, Dataset
 
 import graftcache
 from graftcache import budget
+from graftcache.cameras import format_camera_map, match_cameras, renames
 from graftcache.datasets import DatasetMeta, LeRobotSource, open_dataset, suite_of
 from graftcache.datasets.suites import SUITES
 from graftcache.encoders import get_spec, load_encoder
@@ -253,8 +254,12 @@ def extract(req: ExtractRequest, log: Callable[[str], None] = print) -> ExtractR
     episodes = sorted(set(episodes))
 
     spec = get_spec(req.encoder)
+    if req.camera_map is not None and spec.library != "native":  # other encoders serve any policy's cameras
+        raise EncoderError(f"encoder {spec.name!r} takes no --camera-map (only native towers do; `fit` takes the "
+                           "map for the cache of any encoder)")
     encoder = load_encoder(spec, weights=req.weights, random_init=req.random_init, seed=req.seed,
                            device=device, policy=req.policy)
+    _check_policy_cameras(req, encoder, cameras, meta.root, log)
     # "native" -> the encoder's own grid (measured for native towers), so the key never depends on the spelling
     req = replace(req, grids=tuple(map(format_grid, resolve_grids(req.grids, encoder.spec.grid))))
     chosen = set(episodes)
@@ -289,6 +294,19 @@ def extract(req: ExtractRequest, log: Callable[[str], None] = print) -> ExtractR
         done = FeatureCache.in_root(root, key)
     log(f"reusing complete cache {key} ({done.n_frames} frames)")
     return ExtractResult(key, path, True, done.n_frames, 0, time.perf_counter() - t0)
+
+
+def _check_policy_cameras(req: ExtractRequest, encoder: Any, cameras: Sequence[str], root: Path,
+                          log: Callable[[str], None]) -> None:
+    """A native tower's cache is read by its own policy, camera by camera: refuse one whose cameras that policy
+    cannot read (graftcache/cameras.py: by name, or as `camera_map` says) before decoding a frame."""
+    policy = getattr(encoder, "policy_cameras", None)
+    if policy is None:
+        return
+    mapping = match_cameras(policy, cameras, req.camera_map, policy_name=str(req.policy),
+                            cache_name=f"dataset {root}" + (" (--cameras)" if req.cameras else ""))
+    if renames(mapping):
+        log(f"cameras mapped as asked (policy=dataset): {format_camera_map(mapping)}; `fit` takes the same map")
 
 
 def _stored_bytes(req: ExtractRequest, width: int) -> int:

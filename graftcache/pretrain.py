@@ -12,6 +12,7 @@ reproducible from the seed, so `--policy tiny` finds it again.
 from __future__ import annotations
 
 import functools
+import json
 import math
 import time
 from collections.abc import Callable
@@ -24,8 +25,9 @@ import torch
 
 from graftcache.backbones import TinySpec, get_backbone
 from graftcache.backbones.native import policy_pixels
-from graftcache.backbones.tiny_record import policy_dir, write_record
-from graftcache.datasets import open_dataset
+from graftcache.backbones.tiny_record import policy_dir, read_record, write_record
+from graftcache.datasets import DatasetMeta, open_dataset
+from graftcache.errors import BackboneError, DatasetError
 from graftcache.fit.data import action_chunks
 from graftcache.fit.lookup import dataset_fingerprint
 from graftcache.fit.loop import optimise
@@ -93,6 +95,45 @@ def _unfreeze_all(policy: torch.nn.Module) -> None:
         p.requires_grad_(True)
 
 
+def _cameras(cfg: TinyTrainConfig, meta: DatasetMeta) -> tuple[TinyTrainConfig, tuple[str, ...]]:
+    """The cameras the policy will see (`cfg.cameras`, default all of the dataset's, in its order), and `cfg` with
+    `cameras` None when they are exactly that default, so one policy has one key however it was asked for."""
+    cameras = cfg.cameras or meta.cameras
+    unknown = [c for c in cameras if c not in meta.cameras]
+    if unknown:
+        raise DatasetError(f"{meta.root}: camera {unknown[0]!r} not in dataset; available: {', '.join(meta.cameras)}")
+    return replace(cfg, cameras=None if tuple(cameras) == meta.cameras else tuple(cameras)), tuple(cameras)
+
+
+def _reusable(folder: Path, backbone: str, fingerprint: dict, cfg: TinyTrainConfig, force: bool) -> bool:
+    """Whether `folder` already holds the checkpoint asked for. A folder holding another backbone's checkpoint is
+    refused whatever `force` says (retraining would mix two policies' files); one trained on another dataset or
+    recipe is refused unless `force` (retrain it there)."""
+    if not (folder / "config.json").exists():
+        return False
+    record = read_record(folder)
+    held = record.get("backbone") if record else _config_type(folder)
+    if held != backbone:
+        raise BackboneError(f"{folder} holds a {held or 'non-lerobot'} checkpoint, not a tiny {backbone}: pass "
+                            f"another --out for {backbone} (or remove the folder)")
+    if force:
+        return False
+    if record is None or record.get("dataset_fingerprint") != fingerprint or \
+            record.get("config") != cfg.as_dict(backbone):
+        raise BackboneError(f"{folder} holds a {backbone} checkpoint trained on another dataset or with another "
+                            f"recipe (steps, seed, cameras, ...): pass --force to retrain it there, or another --out")
+    return True
+
+
+def _config_type(folder: Path) -> str | None:
+    """The policy type a checkpoint's config.json names (None when it names none or is not JSON)."""
+    try:
+        value = json.loads((folder / "config.json").read_text()).get("type")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return value if isinstance(value, str) else None
+
+
 def train_tiny(backbone: str, dataset: str, *, cfg: TinyTrainConfig = DEFAULT_TINY_TRAIN, cache: str | None = None,
                device: str = "cpu", out: str | Path | None = None, force: bool = False,
                log: Callable[[str], None] = print) -> Path:
@@ -102,15 +143,15 @@ def train_tiny(backbone: str, dataset: str, *, cfg: TinyTrainConfig = DEFAULT_TI
     cfg = replace(cfg, compute_dtype=resolve_compute_dtype(cfg.compute_dtype, dev))
     compute = resolve_dtype(cfg.compute_dtype)
     fingerprint = dataset_fingerprint(dataset)
+    cfg, cameras = _cameras(cfg, open_dataset(dataset).meta)
     folder = Path(out) if out else policy_dir(cache_root(cache), backbone, fingerprint, cfg)
-    if (folder / "config.json").exists() and not force:
+    if _reusable(folder, backbone, fingerprint, cfg, force):
         log(f"reusing natively trained tiny {backbone}: {folder}")
         return folder
     t0 = time.perf_counter()
-    source, frames, table = _decode_all(dataset, ("image", "image2"), cfg.image_size, log)
+    source, frames, table = _decode_all(dataset, cameras, cfg.image_size, log)
     meta = source.meta
-    spec = TinySpec(cameras=tuple(meta.cameras[:2]), state_dim=meta.state_dim, action_dim=meta.action_dim,
-                    seed=cfg.seed)
+    spec = TinySpec(cameras=cameras, state_dim=meta.state_dim, action_dim=meta.action_dim, seed=cfg.seed)
     adapter = get_backbone(backbone).load("tiny", device=str(dev), dataset_stats=dataset_stats(table), tiny=spec)
     policy = adapter.policy
     _unfreeze_all(policy)
@@ -138,7 +179,7 @@ def train_tiny(backbone: str, dataset: str, *, cfg: TinyTrainConfig = DEFAULT_TI
                       desc=f"train-tiny {backbone}")
     adapter.save(folder)
     record = {"backbone": backbone, "dataset": str(dataset), "dataset_root": str(meta.root),
-              "dataset_fingerprint": fingerprint,
+              "dataset_fingerprint": fingerprint, "cameras": list(cameras),
               "config": cfg.as_dict(backbone), "final_loss": float(np.mean(losses[-max(1, cfg.steps // 10):])),
               "wall_s": time.perf_counter() - t0, "random_init": True,
               "note": "tiny architecture, random init, trained natively by graftcache (not released weights)"}

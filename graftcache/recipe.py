@@ -4,6 +4,8 @@ checked before anything runs (graftcache.sweep runs it).
 Recipe keys (unknown keys are errors, so a typo never silently falls back to a default):
 
     name, dataset, results, cache, device, suites, seeds, controls, objective
+    camera_map     "POLICY=CACHE,...": which dataset camera feeds each policy camera where the names differ
+                   (graftcache/cameras.py); passed to every fit and native-tower extract
     [[backbones]]  name, policy ("tiny" = natively trained on `dataset`, else hub id or folder)
     [[encoders]]   name, weights, random_init, seed
     [extract]      fields of ExtractRequest  } except those the grid sets (GRID_FIELDS): e.g. batch_size,
@@ -33,6 +35,7 @@ from pathlib import Path
 from typing import Any
 
 from graftcache.backbone_table import BACKBONES
+from graftcache.cameras import parse_camera_map
 from graftcache.errors import GraftcacheError
 from graftcache.executors import check_executor
 from graftcache.fit.controls import get_control
@@ -68,9 +71,9 @@ SECTIONS: dict[str, type] = {"extract": ExtractRequest, "fit": FitRequest, "trai
 #: (nor `shard`: a sweep needs whole caches, so it never extracts one shard of one).
 GRID_FIELDS: dict[str, frozenset[str]] = {
     "extract": frozenset({"dataset", "encoder", "episodes", "weights", "random_init", "seed", "policy",
-                          "device", "cache", "progress", "extra_manifest", "shard"}),
+                          "device", "cache", "progress", "extra_manifest", "shard", "camera_map"}),
     "fit": frozenset({"backbone", "encoder", "suite", "policy", "dataset", "cache_key", "native_cache_key", "seeds",
-                      "controls", "objective", "device", "results", "cache", "progress", "command"}),
+                      "controls", "objective", "device", "results", "cache", "progress", "command", "camera_map"}),
     "train_tiny": frozenset(),
     "executor": frozenset(),
 }
@@ -93,6 +96,7 @@ class Recipe:
     seeds: tuple[int, ...]
     controls: tuple[str, ...] = ()
     objective: str = "flow"
+    camera_map: str | None = None
     cache: str | None = None
     device: str = "cpu"
     extract: Mapping[str, Any] = field(default_factory=dict)     # ExtractRequest overrides
@@ -229,6 +233,11 @@ def load_recipe(path: str | Path) -> Recipe:
             get_control(control)
         except GraftcacheError as e:
             raise RecipeError(f"{path}: controls: {e}") from None
+    if recipe.camera_map is not None:
+        try:
+            parse_camera_map(recipe.camera_map)
+        except GraftcacheError as e:
+            raise RecipeError(f"{path}: camera_map: {e}") from None
     if not recipe.seeds or not recipe.suites or not recipe.encoders or not recipe.backbones:
         raise RecipeError(f"{path}: suites, seeds, encoders and backbones must each list at least one entry")
     _check_grid(recipe, path)

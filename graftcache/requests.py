@@ -12,9 +12,13 @@ import sys
 from dataclasses import asdict, dataclass, field
 from typing import Any, ClassVar
 
-from graftcache.checks import EPISODES, FRACTION, NON_NEGATIVE, POSITIVE, SEED, SEEDS, SHARD, Checked, Rule
+from graftcache.cameras import SYNTAX, valid_camera_map
+from graftcache.checks import EPISODES, FRACTION, NAMES, NON_NEGATIVE, POSITIVE, SEED, SEEDS, SHARD, Checked, Rule
 from graftcache.errors import GraftcacheError
 from graftcache.pooling import NATIVE, valid_grid_names
+
+#: A camera map's text (graftcache/cameras.py); the CLI's parser names what is wrong with one in more detail.
+CAMERA_MAP: Rule = (valid_camera_map, f"must be {SYNTAX}, each policy camera once, each from a camera of its own")
 
 
 @dataclass(frozen=True)
@@ -34,6 +38,7 @@ class ExtractRequest(Checked):
     frame_stride: int = 1  # features for frames whose frame_index % frame_stride == 0 (actions stay full rate)
     dtype: str = "fp16"
     compute_dtype: str = "auto"  # resolved per device by runtime.resolve_compute_dtype before anything is keyed
+    camera_map: str | None = None  # native towers: policy camera <- dataset camera where names differ (checked only)
     device: str = "cpu"
     batch_size: int = 32
     num_workers: int = 2
@@ -46,7 +51,8 @@ class ExtractRequest(Checked):
 
     RULES: ClassVar[dict[str, Rule]] = {"seed": SEED, "batch_size": POSITIVE, "num_workers": NON_NEGATIVE,
                                         "block_frames": POSITIVE, "episodes": EPISODES,
-                                        "frame_stride": POSITIVE, "shard": SHARD,
+                                        "frame_stride": POSITIVE, "shard": SHARD, "cameras": NAMES,
+                                        "camera_map": CAMERA_MAP,
                                         "grids": (valid_grid_names, f"must name grids: {NATIVE} or HxW, e.g. {NATIVE},4x4")}
 
 
@@ -74,6 +80,7 @@ class FitRequest(Checked):
     dataset: str | None = None
     cache_key: str | None = None
     native_cache_key: str | None = None
+    camera_map: str | None = None  # "POLICY=CACHE,...": which cache camera feeds each policy camera where names differ
     seeds: tuple[int, ...] = (0, 1, 2)
     controls: tuple[str, ...] = ()
     objective: str = "flow"
@@ -103,6 +110,7 @@ class FitRequest(Checked):
         "batch_size": POSITIVE, "buffer_mib": POSITIVE, "num_workers": NON_NEGATIVE,
         "eval_fraction": FRACTION, "eval_split_seed": SEED, "eval_frames": POSITIVE,
         "num_denoise_steps": POSITIVE, "lora_rank": POSITIVE,
+        "camera_map": CAMERA_MAP,
     }
 
 
@@ -161,13 +169,19 @@ class TinyTrainConfig(Checked):
     image_size: int = 128  # frames are resized once to this (>= every tiny tower's input)
     warmup: float = 0.1    # share of the steps with a linear warm-up, then cosine decay to 0
     compute_dtype: str = "auto"  # resolved (runtime.resolve_compute_dtype) before it keys the checkpoint
+    cameras: tuple[str, ...] | None = None  # the policy's cameras, in this order; None: all the dataset's, in its order
 
-    RULES: ClassVar[dict[str, Rule]] = {"steps": POSITIVE, "batch_size": POSITIVE, "lr": POSITIVE,
+    RULES: ClassVar[dict[str, Rule]] = {"cameras": NAMES, "steps": POSITIVE, "batch_size": POSITIVE, "lr": POSITIVE,
                                         "weight_decay": NON_NEGATIVE, "seed": SEED, "image_size": POSITIVE,
                                         "warmup": (lambda v: 0 <= v < 1, "must be in [0, 1)")}
 
     def as_dict(self, backbone: str) -> dict:
-        return {"backbone": backbone, **asdict(self)}
+        """The recipe as it keys the checkpoint folder. `cameras` None (the dataset's own, the only choice before
+        the field existed) is left out, so checkpoints trained before it are found again under their keys."""
+        values = asdict(self)
+        if values["cameras"] is None:
+            del values["cameras"]
+        return {"backbone": backbone, **values}
 
 
 DEFAULT_TINY_TRAIN = TinyTrainConfig()

@@ -62,8 +62,21 @@ def resolve_device(name: str) -> torch.device:
     return dev
 
 
+#: Overrides what `auto` assumes of this CPU: "1" as if it computed bf16 natively, "0" as if it did not, unset
+#: (or empty) to ask torch. Machines of one kind differ in CPU (some AMD EPYC have AVX512-BF16, some only AVX2),
+#: so this is how one machine reproduces the other family's `auto` (the tests of both resolutions, CI on the
+#: family it does not run on), and the way out where a hypervisor hides or fakes the flag.
+CPU_BF16_ENV = "GRAFTCACHE_CPU_BF16"
+
+
 def cpu_has_native_bf16() -> bool:
-    """Whether this CPU computes bf16 in hardware (x86 AVX512-BF16 or AMX tiles), as torch reports it."""
+    """Whether this CPU computes bf16 in hardware (x86 AVX512-BF16 or AMX tiles), as torch reports it, unless
+    $GRAFTCACHE_CPU_BF16 says otherwise."""
+    forced = os.environ.get(CPU_BF16_ENV, "")
+    if forced:
+        if forced not in ("0", "1"):
+            raise GraftcacheError(f"${CPU_BF16_ENV}={forced!r}: expected 1 (native bf16), 0 (none) or unset")
+        return forced == "1"
     probes: list[Callable[[], bool]] = [
         getattr(torch.cpu, name) for name in ("_is_avx512_bf16_supported", "_is_amx_tile_supported")
         if hasattr(torch.cpu, name)

@@ -17,12 +17,15 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any
 
 from graftcache.backbone_table import native_name
+from graftcache.cameras import match_cameras
 from graftcache.errors import GraftcacheError
 from graftcache.executors import Executor, get_executor
+from graftcache.file_lease import FileLease
 from graftcache.fit.controls import get_control
 from graftcache.pooling import NATIVE, format_grid, grid_names
 from graftcache.progress import progress, write
@@ -61,6 +64,26 @@ def _pool_grids(recipe: Recipe) -> list[tuple[int, int]]:
     return [g for g in (get_control(c).grid for c in recipe.controls) if g is not None]
 
 
+@contextmanager
+def _training_lease(recipe: Recipe, backbone: str, log: Callable[[str], None]) -> Iterator[None]:
+    """Held while a tiny `backbone` is trained or reused, so that of two sweeps started at once one trains it and
+    the other waits, then reuses it (rather than loading a checkpoint still being written). A root that cannot
+    hold the lease file (read-only: reuse only) goes without."""
+    from graftcache.backbones.tiny_record import POLICIES_DIR
+    from graftcache.store import cache_root
+
+    lease = FileLease(cache_root(recipe.cache) / POLICIES_DIR / f".train-tiny-{backbone}.lock")
+    try:
+        lease.acquire(on_wait=lambda who: log(f"tiny {backbone} is being trained by {who}: waiting to reuse it"))
+    except OSError:
+        yield
+        return
+    try:
+        yield
+    finally:
+        lease.release()
+
+
 def prepare_policies(recipe: Recipe, state: SweepState, log: Callable[[str], None]) -> None:
     """Train (or reuse) tiny backbones, then read each backbone's native token grid from its config."""
     from graftcache.backbones import get_backbone
@@ -70,12 +93,28 @@ def prepare_policies(recipe: Recipe, state: SweepState, log: Callable[[str], Non
         policy = entry.policy
         if policy == "tiny":
             cfg = dataclasses.replace(DEFAULT_TINY_TRAIN, **recipe.train_tiny)
-            policy = str(train_tiny(entry.name, recipe.dataset, cfg=cfg, cache=recipe.cache, device=recipe.device,
-                                    log=log))
+            with _training_lease(recipe, entry.name, log):
+                policy = str(train_tiny(entry.name, recipe.dataset, cfg=cfg, cache=recipe.cache,
+                                        device=recipe.device, log=log))
             state.commands[f"policy {entry.name}"] = command_line("train-tiny", backbone=entry.name,
-                                                                  dataset=recipe.dataset, steps=cfg.steps)
+                                                                  dataset=recipe.dataset, steps=cfg.steps,
+                                                                  cameras=cfg.cameras)
         state.policies[entry.name] = policy
         state.native_grids[entry.name] = get_backbone(entry.name).read_native_grid(policy)
+    check_cameras(recipe, state)
+
+
+def check_cameras(recipe: Recipe, state: SweepState) -> None:
+    """Every policy's cameras against those its caches will hold (the recipe's [extract] cameras, else the
+    dataset's), by name or as the recipe's camera_map says, before anything is extracted: a mismatch found by
+    the first fit would come after every extraction."""
+    from graftcache.backbones import get_backbone
+    from graftcache.datasets import open_dataset
+
+    cameras = recipe.extract.get("cameras") or open_dataset(recipe.dataset).meta.cameras
+    for backbone, policy in state.policies.items():
+        match_cameras(get_backbone(backbone).read_cameras(policy), cameras, recipe.camera_map, policy_name=policy,
+                      cache_name=f"dataset {recipe.dataset}")
 
 
 def _extract(recipe: Recipe, executor: Executor, encoder: str, grids: tuple[str, ...], log: Callable[[str], None],
@@ -119,10 +158,12 @@ def prepare_caches(recipe: Recipe, state: SweepState, log: Callable[[str], None]
         return
     for backbone, policy in state.policies.items():
         grid = (format_grid(state.native_grids[backbone]),)
-        key = _extract(recipe, executor, native_name(backbone), grid, log, policy=policy)
+        key = _extract(recipe, executor, native_name(backbone), grid, log, policy=policy,
+                       camera_map=recipe.camera_map)
         state.native_caches[backbone] = key
         state.commands[key] = command_line("extract", encoder=native_name(backbone), policy=policy,
-                                           dataset=recipe.dataset, **_extract_settings(recipe, grid))
+                                           dataset=recipe.dataset, camera_map=recipe.camera_map,
+                                           **_extract_settings(recipe, grid))
 
 
 def fit_requests(recipe: Recipe, state: SweepState) -> Iterator[tuple[str, Any]]:
@@ -134,7 +175,8 @@ def fit_requests(recipe: Recipe, state: SweepState) -> Iterator[tuple[str, Any]]
                 yield f"{backbone.name}/{enc.label}/{suite}", FitRequest(
                     backbone=backbone.name, encoder=enc.name, suite=suite, policy=state.policies[backbone.name],
                     dataset=recipe.dataset, cache_key=state.encoder_caches[enc],
-                    native_cache_key=state.native_caches.get(backbone.name), seeds=recipe.seeds,
+                    native_cache_key=state.native_caches.get(backbone.name), camera_map=recipe.camera_map,
+                    seeds=recipe.seeds,
                     controls=recipe.controls, objective=recipe.objective, device=recipe.device,
                     results=recipe.results, cache=recipe.cache, progress=False,
                     command=f"graftcache sweep {recipe.path}", **recipe.fit)

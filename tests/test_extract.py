@@ -20,8 +20,10 @@ from helpers.datasets import LENGTHS, TASKS, Written, build_lerobot
 from PIL import Image
 
 from graftcache.cli import main
+from graftcache.encoders.fingerprint import TOLERANCE
 from graftcache.errors import GraftcacheError
 from graftcache.extract import ExtractRequest, extract
+from graftcache.runtime import CPU_BF16_ENV
 from graftcache.store import FeatureCache, list_caches
 
 ENCODER = "timm:vit_tiny_patch16_224"  # a real ViT architecture, cheap on CPU
@@ -71,24 +73,42 @@ def _reference_features(frames: np.ndarray, model: torch.nn.Module, grid: tuple[
     return F.adaptive_avg_pool2d(fmap, grid).flatten(2).transpose(1, 2).numpy()
 
 
-def test_features_equal_an_independent_computation(extracted, v3_image: Written) -> None:
-    req, result = extracted
+@pytest.fixture(scope="module", params=["0", "1"], ids=["auto=fp32", "auto=bf16"])
+def extracted_auto(request: pytest.FixtureRequest, v3_image: Written, tmp_path_factory: pytest.TempPathFactory):
+    """The same extraction under both resolutions of `--compute-dtype auto`: a CPU without native bf16 (fp32) and
+    one with it (bf16), whichever this machine is ($GRAFTCACHE_CPU_BF16 stands in for the other family)."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv(CPU_BF16_ENV, request.param)
+        req = _req(v3_image.root, tmp_path_factory.mktemp("cache"))
+        return {"0": "fp32", "1": "bf16"}[request.param], extract(req, log=_quiet)
+
+
+def test_features_equal_an_independent_computation(extracted_auto, v3_image: Written) -> None:
+    """Within the tolerance of the compute dtype the cache was made in (the one `auto` resolved to): fp32 to
+    fp16 storage precision, bf16 within the numerics check's bound (5% of the output's RMS): bf16 keeps 8
+    mantissa bits, and a 12-block ViT compounds their rounding to ~2% of an element's scale."""
+    dtype, result = extracted_auto
     cache = FeatureCache(result.path)
     assert cache.complete and result.n_frames == sum(LENGTHS) and not result.reused
+    assert cache.manifest["compute_dtype"] == dtype  # what `auto` resolved to, recorded
     # the same random-init weights, put into a model built here
     from graftcache.encoders import load_encoder
 
     model = timm.create_model("vit_tiny_patch16_224", pretrained=False, num_classes=0)
     model.load_state_dict(load_encoder(ENCODER, random_init=True, seed=0).model.state_dict())
     model.eval()
-    for c, key in enumerate(v3_image.cameras):
+    for key in v3_image.cameras:
         frames = np.concatenate([v3_image.frames[ep, key] for ep in range(len(LENGTHS))])
         cam = key.rsplit(".", 1)[-1]
         for grid in ((14, 14), (2, 2), (7, 7)):  # 14x14: the ViT's own patch grid (`native`), stored as it is
             want = _reference_features(frames, model, grid)
             got = cache.read_features(cam, f"{grid[0]}x{grid[1]}").float().numpy()
             assert got.dtype == np.float32 and got.shape == want.shape == (len(frames), grid[0] * grid[1], 192)
-            np.testing.assert_allclose(got, want, rtol=1e-2, atol=1e-2)
+            if dtype == "fp32":
+                np.testing.assert_allclose(got, want, rtol=1e-2, atol=1e-2)
+            else:
+                drift = np.abs(got - want).max() / np.sqrt(np.mean(want**2))
+                assert drift <= TOLERANCE[dtype], (cam, grid, drift)
 
 
 def test_index_lowdim_and_manifest_are_copied_in(extracted, v3_image: Written) -> None:

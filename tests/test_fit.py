@@ -27,7 +27,7 @@ from graftcache.fit.buffer import ShuffleBuffer
 from graftcache.fit.controls import get_control
 from graftcache.fit.data import load_lowdim, split_episodes
 from graftcache.fit.feed import SplitFeed
-from graftcache.fit.loop import camera_map, train
+from graftcache.fit.loop import train
 from graftcache.fit.run import Cell, FitRequest, Fitter
 from graftcache.fit.stream import FeatureSource, read_chunks
 from graftcache.graft import GraftProjector
@@ -109,7 +109,7 @@ def test_pi05_controls_run_too(world: World, tmp_path: Path) -> None:
 def test_training_changes_only_the_projector_and_lora(world: World, lora: bool) -> None:
     cache = FeatureCache(world.cache / world.encoder_key)
     adapter = load_backbone("smolvla", world.policies["smolvla"])
-    cams = camera_map(adapter, cache.manifest["cameras"])
+    cams = {c: c for c in adapter.cameras}  # the cache holds the policy's cameras by name
     feed = SplitFeed(load_lowdim(cache, "libero_spatial", chunk=adapter.chunk_size),
                      FeatureSource.of(cache, list(cams.values()), (4, 4)), cache.layout["block_frames"])
     adapter.graft(GraftProjector(192, adapter.lm_width))

@@ -25,11 +25,26 @@ SAMPLE = Path(__file__).resolve().parents[1] / "data" / "libero_sample"
 @pytest.mark.parametrize(("avx512_bf16", "amx", "want"), [(False, False, "fp32"), (True, False, "bf16"),
                                                           (False, True, "bf16")])
 def test_auto_compute_dtype_follows_the_cpu(monkeypatch, avx512_bf16: bool, amx: bool, want: str) -> None:
+    monkeypatch.delenv(runtime.CPU_BF16_ENV, raising=False)
     monkeypatch.setattr(torch.cpu, "_is_avx512_bf16_supported", lambda: avx512_bf16)
     monkeypatch.setattr(torch.cpu, "_is_amx_tile_supported", lambda: amx)
     assert runtime.resolve_compute_dtype("auto", "cpu") == want
     assert runtime.resolve_compute_dtype("fp32", "cpu") == "fp32"  # explicit choices are kept
     assert runtime.resolve_compute_dtype("bf16", "cpu") == "bf16"
+
+
+@pytest.mark.parametrize(("forced", "want"), [("0", "fp32"), ("1", "bf16")])
+def test_the_other_cpu_family_is_reproduced_by_the_environment(monkeypatch, forced: str, want: str) -> None:
+    """$GRAFTCACHE_CPU_BF16 wins over what torch reports either way, so one machine runs both `auto` paths."""
+    monkeypatch.setattr(torch.cpu, "_is_avx512_bf16_supported", lambda: forced == "0")
+    monkeypatch.setattr(torch.cpu, "_is_amx_tile_supported", lambda: False)
+    monkeypatch.setenv(runtime.CPU_BF16_ENV, forced)
+    assert runtime.resolve_compute_dtype("auto", "cpu") == want
+    monkeypatch.setenv(runtime.CPU_BF16_ENV, "yes")
+    with pytest.raises(GraftcacheError, match=r"\$GRAFTCACHE_CPU_BF16='yes': expected 1 \(native bf16\), 0"):
+        runtime.resolve_compute_dtype("auto", "cpu")
+    monkeypatch.setenv(runtime.CPU_BF16_ENV, "")  # empty: ask torch
+    assert runtime.resolve_compute_dtype("auto", "cpu") == ("fp32" if forced == "1" else "bf16")
 
 
 @pytest.mark.parametrize(("bf16", "want"), [(True, "bf16"), (False, "fp32")])

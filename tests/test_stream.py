@@ -21,7 +21,7 @@ from graftcache.fit.buffer import ShuffleBuffer, buffer_frames
 from graftcache.fit.controls import SHUFFLE_GROUP, shuffle
 from graftcache.fit.data import LowDim, load_lowdim
 from graftcache.fit.feed import SplitFeed
-from graftcache.fit.loop import EVAL_BATCH_SIZE, camera_map, evaluate
+from graftcache.fit.loop import EVAL_BATCH_SIZE, evaluate
 from graftcache.fit.stream import BlockMemo, Chunk, FeatureSource, StreamStats, read_chunks
 from graftcache.graft import GraftProjector, feature_key
 from graftcache.nonfinite import nonfinite_rows
@@ -181,7 +181,7 @@ def test_streamed_scoring_equals_scoring_written_out_here(cache: FeatureCache) -
     torch.manual_seed(0)
     adapter.graft(GraftProjector(8, adapter.lm_width))
     low = load_lowdim(cache, "libero_spatial", chunk=adapter.chunk_size).subset([5, 6, 7])  # 67 frames: 2 batches
-    cams = camera_map(adapter, list(CAMERAS))
+    cams = {c: c for c in adapter.cameras}  # CAMERAS are the tiny policy's cameras
     feed = SplitFeed(low, FeatureSource.of(cache, CAMERAS, (4, 4)), BLOCK)
     score = evaluate(adapter, low, read_chunks(feed.features(seed=None), 2), cams, num_denoise_steps=2)
 

@@ -24,6 +24,7 @@ from __future__ import annotations
 import functools
 import operator
 from abc import ABC, abstractmethod
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any, ClassVar, Self
 
@@ -51,6 +52,10 @@ from graftcache.errors import BackboneError
 def is_empty_camera(key: str) -> bool:
     """lerobot's placeholder camera slots (`empty_cameras`): masked out, never fed real images."""
     return key.rsplit(".", 1)[-1].startswith("empty_camera_")
+
+
+def _camera_names(keys: Iterable[str]) -> tuple[str, ...]:
+    return tuple(k.removeprefix("observation.images.") for k in keys)
 
 
 class BackboneAdapter(GraftSurgery, PromptBatches, FlowObjective, ABC):
@@ -187,7 +192,17 @@ class BackboneAdapter(GraftSurgery, PromptBatches, FlowObjective, ABC):
 
     @property
     def cameras(self) -> tuple[str, ...]:
-        return tuple(k.removeprefix("observation.images.") for k in self.camera_keys)
+        """The policy's camera names, in its order (what graftcache.cameras matches a cache's cameras against)."""
+        return _camera_names(self.camera_keys)
+
+    @classmethod
+    def read_cameras(cls, source: str | Path) -> tuple[str, ...]:
+        """The camera names of a checkpoint from its config alone: a fit pairs them with its cache's cameras
+        (and keys its rows by the pairing) before it loads anything."""
+        if str(source) == "tiny":
+            raise BackboneError(f"{cls.name}: an in-memory tiny policy has no checkpoint to read; load it")
+        keys = cls._read_config(resolve_source(source)).image_features
+        return _camera_names(k for k in keys if not is_empty_camera(k))
 
     @property
     def chunk_size(self) -> int:

@@ -47,6 +47,7 @@ class NativeEncoder(Encoder):
         super().__init__(spec, adapter.policy, info)
         self.adapter = adapter
         self.extra_shapes: dict[str, tuple[int, int]] = {}
+        self.policy_cameras: tuple[str, ...] = adapter.cameras  # extract pairs the dataset's cameras with these
 
     def preprocess(self, frames_u8: torch.Tensor) -> torch.Tensor:
         """uint8 [B, H, W, 3] -> [0, 1] pixels [B, 3, S, S], exactly as native training prepared them;

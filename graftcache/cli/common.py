@@ -156,6 +156,17 @@ def seeds_value(text: str, rule: IntList = SEEDS) -> tuple[int, ...]:
     return int_list(text, rule)
 
 
+def camera_map_value(text: str) -> str:
+    """--camera-map: POLICY=CACHE pairs (graftcache/cameras.py), written back in canonical form; a malformed or
+    duplicated pair is argparse's usage error naming it."""
+    from graftcache.cameras import CameraError, format_camera_map, parse_camera_map
+
+    try:
+        return format_camera_map(parse_camera_map(text))
+    except CameraError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+
+
 def default_of(request: type, name: str) -> Any:
     """The default of a request dataclass field: its one home, for the flag that sets it."""
     spec = {f.name: f for f in dataclasses.fields(request)}[name]
@@ -255,6 +266,10 @@ def add_executor_flags(p: argparse.ArgumentParser, *, overrides: bool = False) -
          help="tasks per extraction (default: as many as the cluster runs at once)")
     flag("max_retries", type=nonneg_int, metavar="N",
          help="reruns of a task whose worker or node died (a task that raised an error is not rerun)")
+
+
+def add_camera_map_flag(p: argparse.ArgumentParser, request: type, help: str) -> None:
+    add_field(p, request, "camera_map", type=camera_map_value, metavar="POLICY=CACHE,...", help=help)
 
 
 def add_device_flag(p: argparse.ArgumentParser, request: type) -> None:

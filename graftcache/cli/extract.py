@@ -7,6 +7,7 @@ import argparse
 from graftcache.backbone_table import BACKBONES, native_name
 from graftcache.cli.common import (
     add_cache_flag,
+    add_camera_map_flag,
     add_compute_dtype_flag,
     add_device_flag,
     add_executor_flags,
@@ -49,6 +50,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
               f"backbone's token grid as it reads it) and/or pooled HxW grids, e.g. {NATIVE},4x4 or 8x8,16x16. "
               f"{NATIVE} and the encoder's grid spelled out make the same cache")
     add_field(p, ExtractRequest, "cameras", type=name_list, help="comma-separated camera names (default: all)")
+    add_camera_map_flag(p, ExtractRequest, "native towers: which dataset camera feeds each policy camera where "
+                        "the names differ (checked before decoding; the cache keeps the dataset's camera names)")
     add_field(p, ExtractRequest, "episodes", type=ints(ExtractRequest.RULES["episodes"]),
               help="episode subset, e.g. 0-9,20")
     add_field(p, ExtractRequest, "frame_stride", type=positive_int, metavar="K",

@@ -7,6 +7,7 @@ import argparse
 from graftcache.backbone_table import BACKBONES
 from graftcache.cli.common import (
     add_cache_flag,
+    add_camera_map_flag,
     add_compute_dtype_flag,
     add_device_flag,
     add_field,
@@ -37,6 +38,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     add_field(p, FitRequest, "dataset", help="dataset the cache must come from (path or hub id)")
     add_field(p, FitRequest, "cache_key", help="use this cache (when several match)")
     add_field(p, FitRequest, "native_cache_key", help="native tower cache for native controls / align")
+    add_camera_map_flag(p, FitRequest, "which cache camera feeds each policy camera, e.g. image=agentview,"
+                        "image2=eye_in_hand: needed when the names differ (cameras are matched by name, never by "
+                        "position); every row records the mapping used (camera_map)")
     p.add_argument("--suite", required=True, help=f"LIBERO suite: {', '.join(SUITE_ORDER)}")
     add_seed_flags(p, FitRequest)
     add_field(p, FitRequest, "controls", type=name_list, shown="none",

@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 
 from graftcache.backbone_table import BACKBONES
-from graftcache.cli.common import add_compute_dtype_flag, add_field, nonneg_int, positive_int, request_from
+from graftcache.cli.common import add_compute_dtype_flag, add_field, name_list, nonneg_int, positive_int, request_from
 from graftcache.requests import TinyTrainConfig
 
 
@@ -16,6 +16,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                        "tower, on a LeRobot dataset. The checkpoint is cached and found again by --policy tiny.")
     p.add_argument("--backbone", required=True, choices=tuple(BACKBONES))
     p.add_argument("--dataset", default="data/libero_sample")
+    add_field(p, TinyTrainConfig, "cameras", type=name_list, metavar="A,B",
+              help="the dataset cameras the policy sees, in this order (default: all of them, in the dataset's "
+              "order); its config records their names, so a fit on this dataset matches them by name")
     add_field(p, TinyTrainConfig, "steps", type=positive_int)
     add_field(p, TinyTrainConfig, "seed", type=nonneg_int)
     p.add_argument("--out", default=None, help="checkpoint folder (default: <cache>/policies/tiny-<backbone>-<hash>)")

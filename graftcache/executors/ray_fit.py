@@ -72,6 +72,7 @@ def fit(requests: Sequence[tuple[str, FitRequest]], settings: ExecutorSettings, 
     """Submit every missing cell of `requests`, append each row as its task finishes."""
     connect(settings, log)
     cells: dict[str, tuple[str, FitRequest, str, int]] = {}  # run_id -> (label, request, control, seed)
+    folders: dict[str, Path] = {}  # run_id -> its run folder (where a row the results file cannot take is kept)
     done: dict[str, set[str]] = {}  # results file -> its run_ids
     options: dict[str, dict[str, Any]] = {}  # device -> task options
     dtypes: dict[tuple[str, str], str] = {}  # (compute dtype, device) -> as the workers resolve it
@@ -85,9 +86,11 @@ def fit(requests: Sequence[tuple[str, FitRequest]], settings: ExecutorSettings, 
         req = shared_request(req, dtypes[req.compute_dtype, req.device])
         seen = done.setdefault(req.results, results.done_run_ids(req.results))
         # listing cells reads the caches' index only; a cell's identity holds no device (the dtype is resolved)
-        for control, seed, cell in Fitter(dataclasses.replace(req, device="cpu"), log=log).cells():
+        lister = Fitter(dataclasses.replace(req, device="cpu"), log=log)
+        for control, seed, cell in lister.cells():
             if cell.run_id not in seen and cell.run_id not in cells:
                 cells[cell.run_id] = (label, req, control.name, seed)
+                folders[cell.run_id] = lister.run_folder(cell)
     bar.update(sum(len(r.seeds) * (1 + len(r.controls)) for _, r in requests) - len(cells))
     log(f"ray: {len(cells)} cell task(s) to run; the other cells are in the results file already")
     tasks = {fit_cell_task.options(**options[req.device]).remote(req, control, seed): run_id
@@ -97,7 +100,7 @@ def fit(requests: Sequence[tuple[str, FitRequest]], settings: ExecutorSettings, 
         if row["run_id"] != run_id:
             raise ExecutorError(f"{label} seed {seed} control {control}: the worker's cell is {row['run_id']}, "
                                 f"the driver's {run_id}: do the nodes see the same policy and caches?")
-        results.append(req.results, [row])
+        results.append_or_keep(req.results, row, folders[run_id])
         bar.set_postfix_str(label)
         bar.update(1)
         log(f"{label} seed {seed} control {control}: eval_mse {row['eval_mse']:.4f} ({row['wall_s']:.1f}s on Ray)")

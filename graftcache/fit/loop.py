@@ -30,22 +30,11 @@ from graftcache.scoring import Score, frame_noise, score_chunks
 EVAL_BATCH_SIZE = 64
 
 
-def camera_map(adapter, cache_cameras: list[str]) -> dict[str, str]:
-    """Policy camera key -> cache camera: by name when the cache has it, else by position."""
-    out = {}
-    for i, key in enumerate(adapter.camera_keys):
-        short = key.removeprefix("observation.images.")
-        if short in cache_cameras:
-            out[key] = short
-        elif i < len(cache_cameras):
-            out[key] = cache_cameras[i]
-    return out
-
-
 def raw_batch(low: LowDim, pos: np.ndarray, features: Mapping[str, torch.Tensor], cams: Mapping[str, str], *,
               actions: bool = True) -> dict:
-    """A raw policy batch: `features` (camera -> [k, T, C], as streamed) with the low-dim rows `pos` of `low`
-    (raw state, the action chunks built here, task strings)."""
+    """A raw policy batch: `features` (camera -> [k, T, C], as streamed) under the policy cameras `cams` maps
+    to them (graftcache.cameras.match_cameras), with the low-dim rows `pos` of `low` (raw state, the action
+    chunks built here, task strings)."""
     idx = torch.from_numpy(pos)
     raw = {feature_key(key): features[cam].float() for key, cam in cams.items()}
     raw["observation.state"] = low.state[idx]

@@ -37,7 +37,7 @@ class Fitting:
     req: FitRequest
     control: Control
     train: SplitFeed                            # the train split, paired by the control
-    cams: Mapping[str, str]                     # policy camera key -> cache camera
+    cams: Mapping[str, str]                     # policy camera -> cache camera
     targets: tuple[FeatureSource, np.ndarray] | None  # native post-connector tokens, their cache row per train frame
     grid: tuple[int, int]
     seed: int

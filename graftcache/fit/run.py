@@ -29,17 +29,20 @@ from safetensors.torch import save_file
 import graftcache
 from graftcache import results
 from graftcache.backbone_table import native_name
+from graftcache.backbones import get_backbone
 from graftcache.backbones.checkpoint import follow_umask
 from graftcache.backbones.pool import BackbonePool
 from graftcache.backbones.tiny_record import resolve_policy
+from graftcache.cameras import format_camera_map, match_cameras, renames
 from graftcache.encoders.fingerprint import NumericsCheck, check_numerics
 from graftcache.errors import FitError
+from graftcache.file_lease import FileLease
 from graftcache.fit.buffer import MIB
 from graftcache.fit.controls import Control, get_control
 from graftcache.fit.data import LowDim, drop_nonfinite, load_lowdim, split_episodes, suite_index_table
 from graftcache.fit.feed import SplitFeed
 from graftcache.fit.lookup import find_cache
-from graftcache.fit.loop import camera_map, evaluate
+from graftcache.fit.loop import evaluate
 from graftcache.fit.objectives import EVAL_ONLY, OBJECTIVES, Fitting, Objective
 from graftcache.fit.step_memory import check_step_memory
 from graftcache.fit.stream import BlockMemo, FeatureSource, StreamStats, read_chunks
@@ -55,7 +58,12 @@ __all__ = ["Cell", "FitRequest", "Fitter"]
 @dataclass(frozen=True)
 class Cell:
     """What identifies one results row. Its fields, by name and value, are the bytes of the row's
-    run_id: renaming or retyping one would make finished rows unrecognisable, so never do."""
+    run_id: renaming or retyping one would make finished rows unrecognisable, so never do.
+
+    `camera_map` is the one field left out of the run_id when it is None: a cell whose policy cameras are each
+    fed by the cache camera of the same name (the policy and the cache, both in the cell, already decide that),
+    so such rows keep the run_ids they had before cameras could be mapped. A mapping that renames changes which
+    frames feed a slot, so it is hashed: two mappings of one cache never share a row."""
 
     backbone: str
     policy: str
@@ -75,10 +83,14 @@ class Cell:
     eval_frames: int | None
     num_denoise_steps: int | None
     compute_dtype: str
+    camera_map: str | None = None  # canonical text, only when a policy camera is fed by another name
 
     @property
     def run_id(self) -> str:
-        return results.make_run_id(asdict(self))
+        cell = asdict(self)
+        if cell["camera_map"] is None:
+            del cell["camera_map"]
+        return results.make_run_id(cell)
 
     def row(self, req: FitRequest, measured: Mapping[str, Any]) -> dict[str, Any]:
         """The results row: each SCHEMA column from what the cell measured, else the cell, else the request
@@ -138,6 +150,7 @@ class Fitter:
                                f"strides {sorted(strides)}); extract both with the same --frame-stride")
         self.policy_folder = resolve_policy(req.backbone, req.policy, self.cache.manifest["dataset_fingerprint"],
                                             cache_root(req.cache), self.cache.manifest["dataset"]["source"])
+        self.cameras = self._match_cameras()
         self.index = suite_index_table(self.cache, req.suite)
         self.split = split_episodes(self.index, eval_fraction=req.eval_fraction, seed=req.eval_split_seed)
         self._materials: dict[tuple, _Material] = {}
@@ -145,6 +158,19 @@ class Fitter:
         self._enforced: set[str] = set()  # verdicts this request has acted on (refused, warned)
         # reading in this process, the blocks cells read are kept for the next cells, up to another --buffer-mib
         self._memo = BlockMemo(req.buffer_mib * MIB) if req.num_workers == 0 else None
+
+    def _match_cameras(self) -> dict[str, str]:
+        """Policy camera -> the cache camera feeding it (graftcache/cameras.py: by name unless `camera_map` says
+        otherwise), read from the policy's config and checked against every cache the fit reads."""
+        policy = get_backbone(self.req.backbone).read_cameras(self.policy_folder)
+        mapping: dict[str, str] = {}
+        for cache in (self.cache, self.native_cache):
+            if cache is not None:
+                mapping = match_cameras(policy, cache.manifest["cameras"], self.req.camera_map,
+                                        policy_name=str(self.policy_folder), cache_name=f"cache {cache.key}")
+        if renames(mapping):
+            self.log(f"cameras mapped as asked (policy=cache): {format_camera_map(mapping)}")
+        return mapping
 
     # ---------------------------------------------------------------- cells
     def _source(self, control: Control) -> FeatureCache:
@@ -186,6 +212,7 @@ class Fitter:
             lora_rank=req.lora_rank if control.lora else 0,
             eval_fraction=req.eval_fraction, eval_split_seed=req.eval_split_seed, eval_frames=req.eval_frames,
             num_denoise_steps=req.num_denoise_steps, compute_dtype=req.compute_dtype,
+            camera_map=format_camera_map(self.cameras) if renames(self.cameras) else None,
         )
 
     @property
@@ -199,20 +226,56 @@ class Fitter:
                 for seed in self.req.seeds for control in self.controls]
 
     def run(self) -> list[dict[str, Any]]:
-        """Every missing cell, one after the other, each row appended to the results file as it finishes."""
+        """Every missing cell, one after the other, each row appended to the results file as it finishes.
+
+        Other processes (fits, sweeps, here or on other machines) may write the same results file: a cell is
+        computed only under its claim (results.cell_claim), so a cell another process is computing is left
+        for later, then skipped once its row is in the file (or computed here if that process died)."""
         set_main_threads()
         done = results.done_run_ids(self.req.results)
         rows = []
-        for control, seed, cell in self.cells():
-            if cell.run_id in done:
-                encoder = self._source(control).manifest["encoder"]
-                self.log(f"skip {self.req.backbone}/{encoder['name']}/{self.req.suite} seed {seed} "
-                         f"control {control.name}: already in {self.req.results}")
-                continue
-            row = self.run_cell(control, seed)
-            results.append(self.req.results, [row])
-            rows.append(row)
+        pending = [(control, seed, cell) for control, seed, cell in self.cells() if not self._skip(control, cell, done)]
+        claims = {cell.run_id: results.cell_claim(self.req.results, cell.run_id) for _, _, cell in pending}
+        told: set[str] = set()
+        while pending:
+            busy = []
+            for control, seed, cell in pending:
+                claim = claims[cell.run_id]
+                if not self._claim(claim):
+                    if cell.run_id not in told:
+                        self.log(f"cell {cell.run_id} (seed {seed} control {control.name}) is being computed by "
+                                 f"{claim.holder()}: waiting for its row")
+                        told.add(cell.run_id)
+                    busy.append((control, seed, cell))
+                    continue
+                try:
+                    if not self._skip(control, cell, results.done_run_ids(self.req.results)):
+                        row = self.run_cell(control, seed)
+                        results.append_or_keep(self.req.results, row, self.run_folder(cell))
+                        rows.append(row)
+                finally:
+                    claim.release()
+            if busy:
+                time.sleep(1.0)
+            pending = busy
         return rows
+
+    def _skip(self, control: Control, cell: Cell, done: set[str]) -> bool:
+        """Whether the cell's row is in the results file already (said so in the log)."""
+        if cell.run_id not in done:
+            return False
+        encoder = self._source(control).manifest["encoder"]
+        self.log(f"skip {self.req.backbone}/{encoder['name']}/{self.req.suite} seed {cell.seed} "
+                 f"control {control.name}: already in {self.req.results}")
+        return True
+
+    def _claim(self, claim: FileLease) -> bool:
+        """Take a cell's claim; where no claim can be made (a read-only place) the cell runs unclaimed, and its
+        row is then kept by results.append_or_keep."""
+        try:
+            return claim.try_acquire()
+        except OSError:
+            return True
 
     def run_cell(self, control: Control, seed: int) -> dict[str, Any]:
         """Fit and score one cell (any control, any seed: the others are not run) and return its row without
@@ -233,7 +296,7 @@ class Fitter:
         source = self._source(control)
         key = (source.key, control.extra, None if control.extra else grid)
         if key not in self._materials:
-            cams = list(camera_map(adapter, source.manifest["cameras"]).values())
+            cams = list(self.cameras.values())
             low, dropped = drop_nonfinite(load_lowdim(source, self.req.suite, chunk=adapter.chunk_size), source,
                                           drop=self.req.drop_nonfinite)
             target_rows = None
@@ -266,7 +329,7 @@ class Fitter:
         if control.lora:
             adapter.add_lora(rank=self.req.lora_rank)
         self.log(f"cell {cell.run_id}: {adapter.freeze_report()}")
-        cams = camera_map(adapter, list(mat.source.cameras))
+        cams = self.cameras
         if control.train and self._objective(control).scheduled:  # refused here, not OOM-killed later
             check_step_memory(adapter, mat.train, cams, mat.source, batch_size=self.req.batch_size,
                               buffer_mib=self.req.buffer_mib, dtype=self.dtype)
@@ -292,11 +355,15 @@ class Fitter:
             "n_eval_frames": score.n_frames, "n_eval_episodes": len(score.per_episode), "wall_s": wall,
             "device": str(self.device), "random_init": bool(mat.cache.manifest.get("random_init") or adapter.random_init),
             "n_dropped_nonfinite": mat.dropped + len(stats.dropped), "numerics_drift": self._drift(mat),
-            "graftcache_version": graftcache.__version__,
+            "camera_map": format_camera_map(self.cameras), "graftcache_version": graftcache.__version__,
         })
 
+    def run_folder(self, cell: Cell) -> Path:
+        """Where a cell's projector (and a row its results file could not take) is kept."""
+        return (Path(self.req.out) if self.req.out else Path(self.req.results).parent / "runs") / cell.run_id
+
     def _save_projector(self, adapter, cell: Cell) -> None:
-        folder = (Path(self.req.out) if self.req.out else Path(self.req.results).parent / "runs") / cell.run_id
+        folder = self.run_folder(cell)
         folder.mkdir(parents=True, exist_ok=True)
         trainable = {n: p.detach().cpu().contiguous() for n, p in adapter.policy.named_parameters() if p.requires_grad}
         save_file(trainable, str(folder / "projector.safetensors"))

@@ -72,15 +72,16 @@ def make_lowdim(episode: int, length: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def write_lerobot(root: Path, *, video: bool, vcodec: str = "libsvtav1", small_files: bool = False,
-                  repo_id: str = "local/fixture", lengths: tuple[int, ...] = LENGTHS) -> Written:
+                  repo_id: str = "local/fixture", lengths: tuple[int, ...] = LENGTHS,
+                  cameras: tuple[str, ...] = V3_CAMERAS) -> Written:
     """A v3.0 dataset written by lerobot itself (episode i has lengths[i] frames and task TASKS[i]);
-    `small_files` forces one data/video file per episode."""
+    `small_files` forces one data/video file per episode; `cameras` are the camera feature keys."""
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     dtype = "video" if video else "image"
     hwc = {"shape": (H, W, 3), "names": ["height", "width", "channels"]}
-    features = {key: {"dtype": dtype, **hwc} for key in V3_CAMERAS}
+    features = {key: {"dtype": dtype, **hwc} for key in cameras}
     features["observation.state"] = {"dtype": "float32", "shape": (8,), "names": None}
     features["action"] = {"dtype": "float32", "shape": (7,), "names": None}
     try:  # lerobot >= 0.5 takes the codec in an encoder config, 0.4 as a keyword
@@ -93,13 +94,13 @@ def write_lerobot(root: Path, *, video: bool, vcodec: str = "libsvtav1", small_f
                                use_videos=video, **codec)
     if small_files:
         ds.meta.update_chunk_settings(data_files_size_in_mb=0.001, video_files_size_in_mb=0.001)
-    written = Written(root=root, repo_id=repo_id, cameras=V3_CAMERAS)
+    written = Written(root=root, repo_id=repo_id, cameras=cameras)
     for ep, length in enumerate(lengths):
-        for c, key in enumerate(V3_CAMERAS):
+        for c, key in enumerate(cameras):
             written.frames[ep, key] = make_frames(ep, length, c, noise=not video)
         written.state[ep], written.action[ep] = make_lowdim(ep, length)
         for t in range(length):
-            frame = {key: written.frames[ep, key][t] for key in V3_CAMERAS}
+            frame = {key: written.frames[ep, key][t] for key in cameras}
             ds.add_frame({**frame, "observation.state": written.state[ep][t], "action": written.action[ep][t],
                           "task": TASKS[ep]})
         ds.save_episode(parallel_encoding=False)
