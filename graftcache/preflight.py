@@ -43,7 +43,8 @@ def check_inputs(recipe: Recipe) -> list[str]:
     extracts = [_extract_request(recipe, enc.name, weights=enc.weights, random_init=enc.random_init,
                                  seed=enc.seed) for enc in recipe.encoders]
     if recipe.objective == "align" or any(get_control(c).native_cache for c in recipe.controls):
-        extracts += [_extract_request(recipe, native_name(b.name)) for b in recipe.backbones]
+        extracts += [_extract_request(recipe, native_name(b.name), camera_map=recipe.camera_map)
+                     for b in recipe.backbones]
     fits = [_fit_request(recipe, backbone.name, backbone.policy, enc.name, suite)
             for backbone in recipe.backbones for enc in recipe.encoders for suite in recipe.suites]
     notes = [f"contents  {len(meta.episodes)} episodes, {meta.n_frames} frames, cameras "
@@ -94,9 +95,9 @@ def _extract_request(recipe: Recipe, encoder: str, **kw: Any) -> ExtractRequest:
 def _fit_request(recipe: Recipe, backbone: str, policy: str, encoder: str, suite: str) -> FitRequest:
     return _made(recipe, "fit", lambda: FitRequest(
         backbone=backbone, encoder=encoder, suite=suite, policy=policy, dataset=recipe.dataset,
-        seeds=recipe.seeds, controls=recipe.controls, objective=recipe.objective, device=recipe.device,
-        results=recipe.results, cache=recipe.cache, progress=False, command=f"graftcache sweep {recipe.path}",
-        **recipe.fit))
+        seeds=recipe.seeds, controls=recipe.controls, objective=recipe.objective, camera_map=recipe.camera_map,
+        device=recipe.device, results=recipe.results, cache=recipe.cache, progress=False,
+        command=f"graftcache sweep {recipe.path}", **recipe.fit))
 
 
 def _made(recipe: Recipe, section: str, build: Callable[[], R]) -> R:

@@ -184,16 +184,19 @@ def fit_requests(recipe: Recipe, state: SweepState) -> Iterator[tuple[str, Any]]
 
 def check_sweep(recipe: Recipe) -> list[str]:
     """Everything the sweep would refuse on its way, before its first step (graftcache.preflight.check_inputs),
-    and the grids its caches store against every backbone's token grid (`encoder_grids`) once the policies'
-    grids can be read without training one; returns what was found, a line each, for `--dry-run`."""
+    then what needs a policy's config, for the policies that are checkpoints (tiny ones are not trained yet):
+    their cameras (`check_cameras`) and, when every policy is one, the grids the caches store against each
+    backbone's token grid (`encoder_grids`). Returns what was found, a line each, for `--dry-run`."""
     from graftcache.backbones import get_backbone
     from graftcache.preflight import check_inputs
 
     notes = check_inputs(recipe)
     read = [b for b in recipe.backbones if b.policy != "tiny"]  # a missing checkpoint is refused here
-    grids = {b.name: get_backbone(b.name).read_native_grid(b.policy) for b in read}
+    state = SweepState(policies={b.name: b.policy for b in read},
+                       native_grids={b.name: get_backbone(b.name).read_native_grid(b.policy) for b in read})
+    check_cameras(recipe, state)
     if len(read) == len(recipe.backbones):
-        encoder_grids(recipe, SweepState(native_grids=grids))
+        encoder_grids(recipe, state)
     return notes
 
 

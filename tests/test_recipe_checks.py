@@ -28,6 +28,7 @@ RECIPE = """
     seeds = {seeds}
     controls = {controls}
     objective = "{objective}"
+    {top}
     [[backbones]]
     name = "smolvla"
     {backbones}
@@ -37,7 +38,7 @@ RECIPE = """
     {encoders}
     {tables}
 """
-DEFAULTS = {"suites": '["libero_spatial"]', "seeds": "[0, 1]", "controls": '["native"]', "objective": "flow",
+DEFAULTS = {"top": "", "suites": '["libero_spatial"]', "seeds": "[0, 1]", "controls": '["native"]', "objective": "flow",
             "backbones": "", "encoders": "", "tables": ""}
 #: (recipe changes, what the one stderr line must contain). The v2_pi fixture holds two libero_spatial episodes
 #: (0 and 2, one task) and one libero_object episode (1).
@@ -109,20 +110,25 @@ def test_dry_run_of_a_good_recipe_prints_the_grid_and_makes_nothing(v2_pi: Writt
     _nothing_made(tmp_path)
 
 
-def test_dry_run_checks_the_stored_grids_against_a_checkpoint_s_grid(v2_pi: Written, tmp_path: Path,
-                                                                      capsys: pytest.CaptureFixture) -> None:
-    """Explicit [extract] grids must hold each backbone's token grid (the tiny smolvla's 4x4): with a
-    checkpoint folder the grid is read from its config, so the dry run refuses what the run would refuse
-    only after training and extracting."""
-    policy = tiny("smolvla").save(tmp_path / "policy")
+def test_dry_run_reads_a_checkpoint_s_cameras_and_grid(v2_pi: Written, tmp_path: Path,
+                                                       capsys: pytest.CaptureFixture) -> None:
+    """A checkpoint policy's config is read before any step: its cameras must match the dataset's (or be
+    mapped), and explicit [extract] grids must hold its token grid (the tiny smolvla's 4x4), which the run
+    would otherwise find only after extracting."""
+    policy = tiny("smolvla").save(tmp_path / "policy")  # cameras image, image2: v2_pi's are image, wrist_image
     backbone = f'policy = "{policy}"'
+    mapped = 'camera_map = "image=image,image2=wrist_image"'
     path = _recipe(tmp_path, v2_pi.root, backbones=backbone, controls="[]", tables='[extract]\ngrids = ["2x2"]\n')
+    assert "camera names differ" in _one_line(["sweep", "--dry-run", str(path)], capsys)
+    path = _recipe(tmp_path, v2_pi.root, top=mapped, backbones=backbone, controls="[]",
+                   tables='[extract]\ngrids = ["2x2"]\n')
     line = _one_line(["sweep", "--dry-run", str(path)], capsys)
     assert line == (f"graftcache sweep: error: {path} [extract]: grids = ['2x2'] lacks 4x4, which the fits read; "
                     "add them, or 'native' to pool them from the encoder's own grid")
     assert _one_line(["sweep", str(path)], capsys) == line
     _nothing_made(tmp_path)
-    path = _recipe(tmp_path, v2_pi.root, backbones=backbone, controls="[]", tables='[extract]\ngrids = ["4x4"]\n')
+    path = _recipe(tmp_path, v2_pi.root, top=mapped, backbones=backbone, controls="[]",
+                   tables='[extract]\ngrids = ["4x4"]\n')
     assert main(["sweep", "--dry-run", str(path)]) == 0
 
 
@@ -134,9 +140,6 @@ FIT = ["fit", "--backbone", "smolvla", "--encoder", "e", "--suite", "libero_spat
     ([*FIT, "--seeds", "0-100000000000"], "'0-100000000000' names 100000000001 seeds; at most 1000000"),
     ([*FIT, "--seed", "99999999999999999999999"], f"99999999999999999999999 is past the largest seed, {MAX_SEED}"),
     ([*FIT, "--seed", f"{MAX_SEED + 1}"], f"is past the largest seed, {MAX_SEED}"),
-    ([*FIT, "--eval-split-seed", f"{MAX_SEED + 1}"], f"eval_split_seed = {MAX_SEED + 1} must be in 0..{MAX_SEED}"),
-    (["extract", "--encoder", "e", "--dataset", "d", "--seed", "99999999999999999999999"],
-     f"seed = 99999999999999999999999 must be in 0..{MAX_SEED}"),
     (["extract", "--encoder", "e", "--dataset", "d", "--episodes", "0-100000000000"],
      "names 100000000001 episodes; at most 10000000"),
 ])
@@ -151,6 +154,23 @@ def test_counts_and_seeds_past_their_bounds_are_refused_at_parse_time(argv: list
     err = capsys.readouterr().err
     assert "Traceback" not in err and expected in err.strip().splitlines()[-1], err
     assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before < 100_000  # KiB
+
+
+@pytest.mark.parametrize(("argv", "expected"), [
+    ([*FIT, "--eval-split-seed", f"{MAX_SEED + 1}"], f"eval_split_seed = {MAX_SEED + 1} must be in 0..{MAX_SEED}"),
+    (["extract", "--encoder", "e", "--dataset", "d", "--seed", "99999999999999999999999"],
+     f"seed = 99999999999999999999999 must be in 0..{MAX_SEED}"),
+    ([*FIT, "--suite", "../../x"], "suite = '../../x' is not a suite; choose one of libero_spatial"),
+    ([*FIT, "--controls", "native,native"], "controls = ('native', 'native') must name each control once"),
+])
+def test_single_values_past_their_rules_are_refused_by_the_request(argv: list[str], expected: str, tmp_path: Path,
+                                                                   capsys: pytest.CaptureFixture) -> None:
+    """The request's RULES, applied as the command builds it: one line, before a cache root or results file."""
+    argv = [*argv, "--cache", str(tmp_path / "cache")] + (["--results", str(tmp_path / "r.parquet")]
+                                                          if argv[0] == "fit" else [])
+    line = _one_line(argv, capsys)
+    assert line.startswith(f"graftcache {argv[0]}: error: ") and expected in line, line
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_extract_grid_past_memory_is_refused_with_the_estimate(v2_pi: Written, tmp_path: Path,

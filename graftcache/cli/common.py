@@ -13,8 +13,7 @@ import dataclasses
 from collections.abc import Callable
 from typing import Any, TypeVar
 
-from graftcache.checks import SEEDS, IntList, check_fields
-from graftcache.errors import GraftcacheError
+from graftcache.checks import SEEDS, IntList
 from graftcache.runtime import COMPUTE_DTYPES
 
 R = TypeVar("R")
@@ -183,29 +182,10 @@ def add_field(p: argparse.ArgumentParser, request: type, name: str, *aliases: st
     `shown` overrides how it is written). With `overrides` the flag overrides a value read elsewhere (a
     recipe): it is absent from the namespace unless given (see `given`)."""
     default = default_of(request, name)
-    rule = getattr(request, "RULES", {}).get(name)
-    if rule is not None and "type" in kw:
-        kw["type"] = _ruled(kw["type"], name, rule)
     if default is not None and kw.get("action") not in ("store_true", "store_false"):
         help = f"{help} (default {shown or _shown(default)})".strip()
     p.add_argument(f"--{name.replace('_', '-')}", *aliases, dest=name, help=help or None,
                    default=argparse.SUPPRESS if overrides else default, **kw)
-
-
-def _ruled(parse: Callable[[str], Any], name: str, rule: Any) -> Callable[[str], Any]:
-    """argparse type: `parse`, then the request field's rule (graftcache.checks): a flag is refused at parse
-    time by the one rule that also checks recipes and requests made in code."""
-
-    def checked(text: str) -> Any:
-        value = parse(text)
-        try:
-            check_fields({name: value}, {name: rule})
-        except GraftcacheError as e:
-            raise argparse.ArgumentTypeError(str(e)) from None
-        return value
-
-    checked.__name__ = getattr(parse, "__name__", name)
-    return checked
 
 
 def given(request: type, args: argparse.Namespace) -> dict[str, Any]:
