@@ -52,7 +52,8 @@ from graftcache.runtime import (
     single_thread_worker,
 )
 from graftcache.store import FORMAT_VERSION, FeatureCache, Root, cache_key, open_root
-from graftcache.store.cache import STORAGE_DTYPES, ArraySpec, MisplacedCache, from_storage, to_storage
+from graftcache.store.cache import STORAGE_DTYPES, ArraySpec, from_storage, to_storage
+from graftcache.store.key import RefusedPlace
 
 #: errnos of a full disk or quota: the extraction stops with a resumable one-line error.
 OUT_OF_SPACE = frozenset({errno.ENOSPC, errno.EDQUOT})
@@ -392,7 +393,7 @@ def _complete(root: Root, key: str, manifest: dict[str, Any], req: ExtractReques
     """The finished cache of this request, opened read-only, or None when there is work to do."""
     try:
         cache = FeatureCache.in_root(root, key)
-    except MisplacedCache:  # another cache under this key's name: never reused, never replaced
+    except RefusedPlace:  # another cache under this key's name, a link: never reused, never replaced
         raise
     except CacheError:  # absent, or an initialisation that never wrote its manifest
         return None
@@ -407,7 +408,7 @@ def _open_or_create(root: Root, key: str, manifest: dict[str, Any], index: pl.Da
                     log: Callable[[str], None]) -> FeatureCache:
     try:
         cache = FeatureCache.in_root(root, key, writable=True)
-    except MisplacedCache:  # a cache this extraction did not make (copied or renamed here): never discarded
+    except RefusedPlace:  # a cache this extraction did not make (copied or renamed here), a link: kept
         raise
     except CacheError:  # no readable zarr.json: an initialisation that never wrote it
         cache = None

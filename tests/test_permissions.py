@@ -69,8 +69,8 @@ def test_cache_files_follow_the_umask(tmp_path: Path, mask: int) -> None:
                 "encoder": {"name": "toy"}, "weights_sha256": "w", "grids": ["1x1"], "extras": {}, "dtype": "fp16",
                 "compute_dtype": "fp32"}
     with umask(mask):
-        cache = FeatureCache.create(tmp_path / cache_key(manifest), manifest, [ArraySpec("features/image/1x1", (1, 4))], index,
-                                    block_frames=4)
+        cache = FeatureCache.create(tmp_path / cache_key(manifest), manifest,
+                                    [ArraySpec("features/image/1x1", (1, 4))], index, block_frames=4)
         for b in range(cache.layout["n_blocks"]):
             s, e = cache.block_range(b)
             cache.write_block(b, {"features/image/1x1": to_storage(torch.ones(e - s, 1, 4), "fp16")})

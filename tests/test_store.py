@@ -43,8 +43,8 @@ def _at(root: Path, **over) -> Path:
 
 
 def _filled(root: Path, dtype: str = "fp16") -> tuple[FeatureCache, np.ndarray]:
-    cache = FeatureCache.create(_at(root, dtype=dtype), _manifest(dtype=dtype), [ArraySpec("features/image/2x2", (T, C))], _index(),
-                                block_frames=32)
+    cache = FeatureCache.create(_at(root, dtype=dtype), _manifest(dtype=dtype),
+                                [ArraySpec("features/image/2x2", (T, C))], _index(), block_frames=32)
     data = torch.randn(N, T, C, generator=torch.Generator().manual_seed(1))
     for b in range(cache.layout["n_blocks"]):
         s, e = cache.block_range(b)
@@ -77,8 +77,8 @@ def test_bf16_storage_roundtrip(tmp_path: Path) -> None:
 
 
 def test_finalize_refuses_missing_blocks(tmp_path: Path) -> None:
-    cache = FeatureCache.create(_at(tmp_path), _manifest(), [ArraySpec("features/image/2x2", (T, C))], _index(),
-                                block_frames=32)
+    cache = FeatureCache.create(_at(tmp_path), _manifest(), [ArraySpec("features/image/2x2", (T, C))],
+                                _index(), block_frames=32)
     cache.write_block(0, {"features/image/2x2": np.zeros((32, T, C), np.float16)})
     with pytest.raises(CacheError, match=r"blocks \[1, 2\] not written"):
         cache.finalize()
@@ -92,12 +92,13 @@ def test_verify_detects_corruption(tmp_path: Path) -> None:
     arr = cache.group["features/image/2x2"]
     arr[40] = np.ones((T, C), np.float16)  # silent change after completion
     problems = FeatureCache(cache.path).verify()
-    assert problems == [f"{cache.key}: features/image/2x2 frames 32-63 checksum mismatch (block 1, features/image/2x2/c/1/0/0)"]
+    assert problems == [f"{cache.key}: features/image/2x2 frames 32-63 checksum mismatch "
+                        "(block 1, features/image/2x2/c/1/0/0)"]
 
 
 def test_write_block_rejects_wrong_shapes(tmp_path: Path) -> None:
-    cache = FeatureCache.create(_at(tmp_path), _manifest(), [ArraySpec("features/image/2x2", (T, C))], _index(),
-                                block_frames=32)
+    cache = FeatureCache.create(_at(tmp_path), _manifest(), [ArraySpec("features/image/2x2", (T, C))],
+                                _index(), block_frames=32)
     with pytest.raises(CacheError, match="block 2 of features/image/2x2 has 32 frames, expected 6"):
         cache.write_block(2, {"features/image/2x2": np.zeros((32, T, C), np.float16)})
     with pytest.raises(CacheError, match="expected"):

@@ -22,7 +22,8 @@ def _cache(root: Path) -> tuple[FeatureCache, np.ndarray]:
                           "task_index": np.zeros(N, int), "suite_index": np.zeros(N, int),
                           "timestamp": np.zeros(N), "state": [[0.0]] * N, "action": [[0.0]] * N})
     manifest = {"encoder": {"name": "toy"}, "dtype": "fp16"}
-    cache = FeatureCache.create(root / cache_key(manifest), manifest, [ArraySpec("features/image/2x2", (T, C))], index, block_frames=32)
+    cache = FeatureCache.create(root / cache_key(manifest), manifest,
+                                [ArraySpec("features/image/2x2", (T, C))], index, block_frames=32)
     for b in range(cache.layout["n_blocks"]):
         s, e = cache.block_range(b)
         cache.write_block(b, {"features/image/2x2": values[s:e]})

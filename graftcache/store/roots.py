@@ -32,11 +32,11 @@ from typing import Any, Callable
 from zarr.abc.store import Store
 
 from graftcache.errors import CacheError
-from graftcache.store.key import check_key, check_writer
+from graftcache.store.key import RefusedPlace, check_key, check_writer
 
 GROUP_META = "zarr.json"
 ENV_HOME = "GRAFTCACHE_HOME"
-LEASE_SUFFIX = ".lease"  # `<writer>.lease/<generation>`: an object store's writer lease (graftcache.store.lease)
+LEASE_SUFFIX = ".lease"  # `<writer>.lease/<generation>`: an object store's writer lease (store/lease.py)
 
 
 def is_url(spec: str | Path) -> bool:
@@ -109,13 +109,13 @@ class LocalRoot(Root):
         return self.path / check_key(key)
 
     def _path(self, rel: str) -> Path:
-        """The file or folder of `rel` (checked by `object_parts`), refused when it or a folder on the way to it
-        from the root is a symbolic link."""
+        """The file or folder of `rel` (checked by `object_parts`), refused when it or a folder on the way to
+        it from the root is a symbolic link."""
         path = self.path
         for part in object_parts(rel):
             path = path / part
             if path.is_symlink():
-                raise CacheError(_link(path))
+                raise RefusedPlace(_link(path))
         return path
 
     def _walk(self, folder: Path) -> list[Path]:
@@ -124,7 +124,7 @@ class LocalRoot(Root):
         for at, dirs, names in os.walk(folder):
             for name in dirs + names:
                 if os.path.islink(os.path.join(at, name)):
-                    raise CacheError(_link(Path(at, name)))
+                    raise RefusedPlace(_link(Path(at, name)))
             files += [Path(at, name) for name in names]
         return files
 
@@ -182,8 +182,8 @@ class LocalRoot(Root):
             shutil.rmtree(folder, ignore_errors=True)
 
     def keys(self) -> list[str]:
-        """Folders holding a zarr.json, by name: a badly named one or a link is listed here and refused by name
-        when opened (`graftcache ls` shows it as broken)."""
+        """Folders holding a zarr.json, by name: a badly named one or a link is listed here and refused by
+        name when opened (`graftcache ls` shows it as broken)."""
         if not self.path.is_dir():
             return []
         return sorted(p.name for p in self.path.iterdir() if (p / GROUP_META).exists())
@@ -224,7 +224,8 @@ class ObjectRoot(Root):
         from obstore.exceptions import AlreadyExistsError, PreconditionError
 
         try:
-            obstore.put(self.store, "/".join(object_parts(rel)), data, mode="create" if if_absent else "overwrite")
+            obstore.put(self.store, "/".join(object_parts(rel)), data,
+                        mode="create" if if_absent else "overwrite")
         except (AlreadyExistsError, PreconditionError):
             return False
         return True
@@ -245,11 +246,20 @@ class ObjectRoot(Root):
             obstore.delete(self.store, rels[start:start + 1000])
 
     def keys(self) -> list[str]:
+        """Listed folders holding a zarr.json, by name, as the store lists them (so one named outside the key
+        grammar is listed, and refused by name when opened)."""
         import obstore
+        from obstore.exceptions import NotFoundError
+
+        def holds_group(prefix: str) -> bool:
+            try:
+                obstore.head(self.store, f"{prefix}{GROUP_META}")
+            except (NotFoundError, FileNotFoundError):
+                return False
+            return True
 
         listed = obstore.list_with_delimiter(self.store)
-        return sorted(p.rstrip("/") for p in listed["common_prefixes"]
-                      if self.get(f"{p.rstrip('/')}/{GROUP_META}") is not None)
+        return sorted(p.rstrip("/") for p in listed["common_prefixes"] if holds_group(p.rstrip("/") + "/"))
 
     def writer(self, key: str, on_wait: Callable[[str], None] | None = None) -> AbstractContextManager[Any]:
         from graftcache.store.lease import Lease
@@ -258,18 +268,18 @@ class ObjectRoot(Root):
 
 
 def object_parts(rel: str) -> list[str]:
-    """The '/'-separated parts of an object path inside a root (`<key>/...`, `<writer>.lease/...`; a prefix may end
-    in '/'), or a one-line CacheError: the first part names a key, no part is empty, '.' or '..'."""
+    """The '/'-separated parts of an object path inside a root (`<key>/...`, `<writer>.lease/...`; a prefix
+    may end in '/'), or a one-line CacheError: the first part names a key, no part is empty, '.' or '..'."""
     parts = rel.removesuffix("/").split("/")
     check_writer(parts[0].removesuffix(LEASE_SUFFIX))
     if any(part in ("", ".", "..") for part in parts[1:]):
-        raise CacheError(f"{rel!r}: not an object inside a cache (an empty, '.' or '..' part)")
+        raise RefusedPlace(f"{rel!r}: not an object inside a cache (an empty, '.' or '..' part)")
     return parts
 
 
 def _link(path: Path) -> str:
-    return (f"{path} is a symbolic link; a cache root holds no links (a key is its own folder), so graftcache does "
-            "not follow it, and reads, writes and deletes nothing through it")
+    return (f"{path} is a symbolic link; a cache root holds no links (a key is its own folder), so "
+            "graftcache does not follow it, and reads, writes and deletes nothing through it")
 
 
 def _obstore(url: str):
@@ -308,8 +318,8 @@ def _folder(spec: str | Path) -> Path:
     """A local root's folder (made when first written); one that exists as a file is refused by name."""
     path = Path(spec).expanduser()
     if path.exists() and not path.is_dir():
-        raise CacheError(f"cache root {path} is a file, not a folder: --cache (or ${ENV_HOME}) names a folder "
-                         "(made when absent) or an s3:// gs:// az:// URL")
+        raise CacheError(f"cache root {path} is a file, not a folder: --cache (or ${ENV_HOME}) names a "
+                         "folder (made when absent) or an s3:// gs:// az:// URL")
     return path
 
 

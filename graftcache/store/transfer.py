@@ -23,8 +23,8 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 from graftcache.errors import CacheError
-from graftcache.store.cache import FeatureCache, MisplacedCache
-from graftcache.store.key import check_key
+from graftcache.store.cache import FeatureCache
+from graftcache.store.key import RefusedPlace, check_key
 from graftcache.store.roots import GROUP_META, Root
 
 COPY_THREADS = 8
@@ -98,11 +98,11 @@ def _drop(root: Root, key: str, damage: list[tuple[str, str]]) -> None:
 
 def _existing(root: Root, key: str) -> FeatureCache | None:
     """The destination's cache under `key`, or None when there is none or its zarr.json cannot be read
-    (an interrupted copy's or a damaged one: rewritten by this copy). Another cache stored under this key's name
-    (`MisplacedCache`) is refused, never overwritten."""
+    (an interrupted copy's or a damaged one: rewritten by this copy). Another cache stored under this key's
+    name (`MisplacedCache`), or a key folder that is or holds a link, is refused, never overwritten."""
     try:
         return FeatureCache.in_root(root, key)
-    except MisplacedCache:
+    except RefusedPlace:
         raise
     except CacheError:
         return None

@@ -5,7 +5,8 @@ caches file by file (a folder, or the objects of a bucket under a key)."""
 from __future__ import annotations
 
 import json
-from collections.abc import Mapping, Sequence
+import shutil
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -22,9 +23,9 @@ CAMERAS = ("image", "image2")
 def synthetic_cache(root: Path, lengths: Sequence[int], *, grid: tuple[int, int] = (4, 4), width: int = 8,
                     block_frames: int = 8, state_dim: int = 8, action_dim: int = 7, seed: int = 0,
                     nan_at: tuple[int, int] | None = None) -> FeatureCache:
-    """A complete fp16 cache under `root` (in the folder of its key) of episodes of `lengths` (task = episode % 3,
-    all libero_spatial), features N(0, 1) at `grid`; `nan_at` (episode, frame) puts a NaN into that frame's
-    `image` features."""
+    """A complete fp16 cache under `root` (in the folder of its key) of episodes of `lengths` (task = episode
+    % 3, all libero_spatial), features N(0, 1) at `grid`; `nan_at` (episode, frame) puts a NaN into that
+    frame's `image` features."""
     rng = np.random.default_rng(seed)
     episode = np.repeat(np.arange(len(lengths)), lengths)
     frame = np.concatenate([np.arange(n) for n in lengths])
@@ -58,9 +59,10 @@ def synthetic_cache(root: Path, lengths: Sequence[int], *, grid: tuple[int, int]
 
 def dataset_cache(root: Path, dataset: str | Path, suite: str, *, grid: tuple[int, int], width: int,
                   block_frames: int = 256) -> FeatureCache:
-    """A complete fp16 cache under `root` (in the folder of its key) of `dataset`'s `suite` episodes as `extract` lays it out (the dataset's own index,
-    low-dim and action columns), with seeded random features at `grid`, `width` wide, for every camera: what a
-    fit reads of a real cache, without paying for decoding and encoding (the fit cannot tell the difference).
+    """A complete fp16 cache under `root` (in the folder of its key) of `dataset`'s `suite` episodes as
+    `extract` lays it out (the dataset's own index, low-dim and action columns), with seeded random features
+    at `grid`, `width` wide, for every camera: what a fit reads of a real cache, without paying for decoding
+    and encoding (the fit cannot tell the difference).
     One random block is written for every block (memory and read costs do not depend on the values)."""
     from graftcache.datasets import open_dataset, suite_of
     from graftcache.datasets.suites import SUITES
@@ -84,6 +86,20 @@ def dataset_cache(root: Path, dataset: str | Path, suite: str, *, grid: tuple[in
         cache.write_block(b, {f"features/{c}/{name}": block[:stop - start] for c in meta.cameras})
     cache.finalize()
     return FeatureCache(path, writable=False)
+
+
+def rekeyed(folder: Path, root: Path, edit: Callable[[dict], dict]) -> FeatureCache:
+    """A copy of the cache in `folder` whose manifest is `edit(manifest)`, under `root` in the folder of the
+    key that manifest hashes to: a cache made with those settings as far as its folder name and manifest go
+    (its arrays are `folder`'s)."""
+    staging = root / ".staging" / folder.name
+    shutil.copytree(folder, staging)
+    manifest = edit(FeatureCache(staging).manifest)
+    FeatureCache(staging).group.attrs["manifest"] = manifest
+    target = root / cache_key(manifest)
+    staging.rename(target)
+    shutil.rmtree(root / ".staging")
+    return FeatureCache(target, writable=False)
 
 
 #: Group attributes that record when and how a run happened, not what it computed: two runs of one request
