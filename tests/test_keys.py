@@ -112,6 +112,18 @@ def test_a_symlinked_key_folder_is_refused_not_followed(made: FeatureCache, tmp_
     assert _tree(tmp_path) == before
 
 
+def test_a_file_under_a_key_s_name_is_refused(made: FeatureCache, tmp_path: Path,
+                                              capsys: pytest.CaptureFixture) -> None:
+    src, root = tmp_path / "src", tmp_path / "root"
+    shutil.copytree(made.path, src / made.key)
+    root.mkdir()
+    (root / made.key).write_text("a user's file named like a key")
+    before = _tree(tmp_path)
+    _refused(["pull", made.key, src, "--cache", root], capsys, root / made.key, "is a file")
+    _refused(["info", made.key, "--cache", root], capsys, root / made.key, "is a file")
+    assert _tree(tmp_path) == before
+
+
 def test_a_link_inside_a_cache_is_never_followed(made: FeatureCache, tmp_path: Path,
                                                 capsys: pytest.CaptureFixture) -> None:
     """The destination's copy lacks lowdim/state (a link to a folder of the user's): pull would drop the

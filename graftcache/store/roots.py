@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import stat
 import uuid
 from abc import ABC, abstractmethod
 from contextlib import AbstractContextManager
@@ -110,13 +111,21 @@ class LocalRoot(Root):
 
     def _path(self, rel: str) -> Path:
         """The file or folder of `rel` (checked by `object_parts`), refused when it or a folder on the way to
-        it from the root is a symbolic link."""
+        it from the root is a symbolic link, or a folder on the way is a file."""
+        parts = object_parts(rel)
         path = self.path
-        for part in object_parts(rel):
+        for depth, part in enumerate(parts, 1):
             path = path / part
-            if path.is_symlink():
+            try:
+                mode = path.lstat().st_mode
+            except FileNotFoundError:
+                break  # nothing below it exists either
+            if stat.S_ISLNK(mode):
                 raise RefusedPlace(_link(path))
-        return path
+            if depth < len(parts) and not stat.S_ISDIR(mode):
+                raise RefusedPlace(f"{path} is a file where a folder of a cache belongs; graftcache neither reads "
+                                   "nor replaces it")
+        return self.path.joinpath(*parts)
 
     def _walk(self, folder: Path) -> list[Path]:
         """Every file under `folder`, refusing any symbolic link in it (os.walk itself never follows one)."""
