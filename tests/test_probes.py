@@ -1,6 +1,10 @@
-"""Issue 14's probes, each run through the CLI as a subprocess (`python -m graftcache`), as a skeptical user
-would: a bad input ends in a non-zero exit with one line naming the file / episode / frame / key / cache and
-no traceback, and no cache is marked complete; copying and resuming succeed.
+"""The probe matrix (issues 14 and 24): each command run as a skeptical user would. A bad input ends in a
+non-zero exit with one line naming the file / episode / frame / key / cache / bucket and no traceback, no cache is
+marked complete and nothing outside the probe's own folders changes; copying and resuming succeed.
+
+Probes run in this process through tests/helpers/probes.py; only the cases about the process itself (Ctrl-C
+while it imports, SIGTERM with worker processes alive) start `python -m graftcache`. Object-store probes run
+against moto's S3 server on 127.0.0.1 (tests/fixtures/s3.py).
 
 Fixtures are cheap: the 3-episode, 64x64 lerobot-written dataset of tests/fixtures/datasets.py, random-init
 ResNet-18 caches of it and a tiny SmolVLA checkpoint, built once per module.
@@ -8,10 +12,14 @@ ResNet-18 caches of it and a tiny SmolVLA checkpoint, built once per module.
 
 from __future__ import annotations
 
+import errno
 import json
+import os
 import shutil
+import signal
 import subprocess
-import sys
+import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -20,31 +28,36 @@ import polars as pl
 import pytest
 import timm
 from helpers.backbones import tiny
+from helpers.caches import assert_same_cache, folder_files
 from helpers.datasets import Written
+from helpers.probes import (Outcome, Snapshot, assert_one_line_error, assert_succeeded, finish, run_cli,
+                            start_process)
 from safetensors.torch import save_file
 
 from graftcache import results
 from graftcache.extract import ExtractRequest, extract
-from graftcache.store import FeatureCache, list_caches
+from graftcache.store import FeatureCache, list_caches, open_root
+from graftcache.store.cache import PROGRESS_DIR
+from graftcache.store.transfer import copy_cache
 
-#: ~7 min on 2 shared cores: each row starts a Python that imports torch, transformers and lerobot.
-pytestmark = pytest.mark.slow
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 ENCODER = "resnet18"
 NAN_EPISODE, NAN_FRAME = 0, 3  # episode 0 is libero_spatial in the fixture dataset
-#: Fails the block writes after the first with ENOSPC, then runs the CLI: a disk that fills mid-extraction.
-DISK_FULL = """
-import errno, sys
-from graftcache.store.cache import FeatureCache
-write = FeatureCache.write_block
-def full(self, block, data):
-    if block >= 1:
-        raise OSError(errno.ENOSPC, "No space left on device", str(self.path / "features"))
-    write(self, block, data)
-FeatureCache.write_block = full
-from graftcache.cli import main
-sys.exit(main(sys.argv[1:]))
-"""
+
+
+def _disk_full(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Fails the block writes after the first with ENOSPC: a disk that fills mid-extraction."""
+    write = FeatureCache.write_block
+
+    def full(self: FeatureCache, block: int, data: dict) -> None:
+        if block >= 1:
+            raise OSError(errno.ENOSPC, "No space left on device", str(self.path / "features"))
+        write(self, block, data)
+
+    monkeypatch.setattr(FeatureCache, "write_block", full)
+
+
 def _save(path: Path, state: dict) -> Path:
     save_file({k: v.contiguous() for k, v in state.items()}, str(path))
     return path
@@ -93,6 +106,11 @@ class World:
     clean_key: str
     nan_key: str
 
+    @property
+    def base(self) -> Path:
+        """The folder every input lives in: no probe may change anything there."""
+        return Path(self.paths["base"])
+
 
 @pytest.fixture(scope="module")
 def world(v3_video: Written, tmp_path_factory: pytest.TempPathFactory) -> World:  # noqa: F811
@@ -139,8 +157,7 @@ class Probe:
 
     args: str
     names: tuple[str, ...]
-    succeeds: bool = False
-    inject: str | None = None
+    patch: Callable[[pytest.MonkeyPatch], None] | None = None  # applied in this process before the command
 
 
 FIT = ("fit --backbone smolvla --policy {policy} --encoder resnet18 --suite libero_spatial --seed 0 --steps 2 "
@@ -176,7 +193,7 @@ PROBES: dict[str, Probe] = {
     "video_path template leaving the root": Probe(EXTRACT.replace("{ds}", "{evil}"),
                                                   ("meta/info.json", "video_path", "outside the dataset root")),
     "disk full during extract": Probe(EXTRACT + " --block-frames 8", ("No space left", "MiB", "resume"),
-                                      inject=DISK_FULL),
+                                      patch=_disk_full),
     "fit --seeds -1": Probe(FIT + " --cache {cache} --seeds -1".replace("--seed 0 ", ""), ("--seeds", "-1")),
     "fit --results not Parquet": Probe(FIT.replace("{out}", "{base}/not_parquet.parquet") + " --cache {cache}",
                                        ("not_parquet.parquet", "not a Parquet results table")),
@@ -193,62 +210,60 @@ PROBES: dict[str, Probe] = {
 }
 
 
-def _cli(args: list[str], inject: str | None = None) -> subprocess.CompletedProcess:
-    cmd = [sys.executable, "-c", inject, *args] if inject else [sys.executable, "-m", "graftcache", *args]
-    return subprocess.run(cmd, capture_output=True, text=True, timeout=600)
-
-
 def _complete(root: Path) -> list[str]:
     return [c.key for c in list_caches(root) if c.complete]
 
 
 @pytest.mark.parametrize("name", list(PROBES))
-def test_probe_is_one_line_error(name: str, world: World, tmp_path: Path) -> None:
+def test_probe_is_one_line_error(name: str, world: World, tmp_path: Path, capsys: pytest.CaptureFixture,
+                                 monkeypatch: pytest.MonkeyPatch) -> None:
     probe = PROBES[name]
     root, out = tmp_path / "cache", tmp_path / "results.parquet"
-    args = probe.args.format(**world.paths, root=root, out=out).split()
-    done = _cli(args, probe.inject)
-    last = done.stderr.strip().splitlines()[-1] if done.stderr.strip() else ""
-    assert done.returncode != 0 and "Traceback" not in done.stderr, done.stderr[-3000:]
-    assert last.startswith(("graftcache", "usage")), done.stderr[-3000:]
-    for text in probe.names:
-        assert text in last, f"{text!r} not in {last!r}"
+    if probe.patch:
+        probe.patch(monkeypatch)
+    before = Snapshot.of(world.base)
+    done = run_cli(probe.args.format(**world.paths, root=root, out=out).split(), capsys)
+    assert_one_line_error(done, probe.names)
     assert not _complete(root) and not out.exists()
+    before.assert_unchanged(world.base)
 
 
-def test_disk_full_extract_resumes_once_there_is_space(world: World, tmp_path: Path) -> None:
+def test_disk_full_extract_resumes_once_there_is_space(world: World, tmp_path: Path, capsys: pytest.CaptureFixture,
+                                                       monkeypatch: pytest.MonkeyPatch) -> None:
     args = PROBES["disk full during extract"].args.format(**world.paths, root=tmp_path).split()
-    failed = _cli(args, DISK_FULL)
-    assert failed.returncode == 2 and "Traceback" not in failed.stderr
+    with monkeypatch.context() as patched:
+        _disk_full(patched)
+        failed = run_cli(args, capsys)
+    assert_one_line_error(failed, code=2)
     cache = list_caches(tmp_path)[0]
     assert not cache.complete and cache.blocks_done() == {0}  # the first block survives the full disk
     frames = cache.n_frames - 8
     per_frame = 2 * 64 * 512 * 2  # 2 cameras x 8x8 tokens x 512 channels x fp16
     assert f"{frames} of {cache.n_frames} frames are not written yet, needing up to " \
-           f"{frames * per_frame / 2**20:.1f} MiB" in failed.stderr
-    resumed = _cli(args)
-    assert resumed.returncode == 0, resumed.stderr
-    assert _cli(["verify", cache.key, "--cache", str(tmp_path)]).returncode == 0
+           f"{frames * per_frame / 2**20:.1f} MiB" in failed.err
+    assert_succeeded(run_cli(args, capsys))
+    assert run_cli(["verify", cache.key, "--cache", tmp_path], capsys).code == 0
 
 
-def test_fit_drops_nonfinite_frames_only_when_asked(world: World, tmp_path: Path) -> None:
+def test_fit_drops_nonfinite_frames_only_when_asked(world: World, tmp_path: Path,
+                                                    capsys: pytest.CaptureFixture) -> None:
     out = tmp_path / "results.parquet"
     args = (FIT + " --cache {nan_cache} --drop-nonfinite").format(**world.paths, out=out).split()
-    done = _cli(args)
-    assert done.returncode == 0, done.stderr[-3000:]
+    assert_succeeded(run_cli(args, capsys))
     row = results.read(out).row(0, named=True)
     assert row["n_dropped_nonfinite"] == 1 and np.isfinite(row["eval_mse"])
-    clean = _cli((FIT + " --cache {cache}").format(**world.paths, out=tmp_path / "clean.parquet").split())
-    assert clean.returncode == 0 and results.read(tmp_path / "clean.parquet")["n_dropped_nonfinite"].to_list() == [0]
+    clean = run_cli((FIT + " --cache {cache}").format(**world.paths, out=tmp_path / "clean.parquet").split(), capsys)
+    assert_succeeded(clean)
+    assert results.read(tmp_path / "clean.parquet")["n_dropped_nonfinite"].to_list() == [0]
 
 
-def test_a_copied_cache_is_found_and_verifies(world: World, tmp_path: Path) -> None:
+def test_a_copied_cache_is_found_and_verifies(world: World, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     shutil.copytree(Path(world.paths["cache"]) / world.clean_key, tmp_path / world.clean_key)
-    done = _cli(["verify", world.clean_key, "--cache", str(tmp_path)])
-    assert done.returncode == 0 and "all checksums match" in done.stdout, done.stdout + done.stderr
+    done = run_cli(["verify", world.clean_key, "--cache", tmp_path], capsys)
+    assert done.code == 0 and "all checksums match" in done.out, done.out + done.err
 
 
-def test_fit_refuses_a_flipped_byte_in_a_shard(world: World, tmp_path: Path) -> None:
+def test_fit_refuses_a_flipped_byte_in_a_shard(world: World, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     shutil.copytree(Path(world.paths["cache"]) / world.clean_key, tmp_path / world.clean_key)
     shard = next(p for p in sorted((tmp_path / world.clean_key / "features").rglob("*")) if p.is_file()
                  and p.name != "zarr.json")
@@ -256,20 +271,20 @@ def test_fit_refuses_a_flipped_byte_in_a_shard(world: World, tmp_path: Path) -> 
     data[len(data) // 2] ^= 0xFF
     shard.write_bytes(bytes(data))
     out = tmp_path / "results.parquet"
-    done = _cli((FIT + " --cache " + str(tmp_path)).format(**world.paths, out=out).split())
-    last = done.stderr.strip().splitlines()[-1] if done.stderr.strip() else ""
-    assert done.returncode != 0 and "Traceback" not in done.stderr, done.stderr[-3000:]
-    assert world.clean_key in last and "features/" in last and not out.exists()
+    done = run_cli((FIT + " --cache " + str(tmp_path)).format(**world.paths, out=out).split(), capsys)
+    assert_one_line_error(done, (world.clean_key, "features/"))
+    assert not out.exists()
 
 
-def test_ls_lists_healthy_caches_and_flags_a_broken_one(world: World, tmp_path: Path) -> None:
+def test_ls_lists_healthy_caches_and_flags_a_broken_one(world: World, tmp_path: Path,
+                                                        capsys: pytest.CaptureFixture) -> None:
     shutil.copytree(Path(world.paths["cache"]) / world.clean_key, tmp_path / world.clean_key)
     broken = tmp_path / "resnet18-broken"
     shutil.copytree(Path(world.paths["cache"]) / world.clean_key, broken)
     (broken / "zarr.json").write_text("{ not json")
-    done = _cli(["ls", "--cache", str(tmp_path)])
-    assert "Traceback" not in done.stderr, done.stderr[-3000:]
-    assert world.clean_key in done.stdout and "resnet18-broken" in done.stdout + done.stderr
+    done = run_cli(["ls", "--cache", tmp_path], capsys)
+    assert "Traceback" not in done.err, done.err[-3000:]
+    assert world.clean_key in done.out and "resnet18-broken" in done.out + done.err
 
 
 # fit on a read-only cache root: tests/test_store_remote.py runs ls/info/verify/fit as uid nobody on a root it

@@ -27,9 +27,13 @@ from typing import Any, Callable
 from zarr.abc.store import Store
 
 from graftcache.errors import CacheError
+from graftcache.store.remote_errors import NamedObjectStore, absent, mapped
 
 GROUP_META = "zarr.json"
 ENV_HOME = "GRAFTCACHE_HOME"
+#: Seconds an object-store request that gets no answer is retried before the command fails (obstore's default,
+#: 180, when unset); what was copied or written before stays, and the same command resumes.
+ENV_RETRY_S = "GRAFTCACHE_STORE_RETRY_S"
 
 
 def is_url(spec: str | Path) -> bool:
@@ -172,45 +176,52 @@ class ObjectRoot(Root):
         return self._url
 
     def zarr_store(self, key: str, *, read_only: bool) -> Store:
-        from zarr.storage import ObjectStore
+        return NamedObjectStore(_obstore(f"{self._url}/{key}"), read_only=read_only, url=f"{self._url}/{key}")
 
-        return ObjectStore(_obstore(f"{self._url}/{key}"), read_only=read_only)
+    def _at(self, rel: str) -> str:
+        return f"{self._url}/{rel}"
 
     def get(self, rel: str) -> bytes | None:
         import obstore
-        from obstore.exceptions import NotFoundError
 
-        try:
-            return bytes(obstore.get(self.store, rel).bytes())
-        except (NotFoundError, FileNotFoundError):
-            return None
+        with mapped(self._at(rel)):
+            try:
+                return bytes(obstore.get(self.store, rel).bytes())
+            except Exception as e:
+                if absent(e):
+                    return None
+                raise
 
     def put(self, rel: str, data: bytes, *, if_absent: bool = False) -> bool:
         import obstore
         from obstore.exceptions import AlreadyExistsError, PreconditionError
 
-        try:
-            obstore.put(self.store, rel, data, mode="create" if if_absent else "overwrite")
-        except (AlreadyExistsError, PreconditionError):
-            return False
+        with mapped(self._at(rel)):
+            try:
+                obstore.put(self.store, rel, data, mode="create" if if_absent else "overwrite")
+            except (AlreadyExistsError, PreconditionError):
+                return False
         return True
 
     def sizes(self, prefix: str) -> dict[str, int]:
         import obstore
 
-        return {m["path"]: int(m["size"]) for batch in obstore.list(self.store, prefix) for m in batch
-                if m["path"].startswith(prefix)}
+        with mapped(self._at(prefix)):
+            return {m["path"]: int(m["size"]) for batch in obstore.list(self.store, prefix) for m in batch
+                    if m["path"].startswith(prefix)}
 
     def delete(self, rels: list[str]) -> None:
         import obstore
 
         for start in range(0, len(rels), 1000):
-            obstore.delete(self.store, rels[start:start + 1000])
+            with mapped(self._at(rels[start])):
+                obstore.delete(self.store, rels[start:start + 1000])
 
     def keys(self) -> list[str]:
         import obstore
 
-        listed = obstore.list_with_delimiter(self.store)
+        with mapped(self._url):
+            listed = obstore.list_with_delimiter(self.store)
         return sorted(p.rstrip("/") for p in listed["common_prefixes"]
                       if self.get(f"{p.rstrip('/')}/{GROUP_META}") is not None)
 
@@ -225,13 +236,29 @@ def _obstore(url: str):
     servers on a LAN or loopback) are allowed when AWS_ENDPOINT_URL names one."""
     from obstore.store import from_url
 
-    options = {}
+    options: dict[str, Any] = {"retry_config": retry_config()}
     if os.environ.get("AWS_ENDPOINT_URL", "").startswith("http://"):
         options["client_options"] = {"allow_http": True}
     try:
         return from_url(url, **options)
     except Exception as e:  # unknown scheme, bad bucket name, missing configuration
         raise CacheError(f"{url}: cannot open this cache root ({type(e).__name__}: {e})") from None
+
+
+def retry_config() -> dict[str, Any]:
+    """obstore's retry settings: its defaults, with the total time bounded by $GRAFTCACHE_STORE_RETRY_S."""
+    from datetime import timedelta
+
+    seconds = os.environ.get(ENV_RETRY_S)
+    if not seconds:
+        return {}
+    try:
+        value = float(seconds)
+    except ValueError:
+        raise CacheError(f"${ENV_RETRY_S}={seconds!r} is not a number of seconds") from None
+    return {"retry_timeout": timedelta(seconds=value),
+            "backoff": {"init_backoff": timedelta(seconds=min(0.1, value / 10)),
+                        "max_backoff": timedelta(seconds=max(value / 4, 0.01))}}
 
 
 def cache_root(explicit: str | Path | None = None) -> Path:
