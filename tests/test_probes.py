@@ -27,17 +27,19 @@ import numpy as np
 import polars as pl
 import pytest
 import timm
+from fixtures.s3 import free_port
 from helpers.backbones import tiny
 from helpers.caches import assert_same_cache, folder_files
 from helpers.datasets import Written
-from helpers.probes import (Outcome, Snapshot, assert_one_line_error, assert_succeeded, finish, run_cli,
-                            start_process)
+from helpers.probes import (Outcome, Snapshot, alive, assert_one_line_error, assert_succeeded, children, finish,
+                            run_cli, start_process)
 from safetensors.torch import save_file
 
 from graftcache import results
 from graftcache.extract import ExtractRequest, extract
 from graftcache.store import FeatureCache, list_caches, open_root
 from graftcache.store.cache import PROGRESS_DIR
+from graftcache.store.roots import LocalRoot
 from graftcache.store.transfer import copy_cache
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -298,3 +300,198 @@ def test_extracted_caches_hold_what_the_probes_assume(world: World) -> None:
     assert nan.filter(pl.Series(bad)).select("episode_index", "frame_index").rows() == [(NAN_EPISODE, NAN_FRAME)]
     clean = FeatureCache(Path(world.paths["cache"]) / world.clean_key).index()
     assert np.isfinite(np.stack(clean["state"].to_numpy())).all()
+
+
+# ---- object stores: a missing bucket, refused credentials, an endpoint that does not answer (issue 24) ----------
+
+S3_PROBES = {  # command -> its arguments; {url} is the object-store root, {root} a fresh local root
+    "ls": "ls --cache {url}",
+    "info": "info {key} --cache {url}",
+    "push": "push {key} {url} --cache {cache}",
+    "pull": "pull {key} {url} --cache {root}",
+    "extract": EXTRACT.replace("{root}", "{url}"),
+    "fit": FIT + " --cache {url}",
+}
+
+
+def _s3_probe(command: str, world: World, url: str, tmp_path: Path, capsys: pytest.CaptureFixture) -> Outcome:
+    root, out = tmp_path / "cache", tmp_path / "results.parquet"
+    before = Snapshot.of(world.base)
+    args = S3_PROBES[command].format(**world.paths, key=world.clean_key, url=url, root=root, out=out).split()
+    done = run_cli(args, capsys)
+    assert not _complete(root) and not out.exists()
+    before.assert_unchanged(world.base)
+    return done
+
+
+@pytest.fixture()
+def s3_with_cache(s3: str, world: World, monkeypatch: pytest.MonkeyPatch) -> str:
+    """The bucket holding the world's clean cache; unanswered requests give up after 1 s."""
+    monkeypatch.setenv("GRAFTCACHE_STORE_RETRY_S", "1")
+    copy_cache(open_root(world.paths["cache"]), open_root(s3), world.clean_key, log=lambda _: None)
+    return s3
+
+
+@pytest.mark.parametrize("command", list(S3_PROBES))
+def test_a_missing_bucket_is_one_line(command: str, world: World, s3_with_cache: str, tmp_path: Path,
+                                      capsys: pytest.CaptureFixture) -> None:
+    url = "s3://graftcache-no-such-bucket/caches"
+    done = _s3_probe(command, world, url, tmp_path, capsys)
+    assert_one_line_error(done, ("s3://graftcache-no-such-bucket", "the bucket does not exist"), code=2)
+
+
+@pytest.mark.parametrize("credentials", ["wrong", "missing"])
+@pytest.mark.parametrize("command", ["ls", "info", "push", "pull", "fit"])
+def test_refused_credentials_are_one_line(command: str, credentials: str, world: World, s3_with_cache: str,
+                                          tmp_path: Path, capsys: pytest.CaptureFixture,
+                                          monkeypatch: pytest.MonkeyPatch) -> None:
+    import moto.settings
+
+    monkeypatch.setattr(moto.settings, "INITIAL_NO_AUTH_ACTION_COUNT", 0)  # moto checks credentials from now on
+    if credentials == "wrong":
+        monkeypatch.setenv("AWS_SECRET_ACCESS_KEY", "not-the-secret")
+    else:
+        for name in ("AWS_ACCESS_KEY_ID", "AWS_SECRET_ACCESS_KEY"):
+            monkeypatch.delenv(name)
+        monkeypatch.setenv("AWS_EC2_METADATA_DISABLED", "true")
+    done = _s3_probe(command, world, s3_with_cache, tmp_path, capsys)
+    assert_one_line_error(done, (s3_with_cache, "access denied", "AWS_ACCESS_KEY_ID"), code=2)
+
+
+@pytest.mark.parametrize("command", ["ls", "info", "pull", "fit"])
+def test_an_endpoint_that_does_not_answer_is_one_line(command: str, world: World, s3_with_cache: str,
+                                                      tmp_path: Path, capsys: pytest.CaptureFixture,
+                                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    closed = f"http://127.0.0.1:{free_port()}"
+    monkeypatch.setenv("AWS_ENDPOINT_URL", closed)
+    started = time.monotonic()
+    done = _s3_probe(command, world, s3_with_cache, tmp_path, capsys)
+    assert_one_line_error(done, (s3_with_cache, closed, "did not answer", "run the same command again"), code=2)
+    assert time.monotonic() - started < 30  # GRAFTCACHE_STORE_RETRY_S=1 bounds every request's retries
+
+
+def test_an_endpoint_going_down_mid_pull_is_one_line_and_the_rerun_resumes(
+        world: World, s3_with_cache: str, tmp_path: Path, capsys: pytest.CaptureFixture,
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A second moto server (same buckets: moto's state is per process) serves the pull and stops after the
+    third object arrives; the rerun against the first one copies only what is missing."""
+    from moto.server import ThreadedMotoServer
+
+    port = free_port()
+    doomed = ThreadedMotoServer(ip_address="127.0.0.1", port=port, verbose=False)
+    doomed.start()
+    serving = os.environ["AWS_ENDPOINT_URL"]
+    monkeypatch.setenv("AWS_ENDPOINT_URL", f"http://127.0.0.1:{port}")
+    put, arrived = LocalRoot.put, []
+
+    def put_then_fail(self: LocalRoot, rel: str, data: bytes, **kw: bool) -> bool:
+        done = put(self, rel, data, **kw)
+        arrived.append(rel)
+        if len(arrived) == 3:
+            doomed.stop()
+        return done
+
+    root = tmp_path / "cache"
+    args = ["pull", world.clean_key, s3_with_cache, "--cache", root]
+    with monkeypatch.context() as patched:
+        patched.setattr(LocalRoot, "put", put_then_fail)
+        cut = run_cli(args, capsys)
+    assert_one_line_error(cut, (s3_with_cache, f"127.0.0.1:{port}", "did not answer",
+                                "run the same command again to resume"), code=2)
+    assert not _complete(root) and len(arrived) >= 3
+    monkeypatch.setenv("AWS_ENDPOINT_URL", serving)
+    resumed = run_cli(args, capsys)
+    assert_succeeded(resumed)
+    assert "resuming" in resumed.out and _complete(root) == [world.clean_key]
+    assert_same_cache(folder_files(root / world.clean_key), folder_files(Path(world.paths["cache"]) / world.clean_key))
+
+
+# ---- stopping the process: Ctrl-C while it imports, SIGTERM with worker processes alive (issue 24) --------------
+# Subprocesses: the signal, the interpreter's start and the worker processes are what is tested.
+
+#: Slows each block's encoding (extract) or each batch taken from the stream (fit), so a signal lands mid-run.
+SLOW_EXTRACT = """
+import time, graftcache.extract as x
+encode = x.encode_frames
+x.encode_frames = lambda *a, **k: (time.sleep(0.4), encode(*a, **k))[1]
+"""
+SLOW_FIT = """
+import time, graftcache.fit.stream as s
+take = s.FrameQueue.take
+s.FrameQueue.take = lambda self, k: (time.sleep(0.3), take(self, k))[1]
+"""
+GONE_WITHIN_S = 5.0  # SIGTERM -> every worker process gone (2 shared cores under load)
+
+
+def _wait_for(ready: Callable[[], bool], proc: subprocess.Popen, what: str, timeout: float = 300) -> None:
+    deadline = time.monotonic() + timeout
+    while not ready():
+        assert proc.poll() is None, f"ended before {what}: {finish(proc).err[-3000:]}"
+        assert time.monotonic() < deadline, f"no {what} within {timeout} s"
+        time.sleep(0.02)
+
+
+def _terminate(proc: subprocess.Popen) -> tuple[Outcome, list[int]]:
+    """SIGTERM now; the outcome, and the worker processes still running GONE_WITHIN_S later."""
+    workers = children(proc.pid)
+    assert workers, "no worker process to stop"
+    proc.send_signal(signal.SIGTERM)
+    deadline = time.monotonic() + GONE_WITHIN_S
+    while alive(workers) and time.monotonic() < deadline:
+        time.sleep(0.02)
+    left = alive(workers)
+    return finish(proc, 120), left
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("delay", [0.5, 1.5])
+def test_ctrl_c_while_the_cli_imports_is_one_line(delay: float, world: World, tmp_path: Path) -> None:
+    proc = start_process(EXTRACT.format(**world.paths, root=tmp_path / "cache").split())
+    time.sleep(delay)  # the CLI needs seconds to import torch, lerobot and transformers
+    proc.send_signal(signal.SIGINT)
+    done = finish(proc, 120)
+    assert_one_line_error(done, ("interrupted",), code=130)
+    assert not _complete(tmp_path / "cache")
+
+
+@pytest.mark.slow
+def test_sigterm_during_extract_stops_workers_keeps_blocks_and_the_rerun_resumes(
+        world: World, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    args = (EXTRACT + " --block-frames 2").replace("--num-workers 0", "--num-workers 2")
+    root = tmp_path / "cache"
+    before = Snapshot.of(world.base)
+    proc = start_process(args.format(**world.paths, root=root).split(), prelude=SLOW_EXTRACT)
+    _wait_for(lambda: bool(list_caches(root)) and bool(list_caches(root)[0].blocks_done()) and
+              bool(children(proc.pid)), proc, "a finished block with workers running")
+    stopped, left = _terminate(proc)
+    assert_one_line_error(stopped, ("extract", "SIGTERM", "run the same command again to resume"), code=143)
+    assert not left, f"worker processes {left} outlived the command by {GONE_WITHIN_S} s"
+    (cache,) = list_caches(root)
+    kept = cache.blocks_done()
+    assert not cache.complete and kept and not _complete(root)
+    assert_succeeded(resumed := run_cli(args.format(**world.paths, root=root).split(), capsys))
+    assert f"{len(kept)}/{cache.layout['n_blocks']} blocks already written" in resumed.out + resumed.err
+    assert_succeeded(run_cli(args.format(**world.paths, root=tmp_path / "ref").split(), capsys))
+    assert_same_cache(folder_files(root / cache.key), folder_files(tmp_path / "ref" / cache.key))
+    assert not [p for p in root.rglob("*") if PROGRESS_DIR in p.parts]
+    before.assert_unchanged(world.base)
+
+
+@pytest.mark.slow
+def test_sigterm_during_fit_stops_workers_keeps_rows_and_the_rerun_resumes(
+        world: World, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    out = tmp_path / "results.parquet"
+    args = (FIT.replace("--seed 0", "--seeds 2") + " --num-workers 2 --cache {cache}").format(**world.paths, out=out)
+    before = Snapshot.of(world.base)
+    proc = start_process(args.split(), prelude=SLOW_FIT)
+    _wait_for(lambda: out.exists() and bool(children(proc.pid)), proc, "a written row with workers running")
+    stopped, left = _terminate(proc)
+    assert_one_line_error(stopped, ("fit", "SIGTERM", "run the same command again to resume"), code=143)
+    assert not left, f"worker processes {left} outlived the command by {GONE_WITHIN_S} s"
+    assert results.read(out)["seed"].to_list() == [0]  # the finished cell's row stays
+    assert_succeeded(run_cli(args.split(), capsys))
+    reference = tmp_path / "reference.parquet"
+    assert_succeeded(run_cli(args.replace(str(out), str(reference)).split(), capsys))
+    got, want = (results.read(p).sort("seed").select("seed", "eval_mse") for p in (out, reference))
+    assert got["seed"].to_list() == [0, 1] and got.equals(want)
+    before.assert_unchanged(world.base)

@@ -47,11 +47,40 @@ def run_cli(argv: Sequence[str], capsys: pytest.CaptureFixture) -> Outcome:
     return Outcome(code, captured.out, captured.err)
 
 
-def start_process(argv: Sequence[str], env: dict[str, str] | None = None) -> subprocess.Popen:
-    """`python -m graftcache ARGV` with this test's environment (PYTHONPATH: the graftcache under test)."""
+def start_process(argv: Sequence[str], env: dict[str, str] | None = None, prelude: str = "") -> subprocess.Popen:
+    """`python -m graftcache ARGV` with this test's environment (PYTHONPATH: the graftcache under test).
+    `prelude`: Python run first in the child, e.g. a patch that slows a step down so a signal lands mid-way."""
     path = os.pathsep.join([str(Path(__file__).resolve().parents[2]), os.environ.get("PYTHONPATH", "")])
-    return subprocess.Popen([sys.executable, "-m", "graftcache", *map(str, argv)], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, env={**os.environ, "PYTHONPATH": path, **(env or {})})
+    code = ["-m", "graftcache"] if not prelude else \
+        ["-c", f"{prelude}\nimport sys\nfrom graftcache.cli import main\nsys.exit(main())"]
+    return subprocess.Popen([sys.executable, *code, *map(str, argv)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, env={**os.environ, "PYTHONPATH": path, **(env or {})})
+
+
+def children(pid: int) -> list[int]:
+    """The live child processes of `pid` (worker processes), from /proc."""
+    found = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid and fields[0] != "Z":
+            found.append(int(stat.parent.name))
+    return found
+
+
+def alive(pids: Sequence[int]) -> list[int]:
+    """Those of `pids` still running (not exited, not a zombie)."""
+    out = []
+    for pid in pids:
+        try:
+            state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+        except OSError:
+            continue
+        if state != "Z":
+            out.append(pid)
+    return out
 
 
 def finish(proc: subprocess.Popen, timeout: float = 600) -> Outcome:
