@@ -36,6 +36,7 @@ from helpers.probes import (Outcome, Snapshot, alive, assert_one_line_error, ass
 from safetensors.torch import save_file
 
 from graftcache import results
+from graftcache.cli.signals import stoppable
 from graftcache.extract import ExtractRequest, extract
 from graftcache.store import FeatureCache, list_caches, open_root
 from graftcache.store.cache import PROGRESS_DIR
@@ -444,7 +445,7 @@ def _terminate(proc: subprocess.Popen) -> tuple[Outcome, list[int]]:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("delay", [0.5, 1.5])
+@pytest.mark.parametrize("delay", [0.5, 1.5, 3.0])
 def test_ctrl_c_while_the_cli_imports_is_one_line(delay: float, world: World, tmp_path: Path) -> None:
     proc = start_process(EXTRACT.format(**world.paths, root=tmp_path / "cache").split())
     time.sleep(delay)  # the CLI needs seconds to import torch, lerobot and transformers
@@ -452,6 +453,20 @@ def test_ctrl_c_while_the_cli_imports_is_one_line(delay: float, world: World, tm
     done = finish(proc, 120)
     assert_one_line_error(done, ("interrupted",), code=130)
     assert not _complete(tmp_path / "cache")
+
+
+def test_a_ctrl_c_lost_in_a_finaliser_is_raised_again() -> None:
+    """Python prints a KeyboardInterrupt raised in __del__ or a weakref callback (as imports and the garbage
+    collector run them) as "Exception ignored" and carries on; the command must still stop."""
+
+    class Finaliser:
+        def __del__(self) -> None:
+            raise KeyboardInterrupt
+
+    with stoppable(whole_process=False), pytest.raises(KeyboardInterrupt):
+        Finaliser()
+        for _ in range(500):
+            time.sleep(0.002)
 
 
 @pytest.mark.slow

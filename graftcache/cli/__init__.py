@@ -42,10 +42,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     from graftcache.cli.signals import describe, exit_code, stoppable
 
     command, started = "", False
-    with stoppable(whole_process=argv is None):
+    with stoppable(whole_process=argv is None) as stops:
         try:  # from the first import on: Ctrl-C while torch is still loading is one line too
             args = build_parser().parse_args(argv)
             command, started = f" {args.command}", True
+            stops.command_started()
             return _run(args)
         except KeyboardInterrupt as stop:
             then = ("; run the same command again to resume" if started

@@ -6,7 +6,8 @@ very code paths Ctrl-C already takes: an extraction's finished blocks and a fit'
 half-written is marked complete, and the same command run again resumes. Before unwinding, the worker processes
 this process started (DataLoader readers and decoders, fork-server children for object-store roots) are sent
 SIGTERM, so none outlives the command; forked workers get the default SIGTERM action back (`_reset_in_child`), so
-they die at once instead of running this handler.
+they die at once instead of running this handler. While a whole process is still starting (importing torch) or
+already tearing down, there is nothing to keep: a signal is one line and an immediate exit (`_exit_at_once`).
 """
 
 from __future__ import annotations
@@ -16,13 +17,16 @@ import os
 import signal
 import sys
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from types import FrameType
+from typing import Any
 
 #: Exit code for each signal that stops a command: 128 + the signal number, the shell convention.
 EXIT_CODES = {signal.SIGINT: 128 + signal.SIGINT, signal.SIGTERM: 128 + signal.SIGTERM}
+STOPPED = {signal.SIGINT: "interrupted", signal.SIGTERM: "terminated (SIGTERM)"}  # what the one line says
 WORKER_GRACE_S = 2.0  # how long stopped workers get to exit before SIGKILL
+REDELIVER_S = 0.01  # a signal lost in a finaliser is sent again this much later (`_redeliver`)
 
 
 class Terminated(KeyboardInterrupt):
@@ -36,7 +40,7 @@ def exit_code(stop: KeyboardInterrupt) -> int:
 
 
 def describe(stop: KeyboardInterrupt) -> str:
-    return "terminated (SIGTERM)" if isinstance(stop, Terminated) else "interrupted"
+    return STOPPED[getattr(stop, "signum", signal.SIGINT)]
 
 
 def stop_workers() -> None:
@@ -64,37 +68,75 @@ def _reset_in_child() -> None:
         signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
-def _on_exit_signal(signum: int, frame: FrameType | None) -> None:
-    """After the command ended (interpreter teardown: joins, atexit hooks): one line, then exit at once."""
-    os.write(2, f"graftcache: {signal.Signals(signum).name} while exiting\n".encode())
-    os._exit(EXIT_CODES[signum])
+def _exit_at_once(when: str) -> Callable[[int, FrameType | None], None]:
+    """A handler for the moments when there is nothing to keep (the console script still importing, or
+    tearing down after the command): one line, then exit at once. Raising KeyboardInterrupt there could land
+    in a weakref callback or a finaliser, where Python prints it as "Exception ignored" and carries on."""
+
+    def handler(signum: int, frame: FrameType | None) -> None:
+        os.write(2, f"graftcache: {STOPPED[signum]} {when}\n".encode())
+        os._exit(EXIT_CODES[signum])
+
+    return handler
+
+
+def _redeliver(unraisable: Any) -> None:
+    """sys.unraisablehook: a KeyboardInterrupt raised inside a finaliser or a weakref callback (as an import or
+    the garbage collector runs them) would be printed as "Exception ignored" and lost; the signal is sent again
+    a moment later (from a thread: sent from here, it would be raised inside this hook), so it is raised in
+    ordinary code."""
+    if isinstance(unraisable.exc_value, KeyboardInterrupt):
+        signum = getattr(unraisable.exc_value, "signum", signal.SIGINT)
+        threading.Timer(REDELIVER_S, os.kill, (os.getpid(), signum)).start()
+    else:
+        sys.__unraisablehook__(unraisable)
+
+
+class Stops:
+    """The handlers of one command's run; `command_started` switches to those that unwind (see the module)."""
+
+    def __init__(self, installs: bool) -> None:
+        self.installs = installs
+
+    def command_started(self) -> None:
+        if self.installs:
+            signal.signal(signal.SIGINT, signal.default_int_handler)
+            signal.signal(signal.SIGTERM, _on_term)
 
 
 _FORK_HOOK: list[bool] = []
 
 
 @contextmanager
-def stoppable(*, whole_process: bool) -> Iterator[None]:
-    """SIGINT raises KeyboardInterrupt and SIGTERM raises Terminated inside the block. `whole_process` (the console
-    script): afterwards a signal still gives one line and its exit code during teardown; otherwise (main called
-    in-process, e.g. by tests) the previous handlers come back. Outside the main thread nothing is installed:
-    only the main thread may set handlers."""
+def stoppable(*, whole_process: bool) -> Iterator[Stops]:
+    """Inside the block SIGINT raises KeyboardInterrupt and SIGTERM raises Terminated, except while a whole
+    process (the console script) is still starting: then either is one line and an immediate exit. Afterwards a
+    whole process keeps one line and the exit code for teardown; main called in-process (e.g. by tests) gets the
+    previous handlers back. Outside the main thread nothing is installed: only the main thread may set handlers."""
     if threading.current_thread() is not threading.main_thread():
-        yield
+        yield Stops(installs=False)
         return
     if not _FORK_HOOK:
         os.register_at_fork(after_in_child=_reset_in_child)
         _FORK_HOOK.append(True)
     saved = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM, signal.SIGCHLD)}
-    signal.signal(signal.SIGINT, signal.default_int_handler)
-    signal.signal(signal.SIGTERM, _on_term)
+    hook, sys.unraisablehook = sys.unraisablehook, _redeliver
+    stops = Stops(installs=True)
+    if whole_process:
+        starting = _exit_at_once("while starting; nothing was done")
+        signal.signal(signal.SIGINT, starting)
+        signal.signal(signal.SIGTERM, starting)
+    else:
+        stops.command_started()
     try:
-        yield
+        yield stops
     finally:
         if whole_process:
             sys.stderr.flush()
-            for s in (signal.SIGINT, signal.SIGTERM):
-                signal.signal(s, _on_exit_signal)
+            exiting = _exit_at_once("while exiting")
+            signal.signal(signal.SIGINT, exiting)
+            signal.signal(signal.SIGTERM, exiting)
         else:
             for s, handler in saved.items():
                 signal.signal(s, handler if handler is not None else signal.SIG_DFL)
+            sys.unraisablehook = hook
