@@ -1,7 +1,8 @@
 """The probe harness: run one command as a skeptical user would and check how it ends.
 
 A probe runs in this process (`graftcache.cli.main(argv)`, output captured with capsys) unless the process boundary
-is the thing tested (signals, interrupts, worker processes): then `run_process` starts `python -m graftcache`.
+is the thing tested (signals, interrupts, worker processes): then `start_process` starts `python -m graftcache`
+and `finish` waits for it.
 Either way it returns an `Outcome`, and `assert_one_line_error` / `assert_succeeded` check what every probe
 asserts: the exit code, no traceback, the named places in the last line. `Snapshot` checks that nothing outside
 the folders a command may write changed.
@@ -86,10 +87,6 @@ def alive(pids: Sequence[int]) -> list[int]:
 def finish(proc: subprocess.Popen, timeout: float = 600) -> Outcome:
     out, err = proc.communicate(timeout=timeout)
     return Outcome(proc.returncode, out, err)
-
-
-def run_process(argv: Sequence[str], env: dict[str, str] | None = None) -> Outcome:
-    return finish(start_process(argv, env))
 
 
 def assert_one_line_error(outcome: Outcome, names: Sequence[str] = (), code: int | None = None) -> None:
