@@ -34,10 +34,14 @@ from zarr.abc.store import Store
 
 from graftcache.errors import CacheError
 from graftcache.store.key import RefusedPlace, check_key, check_writer
+from graftcache.store.remote_errors import NamedObjectStore, absent, mapped
 
 GROUP_META = "zarr.json"
 ENV_HOME = "GRAFTCACHE_HOME"
 LEASE_SUFFIX = ".lease"  # `<writer>.lease/<generation>`: an object store's writer lease (store/lease.py)
+#: Seconds an object-store request that gets no answer is retried before the command fails (obstore's default,
+#: 180, when unset); what was copied or written before stays, and the same command resumes.
+ENV_RETRY_S = "GRAFTCACHE_STORE_RETRY_S"
 
 
 def is_url(spec: str | Path) -> bool:
@@ -215,36 +219,42 @@ class ObjectRoot(Root):
         return self._url
 
     def zarr_store(self, key: str, *, read_only: bool) -> Store:
-        from zarr.storage import ObjectStore
+        url = f"{self._url}/{check_key(key)}"
+        return NamedObjectStore(_obstore(url), read_only=read_only, url=url)
 
-        return ObjectStore(_obstore(f"{self._url}/{check_key(key)}"), read_only=read_only)
+    def _at(self, rel: str) -> str:
+        return f"{self._url}/{rel}"
 
     def get(self, rel: str) -> bytes | None:
         import obstore
-        from obstore.exceptions import NotFoundError
 
-        try:
-            return bytes(obstore.get(self.store, "/".join(object_parts(rel))).bytes())
-        except (NotFoundError, FileNotFoundError):
-            return None
+        with mapped(self._at(rel)):
+            try:
+                return bytes(obstore.get(self.store, "/".join(object_parts(rel))).bytes())
+            except Exception as e:
+                if absent(e):
+                    return None
+                raise
 
     def put(self, rel: str, data: bytes, *, if_absent: bool = False) -> bool:
         import obstore
         from obstore.exceptions import AlreadyExistsError, PreconditionError
 
-        try:
-            obstore.put(self.store, "/".join(object_parts(rel)), data,
-                        mode="create" if if_absent else "overwrite")
-        except (AlreadyExistsError, PreconditionError):
-            return False
+        with mapped(self._at(rel)):
+            try:
+                obstore.put(self.store, "/".join(object_parts(rel)), data,
+                            mode="create" if if_absent else "overwrite")
+            except (AlreadyExistsError, PreconditionError):
+                return False
         return True
 
     def sizes(self, prefix: str) -> dict[str, int]:
         import obstore
 
         object_parts(prefix)
-        return {m["path"]: int(m["size"]) for batch in obstore.list(self.store, prefix) for m in batch
-                if m["path"].startswith(prefix)}
+        with mapped(self._at(prefix)):
+            return {m["path"]: int(m["size"]) for batch in obstore.list(self.store, prefix) for m in batch
+                    if m["path"].startswith(prefix)}
 
     def delete(self, rels: list[str]) -> None:
         import obstore
@@ -252,22 +262,26 @@ class ObjectRoot(Root):
         for rel in rels:
             object_parts(rel)
         for start in range(0, len(rels), 1000):
-            obstore.delete(self.store, rels[start:start + 1000])
+            with mapped(self._at(rels[start])):
+                obstore.delete(self.store, rels[start:start + 1000])
 
     def keys(self) -> list[str]:
         """Listed folders holding a zarr.json, by name, as the store lists them (so one named outside the key
         grammar is listed, and refused by name when opened)."""
         import obstore
-        from obstore.exceptions import NotFoundError
 
         def holds_group(prefix: str) -> bool:
-            try:
-                obstore.head(self.store, f"{prefix}{GROUP_META}")
-            except (NotFoundError, FileNotFoundError):
-                return False
+            with mapped(self._at(f"{prefix}{GROUP_META}")):
+                try:
+                    obstore.head(self.store, f"{prefix}{GROUP_META}")
+                except Exception as e:
+                    if absent(e):
+                        return False
+                    raise
             return True
 
-        listed = obstore.list_with_delimiter(self.store)
+        with mapped(self._url):
+            listed = obstore.list_with_delimiter(self.store)
         return sorted(p.rstrip("/") for p in listed["common_prefixes"] if holds_group(p.rstrip("/") + "/"))
 
     def writer(self, key: str, on_wait: Callable[[str], None] | None = None) -> AbstractContextManager[Any]:
@@ -296,13 +310,29 @@ def _obstore(url: str):
     servers on a LAN or loopback) are allowed when AWS_ENDPOINT_URL names one."""
     from obstore.store import from_url
 
-    options = {}
+    options: dict[str, Any] = {"retry_config": retry_config()}
     if os.environ.get("AWS_ENDPOINT_URL", "").startswith("http://"):
         options["client_options"] = {"allow_http": True}
     try:
         return from_url(url, **options)
     except Exception as e:  # unknown scheme, bad bucket name, missing configuration
         raise CacheError(f"{url}: cannot open this cache root ({type(e).__name__}: {e})") from None
+
+
+def retry_config() -> dict[str, Any]:
+    """obstore's retry settings: its defaults, with the total time bounded by $GRAFTCACHE_STORE_RETRY_S."""
+    from datetime import timedelta
+
+    seconds = os.environ.get(ENV_RETRY_S)
+    if not seconds:
+        return {}
+    try:
+        value = float(seconds)
+    except ValueError:
+        raise CacheError(f"${ENV_RETRY_S}={seconds!r} is not a number of seconds") from None
+    return {"retry_timeout": timedelta(seconds=value),
+            "backoff": {"init_backoff": timedelta(seconds=min(0.1, value / 10)),
+                        "max_backoff": timedelta(seconds=max(value / 4, 0.01))}}
 
 
 def cache_root(explicit: str | Path | None = None) -> Path:
