@@ -182,7 +182,7 @@ def section_stream(dataset: Path, work: Path, args: argparse.Namespace) -> None:
     for name, source in (("sample", DEFAULT_DATASET), ("libero", dataset)):
         root = work / f"suite-{name}"
         caches = list_caches(root) if root.exists() else []
-        cache = caches[0] if caches else dataset_cache(root / "k", source, args.suite, grid=grid, width=width)
+        cache = caches[0] if caches else dataset_cache(root, source, args.suite, grid=grid, width=width)
         cache = FeatureCache(cache.path, writable=False)
         if name == "libero":
             feed = SplitFeed(load_lowdim(cache, args.suite, chunk=50),

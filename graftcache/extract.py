@@ -55,6 +55,7 @@ from graftcache.runtime import (
 )
 from graftcache.store import FORMAT_VERSION, FeatureCache, Root, cache_key, open_root
 from graftcache.store.cache import STORAGE_DTYPES, ArraySpec, from_storage, to_storage
+from graftcache.store.key import RefusedPlace
 
 #: errnos of a full disk or quota: the extraction stops with a resumable one-line error.
 OUT_OF_SPACE = frozenset({errno.ENOSPC, errno.EDQUOT})
@@ -234,6 +235,7 @@ def _plan(index: pl.DataFrame, cache: FeatureCache, todo: Sequence[int]) -> tupl
 def extract(req: ExtractRequest, log: Callable[[str], None] = print) -> ExtractResult:
     """Run stage 1 for one (dataset, encoder) request; reuse or resume the cache when it exists."""
     t0 = time.perf_counter()
+    root = open_root(req.cache)  # a --cache that cannot be a root is refused before any work
     set_main_threads()
     device = resolve_device(req.device)
     req = replace(req, compute_dtype=resolve_compute_dtype(req.compute_dtype, device))  # never "auto" in a key
@@ -276,7 +278,6 @@ def extract(req: ExtractRequest, log: Callable[[str], None] = print) -> ExtractR
     manifest = build_manifest(req, source, encoder, episodes, cameras, index.height,
                               fingerprint(encoder, req.compute_dtype, device))
     key = cache_key(manifest)
-    root = open_root(req.cache)
     path = root.location(key)
     if manifest["random_init"]:
         log(f"note: encoder {spec.name} uses RANDOM-INIT weights (seed {req.seed}); the manifest says so")
@@ -462,6 +463,8 @@ def _complete(root: Root, key: str, manifest: dict[str, Any], req: ExtractReques
     """The finished cache of this request, opened read-only, or None when there is work to do."""
     try:
         cache = FeatureCache.in_root(root, key)
+    except RefusedPlace:  # another cache under this key's name, a link: never reused, never replaced
+        raise
     except CacheError:  # absent, or an initialisation that never wrote its manifest
         return None
     if not (cache.initialized and cache.complete and cache.matches(manifest)):
@@ -475,7 +478,9 @@ def _open_or_create(root: Root, key: str, manifest: dict[str, Any], index: pl.Da
                     log: Callable[[str], None]) -> FeatureCache:
     try:
         cache = FeatureCache.in_root(root, key, writable=True)
-    except CacheError:
+    except RefusedPlace:  # a cache this extraction did not make (copied or renamed here), a link: kept
+        raise
+    except CacheError:  # no readable zarr.json: an initialisation that never wrote it
         cache = None
     if cache is not None:
         if cache.initialized:  # never resume or reuse features of other data under this key (e.g. a copied cache)

@@ -142,9 +142,10 @@ def train_tiny(backbone: str, dataset: str, *, cfg: TinyTrainConfig = DEFAULT_TI
     dev = resolve_device(device)
     cfg = replace(cfg, compute_dtype=resolve_compute_dtype(cfg.compute_dtype, dev))
     compute = resolve_dtype(cfg.compute_dtype)
+    home = cache_root(cache)  # a --cache that cannot be a root is refused before any work
     fingerprint = dataset_fingerprint(dataset)
     cfg, cameras = _cameras(cfg, open_dataset(dataset).meta)
-    folder = Path(out) if out else policy_dir(cache_root(cache), backbone, fingerprint, cfg)
+    folder = Path(out) if out else policy_dir(home, backbone, fingerprint, cfg)
     if _reusable(folder, backbone, fingerprint, cfg, force):
         log(f"reusing natively trained tiny {backbone}: {folder}")
         return folder

@@ -15,7 +15,7 @@ os.environ.setdefault("TOKENIZERS_PARALLELISM", "false")
 
 import pytest  # noqa: E402
 
-pytest_plugins = ("fixtures.datasets", "fixtures.torch_threads", "fixtures.ray_cluster")
+pytest_plugins = ("fixtures.datasets", "fixtures.torch_threads", "fixtures.ray_cluster", "fixtures.s3")
 
 
 @pytest.fixture(autouse=True)

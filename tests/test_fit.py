@@ -14,6 +14,7 @@ import polars as pl
 import pytest
 import torch
 from helpers.backbones import tiny
+from helpers.caches import rekeyed
 from helpers.datasets import Written
 from safetensors.torch import load_file
 
@@ -178,12 +179,6 @@ def test_align_fits_in_closed_form(world: World, tmp_path: Path) -> None:
     assert np.isfinite(row["eval_mse"])
 
 
-def _set_manifest(cache: FeatureCache, **changes) -> dict:
-    old = cache.manifest
-    cache.group.attrs["manifest"] = {**old, **changes}
-    return old
-
-
 def test_errors_name_the_problem(world: World, v3_image: Written, tmp_path: Path) -> None:
     with pytest.raises(FitError, match=r"suite 'libero_goal' has no episodes \(present: libero_object, libero_spatial\)"):
         Fitter(world.request(suite="libero_goal"), log=_quiet)
@@ -196,13 +191,11 @@ def test_errors_name_the_problem(world: World, v3_image: Written, tmp_path: Path
     with pytest.raises(FitError, match="no complete cache of encoder 'smolvla-native'.*needed for native controls"):
         Fitter(world.request(controls=("native",), cache=str(only_encoder)), log=_quiet)
 
-    cache = FeatureCache(world.cache / world.encoder_key)
-    old = _set_manifest(cache, encoder={**cache.manifest["encoder"], "name": "resnet18"})
-    try:
-        with pytest.raises(FitError, match="192 wide but encoder 'resnet18' is 512 wide"):
-            Fitter(world.request(encoder="resnet18", cache_key=world.encoder_key), log=_quiet)
-    finally:
-        cache.group.attrs["manifest"] = old
+    relabelled = rekeyed(world.cache / world.encoder_key, tmp_path / "relabelled",
+                         lambda m: {**m, "encoder": {**m["encoder"], "name": "resnet18"}})
+    with pytest.raises(FitError, match="192 wide but encoder 'resnet18' is 512 wide"):
+        Fitter(world.request(encoder="resnet18", cache=str(tmp_path / "relabelled"),
+                             cache_key=relabelled.key), log=_quiet)
 
 
 def test_cli_fit_end_to_end(world: World, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:

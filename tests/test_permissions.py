@@ -18,6 +18,7 @@ import polars as pl
 import pytest
 import torch
 
+from graftcache.store import cache_key
 from graftcache.store.cache import ArraySpec, FeatureCache, to_storage
 
 
@@ -68,13 +69,13 @@ def test_cache_files_follow_the_umask(tmp_path: Path, mask: int) -> None:
                 "encoder": {"name": "toy"}, "weights_sha256": "w", "grids": ["1x1"], "extras": {}, "dtype": "fp16",
                 "compute_dtype": "fp32"}
     with umask(mask):
-        cache = FeatureCache.create(tmp_path / "k", manifest, [ArraySpec("features/image/1x1", (1, 4))], index,
-                                    block_frames=4)
+        cache = FeatureCache.create(tmp_path / cache_key(manifest), manifest,
+                                    [ArraySpec("features/image/1x1", (1, 4))], index, block_frames=4)
         for b in range(cache.layout["n_blocks"]):
             s, e = cache.block_range(b)
             cache.write_block(b, {"features/image/1x1": to_storage(torch.ones(e - s, 1, 4), "fp16")})
         cache.finalize()
-    modes = _modes(tmp_path / "k")
+    modes = _modes(tmp_path / cache_key(manifest))
     assert modes["file"] == {0o666 & ~mask} and modes["dir"] == {0o777 & ~mask}
 
 

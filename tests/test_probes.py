@@ -1,6 +1,10 @@
-"""Issue 14's probes, each run through the CLI as a subprocess (`python -m graftcache`), as a skeptical user
-would: a bad input ends in a non-zero exit with one line naming the file / episode / frame / key / cache and
-no traceback, and no cache is marked complete; copying and resuming succeed.
+"""The probe matrix (issues 14 and 24): each command run as a skeptical user would. A bad input ends in a
+non-zero exit with one line naming the file / episode / frame / key / cache / bucket and no traceback, no cache is
+marked complete and nothing outside the probe's own folders changes; copying and resuming succeed.
+
+Probes run in this process through tests/helpers/probes.py; only the cases about the process itself (Ctrl-C
+while it imports, SIGTERM with worker processes alive) start `python -m graftcache`. Object-store probes run
+against moto's S3 server on 127.0.0.1 (tests/fixtures/s3.py).
 
 Fixtures are cheap: the 3-episode, 64x64 lerobot-written dataset of tests/fixtures/datasets.py, random-init
 ResNet-18 caches of it and a tiny SmolVLA checkpoint, built once per module.
@@ -8,10 +12,14 @@ ResNet-18 caches of it and a tiny SmolVLA checkpoint, built once per module.
 
 from __future__ import annotations
 
+import errno
 import json
+import os
 import shutil
+import signal
 import subprocess
-import sys
+import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -19,32 +27,40 @@ import numpy as np
 import polars as pl
 import pytest
 import timm
+from fixtures.s3 import free_port
 from helpers.backbones import tiny
+from helpers.caches import assert_same_cache, folder_files
 from helpers.datasets import Written
+from helpers.probes import (Outcome, Snapshot, alive, assert_one_line_error, assert_succeeded, children, finish,
+                            run_cli, start_process)
 from safetensors.torch import save_file
 
 from graftcache import results
+from graftcache.cli.signals import stoppable
 from graftcache.extract import ExtractRequest, extract
-from graftcache.store import FeatureCache, list_caches
+from graftcache.store import FeatureCache, list_caches, open_root
+from graftcache.store.cache import PROGRESS_DIR
+from graftcache.store.roots import LocalRoot
+from graftcache.store.transfer import copy_cache
 
-#: ~7 min on 2 shared cores: each row starts a Python that imports torch, transformers and lerobot.
-pytestmark = pytest.mark.slow
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 ENCODER = "resnet18"
 NAN_EPISODE, NAN_FRAME = 0, 3  # episode 0 is libero_spatial in the fixture dataset
-#: Fails the block writes after the first with ENOSPC, then runs the CLI: a disk that fills mid-extraction.
-DISK_FULL = """
-import errno, sys
-from graftcache.store.cache import FeatureCache
-write = FeatureCache.write_block
-def full(self, block, data):
-    if block >= 1:
-        raise OSError(errno.ENOSPC, "No space left on device", str(self.path / "features"))
-    write(self, block, data)
-FeatureCache.write_block = full
-from graftcache.cli import main
-sys.exit(main(sys.argv[1:]))
-"""
+
+
+def _disk_full(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Fails the block writes after the first with ENOSPC: a disk that fills mid-extraction."""
+    write = FeatureCache.write_block
+
+    def full(self: FeatureCache, block: int, data: dict) -> None:
+        if block >= 1:
+            raise OSError(errno.ENOSPC, "No space left on device", str(self.path / "features"))
+        write(self, block, data)
+
+    monkeypatch.setattr(FeatureCache, "write_block", full)
+
+
 def _save(path: Path, state: dict) -> Path:
     save_file({k: v.contiguous() for k, v in state.items()}, str(path))
     return path
@@ -93,6 +109,11 @@ class World:
     clean_key: str
     nan_key: str
 
+    @property
+    def base(self) -> Path:
+        """The folder every input lives in: no probe may change anything there."""
+        return Path(self.paths["base"])
+
 
 @pytest.fixture(scope="module")
 def world(v3_video: Written, tmp_path_factory: pytest.TempPathFactory) -> World:  # noqa: F811
@@ -139,8 +160,7 @@ class Probe:
 
     args: str
     names: tuple[str, ...]
-    succeeds: bool = False
-    inject: str | None = None
+    patch: Callable[[pytest.MonkeyPatch], None] | None = None  # applied in this process before the command
 
 
 FIT = ("fit --backbone smolvla --policy {policy} --encoder resnet18 --suite libero_spatial --seed 0 --steps 2 "
@@ -176,7 +196,7 @@ PROBES: dict[str, Probe] = {
     "video_path template leaving the root": Probe(EXTRACT.replace("{ds}", "{evil}"),
                                                   ("meta/info.json", "video_path", "outside the dataset root")),
     "disk full during extract": Probe(EXTRACT + " --block-frames 8", ("No space left", "MiB", "resume"),
-                                      inject=DISK_FULL),
+                                      patch=_disk_full),
     "fit --seeds -1": Probe(FIT + " --cache {cache} --seeds -1".replace("--seed 0 ", ""), ("--seeds", "-1")),
     "fit --results not Parquet": Probe(FIT.replace("{out}", "{base}/not_parquet.parquet") + " --cache {cache}",
                                        ("not_parquet.parquet", "not a Parquet results table")),
@@ -193,62 +213,60 @@ PROBES: dict[str, Probe] = {
 }
 
 
-def _cli(args: list[str], inject: str | None = None) -> subprocess.CompletedProcess:
-    cmd = [sys.executable, "-c", inject, *args] if inject else [sys.executable, "-m", "graftcache", *args]
-    return subprocess.run(cmd, capture_output=True, text=True, timeout=600)
-
-
 def _complete(root: Path) -> list[str]:
     return [c.key for c in list_caches(root) if c.complete]
 
 
 @pytest.mark.parametrize("name", list(PROBES))
-def test_probe_is_one_line_error(name: str, world: World, tmp_path: Path) -> None:
+def test_probe_is_one_line_error(name: str, world: World, tmp_path: Path, capsys: pytest.CaptureFixture,
+                                 monkeypatch: pytest.MonkeyPatch) -> None:
     probe = PROBES[name]
     root, out = tmp_path / "cache", tmp_path / "results.parquet"
-    args = probe.args.format(**world.paths, root=root, out=out).split()
-    done = _cli(args, probe.inject)
-    last = done.stderr.strip().splitlines()[-1] if done.stderr.strip() else ""
-    assert done.returncode != 0 and "Traceback" not in done.stderr, done.stderr[-3000:]
-    assert last.startswith(("graftcache", "usage")), done.stderr[-3000:]
-    for text in probe.names:
-        assert text in last, f"{text!r} not in {last!r}"
+    if probe.patch:
+        probe.patch(monkeypatch)
+    before = Snapshot.of(world.base)
+    done = run_cli(probe.args.format(**world.paths, root=root, out=out).split(), capsys)
+    assert_one_line_error(done, probe.names)
     assert not _complete(root) and not out.exists()
+    before.assert_unchanged(world.base)
 
 
-def test_disk_full_extract_resumes_once_there_is_space(world: World, tmp_path: Path) -> None:
+def test_disk_full_extract_resumes_once_there_is_space(world: World, tmp_path: Path, capsys: pytest.CaptureFixture,
+                                                       monkeypatch: pytest.MonkeyPatch) -> None:
     args = PROBES["disk full during extract"].args.format(**world.paths, root=tmp_path).split()
-    failed = _cli(args, DISK_FULL)
-    assert failed.returncode == 2 and "Traceback" not in failed.stderr
+    with monkeypatch.context() as patched:
+        _disk_full(patched)
+        failed = run_cli(args, capsys)
+    assert_one_line_error(failed, code=2)
     cache = list_caches(tmp_path)[0]
     assert not cache.complete and cache.blocks_done() == {0}  # the first block survives the full disk
     frames = cache.n_frames - 8
     per_frame = 2 * 64 * 512 * 2  # 2 cameras x 8x8 tokens x 512 channels x fp16
     assert f"{frames} of {cache.n_frames} frames are not written yet, needing up to " \
-           f"{frames * per_frame / 2**20:.1f} MiB" in failed.stderr
-    resumed = _cli(args)
-    assert resumed.returncode == 0, resumed.stderr
-    assert _cli(["verify", cache.key, "--cache", str(tmp_path)]).returncode == 0
+           f"{frames * per_frame / 2**20:.1f} MiB" in failed.err
+    assert_succeeded(run_cli(args, capsys))
+    assert run_cli(["verify", cache.key, "--cache", tmp_path], capsys).code == 0
 
 
-def test_fit_drops_nonfinite_frames_only_when_asked(world: World, tmp_path: Path) -> None:
+def test_fit_drops_nonfinite_frames_only_when_asked(world: World, tmp_path: Path,
+                                                    capsys: pytest.CaptureFixture) -> None:
     out = tmp_path / "results.parquet"
     args = (FIT + " --cache {nan_cache} --drop-nonfinite").format(**world.paths, out=out).split()
-    done = _cli(args)
-    assert done.returncode == 0, done.stderr[-3000:]
+    assert_succeeded(run_cli(args, capsys))
     row = results.read(out).row(0, named=True)
     assert row["n_dropped_nonfinite"] == 1 and np.isfinite(row["eval_mse"])
-    clean = _cli((FIT + " --cache {cache}").format(**world.paths, out=tmp_path / "clean.parquet").split())
-    assert clean.returncode == 0 and results.read(tmp_path / "clean.parquet")["n_dropped_nonfinite"].to_list() == [0]
+    clean = run_cli((FIT + " --cache {cache}").format(**world.paths, out=tmp_path / "clean.parquet").split(), capsys)
+    assert_succeeded(clean)
+    assert results.read(tmp_path / "clean.parquet")["n_dropped_nonfinite"].to_list() == [0]
 
 
-def test_a_copied_cache_is_found_and_verifies(world: World, tmp_path: Path) -> None:
+def test_a_copied_cache_is_found_and_verifies(world: World, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     shutil.copytree(Path(world.paths["cache"]) / world.clean_key, tmp_path / world.clean_key)
-    done = _cli(["verify", world.clean_key, "--cache", str(tmp_path)])
-    assert done.returncode == 0 and "all checksums match" in done.stdout, done.stdout + done.stderr
+    done = run_cli(["verify", world.clean_key, "--cache", tmp_path], capsys)
+    assert done.code == 0 and "all checksums match" in done.out, done.out + done.err
 
 
-def test_fit_refuses_a_flipped_byte_in_a_shard(world: World, tmp_path: Path) -> None:
+def test_fit_refuses_a_flipped_byte_in_a_shard(world: World, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     shutil.copytree(Path(world.paths["cache"]) / world.clean_key, tmp_path / world.clean_key)
     shard = next(p for p in sorted((tmp_path / world.clean_key / "features").rglob("*")) if p.is_file()
                  and p.name != "zarr.json")
@@ -256,20 +274,20 @@ def test_fit_refuses_a_flipped_byte_in_a_shard(world: World, tmp_path: Path) -> 
     data[len(data) // 2] ^= 0xFF
     shard.write_bytes(bytes(data))
     out = tmp_path / "results.parquet"
-    done = _cli((FIT + " --cache " + str(tmp_path)).format(**world.paths, out=out).split())
-    last = done.stderr.strip().splitlines()[-1] if done.stderr.strip() else ""
-    assert done.returncode != 0 and "Traceback" not in done.stderr, done.stderr[-3000:]
-    assert world.clean_key in last and "features/" in last and not out.exists()
+    done = run_cli((FIT + " --cache " + str(tmp_path)).format(**world.paths, out=out).split(), capsys)
+    assert_one_line_error(done, (world.clean_key, "features/"))
+    assert not out.exists()
 
 
-def test_ls_lists_healthy_caches_and_flags_a_broken_one(world: World, tmp_path: Path) -> None:
+def test_ls_lists_healthy_caches_and_flags_a_broken_one(world: World, tmp_path: Path,
+                                                        capsys: pytest.CaptureFixture) -> None:
     shutil.copytree(Path(world.paths["cache"]) / world.clean_key, tmp_path / world.clean_key)
     broken = tmp_path / "resnet18-broken"
     shutil.copytree(Path(world.paths["cache"]) / world.clean_key, broken)
     (broken / "zarr.json").write_text("{ not json")
-    done = _cli(["ls", "--cache", str(tmp_path)])
-    assert "Traceback" not in done.stderr, done.stderr[-3000:]
-    assert world.clean_key in done.stdout and "resnet18-broken" in done.stdout + done.stderr
+    done = run_cli(["ls", "--cache", tmp_path], capsys)
+    assert "Traceback" not in done.err, done.err[-3000:]
+    assert world.clean_key in done.out and "resnet18-broken" in done.out + done.err
 
 
 # fit on a read-only cache root: tests/test_store_remote.py runs ls/info/verify/fit as uid nobody on a root it
@@ -283,3 +301,212 @@ def test_extracted_caches_hold_what_the_probes_assume(world: World) -> None:
     assert nan.filter(pl.Series(bad)).select("episode_index", "frame_index").rows() == [(NAN_EPISODE, NAN_FRAME)]
     clean = FeatureCache(Path(world.paths["cache"]) / world.clean_key).index()
     assert np.isfinite(np.stack(clean["state"].to_numpy())).all()
+
+
+# ---- object stores: a missing bucket, refused credentials, an endpoint that does not answer (issue 24) ----------
+
+S3_PROBES = {  # command -> its arguments; {url} is the object-store root, {root} a fresh local root
+    "ls": "ls --cache {url}",
+    "info": "info {key} --cache {url}",
+    "push": "push {key} {url} --cache {cache}",
+    "pull": "pull {key} {url} --cache {root}",
+    "extract": EXTRACT.replace("{root}", "{url}"),
+    "fit": FIT + " --cache {url}",
+}
+
+
+def _s3_probe(command: str, world: World, url: str, tmp_path: Path, capsys: pytest.CaptureFixture) -> Outcome:
+    root, out = tmp_path / "cache", tmp_path / "results.parquet"
+    before = Snapshot.of(world.base)
+    args = S3_PROBES[command].format(**world.paths, key=world.clean_key, url=url, root=root, out=out).split()
+    done = run_cli(args, capsys)
+    assert not _complete(root) and not out.exists()
+    before.assert_unchanged(world.base)
+    return done
+
+
+@pytest.fixture()
+def s3_with_cache(s3: str, world: World, monkeypatch: pytest.MonkeyPatch) -> str:
+    """The bucket holding the world's clean cache; unanswered requests give up after 1 s."""
+    monkeypatch.setenv("GRAFTCACHE_STORE_RETRY_S", "1")
+    copy_cache(open_root(world.paths["cache"]), open_root(s3), world.clean_key, log=lambda _: None)
+    return s3
+
+
+@pytest.mark.parametrize("command", list(S3_PROBES))
+def test_a_missing_bucket_is_one_line(command: str, world: World, s3_with_cache: str, tmp_path: Path,
+                                      capsys: pytest.CaptureFixture) -> None:
+    url = "s3://graftcache-no-such-bucket/caches"
+    done = _s3_probe(command, world, url, tmp_path, capsys)
+    assert_one_line_error(done, ("s3://graftcache-no-such-bucket", "the bucket does not exist"), code=2)
+
+
+@pytest.mark.parametrize("credentials", ["wrong", "missing"])
+@pytest.mark.parametrize("command", ["ls", "info", "push", "pull", "fit"])
+def test_refused_credentials_are_one_line(command: str, credentials: str, world: World, s3_with_cache: str,
+                                          tmp_path: Path, capsys: pytest.CaptureFixture,
+                                          monkeypatch: pytest.MonkeyPatch) -> None:
+    import moto.settings
+
+    monkeypatch.setattr(moto.settings, "INITIAL_NO_AUTH_ACTION_COUNT", 0)  # moto checks credentials from now on
+    if credentials == "wrong":
+        monkeypatch.setenv("AWS_SECRET_ACCESS_KEY", "not-the-secret")
+    else:
+        for name in ("AWS_ACCESS_KEY_ID", "AWS_SECRET_ACCESS_KEY"):
+            monkeypatch.delenv(name)
+        monkeypatch.setenv("AWS_EC2_METADATA_DISABLED", "true")
+    done = _s3_probe(command, world, s3_with_cache, tmp_path, capsys)
+    assert_one_line_error(done, (s3_with_cache, "access denied", "AWS_ACCESS_KEY_ID"), code=2)
+
+
+@pytest.mark.parametrize("command", ["ls", "info", "pull", "fit"])
+def test_an_endpoint_that_does_not_answer_is_one_line(command: str, world: World, s3_with_cache: str,
+                                                      tmp_path: Path, capsys: pytest.CaptureFixture,
+                                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    closed = f"http://127.0.0.1:{free_port()}"
+    monkeypatch.setenv("AWS_ENDPOINT_URL", closed)
+    started = time.monotonic()
+    done = _s3_probe(command, world, s3_with_cache, tmp_path, capsys)
+    assert_one_line_error(done, (s3_with_cache, closed, "did not answer", "run the same command again"), code=2)
+    assert time.monotonic() - started < 30  # GRAFTCACHE_STORE_RETRY_S=1 bounds every request's retries
+
+
+def test_an_endpoint_going_down_mid_pull_is_one_line_and_the_rerun_resumes(
+        world: World, s3_with_cache: str, tmp_path: Path, capsys: pytest.CaptureFixture,
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A second moto server (same buckets: moto's state is per process) serves the pull and stops after the
+    third object arrives; the rerun against the first one copies only what is missing."""
+    from moto.server import ThreadedMotoServer
+
+    port = free_port()
+    doomed = ThreadedMotoServer(ip_address="127.0.0.1", port=port, verbose=False)
+    doomed.start()
+    serving = os.environ["AWS_ENDPOINT_URL"]
+    monkeypatch.setenv("AWS_ENDPOINT_URL", f"http://127.0.0.1:{port}")
+    put, arrived = LocalRoot.put, []
+
+    def put_then_fail(self: LocalRoot, rel: str, data: bytes, **kw: bool) -> bool:
+        done = put(self, rel, data, **kw)
+        arrived.append(rel)
+        if len(arrived) == 3:
+            doomed.stop()
+        return done
+
+    root = tmp_path / "cache"
+    args = ["pull", world.clean_key, s3_with_cache, "--cache", root]
+    with monkeypatch.context() as patched:
+        patched.setattr(LocalRoot, "put", put_then_fail)
+        cut = run_cli(args, capsys)
+    assert_one_line_error(cut, (s3_with_cache, f"127.0.0.1:{port}", "did not answer",
+                                "run the same command again to resume"), code=2)
+    assert not _complete(root) and len(arrived) >= 3
+    monkeypatch.setenv("AWS_ENDPOINT_URL", serving)
+    resumed = run_cli(args, capsys)
+    assert_succeeded(resumed)
+    assert "resuming" in resumed.out and _complete(root) == [world.clean_key]
+    assert_same_cache(folder_files(root / world.clean_key), folder_files(Path(world.paths["cache"]) / world.clean_key))
+
+
+# ---- stopping the process: Ctrl-C while it imports, SIGTERM with worker processes alive (issue 24) --------------
+# Subprocesses: the signal, the interpreter's start and the worker processes are what is tested.
+
+#: Slows each block's encoding (extract) or each batch taken from the stream (fit), so a signal lands mid-run.
+SLOW_EXTRACT = """
+import time, graftcache.extract as x
+encode = x.encode_frames
+x.encode_frames = lambda *a, **k: (time.sleep(0.4), encode(*a, **k))[1]
+"""
+SLOW_FIT = """
+import time, graftcache.fit.stream as s
+take = s.FrameQueue.take
+s.FrameQueue.take = lambda self, k: (time.sleep(0.3), take(self, k))[1]
+"""
+GONE_WITHIN_S = 5.0  # SIGTERM -> every worker process gone (2 shared cores under load)
+
+
+def _wait_for(ready: Callable[[], bool], proc: subprocess.Popen, what: str, timeout: float = 300) -> None:
+    deadline = time.monotonic() + timeout
+    while not ready():
+        assert proc.poll() is None, f"ended before {what}: {finish(proc).err[-3000:]}"
+        assert time.monotonic() < deadline, f"no {what} within {timeout} s"
+        time.sleep(0.02)
+
+
+def _terminate(proc: subprocess.Popen) -> tuple[Outcome, list[int]]:
+    """SIGTERM now; the outcome, and the worker processes still running GONE_WITHIN_S later."""
+    workers = children(proc.pid)
+    assert workers, "no worker process to stop"
+    proc.send_signal(signal.SIGTERM)
+    deadline = time.monotonic() + GONE_WITHIN_S
+    while alive(workers) and time.monotonic() < deadline:
+        time.sleep(0.02)
+    left = alive(workers)
+    return finish(proc, 120), left
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("delay", [0.5, 1.5, 3.0])
+def test_ctrl_c_while_the_cli_imports_is_one_line(delay: float, world: World, tmp_path: Path) -> None:
+    proc = start_process(EXTRACT.format(**world.paths, root=tmp_path / "cache").split())
+    time.sleep(delay)  # the CLI needs seconds to import torch, lerobot and transformers
+    proc.send_signal(signal.SIGINT)
+    done = finish(proc, 120)
+    assert_one_line_error(done, ("interrupted",), code=130)
+    assert not _complete(tmp_path / "cache")
+
+
+def test_a_ctrl_c_lost_in_a_finaliser_is_raised_again() -> None:
+    """Python prints a KeyboardInterrupt raised in __del__ or a weakref callback (as imports and the garbage
+    collector run them) as "Exception ignored" and carries on; the command must still stop."""
+
+    class Finaliser:
+        def __del__(self) -> None:
+            raise KeyboardInterrupt
+
+    with stoppable(whole_process=False), pytest.raises(KeyboardInterrupt):
+        Finaliser()
+        for _ in range(500):
+            time.sleep(0.002)
+
+
+@pytest.mark.slow
+def test_sigterm_during_extract_stops_workers_keeps_blocks_and_the_rerun_resumes(
+        world: World, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    args = (EXTRACT + " --block-frames 2").replace("--num-workers 0", "--num-workers 2")
+    root = tmp_path / "cache"
+    before = Snapshot.of(world.base)
+    proc = start_process(args.format(**world.paths, root=root).split(), prelude=SLOW_EXTRACT)
+    _wait_for(lambda: bool(list_caches(root)) and bool(list_caches(root)[0].blocks_done()) and
+              bool(children(proc.pid)), proc, "a finished block with workers running")
+    stopped, left = _terminate(proc)
+    assert_one_line_error(stopped, ("extract", "SIGTERM", "run the same command again to resume"), code=143)
+    assert not left, f"worker processes {left} outlived the command by {GONE_WITHIN_S} s"
+    (cache,) = list_caches(root)
+    kept = cache.blocks_done()
+    assert not cache.complete and kept and not _complete(root)
+    assert_succeeded(resumed := run_cli(args.format(**world.paths, root=root).split(), capsys))
+    assert f"{len(kept)}/{cache.layout['n_blocks']} blocks already written" in resumed.out + resumed.err
+    assert_succeeded(run_cli(args.format(**world.paths, root=tmp_path / "ref").split(), capsys))
+    assert_same_cache(folder_files(root / cache.key), folder_files(tmp_path / "ref" / cache.key))
+    assert not [p for p in root.rglob("*") if PROGRESS_DIR in p.parts]
+    before.assert_unchanged(world.base)
+
+
+@pytest.mark.slow
+def test_sigterm_during_fit_stops_workers_keeps_rows_and_the_rerun_resumes(
+        world: World, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    out = tmp_path / "results.parquet"
+    args = (FIT.replace("--seed 0", "--seeds 2") + " --num-workers 2 --cache {cache}").format(**world.paths, out=out)
+    before = Snapshot.of(world.base)
+    proc = start_process(args.split(), prelude=SLOW_FIT)
+    _wait_for(lambda: out.exists() and bool(children(proc.pid)), proc, "a written row with workers running")
+    stopped, left = _terminate(proc)
+    assert_one_line_error(stopped, ("fit", "SIGTERM", "run the same command again to resume"), code=143)
+    assert not left, f"worker processes {left} outlived the command by {GONE_WITHIN_S} s"
+    assert results.read(out)["seed"].to_list() == [0]  # the finished cell's row stays
+    assert_succeeded(run_cli(args.split(), capsys))
+    reference = tmp_path / "reference.parquet"
+    assert_succeeded(run_cli(args.replace(str(out), str(reference)).split(), capsys))
+    got, want = (results.read(p).sort("seed").select("seed", "eval_mse") for p in (out, reference))
+    assert got["seed"].to_list() == [0, 1] and got.equals(want)
+    before.assert_unchanged(world.base)

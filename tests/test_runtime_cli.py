@@ -5,12 +5,11 @@ from __future__ import annotations
 
 import argparse
 import io
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 import torch
+from helpers.probes import run_cli
 
 from graftcache import runtime
 from graftcache.cli import build_parser
@@ -75,11 +74,6 @@ def test_seed_syntax() -> None:
     assert build_parser().parse_args([*fit, "--seeds", "0,2"]).seeds == (0, 2)
 
 
-def _cli(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([str(Path(sys.executable).parent / "graftcache"), *args], capture_output=True, text=True,
-                          timeout=600)
-
-
 @pytest.mark.parametrize("args", [
     ["fit", "--backbone", "smolvla", "--encoder", "e", "--suite", "s", "--seeds", "0"],
     ["fit", "--backbone", "smolvla", "--encoder", "e", "--suite", "s", "--seeds", "-1"],
@@ -90,10 +84,10 @@ def _cli(*args: str) -> subprocess.CompletedProcess:
     ["extract", "--encoder", "mobilenetv2", "--dataset", str(SAMPLE), "--device", "foo"],
     ["train-tiny", "--backbone", "smolvla", "--steps", "0"],
 ])
-def test_bad_values_are_one_line_errors_before_any_work(args: list[str]) -> None:
-    done = _cli(*args)
-    assert done.returncode == 2 and "Traceback" not in done.stderr, done.stderr
-    assert done.stderr.strip().splitlines()[-1].startswith(("graftcache", "usage")) and done.stdout == ""
+def test_bad_values_are_one_line_errors_before_any_work(args: list[str], capsys) -> None:
+    done = run_cli(args, capsys)  # in this process: an exception escaping main() fails the test as a traceback would
+    assert done.code == 2, done.err
+    assert done.last.startswith(("graftcache", "usage")) and done.out == ""
 
 
 def test_requests_check_their_ranges() -> None:
@@ -129,11 +123,11 @@ def test_lr_schedule_is_defined_for_every_step_count(steps: int) -> None:
     assert factors[ramp - 1] == 1.0 and factors == sorted(factors[:ramp]) + factors[ramp:]
 
 
-def test_train_tiny_runs_ten_steps(tmp_path: Path) -> None:
-    done = _cli("train-tiny", "--backbone", "smolvla", "--dataset", str(SAMPLE), "--steps", "10",
-                "--out", str(tmp_path / "p"), "--cache", str(tmp_path / "c"))
-    assert done.returncode == 0, done.stderr[-2000:]
-    assert (tmp_path / "p" / "model.safetensors").is_file() and "Traceback" not in done.stderr
+def test_train_tiny_runs_ten_steps(tmp_path: Path, capsys) -> None:
+    done = run_cli(["train-tiny", "--backbone", "smolvla", "--dataset", str(SAMPLE), "--steps", "10",
+                    "--out", str(tmp_path / "p"), "--cache", str(tmp_path / "c")], capsys)
+    assert done.code == 0, done.err[-2000:]
+    assert (tmp_path / "p" / "model.safetensors").is_file()
     record = (tmp_path / "p" / "graftcache_pretrain.json").read_text()
     assert '"steps": 10' in record and '"compute_dtype": "' + runtime.resolve_compute_dtype("auto", "cpu") in record
-    assert len(done.stderr.splitlines()) < 40  # sparse log lines, not a redraw per step
+    assert len(done.err.splitlines()) < 40  # sparse log lines, not a redraw per step

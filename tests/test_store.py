@@ -37,9 +37,14 @@ def _manifest(**over) -> dict:
     return m
 
 
-def _filled(path: Path, dtype: str = "fp16") -> tuple[FeatureCache, np.ndarray]:
-    cache = FeatureCache.create(path, _manifest(dtype=dtype), [ArraySpec("features/image/2x2", (T, C))], _index(),
-                                block_frames=32)
+def _at(root: Path, **over) -> Path:
+    """Where a cache of `_manifest(**over)` lives under `root`: the folder named by its key."""
+    return root / cache_key(_manifest(**over))
+
+
+def _filled(root: Path, dtype: str = "fp16") -> tuple[FeatureCache, np.ndarray]:
+    cache = FeatureCache.create(_at(root, dtype=dtype), _manifest(dtype=dtype),
+                                [ArraySpec("features/image/2x2", (T, C))], _index(), block_frames=32)
     data = torch.randn(N, T, C, generator=torch.Generator().manual_seed(1))
     for b in range(cache.layout["n_blocks"]):
         s, e = cache.block_range(b)
@@ -48,12 +53,12 @@ def _filled(path: Path, dtype: str = "fp16") -> tuple[FeatureCache, np.ndarray]:
 
 
 def test_roundtrip_and_verify(tmp_path: Path) -> None:
-    cache, data = _filled(tmp_path / "k")
+    cache, data = _filled(tmp_path)
     assert cache.layout["n_blocks"] == 3 and cache.block_range(2) == (64, 70)
     assert not cache.complete
     cache.finalize()
     assert cache.complete and cache.verify() == []
-    got = FeatureCache(tmp_path / "k").read_features("image", "2x2")
+    got = FeatureCache(_at(tmp_path)).read_features("image", "2x2")
     assert got.dtype == torch.float16 and got.shape == (N, T, C)
     assert torch.equal(got, data.half())
     rows = cache.read_features("image", "2x2", np.array([3, 40, 69]))
@@ -64,7 +69,7 @@ def test_roundtrip_and_verify(tmp_path: Path) -> None:
 
 
 def test_bf16_storage_roundtrip(tmp_path: Path) -> None:
-    cache, data = _filled(tmp_path / "k", dtype="bf16")
+    cache, data = _filled(tmp_path, dtype="bf16")
     cache.finalize()
     got = cache.read_features("image", "2x2")
     assert got.dtype == torch.bfloat16 and torch.equal(got, data.bfloat16())
@@ -72,8 +77,8 @@ def test_bf16_storage_roundtrip(tmp_path: Path) -> None:
 
 
 def test_finalize_refuses_missing_blocks(tmp_path: Path) -> None:
-    cache = FeatureCache.create(tmp_path / "k", _manifest(), [ArraySpec("features/image/2x2", (T, C))], _index(),
-                                block_frames=32)
+    cache = FeatureCache.create(_at(tmp_path), _manifest(), [ArraySpec("features/image/2x2", (T, C))],
+                                _index(), block_frames=32)
     cache.write_block(0, {"features/image/2x2": np.zeros((32, T, C), np.float16)})
     with pytest.raises(CacheError, match=r"blocks \[1, 2\] not written"):
         cache.finalize()
@@ -82,17 +87,18 @@ def test_finalize_refuses_missing_blocks(tmp_path: Path) -> None:
 
 
 def test_verify_detects_corruption(tmp_path: Path) -> None:
-    cache, _ = _filled(tmp_path / "k")
+    cache, _ = _filled(tmp_path)
     cache.finalize()
     arr = cache.group["features/image/2x2"]
     arr[40] = np.ones((T, C), np.float16)  # silent change after completion
-    problems = FeatureCache(tmp_path / "k").verify()
-    assert problems == ["k: features/image/2x2 frames 32-63 checksum mismatch (block 1, features/image/2x2/c/1/0/0)"]
+    problems = FeatureCache(cache.path).verify()
+    assert problems == [f"{cache.key}: features/image/2x2 frames 32-63 checksum mismatch "
+                        "(block 1, features/image/2x2/c/1/0/0)"]
 
 
 def test_write_block_rejects_wrong_shapes(tmp_path: Path) -> None:
-    cache = FeatureCache.create(tmp_path / "k", _manifest(), [ArraySpec("features/image/2x2", (T, C))], _index(),
-                                block_frames=32)
+    cache = FeatureCache.create(_at(tmp_path), _manifest(), [ArraySpec("features/image/2x2", (T, C))],
+                                _index(), block_frames=32)
     with pytest.raises(CacheError, match="block 2 of features/image/2x2 has 32 frames, expected 6"):
         cache.write_block(2, {"features/image/2x2": np.zeros((32, T, C), np.float16)})
     with pytest.raises(CacheError, match="expected"):
@@ -119,9 +125,9 @@ def test_cache_root_resolution(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) 
 
 
 def test_list_caches_skips_other_folders(tmp_path: Path) -> None:
-    _filled(tmp_path / "a")
+    cache, _ = _filled(tmp_path)
     (tmp_path / "not-a-cache").mkdir()
-    assert [c.key for c in list_caches(tmp_path)] == ["a"]
+    assert [c.key for c in list_caches(tmp_path)] == [cache.key]
     assert list_caches(tmp_path / "absent") == []
 
 

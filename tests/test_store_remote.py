@@ -10,21 +10,19 @@ import json
 import os
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
 import time
-import uuid
-from collections.abc import Iterator
 from pathlib import Path
 
 import boto3
 import numpy as np
 import pytest
 import torch
+from fixtures.s3 import bucket_objects
 from helpers.backbones import tiny
-from helpers.caches import assert_same_cache, folder_files
+from helpers.caches import assert_same_cache, folder_files, rekeyed
 from helpers.datasets import Written
 
 from graftcache.cli import main
@@ -32,7 +30,8 @@ from graftcache.errors import CacheError
 from graftcache.extract import ExtractRequest, extract
 from graftcache.fit.data import load_lowdim
 from graftcache.fit.run import FitRequest, Fitter
-from graftcache.store import FeatureCache, list_caches, open_root, scan_caches
+from graftcache.store import FeatureCache, cache_key, list_caches, open_root, scan_caches
+from graftcache.store.cache import MisplacedCache
 from graftcache.store.readthrough import reading_root
 from graftcache.store.transfer import copy_cache
 
@@ -42,40 +41,6 @@ GRAFTCACHE = Path(sys.executable).with_name("graftcache")
 
 def _quiet(_: str) -> None:
     pass
-
-
-@pytest.fixture(scope="session")
-def s3_endpoint() -> Iterator[str]:
-    """moto's S3 server in a thread of this process, listening on a free loopback port."""
-    from moto.server import ThreadedMotoServer
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    server = ThreadedMotoServer(ip_address="127.0.0.1", port=port, verbose=False)
-    server.start()
-    yield f"http://127.0.0.1:{port}"
-    server.stop()
-
-
-@pytest.fixture()
-def s3(s3_endpoint: str, monkeypatch: pytest.MonkeyPatch) -> str:
-    """A fresh bucket; the standard AWS_* environment points every client (and subprocess) at it."""
-    for name, value in {"AWS_ENDPOINT_URL": s3_endpoint, "AWS_ACCESS_KEY_ID": "testing",
-                        "AWS_SECRET_ACCESS_KEY": "testing", "AWS_DEFAULT_REGION": "us-east-1",
-                        "GRAFTCACHE_LEASE_S": "2"}.items():
-        monkeypatch.setenv(name, value)
-    bucket = f"lab-{uuid.uuid4().hex[:12]}"
-    boto3.client("s3").create_bucket(Bucket=bucket)
-    return f"s3://{bucket}/graftcache"
-
-
-def _bucket_objects(url: str) -> dict[str, bytes]:
-    bucket, prefix = url[len("s3://"):].split("/", 1)
-    client = boto3.client("s3")
-    keys = [o["Key"] for page in client.get_paginator("list_objects_v2").paginate(Bucket=bucket, Prefix=prefix)
-            for o in page.get("Contents", [])]
-    return {k[len(prefix) + 1:]: client.get_object(Bucket=bucket, Key=k)["Body"].read() for k in keys}
 
 
 def _put_object(url: str, rel: str, data: bytes) -> None:
@@ -104,7 +69,7 @@ def test_extract_into_s3_equals_local_and_ls_info_verify_read_it(
         s3: str, local: tuple[Path, str], v3_image: Written, capsys: pytest.CaptureFixture) -> None:  # noqa: F811
     result = extract(_req(v3_image.root, s3), log=_quiet)
     assert result.key == local[1] and result.path == f"{s3}/{result.key}"  # the same identity, the same key
-    objects = _bucket_objects(s3)
+    objects = bucket_objects(s3)
     assert json.loads(objects[f"{result.key}/zarr.json"])["attributes"]["complete"] is True
     assert not [k for k in objects if "/_progress/" in k]  # markers removed once complete
     remote, here = FeatureCache(result.path), FeatureCache(local[0] / local[1])
@@ -130,7 +95,7 @@ def test_sharded_extract_into_s3_equals_one_local_process(s3: str, local: tuple[
     assert "misses 4 of 9 blocks, of 1 of 2 shards (0)" in lines[-1]
     last = extract(_req(v3_image.root, s3, shard=(0, 2)), log=_quiet)
     assert last.complete and not last.reused and last.key == key and last.frames_encoded == 8  # 4 blocks of 2
-    objects = _bucket_objects(s3)
+    objects = bucket_objects(s3)
     assert_same_cache({rel[len(key) + 1:]: data for rel, data in objects.items() if rel.startswith(f"{key}/")},
                       folder_files(root / key))
     leases = {rel.split("/")[0] for rel in objects if not rel.startswith(f"{key}/")}
@@ -140,9 +105,9 @@ def test_sharded_extract_into_s3_equals_one_local_process(s3: str, local: tuple[
 def test_push_and_pull_both_ways_verified_and_idempotent(s3: str, local: tuple[Path, str], tmp_path: Path) -> None:
     root, key = local
     pushed = copy_cache(open_root(root), open_root(s3), key, log=_quiet)
-    n_objects = len([k for k in _bucket_objects(s3) if k.startswith(f"{key}/")])
+    n_objects = len([k for k in bucket_objects(s3) if k.startswith(f"{key}/")])
     assert not pushed.skipped and pushed.objects == n_objects - 1  # every object but zarr.json, then zarr.json
-    assert pushed.bytes == sum(len(v) for k, v in _bucket_objects(s3).items()
+    assert pushed.bytes == sum(len(v) for k, v in bucket_objects(s3).items()
                                if k.startswith(f"{key}/") and k != f"{key}/zarr.json")
     again = copy_cache(open_root(root), open_root(s3), key, log=_quiet)
     assert again.skipped and again.objects == 0  # a key that exists and verifies is not copied again
@@ -162,15 +127,19 @@ def test_push_and_pull_both_ways_verified_and_idempotent(s3: str, local: tuple[P
     assert FeatureCache(f"{s3}-mirror/{key}").verify() == []
 
 
-def test_a_key_whose_manifest_differs_is_refused(s3: str, local: tuple[Path, str], tmp_path: Path) -> None:
+def test_another_cache_under_a_key_is_refused(s3: str, local: tuple[Path, str]) -> None:
+    """A bucket folder named KEY whose manifest hashes to another key is not cache KEY: verify says so naming
+    both keys, and a push of the real KEY refuses to overwrite it (the bucket is left as it was)."""
     root, key = local
-    other = tmp_path / "other"
-    shutil.copytree(root / key, other / key)
-    cache = FeatureCache(other / key)
-    cache.group.attrs["manifest"] = {**cache.manifest, "grids": ["3x3"]}
-    copy_cache(open_root(other), open_root(s3), key, log=_quiet)
-    with pytest.raises(CacheError, match=f"holds another cache under key {key}.*refusing"):
+    copy_cache(open_root(root), open_root(s3), key, log=_quiet)
+    cache = FeatureCache(f"{s3}/{key}")
+    cache.group.attrs["manifest"] = {**cache.manifest, "grids": ["3x3"]}  # another cache, copied in by hand
+    own = cache_key(cache.group.attrs["manifest"])
+    before = bucket_objects(s3)
+    with pytest.raises(MisplacedCache, match=f"not cache {key}: its manifest hashes to {own}"):
         copy_cache(open_root(root), open_root(s3), key, log=_quiet)
+    assert main(["verify", key, "--cache", s3]) == 2
+    assert bucket_objects(s3) == before
 
 
 def test_kill_9_mid_push_then_resume(s3: str, local: tuple[Path, str]) -> None:
@@ -187,7 +156,7 @@ def test_kill_9_mid_push_then_resume(s3: str, local: tuple[Path, str]) -> None:
         time.sleep(0.002)
     proc.send_signal(signal.SIGKILL)
     proc.wait()
-    before = _bucket_objects(s3)
+    before = bucket_objects(s3)
     assert json.loads(before[f"{key}/zarr.json"])["attributes"]["complete"] is False  # killed before publishing
     assert not FeatureCache(f"{s3}/{key}").complete
     time.sleep(2.5)  # the killed writer's lease expires (GRAFTCACHE_LEASE_S=2)
@@ -203,7 +172,7 @@ def test_a_flipped_byte_in_a_remote_shard_is_named_and_refused(
     root, key = local
     copy_cache(open_root(root), open_root(s3), key, log=_quiet)
     shard = f"{key}/features/image/2x2/c/3/0/0"
-    data = bytearray(_bucket_objects(s3)[shard])
+    data = bytearray(bucket_objects(s3)[shard])
     data[len(data) // 3] ^= 0x01
     _put_object(s3, shard, bytes(data))
     where = "features/image/2x2 frames 6-7"
@@ -263,7 +232,7 @@ def test_fit_reads_a_remote_cache_through_local_copies(
     refit = Fitter(dataclasses.replace(req, seeds=(1,)), log=_quiet)
     refit.run()
     assert refit.root.fetched_bytes == 0  # the local copies serve the next run
-    assert (tmp_path / "runs").is_dir() and not [k for k in _bucket_objects(s3) if "/runs/" in k]
+    assert (tmp_path / "runs").is_dir() and not [k for k in bucket_objects(s3) if "/runs/" in k]
 
 
 def test_a_read_only_root_serves_a_non_root_user_and_is_left_unchanged(
@@ -312,18 +281,18 @@ def test_ls_flags_a_broken_cache_and_lists_the_healthy_ones(local: tuple[Path, s
                                                             capsys: pytest.CaptureFixture) -> None:
     root, key = local
     shutil.copytree(root / key, tmp_path / key)
-    shutil.copytree(root / key, tmp_path / "damaged")
-    (tmp_path / "damaged" / "zarr.json").write_text('{"zarr_format": 3, "attributes": {"manifest": ')
-    shutil.copytree(root / key, tmp_path / "partial")
-    partial = FeatureCache(tmp_path / "partial")
-    partial.group.attrs["manifest"] = {k: v for k, v in partial.manifest.items() if k != "n_frames"}
+    damaged = tmp_path / f"{key.rsplit('-', 1)[0]}-{'0' * 16}"  # a key's name whose zarr.json is cut short
+    shutil.copytree(root / key, damaged)
+    (damaged / "zarr.json").write_text('{"zarr_format": 3, "attributes": {"manifest": ')
+    partial = rekeyed(root / key, tmp_path, lambda m: {k: v for k, v in m.items() if k != "n_frames"}
+                      | {"weights_sha256": "other"}).key
     assert main(["ls", "--cache", str(tmp_path)]) == 0
     out = capsys.readouterr().out
     rows = {line.split()[1]: line for line in out.splitlines() if line.startswith("│") and len(line.split()) > 2}
     assert "complete" in rows[key] and "BROKEN" not in rows[key]
-    assert "BROKEN" in rows["damaged"] and "BROKEN" in rows["partial"]
+    assert "BROKEN" in rows[damaged.name] and "BROKEN" in rows[partial]
     flat = " ".join(out.replace("│", " ").split())  # a long reason wraps inside its cell
     assert "zarr.json is not a feature cache" in flat and "KeyError: 'n_frames'" in flat
-    assert [c.key for c in list_caches(tmp_path)] == sorted([key, "partial"])
+    assert [c.key for c in list_caches(tmp_path)] == sorted([key, partial])
     assert torch.equal(FeatureCache(tmp_path / key).read_features("image", "2x2"),
                        FeatureCache(root / key).read_features("image", "2x2"))

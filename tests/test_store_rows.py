@@ -3,23 +3,27 @@ first read of a block (whole block, checksum-checked) and on later ones (the row
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import polars as pl
 import pytest
 import torch
 
+from graftcache.store import cache_key
 from graftcache.store.cache import ArraySpec, FeatureCache
 
 N, T, C = 100, 4, 3
 
 
-def _cache(path) -> tuple[FeatureCache, np.ndarray]:
+def _cache(root: Path) -> tuple[FeatureCache, np.ndarray]:
     values = np.random.default_rng(0).standard_normal((N, T, C)).astype(np.float16)
     index = pl.DataFrame({"index": np.arange(N), "episode_index": np.arange(N) // 10, "frame_index": np.arange(N) % 10,
                           "task_index": np.zeros(N, int), "suite_index": np.zeros(N, int),
                           "timestamp": np.zeros(N), "state": [[0.0]] * N, "action": [[0.0]] * N})
     manifest = {"encoder": {"name": "toy"}, "dtype": "fp16"}
-    cache = FeatureCache.create(path, manifest, [ArraySpec("features/image/2x2", (T, C))], index, block_frames=32)
+    cache = FeatureCache.create(root / cache_key(manifest), manifest,
+                                [ArraySpec("features/image/2x2", (T, C))], index, block_frames=32)
     for b in range(cache.layout["n_blocks"]):
         s, e = cache.block_range(b)
         cache.write_block(b, {"features/image/2x2": values[s:e]})
@@ -34,7 +38,7 @@ def _cache(path) -> tuple[FeatureCache, np.ndarray]:
     np.array([], dtype=np.int64),
 ])
 def test_read_rows_equals_numpy_indexing(tmp_path, rows: np.ndarray) -> None:
-    cache, values = _cache(tmp_path / "k")
+    cache, values = _cache(tmp_path)
     for _ in range(2):  # first read checks whole blocks, the second reads spans of verified blocks
         got = cache.read_features("image", "2x2", rows)
         assert got.shape == (len(rows), T, C) and got.dtype == torch.float16

@@ -53,7 +53,7 @@ def test_peak_memory_of_a_fit_does_not_grow_with_the_dataset(tmp_path: Path) -> 
     tiny("smolvla").save(policy)
     peaks, frames = {}, {}
     for name, dataset in (("x1", SAMPLE), ("x8", big)):
-        cache = dataset_cache(tmp_path / name / "cache" / "k", dataset, SUITE, grid=GRID, width=WIDTH)
+        cache = dataset_cache(tmp_path / name / "cache", dataset, SUITE, grid=GRID, width=WIDTH)
         frames[name] = cache.n_frames
         out = tmp_path / name / "results.parquet"
         peaks[name] = _fit_peak_rss(tmp_path / name / "cache", f"synthetic-{WIDTH}", policy, out)

@@ -1,7 +1,8 @@
 """The `graftcache` console script: one module per command, registered here (no if-chains).
 
 Every command module exposes `add_parser(subparsers)` (which sets `func`) and returns an exit code.
-A GraftcacheError becomes one line on stderr and exit code 2; Ctrl-C says how to resume.
+A GraftcacheError becomes one line on stderr and exit code 2; Ctrl-C (exit 130) and SIGTERM (exit 143), at any
+moment, one line that says how to resume (graftcache.cli.signals).
 """
 
 from __future__ import annotations
@@ -35,10 +36,29 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """Run one command. `argv` None: this is the process's own entry point (the console script,
+    `python -m graftcache`), which also keeps signals to one line during interpreter teardown."""
     os.environ.setdefault("TOKENIZERS_PARALLELISM", "false")
+    from graftcache.cli.signals import describe, exit_code, stoppable
+
+    command, started = "", False
+    with stoppable(whole_process=argv is None) as stops:
+        try:  # from the first import on: Ctrl-C while torch is still loading is one line too
+            args = build_parser().parse_args(argv)
+            command, started = f" {args.command}", True
+            stops.command_started()
+            return _run(args)
+        except KeyboardInterrupt as stop:
+            then = ("; run the same command again to resume" if started
+                    else " while starting; nothing was done")
+            print(f"graftcache{command}: {describe(stop)}{then}", file=sys.stderr)
+            return exit_code(stop)
+
+
+def _run(args: argparse.Namespace) -> int:
+    """The command's exit code; a GraftcacheError or an OSError about the user's machine is one line, exit 2."""
     from graftcache.errors import GraftcacheError
 
-    args = build_parser().parse_args(argv)
     try:
         return int(args.func(args) or 0)
     except GraftcacheError as e:
@@ -51,9 +71,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         hint = "; free space and run the same command again to resume" if e.errno == errno.ENOSPC else ""
         print(f"graftcache {args.command}: error: {e.strerror}{where}{hint}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print(f"graftcache {args.command}: interrupted; run the same command again to resume", file=sys.stderr)
-        return 130
 
 
 if __name__ == "__main__":

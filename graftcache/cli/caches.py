@@ -38,6 +38,7 @@ def _open(args: argparse.Namespace):
 
 def run_ls(args: argparse.Namespace) -> int:
     """Healthy caches as a table; a cache that cannot be opened is a row saying why (never a crash)."""
+    from graftcache.errors import CacheError
     from graftcache.store import open_root, scan_caches
 
     root = open_root(args.cache)
@@ -55,6 +56,8 @@ def run_ls(args: argparse.Namespace) -> int:
                           str(m["n_frames"]), f"{c.size_bytes() / 2**20:.1f} MiB", status)
         except (KeyError, TypeError, AttributeError) as e:  # a manifest missing the fields a row shows
             table.add_row(c.key, *[""] * 7, f"BROKEN: manifest lacks {type(e).__name__}: {e}")
+        except CacheError as e:  # its folder holds a symbolic link (never followed, so not sized)
+            table.add_row(c.key, *[""] * 7, f"BROKEN: {e}")
     for b in broken:
         table.add_row(b.key, *[""] * 7, f"BROKEN: {b.reason}")
     console = Console()

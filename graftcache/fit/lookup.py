@@ -16,6 +16,7 @@ from graftcache.datasets import open_dataset
 from graftcache.encoders import get_spec
 from graftcache.errors import FitError
 from graftcache.store import FeatureCache, Root, list_caches, open_root
+from graftcache.store.key import check_key
 
 
 def dataset_fingerprint(dataset: str) -> dict:
@@ -32,6 +33,8 @@ def _dataset_identity(dataset: str) -> tuple[dict, str]:
 def find_cache(root: Root | str | Path, encoder: str, *, dataset: str | None = None, key: str | None = None,
                same_dataset_as: FeatureCache | None = None, for_what: str = "the graft") -> FeatureCache:
     """The one complete cache of `encoder` (for `dataset`), or a clear error saying how to make it."""
+    if key:
+        check_key(key)  # a key is a name: refused before the dataset is hashed or the root read
     root = open_root(root)
     wanted_fp, wanted_root = _dataset_identity(dataset) if dataset else (None, None)
     if same_dataset_as is not None:

@@ -37,7 +37,14 @@ from zarr.codecs import BloscCodec
 
 from graftcache.errors import CacheError
 from graftcache.hashing import sha256_bytes
-from graftcache.store.key import IdentityDifference, compare_identity, identity_of
+from graftcache.store.key import (
+    IdentityDifference,
+    RefusedPlace,
+    cache_key,
+    check_key,
+    compare_identity,
+    identity_of,
+)
 from graftcache.store.roots import GROUP_META, Root, open_root, split_location
 
 INNER_CHUNK_BYTES = 4 << 20
@@ -94,6 +101,17 @@ def from_storage(a: np.ndarray, dtype: str) -> torch.Tensor:
     return t.view(torch.bfloat16) if dtype == "bf16" else t
 
 
+class MisplacedCache(RefusedPlace):
+    """A folder holds a cache whose manifest hashes to another key than the folder's name (copied or renamed
+    by hand): it is not the cache of that name, and nothing may use, replace or delete it as such."""
+
+    def __init__(self, location: str | Path, folder_key: str, own_key: str) -> None:
+        super().__init__(f"{location}: not cache {folder_key}: its manifest hashes to {own_key} (a cache's "
+                         f"folder is named by its key; copied or renamed by hand?); rename the folder to "
+                         f"{own_key} to use it; nothing was changed")
+        self.folder_key, self.own_key = folder_key, own_key
+
+
 @dataclass(frozen=True)
 class ArraySpec:
     """One feature array: its path in the group and the shape of one frame's entry."""
@@ -105,7 +123,8 @@ class ArraySpec:
 class FeatureCache:
     """One cache: `FeatureCache(path or URL)`, or `FeatureCache.in_root(root, key)`; make new ones with `create`.
 
-    `writable=False` opens the group read-only (ls, info, verify, fit): nothing is ever written."""
+    `writable=False` opens the group read-only (ls, info, verify, fit): nothing is ever written. A folder
+    whose manifest hashes to another key than its name is refused (`MisplacedCache`)."""
 
     @classmethod
     def in_root(cls, root: Root, key: str, *, writable: bool = False) -> FeatureCache:
@@ -116,6 +135,7 @@ class FeatureCache:
                  writable: bool = True) -> None:
         if root is None or key is None:
             root, key = split_location(location)
+        check_key(key)
         self.path, self.root, self._key, self._writable = location, root, key, writable
         raw = root.get(f"{key}/{GROUP_META}")
         if raw is None:
@@ -126,6 +146,9 @@ class FeatureCache:
                 raise TypeError("encoder name is not a string")
         except (ValueError, KeyError, TypeError) as e:
             raise CacheError(f"{location}: zarr.json is not a feature cache's ({type(e).__name__}: {e})") from None
+        own = cache_key(self._opened_attrs["manifest"])
+        if own != key:
+            raise MisplacedCache(location, key, own)
 
     @cached_property
     def group(self) -> zarr.Group:
@@ -154,10 +177,14 @@ class FeatureCache:
         `action_stream` (columns episode_index, frame_index, action) is every frame of the cached episodes
         at the dataset's full rate (default: `index` itself): with a frame stride only every k-th frame has
         features, but an action chunk is the next actions at full rate (stored as ACTION_STREAM/*).
-        Anything already at `path` (an interrupted initialisation) is removed first.
+        Anything already at `path` (an interrupted initialisation) is removed first. `path` ends in the
+        manifest's own key (a cache is only ever made under its key).
         """
         parent, key = split_location(path)
         root = root or parent
+        own = cache_key(manifest)
+        if key != own:
+            raise CacheError(f"{path}: a cache is made under its own key, {own}, not under {key!r}")
         root.delete_prefix(f"{key}/")
         n = index.height
         dtype = manifest["dtype"]

@@ -10,18 +10,38 @@ metadata files and of every data parquet and video the episodes use (graftcache.
 dataset edited under unchanged metadata gets another key. `compare_identity` names the first file in
 which a recorded identity differs from a dataset's current one, for every place that uses an existing
 cache with a dataset (fit --dataset, resuming an extraction, sharing).
+
+A key is a name, never a path: `check_key` (the grammar, defined here once) is applied to every key a user
+or a caller hands in, before any I/O, so `../x`, `/abs/x` or `a/b` never reach a root. A cache is only the
+cache of the key its folder is named by when its manifest hashes to that key (graftcache.store.cache), so a
+folder copied or renamed by hand is not taken for another cache.
 """
 
 from __future__ import annotations
 
 import json
+import re
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
+from graftcache.errors import CacheError
 from graftcache.hashing import sha256_json
 
 FORMAT_VERSION = 1
+#: The longest encoder-name part of a key: a key, its lock and its lease stay one file name (<= 255 bytes).
+NAME_MAX = 128
+#: What a key is: the encoder's name in file-name-safe characters (not starting with '.', '+' or '-'), '-',
+#: and 16 lowercase hex digits of the identity hash. One path component, never '.' or '..', never hidden.
+KEY = re.compile(rf"[A-Za-z0-9_][A-Za-z0-9_.+-]{{0,{NAME_MAX - 1}}}-[0-9a-f]{{16}}")
+#: A writer's lock/lease name: a key, or one shard of it (`<key>.shard-<i>-of-<N>`, graftcache.extract).
+WRITER = re.compile(rf"(?P<key>{KEY.pattern})(\.shard-[0-9]+-of-[0-9]+)?")
+_UNSAFE = re.compile(r"[^A-Za-z0-9_.+-]")
+
+
+class RefusedPlace(CacheError):
+    """A place graftcache never reads through, replaces or deletes: a path given as a key, a symbolic link in
+    a root, another cache stored under a key's name. Never taken for an absent or unfinished cache."""
 
 # Manifest fields that make up the identity; everything else in the manifest is provenance only.
 IDENTITY_FIELDS = (
@@ -47,9 +67,29 @@ def identity_of(manifest: Mapping[str, Any]) -> dict[str, Any]:
 
 
 def cache_key(manifest: Mapping[str, Any]) -> str:
-    """`<encoder-name>-<16 hex>`: readable prefix + sha256 of the canonical identity JSON."""
-    name = str(manifest["encoder"]["name"]).replace(":", "_").replace("/", "_")
+    """`<encoder-name>-<16 hex>`: readable prefix + sha256 of the canonical identity JSON. Characters a file
+    name should not hold (':' and '/' of `timm:`/`hf:<folder>` names, spaces) become '_': keys match `KEY`."""
+    name = _UNSAFE.sub("_", str(manifest["encoder"]["name"]))[:NAME_MAX]
+    if name[:1] in ("", ".", "+", "-"):  # '.x' would be hidden, '-x' reads as a flag
+        name = f"_{name}"[:NAME_MAX]
     return f"{name}-{sha256_json(identity_of(manifest), compact=True)[:16]}"
+
+
+def check_key(key: object) -> str:
+    """`key` when it is a cache key, else a one-line CacheError: keys name caches inside a root and are never
+    paths (`../victim`, `/abs/KEY` and `a/b` would read, write or delete outside it)."""
+    if isinstance(key, str) and KEY.fullmatch(key):
+        return key
+    raise RefusedPlace(f"{key!r} is not a cache key: a key is a name, <encoder>-<16 hex digits> as "
+                       "`graftcache ls` lists it (e.g. resnet18-0123456789abcdef), never a path")
+
+
+def check_writer(name: str) -> str:
+    """`name` when it names a writer of a key (the key, or one shard of it), else CacheError."""
+    if not WRITER.fullmatch(name):
+        check_key(name.split(".shard-", 1)[0])  # names the key part when that is what is wrong
+        raise RefusedPlace(f"{name!r} is not a writer of a cache key (<key> or <key>.shard-<i>-of-<N>)")
+    return name
 
 
 @dataclass(frozen=True)

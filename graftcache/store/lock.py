@@ -7,6 +7,7 @@ in the root, so a root the user cannot write serves them.
 
 from __future__ import annotations
 
+import errno
 import fcntl
 import os
 from collections.abc import Callable, Iterator
@@ -29,7 +30,12 @@ def exclusive(path: Path, *, wait: bool = True, on_wait: Callable[[str], None] |
     """Hold an exclusive lock on `path` (created if absent). If busy: wait (calling `on_wait(pid)`)
     or raise CacheError naming the holder."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:  # O_NOFOLLOW: a lock file that is a link would have the pid written where it points
+        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o644)
+    except OSError as e:
+        if e.errno != errno.ELOOP:
+            raise
+        raise CacheError(f"{path} is a symbolic link; a lock file is never followed") from None
     try:
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)

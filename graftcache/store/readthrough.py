@@ -7,7 +7,9 @@ checked on those bytes as for any cache (graftcache.store.cache), so a damaged r
 refused by name. Whole shards are the unit because a block's checksum covers the whole block.
 
 The copies live under `<local cache root>/remote/<sha of the root URL>/<key>/`, shared by later runs;
-`fetched_bytes` counts what this process downloaded.
+`fetched_bytes` counts the bytes this process added to the local copies. Reader processes of one fit fetch
+independently, so two may download the same shard at once; the first copy in stays (put-if-absent) and only it
+is counted, so the counts of a fit's processes add up to what its copies hold.
 """
 
 from __future__ import annotations
@@ -63,8 +65,7 @@ class ReadThroughRoot(Root):
         data = self.remote.get(rel)
         if data is None:
             raise CacheError(f"{self.remote.url}/{rel}: listed, then gone while reading")
-        self.local.put(rel, data)
-        return len(data)
+        return len(data) if self.local.put(rel, data, if_absent=True) else 0
 
     def get(self, rel: str) -> bytes | None:
         return self.remote.get(rel)

@@ -1,9 +1,10 @@
 """push / pull: copy one complete cache between two roots (local folders or object stores), verified.
 
 Protocol, the same in both directions and on every store:
-1. The source must be complete. A destination cache with the same key but another identity is refused;
-   one that is complete and verifies is left alone (nothing copied); a complete one with damaged objects
-   loses them and is copied again.
+1. The key must be a key (graftcache.store.key.check_key, before any I/O) and the source complete and stored
+   under its own key. A destination folder of that name holding another cache (its manifest hashes to another
+   key) is refused; a destination cache that is complete and verifies is left alone (nothing copied); a
+   complete one with damaged objects loses them and is copied again.
 2. Under the destination's writer lock/lease, the source's zarr.json is written with `complete: false`
    first (so the destination reads as an incomplete cache, never as a finished one), then every other
    object the destination lacks (or holds at another size) is copied whole; objects the source does not
@@ -23,7 +24,7 @@ from dataclasses import dataclass
 
 from graftcache.errors import CacheError
 from graftcache.store.cache import FeatureCache
-from graftcache.store.key import identity_of
+from graftcache.store.key import RefusedPlace, check_key
 from graftcache.store.roots import GROUP_META, Root
 
 COPY_THREADS = 8
@@ -39,14 +40,11 @@ class Transfer:
 
 
 def copy_cache(src_root: Root, dst_root: Root, key: str, log: Callable[[str], None] = print) -> Transfer:
-    src = FeatureCache.in_root(src_root, key)
+    src = FeatureCache.in_root(src_root, check_key(key))
     if not src.complete:
         raise CacheError(f"cache {src.path} is not complete; only complete caches are pushed or pulled")
     existing = _existing(dst_root, key)
     if existing is not None:
-        if identity_of(existing.manifest) != identity_of(src.manifest):
-            raise CacheError(f"{existing.path} holds another cache under key {key} (its manifest differs from "
-                             f"{src.path}'s); refusing to overwrite it")
         if existing.complete:
             damaged = existing.damage(existing.attrs["checksums"])
             if not damaged:
@@ -100,8 +98,11 @@ def _drop(root: Root, key: str, damage: list[tuple[str, str]]) -> None:
 
 def _existing(root: Root, key: str) -> FeatureCache | None:
     """The destination's cache under `key`, or None when there is none or its zarr.json cannot be read
-    (an interrupted copy's or a damaged one: rewritten by this copy)."""
+    (an interrupted copy's or a damaged one: rewritten by this copy). Another cache stored under this key's
+    name (`MisplacedCache`), or a key folder that is or holds a link, is refused, never overwritten."""
     try:
         return FeatureCache.in_root(root, key)
+    except RefusedPlace:
+        raise
     except CacheError:
         return None

@@ -5,13 +5,14 @@ caches file by file (a folder, or the objects of a bucket under a key)."""
 from __future__ import annotations
 
 import json
-from collections.abc import Mapping, Sequence
+import shutil
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
 import polars as pl
 
-from graftcache.store import FeatureCache
+from graftcache.store import FeatureCache, cache_key
 from graftcache.store.cache import ArraySpec
 
 SUITES = ["libero_spatial", "libero_object", "libero_goal", "libero_10", "libero_90", "unknown"]
@@ -19,11 +20,12 @@ TASKS = ["put the bowl on the plate", "open the drawer", "turn on the stove"]
 CAMERAS = ("image", "image2")
 
 
-def synthetic_cache(path: Path, lengths: Sequence[int], *, grid: tuple[int, int] = (4, 4), width: int = 8,
+def synthetic_cache(root: Path, lengths: Sequence[int], *, grid: tuple[int, int] = (4, 4), width: int = 8,
                     block_frames: int = 8, state_dim: int = 8, action_dim: int = 7, seed: int = 0,
                     nan_at: tuple[int, int] | None = None) -> FeatureCache:
-    """A complete fp16 cache of episodes of `lengths` (task = episode % 3, all libero_spatial), features
-    N(0, 1) at `grid`; `nan_at` (episode, frame) puts a NaN into that frame's `image` features."""
+    """A complete fp16 cache under `root` (in the folder of its key) of episodes of `lengths` (task = episode
+    % 3, all libero_spatial), features N(0, 1) at `grid`; `nan_at` (episode, frame) puts a NaN into that
+    frame's `image` features."""
     rng = np.random.default_rng(seed)
     episode = np.repeat(np.arange(len(lengths)), lengths)
     frame = np.concatenate([np.arange(n) for n in lengths])
@@ -39,6 +41,7 @@ def synthetic_cache(path: Path, lengths: Sequence[int], *, grid: tuple[int, int]
     manifest = {"encoder": {"name": "synthetic", "width": width}, "dtype": "fp16", "cameras": list(CAMERAS),
                 "grids": [name], "extras": {}, "suites": SUITES, "tasks": TASKS, "dataset": {"source": "synthetic"},
                 "dataset_fingerprint": {"files": {}}}
+    path = root / cache_key(manifest)
     cache = FeatureCache.create(path, manifest, [ArraySpec(f"features/{c}/{name}", (grid[0] * grid[1], width))
                                                  for c in CAMERAS], index, block_frames=block_frames)
     for b in range(cache.layout["n_blocks"]):
@@ -54,11 +57,12 @@ def synthetic_cache(path: Path, lengths: Sequence[int], *, grid: tuple[int, int]
     return FeatureCache(path, writable=False)
 
 
-def dataset_cache(path: Path, dataset: str | Path, suite: str, *, grid: tuple[int, int], width: int,
+def dataset_cache(root: Path, dataset: str | Path, suite: str, *, grid: tuple[int, int], width: int,
                   block_frames: int = 256) -> FeatureCache:
-    """A complete fp16 cache of `dataset`'s `suite` episodes as `extract` lays it out (the dataset's own index,
-    low-dim and action columns), with seeded random features at `grid`, `width` wide, for every camera: what a
-    fit reads of a real cache, without paying for decoding and encoding (the fit cannot tell the difference).
+    """A complete fp16 cache under `root` (in the folder of its key) of `dataset`'s `suite` episodes as
+    `extract` lays it out (the dataset's own index, low-dim and action columns), with seeded random features
+    at `grid`, `width` wide, for every camera: what a fit reads of a real cache, without paying for decoding
+    and encoding (the fit cannot tell the difference).
     One random block is written for every block (memory and read costs do not depend on the values)."""
     from graftcache.datasets import open_dataset, suite_of
     from graftcache.datasets.suites import SUITES
@@ -73,6 +77,7 @@ def dataset_cache(path: Path, dataset: str | Path, suite: str, *, grid: tuple[in
                 "cameras": list(meta.cameras), "grids": [name], "extras": {}, "suites": list(SUITES),
                 "tasks": list(meta.tasks), "dataset": {"source": str(dataset), "root": str(meta.root)},
                 "dataset_fingerprint": {"files": {}}, "random_init": True}
+    path = root / cache_key(manifest)
     cache = FeatureCache.create(path, manifest, [ArraySpec(f"features/{c}/{name}", (grid[0] * grid[1], width))
                                                  for c in meta.cameras], index, block_frames=block_frames)
     block = np.random.default_rng(0).standard_normal((block_frames, grid[0] * grid[1], width)).astype(np.float16)
@@ -81,6 +86,20 @@ def dataset_cache(path: Path, dataset: str | Path, suite: str, *, grid: tuple[in
         cache.write_block(b, {f"features/{c}/{name}": block[:stop - start] for c in meta.cameras})
     cache.finalize()
     return FeatureCache(path, writable=False)
+
+
+def rekeyed(folder: Path, root: Path, edit: Callable[[dict], dict]) -> FeatureCache:
+    """A copy of the cache in `folder` whose manifest is `edit(manifest)`, under `root` in the folder of the
+    key that manifest hashes to: a cache made with those settings as far as its folder name and manifest go
+    (its arrays are `folder`'s)."""
+    staging = root / ".staging" / folder.name
+    shutil.copytree(folder, staging)
+    manifest = edit(FeatureCache(staging).manifest)
+    FeatureCache(staging).group.attrs["manifest"] = manifest
+    target = root / cache_key(manifest)
+    staging.rename(target)
+    shutil.rmtree(root / ".staging")
+    return FeatureCache(target, writable=False)
 
 
 #: Group attributes that record when and how a run happened, not what it computed: two runs of one request

@@ -1,0 +1,142 @@
+"""How the console script stops when asked to: Ctrl-C (SIGINT) or SIGTERM, at any moment, ends in one line on
+stderr and exit code 130 / 143 (128 + the signal), never a traceback and never a silent death.
+
+SIGTERM is turned into `Terminated`, a KeyboardInterrupt raised in the main thread, so it unwinds through the
+very code paths Ctrl-C already takes: an extraction's finished blocks and a fit's written rows stay, nothing
+half-written is marked complete, and the same command run again resumes. Before unwinding, the worker processes
+this process started (DataLoader readers and decoders, fork-server children for object-store roots) are sent
+SIGTERM, so none outlives the command; forked workers get the default SIGTERM action back (`_reset_in_child`), so
+they die at once instead of running this handler. While a whole process is still starting (importing torch) or
+already tearing down, there is nothing to keep: a signal is one line and an immediate exit (`_exit_at_once`).
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+import signal
+import sys
+import threading
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from types import FrameType
+from typing import Any
+
+#: Exit code for each signal that stops a command: 128 + the signal number, the shell convention.
+EXIT_CODES = {signal.SIGINT: 128 + signal.SIGINT, signal.SIGTERM: 128 + signal.SIGTERM}
+STOPPED = {signal.SIGINT: "interrupted", signal.SIGTERM: "terminated (SIGTERM)"}  # what the one line says
+WORKER_GRACE_S = 2.0  # how long stopped workers get to exit before SIGKILL
+REDELIVER_S = 0.01  # a signal lost in a finaliser is sent again this much later (`_redeliver`)
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised in the main thread: a KeyboardInterrupt so every cleanup written for Ctrl-C runs."""
+
+    signum = signal.SIGTERM
+
+
+def exit_code(stop: KeyboardInterrupt) -> int:
+    return EXIT_CODES[getattr(stop, "signum", signal.SIGINT)]
+
+
+def describe(stop: KeyboardInterrupt) -> str:
+    return STOPPED[getattr(stop, "signum", signal.SIGINT)]
+
+
+def stop_workers() -> None:
+    """SIGTERM every live child process started through multiprocessing (DataLoader workers of any start method),
+    then SIGKILL those still alive after WORKER_GRACE_S: no worker outlives a stopped command."""
+    children = multiprocessing.active_children()
+    for child in children:
+        child.terminate()
+    for child in children:
+        child.join(WORKER_GRACE_S)
+        if child.is_alive():
+            child.kill()
+
+
+def _on_term(signum: int, frame: FrameType | None) -> None:
+    # torch's SIGCHLD handler would report the workers stopped below as a crash ("worker killed by signal")
+    signal.signal(signal.SIGCHLD, signal.SIG_DFL)
+    stop_workers()
+    raise Terminated()
+
+
+def _reset_in_child() -> None:
+    """A forked worker inherits `_on_term`; it must die of SIGTERM at once, as a worker without it would."""
+    if signal.getsignal(signal.SIGTERM) is _on_term:
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
+def _exit_at_once(when: str) -> Callable[[int, FrameType | None], None]:
+    """A handler for the moments when there is nothing to keep (the console script still importing, or
+    tearing down after the command): one line, then exit at once. Raising KeyboardInterrupt there could land
+    in a weakref callback or a finaliser, where Python prints it as "Exception ignored" and carries on."""
+
+    def handler(signum: int, frame: FrameType | None) -> None:
+        os.write(2, f"graftcache: {STOPPED[signum]} {when}\n".encode())
+        os._exit(EXIT_CODES[signum])
+
+    return handler
+
+
+def _redeliver(unraisable: Any) -> None:
+    """sys.unraisablehook: a KeyboardInterrupt raised inside a finaliser or a weakref callback (as an import or
+    the garbage collector runs them) would be printed as "Exception ignored" and lost; the signal is sent again
+    a moment later (from a thread: sent from here, it would be raised inside this hook), so it is raised in
+    ordinary code."""
+    if isinstance(unraisable.exc_value, KeyboardInterrupt):
+        signum = getattr(unraisable.exc_value, "signum", signal.SIGINT)
+        threading.Timer(REDELIVER_S, os.kill, (os.getpid(), signum)).start()
+    else:
+        sys.__unraisablehook__(unraisable)
+
+
+class Stops:
+    """The handlers of one command's run; `command_started` switches to those that unwind (see the module)."""
+
+    def __init__(self, installs: bool) -> None:
+        self.installs = installs
+
+    def command_started(self) -> None:
+        if self.installs:
+            signal.signal(signal.SIGINT, signal.default_int_handler)
+            signal.signal(signal.SIGTERM, _on_term)
+
+
+_FORK_HOOK: list[bool] = []
+
+
+@contextmanager
+def stoppable(*, whole_process: bool) -> Iterator[Stops]:
+    """Inside the block SIGINT raises KeyboardInterrupt and SIGTERM raises Terminated, except while a whole
+    process (the console script) is still starting: then either is one line and an immediate exit. Afterwards a
+    whole process keeps one line and the exit code for teardown; main called in-process (e.g. by tests) gets the
+    previous handlers back. Outside the main thread nothing is installed: only the main thread may set handlers."""
+    if threading.current_thread() is not threading.main_thread():
+        yield Stops(installs=False)
+        return
+    if not _FORK_HOOK:
+        os.register_at_fork(after_in_child=_reset_in_child)
+        _FORK_HOOK.append(True)
+    saved = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM, signal.SIGCHLD)}
+    hook, sys.unraisablehook = sys.unraisablehook, _redeliver
+    stops = Stops(installs=True)
+    if whole_process:
+        starting = _exit_at_once("while starting; nothing was done")
+        signal.signal(signal.SIGINT, starting)
+        signal.signal(signal.SIGTERM, starting)
+    else:
+        stops.command_started()
+    try:
+        yield stops
+    finally:
+        if whole_process:
+            sys.stderr.flush()
+            exiting = _exit_at_once("while exiting")
+            signal.signal(signal.SIGINT, exiting)
+            signal.signal(signal.SIGTERM, exiting)
+        else:
+            for s, handler in saved.items():
+                signal.signal(s, handler if handler is not None else signal.SIG_DFL)
+            sys.unraisablehook = hook
