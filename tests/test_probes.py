@@ -30,7 +30,7 @@ import timm
 from fixtures.s3 import free_port
 from helpers.backbones import tiny
 from helpers.caches import assert_same_cache, folder_files
-from helpers.datasets import Written
+from helpers.datasets import TASKS, V3_CAMERAS, Written, drop_episodes, set_episode_meta
 from helpers.probes import (Outcome, Snapshot, alive, assert_one_line_error, assert_succeeded, children, finish,
                             run_cli, start_process)
 from safetensors.torch import save_file
@@ -82,7 +82,7 @@ def _with_state_nan(src: Path, dst: Path) -> Path:
 RECIPE = """name = "probe"
 dataset = "{ds}"
 results = "{base}/sweep.parquet"
-suites = ["libero_spatial"]
+{suites}
 {seeds}
 [[backbones]]
 name = "smolvla"
@@ -92,12 +92,16 @@ name = "resnet18"
 {random_init}
 {section}
 """
-RECIPE_DEFAULTS = {"seeds": "seeds = [0]", "random_init": "random_init = true", "section": ""}
+RECIPE_DEFAULTS = {"suites": 'suites = ["libero_spatial"]', "seeds": "seeds = [0]",
+                   "random_init": "random_init = true", "section": ""}
 RECIPES = {
     "batch_size_str": {"section": '[extract]\nbatch_size = "8"'},
     "seeds_str": {"seeds": 'seeds = "0,1"'},
     "steps_str": {"section": '[fit]\nsteps = "x"'},
     "random_init_str": {"random_init": 'random_init = "false"'},
+    "seeds_negative": {"seeds": "seeds = [0, -1]"},
+    "seeds_repeated": {"seeds": "seeds = [0, 1, 1]"},
+    "suite_path": {"suites": 'suites = ["../../x"]'},
 }
 
 
@@ -126,6 +130,10 @@ def world(v3_video: Written, tmp_path_factory: pytest.TempPathFactory) -> World:
     info = json.loads((evil / "meta" / "info.json").read_text())
     info["video_path"] = "../ds/" + info["video_path"]  # a real dataset's videos, outside this root
     (evil / "meta" / "info.json").write_text(json.dumps(info))
+    drop_episodes(shutil.copytree(v3_video.root, base / "ds_empty"))
+    set_episode_meta(shutil.copytree(v3_video.root, base / "ds_skewed"), 1,  # 7 frames said to span 0.5..0.6 s
+                     **{f"videos/{V3_CAMERAS[1]}/to_timestamp": 0.6})
+    set_episode_meta(shutil.copytree(v3_video.root, base / "ds_tasks"), 1, tasks=[TASKS[0]])  # frames say task 1
 
     policy = tiny("smolvla").save(base / "policy")
     bad_policy = base / "bad_policy"
@@ -145,6 +153,7 @@ def world(v3_video: Written, tmp_path_factory: pytest.TempPathFactory) -> World:
     nan = extract(ExtractRequest(dataset=str(nan_ds), cache=str(base / "nan_cache"), allow_nonfinite=True, **common),
                   log=lambda _: None).key
     paths = {"base": str(base), "ds": str(ds), "nan_ds": str(nan_ds), "evil": str(evil), "policy": str(policy),
+             **{name: str(base / f"ds_{name}") for name in ("empty", "skewed", "tasks")},
              "bad_policy": str(bad_policy), "cache": str(base / "cache"), "nan_cache": str(base / "nan_cache")}
     for name, parts in RECIPES.items():
         path = base / f"{name}.toml"
@@ -208,6 +217,24 @@ PROBES: dict[str, Probe] = {
     "sweep batch_size = \"8\"": Probe("sweep {batch_size_str} --dry-run", ("batch_size_str.toml", "batch_size")),
     "sweep seeds = \"0,1\"": Probe("sweep {seeds_str} --dry-run", ("seeds_str.toml", "seeds")),
     "sweep steps = \"x\"": Probe("sweep {steps_str} --dry-run", ("steps_str.toml", "steps")),
+    "sweep seeds = [0, -1]": Probe("sweep {seeds_negative} --dry-run", ("seeds_negative.toml", "seed -1")),
+    "sweep seeds = [0, 1, 1]": Probe("sweep {seeds_repeated}", ("seeds_repeated.toml", "repeats seed 1")),
+    "sweep suites = [\"../../x\"]": Probe("sweep {suite_path} --dry-run", ("suite_path.toml", "'../../x'",
+                                                                            "is not a suite")),
+    "fit --seeds 100000000000": Probe(FIT.replace("--seed 0 ", "--seeds 100000000000 ") + " --cache {cache}",
+                                      ("--seeds", "100000000000", "at most 1000000")),
+    "fit --seeds 0-100000000000": Probe(FIT.replace("--seed 0 ", "--seeds 0-100000000000 ") + " --cache {cache}",
+                                        ("--seeds", "names 100000000001 seeds")),
+    "fit --seed 99999999999999999999999": Probe(FIT.replace("--seed 0 ", "--seed 99999999999999999999999 ")
+                                                + " --cache {cache}", ("--seed", "past the largest seed")),
+    "fit --batch-size 100000": Probe(FIT.replace("--batch-size 4", "--batch-size 100000") + " --cache {cache}"
+                                     " --num-workers 0", ("--batch-size 100000", "needs about", "lower --batch-size")),
+    "dataset with no episodes": Probe(EXTRACT.replace("{ds}", "{empty}"), ("ds_empty", "has no episodes")),
+    "to_timestamp against the length": Probe(EXTRACT.replace("{ds}", "{skewed}"),
+                                             ("ds_skewed/meta/episodes", "episode 1", "to_timestamp")),
+    "tasks against the frames' task_index": Probe(EXTRACT.replace("{ds}", "{tasks}"),
+                                                  ("ds_tasks/data", "episode 1", "task_index [1]")),
+    "extract --grids 100000x100000": Probe(EXTRACT + " --grids 100000x100000", ("100000x100000", "needs about")),
     "sweep random_init = \"false\"": Probe("sweep {random_init_str} --dry-run", ("random_init_str.toml",
                                                                                 "random_init")),
 }
