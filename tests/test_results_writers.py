@@ -60,7 +60,7 @@ def world(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A tiny smolvla policy and a synthetic-feature cache of the sample dataset: the cheapest real fit."""
     root = tmp_path_factory.mktemp("writers")
     tiny("smolvla").save(root / "policy")
-    dataset_cache(root / "cache" / "k", SAMPLE, SUITE, grid=GRID, width=WIDTH)
+    dataset_cache(root / "cache", SAMPLE, SUITE, grid=GRID, width=WIDTH)
     return root
 
 

@@ -103,6 +103,7 @@ def row(backbone: str, suite: str, encoder: str, seed: int, eval_mse: float | No
         "random_init": False,
         "n_dropped_nonfinite": 0,
         "numerics_drift": 0.0,
+        "camera_map": "image=image,image2=image2",
         "graftcache_version": "0.1.0",
         "command": command(backbone, suite, encoder, control, seed),
     }
