@@ -88,15 +88,22 @@ def test_four_writers_and_two_fits_keep_every_row(world: Path, tmp_path: Path) -
                               stderr=subprocess.PIPE, text=True, env=ENV)
     writers = [subprocess.Popen([sys.executable, "-c", WRITER, str(shared), str(k)], stderr=subprocess.PIPE,
                                 text=True, env=ENV) for k in range(4)]
-    for proc in writers:
-        assert proc.wait(timeout=300) == 0, proc.stderr.read()[-2000:]
-    outs = [proc.communicate(timeout=300) for proc in fits]
-    for proc, (out, err) in zip(fits, outs):
-        assert proc.returncode == 0, err[-3000:]
-    stop.touch()
-    reads, err = reader.communicate(timeout=60)
-    assert reader.returncode == 0, err[-2000:]
-    assert int(reads) > 0
+    try:
+        for proc in writers:
+            assert proc.wait(timeout=300) == 0, proc.stderr.read()[-2000:]
+        outs = [proc.communicate(timeout=300) for proc in fits]
+        for proc, (out, err) in zip(fits, outs):
+            assert proc.returncode == 0, err[-3000:]
+        stop.touch()
+        reads, err = reader.communicate(timeout=60)
+        assert reader.returncode == 0, err[-2000:]
+        assert int(reads) > 0
+    finally:  # a failed assertion must not leave the reader polling (it took the CPU from every later test)
+        stop.touch()
+        for proc in [*fits, reader, *writers]:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
 
     table = results.read(shared)
     appended = table.filter(pl.col("encoder").str.starts_with("enc"))
