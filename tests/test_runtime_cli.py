@@ -65,7 +65,7 @@ def test_seed_syntax() -> None:
     with pytest.raises(argparse.ArgumentTypeError, match="use --seed 0"):
         seeds_value("0")
     assert int_list("0") == (0,) and int_list("0-3,7") == (0, 1, 2, 3, 7)
-    for bad in ("-1", "x", "3-1", ","):
+    for bad in ("-1", "x", "3-1", ",", "0,0", "0-3,2"):
         with pytest.raises(argparse.ArgumentTypeError):
             int_list(bad)
     fit = ["fit", "--backbone", "smolvla", "--encoder", "e", "--suite", "s"]

@@ -74,7 +74,8 @@ def fraction(text: str) -> float:
 
 
 def int_list(text: str, rule: IntList = SEEDS) -> tuple[int, ...]:
-    """'0,1,2', '0-9' or '0-3,7' -> sorted distinct non-negative ints; anything else is an ArgumentTypeError.
+    """'0,1,2', '0-9' or '0-3,7' -> sorted distinct non-negative ints; anything else (a value named twice
+    included) is an ArgumentTypeError.
 
     The ranges are measured before they are expanded, against `rule`'s bounds (the request field's rule, e.g.
     FitRequest.RULES["seeds"]), so 0-100000000000 is refused at once instead of filling memory."""
@@ -98,7 +99,11 @@ def int_list(text: str, rule: IntList = SEEDS) -> tuple[int, ...]:
     count = sum(last - first + 1 for first, last in ranges)  # an upper bound: overlaps count twice
     if count > rule.most:
         raise argparse.ArgumentTypeError(f"{text!r} names {count} {rule.what}s; at most {rule.most}")
-    return tuple(sorted({v for first, last in ranges for v in range(first, last + 1)}))
+    values = sorted(v for first, last in ranges for v in range(first, last + 1))
+    repeated = sorted({a for a, b in zip(values, values[1:]) if a == b})
+    if repeated:  # `--seed 0,0` is a typo, not one seed: nothing is merged silently
+        raise argparse.ArgumentTypeError(f"{text!r} names {', '.join(map(str, repeated))} more than once")
+    return tuple(values)
 
 
 def ints(rule: IntList) -> Callable[[str], tuple[int, ...]]:
