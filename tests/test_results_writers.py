@@ -43,14 +43,17 @@ for seed in range(25):
 """
 
 #: A reader polling the file until told to stop: every read must be a whole table, never fewer rows than before.
+#: It pauses 20 ms between reads (about one append's time): a reader spinning flat out took a core from the writers
+#: and doubled the test's time on 2 cores.
 READER = """
-import sys, pathlib
+import sys, pathlib, time
 from graftcache import results
 seen, reads = 0, 0
 while not pathlib.Path(sys.argv[2]).exists():
     n = results.read(sys.argv[1]).height
     assert n >= seen, (n, seen)
     seen, reads = n, reads + 1
+    time.sleep(0.02)
 print(reads)
 """
 
