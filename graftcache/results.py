@@ -157,12 +157,16 @@ def conform(rows: pl.DataFrame) -> pl.DataFrame:
     return out
 
 
+def _refuse_directory(path: Path) -> None:
+    if path.is_dir():
+        raise ResultsError(f"{path}: is a directory, not a results file; pass a .parquet file")
+
+
 def _load(path: Path) -> pl.DataFrame:
     """The Parquet table at `path`, read through one open descriptor: polars opening the path again (footer,
     then row groups) could read two files when a writer replaces it in between. A stale NFS handle (the file
     replaced on the server as we read it) is read again."""
-    if path.is_dir():
-        raise ResultsError(f"{path}: is a directory, not a results file; pass a .parquet file")
+    _refuse_directory(path)
     for attempt in range(5):
         try:
             with open(path, "rb") as f:
@@ -241,28 +245,28 @@ def cell_claim(path: str | Path, run_id: str) -> FileLease:
     return FileLease(path.with_name(f".{path.name}.claims") / f"{run_id}.claim")
 
 
+def _fsync(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
 def _publish(path: Path, table: pl.DataFrame, lease: FileLease) -> bool:
     """Write `table` to a temporary file beside `path`, make it durable, and rename it over `path` if `lease` is
     still ours (False: it was taken over, nothing changed). The temporary file never outlives the call."""
     tmp = path.with_name(f".{path.name}.{socket.gethostname()}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp")
     try:
         table.write_parquet(tmp)
-        fd = os.open(tmp, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
+        _fsync(tmp)
         if not lease.holds():
             return False
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
     try:  # the rename itself survives a crash once its folder is synced
-        fd = os.open(path.parent, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
+        _fsync(path.parent)
     except OSError:
         pass  # a file system that cannot sync folders: the rename is still atomic
     return True
@@ -276,8 +280,7 @@ def append(path: str | Path, rows: Iterable[Mapping[str, Any]] | pl.DataFrame) -
     """
     path = Path(path)
     new = validate(rows if isinstance(rows, pl.DataFrame) else from_rows(rows))
-    if path.is_dir():
-        raise ResultsError(f"{path}: is a directory, not a results file; pass a .parquet file")
+    _refuse_directory(path)
     while True:
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
