@@ -15,7 +15,8 @@ import functools
 import json
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import replace
 from pathlib import Path
 
@@ -28,6 +29,7 @@ from graftcache.backbones.native import policy_pixels
 from graftcache.backbones.tiny_record import policy_dir, read_record, write_record
 from graftcache.datasets import DatasetMeta, open_dataset
 from graftcache.errors import BackboneError, DatasetError
+from graftcache.file_lease import FileLease
 from graftcache.fit.data import action_chunks
 from graftcache.fit.lookup import dataset_fingerprint
 from graftcache.fit.loop import optimise
@@ -146,14 +148,40 @@ def train_tiny(backbone: str, dataset: str, *, cfg: TinyTrainConfig = DEFAULT_TI
     fingerprint = dataset_fingerprint(dataset)
     cfg, cameras = _cameras(cfg, open_dataset(dataset).meta)
     folder = Path(out) if out else policy_dir(home, backbone, fingerprint, cfg)
-    if _reusable(folder, backbone, fingerprint, cfg, force):
-        log(f"reusing natively trained tiny {backbone}: {folder}")
-        return folder
+    with _checkpoint_lease(folder, backbone, log):
+        if _reusable(folder, backbone, fingerprint, cfg, force):
+            log(f"reusing natively trained tiny {backbone}: {folder}")
+        else:
+            _train(backbone, dataset, folder, cfg=cfg, cameras=cameras, fingerprint=fingerprint, device=dev,
+                   compute=compute, log=log)
+    return folder
+
+
+@contextmanager
+def _checkpoint_lease(folder: Path, backbone: str, log: Callable[[str], None]) -> Iterator[None]:
+    """Held while the checkpoint in `folder` is checked for reuse and trained, so that of two processes (sweeps,
+    train-tiny) asking for it at once one trains it and the others wait, then reuse it, rather than loading a
+    checkpoint still being written. A place that cannot hold the lease file (read-only: reuse only) goes without."""
+    lease = FileLease(folder.with_name(f".{folder.name}.lock"))
+    try:
+        lease.acquire(on_wait=lambda who: log(f"tiny {backbone} is being trained by {who}: waiting to reuse it"))
+    except OSError:
+        yield
+        return
+    try:
+        yield
+    finally:
+        lease.release()
+
+
+def _train(backbone: str, dataset: str, folder: Path, *, cfg: TinyTrainConfig, cameras: tuple[str, ...],
+           fingerprint: dict, device: torch.device, compute: torch.dtype, log: Callable[[str], None]) -> None:
+    """Train the tiny `backbone` natively on `dataset` (all parameters) and save it with its record in `folder`."""
     t0 = time.perf_counter()
     source, frames, table = _decode_all(dataset, cameras, cfg.image_size, log)
     meta = source.meta
     spec = TinySpec(cameras=cameras, state_dim=meta.state_dim, action_dim=meta.action_dim, seed=cfg.seed)
-    adapter = get_backbone(backbone).load("tiny", device=str(dev), dataset_stats=dataset_stats(table), tiny=spec)
+    adapter = get_backbone(backbone).load("tiny", device=str(device), dataset_stats=dataset_stats(table), tiny=spec)
     policy = adapter.policy
     _unfreeze_all(policy)
     n_params = sum(p.numel() for p in policy.parameters())
@@ -187,4 +215,3 @@ def train_tiny(backbone: str, dataset: str, *, cfg: TinyTrainConfig = DEFAULT_TI
     write_record(folder, record)
     log(f"saved natively trained tiny {backbone} to {folder} (final loss {record['final_loss']:.4f}, "
         f"{record['wall_s']:.0f}s)")
-    return folder

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable, Iterator
-from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -25,7 +24,6 @@ from graftcache.backbone_table import native_name
 from graftcache.cameras import match_cameras
 from graftcache.errors import GraftcacheError
 from graftcache.executors import Executor, get_executor
-from graftcache.file_lease import FileLease
 from graftcache.fit.controls import get_control
 from graftcache.pooling import NATIVE, format_grid, grid_names
 from graftcache.progress import progress, write
@@ -64,26 +62,6 @@ def _pool_grids(recipe: Recipe) -> list[tuple[int, int]]:
     return [g for g in (get_control(c).grid for c in recipe.controls) if g is not None]
 
 
-@contextmanager
-def _training_lease(recipe: Recipe, backbone: str, log: Callable[[str], None]) -> Iterator[None]:
-    """Held while a tiny `backbone` is trained or reused, so that of two sweeps started at once one trains it and
-    the other waits, then reuses it (rather than loading a checkpoint still being written). A root that cannot
-    hold the lease file (read-only: reuse only) goes without."""
-    from graftcache.backbones.tiny_record import POLICIES_DIR
-    from graftcache.store import cache_root
-
-    lease = FileLease(cache_root(recipe.cache) / POLICIES_DIR / f".train-tiny-{backbone}.lock")
-    try:
-        lease.acquire(on_wait=lambda who: log(f"tiny {backbone} is being trained by {who}: waiting to reuse it"))
-    except OSError:
-        yield
-        return
-    try:
-        yield
-    finally:
-        lease.release()
-
-
 def prepare_policies(recipe: Recipe, state: SweepState, log: Callable[[str], None]) -> None:
     """Train (or reuse) tiny backbones, then read each backbone's native token grid from its config."""
     from graftcache.backbones import get_backbone
@@ -93,9 +71,8 @@ def prepare_policies(recipe: Recipe, state: SweepState, log: Callable[[str], Non
         policy = entry.policy
         if policy == "tiny":
             cfg = dataclasses.replace(DEFAULT_TINY_TRAIN, **recipe.train_tiny)
-            with _training_lease(recipe, entry.name, log):
-                policy = str(train_tiny(entry.name, recipe.dataset, cfg=cfg, cache=recipe.cache,
-                                        device=recipe.device, log=log))
+            policy = str(train_tiny(entry.name, recipe.dataset, cfg=cfg, cache=recipe.cache, device=recipe.device,
+                                    log=log))
             state.commands[f"policy {entry.name}"] = command_line("train-tiny", backbone=entry.name,
                                                                   dataset=recipe.dataset, steps=cfg.steps,
                                                                   cameras=cfg.cameras)
