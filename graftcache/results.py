@@ -38,7 +38,9 @@ from graftcache.hashing import sha256_json
 
 SCHEMA: dict[str, pl.DataType] = {
     "run_id": pl.String,
-    "backbone": pl.String,            # "smolvla" | "pi05"
+    "backbone": pl.String,            # a graftcache.backbone_table.BACKBONES name, e.g. "smolvla"
+    "backbone_params": pl.Int64,      # parameters of the policy as loaded (before the graft): the analysis
+                                      # orders backbones by it (graftcache/analysis/ladder.py)
     "policy": pl.String,              # hub id, local path or "tiny"
     "policy_sha256": pl.String,
     "encoder": pl.String,             # registry name; native controls: the tower's name, e.g. "smolvla-native"
@@ -57,6 +59,10 @@ SCHEMA: dict[str, pl.DataType] = {
     "eval_mse_first": pl.Float64,     # first action of the chunk, normalised units
     "eval_mse_raw": pl.Float64,       # full chunk, raw action units
     "eval_mse_episodes": pl.List(pl.Float64),  # per held-out episode (episode order), for bootstraps
+    "eval_ci_mse": pl.Float64,        # critical-interval MSE (graftcache/critical.py), normalised units; null:
+                                      # no scored chunk reached a critical step
+    "eval_ci_mse_episodes": pl.List(pl.Float64),  # CI-MSE per held-out episode, in eval_mse_episodes' order
+                                      # (null for an episode without a critical step)
     "n_eval_frames": pl.Int64,
     "n_eval_episodes": pl.Int64,
     "eval_split_seed": pl.Int64,
@@ -79,7 +85,8 @@ CONTROLS_NATIVE = ("native",)
 
 # Columns added to SCHEMA after results files were first written: reading an older file adds them as nulls, so
 # its cells are still skipped and new rows can still be appended to it.
-ADDED_COLUMNS = ("numerics_drift", "buffer_mib", "camera_map")
+ADDED_COLUMNS = ("numerics_drift", "buffer_mib", "camera_map", "backbone_params", "eval_ci_mse",
+                 "eval_ci_mse_episodes")
 
 # What a report needs of a table: enough to place every MSE in the (backbone, suite, encoder, control, seed)
 # grid. Tables from older versions, other tools or a paper need only these (conform fills the other SCHEMA

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import shutil
 from contextlib import closing
 from pathlib import Path
@@ -16,6 +17,7 @@ import torch
 from helpers.backbones import tiny
 from helpers.caches import rekeyed
 from helpers.datasets import Written
+from safetensors import safe_open
 from safetensors.torch import load_file
 
 from graftcache import results
@@ -66,6 +68,11 @@ class World:
                     results=str(self.root / "results.parquet"), out=str(self.root / "runs"), command="pytest")
         return FitRequest(**{**base, **kw})
 
+    def policy_params(self, backbone: str) -> int:
+        """Parameters of a saved policy counted from its weights file's tensor shapes (not by graftcache)."""
+        with safe_open(self.policies[backbone] / "model.safetensors", "pt") as f:
+            return sum(math.prod(f.get_slice(k).get_shape()) for k in f.keys())
+
 
 @pytest.fixture(scope="module")
 def world(v3_video: Written, tmp_path_factory: pytest.TempPathFactory) -> World:
@@ -92,6 +99,10 @@ def test_every_control_writes_one_schema_valid_row(world: World, tmp_path: Path)
         assert row["random_init"] and row["suite"] == "libero_spatial" and row["n_eval_frames"] == 4
         assert np.isfinite(row["eval_mse"]) and row["eval_mse_raw"] >= 0 and row["n_eval_episodes"] == 1
         assert row["policy_sha256"] and row["graftcache_version"] and row["device"] == "cpu"
+        assert len(row["eval_ci_mse_episodes"]) == row["n_eval_episodes"]
+        assert row["eval_ci_mse"] is None or np.isfinite(row["eval_ci_mse"])
+    # the policy as loaded, counted before the graft: every control of one backbone records the same size
+    assert {r["backbone_params"] for r in by.values()} == {world.policy_params("smolvla")}
     # Prismatic's habit: every cell logs which modules are frozen and which train
     assert sum(line.startswith("cell ") and "graft projector" in line for line in lines) == 1 + len(CONTROLS)
     lora_log = next(line for line in lines if f"cell {by['lora']['run_id']}" in line)

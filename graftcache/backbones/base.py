@@ -301,6 +301,14 @@ class BackboneAdapter(GraftSurgery, PromptBatches, FlowObjective, ABC):
         return connector(tower(pixels.to(tower.dtype)).last_hidden_state).float()
 
 
+    @functools.cached_property
+    def n_params(self) -> int:
+        """Parameters of the policy as loaded (shared ones once), what the analysis orders backbones by; read
+        before the first graft, which swaps the tower and connector for a pass-through and a projector."""
+        if self.grafted:
+            raise BackboneError(f"{self.name}: count the parameters before graft() replaces the vision tower")
+        return sum(p.numel() for p in self.policy.parameters())
+
     @property
     def policy_sha256(self) -> str:
         """sha256 of the policy weights as loaded/built (pinned before graft() changes the modules)."""

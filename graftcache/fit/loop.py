@@ -127,4 +127,4 @@ def evaluate(adapter, low: LowDim, chunks: Iterator[Chunk], cams: Mapping[str, s
     pred, target = torch.cat(preds)[torch.from_numpy(order)], torch.cat(targets)[torch.from_numpy(order)]
     pred_raw = adapter.unnormalize(pred.to(device)).float().cpu()
     actions, pad = low.action_chunks(pos)
-    return score_chunks(pred, target, pred_raw, actions, pad, low.episode_index[pos])
+    return score_chunks(pred, target, pred_raw, actions, pad, low.episode_index[pos], critical=low.critical_chunks(pos))
