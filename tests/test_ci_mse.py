@@ -46,7 +46,7 @@ def _low(window: int) -> LowDim:
 def test_ci_mse_by_hand():
     low = _low(window=1)
     pos = np.arange(3)
-    actions, pad = low.action_chunks(pos)
+    _, pad = low.action_chunks(pos)
     critical = low.critical_chunks(pos)
     # steps 0-3, 6-9 and 11, 12, 13, 13 (padded): critical are 2, 3 and 8, 9
     assert critical.tolist() == [[False, False, True, True], [False, False, True, True], [False] * 4]

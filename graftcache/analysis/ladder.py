@@ -11,6 +11,7 @@ fallback is a note the report prints; a backbone with neither is an error naming
 from __future__ import annotations
 
 from dataclasses import dataclass
+from itertools import pairwise
 
 import polars as pl
 
@@ -38,7 +39,7 @@ class Ladder:
     @property
     def steps(self) -> list[tuple[str, str]]:
         """Adjacent rungs, (smaller, next larger), bottom to top."""
-        return list(zip(self.backbones, self.backbones[1:]))
+        return list(pairwise(self.backbones))
 
     @property
     def gap(self) -> str | None:
@@ -85,7 +86,7 @@ def backbone_ladder(results: pl.DataFrame) -> Ladder:
     params = {b: n for b, (n, _) in found.items()}
     order = tuple(sorted(params, key=lambda b: (params[b], b)))
     notes = [note for _, note in found.values() if note]
-    for smaller, larger in zip(order, order[1:]):
+    for smaller, larger in pairwise(order):
         if params[smaller] == params[larger]:
             notes.append(f"{smaller} and {larger} have the same parameter count ({params[smaller]}): ordered by name")
     return Ladder(order, params, tuple(notes))

@@ -6,6 +6,7 @@ import argparse
 import shlex
 import sys
 
+from graftcache.analysis.scores import SCORES
 from graftcache.results import REPORT_COLUMNS
 
 
@@ -18,11 +19,16 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                        "per-episode MSEs the bootstrap is seed-level, and the report says so.")
     p.add_argument("results", help="results Parquet file (written by fit/sweep/demo, or any table with the "
                    "columns above)")
-    p.add_argument("--out", default="report", help="output folder (default: report/)")
+    p.add_argument("--out", default="report", help="output folder (default: report/); transfer.csv, one row per "
+                   "transfer verdict, is written there too")
+    p.add_argument("--score", choices=tuple(SCORES), default="mse",
+                   help="rank encoders by offline action MSE (mse, the default) or critical-interval MSE (ci-mse: "
+                   "the error near gripper open/close transitions); where the table holds both, the report "
+                   "shows where the two rankings disagree")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     from graftcache.report import report_command
 
-    return report_command(args.results, args.out, command=shlex.join(["graftcache", *sys.argv[1:]]))
+    return report_command(args.results, args.out, command=shlex.join(["graftcache", *sys.argv[1:]]), score=args.score)
