@@ -142,7 +142,8 @@ def headline_sentences(a: A.Analysis) -> list[str]:
             where = f"the ranking breaks at {direction(x, y)}"
         else:
             where = "the ranking breaks at no rung that could be judged"
-        unjudged = f" ({_counted(h['open_rungs'], 'rung')} below it could not be judged)" if h["open_rungs"] else ""
+        below = " below it" if h["break_at"] else ""
+        unjudged = f" ({_counted(h['open_rungs'], 'rung')}{below} could not be judged)" if h["open_rungs"] else ""
         out.append(f"{first} Rung by rung ({rungs}): {where}{unjudged}.")
     return out
 
