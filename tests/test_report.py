@@ -107,6 +107,7 @@ def test_one_backbone_says_transfer_needs_two(tmp_path):
     md = paths.markdown.read_text()
     assert "The transfer question needs at least two backbones with valid plain-graft rows; present: SmolVLA" in md
     assert "ranking transfers" not in md and "Seed-level agreement" not in md
+    assert paths.transfer.read_text() == ",".join(report.TRANSFER_CSV_COLUMNS) + "\n"  # no pair, no verdict
     assert sorted(p.name for p in paths.figures) == ["controls.png", "mse.png"]
 
 
@@ -151,11 +152,12 @@ def test_near_tie_band_is_reported_as_such(tmp_path):
     assert "Other verdicts — near-tie band (not a transfer): 1 comparison, 0 cells; does not transfer:" in md
 
 
-def test_minimal_schema_file_reports_with_a_seed_level_bootstrap(tmp_path):
+def test_minimal_schema_file_reports_with_a_seed_level_bootstrap(tmp_path, capsys):
     path = tmp_path / "paper.parquet"
     foreign = pl.lit("Table 2").alias("source")  # a column graftcache does not know
     minimal_table(NEAR_TIE_MSE).with_columns(foreign).write_parquet(path)
     assert report.report_command(path, tmp_path / "out") == 0
+    assert "note: pi05: no row records backbone_params" in capsys.readouterr().err
     md = (tmp_path / "out" / "report.md").read_text()
     assert "- Per-episode MSEs: none (seed-level bootstrap, see Method)." in md
     assert "- Seed-level bootstrap: no row carries per-episode MSEs (`eval_mse_episodes`)" in md

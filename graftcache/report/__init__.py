@@ -7,6 +7,7 @@ sentences (sentences.py) and tables (tables.py) and draw figures (figures.py), a
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -50,6 +51,7 @@ class ReportPaths:
     html: Path
     figures: tuple[Path, ...]
     transfer: Path  # transfer.csv: one row per verdict (graftcache.report.transfer_csv)
+    notes: tuple[str, ...] = ()  # how the backbones were ordered where the rows did not say (also in the report)
 
 
 def write_report(
@@ -84,7 +86,7 @@ def write_report(
     page.write_text(render_html(blocks, out, TITLE), encoding="utf-8")
     transfer_table(a).write_csv(out / TRANSFER_CSV)
     figures = tuple(out / b.name for b in blocks if isinstance(b, Image))
-    return ReportPaths(md, page, figures, out / TRANSFER_CSV)
+    return ReportPaths(md, page, figures, out / TRANSFER_CSV, a.ladder.notes)
 
 
 def report_command(results_path: str | Path, out_dir: str | Path, *, command: str | None = None,
@@ -98,5 +100,7 @@ def report_command(results_path: str | Path, out_dir: str | Path, *, command: st
     path = Path(results_path)
     cited = command or f"graftcache report {path} --out {out_dir}"
     paths = write_report(path, out_dir, commands={"report": cited}, score=score)
+    for note in paths.notes:
+        print(f"note: {note}", file=sys.stderr)
     print(f"report: {paths.markdown}\n        {paths.html}\n        {paths.transfer}")
     return 0
