@@ -99,8 +99,10 @@ def test_every_control_writes_one_schema_valid_row(world: World, tmp_path: Path)
         assert row["random_init"] and row["suite"] == "libero_spatial" and row["n_eval_frames"] == 4
         assert np.isfinite(row["eval_mse"]) and row["eval_mse_raw"] >= 0 and row["n_eval_episodes"] == 1
         assert row["policy_sha256"] and row["graftcache_version"] and row["device"] == "cpu"
+        # the fixture's gripper commands are uniform in [-1, 1], so they open and close every few steps: every
+        # held-out chunk reaches a critical step
+        assert np.isfinite(row["eval_ci_mse"]) and np.isfinite(row["eval_ci_mse_episodes"]).all()
         assert len(row["eval_ci_mse_episodes"]) == row["n_eval_episodes"]
-        assert row["eval_ci_mse"] is None or np.isfinite(row["eval_ci_mse"])
     # the policy as loaded, counted before the graft: every control of one backbone records the same size
     assert {r["backbone_params"] for r in by.values()} == {world.policy_params("smolvla")}
     # Prismatic's habit: every cell logs which modules are frozen and which train
