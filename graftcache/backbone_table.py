@@ -10,6 +10,7 @@ from __future__ import annotations
 BACKBONES: dict[str, str] = {
     "smolvla": "graftcache.backbones.smolvla:SmolVLAAdapter",
     "pi05": "graftcache.backbones.pi05:PI05Adapter",
+    "xvla": "graftcache.backbones.xvla:XVLAAdapter",
 }
 
 #: A backbone's own vision tower is the encoder `<backbone>-native` (stage 1 caches it like any encoder).
