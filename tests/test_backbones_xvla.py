@@ -5,6 +5,7 @@ geometry on the meta device (0.9B parameters are never materialised here)."""
 
 from __future__ import annotations
 
+import json
 import math
 
 import pytest
@@ -12,6 +13,7 @@ import torch
 from helpers.backbones import ENC_DIM, fixed_noise_time, grafted, raw_features, raw_images, tiny
 
 from graftcache.backbones import load_backbone
+from graftcache.backbones.released import hub_cache, publish
 from graftcache.backbones.xvla import XVLAAdapter, conv_grid
 from graftcache.fit.controls import IdentityProjector
 from graftcache.graft import GraftProjector, feature_key
@@ -135,13 +137,19 @@ def test_lora_adapts_the_florence_encoder_and_reset_restores_the_policy() -> Non
     assert state_dict_sha256(adapter.policy) == sha
 
 
-def test_save_and_load_round_trip(tmp_path) -> None:
+def test_saved_tiny_loads_by_hub_id(tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Saved as lerobot saves a policy, placed in a hub cache snapshot, loaded offline by `org/name`."""
     adapter = tiny("xvla")
-    adapter.save(tmp_path / "p")
-    loaded = load_backbone("xvla", tmp_path / "p")
+    adapter.save(tmp_path / "stage")
+    cache = tmp_path / "hub"
+    with hub_cache(cache):
+        monkeypatch.setenv("HF_HUB_CACHE", str(cache))
+        snapshot = publish(tmp_path / "stage", "graftcache-tests/xvla-tiny", cache)
+        loaded = load_backbone("xvla", "graftcache-tests/xvla-tiny")
+        assert XVLAAdapter.read_native_grid("graftcache-tests/xvla-tiny") == (4, 4)
+        assert XVLAAdapter.read_cameras("graftcache-tests/xvla-tiny") == ("image", "image2")
+    assert (snapshot / "config.json").is_file() and json.loads((snapshot / "config.json").read_text())["type"] == "xvla"
     assert loaded.policy_sha256 == adapter.policy_sha256 and loaded.random_init
-    assert XVLAAdapter.read_native_grid(tmp_path / "p") == (4, 4)
-    assert XVLAAdapter.read_cameras(tmp_path / "p") == ("image", "image2")
     raw = raw_images(adapter, 2)
     noise, _ = fixed_noise_time(adapter, 2)
     torch.testing.assert_close(loaded.predict(loaded.prepare(raw), noise), adapter.predict(adapter.prepare(raw), noise))
