@@ -1,6 +1,6 @@
 """The zoo backbones end to end on the bundled LIBERO sample, in this process: `train-tiny`, `extract --encoder
 <name>-native` (and a candidate encoder), then `fit` with every control. Few steps and a strided subset of
-six episodes keep it cheap; what is checked is that each command runs the backbone's real code paths and
+four episodes keep it cheap; what is checked is that each command runs the backbone's real code paths and
 writes what the next one reads."""
 
 from __future__ import annotations
@@ -19,18 +19,18 @@ from graftcache.store import FeatureCache
 SAMPLE = Path(__file__).resolve().parents[1] / "data" / "libero_sample"
 ENCODER = "timm:vit_tiny_patch16_224"
 CONTROLS = ("native", "native-graft", "zero-image", "shuffled-image", "pool-2x2", "lora")
-SUBSET = ["--dataset", str(SAMPLE), "--episodes", "0-5", "--frame-stride", "4", "--num-workers", "0",
+SUBSET = ["--dataset", str(SAMPLE), "--episodes", "0-3", "--frame-stride", "8", "--num-workers", "0",
           "--batch-size", "16", "--no-progress"]
 #: backbone -> (native token grid, post-connector tokens per camera, LM width) of its tiny configuration
 TINY = {"xvla": ((4, 4), 17, 64)}
 
 
-@pytest.mark.slow  # ~1-2 min per backbone on 2 cores: 2 native steps, two small extractions, 7 tiny fits
+@pytest.mark.slow  # ~1-2 min per backbone on 2 cores: 1 native step, two small extractions, 7 tiny fits
 @pytest.mark.parametrize("name", sorted(TINY))
 def test_train_tiny_extract_native_and_fit_every_control(name: str, tmp_path: Path, capsys) -> None:
     grid, tokens, width = TINY[name]
     policy, cache, table = tmp_path / "policy", tmp_path / "cache", tmp_path / "results.parquet"
-    done = run_cli(["train-tiny", "--backbone", name, "--dataset", str(SAMPLE), "--steps", "2", "--out", str(policy),
+    done = run_cli(["train-tiny", "--backbone", name, "--dataset", str(SAMPLE), "--steps", "1", "--out", str(policy),
                     "--cache", str(cache)], capsys)
     assert done.code == 0, done.err[-2000:]
     record = json.loads((policy / "graftcache_pretrain.json").read_text())

@@ -31,7 +31,7 @@ from typing import Any
 import torch
 from torch import nn
 
-from graftcache.backbones.base import BackboneAdapter
+from graftcache.backbones.base import BackboneAdapter, is_empty_camera
 from graftcache.backbones.batches import ACTION_PAD
 from graftcache.backbones.tiny import TinySpec
 from graftcache.backbones.tiny_assets import PALIGEMMA_DIR
@@ -121,7 +121,7 @@ class XVLAAdapter(BackboneAdapter):
         so, else the first real camera's size as the dataset declares it."""
         size = config.resize_imgs_with_padding
         if size is None:
-            real = [f for k, f in config.image_features.items() if not k.rsplit(".", 1)[-1].startswith("empty_camera_")]
+            real = [f for k, f in config.image_features.items() if not is_empty_camera(k)]
             if not real:
                 raise BackboneError("xvla config declares no real camera")
             size = tuple(real[0].shape[-2:])
