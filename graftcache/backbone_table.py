@@ -10,6 +10,7 @@ from __future__ import annotations
 BACKBONES: dict[str, str] = {
     "smolvla": "graftcache.backbones.smolvla:SmolVLAAdapter",
     "pi05": "graftcache.backbones.pi05:PI05Adapter",
+    "xvla": "graftcache.backbones.xvla:XVLAAdapter",
 }
 
 #: Approximate parameter counts of the released policies (lerobot's docs), for results tables written before rows

@@ -15,11 +15,12 @@ from graftcache.graft import GraftProjector, IdentityProjector, feature_key
 pytestmark = pytest.mark.usefixtures("one_torch_thread")  # tests/fixtures/torch_threads.py
 
 NAMES = ("smolvla", "pi05")
+ZOO = ("xvla",)  # tested in their own files (tests/test_backbones_<name>.py)
 
 
 def test_registry_maps_names_to_adapters() -> None:
-    assert set(BACKBONES) == set(NAMES)
-    assert [get_backbone(n).name for n in NAMES] == list(NAMES)
+    assert set(BACKBONES) == set(NAMES + ZOO)
+    assert [get_backbone(n).name for n in NAMES + ZOO] == list(NAMES + ZOO)
     with pytest.raises(BackboneError, match="unknown backbone 'octo'"):
         get_backbone("octo")
 
