@@ -178,8 +178,8 @@ EXTRACT = "extract --encoder resnet18 --random-init --dataset {ds} --num-workers
 TIMM = "extract --encoder timm:resnet18 --dataset {ds} --num-workers 0 --no-progress --cache {root} --weights "
 
 PROBES: dict[str, Probe] = {
-    "extract --batch-size 0": Probe(EXTRACT + " --batch-size 0", ("--batch-size", "must be >= 1")),
-    "extract --block-frames 0": Probe(EXTRACT + " --block-frames 0", ("--block-frames", "must be >= 1")),
+    "extract --batch-size 0": Probe(EXTRACT + " --batch-size 0", ("--batch-size", "must be > 0")),
+    "extract --block-frames 0": Probe(EXTRACT + " --block-frames 0", ("--block-frames", "must be > 0")),
     "extract --episodes -1": Probe(EXTRACT + " --episodes -1", ("--episodes", "'-1'")),
     "extract --device foo": Probe(EXTRACT + " --device foo", ("foo",)),
     "timm weights of another model": Probe(TIMM + "{base}/wrong_arch.safetensors",

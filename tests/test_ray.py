@@ -110,7 +110,7 @@ def test_recipe_table_and_flags_choose_the_executor(tmp_path: Path, v2_pi: Writt
     assert main(["sweep", str(path), "--dry-run", "--executor", "local"]) == 0  # a flag given wins over the table
     assert "executor  local at ray://head:10001" in capsys.readouterr().out
     path.write_text(base + '[executor]\nexecutor = "slurm"\n')
-    with pytest.raises(RecipeError, match=r"r.toml \[executor\]: executor 'slurm': choose one of local, ray"):
+    with pytest.raises(RecipeError, match=r"r.toml \[executor\]: executor = 'slurm' is not one of local, ray"):
         load_recipe(path)
     path.write_text(base + "[executor]\ngpus_per_task = 1.5\n")
     with pytest.raises(RecipeError, match=r"\[executor\]: gpus_per_task = 1.5 must be between 0 and 1 or a whole"):

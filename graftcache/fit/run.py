@@ -128,8 +128,6 @@ class Fitter:
                  backbones: BackbonePool | None = None, numerics: dict[str, NumericsCheck] | None = None) -> None:
         """`backbones` and `numerics` (cache key -> verdict) may be shared by the Fitters of one process (a
         sweep), so each policy is loaded and each cache's numerics probe recomputed once per process."""
-        if req.objective not in OBJECTIVES:
-            raise FitError(f"--objective {req.objective!r}: choose one of {', '.join(OBJECTIVES)}")
         self.device = resolve_device(req.device)
         self.req = req = dataclasses.replace(req, compute_dtype=resolve_compute_dtype(req.compute_dtype, self.device))
         self.objective = OBJECTIVES[req.objective]
