@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any, Union
+from typing import Any
 
 #: The largest seed anything accepts: results store seeds as Int64 (graftcache.results.SCHEMA), and every RNG
 #: a seed feeds takes it, with the small offsets the fits add (torch.manual_seed up to 2**64 - 1,
@@ -44,7 +44,7 @@ class IntList:
 
 
 #: (test, why): the phrase, or a function that makes it, when the text lists what is only known on use.
-Rule = Union[tuple[Callable[[Any], bool], Union[str, Callable[[], str]]], IntList]
+Rule = tuple[Callable[[Any], bool], str | Callable[[], str]] | IntList
 
 POSITIVE: Rule = (lambda v: v > 0, "must be > 0")
 NON_NEGATIVE: Rule = (lambda v: v >= 0, "must be >= 0")

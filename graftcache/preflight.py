@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
-from typing import Any, TypeVar
+from typing import Any
 
 import polars as pl
 
@@ -28,9 +28,6 @@ from graftcache.pooling import format_grid, resolve_grids
 from graftcache.recipe import Recipe, RecipeError
 from graftcache.requests import ExtractRequest, FitRequest
 from graftcache.runtime import resolve_device
-
-R = TypeVar("R")
-
 
 def check_inputs(recipe: Recipe) -> list[str]:
     """Raise the first thing the sweep would refuse; return what was found, a line each, for the dry run."""
@@ -96,7 +93,7 @@ def _fit_request(recipe: Recipe, backbone: str, policy: str, encoder: str, suite
         command=f"graftcache sweep {recipe.path}", **recipe.fit))
 
 
-def _made(recipe: Recipe, section: str, build: Callable[[], R]) -> R:
+def _made[R](recipe: Recipe, section: str, build: Callable[[], R]) -> R:
     """The request `build` makes, its refusal (a RULE, a combination) naming the recipe and the section."""
     try:
         return build()

@@ -173,7 +173,8 @@ def check_sweep(recipe: Recipe) -> list[str]:
     return notes
 
 
-def run_sweep(recipe: Recipe, log: Callable[[str], None] = write, settings: ExecutorSettings | None = None) -> SweepState:
+def run_sweep(recipe: Recipe, log: Callable[[str], None] = write,
+              settings: ExecutorSettings | None = None) -> SweepState:
     """Policies, then caches, then every missing cell, on the executor `settings` name (default: the recipe's
     [executor] table); one progress bar over the grid's cells."""
     check_sweep(recipe)  # what a later step would refuse, refused before the first (what --dry-run runs)

@@ -43,7 +43,8 @@ DEFAULTS = {"top": "", "suites": '["libero_spatial"]', "seeds": "[0, 1]", "contr
 #: (recipe changes, what the one stderr line must contain). The v2_pi fixture holds two libero_spatial episodes
 #: (0 and 2, one task) and one libero_object episode (1).
 BAD = {
-    "negative_seed": ({"seeds": "[0, -1]"}, "seeds = (0, -1) has seed -1: each must be an integer in 0..9223372036854775807"),
+    "negative_seed": ({"seeds": "[0, -1]"},
+                      "seeds = (0, -1) has seed -1: each must be an integer in 0..9223372036854775807"),
     "repeated_seed": ({"seeds": "[0, 1, 1]"}, "seeds = (0, 1, 1) repeats seed 1: each must be listed once"),
     "path_suite": ({"suites": '["../../x"]'}, "suites: suite = '../../x' is not a suite; choose one of libero_spatial"),
     "repeated_suite": ({"suites": '["libero_spatial", "libero_spatial"]'}, "suites lists 'libero_spatial' twice"),
@@ -51,7 +52,8 @@ BAD = {
                          "#1 and #2 of [[encoders]] are the same; list each once"),
     "repeated_backbone": ({"backbones": '[[backbones]]\nname = "smolvla"\npolicy = "tiny"\n'},
                           "#1 and #2 of [[backbones]] are the same; list each once"),
-    "repeated_control": ({"controls": '["native", "native"]'}, "controls = ('native', 'native') must name each control once"),
+    "repeated_control": ({"controls": '["native", "native"]'},
+                         "controls = ('native', 'native') must name each control once"),
     "unknown_backbone": ({"backbones": '[[backbones]]\nname = "pi0"\n'}, "[[backbones]] #2: unknown backbone 'pi0'"),
     "suite_not_in_dataset": ({"suites": '["libero_goal"]'},
                              "has no episode of 'libero_goal' (present: libero_object, libero_spatial)"),

@@ -12,13 +12,10 @@ from __future__ import annotations
 import argparse
 import dataclasses
 from collections.abc import Callable
-from typing import Any, TypeVar
+from typing import Any
 
 from graftcache.codecs import BadText, int_list, seeds_value, shard_value  # noqa: F401  (the flags' parsers)
 from graftcache.settings import Declared, declared, shown, value_problem
-
-R = TypeVar("R")
-
 
 class LazyText(str):
     """Help text made only when help is printed: argparse %-formats every help text (and a description holding
@@ -116,7 +113,7 @@ def given(request: type, args: argparse.Namespace) -> dict[str, Any]:
     return {n: v for n, v in vars(args).items() if n in declared(request)}
 
 
-def request_from(request: type[R], args: argparse.Namespace, **values: Any) -> R:
+def request_from[R](request: type[R], args: argparse.Namespace, **values: Any) -> R:
     """The request whose fields are the namespace's values of the same name, then `values`."""
     names = set(declared(request)) - set(values)
     return request(**{n: v for n, v in vars(args).items() if n in names}, **values)

@@ -351,7 +351,8 @@ class Fitter:
             "eval_mse_first": score.mse_first, "eval_mse_raw": score.mse_raw,
             "eval_mse_episodes": [score.per_episode[e] for e in sorted(score.per_episode)],
             "n_eval_frames": score.n_frames, "n_eval_episodes": len(score.per_episode), "wall_s": wall,
-            "device": str(self.device), "random_init": bool(mat.cache.manifest.get("random_init") or adapter.random_init),
+            "device": str(self.device),
+            "random_init": bool(mat.cache.manifest.get("random_init") or adapter.random_init),
             "n_dropped_nonfinite": mat.dropped + len(stats.dropped), "numerics_drift": self._drift(mat),
             "camera_map": format_camera_map(self.cameras), "graftcache_version": graftcache.__version__,
         })
