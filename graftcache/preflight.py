@@ -5,8 +5,8 @@ after extracting), found from the recipe, the dataset's metadata and the encoder
 `run_sweep` runs it first and `graftcache sweep --dry-run` runs it and stops, so a recipe the
 dry run passes is not refused by these checks halfway through the real run. What it builds to check is what
 the run builds: the ExtractRequest of every cache and the FitRequest of every (backbone, encoder, suite),
-whose RULES apply; the suites' held-out split (graftcache.fit.data.split_episodes) on the dataset's
-episodes; every encoder's spec and each extraction's memory (graftcache.extract.check_memory).
+whose fields' rules apply (graftcache/requests.py); the suites' held-out split (graftcache.fit.data.split_episodes)
+on the dataset's episodes; every encoder's spec and each extraction's memory (graftcache.extract.check_memory).
 """
 
 from __future__ import annotations
@@ -94,7 +94,7 @@ def _fit_request(recipe: Recipe, backbone: str, policy: str, encoder: str, suite
 
 
 def _made[R](recipe: Recipe, section: str, build: Callable[[], R]) -> R:
-    """The request `build` makes, its refusal (a RULE, a combination) naming the recipe and the section."""
+    """The request `build` makes, its refusal (a field's rule, a combination) naming the recipe and the section."""
     try:
         return build()
     except GraftcacheError as e:
