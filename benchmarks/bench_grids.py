@@ -34,7 +34,7 @@ from pathlib import Path
 
 from common import DEFAULT_DATASET, machine
 
-from graftcache.cli.common import int_list
+from graftcache.codecs import int_list
 from graftcache.encoders import list_encoders
 from graftcache.extract import ExtractRequest, extract
 from graftcache.fit.controls import get_control

@@ -13,7 +13,7 @@ from helpers.probes import run_cli
 
 from graftcache import runtime
 from graftcache.cli import build_parser
-from graftcache.cli.common import int_list, seeds_value
+from graftcache.codecs import int_list, seeds_value
 from graftcache.errors import GraftcacheError
 from graftcache.pretrain import TinyTrainConfig, warmup_cosine
 from graftcache.progress import LogProgress, progress

@@ -14,7 +14,7 @@ import dataclasses
 from collections.abc import Callable
 from typing import Any
 
-from graftcache.codecs import BadText, int_list, seeds_value, shard_value  # noqa: F401  (the flags' parsers)
+from graftcache.codecs import BadText
 from graftcache.settings import Declared, declared, shown, value_problem
 
 class LazyText(str):
