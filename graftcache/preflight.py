@@ -29,6 +29,7 @@ from graftcache.recipe import Recipe, RecipeError
 from graftcache.requests import ExtractRequest, FitRequest
 from graftcache.runtime import resolve_device
 
+
 def check_inputs(recipe: Recipe) -> list[str]:
     """Raise the first thing the sweep would refuse; return what was found, a line each, for the dry run."""
     device = resolve_device(recipe.device)

@@ -31,8 +31,17 @@ from fixtures.s3 import free_port
 from helpers.backbones import tiny
 from helpers.caches import assert_same_cache, folder_files
 from helpers.datasets import TASKS, V3_CAMERAS, Written, drop_episodes, set_episode_meta
-from helpers.probes import (Outcome, Snapshot, alive, assert_one_line_error, assert_succeeded, children, finish,
-                            run_cli, start_process)
+from helpers.probes import (
+    Outcome,
+    Snapshot,
+    alive,
+    assert_one_line_error,
+    assert_succeeded,
+    children,
+    finish,
+    run_cli,
+    start_process,
+)
 from safetensors.torch import save_file
 
 from graftcache import results

@@ -17,6 +17,7 @@ from typing import Any
 from graftcache.codecs import BadText
 from graftcache.settings import Declared, declared, shown, value_problem
 
+
 class LazyText(str):
     """Help text made only when help is printed: argparse %-formats every help text (and a description holding
     "%(prog)") when it prints them, and this text is made then. For help that lists what a heavy module registers

@@ -26,9 +26,10 @@ import shutil
 import stat
 import uuid
 from abc import ABC, abstractmethod
+from collections.abc import Callable
 from contextlib import AbstractContextManager
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 from zarr.abc.store import Store
 
