@@ -203,7 +203,8 @@ def bench_backbone(name: str, a: argparse.Namespace, device: torch.device, dtype
              **measure(flow_step(adapter, cached, frames, b, dtype, g), a.repeats, memory)})
         log({"backbone": name, "batch": b, "phase": "cached predict",
              **measure(predict(adapter, cached, frames, b, dtype, g), a.repeats, memory)})
-    del adapter, pool
+    del adapter
+    pool = None  # frees the rows (`cached`, done with, reads the same variable)
     gc.collect()  # the graft's instance override makes policy and adapter a cycle
     if device.type == "cuda":
         torch.cuda.empty_cache()

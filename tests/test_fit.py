@@ -168,8 +168,8 @@ def test_rerun_is_bit_identical_and_a_finished_cell_is_skipped(world: World, tmp
 def test_rows_do_not_depend_on_how_many_processes_read_the_cache(world: World, tmp_path: Path) -> None:
     """The stream's chunk order is fixed by the seed, not by the readers: in-process and two workers agree bit
     for bit (and the cell, hence the run_id, does not name the worker count)."""
-    rows = {w: Fitter(world.request(controls=("shuffled-image",), num_workers=w, results=str(tmp_path / f"{w}.parquet")),
-                      log=_quiet).run() for w in (0, 2)}
+    rows = {w: Fitter(world.request(controls=("shuffled-image",), num_workers=w,
+                                    results=str(tmp_path / f"{w}.parquet")), log=_quiet).run() for w in (0, 2)}
     for a, b in zip(rows[0], rows[2], strict=True):
         assert a["run_id"] == b["run_id"] and a["train_loss_final"] == b["train_loss_final"]
         assert a["eval_mse"] == b["eval_mse"] and a["eval_mse_episodes"] == b["eval_mse_episodes"]
@@ -193,7 +193,8 @@ def test_align_fits_in_closed_form(world: World, tmp_path: Path) -> None:
 
 
 def test_errors_name_the_problem(world: World, v3_image: Written, tmp_path: Path) -> None:
-    with pytest.raises(FitError, match=r"suite 'libero_goal' has no episodes \(present: libero_object, libero_spatial\)"):
+    with pytest.raises(FitError,
+                       match=r"suite 'libero_goal' has no episodes \(present: libero_object, libero_spatial\)"):
         Fitter(world.request(suite="libero_goal"), log=_quiet)
     with pytest.raises(FitError, match="unknown control 'blur'"):
         Fitter(world.request(controls=("blur",)), log=_quiet)
@@ -289,7 +290,8 @@ def test_frame_stride_thins_features_not_actions(world: World, tmp_path: Path) -
 def test_native_grid_is_read_from_the_config_without_loading(world: World, name: str) -> None:
     from graftcache.backbones import get_backbone
 
-    assert get_backbone(name).read_native_grid(world.policies[name]) == load_backbone(name, world.policies[name]).native_grid
+    loaded = load_backbone(name, world.policies[name])
+    assert get_backbone(name).read_native_grid(world.policies[name]) == loaded.native_grid
 
 
 def test_cell_run_ids_are_pinned() -> None:
@@ -342,7 +344,8 @@ def test_a_batch_past_memory_is_refused_before_training(world: World, tmp_path: 
     assert line.startswith("graftcache fit: error: a training step of --batch-size 100000 (")
     assert "a frame, measured on a 2-frame step of features image 16x192, image2 16x192)" in line
     need = line.split("needs about ")[1].split(",")[0]
-    assert float(need.split()[0]) * 1024 ** ["MiB", "GiB", "TiB"].index(need.split()[1]) >= 100000 * 2 * 16 * 192 * 4 / 2**20
+    amount, unit = need.split()[:2]
+    assert float(amount) * 1024 ** ["MiB", "GiB", "TiB"].index(unit) >= 100000 * 2 * 16 * 192 * 4 / 2**20
     have, limit = budget.available_memory("cpu")
     assert f"but {limit} is " in line and line.endswith("; lower --batch-size") and not out.exists()
 

@@ -105,7 +105,8 @@ def test_extract_grids_default_to_native_and_explicit_ones_must_cover_the_fits(t
     short = load_recipe(_write(tmp_path, base + '[extract]\ngrids = ["2x2"]\n'))
     with pytest.raises(GraftcacheError, match=r"recipe.toml \[extract\]: grids = \['2x2'\] lacks 4x4, which the fits"):
         encoder_grids(short, state)
-    with pytest.raises(RecipeError, match=r"recipe.toml \[extract\]: grids = \('4y4',\) must name grids: native or HxW"):
+    with pytest.raises(RecipeError,
+                       match=r"recipe.toml \[extract\]: grids = \('4y4',\) must name grids: native or HxW"):
         load_recipe(_write(tmp_path, base + '[extract]\ngrids = ["4y4"]\n'))
     with pytest.raises(RecipeError, match=r"\[extract\]: grids = \(\(4, 4\),\) is not a tuple"):
         load_recipe(_write(tmp_path, base + '[extract]\ngrids = [[4, 4]]\n'))
@@ -123,7 +124,8 @@ def test_small_sweep_end_to_end_then_rerun_skips(tmp_path: Path, v3_video: Writt
                                                  capsys: pytest.CaptureFixture) -> None:
     out = tmp_path / "results.parquet"
     top = f'cache = "{tmp_path / "cache"}"\n'  # top-level keys go before the first table
-    text = top + BASE.format(dataset=v3_video.root, results=out, controls='["native", "pool-2x2"]') + textwrap.dedent("""
+    base = BASE.format(dataset=v3_video.root, results=out, controls='["native", "pool-2x2"]')
+    text = top + base + textwrap.dedent("""
         [extract]
         batch_size = 8
         num_workers = 0

@@ -257,7 +257,8 @@ class BackboneAdapter(GraftSurgery, PromptBatches, FlowObjective, ABC):
             raise BackboneError(f"{self.name}: the native tower was removed by graft(); read it before grafting")
         if images.ndim != 4 or images.shape[1] != 3:
             raise BackboneError(f"{self.name}: native images must be [B, 3, H, W] in [0, 1], got {tuple(images.shape)}")
-        prepared, _ = getattr(type(self.policy), self.image_method)(self.policy, {self.camera_keys[0]: images.to(self.device)})
+        prepare = getattr(type(self.policy), self.image_method)
+        prepared, _ = prepare(self.policy, {self.camera_keys[0]: images.to(self.device)})
         return prepared[0]
 
     @property
