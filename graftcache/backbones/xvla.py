@@ -85,7 +85,8 @@ class XVLAAdapter(BackboneAdapter):
             if _is_vendored_florence_state_dict(shapes):
                 meta = {k: torch.empty(v, device="meta") for k, v in shapes.items()}
                 shapes = {k: tuple(t.shape) for k, t in _remap_vendored_florence_state_dict(meta).items()}
-            shared, embed = "model.vlm.language_model.shared.weight", "model.vlm.language_model.encoder.embed_tokens.weight"
+            shared = "model.vlm.language_model.shared.weight"
+            embed = "model.vlm.language_model.encoder.embed_tokens.weight"
             for a, b in ((shared, embed), (embed, shared)):
                 if a in shapes and b not in shapes:
                     shapes[b] = shapes[a]
