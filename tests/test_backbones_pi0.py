@@ -4,6 +4,7 @@ parameters are never materialised here: shapes only, counted against the archite
 
 from __future__ import annotations
 
+import itertools
 import json
 
 import numpy as np
@@ -56,7 +57,7 @@ def test_fast_loss_is_lerobots_cross_entropy_and_trains_the_projector() -> None:
         optimiser.step()
         losses.append(value.item())
     # image tokens move a random tiny LM's FAST-token predictions only a little: steadily, though
-    assert all(b < a for a, b in zip(losses, losses[1:])) and losses[-1] < 0.98 * losses[0], losses
+    assert all(b < a for a, b in itertools.pairwise(losses)) and losses[-1] < 0.98 * losses[0], losses
     with pytest.raises(BackboneError, match="no flow loss"):
         adapter._flow_losses(batch, None, None)
 
