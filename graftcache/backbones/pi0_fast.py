@@ -27,6 +27,8 @@ from __future__ import annotations
 
 import contextlib
 import math
+import os
+import sys
 from collections.abc import Iterator, Mapping
 from pathlib import Path
 from types import SimpleNamespace
@@ -89,9 +91,24 @@ def fit_tiny_fast(stats: dict, spec: TinySpec):
     shape = (TINY_FAST_CORPUS, spec.chunk_size, spec.action_dim)
     walk = rng.uniform(lo, hi, (shape[0], 1, shape[2])) + np.cumsum(rng.normal(0, 0.05, shape) * (hi - lo), axis=1)
     chunks = [*np.clip(walk, lo, hi), np.full(shape[1:], bound), np.full(shape[1:], -bound)]
-    with quiet():
+    with quiet(), _stdout_fd_silenced():
         return UniversalActionProcessor.fit(chunks, scale=scale, vocab_size=TINY_FAST_VOCAB,
                                             time_horizon=spec.chunk_size, action_dim=spec.action_dim)
+
+
+@contextlib.contextmanager
+def _stdout_fd_silenced() -> Iterator[None]:
+    """The BPE trainer's progress bar (on in lerobot's `fit`) writes blank lines to file descriptor 1 itself,
+    past Python's sys.stdout, into the stdout that commands keep for their results."""
+    sys.stdout.flush()
+    saved, devnull = os.dup(1), os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, 1)
+    try:
+        yield
+    finally:
+        os.dup2(saved, 1)
+        os.close(saved)
+        os.close(devnull)
 
 
 @contextlib.contextmanager

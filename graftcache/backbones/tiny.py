@@ -10,12 +10,14 @@ gates that start open.
 - pi0.5: SigLIP 96 wide x 2 layers at 56 px / patch 14 -> 4x4 = 16 tokens per camera, Gemma 128
   wide x 3 layers, expert 64 wide x 3 layers (8 heads x 1 KV head, as lerobot hard-codes),
   vocabulary shrunk from 257152 to 1024 (the tiny tokenizer has 771 tokens).
+- pi0 (graftcache.backbones.pi0) and pi0-FAST (graftcache.backbones.pi0_fast) take pi0.5's geometry;
+  pi0-FAST's vocabulary is the tiny tokenizer's 771, so every token it generates decodes.
 
 pi0.5 hard-codes its sizes (`get_gemma_config` knows two variants; PaliGemma's projector width and
 the 257152-token vocabulary are fixed in `PaliGemmaWithExpertModel.__init__`, lerobot 0.6
 modeling_pi05.py:158-242), so `pi05_tiny_sizes` rebinds three module-level names of lerobot's
 modeling_pi05 (the variant table and its PiGemma model classes) while a tiny policy is constructed or
-loaded. A tiny checkpoint folder carries `graftcache_tiny.json` so loading knows to do the same.
+loaded (pi0's and pi0-FAST's modules build PaliGemma the same way). A tiny checkpoint folder carries `graftcache_tiny.json` so loading knows to do the same.
 """
 
 from __future__ import annotations
