@@ -22,7 +22,7 @@ CONTROLS = ("native", "native-graft", "zero-image", "shuffled-image", "pool-2x2"
 SUBSET = ["--dataset", str(SAMPLE), "--episodes", "0-3", "--frame-stride", "8", "--num-workers", "0",
           "--batch-size", "16", "--no-progress"]
 #: backbone -> (native token grid, post-connector tokens per camera, LM width) of its tiny configuration
-TINY = {"xvla": ((4, 4), 17, 64)}
+TINY = {"xvla": ((4, 4), 17, 64), "pi0": ((4, 4), 16, 128), "pi0_fast": ((4, 4), 16, 128)}
 
 
 @pytest.mark.slow  # ~1-2 min per backbone on 2 cores: 1 native step, two small extractions, 7 tiny fits
