@@ -140,7 +140,8 @@ def _released(name: str):
         from lerobot.policies.pi0_fast.modeling_pi0_fast import PI0FastPolicy
 
         config = PI0FastConfig(dtype="bfloat16", device="cpu", input_features=inputs, output_features=outputs)
-        fast = fit_tiny_fast(unit_stats(LIBERO), TinySpec(chunk_size=config.chunk_size))  # construction reads none of it
+        # construction reads none of the tokenizer's fit
+        fast = fit_tiny_fast(unit_stats(LIBERO), TinySpec(chunk_size=config.chunk_size))
         with policy_tokenizers(fast, PALIGEMMA_DIR):
             policy = _construct_on_meta(PI0FastPolicy, config, torch.bfloat16)
     adapter = get_backbone(name)(policy, None, None, source="meta", random_init=True)
@@ -152,7 +153,8 @@ def _released(name: str):
     ("pi0", ("image", "image2", "empty_camera_0"), {
         "action expert": EXPERT, "state projection": 32 * 1024 + 1024,  # max_state_dim 32 -> expert width
         # action_in_proj, action_out_proj (max_action_dim 32 <-> 1024), action_time_mlp_in (2048 -> 1024), _out
-        "action/time projections": (32 * 1024 + 1024) + (1024 * 32 + 32) + (2048 * 1024 + 1024) + (1024 * 1024 + 1024)}),
+        "action/time projections": (32 * 1024 + 1024) + (1024 * 32 + 32) + (2048 * 1024 + 1024)
+        + (1024 * 1024 + 1024)}),
     ("pi0_fast", ("image", "image2"), {}),
 ])
 def test_released_geometry_on_the_meta_device(name: str, slots: tuple[str, ...], others: dict) -> None:

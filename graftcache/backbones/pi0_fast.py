@@ -141,7 +141,8 @@ def _processors(config, stats: dict, fast):
     text = AutoTokenizer.from_pretrained(config.text_tokenizer_name)
     saved = pf.TokenizerProcessorStep, pf.ActionTokenizerProcessorStep
     pf.TokenizerProcessorStep = functools.partial(TokenizerProcessorStep, tokenizer=text)
-    pf.ActionTokenizerProcessorStep = functools.partial(ActionTokenizerProcessorStep, action_tokenizer_input_object=fast)
+    pf.ActionTokenizerProcessorStep = functools.partial(ActionTokenizerProcessorStep,
+                                                        action_tokenizer_input_object=fast)
     try:
         return pf.make_pi0_fast_pre_post_processors(config, dataset_stats=stats)
     finally:

@@ -17,7 +17,8 @@ pi0.5 hard-codes its sizes (`get_gemma_config` knows two variants; PaliGemma's p
 the 257152-token vocabulary are fixed in `PaliGemmaWithExpertModel.__init__`, lerobot 0.6
 modeling_pi05.py:158-242), so `pi05_tiny_sizes` rebinds three module-level names of lerobot's
 modeling_pi05 (the variant table and its PiGemma model classes) while a tiny policy is constructed or
-loaded (pi0's and pi0-FAST's modules build PaliGemma the same way). A tiny checkpoint folder carries `graftcache_tiny.json` so loading knows to do the same.
+loaded (pi0's and pi0-FAST's modules build PaliGemma the same way). A tiny checkpoint folder carries
+`graftcache_tiny.json` so loading knows to do the same.
 """
 
 from __future__ import annotations
@@ -128,7 +129,8 @@ def paligemma_tiny_tokenizer():
 
 
 @contextlib.contextmanager
-def pi05_tiny_sizes(geometry: Pi05TinyGeometry, modeling: str = "lerobot.policies.pi05.modeling_pi05") -> Iterator[None]:
+def pi05_tiny_sizes(geometry: Pi05TinyGeometry,
+                    modeling: str = "lerobot.policies.pi05.modeling_pi05") -> Iterator[None]:
     """Construct lerobot PaliGemma policies at `geometry` instead of gemma_2b / gemma_300m / So400m.
 
     `modeling` is the lerobot module whose names are rebound: pi0.5's, pi0's or pi0-FAST's (all three build
