@@ -40,7 +40,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from common import DEFAULT_DATASET, machine, median_seconds, warm_page_cache  # noqa: E402
 
-from graftcache.backbones import load_backbone  # noqa: E402
+from graftcache.backbones import get_backbone, load_backbone  # noqa: E402
 from graftcache.backbones.released import BUILDERS, LIBERO, built_here, hub_cache  # noqa: E402
 from graftcache.backbones.surgery import freeze_all_but  # noqa: E402
 from graftcache.datasets import open_dataset  # noqa: E402
@@ -174,12 +174,24 @@ def current_rss_gb() -> float:
     return int(line.split()[1]) * 1024 / 1e9
 
 
+def import_policy_code(name: str) -> None:
+    """Import lerobot's policy module and what it pulls in (transformers, custom kernels: tens of seconds on a
+    busy machine), so `load` times the load alone."""
+    from lerobot.policies.factory import get_policy_class
+
+    get_backbone(name)
+    get_policy_class(name)
+
+
 def bench_load(name: str, a: argparse.Namespace, device: torch.device, dtype_name: str, memory: Memory,
                log: Callable[[dict], None]) -> None:
     """`--only load`: the load's seconds and peak RSS against the checkpoint's bytes (target: peak <= 1.25 x
     checkpoint + 2 GB on a CPU), then what a graft and a reset add to the resident memory (target: nothing)."""
     repo, snapshot = built(name, a, dtype_name, log)
     checkpoint = (snapshot / "model.safetensors").stat().st_size
+    t0 = time.perf_counter()
+    import_policy_code(name)
+    log({"backbone": name, "batch": None, "phase": "import", "seconds": time.perf_counter() - t0})
     before = current_rss_gb()
     memory.reset()
     t0 = time.perf_counter()

@@ -13,8 +13,10 @@ it over: 18.7 GB of host memory and ~3 minutes for a 9.4 GB checkpoint. Here:
 - `load_checkpoint` maps every parameter and persistent buffer to a checkpoint key (`keys`: a policy may rename
   keys on load, as pi0.5 does), refuses a checkpoint that lacks one or shapes one differently (lerobot's own
   loads only log missing keys, or return a partly random model), then reads each tensor with plain file reads,
-  not a memory map, so the file's pages never count against the process: the host holds the model (CPU) or
-  nothing of it (GPU), plus one tensor in flight.
+  not a memory map, so the file's pages never count against the process. On a CPU a tensor already in its
+  parameter's dtype is read straight into its own memory; any other (a cast, a GPU) passes through one reused
+  host buffer the size of the largest such tensor (pinned for CUDA): the host holds the model (CPU) or nothing
+  of it (GPU) plus that buffer.
 """
 
 from __future__ import annotations
@@ -55,11 +57,15 @@ def parameters_on_meta() -> Iterator[None]:
 
 
 def construct(build: Callable[[], nn.Module], config) -> nn.Module:
-    """`build()` (a policy constructor reading `config`) with its parameters on the meta device. lerobot's
-    policies move themselves to `config.device`, which a meta parameter cannot leave: it is None meanwhile."""
+    """`build()` (a policy constructor reading `config`) with its parameters on the meta device and no
+    initialisation run (transformers' `no_init_weights`: on meta tensors it computes nothing, slowly: 5 s of
+    pi0.5's construction). lerobot's policies move themselves to `config.device`, which a meta parameter
+    cannot leave: it is None meanwhile."""
+    from transformers.initialization import no_init_weights
+
     device, config.device = config.device, None
     try:
-        with parameters_on_meta():
+        with parameters_on_meta(), no_init_weights():
             return build()
     finally:
         config.device = device
@@ -114,18 +120,16 @@ def _plan(policy: nn.Module, path: Path, header: dict[str, dict], keys: dict[str
     return sorted(plan, key=lambda entry: header[entry[0]]["data_offsets"][0])
 
 
-def _read(f, start: int, entry: dict) -> torch.Tensor:
-    """One tensor of the file, read into fresh host memory."""
-    tensor = torch.empty(entry["shape"], dtype=DTYPES[entry["dtype"]])
-    view = memoryview(tensor.view(-1).view(torch.uint8).numpy())
-    f.seek(start + entry["data_offsets"][0])
+def _read_into(f, offset: int, target: torch.Tensor) -> None:
+    """Fill the host tensor `target` with its bytes, read at `offset` of the file."""
+    view = memoryview(target.view(-1).view(torch.uint8).numpy())
+    f.seek(offset)
     done = 0
     while done < len(view):
         n = f.readinto(view[done:])
         if not n:
             raise BackboneError(f"{f.name}: truncated (ends inside tensor data)")
         done += n
-    return tensor
 
 
 def _set(policy: nn.Module, name: str, value: torch.Tensor) -> None:
@@ -143,10 +147,28 @@ def load_checkpoint(policy: nn.Module, path: Path, keys: dict[str, str], device:
     start, header = read_header(path)
     plan = _plan(policy, path, header, keys)
     state = policy.state_dict(keep_vars=True)
+
+    def direct(key: str, names: list[str]) -> bool:  # read into its own memory, nothing copied after
+        return device.type == "cpu" and DTYPES[header[key]["dtype"]] == state[names[0]].dtype
+
+    def nbytes(key: str) -> int:
+        begin, end = header[key]["data_offsets"]
+        return end - begin
+
+    # Every other tensor (a cast, another device) passes through one reused host buffer, pinned for CUDA.
+    staging = torch.empty(max((nbytes(k) for k, names in plan if not direct(k, names)), default=0),
+                          dtype=torch.uint8, pin_memory=device.type == "cuda")
     with path.open("rb", buffering=0) as f:
         for key, names in plan:
-            like = state[names[0]]
-            value = _read(f, start, header[key]).to(device=device, dtype=like.dtype)
+            entry, like = header[key], state[names[0]]
+            dtype, offset = DTYPES[entry["dtype"]], start + entry["data_offsets"][0]
+            if direct(key, names):
+                value = torch.empty(entry["shape"], dtype=dtype)
+                _read_into(f, offset, value)
+            else:
+                host = staging[:nbytes(key)].view(dtype).reshape(entry["shape"])
+                _read_into(f, offset, host)
+                value = host.to(device=device, dtype=like.dtype)  # a new tensor: a cast or a copy to the device
             if isinstance(like, nn.Parameter):
                 value = nn.Parameter(value, requires_grad=like.requires_grad)
             for name in names:
