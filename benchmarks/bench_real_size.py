@@ -18,7 +18,8 @@ peak CUDA memory of:
   the LM's token grid: SmolVLA 64 x 768, pi0.5 256 x 1152, fp16 like a cache), AdamW on the projector;
 - predict: the denoised chunk (the policy's default steps), from pixels and from cached features;
 and the ratios cached / online. Also the load (graftcache.backbones.lean) and graft (weights hash) peaks;
-`--only load` measures just load, graft and reset, with the peak RSS against the checkpoint's bytes. A full pi0.5 step takes ~10 minutes on a CPU: pi0.5 runs on CPU only with
+`--only load` measures just load, graft and reset, with the peak RSS against the checkpoint's bytes. A full
+pi0.5 step takes ~10 minutes on a CPU: pi0.5 runs on CPU only with
 --cpu-pi05. Needs only graftcache on PYTHONPATH beside lerobot 0.6.1 and its pins (lerobot 0.6.1's pi0.5
 does not run under transformers 5.17: create_causal_mask() lost `cache_position`).
 """

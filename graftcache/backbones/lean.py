@@ -120,7 +120,7 @@ def _plan(policy: nn.Module, path: Path, header: dict[str, dict], keys: dict[str
     return sorted(plan, key=lambda entry: header[entry[0]]["data_offsets"][0])
 
 
-def _read_into(f, offset: int, target: torch.Tensor) -> None:
+def read_into(f, offset: int, target: torch.Tensor) -> None:
     """Fill the host tensor `target` with its bytes, read at `offset` of the file."""
     view = memoryview(target.view(-1).view(torch.uint8).numpy())
     f.seek(offset)
@@ -164,10 +164,10 @@ def load_checkpoint(policy: nn.Module, path: Path, keys: dict[str, str], device:
             dtype, offset = DTYPES[entry["dtype"]], start + entry["data_offsets"][0]
             if direct(key, names):
                 value = torch.empty(entry["shape"], dtype=dtype)
-                _read_into(f, offset, value)
+                read_into(f, offset, value)
             else:
                 host = staging[:nbytes(key)].view(dtype).reshape(entry["shape"])
-                _read_into(f, offset, host)
+                read_into(f, offset, host)
                 value = host.to(device=device, dtype=like.dtype)  # a new tensor: a cast or a copy to the device
             if isinstance(like, nn.Parameter):
                 value = nn.Parameter(value, requires_grad=like.requires_grad)

@@ -158,8 +158,8 @@ class Graft:
         written = [n for n, t in self.policy.state_dict(keep_vars=True).items()
                    if t._version != self._versions.get(n, t._version)]
         if written:
-            raise BackboneError(f"{len(written)} frozen policy tensors were written while grafted (e.g. {written[0]}); "
-                                "the policy is no longer the one loaded: reload it")
+            raise BackboneError(f"{len(written)} frozen policy tensors were written while grafted (e.g. "
+                                f"{written[0]}); the policy is no longer the one loaded: reload it")
 
 
 class GraftSurgery:
