@@ -247,23 +247,6 @@ def test_one_backbone_load_serves_every_cell_and_finished_cells_load_nothing(wor
         assert row["eval_mse"] == fresh[row["control"]]["eval_mse"], row["control"]
 
 
-def test_reset_restores_the_loaded_policy(world: World) -> None:
-    adapter = load_backbone("smolvla", world.policies["smolvla"])
-    before = {k: v.clone() for k, v in adapter.policy.state_dict().items()}
-    modules = {n: type(m) for n, m in adapter.policy.named_modules()}
-    grads = {n: p.requires_grad for n, p in adapter.policy.named_parameters()}
-    adapter.graft(GraftProjector(192, adapter.lm_width))
-    adapter.add_lora(rank=2)
-    with torch.no_grad():  # even an in-place change to a frozen weight is undone
-        next(adapter.policy.parameters()).add_(1.0)
-    adapter.reset()
-    assert not adapter.grafted and "prepare_images" not in adapter.policy.__dict__
-    assert {n: type(m) for n, m in adapter.policy.named_modules()} == modules
-    assert {n: p.requires_grad for n, p in adapter.policy.named_parameters()} == grads
-    after = adapter.policy.state_dict()
-    assert after.keys() == before.keys() and all(torch.equal(after[k], before[k]) for k in before)
-
-
 def test_frame_stride_thins_features_not_actions(world: World, tmp_path: Path) -> None:
     """A stride-2 cache holds every other frame; its action chunks equal the full cache's for those frames."""
     common = dict(dataset=str(world.dataset.root), num_workers=1, batch_size=8, cache=str(world.cache),

@@ -13,14 +13,14 @@ state is not in the prompt but a token of the expert's suffix (`state_proj`), so
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-from pathlib import Path
+from collections.abc import Iterable, Mapping
 from typing import Any
 
 import torch
 from torch import nn
 
 from graftcache.backbones.batches import TOKEN_MASK, TOKENS
+from graftcache.backbones.lean import openpi_keys
 from graftcache.backbones.pi05 import PI05Adapter
 from graftcache.backbones.tiny import (
     Pi05TinyGeometry,
@@ -62,13 +62,18 @@ class PI0Adapter(PI05Adapter):
         return policy.to(device), pre, post, {"backbone": cls.name, "geometry": geometry}
 
     @classmethod
-    def _load_policy(cls, folder: Path, config, marker: dict | None) -> nn.Module:
+    def _construct(cls, config, marker: dict | None) -> nn.Module:
         from lerobot.policies.pi0.modeling_pi0 import PI0Policy
 
         if marker is None:
-            return PI0Policy.from_pretrained(folder, config=config, strict=True)
+            return PI0Policy(config)
         with pi05_tiny_sizes(marker["geometry"], MODELING):
-            return PI0Policy.from_pretrained(folder, config=config, strict=True)
+            return PI0Policy(config)
+
+    @classmethod
+    def _checkpoint_keys(cls, policy: nn.Module, file_keys: Iterable[str]) -> dict[str, str]:
+        """As PI0Policy.from_pretrained renames: openpi key fixes, then a "model." prefix."""
+        return openpi_keys(policy, file_keys)
 
     @classmethod
     def _make_processors(cls, config, stats: dict, marker: dict | None):

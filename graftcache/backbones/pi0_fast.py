@@ -29,7 +29,7 @@ import contextlib
 import math
 import os
 import sys
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -40,6 +40,7 @@ from torch import nn
 
 from graftcache.backbones.batches import TOKEN_MASK, TOKENS
 from graftcache.backbones.checkpoint import cached_repo, quiet
+from graftcache.backbones.lean import openpi_keys
 from graftcache.backbones.pi05 import PI05Adapter
 from graftcache.backbones.tiny import (
     Pi05TinyGeometry,
@@ -183,14 +184,23 @@ class PI0FastAdapter(PI05Adapter):
         return policy.to(device), pre, post, {"backbone": cls.name, "geometry": geometry}
 
     @classmethod
-    def _load_policy(cls, folder: Path, config, marker: dict | None) -> nn.Module:
+    def _construct(cls, config, marker: dict | None) -> nn.Module:
         from lerobot.policies.pi0_fast.modeling_pi0_fast import PI0FastPolicy
 
-        fast, text = cls._tokenizer_folders(folder, config, marker)
-        config.action_tokenizer_name, config.text_tokenizer_name = str(fast), str(text)  # read by the processors
+        fast, text = Path(config.action_tokenizer_name), Path(config.text_tokenizer_name)  # set by _configure
         sizes = pi05_tiny_sizes(marker["geometry"], MODELING) if marker is not None else contextlib.nullcontext()
         with sizes, policy_tokenizers(load_fast(fast), text):
-            return PI0FastPolicy.from_pretrained(folder, config=config, strict=True)
+            return PI0FastPolicy(config)
+
+    @classmethod
+    def _checkpoint_keys(cls, policy: nn.Module, file_keys: Iterable[str]) -> dict[str, str]:
+        """As PI0FastPolicy.from_pretrained renames: openpi key fixes, then a "model." prefix."""
+        return openpi_keys(policy, file_keys)
+
+    @classmethod
+    def _configure(cls, folder: Path, config, marker: dict | None) -> None:
+        fast, text = cls._tokenizer_folders(folder, config, marker)
+        config.action_tokenizer_name, config.text_tokenizer_name = str(fast), str(text)  # read by the processors
 
     @classmethod
     def _tokenizer_folders(cls, folder: Path, config, marker: dict | None) -> tuple[Path, Path]:
