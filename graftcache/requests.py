@@ -96,6 +96,9 @@ class FitRequest(Checked):
     lora_rank: int = 8
     device: str = "cpu"
     num_workers: int = 2  # processes reading the cache ahead of the model (the numbers do not depend on it)
+    cells_per_pass: int | None = None  # cells trained together in one pass of the frozen backbone (graftcache/fit/
+    # passes.py); None: the measured default for the backbone and device. Rows match one cell at a time within
+    # float rounding, and no run_id depends on it
     compute_dtype: str = "auto"  # resolved per device (runtime.resolve_compute_dtype) before it reaches a row
     results: str = "results.parquet"
     out: str | None = None
@@ -108,7 +111,7 @@ class FitRequest(Checked):
     RULES: ClassVar[dict[str, Rule]] = {
         "seeds": SEEDS, "suite": SUITE, "controls": CONTROL_LIST, "steps": POSITIVE, "lr": POSITIVE,
         "batch_size": POSITIVE, "buffer_mib": POSITIVE, "num_workers": NON_NEGATIVE,
-        "eval_fraction": FRACTION, "eval_split_seed": SEED, "eval_frames": POSITIVE,
+        "cells_per_pass": POSITIVE, "eval_fraction": FRACTION, "eval_split_seed": SEED, "eval_frames": POSITIVE,
         "num_denoise_steps": POSITIVE, "lora_rank": POSITIVE,
         "camera_map": CAMERA_MAP,
     }

@@ -224,6 +224,18 @@ def add_cache_flag(p: argparse.ArgumentParser) -> None:
                    "(default: $GRAFTCACHE_HOME or ~/.cache/graftcache)")
 
 
+def add_cells_per_pass_flag(p: argparse.ArgumentParser, *, overrides: bool = False) -> None:
+    """--cells-per-pass N (FitRequest.cells_per_pass); `overrides`: over a recipe's [fit] table."""
+    from graftcache.requests import FitRequest
+
+    add_field(p, FitRequest, "cells_per_pass", type=positive_int, metavar="N", overrides=overrides,
+              help="cells (seeds, image controls, encoders of one grid and width) trained together in one forward and "
+              "backward of the frozen backbone, each with its own projector, loss, optimiser and random streams; "
+              "rows equal one-cell-at-a-time rows up to float rounding and keep their run_ids; lora, align and "
+              "native cells run alone (default: per backbone and device, graftcache.fit.passes.CELLS_PER_PASS: 1 "
+              "on CPU)")
+
+
 def add_compute_dtype_flag(p: argparse.ArgumentParser, request: type, *aliases: str) -> None:
     add_field(p, request, "compute_dtype", *aliases, choices=COMPUTE_DTYPES,
               help="model compute precision. auto: bf16 where the device computes it natively (CUDA with bf16, "

@@ -8,6 +8,7 @@ from graftcache.backbone_table import BACKBONES
 from graftcache.cli.common import (
     add_cache_flag,
     add_camera_map_flag,
+    add_cells_per_pass_flag,
     add_compute_dtype_flag,
     add_device_flag,
     add_field,
@@ -62,6 +63,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     add_device_flag(p, FitRequest)
     add_field(p, FitRequest, "num_workers", type=nonneg_int,
               help="processes reading and pooling cached features ahead of the model (0: in this process)")
+    add_cells_per_pass_flag(p)
     add_compute_dtype_flag(p, FitRequest, "--dtype")
     add_field(p, FitRequest, "results")
     add_field(p, FitRequest, "out", help="run folder for projectors (default: runs/ beside --results; never the cache root)")
