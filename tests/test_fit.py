@@ -203,11 +203,13 @@ def test_cli_fit_end_to_end(world: World, tmp_path: Path, capsys: pytest.Capture
     args = ["fit", "--backbone", "smolvla", "--policy", str(world.policies["smolvla"]), "--encoder", ENCODER,
             "--dataset", str(world.dataset.root), "--suite", "libero_spatial", "--seeds", "2", "--controls",
             "zero-image", "--steps", "2", "--batch-size", "4", "--eval-fraction", "0.5", "--eval-frames", "4",
-            "--num-denoise-steps", "2", "--cache", str(world.cache), "--results", str(out), "--no-progress"]
+            "--num-denoise-steps", "2", "--cache", str(world.cache), "--results", str(out), "--no-progress",
+            "--cells-per-pass", "4"]
     assert main(args) == 0
     table = results.read(out)
     assert sorted(zip(table["seed"], table["control"])) == [(0, "none"), (0, "zero-image"), (1, "none"),
                                                              (1, "zero-image")]
+    assert table["cells_per_pass"].to_list() == [4] * 4  # both seeds' plain and zero-image cells: one pass
     assert "eval_mse" in capsys.readouterr().out
     args[args.index("libero_spatial")] = "libero_goal"
     assert main(args) == 2
@@ -413,3 +415,13 @@ def test_cells_sharing_a_backbone_pass_get_the_rows_they_get_alone(world: World,
     assert sum(line.startswith("skip ") for line in lines) == 8
     for run_id, row in redone.items():
         assert abs(row["eval_mse"] - one[run_id]["eval_mse"]) <= 1e-5
+
+
+def test_a_results_file_from_before_cells_per_pass_reads_and_takes_new_rows(tmp_path: Path) -> None:
+    from helpers.tables import row, table
+
+    old = tmp_path / "old.parquet"
+    table([row("smolvla", "libero_spatial", "siglip", 0, 0.5)]).drop("cells_per_pass").write_parquet(old)
+    assert results.read(old)["cells_per_pass"].to_list() == [None]
+    results.append(old, [row("smolvla", "libero_spatial", "siglip", 1, 0.4, cells_per_pass=3)])
+    assert sorted(results.read(old)["cells_per_pass"].to_list(), key=str) == [3, None]

@@ -63,6 +63,7 @@ BAD = {
                        "policy checkpoint '/nonexistent/policy': no such folder"),
     "grid_past_memory": ({"tables": '[extract]\ngrids = ["100000x100000"]\n'},
                          "2 camera(s) of grids 100000x100000 x 192 channels needs about"),
+    "no_cells_per_pass": ({"tables": '[fit]\ncells_per_pass = 0\n'}, "cells_per_pass = 0 must be > 0"),
 }
 
 
@@ -142,6 +143,7 @@ FIT = ["fit", "--backbone", "smolvla", "--encoder", "e", "--suite", "libero_spat
     ([*FIT, "--seed", f"{MAX_SEED + 1}"], f"is past the largest seed, {MAX_SEED}"),
     (["extract", "--encoder", "e", "--dataset", "d", "--episodes", "0-100000000000"],
      "names 100000000001 episodes; at most 10000000"),
+    (["sweep", "recipe.toml", "--cells-per-pass", "0"], "argument --cells-per-pass: 0 must be >= 1"),
 ])
 def test_counts_and_seeds_past_their_bounds_are_refused_at_parse_time(argv: list[str], expected: str,
                                                                       capsys: pytest.CaptureFixture) -> None:

@@ -279,10 +279,14 @@ class Fitter:
         self._check_numerics()
         adapter = self.backbones.get(self.req.backbone, self.policy_folder, str(self.device))
         cell = self.cell(control, seed, self.policy_id)
-        row = self._run_cell(adapter, control, cell, self._material(adapter, control))
-        self.log(f"{row['backbone']}/{row['encoder']}/{row['suite']} seed {seed} control {control.name}: "
+        return self._told(self._run_cell(adapter, control, cell, self._material(adapter, control)), control)
+
+    def _told(self, row: dict[str, Any], control: Control) -> dict[str, Any]:
+        """`row`, once its scores are in the log."""
+        shared = f" (its share of a pass of {row['cells_per_pass']})" if row["cells_per_pass"] > 1 else ""
+        self.log(f"{row['backbone']}/{row['encoder']}/{row['suite']} seed {row['seed']} control {control.name}: "
                  f"eval_mse {row['eval_mse']:.4f} (first {row['eval_mse_first']:.4f}, raw "
-                 f"{row['eval_mse_raw']:.5f}) on {row['n_eval_frames']} frames, {row['wall_s']:.1f}s")
+                 f"{row['eval_mse_raw']:.5f}) on {row['n_eval_frames']} frames, {row['wall_s']:.1f}s{shared}")
         return row
 
     # ---------------------------------------------------------------- one cell
@@ -390,7 +394,8 @@ class Fitter:
         rows = []
         for m, mat, projector, one, score, st in zip(members, mats, projectors, learners, scores, stats, strict=True):
             m.fitter._save_projector(adapter, m.cell, {f"{prefix}.{n}": p for n, p in projector.named_parameters()})
-            rows.append(m.fitter._row(adapter, m.cell, mat, one.final_loss, score, st, share, cells=len(members)))
+            rows.append(m.fitter._told(m.fitter._row(adapter, m.cell, mat, one.final_loss, score, st, share,
+                                                     cells=len(members)), m.control))
         return rows
 
     def _row(self, adapter, cell: Cell, mat: _Material, loss: float, score, stats: StreamStats, wall: float, *,
