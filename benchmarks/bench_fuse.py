@@ -33,7 +33,7 @@ from graftcache.fit.data import load_lowdim
 from graftcache.fit.loop import Learner, optimise_together, raw_batch
 from graftcache.fit.run import FitRequest, Fitter
 from graftcache.fit.stream import FeatureSource
-from graftcache.graft import FusedProjector, GraftProjector
+from graftcache.graft import FusedProjector, GraftProjector, feature_key
 from graftcache.pretrain import dataset_stats
 from graftcache.runtime import resolve_compute_dtype, resolve_dtype, set_main_threads
 from graftcache.store import FeatureCache
@@ -66,6 +66,49 @@ def step_seconds(adapter, low, feats, cams, n: int, batch_size: int, dtype: torc
     return seconds
 
 
+def released_step_seconds(name: str, root: Path, counts: list[int], batch_size: int, dtype: torch.dtype,
+                          repeats: int, rounds: int) -> dict[int, float]:
+    """Seconds a cell-step at the released geometry (random init, graftcache.backbones.released), synthetic
+    features of the backbone's token grid at SigLIP-B's width (768) and LIBERO's state and action sizes."""
+    from graftcache.backbones.released import LIBERO, build_pi05, build_smolvla, hub_cache
+
+    builders = {"smolvla": build_smolvla, "pi05": build_pi05}
+    with hub_cache(root / "hub"):
+        folder = builders[name](f"bench/{name}-released", cache=root / "hub")
+        adapter = load_backbone(name, folder)
+        tokens = adapter.native_grid[0] * adapter.native_grid[1]
+        generator = torch.Generator().manual_seed(0)
+        n_frames = 64
+        feats = {c: torch.randn(n_frames, tokens, 768, generator=generator) for c in adapter.cameras}
+        state = torch.randn(n_frames, LIBERO.state_dim, generator=generator)
+        actions = torch.randn(n_frames, adapter.chunk_size, LIBERO.action_dim, generator=generator)
+
+        def step(n: int) -> float:
+            projectors = [GraftProjector(768, adapter.lm_width) for _ in range(n)]
+            fused = FusedProjector(projectors)
+            adapter.reset()
+            adapter.graft(fused)
+
+            def draw(g: torch.Generator) -> dict:
+                pos = torch.randint(0, n_frames, (batch_size,), generator=g)
+                raw = {feature_key(c): f[pos] for c, f in feats.items()}
+                return {**raw, "observation.state": state[pos], "task": ["put the bowl on the plate"] * batch_size,
+                        "action": actions[pos], "action_is_pad": torch.zeros(batch_size, adapter.chunk_size,
+                                                                             dtype=torch.bool)}
+
+            learners = [Learner(draw, torch.optim.AdamW(list(p.parameters()), lr=1e-3),
+                                torch.Generator().manual_seed(i)) for i, p in enumerate(projectors)]
+            return median_seconds(lambda: optimise_together(adapter, learners, steps=1, batch_size=batch_size,
+                                                            dtype=dtype, route=fused.rows, show=False), repeats) / n
+
+        times: dict[int, list[float]] = {n: [] for n in counts}
+        for _ in range(rounds):
+            for n in counts:
+                times[n].append(step(n))
+        adapter.reset()
+    return {n: float(np.median(t)) for n, t in times.items()}
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--dataset", type=Path, default=DEFAULT_DATASET)
@@ -80,9 +123,16 @@ def main() -> None:
     p.add_argument("--compute-dtype", default="auto")
     p.add_argument("--repeats", type=int, default=10, help="timed steps per N (step timing)")
     p.add_argument("--rounds", type=int, default=3, help="timed fits per N, interleaved across N (median)")
+    p.add_argument("--threads", type=int, help="torch threads (default: graftcache's, one per core); on a machine "
+                   "shared past its cores, 1 keeps OpenMP's barriers from waiting on descheduled threads")
+    p.add_argument("--released", default="", help="comma list of backbones to time at the released geometry too "
+                   "(step only, random init; smolvla: ~450M parameters, pi05: ~4B, far past a CPU's budget)")
+    p.add_argument("--released-batch-size", type=int, default=2)
     p.add_argument("--json", type=Path, help="write the measurements here")
     a = p.parse_args()
 
+    if a.threads:
+        os.environ["OMP_NUM_THREADS"] = str(a.threads)  # what every fit's set_main_threads grants itself
     set_main_threads()
     counts = [int(c) for c in a.cells.split(",")]
     if any(CELLS % n for n in counts):
@@ -93,7 +143,7 @@ def main() -> None:
     device = torch.device("cpu")
     compute = resolve_compute_dtype(a.compute_dtype, device)
     print(f"machine: {where}; compute dtype {compute}")
-    report: dict = {"machine": where, "device": "cpu", "compute_dtype": compute, "steps": a.steps,
+    report: dict = {"machine": where, "threads": torch.get_num_threads(), "device": "cpu", "compute_dtype": compute, "steps": a.steps,
                     "batch_size": a.batch_size, "eval_frames": a.eval_frames, "num_denoise_steps": a.num_denoise_steps,
                     "cells": CELLS, "backbones": {}}
     with tempfile.TemporaryDirectory(prefix="bench_fuse_") as tmp:
@@ -142,6 +192,14 @@ def main() -> None:
                                          "seconds_per_cell_step": steps,
                                          "grid": list(grid), "lm_width": adapter.lm_width,
                                          "fastest": min(counts, key=lambda n: per_cell[n])}
+        for name in filter(None, a.released.split(",")):
+            steps = released_step_seconds(name, root, counts, a.released_batch_size, resolve_dtype(compute),
+                                          a.repeats, a.rounds)
+            for n in counts:
+                print(f"{name} at the released geometry: {n} cell(s) per pass: step {steps[n]:.2f} s a cell-step "
+                      f"({steps[n] / steps[1]:.2f}x N=1; batch {a.released_batch_size} a cell)")
+            report["released"] = {**report.get("released", {}), name: {"seconds_per_cell_step": steps,
+                                                                       "batch_size": a.released_batch_size}}
     report["load_average_after"] = os.getloadavg()[0]
     if a.json:
         a.json.parent.mkdir(parents=True, exist_ok=True)

@@ -123,8 +123,11 @@ def run_passes(fitters: Sequence[Host], visited: Callable[[int], None] = lambda 
     for fitter in fitters:
         for control, seed, cell in fitter.cells():
             m = Member(fitter, control, seed, cell)
+            if m.at in seen:  # a cell two requests share (the native controls of every encoder) runs once
+                fitter.log(f"cell {cell.run_id} (seed {seed} control {control.name}) is a cell of an earlier "
+                           f"request too: computed once")
             if m.at in seen or fitter.skip(control, cell, done[fitter.req.results]):
-                visited(1)  # a cell two requests share (the native controls of every encoder) runs once
+                visited(1)
                 continue
             seen.add(m.at)
             members.append(m)

@@ -6,6 +6,9 @@ the results file) are skipped before anything is loaded, so reruns and sweeps re
 stopped and a finished grid only reads. The projector of every trained cell is saved as safetensors
 with a JSON sidecar in the run folder.
 
+Cells that can share a pass of the frozen backbone (seeds, image controls, encoders of one grid and width) run
+`cells_per_pass` to a pass, each training its own projector (graftcache/fit/passes.py).
+
 The parts a cell is made of are registries: its control (fit/controls.py: which cache, which projector,
 which feature transform) and its objective (fit/objectives.py: how the projector is fitted).
 """
@@ -256,7 +259,7 @@ class Fitter:
         controls that train nothing). Read from the policy's config and the cache's layout: nothing is loaded."""
         if control.name not in self._pass_keys:
             key = None
-            if control.fuses and control.train and self._objective(control).fuses:
+            if control.fuses and self._objective(control).fuses:
                 req = self.req
                 grid = control.grid or get_backbone(req.backbone).read_native_grid(self.policy_folder)
                 source = FeatureSource.of(self._source(control), list(self.cameras.values()), grid)
