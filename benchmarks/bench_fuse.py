@@ -152,7 +152,7 @@ def main() -> None:
                                      episodes=tuple(range(lo, hi + 1)), num_workers=1, cache=str(root / "cache"),
                                      progress=False), log=_quiet).key
         cache = FeatureCache(root / "cache" / key)
-        for name in a.backbones.split(","):
+        for name in filter(None, a.backbones.split(",")):
             folder = root / f"policy_{name}"
             load_backbone(name, "tiny", dataset_stats=dataset_stats(cache.index())).save(folder)
             pool, numerics = BackbonePool(_quiet), {}
