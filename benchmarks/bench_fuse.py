@@ -157,7 +157,8 @@ def main() -> None:
             load_backbone(name, "tiny", dataset_stats=dataset_stats(cache.index())).save(folder)
             pool, numerics = BackbonePool(_quiet), {}
 
-            def request(n: int, out: str, seeds: tuple[int, ...] = tuple(range(CELLS))) -> FitRequest:
+            def request(n: int, out: str, seeds: tuple[int, ...] = tuple(range(CELLS)), name: str = name,
+                        folder: Path = folder) -> FitRequest:
                 return FitRequest(backbone=name, encoder=a.encoder, suite=SUITE, policy=str(folder), cache_key=key,
                                   seeds=seeds, steps=a.steps, batch_size=a.batch_size, eval_frames=a.eval_frames,
                                   num_denoise_steps=a.num_denoise_steps, num_workers=0, compute_dtype=compute,

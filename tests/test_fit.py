@@ -425,3 +425,20 @@ def test_a_results_file_from_before_cells_per_pass_reads_and_takes_new_rows(tmp_
     assert results.read(old)["cells_per_pass"].to_list() == [None]
     results.append(old, [row("smolvla", "libero_spatial", "siglip", 1, 0.4, cells_per_pass=3)])
     assert sorted(results.read(old)["cells_per_pass"].to_list(), key=str) == [3, None]
+
+
+@pytest.mark.slow
+def test_pi05_cells_sharing_a_pass_get_their_rows_alone_too(world: World, tmp_path: Path) -> None:
+    """pi0.5's other prompt (each frame's discretised state, tokenised per batch by lerobot's own step) and its
+    other layers: its cells in one pass get the rows they get alone too."""
+    def fit(n: int) -> dict[str, dict]:
+        req = world.request("pi05", seeds=(0, 1), controls=("shuffled-image",), steps=3, compute_dtype="fp32",
+                            cells_per_pass=n, results=str(tmp_path / f"{n}.parquet"), out=str(tmp_path / f"runs{n}"))
+        Fitter(req, log=_quiet).run()
+        return _by_run_id(Path(req.results))
+
+    alone, fused = fit(1), fit(4)
+    assert set(alone) == set(fused) and len(alone) == 4
+    assert {r["cells_per_pass"] for r in fused.values()} == {4}
+    for run_id, a in alone.items():
+        assert abs(a["eval_mse"] - fused[run_id]["eval_mse"]) <= 1e-5
