@@ -10,7 +10,8 @@ through the real Fitter (streamed features, training, held-out scoring, rows), a
 and the ratio to N=1 (median of `--rounds` fits per N, interleaved across N). The backbone is loaded and each cache's numerics checked once, before the timed runs
 (`--num-workers 0`: features read in this process, so the timings count no reader processes' start-up). The
 grafted step alone (features in memory, no scoring) is timed too, as seconds per cell-step: the part a pass
-shares. The JSON (with `--json`) names the machine; graftcache.fit.passes.CELLS_PER_PASS cites it.
+shares; `--released smolvla` times that step at the released geometry as well. The JSON (with `--json`) names
+the machine; graftcache.fit.passes.CELLS_PER_PASS cites it.
 """
 
 from __future__ import annotations

@@ -18,7 +18,9 @@ The default (`CELLS_PER_PASS`, by device type and backbone) is what benchmarks/b
 per cell (benchmarks/results/bench_fuse_cpu.json: 2 AMD EPYC cores shared with other work, load ~11, 1 thread,
 bf16, tiny backbones, 4 cells of 10 steps of 16 frames plus 32 scored frames, median of 2 interleaved rounds):
 SmolVLA 4.2 / 5.0 / 5.0 s a cell at 1 / 2 / 4 cells per pass, pi0.5 3.5 / 3.8 / 7.1 s. The grafted step alone got
-cheaper per cell (SmolVLA 0.26 -> 0.19 s at 4), whole cells did not, so 1 on CPU. On CUDA (unmeasured here: no
+cheaper per cell (SmolVLA 0.26 -> 0.19 s at 4), whole cells did not; at SmolVLA's released geometry (~450M
+parameters, random init, batch 2 a cell: benchmarks/results/bench_fuse_cpu_smolvla_released.json) a step is
+compute-bound, 3.30 / 3.25 / 3.23 s a cell-step. So 1 on CPU. On CUDA (unmeasured here: no
 GPU was lent) a grafted step leaves the device mostly idle (issue 21: ~39 ms a sample for pi0.5 at batch 4
 against a ~11 ms FLOP bound), so SmolVLA (~450M parameters, 64 tokens a camera) defaults to 4 cells, and pi0.5,
 whose batch 32 alone needs more than an 80 GB device without activation checkpointing (issue 21's estimate), to 1.
