@@ -2,7 +2,7 @@
 """Seconds per cell against `--cells-per-pass`: what sharing one pass of the frozen backbone buys.
 
     python benchmarks/bench_fuse.py [--dataset DIR] [--backbones smolvla,pi05] [--cells 1,2,4] [--steps 30]
-                                    [--json benchmarks/results/bench_fuse_cpu.json]
+                                    [--threads 1] [--json benchmarks/results/bench_fuse_cpu_run2.json]
 
 For each backbone (tiny, random init: a step's cost does not depend on what the weights learned) it caches one
 encoder, then fits the same 4 cells (4 seeds of the plain graft: one pass key) with each `--cells-per-pass` N,

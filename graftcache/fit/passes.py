@@ -15,16 +15,19 @@ it, and a rerun whose pass is partly done runs only its missing cells. Rows reco
 held (`cells_per_pass`) and, as `wall_s`, their share of the pass's time.
 
 The default (`CELLS_PER_PASS`, by device type and backbone) is what benchmarks/bench_fuse.py measured cheapest
-per cell (benchmarks/results/bench_fuse_cpu.json: 2 AMD EPYC cores shared with other work, load ~11, 1 thread,
-bf16, tiny backbones, 4 cells of 10 steps of 16 frames plus 32 scored frames, median of 2 interleaved rounds):
-SmolVLA 4.2 / 5.0 / 5.0 s a cell at 1 / 2 / 4 cells per pass, pi0.5 3.5 / 3.8 / 7.1 s. The grafted step alone got
-cheaper per cell (SmolVLA 0.26 -> 0.19 s at 4), whole cells did not; at SmolVLA's released geometry (~450M
-parameters, random init, batch 2 a cell: benchmarks/results/bench_fuse_cpu_smolvla_released.json) a step is
-compute-bound, 3.30 / 3.25 / 3.23 s a cell-step. So 1 on CPU. On CUDA (unmeasured here: no
+per cell. On CPU (2 AMD EPYC cores shared with other work, load 6-11, 1 thread, bf16; tiny backbones, 4 cells
+of 10 steps of 16 frames plus 32 scored frames, median of interleaved rounds:
+benchmarks/results/bench_fuse_cpu_run1.json, bench_fuse_cpu_run2.json) whole cells at 1 / 2 / 4 cells per pass
+took SmolVLA 4.2 / 5.0 / 5.0 s, then 5.8 / 5.5 / 2.6 s; pi0.5 3.5 / 3.8 / 7.1 s, then 2.1 / 2.1 / 2.3 s:
+rounds of one setting differed up to 3x, so no gain stands out of the noise. The grafted step alone got 10-30%
+cheaper a cell at 4, but at SmolVLA's released geometry (~450M parameters, random init, batch 2 a cell:
+benchmarks/results/bench_fuse_cpu_smolvla_released.json) the step is compute-bound, 3.30 / 3.25 / 3.23 s a
+cell-step, and every cell of a pass holds its own shuffle buffer. So 1 on CPU. On CUDA (unmeasured here: no
 GPU was lent) a grafted step leaves the device mostly idle (issue 21: ~39 ms a sample for pi0.5 at batch 4
-against a ~11 ms FLOP bound), so SmolVLA (~450M parameters, 64 tokens a camera) defaults to 4 cells, and pi0.5,
-whose batch 32 alone needs more than an 80 GB device without activation checkpointing (issue 21's estimate), to 1.
-A pass that would not fit is refused before its first step (graftcache.fit.step_memory, naming --cells-per-pass).
+against a ~11 ms FLOP bound), so SmolVLA (~450M parameters, 64 tokens a camera) defaults to 4 cells, and
+pi0.5, whose batch 32 alone needs more than an 80 GB device without activation checkpointing (issue 21's
+estimate), to 1. A pass that would not fit is refused before its first step (graftcache.fit.step_memory,
+naming --cells-per-pass).
 """
 
 from __future__ import annotations
@@ -45,7 +48,7 @@ from graftcache.runtime import set_main_threads
 
 #: Cells per backbone pass when a request does not say: (device type, backbone) -> cells. Unlisted pairs: 1.
 CELLS_PER_PASS: dict[tuple[str, str], int] = {
-    ("cpu", "smolvla"): 1, ("cpu", "pi05"): 1,     # measured: benchmarks/results/bench_fuse_cpu.json
+    ("cpu", "smolvla"): 1, ("cpu", "pi05"): 1,     # measured: benchmarks/results/bench_fuse_cpu_*.json
     ("cuda", "smolvla"): 4, ("cuda", "pi05"): 1,   # unmeasured (no GPU lent): chosen as the module docstring says
 }
 
