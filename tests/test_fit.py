@@ -433,7 +433,7 @@ def test_pi05_cells_sharing_a_pass_get_their_rows_alone_too(world: World, tmp_pa
     other layers: its cells in one pass get the rows they get alone too."""
     def fit(n: int) -> dict[str, dict]:
         req = world.request("pi05", seeds=(0, 1), controls=("shuffled-image",), steps=3, compute_dtype="fp32",
-                            cells_per_pass=n, results=str(tmp_path / f"{n}.parquet"), out=str(tmp_path / f"runs{n}"))
+                            cells_per_pass=n, cache_key=world.encoder_key, results=str(tmp_path / f"{n}.parquet"), out=str(tmp_path / f"runs{n}"))
         Fitter(req, log=_quiet).run()
         return _by_run_id(Path(req.results))
 
