@@ -12,6 +12,9 @@ tower, freezing, undo) is graftcache.backbones.surgery.
 
 from __future__ import annotations
 
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+
 import torch
 from torch import nn
 
@@ -58,3 +61,37 @@ class IdentityProjector(nn.Module):
 
     def forward(self, features: torch.Tensor) -> torch.Tensor:
         return features.float()
+
+
+class FusedProjector(nn.Module):
+    """The projectors of several cells grafted at once (graftcache/fit/passes.py): member i projects the i-th
+    run of rows of every batch, so the cells share one forward and backward of the frozen backbone while each
+    projector sees only its own cell's frames. The frozen backbone treats the samples of a batch independently,
+    so each member's gradient is its own cell's.
+
+    How many rows each member owns is set around each forward (`rows`); the members must agree on widths."""
+
+    def __init__(self, members: Sequence[nn.Module]) -> None:
+        super().__init__()
+        widths = {(m.in_features, m.out_features) for m in members}
+        if len(widths) != 1:
+            raise ValueError(f"fused projectors must share their widths, got {sorted(widths)}")
+        self.members = nn.ModuleList(members)
+        (self.in_features, self.out_features), = widths
+        self._rows: list[int] | None = None
+
+    @contextmanager
+    def rows(self, sizes: Sequence[int]) -> Iterator[None]:
+        """Member i projects `sizes[i]` rows (in member order) of the batches forwarded inside the block."""
+        self._rows = list(sizes)
+        try:
+            yield
+        finally:
+            self._rows = None
+
+    def forward(self, features: torch.Tensor) -> torch.Tensor:
+        if self._rows is None or sum(self._rows) != features.shape[0]:
+            raise RuntimeError(f"a fused projector needs its members' rows of a batch of {features.shape[0]}, "
+                               f"has {self._rows}")
+        parts = features.split(self._rows)
+        return torch.cat([m(part) for m, part in zip(self.members, parts, strict=True)])

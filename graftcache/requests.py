@@ -164,6 +164,12 @@ class FitRequest(Checked):
     num_workers: int = setting(  # the numbers do not depend on it
         2, rule=NON_NEGATIVE,
         help="processes reading and pooling cached features ahead of the model (0: in this process)")
+    cells_per_pass: int | None = setting(
+        None, rule=POSITIVE, metavar="N",
+        help="cells (seeds, image controls, encoders of one grid and width) trained together in one forward and "
+        "backward of the frozen backbone, each with its own projector, loss, optimiser and random streams; rows equal "
+        "one-cell-at-a-time rows up to float rounding and keep their run_ids; lora, align and native cells run alone "
+        "(default: per backbone and device, graftcache.fit.passes.CELLS_PER_PASS: 1 on CPU)")
     compute_dtype: str = compute_dtype()
     results: str = setting("results.parquet", recipe=False)
     out: str | None = setting(None, help="run folder for projectors (default: runs/ beside --results; never the "

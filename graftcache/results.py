@@ -66,7 +66,8 @@ SCHEMA: dict[str, pl.DataType] = {
     "n_eval_frames": pl.Int64,
     "n_eval_episodes": pl.Int64,
     "eval_split_seed": pl.Int64,
-    "wall_s": pl.Float64,
+    "wall_s": pl.Float64,             # a cell trained in a pass of several: its share (the pass's wall time / cells)
+    "cells_per_pass": pl.Int64,       # cells trained in the backbone pass that produced the row (1: alone)
     "device": pl.String,
     "compute_dtype": pl.String,       # resolved model compute dtype ("bf16" | "fp32"), never "auto"
     "random_init": pl.Boolean,        # any random-init weights in the encoder or the backbone
@@ -86,7 +87,7 @@ CONTROLS_NATIVE = ("native",)
 # Columns added to SCHEMA after results files were first written: reading an older file adds them as nulls, so
 # its cells are still skipped and new rows can still be appended to it.
 ADDED_COLUMNS = ("numerics_drift", "buffer_mib", "camera_map", "backbone_params", "eval_ci_mse",
-                 "eval_ci_mse_episodes")
+                 "eval_ci_mse_episodes", "cells_per_pass")
 
 # What a report needs of a table: enough to place every MSE in the (backbone, suite, encoder, control, seed)
 # grid. Tables from older versions, other tools or a paper need only these (conform fills the other SCHEMA

@@ -217,11 +217,13 @@ def test_cli_fit_end_to_end(world: World, tmp_path: Path, capsys: pytest.Capture
     args = ["fit", "--backbone", "smolvla", "--policy", str(world.policies["smolvla"]), "--encoder", ENCODER,
             "--dataset", str(world.dataset.root), "--suite", "libero_spatial", "--seeds", "2", "--controls",
             "zero-image", "--steps", "2", "--batch-size", "4", "--eval-fraction", "0.5", "--eval-frames", "4",
-            "--num-denoise-steps", "2", "--cache", str(world.cache), "--results", str(out), "--no-progress"]
+            "--num-denoise-steps", "2", "--cache", str(world.cache), "--results", str(out), "--no-progress",
+            "--cells-per-pass", "4"]
     assert main(args) == 0
     table = results.read(out)
     assert sorted(zip(table["seed"], table["control"])) == [(0, "none"), (0, "zero-image"), (1, "none"),
                                                              (1, "zero-image")]
+    assert table["cells_per_pass"].to_list() == [4] * 4  # both seeds' plain and zero-image cells: one pass
     assert "eval_mse" in capsys.readouterr().out
     args[args.index("libero_spatial")] = "libero_goal"
     assert main(args) == 2
@@ -343,3 +345,100 @@ def test_the_largest_seed_feeds_every_rng_and_its_row(world: World, tmp_path: Pa
                         cache_key=world.encoder_key)
     Fitter(req, log=_quiet).run()
     assert results.read(out)["seed"].to_list() == [MAX_SEED, MAX_SEED]
+
+
+def _by_run_id(path: Path) -> dict[str, dict]:
+    return {r["run_id"]: r for r in results.read(path).iter_rows(named=True)}
+
+
+@pytest.mark.slow
+def test_cells_sharing_a_backbone_pass_get_the_rows_they_get_alone(world: World, tmp_path: Path) -> None:
+    """Two seeds x (plain graft, zero-image, lora) x two encoders of one grid and width (the encoder at two random
+    inits): 8 cells may share passes (plain and zero-image), lora's 4 run alone. Three cells to a pass gives passes
+    of 3, 3 and 2, whose rows equal the one-at-a-time rows (fp32 on CPU: |delta eval_mse| <= 1e-5) under the same
+    run_ids, with projectors saved under the same names and values; a rerun whose passes are partly done runs only
+    the missing cells."""
+    from graftcache.executors.local import LocalExecutor
+    from graftcache.requests import ExecutorSettings
+
+    other = extract(ExtractRequest(encoder=ENCODER, random_init=True, seed=1, dataset=str(world.dataset.root),
+                                   num_workers=0, batch_size=8, cache=str(world.cache), progress=False),
+                    log=_quiet).key
+
+    class Bar:
+        n = 0
+
+        def update(self, k: int) -> None:
+            self.n += k
+
+    def sweep(n: int, out: Path, lines: list[str] | None = None) -> Bar:
+        requests = [(key, world.request(seeds=(0, 1), controls=("zero-image", "lora"), cache_key=key, steps=4,
+                                        compute_dtype="fp32", cells_per_pass=n, results=str(out),
+                                        out=str(out.parent / f"runs{n}")))
+                    for key in (world.encoder_key, other)]
+        bar = Bar()
+        LocalExecutor(ExecutorSettings()).fit(requests, (lines if lines is not None else []).append, bar)
+        return bar
+
+    alone, fused = tmp_path / "alone.parquet", tmp_path / "fused.parquet"
+    sweep(1, alone)
+    lines: list[str] = []
+    assert sweep(3, fused, lines).n == 12
+    one, many = _by_run_id(alone), _by_run_id(fused)
+    assert set(one) == set(many) and len(one) == 12  # the run_id does not name cells_per_pass
+    assert {r["cells_per_pass"] for r in one.values()} == {1}
+    assert sorted(r["cells_per_pass"] for r in many.values()) == [1] * 4 + [2] * 2 + [3] * 6
+    assert {r["control"] for r in many.values() if r["cells_per_pass"] == 1} == {"lora"}
+    assert {r["cache_key"] for r in many.values() if r["cells_per_pass"] == 3} == {world.encoder_key, other}
+    for run_id, a in one.items():
+        b = many[run_id]
+        assert abs(a["eval_mse"] - b["eval_mse"]) <= 1e-5, (a["control"], a["eval_mse"], b["eval_mse"])
+        assert a["train_loss_final"] == pytest.approx(b["train_loss_final"], rel=1e-5, abs=1e-6)
+        assert np.allclose(a["eval_mse_episodes"], b["eval_mse_episodes"], rtol=0, atol=1e-5)
+        saved = [load_file(str(tmp_path / f"runs{n}" / run_id / "projector.safetensors")) for n in (1, 3)]
+        assert set(saved[0]) == set(saved[1])
+        for name, value in saved[0].items():
+            torch.testing.assert_close(saved[1][name], value, rtol=1e-4, atol=1e-6)
+    assert sum("one of 3 cells of a backbone pass" in line for line in lines) == 6
+    # the passes did not mix cells up: seeds and encoders give distinct rows (zero-image ignores the encoder)
+    assert len({r["eval_mse"] for r in many.values() if r["control"] != "zero-image"}) == 8
+
+    partial = tmp_path / "partial.parquet"
+    kept = [r for r in one.values() if r["control"] == "zero-image" or r["seed"] == 0]  # seed 1's plain and lora left
+    results.append(partial, kept)
+    lines = []
+    assert sweep(3, partial, lines).n == 12
+    redone = {k: v for k, v in _by_run_id(partial).items() if k not in {r["run_id"] for r in kept}}
+    assert sorted((r["control"], r["seed"], r["cells_per_pass"]) for r in redone.values()) == \
+        [("lora", 1, 1), ("lora", 1, 1), ("none", 1, 2), ("none", 1, 2)]
+    assert sum(line.startswith("skip ") for line in lines) == 8
+    for run_id, row in redone.items():
+        assert abs(row["eval_mse"] - one[run_id]["eval_mse"]) <= 1e-5
+
+
+def test_a_results_file_from_before_cells_per_pass_reads_and_takes_new_rows(tmp_path: Path) -> None:
+    from helpers.tables import row, table
+
+    old = tmp_path / "old.parquet"
+    table([row("smolvla", "libero_spatial", "siglip", 0, 0.5)]).drop("cells_per_pass").write_parquet(old)
+    assert results.read(old)["cells_per_pass"].to_list() == [None]
+    results.append(old, [row("smolvla", "libero_spatial", "siglip", 1, 0.4, cells_per_pass=3)])
+    assert sorted(results.read(old)["cells_per_pass"].to_list(), key=str) == [3, None]
+
+
+@pytest.mark.slow
+def test_pi05_cells_sharing_a_pass_get_their_rows_alone_too(world: World, tmp_path: Path) -> None:
+    """pi0.5's other prompt (each frame's discretised state, tokenised per batch by lerobot's own step) and its
+    other layers: its cells in one pass get the rows they get alone too."""
+    def fit(n: int) -> dict[str, dict]:
+        req = world.request("pi05", seeds=(0, 1), controls=("shuffled-image",), steps=3, compute_dtype="fp32",
+                            cells_per_pass=n, cache_key=world.encoder_key, results=str(tmp_path / f"{n}.parquet"),
+                            out=str(tmp_path / f"runs{n}"))
+        Fitter(req, log=_quiet).run()
+        return _by_run_id(Path(req.results))
+
+    alone, fused = fit(1), fit(4)
+    assert set(alone) == set(fused) and len(alone) == 4
+    assert {r["cells_per_pass"] for r in fused.values()} == {4}
+    for run_id, a in alone.items():
+        assert abs(a["eval_mse"] - fused[run_id]["eval_mse"]) <= 1e-5

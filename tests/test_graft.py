@@ -7,7 +7,7 @@ import torch
 from torch import nn
 
 from graftcache.backbones.surgery import FreezeReport, PassThroughTower, freeze_all_but, freeze_report
-from graftcache.graft import GraftProjector, IdentityProjector, feature_key
+from graftcache.graft import FusedProjector, GraftProjector, IdentityProjector, feature_key
 
 
 def test_feature_key_strips_the_image_prefix() -> None:
@@ -78,3 +78,22 @@ def test_projector_gradients_flow(dtype: torch.dtype) -> None:
     proj = GraftProjector(5, 3)
     proj(torch.randn(4, 2, 5).to(dtype)).sum().backward()
     assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in proj.proj.parameters())
+
+
+def test_fused_projector_gives_each_member_its_own_rows_and_gradients() -> None:
+    torch.manual_seed(0)
+    members = [GraftProjector(6, 4) for _ in range(3)]
+    fused = FusedProjector(members)
+    x = torch.randn(2 + 0 + 3, 5, 6)
+    with fused.rows([2, 0, 3]):
+        out = fused(x)
+    torch.testing.assert_close(out, torch.cat([members[0](x[:2]), members[2](x[2:])]), rtol=0, atol=0)
+    out[2:].sum().backward()  # only the third member's rows: only its parameters get a gradient
+    assert all(p.grad is None or not p.grad.any() for m in members[:2] for p in m.parameters())
+    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in members[2].parameters())
+    with pytest.raises(RuntimeError, match="needs its members' rows of a batch of 5"):
+        fused(x)
+    with fused.rows([1, 1, 1]), pytest.raises(RuntimeError, match=r"has \[1, 1, 1\]"):
+        fused(x)
+    with pytest.raises(ValueError, match="must share their widths"):
+        FusedProjector([GraftProjector(6, 4), GraftProjector(8, 4)])

@@ -65,6 +65,7 @@ BAD = {
                        "policy checkpoint '/nonexistent/policy': no such folder"),
     "grid_past_memory": ({"tables": '[extract]\ngrids = ["100000x100000"]\n'},
                          "2 camera(s) of grids 100000x100000 x 192 channels needs about"),
+    "no_cells_per_pass": ({"tables": '[fit]\ncells_per_pass = 0\n'}, "cells_per_pass = 0 must be > 0"),
 }
 
 
@@ -152,6 +153,7 @@ FIT = ["fit", "--backbone", "smolvla", "--encoder", "e", "--suite", "libero_spat
     ([*FIT, "--suite", "../../x"], "argument --suite: '../../x' is not a suite; choose one of libero_spatial"),
     ([*FIT, "--controls", "native,native"], "argument --controls: ('native', 'native') must name each control once"),
     ([*FIT, "--objective", "mse"], "argument --objective: invalid choice: 'mse' (choose from 'flow', 'align')"),
+    (["sweep", "recipe.toml", "--cells-per-pass", "0"], "argument --cells-per-pass: 0 must be > 0"),
 ])
 def test_values_past_their_rules_are_refused_at_parse_time(argv: list[str], expected: str,
                                                            capsys: pytest.CaptureFixture) -> None:

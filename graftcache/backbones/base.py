@@ -314,8 +314,8 @@ class BackboneAdapter(GraftSurgery, PromptBatches, FlowObjective, ABC):
 
     @functools.cached_property
     def n_params(self) -> int:
-        """Parameters of the policy as loaded (shared ones once), what the analysis orders backbones by; read
-        before the first graft, which swaps the tower and connector for a pass-through and a projector."""
+        """Parameters of the policy as loaded (shared ones once), what the analysis orders backbones by; counted
+        (and kept) by the first graft, before it swaps the tower and connector for a pass-through and a projector."""
         if self.grafted:
             raise BackboneError(f"{self.name}: count the parameters before graft() replaces the vision tower")
         return sum(p.numel() for p in self.policy.parameters())

@@ -185,6 +185,7 @@ class GraftSurgery:
         if width != self.lm_width:
             raise BackboneError(f"{self.name}: projector outputs width {width}, the LM expects {self.lm_width}")
         _ = self.policy_sha256  # pin the hash of the loaded weights before the surgery changes the modules
+        _ = self.n_params  # and their count (results column backbone_params)
         graft = Graft(self.policy, projector.to(self.device))
         owner, tower, connector = self._vision_slots()
         graft.replace(owner, tower, PassThroughTower().to(self.device))

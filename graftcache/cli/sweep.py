@@ -5,8 +5,8 @@ from __future__ import annotations
 import argparse
 import dataclasses
 
-from graftcache.cli.common import add_flags, given
-from graftcache.requests import ExecutorSettings
+from graftcache.cli.common import add_flag, add_flags, given
+from graftcache.requests import ExecutorSettings, FitRequest
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -19,6 +19,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="run every check the sweep runs before its first step (recipe, dataset, suites' "
                    "splits, encoders, memory) and print the grid; train, extract and fit nothing")
     add_flags(p, ExecutorSettings, overrides=True)  # over the recipe's [executor] table (else the defaults shown)
+    add_flag(p, FitRequest, "cells_per_pass", overrides=True)  # over the recipe's [fit] table
     p.set_defaults(func=run)
 
 
@@ -27,6 +28,7 @@ def run(args: argparse.Namespace) -> int:
     from graftcache.sweep import check_sweep, run_sweep
 
     recipe = load_recipe(args.recipe)
+    recipe = dataclasses.replace(recipe, fit={**recipe.fit, **given(FitRequest, args)})  # --cells-per-pass
     settings = dataclasses.replace(recipe.executor_settings, **given(ExecutorSettings, args))
     if args.dry_run:
         notes = check_sweep(recipe)  # every check the run makes before its first step

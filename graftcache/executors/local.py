@@ -19,12 +19,12 @@ class LocalExecutor:
 
     def fit(self, requests: Sequence[tuple[str, FitRequest]], log: Log, bar: Any) -> None:
         """One Fitter per request, all sharing one BackbonePool and one set of numerics verdicts (each backbone
-        loaded and each cache's numerics probe recomputed once per run)."""
+        loaded and each cache's numerics probe recomputed once per run), their cells run together so that cells
+        of different requests (encoders of one grid and width, suites) can share backbone passes
+        (graftcache/fit/passes.py); with one cell per pass, request after request as listed."""
         from graftcache.backbones.pool import BackbonePool
+        from graftcache.fit.passes import run_passes
         from graftcache.fit.run import Fitter
 
         backbones, numerics = BackbonePool(log), {}
-        for label, req in requests:
-            bar.set_postfix_str(label)
-            Fitter(req, log=log, backbones=backbones, numerics=numerics).run()
-            bar.update(len(req.seeds) * (1 + len(req.controls)))
+        run_passes([Fitter(req, log=log, backbones=backbones, numerics=numerics) for _, req in requests], bar.update)

@@ -93,6 +93,9 @@ def fit(requests: Sequence[tuple[str, FitRequest]], settings: ExecutorSettings, 
                 folders[cell.run_id] = lister.run_folder(cell)
     bar.update(sum(len(r.seeds) * (1 + len(r.controls)) for _, r in requests) - len(cells))
     log(f"ray: {len(cells)} cell task(s) to run; the other cells are in the results file already")
+    if any(r.cells_per_pass not in (None, 1) for _, r in requests):
+        log("ray: one cell per task, so --cells-per-pass applies to the local executor only (rows record "
+            "cells_per_pass 1)")
     tasks = {fit_cell_task.options(**options[req.device]).remote(req, control, seed): run_id
              for run_id, (_, req, control, seed) in cells.items()}
     for run_id, row in finished(tasks):

@@ -102,6 +102,8 @@ class Control:
     extra: str | None = None        # reads this stored extra array instead of a pooled grid
     train: bool = True              # False: evaluated as loaded (its cell's objective is "eval")
     lora: bool = False              # LoRA adapters on the LM train with the projector
+    fuses: bool = True              # may share a backbone pass with other cells (graftcache/fit/passes.py); LoRA
+                                    # adapts the backbone itself, which every row of a pass would go through
     grid: tuple[int, int] | None = None  # overrides the backbone's native grid
 
 
@@ -111,7 +113,7 @@ CONTROLS: dict[str, Control] = {
     "native-graft": Control("native-graft", native_cache=True),
     "zero-image": Control("zero-image", transform=zero),
     "shuffled-image": Control("shuffled-image", pairing=shuffle),
-    "lora": Control("lora", lora=True),
+    "lora": Control("lora", lora=True, fuses=False),
 }
 
 

@@ -4,6 +4,9 @@
 both run `optimise`: draw a batch, the policy's own flow loss with padded steps masked, one optimiser
 step. `train` and `evaluate` are the fit's use of it on streamed cached features (graftcache.fit.stream):
 `train` draws from a bounded shuffle buffer, `evaluate` scores the held-out frames chunk by chunk.
+Both are written for several cells at once (`optimise_together`, `evaluate_together`: the cells of one backbone
+pass, graftcache/fit/passes.py, their batches concatenated, each with its own loss, optimiser and random
+stream); one cell is the case of one.
 
 Determinism: batch draws, flow noise and flow time all come from one generator seeded by the caller
 (the cell's seed), and the stream's chunk order from the same seed, so a CPU rerun is bit-identical. Time is drawn
@@ -12,7 +15,9 @@ like lerobot's `sample_time` (Beta(1.5, 1) scaled to [0.001, 1]) by inverse-CDF 
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from contextlib import AbstractContextManager, nullcontext
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -50,6 +55,46 @@ def flow_time(batch_size: int, generator: torch.Generator) -> torch.Tensor:
     return u.pow(1.0 / 1.5) * 0.999 + 0.001
 
 
+@dataclass
+class Learner:
+    """One cell's share of the training steps: its batches, the optimiser of its parameters (with its own
+    schedule and gradient clipping) and its random stream (batch draws, flow noise, flow time)."""
+
+    draw: Callable[[torch.Generator], dict]   # a raw batch of `batch_size` frames
+    optimizer: torch.optim.Optimizer
+    generator: torch.Generator
+    scheduler: torch.optim.lr_scheduler.LRScheduler | None = None
+    clip_norm: float | None = None
+    losses: list[float] = field(default_factory=list)  # the loss of every step so far
+
+    @property
+    def params(self) -> list[torch.nn.Parameter]:
+        return [p for group in self.optimizer.param_groups for p in group["params"]]
+
+    @property
+    def final_loss(self) -> float:
+        """Mean loss of the last 10% of steps."""
+        return float(np.mean(self.losses[-max(1, len(self.losses) // 10):]))
+
+
+#: Around each forward of several learners' rows: says which rows of the batch are whose (member i owns
+#: sizes[i], in learner order), e.g. graftcache.graft.FusedProjector.rows.
+Route = Callable[[Sequence[int]], AbstractContextManager]
+
+
+def alone(sizes: Sequence[int]) -> AbstractContextManager:
+    """The route of batches whose rows are all one cell's (one projector grafted): nothing to say."""
+    return nullcontext()
+
+
+def concat_raw(raws: Sequence[dict]) -> dict:
+    """Raw batches (raw_batch's dicts) as one: tensors concatenated along the batch, task lists joined."""
+    if len(raws) == 1:
+        return raws[0]
+    return {k: [x for r in raws for x in r[k]] if isinstance(v, list) else torch.cat([r[k] for r in raws])
+            for k, v in raws[0].items()}
+
+
 def optimise(adapter, draw: Callable[[torch.Generator], dict], *, steps: int, batch_size: int,
              optimizer: torch.optim.Optimizer, generator: torch.Generator, dtype: torch.dtype,
              scheduler: torch.optim.lr_scheduler.LRScheduler | None = None, clip_norm: float | None = None,
@@ -59,27 +104,57 @@ def optimise(adapter, draw: Callable[[torch.Generator], dict], *, steps: int, ba
     Each step draws a raw batch of `batch_size` with `draw(generator)`, then noise and flow time from the same
     generator, in that order.
     """
+    learner = Learner(draw, optimizer, generator, scheduler, clip_norm)
+    optimise_together(adapter, [learner], steps=steps, batch_size=batch_size, dtype=dtype, desc=desc, show=show,
+                      leave=leave)
+    return learner.losses
+
+
+def optimise_together(adapter, learners: Sequence[Learner], *, steps: int, batch_size: int, dtype: torch.dtype,
+                      route: Route = alone, desc: str = "fit", show: bool = True, leave: bool = True) -> None:
+    """`steps` flow-matching steps of every learner in one forward and backward of the policy: their batches
+    concatenated (learner order), each learner's loss the mean over its own rows, one backward of their sum
+    (a learner's parameters see only its own loss: the policy treats samples independently), then each learner
+    clips and steps on its own. Each learner's draws, noise and time come from its own generator in the order
+    `optimise` takes them, so a learner trained with others computes what it computes alone, up to float
+    rounding of the larger batch."""
     device = adapter.device
-    params = [p for group in optimizer.param_groups for p in group["params"]]
     adapter.policy.train()
-    losses: list[float] = []
+    sizes = [batch_size] * len(learners)
     bar = progress(range(steps), desc=desc, unit="step", enabled=show, leave=leave)
     for _ in bar:
-        batch = adapter.prepare(draw(generator))
-        noise = adapter.sample_noise(batch_size, generator=generator)
-        time = flow_time(batch_size, generator).to(device)
-        with autocast(device, dtype):
-            loss = adapter.loss(batch, noise=noise, time=time).mean()
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        if clip_norm is not None:
-            torch.nn.utils.clip_grad_norm_(params, clip_norm)
-        optimizer.step()
-        if scheduler is not None:
-            scheduler.step()
-        losses.append(loss.item())
-        bar.set_postfix(loss=f"{np.mean(losses[-20:]):.4f}")
-    return losses
+        raws, noises, times = [], [], []
+        for learner in learners:
+            raws.append(learner.draw(learner.generator))
+            noises.append(adapter.sample_noise(batch_size, generator=learner.generator))
+            times.append(flow_time(batch_size, learner.generator))
+        batch = adapter.prepare(concat_raw(raws))
+        noise, time = torch.cat(noises), torch.cat(times).to(device)
+        with route(sizes), autocast(device, dtype):
+            losses = [part.mean() for part in adapter.loss(batch, noise=noise, time=time).split(sizes)]
+        for learner in learners:
+            learner.optimizer.zero_grad(set_to_none=True)
+        (losses[0] if len(losses) == 1 else torch.stack(losses).sum()).backward()
+        for learner, loss in zip(learners, losses, strict=True):
+            if learner.clip_norm is not None:
+                torch.nn.utils.clip_grad_norm_(learner.params, learner.clip_norm)
+            learner.optimizer.step()
+            if learner.scheduler is not None:
+                learner.scheduler.step()
+            learner.losses.append(loss.item())
+        bar.set_postfix(loss=f"{np.mean([np.mean(x.losses[-20:]) for x in learners]):.4f}")
+
+
+def learner(low: LowDim, buffer: ShuffleBuffer, cams: Mapping[str, str], params: Sequence[torch.nn.Parameter], *,
+            batch_size: int, lr: float, seed: int, transform: Transform = keep) -> Learner:
+    """A fit's learner: AdamW on `params`, batches drawn from `buffer` (its frames go with the low-dim rows of
+    `low`), every random draw from a generator seeded with the cell's `seed`."""
+
+    def draw(generator: torch.Generator) -> dict:
+        owners, features = buffer.draw(batch_size, generator)
+        return raw_batch(low, owners, transform(features), cams)
+
+    return Learner(draw, torch.optim.AdamW(params, lr=lr, weight_decay=0.0), torch.Generator().manual_seed(seed))
 
 
 def train(adapter, low: LowDim, buffer: ShuffleBuffer, cams: Mapping[str, str], *, steps: int, batch_size: int,
@@ -91,40 +166,71 @@ def train(adapter, low: LowDim, buffer: ShuffleBuffer, cams: Mapping[str, str], 
     params = [p for p in adapter.policy.parameters() if p.requires_grad]
     if not params:
         return float("nan")
-
-    def draw(generator: torch.Generator) -> dict:
-        owners, features = buffer.draw(batch_size, generator)
-        return raw_batch(low, owners, transform(features), cams)
-
-    losses = optimise(adapter, draw, steps=steps, batch_size=batch_size,
-                      optimizer=torch.optim.AdamW(params, lr=lr, weight_decay=0.0),
-                      generator=torch.Generator().manual_seed(seed), dtype=dtype, show=show, leave=False)
-    return float(np.mean(losses[-max(1, len(losses) // 10):]))
+    one = learner(low, buffer, cams, params, batch_size=batch_size, lr=lr, seed=seed, transform=transform)
+    optimise_together(adapter, [one], steps=steps, batch_size=batch_size, dtype=dtype, show=show, leave=False)
+    return one.final_loss
 
 
-@torch.no_grad()
+@dataclass
+class Scoring:
+    """One cell's share of an evaluation: its held-out rows, their features as streamed, how they are fed."""
+
+    low: LowDim
+    chunks: Iterator[Chunk]
+    cams: Mapping[str, str]
+    transform: Transform = keep
+
+
 def evaluate(adapter, low: LowDim, chunks: Iterator[Chunk], cams: Mapping[str, str], *, transform: Transform = keep,
              dtype: torch.dtype = torch.float32, num_denoise_steps: int | None = None) -> Score:
     """Offline action MSE of the denoised chunk on the frames of `low` that `chunks` deliver (in cache order,
     re-cut into batches of EVAL_BATCH_SIZE; fixed noise per frame); only predictions are kept."""
+    return evaluate_together(adapter, [Scoring(low, chunks, cams, transform)], dtype=dtype,
+                             num_denoise_steps=num_denoise_steps)[0]
+
+
+@torch.no_grad()
+def evaluate_together(adapter, parts: Sequence[Scoring], *, dtype: torch.dtype = torch.float32,
+                      num_denoise_steps: int | None = None, route: Route = alone) -> list[Score]:
+    """`evaluate` of several cells in one pass of the policy per batch: EVAL_BATCH_SIZE frames of each part
+    (fewer once a part runs short), concatenated in part order; each part's score from its own rows."""
     adapter.policy.eval()
     device = adapter.device
-    queue = FrameQueue(chunks)
-    owners, targets, preds = [], [], []
-    while (taken := queue.take(EVAL_BATCH_SIZE)) is not None:
-        pos, (features,) = taken
-        noise = frame_noise(low.rows[pos], adapter.chunk_size, adapter.max_action_dim)
-        batch = adapter.prepare(raw_batch(low, pos, transform(features), cams))
-        with autocast(device, dtype):
-            pred = adapter.predict(batch, noise=noise, num_steps=num_denoise_steps)
-        owners.append(pos)
-        targets.append(batch["action"].float().cpu())
-        preds.append(pred.float().cpu())
+    queues = [FrameQueue(p.chunks) for p in parts]
+    kept: list[tuple[list, list, list]] = [([], [], []) for _ in parts]  # owners, targets, predictions
+    open_parts = list(range(len(parts)))
+    while True:
+        taken = [(i, queues[i].take(EVAL_BATCH_SIZE)) for i in open_parts]
+        open_parts = [i for i, t in taken if t is not None]
+        taken = [(i, t) for i, t in taken if t is not None]
+        if not taken:
+            break
+        raws, noises, sizes = [], [], []
+        for i, (pos, (features,)) in taken:
+            part = parts[i]
+            noises.append(frame_noise(part.low.rows[pos], adapter.chunk_size, adapter.max_action_dim))
+            raws.append(raw_batch(part.low, pos, part.transform(features), part.cams))
+            sizes.append(len(pos))
+        batch = adapter.prepare(concat_raw(raws))
+        with route(sizes), autocast(device, dtype):
+            pred = adapter.predict(batch, noise=torch.cat(noises), num_steps=num_denoise_steps)
+        for (i, (pos, _)), target, rows in zip(taken, batch["action"].float().cpu().split(sizes),
+                                               pred.float().cpu().split(sizes), strict=True):
+            owners, targets, preds = kept[i]
+            owners.append(pos)
+            targets.append(target)
+            preds.append(rows)
+    return [_score(adapter, part.low, *kept[i]) for i, part in enumerate(parts)]
+
+
+def _score(adapter, low: LowDim, owners: list[np.ndarray], targets: list[torch.Tensor],
+           preds: list[torch.Tensor]) -> Score:
+    """A part's score from the batches it took part in."""
     if not owners:
         raise FitError("no held-out frame to score (every one was dropped)")
     order = np.argsort(np.concatenate(owners), kind="stable")  # frame order, whatever pairing fed them
     pos = np.concatenate(owners)[order]
     pred, target = torch.cat(preds)[torch.from_numpy(order)], torch.cat(targets)[torch.from_numpy(order)]
-    pred_raw = adapter.unnormalize(pred.to(device)).float().cpu()
+    pred_raw = adapter.unnormalize(pred.to(adapter.device)).float().cpu()
     actions, pad = low.action_chunks(pos)
     return score_chunks(pred, target, pred_raw, actions, pad, low.episode_index[pos], critical=low.critical_chunks(pos))

@@ -10,7 +10,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator, Mapping
-from contextlib import closing
+from contextlib import closing, contextmanager
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -45,10 +45,17 @@ class Fitting:
     stats: StreamStats                          # what the streams dropped and copied
 
 
+@contextmanager
+def flow_buffer(train: SplitFeed, req: FitRequest, seed: int, stats: StreamStats) -> Iterator[ShuffleBuffer]:
+    """The shuffle buffer a flow fit draws its batches from (`req.buffer_mib`), over the train split's endless
+    stream in the order `seed` gives; the stream's readers stop when the block ends."""
+    capacity = buffer_frames(req.buffer_mib, train.source.frame_bytes(), req.batch_size, len(train.low))
+    with closing(read_chunks(train.features(seed=seed), req.num_workers, stats)) as chunks:
+        yield ShuffleBuffer(chunks, capacity, empty_limit=train.n_chunks)
+
+
 def _flow(f: Fitting) -> float:
-    capacity = buffer_frames(f.req.buffer_mib, f.train.source.frame_bytes(), f.req.batch_size, len(f.train.low))
-    with closing(read_chunks(f.train.features(seed=f.seed), f.req.num_workers, f.stats)) as chunks:
-        buffer = ShuffleBuffer(chunks, capacity, empty_limit=f.train.n_chunks)
+    with flow_buffer(f.train, f.req, f.seed, f.stats) as buffer:
         return train(f.adapter, f.train.low, buffer, f.cams, steps=f.req.steps, batch_size=f.req.batch_size,
                      lr=f.req.lr, seed=f.seed, transform=f.control.transform, dtype=f.dtype, show=f.req.progress)
 
@@ -75,10 +82,12 @@ class Objective:
     fit: Callable[[Fitting], float]   # fits the grafted projector; returns the final training loss
     scheduled: bool = False           # steps / lr / batch_size / buffer_mib are part of its cells (else 0)
     needs_native: bool = False        # reads the native tower's cache (its regression targets)
+    fuses: bool = False               # its cells may share backbone passes (graftcache/fit/passes.py): a gradient
+                                      # step per batch; align's closed form and eval's nothing gain nothing from it
 
 
 OBJECTIVES: dict[str, Objective] = {
-    "flow": Objective("flow", _flow, scheduled=True),
+    "flow": Objective("flow", _flow, scheduled=True, fuses=True),
     "align": Objective("align", _align, needs_native=True),
 }
 EVAL_ONLY = Objective("eval", _nothing)

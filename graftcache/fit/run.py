@@ -6,6 +6,9 @@ the results file) are skipped before anything is loaded, so reruns and sweeps re
 stopped and a finished grid only reads. The projector of every trained cell is saved as safetensors
 with a JSON sidecar in the run folder.
 
+Cells that can share a pass of the frozen backbone (seeds, image controls, encoders of one grid and width) run
+`cells_per_pass` to a pass, each training its own projector (graftcache/fit/passes.py).
+
 The parts a cell is made of are registries: its control (fit/controls.py: which cache, which projector,
 which feature transform) and its objective (fit/objectives.py: how the projector is fitted).
 """
@@ -15,8 +18,8 @@ from __future__ import annotations
 import dataclasses
 import json
 import time
-from collections.abc import Callable, Mapping
-from contextlib import closing
+from collections.abc import Callable, Mapping, Sequence
+from contextlib import ExitStack, closing
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -36,19 +39,20 @@ from graftcache.backbones.tiny_record import resolve_policy
 from graftcache.cameras import format_camera_map, match_cameras, renames
 from graftcache.encoders.fingerprint import NumericsCheck, check_numerics
 from graftcache.errors import FitError
-from graftcache.file_lease import FileLease
 from graftcache.fit.buffer import MIB
 from graftcache.fit.controls import Control, get_control
 from graftcache.fit.data import LowDim, drop_nonfinite, load_lowdim, split_episodes, suite_index_table
 from graftcache.fit.feed import SplitFeed
 from graftcache.fit.lookup import find_cache
-from graftcache.fit.loop import evaluate
-from graftcache.fit.objectives import EVAL_ONLY, OBJECTIVES, Fitting, Objective
+from graftcache.fit.loop import Scoring, evaluate, evaluate_together, learner, optimise_together
+from graftcache.fit.objectives import EVAL_ONLY, OBJECTIVES, Fitting, Objective, flow_buffer
+from graftcache.fit.passes import Member, default_cells_per_pass, run_passes
 from graftcache.fit.step_memory import check_step_memory
 from graftcache.fit.stream import BlockMemo, FeatureSource, StreamStats, read_chunks
+from graftcache.graft import FusedProjector
 from graftcache.pooling import format_grid
 from graftcache.requests import FitRequest
-from graftcache.runtime import resolve_compute_dtype, resolve_device, resolve_dtype, set_main_threads
+from graftcache.runtime import resolve_compute_dtype, resolve_device, resolve_dtype
 from graftcache.store import FeatureCache, cache_root
 from graftcache.store.readthrough import ReadThroughRoot, reading_root
 
@@ -129,7 +133,9 @@ class Fitter:
         """`backbones` and `numerics` (cache key -> verdict) may be shared by the Fitters of one process (a
         sweep), so each policy is loaded and each cache's numerics probe recomputed once per process."""
         self.device = resolve_device(req.device)
-        self.req = req = dataclasses.replace(req, compute_dtype=resolve_compute_dtype(req.compute_dtype, self.device))
+        self.req = req = dataclasses.replace(req, compute_dtype=resolve_compute_dtype(req.compute_dtype, self.device),
+                                             cells_per_pass=req.cells_per_pass
+                                             or default_cells_per_pass(req.backbone, self.device))
         self.objective = OBJECTIVES[req.objective]
         self.log = log
         self.backbones = backbones or BackbonePool(log)
@@ -152,6 +158,7 @@ class Fitter:
         self.index = suite_index_table(self.cache, req.suite)
         self.split = split_episodes(self.index, eval_fraction=req.eval_fraction, seed=req.eval_split_seed)
         self._materials: dict[tuple, _Material] = {}
+        self._pass_keys: dict[str, tuple | None] = {}  # control name -> its pass key
         self._numerics = {} if numerics is None else numerics  # cache key -> verdict, before the first cell runs
         self._enforced: set[str] = set()  # verdicts this request has acted on (refused, warned)
         # reading in this process, the blocks cells read are kept for the next cells, up to another --buffer-mib
@@ -224,41 +231,11 @@ class Fitter:
                 for seed in self.req.seeds for control in self.controls]
 
     def run(self) -> list[dict[str, Any]]:
-        """Every missing cell, one after the other, each row appended to the results file as it finishes.
+        """Every missing cell, `cells_per_pass` cells to a pass of the backbone where they can share one
+        (graftcache/fit/passes.py), each row appended to the results file as its pass finishes."""
+        return run_passes([self])
 
-        Other processes (fits, sweeps, here or on other machines) may write the same results file: a cell is
-        computed only under its claim (results.cell_claim), so a cell another process is computing is left
-        for later, then skipped once its row is in the file (or computed here if that process died)."""
-        set_main_threads()
-        done = results.done_run_ids(self.req.results)
-        rows = []
-        pending = [(control, seed, cell) for control, seed, cell in self.cells() if not self._skip(control, cell, done)]
-        claims = {cell.run_id: results.cell_claim(self.req.results, cell.run_id) for _, _, cell in pending}
-        told: set[str] = set()
-        while pending:
-            busy = []
-            for control, seed, cell in pending:
-                claim = claims[cell.run_id]
-                if not self._claim(claim):
-                    if cell.run_id not in told:
-                        self.log(f"cell {cell.run_id} (seed {seed} control {control.name}) is being computed by "
-                                 f"{claim.holder()}: waiting for its row")
-                        told.add(cell.run_id)
-                    busy.append((control, seed, cell))
-                    continue
-                try:
-                    if not self._skip(control, cell, results.done_run_ids(self.req.results)):
-                        row = self.run_cell(control, seed)
-                        results.append_or_keep(self.req.results, row, self.run_folder(cell))
-                        rows.append(row)
-                finally:
-                    claim.release()
-            if busy:
-                time.sleep(1.0)
-            pending = busy
-        return rows
-
-    def _skip(self, control: Control, cell: Cell, done: set[str]) -> bool:
+    def skip(self, control: Control, cell: Cell, done: set[str]) -> bool:
         """Whether the cell's row is in the results file already (said so in the log)."""
         if cell.run_id not in done:
             return False
@@ -267,13 +244,35 @@ class Fitter:
                  f"control {control.name}: already in {self.req.results}")
         return True
 
-    def _claim(self, claim: FileLease) -> bool:
-        """Take a cell's claim; where no claim can be made (a read-only place) the cell runs unclaimed, and its
-        row is then kept by results.append_or_keep."""
-        try:
-            return claim.try_acquire()
-        except OSError:
-            return True
+    def close(self) -> None:
+        """Drop what this Fitter keeps for its next cells (blocks read, low-dim tables) once it has none left."""
+        self._materials.clear()
+        if self._memo is not None:
+            self._memo = BlockMemo(self._memo.budget)
+
+    def pass_key(self, control: Control) -> tuple | None:
+        """What cells must share to train in one pass of the backbone (graftcache/fit/passes.py): the loaded
+        policy and its compute dtype, the shape of the tokens fed to it (grid and width), the training schedule
+        and the scoring's denoising, and the request's `cells_per_pass`. None: the cell runs alone (LoRA, align,
+        controls that train nothing). Read from the policy's config and the cache's layout: nothing is loaded."""
+        if control.name not in self._pass_keys:
+            key = None
+            if control.fuses and self._objective(control).fuses:
+                req = self.req
+                grid = control.grid or get_backbone(req.backbone).read_native_grid(self.policy_folder)
+                source = FeatureSource.of(self._source(control), list(self.cameras.values()), grid)
+                width = source.frame_shape(source.cameras[0])[1]
+                key = (req.backbone, str(self.policy_folder), str(self.device), req.compute_dtype, grid, width,
+                       req.steps, req.batch_size, req.num_denoise_steps, req.cells_per_pass)
+            self._pass_keys[control.name] = key
+        return self._pass_keys[control.name]
+
+    def run_pass(self, members: Sequence[Member]) -> list[dict[str, Any]]:
+        """The rows of `members`, cells of this or other Fitters of one pass key (`plan_passes`), in order."""
+        if len(members) == 1:
+            (m,) = members
+            return [m.fitter.run_cell(m.control, m.seed)]
+        return self._run_fused(members)
 
     def run_cell(self, control: Control, seed: int) -> dict[str, Any]:
         """Fit and score one cell (any control, any seed: the others are not run) and return its row without
@@ -281,10 +280,14 @@ class Fitter:
         self._check_numerics()
         adapter = self.backbones.get(self.req.backbone, self.policy_folder, str(self.device))
         cell = self.cell(control, seed, self.policy_id)
-        row = self._run_cell(adapter, control, cell, self._material(adapter, control))
-        self.log(f"{row['backbone']}/{row['encoder']}/{row['suite']} seed {seed} control {control.name}: "
+        return self._told(self._run_cell(adapter, control, cell, self._material(adapter, control)), control)
+
+    def _told(self, row: dict[str, Any], control: Control) -> dict[str, Any]:
+        """`row`, once its scores are in the log."""
+        shared = f" (its share of a pass of {row['cells_per_pass']})" if row["cells_per_pass"] > 1 else ""
+        self.log(f"{row['backbone']}/{row['encoder']}/{row['suite']} seed {row['seed']} control {control.name}: "
                  f"eval_mse {row['eval_mse']:.4f} (first {row['eval_mse_first']:.4f}, raw "
-                 f"{row['eval_mse_raw']:.5f}) on {row['n_eval_frames']} frames, {row['wall_s']:.1f}s")
+                 f"{row['eval_mse_raw']:.5f}) on {row['n_eval_frames']} frames, {row['wall_s']:.1f}s{shared}")
         return row
 
     # ---------------------------------------------------------------- one cell
@@ -322,7 +325,6 @@ class Fitter:
     def _run_cell(self, adapter, control: Control, cell: Cell, mat: _Material) -> dict[str, Any]:
         t0 = time.perf_counter()
         torch.manual_seed(cell.seed)
-        params = adapter.n_params  # the policy as loaded: read before the graft replaces its tower
         width = mat.source.frame_shape(mat.source.cameras[0])[1]
         adapter.graft(control.projector(width, adapter.lm_width))
         if control.lora:
@@ -341,11 +343,67 @@ class Fitter:
                                  self.req.num_workers, stats)) as chunks:
             score = evaluate(adapter, mat.eval, chunks, cams, transform=control.transform, dtype=self.dtype,
                              num_denoise_steps=self.req.num_denoise_steps)
-        if isinstance(self.root, ReadThroughRoot):  # what the reading processes copied locally for this fit
-            self.root.fetched_bytes += stats.fetched
         wall = time.perf_counter() - t0
         if control.train:
             self._save_projector(adapter, cell)
+        return self._row(adapter, cell, mat, loss, score, stats, wall, cells=1)
+
+    def _run_fused(self, members: Sequence[Member]) -> list[dict[str, Any]]:
+        """Train and score several cells (of this and other Fitters of this pass key) in one pass of the backbone:
+        their projectors grafted together (graftcache.graft.FusedProjector), each initialised, fed, optimised and
+        scored as it would be alone (graftcache.fit.loop.optimise_together, evaluate_together)."""
+        t0 = time.perf_counter()
+        for m in members:
+            m.fitter._check_numerics()
+        adapter = self.backbones.get(self.req.backbone, self.policy_folder, str(self.device))
+        mats = [m.fitter._material(adapter, m.control) for m in members]
+        projectors = []
+        for m, mat in zip(members, mats, strict=True):
+            torch.manual_seed(m.cell.seed)  # each projector starts where it starts alone
+            projectors.append(m.control.projector(mat.source.frame_shape(mat.source.cameras[0])[1], adapter.lm_width))
+        fused = FusedProjector(projectors)
+        adapter.graft(fused)
+        report = adapter.freeze_report()
+        for m in members:
+            self.log(f"cell {m.cell.run_id}: one of {len(members)} cells of a backbone pass, each training its own "
+                     f"projector: {report}")
+        check_step_memory(adapter, mats[0].train, self.cameras, mats[0].source, batch_size=self.req.batch_size,
+                          buffer_mib=self.req.buffer_mib, dtype=self.dtype,
+                          others=[(mat.train, mat.source, m.fitter.req.buffer_mib)
+                                  for m, mat in zip(members[1:], mats[1:], strict=True)],
+                          route=lambda sizes: fused.rows([*sizes, *[0] * (len(members) - len(sizes))]))
+        stats = [StreamStats() for _ in members]
+        with ExitStack() as stack:
+            learners = []
+            for m, mat, projector, st in zip(members, mats, projectors, stats, strict=True):
+                f = m.fitter
+                buffer = stack.enter_context(flow_buffer(f._feed(mat, mat.train, m.control, m.seed), f.req, m.seed, st))
+                learners.append(learner(mat.train, buffer, f.cameras, list(projector.parameters()),
+                                        batch_size=f.req.batch_size, lr=f.req.lr, seed=m.seed,
+                                        transform=m.control.transform))
+            optimise_together(adapter, learners, steps=self.req.steps, batch_size=self.req.batch_size,
+                              dtype=self.dtype, route=fused.rows, show=self.req.progress, leave=False)
+        with ExitStack() as stack:
+            scores = evaluate_together(adapter, [
+                Scoring(mat.eval, stack.enter_context(closing(read_chunks(
+                    m.fitter._feed(mat, mat.eval, m.control, m.seed + 1).features(seed=None), m.fitter.req.num_workers,
+                    st))), m.fitter.cameras, m.control.transform)
+                for m, mat, st in zip(members, mats, stats, strict=True)],
+                dtype=self.dtype, num_denoise_steps=self.req.num_denoise_steps, route=fused.rows)
+        prefix = next(name for name, module in adapter.policy.named_modules() if module is fused)
+        share = (time.perf_counter() - t0) / len(members)
+        rows = []
+        for m, mat, projector, one, score, st in zip(members, mats, projectors, learners, scores, stats, strict=True):
+            m.fitter._save_projector(adapter, m.cell, {f"{prefix}.{n}": p for n, p in projector.named_parameters()})
+            rows.append(m.fitter._told(m.fitter._row(adapter, m.cell, mat, one.final_loss, score, st, share,
+                                                     cells=len(members)), m.control))
+        return rows
+
+    def _row(self, adapter, cell: Cell, mat: _Material, loss: float, score, stats: StreamStats, wall: float, *,
+             cells: int) -> dict[str, Any]:
+        """A cell's row from what it measured (`cells`: how many cells its backbone pass trained)."""
+        if isinstance(self.root, ReadThroughRoot):  # what the reading processes copied locally for this cell
+            self.root.fetched_bytes += stats.fetched
         return cell.row(self.req, {
             "run_id": cell.run_id, "policy_sha256": adapter.policy_sha256, "encoder": mat.encoder,
             "pool_grid": format_grid(mat.grid), "train_loss_final": loss, "eval_mse": score.mse,
@@ -353,9 +411,9 @@ class Fitter:
             "eval_mse_episodes": [score.per_episode[e] for e in sorted(score.per_episode)],
             "eval_ci_mse": score.ci_mse,
             "eval_ci_mse_episodes": [score.ci_per_episode[e] for e in sorted(score.per_episode)],
-            "backbone_params": params,
+            "backbone_params": adapter.n_params,
             "n_eval_frames": score.n_frames, "n_eval_episodes": len(score.per_episode), "wall_s": wall,
-            "device": str(self.device),
+            "cells_per_pass": cells, "device": str(self.device),
             "random_init": bool(mat.cache.manifest.get("random_init") or adapter.random_init),
             "n_dropped_nonfinite": mat.dropped + len(stats.dropped), "numerics_drift": self._drift(mat),
             "camera_map": format_camera_map(self.cameras), "graftcache_version": graftcache.__version__,
@@ -365,11 +423,14 @@ class Fitter:
         """Where a cell's projector (and a row its results file could not take) is kept."""
         return (Path(self.req.out) if self.req.out else Path(self.req.results).parent / "runs") / cell.run_id
 
-    def _save_projector(self, adapter, cell: Cell) -> None:
+    def _save_projector(self, adapter, cell: Cell, trainable: Mapping[str, torch.Tensor] | None = None) -> None:
+        """The cell's trained parameters (default: every trainable one of the policy), named as in the policy."""
         folder = self.run_folder(cell)
         folder.mkdir(parents=True, exist_ok=True)
-        trainable = {n: p.detach().cpu().contiguous() for n, p in adapter.policy.named_parameters() if p.requires_grad}
-        save_file(trainable, str(folder / "projector.safetensors"))
+        if trainable is None:
+            trainable = {n: p for n, p in adapter.policy.named_parameters() if p.requires_grad}
+        save_file({n: p.detach().cpu().contiguous() for n, p in trainable.items()},
+                  str(folder / "projector.safetensors"))
         follow_umask(folder / "projector.safetensors")
         sidecar = {"run_id": cell.run_id, "cell": asdict(cell), "split": asdict(self.split),
                    "freeze": str(adapter.freeze_report()), "graftcache_version": graftcache.__version__}

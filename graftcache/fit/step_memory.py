@@ -12,7 +12,7 @@ a refusal is never wrong.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 import torch
@@ -20,13 +20,13 @@ import torch
 from graftcache.budget import available_memory, require, size
 from graftcache.fit.buffer import buffer_frames
 from graftcache.fit.data import LowDim
-from graftcache.fit.loop import flow_time, raw_batch
+from graftcache.fit.loop import Route, alone, flow_time, raw_batch
 from graftcache.fit.stream import FeatureSource
 from graftcache.runtime import autocast
 
 
 def saved_bytes(adapter, low: LowDim, cams: Mapping[str, str], shapes: Mapping[str, tuple[int, int]],
-                frames: int, dtype: torch.dtype) -> int:
+                frames: int, dtype: torch.dtype, route: Route = alone) -> int:
     """Bytes autograd keeps for backward after the loss of a `frames`-frame batch (zero features, the first
     training frame's low-dim row), each storage counted once. Eval mode, no dropout masks: a lower bound."""
     storages: dict[int, int] = {}
@@ -47,7 +47,7 @@ def saved_bytes(adapter, low: LowDim, cams: Mapping[str, str], shapes: Mapping[s
             batch = adapter.prepare(raw_batch(low, np.zeros(frames, dtype=np.int64), features, cams))
             noise = adapter.sample_noise(frames, generator=generator)
             time = flow_time(frames, generator).to(adapter.device)
-            with autocast(adapter.device, dtype):
+            with route([frames]), autocast(adapter.device, dtype):
                 adapter.loss(batch, noise=noise, time=time).mean()
         finally:
             adapter.policy.train(training)
@@ -55,22 +55,30 @@ def saved_bytes(adapter, low: LowDim, cams: Mapping[str, str], shapes: Mapping[s
 
 
 def check_step_memory(adapter, low: LowDim, cams: Mapping[str, str], source: FeatureSource, *,
-                      batch_size: int, buffer_mib: int, dtype: torch.dtype) -> None:
+                      batch_size: int, buffer_mib: int, dtype: torch.dtype,
+                      others: Sequence[tuple[LowDim, FeatureSource, int]] = (), route: Route = alone) -> None:
     """BudgetError (one line: the estimate, what a frame costs, the limit) when a step of `batch_size` cannot
-    fit."""
+    fit. `others`: the other cells of a backbone pass (graftcache/fit/passes.py), each (train rows, source,
+    buffer MiB) with a shuffle buffer of its own and `batch_size` more frames in the step, fed tokens of the
+    first cell's shapes; `route` gives the measuring batches' rows to the first cell's projector."""
     shapes = {cam: source.frame_shape(cam) for cam in set(cams.values())}
-    two, one = (saved_bytes(adapter, low, cams, shapes, frames, dtype) for frames in (2, 1))
+    two, one = (saved_bytes(adapter, low, cams, shapes, frames, dtype, route) for frames in (2, 1))
     per_frame = max(0, two - one)
     per_frame += sum(tokens * width * 4 for tokens, width in shapes.values())  # the batch's features in fp32
-    held = buffer_frames(buffer_mib, source.frame_bytes(), batch_size, len(low)) * source.frame_bytes()
+    held = sum(buffer_frames(mib, src.frame_bytes(), batch_size, len(rows)) * src.frame_bytes()
+               for rows, src, mib in ((low, source, buffer_mib), *others))
+    frames = batch_size * (1 + len(others))
     grid = ", ".join(f"{cam} {t}x{w}" for cam, (t, w) in sorted(shapes.items()))
     what = (f"a training step of --batch-size {batch_size} ({size(per_frame)} a frame, measured on a 2-frame "
             f"step of features {grid})")
-    hint = "lower --batch-size"
+    hint, buffers = "lower --batch-size", "shuffle buffer"
+    if others:
+        what = f"{what} for each of the {1 + len(others)} cells of a backbone pass"
+        hint, buffers = "lower --cells-per-pass or --batch-size", "shuffle buffers"
     if adapter.device.type == "cuda":
-        require(what, batch_size * per_frame, *available_memory(adapter.device), hint)
-        require(f"the shuffle buffer ({size(held)}) of --batch-size {batch_size}", held,
+        require(what, frames * per_frame, *available_memory(adapter.device), hint)
+        require(f"the {buffers} ({size(held)}) of --batch-size {batch_size}", held,
                 *available_memory("cpu"), hint + " or --buffer-mib")
     else:
-        require(f"{what} with its shuffle buffer ({size(held)})", held + batch_size * per_frame,
+        require(f"{what} with its {buffers} ({size(held)})", held + frames * per_frame,
                 *available_memory("cpu"), hint)

@@ -1,0 +1,176 @@
+"""Several cells per pass of the frozen backbone: which cells share one, how many, and the loop that runs them.
+
+The backbone is frozen and the same for every cell of a (backbone, policy) pair, and a graft cell trains only a
+projector, so cells that feed the backbone token grids of one shape (seeds, the image controls, encoders of one
+grid and width) can share its forward and backward: each projector projects its own cell's rows of one
+concatenated batch (graftcache.graft.FusedProjector), and each cell keeps its own loss, optimiser state, gradient
+clipping and random streams (graftcache.fit.loop.optimise_together), so its row equals the row it gets alone
+up to float rounding of the larger batch. Held-out scoring is shared the same way.
+
+Which cells run alone (`graftcache.fit.run.Fitter.pass_key` is None for them): the `lora` control (LoRA adapts
+the backbone every row of a pass goes through), the `align` objective (a closed-form ridge: no backbone pass to
+share) and controls that train nothing (`native`: scored as loaded). The `cells_per_pass` a request asks for
+only groups cells; it is an execution setting like the reader count, so no cell (hence no run_id) depends on
+it, and a rerun whose pass is partly done runs only its missing cells. Rows record how many cells their pass
+held (`cells_per_pass`) and, as `wall_s`, their share of the pass's time.
+
+The default (`CELLS_PER_PASS`, by device type and backbone) is what benchmarks/bench_fuse.py measured cheapest
+per cell. On CPU (2 AMD EPYC cores shared with other work, load 6-11, 1 thread, bf16; tiny backbones, 4 cells
+of 10 steps of 16 frames plus 32 scored frames, median of interleaved rounds:
+benchmarks/results/bench_fuse_cpu_run1.json, bench_fuse_cpu_run2.json) whole cells at 1 / 2 / 4 cells per pass
+took SmolVLA 4.2 / 5.0 / 5.0 s, then 5.8 / 5.5 / 2.6 s; pi0.5 3.5 / 3.8 / 7.1 s, then 2.1 / 2.1 / 2.3 s:
+rounds of one setting differed up to 3x, so no gain stands out of the noise. The grafted step alone got 10-30%
+cheaper a cell at 4, but at SmolVLA's released geometry (~450M parameters, random init, batch 2 a cell:
+benchmarks/results/bench_fuse_cpu_smolvla_released.json) the step is compute-bound, 3.30 / 3.25 / 3.23 s a
+cell-step, and every cell of a pass holds its own shuffle buffer. So 1 on CPU. On CUDA (unmeasured here: no
+GPU was lent) a grafted step leaves the device mostly idle (issue 21: ~39 ms a sample for pi0.5 at batch 4
+against a ~11 ms FLOP bound), so SmolVLA (~450M parameters, 64 tokens a camera) defaults to 4 cells, and
+pi0.5, whose batch 32 alone needs more than an 80 GB device without activation checkpointing (issue 21's
+estimate), to 1. A pass that would not fit is refused before its first step (graftcache.fit.step_memory,
+naming --cells-per-pass).
+"""
+
+from __future__ import annotations
+
+import time
+from collections import Counter
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import torch
+
+from graftcache import results
+from graftcache.file_lease import FileLease
+from graftcache.fit.controls import Control
+from graftcache.requests import FitRequest
+from graftcache.runtime import set_main_threads
+
+#: Cells per backbone pass when a request does not say: (device type, backbone) -> cells. Unlisted pairs: 1.
+CELLS_PER_PASS: dict[tuple[str, str], int] = {
+    ("cpu", "smolvla"): 1, ("cpu", "pi05"): 1,     # measured: benchmarks/results/bench_fuse_cpu_*.json
+    ("cuda", "smolvla"): 4, ("cuda", "pi05"): 1,   # unmeasured (no GPU lent): chosen as the module docstring says
+}
+
+
+def default_cells_per_pass(backbone: str, device: torch.device) -> int:
+    return CELLS_PER_PASS.get((device.type, backbone), 1)
+
+
+class Identified(Protocol):
+    """A cell as a pass needs it (graftcache.fit.run.Cell)."""
+
+    @property
+    def run_id(self) -> str: ...
+
+
+class Host(Protocol):
+    """What runs the cells of one request (graftcache.fit.run.Fitter, which imports this module)."""
+
+    req: FitRequest
+    log: Callable[[str], None]
+
+    def cells(self) -> list[tuple[Control, int, Identified]]: ...
+    def skip(self, control: Control, cell: Identified, done: set[str]) -> bool: ...
+    def pass_key(self, control: Control) -> tuple | None: ...
+    def run_pass(self, members: Sequence[Member]) -> list[dict[str, Any]]: ...
+    def run_folder(self, cell: Identified) -> Any: ...
+    def close(self) -> None: ...
+
+
+@dataclass(frozen=True)
+class Member:
+    """One missing cell of a Fitter, as a pass holds it."""
+
+    fitter: Host
+    control: Control
+    seed: int
+    cell: Identified
+
+    @property
+    def at(self) -> tuple[str, str]:
+        """(results file, run_id): the row's place, the same for a cell two requests share."""
+        return self.fitter.req.results, self.cell.run_id
+
+
+def plan_passes(members: Sequence[Member]) -> list[list[Member]]:
+    """`members` cut into passes: those of one pass key in runs of their request's `cells_per_pass`, each cell
+    with no key alone; passes in the order of their first cell (so with 1 cell per pass, the members' order)."""
+    groups: dict[Any, list[int]] = {}
+    for i, m in enumerate(members):
+        key = m.fitter.pass_key(m.control)
+        groups.setdefault(("alone", i) if key is None else key, []).append(i)
+    passes = []
+    for at in groups.values():
+        n = members[at[0]].fitter.req.cells_per_pass if len(at) > 1 else 1
+        passes += [at[i:i + n] for i in range(0, len(at), n)]
+    return [[members[i] for i in p] for p in sorted(passes)]
+
+
+def _take(claim: FileLease) -> bool:
+    """Take a cell's claim; where no claim can be made (a read-only place) the cell runs unclaimed, and its row
+    is then kept by results.append_or_keep."""
+    try:
+        return claim.try_acquire()
+    except OSError:
+        return True
+
+
+def run_passes(fitters: Sequence[Host], visited: Callable[[int], None] = lambda n: None) -> list[dict[str, Any]]:
+    """Every missing cell of `fitters` (which share one BackbonePool), pass by pass, each row appended to its
+    results file as its pass finishes; returns the rows written. `visited(n)`: n more cells were run or skipped.
+
+    Other processes (fits, sweeps, here or on other machines) may write the same results files: a cell is
+    computed only under its claim (results.cell_claim), so a cell another process is computing is left for
+    later (its pass runs without it), then skipped once its row is in the file (or computed here if that
+    process died)."""
+    set_main_threads()
+    members: list[Member] = []
+    seen: set[tuple[str, str]] = set()
+    done = {path: results.done_run_ids(path) for path in {f.req.results for f in fitters}}
+    for fitter in fitters:
+        for control, seed, cell in fitter.cells():
+            m = Member(fitter, control, seed, cell)
+            if m.at in seen:  # a cell two requests share (the native controls of every encoder) runs once
+                fitter.log(f"cell {cell.run_id} (seed {seed} control {control.name}) is a cell of an earlier "
+                           f"request too: computed once")
+            if m.at in seen or fitter.skip(control, cell, done[fitter.req.results]):
+                visited(1)
+                continue
+            seen.add(m.at)
+            members.append(m)
+    claims = {m.at: results.cell_claim(*m.at) for m in members}
+    left = Counter(id(m.fitter) for m in members)
+    rows: list[dict[str, Any]] = []
+    told: set[tuple[str, str]] = set()
+    while members:
+        busy = []
+        for planned in plan_passes(members):
+            got = []
+            for m in planned:
+                if _take(claims[m.at]):
+                    got.append(m)
+                    continue
+                if m.at not in told:
+                    m.fitter.log(f"cell {m.cell.run_id} (seed {m.seed} control {m.control.name}) is being computed "
+                                 f"by {claims[m.at].holder()}: waiting for its row")
+                    told.add(m.at)
+                busy.append(m)
+            try:
+                fresh = [m for m in got if not m.fitter.skip(m.control, m.cell, results.done_run_ids(m.at[0]))]
+                if fresh:
+                    for m, row in zip(fresh, fresh[0].fitter.run_pass(fresh), strict=True):
+                        results.append_or_keep(m.at[0], row, m.fitter.run_folder(m.cell))
+                        rows.append(row)
+            finally:
+                for m in got:
+                    claims[m.at].release()
+            visited(len(got))
+            for m in got:
+                left[id(m.fitter)] -= 1
+                if not left[id(m.fitter)]:
+                    m.fitter.close()  # its kept blocks and tables go before the next requests' are read
+        if busy:
+            time.sleep(1.0)
+        members = busy
+    return rows
