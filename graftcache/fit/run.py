@@ -45,7 +45,7 @@ from graftcache.fit.lookup import find_cache
 from graftcache.fit.loop import evaluate
 from graftcache.fit.objectives import EVAL_ONLY, OBJECTIVES, Fitting, Objective
 from graftcache.fit.step_memory import check_step_memory
-from graftcache.fit.stream import BlockMemo, FeatureSource, StreamStats, read_chunks
+from graftcache.fit.stream import BlockMemo, CacheReader, FeatureSource, StreamStats, read_chunks
 from graftcache.pooling import format_grid
 from graftcache.requests import FitRequest
 from graftcache.runtime import resolve_compute_dtype, resolve_device, resolve_dtype, set_main_threads
@@ -158,6 +158,7 @@ class Fitter:
         self._enforced: set[str] = set()  # verdicts this request has acted on (refused, warned)
         # reading in this process, the blocks cells read are kept for the next cells, up to another --buffer-mib
         self._memo = BlockMemo(req.buffer_mib * MIB) if req.num_workers == 0 else None
+        self.reader = CacheReader()  # every source's: each block is checked once per fit, in whichever process
 
     def _match_cameras(self) -> dict[str, str]:
         """Policy camera -> the cache camera feeding it (graftcache/cameras.py: by name unless `camera_map` says
@@ -308,10 +309,10 @@ class Fitter:
                 target_rows = at.drop_nulls().to_numpy().astype(np.int64)
             train_at = np.flatnonzero(np.isin(low.episode_index, self.split.train_episodes))
             mat = _Material(low.take(train_at), low.subset(self.split.eval_episodes).evenly(self.req.eval_frames),
-                            FeatureSource.of(source, cams, grid, control.extra), source,
+                            FeatureSource.of(source, cams, grid, control.extra, self.reader), source,
                             source.manifest["encoder"]["name"], grid, dropped=dropped)
             if target_rows is not None:
-                mat.targets = FeatureSource.of(self.native_cache, cams, None, "connector")
+                mat.targets = FeatureSource.of(self.native_cache, cams, None, "connector", self.reader)
                 mat.target_rows = target_rows[train_at]
             self._materials[key] = mat
         return self._materials[key]

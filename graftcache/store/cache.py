@@ -15,8 +15,9 @@ Layout choices (why):
   block has a marker; the checksums then move into the attributes and `verify` re-reads them.
   The attributes live in the group's zarr.json, one object written whole, so publishing `complete` is a
   single atomic put on a local disk and on an object store alike (graftcache.store.roots).
-- Stage 2 checks every block it reads against its checksum, once per block per process (`_VERIFIED`),
-  reading whole blocks for that: a corrupt shard is a one-line CacheError naming cache, array and block.
+- Stage 2 checks every block it reads against its checksum, once per block per reader (`BlockChecks`, owned by
+  the handle, shared by a fit's handles and handed to its worker processes, graftcache.fit.stream), reading whole
+  blocks for that: a corrupt shard is a one-line CacheError naming cache, array and block.
 """
 
 from __future__ import annotations
@@ -57,23 +58,32 @@ STORAGE_DTYPES: dict[str, np.dtype] = {
 PROGRESS_DIR = "_progress"
 #: zarr's LocalStore writes `<object>.<uuid>.partial` and renames it; a writer killed mid-write leaves one behind.
 PARTIAL_SUFFIX = ".partial"
-_VERIFIED: set[tuple[str, str, int]] = set()  # (cache location, array, block) checked in this process
 
 
-def forget_verified() -> None:
-    """Check every block again on its next read (benchmarks time the first read of a process)."""
-    _VERIFIED.clear()
+class BlockChecks:
+    """The blocks read back against their checksums: (cache location, array, block), block -1 for a static array.
 
+    Owned by whoever reads (a cache handle, or every handle of one fit: graftcache.fit.stream.CacheReader) and
+    pickled with it into the worker processes it starts, so a block is checked once per reader whichever process
+    reads it, also in workers that inherit nothing (a fork server's). `count` is the checks made for this reader:
+    here, plus those its workers reported (`update`)."""
 
-def verified_blocks() -> frozenset[tuple[str, str, int]]:
-    """The blocks this process has checked (stage 2's reading workers hand them to the process that forks the
-    next ones, so a fit checks each block once, not once per worker)."""
-    return frozenset(_VERIFIED)
+    def __init__(self) -> None:
+        self.done: set[tuple[str, str, int]] = set()
+        self.count = 0
 
+    def __contains__(self, block: tuple[str, str, int]) -> bool:
+        return block in self.done
 
-def trust_verified(blocks: Iterable[tuple[str, str, int]]) -> None:
-    """Count `blocks` as checked in this process: a worker of this process checked them (`verified_blocks`)."""
-    _VERIFIED.update(blocks)
+    def add(self, block: tuple[str, str, int]) -> None:
+        """A block this process checked."""
+        self.done.add(block)
+        self.count += 1
+
+    def update(self, blocks: Iterable[tuple[str, str, int]]) -> None:
+        """Blocks a worker process checked for this reader: counted, and never checked again."""
+        for block in blocks:
+            self.add(block)
 
 
 def _compressor(itemsize: int) -> BloscCodec:
@@ -127,16 +137,18 @@ class FeatureCache:
     whose manifest hashes to another key than its name is refused (`MisplacedCache`)."""
 
     @classmethod
-    def in_root(cls, root: Root, key: str, *, writable: bool = False) -> FeatureCache:
+    def in_root(cls, root: Root, key: str, *, writable: bool = False, checks: BlockChecks | None = None) -> FeatureCache:
         """The cache `key` of an opened root (its objects read and written through that root)."""
-        return cls(root.location(key), root=root, key=key, writable=writable)
+        return cls(root.location(key), root=root, key=key, writable=writable, checks=checks)
 
     def __init__(self, location: str | Path, *, root: Root | None = None, key: str | None = None,
-                 writable: bool = True) -> None:
+                 writable: bool = True, checks: BlockChecks | None = None) -> None:
+        """`checks`: the blocks already checked by the reader this handle belongs to (default: its own)."""
         if root is None or key is None:
             root, key = split_location(location)
         check_key(key)
         self.path, self.root, self._key, self._writable = location, root, key, writable
+        self.checks = BlockChecks() if checks is None else checks
         raw = root.get(f"{key}/{GROUP_META}")
         if raw is None:
             raise CacheError(f"{location}: no feature cache here (zarr.json missing)")
@@ -361,7 +373,7 @@ class FeatureCache:
 
     def _read_rows(self, name: str, rows: np.ndarray) -> np.ndarray:
         """`arr[rows]` read one block at a time, each block checked against its checksum the first time this
-        process reads it (whole, which is what the checksum covers); later reads take the rows' span only.
+        handle's reader reads it (whole, which is what the checksum covers); later reads take the rows' span only.
 
         zarr's orthogonal selection on sharded arrays costs ~50 ms per shard in chunk bookkeeping (4.6 s
         for 1k rows here); slicing inside each shard and indexing in numpy reads the same bytes and holds at
@@ -378,7 +390,7 @@ class FeatureCache:
         for block in wanted_blocks:
             sel = blocks == block
             wanted = ordered[sel]
-            if self.complete and (str(self.path), name, block) not in _VERIFIED:
+            if self.complete and (str(self.path), name, block) not in self.checks:
                 lo, hi = self.block_range(block)
                 values = self._checked_block(arr, name, block)
             else:
@@ -397,18 +409,18 @@ class FeatureCache:
             raise CacheError(f"{where} is unreadable ({type(e).__name__}); {hint}") from None
         if _sha256(values) != self.attrs["checksums"][name][block]:
             raise CacheError(f"{where} does not match its stored checksum; {hint}")
-        _VERIFIED.add((str(self.path), name, block))
+        self.checks.add((str(self.path), name, block))
         return values
 
     def _static(self, name: str) -> np.ndarray:
-        """A small whole array (index, low-dim, action stream), checked against its checksum once per process."""
+        """A small whole array (index, low-dim, action stream), checked against its checksum once per reader."""
         values = self.group[name][...]
         expected = self.layout.get("static_checksums", {}).get(name)
-        if self.complete and expected and (str(self.path), name, -1) not in _VERIFIED:
+        if self.complete and expected and (str(self.path), name, -1) not in self.checks:
             if _sha256(values) != expected:
                 raise CacheError(f"cache {self.path}: {name} does not match its stored checksum; "
                                  f"run `graftcache verify {self.key}`")
-            _VERIFIED.add((str(self.path), name, -1))
+            self.checks.add((str(self.path), name, -1))
         return values
 
     def action_stream(self) -> pl.DataFrame:
