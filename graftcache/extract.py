@@ -33,13 +33,7 @@ from graftcache.cameras import format_camera_map, match_cameras, renames
 from graftcache.datasets import DatasetMeta, LeRobotSource, open_dataset, suite_of
 from graftcache.datasets.suites import SUITES
 from graftcache.encoders import get_spec, load_encoder
-from graftcache.encoders.fingerprint import (
-    MANIFEST_FIELD,
-    NO_FINGERPRINT,
-    compare,
-    fingerprint,
-    library_versions,
-)
+from graftcache.encoders.fingerprint import compare, fingerprint, library_versions
 from graftcache.errors import CacheError, DatasetError, EncoderError, GraftcacheError
 from graftcache.nonfinite import DROP_FLAG, KEEP_FLAG, lowdim_problem, nonfinite_rows
 from graftcache.pooling import format_grid, parse_grid, pool_grid, resolve_grids
@@ -53,7 +47,7 @@ from graftcache.runtime import (
     set_main_threads,
     single_thread_worker,
 )
-from graftcache.store import FORMAT_VERSION, FeatureCache, Root, cache_key, open_root
+from graftcache.store import FORMAT_VERSION, DatasetRecord, FeatureCache, Manifest, Root, cache_key, open_root
 from graftcache.store.cache import STORAGE_DTYPES, ArraySpec, from_storage, to_storage
 from graftcache.store.key import RefusedPlace
 
@@ -83,56 +77,48 @@ def build_index(source: LeRobotSource, episodes: Sequence[int]) -> pl.DataFrame:
 
 
 def build_manifest(req: ExtractRequest, source: LeRobotSource, encoder: Any, episodes: Sequence[int],
-                   cameras: Sequence[str], n_frames: int, numerics: dict[str, Any]) -> dict[str, Any]:
+                   cameras: Sequence[str], n_frames: int, numerics: dict[str, Any]) -> Manifest:
     """Provenance manifest. Identity fields (see store.key) decide the cache key; the numerics fingerprint
     (encoders/fingerprint.py) is not one of them: it decides whether this environment may extend the cache.
     `req.grids` are resolved names (never "native"); `native_grid` says which of them is the encoder's own grid,
     stored unpooled (None when only pooled grids are stored), for stage 2 to pool from. It is provenance: the
     encoder's grid and the stored grids, both in the key, already decide it."""
     meta = source.meta
-    desc = encoder.describe()
     native = format_grid(encoder.spec.grid)
     winfo = dict(encoder.weights_info)
     extras = {name: list(shape) for name, shape in getattr(encoder, "extra_shapes", {}).items()}
-    return {
-        "format_version": FORMAT_VERSION,
-        "graftcache_version": graftcache.__version__,
-        "created_at": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-        "dataset": {
-            "source": str(req.dataset),
-            "root": str(meta.root),
-            "repo_id": meta.repo_id,
-            "revision": meta.revision,
-            "codebase_version": meta.codebase_version,
-            "fps": meta.fps,
-            "n_episodes_total": len(meta.episodes),
-            "n_frames_total": meta.n_frames,
-        },
-        "dataset_fingerprint": meta.identity,
-        "episodes": None if len(episodes) == len(meta.episodes) else [int(e) for e in episodes],
-        "frame_stride": req.frame_stride,
-        "cameras": list(cameras),
-        "camera_keys": {c: meta.camera_keys[c] for c in cameras},
-        "encoder": desc,
-        "weights": winfo,
-        "weights_sha256": winfo["sha256"],
-        "random_init": bool(winfo.get("random_init", False)),
-        "grids": list(req.grids),
-        "native_grid": native if native in req.grids else None,
-        "extras": extras,
-        "dtype": req.dtype,
-        "compute_dtype": req.compute_dtype,
-        "n_frames": n_frames,
-        "tasks": list(meta.tasks),
-        "suites": list(SUITES),
-        "state_key": meta.state_key,
-        "action_key": meta.action_key,
-        "versions": library_versions(),
-        MANIFEST_FIELD: numerics,
-        "run": {"device": req.device, "batch_size": req.batch_size, "num_workers": req.num_workers,
-                "command": " ".join(sys.argv)},
-        **req.extra_manifest,
-    }
+    return Manifest(
+        format_version=FORMAT_VERSION,
+        graftcache_version=graftcache.__version__,
+        created_at=datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        dataset=DatasetRecord(source=str(req.dataset), root=str(meta.root), repo_id=meta.repo_id,
+                              revision=meta.revision, codebase_version=meta.codebase_version, fps=meta.fps,
+                              n_episodes_total=len(meta.episodes), n_frames_total=meta.n_frames),
+        dataset_fingerprint=meta.identity,
+        episodes=None if len(episodes) == len(meta.episodes) else [int(e) for e in episodes],
+        frame_stride=req.frame_stride,
+        cameras=list(cameras),
+        camera_keys={c: meta.camera_keys[c] for c in cameras},
+        encoder=encoder.describe(),
+        weights=winfo,
+        weights_sha256=winfo["sha256"],
+        random_init=bool(winfo.get("random_init", False)),
+        grids=list(req.grids),
+        native_grid=native if native in req.grids else None,
+        extras=extras,
+        dtype=req.dtype,
+        compute_dtype=req.compute_dtype,
+        n_frames=n_frames,
+        tasks=list(meta.tasks),
+        suites=list(SUITES),
+        state_key=meta.state_key,
+        action_key=meta.action_key,
+        versions=library_versions(),
+        numerics=numerics,
+        run={"device": req.device, "batch_size": req.batch_size, "num_workers": req.num_workers,
+             "command": " ".join(sys.argv)},
+        extra=dict(req.extra_manifest),
+    )
 
 
 class _EpisodeFrames(Dataset):
@@ -277,9 +263,9 @@ def extract(req: ExtractRequest, log: Callable[[str], None] = print) -> ExtractR
     index = stream.filter(pl.col("frame_index") % req.frame_stride == 0)
     manifest = build_manifest(req, source, encoder, episodes, cameras, index.height,
                               fingerprint(encoder, req.compute_dtype, device))
-    key = cache_key(manifest)
+    key = cache_key(manifest.to_dict())
     path = root.location(key)
-    if manifest["random_init"]:
+    if manifest.random_init:
         log(f"note: encoder {spec.name} uses RANDOM-INIT weights (seed {req.seed}); the manifest says so")
 
     done = _complete(root, key, manifest, req)  # reusing takes no writer lock: a read-only root serves it
@@ -336,7 +322,7 @@ def check_memory(req: ExtractRequest, meta: DatasetMeta, cameras: Sequence[str],
     budget.require(what, host + pooled, *budget.available_memory("cpu"), hint + " or --batch-size")
 
 
-def _check_disk(root: Root, key: str, manifest: dict[str, Any], req: ExtractRequest, per_frame: int,
+def _check_disk(root: Root, key: str, manifest: Manifest, req: ExtractRequest, per_frame: int,
                 n_frames: int) -> None:
     """Refuse before writing a cache whose unwritten frames cannot fit the free space of its file system
     (bytes before compression: features of float noise barely compress). Frames of blocks a matching
@@ -370,7 +356,7 @@ class _Writing:
 
     root: Root
     key: str
-    manifest: dict[str, Any]
+    manifest: Manifest
     source: LeRobotSource
     index: pl.DataFrame
     stream: pl.DataFrame
@@ -459,7 +445,7 @@ class _Writing:
         return ExtractResult(self.key, self.root.location(self.key), False, cache.n_frames, encoded, wall, encode_s)
 
 
-def _complete(root: Root, key: str, manifest: dict[str, Any], req: ExtractRequest) -> FeatureCache | None:
+def _complete(root: Root, key: str, manifest: Manifest, req: ExtractRequest) -> FeatureCache | None:
     """The finished cache of this request, opened read-only, or None when there is work to do."""
     try:
         cache = FeatureCache.in_root(root, key)
@@ -469,11 +455,11 @@ def _complete(root: Root, key: str, manifest: dict[str, Any], req: ExtractReques
         return None
     if not (cache.initialized and cache.complete and cache.matches(manifest)):
         return None
-    cache.check_dataset(manifest["dataset_fingerprint"], req.dataset)
+    cache.check_dataset(manifest.dataset_fingerprint, req.dataset)
     return cache
 
 
-def _open_or_create(root: Root, key: str, manifest: dict[str, Any], index: pl.DataFrame, stream: pl.DataFrame,
+def _open_or_create(root: Root, key: str, manifest: Manifest, index: pl.DataFrame, stream: pl.DataFrame,
                     encoder: Any, cameras: Sequence[str], req: ExtractRequest,
                     log: Callable[[str], None]) -> FeatureCache:
     try:
@@ -484,7 +470,7 @@ def _open_or_create(root: Root, key: str, manifest: dict[str, Any], index: pl.Da
         cache = None
     if cache is not None:
         if cache.initialized:  # never resume or reuse features of other data under this key (e.g. a copied cache)
-            cache.check_dataset(manifest["dataset_fingerprint"], req.dataset)
+            cache.check_dataset(manifest.dataset_fingerprint, req.dataset)
         if cache.initialized and cache.matches(manifest):
             _check_numerics(cache, manifest, log)
             if not cache.complete:
@@ -496,21 +482,16 @@ def _open_or_create(root: Root, key: str, manifest: dict[str, Any], index: pl.Da
     grids = list(map(parse_grid, req.grids))
     arrays = [ArraySpec(f"features/{cam}/{format_grid(g)}", (g[0] * g[1], width)) for cam in cameras for g in grids]
     arrays += [ArraySpec(f"features/{cam}/{name}", tuple(shape))
-               for cam in cameras for name, shape in manifest["extras"].items()]
+               for cam in cameras for name, shape in manifest.extras.items()]
     return FeatureCache.create(root.location(key), manifest, arrays, index, block_frames=req.block_frames,
                                action_stream=stream.select("episode_index", "frame_index", "action"), root=root)
 
 
-def _check_numerics(cache: FeatureCache, manifest: dict[str, Any], log: Callable[[str], None]) -> None:
+def _check_numerics(cache: FeatureCache, manifest: Manifest, log: Callable[[str], None]) -> None:
     """Resuming is refused when this environment computes other features than the one that began the cache
     (the fingerprint was just computed for `manifest`); reusing a complete cache only says so, since `fit`
-    checks again and nothing is written here. A cache without a fingerprint (older graftcache) is used with a
-    warning."""
-    recorded = cache.manifest.get(MANIFEST_FIELD)
-    if not recorded:
-        log(f"warning: cache {cache.key}: {NO_FINGERPRINT}")
-        return
-    check = compare(cache.key, recorded, manifest[MANIFEST_FIELD], cache.manifest.get("versions"))
+    checks again and nothing is written here."""
+    check = compare(cache.key, cache.manifest.numerics, manifest.numerics, cache.manifest.versions)
     if check.status == "match":
         return
     if cache.complete or check.status == "unchecked":
@@ -586,7 +567,7 @@ def _out_of_space(cache: FeatureCache, error: OSError) -> str:
     done = cache.blocks_done()
     todo = [b for b in range(int(cache.layout["n_blocks"])) if b not in done]
     frames = sum(stop - start for start, stop in map(cache.block_range, todo))
-    itemsize = STORAGE_DTYPES[cache.manifest["dtype"]].itemsize
+    itemsize = STORAGE_DTYPES[cache.manifest.dtype].itemsize
     per_frame = sum(int(np.prod(shape)) * itemsize for shape in cache.layout["arrays"].values())
     where = f" writing {error.filename}" if error.filename else ""
     return (f"cache {cache.key}: {error.strerror}{where}; {frames} of {cache.n_frames} frames are not written yet, "

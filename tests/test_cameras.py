@@ -127,7 +127,7 @@ def test_native_extract_refuses_differing_names_unless_mapped(world: World, tmp_
                  "--camera-map", MAP, "--num-workers", "0", "--cache", str(cache), "--no-progress"]) == 2
     assert f"encoder '{ENCODER}' takes no --camera-map" in _one_error_line(capsys)
     # fit reads both caches through the one map; the native control's row records it too
-    (encoder_cache,) = [c for c in list_caches(world.cache) if c.manifest["dataset"]["root"] == str(world.dataset.root)]
+    (encoder_cache,) = [c for c in list_caches(world.cache) if c.manifest.dataset.root == str(world.dataset.root)]
     shutil.copytree(world.cache / encoder_cache.key, cache / encoder_cache.key)
     out = tmp_path / "r.parquet"
     assert world.fit(out, "--controls", "native", cache=cache) == 2

@@ -85,7 +85,7 @@ def test_every_control_writes_one_schema_valid_row(world: World, tmp_path: Path)
     assert by["native"]["cache_key"] == world.native_keys["smolvla"]
     assert by["none"]["cache_key"] == world.encoder_key and by["none"]["encoder"] == ENCODER
     assert by["pool-2x2"]["pool_grid"] == "2x2" and by["none"]["pool_grid"] == "4x4"
-    assert FeatureCache(world.cache / world.encoder_key).manifest["grids"] == ["14x14"]  # both pooled at read time
+    assert FeatureCache(world.cache / world.encoder_key).manifest.grids == ["14x14"]  # both pooled at read time
     assert by["pool-2x2"]["eval_mse"] != by["none"]["eval_mse"]
     assert by["zero-image"]["eval_mse"] != by["none"]["eval_mse"]
     for row in by.values():
@@ -256,7 +256,7 @@ def test_frame_stride_thins_features_not_actions(world: World, tmp_path: Path) -
                   progress=False, encoder=ENCODER, random_init=True)
     full = FeatureCache(world.cache / extract(ExtractRequest(**common), log=_quiet).key)
     strided = FeatureCache(world.cache / extract(ExtractRequest(frame_stride=2, **common), log=_quiet).key)
-    assert strided.key != full.key and strided.manifest["frame_stride"] == 2
+    assert strided.key != full.key and strided.manifest.frame_stride == 2
     idx = strided.index()
     assert (idx["frame_index"].to_numpy() % 2 == 0).all()
     keep = np.flatnonzero(full.index()["frame_index"].to_numpy() % 2 == 0)

@@ -135,7 +135,7 @@ def test_another_cache_under_a_key_is_refused(s3: str, local: tuple[Path, str]) 
     root, key = local
     copy_cache(open_root(root), open_root(s3), key, log=_quiet)
     cache = FeatureCache(f"{s3}/{key}")
-    cache.group.attrs["manifest"] = {**cache.manifest, "grids": ["3x3"]}  # another cache, copied in by hand
+    cache.group.attrs["manifest"] = {**cache.manifest.to_dict(), "grids": ["3x3"]}  # another cache, copied in by hand
     own = cache_key(cache.group.attrs["manifest"])
     before = bucket_objects(s3)
     with pytest.raises(MisplacedCache, match=f"not cache {key}: its manifest hashes to {own}"):

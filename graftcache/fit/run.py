@@ -144,12 +144,12 @@ class Fitter:
                                         key=req.native_cache_key, same_dataset_as=self.cache, for_what="native "
                                         "controls and the align objective") if needs_native else None)
         if self.native_cache is not None:
-            strides = {c.manifest.get("frame_stride") or 1 for c in (self.cache, self.native_cache)}
+            strides = {c.manifest.frame_stride for c in (self.cache, self.native_cache)}
             if len(strides) > 1:
                 raise FitError(f"caches {self.cache.key} and {self.native_cache.key} hold different frames (frame "
                                f"strides {sorted(strides)}); extract both with the same --frame-stride")
-        self.policy_folder = resolve_policy(req.backbone, req.policy, self.cache.manifest["dataset_fingerprint"],
-                                            cache_root(req.cache), self.cache.manifest["dataset"]["source"])
+        self.policy_folder = resolve_policy(req.backbone, req.policy, self.cache.manifest.dataset_fingerprint,
+                                            cache_root(req.cache), self.cache.manifest.dataset.source)
         self.cameras = self._match_cameras()
         self.index = suite_index_table(self.cache, req.suite)
         self.split = split_episodes(self.index, eval_fraction=req.eval_fraction, seed=req.eval_split_seed)
@@ -167,7 +167,7 @@ class Fitter:
         mapping: dict[str, str] = {}
         for cache in (self.cache, self.native_cache):
             if cache is not None:
-                mapping = match_cameras(policy, cache.manifest["cameras"], self.req.camera_map,
+                mapping = match_cameras(policy, cache.manifest.cameras, self.req.camera_map,
                                         policy_name=str(self.policy_folder), cache_name=f"cache {cache.key}")
         if renames(mapping):
             self.log(f"cameras mapped as asked (policy=cache): {format_camera_map(mapping)}")
@@ -265,8 +265,8 @@ class Fitter:
         """Whether the cell's row is in the results file already (said so in the log)."""
         if cell.run_id not in done:
             return False
-        encoder = self._source(control).manifest["encoder"]
-        self.log(f"skip {self.req.backbone}/{encoder['name']}/{self.req.suite} seed {cell.seed} "
+        encoder = self._source(control).manifest.encoder_name
+        self.log(f"skip {self.req.backbone}/{encoder}/{self.req.suite} seed {cell.seed} "
                  f"control {control.name}: already in {self.req.results}")
         return True
 
@@ -310,7 +310,7 @@ class Fitter:
             train_at = np.flatnonzero(np.isin(low.episode_index, self.split.train_episodes))
             mat = _Material(low.take(train_at), low.subset(self.split.eval_episodes).evenly(self.req.eval_frames),
                             FeatureSource.of(source, cams, grid, control.extra, self.reader), source,
-                            source.manifest["encoder"]["name"], grid, dropped=dropped)
+                            source.manifest.encoder_name, grid, dropped=dropped)
             if target_rows is not None:
                 mat.targets = FeatureSource.of(self.native_cache, cams, None, "connector", self.reader)
                 mat.target_rows = target_rows[train_at]
@@ -354,7 +354,7 @@ class Fitter:
             "eval_mse_first": score.mse_first, "eval_mse_raw": score.mse_raw,
             "eval_mse_episodes": [score.per_episode[e] for e in sorted(score.per_episode)],
             "n_eval_frames": score.n_frames, "n_eval_episodes": len(score.per_episode), "wall_s": wall,
-            "device": str(self.device), "random_init": bool(mat.cache.manifest.get("random_init") or adapter.random_init),
+            "device": str(self.device), "random_init": bool(mat.cache.manifest.random_init or adapter.random_init),
             "n_dropped_nonfinite": mat.dropped + len(stats.dropped), "numerics_drift": self._drift(mat),
             "camera_map": format_camera_map(self.cameras), "graftcache_version": graftcache.__version__,
         })

@@ -97,9 +97,9 @@ class FeatureSource:
     def of(cls, cache: FeatureCache, cameras: Sequence[str], grid: tuple[int, int] | None,
            extra: str | None = None, reader: CacheReader | None = None) -> FeatureSource:
         """`reader`: the fit's (shared by its sources, so each block is checked once per fit), default a new one."""
-        missing = [c for c in cameras if c not in cache.manifest["cameras"]]
+        missing = [c for c in cameras if c not in cache.manifest.cameras]
         if missing:
-            raise FitError(f"cache {cache.key} has no camera {missing}; it has {cache.manifest['cameras']}")
+            raise FitError(f"cache {cache.key} has no camera {missing}; it has {cache.manifest.cameras}")
         reader = reader or CacheReader()
         reader.adopt(cache)  # this process reads through its own handle
         return cls(cache.root.url, cache.key, tuple(cameras), None if extra else grid, extra, reader)
@@ -123,12 +123,12 @@ class FeatureSource:
         if self.extra is not None:
             tokens, width = cache.layout["arrays"][cache.feature_path(camera, self.extra)]
             return int(tokens), int(width)
-        stored = next(cache.feature_path(camera, g) for g in cache.manifest["grids"])
+        stored = next(cache.feature_path(camera, g) for g in cache.manifest.grids)
         return self.grid[0] * self.grid[1], int(cache.layout["arrays"][stored][-1])
 
     def frame_bytes(self, cameras: Sequence[str] | None = None) -> int:
         """Bytes of one frame as read (after pooling, in stored precision) of `cameras`, default every camera."""
-        itemsize = STORAGE_DTYPES[self.open().manifest["dtype"]].itemsize
+        itemsize = STORAGE_DTYPES[self.open().manifest.dtype].itemsize
         return sum(int(np.prod(self.frame_shape(c))) for c in (self.cameras if cameras is None else cameras)) * itemsize
 
 

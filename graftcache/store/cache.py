@@ -46,6 +46,7 @@ from graftcache.store.key import (
     compare_identity,
     identity_of,
 )
+from graftcache.store.manifest import Manifest
 from graftcache.store.roots import GROUP_META, Root, open_root, split_location
 
 INNER_CHUNK_BYTES = 4 << 20
@@ -154,11 +155,11 @@ class FeatureCache:
             raise CacheError(f"{location}: no feature cache here (zarr.json missing)")
         try:
             self._opened_attrs = json.loads(raw)["attributes"]
-            if not isinstance(self._opened_attrs["manifest"]["encoder"]["name"], str):
-                raise TypeError("encoder name is not a string")
+            stored = dict(self._opened_attrs["manifest"])
         except (ValueError, KeyError, TypeError) as e:
             raise CacheError(f"{location}: zarr.json is not a feature cache's ({type(e).__name__}: {e})") from None
-        own = cache_key(self._opened_attrs["manifest"])
+        self.manifest = Manifest.read(stored, str(location), key)  # refuses what it cannot upgrade, in one line
+        own = cache_key(stored)  # what is stored, in its own format, names the folder
         if own != key:
             raise MisplacedCache(location, key, own)
 
@@ -174,7 +175,7 @@ class FeatureCache:
     def create(
         cls,
         path: str | Path,
-        manifest: Mapping[str, Any],
+        manifest: Manifest,
         arrays: Iterable[ArraySpec],
         index: pl.DataFrame,
         *,
@@ -194,15 +195,15 @@ class FeatureCache:
         """
         parent, key = split_location(path)
         root = root or parent
-        own = cache_key(manifest)
+        own = cache_key(manifest.to_dict())
         if key != own:
             raise CacheError(f"{path}: a cache is made under its own key, {own}, not under {key!r}")
         root.delete_prefix(f"{key}/")
         n = index.height
-        dtype = manifest["dtype"]
+        dtype = manifest.dtype
         np_dtype = STORAGE_DTYPES[dtype]
         group = zarr.open_group(store=root.zarr_store(key, read_only=False), mode="w", zarr_format=3)
-        group.attrs.update({"manifest": dict(manifest), "initialized": False, "complete": False})
+        group.attrs.update({"manifest": manifest.to_dict(), "initialized": False, "complete": False})
         arrays = list(arrays)
         for spec in arrays:
             frame_bytes = int(np.prod(spec.frame_shape)) * np_dtype.itemsize
@@ -261,10 +262,6 @@ class FeatureCache:
         return dict(self.group.attrs) if "group" in self.__dict__ else dict(self._opened_attrs)
 
     @property
-    def manifest(self) -> dict[str, Any]:
-        return dict(self.attrs["manifest"])
-
-    @property
     def key(self) -> str:
         return self._key
 
@@ -288,14 +285,14 @@ class FeatureCache:
         bf = int(self.layout["block_frames"])
         return block * bf, min((block + 1) * bf, self.n_frames)
 
-    def matches(self, manifest: Mapping[str, Any]) -> bool:
+    def matches(self, manifest: Manifest) -> bool:
         """Whether this cache holds exactly what `manifest` asks for."""
-        return identity_of(self.manifest) == identity_of(manifest)
+        return identity_of(self.manifest.to_dict()) == identity_of(manifest.to_dict())
 
     def dataset_difference(self, fingerprint: Mapping[str, Any]) -> IdentityDifference | None:
         """The first file where the dataset this cache was extracted from differs from `fingerprint`
         (a dataset's current `dataset_fingerprint`), or None when they are the same dataset."""
-        return compare_identity(self.manifest["dataset_fingerprint"], fingerprint)
+        return compare_identity(self.manifest.dataset_fingerprint, fingerprint)
 
     def check_dataset(self, fingerprint: Mapping[str, Any], dataset: str | None = None) -> None:
         """Raise CacheError (one line, naming the first differing file) unless this cache was extracted
@@ -303,7 +300,7 @@ class FeatureCache:
         a dataset: resuming an extraction, sharing a cache."""
         diff = self.dataset_difference(fingerprint)
         if diff is not None:
-            recorded = self.manifest.get("dataset", {}).get("source", "?")
+            recorded = self.manifest.dataset.source
             raise CacheError(f"cache {self.key} does not match dataset {dataset or recorded}: it was extracted "
                              f"from {recorded} with different content; first differing file: {diff}")
 
@@ -369,7 +366,7 @@ class FeatureCache:
             rows = np.arange(self.n_frames)
         elif isinstance(rows, slice):
             rows = np.arange(self.n_frames)[rows]
-        return from_storage(self._read_rows(path, np.asarray(rows)), self.manifest["dtype"])
+        return from_storage(self._read_rows(path, np.asarray(rows)), self.manifest.dtype)
 
     def _read_rows(self, name: str, rows: np.ndarray) -> np.ndarray:
         """`arr[rows]` read one block at a time, each block checked against its checksum the first time this
@@ -425,10 +422,7 @@ class FeatureCache:
 
     def action_stream(self) -> pl.DataFrame:
         """Every frame's action of the cached episodes at the dataset's full rate (episode_index,
-        frame_index, action), for action chunks; caches made before frame strides existed hold every
-        frame, so their low-dim columns are that stream."""
-        if ACTION_STREAM not in self.group:
-            return self.index().select("episode_index", "frame_index", "action")
+        frame_index, action), for action chunks."""
         values = self._static(f"{ACTION_STREAM}/action")
         return pl.DataFrame({name: self._static(f"{ACTION_STREAM}/{name}")
                              for name in ("episode_index", "frame_index")}).with_columns(
