@@ -280,11 +280,10 @@ def test_native_grid_is_read_from_the_config_without_loading(world: World, name:
 
 
 def test_cell_run_ids_are_pinned() -> None:
-    """Finished rows are recognised by run_id: a Cell must hash the same in every later version. The pins changed
-    once on purpose, when fits began to stream (issue 12): `buffer_mib` joined the cell (the shuffle buffer decides
-    which frames a batch holds), and batches are drawn without replacement from that buffer where they were drawn
-    with replacement from the whole split, so rows of earlier versions hold other numbers and must not be taken
-    for this version's. (Values computed with `results.make_run_id` of the commit that added `buffer_mib`.)"""
+    """Finished rows are recognised by run_id: a Cell must hash the same in every later version of its results
+    format. The pins changed on purpose when fits began to stream (issue 12: `buffer_mib` joined the cell), and
+    with results format 2 (issue 23: every field hashed, `camera_map` and `format_version` included); rows of
+    earlier formats are refused by results.upgrade. (Values computed with `results.make_run_id` of format 2.)"""
     plain = Cell(backbone="smolvla", policy="tiny:tiny-smolvla-0123456789ab", cache_key="siglip-0123456789abcdef",
                  suite="libero_spatial", seed=1, control="none", pool_grid="native", objective="flow", steps=300,
                  lr=1e-3, batch_size=16, buffer_mib=2048, lora_rank=0, eval_fraction=0.2, eval_split_seed=0,
@@ -292,7 +291,7 @@ def test_cell_run_ids_are_pinned() -> None:
     native = dataclasses.replace(plain, control="native", objective="eval", steps=0, lr=0.0, batch_size=0,
                                  buffer_mib=0, cache_key="smolvla-native-00aa", seed=0)
     lora = dataclasses.replace(plain, control="lora", lora_rank=8, eval_frames=40, num_denoise_steps=4)
-    assert (plain.run_id, native.run_id, lora.run_id) == ("cf8c82a71171e0ad", "a2cc541a64717af9", "adf8bb9823f4d57c")
+    assert (plain.run_id, native.run_id, lora.run_id) == ("9488a82c63b641da", "3c4a458da720ea27", "b2b929518c905ffe")
 
 
 def test_cell_row_takes_each_column_from_measurements_then_cell_then_request() -> None:

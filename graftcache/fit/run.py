@@ -57,13 +57,9 @@ __all__ = ["Cell", "FitRequest", "Fitter"]
 
 @dataclass(frozen=True)
 class Cell:
-    """What identifies one results row. Its fields, by name and value, are the bytes of the row's
-    run_id: renaming or retyping one would make finished rows unrecognisable, so never do.
-
-    `camera_map` is the one field left out of the run_id when it is None: a cell whose policy cameras are each
-    fed by the cache camera of the same name (the policy and the cache, both in the cell, already decide that),
-    so such rows keep the run_ids they had before cameras could be mapped. A mapping that renames changes which
-    frames feed a slot, so it is hashed: two mappings of one cache never share a row."""
+    """What identifies one results row: every field, by name and value, is hashed into the row's run_id, with the
+    results format (`format_version`); a change of its shape is a new results.FORMAT_VERSION, whose
+    results.upgrade says what becomes of older rows."""
 
     backbone: str
     policy: str
@@ -84,13 +80,11 @@ class Cell:
     num_denoise_steps: int | None
     compute_dtype: str
     camera_map: str | None = None  # canonical text, only when a policy camera is fed by another name
+    format_version: int = results.FORMAT_VERSION
 
     @property
     def run_id(self) -> str:
-        cell = asdict(self)
-        if cell["camera_map"] is None:
-            del cell["camera_map"]
-        return results.make_run_id(cell)
+        return results.make_run_id(asdict(self))
 
     def row(self, req: FitRequest, measured: Mapping[str, Any]) -> dict[str, Any]:
         """The results row: each SCHEMA column from what the cell measured, else the cell, else the request
