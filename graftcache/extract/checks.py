@@ -46,7 +46,7 @@ def stored_bytes(req: ExtractRequest, width: int) -> int:
 def check_memory(req: ExtractRequest, meta: DatasetMeta, cameras: Sequence[str], width: int, n_frames: int,
                  device: torch.device) -> None:
     """Refuse before any work an extraction whose blocks cannot be held: up to three blocks of stored features
-    at once (one encoded, one queued, one being written; `_Writer`), a block of decoded frames, and a batch's
+    at once (one encoded, one queued, one being written; `BlockWriter`), a block of decoded frames, and a batch's
     grids pooled in fp32 (and their copy as the stored dtype). Encoder activations come on top."""
     block = min(req.block_frames, max(n_frames, 1))
     batch = min(req.batch_size, block)
