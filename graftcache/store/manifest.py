@@ -12,6 +12,7 @@ a cache's age.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import types
 import typing
 from collections.abc import Mapping
@@ -157,13 +158,18 @@ def _record(raw: Any, where: str) -> DatasetRecord:
         got = sorted(raw) if isinstance(raw, Mapping) else type(raw).__name__
         raise CacheError(f"{where}: manifest field dataset is {got}, not the fields {sorted(names)}")
     values = dict(raw)
-    _check_types(DatasetRecord, values, where)
+    _check_types(DatasetRecord, values, where, "dataset.")
     return DatasetRecord(**values)
 
 
-def _check_types(cls: type, values: Mapping[str, Any], where: str) -> None:
+@functools.cache
+def _hints(cls: type) -> dict[str, Any]:
+    return typing.get_type_hints(cls)
+
+
+def _check_types(cls: type, values: Mapping[str, Any], where: str, prefix: str = "") -> None:
     """CacheError naming the first field whose value is not of its declared type (outer types only)."""
-    hints = typing.get_type_hints(cls)
+    hints = _hints(cls)
     for name, value in values.items():
         hint = hints[name]
         allowed = typing.get_args(hint) if isinstance(hint, types.UnionType) else (hint,)
@@ -172,4 +178,5 @@ def _check_types(cls: type, values: Mapping[str, Any], where: str) -> None:
         if float in outer:
             outer += (int,)
         if outer and not isinstance(value, outer) or (isinstance(value, bool) and bool not in outer):
-            raise CacheError(f"{where}: manifest field {name} is {value!r}, not {hint}")
+            wanted = " or ".join(getattr(a, "__name__", str(a)) for a in allowed)
+            raise CacheError(f"{where}: manifest field {prefix}{name} is {value!r}, not {wanted}")
