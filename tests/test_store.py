@@ -156,3 +156,17 @@ def test_lock_excludes_second_writer(tmp_path: Path) -> None:
     t0 = time.time()
     with exclusive(tmp_path / "k.lock", wait=False):
         assert time.time() - t0 < 5
+
+
+def test_a_manifest_is_read_typed_and_a_wrong_field_is_refused_by_name() -> None:
+    stored = _manifest().to_dict()
+    assert Manifest.read(stored, "here", "k") == _manifest()
+    for edit, says in ((lambda m: m["dataset"].update(fps="ten"), "field dataset.fps is 'ten', not float"),
+                       (lambda m: m.update(episodes="all"), "field episodes is 'all', not list or NoneType"),
+                       (lambda m: m.pop("grids"), "of format 2 lacks grids"),
+                       (lambda m: m.update(encoder={"width": 8}), "field encoder has no name")):
+        broken = _manifest().to_dict()
+        edit(broken)
+        with pytest.raises(CacheError) as refused:
+            Manifest.read(broken, "here", "k")
+        assert str(refused.value) == f"here: manifest {says}"
