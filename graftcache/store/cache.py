@@ -158,10 +158,13 @@ class FeatureCache:
             stored = dict(self._opened_attrs["manifest"])
         except (ValueError, KeyError, TypeError) as e:
             raise CacheError(f"{location}: zarr.json is not a feature cache's ({type(e).__name__}: {e})") from None
-        self.manifest = Manifest.read(stored, str(location), key)  # refuses what it cannot upgrade, in one line
-        own = cache_key(stored)  # what is stored, in its own format, names the folder
+        try:
+            own = cache_key(stored)  # what is stored, in its own format, names the folder
+        except (KeyError, TypeError):
+            own = key  # identity fields absent: a format older than any Manifest.read upgrades, refused there
         if own != key:
             raise MisplacedCache(location, key, own)
+        self.manifest = Manifest.read(stored, str(location), key)  # refuses what it cannot read, in one line
 
     @cached_property
     def group(self) -> zarr.Group:

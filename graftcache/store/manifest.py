@@ -19,7 +19,7 @@ from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
-from graftcache.errors import CacheError
+from graftcache.store.key import RefusedPlace
 
 FORMAT_VERSION = 2
 #: What format 1 manifests may lack, in the order graftcache began recording it: (field, what it records). A
@@ -30,6 +30,11 @@ PREVIOUS_GAPS = (
     ("numerics", "numerics fingerprints"),
     ("dataset_fingerprint.files", "content identities"),
 )
+
+
+class UnreadableManifest(RefusedPlace):
+    """A cache whose manifest this graftcache cannot read: of an older format it cannot upgrade, or not of the
+    shape its format says. Listed as broken, never used, and never replaced or deleted as an unfinished cache."""
 
 
 @dataclass(frozen=True)
@@ -90,24 +95,24 @@ class Manifest:
     def read(cls, raw: Mapping[str, Any], where: str, key: str) -> Manifest:
         """The manifest stored as `raw` (of cache `key` at `where`), upgraded from format 1 if it must be."""
         if not isinstance(raw, Mapping):
-            raise CacheError(f"{where}: the manifest is a {type(raw).__name__}, not a mapping")
+            raise UnreadableManifest(f"{where}: the manifest is a {type(raw).__name__}, not a mapping")
         raw = upgrade(raw, where, key)
         fields = {f.name for f in dataclasses.fields(cls)}
         missing = sorted(fields - set(raw) - {"extra"})
         unknown = sorted(set(raw) - fields)
         if missing or unknown:
-            raise CacheError(f"{where}: manifest of format {FORMAT_VERSION} "
+            raise UnreadableManifest(f"{where}: manifest of format {FORMAT_VERSION} "
                              f"{'lacks ' + ', '.join(missing) if missing else 'has unknown ' + ', '.join(unknown)}")
         values = {**raw, "dataset": _record(raw["dataset"], where)}
         _check_types(cls, values, where)
         if not isinstance(values["encoder"].get("name"), str):
-            raise CacheError(f"{where}: manifest field encoder has no name")
+            raise UnreadableManifest(f"{where}: manifest field encoder has no name")
         return cls(**values)
 
 
 def upgrade(raw: Mapping[str, Any], where: str, key: str) -> dict[str, Any]:
     """The one upgrade path: a stored manifest of format 1 as format 2 (only the version changes; fields outside
-    the format move into `extra`), format 2 as it is; anything else is a CacheError naming the cache and the
+    the format move into `extra`), format 2 as it is; anything else is refused (UnreadableManifest) naming the cache and the
     command that rebuilds it."""
     version = raw.get("format_version")
     if version == FORMAT_VERSION:
@@ -148,7 +153,7 @@ def rebuild_command(raw: Mapping[str, Any]) -> str:
 
 
 def _refuse(raw: Mapping[str, Any], where: str, key: str, why: str) -> typing.NoReturn:
-    raise CacheError(f"cache {key} ({where}): {why}; graftcache reads caches of format {FORMAT_VERSION} and the "
+    raise UnreadableManifest(f"cache {key} ({where}): {why}; graftcache reads caches of format {FORMAT_VERSION} and the "
                      f"format 1 caches made since; rebuild it: {rebuild_command(raw)}")
 
 
@@ -156,7 +161,7 @@ def _record(raw: Any, where: str) -> DatasetRecord:
     names = {f.name for f in dataclasses.fields(DatasetRecord)}
     if not isinstance(raw, Mapping) or set(raw) != names:
         got = sorted(raw) if isinstance(raw, Mapping) else type(raw).__name__
-        raise CacheError(f"{where}: manifest field dataset is {got}, not the fields {sorted(names)}")
+        raise UnreadableManifest(f"{where}: manifest field dataset is {got}, not the fields {sorted(names)}")
     values = dict(raw)
     _check_types(DatasetRecord, values, where, "dataset.")
     return DatasetRecord(**values)
@@ -168,7 +173,7 @@ def _hints(cls: type) -> dict[str, Any]:
 
 
 def _check_types(cls: type, values: Mapping[str, Any], where: str, prefix: str = "") -> None:
-    """CacheError naming the first field whose value is not of its declared type (outer types only)."""
+    """UnreadableManifest naming the first field whose value is not of its declared type (outer types only)."""
     hints = _hints(cls)
     for name, value in values.items():
         hint = hints[name]
@@ -179,4 +184,4 @@ def _check_types(cls: type, values: Mapping[str, Any], where: str, prefix: str =
             outer += (int,)
         if outer and not isinstance(value, outer) or (isinstance(value, bool) and bool not in outer):
             wanted = " or ".join(getattr(a, "__name__", str(a)) for a in allowed)
-            raise CacheError(f"{where}: manifest field {prefix}{name} is {value!r}, not {wanted}")
+            raise UnreadableManifest(f"{where}: manifest field {prefix}{name} is {value!r}, not {wanted}")
