@@ -195,7 +195,7 @@ def test_errors_name_the_problem(world: World, v3_image: Written, tmp_path: Path
                          lambda m: {**m, "encoder": {**m["encoder"], "name": "resnet18"}})
     with pytest.raises(FitError, match="192 wide but encoder 'resnet18' is 512 wide"):
         Fitter(world.request(encoder="resnet18", cache=str(tmp_path / "relabelled"),
-                             cache_key=relabelled.key), log=_quiet)
+                             cache_key=relabelled.name), log=_quiet)
 
 
 def test_cli_fit_end_to_end(world: World, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:

@@ -108,11 +108,11 @@ def dataset_cache(root: Path, dataset: str | Path, suite: str, *, grid: tuple[in
     return FeatureCache(path, writable=False)
 
 
-def rekeyed(folder: Path, root: Path, edit: Callable[[dict], dict]) -> FeatureCache:
-    """A copy of the cache in `folder` whose manifest is `edit(manifest as stored)`, under `root` in the folder of
-    the key that manifest hashes to: a cache made with those settings as far as its folder name and manifest go
-    (its arrays are `folder`'s)."""
-    return FeatureCache(_restored(folder, root, edit), writable=False)
+def rekeyed(folder: Path, root: Path, edit: Callable[[dict], dict]) -> Path:
+    """Where a copy of the cache in `folder` whose manifest is `edit(manifest as stored)` now lies, under `root`
+    in the folder of the key that manifest hashes to: a cache made with those settings as far as its folder name
+    and manifest go (its arrays are `folder`'s)."""
+    return _restored(folder, root, edit)
 
 
 def previous_format(folder: Path, root: Path, lacking: str | None = None) -> Path:
