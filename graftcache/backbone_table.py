@@ -10,6 +10,19 @@ from __future__ import annotations
 BACKBONES: dict[str, str] = {
     "smolvla": "graftcache.backbones.smolvla:SmolVLAAdapter",
     "pi05": "graftcache.backbones.pi05:PI05Adapter",
+    "xvla": "graftcache.backbones.xvla:XVLAAdapter",
+    "pi0": "graftcache.backbones.pi0:PI0Adapter",
+    "pi0_fast": "graftcache.backbones.pi0_fast:PI0FastAdapter",
+}
+
+#: Approximate parameter counts of the released policies (lerobot's docs), for results tables written before rows
+#: recorded `backbone_params`: the analysis orders such a table's backbones by these, and says so in the report
+#: (graftcache/analysis/ladder.py). Only their order matters; a backbone missing here needs the column.
+RELEASED_PARAMS: dict[str, int] = {
+    "smolvla": 450_000_000,
+    "pi05": 3_300_000_000,
+    "pi0": 3_300_000_000,
+    "pi0_fast": 2_900_000_000,
 }
 
 #: A backbone's own vision tower is the encoder `<backbone>-native` (stage 1 caches it like any encoder).

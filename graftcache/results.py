@@ -43,7 +43,9 @@ FORMAT_VERSION = 2
 SCHEMA: dict[str, pl.DataType] = {
     "run_id": pl.String,
     "format_version": pl.Int64,       # FORMAT_VERSION of the row and of the cell its run_id hashes
-    "backbone": pl.String,            # "smolvla" | "pi05"
+    "backbone": pl.String,            # a graftcache.backbone_table.BACKBONES name, e.g. "smolvla"
+    "backbone_params": pl.Int64,      # parameters of the policy as loaded (before the graft): the analysis
+                                      # orders backbones by it (graftcache/analysis/ladder.py)
     "policy": pl.String,              # hub id, local path or "tiny"
     "policy_sha256": pl.String,
     "encoder": pl.String,             # registry name; native controls: the tower's name, e.g. "smolvla-native"
@@ -62,6 +64,10 @@ SCHEMA: dict[str, pl.DataType] = {
     "eval_mse_first": pl.Float64,     # first action of the chunk, normalised units
     "eval_mse_raw": pl.Float64,       # full chunk, raw action units
     "eval_mse_episodes": pl.List(pl.Float64),  # per held-out episode (episode order), for bootstraps
+    "eval_ci_mse": pl.Float64,        # critical-interval MSE (graftcache/critical.py), normalised units; null:
+                                      # no scored chunk reached a critical step
+    "eval_ci_mse_episodes": pl.List(pl.Float64),  # CI-MSE per held-out episode, in eval_mse_episodes' order
+                                      # (null for an episode without a critical step)
     "n_eval_frames": pl.Int64,
     "n_eval_episodes": pl.Int64,
     "eval_split_seed": pl.Int64,

@@ -5,6 +5,11 @@ sampled noise level, while the chunk is what the policy would execute. Each fram
 fixed start noise from a generator seeded with (noise_seed, cache row), so every encoder, control
 and rerun is scored on exactly the same noise, and CPU reruns are bit-identical.
 Offline action MSE is a proxy: it is known to predict closed-loop success only weakly.
+
+CI-MSE (critical-interval MSE) is the same squared error restricted to the chunk steps that fall in a
+critical interval of their episode (graftcache/critical.py states the rule): the mean over every critical
+(frame, chunk step) pair and action dimension, in normalised units, padded steps never included. It is null
+for a split (or an episode) whose scored chunks reach no critical step.
 """
 
 from __future__ import annotations
@@ -24,6 +29,8 @@ class Score:
     mse_raw: float        # full chunk, raw action units
     n_frames: int
     per_episode: dict[int, float]  # normalised full-chunk MSE per held-out episode (for bootstraps)
+    ci_mse: float | None  # normalised MSE over the critical chunk steps (None: no critical step was scored)
+    ci_per_episode: dict[int, float | None]  # the same per held-out episode (same keys as per_episode)
 
 
 def frame_noise(rows: np.ndarray, chunk: int, width: int, seed: int = NOISE_SEED) -> torch.Tensor:
@@ -41,11 +48,30 @@ def masked_mse(pred: torch.Tensor, target: torch.Tensor, pad: torch.Tensor) -> t
     return (per_step * valid).sum(-1) / valid.sum(-1).clamp(min=1.0)
 
 
+def critical_mse(pred: torch.Tensor, target: torch.Tensor, critical: torch.Tensor) -> float | None:
+    """Mean squared error over the (frame, step) pairs `critical` [N, chunk] marks, all action dims; None
+    when it marks none."""
+    n = int(critical.sum())
+    if not n:
+        return None
+    per_step = ((pred - target) ** 2).mean(dim=-1)
+    return float((per_step * critical.float()).sum() / n)
+
+
 def score_chunks(pred_norm: torch.Tensor, target_norm: torch.Tensor, pred_raw: torch.Tensor,
-                 target_raw: torch.Tensor, pad: torch.Tensor, episodes: np.ndarray) -> Score:
-    """Aggregate predictions [N, chunk, A] against targets into a Score."""
+                 target_raw: torch.Tensor, pad: torch.Tensor, episodes: np.ndarray, *,
+                 critical: torch.Tensor) -> Score:
+    """Aggregate predictions [N, chunk, A] against targets into a Score; `critical` [N, chunk] marks the chunk
+    steps inside a critical interval (graftcache.fit.data.LowDim.critical_chunks), for CI-MSE."""
     per_frame = masked_mse(pred_norm, target_norm, pad)
     first = ((pred_norm[:, 0] - target_norm[:, 0]) ** 2).mean(-1)
     raw = masked_mse(pred_raw, target_raw, pad)
-    per_ep = {int(e): float(per_frame[torch.from_numpy(episodes == e)].mean()) for e in np.unique(episodes)}
-    return Score(float(per_frame.mean()), float(first.mean()), float(raw.mean()), len(per_frame), per_ep)
+    critical = critical & ~pad
+    per_ep, ci_per_ep = {}, {}
+    for e in np.unique(episodes):
+        at = torch.from_numpy(episodes == e)
+        per_ep[int(e)] = float(per_frame[at].mean())
+        ci_per_ep[int(e)] = critical_mse(pred_norm[at], target_norm[at], critical[at])
+    ci = critical_mse(pred_norm, target_norm, critical)
+    return Score(float(per_frame.mean()), float(first.mean()), float(raw.mean()), len(per_frame), per_ep, ci,
+                 ci_per_ep)

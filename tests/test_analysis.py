@@ -239,16 +239,14 @@ def test_episode_coverage_counts_cells_with_episodes():
     assert A.episode_coverage(t) == (1, 2)
 
 
-def test_one_backbone_gives_insufficient_data_everywhere(results):
+def test_one_backbone_has_no_pair_to_judge(results):
+    # with one backbone there is no pair: no verdict, pairing or tau row, and the ladder says why
     small_only = results.filter(pl.col("backbone") == "smolvla")
-    v = A.transfer_verdicts(small_only)
-    assert len(v) == 8 and set(v["verdict"]) == {A.INSUFFICIENT}
-    assert all("needs two backbones" in n for n in v["note"])
-    assert A.kendall_tau(small_only)["tau_b"].null_count() == 4
-    assert A.seed_pairings(small_only)["disagree"].null_count() == 4
-    assert A.seed_disagreement_counts(small_only)["n_pairings"].to_list() == [0, 0, 0, 0]
-    cells = A.seed_verdicts(small_only)
-    assert len(cells) == 24 and set(cells["verdict"]) == {A.INSUFFICIENT}
+    a = A.analyze(small_only, boot=MEDIUM)
+    assert a.transfer_gap == "needs at least two backbones with valid plain-graft rows; present: SmolVLA"
+    for frame in (a.verdicts, a.seed_verdicts, a.pairings, a.disagreements, a.tau, a.headline):
+        assert len(frame) == 0
+    assert len(a.band) == 12 and a.backbones == ["smolvla"]
 
 
 def test_seed_pairings_and_counts(results):

@@ -62,7 +62,12 @@ def test_demo_runs_offline_reuses_everything_and_feeds_the_notebook(tmp_path: Pa
 
     run = execute_notebook(home / "demo" / "results.parquet", tmp_path, monkeypatch)
     assert not run.errors
-    assert "88 rows; backbones ['smolvla', 'pi05']" in run.text
+    # the ladder is ordered by the parameters each row records: the tiny pi0.5 (~1.3M) is smaller than the
+    # tiny SmolVLA (~3.5M), unlike the released policies
+    sizes = dict(table.group_by("backbone").agg(pl.col("backbone_params").unique()).iter_rows())
+    assert all(len(v) == 1 for v in sizes.values())
+    order = sorted(sizes, key=lambda b: sizes[b][0])
+    assert f"88 rows; backbones {order}; " in run.text
     assert run.figures == 3
     native = table.filter(pl.col("control") == "native").group_by("backbone").agg(pl.col("eval_mse").mean())
     zero = table.filter(pl.col("control") == "zero-image").group_by("backbone").agg(pl.col("eval_mse").mean())

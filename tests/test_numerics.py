@@ -298,7 +298,8 @@ def test_smolvla_position_id_drift_is_caught_in_one_line(v3_image: Written, tmp_
     req = _req(v3_image.root, tmp_path / "cache", encoder=native_name("smolvla"), random_init=False, policy=str(policy))
     with pytest.MonkeyPatch.context() as m:  # the cache is made under transformers 4.57.6's rule and version
         m.setattr(modeling_smolvlm.SmolVLMVisionEmbeddings, "forward", _legacy_position_ids)
-        m.setattr(graftcache.extract.provenance, "library_versions", lambda: {**fp.library_versions(), "transformers": "4.57.6"})
+        m.setattr(graftcache.extract.provenance, "library_versions",
+                  lambda: {**fp.library_versions(), "transformers": "4.57.6"})
         cache = FeatureCache(extract(req, log=_quiet).path)
         assert set(cache.manifest.numerics["outputs"]) == {"grid", "connector"}
         assert fp.check_numerics(cache).status == "match"

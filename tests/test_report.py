@@ -105,8 +105,9 @@ def test_one_backbone_says_transfer_needs_two(tmp_path):
     small_only = full_table().filter(pl.col("backbone") == "smolvla")
     paths = report.write_report(small_only, tmp_path, boot=QUICK)
     md = paths.markdown.read_text()
-    assert "The transfer question needs two backbones (SmolVLA and pi0.5); present: SmolVLA" in md
+    assert "The transfer question needs at least two backbones with valid plain-graft rows; present: SmolVLA" in md
     assert "ranking transfers" not in md and "Seed-level agreement" not in md
+    assert paths.transfer.read_text() == ",".join(report.TRANSFER_CSV_COLUMNS) + "\n"  # no pair, no verdict
     assert sorted(p.name for p in paths.figures) == ["controls.png", "mse.png"]
 
 
@@ -120,7 +121,7 @@ def test_rerun_removes_stale_figures(tmp_path):
 def test_empty_table_still_reports(tmp_path):
     paths = report.write_report(full_table().head(0), tmp_path)
     md = paths.markdown.read_text()
-    assert "No plain-graft rows" in md and "needs two backbones" in md and paths.figures == ()
+    assert "No plain-graft rows" in md and "needs at least two backbones" in md and paths.figures == ()
 
 
 def test_report_command_reads_a_file(tmp_path, capsys):
@@ -151,15 +152,19 @@ def test_near_tie_band_is_reported_as_such(tmp_path):
     assert "Other verdicts — near-tie band (not a transfer): 1 comparison, 0 cells; does not transfer:" in md
 
 
-def test_minimal_schema_file_reports_with_a_seed_level_bootstrap(tmp_path):
+def test_minimal_schema_file_reports_with_a_seed_level_bootstrap(tmp_path, capsys):
     path = tmp_path / "paper.parquet"
     foreign = pl.lit("Table 2").alias("source")  # a column graftcache does not know
     minimal_table(NEAR_TIE_MSE).with_columns(foreign).write_parquet(path)
     assert report.report_command(path, tmp_path / "out") == 0
+    assert "note: pi05: no row records backbone_params" in capsys.readouterr().err
     md = (tmp_path / "out" / "report.md").read_text()
     assert "- Per-episode MSEs: none (seed-level bootstrap, see Method)." in md
     assert "- Seed-level bootstrap: no row carries per-episode MSEs (`eval_mse_episodes`)" in md
-    assert "Columns without values (absent or all null): run_id, policy," in md
+    assert "Columns without values (absent or all null): run_id, backbone_params, policy," in md
+    # a table from before backbone_params: ordered by the released sizes, and the report says so
+    assert ("- Backbone order: smolvla: no row records backbone_params (a table from before the column); ordered "
+            "by the released size, 450M (graftcache.backbone_table.RELEASED_PARAMS).") in md
     assert "| SmolVLA | s | a | 1 | 1.1 ± 0.1 | 3 |" in md and "| seeds |" in md
 
 
@@ -177,7 +182,8 @@ def test_table_with_every_column_but_the_optional_ones_reports(tmp_path):
     older = full_table().drop("eval_mse_episodes", "n_eval_episodes", "command")
     path = write_results(tmp_path / "old.parquet", older)
     assert report.report_command(path, tmp_path / "out") == 0
-    assert "- Columns without values (absent or all null): eval_mse_episodes, n_eval_episodes, command.\n" in (
+    assert ("- Columns without values (absent or all null): eval_mse_episodes, eval_ci_mse, eval_ci_mse_episodes, "
+            "n_eval_episodes, command.\n") in (
         tmp_path / "out" / "report.md"
     ).read_text()
 

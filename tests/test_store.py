@@ -114,8 +114,8 @@ def test_key_ignores_provenance_but_not_numbers() -> None:
     assert _key(run={"batch_size": 64, "num_workers": 0}) == base
     assert _key(created_at="later") == base
     for change in ({"grids": ["4x4"]}, {"dtype": "bf16"}, {"weights_sha256": "v"}, {"episodes": [0, 1]},
-                   {"cameras": ["image", "image2"]}, {"dataset_fingerprint": {"files": {"meta/info.json": {"sha256": "b"}}}},
-                   {"compute_dtype": "bf16"}):
+                   {"cameras": ["image", "image2"]}, {"compute_dtype": "bf16"},
+                   {"dataset_fingerprint": {"files": {"meta/info.json": {"sha256": "b"}}}}):
         assert _key(**change) != base, change
 
 

@@ -5,9 +5,13 @@ A table needs only graftcache.results.REPORT_COLUMNS (backbone, suite, encoder, 
 paper are analysed like the ones `graftcache fit` writes.
 
 The paper's question is whether the ranking of vision encoders found on a small frozen backbone (SmolVLA)
-transfers to a large one (pi0.5), and back. Seeds are few and offline MSE is noisy, so "the winner" is
-compared against a *top tier*: every encoder whose MSE cannot be separated from the best one's under a
-bootstrap.
+transfers to a large one (pi0.5), and back. Any number of backbones can be asked it: they stand on a ladder
+ordered by parameter count (`backbone_params`, graftcache.analysis.ladder), every pair is judged in both
+directions, and the headline (graftcache.analysis.headline) says whether the smallest backbone's winner
+lands in the largest one's top tier and at which rung the ranking breaks. Seeds are few and offline MSE is
+noisy, so "the winner" is compared against a *top tier*: every encoder whose MSE cannot be separated from the
+best one's under a bootstrap. Encoders are ranked by one score, offline action MSE or CI-MSE
+(graftcache.analysis.scores); the other is compared with it where the table holds both.
 
 Statistics (stated once here, cited by the report):
 - the unit of replication is the seed (projector init + data order); when rows carry per-episode MSEs in
@@ -21,9 +25,9 @@ Statistics (stated once here, cited by the report):
   mean; such rows are flagged in `basis`;
 - every replicate draw comes from a generator seeded by (seed, control, backbone, suite, encoder), so
   results are deterministic and do not depend on row order;
-- transfer is tested in both directions (small -> large and large -> small), per suite and per seed-level
-  cell (one seed's rows alone); a target tier that holds every shared encoder is a near-tie band, not a
-  transfer (see graftcache.analysis.transfer).
+- transfer is tested in both directions (smaller -> larger and larger -> smaller) for every pair of
+  backbones, per suite and per seed-level cell (one seed's rows alone); a target tier that holds every
+  shared encoder is a near-tie band, not a transfer (see graftcache.analysis.transfer).
 
 Missing cells are never dropped: they appear as rows with null statistics and a `status`/`note`, and a
 verdict that cannot be reached is "insufficient data". Non-finite eval_mse (a diverged fit) counts as invalid.
@@ -35,8 +39,25 @@ from dataclasses import dataclass
 
 import polars as pl
 
-from graftcache.analysis.agreement import PAIRING_SCHEMA, kendall_tau, seed_disagreement_counts, seed_pairings
+from graftcache.analysis.agreement import (
+    PAIRING_SCHEMA,
+    TAU_SCHEMA,
+    kendall_tau,
+    seed_disagreement_counts,
+    seed_pairings,
+    tau_matrix,
+)
 from graftcache.analysis.controls import CONTROLS_SCHEMA, controls_distance, wrapper_non_neutrality
+from graftcache.analysis.headline import HEADLINE_SCHEMA, ladder_headline
+from graftcache.analysis.ladder import PARAMS_COLUMN, Ladder, backbone_ladder, format_params
+from graftcache.analysis.scores import (
+    DISAGREEMENT_SCHEMA,
+    SCORE_LABELS,
+    SCORES,
+    has_score,
+    score_disagreement,
+    scored,
+)
 from graftcache.analysis.stats import BASIS_MISSING, SOLID_BASES, BootSettings, tau_b
 from graftcache.analysis.summaries import (
     duplicate_rows,
@@ -51,14 +72,12 @@ from graftcache.analysis.table import (
     CELL,
     EPISODE_COLUMN,
     GROUP,
-    LARGE,
     NATIVE,
     NATIVE_GRAFT,
     NOT_ENCODER_CONTROLS,
     PLAIN,
     RECIPE_COLUMNS,
     SHUFFLED_IMAGE,
-    SMALL,
     ZERO_IMAGE,
     backbone_label,
 )
@@ -73,21 +92,21 @@ from graftcache.analysis.transfer import (
     VERDICTS,
     seed_verdicts,
     transfer_verdicts,
-    two_backbone_gap,
     verdict_counts,
 )
 from graftcache.errors import GraftcacheError
 from graftcache.results import conform
 
 __all__ = [
-    "BACKBONE_LABELS", "BASIS_MISSING", "CELL", "CONTROLS_SCHEMA", "COUNT_COLUMNS", "DOES_NOT_TRANSFER",
-    "EPISODE_COLUMN", "GROUP", "INSUFFICIENT", "LARGE", "NATIVE", "NATIVE_GRAFT", "NEAR_TIE",
-    "NOT_ENCODER_CONTROLS", "PAIRING_SCHEMA", "PLAIN", "RECIPE_COLUMNS", "SEED_VERDICT_SCHEMA",
-    "SHUFFLED_IMAGE", "SMALL", "SOLID_BASES", "TRANSFERS", "VERDICTS", "VERDICT_SCHEMA", "ZERO_IMAGE",
-    "Analysis", "BootSettings", "analyze", "backbone_label", "controls_distance", "duplicate_rows",
-    "episode_coverage", "kendall_tau", "missing_cells", "near_tie_band", "rankings",
-    "seed_disagreement_counts", "seed_pairings", "seed_summary", "seed_verdicts", "tau_b",
-    "transfer_verdicts", "two_backbone_gap", "verdict_counts", "wrapper_non_neutrality",
+    "BACKBONE_LABELS", "BASIS_MISSING", "CELL", "CONTROLS_SCHEMA", "COUNT_COLUMNS", "DISAGREEMENT_SCHEMA",
+    "DOES_NOT_TRANSFER", "EPISODE_COLUMN", "GROUP", "HEADLINE_SCHEMA", "INSUFFICIENT", "NATIVE", "NATIVE_GRAFT",
+    "NEAR_TIE", "NOT_ENCODER_CONTROLS", "PAIRING_SCHEMA", "PARAMS_COLUMN", "PLAIN", "RECIPE_COLUMNS",
+    "SCORES", "SCORE_LABELS", "SEED_VERDICT_SCHEMA", "SHUFFLED_IMAGE", "SOLID_BASES", "TAU_SCHEMA", "TRANSFERS",
+    "VERDICTS", "VERDICT_SCHEMA", "ZERO_IMAGE", "Analysis", "BootSettings", "Ladder", "analyze",
+    "backbone_label", "backbone_ladder", "controls_distance", "duplicate_rows", "episode_coverage",
+    "format_params", "has_score", "kendall_tau", "ladder_headline", "missing_cells", "near_tie_band", "rankings",
+    "score_disagreement", "scored", "seed_disagreement_counts", "seed_pairings", "seed_summary", "seed_verdicts",
+    "tau_b", "tau_matrix", "transfer_verdicts", "verdict_counts", "wrapper_non_neutrality",
 ]
 
 
@@ -95,30 +114,42 @@ __all__ = [
 class Analysis:
     """Every table the report and notebook show, computed once from one results table."""
 
-    results: pl.DataFrame  # every SCHEMA column (absent ones null)
-    small: str
-    large: str
+    results: pl.DataFrame  # every SCHEMA column (absent ones null), the chosen score in eval_mse
+    ladder: Ladder  # backbones with valid plain rows, smallest first
+    score: str  # a SCORES name: what eval_mse holds here
     boot: BootSettings
     band: pl.DataFrame  # seed_summary + rank + top tier, per (backbone, suite, encoder)
-    verdicts: pl.DataFrame  # per (suite, direction)
-    seed_verdicts: pl.DataFrame  # per (suite, seed, direction)
+    verdicts: pl.DataFrame  # per (suite, pair, direction)
+    seed_verdicts: pl.DataFrame  # per (suite, pair, seed, direction)
+    headline: pl.DataFrame  # per suite: smallest -> largest, and the rung where the ranking breaks
     pairings: pl.DataFrame
     disagreements: pl.DataFrame
-    tau: pl.DataFrame
+    tau: pl.DataFrame  # per (suite, pair)
     wrapper: pl.DataFrame
     controls: pl.DataFrame  # every encoder-level control in the table
     missing: pl.DataFrame
+    scores: pl.DataFrame  # where the MSE and CI-MSE rankings disagree (empty without CI-MSE)
+
+    @property
+    def small(self) -> str | None:
+        """The smallest backbone on the ladder."""
+        return self.ladder.backbones[0] if self.ladder.backbones else None
+
+    @property
+    def large(self) -> str | None:
+        """The largest backbone on the ladder."""
+        return self.ladder.backbones[-1] if self.ladder.backbones else None
 
     @property
     def backbones(self) -> list[str]:
-        """Backbones with plain-graft rows, small and large first, then any others by name."""
+        """Backbones with plain-graft rows: the ladder's, smallest first, then any without a valid MSE by name."""
         have = set(self.band["backbone"].to_list())
-        return [b for b in (self.small, self.large) if b in have] + sorted(have - {self.small, self.large})
+        return [b for b in self.ladder.backbones if b in have] + sorted(have - set(self.ladder.backbones))
 
     @property
     def transfer_gap(self) -> str | None:
         """Why the transfer question cannot be asked (fewer than two backbones), or None."""
-        return two_backbone_gap(self.results, self.small, self.large)
+        return self.ladder.gap
 
     @property
     def suites(self) -> list[str]:
@@ -130,13 +161,13 @@ class Analysis:
         return episode_coverage(self.results)
 
 
-def analyze(
-    results: pl.DataFrame, *, small: str = SMALL, large: str = LARGE, boot: BootSettings = BootSettings()
-) -> Analysis:
-    """All questions at once, on the table conformed to SCHEMA (results.conform: absent columns null).
+def analyze(results: pl.DataFrame, *, score: str = "mse", boot: BootSettings = BootSettings()) -> Analysis:
+    """All questions at once, on the table conformed to SCHEMA (results.conform: absent columns null), ranked
+    by `score` (a SCORES name).
 
     Raises GraftcacheError when rows share (backbone, suite, encoder, control, seed) - the table mixes
-    recipes (objective, lr, ...) and must be filtered to one before ranking."""
+    recipes (objective, lr, ...) and must be filtered to one before ranking - and when the backbones cannot be
+    ordered (graftcache.analysis.ladder)."""
     results = conform(results)
     dup = duplicate_rows(results)
     if len(dup):
@@ -148,18 +179,24 @@ def analyze(
             f"differing in {', '.join(first['differing']) or 'nothing (duplicate rows)'}: "
             "filter the table to one recipe"
         )
-    pair = {"small": small, "large": large}
+    disagreement = score_disagreement(results)
+    results = scored(results, score)
+    ladder = backbone_ladder(results)
+    verdicts = transfer_verdicts(results, ladder=ladder, boot=boot)
     return Analysis(
         results=results,
-        **pair,
+        ladder=ladder,
+        score=score,
         boot=boot,
         band=near_tie_band(results, boot=boot),
-        verdicts=transfer_verdicts(results, **pair, boot=boot),
-        seed_verdicts=seed_verdicts(results, **pair, boot=boot),
-        pairings=seed_pairings(results, **pair),
-        disagreements=seed_disagreement_counts(results, **pair),
-        tau=kendall_tau(results, **pair),
+        verdicts=verdicts,
+        seed_verdicts=seed_verdicts(results, ladder=ladder, boot=boot),
+        headline=ladder_headline(verdicts, ladder),
+        pairings=seed_pairings(results, ladder=ladder),
+        disagreements=seed_disagreement_counts(results, ladder=ladder),
+        tau=kendall_tau(results, ladder=ladder),
         wrapper=wrapper_non_neutrality(results),
         controls=controls_distance(results, controls=None, boot=boot),
         missing=missing_cells(results),
+        scores=disagreement,
     )

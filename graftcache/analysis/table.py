@@ -15,8 +15,6 @@ ZERO_IMAGE = "zero-image"
 SHUFFLED_IMAGE = "shuffled-image"
 NOT_ENCODER_CONTROLS = (PLAIN, NATIVE, NATIVE_GRAFT)
 
-SMALL = "smolvla"
-LARGE = "pi05"
 BACKBONE_LABELS = {"smolvla": "SmolVLA", "pi05": "pi0.5"}
 
 EPISODE_COLUMN = "eval_mse_episodes"

@@ -1,9 +1,12 @@
-"""Does the encoder ranking transfer between backbones? Verdicts in both directions, per suite and per
-seed-level cell, and their counts (top-1 agreement and Kendall's tau-b: graftcache.analysis.agreement).
+"""Does the encoder ranking transfer between backbones? Verdicts in both directions for every pair of
+backbones, per suite and per seed-level cell, and their counts (top-1 agreement and Kendall's tau-b:
+graftcache.analysis.agreement).
 
-A *comparison* is (suite, direction); the directions are small -> large (is the small backbone's winner in
-the large one's top tier?) and large -> small. A *seed-level cell* repeats the test on one seed's rows
-alone, so 2 suites x 3 seeds give 12 cells against 4 comparisons, the paper's "k of n" counts.
+A *comparison* is (suite, direction); for each pair of backbones on the ladder (graftcache.analysis.ladder,
+smaller first) the directions are smaller -> larger (is the smaller backbone's winner in the larger one's top
+tier?) and larger -> smaller. With the paper's two backbones that is small -> large and back. A *seed-level
+cell* repeats the test on one seed's rows alone, so 2 suites x 3 seeds give 12 cells against 4 comparisons,
+the paper's "k of n" counts.
 """
 
 from __future__ import annotations
@@ -13,17 +16,10 @@ from typing import Any
 
 import polars as pl
 
+from graftcache.analysis.ladder import Ladder, backbone_ladder
 from graftcache.analysis.stats import BootSettings
 from graftcache.analysis.summaries import near_tie_band
-from graftcache.analysis.table import (
-    LARGE,
-    PLAIN,
-    SMALL,
-    backbone_label,
-    control_rows,
-    plain_backbones,
-    plain_suites,
-)
+from graftcache.analysis.table import PLAIN, backbone_label, control_rows, plain_suites
 
 TRANSFERS = "transfers"
 NEAR_TIE = "near-tie band"
@@ -51,16 +47,6 @@ _DIRECTED = {
 }
 VERDICT_SCHEMA = {"suite": pl.String, **_DIRECTED}
 SEED_VERDICT_SCHEMA = {"suite": pl.String, "seed": pl.Int64, **_DIRECTED}
-
-
-def two_backbone_gap(results: pl.DataFrame, small: str = SMALL, large: str = LARGE) -> str | None:
-    """Why no transfer question can be asked of this table (a backbone without valid plain rows), or None."""
-    have = plain_backbones(results)
-    lacking = [backbone_label(b) for b in (small, large) if b not in have]
-    if not lacking:
-        return None
-    present = ", ".join(backbone_label(b) for b in sorted(have)) or "none"
-    return f"needs two backbones ({backbone_label(small)} and {backbone_label(large)}); present: {present}"
 
 
 def common_encoders(rows: pl.DataFrame, small: str, large: str) -> tuple[list[str], str | None]:
@@ -103,8 +89,8 @@ def _judge(common: list[str], source: str, target: str, band: pl.DataFrame) -> d
 def _both_directions(
     rows: pl.DataFrame, where: dict[str, Any], gap: str | None, small: str, large: str, boot: BootSettings
 ) -> list[dict[str, Any]]:
-    """The small -> large and large -> small records for one suite's rows (or one seed's): "insufficient
-    data" with the reason in `note` when `gap` says why, or fewer than two encoders are shared."""
+    """The small -> large and large -> small records of one pair for one suite's rows (or one seed's):
+    "insufficient data" with the reason in `note` when `gap` says why, or fewer than two encoders are shared."""
     common, note = ([], gap) if gap else common_encoders(rows, small, large)
     if not gap and len(common) < 2:
         note = "; ".join(x for x in (f"{len(common)} encoder(s) on both backbones", note) if x)
@@ -121,46 +107,49 @@ def _both_directions(
 
 
 def transfer_verdicts(
-    results: pl.DataFrame, *, small: str = SMALL, large: str = LARGE, boot: BootSettings = BootSettings()
+    results: pl.DataFrame, *, ladder: Ladder | None = None, boot: BootSettings = BootSettings()
 ) -> pl.DataFrame:
-    """Per suite and direction: is the source backbone's winner in the target backbone's top tier?
+    """Per suite, pair of backbones and direction: is the source backbone's winner in the target's top tier?
 
-    Two rows per suite, small -> large first. Only encoders with data on both backbones are compared (the
+    Per suite, the ladder's pairs (graftcache.analysis.ladder.Ladder.pairs; the table's own ladder when none
+    is given), each as smaller -> larger then larger -> smaller: two rows per suite with two backbones, none
+    with fewer (Ladder.gap says why). Only encoders with data on both backbones of a pair are compared (the
     others are named in `note`). Exact ties for first on the source are all winners (joined by ", ") and
     the ranking transfers only if every one of them is in the target's top tier; a target tier holding
-    every shared encoder is NEAR_TIE instead. Fewer than two shared encoders, or a missing backbone, give
-    INSUFFICIENT with the reason in `note`. `basis` lists the comparison bases on the target (flags
-    single-seed tiers).
+    every shared encoder is NEAR_TIE instead. Fewer than two shared encoders give INSUFFICIENT with the
+    reason in `note`. `basis` lists the comparison bases on the target (flags single-seed tiers).
     """
-    gap = two_backbone_gap(results, small, large)
+    ladder = ladder or backbone_ladder(results)
     records = []
     for suite in plain_suites(results):
         rows = results.filter(pl.col("suite") == suite)
-        records += _both_directions(rows, {"suite": suite}, gap, small, large, boot)
+        for small, large in ladder.pairs:
+            records += _both_directions(rows, {"suite": suite}, None, small, large, boot)
     return pl.DataFrame(records, schema=VERDICT_SCHEMA)
 
 
 def seed_verdicts(
-    results: pl.DataFrame, *, small: str = SMALL, large: str = LARGE, boot: BootSettings = BootSettings()
+    results: pl.DataFrame, *, ladder: Ladder | None = None, boot: BootSettings = BootSettings()
 ) -> pl.DataFrame:
-    """Seed-level cells: transfer_verdicts on each seed's rows alone, per suite and direction.
+    """Seed-level cells: transfer_verdicts on each seed's rows alone, per suite, pair and direction.
 
     With one seed per cell the top tier rests on the seed's held-out episodes when rows carry them, and
-    is the exact ties of the best otherwise (flagged in `basis`). A seed run on one backbone only gives
-    INSUFFICIENT for both directions, as does a table lacking a backbone (every seed of every suite).
+    is the exact ties of the best otherwise (flagged in `basis`). The seeds of a pair are those either of its
+    backbones ran in the suite; a seed run on one of them only gives INSUFFICIENT for both directions.
     """
-    gap = two_backbone_gap(results, small, large)
+    ladder = ladder or backbone_ladder(results)
     valid = control_rows(results, PLAIN).drop_nulls("eval_mse")
     records = []
     for suite in plain_suites(results):
         rows = results.filter(pl.col("suite") == suite)
         in_suite = valid.filter(pl.col("suite") == suite)
-        seeds = {b: set(in_suite.filter(pl.col("backbone") == b)["seed"].to_list()) for b in (small, large)}
-        for s in sorted(set(in_suite["seed"].to_list())):
-            lacking = [backbone_label(b) for b in (small, large) if s not in seeds[b]]
-            why = gap or (f"seed {s} not run on {lacking[0]}" if lacking else None)
-            where = {"suite": suite, "seed": s}
-            records += _both_directions(rows.filter(pl.col("seed") == s), where, why, small, large, boot)
+        seeds = {b: set(in_suite.filter(pl.col("backbone") == b)["seed"].to_list()) for b in ladder.backbones}
+        for small, large in ladder.pairs:
+            for s in sorted(seeds[small] | seeds[large]):
+                lacking = [backbone_label(b) for b in (small, large) if s not in seeds[b]]
+                why = f"seed {s} not run on {lacking[0]}" if lacking else None
+                where = {"suite": suite, "seed": s}
+                records += _both_directions(rows.filter(pl.col("seed") == s), where, why, small, large, boot)
     return pl.DataFrame(records, schema=SEED_VERDICT_SCHEMA)
 
 

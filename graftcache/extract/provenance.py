@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import sys
 from collections.abc import Sequence
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from typing import TYPE_CHECKING, Any
 
 import polars as pl
@@ -43,7 +43,7 @@ def build_manifest(job: Job, numerics: dict[str, Any]) -> Manifest:
     return Manifest(
         format_version=FORMAT_VERSION,
         graftcache_version=graftcache.__version__,
-        created_at=datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        created_at=datetime.now(UTC).isoformat(timespec="seconds"),
         dataset=DatasetRecord(source=str(req.dataset), root=str(meta.root), repo_id=meta.repo_id,
                               revision=meta.revision, codebase_version=meta.codebase_version, fps=meta.fps,
                               n_episodes_total=len(meta.episodes), n_frames_total=meta.n_frames),

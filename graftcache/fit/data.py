@@ -16,6 +16,7 @@ import numpy as np
 import polars as pl
 import torch
 
+from graftcache.critical import critical_steps
 from graftcache.errors import FitError
 from graftcache.nonfinite import DROP_FLAG, nonfinite_rows
 from graftcache.pooling import format_grid, parse_grid, pool_grid
@@ -74,6 +75,7 @@ class LowDim:
     actions: torch.Tensor       # [M, A] float32: the full-rate action stream of the suite's episodes (shared)
     chunk: int                  # steps of an action chunk
     tasks: tuple[str, ...]
+    critical: np.ndarray        # [M] bool: stream steps inside a critical interval (graftcache/critical.py)
 
     def __len__(self) -> int:
         return len(self.rows)
@@ -83,7 +85,7 @@ class LowDim:
         t = torch.from_numpy(positions)
         return LowDim(self.rows[positions], self.index[positions], self.episode_index[positions],
                       self.frame_index[positions], self.state[t], self.task_index[t], self.stream_start[positions],
-                      self.stream_end[positions], self.actions, self.chunk, self.tasks)
+                      self.stream_end[positions], self.actions, self.chunk, self.tasks, self.critical)
 
     def subset(self, episodes: Sequence[int]) -> LowDim:
         return self.take(np.flatnonzero(np.isin(self.episode_index, np.asarray(episodes))))
@@ -99,6 +101,12 @@ class LowDim:
         frame's episode at full rate, padded with the episode's last action (pad True past the episode end)."""
         steps, pad = chunk_steps(self.stream_start[positions], self.stream_end[positions], self.chunk)
         return self.actions[torch.from_numpy(steps)], torch.from_numpy(pad)
+
+    def critical_chunks(self, positions: np.ndarray) -> torch.Tensor:
+        """Bool [k, chunk]: which steps of the frames' action chunks lie in a critical interval (never a padded
+        step), the steps CI-MSE scores."""
+        steps, pad = chunk_steps(self.stream_start[positions], self.stream_end[positions], self.chunk)
+        return torch.from_numpy(self.critical[steps] & ~pad)
 
     def nonfinite(self) -> dict[str, np.ndarray]:
         """Bool [N] per low-dim part ("state", "action chunk"): frames holding a NaN/inf there."""
@@ -187,6 +195,7 @@ def load_lowdim(cache: FeatureCache, suite: str, *, chunk: int) -> LowDim:
                                                         maintain_order="left")
     if at["pos"].null_count():
         raise FitError(f"cache {cache.key}: {at['pos'].null_count()} frame(s) have no entry in the action stream")
+    actions = np.stack(stream["action"].to_numpy()).astype(np.float32)
     return LowDim(
         rows=sub["row"].to_numpy().astype(np.int64),
         index=sub["index"].to_numpy().astype(np.int64),
@@ -196,9 +205,10 @@ def load_lowdim(cache: FeatureCache, suite: str, *, chunk: int) -> LowDim:
         task_index=torch.from_numpy(sub["task_index"].to_numpy().astype(np.int64)),
         stream_start=at["pos"].to_numpy().astype(np.int64),
         stream_end=(at["first"] + at["n"]).to_numpy().astype(np.int64),
-        actions=torch.from_numpy(np.stack(stream["action"].to_numpy()).astype(np.float32)),
+        actions=torch.from_numpy(actions),
         chunk=chunk,
         tasks=tuple(cache.manifest.tasks),
+        critical=critical_steps(actions, stream["episode_index"].to_numpy()),
     )
 
 

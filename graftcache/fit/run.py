@@ -122,8 +122,6 @@ class Fitter:
                  backbones: BackbonePool | None = None, numerics: dict[str, NumericsCheck] | None = None) -> None:
         """`backbones` and `numerics` (cache key -> verdict) may be shared by the Fitters of one process (a
         sweep), so each policy is loaded and each cache's numerics probe recomputed once per process."""
-        if req.objective not in OBJECTIVES:
-            raise FitError(f"--objective {req.objective!r}: choose one of {', '.join(OBJECTIVES)}")
         self.device = resolve_device(req.device)
         self.req = req = dataclasses.replace(req, compute_dtype=resolve_compute_dtype(req.compute_dtype, self.device))
         self.objective = OBJECTIVES[req.objective]
@@ -319,6 +317,7 @@ class Fitter:
     def _run_cell(self, adapter, control: Control, cell: Cell, mat: _Material) -> dict[str, Any]:
         t0 = time.perf_counter()
         torch.manual_seed(cell.seed)
+        params = adapter.n_params  # the policy as loaded: read before the graft replaces its tower
         width = mat.source.frame_shape(mat.source.cameras[0])[1]
         adapter.graft(control.projector(width, adapter.lm_width))
         if control.lora:
@@ -347,8 +346,12 @@ class Fitter:
             "pool_grid": format_grid(mat.grid), "train_loss_final": loss, "eval_mse": score.mse,
             "eval_mse_first": score.mse_first, "eval_mse_raw": score.mse_raw,
             "eval_mse_episodes": [score.per_episode[e] for e in sorted(score.per_episode)],
+            "eval_ci_mse": score.ci_mse,
+            "eval_ci_mse_episodes": [score.ci_per_episode[e] for e in sorted(score.per_episode)],
+            "backbone_params": params,
             "n_eval_frames": score.n_frames, "n_eval_episodes": len(score.per_episode), "wall_s": wall,
-            "device": str(self.device), "random_init": bool(mat.cache.manifest.random_init or adapter.random_init),
+            "device": str(self.device),
+            "random_init": bool(mat.cache.manifest.random_init or adapter.random_init),
             "n_dropped_nonfinite": mat.dropped + len(stats.dropped), "numerics_drift": self._drift(mat),
             "camera_map": format_camera_map(self.cameras), "graftcache_version": graftcache.__version__,
         })

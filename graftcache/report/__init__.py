@@ -7,6 +7,7 @@ sentences (sentences.py) and tables (tables.py) and draw figures (figures.py), a
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -16,15 +17,29 @@ import polars as pl
 from graftcache import analysis as A
 from graftcache import results as R
 from graftcache.report.document import Block, Heading, Image
-from graftcache.report.figures import FIGURES, figure_controls, figure_mse, figure_rank_transfer
+from graftcache.report.figures import (
+    FIGURES,
+    figure_controls,
+    figure_mse,
+    figure_rank_bump,
+    figure_rank_transfer,
+)
 from graftcache.report.render import render_html, render_markdown
 from graftcache.report.sections import SECTIONS, header, provenance_section, random_init_warning
-from graftcache.report.sentences import PROXY_NOTE, bootstrap_sentence, transfer_summary, verdict_sentences
+from graftcache.report.sentences import (
+    PROXY_NOTE,
+    bootstrap_sentence,
+    headline_sentences,
+    transfer_summary,
+    verdict_sentences,
+)
+from graftcache.report.transfer_csv import TRANSFER_CSV, TRANSFER_CSV_COLUMNS, transfer_table
 
 __all__ = [
-    "FIGURES", "PROXY_NOTE", "TITLE", "ReportPaths", "bootstrap_sentence", "figure_controls", "figure_mse",
-    "figure_rank_transfer", "render_html", "render_markdown", "report_command", "transfer_summary",
-    "verdict_sentences", "write_report",
+    "FIGURES", "PROXY_NOTE", "TITLE", "TRANSFER_CSV", "TRANSFER_CSV_COLUMNS", "ReportPaths", "bootstrap_sentence",
+    "figure_controls", "figure_mse", "figure_rank_bump", "figure_rank_transfer", "headline_sentences",
+    "render_html", "render_markdown", "report_command", "transfer_summary", "transfer_table", "verdict_sentences",
+    "write_report",
 ]
 
 TITLE = "graftcache report: does the encoder ranking transfer across backbones?"
@@ -35,6 +50,8 @@ class ReportPaths:
     markdown: Path
     html: Path
     figures: tuple[Path, ...]
+    transfer: Path  # transfer.csv: one row per verdict (graftcache.report.transfer_csv)
+    notes: tuple[str, ...] = ()  # how the backbones were ordered where the rows did not say (also in the report)
 
 
 def write_report(
@@ -42,11 +59,11 @@ def write_report(
     out_dir: str | Path,
     *,
     commands: Mapping[str, str] | None = None,
-    small: str = A.SMALL,
-    large: str = A.LARGE,
+    score: str = "mse",
     boot: A.BootSettings = A.BootSettings(),
 ) -> ReportPaths:
-    """Analyse a results table (or Parquet path) and write report.md, report.html and PNG figures to out_dir.
+    """Analyse a results table (or Parquet path), ranked by `score` (graftcache.analysis.SCORES), and write
+    report.md, report.html, PNG figures and transfer.csv to out_dir.
 
     The table needs only results.REPORT_COLUMNS; a path is read with results.read_for_report, so an absent,
     empty, non-Parquet or row-less file is a GraftcacheError naming it. `commands` (name -> command line)
@@ -55,7 +72,7 @@ def write_report(
     """
     source = str(results) if isinstance(results, (str, Path)) else "in-memory table"
     table = R.read_for_report(results) if isinstance(results, (str, Path)) else results
-    a = A.analyze(table, small=small, large=large, boot=boot)
+    a = A.analyze(table, score=score, boot=boot)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     for name in FIGURES:  # a rerun must not leave a stale figure the new report no longer shows
@@ -67,18 +84,23 @@ def write_report(
     md, page = out / "report.md", out / "report.html"
     md.write_text(render_markdown(blocks, out), encoding="utf-8")
     page.write_text(render_html(blocks, out, TITLE), encoding="utf-8")
+    transfer_table(a).write_csv(out / TRANSFER_CSV)
     figures = tuple(out / b.name for b in blocks if isinstance(b, Image))
-    return ReportPaths(md, page, figures)
+    return ReportPaths(md, page, figures, out / TRANSFER_CSV, a.ladder.notes)
 
 
-def report_command(results_path: str | Path, out_dir: str | Path, *, command: str | None = None) -> int:
-    """`graftcache report RESULTS --out DIR`: write the report, print where it is, return the exit code.
+def report_command(results_path: str | Path, out_dir: str | Path, *, command: str | None = None,
+                   score: str = "mse") -> int:
+    """`graftcache report RESULTS --out DIR [--score mse|ci-mse]`: write the report, print where it is, return
+    the exit code.
 
     Every unusable results file is a GraftcacheError (the CLI prints it as one line); `command` is the
     exact invocation to cite in the report (the CLI passes its argv), defaulting to the canonical form.
     """
     path = Path(results_path)
     cited = command or f"graftcache report {path} --out {out_dir}"
-    paths = write_report(path, out_dir, commands={"report": cited})
-    print(f"report: {paths.markdown}\n        {paths.html}")
+    paths = write_report(path, out_dir, commands={"report": cited}, score=score)
+    for note in paths.notes:
+        print(f"note: {note}", file=sys.stderr)
+    print(f"report: {paths.markdown}\n        {paths.html}\n        {paths.transfer}")
     return 0

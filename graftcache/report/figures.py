@@ -118,8 +118,9 @@ def _rank_ticks(ax: Axes, ranks: dict[str, int], shared: set[str], number_first:
 def figure_rank_transfer(a: A.Analysis) -> Figure | None:
     """Slope chart per suite: rank on the small backbone (left) vs the large one (right), one line per
     encoder run on both; each backbone's winner is coloured, and a filled dot marks membership of that
-    side's top tier, so both transfer directions can be read off. None without both backbones."""
-    if a.transfer_gap or not len(a.verdicts):
+    side's top tier, so both transfer directions can be read off. None unless the ladder has exactly two
+    backbones (more: figure_rank_bump)."""
+    if len(a.ladder.backbones) != 2 or not len(a.verdicts):
         return None
     rows, cols = _grid(len(a.suites))
     longest = max(len(e) for e in a.band["encoder"]) + 6
@@ -183,6 +184,48 @@ def figure_rank_transfer(a: A.Analysis) -> Figure | None:
     return fig
 
 
+def figure_rank_bump(a: A.Analysis) -> Figure | None:
+    """Bump chart per suite: every encoder's rank on each backbone of the ladder (smallest left), one line
+    per encoder, broken where a backbone lacks it; a filled dot marks that backbone's top tier, so the rung
+    where the ranking breaks shows as lines crossing. None with fewer than three backbones (two:
+    figure_rank_transfer)."""
+    ladder = a.ladder.backbones
+    if len(ladder) < 3 or not len(a.band):
+        return None
+    rows, cols = _grid(len(a.suites), max_cols=2)
+    encoders = sorted(set(a.band["encoder"]))
+    colors = {e: f"C{i % 10}" for i, e in enumerate(encoders)}
+    n_enc = a.band.group_by(A.GROUP).len()["len"].max()
+    fig = _new_figure((1.1 * len(ladder) + 1.6) * cols, (0.35 * n_enc + 2.0) * rows)
+    axes = fig.subplots(rows, cols, squeeze=False)
+    for ax, suite in zip(axes.flat, a.suites):
+        cells = a.band.filter(pl.col("suite") == suite).drop_nulls("rank")
+        at = {(r["backbone"], r["encoder"]): r for r in cells.iter_rows(named=True)}
+        for enc in encoders:
+            ranks = [at[b, enc]["rank"] if (b, enc) in at else np.nan for b in ladder]
+            ax.plot(range(len(ladder)), ranks, color=colors[enc], lw=1.8, zorder=2)
+            for x, b in enumerate(ladder):
+                if (b, enc) in at:
+                    fill = colors[enc] if at[b, enc]["in_band"] else "white"
+                    ax.scatter([x], [at[b, enc]["rank"]], s=40, zorder=3, edgecolors=colors[enc],
+                               facecolors=fill, linewidths=1.4)
+        top = max([*cells["rank"].to_list(), 1])
+        ax.set_ylim(top + 0.5, 0.5)
+        ax.set_yticks(range(1, top + 1))
+        ax.set_xlim(-0.3, len(ladder) - 0.7)
+        ax.set_xticks(range(len(ladder)), [A.backbone_label(b) for b in ladder], fontsize=8)
+        ax.set_ylabel("rank (1 = best)", fontsize=8)
+        ax.set_title(suite, fontsize=9)
+    for ax in list(axes.flat)[len(a.suites):]:
+        ax.set_visible(False)
+    fig.legend(
+        handles=[Line2D([], [], color=colors[e], lw=1.8, marker="o", label=e) for e in encoders],
+        loc="outside lower center", ncols=min(len(encoders), 3), fontsize=8,
+        title="filled dot = in that backbone's top tier; backbones by parameter count", title_fontsize=7,
+    )
+    return fig
+
+
 def figure_controls(a: A.Analysis) -> Figure | None:
     """Per (backbone, suite): how much of each control's error the encoder removes,
     (mse_control - mse_enc) / mse_control in %, one marker per control; encoders whose MSE is within noise
@@ -235,6 +278,11 @@ FIGURES: dict[str, tuple[Callable[[A.Analysis], Figure | None], str]] = {
     "rank_transfer.png": (
         figure_rank_transfer,
         "Rank of each encoder on the small vs the large backbone; filled dots are in that side's top tier.",
+    ),
+    "rank_bump.png": (
+        figure_rank_bump,
+        ("Rank of each encoder on every backbone, smallest backbone left; filled dots are in that backbone's "
+         "top tier."),
     ),
     "controls.png": (figure_controls, "Distance of each encoder from its controls (> 0: the encoder helps)."),
 }

@@ -10,6 +10,7 @@ import polars as pl
 
 from graftcache import analysis as A
 from graftcache import results as R
+from graftcache.critical import WINDOW
 from graftcache.report.document import Alert, Block, Bullets, Heading, Image, Paragraph
 from graftcache.report.figures import FIGURES
 from graftcache.report.sentences import (
@@ -17,6 +18,8 @@ from graftcache.report.sentences import (
     SEED_LEVEL_BOOTSTRAP,
     bootstrap_sentence,
     direction,
+    headline_sentences,
+    score_sentence,
     transfer_summary,
     verdict_sentences,
 )
@@ -25,10 +28,13 @@ from graftcache.report.tables import (
     MISSING_COLUMNS,
     MSE_COLUMNS,
     PROVENANCE_COLUMNS,
+    SCORE_COLUMNS,
     SEED_COLUMNS,
     WRAPPER_COLUMNS,
     in_backbone_order,
+    ladder_block,
     table_block,
+    tau_matrix_block,
     transfer_columns,
 )
 
@@ -42,9 +48,14 @@ def header(a: A.Analysis, source: str) -> list[Block]:
 
     have, total = a.episode_coverage
     empty = [c for c in R.SCHEMA if len(r) and r[c].null_count() == len(r)]
+    params = a.ladder.params
     facts = (
         f"Results: `{source}` ({len(r)} rows).",
-        "Backbones: " + (", ".join(f"{A.backbone_label(b)} (`{b}`)" for b in a.backbones) or "none") + ".",
+        "Backbones, by parameter count: " + (", ".join(
+            f"{A.backbone_label(b)} (`{b}`" + (f", {A.format_params(params[b])})" if b in params else ")")
+            for b in a.backbones) or "none") + ".",
+        *(f"Backbone order: {note}." for note in a.ladder.notes),
+        f"Score: {A.SCORE_LABELS[a.score]} (`--score {a.score}`).",
         f"Suites: {listed(a.suites)}.",
         f"Encoders: {listed(a.band['encoder'])}.",
         (f"graftcache versions: {listed(r['graftcache_version'].drop_nulls())}; "
@@ -86,10 +97,31 @@ def _transfer_section(a: A.Analysis, out: Path) -> list[Block]:
     head = Heading("Does the ranking transfer?")
     if a.transfer_gap:
         return [head, Paragraph(f"The transfer question {a.transfer_gap}, so no verdict is given.")]
+    if len(a.ladder.backbones) == 2:  # the paper's framing: one small and one large backbone
+        return [
+            head, Paragraph(transfer_summary(a)), Bullets(tuple(verdict_sentences(a))),
+            table_block(a.verdicts, transfer_columns(a)), *_figure(a, out, "rank_transfer.png"),
+        ]
+    about = ("Backbones stand on a ladder by parameter count; each rung is a backbone and the next larger one. "
+             "Every pair is judged in both directions below.")
+    taus: list[Block] = []
+    for suite in a.suites:
+        taus += [Paragraph(f"Kendall τb between the backbones' mean MSEs, {suite}:"), tau_matrix_block(a, suite)]
     return [
-        head, Paragraph(transfer_summary(a)), Bullets(tuple(verdict_sentences(a))),
-        table_block(a.verdicts, transfer_columns(a)), *_figure(a, out, "rank_transfer.png"),
+        head, Paragraph(about), ladder_block(a), Bullets(tuple(headline_sentences(a))),
+        *_figure(a, out, "rank_bump.png"),
+        Paragraph(transfer_summary(a)), Bullets(tuple(verdict_sentences(a))),
+        table_block(a.verdicts, transfer_columns(a)), *taus,
     ]
+
+
+def _score_section(a: A.Analysis, _: Path) -> list[Block]:
+    if not len(a.scores):
+        return []
+    about = ("CI-MSE is the action error on the chunk steps within "
+             f"±{WINDOW} steps of a gripper open/close transition (graftcache/critical.py).")
+    return [Heading("MSE and CI-MSE: where the rankings disagree"), Paragraph(about), Paragraph(score_sentence(a)),
+            table_block(in_backbone_order(a, a.scores), SCORE_COLUMNS)]
 
 
 def _mse_section(a: A.Analysis, out: Path) -> list[Block]:
@@ -155,8 +187,27 @@ def _missing_section(a: A.Analysis, _: Path) -> list[Block]:
     return [Heading("Missing cells"), Paragraph(about), gaps]
 
 
-def _methods_section(a: A.Analysis, _: Path) -> list[Block]:
+def _transfer_method(a: A.Analysis) -> str:
+    """How a transfer is judged, in the paper's words for its two backbones, generally for a ladder."""
+    if len(a.ladder.backbones) != 2:
+        return ("Transfer, for every pair of backbones and in both directions: the source backbone's winner(s), "
+                "among encoders run on both, must all be in the target's top tier. A target top tier holding "
+                f"every shared encoder separates nothing: a seed-sensitive '{A.NEAR_TIE}', not a transfer. "
+                "Backbones are ordered by parameter count (`backbone_params`); the ranking breaks at the first "
+                "rung (a backbone and the next larger one) whose upward verdict is "
+                f"'{A.DOES_NOT_TRANSFER}'. Seed-level cells repeat each comparison on one seed's rows; counts "
+                f"('k of n') leave out '{A.INSUFFICIENT}'.")
     small, large = A.backbone_label(a.small), A.backbone_label(a.large)
+    return (f"Transfer, in both directions: the {small} winner(s), among encoders run on both backbones, must "
+            f"all be in the {large} top tier ({direction(a.small, a.large)}), and the {large} winner(s) in the "
+            f"{small} top tier ({direction(a.large, a.small)}). A target top tier holding every shared encoder "
+            f"separates nothing, so that comparison is a seed-sensitive '{A.NEAR_TIE}', not a transfer. "
+            "Seed-level cells repeat each comparison on one seed's rows; counts ('k of n') leave out "
+            f"'{A.INSUFFICIENT}'.")
+
+
+def _methods_section(a: A.Analysis, _: Path) -> list[Block]:
+    pairs = "the two backbones'" if len(a.ladder.backbones) == 2 else "every two backbones'"
     return [Heading("Method"), Bullets((
         PROXY_NOTE,
         ("Per (backbone, suite, encoder): mean, std (ddof=1), min and max of eval_mse over seeds; "
@@ -165,13 +216,8 @@ def _methods_section(a: A.Analysis, _: Path) -> list[Block]:
          f"over {a.boot.n_boot} bootstrap replicates (seed {a.boot.seed}). With one seed and no per-episode "
          "MSEs the tier is the exact ties of the best (flagged)."),
         bootstrap_sentence(a),
-        (f"Transfer, in both directions: the {small} winner(s), among encoders run on both backbones, must "
-         f"all be in the {large} top tier ({direction(a.small, a.large)}), and the {large} winner(s) in the "
-         f"{small} top tier ({direction(a.large, a.small)}). A target top tier holding every shared encoder "
-         f"separates nothing, so that comparison is a seed-sensitive '{A.NEAR_TIE}', not a transfer. "
-         "Seed-level cells repeat each comparison on one seed's rows; counts ('k of n') leave out "
-         f"'{A.INSUFFICIENT}'."),
-        "Kendall τb (ties corrected) between the two backbones' mean MSEs over the shared encoders.",
+        _transfer_method(a),
+        f"Kendall τb (ties corrected) between {pairs} mean MSEs over the shared encoders.",
     ))]
 
 
@@ -184,6 +230,6 @@ def provenance_section(a: A.Analysis, commands: Mapping[str, str] | None) -> lis
 
 
 SECTIONS: tuple[Callable[[A.Analysis, Path], list[Block]], ...] = (
-    _transfer_section, _mse_section, _seed_section, _wrapper_section, _controls_section, _missing_section,
-    _methods_section,
+    _transfer_section, _mse_section, _score_section, _seed_section, _wrapper_section, _controls_section,
+    _missing_section, _methods_section,
 )

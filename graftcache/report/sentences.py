@@ -3,6 +3,8 @@ and one sentence per comparison, all from one Analysis."""
 
 from __future__ import annotations
 
+import polars as pl
+
 from graftcache import analysis as A
 
 PROXY_NOTE = (
@@ -39,14 +41,19 @@ def bootstrap_sentence(a: A.Analysis) -> str:
 
 def transfer_summary(a: A.Analysis) -> str:
     """The paper's count: in how many comparisons (suite x direction) and seed-level cells (suite x
-    direction x seed) the ranking transfers, out of those that could be judged, and what the rest were."""
+    direction x seed) the ranking transfers, out of those that could be judged, and what the rest were.
+    With more than two backbones the directions are both of every pair on the ladder."""
     c = A.verdict_counts(a.verdicts).row(0, named=True)
     s = A.verdict_counts(a.seed_verdicts).row(0, named=True)
+    n = len(a.ladder.backbones)
+    directions = (
+        f"both directions ({direction(a.small, a.large)}, {direction(a.large, a.small)})" if n == 2
+        else f"both directions of every pair of the {n} backbones ({n * (n - 1)} directions)"
+    )
     text = (
-        f"Across {_counted(len(a.suites), 'suite')} and both directions ({direction(a.small, a.large)}, "
-        f"{direction(a.large, a.small)}), the ranking transfers in {c['n_transfers']} of {c['n_judged']} "
-        f"comparisons (suite × direction) and {s['n_transfers']} of {s['n_judged']} seed-level cells "
-        "(suite × direction × seed)."
+        f"Across {_counted(len(a.suites), 'suite')} and {directions}, the ranking transfers in "
+        f"{c['n_transfers']} of {c['n_judged']} comparisons (suite × direction) and {s['n_transfers']} of "
+        f"{s['n_judged']} seed-level cells (suite × direction × seed)."
     )
     rest = [
         f"{what}: {_counted(c[col], 'comparison')}, {_counted(s[col], 'cell')}"
@@ -60,10 +67,10 @@ def transfer_summary(a: A.Analysis) -> str:
     return text + (" Other verdicts — " + "; ".join(rest) + "." if rest else "")
 
 
-def seed_counts(a: A.Analysis) -> dict[tuple[str, str], dict]:
-    """(suite, source backbone) -> verdict_counts over that comparison's seed-level cells."""
-    counts = A.verdict_counts(a.seed_verdicts, ("suite", "source"))
-    return {(r["suite"], r["source"]): r for r in counts.iter_rows(named=True)}
+def seed_counts(a: A.Analysis) -> dict[tuple[str, str, str], dict]:
+    """(suite, source backbone, target backbone) -> verdict_counts over that comparison's seed-level cells."""
+    counts = A.verdict_counts(a.seed_verdicts, ("suite", "source", "target"))
+    return {(r["suite"], r["source"], r["target"]): r for r in counts.iter_rows(named=True)}
 
 
 def verdict_sentences(a: A.Analysis) -> list[str]:
@@ -73,7 +80,8 @@ def verdict_sentences(a: A.Analysis) -> list[str]:
     out: dict[str, None] = {}  # ordered set: the two directions of an unjudgeable suite say the same
     for v in a.verdicts.iter_rows(named=True):
         if v["verdict"] == A.INSUFFICIENT:
-            out[f"On {v['suite']}, transfer cannot be judged ({v['verdict']}): {v['note']}."] = None
+            pair = "" if len(a.ladder.backbones) == 2 else f" between {_pair(v['source'], v['target'])}"
+            out[f"On {v['suite']}, transfer{pair} cannot be judged ({v['verdict']}): {v['note']}."] = None
             continue
         src, dst = A.backbone_label(v["source"]), A.backbone_label(v["target"])
         many = "," in v["source_winner"]
@@ -89,8 +97,62 @@ def verdict_sentences(a: A.Analysis) -> list[str]:
         }[v["verdict"]]
         if v["basis"] not in A.SOLID_BASES:
             sentence += f" [{dst} top tier basis: {v['basis']}]"
-        cells = seeds.get((v["suite"], v["source"]))
+        cells = seeds.get((v["suite"], v["source"], v["target"]))
         if cells and cells["n_judged"]:
             sentence += f" Seed level: {cells['n_transfers']} of {cells['n_judged']} cells transfer."
         out[sentence] = None
     return list(out)
+
+
+def _pair(x: str, y: str) -> str:
+    """Two backbones, as an unordered pair (the two directions of an unjudgeable pair say the same)."""
+    return " and ".join(A.backbone_label(b) for b in sorted((x, y)))
+
+
+def _tier(names: list[str] | None) -> str:
+    return ", ".join(names or []) or "—"
+
+
+HEADLINE_OPENERS = {
+    A.TRANSFERS: "is in the largest one's ({large}) top tier ({tier}): the ranking transfers from the bottom of "
+                 "the ladder to its top.",
+    A.DOES_NOT_TRANSFER: "is not in the largest one's ({large}) top tier ({tier}): the ranking does not transfer "
+                         "from the bottom of the ladder to its top.",
+    A.NEAR_TIE: "lands in the largest one's ({large}) top tier, but that tier holds every shared encoder ({tier}): "
+                f"a {A.NEAR_TIE}, not a transfer.",
+}
+
+
+def headline_sentences(a: A.Analysis) -> list[str]:
+    """Per suite, the ladder's two answers: does the smallest backbone's winner land in the largest one's top
+    tier, and at which rung (a backbone and the next larger one) does the ranking first fail to transfer?"""
+    out = []
+    for h in a.headline.iter_rows(named=True):
+        small, large = A.backbone_label(h["smallest"]), A.backbone_label(h["largest"])
+        if h["verdict"] == A.INSUFFICIENT:
+            first = (f"On {h['suite']}, the smallest backbone ({small}) and the largest ({large}) cannot be compared "
+                     f"({A.INSUFFICIENT}).")
+        else:
+            winner = f"the smallest backbone's ({small}) winner ({h['smallest_winner']})"
+            first = f"On {h['suite']}, {winner} " + HEADLINE_OPENERS[h["verdict"]].format(
+                large=large, tier=_tier(h["largest_top_tier"]))
+        rungs = "; ".join(f"{direction(x, y)}: {v}" for (x, y), v in zip(a.ladder.steps, h["steps"]))
+        if h["break_at"]:
+            x, y = h["break_at"].split(" -> ")
+            where = f"the ranking breaks at {direction(x, y)}"
+        else:
+            where = "the ranking breaks at no rung that could be judged"
+        below = " below it" if h["break_at"] else ""
+        unjudged = f" ({_counted(h['open_rungs'], 'rung')}{below} could not be judged)" if h["open_rungs"] else ""
+        out.append(f"{first} Rung by rung ({rungs}): {where}{unjudged}.")
+    return out
+
+
+def score_sentence(a: A.Analysis) -> str:
+    """How often MSE and CI-MSE pick different winners, over the (backbone, suite) cells ranked by both."""
+    judged = a.scores.drop_nulls("same_top1")
+    differ = judged.filter(~pl.col("same_top1"))
+    moved = a.scores.filter(pl.col("moved").list.len() > 0)
+    return (f"Ranked by {A.SCORE_LABELS['mse']} and by {A.SCORE_LABELS['ci-mse']}, the top-1 encoder differs in "
+            f"{len(differ)} of {len(judged)} (backbone, suite) cells, and some encoder changes rank in "
+            f"{len(moved)}. This report ranks by {A.SCORE_LABELS[a.score]} (`--score {a.score}`).")

@@ -89,18 +89,27 @@ SEED_COLUMNS: tuple[Column, ...] = (
 )
 
 
+def _pair_key(a: A.Analysis, r: Row) -> tuple[str, str, str]:
+    """(suite, smaller, larger) of a verdict row, how the per-pair frames (tau, pairings) are keyed."""
+    rung = a.ladder.backbones.index
+    small, large = sorted((r["source"], r["target"]), key=rung)
+    return r["suite"], small, large
+
+
 def transfer_columns(a: A.Analysis) -> tuple[Column, ...]:
-    tau = dict(a.tau.select("suite", "tau_b").iter_rows())
-    dis = {r["suite"]: r for r in a.disagreements.iter_rows(named=True)}
+    tau = {(r["suite"], r["small"], r["large"]): r["tau_b"] for r in a.tau.iter_rows(named=True)}
+    dis = {(r["suite"], r["small"], r["large"]): r for r in a.disagreements.iter_rows(named=True)}
     cells = seed_counts(a)
 
     def disagreeing(r: Row) -> str:
-        d = dis[r["suite"]]
+        d = dis.get(_pair_key(a, r))
+        if d is None:
+            return "—"
         unpaired = f" ({d['n_unpaired']} unpaired)" if d["n_unpaired"] else ""
         return f"{d['n_disagree']} of {d['n_pairings']}{unpaired}"
 
     def seed_level(r: Row) -> str:
-        c = cells.get((r["suite"], r["source"]))
+        c = cells.get((r["suite"], r["source"], r["target"]))
         if c is None:
             return "—"
         unjudged = c[A.COUNT_COLUMNS[A.INSUFFICIENT]]
@@ -110,6 +119,29 @@ def transfer_columns(a: A.Analysis) -> tuple[Column, ...]:
     return (
         ("suite", _col("suite")), DIRECTION, ("source winner", _col("source_winner")), TARGET_TIER,
         ("shared encoders", _col("n_common")), ("seed-level cells transferring", seed_level),
-        ("Kendall τb", lambda r: _num(tau.get(r["suite"]), ".2f")),
+        ("Kendall τb", lambda r: _num(tau.get(_pair_key(a, r)), ".2f")),
         ("seed pairings disagreeing on top-1", disagreeing), ("verdict", _col("verdict")), NOTE,
     )
+
+
+def tau_matrix_block(a: A.Analysis, suite: str) -> Table:
+    """One suite's Kendall tau-b between every two backbones, rows and columns in ladder order."""
+    names = a.ladder.backbones
+    matrix = A.tau_matrix(a.tau, suite, names)
+    return Table(("τb", *(A.backbone_label(b) for b in names)),
+                 tuple((A.backbone_label(b), *(_num(x, ".2f") for x in row)) for b, row in zip(names, matrix)))
+
+
+def ladder_block(a: A.Analysis) -> Table:
+    """The ladder itself: each backbone with the parameter count that placed it."""
+    return Table(("rung", "backbone", "parameters"), tuple(
+        (str(i + 1), A.backbone_label(b), A.format_params(a.ladder.params[b])) for i, b in enumerate(a.ladder.backbones)
+    ))
+
+
+SCORE_COLUMNS: tuple[Column, ...] = (
+    BACKBONE, ("suite", _col("suite")), ("top-1 by MSE", _col("mse_top1")), ("top-1 by CI-MSE", _col("ci_mse_top1")),
+    ("same top-1", _col("same_top1", _yes)), ("encoders", _col("n_common")),
+    ("Kendall τb (MSE vs CI-MSE)", _col("tau_b", lambda x: _num(x, ".2f"))),
+    ("rank changes (MSE -> CI-MSE)", lambda r: "; ".join(r["moved"] or []) or "none"),
+)

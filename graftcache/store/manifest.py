@@ -112,8 +112,8 @@ class Manifest:
 
 def upgrade(raw: Mapping[str, Any], where: str, key: str) -> dict[str, Any]:
     """The one upgrade path: a stored manifest of format 1 as format 2 (only the version changes; fields outside
-    the format move into `extra`), format 2 as it is; anything else is refused (UnreadableManifest) naming the cache and the
-    command that rebuilds it."""
+    the format move into `extra`), format 2 as it is; anything else is refused (UnreadableManifest) naming the
+    cache and the command that rebuilds it."""
     version = raw.get("format_version")
     if version == FORMAT_VERSION:
         return dict(raw)
@@ -153,8 +153,8 @@ def rebuild_command(raw: Mapping[str, Any]) -> str:
 
 
 def _refuse(raw: Mapping[str, Any], where: str, key: str, why: str) -> typing.NoReturn:
-    raise UnreadableManifest(f"cache {key} ({where}): {why}; graftcache reads caches of format {FORMAT_VERSION} and the "
-                     f"format 1 caches made since; rebuild it: {rebuild_command(raw)}")
+    raise UnreadableManifest(f"cache {key} ({where}): {why}; graftcache reads caches of format {FORMAT_VERSION} "
+                             f"and the format 1 caches made since; rebuild it: {rebuild_command(raw)}")
 
 
 def _record(raw: Any, where: str) -> DatasetRecord:

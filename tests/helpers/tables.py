@@ -1,6 +1,7 @@
 """Hand-built results tables with answers worked out by hand (see the comments next to each suite).
 
 Encoders siglip, dinov2-s, resnet18; backbones smolvla (small) and pi05 (large); seeds 0, 1, 2.
+LADDER_MSE (below) is a three-backbone table for the ladder questions.
 
 - libero_spatial: smolvla ranks siglip < dinov2-s < resnet18; on pi05 dinov2-s is best but siglip's seeds
   overlap it (in the top tier), resnet18 is far off -> smolvla -> pi05 transfers; the pi05 winner dinov2-s
@@ -69,6 +70,10 @@ CONTROL_MSE: dict[tuple[str, str, str, str], list[float]] = {
 }
 
 
+# What each hand-built row records as its policy's parameter count (graftcache.analysis.ladder orders by it).
+PARAMS = {"smolvla": 450_000_000, "pi05": 3_300_000_000}
+
+
 def command(backbone: str, suite: str, encoder: str, control: str, seed: int) -> str:
     return (f"graftcache fit --backbone {backbone} --encoder {encoder} --suite {suite} "
             f"--control {control} --seed {seed}")
@@ -82,6 +87,7 @@ def row(backbone: str, suite: str, encoder: str, seed: int, eval_mse: float | No
         "run_id": make_run_id({**cell, **{k: v for k, v in over.items() if k != "run_id"}}),
         **cell,
         "format_version": FORMAT_VERSION,
+        "backbone_params": PARAMS.get(backbone),
         "policy": "tiny",
         "policy_sha256": "0" * 64,
         "cache_key": f"key-{encoder}-{suite}",
@@ -176,6 +182,36 @@ NEAR_TIE_MSE: dict[tuple[str, str, str], list[float]] = {
     ("pi05", "s", "a"): [1.0, 1.5, 2.0],
     ("pi05", "s", "b"): [1.2, 1.4, 1.6],
 }
+
+
+# Three backbones whose names do not sort by size: kilo (0.5B) < alpha (2B) < mu (7B). Encoders a, b, c.
+# Suite s, every seed separated from every other encoder's (tiers hold the winner alone, P = 1):
+#   kilo a < b < c, alpha a < c < b, mu c < b < a.
+#   kilo -> alpha transfers (a in {a}) and back; kilo -> mu and alpha -> mu do not (a not in {c}), nor back
+#   (c not in {a}). Headline: kilo's winner a is not in mu's tier {c}; the ranking transfers kilo -> alpha and
+#   breaks at alpha -> mu. Every seed orders the encoders as the means do, so each seed-level cell repeats its
+#   pooled verdict. Kendall tau-b: kilo/alpha 1/3, kilo/mu -1, alpha/mu -1/3.
+# Suite t: kilo and alpha are NEAR_TIE_MSE's two backbones (kilo tier {a}; alpha's tier {b, a} holds both), mu
+#   ran a alone: kilo -> alpha is a near-tie band, alpha -> kilo does not transfer (b not in {a}), every pair
+#   with mu is insufficient data (1 shared encoder). Headline: insufficient data; rungs: near-tie band,
+#   insufficient data; no break, 1 rung unjudged. Seed level kilo/alpha: seed 0 alpha a 1.0 < b 1.2 -> transfers
+#   both ways; seeds 1 and 2 alpha b best -> does not transfer either way.
+LADDER_PARAMS = {"kilo": 500_000_000, "alpha": 2_000_000_000, "mu": 7_000_000_000}
+_LOW, _MID, _HIGH = [1.0, 1.1, 1.2], [2.0, 2.1, 2.2], [3.0, 3.1, 3.2]
+LADDER_MSE: dict[tuple[str, str, str], list[float]] = {
+    ("kilo", "s", "a"): _LOW, ("kilo", "s", "b"): _MID, ("kilo", "s", "c"): _HIGH,
+    ("alpha", "s", "a"): _LOW, ("alpha", "s", "b"): _HIGH, ("alpha", "s", "c"): _MID,
+    ("mu", "s", "a"): _HIGH, ("mu", "s", "b"): _MID, ("mu", "s", "c"): _LOW,
+    ("kilo", "t", "a"): [1.0, 1.1, 1.2], ("kilo", "t", "b"): [2.0, 2.1, 2.2],
+    ("alpha", "t", "a"): [1.0, 1.5, 2.0], ("alpha", "t", "b"): [1.2, 1.4, 1.6],
+    ("mu", "t", "a"): [1.0, 1.1, 1.2],
+}
+
+
+def ladder_table(cells: dict[tuple[str, str, str], list[float]] = LADDER_MSE) -> pl.DataFrame:
+    """LADDER_MSE as a results table, each row recording its backbone's LADDER_PARAMS."""
+    return table([row(b, s, e, seed, v, backbone_params=LADDER_PARAMS[b])
+                  for (b, s, e), vals in cells.items() for seed, v in enumerate(vals)])
 
 
 def exact_p_greater(x: list[float], y: list[float]) -> float:
