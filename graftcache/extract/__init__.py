@@ -8,9 +8,9 @@ are never decoded again, so a rerun after Ctrl-C or SIGKILL continues from what 
 composition (aligned to blocks) is the same as in an uninterrupted run, which makes the final bytes identical.
 
 One job per module: plan.py (the request resolved into a job.py Job: dataset, encoder, frames), provenance.py
-(index, manifest), frames.py (decode), encode.py (encoder -> stored grids), blocks.py (assembling, encoding and writing blocks),
-write.py (reuse / resume / create, whole or sharded, under the writer locks), checks.py (refusals before work
-and the one-line texts of failures during it).
+(index, manifest), frames.py (decode), encode.py (encoder -> stored grids), blocks.py (assembling, encoding and
+writing blocks), write.py (reuse / resume / create, whole or sharded, under the writer locks), checks.py
+(refusals before work and the one-line texts of failures during it).
 """
 
 from __future__ import annotations
