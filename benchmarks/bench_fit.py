@@ -94,7 +94,7 @@ def main() -> None:
                                             **common), log=_quiet).key
 
         adapter = load_backbone("smolvla", policy_dir)
-        cams = camera_map(adapter, cache.manifest["cameras"])
+        cams = camera_map(adapter, cache.manifest.cameras)
         low = load_lowdim(cache, SUITE, chunk=adapter.chunk_size)
         source = FeatureSource.of(cache, list(cams.values()), (4, 4))
         feats = source.read(low.rows)  # the sample's suite is small: the step timings read from memory

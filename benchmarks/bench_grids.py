@@ -75,19 +75,19 @@ def measure(name: str, random_init: bool, dataset: Path, episodes: tuple[int, ..
                                     episodes=episodes, cache=str(work), progress=False, num_workers=1),
                      log=lambda _: None)
     cache = FeatureCache(result.path)
-    native = cache.manifest["native_grid"]
-    width = cache.manifest["encoder"]["width"]
+    native = cache.manifest.native_grid
+    width = cache.manifest.encoder["width"]
     sizes = cache.root.sizes(f"{cache.key}/features/")
 
     def ratio(stored: list[str]) -> float:
-        raw = sum(cache.n_frames * len(cache.manifest["cameras"]) * math.prod(map(int, g.split("x"))) * width *
+        raw = sum(cache.n_frames * len(cache.manifest.cameras) * math.prod(map(int, g.split("x"))) * width *
                   FP16_BYTES for g in stored)
         packed = sum(size for path, size in sizes.items() if "/c/" in path and path.split("/c/")[0].rsplit("/", 1)[1]
                      in stored)
         return raw / packed
 
     print(f"probe {name} ({'random-init' if random_init else 'real weights'}): native {native} x {width}, "
-          f"{cache.n_frames} frames x {len(cache.manifest['cameras'])} cameras")
+          f"{cache.n_frames} frames x {len(cache.manifest.cameras)} cameras")
     return Ratios(ratio([format_grid(g) for g in grids]), ratio([format_grid(g) for g in backbones]), ratio([native]))
 
 

@@ -31,7 +31,8 @@ def fit_row(i: int, writer: int = 0) -> dict:
     """A row as a fit writes it (values seeded by `i`), with its own run_id."""
     cell = {"encoder": f"enc{writer}", "seed": i, "control": "none"}
     return {
-        "run_id": results.make_run_id(cell), "backbone": "smolvla", "policy": "lerobot/smolvla_base",
+        "run_id": results.make_run_id(cell), "format_version": results.FORMAT_VERSION, "backbone": "smolvla",
+        "policy": "lerobot/smolvla_base",
         "policy_sha256": "0" * 64, "encoder": cell["encoder"], "cache_key": "k" * 32, "suite": "libero_spatial",
         "seed": i, "control": "none", "pool_grid": "8x8", "objective": "flow", "steps": 300, "lr": 1e-3,
         "batch_size": 16, "buffer_mib": 2048, "train_loss_final": 0.5 + i * 1e-6, "eval_mse": 1.0 + i * 1e-6,

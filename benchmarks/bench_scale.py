@@ -125,7 +125,7 @@ def section_extract(dataset: Path, work: Path, args: argparse.Namespace) -> tupl
     out, wall, peak = run_child(["-c", EXTRACT_PROBE, json.dumps(extract_fields(dataset, cache_root, args))])
     res = json.loads(out.strip().splitlines()[-1])
     (cache,) = list_caches(cache_root)
-    frames, cams = res["n_frames"], len(cache.manifest["cameras"])
+    frames, cams = res["n_frames"], len(cache.manifest.cameras)
     enc_s = bare_encoder_seconds(args.encoder, frames * cams)
     folder = Path(cache.path)
     files = files_under(folder)
@@ -140,7 +140,7 @@ def section_extract(dataset: Path, work: Path, args: argparse.Namespace) -> tupl
           f"{res['encode_s']:.1f}s -> ~{frames / max(res['encode_s'] - enc_s, 1e-9):.0f} frames/s excluding the "
           f"encoder; peak RSS {peak / 1024:.0f} MiB")
     print(f"extract: {stored / frames / 1024:.1f} KiB stored per frame ({per_frame_raw / 1024:.1f} KiB uncompressed, "
-          f"grid {cache.manifest['grids']}); {len(files)} objects in this cache; a whole-LIBERO cache of this "
+          f"grid {cache.manifest.grids}); {len(files)} objects in this cache; a whole-LIBERO cache of this "
           f"encoder: {n_blocks_full} blocks -> {objects_full} objects, ~{stored / frames * LIBERO_FRAMES / 2**30:.1f} "
           f"GiB")
     return {"wall": wall, "encode_s": res["encode_s"]}, cache
@@ -186,7 +186,7 @@ def section_stream(dataset: Path, work: Path, args: argparse.Namespace) -> None:
         cache = FeatureCache(cache.path, writable=False)
         if name == "libero":
             feed = SplitFeed(load_lowdim(cache, args.suite, chunk=50),
-                             FeatureSource.of(cache, cache.manifest["cameras"], grid),
+                             FeatureSource.of(cache, cache.manifest.cameras, grid),
                              int(cache.layout["block_frames"]))
             capacity = buffer_frames(args.buffer_mib, feed.source.frame_bytes(), 64, len(feed.low))
             g = torch.Generator().manual_seed(0)
@@ -200,13 +200,13 @@ def section_stream(dataset: Path, work: Path, args: argparse.Namespace) -> None:
                   f"{n / (time.perf_counter() - t0):.0f} frames/s of batches of 64 from a {capacity}-frame buffer "
                   f"({args.buffer_mib} MiB), 2 reading workers, first epoch (blocks checksum-checked)")
         fit = ["-m", "graftcache", "fit", "--backbone", "smolvla", "--policy", str(policy), "--encoder",
-               cache.manifest["encoder"]["name"], "--suite", args.suite, "--seed", "0", "--steps",
+               cache.manifest.encoder_name, "--suite", args.suite, "--seed", "0", "--steps",
                str(args.fit_steps), "--batch-size", "32", "--buffer-mib", str(args.buffer_mib), "--num-workers", "2",
                "--eval-frames", "256", "--num-denoise-steps", "2", "--cache", str(root),
                "--results", str(work / f"results-{name}.parquet"), "--no-progress"]
         (work / f"results-{name}.parquet").unlink(missing_ok=True)
         _, wall, peak = run_child(fit)
-        in_memory = cache.n_frames * FeatureSource.of(cache, cache.manifest["cameras"], grid).frame_bytes()
+        in_memory = cache.n_frames * FeatureSource.of(cache, cache.manifest.cameras, grid).frame_bytes()
         results[name] = peak
         print(f"fit ({name}: {cache.n_frames} frames of {args.suite}): {args.fit_steps} steps of 32 + 256 eval "
               f"frames in {wall:.1f}s ({args.fit_steps / wall:.2f} steps/s incl. start-up); peak RSS "

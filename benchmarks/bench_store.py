@@ -37,13 +37,17 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 from common import DEFAULT_DATASET, machine  # noqa: E402
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from helpers.caches import manifest as cache_manifest  # noqa: E402
+
 from graftcache.datasets import open_dataset  # noqa: E402
+from graftcache.datasets.suites import SUITES  # noqa: E402
 from graftcache.extract import build_index  # noqa: E402
 from graftcache.fit.data import load_lowdim  # noqa: E402
 from graftcache.fit.feed import SplitFeed  # noqa: E402
 from graftcache.fit.stream import FeatureSource, read_chunks  # noqa: E402
-from graftcache.store import FeatureCache, open_root  # noqa: E402
-from graftcache.store.cache import ArraySpec, forget_verified  # noqa: E402
+from graftcache.store import FeatureCache, cache_key, open_root  # noqa: E402
+from graftcache.store.cache import ArraySpec  # noqa: E402
 from graftcache.store.readthrough import ReadThroughRoot  # noqa: E402
 from graftcache.store.roots import Root  # noqa: E402
 from graftcache.store.transfer import COPY_THREADS, copy_cache  # noqa: E402
@@ -56,29 +60,28 @@ def make_cache(root: Path, dataset: str, width: int) -> tuple[str, list[str], li
     episodes = [e.index for e in source.meta.episodes]
     index = build_index(source, episodes)
     cameras = list(source.meta.cameras)
-    manifest = {"encoder": {"name": "bench"}, "dtype": "fp16", "cameras": cameras, "grids": ["8x8"],
-                "extras": {}, "suites": ["libero_spatial", "libero_object", "libero_goal", "libero_10", "libero_90",
-                                         "unknown"], "tasks": list(source.meta.tasks),
-                "dataset": {"source": dataset}}
-    cache = FeatureCache.create(root / "bench", manifest, [ArraySpec(f"features/{c}/8x8", (TOKENS, width))
-                                                            for c in cameras], index, block_frames=BLOCK)
+    manifest = cache_manifest(encoder={"name": "bench", "width": width}, cameras=cameras, grids=["8x8"],
+                              suites=list(SUITES), tasks=list(source.meta.tasks), n_frames=index.height,
+                              dataset={"source": dataset})
+    key = cache_key(manifest.to_dict())
+    cache = FeatureCache.create(root / key, manifest, [ArraySpec(f"features/{c}/8x8", (TOKENS, width))
+                                                       for c in cameras], index, block_frames=BLOCK)
     rng = np.random.default_rng(0)
     for b in range(cache.layout["n_blocks"]):
         start, stop = cache.block_range(b)
         cache.write_block(b, {f"features/{c}/8x8": rng.standard_normal((stop - start, TOKENS, width))
                               .astype(np.float16) for c in cameras})
     cache.finalize()
-    present = sorted({manifest["suites"][i] for i in index["suite_index"].unique().to_list()})
-    return "bench", cameras, present
+    present = sorted({manifest.suites[i] for i in index["suite_index"].unique().to_list()})
+    return key, cameras, present
 
 
-def frames_per_s(root: Root, cameras: list[str], suite: str, repeats: int) -> tuple[float, int]:
+def frames_per_s(root: Root, key: str, cameras: list[str], suite: str, repeats: int) -> tuple[float, int]:
     """One pass of a fit's stream over the suite (every block checked, in this process), as frames/s."""
     times, n = [], 0
     for _ in range(repeats):
-        forget_verified()
         t0 = time.perf_counter()
-        cache = FeatureCache.in_root(root, "bench")
+        cache = FeatureCache.in_root(root, key)  # a new handle: its blocks are checked again
         feed = SplitFeed(load_lowdim(cache, suite, chunk=CHUNK), FeatureSource.of(cache, cameras, GRID), BLOCK)
         n = sum(len(c.owners) for c in read_chunks(feed.features(seed=None), 0))
         times.append(time.perf_counter() - t0)
@@ -144,13 +147,13 @@ def main() -> None:
               f"{plain_down_s / pull_s:.2f}); local copytree {mb / local_copy_s:.1f} MB/s")
 
         for suite in suites:
-            local_fps, n = frames_per_s(local, cameras, suite, args.repeats)
+            local_fps, n = frames_per_s(local, key, cameras, suite, args.repeats)
             cold, cold_bytes = [], []
             for _ in range(args.repeats):
                 mirror = ReadThroughRoot(s3, Path(tempfile.mkdtemp(dir=work)))
-                cold.append(frames_per_s(mirror, cameras, suite, 1)[0])
+                cold.append(frames_per_s(mirror, key, cameras, suite, 1)[0])
                 cold_bytes.append(mirror.fetched_bytes)
-            warm_fps, _ = frames_per_s(mirror, cameras, suite, args.repeats)
+            warm_fps, _ = frames_per_s(mirror, key, cameras, suite, args.repeats)
             cold_fps = statistics.median(cold)
             print(f"fit data path {suite} ({n} frames): local {local_fps:7.0f} frames/s | S3 cold {cold_fps:7.0f} "
                   f"frames/s (ratio {cold_fps / local_fps:.2f}), fetched {cold_bytes[0] / 2**20:.1f} of "

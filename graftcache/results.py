@@ -36,8 +36,13 @@ from graftcache.errors import GraftcacheError, ResultsError
 from graftcache.file_lease import FileLease
 from graftcache.hashing import sha256_json
 
+#: The format of results rows and of the cells their run_ids hash (graftcache.fit.run.Cell). Files of an older
+#: format go through `upgrade`, the one place that knows them.
+FORMAT_VERSION = 2
+
 SCHEMA: dict[str, pl.DataType] = {
     "run_id": pl.String,
+    "format_version": pl.Int64,       # FORMAT_VERSION of the row and of the cell its run_id hashes
     "backbone": pl.String,            # a graftcache.backbone_table.BACKBONES name, e.g. "smolvla"
     "backbone_params": pl.Int64,      # parameters of the policy as loaded (before the graft): the analysis
                                       # orders backbones by it (graftcache/analysis/ladder.py)
@@ -83,11 +88,6 @@ SCHEMA: dict[str, pl.DataType] = {
 }
 
 CONTROLS_NATIVE = ("native",)
-
-# Columns added to SCHEMA after results files were first written: reading an older file adds them as nulls, so
-# its cells are still skipped and new rows can still be appended to it.
-ADDED_COLUMNS = ("numerics_drift", "buffer_mib", "camera_map", "backbone_params", "eval_ci_mse",
-                 "eval_ci_mse_episodes", "cells_per_pass")
 
 # What a report needs of a table: enough to place every MSE in the (backbone, suite, encoder, control, seed)
 # grid. Tables from older versions, other tools or a paper need only these (conform fills the other SCHEMA
@@ -201,9 +201,7 @@ def read(path: str | Path) -> pl.DataFrame:
     if not path.exists():
         return empty()
     try:
-        rows = _load(path)
-        older = [pl.lit(None, dtype=SCHEMA[c]).alias(c) for c in ADDED_COLUMNS if c not in rows.columns]
-        return validate(rows.with_columns(older))
+        return validate(upgrade(_load(path), path))
     except ResultsError:
         raise
     except GraftcacheError as e:
@@ -211,6 +209,20 @@ def read(path: str | Path) -> pl.DataFrame:
     except (pl.exceptions.PolarsError, OSError) as e:
         raise ResultsError(f"{path}: not a Parquet results table ({_reason(e, path)}); "
                            "pass another --results") from None
+
+
+def upgrade(rows: pl.DataFrame, path: Path) -> pl.DataFrame:
+    """The one upgrade path for results files: rows of this format as they are; rows of an older format (format 1
+    had no format_version column) are refused in one line with the commands that rebuild them, since their
+    run_ids hash cells of another shape: a rerun could not skip their cells and would write each twice."""
+    if "format_version" in rows.columns and rows["format_version"].eq(FORMAT_VERSION).all():
+        return rows
+    old = rows if "format_version" not in rows.columns else rows.filter(pl.col("format_version") != FORMAT_VERSION)
+    commands = old["command"].unique(maintain_order=True).to_list() if "command" in old.columns else []
+    rebuild = f"`{commands[0]}`" if commands else "the fits or sweeps that wrote them"
+    more = f" (and {len(commands) - 1} other command(s) its rows record)" if len(commands) > 1 else ""
+    raise ResultsError(f"{path}: {old.height} row(s) of an older results format than {FORMAT_VERSION} (run_ids "
+                       f"of cells of another shape); move the file aside and rebuild it: {rebuild}{more}")
 
 
 def read_for_report(path: str | Path) -> pl.DataFrame:

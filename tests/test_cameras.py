@@ -11,7 +11,6 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
-import polars as pl
 import pytest
 from helpers.backbones import tiny
 from helpers.datasets import Written, build_lerobot
@@ -127,7 +126,7 @@ def test_native_extract_refuses_differing_names_unless_mapped(world: World, tmp_
                  "--camera-map", MAP, "--num-workers", "0", "--cache", str(cache), "--no-progress"]) == 2
     assert f"encoder '{ENCODER}' takes no --camera-map" in _one_error_line(capsys)
     # fit reads both caches through the one map; the native control's row records it too
-    (encoder_cache,) = [c for c in list_caches(world.cache) if c.manifest["dataset"]["root"] == str(world.dataset.root)]
+    (encoder_cache,) = [c for c in list_caches(world.cache) if c.manifest.dataset.root == str(world.dataset.root)]
     shutil.copytree(world.cache / encoder_cache.key, cache / encoder_cache.key)
     out = tmp_path / "r.parquet"
     assert world.fit(out, "--controls", "native", cache=cache) == 2
@@ -235,14 +234,3 @@ def test_recipe_camera_map_is_checked_as_it_is_read(world: World, tmp_path: Path
     path.write_text(path.read_text() + f'camera_map = "{MAP}"\n')  # in [fit]: the grid sets it, not a table
     with pytest.raises(RecipeError, match=r"\[fit\]: unknown key\(s\) camera_map"):
         load_recipe(path)
-
-
-def test_results_files_from_before_the_column_read_it_as_null(tmp_path: Path) -> None:
-    from helpers.tables import row, table
-
-    path = tmp_path / "old.parquet"
-    table([row("smolvla", "libero_spatial", "siglip", 0, 0.5, camera_map=MAP)]).drop("camera_map").write_parquet(path)
-    assert results.read(path)["camera_map"].to_list() == [None]
-    results.append(path, [row("smolvla", "libero_spatial", "siglip", 1, 0.4, camera_map=MAP)])
-    assert results.read(path).sort("seed")["camera_map"].to_list() == [None, MAP]
-    assert results.read(path).schema == pl.Schema(results.SCHEMA)

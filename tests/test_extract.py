@@ -90,7 +90,7 @@ def test_features_equal_an_independent_computation(extracted_auto, v3_image: Wri
     dtype, result = extracted_auto
     cache = FeatureCache(result.path)
     assert cache.complete and result.n_frames == sum(LENGTHS) and not result.reused
-    assert cache.manifest["compute_dtype"] == dtype  # what `auto` resolved to, recorded
+    assert cache.manifest.compute_dtype == dtype  # what `auto` resolved to, recorded
     # the same random-init weights, put into a model built here
     from graftcache.encoders import load_encoder
 
@@ -122,14 +122,14 @@ def test_index_lowdim_and_manifest_are_copied_in(extracted, v3_image: Written) -
     action = np.stack(index["action"].to_numpy())
     np.testing.assert_array_equal(action, np.concatenate([v3_image.action[ep] for ep in range(len(LENGTHS))]))
     m = cache.manifest
-    assert [m["tasks"][i] for i in index["task_index"].to_list()] == [TASKS[ep] for ep, n in enumerate(LENGTHS)
+    assert [m.tasks[i] for i in index["task_index"].to_list()] == [TASKS[ep] for ep, n in enumerate(LENGTHS)
                                                                        for _ in range(n)]
-    assert m["suites"][index["suite_index"][0]] == "libero_spatial"
-    assert m["random_init"] is True and m["weights"]["seed"] == 0 and len(m["weights_sha256"]) == 64
-    assert m["dataset"]["codebase_version"] == "v3.0" and m["dtype"] == "fp16"
-    assert m["encoder"]["preprocessing"]["mean"] == [0.5, 0.5, 0.5]
-    assert set(m["versions"]) >= {"torch", "timm", "transformers", "lerobot", "zarr"}
-    json.dumps(m)
+    assert m.suites[index["suite_index"][0]] == "libero_spatial"
+    assert m.random_init is True and m.weights["seed"] == 0 and len(m.weights_sha256) == 64
+    assert m.dataset.codebase_version == "v3.0" and m.dtype == "fp16"
+    assert m.encoder["preprocessing"]["mean"] == [0.5, 0.5, 0.5]
+    assert set(m.versions) >= {"torch", "timm", "transformers", "lerobot", "zarr"}
+    json.dumps(m.to_dict())
 
 
 def test_cache_key_follows_the_numbers_only(extracted, v3_image: Written) -> None:
@@ -142,7 +142,7 @@ def test_cache_key_follows_the_numbers_only(extracted, v3_image: Written) -> Non
         assert r.key not in keys, change
         keys.add(r.key)
         if "grids" in change:  # pooled grids only: no stored grid is the encoder's own
-            assert FeatureCache(r.path).manifest["native_grid"] is None
+            assert FeatureCache(r.path).manifest.native_grid is None
 
 
 def test_native_grid_is_stored_once_under_one_key_whatever_its_spelling(
@@ -151,11 +151,11 @@ def test_native_grid_is_stored_once_under_one_key_whatever_its_spelling(
     else; spelled out as 14x14, or both, it is the same cache; the manifest names the native grid."""
     req, with_pooled = extracted
     m = native_only.manifest
-    assert m["grids"] == ["14x14"] and m["native_grid"] == "14x14" and m["encoder"]["grid"] == [14, 14]
+    assert m.grids == ["14x14"] and m.native_grid == "14x14" and m.encoder["grid"] == [14, 14]
     assert {p: s for p, s in native_only.layout["arrays"].items() if p.startswith("features/")} == \
         {"features/image/14x14": [196, 192], "features/image2/14x14": [196, 192]}
     pooled = FeatureCache(with_pooled.path)
-    assert pooled.manifest["grids"] == ["14x14", "2x2", "7x7"] and pooled.manifest["native_grid"] == "14x14"
+    assert pooled.manifest.grids == ["14x14", "2x2", "7x7"] and pooled.manifest.native_grid == "14x14"
     for cam in ("image", "image2"):  # the same activations, stored as they are
         assert torch.equal(native_only.read_features(cam, "14x14"), pooled.read_features(cam, "14x14"))
     for spelled in (("14x14",), ("14x14", "native")):
@@ -185,7 +185,7 @@ def test_read_grid_pools_the_stored_native_grid(extracted, native_only: FeatureC
         assert got.dtype == torch.float16 and got.shape == (len(rows), grid[0] * grid[1], 192)
         assert torch.equal(got, want)
         name = f"{grid[0]}x{grid[1]}"
-        if name in pooled.manifest["grids"]:
+        if name in pooled.manifest.grids:
             at_extract = pooled.read_features(cam, name, rows)
             assert torch.equal(data.read_grid(pooled, cam, grid, rows), at_extract)  # a stored grid is read as is
             bound = 3 * 2**-11 * stored.abs().amax(dim=(1, 2)).unsqueeze(1) + 2**-24

@@ -92,7 +92,7 @@ def test_every_control_writes_one_schema_valid_row(world: World, tmp_path: Path)
     assert by["native"]["cache_key"] == world.native_keys["smolvla"]
     assert by["none"]["cache_key"] == world.encoder_key and by["none"]["encoder"] == ENCODER
     assert by["pool-2x2"]["pool_grid"] == "2x2" and by["none"]["pool_grid"] == "4x4"
-    assert FeatureCache(world.cache / world.encoder_key).manifest["grids"] == ["14x14"]  # both pooled at read time
+    assert FeatureCache(world.cache / world.encoder_key).manifest.grids == ["14x14"]  # both pooled at read time
     assert by["pool-2x2"]["eval_mse"] != by["none"]["eval_mse"]
     assert by["zero-image"]["eval_mse"] != by["none"]["eval_mse"]
     for row in by.values():
@@ -209,7 +209,7 @@ def test_errors_name_the_problem(world: World, v3_image: Written, tmp_path: Path
                          lambda m: {**m, "encoder": {**m["encoder"], "name": "resnet18"}})
     with pytest.raises(FitError, match="192 wide but encoder 'resnet18' is 512 wide"):
         Fitter(world.request(encoder="resnet18", cache=str(tmp_path / "relabelled"),
-                             cache_key=relabelled.key), log=_quiet)
+                             cache_key=relabelled.name), log=_quiet)
 
 
 def test_cli_fit_end_to_end(world: World, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
@@ -255,7 +255,7 @@ def test_frame_stride_thins_features_not_actions(world: World, tmp_path: Path) -
                   progress=False, encoder=ENCODER, random_init=True)
     full = FeatureCache(world.cache / extract(ExtractRequest(**common), log=_quiet).key)
     strided = FeatureCache(world.cache / extract(ExtractRequest(frame_stride=2, **common), log=_quiet).key)
-    assert strided.key != full.key and strided.manifest["frame_stride"] == 2
+    assert strided.key != full.key and strided.manifest.frame_stride == 2
     idx = strided.index()
     assert (idx["frame_index"].to_numpy() % 2 == 0).all()
     keep = np.flatnonzero(full.index()["frame_index"].to_numpy() % 2 == 0)
@@ -280,11 +280,10 @@ def test_native_grid_is_read_from_the_config_without_loading(world: World, name:
 
 
 def test_cell_run_ids_are_pinned() -> None:
-    """Finished rows are recognised by run_id: a Cell must hash the same in every later version. The pins changed
-    once on purpose, when fits began to stream (issue 12): `buffer_mib` joined the cell (the shuffle buffer decides
-    which frames a batch holds), and batches are drawn without replacement from that buffer where they were drawn
-    with replacement from the whole split, so rows of earlier versions hold other numbers and must not be taken
-    for this version's. (Values computed with `results.make_run_id` of the commit that added `buffer_mib`.)"""
+    """Finished rows are recognised by run_id: a Cell must hash the same in every later version of its results
+    format. The pins changed on purpose when fits began to stream (issue 12: `buffer_mib` joined the cell), and
+    with results format 2 (issue 23: every field hashed, `camera_map` and `format_version` included); rows of
+    earlier formats are refused by results.upgrade. (Values computed with `results.make_run_id` of format 2.)"""
     plain = Cell(backbone="smolvla", policy="tiny:tiny-smolvla-0123456789ab", cache_key="siglip-0123456789abcdef",
                  suite="libero_spatial", seed=1, control="none", pool_grid="native", objective="flow", steps=300,
                  lr=1e-3, batch_size=16, buffer_mib=2048, lora_rank=0, eval_fraction=0.2, eval_split_seed=0,
@@ -292,7 +291,7 @@ def test_cell_run_ids_are_pinned() -> None:
     native = dataclasses.replace(plain, control="native", objective="eval", steps=0, lr=0.0, batch_size=0,
                                  buffer_mib=0, cache_key="smolvla-native-00aa", seed=0)
     lora = dataclasses.replace(plain, control="lora", lora_rank=8, eval_frames=40, num_denoise_steps=4)
-    assert (plain.run_id, native.run_id, lora.run_id) == ("cf8c82a71171e0ad", "a2cc541a64717af9", "adf8bb9823f4d57c")
+    assert (plain.run_id, native.run_id, lora.run_id) == ("9488a82c63b641da", "3c4a458da720ea27", "b2b929518c905ffe")
 
 
 def test_cell_row_takes_each_column_from_measurements_then_cell_then_request() -> None:
@@ -414,16 +413,6 @@ def test_cells_sharing_a_backbone_pass_get_the_rows_they_get_alone(world: World,
     assert sum(line.startswith("skip ") for line in lines) == 8
     for run_id, row in redone.items():
         assert abs(row["eval_mse"] - one[run_id]["eval_mse"]) <= 1e-5
-
-
-def test_a_results_file_from_before_cells_per_pass_reads_and_takes_new_rows(tmp_path: Path) -> None:
-    from helpers.tables import row, table
-
-    old = tmp_path / "old.parquet"
-    table([row("smolvla", "libero_spatial", "siglip", 0, 0.5)]).drop("cells_per_pass").write_parquet(old)
-    assert results.read(old)["cells_per_pass"].to_list() == [None]
-    results.append(old, [row("smolvla", "libero_spatial", "siglip", 1, 0.4, cells_per_pass=3)])
-    assert sorted(results.read(old)["cells_per_pass"].to_list(), key=str) == [3, None]
 
 
 @pytest.mark.slow

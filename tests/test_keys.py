@@ -161,7 +161,7 @@ def test_a_renamed_cache_folder_is_not_that_cache(made: FeatureCache, tmp_path: 
 
 def test_a_cache_is_only_made_under_its_own_key(made: FeatureCache, tmp_path: Path) -> None:
     manifest = made.manifest
-    own = cache_key(manifest)
+    own = cache_key(manifest.to_dict())
     with pytest.raises(CacheError, match=f"made under its own key, {own}, not under '{FOREIGN}'"):
         FeatureCache.create(tmp_path / FOREIGN, manifest, [ArraySpec("features/image/2x2", (4, 4))],
                             made.index(), block_frames=4)

@@ -63,19 +63,19 @@ def test_extract_stores_grid_and_connector_tokens(saved: tuple[str, Path], v3_vi
     cache = FeatureCache(result.path)
     assert cache.complete
     manifest = cache.manifest
-    assert manifest["encoder"]["name"] == native_name(name) and manifest["random_init"] is True
+    assert manifest.encoder_name == native_name(name) and manifest.random_init is True
     connector = list(load_encoder(native_name(name), policy=str(folder)).extra_shapes["connector"])
-    assert manifest["extras"]["connector"] == connector
+    assert manifest.extras["connector"] == connector
     assert cache.n_frames == sum(len(f) for (_, key), f in v3_video.frames.items() if key == v3_video.cameras[0])
     shapes = cache.layout["arrays"]  # per-frame shapes
-    width = manifest["encoder"]["width"]
+    width = manifest.encoder["width"]
     assert sorted(p for p in shapes if p.endswith("/2x2")) == [f"features/{c}/2x2" for c in ("image", "image2")]
     assert all(shapes[p] == [4, width] for p in shapes if p.endswith("/2x2"))
-    gh, gw = manifest["encoder"]["grid"]  # `native`: the tower's own pre-connector grid, measured on the policy
-    assert manifest["grids"] == [f"{gh}x{gw}", "2x2"] and manifest["native_grid"] == f"{gh}x{gw}"
+    gh, gw = manifest.encoder["grid"]  # `native`: the tower's own pre-connector grid, measured on the policy
+    assert manifest.grids == [f"{gh}x{gw}", "2x2"] and manifest.native_grid == f"{gh}x{gw}"
     assert [shapes[f"features/{c}/{gh}x{gw}"] for c in ("image", "image2")] == [[gh * gw, width]] * 2
     assert [shapes[p] for p in shapes if p.endswith("/connector")] == [connector, connector]
-    json.dumps(manifest)  # the manifest stays plain JSON
+    json.dumps(manifest.to_dict())  # the manifest stays plain JSON
 
 
 def test_needs_a_policy_and_refuses_other_weights(saved: tuple[str, Path]) -> None:

@@ -1,11 +1,10 @@
 """The numerics fingerprint: an environment that computes other features than the one that made a cache is
 caught at resume, fit and verify (a nudged weight; SmolVLM's vision position ids as transformers 4.57 computed
-them), an unchanged one passes, and caches or results from before the fingerprint keep working."""
+them), an unchanged one passes."""
 
 from __future__ import annotations
 
 import json
-import shutil
 from importlib.metadata import version
 from pathlib import Path
 
@@ -116,7 +115,7 @@ def made(v3_image: Written, tmp_path_factory: pytest.TempPathFactory) -> Feature
 
 
 def test_an_unchanged_environment_passes(made: FeatureCache, capsys: pytest.CaptureFixture) -> None:
-    recorded = made.manifest[fp.MANIFEST_FIELD]
+    recorded = made.manifest.numerics
     assert recorded["compute_dtype"] == "fp32" and set(recorded["outputs"]) == {"grid"}
     check = fp.check_numerics(made)
     assert check.status == "match" and check.drift <= fp.TOLERANCE["fp32"] and check.output == "grid"
@@ -127,10 +126,10 @@ def test_an_unchanged_environment_passes(made: FeatureCache, capsys: pytest.Capt
 def test_the_fingerprint_does_not_enter_the_key(made: FeatureCache) -> None:
     from graftcache.store import cache_key
 
-    manifest = made.manifest
+    manifest = made.manifest.to_dict()
     assert cache_key(manifest) == made.key
     changed = {**manifest, "versions": {**manifest["versions"], "transformers": "4.57.6"},
-               fp.MANIFEST_FIELD: {**manifest[fp.MANIFEST_FIELD], "outputs": {}}}
+               "numerics": {**manifest["numerics"], "outputs": {}}}
     assert cache_key(changed) == made.key
 
 
@@ -291,27 +290,6 @@ def test_fitters_sharing_verdicts_probe_each_cache_once_and_each_enforces(world:
     assert calls == [world.cache.key]
 
 
-def test_caches_and_results_from_before_the_fingerprint_keep_working(world: World, tmp_path: Path) -> None:
-    root = tmp_path / "old"
-    shutil.copytree(world.cache.path, root / world.cache.key)
-    old = FeatureCache(root / world.cache.key)
-    manifest = old.manifest
-    del manifest[fp.MANIFEST_FIELD]
-    old.group.attrs.update({"manifest": manifest})
-    check = fp.check_numerics(old)
-    assert check.status == "unchecked" and check.line() == f"cache {old.key}: numerics not checked: {fp.NO_FINGERPRINT}"
-    # a results file written before the column existed: read with nulls, appended to, its cells still skipped
-    table = tmp_path / "r.parquet"
-    first = Fitter(world.request(tmp_path, cache=str(root), results=str(table)), log=_quiet).run()
-    results.read(table).drop("numerics_drift").write_parquet(table)
-    assert results.read(table)["numerics_drift"].to_list() == [None]
-    lines: list[str] = []
-    rows = Fitter(world.request(tmp_path, cache=str(root), results=str(table), seeds=(0, 1)), log=lines.append).run()
-    assert [r["seed"] for r in rows] == [1] and rows[0]["numerics_drift"] is None and first[0]["numerics_drift"] is None
-    assert sum(ln == f"warning: {check.line()}; its rows record numerics_drift as null" for ln in lines) == 1
-    assert results.read(table).height == 2
-
-
 # ------------------------------------------------------------------------------------------------ native towers
 def test_smolvla_position_id_drift_is_caught_in_one_line(v3_image: Written, tmp_path: Path,
                                                          capsys: pytest.CaptureFixture) -> None:
@@ -320,9 +298,10 @@ def test_smolvla_position_id_drift_is_caught_in_one_line(v3_image: Written, tmp_
     req = _req(v3_image.root, tmp_path / "cache", encoder=native_name("smolvla"), random_init=False, policy=str(policy))
     with pytest.MonkeyPatch.context() as m:  # the cache is made under transformers 4.57.6's rule and version
         m.setattr(modeling_smolvlm.SmolVLMVisionEmbeddings, "forward", _legacy_position_ids)
-        m.setattr(graftcache.extract, "library_versions", lambda: {**fp.library_versions(), "transformers": "4.57.6"})
+        m.setattr(graftcache.extract.provenance, "library_versions",
+                  lambda: {**fp.library_versions(), "transformers": "4.57.6"})
         cache = FeatureCache(extract(req, log=_quiet).path)
-        assert set(cache.manifest[fp.MANIFEST_FIELD]["outputs"]) == {"grid", "connector"}
+        assert set(cache.manifest.numerics["outputs"]) == {"grid", "connector"}
         assert fp.check_numerics(cache).status == "match"
     check = fp.check_numerics(cache)  # this environment's transformers, unpatched
     assert check.status == "drift" and check.versions == {"transformers": ("4.57.6", transformers.__version__)}

@@ -17,6 +17,7 @@ import numpy as np
 import polars as pl
 import pytest
 import torch
+from helpers.caches import manifest
 
 from graftcache.store import cache_key
 from graftcache.store.cache import ArraySpec, FeatureCache, to_storage
@@ -65,17 +66,15 @@ def test_cache_files_follow_the_umask(tmp_path: Path, mask: int) -> None:
                           "task_index": np.zeros(n, int), "suite_index": np.zeros(n, int),
                           "timestamp": np.arange(n) / 10.0, "state": np.zeros((n, 2), np.float32).tolist(),
                           "action": np.zeros((n, 2), np.float32).tolist()})
-    manifest = {"format_version": 1, "dataset_fingerprint": {"files": {}}, "episodes": None, "cameras": ["image"],
-                "encoder": {"name": "toy"}, "weights_sha256": "w", "grids": ["1x1"], "extras": {}, "dtype": "fp16",
-                "compute_dtype": "fp32"}
+    made = manifest(cameras=["image"], grids=["1x1"], n_frames=n)
     with umask(mask):
-        cache = FeatureCache.create(tmp_path / cache_key(manifest), manifest,
+        cache = FeatureCache.create(tmp_path / cache_key(made.to_dict()), made,
                                     [ArraySpec("features/image/1x1", (1, 4))], index, block_frames=4)
         for b in range(cache.layout["n_blocks"]):
             s, e = cache.block_range(b)
             cache.write_block(b, {"features/image/1x1": to_storage(torch.ones(e - s, 1, 4), "fp16")})
         cache.finalize()
-    modes = _modes(tmp_path / cache_key(manifest))
+    modes = _modes(tmp_path / cache_key(made.to_dict()))
     assert modes["file"] == {0o666 & ~mask} and modes["dir"] == {0o777 & ~mask}
 
 

@@ -10,9 +10,10 @@ import numpy as np
 import polars as pl
 import pytest
 import torch
+from helpers.caches import manifest
 
 from graftcache.errors import CacheError
-from graftcache.store import FeatureCache, cache_key, cache_root, list_caches
+from graftcache.store import FeatureCache, Manifest, cache_key, cache_root, list_caches
 from graftcache.store.cache import ArraySpec, from_storage, to_storage
 from graftcache.store.lock import exclusive
 
@@ -29,17 +30,19 @@ def _index(n: int = N) -> pl.DataFrame:
     })
 
 
-def _manifest(**over) -> dict:
-    m = {"format_version": 1, "dataset_fingerprint": {"info": "a"}, "episodes": None, "cameras": ["image"],
-         "encoder": {"name": "toy", "model_id": "x"}, "weights_sha256": "w", "grids": ["2x2"], "extras": {},
-         "dtype": "fp16", "compute_dtype": "fp32", "run": {"batch_size": 8}}
-    m.update(over)
-    return m
+def _manifest(**over) -> Manifest:
+    return manifest(**{"dataset_fingerprint": {"files": {"meta/info.json": {"sha256": "a"}}}, "cameras": ["image"],
+                       "encoder": {"name": "toy", "model_id": "x"}, "weights_sha256": "w", "grids": ["2x2"],
+                       "n_frames": N, "run": {"batch_size": 8}, **over})
+
+
+def _key(**over) -> str:
+    return cache_key(_manifest(**over).to_dict())
 
 
 def _at(root: Path, **over) -> Path:
     """Where a cache of `_manifest(**over)` lives under `root`: the folder named by its key."""
-    return root / cache_key(_manifest(**over))
+    return root / _key(**over)
 
 
 def _filled(root: Path, dtype: str = "fp16") -> tuple[FeatureCache, np.ndarray]:
@@ -106,14 +109,14 @@ def test_write_block_rejects_wrong_shapes(tmp_path: Path) -> None:
 
 
 def test_key_ignores_provenance_but_not_numbers() -> None:
-    base = cache_key(_manifest())
+    base = _key()
     assert base.startswith("toy-")
-    assert cache_key(_manifest(run={"batch_size": 64, "num_workers": 0})) == base
-    assert cache_key(_manifest(created_at="later")) == base
+    assert _key(run={"batch_size": 64, "num_workers": 0}) == base
+    assert _key(created_at="later") == base
     for change in ({"grids": ["4x4"]}, {"dtype": "bf16"}, {"weights_sha256": "v"}, {"episodes": [0, 1]},
-                   {"cameras": ["image", "image2"]}, {"dataset_fingerprint": {"info": "b"}},
-                   {"compute_dtype": "bf16"}):
-        assert cache_key(_manifest(**change)) != base, change
+                   {"cameras": ["image", "image2"]}, {"compute_dtype": "bf16"},
+                   {"dataset_fingerprint": {"files": {"meta/info.json": {"sha256": "b"}}}}):
+        assert _key(**change) != base, change
 
 
 def test_cache_root_resolution(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -153,3 +156,17 @@ def test_lock_excludes_second_writer(tmp_path: Path) -> None:
     t0 = time.time()
     with exclusive(tmp_path / "k.lock", wait=False):
         assert time.time() - t0 < 5
+
+
+def test_a_manifest_is_read_typed_and_a_wrong_field_is_refused_by_name() -> None:
+    stored = _manifest().to_dict()
+    assert Manifest.read(stored, "here", "k") == _manifest()
+    for edit, says in ((lambda m: m["dataset"].update(fps="ten"), "field dataset.fps is 'ten', not float"),
+                       (lambda m: m.update(episodes="all"), "field episodes is 'all', not list or NoneType"),
+                       (lambda m: m.pop("grids"), "of format 2 lacks grids"),
+                       (lambda m: m.update(encoder={"width": 8}), "field encoder has no name")):
+        broken = _manifest().to_dict()
+        edit(broken)
+        with pytest.raises(CacheError) as refused:
+            Manifest.read(broken, "here", "k")
+        assert str(refused.value) == f"here: manifest {says}"

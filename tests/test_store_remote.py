@@ -22,14 +22,16 @@ import pytest
 import torch
 from fixtures.s3 import bucket_objects
 from helpers.backbones import tiny
-from helpers.caches import assert_same_cache, folder_files, rekeyed
+from helpers.caches import CAMERAS, assert_same_cache, folder_files, rekeyed, synthetic_cache
 from helpers.datasets import Written
 
 from graftcache.cli import main
 from graftcache.errors import CacheError
 from graftcache.extract import ExtractRequest, extract
 from graftcache.fit.data import load_lowdim
+from graftcache.fit.feed import SplitFeed
 from graftcache.fit.run import FitRequest, Fitter
+from graftcache.fit.stream import FeatureSource, read_chunks
 from graftcache.store import FeatureCache, cache_key, list_caches, open_root, scan_caches
 from graftcache.store.cache import MisplacedCache
 from graftcache.store.readthrough import reading_root
@@ -133,7 +135,7 @@ def test_another_cache_under_a_key_is_refused(s3: str, local: tuple[Path, str]) 
     root, key = local
     copy_cache(open_root(root), open_root(s3), key, log=_quiet)
     cache = FeatureCache(f"{s3}/{key}")
-    cache.group.attrs["manifest"] = {**cache.manifest, "grids": ["3x3"]}  # another cache, copied in by hand
+    cache.group.attrs["manifest"] = {**cache.manifest.to_dict(), "grids": ["3x3"]}  # another cache, copied in by hand
     own = cache_key(cache.group.attrs["manifest"])
     before = bucket_objects(s3)
     with pytest.raises(MisplacedCache, match=f"not cache {key}: its manifest hashes to {own}"):
@@ -285,14 +287,32 @@ def test_ls_flags_a_broken_cache_and_lists_the_healthy_ones(local: tuple[Path, s
     shutil.copytree(root / key, damaged)
     (damaged / "zarr.json").write_text('{"zarr_format": 3, "attributes": {"manifest": ')
     partial = rekeyed(root / key, tmp_path, lambda m: {k: v for k, v in m.items() if k != "n_frames"}
-                      | {"weights_sha256": "other"}).key
+                      | {"weights_sha256": "other"}).name
     assert main(["ls", "--cache", str(tmp_path)]) == 0
     out = capsys.readouterr().out
     rows = {line.split()[1]: line for line in out.splitlines() if line.startswith("│") and len(line.split()) > 2}
     assert "complete" in rows[key] and "BROKEN" not in rows[key]
     assert "BROKEN" in rows[damaged.name] and "BROKEN" in rows[partial]
     flat = " ".join(out.replace("│", " ").split())  # a long reason wraps inside its cell
-    assert "zarr.json is not a feature cache" in flat and "KeyError: 'n_frames'" in flat
-    assert [c.key for c in list_caches(tmp_path)] == sorted([key, partial])
+    assert "zarr.json is not a feature cache" in flat and "manifest of format 2 lacks n_frames" in flat
+    assert [c.key for c in list_caches(tmp_path)] == [key]
     assert torch.equal(FeatureCache(tmp_path / key).read_features("image", "2x2"),
                        FeatureCache(root / key).read_features("image", "2x2"))
+
+
+def test_object_store_workers_check_each_block_once_per_fit(s3: str, tmp_path: Path,
+                                                              monkeypatch: pytest.MonkeyPatch) -> None:
+    """Workers for an object-store root start from a fork server and inherit nothing: the blocks the first
+    stream's worker checked travel with the fit's reader to the next streams' workers, which never check them
+    again (each block's checksum is computed once per fit, as the docs say)."""
+    monkeypatch.setenv("GRAFTCACHE_HOME", str(tmp_path / "home"))  # the read-through copies
+    local = synthetic_cache(tmp_path / "local", (9, 7, 12), block_frames=4)
+    copy_cache(local.root, open_root(s3), local.key, log=_quiet)
+    cache = FeatureCache.in_root(reading_root(s3), local.key)
+    feed = SplitFeed(load_lowdim(cache, "libero_spatial", chunk=2), FeatureSource.of(cache, CAMERAS, (2, 2)),
+                     int(cache.layout["block_frames"]))
+    reported = [b for _ in range(3)  # three streams of one fit (epochs, cells), each with a new worker
+                for chunk in read_chunks(feed.features(seed=None), 1) for b in chunk.verified]
+    features = {(str(cache.path), f"features/{c}/4x4", b) for c in CAMERAS for b in range(cache.layout["n_blocks"])}
+    assert sorted(b for b in reported if b[2] >= 0) == sorted(features)  # every block, each checked once
+    assert feed.source.reader.checks.count == len(reported) and set(reported) <= feed.source.reader.checks.done

@@ -9,6 +9,7 @@ import numpy as np
 import polars as pl
 import pytest
 import torch
+from helpers.caches import manifest
 
 from graftcache.store import cache_key
 from graftcache.store.cache import ArraySpec, FeatureCache
@@ -21,8 +22,8 @@ def _cache(root: Path) -> tuple[FeatureCache, np.ndarray]:
     index = pl.DataFrame({"index": np.arange(N), "episode_index": np.arange(N) // 10, "frame_index": np.arange(N) % 10,
                           "task_index": np.zeros(N, int), "suite_index": np.zeros(N, int),
                           "timestamp": np.zeros(N), "state": [[0.0]] * N, "action": [[0.0]] * N})
-    manifest = {"encoder": {"name": "toy"}, "dtype": "fp16"}
-    cache = FeatureCache.create(root / cache_key(manifest), manifest,
+    made = manifest(cameras=["image"], grids=["2x2"], n_frames=N)
+    cache = FeatureCache.create(root / cache_key(made.to_dict()), made,
                                 [ArraySpec("features/image/2x2", (T, C))], index, block_frames=32)
     for b in range(cache.layout["n_blocks"]):
         s, e = cache.block_range(b)

@@ -163,12 +163,12 @@ def test_small_sweep_end_to_end_then_rerun_skips(tmp_path: Path, v3_video: Writt
     assert set(state.commands) >= {"policy smolvla", *state.encoder_caches.values(), *state.native_caches.values()}
     # one cache for the encoder, its own 14x14 grid alone, read at the backbone's 4x4 and the control's 2x2
     key = state.encoder_caches[recipe.encoders[0]]
-    (cache,) = [c for c in list_caches(tmp_path / "cache") if c.manifest["encoder"]["name"] == recipe.encoders[0].name]
-    assert cache.key == key and cache.manifest["grids"] == ["14x14"] and cache.manifest["native_grid"] == "14x14"
+    (cache,) = [c for c in list_caches(tmp_path / "cache") if c.manifest.encoder_name == recipe.encoders[0].name]
+    assert cache.key == key and cache.manifest.grids == ["14x14"] and cache.manifest.native_grid == "14x14"
     grafts = rows.filter(pl.col("encoder") == recipe.encoders[0].name).sort("control")
     assert grafts["cache_key"].to_list() == [key, key] and grafts["pool_grid"].to_list() == ["4x4", "2x2"]
     native = FeatureCache(tmp_path / "cache" / state.native_caches["smolvla"])
-    assert native.manifest["grids"] == ["4x4"] and "connector" in native.manifest["extras"]  # its backbone's grid
+    assert native.manifest.grids == ["4x4"] and "connector" in native.manifest.extras  # its backbone's grid
     # the recorded commands rebuild the very caches the sweep made
     for made in (key, native.key):
         assert "--grids" in state.commands[made] and "--batch-size 8 --num-workers 0" in state.commands[made]

@@ -41,7 +41,7 @@ def test_train_tiny_extract_native_and_fit_every_control(name: str, tmp_path: Pa
                       "--cache", str(cache)], capsys)
     assert native.code == 0, native.err[-2000:]
     manifest = FeatureCache(cache / native.out.split()[-1]).manifest
-    assert tuple(manifest["encoder"]["grid"]) == grid and manifest["extras"]["connector"] == [tokens, width]
+    assert tuple(manifest.encoder["grid"]) == grid and manifest.extras["connector"] == [tokens, width]
     candidate = run_cli(["extract", "--encoder", ENCODER, "--random-init", *SUBSET, "--cache", str(cache)], capsys)
     assert candidate.code == 0, candidate.err[-2000:]
 

@@ -49,13 +49,11 @@ def run_ls(args: argparse.Namespace) -> int:
     for c in caches:
         m = c.manifest
         try:
-            weights = "random-init" if m.get("random_init") else m["weights"].get("source", "?")
+            weights = "random-init" if m.random_init else m.weights.get("source", "?")
             status = "complete" if c.complete else ("incomplete" if c.initialized else "initialising")
-            table.add_row(c.key, m["dataset"]["repo_id"] or m["dataset"]["source"], m["encoder"]["name"], weights,
-                          ",".join(m["grids"] + list(m.get("extras", {}))), ",".join(m["cameras"]),
-                          str(m["n_frames"]), f"{c.size_bytes() / 2**20:.1f} MiB", status)
-        except (KeyError, TypeError, AttributeError) as e:  # a manifest missing the fields a row shows
-            table.add_row(c.key, *[""] * 7, f"BROKEN: manifest lacks {type(e).__name__}: {e}")
+            table.add_row(c.key, m.dataset.repo_id or m.dataset.source, m.encoder_name, weights,
+                          ",".join(m.grids + list(m.extras)), ",".join(m.cameras),
+                          str(m.n_frames), f"{c.size_bytes() / 2**20:.1f} MiB", status)
         except CacheError as e:  # its folder holds a symbolic link (never followed, so not sized)
             table.add_row(c.key, *[""] * 7, f"BROKEN: {e}")
     for b in broken:
@@ -69,7 +67,7 @@ def run_ls(args: argparse.Namespace) -> int:
 
 def run_info(args: argparse.Namespace) -> int:
     c = _open(args)
-    print(json.dumps({**c.manifest, "complete": c.complete, "layout": {k: v for k, v in c.layout.items()
+    print(json.dumps({**c.manifest.to_dict(), "complete": c.complete, "layout": {k: v for k, v in c.layout.items()
                                                                       if k != "static_checksums"}},
                      indent=2, default=str))
     return 0

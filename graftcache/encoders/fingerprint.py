@@ -35,9 +35,8 @@ from graftcache.settings import flag_of
 
 if TYPE_CHECKING:
     from graftcache.encoders.encoder import Encoder
-    from graftcache.store import FeatureCache
+    from graftcache.store import FeatureCache, Manifest
 
-MANIFEST_FIELD = "numerics"
 VERSIONED_PACKAGES = ("torch", "timm", "transformers", "lerobot", "zarr", "numcodecs", "av", "numpy")
 PROBE_SEED = 0
 PROBE_FRAMES = 2
@@ -49,9 +48,6 @@ SKETCH_DIMS = 8
 #: the flag of every command that refuses a drifted cache unless told
 ACCEPT_FLAG = flag_of(FitRequest, "accept_numerics_drift")
 TOLERANCE = {"fp32": 2e-3, "fp16": 1e-2, "bf16": 5e-2}
-#: what a cache made before graftcache recorded fingerprints is, for every check
-NO_FINGERPRINT = "it has no numerics fingerprint (made before graftcache recorded one), so its features cannot " \
-                 "be checked against this environment"
 
 
 def library_versions() -> dict[str, str]:
@@ -203,28 +199,26 @@ def check_numerics(cache: FeatureCache, *, device: str | torch.device = "cpu",
     "unchecked" with the reason, never a silent match. Raise with `.require_match(remedy)`.
     """
     manifest = cache.manifest
-    recorded = manifest.get(MANIFEST_FIELD)
-    if not recorded:
-        return NumericsCheck(cache.key, "unchecked", reason=NO_FINGERPRINT)
+    recorded = manifest.numerics
     if encoder is None:
         try:
             encoder = encoder_of(manifest, device)
         except GraftcacheError as e:
             return NumericsCheck(cache.key, "unchecked", reason=f"its encoder cannot be loaded here ({e})")
-    if encoder.weights_info.get("sha256") != manifest.get("weights_sha256"):
+    if encoder.weights_info.get("sha256") != manifest.weights_sha256:
         return NumericsCheck(cache.key, "unchecked", reason=f"the weights found here (sha256 "
                              f"{str(encoder.weights_info.get('sha256'))[:12]}...) are not the ones it was made with "
-                             f"({str(manifest.get('weights_sha256'))[:12]}...)")
+                             f"({manifest.weights_sha256[:12]}...)")
     current = fingerprint(encoder, recorded["compute_dtype"], device)
-    return compare(cache.key, recorded, current, manifest.get("versions"))
+    return compare(cache.key, recorded, current, manifest.versions)
 
 
-def encoder_of(manifest: Mapping[str, Any], device: str | torch.device = "cpu") -> Encoder:
+def encoder_of(manifest: Manifest, device: str | torch.device = "cpu") -> Encoder:
     """The encoder a manifest was extracted with, loaded the same way (registry name + recorded weights source)."""
     from graftcache.encoders.registry import load_encoder
 
-    weights = manifest["weights"]
+    weights = manifest.weights
     source, ref = weights.get("source"), weights.get("ref")
-    return load_encoder(manifest["encoder"]["name"], device=device, random_init=source == "random-init",
+    return load_encoder(manifest.encoder_name, device=device, random_init=source == "random-init",
                         seed=weights.get("seed"), weights=ref if source == "file" else None,
                         policy=ref if source == "policy" else None)

@@ -117,7 +117,7 @@ class LowDim:
 
 def suite_index_table(cache: FeatureCache, suite: str) -> pl.DataFrame:
     """The cache index restricted to one LIBERO suite; a suite with no episodes is an error."""
-    suites = cache.manifest["suites"]
+    suites = cache.manifest.suites
     if suite not in suites:
         raise FitError(f"unknown suite {suite!r}; known: {', '.join(suites)}")
     idx = cache.index().with_row_index("row")
@@ -131,7 +131,7 @@ def suite_index_table(cache: FeatureCache, suite: str) -> pl.DataFrame:
 def read_grid(cache: FeatureCache, camera: str, grid: tuple[int, int], rows: np.ndarray) -> torch.Tensor:
     """Features of `camera` at `grid` for cache rows `rows`, [len(rows), H*W, C] in stored precision: the grid
     itself when the cache stores it, else adaptive-average-pooled at read time from the encoder's own grid as
-    the manifest names it (`native_grid`; caches from before it record none: the finest stored grid).
+    the manifest names it (`native_grid`; a cache of pooled grids only: the finest stored grid).
 
     What pooling here costs in precision: extraction pools the fp32 activations and rounds the mean once to
     the stored dtype; here the stored, already rounded values are averaged in fp32 and the mean rounded
@@ -145,15 +145,15 @@ def read_grid(cache: FeatureCache, camera: str, grid: tuple[int, int], rows: np.
     suite of 16x16x768 frames never sits in memory unpooled.
     """
     name = format_grid(grid)
-    stored = cache.manifest["grids"]
+    stored = cache.manifest.grids
     if name in stored:
         return cache.read_features(camera, name, rows)
-    source = cache.manifest.get("native_grid") or max(stored, key=lambda g: math.prod(parse_grid(g)))
+    source = cache.manifest.native_grid or max(stored, key=lambda g: math.prod(parse_grid(g)))
     (h, w), width = parse_grid(source), cache.layout["arrays"][cache.feature_path(camera, source)][-1]
     block = int(cache.layout["block_frames"])
     per_chunk = block * max(1, POOL_CHUNK_BYTES // (block * h * w * width * 4))
     rows = np.asarray(rows)
-    out = torch.empty((len(rows), grid[0] * grid[1], width), dtype=resolve_dtype(cache.manifest["dtype"]))
+    out = torch.empty((len(rows), grid[0] * grid[1], width), dtype=resolve_dtype(cache.manifest.dtype))
     for chunk in np.unique(rows // per_chunk):
         at = np.flatnonzero(rows // per_chunk == chunk)
         src = cache.read_features(camera, source, rows[at])
@@ -207,7 +207,7 @@ def load_lowdim(cache: FeatureCache, suite: str, *, chunk: int) -> LowDim:
         stream_end=(at["first"] + at["n"]).to_numpy().astype(np.int64),
         actions=torch.from_numpy(actions),
         chunk=chunk,
-        tasks=tuple(cache.manifest["tasks"]),
+        tasks=tuple(cache.manifest.tasks),
         critical=critical_steps(actions, stream["episode_index"].to_numpy()),
     )
 

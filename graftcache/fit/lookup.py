@@ -38,25 +38,25 @@ def find_cache(root: Root | str | Path, encoder: str, *, dataset: str | None = N
     root = open_root(root)
     wanted_fp, wanted_root = _dataset_identity(dataset) if dataset else (None, None)
     if same_dataset_as is not None:
-        wanted_fp = same_dataset_as.manifest["dataset_fingerprint"]
-        wanted_root = same_dataset_as.manifest["dataset"].get("root")
+        wanted_fp = same_dataset_as.manifest.dataset_fingerprint
+        wanted_root = same_dataset_as.manifest.dataset.root
     if key:
         cache = FeatureCache.in_root(root, key)
-        if cache.manifest["encoder"]["name"] != encoder:
-            raise FitError(f"cache {key} holds encoder {cache.manifest['encoder']['name']!r}, not {encoder!r}")
+        if cache.manifest.encoder_name != encoder:
+            raise FitError(f"cache {key} holds encoder {cache.manifest.encoder_name!r}, not {encoder!r}")
         candidates = [cache]
     else:
-        candidates = [c for c in list_caches(root) if c.manifest["encoder"]["name"] == encoder]
+        candidates = [c for c in list_caches(root) if c.manifest.encoder_name == encoder]
     if wanted_fp is not None:
-        named = dataset or same_dataset_as.manifest["dataset"]["source"]
+        named = dataset or same_dataset_as.manifest.dataset.source
         diffs = {c.key: c.dataset_difference(wanted_fp) for c in candidates}
         other = [c for c in candidates if diffs[c.key] is not None]
         if key and other:
-            src = other[0].manifest["dataset"]["source"]
+            src = other[0].manifest.dataset.source
             raise FitError(f"cache {key} was extracted from another dataset ({src}) than the one named "
                            f"({named}); first differing file: {diffs[key]}")
         candidates = [c for c in candidates if c not in other]
-        stale = [c for c in other if c.manifest["dataset"].get("root") == wanted_root]
+        stale = [c for c in other if c.manifest.dataset.root == wanted_root]
         if stale and not any(c.complete for c in candidates):  # same folder, other content: say which file
             hint = f"graftcache extract --encoder {encoder} --dataset {named}" + \
                 (" --policy POLICY" if encoder.endswith(NATIVE_SUFFIX) else "")
@@ -81,7 +81,7 @@ def find_cache(root: Root | str | Path, encoder: str, *, dataset: str | None = N
 
 def _check_width(cache: FeatureCache) -> None:
     """The stored grids must be as wide as the registry entry says (a stale or foreign cache is not)."""
-    enc = cache.manifest["encoder"]
+    enc = cache.manifest.encoder
     name = enc["name"]
     try:
         # width 0: measured per loaded model (native towers), so the manifest's own spec is the reference
@@ -89,7 +89,7 @@ def _check_width(cache: FeatureCache) -> None:
     except Exception:
         spec_width = enc["width"]  # parametric entries: the manifest's own spec is the reference
     for path, shape in cache.layout["arrays"].items():
-        if path.rsplit("/", 1)[-1] in cache.manifest.get("extras", {}):
+        if path.rsplit("/", 1)[-1] in cache.manifest.extras:
             continue
         if shape[-1] != spec_width:
             raise FitError(f"cache {cache.key}: {path} is {shape[-1]} wide but encoder {name!r} "

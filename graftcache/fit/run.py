@@ -48,7 +48,7 @@ from graftcache.fit.loop import Scoring, evaluate, evaluate_together, learner, o
 from graftcache.fit.objectives import EVAL_ONLY, OBJECTIVES, Fitting, Objective, flow_buffer
 from graftcache.fit.passes import Member, default_cells_per_pass, run_passes
 from graftcache.fit.step_memory import check_step_memory
-from graftcache.fit.stream import BlockMemo, FeatureSource, StreamStats, read_chunks
+from graftcache.fit.stream import BlockMemo, CacheReader, FeatureSource, StreamStats, read_chunks
 from graftcache.graft import FusedProjector
 from graftcache.pooling import format_grid
 from graftcache.requests import FitRequest
@@ -61,13 +61,9 @@ __all__ = ["Cell", "FitRequest", "Fitter"]
 
 @dataclass(frozen=True)
 class Cell:
-    """What identifies one results row. Its fields, by name and value, are the bytes of the row's
-    run_id: renaming or retyping one would make finished rows unrecognisable, so never do.
-
-    `camera_map` is the one field left out of the run_id when it is None: a cell whose policy cameras are each
-    fed by the cache camera of the same name (the policy and the cache, both in the cell, already decide that),
-    so such rows keep the run_ids they had before cameras could be mapped. A mapping that renames changes which
-    frames feed a slot, so it is hashed: two mappings of one cache never share a row."""
+    """What identifies one results row: every field, by name and value, is hashed into the row's run_id, with the
+    results format (`format_version`); a change of its shape is a new results.FORMAT_VERSION, whose
+    results.upgrade says what becomes of older rows."""
 
     backbone: str
     policy: str
@@ -88,13 +84,11 @@ class Cell:
     num_denoise_steps: int | None
     compute_dtype: str
     camera_map: str | None = None  # canonical text, only when a policy camera is fed by another name
+    format_version: int = results.FORMAT_VERSION
 
     @property
     def run_id(self) -> str:
-        cell = asdict(self)
-        if cell["camera_map"] is None:
-            del cell["camera_map"]
-        return results.make_run_id(cell)
+        return results.make_run_id(asdict(self))
 
     def row(self, req: FitRequest, measured: Mapping[str, Any]) -> dict[str, Any]:
         """The results row: each SCHEMA column from what the cell measured, else the cell, else the request
@@ -148,12 +142,12 @@ class Fitter:
                                         key=req.native_cache_key, same_dataset_as=self.cache, for_what="native "
                                         "controls and the align objective") if needs_native else None)
         if self.native_cache is not None:
-            strides = {c.manifest.get("frame_stride") or 1 for c in (self.cache, self.native_cache)}
+            strides = {c.manifest.frame_stride for c in (self.cache, self.native_cache)}
             if len(strides) > 1:
                 raise FitError(f"caches {self.cache.key} and {self.native_cache.key} hold different frames (frame "
                                f"strides {sorted(strides)}); extract both with the same --frame-stride")
-        self.policy_folder = resolve_policy(req.backbone, req.policy, self.cache.manifest["dataset_fingerprint"],
-                                            cache_root(req.cache), self.cache.manifest["dataset"]["source"])
+        self.policy_folder = resolve_policy(req.backbone, req.policy, self.cache.manifest.dataset_fingerprint,
+                                            cache_root(req.cache), self.cache.manifest.dataset.source)
         self.cameras = self._match_cameras()
         self.index = suite_index_table(self.cache, req.suite)
         self.split = split_episodes(self.index, eval_fraction=req.eval_fraction, seed=req.eval_split_seed)
@@ -163,6 +157,7 @@ class Fitter:
         self._enforced: set[str] = set()  # verdicts this request has acted on (refused, warned)
         # reading in this process, the blocks cells read are kept for the next cells, up to another --buffer-mib
         self._memo = BlockMemo(req.buffer_mib * MIB) if req.num_workers == 0 else None
+        self.reader = CacheReader()  # every source's: each block is checked once per fit, in whichever process
 
     def _match_cameras(self) -> dict[str, str]:
         """Policy camera -> the cache camera feeding it (graftcache/cameras.py: by name unless `camera_map` says
@@ -171,7 +166,7 @@ class Fitter:
         mapping: dict[str, str] = {}
         for cache in (self.cache, self.native_cache):
             if cache is not None:
-                mapping = match_cameras(policy, cache.manifest["cameras"], self.req.camera_map,
+                mapping = match_cameras(policy, cache.manifest.cameras, self.req.camera_map,
                                         policy_name=str(self.policy_folder), cache_name=f"cache {cache.key}")
         if renames(mapping):
             self.log(f"cameras mapped as asked (policy=cache): {format_camera_map(mapping)}")
@@ -239,8 +234,8 @@ class Fitter:
         """Whether the cell's row is in the results file already (said so in the log)."""
         if cell.run_id not in done:
             return False
-        encoder = self._source(control).manifest["encoder"]
-        self.log(f"skip {self.req.backbone}/{encoder['name']}/{self.req.suite} seed {cell.seed} "
+        encoder = self._source(control).manifest.encoder_name
+        self.log(f"skip {self.req.backbone}/{encoder}/{self.req.suite} seed {cell.seed} "
                  f"control {control.name}: already in {self.req.results}")
         return True
 
@@ -309,10 +304,10 @@ class Fitter:
                 target_rows = at.drop_nulls().to_numpy().astype(np.int64)
             train_at = np.flatnonzero(np.isin(low.episode_index, self.split.train_episodes))
             mat = _Material(low.take(train_at), low.subset(self.split.eval_episodes).evenly(self.req.eval_frames),
-                            FeatureSource.of(source, cams, grid, control.extra), source,
-                            source.manifest["encoder"]["name"], grid, dropped=dropped)
+                            FeatureSource.of(source, cams, grid, control.extra, self.reader), source,
+                            source.manifest.encoder_name, grid, dropped=dropped)
             if target_rows is not None:
-                mat.targets = FeatureSource.of(self.native_cache, cams, None, "connector")
+                mat.targets = FeatureSource.of(self.native_cache, cams, None, "connector", self.reader)
                 mat.target_rows = target_rows[train_at]
             self._materials[key] = mat
         return self._materials[key]
@@ -414,7 +409,7 @@ class Fitter:
             "backbone_params": adapter.n_params,
             "n_eval_frames": score.n_frames, "n_eval_episodes": len(score.per_episode), "wall_s": wall,
             "cells_per_pass": cells, "device": str(self.device),
-            "random_init": bool(mat.cache.manifest.get("random_init") or adapter.random_init),
+            "random_init": bool(mat.cache.manifest.random_init or adapter.random_init),
             "n_dropped_nonfinite": mat.dropped + len(stats.dropped), "numerics_drift": self._drift(mat),
             "camera_map": format_camera_map(self.cameras), "graftcache_version": graftcache.__version__,
         })

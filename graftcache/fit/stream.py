@@ -35,13 +35,50 @@ from graftcache.fit.data import LowDim, nonfinite_message, read_grid
 from graftcache.nonfinite import nonfinite_rows
 from graftcache.runtime import single_thread_worker
 from graftcache.store import FeatureCache
-from graftcache.store.cache import STORAGE_DTYPES, trust_verified, verified_blocks
+from graftcache.store.cache import STORAGE_DTYPES, BlockChecks
 from graftcache.store.readthrough import reading_root
 from graftcache.store.roots import is_url
 
 PREFETCH_CHUNKS = 2  # chunks each worker reads ahead: with the consumer's one, what the stream holds beyond its buffer
 Features = dict[str, torch.Tensor]  # camera -> [n, T, C] in stored precision
-_OPEN: dict[tuple[int, str, str], FeatureCache] = {}  # (process, root, key) -> the cache this process opened
+
+
+class CacheReader:
+    """What one fit's processes share about the caches they read: the blocks already checked (`checks`, every
+    handle's) and, per process, the handles opened.
+
+    Handed to the worker processes with the stream they read: pickled (a fork server's or spawned workers), it
+    keeps the checked blocks and drops the handles, whose store clients do not survive a process boundary; a
+    forked worker inherits both and opens its own handles too. Either way each worker opens a cache once and
+    checks only blocks no process of the fit has checked (the consumer adds what workers checked, `read_chunks`)."""
+
+    def __init__(self) -> None:
+        self.checks = BlockChecks()
+        self._open: dict[tuple[str, str], FeatureCache] = {}
+        self._pid = os.getpid()
+
+    def __getstate__(self) -> dict:
+        return {"checks": self.checks}
+
+    def __setstate__(self, state: dict) -> None:
+        self.checks, self._open, self._pid = state["checks"], {}, os.getpid()
+
+    def adopt(self, cache: FeatureCache) -> None:
+        """Read `cache` through the handle this process already has (its checks become the reader's)."""
+        cache.checks = self.checks
+        self._handles()[(cache.root.url, cache.key)] = cache
+
+    def open(self, root: str, key: str) -> FeatureCache:
+        """This process's handle on cache `key` of `root`, opened on first use."""
+        handles = self._handles()
+        if (root, key) not in handles:
+            handles[(root, key)] = FeatureCache.in_root(reading_root(root), key, writable=False, checks=self.checks)
+        return handles[(root, key)]
+
+    def _handles(self) -> dict[tuple[str, str], FeatureCache]:
+        if self._pid != os.getpid():  # a forked worker: its parent's handles are not its own
+            self._open, self._pid = {}, os.getpid()
+        return self._open
 
 
 @dataclass(frozen=True)
@@ -54,24 +91,22 @@ class FeatureSource:
     cameras: tuple[str, ...]
     grid: tuple[int, int] | None = None
     extra: str | None = None  # e.g. "connector": the native tower's post-connector tokens
+    reader: CacheReader = field(default_factory=CacheReader, compare=False, repr=False)
 
     @classmethod
     def of(cls, cache: FeatureCache, cameras: Sequence[str], grid: tuple[int, int] | None,
-           extra: str | None = None) -> FeatureSource:
-        missing = [c for c in cameras if c not in cache.manifest["cameras"]]
+           extra: str | None = None, reader: CacheReader | None = None) -> FeatureSource:
+        """`reader`: the fit's (shared by its sources, so each block is checked once per fit), default a new one."""
+        missing = [c for c in cameras if c not in cache.manifest.cameras]
         if missing:
-            raise FitError(f"cache {cache.key} has no camera {missing}; it has {cache.manifest['cameras']}")
-        source = cls(cache.root.url, cache.key, tuple(cameras), None if extra else grid, extra)
-        _OPEN.setdefault((os.getpid(), source.root, source.key), cache)  # this process reads through its own handle
-        return source
+            raise FitError(f"cache {cache.key} has no camera {missing}; it has {cache.manifest.cameras}")
+        reader = reader or CacheReader()
+        reader.adopt(cache)  # this process reads through its own handle
+        return cls(cache.root.url, cache.key, tuple(cameras), None if extra else grid, extra, reader)
 
     def open(self) -> FeatureCache:
-        """This process's handle on the cache: the one it was made from, else opened once per process (a worker
-        never uses its parent's, whose store clients do not survive a fork)."""
-        at = (os.getpid(), self.root, self.key)
-        if at not in _OPEN:
-            _OPEN[at] = FeatureCache.in_root(reading_root(self.root), self.key, writable=False)
-        return _OPEN[at]
+        """This process's handle on the cache (see CacheReader)."""
+        return self.reader.open(self.root, self.key)
 
     def read(self, rows: np.ndarray) -> Features:
         return {c: self.read_camera(c, rows) for c in self.cameras}
@@ -88,12 +123,12 @@ class FeatureSource:
         if self.extra is not None:
             tokens, width = cache.layout["arrays"][cache.feature_path(camera, self.extra)]
             return int(tokens), int(width)
-        stored = next(cache.feature_path(camera, g) for g in cache.manifest["grids"])
+        stored = next(cache.feature_path(camera, g) for g in cache.manifest.grids)
         return self.grid[0] * self.grid[1], int(cache.layout["arrays"][stored][-1])
 
     def frame_bytes(self, cameras: Sequence[str] | None = None) -> int:
         """Bytes of one frame as read (after pooling, in stored precision) of `cameras`, default every camera."""
-        itemsize = STORAGE_DTYPES[self.open().manifest["dtype"]].itemsize
+        itemsize = STORAGE_DTYPES[self.open().manifest.dtype].itemsize
         return sum(int(np.prod(self.frame_shape(c))) for c in (self.cameras if cameras is None else cameras)) * itemsize
 
 
@@ -225,8 +260,12 @@ class ChunkStream(IterableDataset):
                 yield Failure(type(e), str(e))
                 return
 
+    def _checked(self) -> frozenset:
+        """The blocks the readers of this stream's sources have checked."""
+        return frozenset().union(*(src.reader.checks.done for src, _ in self.sources))
+
     def read(self, planned: Planned) -> Chunk:
-        before = verified_blocks()
+        before = self._checked()
         roots = [src.open().root for src, _ in self.sources] if get_worker_info() is not None else []
         fetched = sum(getattr(r, "fetched_bytes", 0) for r in roots)
         feats = tuple(self.memo.read(src, rows[pos]) if self.memo is not None else src.read(rows[pos])
@@ -246,7 +285,7 @@ class ChunkStream(IterableDataset):
             feats = tuple({c: v[keep] for c, v in per_camera.items()} for per_camera in feats)
         fetched = sum(getattr(r, "fetched_bytes", 0) for r in roots) - fetched
         return Chunk(planned.owners[~bad], feats, self.low.rows[planned.owners[bad]], fetched,
-                     verified_blocks() - before)
+                     self._checked() - before)
 
 
 def _fresh_context() -> multiprocessing.context.BaseContext:
@@ -261,7 +300,8 @@ def _fresh_context() -> multiprocessing.context.BaseContext:
 
 def read_chunks(stream: ChunkStream, num_workers: int, stats: StreamStats | None = None) -> Iterator[Chunk]:
     """The stream's chunks in order, read by `num_workers` prefetching processes (0: in this process). The blocks
-    a worker checked count as checked here, so the next workers forked for this fit do not check them again."""
+    a worker checked count as checked by the sources' readers, so the next workers of this fit, which take the
+    readers with the stream, do not check them again."""
     remote = any(is_url(src.root) for src, _ in stream.sources)
     loader = DataLoader(stream, batch_size=None, num_workers=num_workers,
                         worker_init_fn=single_thread_worker if num_workers else None,
@@ -270,7 +310,9 @@ def read_chunks(stream: ChunkStream, num_workers: int, stats: StreamStats | None
     for item in loader:
         if isinstance(item, Failure):
             raise item.kind(item.message)
-        trust_verified(item.verified)
+        if num_workers:
+            for checks in {id(src.reader.checks): src.reader.checks for src, _ in stream.sources}.values():
+                checks.update(item.verified)
         if stats is not None:
             stats.dropped.update(int(p) for p in item.dropped)
             stats.fetched += item.fetched

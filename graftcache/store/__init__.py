@@ -13,8 +13,9 @@ local folder or an object-store URL (s3://, gs://, az://).
 """
 
 from graftcache.store.cache import BrokenCache, FeatureCache, list_caches, scan_caches
-from graftcache.store.key import FORMAT_VERSION, IdentityDifference, cache_key, compare_identity, identity_of
+from graftcache.store.key import IdentityDifference, cache_key, compare_identity, identity_of
+from graftcache.store.manifest import FORMAT_VERSION, DatasetRecord, Manifest
 from graftcache.store.roots import Root, cache_root, open_root
 
-__all__ = ["FORMAT_VERSION", "BrokenCache", "FeatureCache", "IdentityDifference", "Root", "cache_key", "cache_root",
-           "compare_identity", "identity_of", "list_caches", "open_root", "scan_caches"]
+__all__ = ["FORMAT_VERSION", "BrokenCache", "DatasetRecord", "FeatureCache", "IdentityDifference", "Manifest", "Root",
+           "cache_key", "cache_root", "compare_identity", "identity_of", "list_caches", "open_root", "scan_caches"]

@@ -15,8 +15,9 @@ Layout choices (why):
   block has a marker; the checksums then move into the attributes and `verify` re-reads them.
   The attributes live in the group's zarr.json, one object written whole, so publishing `complete` is a
   single atomic put on a local disk and on an object store alike (graftcache.store.roots).
-- Stage 2 checks every block it reads against its checksum, once per block per process (`_VERIFIED`),
-  reading whole blocks for that: a corrupt shard is a one-line CacheError naming cache, array and block.
+- Stage 2 checks every block it reads against its checksum, once per block per reader (`BlockChecks`, owned by
+  the handle, shared by a fit's handles and handed to its worker processes, graftcache.fit.stream), reading whole
+  blocks for that: a corrupt shard is a one-line CacheError naming cache, array and block.
 """
 
 from __future__ import annotations
@@ -44,6 +45,7 @@ from graftcache.store.key import (
     compare_identity,
     identity_of,
 )
+from graftcache.store.manifest import Manifest
 from graftcache.store.roots import GROUP_META, Root, open_root, split_location
 
 if TYPE_CHECKING:  # torch is imported where features are converted: listing caches (graftcache ls) needs none
@@ -59,23 +61,32 @@ STORAGE_DTYPES: dict[str, np.dtype] = {
 PROGRESS_DIR = "_progress"
 #: zarr's LocalStore writes `<object>.<uuid>.partial` and renames it; a writer killed mid-write leaves one behind.
 PARTIAL_SUFFIX = ".partial"
-_VERIFIED: set[tuple[str, str, int]] = set()  # (cache location, array, block) checked in this process
 
 
-def forget_verified() -> None:
-    """Check every block again on its next read (benchmarks time the first read of a process)."""
-    _VERIFIED.clear()
+class BlockChecks:
+    """The blocks read back against their checksums: (cache location, array, block), block -1 for a static array.
 
+    Owned by whoever reads (a cache handle, or every handle of one fit: graftcache.fit.stream.CacheReader) and
+    pickled with it into the worker processes it starts, so a block is checked once per reader whichever process
+    reads it, also in workers that inherit nothing (a fork server's). `count` is the checks made for this reader:
+    here, plus those its workers reported (`update`)."""
 
-def verified_blocks() -> frozenset[tuple[str, str, int]]:
-    """The blocks this process has checked (stage 2's reading workers hand them to the process that forks the
-    next ones, so a fit checks each block once, not once per worker)."""
-    return frozenset(_VERIFIED)
+    def __init__(self) -> None:
+        self.done: set[tuple[str, str, int]] = set()
+        self.count = 0
 
+    def __contains__(self, block: tuple[str, str, int]) -> bool:
+        return block in self.done
 
-def trust_verified(blocks: Iterable[tuple[str, str, int]]) -> None:
-    """Count `blocks` as checked in this process: a worker of this process checked them (`verified_blocks`)."""
-    _VERIFIED.update(blocks)
+    def add(self, block: tuple[str, str, int]) -> None:
+        """A block this process checked."""
+        self.done.add(block)
+        self.count += 1
+
+    def update(self, blocks: Iterable[tuple[str, str, int]]) -> None:
+        """Blocks a worker process checked for this reader: counted, and never checked again."""
+        for block in blocks:
+            self.add(block)
 
 
 def _compressor(itemsize: int) -> BloscCodec:
@@ -133,28 +144,34 @@ class FeatureCache:
     whose manifest hashes to another key than its name is refused (`MisplacedCache`)."""
 
     @classmethod
-    def in_root(cls, root: Root, key: str, *, writable: bool = False) -> FeatureCache:
+    def in_root(cls, root: Root, key: str, *, writable: bool = False,
+                checks: BlockChecks | None = None) -> FeatureCache:
         """The cache `key` of an opened root (its objects read and written through that root)."""
-        return cls(root.location(key), root=root, key=key, writable=writable)
+        return cls(root.location(key), root=root, key=key, writable=writable, checks=checks)
 
     def __init__(self, location: str | Path, *, root: Root | None = None, key: str | None = None,
-                 writable: bool = True) -> None:
+                 writable: bool = True, checks: BlockChecks | None = None) -> None:
+        """`checks`: the blocks already checked by the reader this handle belongs to (default: its own)."""
         if root is None or key is None:
             root, key = split_location(location)
         check_key(key)
         self.path, self.root, self._key, self._writable = location, root, key, writable
+        self.checks = BlockChecks() if checks is None else checks
         raw = root.get(f"{key}/{GROUP_META}")
         if raw is None:
             raise CacheError(f"{location}: no feature cache here (zarr.json missing)")
         try:
             self._opened_attrs = json.loads(raw)["attributes"]
-            if not isinstance(self._opened_attrs["manifest"]["encoder"]["name"], str):
-                raise TypeError("encoder name is not a string")
+            stored = dict(self._opened_attrs["manifest"])
         except (ValueError, KeyError, TypeError) as e:
             raise CacheError(f"{location}: zarr.json is not a feature cache's ({type(e).__name__}: {e})") from None
-        own = cache_key(self._opened_attrs["manifest"])
+        try:
+            own = cache_key(stored)  # what is stored, in its own format, names the folder
+        except (KeyError, TypeError):
+            own = key  # identity fields absent: a format older than any Manifest.read upgrades, refused there
         if own != key:
             raise MisplacedCache(location, key, own)
+        self.manifest = Manifest.read(stored, str(location), key)  # refuses what it cannot read, in one line
 
     @cached_property
     def group(self) -> zarr.Group:
@@ -168,7 +185,7 @@ class FeatureCache:
     def create(
         cls,
         path: str | Path,
-        manifest: Mapping[str, Any],
+        manifest: Manifest,
         arrays: Iterable[ArraySpec],
         index: pl.DataFrame,
         *,
@@ -188,15 +205,15 @@ class FeatureCache:
         """
         parent, key = split_location(path)
         root = root or parent
-        own = cache_key(manifest)
+        own = cache_key(manifest.to_dict())
         if key != own:
             raise CacheError(f"{path}: a cache is made under its own key, {own}, not under {key!r}")
         root.delete_prefix(f"{key}/")
         n = index.height
-        dtype = manifest["dtype"]
+        dtype = manifest.dtype
         np_dtype = STORAGE_DTYPES[dtype]
         group = zarr.open_group(store=root.zarr_store(key, read_only=False), mode="w", zarr_format=3)
-        group.attrs.update({"manifest": dict(manifest), "initialized": False, "complete": False})
+        group.attrs.update({"manifest": manifest.to_dict(), "initialized": False, "complete": False})
         arrays = list(arrays)
         for spec in arrays:
             frame_bytes = int(np.prod(spec.frame_shape)) * np_dtype.itemsize
@@ -255,10 +272,6 @@ class FeatureCache:
         return dict(self.group.attrs) if "group" in self.__dict__ else dict(self._opened_attrs)
 
     @property
-    def manifest(self) -> dict[str, Any]:
-        return dict(self.attrs["manifest"])
-
-    @property
     def key(self) -> str:
         return self._key
 
@@ -282,14 +295,14 @@ class FeatureCache:
         bf = int(self.layout["block_frames"])
         return block * bf, min((block + 1) * bf, self.n_frames)
 
-    def matches(self, manifest: Mapping[str, Any]) -> bool:
+    def matches(self, manifest: Manifest) -> bool:
         """Whether this cache holds exactly what `manifest` asks for."""
-        return identity_of(self.manifest) == identity_of(manifest)
+        return identity_of(self.manifest.to_dict()) == identity_of(manifest.to_dict())
 
     def dataset_difference(self, fingerprint: Mapping[str, Any]) -> IdentityDifference | None:
         """The first file where the dataset this cache was extracted from differs from `fingerprint`
         (a dataset's current `dataset_fingerprint`), or None when they are the same dataset."""
-        return compare_identity(self.manifest["dataset_fingerprint"], fingerprint)
+        return compare_identity(self.manifest.dataset_fingerprint, fingerprint)
 
     def check_dataset(self, fingerprint: Mapping[str, Any], dataset: str | None = None) -> None:
         """Raise CacheError (one line, naming the first differing file) unless this cache was extracted
@@ -297,7 +310,7 @@ class FeatureCache:
         a dataset: resuming an extraction, sharing a cache."""
         diff = self.dataset_difference(fingerprint)
         if diff is not None:
-            recorded = self.manifest.get("dataset", {}).get("source", "?")
+            recorded = self.manifest.dataset.source
             raise CacheError(f"cache {self.key} does not match dataset {dataset or recorded}: it was extracted "
                              f"from {recorded} with different content; first differing file: {diff}")
 
@@ -363,11 +376,11 @@ class FeatureCache:
             rows = np.arange(self.n_frames)
         elif isinstance(rows, slice):
             rows = np.arange(self.n_frames)[rows]
-        return from_storage(self._read_rows(path, np.asarray(rows)), self.manifest["dtype"])
+        return from_storage(self._read_rows(path, np.asarray(rows)), self.manifest.dtype)
 
     def _read_rows(self, name: str, rows: np.ndarray) -> np.ndarray:
         """`arr[rows]` read one block at a time, each block checked against its checksum the first time this
-        process reads it (whole, which is what the checksum covers); later reads take the rows' span only.
+        handle's reader reads it (whole, which is what the checksum covers); later reads take the rows' span only.
 
         zarr's orthogonal selection on sharded arrays costs ~50 ms per shard in chunk bookkeeping (4.6 s
         for 1k rows here); slicing inside each shard and indexing in numpy reads the same bytes and holds at
@@ -384,7 +397,7 @@ class FeatureCache:
         for block in wanted_blocks:
             sel = blocks == block
             wanted = ordered[sel]
-            if self.complete and (str(self.path), name, block) not in _VERIFIED:
+            if self.complete and (str(self.path), name, block) not in self.checks:
                 lo, hi = self.block_range(block)
                 values = self._checked_block(arr, name, block)
             else:
@@ -403,26 +416,23 @@ class FeatureCache:
             raise CacheError(f"{where} is unreadable ({type(e).__name__}); {hint}") from None
         if _sha256(values) != self.attrs["checksums"][name][block]:
             raise CacheError(f"{where} does not match its stored checksum; {hint}")
-        _VERIFIED.add((str(self.path), name, block))
+        self.checks.add((str(self.path), name, block))
         return values
 
     def _static(self, name: str) -> np.ndarray:
-        """A small whole array (index, low-dim, action stream), checked against its checksum once per process."""
+        """A small whole array (index, low-dim, action stream), checked against its checksum once per reader."""
         values = self.group[name][...]
         expected = self.layout.get("static_checksums", {}).get(name)
-        if self.complete and expected and (str(self.path), name, -1) not in _VERIFIED:
+        if self.complete and expected and (str(self.path), name, -1) not in self.checks:
             if _sha256(values) != expected:
                 raise CacheError(f"cache {self.path}: {name} does not match its stored checksum; "
                                  f"run `graftcache verify {self.key}`")
-            _VERIFIED.add((str(self.path), name, -1))
+            self.checks.add((str(self.path), name, -1))
         return values
 
     def action_stream(self) -> pl.DataFrame:
         """Every frame's action of the cached episodes at the dataset's full rate (episode_index,
-        frame_index, action), for action chunks; caches made before frame strides existed hold every
-        frame, so their low-dim columns are that stream."""
-        if ACTION_STREAM not in self.group:
-            return self.index().select("episode_index", "frame_index", "action")
+        frame_index, action), for action chunks."""
         values = self._static(f"{ACTION_STREAM}/action")
         return pl.DataFrame({name: self._static(f"{ACTION_STREAM}/{name}")
                              for name in ("episode_index", "frame_index")}).with_columns(

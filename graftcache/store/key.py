@@ -28,7 +28,6 @@ from typing import Any
 from graftcache.errors import CacheError
 from graftcache.hashing import sha256_json
 
-FORMAT_VERSION = 1
 #: The longest encoder-name part of a key: a key, its lock and its lease stay one file name (<= 255 bytes).
 NAME_MAX = 128
 #: What a key is: the encoder's name in file-name-safe characters (not starting with '.', '+' or '-'), '-',
@@ -60,10 +59,8 @@ IDENTITY_FIELDS = (
 
 
 def identity_of(manifest: Mapping[str, Any]) -> dict[str, Any]:
-    """The identity sub-dict of a manifest (canonical JSON types)."""
-    # .get: a field added after a cache was made (e.g. frame_stride) reads as None, so such a cache keeps its
-    # identity and is never taken for one made with an explicit value
-    return json.loads(json.dumps({k: manifest.get(k) for k in IDENTITY_FIELDS}, sort_keys=True, default=str))
+    """The identity sub-dict of a stored manifest (canonical JSON types)."""
+    return json.loads(json.dumps({k: manifest[k] for k in IDENTITY_FIELDS}, sort_keys=True, default=str))
 
 
 def cache_key(manifest: Mapping[str, Any]) -> str:
@@ -105,29 +102,11 @@ class IdentityDifference:
 
 def compare_identity(recorded: Mapping[str, Any], current: Mapping[str, Any]) -> IdentityDifference | None:
     """None when `recorded` (e.g. a cache manifest's `dataset_fingerprint`) equals `current`; otherwise
-    the first differing file (metadata files first, then data and videos in path order).
-
-    An identity recorded before data files were hashed (no "files" entry: metadata sha256 only) never
-    equals a current one; the difference names a changed metadata file if there is one, else the first
-    file it did not cover.
-    """
+    the first differing file (metadata files first, then data and videos in path order)."""
     recorded, current = _canonical(recorded), _canonical(current)
     if recorded == current:
         return None
-    if "files" not in recorded and "files" not in current:  # two metadata-only identities
-        recorded, current = _flat(recorded), _flat(current)
-    now = current.get("files", {})
-    if "files" not in recorded:  # metadata-only identity of graftcache before content hashing
-        old = {k: {"sha256": v} for k, v in recorded.items() if k != "codebase_version"}
-        for rel in _ordered(old):
-            if rel not in now:
-                return IdentityDifference(rel, "recorded, not in the dataset now")
-            if old[rel]["sha256"] != now[rel].get("sha256"):
-                return _changed(rel, old[rel], now[rel])
-        first = next((r for r in _ordered(now) if r not in old), "(dataset identity)")
-        return IdentityDifference(first, "not covered: the cache recorded only the metadata files' hashes "
-                                         "(made before graftcache hashed data and video files)")
-    was = recorded.get("files", {})
+    was, now = recorded.get("files", {}), current.get("files", {})
     for rel in _ordered({**was, **now}):
         if rel not in now:
             return IdentityDifference(rel, "recorded, not in the dataset now")
@@ -139,12 +118,6 @@ def compare_identity(recorded: Mapping[str, Any], current: Mapping[str, Any]) ->
         if field != "files" and recorded.get(field) != current.get(field):
             return IdentityDifference(field, f"{recorded.get(field)} recorded, {current.get(field)} now")
     return None
-
-
-def _flat(identity: Mapping[str, Any]) -> dict[str, Any]:
-    """A metadata-only identity ({"codebase_version", path: sha256}) in the current shape."""
-    return {"codebase_version": identity.get("codebase_version"),
-            "files": {k: {"sha256": v} for k, v in identity.items() if k != "codebase_version"}}
 
 
 def _canonical(identity: Mapping[str, Any]) -> dict[str, Any]:

@@ -1,6 +1,7 @@
 """Feature caches for tests: synthetic ones written with the store's own writer (seeded random features at any
-size, real index / low-dim / action-stream columns, for stage 2's data path without an encoder), and comparing two
-caches file by file (a folder, or the objects of a bucket under a key)."""
+size, real index / low-dim / action-stream columns, for stage 2's data path without an encoder), a cache as an
+older graftcache left it (`previous_format`), and comparing two caches file by file (a folder, or the objects of
+a bucket under a key)."""
 
 from __future__ import annotations
 
@@ -8,16 +9,38 @@ import json
 import shutil
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import polars as pl
 
-from graftcache.store import FeatureCache, cache_key
+import graftcache
+from graftcache.store import FORMAT_VERSION, DatasetRecord, FeatureCache, Manifest, cache_key
 from graftcache.store.cache import ArraySpec
+from graftcache.store.key import IDENTITY_FIELDS
+from graftcache.store.manifest import PREVIOUS_GAPS
 
 SUITES = ["libero_spatial", "libero_object", "libero_goal", "libero_10", "libero_90", "unknown"]
 TASKS = ["put the bowl on the plate", "open the drawer", "turn on the stove"]
 CAMERAS = ("image", "image2")
+
+
+def manifest(**over: Any) -> Manifest:
+    """A complete manifest of this format for a cache written without an encoder: `over` replaces fields
+    (`dataset` as a dict of the DatasetRecord fields to replace)."""
+    dataset = {"source": "synthetic", "root": "synthetic", "repo_id": None, "revision": None,
+               "codebase_version": "v3.0", "fps": 10, "n_episodes_total": 0, "n_frames_total": 0,
+               **over.pop("dataset", {})}
+    fields: dict[str, Any] = {
+        "format_version": FORMAT_VERSION, "graftcache_version": graftcache.__version__,
+        "created_at": "2026-01-01T00:00:00+00:00", "dataset_fingerprint": {"codebase_version": "v3.0", "files": {}},
+        "episodes": None, "frame_stride": 1, "cameras": list(CAMERAS), "encoder": {"name": "synthetic", "width": 8},
+        "weights": {"source": "random-init", "seed": 0, "sha256": "0" * 64}, "weights_sha256": "0" * 64,
+        "random_init": True, "grids": ["4x4"], "native_grid": None, "extras": {}, "dtype": "fp16",
+        "compute_dtype": "fp32", "n_frames": 0, "tasks": TASKS, "suites": SUITES, "state_key": "observation.state",
+        "action_key": "action", "versions": {}, "numerics": {}, "run": {}, **over}
+    fields.setdefault("camera_keys", {c: f"observation.images.{c}" for c in fields["cameras"]})
+    return Manifest(dataset=DatasetRecord(**dataset), **fields)
 
 
 def synthetic_cache(root: Path, lengths: Sequence[int], *, grid: tuple[int, int] = (4, 4), width: int = 8,
@@ -38,11 +61,9 @@ def synthetic_cache(root: Path, lengths: Sequence[int], *, grid: tuple[int, int]
     }).with_columns(pl.col("state").cast(pl.Array(pl.Float32, state_dim)),
                     pl.col("action").cast(pl.Array(pl.Float32, action_dim)))
     name = f"{grid[0]}x{grid[1]}"
-    manifest = {"encoder": {"name": "synthetic", "width": width}, "dtype": "fp16", "cameras": list(CAMERAS),
-                "grids": [name], "extras": {}, "suites": SUITES, "tasks": TASKS, "dataset": {"source": "synthetic"},
-                "dataset_fingerprint": {"files": {}}}
-    path = root / cache_key(manifest)
-    cache = FeatureCache.create(path, manifest, [ArraySpec(f"features/{c}/{name}", (grid[0] * grid[1], width))
+    made = manifest(encoder={"name": "synthetic", "width": width}, grids=[name], n_frames=n)
+    path = root / cache_key(made.to_dict())
+    cache = FeatureCache.create(path, made, [ArraySpec(f"features/{c}/{name}", (grid[0] * grid[1], width))
                                                  for c in CAMERAS], index, block_frames=block_frames)
     for b in range(cache.layout["n_blocks"]):
         start, stop = cache.block_range(b)
@@ -73,12 +94,11 @@ def dataset_cache(root: Path, dataset: str | Path, suite: str, *, grid: tuple[in
     episodes = [e.index for e in meta.episodes if suite_of(meta.tasks[e.task_index]) == suite]
     index = build_index(source, episodes)
     name = f"{grid[0]}x{grid[1]}"
-    manifest = {"encoder": {"name": f"synthetic-{width}", "width": width}, "dtype": "fp16",
-                "cameras": list(meta.cameras), "grids": [name], "extras": {}, "suites": list(SUITES),
-                "tasks": list(meta.tasks), "dataset": {"source": str(dataset), "root": str(meta.root)},
-                "dataset_fingerprint": {"files": {}}, "random_init": True}
-    path = root / cache_key(manifest)
-    cache = FeatureCache.create(path, manifest, [ArraySpec(f"features/{c}/{name}", (grid[0] * grid[1], width))
+    made = manifest(encoder={"name": f"synthetic-{width}", "width": width}, cameras=list(meta.cameras), grids=[name],
+                    suites=list(SUITES), tasks=list(meta.tasks), n_frames=index.height,
+                    dataset={"source": str(dataset), "root": str(meta.root)})
+    path = root / cache_key(made.to_dict())
+    cache = FeatureCache.create(path, made, [ArraySpec(f"features/{c}/{name}", (grid[0] * grid[1], width))
                                                  for c in meta.cameras], index, block_frames=block_frames)
     block = np.random.default_rng(0).standard_normal((block_frames, grid[0] * grid[1], width)).astype(np.float16)
     for b in range(cache.layout["n_blocks"]):
@@ -88,18 +108,39 @@ def dataset_cache(root: Path, dataset: str | Path, suite: str, *, grid: tuple[in
     return FeatureCache(path, writable=False)
 
 
-def rekeyed(folder: Path, root: Path, edit: Callable[[dict], dict]) -> FeatureCache:
-    """A copy of the cache in `folder` whose manifest is `edit(manifest)`, under `root` in the folder of the
-    key that manifest hashes to: a cache made with those settings as far as its folder name and manifest go
-    (its arrays are `folder`'s)."""
+def rekeyed(folder: Path, root: Path, edit: Callable[[dict], dict]) -> Path:
+    """Where a copy of the cache in `folder` whose manifest is `edit(manifest as stored)` now lies, under `root`
+    in the folder of the key that manifest hashes to: a cache made with those settings as far as its folder name
+    and manifest go (its arrays are `folder`'s)."""
+    return _restored(folder, root, edit)
+
+
+def previous_format(folder: Path, root: Path, lacking: str | None = None) -> Path:
+    """Where a copy of the cache in `folder` now lies as graftcache's previous format (1) stored it, under `root`
+    in the folder of the key that manifest hashes to: fields outside the format at the top level, and, when
+    `lacking` names one of store.manifest.PREVIOUS_GAPS ("frame_stride", ...), made before graftcache recorded
+    it (a metadata-only dataset identity for "dataset_fingerprint.files")."""
+    def older(stored: dict) -> dict:
+        old = {**{k: v for k, v in stored.items() if k != "extra"}, **stored["extra"], "format_version": 1}
+        if lacking == "dataset_fingerprint.files":
+            old["dataset_fingerprint"] = {"codebase_version": "v3.0", "meta/info.json": "0" * 64}
+        elif lacking is not None:
+            assert lacking in dict(PREVIOUS_GAPS), lacking
+            del old[lacking]
+        return old
+    return _restored(folder, root, older)
+
+
+def _restored(folder: Path, root: Path, edit: Callable[[dict], dict]) -> Path:
     staging = root / ".staging" / folder.name
     shutil.copytree(folder, staging)
-    manifest = edit(FeatureCache(staging).manifest)
-    FeatureCache(staging).group.attrs["manifest"] = manifest
-    target = root / cache_key(manifest)
+    meta = json.loads((staging / "zarr.json").read_text())
+    meta["attributes"]["manifest"] = stored = edit(meta["attributes"]["manifest"])
+    (staging / "zarr.json").write_text(json.dumps(meta))
+    target = root / cache_key({**dict.fromkeys(IDENTITY_FIELDS), **stored})  # an absent field hashed as null
     staging.rename(target)
     shutil.rmtree(root / ".staging")
-    return FeatureCache(target, writable=False)
+    return target
 
 
 #: Group attributes that record when and how a run happened, not what it computed: two runs of one request

@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 import polars as pl
 
-from graftcache.results import REPORT_COLUMNS, SCHEMA, make_run_id, validate
+from graftcache.results import FORMAT_VERSION, REPORT_COLUMNS, SCHEMA, make_run_id, validate
 
 PLAIN_MSE: dict[tuple[str, str, str], list[float]] = {
     ("smolvla", "libero_spatial", "siglip"): [1.0, 1.1, 1.2],
@@ -86,6 +86,7 @@ def row(backbone: str, suite: str, encoder: str, seed: int, eval_mse: float | No
     base = {
         "run_id": make_run_id({**cell, **{k: v for k, v in over.items() if k != "run_id"}}),
         **cell,
+        "format_version": FORMAT_VERSION,
         "backbone_params": PARAMS.get(backbone),
         "policy": "tiny",
         "policy_sha256": "0" * 64,

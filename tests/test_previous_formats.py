@@ -1,0 +1,69 @@
+"""Caches and results files of the previous format (1) go through one upgrade path each: a format 1 cache that
+records everything format 2 does is read as format 2; one made before graftcache recorded frame strides, native
+grids, numerics fingerprints or content identities is refused in one line naming the cache and the command that
+rebuilds it; a results file of format 1 (run_ids of cells of another shape) is refused in one line naming the
+command that wrote it."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from helpers.caches import CAMERAS, previous_format, synthetic_cache
+from helpers.tables import row, table
+
+from graftcache import results
+from graftcache.cli import main
+from graftcache.errors import CacheError, ResultsError
+from graftcache.store import FORMAT_VERSION, BrokenCache, FeatureCache, list_caches, scan_caches
+from graftcache.store.manifest import PREVIOUS_GAPS
+
+REBUILD = ("graftcache extract --encoder synthetic --dataset synthetic --random-init --seed 0 --grids 4x4 "
+           "--cameras image,image2 --dtype fp16 --compute-dtype fp32")
+
+
+@pytest.fixture(scope="module")
+def made(tmp_path_factory: pytest.TempPathFactory) -> FeatureCache:
+    return synthetic_cache(tmp_path_factory.mktemp("formats"), (5, 7), block_frames=4)
+
+
+def test_a_previous_format_cache_recording_everything_is_read_as_this_format(made: FeatureCache,
+                                                                              tmp_path: Path) -> None:
+    old = FeatureCache(previous_format(made.path, tmp_path))
+    assert old.key != made.key  # its folder is named by what it stores: format 1
+    assert old.manifest == made.manifest and old.manifest.format_version == FORMAT_VERSION == 2
+    for camera in CAMERAS:
+        assert old.read_features(camera, "4x4").equal(made.read_features(camera, "4x4"))
+    assert [c.key for c in list_caches(tmp_path)] == [old.key]
+
+
+@pytest.mark.parametrize(("lacking", "what"), PREVIOUS_GAPS)
+def test_a_previous_format_cache_made_before_a_record_is_refused_in_one_line(
+        made: FeatureCache, tmp_path: Path, capsys: pytest.CaptureFixture, lacking: str, what: str) -> None:
+    path = previous_format(made.path, tmp_path, lacking)
+    line = (f"cache {path.name} ({path}): it was made before graftcache recorded {what} (format 1); graftcache "
+            f"reads caches of format 2 and the format 1 caches made since; rebuild it: {REBUILD}")
+    with pytest.raises(CacheError) as refused:
+        FeatureCache(path)
+    assert str(refused.value) == line
+    assert main(["info", path.name, "--cache", str(tmp_path)]) == 2
+    assert capsys.readouterr().err == f"graftcache info: error: {line}\n"
+    assert scan_caches(tmp_path) == ([], [BrokenCache(path.name, line)])  # what `ls` lists as broken
+
+
+def test_a_previous_format_results_file_is_refused_in_one_line(tmp_path: Path,
+                                                                capsys: pytest.CaptureFixture) -> None:
+    old = tmp_path / "old.parquet"
+    rows = table([row("smolvla", "libero_spatial", "siglip", seed, 0.5) for seed in (0, 1)])
+    rows.drop("format_version").write_parquet(old)  # format 1 had no such column
+    command = rows["command"][0]
+    line = (f"{old}: 2 row(s) of an older results format than 2 (run_ids of cells of another shape); move the "
+            f"file aside and rebuild it: `{command}` (and 1 other command(s) its rows record)")
+    with pytest.raises(ResultsError) as refused:
+        results.read(old)
+    assert str(refused.value) == line
+    kept = tmp_path / "kept.parquet"
+    table([row("smolvla", "libero_spatial", "siglip", 2, 0.4)]).write_parquet(kept)
+    assert main(["merge-rows", str(kept), "--results", str(old)]) == 2
+    assert capsys.readouterr().err == f"graftcache merge-rows: error: {line}\n"
+    assert results.read(kept)["format_version"].to_list() == [2]  # this format's rows read as they are
