@@ -79,6 +79,9 @@ SCHEMA: dict[str, pl.DataType] = {
                                       # eye_in_hand" (graftcache/cameras.py); also when every name matched
     "graftcache_version": pl.String,
     "command": pl.String,             # the command line that produced the row
+    "activation_checkpointing": pl.String,  # "on" | "off": what `--activation-checkpointing` (auto) resolved to
+    "eval_batch_size": pl.Int64,      # held-out frames denoised at once (the scores do not depend on it)
+    "eval_seconds_per_frame": pl.Float64,  # scoring's wall time (reading, prefix, denoising) / n_eval_frames
 }
 
 CONTROLS_NATIVE = ("native",)
@@ -86,7 +89,7 @@ CONTROLS_NATIVE = ("native",)
 # Columns added to SCHEMA after results files were first written: reading an older file adds them as nulls, so
 # its cells are still skipped and new rows can still be appended to it.
 ADDED_COLUMNS = ("numerics_drift", "buffer_mib", "camera_map", "backbone_params", "eval_ci_mse",
-                 "eval_ci_mse_episodes")
+                 "eval_ci_mse_episodes", "activation_checkpointing", "eval_batch_size", "eval_seconds_per_frame")
 
 # What a report needs of a table: enough to place every MSE in the (backbone, suite, encoder, control, seed)
 # grid. Tables from older versions, other tools or a paper need only these (conform fills the other SCHEMA

@@ -324,7 +324,9 @@ def test_a_batch_past_memory_is_refused_before_training(world: World, tmp_path: 
     assert main(args) == 2
     line = capsys.readouterr().err.strip()
     assert "Traceback" not in line and len(line.splitlines()) == 1, line
-    assert line.startswith("graftcache fit: error: a training step of --batch-size 100000 (")
+    # --activation-checkpointing auto: refused without it, then measured and refused with it
+    assert line.startswith("graftcache fit: error: a training step of --batch-size 100000 with activation "
+                           "checkpointing (")
     assert "a frame, measured on a 2-frame step of features image 16x192, image2 16x192)" in line
     need = line.split("needs about ")[1].split(",")[0]
     amount, unit = need.split()[:2]

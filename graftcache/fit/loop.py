@@ -27,8 +27,6 @@ from graftcache.progress import progress
 from graftcache.runtime import autocast
 from graftcache.scoring import Score, frame_noise, score_chunks
 
-EVAL_BATCH_SIZE = 64
-
 
 def raw_batch(low: LowDim, pos: np.ndarray, features: Mapping[str, torch.Tensor], cams: Mapping[str, str], *,
               actions: bool = True) -> dict:
@@ -103,15 +101,20 @@ def train(adapter, low: LowDim, buffer: ShuffleBuffer, cams: Mapping[str, str], 
 
 
 @torch.no_grad()
-def evaluate(adapter, low: LowDim, chunks: Iterator[Chunk], cams: Mapping[str, str], *, transform: Transform = keep,
-             dtype: torch.dtype = torch.float32, num_denoise_steps: int | None = None) -> Score:
+def evaluate(adapter, low: LowDim, chunks: Iterator[Chunk], cams: Mapping[str, str], *, batch_size: int,
+             transform: Transform = keep, dtype: torch.dtype = torch.float32,
+             num_denoise_steps: int | None = None) -> Score:
     """Offline action MSE of the denoised chunk on the frames of `low` that `chunks` deliver (in cache order,
-    re-cut into batches of EVAL_BATCH_SIZE; fixed noise per frame); only predictions are kept."""
+    re-cut into batches of `batch_size`; fixed noise per frame); only predictions are kept.
+
+    Each batch's prefix (images and prompt through the frozen LM) is computed once and its KV cache reused by
+    every denoising step: lerobot's `sample_actions` does so for both backbones (`predict` calls it), so a
+    step costs only the action expert's pass over the chunk."""
     adapter.policy.eval()
     device = adapter.device
     queue = FrameQueue(chunks)
     owners, targets, preds = [], [], []
-    while (taken := queue.take(EVAL_BATCH_SIZE)) is not None:
+    while (taken := queue.take(batch_size)) is not None:
         pos, (features,) = taken
         noise = frame_noise(low.rows[pos], adapter.chunk_size, adapter.max_action_dim)
         batch = adapter.prepare(raw_batch(low, pos, transform(features), cams))

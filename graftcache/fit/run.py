@@ -284,7 +284,10 @@ class Fitter:
         row = self._run_cell(adapter, control, cell, self._material(adapter, control))
         self.log(f"{row['backbone']}/{row['encoder']}/{row['suite']} seed {seed} control {control.name}: "
                  f"eval_mse {row['eval_mse']:.4f} (first {row['eval_mse_first']:.4f}, raw "
-                 f"{row['eval_mse_raw']:.5f}) on {row['n_eval_frames']} frames, {row['wall_s']:.1f}s")
+                 f"{row['eval_mse_raw']:.5f}) on {row['n_eval_frames']} frames "
+                 f"({row['eval_seconds_per_frame'] * 1e3:.1f} ms a frame at --eval-batch-size "
+                 f"{row['eval_batch_size']}), {row['wall_s']:.1f}s; activation checkpointing "
+                 f"{row['activation_checkpointing']}")
         return row
 
     # ---------------------------------------------------------------- one cell
@@ -329,18 +332,23 @@ class Fitter:
             adapter.add_lora(rank=self.req.lora_rank)
         self.log(f"cell {cell.run_id}: {adapter.freeze_report()}")
         cams = self.cameras
+        adapter.set_activation_checkpointing(False)  # only a training step uses it (what the last cell left)
         if control.train and self._objective(control).scheduled:  # refused here, not OOM-killed later
             check_step_memory(adapter, mat.train, cams, mat.source, batch_size=self.req.batch_size,
-                              buffer_mib=self.req.buffer_mib, dtype=self.dtype)
+                              buffer_mib=self.req.buffer_mib, dtype=self.dtype,
+                              checkpointing=self.req.activation_checkpointing)
+        checkpointing = "on" if adapter.activation_checkpointing else "off"
         stats = StreamStats()
         loss = self._objective(control).fit(Fitting(
             adapter=adapter, req=self.req, control=control, train=self._feed(mat, mat.train, control, cell.seed),
             cams=cams, targets=(mat.targets, mat.target_rows) if mat.targets is not None else None, grid=mat.grid,
             seed=cell.seed, dtype=self.dtype, stats=stats))
+        t_eval = time.perf_counter()
         with closing(read_chunks(self._feed(mat, mat.eval, control, cell.seed + 1).features(seed=None),
                                  self.req.num_workers, stats)) as chunks:
-            score = evaluate(adapter, mat.eval, chunks, cams, transform=control.transform, dtype=self.dtype,
-                             num_denoise_steps=self.req.num_denoise_steps)
+            score = evaluate(adapter, mat.eval, chunks, cams, batch_size=self.req.eval_batch_size,
+                             transform=control.transform, dtype=self.dtype, num_denoise_steps=self.req.num_denoise_steps)
+        eval_s = time.perf_counter() - t_eval
         if isinstance(self.root, ReadThroughRoot):  # what the reading processes copied locally for this fit
             self.root.fetched_bytes += stats.fetched
         wall = time.perf_counter() - t0
@@ -359,6 +367,7 @@ class Fitter:
             "random_init": bool(mat.cache.manifest.get("random_init") or adapter.random_init),
             "n_dropped_nonfinite": mat.dropped + len(stats.dropped), "numerics_drift": self._drift(mat),
             "camera_map": format_camera_map(self.cameras), "graftcache_version": graftcache.__version__,
+            "activation_checkpointing": checkpointing, "eval_seconds_per_frame": eval_s / score.n_frames,
         })
 
     def run_folder(self, cell: Cell) -> Path:
