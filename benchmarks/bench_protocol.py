@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import gc
 import json
 import os
 import re
@@ -301,7 +302,7 @@ def project(recipe: Recipe, settings: Settings, measured: dict, loads: dict[str,
         flops += seeds * (settings.steps * m.get("step_flops", 0) + frames * m["eval_flops_per_frame"])
     load_s = sum(loads.values())
     suite_frames = sum(LIBERO_COUNTS[s][1] for s in recipe.suites)
-    extraction = sum(suite_frames * max(cameras.values()) * (decode_s + encode_s[e.name]) for e in recipe.encoders)
+    extraction = sum(suite_frames * len(LIBERO.cameras) * (decode_s + encode_s[e.name]) for e in recipe.encoders)
     hours = {"loads_h": load_s / 3600, "training_h": training / 3600, "evaluation_h": evaluation / 3600}
     hours["projected_h"] = hours["loads_h"] + hours["training_h"] + hours["evaluation_h"]
     hours["online_h"] = (load_s + online) / 3600
@@ -387,6 +388,9 @@ def main(argv: list[str] | None = None) -> dict:
                     print(json.dumps(by_kind[kind]), flush=True)
                 measured[entry.name][cell] = by_kind[kind]
             del adapter
+            gc.collect()  # the graft's instance override makes policy and adapter a cycle
+            if device.type == "cuda":
+                torch.cuda.empty_cache()
 
     peak, peak_source = peak_flops(device, dtype, a.peak_tflops)
     hours = project(recipe, settings, measured, loads, decode_s, encode_s, tower_s, cameras, peak)
@@ -406,7 +410,7 @@ def main(argv: list[str] | None = None) -> dict:
     print(f"{recipe.name}: {n_rows} rows; projected {hours['projected_h']:.2f} device-hours (loads "
           f"{hours['loads_h']:.3f} + training {hours['training_h']:.2f} + evaluation {hours['evaluation_h']:.2f}); "
           f"online {hours['online_h']:.2f} h; stage 1 {hours['extraction_h']:.2f} h; FLOP bound "
-          f"{hours['flop_bound_h_100']:.2f} h at 100%, {hours['flop_bound_h_40']:.2f} h at 40% of {peak / 1e12:.1f} "
+          f"{hours['flop_bound_h_100']:.2f} h at 100%, {hours['flop_bound_h_40']:.2f} h at 40% of {peak / 1e12:.3g} "
           f"TFLOP/s ({peak_source}) -> {out}")
     return report
 
