@@ -12,11 +12,12 @@ BATCH = 8
 
 
 def _step(adapter, batch: dict, noise: torch.Tensor, time: torch.Tensor) -> None:
+    torch.manual_seed(0)  # X-VLA trains with dropout: every step draws the same masks
     adapter.loss(batch, noise=noise, time=time).mean().backward()
 
 
 @pytest.mark.usefixtures("one_torch_thread")
-@pytest.mark.parametrize("name", ["smolvla", "pi05"])
+@pytest.mark.parametrize("name", ["smolvla", "pi05", "xvla"])
 def test_projector_gradients_are_the_same_with_checkpointing_and_memory_is_lower(name: str) -> None:
     adapter = grafted(name)
     adapter.policy.train()
@@ -35,6 +36,6 @@ def test_projector_gradients_are_the_same_with_checkpointing_and_memory_is_lower
     for plain, checkpointed in zip(grads[False][0], grads[True][0], strict=True):
         torch.testing.assert_close(checkpointed, plain, rtol=0, atol=1e-6)
     assert peaks[False][0] == peaks[False][1]
-    # measured on this batch: SmolVLA 80%, pi0.5 51% of the plain step's peak
+    # measured on this batch: SmolVLA 80%, pi0.5 51% of the plain step's peak (X-VLA also under 85%)
     assert peaks[True][0] < 0.85 * peaks[False][0], peaks
 

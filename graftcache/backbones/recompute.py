@@ -11,6 +11,7 @@ transformers' `gradient_checkpointing_enable` on its VLM does nothing on its pat
 each layer's parts directly, never the layer, which is where transformers checkpoints), so here the attention
 (`eager_attention_forward`, whose fp32 [B, heads, L, L] probabilities dominate) and the MLP of every LM and
 expert layer are wrapped in `torch.utils.checkpoint`, in training mode with gradients enabled, like lerobot's.
+X-VLA the same way: every layer of its BART encoder (the LM) and every block of its action transformer.
 """
 
 from __future__ import annotations
@@ -25,11 +26,12 @@ from torch.utils.checkpoint import checkpoint
 
 def checkpointed(fn: Callable, owner: nn.Module) -> Callable:
     """`fn` recomputed during backward (non-reentrant, so a graft's trainable parameters inside it still get
-    their gradients) while `owner` trains with gradients enabled; plain `fn` otherwise (evaluation)."""
+    their gradients) while `owner` trains with gradients enabled; plain `fn` otherwise (evaluation). The RNG
+    state is replayed for the recomputation: X-VLA's layers train with dropout, whose masks must not change."""
 
     def run(*args, **kwargs):
         if owner.training and torch.is_grad_enabled():
-            return checkpoint(fn, *args, use_reentrant=False, preserve_rng_state=False, **kwargs)
+            return checkpoint(fn, *args, use_reentrant=False, preserve_rng_state=True, **kwargs)
         return fn(*args, **kwargs)
 
     return run
