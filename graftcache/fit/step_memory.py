@@ -33,8 +33,8 @@ def saved_bytes(adapter, low: LowDim, cams: Mapping[str, str], shapes: Mapping[s
                 frames: int, dtype: torch.dtype) -> int:
     """Bytes autograd keeps for backward after the loss of a `frames`-frame batch (zero features, the first
     training frame's low-dim row), each storage counted once. Eval mode, no dropout masks: a lower bound; in
-    training mode when the adapter checkpoints, which lerobot does only in training mode (these policies'
-    dropout rates are 0)."""
+    training mode when the adapter checkpoints (lerobot checkpoints only in training mode), which counts what
+    a training step saves, dropout masks included: still no more than the step holds."""
     storages: dict[int, int] = {}
 
     def pack(t: torch.Tensor) -> torch.Tensor:
