@@ -117,6 +117,9 @@ def load(name: str, a: argparse.Namespace, device: torch.device, dtype_name: str
         adapter = load_backbone(name, "tiny", device=str(device), dataset_stats=unit_stats(),
                                 tiny=TinySpec(cameras=LIBERO.cameras))
         return adapter, time.perf_counter() - t0
+    if name not in BUILDERS:
+        raise SystemExit(f"no released-geometry builder for {name} (graftcache.backbones.released knows "
+                         f"{', '.join(BUILDERS)}): run it with --tiny")
     options = {"dtype": {"bf16": "bfloat16", "fp32": "float32"}[dtype_name]} if name == "pi05" else {}
     repo = f"graftcache-bench/{name}-libero-random" + (f"-{dtype_name}" if options else "")
     ref = a.hub / f"models--{repo.replace('/', '--')}" / "refs" / "main"
