@@ -44,24 +44,30 @@ from pathlib import Path
 
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
-from common import DEFAULT_DATASET, machine  # noqa: E402
-from torch.utils.flop_counter import FlopCounterMode  # noqa: E402
+import numpy as np
+import torch
+from common import DEFAULT_DATASET, machine
+from torch.utils.flop_counter import FlopCounterMode
 
-from graftcache.backbones import TinySpec, load_backbone  # noqa: E402
-from graftcache.backbones.released import BUILDERS, LIBERO, built_here, hub_cache, unit_stats  # noqa: E402
-from graftcache.datasets import open_dataset  # noqa: E402
-from graftcache.datasets.tile import LIBERO_COUNTS  # noqa: E402
-from graftcache.encoders import load_encoder  # noqa: E402
-from graftcache.encoders.registry import get_spec  # noqa: E402
-from graftcache.fit.controls import get_control  # noqa: E402
-from graftcache.fit.loop import optimise  # noqa: E402
-from graftcache.graft import GraftProjector, feature_key  # noqa: E402
-from graftcache.recipe import Recipe, load_recipe  # noqa: E402
-from graftcache.requests import FitRequest  # noqa: E402
-from graftcache.runtime import autocast, resolve_compute_dtype, resolve_device, resolve_dtype, set_main_threads  # noqa: E402
-from graftcache.scoring import frame_noise  # noqa: E402
+from graftcache.backbones import TinySpec, load_backbone
+from graftcache.backbones.released import BUILDERS, LIBERO, built_here, hub_cache, unit_stats
+from graftcache.datasets import open_dataset
+from graftcache.datasets.tile import LIBERO_COUNTS
+from graftcache.encoders import load_encoder
+from graftcache.encoders.registry import get_spec
+from graftcache.fit.controls import get_control
+from graftcache.fit.loop import optimise
+from graftcache.graft import GraftProjector, feature_key
+from graftcache.recipe import Recipe, load_recipe
+from graftcache.requests import FitRequest
+from graftcache.runtime import (
+    autocast,
+    resolve_compute_dtype,
+    resolve_device,
+    resolve_dtype,
+    set_main_threads,
+)
+from graftcache.scoring import frame_noise
 
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_HUB = Path.home() / ".cache" / "graftcache" / "bench-real-size-hub"
