@@ -12,10 +12,11 @@ memory, fp16 like a cache, at each encoder's true width (its registry spec) and 
 (the backbone's token grid, a pool control's grid; the native controls: the native tower's widths): pooling
 runs in the fit's reading workers, off the device. For every distinct cell kind (backbone, tokens, width,
 LoRA, trained or not) it measures:
-- `--steps` flow steps (graftcache.fit.loop.optimise, the fit's own step; one warm-up step untimed), with the
-  recipe's activation checkpointing (`auto`: on when a step without it runs out of device memory);
+- `--steps` flow steps (graftcache.fit.loop.optimise, the fit's own step), with the recipe's activation
+  checkpointing (`auto`: on when a step without it runs out of device memory);
 - scoring of `--eval-frames` held-out frames at the recipe's eval batch size and denoising steps;
-- the FLOPs of one step and of one scoring batch (torch.utils.flop_counter.FlopCounterMode).
+- the FLOPs of one step and of one scoring batch (torch.utils.flop_counter.FlopCounterMode), counted on the
+  untimed warm-up.
 Then, over the recipe's cells (backbones x suites x seeds x encoders x controls; native-cache controls once per
 backbone, suite and seed, as `sweep` runs them) and lerobot/libero's held-out frames per suite
 (graftcache.datasets.tile.LIBERO_COUNTS x eval_fraction, capped by the recipe's eval_frames):
@@ -192,12 +193,17 @@ def measure_kind(adapter, kind: Kind, settings: Settings, a: argparse.Namespace,
             optimise(adapter, draw, steps=n, batch_size=b, optimizer=opt, generator=g, dtype=dtype, show=False)
             sync(device)
 
-        on = settings.checkpointing == "on"
-        adapter.set_activation_checkpointing(on)
+        def counted() -> int:
+            """FLOPs of one step: the untimed warm-up (under auto, also the test whether a step fits)."""
+            with FlopCounterMode(display=False) as flops:
+                steps(1)
+            return flops.get_total_flops()
+
+        adapter.set_activation_checkpointing(settings.checkpointing == "on")
         if device.type == "cuda":
             torch.cuda.reset_peak_memory_stats(device)
         try:
-            steps(1)  # warm-up (and, under auto, the test whether a step fits without checkpointing)
+            out["step_flops"] = counted()
         except torch.OutOfMemoryError:
             if settings.checkpointing != "auto":
                 raise
@@ -205,13 +211,10 @@ def measure_kind(adapter, kind: Kind, settings: Settings, a: argparse.Namespace,
             torch.cuda.empty_cache()
             adapter.set_activation_checkpointing(True)
             torch.cuda.reset_peak_memory_stats(device)
-            steps(1)
+            out["step_flops"] = counted()
         t0 = time.perf_counter()
         steps(a.steps)
         out["step_s"] = (time.perf_counter() - t0) / a.steps
-        with FlopCounterMode(display=False) as flops:
-            steps(1)
-        out["step_flops"] = flops.get_total_flops()
         out["activation_checkpointing"] = "on" if adapter.activation_checkpointing else "off"
         out["peak_step_gb"] = torch.cuda.max_memory_allocated(device) / 1e9 if device.type == "cuda" else None
     adapter.set_activation_checkpointing(False)
@@ -229,13 +232,12 @@ def measure_kind(adapter, kind: Kind, settings: Settings, a: argparse.Namespace,
             done += len(rows)
         sync(device)
 
-    score(eb)  # warm-up
+    with FlopCounterMode(display=False) as flops:  # the untimed warm-up
+        score(eb)
+    out["eval_flops_per_frame"] = flops.get_total_flops() / eb
     t0 = time.perf_counter()
     score(a.eval_frames)
     out["eval_s_per_frame"] = (time.perf_counter() - t0) / a.eval_frames
-    with FlopCounterMode(display=False) as flops:
-        score(eb)
-    out["eval_flops_per_frame"] = flops.get_total_flops() / eb
     return out
 
 
