@@ -5,7 +5,7 @@ so a step keeps every layer's activations for backward: at released size and the
 more than a GPU holds. Checkpointed, a layer keeps its inputs and recomputes the rest during backward (one more
 forward's FLOPs; the gradients are the same).
 
-How each backbone does it: pi0.5 with lerobot's own `gradient_checkpointing_enable` (every LM + expert layer,
+How each backbone does it: pi0.5 (and pi0, pi0-FAST, its subclasses) with lerobot's own `gradient_checkpointing_enable` (every LM + expert layer,
 the final norms and the prefix/suffix embeddings, in training mode). lerobot's SmolVLA has no such switch, and
 transformers' `gradient_checkpointing_enable` on its VLM does nothing on its path (smolvlm_with_expert.py calls
 each layer's parts directly, never the layer, which is where transformers checkpoints), so here the attention
@@ -22,6 +22,8 @@ from collections.abc import Callable, Iterator
 import torch
 from torch import nn
 from torch.utils.checkpoint import checkpoint
+
+from graftcache.errors import BackboneError
 
 
 def checkpointed(fn: Callable, owner: nn.Module) -> Callable:
@@ -54,9 +56,16 @@ class ActivationCheckpointing:
             self._switch_checkpointing(on)
             self._checkpointing = on
 
-    @abstractmethod
     def _switch_checkpointing(self, on: bool) -> None:
-        """The backbone's own way of turning checkpointing of its LM and expert on or off."""
+        """The backbone's own way of turning checkpointing of its LM and expert on or off (none by default:
+        `auto` then keeps it off, `on` is refused in one line)."""
+        raise BackboneError(f"{self.name}: no activation checkpointing for this backbone; use "
+                            "--activation-checkpointing off")
+
+    @property
+    def can_checkpoint(self) -> bool:
+        """Whether this backbone has a way to checkpoint (what `auto` may fall back on)."""
+        return type(self)._switch_checkpointing is not ActivationCheckpointing._switch_checkpointing
 
 
 class WrappedCheckpointing(ActivationCheckpointing):

@@ -70,7 +70,7 @@ def check_step_memory(adapter, low: LowDim, cams: Mapping[str, str], source: Fea
     try:
         _require_step(adapter, low, cams, source, shapes, batch_size, buffer_mib, dtype)
     except BudgetError:
-        if checkpointing != "auto":
+        if checkpointing != "auto" or not adapter.can_checkpoint:
             raise
         adapter.set_activation_checkpointing(True)
         _require_step(adapter, low, cams, source, shapes, batch_size, buffer_mib, dtype)
