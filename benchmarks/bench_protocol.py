@@ -102,7 +102,8 @@ class Settings:
 
 
 def recipe_settings(recipe: Recipe, batch_size: int | None) -> Settings:
-    fit = FitRequest(backbone="-", encoder="-", suite=recipe.suites[0], **recipe.fit)
+    fit = FitRequest(backbone=recipe.backbones[0].name, encoder=recipe.encoders[0].name, suite=recipe.suites[0],
+                     **recipe.fit)
     if recipe.objective != "flow":
         raise SystemExit(f"{recipe.path}: bench_protocol measures flow recipes, not objective {recipe.objective!r}")
     return Settings(fit.steps, batch_size or fit.batch_size, fit.eval_batch_size, fit.num_denoise_steps,
