@@ -117,6 +117,9 @@ OBJECTIVES = ("flow", "align")
 #: implements each; tests/test_settings.py keeps the two equal); pool-HxW pools the candidate to another grid.
 CONTROLS = ("native", "native-graft", "zero-image", "shuffled-image", "lora")
 POOL_PREFIX = "pool-"
+#: Activation checkpointing of the frozen LM and expert (graftcache/backbones/recompute.py): `auto` turns it on
+#: when a training step would not fit the device's memory without it (graftcache/fit/step_memory.py).
+CHECKPOINTING_MODES = ("auto", "on", "off")
 
 
 @dataclass(frozen=True)
@@ -158,8 +161,15 @@ class FitRequest(Checked):
     eval_fraction: float = setting(0.2, rule=FRACTION, help="held-out share of each task's episodes")
     eval_split_seed: int = setting(0, rule=SEED)
     eval_frames: int | None = setting(None, rule=POSITIVE, help="cap on scored held-out frames (evenly spaced)")
+    eval_batch_size: int = setting(64, rule=POSITIVE, help="held-out frames denoised at once (memory, not the "
+                                   "scores); rows record eval_seconds_per_frame")
     num_denoise_steps: int | None = setting(None, rule=POSITIVE)
     lora_rank: int = setting(8, rule=POSITIVE)
+    activation_checkpointing: str = setting(
+        "auto", choices=CHECKPOINTING_MODES,
+        help="recompute the frozen LM's and action expert's activations during backward (same gradients, less "
+        "memory, ~1/3 more step time); auto: on when a step would not fit the device's memory without it; rows "
+        "record what it resolved to")
     device: str = setting("cpu", recipe=False, help="cpu, cuda or cuda:N")
     num_workers: int = setting(  # the numbers do not depend on it
         2, rule=NON_NEGATIVE,

@@ -85,6 +85,9 @@ SCHEMA: dict[str, pl.DataType] = {
                                       # eye_in_hand" (graftcache/cameras.py); also when every name matched
     "graftcache_version": pl.String,
     "command": pl.String,             # the command line that produced the row
+    "activation_checkpointing": pl.String,  # "on" | "off": what `--activation-checkpointing` (auto) resolved to
+    "eval_batch_size": pl.Int64,      # held-out frames denoised at once (the scores do not depend on it)
+    "eval_seconds_per_frame": pl.Float64,  # scoring's wall time (reading, prefix, denoising) / n_eval_frames
 }
 
 CONTROLS_NATIVE = ("native",)

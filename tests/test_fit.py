@@ -111,6 +111,29 @@ def test_every_control_writes_one_schema_valid_row(world: World, tmp_path: Path)
     assert "partial" in lora_log  # LoRA makes part of the language model trainable
 
 
+def test_checkpointing_and_the_eval_batch_size_change_no_number_and_rows_record_them(world: World,
+                                                                                     tmp_path: Path) -> None:
+    """`--activation-checkpointing on` trains with the same gradients (CPU, fp32: the same rows), `auto` resolves to
+    off where the step fits; scoring 4 frames one at a time scores them as one batch of 4. Neither changes the
+    run_id; rows record both and what scoring cost a frame, and the cell's log line says so."""
+    lines: list[str] = []
+    plain = Fitter(world.request(controls=("lora",), results=str(tmp_path / "a.parquet"), compute_dtype="fp32"),
+                   log=lines.append).run()
+    other = Fitter(world.request(controls=("lora",), results=str(tmp_path / "b.parquet"), compute_dtype="fp32",
+                                 activation_checkpointing="on", eval_batch_size=1), log=_quiet).run()
+    for a, b in zip(plain, other, strict=True):
+        assert a["run_id"] == b["run_id"]
+        assert b["train_loss_final"] == pytest.approx(a["train_loss_final"], rel=1e-5)
+        assert b["eval_mse_episodes"] == pytest.approx(a["eval_mse_episodes"], rel=1e-5)
+        assert (a["activation_checkpointing"], b["activation_checkpointing"]) == ("off", "on")
+        assert (a["eval_batch_size"], b["eval_batch_size"]) == (64, 1)
+        assert 0 < a["eval_seconds_per_frame"] < a["wall_s"] / a["n_eval_frames"]
+    assert results.read(tmp_path / "b.parquet")["activation_checkpointing"].to_list() == ["on", "on"]
+    done = [ln for ln in lines if " eval_mse " in ln]
+    assert len(done) == 2 and all(" ms a frame at --eval-batch-size 64)" in ln for ln in done)
+    assert all(ln.endswith("activation checkpointing off") for ln in done)
+
+
 def test_pi05_controls_run_too(world: World, tmp_path: Path) -> None:
     out = tmp_path / "r.parquet"
     Fitter(world.request("pi05", controls=("native", "zero-image"), results=str(out)), log=_quiet).run()
@@ -325,13 +348,19 @@ def test_a_batch_past_memory_is_refused_before_training(world: World, tmp_path: 
     assert main(args) == 2
     line = capsys.readouterr().err.strip()
     assert "Traceback" not in line and len(line.splitlines()) == 1, line
-    assert line.startswith("graftcache fit: error: a training step of --batch-size 100000 (")
+    # --activation-checkpointing auto: refused without it, then measured and refused with it
+    assert line.startswith("graftcache fit: error: a training step of --batch-size 100000 with activation "
+                           "checkpointing (")
     assert "a frame, measured on a 2-frame step of features image 16x192, image2 16x192)" in line
     need = line.split("needs about ")[1].split(",")[0]
     amount, unit = need.split()[:2]
     assert float(amount) * 1024 ** ["MiB", "GiB", "TiB"].index(unit) >= 100000 * 2 * 16 * 192 * 4 / 2**20
     have, limit = budget.available_memory("cpu")
     assert f"but {limit} is " in line and line.endswith("; lower --batch-size") and not out.exists()
+    assert main([*args, "--activation-checkpointing", "off"]) == 2  # refused as it is, with the other way out
+    line = capsys.readouterr().err.strip()
+    assert line.startswith("graftcache fit: error: a training step of --batch-size 100000 (")
+    assert line.endswith("; lower --batch-size or pass --activation-checkpointing on") and not out.exists()
 
 
 def test_the_largest_seed_feeds_every_rng_and_its_row(world: World, tmp_path: Path) -> None:

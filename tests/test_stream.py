@@ -21,7 +21,7 @@ from graftcache.fit.buffer import ShuffleBuffer, buffer_frames
 from graftcache.fit.controls import SHUFFLE_GROUP, shuffle
 from graftcache.fit.data import LowDim, load_lowdim
 from graftcache.fit.feed import SplitFeed
-from graftcache.fit.loop import EVAL_BATCH_SIZE, evaluate
+from graftcache.fit.loop import evaluate
 from graftcache.fit.stream import BlockMemo, Chunk, FeatureSource, StreamStats, read_chunks
 from graftcache.graft import GraftProjector, feature_key
 from graftcache.nonfinite import nonfinite_rows
@@ -30,6 +30,7 @@ from graftcache.store import FeatureCache
 
 BLOCK = 8
 LENGTHS = (13, 9, 11, 7, 10, 12, 30, 25)  # 117 frames in 15 blocks of 8
+EVAL_BATCH_SIZE = 64  # 67 scored frames: 2 batches
 
 
 @pytest.fixture(scope="module")
@@ -183,7 +184,8 @@ def test_streamed_scoring_equals_scoring_written_out_here(cache: FeatureCache) -
     low = load_lowdim(cache, "libero_spatial", chunk=adapter.chunk_size).subset([5, 6, 7])  # 67 frames: 2 batches
     cams = {c: c for c in adapter.cameras}  # CAMERAS are the tiny policy's cameras
     feed = SplitFeed(low, FeatureSource.of(cache, CAMERAS, (4, 4)), BLOCK)
-    score = evaluate(adapter, low, read_chunks(feed.features(seed=None), 2), cams, num_denoise_steps=2)
+    score = evaluate(adapter, low, read_chunks(feed.features(seed=None), 2), cams, batch_size=EVAL_BATCH_SIZE,
+                     num_denoise_steps=2)
 
     adapter.policy.eval()
     stored = {c: torch.from_numpy(cache.group[f"features/{c}/4x4"][...]).float() for c in CAMERAS}

@@ -43,6 +43,7 @@ from graftcache.backbones.checkpoint import (
 )
 from graftcache.backbones.lean import construct, load_checkpoint, read_header
 from graftcache.backbones.objectives import FlowObjective
+from graftcache.backbones.recompute import ActivationCheckpointing
 from graftcache.backbones.released import is_random_release
 from graftcache.backbones.surgery import GraftSurgery
 from graftcache.backbones.tiny import TinySpec, read_marker, write_marker
@@ -58,7 +59,7 @@ def _camera_names(keys: Iterable[str]) -> tuple[str, ...]:
     return tuple(k.removeprefix("observation.images.") for k in keys)
 
 
-class BackboneAdapter(GraftSurgery, PromptBatches, FlowObjective, ABC):
+class BackboneAdapter(GraftSurgery, PromptBatches, FlowObjective, ActivationCheckpointing, ABC):
     """A frozen lerobot VLA policy that a projector can be grafted onto."""
 
     name: ClassVar[str]

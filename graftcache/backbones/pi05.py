@@ -117,6 +117,13 @@ class PI05Adapter(BackboneAdapter):
     def _predict_chunk(self, batch: Mapping[str, Any], noise: torch.Tensor, num_steps: int) -> torch.Tensor:
         return self.policy.predict_action_chunk(dict(batch), noise=noise, num_steps=num_steps)
 
+    def _switch_checkpointing(self, on: bool) -> None:
+        """lerobot's own switch (every LM and expert layer, in training mode)."""
+        if on:
+            self.policy.model.gradient_checkpointing_enable()
+        else:
+            self.policy.model.gradient_checkpointing_disable()
+
     # ------------------------------------------------------------------------------ reporting
     module_paths = {
         "language model": ("_vision_owner.language_model",),

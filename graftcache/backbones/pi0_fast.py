@@ -255,6 +255,17 @@ class PI0FastAdapter(PI05Adapter):
         with _greedy_chunks(self.config, self.chunk_size):
             return self.policy.predict_action_chunk(dict(batch)).to(self.device)
 
+    def _switch_checkpointing(self, on: bool) -> None:
+        """lerobot's switch minus the vision tower's (after a graft a pass-through, without transformers' method):
+        transformers' own checkpointing of every language-model layer, non-reentrant."""
+        model = self.policy.model
+        language_model = model.paligemma_with_expert.paligemma.model.language_model
+        model.gradient_checkpointing_enabled = on
+        if on:
+            language_model.gradient_checkpointing_enable(gradient_checkpointing_kwargs={"use_reentrant": False})
+        else:
+            language_model.gradient_checkpointing_disable()
+
     # ------------------------------------------------------------------------------ reporting
     module_paths = {"language model": ("_vision_owner.language_model",),
                     "LM head": ("policy.model.paligemma_with_expert.paligemma.lm_head",)}

@@ -10,7 +10,7 @@ connector with the projector; lerobot's sqrt(width) scaling still applies after 
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -20,11 +20,12 @@ from torch import nn
 from graftcache.backbones.base import BackboneAdapter
 from graftcache.backbones.batches import TOKEN_MASK, TOKENS
 from graftcache.backbones.checkpoint import cached_repo
+from graftcache.backbones.recompute import WrappedCheckpointing
 from graftcache.backbones.tiny import TinySpec, build_tiny_smolvla
 from graftcache.backbones.tiny_assets import SMOLVLM_DIR
 
 
-class SmolVLAAdapter(BackboneAdapter):
+class SmolVLAAdapter(WrappedCheckpointing, BackboneAdapter):
     name = "smolvla"
     vision_slots = ("vision_model", "connector")
     steps_field = "num_steps"
@@ -105,6 +106,14 @@ class SmolVLAAdapter(BackboneAdapter):
     def _predict_chunk(self, batch: Mapping[str, Any], noise: torch.Tensor, num_steps: int) -> torch.Tensor:
         with _num_steps(self.config, num_steps):
             return self.policy.predict_action_chunk(dict(batch), noise=noise)
+
+    def _checkpoint_slots(self) -> Iterator[tuple[nn.Module, str]]:
+        """The attention of every layer (one function of the joint model) and each LM and expert layer's MLP."""
+        joint = self.policy.model.vlm_with_expert
+        yield joint, "eager_attention_forward"
+        for layers in (joint.get_vlm_model().text_model.layers, joint.lm_expert.layers):
+            for layer in layers:
+                yield layer.mlp, "forward"
 
     # ------------------------------------------------------------------------------ reporting
     module_paths = {

@@ -24,7 +24,7 @@ their own (tests/test_backbones_xvla.py checks both against lerobot's under the 
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -33,6 +33,7 @@ from torch import nn
 
 from graftcache.backbones.base import BackboneAdapter, is_empty_camera
 from graftcache.backbones.batches import ACTION_PAD
+from graftcache.backbones.recompute import WrappedCheckpointing
 from graftcache.backbones.tiny import TinySpec
 from graftcache.backbones.tiny_assets import PALIGEMMA_DIR
 from graftcache.backbones.tiny_xvla import build_tiny_xvla
@@ -47,7 +48,7 @@ def conv_grid(size: tuple[int, int], vision) -> tuple[int, int]:
     return h, w
 
 
-class XVLAAdapter(BackboneAdapter):
+class XVLAAdapter(WrappedCheckpointing, BackboneAdapter):
     name = "xvla"
     vision_slots = ("vision_tower", "multi_modal_projector")
     steps_field = "num_denoising_steps"
@@ -220,6 +221,13 @@ class XVLAAdapter(BackboneAdapter):
             t = torch.full((x1.shape[0],), i / steps, device=x1.device, dtype=dtype)
             action = self._denoise(inputs, enc, x1 * t.view(-1, 1, 1) + action * (1 - t).view(-1, 1, 1), t)
         return self.policy.model.action_space.postprocess(action)
+
+    def _checkpoint_slots(self) -> Iterator[tuple[nn.Module, str]]:
+        """Every layer of the BART encoder (the LM) and every block of the action transformer."""
+        for layer in self._vision_owner.language_model.encoder.layers:
+            yield layer, "forward"
+        for block in self.policy.model.transformer.blocks:
+            yield block, "forward"
 
     # ------------------------------------------------------------------------------ reporting
     module_paths = {

@@ -32,8 +32,6 @@ from graftcache.progress import progress
 from graftcache.runtime import autocast
 from graftcache.scoring import Score, frame_noise, score_chunks
 
-EVAL_BATCH_SIZE = 64
-
 
 def raw_batch(low: LowDim, pos: np.ndarray, features: Mapping[str, torch.Tensor], cams: Mapping[str, str], *,
               actions: bool = True) -> dict:
@@ -181,18 +179,23 @@ class Scoring:
     transform: Transform = keep
 
 
-def evaluate(adapter, low: LowDim, chunks: Iterator[Chunk], cams: Mapping[str, str], *, transform: Transform = keep,
-             dtype: torch.dtype = torch.float32, num_denoise_steps: int | None = None) -> Score:
+def evaluate(adapter, low: LowDim, chunks: Iterator[Chunk], cams: Mapping[str, str], *, batch_size: int,
+             transform: Transform = keep, dtype: torch.dtype = torch.float32,
+             num_denoise_steps: int | None = None) -> Score:
     """Offline action MSE of the denoised chunk on the frames of `low` that `chunks` deliver (in cache order,
-    re-cut into batches of EVAL_BATCH_SIZE; fixed noise per frame); only predictions are kept."""
-    return evaluate_together(adapter, [Scoring(low, chunks, cams, transform)], dtype=dtype,
+    re-cut into batches of `batch_size`; fixed noise per frame); only predictions are kept.
+
+    Each batch's prefix (images and prompt through the frozen LM) is computed once and its KV cache reused by
+    every denoising step: lerobot's `sample_actions` does so (`predict` calls it), so a step costs only the
+    action expert's pass over the chunk."""
+    return evaluate_together(adapter, [Scoring(low, chunks, cams, transform)], batch_size=batch_size, dtype=dtype,
                              num_denoise_steps=num_denoise_steps)[0]
 
 
 @torch.no_grad()
-def evaluate_together(adapter, parts: Sequence[Scoring], *, dtype: torch.dtype = torch.float32,
+def evaluate_together(adapter, parts: Sequence[Scoring], *, batch_size: int, dtype: torch.dtype = torch.float32,
                       num_denoise_steps: int | None = None, route: Route = alone) -> list[Score]:
-    """`evaluate` of several cells in one pass of the policy per batch: EVAL_BATCH_SIZE frames of each part
+    """`evaluate` of several cells in one pass of the policy per batch: `batch_size` frames of each part
     (fewer once a part runs short), concatenated in part order; each part's score from its own rows."""
     adapter.policy.eval()
     device = adapter.device
@@ -200,7 +203,7 @@ def evaluate_together(adapter, parts: Sequence[Scoring], *, dtype: torch.dtype =
     kept: list[tuple[list, list, list]] = [([], [], []) for _ in parts]  # owners, targets, predictions
     open_parts = list(range(len(parts)))
     while True:
-        taken = [(i, queues[i].take(EVAL_BATCH_SIZE)) for i in open_parts]
+        taken = [(i, queues[i].take(batch_size)) for i in open_parts]
         open_parts = [i for i, t in taken if t is not None]
         taken = [(i, t) for i, t in taken if t is not None]
         if not taken:

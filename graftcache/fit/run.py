@@ -282,7 +282,10 @@ class Fitter:
         shared = f" (its share of a pass of {row['cells_per_pass']})" if row["cells_per_pass"] > 1 else ""
         self.log(f"{row['backbone']}/{row['encoder']}/{row['suite']} seed {row['seed']} control {control.name}: "
                  f"eval_mse {row['eval_mse']:.4f} (first {row['eval_mse_first']:.4f}, raw "
-                 f"{row['eval_mse_raw']:.5f}) on {row['n_eval_frames']} frames, {row['wall_s']:.1f}s{shared}")
+                 f"{row['eval_mse_raw']:.5f}) on {row['n_eval_frames']} frames "
+                 f"({row['eval_seconds_per_frame'] * 1e3:.1f} ms a frame at --eval-batch-size "
+                 f"{row['eval_batch_size']}), {row['wall_s']:.1f}s{shared}; activation checkpointing "
+                 f"{row['activation_checkpointing']}")
         return row
 
     # ---------------------------------------------------------------- one cell
@@ -326,22 +329,28 @@ class Fitter:
             adapter.add_lora(rank=self.req.lora_rank)
         self.log(f"cell {cell.run_id}: {adapter.freeze_report()}")
         cams = self.cameras
+        adapter.set_activation_checkpointing(False)  # only a training step uses it (what the last cell left)
         if control.train and self._objective(control).scheduled:  # refused here, not OOM-killed later
             check_step_memory(adapter, mat.train, cams, mat.source, batch_size=self.req.batch_size,
-                              buffer_mib=self.req.buffer_mib, dtype=self.dtype)
+                              buffer_mib=self.req.buffer_mib, dtype=self.dtype,
+                              checkpointing=self.req.activation_checkpointing)
+        checkpointing = "on" if adapter.activation_checkpointing else "off"
         stats = StreamStats()
         loss = self._objective(control).fit(Fitting(
             adapter=adapter, req=self.req, control=control, train=self._feed(mat, mat.train, control, cell.seed),
             cams=cams, targets=(mat.targets, mat.target_rows) if mat.targets is not None else None, grid=mat.grid,
             seed=cell.seed, dtype=self.dtype, stats=stats))
+        t_eval = time.perf_counter()
         with closing(read_chunks(self._feed(mat, mat.eval, control, cell.seed + 1).features(seed=None),
                                  self.req.num_workers, stats)) as chunks:
-            score = evaluate(adapter, mat.eval, chunks, cams, transform=control.transform, dtype=self.dtype,
-                             num_denoise_steps=self.req.num_denoise_steps)
+            score = evaluate(adapter, mat.eval, chunks, cams, batch_size=self.req.eval_batch_size,
+                             transform=control.transform, dtype=self.dtype, num_denoise_steps=self.req.num_denoise_steps)
+        eval_s = time.perf_counter() - t_eval
         wall = time.perf_counter() - t0
         if control.train:
             self._save_projector(adapter, cell)
-        return self._row(adapter, cell, mat, loss, score, stats, wall, cells=1)
+        return self._row(adapter, cell, mat, loss, score, stats, wall, cells=1, checkpointing=checkpointing,
+                         eval_s=eval_s)
 
     def _run_fused(self, members: Sequence[Member]) -> list[dict[str, Any]]:
         """Train and score several cells (of this and other Fitters of this pass key) in one pass of the backbone:
@@ -362,11 +371,13 @@ class Fitter:
         for m in members:
             self.log(f"cell {m.cell.run_id}: one of {len(members)} cells of a backbone pass, each training its own "
                      f"projector: {report}")
+        adapter.set_activation_checkpointing(False)  # only a training step uses it (what the last cell left)
         check_step_memory(adapter, mats[0].train, self.cameras, mats[0].source, batch_size=self.req.batch_size,
                           buffer_mib=self.req.buffer_mib, dtype=self.dtype,
-                          others=[(mat.train, mat.source, m.fitter.req.buffer_mib)
+                          checkpointing=self.req.activation_checkpointing, others=[(mat.train, mat.source, m.fitter.req.buffer_mib)
                                   for m, mat in zip(members[1:], mats[1:], strict=True)],
                           route=lambda sizes: fused.rows([*sizes, *[0] * (len(members) - len(sizes))]))
+        checkpointing = "on" if adapter.activation_checkpointing else "off"
         stats = [StreamStats() for _ in members]
         with ExitStack() as stack:
             learners = []
@@ -378,25 +389,30 @@ class Fitter:
                                         transform=m.control.transform))
             optimise_together(adapter, learners, steps=self.req.steps, batch_size=self.req.batch_size,
                               dtype=self.dtype, route=fused.rows, show=self.req.progress, leave=False)
+        t_eval = time.perf_counter()
         with ExitStack() as stack:
             scores = evaluate_together(adapter, [
                 Scoring(mat.eval, stack.enter_context(closing(read_chunks(
                     m.fitter._feed(mat, mat.eval, m.control, m.seed + 1).features(seed=None), m.fitter.req.num_workers,
                     st))), m.fitter.cameras, m.control.transform)
                 for m, mat, st in zip(members, mats, stats, strict=True)],
-                dtype=self.dtype, num_denoise_steps=self.req.num_denoise_steps, route=fused.rows)
+                batch_size=self.req.eval_batch_size, dtype=self.dtype, num_denoise_steps=self.req.num_denoise_steps,
+                route=fused.rows)
+        eval_share = (time.perf_counter() - t_eval) / len(members)
         prefix = next(name for name, module in adapter.policy.named_modules() if module is fused)
         share = (time.perf_counter() - t0) / len(members)
         rows = []
         for m, mat, projector, one, score, st in zip(members, mats, projectors, learners, scores, stats, strict=True):
             m.fitter._save_projector(adapter, m.cell, {f"{prefix}.{n}": p for n, p in projector.named_parameters()})
             rows.append(m.fitter._told(m.fitter._row(adapter, m.cell, mat, one.final_loss, score, st, share,
-                                                     cells=len(members)), m.control))
+                                                     cells=len(members), checkpointing=checkpointing,
+                                                     eval_s=eval_share), m.control))
         return rows
 
     def _row(self, adapter, cell: Cell, mat: _Material, loss: float, score, stats: StreamStats, wall: float, *,
-             cells: int) -> dict[str, Any]:
-        """A cell's row from what it measured (`cells`: how many cells its backbone pass trained)."""
+             cells: int, checkpointing: str, eval_s: float) -> dict[str, Any]:
+        """A cell's row from what it measured (`cells`: how many cells its backbone pass trained; `checkpointing`:
+        on or off as the step ran; `eval_s`: its scoring's seconds, its share of a pass's)."""
         if isinstance(self.root, ReadThroughRoot):  # what the reading processes copied locally for this cell
             self.root.fetched_bytes += stats.fetched
         return cell.row(self.req, {
@@ -412,6 +428,7 @@ class Fitter:
             "random_init": bool(mat.cache.manifest.random_init or adapter.random_init),
             "n_dropped_nonfinite": mat.dropped + len(stats.dropped), "numerics_drift": self._drift(mat),
             "camera_map": format_camera_map(self.cameras), "graftcache_version": graftcache.__version__,
+            "activation_checkpointing": checkpointing, "eval_seconds_per_frame": eval_s / score.n_frames,
         })
 
     def run_folder(self, cell: Cell) -> Path:
