@@ -5,13 +5,13 @@ so a step keeps every layer's activations for backward: at released size and the
 more than a GPU holds. Checkpointed, a layer keeps its inputs and recomputes the rest during backward (one more
 forward's FLOPs; the gradients are the same).
 
-How each backbone does it: pi0.5 (and pi0, pi0-FAST, its subclasses) with lerobot's own `gradient_checkpointing_enable` (every LM + expert layer,
-the final norms and the prefix/suffix embeddings, in training mode). lerobot's SmolVLA has no such switch, and
-transformers' `gradient_checkpointing_enable` on its VLM does nothing on its path (smolvlm_with_expert.py calls
+How each backbone does it: pi0.5 and pi0 with lerobot's own `gradient_checkpointing_enable` (every LM + expert
+layer, the final norms and the prefix/suffix embeddings, in training mode). lerobot's SmolVLA has no such switch,
+and transformers' `gradient_checkpointing_enable` on its VLM does nothing on its path (smolvlm_with_expert.py calls
 each layer's parts directly, never the layer, which is where transformers checkpoints), so here the attention
-(`eager_attention_forward`, whose fp32 [B, heads, L, L] probabilities dominate) and the MLP of every LM and
-expert layer are wrapped in `torch.utils.checkpoint`, in training mode with gradients enabled, like lerobot's.
-X-VLA the same way: every layer of its BART encoder (the LM) and every block of its action transformer.
+(`eager_attention_forward`, whose fp32 [B, heads, L, L] probabilities dominate) and the MLP of every LM and expert
+layer are wrapped in `torch.utils.checkpoint`, in training mode with gradients enabled, like lerobot's. X-VLA the
+same way: every layer of its BART encoder (the LM) and every block of its action transformer.
 """
 
 from __future__ import annotations

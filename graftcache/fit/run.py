@@ -344,7 +344,8 @@ class Fitter:
         with closing(read_chunks(self._feed(mat, mat.eval, control, cell.seed + 1).features(seed=None),
                                  self.req.num_workers, stats)) as chunks:
             score = evaluate(adapter, mat.eval, chunks, cams, batch_size=self.req.eval_batch_size,
-                             transform=control.transform, dtype=self.dtype, num_denoise_steps=self.req.num_denoise_steps)
+                             transform=control.transform, dtype=self.dtype,
+                             num_denoise_steps=self.req.num_denoise_steps)
         eval_s = time.perf_counter() - t_eval
         wall = time.perf_counter() - t0
         if control.train:
@@ -374,7 +375,8 @@ class Fitter:
         adapter.set_activation_checkpointing(False)  # only a training step uses it (what the last cell left)
         check_step_memory(adapter, mats[0].train, self.cameras, mats[0].source, batch_size=self.req.batch_size,
                           buffer_mib=self.req.buffer_mib, dtype=self.dtype,
-                          checkpointing=self.req.activation_checkpointing, others=[(mat.train, mat.source, m.fitter.req.buffer_mib)
+                          checkpointing=self.req.activation_checkpointing,
+                          others=[(mat.train, mat.source, m.fitter.req.buffer_mib)
                                   for m, mat in zip(members[1:], mats[1:], strict=True)],
                           route=lambda sizes: fused.rows([*sizes, *[0] * (len(members) - len(sizes))]))
         checkpointing = "on" if adapter.activation_checkpointing else "off"
