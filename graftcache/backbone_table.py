@@ -11,6 +11,7 @@ BACKBONES: dict[str, str] = {
     "smolvla": "graftcache.backbones.smolvla:SmolVLAAdapter",
     "pi05": "graftcache.backbones.pi05:PI05Adapter",
     "xvla": "graftcache.backbones.xvla:XVLAAdapter",
+    "eo1": "graftcache.backbones.eo1:EO1Adapter",
 }
 
 #: Approximate parameter counts of the released policies (lerobot's docs), for results tables written before rows
