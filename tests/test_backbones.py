@@ -15,7 +15,7 @@ from graftcache.graft import GraftProjector, IdentityProjector, feature_key
 pytestmark = pytest.mark.usefixtures("one_torch_thread")  # tests/fixtures/torch_threads.py
 
 NAMES = ("smolvla", "pi05")
-ZOO = ("xvla",)  # tested in their own files (tests/test_backbones_<name>.py)
+ZOO = ("xvla", "eo1")  # tested in their own files (tests/test_backbones_<name>.py)
 
 
 def test_registry_maps_names_to_adapters() -> None:

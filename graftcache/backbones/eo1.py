@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import logging
 from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
@@ -64,6 +65,19 @@ def left_padded(batch: Mapping[str, Any]) -> dict[str, Any]:
     for key in SEQUENCE_KEYS:
         out[key] = torch.stack([row.roll(n) for row, n in zip(batch[key], pads)])
     return out
+
+
+@contextlib.contextmanager
+def processor_kwargs_quiet() -> Iterator[None]:
+    """Mute transformers' per-call warning that lerobot's EO-1 step passes the pixel bounds to
+    `apply_chat_template` as plain kwargs (transformers 5 still applies them: see the released-geometry test)."""
+    logger = logging.getLogger("transformers.processing_utils")
+    level = logger.level
+    logger.setLevel(logging.ERROR)
+    try:
+        yield
+    finally:
+        logger.setLevel(level)
 
 
 @contextlib.contextmanager
@@ -207,28 +221,56 @@ class EO1Adapter(BackboneAdapter):
         """Grafted stand-in for EO1Policy._get_model_inputs: Qwen's `pixel_values` are the cached features of
         every image, sample after sample, camera after camera (the order of the image pads in the prompts)."""
         images, _ = super()._feature_images(batch)
-        tokens = images[0].shape[1]
-        if tokens != self.native_grid[0] * self.native_grid[1]:
-            raise BackboneError(f"{self.name}: cached features have {tokens} tokens per camera; the prompt has "
-                                f"{self.native_grid[0]}x{self.native_grid[1]} image slots per camera")
+        slots = set((batch["image_grid_thw"].prod(-1) // self._vision_owner.spatial_merge_size ** 2).tolist())
+        tokens = {f.shape[1] for f in images}
+        if tokens != slots or len(slots) != 1:
+            raise BackboneError(f"{self.name}: cached features have {sorted(tokens)} tokens per camera; the prompt "
+                                f"has {sorted(slots)} image slots per camera")
         inputs = {k: v for k, v in batch.items()
                   if k not in excluded_keys and not k.startswith(feature_key(""))}
         inputs["pixel_values"] = torch.stack(images, dim=1).flatten(0, 2)
         return inputs
 
+    def _prompt_grid(self, tokens: int) -> tuple[int, int]:
+        """The merged grid a prompt needs for `tokens` cached tokens per camera: the native grid, or the square
+        grid of a pooling control (the cache keeps no shape, so any other count is refused, not guessed)."""
+        gh, gw = self.native_grid
+        if tokens == gh * gw:
+            return gh, gw
+        side = round(tokens ** 0.5)
+        if side * side != tokens:
+            raise BackboneError(f"{self.name}: {tokens} cached tokens per camera is neither the native {gh}x{gw} "
+                                "grid nor a square one; EO-1's prompt needs the grid's shape")
+        return side, side
+
     def prepare(self, raw: Mapping[str, Any]) -> dict[str, Any]:
-        """lerobot's preprocessor (prompt, padding, normalisation); grafted, the prompt is made from blank frames
-        of the dataset's size and the cached features ride along for `_feature_images`."""
+        """lerobot's preprocessor (prompt, padding, normalisation). Grafted, the prompt is made from blank frames
+        whose processed grid is the cached features' (the native grid, or a pooling control's square grid; the
+        processor's pixel bounds are set to that frame for the call), and the features ride along for
+        `_feature_images`."""
         if not self.grafted:
-            return super().prepare(raw)
+            with processor_kwargs_quiet():
+                return super().prepare(raw)
         batch = dict(raw)
         missing = [k for k in [feature_key(c) for c in self.camera_keys] + [STATE, "task"] if k not in batch]
         if missing:
             raise BackboneError(f"{self.name} batch is missing {', '.join(missing)}")
+        counts = {k: batch[feature_key(k)].shape[1] for k in self.camera_keys}
+        if len(set(counts.values())) != 1:
+            raise BackboneError(f"{self.name}: cameras carry different token counts ({counts})")
+        gh, gw = self._prompt_grid(next(iter(counts.values())))
+        factor = self._vision_owner.config.patch_size * self._vision_owner.spatial_merge_size
         size = batch[STATE].shape[0]
-        for key, feature in self.config.image_features.items():
-            batch[key] = torch.zeros(size, *feature.shape)
-        out = self.preprocessor(batch)
+        for key in self.config.image_features:
+            batch[key] = torch.zeros(size, 3, gh * factor, gw * factor)
+        step = self._qwen_processor
+        bounds = step.image_min_pixels, step.image_max_pixels
+        step.image_min_pixels = step.image_max_pixels = gh * gw * factor * factor
+        try:
+            with processor_kwargs_quiet():
+                out = self.preprocessor(batch)
+        finally:
+            step.image_min_pixels, step.image_max_pixels = bounds
         for key in self.config.image_features:
             out.pop(key, None)
         return out

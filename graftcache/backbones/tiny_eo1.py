@@ -10,7 +10,7 @@ Qwen2-VL's image processor (patch 14, merge 2, temporal patch 2, CLIP mean/std).
   model 64 wide x 2 layers (4 heads, 2 KV heads, vocabulary 1088 >= the tokenizer's 771 + EO-1's 7 added
   tokens); the processor bounds the pixels to 4..16 x 28*28, so a 128 px frame -> smart_resize 112x112 -> 8x8
   patches -> 2x2 merge -> 4x4 = 16 tokens per camera.
-- released (Qwen/Qwen2.5-VL-3B-Instruct, EO-1's `vlm_base`): vision 1280 wide x 32 blocks, merger into a
+- released (lerobot/eo1-base = IPEC-COMMUNITY/EO-1-3B on Qwen/Qwen2.5-VL-3B-Instruct, EO-1's `vlm_base`): vision 1280 wide x 32 blocks, merger into a
   2048-wide, 36-layer text model; 64*28*28 .. 128*28*28 pixels: 256 px -> 252 -> 18x18 patches -> 9x9 = 81.
 """
 
@@ -64,7 +64,7 @@ QWEN25_VL_3B = {
                     "max_position_embeddings": 128000, "tie_word_embeddings": True,
                     "rope_parameters": {"rope_type": "default", "mrope_section": [16, 24, 24],
                                         "rope_theta": 1000000.0}},
-    "tie_word_embeddings": True, "image_token_id": 151655, "video_token_id": 151656,
+    "tie_word_embeddings": True, "dtype": "bfloat16", "image_token_id": 151655, "video_token_id": 151656,
     "vision_start_token_id": 151652, "vision_end_token_id": 151653,
 }
 
@@ -116,9 +116,13 @@ def eo1_tiny_config(spec: TinySpec, device: str, image_size: int = TINY_IMAGE_SI
 
 
 def eo1_released_config(cameras: tuple[str, ...], image_size: int, state_dim: int, action_dim: int, device: str):
-    """EO-1 on Qwen/Qwen2.5-VL-3B-Instruct for a dataset (lerobot's EO1Config defaults otherwise)."""
+    """lerobot/eo1-base's geometry for a dataset (IPEC-COMMUNITY/EO-1-3B converted: Qwen/Qwen2.5-VL-3B-Instruct,
+    chunk 16, state/action padded to 32, two action-projector layers, 10 denoising steps; lerobot's defaults
+    otherwise)."""
     spec = TinySpec(cameras=cameras, state_dim=state_dim, action_dim=action_dim)
-    return _config(spec, QWEN25_VL_3B, "Qwen/Qwen2.5-VL-3B-Instruct", image_size, None, device)
+    config = _config(spec, QWEN25_VL_3B, "Qwen/Qwen2.5-VL-3B-Instruct", image_size, None, device)
+    config.chunk_size = 16
+    return config
 
 
 def construct(config):
