@@ -5,6 +5,8 @@ save/load by hub id, and the released geometry on the meta device (3.8B paramete
 
 from __future__ import annotations
 
+import json
+
 import pytest
 import torch
 from helpers.backbones import ENC_DIM, fixed_noise_time, grafted, raw_features, raw_images, tiny
@@ -179,6 +181,18 @@ def test_saved_tiny_loads_by_hub_id(tmp_path, monkeypatch: pytest.MonkeyPatch) -
     raw = raw_images(adapter, 2, size=SIZE)
     noise, _ = fixed_noise_time(adapter, 2)
     torch.testing.assert_close(loaded.predict(loaded.prepare(raw), noise), adapter.predict(adapter.prepare(raw), noise))
+
+
+def test_missing_qwen_processor_is_one_line(tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A (non-tiny) checkpoint whose Qwen2.5-VL processor is not in the HF cache: one line naming it."""
+    adapter = tiny("eo1")
+    folder = adapter.save(tmp_path / "policy")
+    (folder / "graftcache_tiny.json").unlink()
+    config = json.loads((folder / "config.json").read_text())
+    (folder / "config.json").write_text(json.dumps({**config, "vlm_base": "Qwen/Qwen2.5-VL-3B-Instruct"}))
+    monkeypatch.setenv("HF_HUB_CACHE", str(tmp_path / "empty"))
+    with pytest.raises(BackboneError, match="EO-1's Qwen2.5-VL processor 'Qwen/Qwen2.5-VL-3B-Instruct' is neither"):
+        load_backbone("eo1", folder)
 
 
 def test_released_geometry_on_the_meta_device() -> None:

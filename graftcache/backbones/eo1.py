@@ -37,6 +37,7 @@ from transformers.modeling_outputs import BaseModelOutputWithPooling
 
 from graftcache.backbones.base import BackboneAdapter
 from graftcache.backbones.batches import ACTION, STATE
+from graftcache.backbones.checkpoint import cached_repo
 from graftcache.backbones.tiny import TinySpec
 from graftcache.backbones.tiny_eo1 import QWEN_VL_DIR, build_tiny_eo1, construct
 from graftcache.errors import BackboneError
@@ -123,24 +124,30 @@ class EO1Adapter(BackboneAdapter):
         weights): without a `pretrained_path` lerobot would first fetch `vlm_base`'s own weights."""
         from lerobot.policies.eo1.modeling_eo1 import EO1Policy
 
-        if marker is not None:
-            config.vlm_base = str(QWEN_VL_DIR)
         config.pretrained_path = folder
         return EO1Policy.from_pretrained(folder, config=config)
 
     @classmethod
+    def _qwen_folder(cls, config, marker: dict | None) -> Path:
+        """The Qwen2.5-VL processor folder: the shipped tiny one (a tiny checkpoint's saved path points into the
+        package that saved it), a local folder, or `vlm_base`'s snapshot in the local HF cache."""
+        if marker is not None:
+            return QWEN_VL_DIR
+        if Path(config.vlm_base).is_dir():
+            return Path(config.vlm_base)
+        return cached_repo(config.vlm_base, "EO-1's Qwen2.5-VL processor")
+
+    @classmethod
     def _processor_overrides(cls, config, marker: dict | None, device: str) -> tuple[dict, dict]:
         pre, post = super()._processor_overrides(config, marker, device)
-        if marker is not None:  # the saved processor path points into the package that saved it
-            pre["eo1_qwen_processor"] = {"processor_name": str(QWEN_VL_DIR)}
+        pre["eo1_qwen_processor"] = {"processor_name": str(cls._qwen_folder(config, marker))}
         return pre, post
 
     @classmethod
     def _make_processors(cls, config, stats: dict, marker: dict | None):
         from lerobot.policies.eo1.processor_eo1 import make_eo1_pre_post_processors
 
-        if marker is not None:
-            config.vlm_base = str(QWEN_VL_DIR)
+        config.vlm_base = str(cls._qwen_folder(config, marker))
         return make_eo1_pre_post_processors(config, dataset_stats=stats)
 
     # ------------------------------------------------------------------------------ geometry
