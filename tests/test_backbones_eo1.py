@@ -9,7 +9,7 @@ import json
 
 import pytest
 import torch
-from helpers.backbones import ENC_DIM, fixed_noise_time, grafted, raw_features, raw_images, tiny
+from helpers.backbones import ENC_DIM, fixed_noise_time, grafted, lowdim_stats, raw_features, raw_images, tiny
 
 from graftcache.backbones import load_backbone
 from graftcache.backbones.checkpoint import state_dict_sha256
@@ -203,7 +203,6 @@ def test_released_geometry_on_the_meta_device() -> None:
     from lerobot.policies.eo1.processor_eo1 import make_eo1_pre_post_processors
 
     from graftcache.backbones.tiny_eo1 import QWEN_VL_DIR, construct, eo1_released_config
-    from helpers.backbones import lowdim_stats
 
     config = eo1_released_config(("image", "image2"), 256, 8, 7, "cpu")
     config.device = "meta"

@@ -39,7 +39,7 @@ from graftcache.backbones.base import BackboneAdapter
 from graftcache.backbones.batches import ACTION, STATE
 from graftcache.backbones.checkpoint import cached_repo
 from graftcache.backbones.tiny import TinySpec
-from graftcache.backbones.tiny_eo1 import QWEN_VL_DIR, build_tiny_eo1, construct
+from graftcache.backbones.tiny_eo1 import QWEN_VL_DIR, build_tiny_eo1
 from graftcache.errors import BackboneError
 from graftcache.graft import feature_key
 
@@ -158,7 +158,7 @@ class EO1Adapter(BackboneAdapter):
     @classmethod
     def _grid_of_config(cls, config, marker: dict | None) -> tuple[int, int]:
         """The merged grid of the first camera's frame (the dataset's size, as the config declares it)."""
-        cameras = [f for k, f in config.image_features.items()]
+        cameras = list(config.image_features.values())
         if not cameras:
             raise BackboneError("eo1 config declares no camera")
         return merged_grid(tuple(cameras[0].shape[-2:]), config.vision_config, config.image_min_pixels,
@@ -190,9 +190,9 @@ class EO1Adapter(BackboneAdapter):
         sizes = (image_grid_thw.prod(-1) // qwen.visual.spatial_merge_size ** 2).tolist()
         return BaseModelOutputWithPooling(last_hidden_state=pixel_values, pooler_output=torch.split(tokens, sizes))
 
-    def _vision(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, tuple[int, int]]:
+    def _vision(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """[B, 3, H, W] in [0, 1] through the policy's own processor and ViT: (pre-merger patch grid [B, gh, gw,
-        C] in raster order, post-merger tokens [B, T, D], the merged grid)."""
+        C] in raster order, post-merger tokens [B, T, D])."""
         if self.grafted:
             raise BackboneError(f"{self.name}: the native tower was removed by graft(); read it before grafting")
         if images.ndim != 4 or images.shape[1] != 3:
@@ -212,7 +212,7 @@ class EO1Adapter(BackboneAdapter):
         hidden = out.last_hidden_state.view(-1, m * m, out.last_hidden_state.shape[-1])[torch.argsort(window)]
         grid = hidden.view(size, gh // m, gw // m, m, m, -1).permute(0, 1, 3, 2, 4, 5).reshape(size, gh, gw, -1)
         tokens = out.pooler_output.view(size, (gh // m) * (gw // m), -1)
-        return grid.float(), tokens.float(), (gh // m, gw // m)
+        return grid.float(), tokens.float()
 
     @torch.no_grad()
     def native_patch_grid(self, images: torch.Tensor) -> torch.Tensor:
