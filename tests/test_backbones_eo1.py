@@ -29,6 +29,9 @@ def test_tiny_geometry() -> None:
     images = torch.rand(2, 3, SIZE, SIZE)
     assert adapter.native_patch_grid(images).shape == (2, 8, 8, 32) and adapter.native_tokens(images).shape == (2, 16, 64)
     assert adapter.n_params == 245_800
+    report = {r.module: r.params for r in adapter.freeze_report().rows}
+    merger = 32 + (128 * 128 + 128) + (128 * 64 + 64)  # RMSNorm(32), Linear(4 x 32 -> 128), Linear(128 -> 64)
+    assert sum(report.values()) == 245_800 and report["connector"] == merger
     tokenizer = adapter._qwen_processor._processor.tokenizer  # EO-1's 7 tokens added to the tiny vocabulary
     assert len(tokenizer) <= adapter.policy.model.vlm_backbone.config.text_config.vocab_size
 
