@@ -1,10 +1,10 @@
-# The two commands a new user needs (see README): `make demo` and `make test`.
+# The two commands a new user needs (see README): `make demo` and `make test` (ruff, then pytest: what CI runs).
 # Both set up .venv first (scripts/setup.sh is idempotent) and run fully offline.
 export HF_HUB_OFFLINE := 1
 export HF_DATASETS_OFFLINE := 1
 export TRANSFORMERS_OFFLINE := 1
 
-.PHONY: setup demo test test-fast bench
+.PHONY: setup demo lint test test-fast bench
 
 setup:
 	bash scripts/setup.sh
@@ -12,7 +12,10 @@ setup:
 demo: setup
 	.venv/bin/graftcache demo
 
-test: setup
+lint: setup
+	.venv/bin/ruff check .
+
+test: lint
 	.venv/bin/python -m pytest -q
 
 test-fast: setup

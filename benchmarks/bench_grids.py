@@ -34,7 +34,7 @@ from pathlib import Path
 
 from common import DEFAULT_DATASET, machine
 
-from graftcache.cli.common import int_list
+from graftcache.codecs import int_list
 from graftcache.encoders import list_encoders
 from graftcache.extract import ExtractRequest, extract
 from graftcache.fit.controls import get_control
@@ -107,7 +107,8 @@ def main() -> None:
     print(f"lscpu model name: {model}")
     print(f"machine: {machine()}")
     grids, backbones = before_grids()
-    print(f"BEFORE: {' + '.join(map(format_grid, grids))} per camera (backbones {', '.join(map(format_grid, backbones))} "
+    print(f"BEFORE: {' + '.join(map(format_grid, grids))} per camera "
+          f"(backbones {', '.join(map(format_grid, backbones))} "
           f"at the released geometry + the pool controls of {PAPER.name}); AFTER: the encoder's own grid alone")
     print(f"LIBERO: {LIBERO_FRAMES:,} frames x {CAMERAS} cameras, fp16")
     with tempfile.TemporaryDirectory(prefix="bench_grids_") as tmp:

@@ -86,13 +86,13 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         for family, name, kwargs in members(Path(tmp), a.real_size):
             encoder = load_encoder(name, **kwargs)
-            probe = median_seconds(lambda: fingerprint(encoder, a.compute_dtype), a.repeats)
+            probe = median_seconds(lambda encoder=encoder: fingerprint(encoder, a.compute_dtype), a.repeats)
             manifest = {"encoder": encoder.describe(), "weights": encoder.weights_info,
                         "weights_sha256": encoder.weights_info["sha256"], "versions": library_versions(),
                         "numerics": fingerprint(encoder, a.compute_dtype)}
             cache = SimpleNamespace(key=name.rsplit("/", 1)[-1], manifest=manifest)  # all the check reads
             verdict = check_numerics(cache).status
-            check = median_seconds(lambda: check_numerics(cache), a.repeats)
+            check = median_seconds(lambda cache=cache: check_numerics(cache), a.repeats)
             print(f"{family:<13} {name.rsplit('/', 1)[-1]:<34} {probe:8.3f} {check:8.3f}  {verdict}")
 
 

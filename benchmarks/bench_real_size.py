@@ -4,6 +4,7 @@ cached features and online from pixels.
 
     python benchmarks/bench_real_size.py [--device cpu|cuda] [--dtype auto|bf16|fp32]
         [--backbones smolvla,pi05] [--batches 1,4] [--repeats 5] [--hub DIR] [--out results.json]
+        [--only load]
 
 The backbones are random-init at the released geometry (graftcache.backbones.released: SmolVLM2-500M,
 PaliGemma gemma_2b + gemma_300m expert), written as lerobot writes a released policy into a HF hub cache
@@ -16,8 +17,9 @@ peak CUDA memory of:
 - cached step: the grafted policy's flow step on features already in memory (the native tower's grid at
   the LM's token grid: SmolVLA 64 x 768, pi0.5 256 x 1152, fp16 like a cache), AdamW on the projector;
 - predict: the denoised chunk (the policy's default steps), from pixels and from cached features;
-and the ratios cached / online. Also the load (lerobot's from_pretrained) and graft (weights hash and the
-CPU copy reset() keeps) peaks. A full pi0.5 step takes ~10 minutes on a CPU: pi0.5 runs on CPU only with
+and the ratios cached / online. Also the load (graftcache.backbones.lean) and graft (weights hash) peaks;
+`--only load` measures just load, graft and reset, with the peak RSS against the checkpoint's bytes. A full
+pi0.5 step takes ~10 minutes on a CPU: pi0.5 runs on CPU only with
 --cpu-pi05. Needs only graftcache on PYTHONPATH beside lerobot 0.6.1 and its pins (lerobot 0.6.1's pi0.5
 does not run under transformers 5.17: create_causal_mask() lost `cache_position`).
 """
@@ -39,7 +41,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from common import DEFAULT_DATASET, machine, median_seconds, warm_page_cache  # noqa: E402
 
-from graftcache.backbones import load_backbone  # noqa: E402
+from graftcache.backbones import get_backbone, load_backbone  # noqa: E402
 from graftcache.backbones.released import BUILDERS, LIBERO, built_here, hub_cache  # noqa: E402
 from graftcache.backbones.surgery import freeze_all_but  # noqa: E402
 from graftcache.datasets import open_dataset  # noqa: E402
@@ -153,9 +155,10 @@ def predict(adapter, make_raw: Callable[[np.ndarray], dict], frames: Frames, bat
     return run
 
 
-def bench_backbone(name: str, a: argparse.Namespace, device: torch.device, dtype_name: str, frames: Frames,
-                   memory: Memory, log: Callable[[dict], None]) -> None:
-    dtype = resolve_dtype(dtype_name)
+def built(name: str, a: argparse.Namespace, dtype_name: str, log: Callable[[dict], None]) -> tuple[str, Path]:
+    """The random-init released-geometry checkpoint of `name` in `--hub` (built unless this environment built
+    it already): its hub id and snapshot folder. pi0.5 is written in the compute dtype (bf16: LM and expert
+    bf16, vision path and norms fp32), SmolVLA in fp32 as released."""
     options = {"dtype": {"bf16": "bfloat16", "fp32": "float32"}[dtype_name]} if name == "pi05" else {}
     repo = f"graftcache-bench/{name}-libero-random" + (f"-{dtype_name}" if options else "")
     ref = a.hub / f"models--{repo.replace('/', '--')}" / "refs" / "main"
@@ -163,7 +166,64 @@ def bench_backbone(name: str, a: argparse.Namespace, device: torch.device, dtype
     if not (ref.is_file() and built_here(ref.parents[1] / "snapshots" / ref.read_text())):
         BUILDERS[name](repo, cache=a.hub, **options)
     log({"backbone": name, "batch": None, "phase": "build", "seconds": time.perf_counter() - t0})
+    return repo, ref.parents[1] / "snapshots" / ref.read_text()
 
+
+def current_rss_gb() -> float:
+    """Resident memory now (VmRSS)."""
+    line = next(ln for ln in Path("/proc/self/status").read_text().splitlines() if ln.startswith("VmRSS:"))
+    return int(line.split()[1]) * 1024 / 1e9
+
+
+def import_policy_code(name: str) -> None:
+    """Import lerobot's policy module and what it pulls in (transformers, custom kernels: tens of seconds on a
+    busy machine), so `load` times the load alone."""
+    from lerobot.policies.factory import get_policy_class
+
+    get_backbone(name)
+    get_policy_class(name)
+
+
+def bench_load(name: str, a: argparse.Namespace, device: torch.device, dtype_name: str, memory: Memory,
+               log: Callable[[dict], None]) -> None:
+    """`--only load`: the load's seconds and peak RSS against the checkpoint's bytes (target: peak <= 1.25 x
+    checkpoint + 2 GB on a CPU), then what a graft and a reset add to the resident memory (target: nothing)."""
+    repo, snapshot = built(name, a, dtype_name, log)
+    checkpoint = (snapshot / "model.safetensors").stat().st_size
+    t0 = time.perf_counter()
+    import_policy_code(name)
+    log({"backbone": name, "batch": None, "phase": "import", "seconds": time.perf_counter() - t0})
+    before = current_rss_gb()
+    memory.reset()
+    t0 = time.perf_counter()
+    adapter = load_backbone(name, repo, device=str(device))
+    seconds = time.perf_counter() - t0
+    peaks = memory.peaks()
+    target = 1.25 * checkpoint / 1e9 + 2
+    log({"backbone": name, "batch": None, "phase": "load", "seconds": seconds, **peaks,
+         "rss_before_gb": before, "rss_after_gb": current_rss_gb(), "checkpoint_gb": checkpoint / 1e9,
+         "peak_rss_over_checkpoint": peaks["peak_rss_gb"] * 1e9 / checkpoint,
+         "cpu_target_gb": target, "meets_cpu_target": peaks["peak_rss_gb"] <= target,
+         "dtypes": sorted({str(p.dtype).removeprefix("torch.") for p in adapter.policy.parameters()})})
+    loaded = current_rss_gb()
+    memory.reset()
+    t0 = time.perf_counter()
+    _ = adapter.policy_sha256  # what graft() computes first (pinned identity of the loaded weights)
+    tower, _ = adapter._tower_and_connector()
+    adapter.graft(GraftProjector(tower.config.hidden_size, adapter.lm_width))  # the native tower's width
+    log({"backbone": name, "batch": None, "phase": "graft", "seconds": time.perf_counter() - t0, **memory.peaks(),
+         "rss_growth_gb": current_rss_gb() - loaded})
+    memory.reset()
+    t0 = time.perf_counter()
+    adapter.reset()
+    log({"backbone": name, "batch": None, "phase": "reset", "seconds": time.perf_counter() - t0, **memory.peaks(),
+         "rss_growth_gb": current_rss_gb() - loaded})
+
+
+def bench_backbone(name: str, a: argparse.Namespace, device: torch.device, dtype_name: str, frames: Frames,
+                   memory: Memory, log: Callable[[dict], None]) -> None:
+    dtype = resolve_dtype(dtype_name)
+    repo, _ = built(name, a, dtype_name, log)
     memory.reset()
     t0 = time.perf_counter()
     adapter = load_backbone(name, repo, device=str(device))
@@ -203,7 +263,8 @@ def bench_backbone(name: str, a: argparse.Namespace, device: torch.device, dtype
              **measure(flow_step(adapter, cached, frames, b, dtype, g), a.repeats, memory)})
         log({"backbone": name, "batch": b, "phase": "cached predict",
              **measure(predict(adapter, cached, frames, b, dtype, g), a.repeats, memory)})
-    del adapter, pool
+    del adapter
+    pool = None  # frees the rows (`cached`, done with, reads the same variable)
     gc.collect()  # the graft's instance override makes policy and adapter a cycle
     if device.type == "cuda":
         torch.cuda.empty_cache()
@@ -233,7 +294,10 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N")
     p.add_argument("--dtype", default="auto", choices=("auto", "bf16", "fp32"))
-    p.add_argument("--backbones", default="smolvla,pi05")
+    p.add_argument("--backbones", "--backbone", default="smolvla,pi05")
+    p.add_argument("--only", choices=("load",),
+                   help="load: only load, graft and reset each backbone (seconds, peak RSS against the checkpoint's "
+                        "bytes); needs no dataset, and runs pi0.5 on a CPU without --cpu-pi05 (~10 GB)")
     p.add_argument("--batches", default="1,4")
     p.add_argument("--repeats", type=int, default=5, help="timed calls per phase, after one warm-up")
     p.add_argument("--dataset", type=Path, default=DEFAULT_DATASET)
@@ -254,12 +318,14 @@ def main() -> None:
     device = resolve_device(a.device)
     dtype_name = resolve_compute_dtype(a.dtype, device)
     set_main_threads(a.threads)
-    if device.type == "cpu" and "pi05" in names and not a.cpu_pi05:
+    if device.type == "cpu" and "pi05" in names and not a.cpu_pi05 and a.only != "load":
         print("skipping pi05 on cpu (pass --cpu-pi05 to run it)")
         names.remove("pi05")
-    warm_page_cache(a.dataset)
+    if a.only is None:
+        warm_page_cache(a.dataset)
     gpu = f"; {torch.cuda.get_device_name(device)}" if device.type == "cuda" else ""
-    header = f"machine: {machine()}{gpu}; device {device}, compute {dtype_name}"
+    bf16 = "yes" if "avx512_bf16" in Path("/proc/cpuinfo").read_text() else "no"
+    header = f"machine: {machine()}, avx512_bf16 {bf16}{gpu}; device {device}, compute {dtype_name}"
     print(header, flush=True)
     rows: list[dict] = []
 
@@ -272,9 +338,13 @@ def main() -> None:
                                          "compute_dtype": dtype_name, "repeats": a.repeats, "results": rows},
                                         indent=1))
 
-    frames = Frames(a.dataset, chunk=LIBERO.chunk_size)
     memory = Memory(device)
     with hub_cache(a.hub):
+        if a.only == "load":
+            for name in names:
+                bench_load(name, a, device, dtype_name, memory, log)
+            return
+        frames = Frames(a.dataset, chunk=LIBERO.chunk_size)
         for name in names:
             bench_backbone(name, a, device, dtype_name, frames, memory, log)
     print(table(rows))

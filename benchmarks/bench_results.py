@@ -20,8 +20,6 @@ import tempfile
 import time
 from pathlib import Path
 
-import polars as pl
-
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import machine, median_seconds  # noqa: E402
 

@@ -186,7 +186,8 @@ def section_stream(dataset: Path, work: Path, args: argparse.Namespace) -> None:
         cache = FeatureCache(cache.path, writable=False)
         if name == "libero":
             feed = SplitFeed(load_lowdim(cache, args.suite, chunk=50),
-                             FeatureSource.of(cache, cache.manifest["cameras"], grid), int(cache.layout["block_frames"]))
+                             FeatureSource.of(cache, cache.manifest["cameras"], grid),
+                             int(cache.layout["block_frames"]))
             capacity = buffer_frames(args.buffer_mib, feed.source.frame_bytes(), 64, len(feed.low))
             g = torch.Generator().manual_seed(0)
             n = 64 * 200

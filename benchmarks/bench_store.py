@@ -10,9 +10,9 @@ encoder made the numbers, and extracting real ones would time the encoder. The S
 in the venv) in its own process on 127.0.0.1, so client and server do not share a GIL.
 
 Fit data path = one pass of a fit's feature stream over one suite (`graftcache.fit.stream`, read in this process:
-features of both cameras, low-dim rows), every block checked against its checksum as stage 2 does. For S3: "cold" starts from an empty local
-read-through copy, "warm" reuses it. Push/pull = `graftcache.store.transfer.copy_cache` (copy + verify at the
-destination + publish); the plain copy moves the same objects with the same 8 threads, no checks.
+features of both cameras, low-dim rows), every block checked against its checksum as stage 2 does. For S3: "cold"
+starts from an empty local read-through copy, "warm" reuses it. Push/pull = `graftcache.store.transfer.copy_cache`
+(copy + verify at the destination + publish); the plain copy moves the same objects with the same 8 threads, no checks.
 """
 
 from __future__ import annotations

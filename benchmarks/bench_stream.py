@@ -138,8 +138,8 @@ def main() -> None:
     ap.add_argument("--rss-mib", default="64,256,1024")
     a = ap.parse_args()
     print(f"machine: {machine()}")
-    print("lscpu: " + next((ln.split(":", 1)[1].strip() for ln in subprocess.run(
-        ["lscpu"], capture_output=True, text=True, check=False).stdout.splitlines() if ln.startswith("Model name")), "?"))
+    lscpu = subprocess.run(["lscpu"], capture_output=True, text=True, check=False).stdout.splitlines()
+    print("lscpu: " + next((ln.split(":", 1)[1].strip() for ln in lscpu if ln.startswith("Model name")), "?"))
     torch.set_num_threads(1)
     with tempfile.TemporaryDirectory(prefix="bench_stream_") as tmp:
         t0 = time.perf_counter()

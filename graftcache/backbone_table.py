@@ -11,6 +11,8 @@ BACKBONES: dict[str, str] = {
     "smolvla": "graftcache.backbones.smolvla:SmolVLAAdapter",
     "pi05": "graftcache.backbones.pi05:PI05Adapter",
     "xvla": "graftcache.backbones.xvla:XVLAAdapter",
+    "pi0": "graftcache.backbones.pi0:PI0Adapter",
+    "pi0_fast": "graftcache.backbones.pi0_fast:PI0FastAdapter",
     "eo1": "graftcache.backbones.eo1:EO1Adapter",
 }
 
@@ -20,6 +22,8 @@ BACKBONES: dict[str, str] = {
 RELEASED_PARAMS: dict[str, int] = {
     "smolvla": 450_000_000,
     "pi05": 3_300_000_000,
+    "pi0": 3_300_000_000,
+    "pi0_fast": 2_900_000_000,
 }
 
 #: A backbone's own vision tower is the encoder `<backbone>-native` (stage 1 caches it like any encoder).

@@ -1,18 +1,14 @@
-"""Range rules for request fields, declared beside each request and checked in one place.
+"""Range rules for request fields: each names its test and the phrase that says what is wrong.
 
-Requests (ExtractRequest, FitRequest, TinyTrainConfig, TileRequest) derive from `Checked` and declare a `RULES`
-table; their construction and the sweep recipe reader (`cls.check(overrides)`) both apply it, so a
-count of 0 or a negative seed is a one-line error naming the field before any work starts, whichever
-way the request was made.
+A request field names its rule in its setting (graftcache.settings.setting(rule=...)); `Checked` applies it when
+the request is built and to a recipe's tables, and the CLI when it parses the flag, so each range is declared once.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any, ClassVar, Union
-
-from graftcache.errors import GraftcacheError
+from typing import Any
 
 #: The largest seed anything accepts: results store seeds as Int64 (graftcache.results.SCHEMA), and every RNG
 #: a seed feeds takes it, with the small offsets the fits add (torch.manual_seed up to 2**64 - 1,
@@ -25,7 +21,7 @@ class IntList:
     """Rule of a list of distinct ints in 0..`high`, one to `most` of them (seeds, episode indices).
 
     Its bounds are readable, so the CLI can refuse a range such as 0-100000000000 before expanding it
-    (graftcache.cli.common.int_list) with the very bounds the request checks."""
+    (graftcache.codecs.int_list) with the very bounds the request checks."""
 
     what: str
     high: int
@@ -48,7 +44,7 @@ class IntList:
 
 
 #: (test, why): the phrase, or a function that makes it, when the text lists what is only known on use.
-Rule = Union[tuple[Callable[[Any], bool], Union[str, Callable[[], str]]], IntList]
+Rule = tuple[Callable[[Any], bool], str | Callable[[], str]] | IntList
 
 POSITIVE: Rule = (lambda v: v > 0, "must be > 0")
 NON_NEGATIVE: Rule = (lambda v: v >= 0, "must be >= 0")
@@ -61,37 +57,9 @@ NAMES: Rule = (lambda v: len(v) > 0 and len(set(v)) == len(v), "must name at lea
 SHARD: Rule = (lambda v: len(v) == 2 and 0 <= v[0] < v[1], "must be i/N with 0 <= i < N")
 
 
-def check_fields(values: Mapping[str, Any], rules: Mapping[str, Rule]) -> None:
-    """Raise GraftcacheError for the first value (None means 'default', never checked) that breaks its rule."""
-    for name, rule in rules.items():
-        value = values.get(name)
-        if value is None:
-            continue
-        if isinstance(rule, IntList):
-            problem = rule.problem(value)
-        else:
-            ok, text = rule
-            problem = None if ok(value) else text() if callable(text) else text
-        if problem:
-            raise GraftcacheError(f"{name} = {_shown(value)} {problem}")
-
-
-def _shown(value: Any, width: int = 80) -> str:
-    """repr of a value, cut to `width` characters: a list of a million seeds stays one short line."""
-    if isinstance(value, tuple) and len(value) > 8:
-        return f"({', '.join(map(repr, value[:8]))}, ... {len(value)} in all)"
-    text = repr(value)
-    return text if len(text) <= width else f"{text[:width - 5]} ...{text[-1]}"
-
-
-class Checked:
-    """Mixin for request dataclasses: `RULES` checked at construction and on a dict of overrides."""
-
-    RULES: ClassVar[dict[str, Rule]] = {}
-
-    def __post_init__(self) -> None:
-        self.check(vars(self))
-
-    @classmethod
-    def check(cls, values: Mapping[str, Any]) -> None:
-        check_fields(values, cls.RULES)
+def problem(rule: Rule, value: Any) -> str | None:
+    """Why `value` breaks `rule` (one phrase), or None."""
+    if isinstance(rule, IntList):
+        return rule.problem(value)
+    ok, text = rule
+    return None if ok(value) else text() if callable(text) else text

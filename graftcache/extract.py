@@ -18,7 +18,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, replace
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -97,7 +97,7 @@ def build_manifest(req: ExtractRequest, source: LeRobotSource, encoder: Any, epi
     return {
         "format_version": FORMAT_VERSION,
         "graftcache_version": graftcache.__version__,
-        "created_at": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "created_at": datetime.now(UTC).isoformat(timespec="seconds"),
         "dataset": {
             "source": str(req.dataset),
             "root": str(meta.root),

@@ -39,7 +39,7 @@ def sha256_json(value: Any, *, compact: bool = False) -> str:
     return sha256_bytes(json.dumps(value, sort_keys=True, default=str, separators=separators).encode())
 
 
-def sha256_tensors(tensors: Iterable[tuple[str, "torch.Tensor"]], *, header_end: str) -> str:
+def sha256_tensors(tensors: Iterable[tuple[str, torch.Tensor]], *, header_end: str) -> str:
     """sha256 over (name, dtype, shape, raw bytes) of each tensor, in the given order; `header_end`
     closes each "name|dtype|shape" header (encoder weights used "\\n", policy weights "|")."""
     import torch  # here, not at the top: keys and run_ids are hashed without loading torch
@@ -48,5 +48,5 @@ def sha256_tensors(tensors: Iterable[tuple[str, "torch.Tensor"]], *, header_end:
     for name, tensor in tensors:
         t = tensor.detach().to("cpu").contiguous()
         h.update(f"{name}|{t.dtype}|{tuple(t.shape)}{header_end}".encode())
-        h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes())
+        h.update(t.reshape(-1).view(torch.uint8).numpy())  # hashed in place: no copy of a 1 GB embedding
     return h.hexdigest()

@@ -5,15 +5,15 @@ after extracting), found from the recipe, the dataset's metadata and the encoder
 `run_sweep` runs it first and `graftcache sweep --dry-run` runs it and stops, so a recipe the
 dry run passes is not refused by these checks halfway through the real run. What it builds to check is what
 the run builds: the ExtractRequest of every cache and the FitRequest of every (backbone, encoder, suite),
-whose RULES apply; the suites' held-out split (graftcache.fit.data.split_episodes) on the dataset's
-episodes; every encoder's spec and each extraction's memory (graftcache.extract.check_memory).
+whose fields' rules apply (graftcache/requests.py); the suites' held-out split (graftcache.fit.data.split_episodes)
+on the dataset's episodes; every encoder's spec and each extraction's memory (graftcache.extract.check_memory).
 """
 
 from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
-from typing import Any, TypeVar
+from typing import Any
 
 import polars as pl
 
@@ -24,20 +24,14 @@ from graftcache.errors import GraftcacheError
 from graftcache.extract import check_memory
 from graftcache.fit.controls import get_control
 from graftcache.fit.data import split_episodes
-from graftcache.fit.objectives import OBJECTIVES
 from graftcache.pooling import format_grid, resolve_grids
 from graftcache.recipe import Recipe, RecipeError
 from graftcache.requests import ExtractRequest, FitRequest
 from graftcache.runtime import resolve_device
 
-R = TypeVar("R")
-
 
 def check_inputs(recipe: Recipe) -> list[str]:
     """Raise the first thing the sweep would refuse; return what was found, a line each, for the dry run."""
-    if recipe.objective not in OBJECTIVES:
-        raise RecipeError(f"{recipe.path}: objective {recipe.objective!r}: choose one of "
-                          f"{', '.join(OBJECTIVES)}")
     device = resolve_device(recipe.device)
     meta = open_dataset(recipe.dataset).meta  # missing, malformed, self-contradicting or empty: refused here
     extracts = [_extract_request(recipe, enc.name, weights=enc.weights, random_init=enc.random_init,
@@ -100,8 +94,8 @@ def _fit_request(recipe: Recipe, backbone: str, policy: str, encoder: str, suite
         command=f"graftcache sweep {recipe.path}", **recipe.fit))
 
 
-def _made(recipe: Recipe, section: str, build: Callable[[], R]) -> R:
-    """The request `build` makes, its refusal (a RULE, a combination) naming the recipe and the section."""
+def _made[R](recipe: Recipe, section: str, build: Callable[[], R]) -> R:
+    """The request `build` makes, its refusal (a field's rule, a combination) naming the recipe and the section."""
     try:
         return build()
     except GraftcacheError as e:

@@ -10,11 +10,10 @@ from __future__ import annotations
 import sys
 import time
 from collections.abc import Iterable, Iterator
-from typing import Any, TypeVar
+from typing import Any
 
 from tqdm import tqdm
 
-T = TypeVar("T")
 LOG_EVERY = 0.10  # fraction of the total between two log lines
 
 
@@ -81,8 +80,8 @@ class LogProgress:
         self._closed = True
 
 
-def progress(iterable: Iterable[T] | None = None, *, total: float | None = None, desc: str = "", unit: str = "it",
-             enabled: bool = True, leave: bool = True) -> Any:
+def progress[T](iterable: Iterable[T] | None = None, *, total: float | None = None, desc: str = "",
+                unit: str = "it", enabled: bool = True, leave: bool = True) -> Any:
     """A tqdm bar on a terminal, a LogProgress on anything else; `enabled=False` prints nothing at all."""
     if enabled and sys.stderr.isatty():
         return tqdm(iterable, total=total, desc=desc, unit=unit, leave=leave, dynamic_ncols=True)

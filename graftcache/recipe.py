@@ -8,7 +8,7 @@ Recipe keys (unknown keys are errors, so a typo never silently falls back to a d
                    (graftcache/cameras.py); passed to every fit and native-tower extract
     [[backbones]]  name, policy ("tiny" = natively trained on `dataset`, else hub id or folder)
     [[encoders]]   name, weights, random_init, seed
-    [extract]      fields of ExtractRequest  } except those the grid sets (GRID_FIELDS): e.g. batch_size,
+    [extract]      fields of ExtractRequest  } except those the grid sets (`recipe=False`): e.g. batch_size,
     [fit]          fields of FitRequest      } dtype, frame_stride, grids; steps, lr, eval_frames, lora_rank;
     [train_tiny]   fields of TinyTrainConfig } steps, seed (backbones with policy = "tiny")
     [executor]     fields of ExecutorSettings: where extractions and cells run (executor = "ray", address,
@@ -18,7 +18,8 @@ Recipe keys (unknown keys are errors, so a typo never silently falls back to a d
 reads) is for storing pooled grids as well or instead, e.g. ["native", "4x4"] (graftcache.sweep.encoder_grids).
 
 Every value is checked against the type of the request field it sets (a string where a number, list
-or boolean belongs is an error naming file, table and key), and the requests check their ranges.
+or boolean belongs is an error naming file, table and key), and against its range and choices: each declared once,
+on the field (graftcache/requests.py), as for the CLI's flags.
 
 Relative paths in `dataset` are resolved against the recipe's folder when they exist there, so a
 recipe in cli/ can name ../data/libero_sample; anything else is passed on (a hub repo id).
@@ -27,7 +28,6 @@ recipe in cli/ can name ../data/libero_sample; anything else is passed on (a hub
 from __future__ import annotations
 
 import tomllib
-import types
 import typing
 from collections.abc import Mapping
 from dataclasses import dataclass, field, fields
@@ -36,10 +36,11 @@ from typing import Any
 
 from graftcache.backbone_table import BACKBONES
 from graftcache.cameras import parse_camera_map
+from graftcache.codecs import matches, type_name
 from graftcache.errors import GraftcacheError
-from graftcache.executors import check_executor
 from graftcache.fit.controls import get_control
 from graftcache.requests import ExecutorSettings, ExtractRequest, FitRequest, TinyTrainConfig
+from graftcache.settings import default_of, recipe_keys
 
 
 class RecipeError(GraftcacheError):
@@ -67,20 +68,10 @@ class BackboneEntry:
 #: The request each settings table overrides; its own defaults apply to anything the table leaves out.
 SECTIONS: dict[str, type] = {"extract": ExtractRequest, "fit": FitRequest, "train_tiny": TinyTrainConfig,
                              "executor": ExecutorSettings}
-#: Request fields the sweep sets from the grid itself (dataset, encoder, backbone, seeds, ...), never from a table
-#: (nor `shard`: a sweep needs whole caches, so it never extracts one shard of one).
-GRID_FIELDS: dict[str, frozenset[str]] = {
-    "extract": frozenset({"dataset", "encoder", "episodes", "weights", "random_init", "seed", "policy",
-                          "device", "cache", "progress", "extra_manifest", "shard", "camera_map"}),
-    "fit": frozenset({"backbone", "encoder", "suite", "policy", "dataset", "cache_key", "native_cache_key", "seeds",
-                      "controls", "objective", "device", "results", "cache", "progress", "command", "camera_map"}),
-    "train_tiny": frozenset(),
-    "executor": frozenset(),
-}
-#: Settings a recipe's [extract] / [fit] / [train_tiny] tables may set: every other field of the request.
-SECTION_KEYS: dict[str, tuple[str, ...]] = {
-    section: tuple(f.name for f in fields(cls) if f.name not in GRID_FIELDS[section]) for section, cls in SECTIONS.items()
-}
+#: Settings a recipe's [extract] / [fit] / [train_tiny] / [executor] tables may set: every field of the request
+#: but those the sweep sets from its grid (dataset, encoder, backbone, seeds, ...; nor `shard`: a sweep needs whole
+#: caches), as each field declares (graftcache/requests.py, `recipe=False`).
+SECTION_KEYS: dict[str, tuple[str, ...]] = {section: recipe_keys(cls) for section, cls in SECTIONS.items()}
 
 
 @dataclass(frozen=True)
@@ -95,10 +86,10 @@ class Recipe:
     encoders: tuple[EncoderEntry, ...]
     seeds: tuple[int, ...]
     controls: tuple[str, ...] = ()
-    objective: str = "flow"
+    objective: str = default_of(FitRequest, "objective")
     camera_map: str | None = None
     cache: str | None = None
-    device: str = "cpu"
+    device: str = default_of(FitRequest, "device")
     extract: Mapping[str, Any] = field(default_factory=dict)     # ExtractRequest overrides
     fit: Mapping[str, Any] = field(default_factory=dict)         # FitRequest overrides
     train_tiny: Mapping[str, Any] = field(default_factory=dict)  # TinyTrainConfig overrides
@@ -127,41 +118,13 @@ _LISTS = {"backbones": BackboneEntry, "encoders": EncoderEntry}
 _REQUIRED = ("name", "dataset", "results", "suites", "backbones", "encoders", "seeds")
 
 
-def _matches(value: Any, hint: Any) -> bool:
-    """Whether a TOML value (lists already turned into tuples) fits a dataclass field's type hint."""
-    origin, args = typing.get_origin(hint), typing.get_args(hint)
-    if hint is Any:
-        return True
-    if origin in (typing.Union, types.UnionType):
-        return any(_matches(value, a) for a in args)
-    if hint is type(None):
-        return value is None
-    if origin is tuple:
-        if not isinstance(value, tuple):
-            return False
-        if len(args) == 2 and args[1] is Ellipsis:
-            return all(_matches(v, args[0]) for v in value)
-        return len(args) == len(value) and all(_matches(v, a) for v, a in zip(value, args))
-    if origin is not None:  # Mapping[...], dict[...]
-        return isinstance(value, origin)
-    if hint is float:
-        return isinstance(value, (int, float)) and not isinstance(value, bool)
-    if hint is int:
-        return isinstance(value, int) and not isinstance(value, bool)
-    return isinstance(value, hint)
-
-
-def _type_name(hint: Any) -> str:
-    return getattr(hint, "__name__", None) or str(hint).replace("typing.", "")
-
-
 def _typed(cls: type, values: Mapping[str, Any], where: str) -> dict[str, Any]:
     """`values` (TOML lists as tuples) after checking each against `cls`'s field types."""
     hints = typing.get_type_hints(cls)
     out = {k: _tuples(v) for k, v in values.items()}
     for key, value in out.items():
-        if key in hints and not _matches(value, hints[key]):
-            raise RecipeError(f"{where}: {key} = {value!r} is not a {_type_name(hints[key])}")
+        if key in hints and not matches(value, hints[key]):
+            raise RecipeError(f"{where}: {key} = {value!r} is not a {type_name(hints[key])}")
     return out
 
 
@@ -224,10 +187,6 @@ def load_recipe(path: str | Path) -> Recipe:
         top[section] = _section(data, section, str(path))
     top["dataset"] = _resolve_dataset(str(data["dataset"]), path.resolve().parent)
     recipe = _build(Recipe, {**top, "path": str(path)}, str(path))
-    try:
-        check_executor(recipe.executor_settings.executor)
-    except GraftcacheError as e:
-        raise RecipeError(f"{path} [executor]: {e}") from None
     for control in recipe.controls:
         try:
             get_control(control)
@@ -245,10 +204,10 @@ def load_recipe(path: str | Path) -> Recipe:
 
 
 def _check_grid(recipe: Recipe, path: Path) -> None:
-    """The grid's axes by the rules of the requests they become (seeds, suites, controls: FitRequest.RULES; an
-    encoder's seed: ExtractRequest.RULES), and no entry twice: a repeated seed, suite, encoder or backbone
+    """The grid's axes by the rules of the requests they become (seeds, suites, controls, objective: FitRequest's;
+    an encoder's seed: ExtractRequest's), and no entry twice: a repeated seed, suite, encoder or backbone
     would visit its cells twice (each written once), so the counts the sweep reports would be wrong."""
-    for key, values in (("seeds", recipe.seeds), ("controls", recipe.controls)):
+    for key, values in (("seeds", recipe.seeds), ("controls", recipe.controls), ("objective", recipe.objective)):
         _rule(FitRequest, key, values, str(path))
     for suite in recipe.suites:
         _rule(FitRequest, "suite", suite, f"{path}: suites")

@@ -1,24 +1,56 @@
-"""What each command is asked to do: the request dataclasses, in one light module.
+"""What each command is asked to do: the request dataclasses, in one light module, and the one home of every
+setting.
 
-Each field's default lives here and only here: the CLI derives its flags' defaults from these fields
-(cli/common.py `default_of`), the sweep recipe's settings tables are these fields, and the range rules
-(checks.py) are declared beside them. Nothing here imports torch or the models, so building the CLI's
-parser stays cheap.
+Each field declares, with `setting(...)` (graftcache/settings.py), everything about it that is used outside
+Python: its default, help, flag, choices, range rule (graftcache/checks.py), how its flag's text is read and
+written (graftcache/codecs.py; by default from the field's type), and whether a sweep recipe's settings table
+may set it (`recipe=False`: the sweep sets it from its grid). From these the CLI builds its flags
+(graftcache.cli.common.add_flags), the recipe reader its schema (graftcache.recipe), the sweep the command lines
+it records (graftcache.sweep.command_line), and `Checked` the checks every construction runs.
+
+Adding a setting is one declaration here. E.g. a FitRequest field
+
+    eval_batch_size: int | None = setting(None, rule=POSITIVE, help="frames scored at once (default: --batch-size)")
+
+is at once `graftcache fit --eval-batch-size N` (an int > 0; `--eval-batch-size 0` is a one-line usage error),
+a key of a recipe's [fit] table (type and range checked there too), written into the command lines a sweep
+records, and checked whenever a FitRequest is built. A choice is `choices=("auto", "on", "off")`; a switch is a
+`bool` field (default False: `--name`; default True: `--no-name`). A field the command sets itself takes
+`flag=None`; one the sweep's grid sets takes `recipe=False`.
+
+Nothing here imports torch or the models, so building the CLI's parser stays cheap: choices are plain data, and
+help that lists what a heavy module registers is a function the CLI calls only to print help.
 """
 
 from __future__ import annotations
 
 import sys
-from dataclasses import asdict, dataclass, field
-from typing import Any, ClassVar
+from dataclasses import asdict, dataclass
+from typing import Any
 
+from graftcache import codecs
+from graftcache.backbone_table import BACKBONES, native_name
 from graftcache.cameras import SYNTAX, valid_camera_map
-from graftcache.checks import EPISODES, FRACTION, NAMES, NON_NEGATIVE, POSITIVE, SEED, SEEDS, SHARD, Checked, Rule
+from graftcache.checks import EPISODES, FRACTION, NAMES, NON_NEGATIVE, POSITIVE, SEED, SEEDS, SHARD, Rule
+from graftcache.dtypes import COMPUTE_DTYPES, STORED_DTYPES
 from graftcache.errors import GraftcacheError
+from graftcache.lazy import import_string
 from graftcache.pooling import NATIVE, valid_grid_names
+from graftcache.settings import Checked, Twin, setting
 
 #: A camera map's text (graftcache/cameras.py); the CLI's parser names what is wrong with one in more detail.
 CAMERA_MAP: Rule = (valid_camera_map, f"must be {SYNTAX}, each policy camera once, each from a camera of its own")
+GRIDS: Rule = (valid_grid_names, f"must name grids: {NATIVE} or HxW, e.g. {NATIVE},4x4")
+CACHE_HELP = "cache root: a folder or an s3:// gs:// az:// URL (default: $GRAFTCACHE_HOME or ~/.cache/graftcache)"
+PROGRESS_HELP = "no progress bars or lines"
+
+
+def compute_dtype() -> Any:
+    """The compute_dtype field of every request that runs a model: resolved per device
+    (runtime.resolve_compute_dtype) before anything is keyed or recorded."""
+    return setting("auto", choices=COMPUTE_DTYPES,
+                   help="model compute precision. auto: bf16 where the device computes it natively (CUDA with bf16, "
+                   "CPUs with AVX512-BF16/AMX), else fp32. The resolved dtype is recorded in manifests, keys and rows")
 
 
 @dataclass(frozen=True)
@@ -26,40 +58,52 @@ class ExtractRequest(Checked):
     """Everything `graftcache extract` needs. Fields up to and including `compute_dtype` change the numbers
     (they are part of the cache key, compute_dtype once resolved); the ones after it do not."""
 
-    dataset: str
-    encoder: str
-    grids: tuple[str, ...] = (NATIVE,)  # grid names: the encoder's own grid unpooled, and/or pooled "HxW" grids
-    cameras: tuple[str, ...] | None = None
-    episodes: tuple[int, ...] | None = None
-    weights: str | None = None
-    random_init: bool = False
-    seed: int = 0
-    policy: str | None = None  # native towers (smolvla-native, pi05-native) come from a policy
-    frame_stride: int = 1  # features for frames whose frame_index % frame_stride == 0 (actions stay full rate)
-    dtype: str = "fp16"
-    compute_dtype: str = "auto"  # resolved per device by runtime.resolve_compute_dtype before anything is keyed
-    camera_map: str | None = None  # native towers: policy camera <- dataset camera where names differ (checked only)
-    device: str = "cpu"
-    batch_size: int = 32
-    num_workers: int = 2
-    block_frames: int = 256
-    shard: tuple[int, int] | None = None  # (i, N): write only shard i of N's blocks (graftcache/extract.py)
-    cache: str | None = None
-    progress: bool = True
-    allow_nonfinite: bool = False  # cache NaN/inf state/action/features instead of refusing (fit then refuses)
-    extra_manifest: dict[str, Any] = field(default_factory=dict)
-
-    RULES: ClassVar[dict[str, Rule]] = {"seed": SEED, "batch_size": POSITIVE, "num_workers": NON_NEGATIVE,
-                                        "block_frames": POSITIVE, "episodes": EPISODES,
-                                        "frame_stride": POSITIVE, "shard": SHARD, "cameras": NAMES,
-                                        "camera_map": CAMERA_MAP,
-                                        "grids": (valid_grid_names, f"must name grids: {NATIVE} or HxW, e.g. {NATIVE},4x4")}
+    dataset: str = setting(recipe=False, help="local LeRobot dataset folder or a hub repo id in the local HF cache")
+    encoder: str = setting(recipe=False, help="registry name (siglip, dinov2-s, mobilenetv2, ...), timm:<name> or "
+                           "hf:<id-or-path>")
+    grids: tuple[str, ...] = setting(
+        (NATIVE,), rule=GRIDS, codec=codecs.GRIDS,
+        help=f"grids to store: {NATIVE} (the encoder's own patch grid, unpooled; `fit` pools it to each backbone's "
+        f"token grid as it reads it) and/or pooled HxW grids, e.g. {NATIVE},4x4 or 8x8,16x16. {NATIVE} and the "
+        "encoder's grid spelled out make the same cache")
+    cameras: tuple[str, ...] | None = setting(None, rule=NAMES, help="comma-separated camera names (default: all)")
+    episodes: tuple[int, ...] | None = setting(None, rule=EPISODES, recipe=False, help="episode subset, e.g. 0-9,20")
+    weights: str | None = setting(None, recipe=False, help="local weights file/folder instead of the hub id")
+    random_init: bool = setting(False, recipe=False, help="random weights (labelled random-init everywhere)")
+    seed: int = setting(0, rule=SEED, recipe=False, help="seed for --random-init")
+    policy: str | None = setting(  # native towers (smolvla-native, pi05-native) come from a policy
+        None, recipe=False,
+        help=lambda: f"policy for native towers ({', '.join(native_name(b) for b in BACKBONES)}): hub id, checkpoint "
+        "folder, or 'tiny' (the tiny backbone natively trained on --dataset by `graftcache train-tiny`)")
+    frame_stride: int = setting(  # features for frames whose frame_index % frame_stride == 0 (actions full rate)
+        1, rule=POSITIVE, metavar="K",
+        help="features for every K-th frame of each episode (frame_index %% K == 0); actions stay at the full rate "
+        "for action chunks. Part of the cache key (1: every frame)")
+    dtype: str = setting("fp16", choices=STORED_DTYPES, help="stored feature dtype")
+    compute_dtype: str = compute_dtype()
+    camera_map: str | None = setting(  # native towers: policy camera <- dataset camera where names differ
+        None, rule=CAMERA_MAP, codec=codecs.CAMERA_MAP, recipe=False,
+        help="native towers: which dataset camera feeds each policy camera where the names differ (checked before "
+        "decoding; the cache keeps the dataset's camera names)")
+    device: str = setting("cpu", recipe=False, help="cpu, cuda or cuda:N")
+    batch_size: int = setting(32, rule=POSITIVE)
+    num_workers: int = setting(2, rule=NON_NEGATIVE, help="decode worker processes (0: decode in-process)")
+    block_frames: int = setting(256, rule=POSITIVE, help="frames per Zarr shard / resumable unit")
+    shard: tuple[int, int] | None = setting(  # (i, N): write only shard i of N's blocks (graftcache/extract.py)
+        None, rule=SHARD, codec=codecs.SHARD, recipe=False,
+        help="write only the i-th of N contiguous ranges of blocks, so that N processes (or machines sharing an "
+        "object-store root) extract one cache together; the last to finish marks it complete. Not part of the "
+        "cache key; rerun a shard to resume it")
+    cache: str | None = setting(None, recipe=False, metavar="DIR|URL", help=CACHE_HELP)
+    progress: bool = setting(True, recipe=False, help=PROGRESS_HELP)
+    allow_nonfinite: bool = setting(  # cache NaN/inf state/action/features instead of refusing (fit then refuses)
+        False, help="cache frames whose state, action or features hold NaN/inf instead of refusing the dataset "
+        "(`fit` then refuses the cache unless --drop-nonfinite drops those frames)")
+    extra_manifest: dict[str, Any] = setting(default_factory=dict, flag=None, recipe=False)
 
 
 def _suites() -> tuple[str, ...]:
-    from graftcache.datasets.suites import SUITES  # imported on use: the package loads polars
-
-    return SUITES
+    return import_string("graftcache.datasets.suites:SUITES")  # imported on use: the package loads polars
 
 
 #: A suite a cache can record (graftcache.datasets.suites.SUITES): a typo is refused before any cache is made.
@@ -67,51 +111,72 @@ SUITE: Rule = (lambda v: v in _suites(), lambda: f"is not a suite; choose one of
 #: Controls besides the plain graft ("none"), which every request runs anyway: each once.
 CONTROL_LIST: Rule = (lambda v: len(set(v)) == len(v) and "none" not in v,
                       "must name each control once, and not none (the plain graft always runs)")
+#: The fit objectives (graftcache.fit.objectives.OBJECTIVES implements each), as plain data for the CLI.
+OBJECTIVES = ("flow", "align")
+#: The controls a fit runs besides the plain graft, as plain data for the CLI's help (graftcache.fit.controls.CONTROLS
+#: implements each; tests/test_settings.py keeps the two equal); pool-HxW pools the candidate to another grid.
+CONTROLS = ("native", "native-graft", "zero-image", "shuffled-image", "lora")
+POOL_PREFIX = "pool-"
 
 
 @dataclass(frozen=True)
 class FitRequest(Checked):
     """Everything `graftcache fit` needs: one (backbone, encoder, suite) over seeds and controls."""
 
-    backbone: str
-    encoder: str
-    suite: str
-    policy: str = "tiny"
-    dataset: str | None = None
-    cache_key: str | None = None
-    native_cache_key: str | None = None
-    camera_map: str | None = None  # "POLICY=CACHE,...": which cache camera feeds each policy camera where names differ
-    seeds: tuple[int, ...] = (0, 1, 2)
-    controls: tuple[str, ...] = ()
-    objective: str = "flow"
-    steps: int = 300
-    lr: float = 1e-3
-    batch_size: int = 16
-    buffer_mib: int = 2048  # training features held at once (shuffle buffer; with --num-workers x 2 prefetched blocks;
-    # with --num-workers 0, as much again of blocks kept for the next cells)
-    eval_fraction: float = 0.2
-    eval_split_seed: int = 0
-    eval_frames: int | None = None
-    num_denoise_steps: int | None = None
-    lora_rank: int = 8
-    device: str = "cpu"
-    num_workers: int = 2  # processes reading the cache ahead of the model (the numbers do not depend on it)
-    compute_dtype: str = "auto"  # resolved per device (runtime.resolve_compute_dtype) before it reaches a row
-    results: str = "results.parquet"
-    out: str | None = None
-    cache: str | None = None
-    progress: bool = True
-    drop_nonfinite: bool = False  # drop frames with NaN/inf (features, state, action chunk) instead of refusing
-    accept_numerics_drift: bool = False  # fit caches this environment would compute differently (rows record it)
-    command: str = field(default_factory=lambda: " ".join(["graftcache", *sys.argv[1:]]))
-
-    RULES: ClassVar[dict[str, Rule]] = {
-        "seeds": SEEDS, "suite": SUITE, "controls": CONTROL_LIST, "steps": POSITIVE, "lr": POSITIVE,
-        "batch_size": POSITIVE, "buffer_mib": POSITIVE, "num_workers": NON_NEGATIVE,
-        "eval_fraction": FRACTION, "eval_split_seed": SEED, "eval_frames": POSITIVE,
-        "num_denoise_steps": POSITIVE, "lora_rank": POSITIVE,
-        "camera_map": CAMERA_MAP,
-    }
+    backbone: str = setting(recipe=False, choices=tuple(BACKBONES))
+    encoder: str = setting(recipe=False, help="encoder whose cache to graft (registry name)")
+    suite: str = setting(recipe=False, rule=SUITE, help=lambda: f"LIBERO suite: {', '.join(_suites()[:-1])}")
+    policy: str = setting("tiny", recipe=False,
+                          help="hub id (HF cache), local checkpoint folder, or 'tiny' (the natively trained tiny "
+                          "backbone)")
+    dataset: str | None = setting(None, recipe=False, help="dataset the cache must come from (path or hub id)")
+    cache_key: str | None = setting(None, recipe=False, help="use this cache (when several match)")
+    native_cache_key: str | None = setting(None, recipe=False, help="native tower cache for native controls / align")
+    camera_map: str | None = setting(  # "POLICY=CACHE,...": which cache camera feeds each policy camera
+        None, rule=CAMERA_MAP, codec=codecs.CAMERA_MAP, recipe=False,
+        help="which cache camera feeds each policy camera, e.g. image=agentview,image2=eye_in_hand: needed when the "
+        "names differ (cameras are matched by name, never by position); every row records the mapping used "
+        "(camera_map)")
+    seeds: tuple[int, ...] = setting(
+        (0, 1, 2), rule=SEEDS, recipe=False, codec=codecs.SEEDS_COUNT,
+        help="how many seeds: N runs seeds 0..N-1 (N >= 1); a comma list or range such as 0,2 or 0-4 names the seeds "
+        "instead. For one particular seed use --seed, e.g. --seed 0",
+        twin=Twin("--seed", codecs.INTS, "explicit seed list: 0, 0,2, 0-4 or 0-3,7 (exclusive with --seeds)", "LIST"))
+    controls: tuple[str, ...] = setting((), rule=CONTROL_LIST, recipe=False, shown="none",
+                                        help=f"comma list: {', '.join(CONTROLS)}, {POOL_PREFIX}HxW")
+    objective: str = setting(
+        "flow", choices=OBJECTIVES, recipe=False,
+        help="flow: the policy's loss; align: closed-form ridge onto the native tokens (cheap screening)")
+    steps: int = setting(300, rule=POSITIVE)
+    lr: float = setting(1e-3, rule=POSITIVE)
+    batch_size: int = setting(16, rule=POSITIVE)
+    buffer_mib: int = setting(
+        2048, rule=POSITIVE,
+        help="MiB of training features held in the shuffle buffer: with --num-workers x 2 prefetched cache blocks, "
+        "what bounds the fit's memory whatever the suite's size (more mixes episodes better); reading in this "
+        "process (--num-workers 0), up to as much again of read blocks is kept for the next cells")
+    eval_fraction: float = setting(0.2, rule=FRACTION, help="held-out share of each task's episodes")
+    eval_split_seed: int = setting(0, rule=SEED)
+    eval_frames: int | None = setting(None, rule=POSITIVE, help="cap on scored held-out frames (evenly spaced)")
+    num_denoise_steps: int | None = setting(None, rule=POSITIVE)
+    lora_rank: int = setting(8, rule=POSITIVE)
+    device: str = setting("cpu", recipe=False, help="cpu, cuda or cuda:N")
+    num_workers: int = setting(  # the numbers do not depend on it
+        2, rule=NON_NEGATIVE,
+        help="processes reading and pooling cached features ahead of the model (0: in this process)")
+    compute_dtype: str = compute_dtype()
+    results: str = setting("results.parquet", recipe=False)
+    out: str | None = setting(None, help="run folder for projectors (default: runs/ beside --results; never the "
+                              "cache root)")
+    cache: str | None = setting(None, recipe=False, metavar="DIR|URL", help=CACHE_HELP)
+    progress: bool = setting(True, recipe=False, help=PROGRESS_HELP)
+    drop_nonfinite: bool = setting(
+        False, help="drop frames whose features, state or action chunk hold NaN/inf (a cache holding any is refused "
+        "otherwise); the results row records how many (n_dropped_nonfinite)")
+    accept_numerics_drift: bool = setting(
+        False, help="fit even when this environment computes a cache's features differently from the one that made "
+        "it (its numerics fingerprint); each row records the measured drift")
+    command: str = setting(default_factory=lambda: " ".join(["graftcache", *sys.argv[1:]]), flag=None, recipe=False)
 
 
 #: Ray's num_gpus: a share of one GPU (several tasks on one device) or whole GPUs.
@@ -122,17 +187,23 @@ GPU_SHARE: Rule = (lambda v: v >= 0 and (v <= 1 or float(v).is_integer()), "must
 class ExecutorSettings(Checked):
     """Where `extract` and `sweep` run their work (graftcache/executors/): in this process, or as Ray tasks on
     a cluster that sees the same cache root and results folder. Nothing here changes a number: the caches,
-    run_ids and rows are the same under every executor."""
+    run_ids and rows are the same under every executor. All but `executor` apply to the ray executor only."""
 
-    executor: str = "local"
-    address: str | None = None  # ray: a running cluster ("auto", "ray://head:10001"); None starts one here
-    gpus_per_task: float | None = None  # ray: None = 1 when the device is cuda, else 0; a fraction shares a GPU
-    cpus_per_task: float = 1.0  # ray: also the task's torch thread count (Ray sets OMP_NUM_THREADS from it)
-    shards: int | None = None  # ray extract: tasks per cache; None = as many as the cluster runs at once
-    max_retries: int = 3  # ray: reruns of a task whose worker or node died (never of an error the task raised)
-
-    RULES: ClassVar[dict[str, Rule]] = {"gpus_per_task": GPU_SHARE, "cpus_per_task": POSITIVE, "shards": POSITIVE,
-                                        "max_retries": NON_NEGATIVE}
+    executor: str = setting(
+        "local", choices=lambda: tuple(import_string("graftcache.executors:EXECUTORS")),
+        help="local: this process; ray: Ray tasks (every node must see the dataset, the cache root and the results "
+        "folder: a shared file system or an s3:// cache root)")
+    address: str | None = setting(None, metavar="ADDR", help="a running Ray cluster to join (auto, ray://HOST:10001); "
+                                  "default: start a Ray instance on this machine")
+    gpus_per_task: float | None = setting(
+        None, rule=GPU_SHARE, metavar="G",
+        help="GPUs per task; a fraction shares one GPU between tasks (default: 1 with --device cuda, else 0)")
+    cpus_per_task: float = setting(1.0, rule=POSITIVE, metavar="C", help="CPUs per task, also its torch threads")
+    shards: int | None = setting(None, rule=POSITIVE, metavar="N",
+                                 help="tasks per extraction (default: as many as the cluster runs at once)")
+    max_retries: int = setting(3, rule=NON_NEGATIVE, metavar="N",
+                               help="reruns of a task whose worker or node died (a task that raised an error is not "
+                               "rerun)")
 
 
 @dataclass(frozen=True)
@@ -140,14 +211,15 @@ class TileRequest(Checked):
     """What `graftcache tile` builds: a dataset of `preset`'s dimensions, or of `episodes` episodes (and
     `frames` frames; default: the source's mean length times `episodes`) over the source's tasks."""
 
-    source: str
-    dest: str
-    preset: str | None = None  # a name of graftcache.datasets.tile.PRESETS ("libero": lerobot/libero's counts)
-    episodes: int | None = None
-    frames: int | None = None
-    seed: int = 0  # episode lengths and window positions
-
-    RULES: ClassVar[dict[str, Rule]] = {"episodes": POSITIVE, "frames": POSITIVE, "seed": SEED}
+    source: str = setting(positional=True,
+                          help="v3.0 dataset with video cameras (folder or hub repo id in the local HF cache)")
+    dest: str = setting(positional=True, help="new dataset folder (must not exist)")
+    preset: str | None = setting(None, help="libero: 1,693 episodes, 273,465 frames in 4 suites")
+    episodes: int | None = setting(None, rule=POSITIVE, metavar="N",
+                                   help="N episodes over SOURCE's tasks (N = k x SOURCE's episodes for k times SOURCE)")
+    frames: int | None = setting(None, rule=POSITIVE, metavar="M",
+                                 help="frames in all, with --episodes (default: SOURCE's mean episode length x N)")
+    seed: int = setting(0, rule=SEED, help="seed of episode lengths and window positions")
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -161,19 +233,19 @@ class TileRequest(Checked):
 class TinyTrainConfig(Checked):
     """The recipe of `graftcache train-tiny` (it keys the checkpoint folder, with the dataset's identity)."""
 
-    steps: int = 300  # enough for the tiny backbones to use vision on the sample (native beats zero-image)
-    batch_size: int = 32
-    lr: float = 1e-3
-    weight_decay: float = 1e-4
-    seed: int = 0
-    image_size: int = 128  # frames are resized once to this (>= every tiny tower's input)
-    warmup: float = 0.1    # share of the steps with a linear warm-up, then cosine decay to 0
-    compute_dtype: str = "auto"  # resolved (runtime.resolve_compute_dtype) before it keys the checkpoint
-    cameras: tuple[str, ...] | None = None  # the policy's cameras, in this order; None: all the dataset's, in its order
-
-    RULES: ClassVar[dict[str, Rule]] = {"cameras": NAMES, "steps": POSITIVE, "batch_size": POSITIVE, "lr": POSITIVE,
-                                        "weight_decay": NON_NEGATIVE, "seed": SEED, "image_size": POSITIVE,
-                                        "warmup": (lambda v: 0 <= v < 1, "must be in [0, 1)")}
+    steps: int = setting(300, rule=POSITIVE)  # enough for the tiny backbones to use vision (native beats zero-image)
+    batch_size: int = setting(32, rule=POSITIVE)
+    lr: float = setting(1e-3, rule=POSITIVE)
+    weight_decay: float = setting(1e-4, rule=NON_NEGATIVE)
+    seed: int = setting(0, rule=SEED)
+    image_size: int = setting(128, rule=POSITIVE, help="frames are resized once to this (>= every tiny tower's input)")
+    warmup: float = setting(0.1, rule=(lambda v: 0 <= v < 1, "must be in [0, 1)"),
+                            help="share of the steps with a linear warm-up, then cosine decay to 0")
+    compute_dtype: str = compute_dtype()
+    cameras: tuple[str, ...] | None = setting(
+        None, rule=NAMES, metavar="A,B",
+        help="the dataset cameras the policy sees, in this order (default: all of them, in the dataset's order); its "
+        "config records their names, so a fit on this dataset matches them by name")
 
     def as_dict(self, backbone: str) -> dict:
         """The recipe as it keys the checkpoint folder. `cameras` None (the dataset's own, the only choice before

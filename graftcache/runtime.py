@@ -18,11 +18,10 @@ from collections.abc import Callable
 
 import torch
 
+from graftcache.dtypes import AUTO, COMPUTE_DTYPES
 from graftcache.errors import GraftcacheError
 
-AUTO = "auto"
 DTYPES: dict[str, torch.dtype] = {"fp16": torch.float16, "bf16": torch.bfloat16, "fp32": torch.float32}
-COMPUTE_DTYPES = (AUTO, "bf16", "fp32")
 
 
 def single_thread_worker(*_: object) -> None:

@@ -28,19 +28,14 @@ from graftcache.fit.controls import get_control
 from graftcache.pooling import NATIVE, format_grid, grid_names
 from graftcache.progress import progress, write
 from graftcache.recipe import EncoderEntry, Recipe
-from graftcache.requests import DEFAULT_TINY_TRAIN, ExecutorSettings, ExtractRequest, FitRequest
+from graftcache.requests import DEFAULT_TINY_TRAIN, ExecutorSettings, ExtractRequest, FitRequest, TinyTrainConfig
+from graftcache.settings import write_flags
 
 
-def command_line(command: str, **flags: Any) -> str:
-    """`graftcache <command> --flag value ...` for the flags that are set (True: a bare flag)."""
-    parts = [f"graftcache {command}"]
-    for name, value in flags.items():
-        if value is None or value is False:
-            continue
-        flag = f"--{name.replace('_', '-')}"
-        shown = ",".join(map(str, value)) if isinstance(value, tuple) else value  # lists as the CLI parses them
-        parts.append(flag if value is True else f"{flag} {shown}")
-    return " ".join(parts)
+def command_line(command: str, request: type, **values: Any) -> str:
+    """`graftcache <command> --flag value ...`: `values`, fields of `request`, as the flags that set them, each
+    written as its field's codec writes it (graftcache.settings.write_flags), so the line parses back to them."""
+    return " ".join([f"graftcache {command}", *write_flags(request, values)])
 
 
 @dataclass
@@ -73,9 +68,9 @@ def prepare_policies(recipe: Recipe, state: SweepState, log: Callable[[str], Non
             cfg = dataclasses.replace(DEFAULT_TINY_TRAIN, **recipe.train_tiny)
             policy = str(train_tiny(entry.name, recipe.dataset, cfg=cfg, cache=recipe.cache, device=recipe.device,
                                     log=log))
-            state.commands[f"policy {entry.name}"] = command_line("train-tiny", backbone=entry.name,
-                                                                  dataset=recipe.dataset, steps=cfg.steps,
-                                                                  cameras=cfg.cameras)
+            state.commands[f"policy {entry.name}"] = command_line(
+                "train-tiny", TinyTrainConfig, backbone=entry.name, dataset=recipe.dataset, steps=cfg.steps,
+                cameras=cfg.cameras)
         state.policies[entry.name] = policy
         state.native_grids[entry.name] = get_backbone(entry.name).read_native_grid(policy)
     check_cameras(recipe, state)
@@ -128,8 +123,9 @@ def prepare_caches(recipe: Recipe, state: SweepState, log: Callable[[str], None]
         state.encoder_caches[enc] = _extract(recipe, executor, enc.name, grids, log, weights=enc.weights,
                                              random_init=enc.random_init, seed=enc.seed)
         state.commands[state.encoder_caches[enc]] = command_line(
-            "extract", encoder=enc.name, random_init=enc.random_init, seed=enc.seed if enc.random_init else None,
-            weights=None if enc.random_init else enc.weights, dataset=recipe.dataset,
+            "extract", ExtractRequest, encoder=enc.name, random_init=enc.random_init,
+            seed=enc.seed if enc.random_init else None, weights=None if enc.random_init else enc.weights,
+            dataset=recipe.dataset,
             **_extract_settings(recipe, grids))
     if not _needs_native(recipe):
         return
@@ -138,7 +134,7 @@ def prepare_caches(recipe: Recipe, state: SweepState, log: Callable[[str], None]
         key = _extract(recipe, executor, native_name(backbone), grid, log, policy=policy,
                        camera_map=recipe.camera_map)
         state.native_caches[backbone] = key
-        state.commands[key] = command_line("extract", encoder=native_name(backbone), policy=policy,
+        state.commands[key] = command_line("extract", ExtractRequest, encoder=native_name(backbone), policy=policy,
                                            dataset=recipe.dataset, camera_map=recipe.camera_map,
                                            **_extract_settings(recipe, grid))
 
@@ -177,7 +173,8 @@ def check_sweep(recipe: Recipe) -> list[str]:
     return notes
 
 
-def run_sweep(recipe: Recipe, log: Callable[[str], None] = write, settings: ExecutorSettings | None = None) -> SweepState:
+def run_sweep(recipe: Recipe, log: Callable[[str], None] = write,
+              settings: ExecutorSettings | None = None) -> SweepState:
     """Policies, then caches, then every missing cell, on the executor `settings` name (default: the recipe's
     [executor] table); one progress bar over the grid's cells."""
     check_sweep(recipe)  # what a later step would refuse, refused before the first (what --dry-run runs)

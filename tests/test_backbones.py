@@ -1,4 +1,7 @@
-"""Tiny SmolVLA / pi0.5 adapters: geometry, batches, graft surgery, objectives, native tower."""
+"""Tiny SmolVLA / pi0.5 / pi0 / pi0-FAST adapters: geometry, batches, graft surgery, objectives, native tower.
+
+pi0-FAST has no flow model: the flow-loss and denoising tests run on the others (FLOW), its own objective is
+tested in tests/test_backbones_pi0.py."""
 
 from __future__ import annotations
 
@@ -14,7 +17,8 @@ from graftcache.graft import GraftProjector, IdentityProjector, feature_key
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")  # tests/fixtures/torch_threads.py
 
-NAMES = ("smolvla", "pi05")
+NAMES = ("smolvla", "pi05", "pi0", "pi0_fast")
+FLOW = ("smolvla", "pi05", "pi0")
 ZOO = ("xvla", "eo1")  # tested in their own files (tests/test_backbones_<name>.py)
 
 
@@ -25,7 +29,8 @@ def test_registry_maps_names_to_adapters() -> None:
         get_backbone("octo")
 
 
-@pytest.mark.parametrize(("name", "width", "scale"), [("smolvla", 192, math.sqrt(192)), ("pi05", 128, 1.0)])
+@pytest.mark.parametrize(("name", "width", "scale"), [("smolvla", 192, math.sqrt(192)), ("pi05", 128, 1.0),
+                                                    ("pi0", 128, 1.0), ("pi0_fast", 128, 1.0)])
 def test_tiny_geometry(name: str, width: int, scale: float) -> None:
     adapter = tiny(name)
     assert adapter.native_grid == (4, 4)
@@ -34,7 +39,9 @@ def test_tiny_geometry(name: str, width: int, scale: float) -> None:
     assert adapter.cameras == ("image", "image2")
     assert adapter.camera_keys == ("observation.images.image", "observation.images.image2")
     assert (adapter.state_dim, adapter.action_dim, adapter.chunk_size) == (8, 7, SPEC.chunk_size)
-    assert adapter.num_steps == SPEC.num_steps and adapter.random_init and adapter.source == "tiny"
+    # pi0-FAST decodes up to a whole chunk of FAST tokens (<bos> "Action: " ... "|" <eos>), no denoising steps
+    steps = SPEC.chunk_size * 7 + 6 if name == "pi0_fast" else SPEC.num_steps
+    assert adapter.num_steps == steps and adapter.random_init and adapter.source == "tiny"
     report = adapter.freeze_report()
     assert report.total == sum(p.numel() for p in adapter.policy.parameters())
 
@@ -49,7 +56,7 @@ def test_native_tower_outputs_match_what_the_policy_embeds(name: str) -> None:
     prepared, _ = getattr(adapter.policy, adapter.image_method)({adapter.camera_keys[0]: images})
     with torch.no_grad():
         embedded = adapter.policy.model.vlm_with_expert.embed_image(prepared[0]) if name == "smolvla" else \
-            adapter.policy.model.paligemma_with_expert.embed_image(prepared[0])
+            adapter.policy.model.paligemma_with_expert.embed_image(prepared[0])  # pi0.5, pi0, pi0-FAST
     torch.testing.assert_close(tokens, embedded.float())
 
 
@@ -62,8 +69,9 @@ def test_policy_sha256_is_deterministic_and_pinned_at_graft(name: str) -> None:
     assert b.policy_sha256 == before
 
 
-def test_smolvla_tokenises_each_task_once_and_matches_lerobot() -> None:
-    adapter = grafted("smolvla")
+@pytest.mark.parametrize("name", ["smolvla", "pi0"])
+def test_prompt_without_state_is_tokenised_once_per_task_and_matches_lerobot(name: str) -> None:
+    adapter = grafted(name)
     raw = raw_features(adapter, 6)
     ours, lerobot = adapter.prepare(raw), adapter.preprocessor(dict(raw))
     assert torch.equal(ours["observation.language.tokens"], lerobot["observation.language.tokens"])
@@ -94,8 +102,9 @@ def test_smolvla_tokenises_each_task_once_and_matches_lerobot() -> None:
     assert ids.shape == mask.shape and ids.shape[0] == 2 and mask[0].sum() < mask[1].sum()
 
 
-def test_pi05_tokenises_per_batch_because_the_prompt_holds_the_state() -> None:
-    adapter = grafted("pi05")
+@pytest.mark.parametrize("name", ["pi05", "pi0_fast"])
+def test_prompt_holding_the_state_is_tokenised_per_batch(name: str) -> None:
+    adapter = grafted(name)
     with pytest.raises(BackboneError, match="discretised state"):
         adapter.task_tokens(list(TASKS))
     raw = raw_features(adapter, 4)
@@ -143,8 +152,9 @@ def test_loss_falls_on_tiny_smolvla() -> None:
     assert losses[-1] < 0.85 * losses[0]
 
 
-def test_gradients_reach_the_projector_on_tiny_pi05() -> None:
-    adapter = grafted("pi05")
+@pytest.mark.parametrize("name", ["pi05", "pi0", "pi0_fast"])
+def test_gradients_reach_the_projector_on_tiny_paligemma_backbones(name: str) -> None:
+    adapter = grafted(name)
     batch = adapter.prepare(raw_features(adapter, 4))
     adapter.loss(batch, *fixed_noise_time(adapter, 4)).mean().backward()
     assert adapter.projector.proj.weight.grad.abs().sum() > 0
@@ -152,7 +162,7 @@ def test_gradients_reach_the_projector_on_tiny_pi05() -> None:
     assert all(p.grad is None for p in adapter.policy.parameters() if not p.requires_grad)
 
 
-@pytest.mark.parametrize("name", NAMES)
+@pytest.mark.parametrize("name", FLOW)
 def test_predict_is_deterministic_for_fixed_noise(name: str) -> None:
     adapter = grafted(name)
     batch = adapter.prepare(raw_features(adapter, 4))
@@ -167,7 +177,7 @@ def test_predict_is_deterministic_for_fixed_noise(name: str) -> None:
     assert adapter.unnormalize(first).shape == first.shape
 
 
-@pytest.mark.parametrize("name", NAMES)
+@pytest.mark.parametrize("name", FLOW)
 def test_loss_is_the_masked_mean_over_real_steps_and_dims(name: str) -> None:
     adapter = grafted(name)
     batch = adapter.prepare(raw_features(adapter, 4))

@@ -41,7 +41,8 @@ def test_to_timestamp_that_disagrees_with_the_length(v3_video: Written, tmp_path
     path = set_episode_meta(root, 1, **{f"videos/{key}/to_timestamp": stop})
     with pytest.raises(DatasetError) as e:
         open_dataset(root)
-    assert str(e.value) == (f"{path}: episode 1 camera {key}: from_timestamp {start:.3f} s to to_timestamp {stop:.3f} s "
+    assert str(e.value) == (f"{path}: episode 1 camera {key}: from_timestamp {start:.3f} s "
+                            f"to to_timestamp {stop:.3f} s "
                             f"is {LENGTHS[1] - 2:.1f} frames at {FPS} fps, but its length is {LENGTHS[1]} frames")
     assert _refused(root, tmp_path, capsys).endswith(str(e.value))
 

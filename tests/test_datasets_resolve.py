@@ -35,7 +35,8 @@ def _hub_snapshot(src: Path, hub: Path, repo_id: str, rev: str = REV) -> Path:
 
 def _assert_readable(src, written: Written) -> None:
     assert len(src.meta.episodes) == len(LENGTHS)
-    np.testing.assert_array_equal(src.decode_episode(1, ["wrist_image"])["wrist_image"], written.frames[1, PI_CAMERAS[1]])
+    np.testing.assert_array_equal(src.decode_episode(1, ["wrist_image"])["wrist_image"],
+                                  written.frames[1, PI_CAMERAS[1]])
     assert src.lowdim([0]).height == LENGTHS[0]
 
 

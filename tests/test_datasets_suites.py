@@ -28,7 +28,8 @@ def test_shared_libero_90_instructions_prefer_the_evaluation_suite() -> None:
     assert only_90 and {suite_of(t) for t in only_90} == {"libero_90"}
 
 
-@pytest.mark.parametrize("text", ["Open the middle drawer of the cabinet.", "  open the middle  drawer of the cabinet "])
+@pytest.mark.parametrize("text", ["Open the middle drawer of the cabinet.",
+                                  "  open the middle  drawer of the cabinet "])
 def test_case_spacing_and_final_period_do_not_matter(text: str) -> None:
     assert suite_of(text) == "libero_goal"
 

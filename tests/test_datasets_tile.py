@@ -40,7 +40,8 @@ def _window_starts(root: Path, fps: float) -> dict[str, np.ndarray]:
     for r in rows:
         for key in CAMERAS:
             assert (r[f"videos/{key}/chunk_index"], r[f"videos/{key}/file_index"]) == (0, 0)
-            assert r[f"videos/{key}/to_timestamp"] == pytest.approx(r[f"videos/{key}/from_timestamp"] + r["length"] / fps)
+            end = r[f"videos/{key}/from_timestamp"] + r["length"] / fps
+            assert r[f"videos/{key}/to_timestamp"] == pytest.approx(end)
     return {key: np.array([round(r[f"videos/{key}/from_timestamp"] * fps) for r in rows]) for key in CAMERAS}
 
 

@@ -40,7 +40,8 @@ def test_resize_matches_pil(name: str, hw: tuple[int, int]) -> None:
     size = (spec.image_size, spec.image_size)
     for i in range(3):
         px = frames[i].numpy().astype(np.float32)
-        ref_px = np.stack([np.asarray(Image.fromarray(px[..., c], mode="F").resize(size, PIL_RESAMPLE[spec.interpolation]))
+        resample = PIL_RESAMPLE[spec.interpolation]
+        ref_px = np.stack([np.asarray(Image.fromarray(px[..., c], mode="F").resize(size, resample))
                            for c in range(3)], axis=-1).clip(0, 255)
         ours_px = (x[i].permute(1, 2, 0).double().numpy() * std + mean) * 255
         diff = np.abs(ours_px - ref_px)

@@ -62,8 +62,8 @@ def _reference_features(frames: np.ndarray, model: torch.nn.Module, grid: tuple[
     mean, std = np.array(cfg["mean"]), np.array(cfg["std"])
     pixels = []
     for frame in frames:
-        chans = [np.asarray(Image.fromarray(frame[..., c].astype(np.float32), mode="F").resize((size, size), Image.BICUBIC))
-                 for c in range(3)]
+        chans = [np.asarray(Image.fromarray(frame[..., c].astype(np.float32), mode="F")
+                            .resize((size, size), Image.BICUBIC)) for c in range(3)]
         x = (np.clip(np.stack(chans, -1), 0, 255) / 255 - mean) / std
         pixels.append(torch.from_numpy(x.transpose(2, 0, 1)).float())
     with torch.no_grad():

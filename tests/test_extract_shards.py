@@ -19,7 +19,7 @@ import pytest
 from helpers.caches import assert_same_cache, folder_files
 
 from graftcache.cli import main
-from graftcache.cli.common import shard_value
+from graftcache.codecs import shard_value
 from graftcache.errors import GraftcacheError
 from graftcache.extract import ExtractRequest, extract, shard_blocks
 from graftcache.recipe import SECTION_KEYS

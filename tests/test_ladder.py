@@ -16,7 +16,7 @@ from graftcache.cli import main
 from graftcache.errors import GraftcacheError
 
 QUICK = A.BootSettings(n_boot=300)
-T, N, D, I = A.TRANSFERS, A.NEAR_TIE, A.DOES_NOT_TRANSFER, A.INSUFFICIENT
+T, N, D, X = A.TRANSFERS, A.NEAR_TIE, A.DOES_NOT_TRANSFER, A.INSUFFICIENT  # X: insufficient data
 
 # (suite, source, target) -> (source winner, target top tier, verdict), pooled over seeds
 POOLED = {
@@ -24,14 +24,14 @@ POOLED = {
     ("s", "kilo", "mu"): ("a", ["c"], D), ("s", "mu", "kilo"): ("c", ["a"], D),
     ("s", "alpha", "mu"): ("a", ["c"], D), ("s", "mu", "alpha"): ("c", ["a"], D),
     ("t", "kilo", "alpha"): ("a", ["b", "a"], N), ("t", "alpha", "kilo"): ("b", ["a"], D),
-    ("t", "kilo", "mu"): (None, [], I), ("t", "mu", "kilo"): (None, [], I),
-    ("t", "alpha", "mu"): (None, [], I), ("t", "mu", "alpha"): (None, [], I),
+    ("t", "kilo", "mu"): (None, [], X), ("t", "mu", "kilo"): (None, [], X),
+    ("t", "alpha", "mu"): (None, [], X), ("t", "mu", "alpha"): (None, [], X),
 }
 
 
 def _seed_answer(suite: str, seed: int, source: str, target: str) -> tuple[str | None, list[str], str]:
     """Seed-level answers: suite s repeats the pooled verdicts; suite t as tests/helpers/tables.py works out."""
-    if suite == "s" or POOLED[suite, source, target][2] == I:
+    if suite == "s" or POOLED[suite, source, target][2] == X:
         return POOLED[suite, source, target]
     if seed == 0:
         return "a", ["a"], T
@@ -71,7 +71,7 @@ def test_headline_transfers_one_rung_then_breaks(ladder):
     assert (s["smallest"], s["largest"], s["smallest_winner"], s["largest_top_tier"]) == ("kilo", "mu", "a", ["c"])
     assert s["verdict"] == D and s["steps"] == [T, D] and s["break_at"] == "alpha -> mu" and s["open_rungs"] == 0
     t = h["t"]
-    assert (t["verdict"], t["steps"], t["break_at"], t["open_rungs"]) == (I, [N, I], None, 1)
+    assert (t["verdict"], t["steps"], t["break_at"], t["open_rungs"]) == (X, [N, X], None, 1)
     said = report.headline_sentences(ladder)
     assert said[0] == (
         "On s, the smallest backbone's (kilo) winner (a) is not in the largest one's (mu) top tier (c): the ranking "

@@ -1,5 +1,5 @@
-"""Native towers (smolvla-native, pi05-native) as encoders: measured spec, outputs equal to the
-policy's own tower and connector, the cache layout they produce, and their errors."""
+"""Native towers (smolvla-native, pi05-native, pi0-native, pi0_fast-native) as encoders: measured spec, outputs
+equal to the policy's own tower and connector, the cache layout they produce, and their errors."""
 
 from __future__ import annotations
 
@@ -19,7 +19,7 @@ from graftcache.errors import EncoderError
 from graftcache.extract import ExtractRequest, extract
 from graftcache.store import FeatureCache
 
-NAMES = ("smolvla", "pi05")
+NAMES = ("smolvla", "pi05", "pi0", "pi0_fast")
 
 
 @pytest.fixture(scope="module", params=NAMES)

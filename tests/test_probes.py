@@ -31,8 +31,17 @@ from fixtures.s3 import free_port
 from helpers.backbones import tiny
 from helpers.caches import assert_same_cache, folder_files
 from helpers.datasets import TASKS, V3_CAMERAS, Written, drop_episodes, set_episode_meta
-from helpers.probes import (Outcome, Snapshot, alive, assert_one_line_error, assert_succeeded, children, finish,
-                            run_cli, start_process)
+from helpers.probes import (
+    Outcome,
+    Snapshot,
+    alive,
+    assert_one_line_error,
+    assert_succeeded,
+    children,
+    finish,
+    run_cli,
+    start_process,
+)
 from safetensors.torch import save_file
 
 from graftcache import results
@@ -178,8 +187,8 @@ EXTRACT = "extract --encoder resnet18 --random-init --dataset {ds} --num-workers
 TIMM = "extract --encoder timm:resnet18 --dataset {ds} --num-workers 0 --no-progress --cache {root} --weights "
 
 PROBES: dict[str, Probe] = {
-    "extract --batch-size 0": Probe(EXTRACT + " --batch-size 0", ("--batch-size", "must be >= 1")),
-    "extract --block-frames 0": Probe(EXTRACT + " --block-frames 0", ("--block-frames", "must be >= 1")),
+    "extract --batch-size 0": Probe(EXTRACT + " --batch-size 0", ("--batch-size", "must be > 0")),
+    "extract --block-frames 0": Probe(EXTRACT + " --block-frames 0", ("--block-frames", "must be > 0")),
     "extract --episodes -1": Probe(EXTRACT + " --episodes -1", ("--episodes", "'-1'")),
     "extract --device foo": Probe(EXTRACT + " --device foo", ("foo",)),
     "timm weights of another model": Probe(TIMM + "{base}/wrong_arch.safetensors",

@@ -110,7 +110,7 @@ def test_recipe_table_and_flags_choose_the_executor(tmp_path: Path, v2_pi: Writt
     assert main(["sweep", str(path), "--dry-run", "--executor", "local"]) == 0  # a flag given wins over the table
     assert "executor  local at ray://head:10001" in capsys.readouterr().out
     path.write_text(base + '[executor]\nexecutor = "slurm"\n')
-    with pytest.raises(RecipeError, match=r"r.toml \[executor\]: executor 'slurm': choose one of local, ray"):
+    with pytest.raises(RecipeError, match=r"r.toml \[executor\]: executor = 'slurm' is not one of local, ray"):
         load_recipe(path)
     path.write_text(base + "[executor]\ngpus_per_task = 1.5\n")
     with pytest.raises(RecipeError, match=r"\[executor\]: gpus_per_task = 1.5 must be between 0 and 1 or a whole"):
@@ -161,8 +161,9 @@ def test_ray_tasks_ship_their_function_by_reference(module: str, name: str, monk
 def test_an_error_raised_in_a_task_is_the_commands_one_line(ray_cluster: str, tmp_path: Path,
                                                             capsys: pytest.CaptureFixture) -> None:
     (tmp_path / "ds").mkdir()  # a folder, but no LeRobot dataset: the shard tasks' extract raises DatasetError
-    code = main(["extract", "--encoder", "timm:vit_tiny_patch16_224", "--random-init", "--dataset", str(tmp_path / "ds"),
-                 "--cache", str(tmp_path / "cache"), "--executor", "ray", "--no-progress"])
+    code = main(["extract", "--encoder", "timm:vit_tiny_patch16_224", "--random-init",
+                 "--dataset", str(tmp_path / "ds"), "--cache", str(tmp_path / "cache"), "--executor", "ray",
+                 "--no-progress"])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2
     assert err[-1].startswith(f"graftcache extract: error: {tmp_path / 'ds'}") and "Traceback" not in "\n".join(err)
@@ -172,7 +173,8 @@ def test_an_error_raised_in_a_task_is_the_commands_one_line(ray_cluster: str, tm
 def test_ray_sweep_resumes_and_writes_the_local_rows(ray_cluster: str, local_sweep: LocalSweep) -> None:
     recipe = local_sweep.recipe("ray")
     # a driver of this recipe killed after its first row: that cell is in the results file, the other three are not
-    results.append(recipe.results, local_sweep.rows.head(1).with_columns(command=pl.lit(f"graftcache sweep {recipe.path}")))
+    command = pl.lit(f"graftcache sweep {recipe.path}")
+    results.append(recipe.results, local_sweep.rows.head(1).with_columns(command=command))
     lines: list[str] = []
     run_sweep(recipe, log=lines.append, settings=ExecutorSettings(executor="ray"))
     assert "ray: 3 cell task(s) to run; the other cells are in the results file already" in lines

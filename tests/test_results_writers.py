@@ -95,7 +95,7 @@ def test_four_writers_and_two_fits_keep_every_row(world: Path, tmp_path: Path) -
         for proc in writers:
             assert proc.wait(timeout=300) == 0, proc.stderr.read()[-2000:]
         outs = [proc.communicate(timeout=300) for proc in fits]
-        for proc, (out, err) in zip(fits, outs):
+        for proc, (_, err) in zip(fits, outs):
             assert proc.returncode == 0, err[-3000:]
         stop.touch()
         reads, err = reader.communicate(timeout=60)

@@ -13,7 +13,7 @@ from helpers.probes import run_cli
 
 from graftcache import runtime
 from graftcache.cli import build_parser
-from graftcache.cli.common import int_list, seeds_value
+from graftcache.codecs import int_list, seeds_value
 from graftcache.errors import GraftcacheError
 from graftcache.pretrain import TinyTrainConfig, warmup_cosine
 from graftcache.progress import LogProgress, progress
@@ -68,16 +68,16 @@ def test_seed_syntax() -> None:
     for bad in ("-1", "x", "3-1", ",", "0,0", "0-3,2"):
         with pytest.raises(argparse.ArgumentTypeError):
             int_list(bad)
-    fit = ["fit", "--backbone", "smolvla", "--encoder", "e", "--suite", "s"]
+    fit = ["fit", "--backbone", "smolvla", "--encoder", "e", "--suite", "libero_spatial"]
     assert build_parser().parse_args(fit).seeds == (0, 1, 2)
     assert build_parser().parse_args([*fit, "--seed", "0"]).seeds == (0,)
     assert build_parser().parse_args([*fit, "--seeds", "0,2"]).seeds == (0, 2)
 
 
 @pytest.mark.parametrize("args", [
-    ["fit", "--backbone", "smolvla", "--encoder", "e", "--suite", "s", "--seeds", "0"],
-    ["fit", "--backbone", "smolvla", "--encoder", "e", "--suite", "s", "--seeds", "-1"],
-    ["fit", "--backbone", "smolvla", "--encoder", "e", "--suite", "s", "--seed", "0", "--seeds", "2"],
+    ["fit", "--backbone", "smolvla", "--encoder", "e", "--suite", "libero_spatial", "--seeds", "0"],
+    ["fit", "--backbone", "smolvla", "--encoder", "e", "--suite", "libero_spatial", "--seeds", "-1"],
+    ["fit", "--backbone", "smolvla", "--encoder", "e", "--suite", "libero_spatial", "--seed", "0", "--seeds", "2"],
     ["extract", "--encoder", "mobilenetv2", "--dataset", "d", "--batch-size", "0"],
     ["extract", "--encoder", "mobilenetv2", "--dataset", "d", "--block-frames", "0"],
     ["extract", "--encoder", "mobilenetv2", "--dataset", "d", "--episodes", "-1"],
@@ -95,7 +95,7 @@ def test_requests_check_their_ranges() -> None:
     from graftcache.fit.run import FitRequest
 
     with pytest.raises(GraftcacheError, match="seeds = \\(\\) must list at least one seed"):
-        FitRequest(backbone="smolvla", encoder="e", suite="s", seeds=())
+        FitRequest(backbone="smolvla", encoder="e", suite="libero_spatial", seeds=())
     with pytest.raises(GraftcacheError, match="batch_size = 0 must be > 0"):
         ExtractRequest(dataset="d", encoder="e", batch_size=0)
     with pytest.raises(GraftcacheError, match="steps = 0 must be > 0"):

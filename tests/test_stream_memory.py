@@ -7,8 +7,9 @@ are laid out as `extract` writes them, with each dataset's own index, low-dim an
 features (tests/helpers/caches.py: decoding 8x the sample's AV1 frames alone would take minutes here, and a fit
 cannot tell random features from an encoder's). Features are 4x4 (the tiny SmolVLA's grid) x 2048 fp16 for each of
 two cameras: 128 KiB a frame, 0.11 GiB for the 1x suite and 0.88 GiB at 8x. Measured on the same two caches with
-the same flags less the two it lacked (2-core AMD EPYC): the in-memory design this replaced peaked at 1.14 GiB at 1x and 1.82 GiB at 8x,
-a ratio of 1.60 that fails the 1.25 bound; streaming with a 32 MiB buffer peaked at 1.14 GiB at both sizes.
+the same flags less the two it lacked (2-core AMD EPYC): the in-memory design this replaced peaked at 1.14 GiB at 1x
+and 1.82 GiB at 8x, a ratio of 1.60 that fails the 1.25 bound; streaming with a 32 MiB buffer peaked at 1.14 GiB at
+both sizes.
 """
 
 from __future__ import annotations
@@ -62,4 +63,5 @@ def test_peak_memory_of_a_fit_does_not_grow_with_the_dataset(tmp_path: Path) -> 
     assert frames["x8"] >= 7 * frames["x1"]  # the suite really is ~8x larger
     feature_gib = frames["x8"] * 2 * GRID[0] * GRID[1] * WIDTH * 2 / 2**30
     assert feature_gib > 0.8  # what the replaced design would have held at 8x, before the split's copies
-    assert peaks["x8"] <= 1.25 * peaks["x1"], f"peak RSS 1x {peaks['x1'] / 2**20:.2f} GiB, 8x {peaks['x8'] / 2**20:.2f} GiB"
+    assert peaks["x8"] <= 1.25 * peaks["x1"], \
+        f"peak RSS 1x {peaks['x1'] / 2**20:.2f} GiB, 8x {peaks['x8'] / 2**20:.2f} GiB"

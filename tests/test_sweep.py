@@ -66,6 +66,19 @@ def test_shipped_recipes_parse(name: str, cells: int, rows: int) -> None:
         assert recipe.dataset == "lerobot/libero" and len(recipe.seeds) == 3 and len(recipe.encoders) >= 4
 
 
+def test_zoo_recipe_names_every_backbone_by_a_hub_id() -> None:
+    """cli/zoo.toml (never run here: released policies only). Counted by hand: 6 backbones x 4 encoders x 2 suites
+    x 3 seeds x (plain + 6 controls) = 1008 cells; rows per (backbone, suite, seed): 4 encoders x (plain,
+    zero-image, shuffled-image, pool-4x4, lora) + native + native-graft = 22, x 6 x 2 x 3 = 792."""
+    from graftcache.backbone_table import BACKBONES
+
+    recipe = load_recipe(ROOT / "cli" / "zoo.toml")
+    assert sorted(b.name for b in recipe.backbones) == sorted(BACKBONES)
+    assert all(b.policy != "tiny" and b.policy.count("/") == 1 for b in recipe.backbones)
+    assert {b.name: b.policy for b in recipe.backbones}["pi0_fast"] == "lerobot/pi0fast_base"
+    assert (recipe.n_fits, recipe.n_rows) == (1008, 792) and recipe.dataset == "lerobot/libero"
+
+
 def test_section_keys_are_fields_of_the_requests_they_override() -> None:
     from dataclasses import fields
 
@@ -105,7 +118,8 @@ def test_extract_grids_default_to_native_and_explicit_ones_must_cover_the_fits(t
     short = load_recipe(_write(tmp_path, base + '[extract]\ngrids = ["2x2"]\n'))
     with pytest.raises(GraftcacheError, match=r"recipe.toml \[extract\]: grids = \['2x2'\] lacks 4x4, which the fits"):
         encoder_grids(short, state)
-    with pytest.raises(RecipeError, match=r"recipe.toml \[extract\]: grids = \('4y4',\) must name grids: native or HxW"):
+    with pytest.raises(RecipeError,
+                       match=r"recipe.toml \[extract\]: grids = \('4y4',\) must name grids: native or HxW"):
         load_recipe(_write(tmp_path, base + '[extract]\ngrids = ["4y4"]\n'))
     with pytest.raises(RecipeError, match=r"\[extract\]: grids = \(\(4, 4\),\) is not a tuple"):
         load_recipe(_write(tmp_path, base + '[extract]\ngrids = [[4, 4]]\n'))
@@ -123,7 +137,8 @@ def test_small_sweep_end_to_end_then_rerun_skips(tmp_path: Path, v3_video: Writt
                                                  capsys: pytest.CaptureFixture) -> None:
     out = tmp_path / "results.parquet"
     top = f'cache = "{tmp_path / "cache"}"\n'  # top-level keys go before the first table
-    text = top + BASE.format(dataset=v3_video.root, results=out, controls='["native", "pool-2x2"]') + textwrap.dedent("""
+    base = BASE.format(dataset=v3_video.root, results=out, controls='["native", "pool-2x2"]')
+    text = top + base + textwrap.dedent("""
         [extract]
         batch_size = 8
         num_workers = 0

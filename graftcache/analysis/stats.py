@@ -9,13 +9,13 @@ import math
 import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import ClassVar
 
 import numpy as np
 import polars as pl
 
 from graftcache.analysis.table import CELL, EPISODE_COLUMN, control_rows
-from graftcache.checks import FRACTION, NON_NEGATIVE, POSITIVE, Checked, Rule
+from graftcache.checks import FRACTION, NON_NEGATIVE, POSITIVE
+from graftcache.settings import Checked, setting
 
 
 @dataclass(frozen=True)
@@ -23,11 +23,9 @@ class BootSettings(Checked):
     """How every top tier and control comparison is bootstrapped: the one home of these defaults, passed
     whole from the report and notebook down to each question so that no function restates them."""
 
-    confidence: float = 0.95  # one-sided: separable when P(worse) >= confidence
-    n_boot: int = 2000  # replicates per cell
-    seed: int = 0  # with the cell's name, seeds each cell's generator
-
-    RULES: ClassVar[dict[str, Rule]] = {"confidence": FRACTION, "n_boot": POSITIVE, "seed": NON_NEGATIVE}
+    confidence: float = setting(0.95, rule=FRACTION)  # one-sided: separable when P(worse) >= confidence
+    n_boot: int = setting(2000, rule=POSITIVE)  # replicates per cell
+    seed: int = setting(0, rule=NON_NEGATIVE)  # with the cell's name, seeds each cell's generator
 
 # What a comparison's uncertainty rests on (the `basis` column); anything but SOLID_BASES is flagged.
 BASIS_SEEDS = "seeds"

@@ -39,9 +39,9 @@ from graftcache.backbones.checkpoint import (
     quiet,
     resolve_source,
     state_dict_sha256,
-    verify_weights,
     weights_file,
 )
+from graftcache.backbones.lean import construct, load_checkpoint, read_header
 from graftcache.backbones.objectives import FlowObjective
 from graftcache.backbones.released import is_random_release
 from graftcache.backbones.surgery import GraftSurgery
@@ -78,13 +78,8 @@ class BackboneAdapter(GraftSurgery, PromptBatches, FlowObjective, ABC):
         self.source = source
         self.random_init = random_init
         self.tiny_marker = tiny_marker
-        self.projector: nn.Module | None = None
         self._sha256: str | None = None
         self._task_cache: dict[str, tuple[torch.Tensor, torch.Tensor]] = {}
-        self._pristine: dict[str, torch.Tensor] | None = None  # CPU copy of the loaded weights (see reset())
-        self._undo: list[tuple[nn.Module, str, nn.Module]] = []  # (owner, attribute, original module)
-        self._requires_grad: dict[str, bool] = {}
-        self._lora_host: nn.Module | None = None
 
     # ------------------------------------------------------------------------------ construction
     @classmethod
@@ -106,10 +101,16 @@ class BackboneAdapter(GraftSurgery, PromptBatches, FlowObjective, ABC):
             raise BackboneError(f"{folder}: a tiny {marker['backbone']} checkpoint, not {cls.name}")
         config = cls._read_config(folder)
         config.device = device
-        weights = weights_file(folder)  # header read before lerobot's load: a non-safetensors file is one line
-        with quiet():  # lerobot's loading chatter, and pi0.5's key renaming warns per vision key
-            policy = cls._load_policy(folder, config, marker)
-            verify_weights(policy, weights, cls._checkpoint_key_map(policy))
+        cls._configure(folder, config, marker)
+        weights = weights_file(folder)  # header read before anything is built: a non-safetensors file is one line
+        with quiet():  # lerobot's construction chatter, and pi0.5's key renaming warns per vision key
+            policy = construct(lambda: cls._construct(config, marker), config)
+            try:
+                keys = cls._checkpoint_keys(policy, read_header(weights)[1])
+            except BackboneError as e:
+                raise BackboneError(f"{weights}: {e}") from None
+            load_checkpoint(policy, weights, keys, torch.device(device))
+        policy.eval()  # as lerobot's from_pretrained leaves a policy (pi0.5's own override forgets to)
         processors = load_processors(folder, *cls._processor_overrides(policy.config, marker, device))
         if processors is None:
             if dataset_stats is None:
@@ -118,8 +119,7 @@ class BackboneAdapter(GraftSurgery, PromptBatches, FlowObjective, ABC):
         # A tiny checkpoint is never released weights: random init, at most trained natively on a sample;
         # nor is one written at the released geometry by graftcache.backbones.released.
         random_init = marker is not None or is_random_release(folder)
-        return cls(policy.to(device), *processors, source=str(source), random_init=random_init,
-                   tiny_marker=marker)
+        return cls(policy, *processors, source=str(source), random_init=random_init, tiny_marker=marker)
 
     @classmethod
     def _read_config(cls, folder: Path):
@@ -143,14 +143,24 @@ class BackboneAdapter(GraftSurgery, PromptBatches, FlowObjective, ABC):
         """Random-init tiny policy, processors and the marker that lets it be saved and reloaded."""
 
     @classmethod
-    @abstractmethod
-    def _load_policy(cls, folder: Path, config, marker: dict | None) -> nn.Module:
-        """The policy class's own `from_pretrained` on `folder` with `config`."""
+    def _configure(cls, folder: Path, config, marker: dict | None) -> None:
+        """Point `config` at what the policy reads from beside its checkpoint when it is constructed (pi0-FAST:
+        its tokenizers); nothing for most policies."""
 
     @classmethod
-    def _checkpoint_key_map(cls, policy: nn.Module):
-        """{file key: shape} -> {policy key: shape}; identity unless the policy renames keys on load."""
-        return dict
+    def _construct(cls, config, marker: dict | None) -> nn.Module:
+        """The policy class's own constructor on `config` (`load` runs it with its parameters on the meta
+        device and fills them from the checkpoint). Override to adjust the config or construct at a tiny
+        marker's sizes."""
+        from lerobot.policies.factory import get_policy_class
+
+        return get_policy_class(config.type)(config)
+
+    @classmethod
+    def _checkpoint_keys(cls, policy: nn.Module, file_keys: Iterable[str]) -> dict[str, str]:
+        """{policy state-dict key: checkpoint key}: identity unless the policy's from_pretrained renames keys
+        (pi0.5: graftcache.backbones.lean.openpi_keys)."""
+        return {k: k for k in file_keys}
 
     @classmethod
     def _processor_overrides(cls, config, marker: dict | None, device: str) -> tuple[dict, dict]:
@@ -257,7 +267,8 @@ class BackboneAdapter(GraftSurgery, PromptBatches, FlowObjective, ABC):
             raise BackboneError(f"{self.name}: the native tower was removed by graft(); read it before grafting")
         if images.ndim != 4 or images.shape[1] != 3:
             raise BackboneError(f"{self.name}: native images must be [B, 3, H, W] in [0, 1], got {tuple(images.shape)}")
-        prepared, _ = getattr(type(self.policy), self.image_method)(self.policy, {self.camera_keys[0]: images.to(self.device)})
+        prepare = getattr(type(self.policy), self.image_method)
+        prepared, _ = prepare(self.policy, {self.camera_keys[0]: images.to(self.device)})
         return prepared[0]
 
     @property

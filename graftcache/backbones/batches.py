@@ -82,6 +82,7 @@ class PromptBatches:
         ids = torch.full((len(rows), length), tokenizer_step.input_tokenizer.pad_token_id, dtype=torch.long)
         mask = torch.zeros((len(rows), length), dtype=torch.bool)
         for i, (row_ids, row_mask) in enumerate(rows):
-            cols = slice(0, len(row_ids)) if tokenizer_step.padding_side == "right" else slice(length - len(row_ids), length)
+            right = tokenizer_step.padding_side == "right"
+            cols = slice(0, len(row_ids)) if right else slice(length - len(row_ids), length)
             ids[i, cols], mask[i, cols] = row_ids, row_mask
         return ids, mask

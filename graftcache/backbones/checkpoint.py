@@ -1,9 +1,7 @@
-"""Finding, loading and checking policy checkpoints (local folders or the Hugging Face cache, offline).
+"""Finding policy checkpoints (local folders or the Hugging Face cache, offline), their processors and files.
 
-Why a separate check after lerobot's `from_pretrained`: SmolVLA loads with `strict=False` (missing
-keys are only logged) and pi0.5 wraps its strict load in a try/except that prints a warning and
-returns a partly random model. A measurement tool must not score a silently random backbone, so
-every load is followed by a key/shape comparison against the safetensors file.
+The weights themselves are read by graftcache.backbones.lean, which also refuses a checkpoint that lacks a
+tensor of the policy or shapes one differently.
 """
 
 from __future__ import annotations
@@ -13,7 +11,7 @@ import io
 import logging
 import os
 import stat
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 
 from torch import nn
@@ -89,31 +87,6 @@ def quiet() -> Iterator[None]:
             yield
     finally:
         logging.disable(previous)
-
-
-def verify_weights(policy: nn.Module, file: Path, key_map: Callable[[dict], dict] = dict) -> None:
-    """Raise BackboneError unless every policy tensor has a same-shaped entry in the checkpoint.
-
-    `key_map` turns {file key: shape} into {policy key: shape} (pi0.5 renames openpi keys). A tensor
-    tied to another (same storage) may be absent from the file: safetensors stores shared tensors once.
-    """
-    from safetensors import safe_open
-
-    with safe_open(str(file), framework="pt") as f:
-        shapes = key_map({k: tuple(f.get_slice(k).get_shape()) for k in f.keys()})
-    state = policy.state_dict()
-    present_storage = {state[k].data_ptr() for k in state if k in shapes}
-    missing = [k for k in state if k not in shapes and state[k].data_ptr() not in present_storage]
-    wrong = [f"{k} {tuple(state[k].shape)} vs {shapes[k]}" for k in state
-             if k in shapes and tuple(state[k].shape) != tuple(shapes[k])]
-    if missing or wrong:
-        unexpected = [k for k in shapes if k not in state]  # named only: lerobot drops some keys on purpose
-        detail = "; ".join([*(f"missing {k}" for k in missing[:3]), *(f"shape {w}" for w in wrong[:3]),
-                            *(f"unexpected {k}" for k in unexpected[:3])])
-        raise BackboneError(
-            f"{file}: checkpoint does not match the policy ({len(missing)} missing, {len(wrong)} mis-shaped, "
-            f"{len(unexpected)} unexpected): {detail}"
-        )
 
 
 def load_processors(folder: Path, pre_overrides: dict, post_overrides: dict):

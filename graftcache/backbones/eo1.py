@@ -27,7 +27,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import logging
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -39,7 +39,7 @@ from graftcache.backbones.base import BackboneAdapter
 from graftcache.backbones.batches import ACTION, STATE
 from graftcache.backbones.checkpoint import cached_repo
 from graftcache.backbones.tiny import TinySpec
-from graftcache.backbones.tiny_eo1 import QWEN_VL_DIR, build_tiny_eo1
+from graftcache.backbones.tiny_eo1 import QWEN_VL_DIR, build_tiny_eo1, construct
 from graftcache.errors import BackboneError
 from graftcache.graft import feature_key
 
@@ -119,13 +119,21 @@ class EO1Adapter(BackboneAdapter):
         return super()._read_config(folder)
 
     @classmethod
-    def _load_policy(cls, folder: Path, config, marker: dict | None) -> nn.Module:
-        """EO1Policy.from_pretrained with the VLM built from the saved `vlm_config` (the checkpoint holds its
-        weights): without a `pretrained_path` lerobot would first fetch `vlm_base`'s own weights."""
-        from lerobot.policies.eo1.modeling_eo1 import EO1Policy
+    def _construct(cls, config, marker: dict | None) -> nn.Module:
+        """EO1Policy with its VLM built from the saved `vlm_config` (the checkpoint holds the weights): lerobot's
+        constructor would otherwise first fetch `vlm_base`'s own weights."""
+        return construct(config)
 
-        config.pretrained_path = folder
-        return EO1Policy.from_pretrained(folder, config=config)
+    @classmethod
+    def _checkpoint_keys(cls, policy: nn.Module, file_keys: Iterable[str]) -> dict[str, str]:
+        """Qwen2.5-VL-3B ties its LM head to the word embedding; safetensors keeps one of the two names: read the
+        other from it."""
+        keys = {k: k for k in file_keys}
+        head, embed = "model.vlm_backbone.lm_head.weight", "model.vlm_backbone.model.language_model.embed_tokens.weight"
+        for a, b in ((head, embed), (embed, head)):
+            if a in keys and b not in keys:
+                keys[b] = keys[a]
+        return keys
 
     @classmethod
     def _qwen_folder(cls, config, marker: dict | None) -> Path:

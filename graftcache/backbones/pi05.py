@@ -13,8 +13,7 @@ tokens are made per batch by lerobot's preprocessor, not once per task.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-from pathlib import Path
+from collections.abc import Iterable, Mapping
 from typing import Any
 
 import torch
@@ -23,6 +22,7 @@ from torch import nn
 from graftcache.backbones.base import BackboneAdapter
 from graftcache.backbones.batches import TOKEN_MASK, TOKENS
 from graftcache.backbones.checkpoint import cached_repo
+from graftcache.backbones.lean import openpi_keys
 from graftcache.backbones.tiny import (
     Pi05TinyGeometry,
     TinySpec,
@@ -51,25 +51,18 @@ class PI05Adapter(BackboneAdapter):
         return policy, pre, post, {"backbone": cls.name, "geometry": geometry}
 
     @classmethod
-    def _load_policy(cls, folder: Path, config, marker: dict | None) -> nn.Module:
+    def _construct(cls, config, marker: dict | None) -> nn.Module:
         from lerobot.policies.pi05.modeling_pi05 import PI05Policy
 
         if marker is None:
-            return PI05Policy.from_pretrained(folder, config=config, strict=True)
+            return PI05Policy(config)
         with pi05_tiny_sizes(marker["geometry"]):
-            return PI05Policy.from_pretrained(folder, config=config, strict=True)
+            return PI05Policy(config)
 
     @classmethod
-    def _checkpoint_key_map(cls, policy: nn.Module):
-        """Mirror PI05Policy.from_pretrained: openpi key fixes, then a "model." prefix."""
-
-        def key_map(shapes: dict) -> dict:
-            # lerobot's fix-up takes tensors (it clones lm_head into embed_tokens): meta tensors cost nothing
-            meta = {k: torch.empty(v, device="meta") for k, v in shapes.items()}
-            fixed = policy._fix_pytorch_state_dict_keys(meta, policy.config)
-            return {k if k.startswith("model.") else f"model.{k}": tuple(v.shape) for k, v in fixed.items()}
-
-        return key_map
+    def _checkpoint_keys(cls, policy: nn.Module, file_keys: Iterable[str]) -> dict[str, str]:
+        """As PI05Policy.from_pretrained renames: openpi key fixes, then a "model." prefix."""
+        return openpi_keys(policy, file_keys)
 
     @classmethod
     def _tokenizer(cls, marker: dict | None):

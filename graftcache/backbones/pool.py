@@ -1,8 +1,8 @@
 """Loaded backbones shared by every cell of a run (fit, sweep, demo).
 
-A backbone is loaded once per (name, policy, device) and handed out reset to its pristine frozen
-state (`BackboneAdapter.reset`: surgery undone, weights restored from a kept copy), so a grid of
-cells costs one load per backbone, and cells that are already done load nothing at all.
+A backbone is loaded once per (name, policy, device) and handed out reset to its frozen state as loaded
+(`BackboneAdapter.reset`: the graft's surgery undone; no weight is written, so none is copied), so a grid
+of cells costs one load per backbone, and cells that are already done load nothing at all.
 """
 
 from __future__ import annotations

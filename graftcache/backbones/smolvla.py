@@ -38,14 +38,14 @@ class SmolVLAAdapter(BackboneAdapter):
         return policy, pre, post, {"backbone": cls.name, "geometry": None}
 
     @classmethod
-    def _load_policy(cls, folder: Path, config, marker: dict | None) -> nn.Module:
+    def _construct(cls, config, marker: dict | None) -> nn.Module:
         from lerobot.policies.smolvla.modeling_smolvla import SmolVLAPolicy
 
         # The policy's safetensors hold every VLM weight: do not make lerobot load SmolVLM2's own
         # weights first (bf16, and they would have to be in the cache). Config + processor suffice.
         config.load_vlm_weights = False
         config.vlm_model_name = str(cls._vlm_folder(config, marker))
-        return SmolVLAPolicy.from_pretrained(folder, config=config)
+        return SmolVLAPolicy(config)
 
     @classmethod
     def _vlm_folder(cls, config, marker: dict | None) -> Path:

@@ -2,12 +2,13 @@
 
 The backbone's vision tower is replaced by `PassThroughTower` (so lerobot's own `embed_image` runs
 unchanged and simply receives cached features) and its connector by the projector; everything but the
-projector is frozen. `reset` undoes all of it, so one loaded policy serves every cell of a run.
+projector is frozen. A `Graft` records all of it and `reset` undoes it, so one loaded policy serves every cell
+of a run, without a copy of its weights.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -105,12 +106,76 @@ def freeze_report(groups: Mapping[str, nn.Module | tuple[nn.Module, ...]], model
     return FreezeReport(tuple(rows))
 
 
+class Graft:
+    """One graft on a policy and everything needed to take it off again, held by the graft itself as peft's
+    tuner holds its base model: the modules it replaced, the requires_grad flags it changed, the method it
+    overrode on the policy, and the LoRA tuner. `undo()` gives the policy back as it was loaded. Nothing is
+    copied for that: a graft writes no frozen weight (projector and LoRA modules are its own, and LoRA is
+    unloaded, never merged), which `undo()` checks on every tensor's version counter."""
+
+    def __init__(self, policy: nn.Module, projector: nn.Module) -> None:
+        self.policy = policy
+        self.projector = projector
+        self._replaced: list[tuple[nn.Module, str, nn.Module]] = []  # (owner, attribute, original module)
+        self._overridden: list[str] = []  # instance attributes set on the policy (shadowing its methods)
+        self._requires_grad = {n: p.requires_grad for n, p in policy.named_parameters()}
+        self._versions = {n: t._version for n, t in policy.state_dict(keep_vars=True).items()}
+        self._lora = None  # peft's LoraModel around the adapted module: its unload() removes the adapters
+
+    def replace(self, owner: nn.Module, attribute: str, module: nn.Module) -> None:
+        """setattr that remembers the module it replaced."""
+        self._replaced.append((owner, attribute, getattr(owner, attribute)))
+        setattr(owner, attribute, module)
+
+    def override(self, method: str, replacement: Callable) -> None:
+        """Shadow one of the policy's methods with `replacement` (an instance attribute) until undone."""
+        setattr(self.policy, method, replacement)
+        self._overridden.append(method)
+
+    def add_lora(self, module: nn.Module, config) -> None:
+        """peft LoRA adapters injected into `module` in place; only they become trainable in it."""
+        from peft import LoraModel
+
+        self._lora = LoraModel(module, config, "default")
+        for name, param in module.named_parameters():
+            param.requires_grad_("lora_" in name)
+
+    def undo(self) -> None:
+        """Remove LoRA (unloaded without merging), put the replaced modules back, drop the overrides, restore
+        the requires_grad flags; BackboneError if a frozen tensor was written meanwhile (the policy is then not
+        the one loaded: reload it)."""
+        if self._lora is not None:
+            self._lora.unload()  # each LoRA layer -> its base layer; peft_config dropped from the module
+            self._lora = None
+        while self._replaced:
+            owner, attribute, original = self._replaced.pop()
+            setattr(owner, attribute, original)
+        for method in self._overridden:
+            self.policy.__dict__.pop(method, None)
+        self._overridden.clear()
+        for name, param in self.policy.named_parameters():
+            param.requires_grad_(self._requires_grad.get(name, param.requires_grad))
+        written = [n for n, t in self.policy.state_dict(keep_vars=True).items()
+                   if t._version != self._versions.get(n, t._version)]
+        if written:
+            raise BackboneError(f"{len(written)} frozen policy tensors were written while grafted (e.g. "
+                                f"{written[0]}); the policy is no longer the one loaded: reload it")
+
+
 class GraftSurgery:
-    """The surgery half of a BackboneAdapter (mixed into it; uses its policy, device and slots)."""
+    """The surgery half of a BackboneAdapter (mixed into it; uses its policy, device and slots): it makes and
+    holds the current `Graft`."""
+
+    _graft: Graft | None = None
 
     @property
     def grafted(self) -> bool:
-        return self.projector is not None
+        return self._graft is not None
+
+    @property
+    def projector(self) -> nn.Module | None:
+        """The grafted projector (None when not grafted)."""
+        return None if self._graft is None else self._graft.projector
 
     def graft(self, projector: nn.Module) -> None:
         """Replace tower and connector, read images from cached features, freeze all but `projector`."""
@@ -119,39 +184,22 @@ class GraftSurgery:
         width = getattr(projector, "out_features", None)
         if width != self.lm_width:
             raise BackboneError(f"{self.name}: projector outputs width {width}, the LM expects {self.lm_width}")
-        _ = self.policy_sha256  # pin the hash of the loaded weights before the surgery changes them
-        if self._pristine is None:
-            self._pristine = {k: v.detach().to("cpu", copy=True) for k, v in self.policy.state_dict().items()}
-        self._requires_grad = {n: p.requires_grad for n, p in self.policy.named_parameters()}
+        _ = self.policy_sha256  # pin the hash of the loaded weights before the surgery changes the modules
+        graft = Graft(self.policy, projector.to(self.device))
         owner, tower, connector = self._vision_slots()
-        projector = projector.to(self.device)
-        self._replace(owner, tower, PassThroughTower().to(self.device))
-        self._replace(owner, connector, projector)
-        setattr(self.policy, self.image_method, self._feature_images)
-        freeze_all_but(self.policy, projector)
-        self.projector = projector
-
-    def _replace(self, owner: nn.Module, attribute: str, module: nn.Module) -> None:
-        """setattr that remembers the module it replaced, so reset() can undo the surgery."""
-        self._undo.append((owner, attribute, getattr(owner, attribute)))
-        setattr(owner, attribute, module)
+        graft.replace(owner, tower, PassThroughTower().to(self.device))
+        graft.replace(owner, connector, graft.projector)
+        graft.override(self.image_method, self._feature_images)
+        freeze_all_but(self.policy, graft.projector)
+        self._graft = graft
 
     def reset(self) -> None:
-        """Back to the policy as loaded: undo graft and LoRA surgery, restore the requires_grad flags and
-        the weights from the CPU copy kept at the first graft(). Lets one loaded backbone serve every
-        cell of a run (a released pi0.5 is 3.3B parameters: reloading it per cell costs more than a fit)."""
-        while self._undo:
-            owner, attribute, original = self._undo.pop()
-            setattr(owner, attribute, original)
-        self.policy.__dict__.pop(self.image_method, None)  # the instance override set by graft()
-        if self._lora_host is not None:
-            self._lora_host.__dict__.pop("peft_config", None)
-            self._lora_host = None
-        for name, param in self.policy.named_parameters():
-            param.requires_grad_(self._requires_grad.get(name, param.requires_grad))
-        if self._pristine is not None:
-            self.policy.load_state_dict(self._pristine, strict=True)
-        self.projector = None
+        """Back to the policy as loaded (`Graft.undo`), so one loaded policy serves every cell of a run (a
+        released pi0.5 is 3.3B parameters: reloading it per cell costs more than a fit). Keeps no copy of
+        any weight."""
+        graft, self._graft = self._graft, None
+        if graft is not None:
+            graft.undo()
 
     def _feature_images(self, batch: Mapping[str, Any]) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
         """Grafted stand-in for the policy's image preparation: cached features instead of pixels."""
@@ -178,22 +226,13 @@ class GraftSurgery:
         with the projector. The adapters are injected in place (lerobot calls the layers' projections
         directly, not the LM's forward); their B matrices start at zero, so before training the policy
         computes exactly what the plain graft does. Only the adapters become trainable in the LM."""
-        from peft import LoraConfig, inject_adapter_in_model
+        from peft import LoraConfig
 
         if not self.grafted:
             raise BackboneError(f"{self.name}: add LoRA after graft(), so the projector and adapters train together")
-        lm = self._module_groups()["language model"]
         config = LoraConfig(r=rank, lora_alpha=alpha or rank, lora_dropout=0.0, bias="none",
                             target_modules=list(LORA_TARGETS))
-        inject_adapter_in_model(config, lm)
-        self._lora_host = lm  # peft records its config on the module: dropped again by reset()
-        for owner in list(lm.modules()):
-            for attribute, child in list(owner.named_children()):
-                base = getattr(child, "base_layer", None)
-                if isinstance(base, nn.Module):  # a peft LoRA layer wrapping the original projection
-                    self._undo.append((owner, attribute, base))
-        for name, param in lm.named_parameters():
-            param.requires_grad_("lora_" in name)
+        self._graft.add_lora(self._module_groups()["language model"], config)
 
     def freeze_report(self) -> FreezeReport:
         return freeze_report(self._module_groups(), self.policy)

@@ -24,7 +24,7 @@ their own (tests/test_backbones_xvla.py checks both against lerobot's under the 
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -67,31 +67,23 @@ class XVLAAdapter(BackboneAdapter):
         return super()._read_config(folder)
 
     @classmethod
-    def _load_policy(cls, folder: Path, config, marker: dict | None) -> nn.Module:
-        from lerobot.policies.xvla.modeling_xvla import XVLAPolicy
+    def _checkpoint_keys(cls, policy: nn.Module, file_keys: Iterable[str]) -> dict[str, str]:
+        """As XVLAPolicy.from_pretrained reads a checkpoint: the tied word embedding under whichever of its two
+        names the file holds. A checkpoint in the old vendored Florence-2 layout (its image projection must be
+        transposed, not renamed) is refused with the one-time conversion, lerobot's own loader, that fixes it."""
+        from lerobot.policies.xvla.modeling_xvla import _is_vendored_florence_state_dict
 
-        return XVLAPolicy.from_pretrained(folder, config=config)
-
-    @classmethod
-    def _checkpoint_key_map(cls, policy: nn.Module):
-        """Mirror XVLAPolicy.from_pretrained: old vendored Florence-2 keys renamed, the tied word embedding
-        stored under either of its two names."""
-        from lerobot.policies.xvla.modeling_xvla import (
-            _is_vendored_florence_state_dict,
-            _remap_vendored_florence_state_dict,
-        )
-
-        def key_map(shapes: dict) -> dict:
-            if _is_vendored_florence_state_dict(shapes):
-                meta = {k: torch.empty(v, device="meta") for k, v in shapes.items()}
-                shapes = {k: tuple(t.shape) for k, t in _remap_vendored_florence_state_dict(meta).items()}
-            shared, embed = "model.vlm.language_model.shared.weight", "model.vlm.language_model.encoder.embed_tokens.weight"
-            for a, b in ((shared, embed), (embed, shared)):
-                if a in shapes and b not in shapes:
-                    shapes[b] = shapes[a]
-            return shapes
-
-        return key_map
+        keys = {k: k for k in file_keys}
+        if _is_vendored_florence_state_dict(keys):
+            raise BackboneError("an X-VLA checkpoint in the old vendored Florence-2 layout: convert it once with "
+                                "lerobot (XVLAPolicy.from_pretrained(old).save_pretrained(new)) and load the new "
+                                "folder")
+        shared = "model.vlm.language_model.shared.weight"
+        embed = "model.vlm.language_model.encoder.embed_tokens.weight"
+        for a, b in ((shared, embed), (embed, shared)):
+            if a in keys and b not in keys:
+                keys[b] = keys[a]
+        return keys
 
     @classmethod
     def _processor_overrides(cls, config, marker: dict | None, device: str) -> tuple[dict, dict]:

@@ -6,26 +6,34 @@ import argparse
 import shlex
 import sys
 
-from graftcache.analysis.scores import SCORES
-from graftcache.results import REPORT_COLUMNS
+from graftcache.cli.common import LazyText
+
+#: `graftcache.analysis.scores.SCORES`'s names as plain data (building the parser imports no analysis;
+#: tests/test_settings.py keeps the two equal)
+SCORE_NAMES = ("mse", "ci-mse")
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("report", help="write report.md/report.html with figures from a results file",
-                       description="Turn a results Parquet file into rankings, near-tie bands, transfer "
-                       "verdicts in both directions, control comparisons and figures (report.md, "
-                       f"report.html, PNGs). Any table with the columns {', '.join(REPORT_COLUMNS)} can be "
-                       "reported (older versions, other tools, numbers typed in from a paper); without "
-                       "per-episode MSEs the bootstrap is seed-level, and the report says so.")
+                       description=LazyText(_description))
     p.add_argument("results", help="results Parquet file (written by fit/sweep/demo, or any table with the "
                    "columns above)")
     p.add_argument("--out", default="report", help="output folder (default: report/); transfer.csv, one row per "
                    "transfer verdict, is written there too")
-    p.add_argument("--score", choices=tuple(SCORES), default="mse",
+    p.add_argument("--score", choices=SCORE_NAMES, default="mse",
                    help="rank encoders by offline action MSE (mse, the default) or critical-interval MSE (ci-mse: "
                    "the error near gripper open/close transitions); where the table holds both, the report "
                    "shows where the two rankings disagree")
     p.set_defaults(func=run)
+
+
+def _description() -> str:
+    from graftcache.results import REPORT_COLUMNS  # imported to print help only: it loads the store
+
+    return ("Turn a results Parquet file into rankings, near-tie bands, transfer verdicts in both directions, control "
+            "comparisons and figures (report.md, report.html, PNGs). Any table with the columns "
+            f"{', '.join(REPORT_COLUMNS)} can be reported (older versions, other tools, numbers typed in from a "
+            "paper); without per-episode MSEs the bootstrap is seed-level, and the report says so.")
 
 
 def run(args: argparse.Namespace) -> int:

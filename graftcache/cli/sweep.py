@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 
-from graftcache.cli.common import add_executor_flags, given
+from graftcache.cli.common import add_flags, given
 from graftcache.requests import ExecutorSettings
 
 
@@ -18,7 +18,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--dry-run", action="store_true",
                    help="run every check the sweep runs before its first step (recipe, dataset, suites' "
                    "splits, encoders, memory) and print the grid; train, extract and fit nothing")
-    add_executor_flags(p, overrides=True)
+    add_flags(p, ExecutorSettings, overrides=True)  # over the recipe's [executor] table (else the defaults shown)
     p.set_defaults(func=run)
 
 

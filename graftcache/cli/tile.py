@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import argparse
 
-from graftcache.cli.common import add_field, nonneg_int, positive_int, request_from
+from graftcache.cli.common import add_flag, request_from
 from graftcache.requests import TileRequest
 
 
@@ -21,15 +21,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "frames. Tasks are the four LIBERO suites' real instructions (--preset libero: lerobot/libero's episode "
         "and frame counts per suite) or SOURCE's own tasks (--episodes). For measuring, not for fitting: the "
         "frames are SOURCE's scenes whatever the instruction says.")
-    p.add_argument("source", help="v3.0 dataset with video cameras (folder or hub repo id in the local HF cache)")
-    p.add_argument("dest", help="new dataset folder (must not exist)")
+    for name in ("source", "dest"):
+        add_flag(p, TileRequest, name)
     what = p.add_mutually_exclusive_group(required=True)
-    add_field(what, TileRequest, "preset", help="libero: 1,693 episodes, 273,465 frames in 4 suites")
-    add_field(what, TileRequest, "episodes", type=positive_int, metavar="N",
-              help="N episodes over SOURCE's tasks (N = k x SOURCE's episodes for k times SOURCE)")
-    add_field(p, TileRequest, "frames", type=positive_int, metavar="M",
-              help="frames in all, with --episodes (default: SOURCE's mean episode length x N)")
-    add_field(p, TileRequest, "seed", type=nonneg_int, help="seed of episode lengths and window positions")
+    add_flag(what, TileRequest, "preset")
+    add_flag(what, TileRequest, "episodes")
+    add_flag(p, TileRequest, "frames")
+    add_flag(p, TileRequest, "seed")
     p.set_defaults(func=run)
 
 

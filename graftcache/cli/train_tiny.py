@@ -5,27 +5,21 @@ from __future__ import annotations
 
 import argparse
 
-from graftcache.backbone_table import BACKBONES
-from graftcache.cli.common import add_compute_dtype_flag, add_field, name_list, nonneg_int, positive_int, request_from
-from graftcache.requests import TinyTrainConfig
+from graftcache.cli.common import add_cache_flag, add_flag, add_flags, request_from
+from graftcache.requests import FitRequest, TinyTrainConfig
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("train-tiny", help="natively train a tiny backbone on a dataset (all parameters, on pixels)",
                        description="Train lerobot's SmolVLA or pi0.5 at tiny sizes, all parameters and its own vision "
                        "tower, on a LeRobot dataset. The checkpoint is cached and found again by --policy tiny.")
-    p.add_argument("--backbone", required=True, choices=tuple(BACKBONES))
+    add_flag(p, FitRequest, "backbone")
     p.add_argument("--dataset", default="data/libero_sample")
-    add_field(p, TinyTrainConfig, "cameras", type=name_list, metavar="A,B",
-              help="the dataset cameras the policy sees, in this order (default: all of them, in the dataset's "
-              "order); its config records their names, so a fit on this dataset matches them by name")
-    add_field(p, TinyTrainConfig, "steps", type=positive_int)
-    add_field(p, TinyTrainConfig, "seed", type=nonneg_int)
+    add_flags(p, TinyTrainConfig)  # the recipe's settings (graftcache/requests.py); the rest name what and where
     p.add_argument("--out", default=None, help="checkpoint folder (default: <cache>/policies/tiny-<backbone>-<hash>)")
     p.add_argument("--force", action="store_true", help="retrain even if a checkpoint exists")
-    p.add_argument("--device", default="cpu")
-    add_compute_dtype_flag(p, TinyTrainConfig)
-    p.add_argument("--cache", default=None)
+    add_flag(p, FitRequest, "device")
+    add_cache_flag(p)
     p.set_defaults(func=run)
 
 

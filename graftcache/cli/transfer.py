@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import argparse
 
-from graftcache.cli.common import add_cache_flag
-from graftcache.encoders.fingerprint import ACCEPT_FLAG
+from graftcache.cli.common import add_cache_flag, add_flag
+from graftcache.requests import FitRequest
 
 # command -> (help, description, the other root's name, whether --cache is the source)
 DIRECTIONS: dict[str, tuple[str, str, str, bool]] = {
@@ -24,9 +24,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         p.add_argument("key")
         p.add_argument(other, help=f"{other} root: a folder or an s3:// gs:// az:// URL")
         add_cache_flag(p)
-        p.add_argument(ACCEPT_FLAG, dest="accept_numerics_drift", action="store_true",
-                       help="copy even when this environment computes the cache's features differently from the one "
-                       "that made it (its numerics fingerprint, recomputed here before copying)")
+        add_flag(p, FitRequest, "accept_numerics_drift",
+                 help="copy even when this environment computes the cache's features differently from the one "
+                 "that made it (its numerics fingerprint, recomputed here before copying)")
         p.set_defaults(func=run)
 
 

@@ -9,8 +9,8 @@ PNG is lossless, so any correct decoder is bit-exact; PIL was the fastest measur
 from __future__ import annotations
 
 import io
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 import pyarrow as pa

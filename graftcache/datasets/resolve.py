@@ -67,7 +67,8 @@ def _pick_revision(repo_dir: Path, rev: str) -> str:
         revision = rev
     else:
         snaps = sorted(p.name for p in (repo_dir / "snapshots").glob("*")) if (repo_dir / "snapshots").is_dir() else []
-        raise DatasetError(f"{repo_dir}: no refs/{rev} and no snapshot {rev!r} (snapshots: {', '.join(snaps) or 'none'})")
+        raise DatasetError(f"{repo_dir}: no refs/{rev} and no snapshot {rev!r} "
+                           f"(snapshots: {', '.join(snaps) or 'none'})")
     if not (repo_dir / "snapshots" / revision).is_dir():
         raise DatasetError(f"{ref}: points at snapshot {revision} which is missing under {repo_dir / 'snapshots'}")
     return revision

@@ -7,8 +7,9 @@ workers in microseconds; each `decode_episode` call opens, decodes and closes it
 from __future__ import annotations
 
 import json
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any
 
 import numpy as np
 import polars as pl

@@ -193,8 +193,8 @@ def _source_episodes(meta: DatasetMeta) -> _Episodes:
     rows = pl.concat([pl.read_parquet(f, columns=columns) for f in files]).sort("episode_index")
     length = rows["length"].to_numpy().astype(np.int64)
     position = np.concatenate([[0], np.cumsum(length)[:-1]])
-    videos = {k: rows.select(pl.col(f"videos/{k}/{c}").alias(c) for c in ("chunk_index", "file_index", "from_timestamp"))
-              for k in keys}
+    columns = ("chunk_index", "file_index", "from_timestamp")
+    videos = {k: rows.select(pl.col(f"videos/{k}/{c}").alias(c) for c in columns) for k in keys}
     breaks = np.zeros(len(length), dtype=bool)
     breaks[0] = True
     for v in videos.values():

@@ -8,8 +8,9 @@ stats files (meta/stats.json vs meta/episodes_stats.jsonl), which graftcache doe
 from __future__ import annotations
 
 import json
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 from graftcache.datasets.layout import EpisodeFiles, Layout, VideoSpan, template_path
 from graftcache.datasets.meta import EpisodeMeta

@@ -7,8 +7,9 @@ Task strings live in meta/tasks.parquet (pandas wrote the task as the frame inde
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import pyarrow.parquet as pq
 

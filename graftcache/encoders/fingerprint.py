@@ -29,7 +29,9 @@ import numpy as np
 import torch
 
 from graftcache.errors import GraftcacheError, NumericsError
+from graftcache.requests import FitRequest
 from graftcache.runtime import autocast, resolve_device, resolve_dtype
+from graftcache.settings import flag_of
 
 if TYPE_CHECKING:
     from graftcache.encoders.encoder import Encoder
@@ -45,7 +47,7 @@ SKETCH_DIMS = 8
 #: largest |difference| / RMS of the recorded sketch that still counts as the same numbers, per compute dtype:
 #: fp32 allows CUDA's TF32 convolutions vs CPU (~1e-3), bf16 / fp16 their rounding across kernels and devices
 #: the flag of every command that refuses a drifted cache unless told
-ACCEPT_FLAG = "--accept-numerics-drift"
+ACCEPT_FLAG = flag_of(FitRequest, "accept_numerics_drift")
 TOLERANCE = {"fp32": 2e-3, "fp16": 1e-2, "bf16": 5e-2}
 #: what a cache made before graftcache recorded fingerprints is, for every check
 NO_FINGERPRINT = "it has no numerics fingerprint (made before graftcache recorded one), so its features cannot " \

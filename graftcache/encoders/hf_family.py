@@ -43,7 +43,8 @@ class HFEncoder(Encoder):
     def __init__(self, spec: EncoderSpec, model: nn.Module, weights_info: dict[str, Any], arch: HFArch) -> None:
         super().__init__(spec, model, weights_info)
         native = getattr(model.config, "image_size", spec.image_size)
-        self._kwargs = {"interpolate_pos_encoding": True} if arch.interpolate_kwarg and native != spec.image_size else {}
+        interpolate = arch.interpolate_kwarg and native != spec.image_size
+        self._kwargs = {"interpolate_pos_encoding": True} if interpolate else {}
 
     def _grid(self, x: torch.Tensor) -> torch.Tensor:
         h = self.model(pixel_values=x, **self._kwargs).last_hidden_state
@@ -153,7 +154,8 @@ def _load(spec: EncoderSpec, arch: HFArch, origin: Path, *args: Any, **kwargs: A
     except (OSError, RuntimeError, ValueError, SafetensorError) as e:
         raise EncoderError(f"encoder {spec.name!r}: {origin} does not load into {arch.model_cls}: "
                            f"{first_line(e)}") from e
-    # transformers 5 reports sets (mismatched entries are (key, checkpoint shape, model shape)); sort for a stable message
+    # transformers 5 reports sets (mismatched entries are (key, checkpoint shape, model shape)); sorted for a stable
+    # message
     missing = sorted(info["missing_keys"]) + sorted(k for k, *_ in info["mismatched_keys"])
     if missing:
         unexpected = sorted(info["unexpected_keys"])

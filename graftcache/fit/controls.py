@@ -26,6 +26,7 @@ from torch import nn
 from graftcache.errors import FitError
 from graftcache.graft import GraftProjector, IdentityProjector
 from graftcache.pooling import format_grid, parse_grids
+from graftcache.requests import POOL_PREFIX
 
 SHUFFLE_SEED_OFFSET = 7919
 SHUFFLE_GROUP = 64  # frames that exchange features as a group (see shuffle)
@@ -112,7 +113,6 @@ CONTROLS: dict[str, Control] = {
     "shuffled-image": Control("shuffled-image", pairing=shuffle),
     "lora": Control("lora", lora=True),
 }
-POOL_PREFIX = "pool-"
 
 
 def get_control(name: str) -> Control:

@@ -6,8 +6,8 @@ step. `train` and `evaluate` are the fit's use of it on streamed cached features
 `train` draws from a bounded shuffle buffer, `evaluate` scores the held-out frames chunk by chunk.
 
 Determinism: batch draws, flow noise and flow time all come from one generator seeded by the caller
-(the cell's seed), and the stream's chunk order from the same seed, so a CPU rerun is bit-identical. Time is drawn like lerobot's `sample_time`
-(Beta(1.5, 1) scaled to [0.001, 1]) by inverse-CDF sampling from that generator.
+(the cell's seed), and the stream's chunk order from the same seed, so a CPU rerun is bit-identical. Time is drawn
+like lerobot's `sample_time` (Beta(1.5, 1) scaled to [0.001, 1]) by inverse-CDF sampling from that generator.
 """
 
 from __future__ import annotations

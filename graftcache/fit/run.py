@@ -128,8 +128,6 @@ class Fitter:
                  backbones: BackbonePool | None = None, numerics: dict[str, NumericsCheck] | None = None) -> None:
         """`backbones` and `numerics` (cache key -> verdict) may be shared by the Fitters of one process (a
         sweep), so each policy is loaded and each cache's numerics probe recomputed once per process."""
-        if req.objective not in OBJECTIVES:
-            raise FitError(f"--objective {req.objective!r}: choose one of {', '.join(OBJECTIVES)}")
         self.device = resolve_device(req.device)
         self.req = req = dataclasses.replace(req, compute_dtype=resolve_compute_dtype(req.compute_dtype, self.device))
         self.objective = OBJECTIVES[req.objective]
@@ -357,7 +355,8 @@ class Fitter:
             "eval_ci_mse_episodes": [score.ci_per_episode[e] for e in sorted(score.per_episode)],
             "backbone_params": params,
             "n_eval_frames": score.n_frames, "n_eval_episodes": len(score.per_episode), "wall_s": wall,
-            "device": str(self.device), "random_init": bool(mat.cache.manifest.get("random_init") or adapter.random_init),
+            "device": str(self.device),
+            "random_init": bool(mat.cache.manifest.get("random_init") or adapter.random_init),
             "n_dropped_nonfinite": mat.dropped + len(stats.dropped), "numerics_drift": self._drift(mat),
             "camera_map": format_camera_map(self.cameras), "graftcache_version": graftcache.__version__,
         })

@@ -108,7 +108,8 @@ def _transfer_section(a: A.Analysis, out: Path) -> list[Block]:
     for suite in a.suites:
         taus += [Paragraph(f"Kendall τb between the backbones' mean MSEs, {suite}:"), tau_matrix_block(a, suite)]
     return [
-        head, Paragraph(about), ladder_block(a), Bullets(tuple(headline_sentences(a))), *_figure(a, out, "rank_bump.png"),
+        head, Paragraph(about), ladder_block(a), Bullets(tuple(headline_sentences(a))),
+        *_figure(a, out, "rank_bump.png"),
         Paragraph(transfer_summary(a)), Bullets(tuple(verdict_sentences(a))),
         table_block(a.verdicts, transfer_columns(a)), *taus,
     ]

@@ -24,14 +24,13 @@ from __future__ import annotations
 import json
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from functools import cached_property
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import polars as pl
-import torch
 import zarr
 from zarr.codecs import BloscCodec
 
@@ -46,6 +45,9 @@ from graftcache.store.key import (
     identity_of,
 )
 from graftcache.store.roots import GROUP_META, Root, open_root, split_location
+
+if TYPE_CHECKING:  # torch is imported where features are converted: listing caches (graftcache ls) needs none
+    import torch
 
 INNER_CHUNK_BYTES = 4 << 20
 ACTION_STREAM = "action_stream"  # group of the full-rate actions (see FeatureCache.create)
@@ -90,6 +92,8 @@ def _sha256(a: np.ndarray) -> str:
 
 def to_storage(t: torch.Tensor, dtype: str) -> np.ndarray:
     """Convert computed features to the stored numpy representation of `dtype`."""
+    import torch
+
     if dtype == "bf16":
         return t.detach().to("cpu", torch.bfloat16).view(torch.uint16).numpy()
     return t.detach().to("cpu", torch.float16 if dtype == "fp16" else torch.float32).numpy()
@@ -97,6 +101,8 @@ def to_storage(t: torch.Tensor, dtype: str) -> np.ndarray:
 
 def from_storage(a: np.ndarray, dtype: str) -> torch.Tensor:
     """Inverse of `to_storage`: a torch tensor in the stored precision."""
+    import torch
+
     t = torch.from_numpy(np.ascontiguousarray(a))
     return t.view(torch.bfloat16) if dtype == "bf16" else t
 
@@ -338,7 +344,7 @@ class FeatureCache:
         self.group.attrs.update({
             "checksums": sums,
             "complete": True,
-            "completed_at": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+            "completed_at": datetime.now(UTC).isoformat(timespec="seconds"),
         })
         self.root.delete_prefix(f"{self.key}/{PROGRESS_DIR}/")
 

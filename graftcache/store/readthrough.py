@@ -15,10 +15,11 @@ is counted, so the counts of a fit's processes add up to what its copies hold.
 from __future__ import annotations
 
 import hashlib
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import AbstractContextManager
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 from zarr.abc.store import Store
 

@@ -26,9 +26,10 @@ import shutil
 import stat
 import uuid
 from abc import ABC, abstractmethod
+from collections.abc import Callable
 from contextlib import AbstractContextManager
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 from zarr.abc.store import Store
 
@@ -98,7 +99,7 @@ class Root(ABC):
     def delete_prefix(self, prefix: str) -> None:
         self.delete(list(self.sizes(prefix)))
 
-    def fetch(self, key: str, rels: list[str]) -> None:
+    def fetch(self, key: str, rels: list[str]) -> None:  # noqa: B027 (a no-op by default, not abstract)
         """Make these objects of cache `key` local before Zarr reads them; only a read-through root has work."""
 
 

@@ -1,0 +1,96 @@
+"""pi0 (lerobot 0.6, PaliGemma gemma_2b + gemma_300m expert, no adaRMS) as a graftable backbone.
+
+Vision path (modeling_pi0.py:297, 1000): as pi0.5's. `_preprocess_images` pads/resizes to 224 px and rescales to
+[-1, 1]; `embed_image` = PaliGemma `get_image_features(...).pooler_output`: SigLIP So400m/14 (16x16 patches x 1152)
+-> multi_modal_projector Linear(1152 -> 2048) = 256 tokens x 2048 per camera, no further scaling. The graft
+replaces SigLIP with a pass-through and the projector with the graft projector.
+
+What differs from pi0.5 (so this adapter differs from graftcache.backbones.pi05 there and nowhere else): the
+state is not in the prompt but a token of the expert's suffix (`state_proj`), so the prompt is the task alone
+("<task>\\n", processor_pi0.py) and is tokenised once per task; the flow model takes the padded state
+(`prepare_state`); time enters through `action_time_mlp_*`, not adaRMS.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping
+from typing import Any
+
+import torch
+from torch import nn
+
+from graftcache.backbones.batches import TOKEN_MASK, TOKENS
+from graftcache.backbones.lean import openpi_keys
+from graftcache.backbones.pi05 import PI05Adapter
+from graftcache.backbones.tiny import (
+    Pi05TinyGeometry,
+    TinySpec,
+    _action_features,
+    _require_stats,
+    _visual_features,
+    pi05_processors,
+    pi05_tiny_sizes,
+)
+
+MODELING = "lerobot.policies.pi0.modeling_pi0"
+PROCESSOR = "lerobot.policies.pi0.processor_pi0"
+
+
+class PI0Adapter(PI05Adapter):
+    name = "pi0"
+    token_steps = ("Pi0NewLineProcessor", "TokenizerProcessorStep")
+    prompt_uses_state = False
+
+    # ------------------------------------------------------------------------------ construction
+    @classmethod
+    def _build_tiny(cls, spec: TinySpec, stats: dict | None, device: str):
+        from lerobot.policies.pi0.configuration_pi0 import PI0Config
+        from lerobot.policies.pi0.modeling_pi0 import PI0Policy
+
+        geometry = Pi05TinyGeometry()
+        config = PI0Config(
+            chunk_size=spec.chunk_size, n_action_steps=spec.chunk_size, num_inference_steps=spec.num_steps,
+            image_resolution=(geometry.image_size, geometry.image_size),
+            max_state_dim=max(spec.state_dim, 8), max_action_dim=max(spec.action_dim, 8),
+            tokenizer_max_length=geometry.tokenizer_max_length, device=device, dtype="float32",
+            input_features=_visual_features(spec, geometry.image_size), output_features=_action_features(spec),
+        )
+        with torch.random.fork_rng(devices=[]), pi05_tiny_sizes(geometry, MODELING):
+            torch.manual_seed(spec.seed)
+            policy = PI0Policy(config)
+        pre, post = cls._make_processors(config, _require_stats(stats), {"geometry": geometry})
+        return policy.to(device), pre, post, {"backbone": cls.name, "geometry": geometry}
+
+    @classmethod
+    def _construct(cls, config, marker: dict | None) -> nn.Module:
+        from lerobot.policies.pi0.modeling_pi0 import PI0Policy
+
+        if marker is None:
+            return PI0Policy(config)
+        with pi05_tiny_sizes(marker["geometry"], MODELING):
+            return PI0Policy(config)
+
+    @classmethod
+    def _checkpoint_keys(cls, policy: nn.Module, file_keys: Iterable[str]) -> dict[str, str]:
+        """As PI0Policy.from_pretrained renames: openpi key fixes, then a "model." prefix."""
+        return openpi_keys(policy, file_keys)
+
+    @classmethod
+    def _make_processors(cls, config, stats: dict, marker: dict | None):
+        return pi05_processors(config, stats, cls._tokenizer(marker), PROCESSOR, "make_pi0_pre_post_processors")
+
+    # ------------------------------------------------------------------------------ objectives
+    def _flow_losses(self, batch: Mapping[str, Any], noise, time) -> torch.Tensor:
+        policy = self.policy
+        images, img_masks = policy._preprocess_images(batch)
+        return policy.model.forward(images, img_masks, batch[TOKENS], batch[TOKEN_MASK], policy.prepare_state(batch),
+                                    policy.prepare_action(batch), noise, time)
+
+    # ------------------------------------------------------------------------------ reporting
+    module_paths = {
+        "language model": ("_vision_owner.language_model",),
+        "action expert": ("policy.model.paligemma_with_expert.gemma_expert",),
+        "state projection": ("policy.model.state_proj",),
+        "action/time projections": tuple(f"policy.model.{m}" for m in (
+            "action_in_proj", "action_out_proj", "action_time_mlp_in", "action_time_mlp_out")),
+    }

@@ -1,0 +1,275 @@
+"""pi0-FAST (lerobot 0.6, PaliGemma gemma_2b, FAST action tokens, no action expert) as a graftable backbone.
+
+Vision path (modeling_pi0_fast.py:171, 964): as pi0's. SigLIP So400m/14 at 224 px -> multi_modal_projector
+Linear(1152 -> 2048) = 256 tokens x 2048 per camera (lerobot divides and multiplies them by sqrt(2048): no
+scaling). The graft replaces SigLIP with a pass-through and the projector with the graft projector.
+
+There is no flow model. The action chunk (normalised) is a sequence of FAST tokens (DCT per action dimension,
+quantised, BPE-compressed; lerobot's ActionTokenizerProcessorStep) that PaliGemma predicts autoregressively
+after the images and the prompt ("Task: ..., State: <256-bin state>;\\n"). So, for this backbone:
+- the training loss is lerobot's own: cross-entropy on the FAST tokens, one token-weighted mean over the batch
+  (`PI0FastPytorch.forward`), returned as it is (a scalar; callers take its mean);
+- "offline action MSE" scores the chunk lerobot's own `predict_action_chunk` decodes: greedy (temperature 0,
+  so deterministic; flow noise and denoising steps do not apply and are ignored), FAST tokens -> DCT
+  coefficients -> inverse DCT, with lerobot's relaxed decoding (a malformed sequence is padded or cut to the
+  chunk, or decodes to zeros) and without the "Action:" prefix assertion, so an ill-formed graft's tokens
+  score as what they decode to instead of aborting the cell.
+
+The FAST tokenizer: released checkpoints name a hub processor (`action_tokenizer_name`, lerobot's default
+`lerobot/fast-action-tokenizer`, openpi's `physical-intelligence/fast`) that lerobot loads as remote code. Here
+it is read from the local HF cache (or a checkpoint's own `fast_tokenizer/` folder) with the FAST processor
+lerobot 0.6.1 ships (policies/molmoact2/molmoact2_hf_model/action_tokenizer.py, the same algorithm without
+remote code); absent, loading is refused in one line naming the repo. Tiny policies train their own with that
+processor's `fit` (the FAST recipe: BPE on the quantised DCT coefficients), saved beside their weights.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import os
+import sys
+from collections.abc import Iterable, Iterator, Mapping
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from graftcache.backbones.batches import TOKEN_MASK, TOKENS
+from graftcache.backbones.checkpoint import cached_repo, quiet
+from graftcache.backbones.lean import openpi_keys
+from graftcache.backbones.pi05 import PI05Adapter
+from graftcache.backbones.tiny import (
+    Pi05TinyGeometry,
+    TinySpec,
+    _action_features,
+    _require_stats,
+    _visual_features,
+    paligemma_tiny_tokenizer,
+    pi05_tiny_sizes,
+)
+from graftcache.backbones.tiny_assets import PALIGEMMA_DIR
+from graftcache.errors import BackboneError
+
+MODELING = "lerobot.policies.pi0_fast.modeling_pi0_fast"
+FAST_DIR = "fast_tokenizer"  # a checkpoint's own FAST tokenizer, beside its weights
+ACTION_TOKENS = "action.tokens"  # lerobot.utils.constants.ACTION_TOKENS / ACTION_TOKEN_MASK
+ACTION_TOKEN_MASK = "action.token_mask"
+#: Tiny FAST tokenizer: FAST's default quantisation scale, lowered where the alphabet of quantised coefficients
+#: would not fit, and a vocabulary inside the tiny PaliGemma tokenizer's merge range (ids 261..770: action tokens
+#: map to ids 770 - t with fast_skip_tokens 0, above every byte token, so "|" and "Action: " stay recognisable).
+FAST_SCALE = 10.0
+TINY_FAST_ALPHABET = 301
+TINY_FAST_VOCAB = 480
+TINY_FAST_CORPUS = 2000
+
+
+def load_fast(path: Path):
+    """A saved FAST processor folder (tokenizer files + processor_config.json) as lerobot's FAST processor."""
+    from lerobot.policies.molmoact2.molmoact2_hf_model.action_tokenizer import UniversalActionProcessor
+
+    if not (path / "tokenizer.json").is_file():
+        raise BackboneError(f"{path}: not a FAST action tokenizer (no tokenizer.json)")
+    return UniversalActionProcessor.from_pretrained_local(str(path))
+
+
+def fit_tiny_fast(stats: dict, spec: TinySpec):
+    """A FAST tokenizer for a tiny policy, fitted with lerobot's FAST processor on seeded smooth chunks spanning
+    the dataset's normalised action range (MEAN_STD, the tiny config's). Two constant chunks at +-M (M the
+    largest normalised |action|) pin the alphabet to the bound sqrt(chunk) * M * scale that every in-range
+    chunk's DCT coefficients obey (|c_k| <= ||x||_2), so no in-range chunk loses a coefficient."""
+    from lerobot.policies.molmoact2.molmoact2_hf_model.action_tokenizer import UniversalActionProcessor
+
+    act = stats["action"]
+    std = act["std"].double().clamp(min=1e-6)
+    lo, hi = ((act["min"].double() - act["mean"]) / std).numpy(), ((act["max"].double() - act["mean"]) / std).numpy()
+    bound = float(max(np.abs(lo).max(), np.abs(hi).max(), 1e-3))
+    scale = min(FAST_SCALE, (TINY_FAST_ALPHABET - 1) / 2 / (math.sqrt(spec.chunk_size) * bound))
+    rng = np.random.default_rng(spec.seed)
+    shape = (TINY_FAST_CORPUS, spec.chunk_size, spec.action_dim)
+    walk = rng.uniform(lo, hi, (shape[0], 1, shape[2])) + np.cumsum(rng.normal(0, 0.05, shape) * (hi - lo), axis=1)
+    chunks = [*np.clip(walk, lo, hi), np.full(shape[1:], bound), np.full(shape[1:], -bound)]
+    with quiet(), _stdout_fd_silenced():
+        return UniversalActionProcessor.fit(chunks, scale=scale, vocab_size=TINY_FAST_VOCAB,
+                                            time_horizon=spec.chunk_size, action_dim=spec.action_dim)
+
+
+@contextlib.contextmanager
+def _stdout_fd_silenced() -> Iterator[None]:
+    """The BPE trainer's progress bar (on in lerobot's `fit`) writes blank lines to file descriptor 1 itself,
+    past Python's sys.stdout, into the stdout that commands keep for their results."""
+    sys.stdout.flush()
+    saved, devnull = os.dup(1), os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, 1)
+    try:
+        yield
+    finally:
+        os.dup2(saved, 1)
+        os.close(saved)
+        os.close(devnull)
+
+
+@contextlib.contextmanager
+def policy_tokenizers(fast, text: Path) -> Iterator[None]:
+    """PI0FastPolicy's constructor loads the FAST processor as remote code and the PaliGemma tokenizer by name
+    (modeling_pi0_fast.py:768): hand it these instead."""
+    import importlib
+
+    from transformers import AutoTokenizer
+
+    module = importlib.import_module(MODELING)
+    saved = module.AutoProcessor, module.AutoTokenizer
+    module.AutoProcessor = SimpleNamespace(from_pretrained=lambda *_, **__: fast)
+    module.AutoTokenizer = SimpleNamespace(from_pretrained=lambda _, **kw: AutoTokenizer.from_pretrained(text, **kw))
+    try:
+        yield
+    finally:
+        module.AutoProcessor, module.AutoTokenizer = saved
+
+
+def _processors(config, stats: dict, fast):
+    """lerobot's pi0-FAST processors with the given FAST processor and the PaliGemma tokenizer folder the config
+    names (the factory loads both by name, processor_pi0_fast.py:134-150)."""
+    import functools
+
+    import lerobot.policies.pi0_fast.processor_pi0_fast as pf
+    from lerobot.processor import ActionTokenizerProcessorStep, TokenizerProcessorStep
+    from transformers import AutoTokenizer
+
+    text = AutoTokenizer.from_pretrained(config.text_tokenizer_name)
+    saved = pf.TokenizerProcessorStep, pf.ActionTokenizerProcessorStep
+    pf.TokenizerProcessorStep = functools.partial(TokenizerProcessorStep, tokenizer=text)
+    pf.ActionTokenizerProcessorStep = functools.partial(ActionTokenizerProcessorStep,
+                                                        action_tokenizer_input_object=fast)
+    try:
+        return pf.make_pi0_fast_pre_post_processors(config, dataset_stats=stats)
+    finally:
+        pf.TokenizerProcessorStep, pf.ActionTokenizerProcessorStep = saved
+
+
+class PI0FastAdapter(PI05Adapter):
+    name = "pi0_fast"
+    steps_field = "max_decoding_steps"
+    token_steps = ("Pi0FastPrepareStateAndLanguageTokenizerProcessorStep", "TokenizerProcessorStep",
+                   "ActionTokenizerProcessorStep")
+    prompt_uses_state = True
+
+    # ------------------------------------------------------------------------------ construction
+    @classmethod
+    def _build_tiny(cls, spec: TinySpec, stats: dict | None, device: str):
+        from lerobot.policies.pi0_fast.configuration_pi0_fast import PI0FastConfig
+        from lerobot.policies.pi0_fast.modeling_pi0_fast import PI0FastPolicy
+
+        stats = _require_stats(stats)
+        geometry = Pi05TinyGeometry(vocab_size=len(paligemma_tiny_tokenizer()))  # every id the LM emits decodes
+        tokens = spec.chunk_size * spec.action_dim + 6  # <bos> "Action: " (3) ... "|" <eos>: never truncated
+        config = PI0FastConfig(
+            chunk_size=spec.chunk_size, n_action_steps=spec.chunk_size,
+            image_resolution=(geometry.image_size, geometry.image_size),
+            max_state_dim=max(spec.state_dim, 8), max_action_dim=max(spec.action_dim, 8),
+            tokenizer_max_length=geometry.tokenizer_max_length, device=device, dtype="float32",
+            text_tokenizer_name=str(PALIGEMMA_DIR), action_tokenizer_name=FAST_DIR, fast_skip_tokens=0,
+            max_action_tokens=tokens, max_decoding_steps=tokens,
+            input_features=_visual_features(spec, geometry.image_size), output_features=_action_features(spec),
+        )
+        fast = fit_tiny_fast(stats, spec)
+        with torch.random.fork_rng(devices=[]), pi05_tiny_sizes(geometry, MODELING), \
+                policy_tokenizers(fast, PALIGEMMA_DIR):
+            torch.manual_seed(spec.seed)
+            policy = PI0FastPolicy(config)
+        pre, post = _processors(config, stats, fast)
+        return policy.to(device), pre, post, {"backbone": cls.name, "geometry": geometry}
+
+    @classmethod
+    def _construct(cls, config, marker: dict | None) -> nn.Module:
+        from lerobot.policies.pi0_fast.modeling_pi0_fast import PI0FastPolicy
+
+        fast, text = Path(config.action_tokenizer_name), Path(config.text_tokenizer_name)  # set by _configure
+        sizes = pi05_tiny_sizes(marker["geometry"], MODELING) if marker is not None else contextlib.nullcontext()
+        with sizes, policy_tokenizers(load_fast(fast), text):
+            return PI0FastPolicy(config)
+
+    @classmethod
+    def _checkpoint_keys(cls, policy: nn.Module, file_keys: Iterable[str]) -> dict[str, str]:
+        """As PI0FastPolicy.from_pretrained renames: openpi key fixes, then a "model." prefix."""
+        return openpi_keys(policy, file_keys)
+
+    @classmethod
+    def _configure(cls, folder: Path, config, marker: dict | None) -> None:
+        fast, text = cls._tokenizer_folders(folder, config, marker)
+        config.action_tokenizer_name, config.text_tokenizer_name = str(fast), str(text)  # read by the processors
+
+    @classmethod
+    def _tokenizer_folders(cls, folder: Path, config, marker: dict | None) -> tuple[Path, Path]:
+        """(FAST processor folder, PaliGemma tokenizer folder): the checkpoint's own FAST tokenizer, else the
+        one its config names (a folder or a hub id in the local HF cache); the shipped tiny PaliGemma tokenizer
+        for tiny policies, else the config's (lerobot's default: google/paligemma-3b-pt-224)."""
+        def local(name: str, what: str) -> Path:
+            return Path(name) if Path(name).is_dir() else cached_repo(name, what)
+
+        own = folder / FAST_DIR
+        fast = own if own.is_dir() else local(config.action_tokenizer_name, "pi0-FAST's FAST action tokenizer")
+        text = PALIGEMMA_DIR if marker is not None else local(config.text_tokenizer_name, "pi0-FAST's tokenizer")
+        return fast, text
+
+    @classmethod
+    def _processor_overrides(cls, config, marker: dict | None, device: str) -> tuple[dict, dict]:
+        """The saved processors name neither tokenizer object, nor the PaliGemma tokenizer or `fast_skip_tokens`
+        of the action step (lerobot's ActionTokenizerProcessorStep.get_config): given here from the config."""
+        from transformers import AutoTokenizer
+
+        pre, post = super(PI05Adapter, cls)._processor_overrides(config, marker, device)  # not pi0.5's tokenizer
+        pre["tokenizer_processor"] = {"tokenizer": AutoTokenizer.from_pretrained(config.text_tokenizer_name)}
+        pre["action_tokenizer_processor"] = {
+            "action_tokenizer_input_object": load_fast(Path(config.action_tokenizer_name)),
+            "paligemma_tokenizer_name": config.text_tokenizer_name, "fast_skip_tokens": config.fast_skip_tokens}
+        return pre, post
+
+    @classmethod
+    def _make_processors(cls, config, stats: dict, marker: dict | None):
+        return _processors(config, stats, load_fast(Path(config.action_tokenizer_name)))
+
+    def save(self, folder: str | Path) -> Path:
+        """The lerobot checkpoint plus its FAST tokenizer (`fast_tokenizer/`), which loading prefers."""
+        folder = super().save(folder)
+        self.policy.action_tokenizer.save_pretrained(folder / FAST_DIR)
+        return folder
+
+    # ------------------------------------------------------------------------------ objectives
+    def loss(self, batch: Mapping[str, Any], noise: torch.Tensor | None = None,
+             time: torch.Tensor | None = None) -> torch.Tensor:
+        """lerobot's pi0-FAST loss: cross-entropy on the FAST tokens of the chunk, one token-weighted mean over
+        the batch (a scalar). `noise` and `time` are flow-matching inputs this backbone has none of."""
+        policy = self.policy
+        images, img_masks = policy._preprocess_images(batch)
+        return policy.model.forward(images, img_masks, batch[TOKENS], batch[TOKEN_MASK], batch[ACTION_TOKENS],
+                                    batch[ACTION_TOKEN_MASK])["loss"]
+
+    def _flow_losses(self, batch: Mapping[str, Any], noise, time) -> torch.Tensor:
+        raise BackboneError(f"{self.name} has no flow loss: its loss is cross-entropy on FAST action tokens")
+
+    def _predict_chunk(self, batch: Mapping[str, Any], noise: torch.Tensor, num_steps: int) -> torch.Tensor:
+        with _greedy_chunks(self.config, self.chunk_size):
+            return self.policy.predict_action_chunk(dict(batch)).to(self.device)
+
+    # ------------------------------------------------------------------------------ reporting
+    module_paths = {"language model": ("_vision_owner.language_model",),
+                    "LM head": ("policy.model.paligemma_with_expert.paligemma.lm_head",)}
+
+
+@contextlib.contextmanager
+def _greedy_chunks(config, chunk: int) -> Iterator[None]:
+    """Greedy decoding of whole chunks for scoring: temperature 0, decoded over the chunk the tokens encode
+    (lerobot decodes `n_action_steps`), no prefix assertion (see the module docstring)."""
+    fields = {"temperature": 0.0, "n_action_steps": chunk, "validate_action_token_prefix": False}
+    saved = {k: getattr(config, k) for k in fields}
+    for k, v in fields.items():
+        setattr(config, k, v)
+    try:
+        yield
+    finally:
+        for k, v in saved.items():
+            setattr(config, k, v)

@@ -1,0 +1,99 @@
+"""One home per setting: a request field's declaration (graftcache/requests.py) is its flag, its recipe key, its
+range check and its text in recorded command lines. Checked through what users see: parsed flags, refused values,
+command lines that parse back to the same request."""
+
+from __future__ import annotations
+
+import argparse
+import shlex
+from dataclasses import dataclass, fields
+
+import pytest
+from helpers.probes import run_cli
+
+from graftcache.checks import POSITIVE
+from graftcache.cli import build_parser
+from graftcache.cli.common import add_flags, request_from
+from graftcache.errors import GraftcacheError
+from graftcache.recipe import SECTION_KEYS
+from graftcache.requests import CONTROLS, OBJECTIVES, ExecutorSettings, ExtractRequest, FitRequest
+from graftcache.settings import Checked, declared, recipe_keys, setting
+from graftcache.sweep import command_line
+
+FIT = FitRequest(backbone="pi05", encoder="dinov2-s", suite="libero_goal", policy="/ckpt", dataset="/data",
+                 cache_key="k1", native_cache_key="k2", camera_map="image=agentview,image2=wrist", seeds=(3,),
+                 controls=("zero-image", "pool-4x4"), objective="align", steps=7, lr=2.5e-4, batch_size=5,
+                 buffer_mib=64, eval_fraction=0.25, eval_split_seed=9, eval_frames=11, num_denoise_steps=3,
+                 lora_rank=2, device="cuda:1", num_workers=0, compute_dtype="fp32", results="/r.parquet", out="/o",
+                 cache="s3://b/p", progress=False, drop_nonfinite=True, accept_numerics_drift=True, command="x")
+EXTRACT = ExtractRequest(dataset="/data", encoder="siglip", grids=("native", "4x4"), cameras=("a", "b"),
+                         episodes=(0, 2, 5), weights="/w", random_init=True, seed=4, policy="/p", frame_stride=2,
+                         dtype="bf16", compute_dtype="bf16", camera_map="image=a", device="cuda", batch_size=3,
+                         num_workers=1, block_frames=16, shard=(1, 4), cache="/c", progress=False,
+                         allow_nonfinite=True)
+
+
+@pytest.mark.parametrize(("command", "request_"), [("fit", FIT), ("extract", EXTRACT)])
+def test_a_written_command_line_parses_back_to_the_same_request(command: str, request_: Checked) -> None:
+    """Every field with a flag, none at its default, written by sweep.command_line and read by the CLI."""
+    flagged = {f.name: getattr(request_, f.name) for f in fields(request_) if declared(type(request_))[f.name].flag}
+    assert all(value != declared(type(request_))[name].default for name, value in flagged.items())
+    line = command_line(command, type(request_), **flagged)
+    args = build_parser().parse_args(shlex.split(line)[1:])
+    assert request_from(type(request_), args, **{k: getattr(request_, k) for k in ("command", "extra_manifest")
+                                                 if hasattr(request_, k)}) == request_
+    assert "--seed 3" in line if command == "fit" else "--shard 1/4" in line  # never `--seeds 3`, a count of 3
+
+
+def test_one_declaration_is_a_flag_a_recipe_key_and_a_check() -> None:
+    """What requests.py's docstring promises for a new field: declared once, refused everywhere."""
+
+    @dataclass(frozen=True)
+    class Request(Checked):
+        eval_batch_size: int | None = setting(None, rule=POSITIVE, help="frames scored at once")
+        mode: str = setting("auto", choices=("auto", "on", "off"))
+        grid_only: str = setting("x", recipe=False)
+
+    parser = argparse.ArgumentParser(prog="p", exit_on_error=False)
+    add_flags(parser, Request)
+    assert request_from(Request, parser.parse_args(["--eval-batch-size", "4", "--mode", "on"])) == \
+        Request(eval_batch_size=4, mode="on")
+    with pytest.raises(argparse.ArgumentError, match="argument --eval-batch-size: 0 must be > 0"):
+        parser.parse_args(["--eval-batch-size", "0"])
+    with pytest.raises(argparse.ArgumentError, match="invalid choice: 'maybe'"):
+        parser.parse_args(["--mode", "maybe"])
+    with pytest.raises(GraftcacheError, match="^eval_batch_size = 0 must be > 0$"):
+        Request(eval_batch_size=0)
+    with pytest.raises(GraftcacheError, match="^mode = 'maybe' is not one of auto, on, off$"):
+        Request.check({"mode": "maybe"})  # a recipe table's overrides
+    assert recipe_keys(Request) == ("eval_batch_size", "mode")
+    assert "frames scored at once" in parser.format_help()
+
+
+def test_recipe_tables_take_every_field_but_those_the_grid_sets() -> None:
+    assert "seeds" not in SECTION_KEYS["fit"] and "steps" in SECTION_KEYS["fit"]
+    assert "shard" not in SECTION_KEYS["extract"] and "frame_stride" in SECTION_KEYS["extract"]
+    assert SECTION_KEYS["executor"] == tuple(f.name for f in fields(ExecutorSettings))
+
+
+def test_fit_dtype_is_gone_with_a_one_line_pointer(capsys: pytest.CaptureFixture) -> None:
+    done = run_cli(["fit", "--backbone", "smolvla", "--encoder", "e", "--suite", "libero_spatial", "--dtype", "bf16"],
+                   capsys)
+    assert done.code == 2
+    assert done.last == ("graftcache fit: error: --dtype is gone from this command: use --compute-dtype "
+                         "(--dtype is the stored feature dtype, an extract setting)")
+    assert build_parser().parse_args(["extract", "--encoder", "e", "--dataset", "d", "--dtype", "bf16"]).dtype == "bf16"
+
+
+def test_plain_choices_name_what_the_registries_implement() -> None:
+    """The CLI's choices are plain data (building the parser imports no torch); each names a registered entry."""
+    from graftcache.fit.controls import CONTROLS as REGISTERED
+    from graftcache.fit.objectives import OBJECTIVES as IMPLEMENTED
+
+    assert OBJECTIVES == tuple(IMPLEMENTED)
+    assert set(CONTROLS) == set(REGISTERED) - {"none"}
+
+    from graftcache.analysis.scores import SCORES
+    from graftcache.cli.report import SCORE_NAMES
+
+    assert SCORE_NAMES == tuple(SCORES)
