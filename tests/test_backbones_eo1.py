@@ -181,6 +181,7 @@ def test_saved_tiny_loads_by_hub_id(tmp_path, monkeypatch: pytest.MonkeyPatch) -
         assert EO1Adapter.read_native_grid("graftcache-tests/eo1-tiny") == (4, 4)
         assert EO1Adapter.read_cameras("graftcache-tests/eo1-tiny") == ("image", "image2")
     assert loaded.policy_sha256 == adapter.policy_sha256 and loaded.random_init
+    assert loaded.n_params == adapter.n_params == 245_800  # the LM head tied to the embedding again, counted once
     raw = raw_images(adapter, 2, size=SIZE)
     noise, _ = fixed_noise_time(adapter, 2)
     torch.testing.assert_close(loaded.predict(loaded.prepare(raw), noise), adapter.predict(adapter.prepare(raw), noise))

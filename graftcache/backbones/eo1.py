@@ -121,8 +121,12 @@ class EO1Adapter(BackboneAdapter):
     @classmethod
     def _construct(cls, config, marker: dict | None) -> nn.Module:
         """EO1Policy with its VLM built from the saved `vlm_config` (the checkpoint holds the weights): lerobot's
-        constructor would otherwise first fetch `vlm_base`'s own weights."""
-        return construct(config)
+        constructor would otherwise first fetch `vlm_base`'s own weights. Built on the meta device, the LM head
+        comes out untied from the word embedding: tied again, as transformers ties it, so the policy holds (and
+        counts) that tensor once."""
+        policy = construct(config)
+        policy.model.vlm_backbone.tie_weights()
+        return policy
 
     @classmethod
     def _checkpoint_keys(cls, policy: nn.Module, file_keys: Iterable[str]) -> dict[str, str]:
