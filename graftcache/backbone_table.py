@@ -13,6 +13,7 @@ BACKBONES: dict[str, str] = {
     "xvla": "graftcache.backbones.xvla:XVLAAdapter",
     "pi0": "graftcache.backbones.pi0:PI0Adapter",
     "pi0_fast": "graftcache.backbones.pi0_fast:PI0FastAdapter",
+    "eo1": "graftcache.backbones.eo1:EO1Adapter",
 }
 
 #: Approximate parameter counts of the released policies (lerobot's docs), for results tables written before rows

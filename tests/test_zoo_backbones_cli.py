@@ -21,14 +21,16 @@ ENCODER = "timm:vit_tiny_patch16_224"
 CONTROLS = ("native", "native-graft", "zero-image", "shuffled-image", "pool-2x2", "lora")
 SUBSET = ["--dataset", str(SAMPLE), "--episodes", "0-3", "--frame-stride", "8", "--num-workers", "0",
           "--batch-size", "16", "--no-progress"]
-#: backbone -> (native token grid, post-connector tokens per camera, LM width) of its tiny configuration
-TINY = {"xvla": ((4, 4), 17, 64), "pi0": ((4, 4), 16, 128), "pi0_fast": ((4, 4), 16, 128)}
+#: backbone -> (native token grid, the tower's own grid before its connector, post-connector tokens per camera, LM
+#: width) of its tiny configuration (EO-1's Qwen ViT: 8x8 patches, merged 2x2 by its connector)
+TINY = {"xvla": ((4, 4), (4, 4), 17, 64), "pi0": ((4, 4), (4, 4), 16, 128), "pi0_fast": ((4, 4), (4, 4), 16, 128),
+        "eo1": ((4, 4), (8, 8), 16, 64)}
 
 
 @pytest.mark.slow  # ~1-2 min per backbone on 2 cores: 1 native step, two small extractions, 7 tiny fits
 @pytest.mark.parametrize("name", sorted(TINY))
 def test_train_tiny_extract_native_and_fit_every_control(name: str, tmp_path: Path, capsys) -> None:
-    grid, tokens, width = TINY[name]
+    grid, tower_grid, tokens, width = TINY[name]
     policy, cache, table = tmp_path / "policy", tmp_path / "cache", tmp_path / "results.parquet"
     done = run_cli(["train-tiny", "--backbone", name, "--dataset", str(SAMPLE), "--steps", "1", "--out", str(policy),
                     "--cache", str(cache)], capsys)
@@ -41,7 +43,7 @@ def test_train_tiny_extract_native_and_fit_every_control(name: str, tmp_path: Pa
                       "--cache", str(cache)], capsys)
     assert native.code == 0, native.err[-2000:]
     manifest = FeatureCache(cache / native.out.split()[-1]).manifest
-    assert tuple(manifest.encoder["grid"]) == grid and manifest.extras["connector"] == [tokens, width]
+    assert tuple(manifest.encoder["grid"]) == tower_grid and manifest.extras["connector"] == [tokens, width]
     candidate = run_cli(["extract", "--encoder", ENCODER, "--random-init", *SUBSET, "--cache", str(cache)], capsys)
     assert candidate.code == 0, candidate.err[-2000:]
 

@@ -28,7 +28,8 @@ def run(args: argparse.Namespace) -> int:
     from graftcache.sweep import check_sweep, run_sweep
 
     recipe = load_recipe(args.recipe)
-    recipe = dataclasses.replace(recipe, fit={**recipe.fit, **given(FitRequest, args)})  # --cells-per-pass
+    if "cells_per_pass" in vars(args):  # --cells-per-pass, over the recipe's [fit] table
+        recipe = dataclasses.replace(recipe, fit={**recipe.fit, "cells_per_pass": args.cells_per_pass})
     settings = dataclasses.replace(recipe.executor_settings, **given(ExecutorSettings, args))
     if args.dry_run:
         notes = check_sweep(recipe)  # every check the run makes before its first step

@@ -113,6 +113,7 @@ def row(backbone: str, suite: str, encoder: str, seed: int, eval_mse: float | No
         "camera_map": "image=image,image2=image2",
         "graftcache_version": "0.1.0",
         "command": command(backbone, suite, encoder, control, seed),
+        "cells_per_pass": 1,
         "activation_checkpointing": "off",
         "eval_batch_size": 64,
         "eval_seconds_per_frame": 0.01,

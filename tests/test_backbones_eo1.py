@@ -1,0 +1,230 @@
+"""EO-1 as a backbone: tiny geometry, the native tower against the policy's own image path (and the merger's
+2x2 order), the loss and the sampler against lerobot's `forward` / `predict_action_chunk` under the same random
+draws, the graft slots (the image-pad positions of the Qwen sequence), the native control, LoRA and reset,
+save/load by hub id, and the released geometry on the meta device (3.8B parameters are never materialised)."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+from helpers.backbones import ENC_DIM, fixed_noise_time, grafted, lowdim_stats, raw_features, raw_images, tiny
+
+from graftcache.backbones import load_backbone
+from graftcache.backbones.checkpoint import state_dict_sha256
+from graftcache.backbones.eo1 import EO1Adapter, left_padded, merged_grid
+from graftcache.backbones.released import hub_cache, publish
+from graftcache.errors import BackboneError
+from graftcache.fit.controls import IdentityProjector
+from graftcache.graft import GraftProjector, feature_key
+
+SIZE = 128  # the tiny policy's frames (train-tiny's size): smart_resize -> 112 px -> 8x8 patches -> 4x4 tokens
+
+
+def test_tiny_geometry() -> None:
+    adapter = tiny("eo1")
+    assert adapter.native_grid == (4, 4) and adapter.lm_width == 64 and adapter.embed_scale == 1.0
+    assert adapter.cameras == ("image", "image2") and adapter.max_action_dim == 8 and adapter.chunk_size == 10
+    images = torch.rand(2, 3, SIZE, SIZE)
+    assert adapter.native_patch_grid(images).shape == (2, 8, 8, 32) and adapter.native_tokens(images).shape == (2, 16, 64)
+    assert adapter.n_params == 245_800
+    report = {r.module: r.params for r in adapter.freeze_report().rows}
+    merger = 32 + (128 * 128 + 128) + (128 * 64 + 64)  # RMSNorm(32), Linear(4 x 32 -> 128), Linear(128 -> 64)
+    assert sum(report.values()) == 245_800 and report["connector"] == merger
+    tokenizer = adapter._qwen_processor._processor.tokenizer  # EO-1's 7 tokens added to the tiny vocabulary
+    assert len(tokenizer) <= adapter.policy.model.vlm_backbone.config.text_config.vocab_size
+
+
+def test_native_tower_is_the_policys_own_image_path() -> None:
+    """Native tokens equal what Qwen embeds for each camera from lerobot's preprocessed batch, and the patch grid
+    is in raster order: regrouped into 2x2 blocks, the merger maps it onto those tokens."""
+    adapter = tiny("eo1")
+    raw = raw_images(adapter, 3, size=SIZE)
+    batch = adapter.prepare(raw)
+    qwen = adapter.policy.model.vlm_backbone.model
+    assert (batch["input_ids"] == qwen.config.image_token_id).sum(dim=1).tolist() == [2 * 16] * 3
+    with torch.no_grad():
+        own = torch.stack(qwen.get_image_features(batch["pixel_values"], batch["image_grid_thw"]).pooler_output)
+    own = own.view(3, 2, 16, 64)  # images in the prompt: sample after sample, camera after camera
+    for i, key in enumerate(adapter.camera_keys):
+        torch.testing.assert_close(adapter.native_tokens(raw[key]), own[:, i])
+    grid = adapter.native_patch_grid(raw[adapter.camera_keys[0]])
+    blocks = grid.view(3, 4, 2, 4, 2, 32).permute(0, 1, 3, 2, 4, 5).reshape(-1, 32)
+    with torch.no_grad():
+        torch.testing.assert_close(qwen.visual.merger(blocks).view(3, 16, 64), own[:, 0])
+    assert merged_grid((256, 256), qwen.visual.config, 64 * 28 * 28, 128 * 28 * 28) == (9, 9)
+
+
+def test_loss_and_prediction_are_lerobots_under_the_same_draws() -> None:
+    adapter = tiny("eo1")
+    adapter.policy.eval()
+    raw = raw_images(adapter, 3, size=SIZE)
+    batch = adapter.prepare(raw)  # with actions: right-padded prompts (the tasks differ in length)
+    assert (batch["attention_mask"][:, -1] == 0).any()
+    model = adapter.policy.model
+    with torch.no_grad():
+        torch.manual_seed(7)
+        reference, _ = adapter.policy.forward(dict(batch))
+        torch.manual_seed(7)  # modeling_eo1.py draws the time, then the noise
+        time = model.sample_time(3, "cpu")
+        noise = model.sample_noise((3, adapter.chunk_size, adapter.max_action_dim), "cpu")
+        torch.testing.assert_close(adapter._flow_losses(batch, noise, time).mean(), reference)
+        inference = adapter.prepare({k: v for k, v in raw.items() if k not in ("action", "action_is_pad")})
+        assert (inference["attention_mask"][:, 0] == 0).any()  # lerobot left-pads at inference
+        torch.manual_seed(11)
+        chunk_ref = adapter.policy.predict_action_chunk(dict(inference))
+        torch.manual_seed(11)
+        start = model.sample_noise((3, adapter.chunk_size, adapter.max_action_dim), "cpu")
+    for key in ("input_ids", "attention_mask", "mm_token_type_ids"):
+        torch.testing.assert_close(left_padded(batch)[key], inference[key])
+    torch.testing.assert_close(adapter.predict(batch, start), chunk_ref)
+    assert chunk_ref.shape == (3, adapter.chunk_size, adapter.action_dim)
+
+
+def test_loss_masks_padded_steps_and_padded_dims_per_sample() -> None:
+    adapter = tiny("eo1")
+    adapter.policy.eval()
+    batch = adapter.prepare(raw_images(adapter, 3, size=SIZE))
+    noise, time = fixed_noise_time(adapter, 3)
+    with torch.no_grad():
+        error = adapter._flow_losses(batch, noise, time)[:, :, :7]
+        loss = adapter.loss(batch, noise, time)
+    torch.testing.assert_close(loss, torch.stack([error[0, :-3].mean(), error[1].mean(), error[2].mean()]))
+
+
+def test_graft_fills_the_image_pads_with_projected_features() -> None:
+    adapter = grafted("eo1")
+    assert {n for n, p in adapter.policy.named_parameters() if p.requires_grad} == {
+        f"model.vlm_backbone.model.visual.merger.{p}" for p in ("norm.weight", "norm.bias", "proj.weight", "proj.bias")}
+    raw = raw_features(adapter, 2)
+    batch = adapter.prepare(raw)
+    seen = {}
+    lm = adapter.policy.model.vlm_backbone.model.language_model
+    hook = lm.register_forward_pre_hook(lambda m, args, kwargs: seen.update(kwargs), with_kwargs=True)
+    noise, time = fixed_noise_time(adapter, 2)
+    loss = adapter.loss(batch, noise, time)
+    hook.remove()
+    pads = batch["input_ids"] == adapter.policy.model.vlm_backbone.config.image_token_id
+    cameras = [raw[feature_key(k)] for k in adapter.camera_keys]
+    expected = adapter.projector(torch.stack(cameras, dim=1).flatten(0, 2))
+    torch.testing.assert_close(seen["inputs_embeds"][pads], expected)
+    loss.mean().backward()
+    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in adapter.projector.parameters())
+    odd = {**raw, **{feature_key(k): raw[feature_key(k)][:, :6] for k in adapter.camera_keys}}
+    with pytest.raises(BackboneError, match="6 cached tokens per camera is neither the native 4x4 grid nor a square"):
+        adapter.prepare(odd)
+    with pytest.raises(BackboneError, match="different token counts"):
+        adapter.prepare({**raw, feature_key("image"): raw[feature_key("image")][:, :9]})
+    batch = adapter.prepare(raw)
+    batch[feature_key("image2")] = batch[feature_key("image2")][:, :4]
+    with pytest.raises(BackboneError, match=r"features have \[4, 16\] tokens per camera; the prompt has \[16\]"):
+        adapter.loss(batch, noise, time)
+
+
+def test_pooled_features_get_a_prompt_with_their_grid() -> None:
+    """The pool-HxW controls: a 2x2 pooled grid gets 4 image pads per camera and the grid_thw of a 2x2 merged image
+    (what Qwen's processor writes for a 56 px image), so the projected tokens fill exactly those slots."""
+    adapter = grafted("eo1")
+    raw = {**raw_features(adapter, 2), **{feature_key(k): torch.randn(2, 4, ENC_DIM) for k in adapter.camera_keys}}
+    batch = adapter.prepare(raw)
+    pads = batch["input_ids"] == adapter.policy.model.vlm_backbone.config.image_token_id
+    assert pads.sum(dim=1).tolist() == [8, 8] and batch["image_grid_thw"].tolist() == [[1, 4, 4]] * 4
+    noise, time = fixed_noise_time(adapter, 2)
+    assert torch.isfinite(adapter.loss(batch, noise, time)).all()
+    assert adapter._qwen_processor.image_max_pixels == 16 * 28 * 28  # the bounds are the policy's again
+
+
+def test_native_control_reproduces_the_ungrafted_policy() -> None:
+    native, control = tiny("eo1"), tiny("eo1")
+    raw = raw_images(native, 3, size=SIZE)
+    noise, time = fixed_noise_time(native, 3)
+    tokens = {feature_key(k): native.native_tokens(raw[k]) for k in native.camera_keys}
+    with torch.no_grad():
+        pixel_loss = native.loss(native.prepare(raw), noise, time)
+        pixel_chunk = native.predict(native.prepare(raw), noise)
+    control.graft(IdentityProjector(control.lm_width))
+    assert control.freeze_report().trainable == 0
+    cached = {**{k: v for k, v in raw.items() if not k.startswith("observation.images.")}, **tokens}
+    with torch.no_grad():
+        torch.testing.assert_close(control.loss(control.prepare(cached), noise, time), pixel_loss)
+        torch.testing.assert_close(control.predict(control.prepare(cached), noise), pixel_chunk)
+
+
+def test_lora_adapts_the_qwen_language_model_and_reset_restores_the_policy() -> None:
+    adapter = tiny("eo1")
+    sha = adapter.policy_sha256
+    images = torch.rand(1, 3, SIZE, SIZE)
+    before = adapter.native_tokens(images)
+    adapter.graft(GraftProjector(ENC_DIM, adapter.lm_width))
+    adapter.add_lora(4)
+    lora = {n for n, p in adapter.policy.named_parameters() if p.requires_grad and "lora_" in n}
+    assert lora and all(n.startswith("model.vlm_backbone.model.language_model.layers.") for n in lora)
+    report = {r.module: r for r in adapter.freeze_report().rows}
+    assert report["action head"].trainable == 0 and report["patch embedding"].trainable == 0
+    assert 0 < report["language model"].trainable < report["language model"].params
+    adapter.reset()
+    assert not adapter.grafted and state_dict_sha256(adapter.policy) == sha
+    torch.testing.assert_close(adapter.native_tokens(images), before)  # the ViT is back
+
+
+def test_saved_tiny_loads_by_hub_id(tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Saved as lerobot saves a policy, placed in a hub cache snapshot, loaded offline by `org/name` (the VLM built
+    from the saved config, its processor from the shipped tiny folder)."""
+    adapter = tiny("eo1")
+    adapter.save(tmp_path / "stage")
+    cache = tmp_path / "hub"
+    with hub_cache(cache):
+        monkeypatch.setenv("HF_HUB_CACHE", str(cache))
+        publish(tmp_path / "stage", "graftcache-tests/eo1-tiny", cache)
+        loaded = load_backbone("eo1", "graftcache-tests/eo1-tiny")
+        assert EO1Adapter.read_native_grid("graftcache-tests/eo1-tiny") == (4, 4)
+        assert EO1Adapter.read_cameras("graftcache-tests/eo1-tiny") == ("image", "image2")
+    assert loaded.policy_sha256 == adapter.policy_sha256 and loaded.random_init
+    assert loaded.n_params == adapter.n_params == 245_800  # the LM head tied to the embedding again, counted once
+    raw = raw_images(adapter, 2, size=SIZE)
+    noise, _ = fixed_noise_time(adapter, 2)
+    torch.testing.assert_close(loaded.predict(loaded.prepare(raw), noise), adapter.predict(adapter.prepare(raw), noise))
+
+
+def test_missing_qwen_processor_is_one_line(tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A (non-tiny) checkpoint whose Qwen2.5-VL processor is not in the HF cache: one line naming it."""
+    adapter = tiny("eo1")
+    folder = adapter.save(tmp_path / "policy")
+    (folder / "graftcache_tiny.json").unlink()
+    config = json.loads((folder / "config.json").read_text())
+    (folder / "config.json").write_text(json.dumps({**config, "vlm_base": "Qwen/Qwen2.5-VL-3B-Instruct"}))
+    monkeypatch.setenv("HF_HUB_CACHE", str(tmp_path / "empty"))
+    with pytest.raises(BackboneError, match="EO-1's Qwen2.5-VL processor 'Qwen/Qwen2.5-VL-3B-Instruct' is neither"):
+        load_backbone("eo1", folder)
+
+
+def test_released_geometry_on_the_meta_device() -> None:
+    """lerobot/eo1-base at LIBERO's 256 px: Qwen2.5-VL-3B (ViT 1280 x 32 blocks, merger into the 2048-wide,
+    36-layer LM), 9x9 = 81 tokens per camera, ~3.77B parameters (counted from shapes, nothing allocated). The
+    prompt's image pads come from lerobot's own processor steps at the released pixel bounds (the image
+    processor is Qwen2-VL's defaults, the same in the tiny folder)."""
+    from lerobot.policies.eo1.processor_eo1 import make_eo1_pre_post_processors
+
+    from graftcache.backbones.tiny_eo1 import QWEN_VL_DIR, construct, eo1_released_config
+
+    config = eo1_released_config(("image", "image2"), 256, 8, 7, "cpu")
+    config.device = "meta"
+    with torch.device("meta"):
+        policy = construct(config)
+    adapter = EO1Adapter(policy, None, None, source="meta", random_init=True)
+    qwen = policy.model.vlm_backbone.model
+    params = {name: sum(p.numel() for p in m.parameters()) for name, m in (
+        ("vit", qwen.visual), ("merger", qwen.visual.merger), ("lm", qwen.language_model), ("eo1", policy))}
+    assert params["vit"] == 668_684_288 and params["merger"] == 36_708_608 and params["lm"] == 3_085_938_688
+    assert params["eo1"] == adapter.n_params == 3_771_607_072, params
+    assert adapter.native_grid == (9, 9) and adapter.lm_width == 2048 and qwen.visual.merger.mlp[-1].out_features == 2048
+    assert adapter.max_action_dim == 32 and adapter.chunk_size == 16 and adapter.num_steps == 10
+    assert {p.dtype for p in qwen.parameters()} == {torch.bfloat16}
+    config.vlm_base, config.device = str(QWEN_VL_DIR), "cpu"
+    pre, _ = make_eo1_pre_post_processors(config, dataset_stats=lowdim_stats())
+    raw = {k: torch.rand(2, 3, 256, 256) for k in adapter.camera_keys}
+    batch = pre({**raw, "observation.state": torch.zeros(2, 8), "task": ["open the drawer", "put the bowl"]})
+    assert batch["image_grid_thw"].tolist() == [[1, 18, 18]] * 4  # 252 px: 18x18 patches -> 2x2 merge -> 9x9
+    pads = batch["mm_token_type_ids"] == 1  # the tiny tokenizer's own image-pad id marks the slots
+    assert pads.sum(dim=1).tolist() == [2 * 81, 2 * 81]
