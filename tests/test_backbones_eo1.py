@@ -27,7 +27,8 @@ def test_tiny_geometry() -> None:
     assert adapter.native_grid == (4, 4) and adapter.lm_width == 64 and adapter.embed_scale == 1.0
     assert adapter.cameras == ("image", "image2") and adapter.max_action_dim == 8 and adapter.chunk_size == 10
     images = torch.rand(2, 3, SIZE, SIZE)
-    assert adapter.native_patch_grid(images).shape == (2, 8, 8, 32) and adapter.native_tokens(images).shape == (2, 16, 64)
+    assert adapter.native_patch_grid(images).shape == (2, 8, 8, 32)
+    assert adapter.native_tokens(images).shape == (2, 16, 64)
     assert adapter.n_params == 245_800
     report = {r.module: r.params for r in adapter.freeze_report().rows}
     merger = 32 + (128 * 128 + 128) + (128 * 64 + 64)  # RMSNorm(32), Linear(4 x 32 -> 128), Linear(128 -> 64)
@@ -218,7 +219,8 @@ def test_released_geometry_on_the_meta_device() -> None:
         ("vit", qwen.visual), ("merger", qwen.visual.merger), ("lm", qwen.language_model), ("eo1", policy))}
     assert params["vit"] == 668_684_288 and params["merger"] == 36_708_608 and params["lm"] == 3_085_938_688
     assert params["eo1"] == adapter.n_params == 3_771_607_072, params
-    assert adapter.native_grid == (9, 9) and adapter.lm_width == 2048 and qwen.visual.merger.mlp[-1].out_features == 2048
+    assert adapter.native_grid == (9, 9) and adapter.lm_width == 2048
+    assert qwen.visual.merger.mlp[-1].out_features == 2048
     assert adapter.max_action_dim == 32 and adapter.chunk_size == 16 and adapter.num_steps == 10
     assert {p.dtype for p in qwen.parameters()} == {torch.bfloat16}
     config.vlm_base, config.device = str(QWEN_VL_DIR), "cpu"

@@ -10,8 +10,9 @@ Qwen2-VL's image processor (patch 14, merge 2, temporal patch 2, CLIP mean/std).
   model 64 wide x 2 layers (4 heads, 2 KV heads, vocabulary 1088 >= the tokenizer's 771 + EO-1's 7 added
   tokens); the processor bounds the pixels to 4..16 x 28*28, so a 128 px frame -> smart_resize 112x112 -> 8x8
   patches -> 2x2 merge -> 4x4 = 16 tokens per camera.
-- released (lerobot/eo1-base = IPEC-COMMUNITY/EO-1-3B on Qwen/Qwen2.5-VL-3B-Instruct, EO-1's `vlm_base`): vision 1280 wide x 32 blocks, merger into a
-  2048-wide, 36-layer text model; 64*28*28 .. 128*28*28 pixels: 256 px -> 252 -> 18x18 patches -> 9x9 = 81.
+- released (lerobot/eo1-base = IPEC-COMMUNITY/EO-1-3B on Qwen/Qwen2.5-VL-3B-Instruct, EO-1's `vlm_base`):
+  vision 1280 wide x 32 blocks, merger into a 2048-wide, 36-layer text model; 64*28*28 .. 128*28*28 pixels:
+  256 px -> 252 -> 18x18 patches -> 9x9 = 81.
 """
 
 from __future__ import annotations
