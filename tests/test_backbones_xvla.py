@@ -150,6 +150,7 @@ def test_saved_tiny_loads_by_hub_id(tmp_path, monkeypatch: pytest.MonkeyPatch) -
         assert XVLAAdapter.read_cameras("graftcache-tests/xvla-tiny") == ("image", "image2")
     assert (snapshot / "config.json").is_file() and json.loads((snapshot / "config.json").read_text())["type"] == "xvla"
     assert loaded.policy_sha256 == adapter.policy_sha256 and loaded.random_init
+    assert loaded.n_params == adapter.n_params == 528_952  # the tied BART word embedding counted once
     raw = raw_images(adapter, 2)
     noise, _ = fixed_noise_time(adapter, 2)
     torch.testing.assert_close(loaded.predict(loaded.prepare(raw), noise), adapter.predict(adapter.prepare(raw), noise))

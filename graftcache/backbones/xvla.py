@@ -68,6 +68,16 @@ class XVLAAdapter(WrappedCheckpointing, BackboneAdapter):
         return super()._read_config(folder)
 
     @classmethod
+    def _construct(cls, config, marker: dict | None) -> nn.Module:
+        """XVLAPolicy's own constructor. Built on the meta device, Florence-2's BART word embedding comes out
+        untied from its encoder's copy: tied again, as transformers ties it, so the policy holds (and counts)
+        that tensor once."""
+        policy = super()._construct(config, marker)
+        bart = policy.model.vlm.language_model  # its own tie_weights also ties the decoder, which X-VLA drops
+        bart.encoder.embed_tokens.weight = bart.shared.weight
+        return policy
+
+    @classmethod
     def _checkpoint_keys(cls, policy: nn.Module, file_keys: Iterable[str]) -> dict[str, str]:
         """As XVLAPolicy.from_pretrained reads a checkpoint: the tied word embedding under whichever of its two
         names the file holds. A checkpoint in the old vendored Florence-2 layout (its image projection must be
