@@ -54,7 +54,7 @@ BAD = {
                           "#1 and #2 of [[backbones]] are the same; list each once"),
     "repeated_control": ({"controls": '["native", "native"]'},
                          "controls = ('native', 'native') must name each control once"),
-    "unknown_backbone": ({"backbones": '[[backbones]]\nname = "pi0"\n'}, "[[backbones]] #2: unknown backbone 'pi0'"),
+    "unknown_backbone": ({"backbones": '[[backbones]]\nname = "groot"\n'}, "[[backbones]] #2: unknown backbone 'groot'"),
     "suite_not_in_dataset": ({"suites": '["libero_goal"]'},
                              "has no episode of 'libero_goal' (present: libero_object, libero_spatial)"),
     "nothing_to_hold_out": ({"suites": '["libero_object"]'},
