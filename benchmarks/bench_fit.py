@@ -29,13 +29,14 @@ from common import DEFAULT_DATASET, machine, median_seconds, warm_page_cache
 
 from graftcache.backbone_table import native_name
 from graftcache.backbones import load_backbone
+from graftcache.cameras import match_cameras
 from graftcache.encoders import load_encoder
 from graftcache.extract import ExtractRequest, extract
 from graftcache.fit.align import fit_ridge
 from graftcache.fit.buffer import ShuffleBuffer
 from graftcache.fit.data import load_lowdim
 from graftcache.fit.feed import SplitFeed
-from graftcache.fit.loop import camera_map, flow_time, raw_batch, train
+from graftcache.fit.loop import flow_time, raw_batch, train
 from graftcache.fit.run import FitRequest, Fitter
 from graftcache.fit.stream import FeatureSource, read_chunks
 from graftcache.graft import GraftProjector, feature_key
@@ -94,7 +95,8 @@ def main() -> None:
                                             **common), log=_quiet).key
 
         adapter = load_backbone("smolvla", policy_dir)
-        cams = camera_map(adapter, cache.manifest.cameras)
+        cams = match_cameras(adapter.cameras, cache.manifest.cameras, None, policy_name=adapter.name,
+                             cache_name=str(cache.path))
         low = load_lowdim(cache, SUITE, chunk=adapter.chunk_size)
         source = FeatureSource.of(cache, list(cams.values()), (4, 4))
         feats = source.read(low.rows)  # the sample's suite is small: the step timings read from memory
