@@ -124,8 +124,7 @@ class BackboneAdapter(GraftSurgery, PromptBatches, FlowObjective, ActivationChec
 
     @classmethod
     def _read_config(cls, folder: Path):
-        import lerobot.policies.pi05.configuration_pi05  # noqa: F401  (registers the config types)
-        import lerobot.policies.smolvla.configuration_smolvla  # noqa: F401
+        import lerobot.policies  # noqa: F401  (its __init__ registers every policy's config type)
         from lerobot.configs.policies import PreTrainedConfig
 
         if not (folder / "config.json").is_file():

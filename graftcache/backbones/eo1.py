@@ -113,12 +113,6 @@ class EO1Adapter(BackboneAdapter):
         return policy, pre, post, {"backbone": cls.name, "geometry": None}
 
     @classmethod
-    def _read_config(cls, folder: Path):
-        import lerobot.policies.eo1.configuration_eo1  # noqa: F401  (registers the config type)
-
-        return super()._read_config(folder)
-
-    @classmethod
     def _construct(cls, config, marker: dict | None) -> nn.Module:
         """EO1Policy with its VLM built from the saved `vlm_config` (the checkpoint holds the weights): lerobot's
         constructor would otherwise first fetch `vlm_base`'s own weights. Built on the meta device, the LM head

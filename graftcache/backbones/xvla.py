@@ -25,7 +25,6 @@ their own (tests/test_backbones_xvla.py checks both against lerobot's under the 
 from __future__ import annotations
 
 from collections.abc import Iterable, Iterator, Mapping
-from pathlib import Path
 from typing import Any
 
 import torch
@@ -60,12 +59,6 @@ class XVLAAdapter(WrappedCheckpointing, BackboneAdapter):
     def _build_tiny(cls, spec: TinySpec, stats: dict | None, device: str):
         policy, pre, post = build_tiny_xvla(spec, stats, device)
         return policy, pre, post, {"backbone": cls.name, "geometry": None}
-
-    @classmethod
-    def _read_config(cls, folder: Path):
-        import lerobot.policies.xvla.configuration_xvla  # noqa: F401  (registers the config type)
-
-        return super()._read_config(folder)
 
     @classmethod
     def _construct(cls, config, marker: dict | None) -> nn.Module:
