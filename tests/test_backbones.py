@@ -9,11 +9,21 @@ import math
 
 import pytest
 import torch
-from helpers.backbones import ENC_DIM, SPEC, TASKS, fixed_noise_time, grafted, raw_features, raw_images, tiny
+from helpers.backbones import (
+    ENC_DIM,
+    SPEC,
+    TASKS,
+    assert_native_control_reproduces,
+    fixed_noise_time,
+    grafted,
+    raw_features,
+    raw_images,
+    tiny,
+)
 
 from graftcache.backbones import BACKBONES, get_backbone
 from graftcache.errors import BackboneError
-from graftcache.graft import GraftProjector, IdentityProjector, feature_key
+from graftcache.graft import GraftProjector, feature_key
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")  # tests/fixtures/torch_threads.py
 
@@ -211,19 +221,7 @@ def test_padded_action_targets_do_not_change_the_smolvla_loss() -> None:
 @pytest.mark.parametrize("name", NAMES)
 def test_native_control_reproduces_the_ungrafted_policy(name: str) -> None:
     """Cached post-connector tokens through the identity projector = the policy on pixels."""
-    native, control = tiny(name), tiny(name)
-    raw = raw_images(native, 4)
-    noise, time = fixed_noise_time(native, 4)
-    tokens = {feature_key(k): native.native_tokens(raw[k]) for k in native.camera_keys}
-    with torch.no_grad():
-        pixel_loss = native.loss(native.prepare(raw), noise, time)
-        pixel_chunk = native.predict(native.prepare(raw), noise)
-    control.graft(IdentityProjector(control.lm_width))
-    assert control.freeze_report().trainable == 0
-    cached = {**{k: v for k, v in raw.items() if not k.startswith("observation.images.")}, **tokens}
-    with torch.no_grad():
-        torch.testing.assert_close(control.loss(control.prepare(cached), noise, time), pixel_loss)
-        torch.testing.assert_close(control.predict(control.prepare(cached), noise), pixel_chunk)
+    assert_native_control_reproduces(tiny(name), tiny(name), 4)
 
 
 @pytest.mark.parametrize("name", NAMES)

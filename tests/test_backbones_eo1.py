@@ -9,14 +9,22 @@ import json
 
 import pytest
 import torch
-from helpers.backbones import ENC_DIM, fixed_noise_time, grafted, lowdim_stats, raw_features, raw_images, tiny
+from helpers.backbones import (
+    ENC_DIM,
+    assert_native_control_reproduces,
+    fixed_noise_time,
+    grafted,
+    lowdim_stats,
+    raw_features,
+    raw_images,
+    tiny,
+)
 
 from graftcache.backbones import load_backbone
 from graftcache.backbones.checkpoint import state_dict_sha256
 from graftcache.backbones.eo1 import EO1Adapter, left_padded, merged_grid
 from graftcache.backbones.released import hub_cache, publish
 from graftcache.errors import BackboneError
-from graftcache.fit.controls import IdentityProjector
 from graftcache.graft import GraftProjector, feature_key
 
 SIZE = 128  # the tiny policy's frames (train-tiny's size): smart_resize -> 112 px -> 8x8 patches -> 4x4 tokens
@@ -137,19 +145,7 @@ def test_pooled_features_get_a_prompt_with_their_grid() -> None:
 
 
 def test_native_control_reproduces_the_ungrafted_policy() -> None:
-    native, control = tiny("eo1"), tiny("eo1")
-    raw = raw_images(native, 3, size=SIZE)
-    noise, time = fixed_noise_time(native, 3)
-    tokens = {feature_key(k): native.native_tokens(raw[k]) for k in native.camera_keys}
-    with torch.no_grad():
-        pixel_loss = native.loss(native.prepare(raw), noise, time)
-        pixel_chunk = native.predict(native.prepare(raw), noise)
-    control.graft(IdentityProjector(control.lm_width))
-    assert control.freeze_report().trainable == 0
-    cached = {**{k: v for k, v in raw.items() if not k.startswith("observation.images.")}, **tokens}
-    with torch.no_grad():
-        torch.testing.assert_close(control.loss(control.prepare(cached), noise, time), pixel_loss)
-        torch.testing.assert_close(control.predict(control.prepare(cached), noise), pixel_chunk)
+    assert_native_control_reproduces(tiny("eo1"), tiny("eo1"), 3, size=SIZE)
 
 
 def test_lora_adapts_the_qwen_language_model_and_reset_restores_the_policy() -> None:

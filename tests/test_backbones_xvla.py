@@ -10,12 +10,19 @@ import math
 
 import pytest
 import torch
-from helpers.backbones import ENC_DIM, fixed_noise_time, grafted, raw_features, raw_images, tiny
+from helpers.backbones import (
+    ENC_DIM,
+    assert_native_control_reproduces,
+    fixed_noise_time,
+    grafted,
+    raw_features,
+    raw_images,
+    tiny,
+)
 
 from graftcache.backbones import load_backbone
 from graftcache.backbones.released import hub_cache, publish
 from graftcache.backbones.xvla import XVLAAdapter, conv_grid
-from graftcache.fit.controls import IdentityProjector
 from graftcache.graft import GraftProjector, feature_key
 
 
@@ -106,18 +113,7 @@ def test_graft_feeds_view0_to_the_lm_and_view1_to_the_action_transformer() -> No
 def test_native_control_reproduces_the_ungrafted_policy() -> None:
     native, control = tiny("xvla"), tiny("xvla")
     native.policy.eval(), control.policy.eval()  # X-VLA's transformer has dropout (the native cell runs in eval)
-    raw = raw_images(native, 3)
-    noise, time = fixed_noise_time(native, 3)
-    tokens = {feature_key(k): native.native_tokens(raw[k]) for k in native.camera_keys}
-    with torch.no_grad():
-        pixel_loss = native.loss(native.prepare(raw), noise, time)
-        pixel_chunk = native.predict(native.prepare(raw), noise)
-    control.graft(IdentityProjector(control.lm_width))
-    assert control.freeze_report().trainable == 0
-    cached = {**{k: v for k, v in raw.items() if not k.startswith("observation.images.")}, **tokens}
-    with torch.no_grad():
-        torch.testing.assert_close(control.loss(control.prepare(cached), noise, time), pixel_loss)
-        torch.testing.assert_close(control.predict(control.prepare(cached), noise), pixel_chunk)
+    assert_native_control_reproduces(native, control, 3)
 
 
 def test_lora_adapts_the_florence_encoder_and_reset_restores_the_policy() -> None:

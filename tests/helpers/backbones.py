@@ -6,6 +6,7 @@ import torch
 
 from graftcache.backbones import TinySpec, load_backbone
 from graftcache.backbones.base import BackboneAdapter
+from graftcache.fit.controls import IdentityProjector
 from graftcache.graft import GraftProjector, feature_key
 
 SPEC = TinySpec()
@@ -71,3 +72,21 @@ def raw_images(adapter: BackboneAdapter, batch: int, seed: int = 0, size: int = 
 def fixed_noise_time(adapter: BackboneAdapter, batch: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
     g = torch.Generator().manual_seed(seed + 3)
     return adapter.sample_noise(batch, g), torch.rand(batch, generator=g) * 0.9 + 0.05
+
+
+def assert_native_control_reproduces(native: BackboneAdapter, control: BackboneAdapter, batch: int,
+                                     size: int = 96) -> None:
+    """Cached post-connector tokens of `native` through `control`'s identity projector give the loss and the
+    predicted chunk `native` gives on pixels (`native` and `control`: two loads of one policy)."""
+    raw = raw_images(native, batch, size=size)
+    noise, time = fixed_noise_time(native, batch)
+    tokens = {feature_key(k): native.native_tokens(raw[k]) for k in native.camera_keys}
+    with torch.no_grad():
+        pixel_loss = native.loss(native.prepare(raw), noise, time)
+        pixel_chunk = native.predict(native.prepare(raw), noise)
+    control.graft(IdentityProjector(control.lm_width))
+    assert control.freeze_report().trainable == 0
+    cached = {**{k: v for k, v in raw.items() if not k.startswith("observation.images.")}, **tokens}
+    with torch.no_grad():
+        torch.testing.assert_close(control.loss(control.prepare(cached), noise, time), pixel_loss)
+        torch.testing.assert_close(control.predict(control.prepare(cached), noise), pixel_chunk)
