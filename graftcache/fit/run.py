@@ -372,7 +372,6 @@ class Fitter:
         for m in members:
             self.log(f"cell {m.cell.run_id}: one of {len(members)} cells of a backbone pass, each training its own "
                      f"projector: {report}")
-        adapter.set_activation_checkpointing(False)  # only a training step uses it (what the last cell left)
         check_step_memory(adapter, mats[0].train, self.cameras, mats[0].source, batch_size=self.req.batch_size,
                           buffer_mib=self.req.buffer_mib, dtype=self.dtype,
                           checkpointing=self.req.activation_checkpointing,
