@@ -172,6 +172,17 @@ def test_gradients_reach_the_projector_on_tiny_paligemma_backbones(name: str) ->
     assert all(p.grad is None for p in adapter.policy.parameters() if not p.requires_grad)
 
 
+@pytest.mark.parametrize("name", NAMES)
+def test_per_sample_loss_says_what_loss_returns(name: str) -> None:
+    """The flag that lets a backbone's cells share a pass (graftcache.fit.run.Fitter.pass_key) matches its loss:
+    one value a sample, or pi0-FAST's one mean over the batch."""
+    adapter = grafted(name)
+    with torch.no_grad():
+        loss = adapter.loss(adapter.prepare(raw_features(adapter, 3)), *fixed_noise_time(adapter, 3))
+    assert loss.shape == ((3,) if adapter.per_sample_loss else ())
+    assert adapter.per_sample_loss == (name != "pi0_fast")
+
+
 @pytest.mark.parametrize("name", FLOW)
 def test_predict_is_deterministic_for_fixed_noise(name: str) -> None:
     adapter = grafted(name)

@@ -70,6 +70,7 @@ class BackboneAdapter(GraftSurgery, PromptBatches, FlowObjective, ActivationChec
     module_paths: ClassVar[dict[str, tuple[str, ...]]]
     token_steps: ClassVar[tuple[str, ...]]   # preprocessor steps that build the prompt tokens
     prompt_uses_state: ClassVar[bool] = False
+    per_sample_loss: ClassVar[bool] = True   # `loss` gives one value a sample: cells may share a backbone pass
 
     def __init__(self, policy: nn.Module, preprocessor, postprocessor, *, source: str,
                  random_init: bool, tiny_marker: dict | None = None) -> None:

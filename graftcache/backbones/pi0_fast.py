@@ -152,6 +152,7 @@ def _processors(config, stats: dict, fast):
 
 class PI0FastAdapter(PI05Adapter):
     name = "pi0_fast"
+    per_sample_loss = False  # lerobot's cross-entropy is one mean over the batch: its cells run alone
     steps_field = "max_decoding_steps"
     token_steps = ("Pi0FastPrepareStateAndLanguageTokenizerProcessorStep", "TokenizerProcessorStep",
                    "ActionTokenizerProcessorStep")

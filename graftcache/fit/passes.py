@@ -7,12 +7,13 @@ concatenated batch (graftcache.graft.FusedProjector), and each cell keeps its ow
 clipping and random streams (graftcache.fit.loop.optimise_together), so its row equals the row it gets alone
 up to float rounding of the larger batch. Held-out scoring is shared the same way.
 
-Which cells run alone (`graftcache.fit.run.Fitter.pass_key` is None for them): the `lora` control (LoRA adapts
-the backbone every row of a pass goes through), the `align` objective (a closed-form ridge: no backbone pass to
-share) and controls that train nothing (`native`: scored as loaded). The `cells_per_pass` a request asks for
-only groups cells; it is an execution setting like the reader count, so no cell (hence no run_id) depends on
-it, and a rerun whose pass is partly done runs only its missing cells. Rows record how many cells their pass
-held (`cells_per_pass`) and, as `wall_s`, their share of the pass's time.
+Which cells run alone (`graftcache.fit.run.Fitter.pass_key` is None for them): the `lora` control (LoRA adapts the
+backbone every row of a pass goes through), the `align` objective (a closed-form ridge: no backbone pass to share),
+controls that train nothing (`native`: scored as loaded) and backbones whose loss is one mean over the batch
+(pi0-FAST's cross-entropy: `graftcache.backbones.base.BackboneAdapter.per_sample_loss`). The `cells_per_pass` a
+request asks for only groups cells; it is an execution setting like the reader count, so no cell (hence no run_id)
+depends on it, and a rerun whose pass is partly done runs only its missing cells. Rows record how many cells their
+pass held (`cells_per_pass`) and, as `wall_s`, their share of the pass's time.
 
 The default (`CELLS_PER_PASS`, by device type and backbone) is what benchmarks/bench_fuse.py measured cheapest
 per cell. On CPU (2 AMD EPYC cores shared with other work, load 6-11, 1 thread, bf16; tiny backbones, 4 cells

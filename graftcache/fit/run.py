@@ -252,9 +252,10 @@ class Fitter:
         controls that train nothing). Read from the policy's config and the cache's layout: nothing is loaded."""
         if control.name not in self._pass_keys:
             key = None
-            if control.fuses and self._objective(control).fuses:
+            adapter = get_backbone(self.req.backbone)
+            if control.fuses and self._objective(control).fuses and adapter.per_sample_loss:
                 req = self.req
-                grid = control.grid or get_backbone(req.backbone).read_native_grid(self.policy_folder)
+                grid = control.grid or adapter.read_native_grid(self.policy_folder)
                 source = FeatureSource.of(self._source(control), list(self.cameras.values()), grid)
                 width = source.frame_shape(source.cameras[0])[1]
                 key = (req.backbone, str(self.policy_folder), str(self.device), req.compute_dtype, grid, width,
