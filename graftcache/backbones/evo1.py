@@ -1,0 +1,280 @@
+"""EVO1 (lerobot 0.6: InternVL3-1B cut to 14 LM layers + a cross-attending flow-matching action head) as a
+graftable backbone.
+
+Vision path (modeling_evo1.py, internvl3_embedder.py; transformers internvl): the policy hands each camera's
+[0, 1] frames to its `InternVL3Embedder`, which resizes them to the tower's size (448 px released, bicubic),
+ImageNet-normalises them, pads the views to `max_views` with zero images (masked out of attention) and writes a
+prompt "Image-i: <img><IMG_CONTEXT> x image_seq_length</img>" per view before the task. In the model,
+`InternVLModel.get_image_features` runs InternViT, drops its CLS token, pixel-shuffles the 32x32 patch grid
+to 16x16 (4x the width) and projects it with `multi_modal_projector` (LayerNorm, Linear, GELU, Linear) into the
+LM width; those 256 tokens per view are scattered into the `<IMG_CONTEXT>` positions. The LM's last hidden
+states (all valid tokens) are the action head's cross-attention context.
+
+Graft slots: the `<IMG_CONTEXT>` positions of every real camera. The tower (`vision_tower`) becomes the
+pass-through and the projector (`multi_modal_projector`, after the pixel shuffle) the graft projector; the
+native tokens cached for the `native` control are that projector's output. Grafted, the embedder's pixel step
+(resize, normalise) is bypassed: the cached features of each camera, with zero features for the padded views,
+go straight to `get_image_features`, which is shadowed on the instance to project them instead of running
+InternViT and the shuffle; the prompt carries as many `<IMG_CONTEXT>` per view as the features have tokens (the
+native 16x16 or a pooling control's grid: InternVL's LM positions are 1-D, so any count fits). EVO1 embeds
+without gradients unless its config finetunes the VLM (stage 2): grafted, its `_compute_fused_tokens` is
+replaced by the same call with gradients, so the projector (and LoRA) train whatever the checkpoint's stage.
+
+EVO1's head draws its own flow time (Beta(2, 2) clamped to [0.02, 0.98]) and noise (uniform in [-1, 1]) inside
+`forward` / `get_action`, with the flow running from noise at t = 0 to the action at t = 1. `loss` and
+`predict` therefore run the head's own modules (`_prepare_context`, `_project_actions`, its blocks, pooling and
+MLP) with the given draws: graftcache's `time` is the noise level (1 at pure noise, as for pi0), EVO1's t is
+1 - time; noise is EVO1's uniform (`sample_noise`). tests/test_backbones_evo1.py checks both against lerobot's
+`forward` and `predict_action_chunk` under the same random draws.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import nn
+from transformers.modeling_outputs import BaseModelOutputWithPooling
+
+from graftcache.backbones.base import BackboneAdapter, is_empty_camera
+from graftcache.backbones.batches import STATE
+from graftcache.backbones.checkpoint import cached_repo
+from graftcache.backbones.tiny import TinySpec
+from graftcache.backbones.tiny_evo1 import INTERNVL_DIR, build_tiny_evo1, construct
+from graftcache.errors import BackboneError
+
+
+def token_grid(image_size: int, vision, downsample_ratio: float) -> tuple[int, int]:
+    """Tokens per camera as a grid: the tower's patch grid at `image_size`, pixel-shuffled by `downsample_ratio`."""
+    patch = vision.patch_size[0] if isinstance(vision.patch_size, (list, tuple)) else vision.patch_size
+    side = int(image_size // patch * downsample_ratio)
+    return side, side
+
+
+class Evo1Adapter(BackboneAdapter):
+    name = "evo1"
+    vision_slots = ("vision_tower", "multi_modal_projector")
+    steps_field = "num_inference_timesteps"
+    image_method = "_collect_image_batches"
+    token_steps = ()
+    prompt_uses_state = True  # the prompt is tokenised inside the model; the preprocessor passes the task through
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        embedder, internvl = self.policy.model.embedder, self._vision_owner
+        embedder.get_fused_image_text_embedding_batched = functools.partial(
+            self._fused_embedding, embedder.get_fused_image_text_embedding_batched)
+        internvl.get_image_features = functools.partial(self._image_features, internvl.get_image_features)
+
+    # ------------------------------------------------------------------------------ construction
+    @classmethod
+    def _build_tiny(cls, spec: TinySpec, stats: dict | None, device: str):
+        policy, pre, post = build_tiny_evo1(spec, stats, device)
+        return policy, pre, post, {"backbone": cls.name, "geometry": None}
+
+    @classmethod
+    def _internvl_folder(cls, config, marker: dict | None) -> Path:
+        """The InternVL config and tokenizer: the shipped tiny folder (a tiny checkpoint's saved path points into
+        the package that saved it), a local folder, or `vlm_model_name`'s snapshot in the local HF cache."""
+        if marker is not None:
+            return INTERNVL_DIR
+        if Path(config.vlm_model_name).is_dir():
+            return Path(config.vlm_model_name)
+        return cached_repo(config.vlm_model_name, "EVO1's InternVL config and tokenizer")
+
+    @classmethod
+    def _configure(cls, folder: Path, config, marker: dict | None) -> None:
+        config.vlm_model_name = str(cls._internvl_folder(config, marker))
+
+    @classmethod
+    def _construct(cls, config, marker: dict | None) -> nn.Module:
+        """Evo1Policy with its InternVL built from `vlm_model_name`'s config (the checkpoint holds the weights):
+        lerobot's embedder would otherwise first load the base VLM's weights."""
+        return construct(config)
+
+    @classmethod
+    def _make_processors(cls, config, stats: dict, marker: dict | None):
+        from lerobot.policies.evo1.processor_evo1 import make_evo1_pre_post_processors
+
+        return make_evo1_pre_post_processors(config, dataset_stats=stats)
+
+    # ------------------------------------------------------------------------------ geometry
+    @property
+    def _vision_owner(self) -> nn.Module:
+        return self.policy.model.embedder.model  # transformers InternVLModel
+
+    @classmethod
+    def _grid_of_config(cls, config, marker: dict | None) -> tuple[int, int]:
+        """The pixel-shuffled grid of the tower at `image_resolution` (every frame is resized to it)."""
+        from transformers import AutoConfig
+
+        internvl = AutoConfig.from_pretrained(cls._internvl_folder(config, marker))
+        return token_grid(int(config.image_resolution[0]), internvl.vision_config, internvl.downsample_ratio)
+
+    @property
+    def lm_width(self) -> int:
+        return self._vision_owner.config.text_config.hidden_size
+
+    @property
+    def embed_scale(self) -> float:
+        return 1.0
+
+    # ------------------------------------------------------------------------------ images
+    def graft(self, projector: nn.Module) -> None:
+        """The common graft, plus image embedding with gradients (see the module docstring)."""
+        super().graft(projector)
+        self._graft.override("_compute_fused_tokens", self._fused_tokens)
+
+    def _fused_tokens(self, prompts: list[str], images: list[torch.Tensor], masks: torch.Tensor):
+        """Evo1Policy._compute_fused_tokens with gradients to the graft: the LM's context tokens and mask."""
+        policy = self.policy
+        fused, context = policy.model.get_vl_embeddings(images=images, image_mask=masks, prompt=prompts,
+                                                        return_cls_only=self.config.return_cls_only)
+        fused = fused.to(device=policy._device, dtype=policy._compute_dtype)
+        return fused, None if context is None else context.to(policy._device)
+
+    def _feature_images(self, batch: Mapping[str, Any]) -> tuple[list[torch.Tensor], torch.Tensor]:
+        """Grafted stand-in for Evo1Policy._collect_image_batches: the real cameras' cached features [B, T, C]
+        and the view mask [B, max_views] (real cameras first, as lerobot marks the views present)."""
+        images, _ = super()._feature_images(batch)
+        real = [f for key, f in zip(self.config.image_features, images) if not is_empty_camera(key)]
+        masks = torch.zeros(real[0].shape[0], self.config.max_views, dtype=torch.bool, device=real[0].device)
+        masks[:, :len(real)] = True
+        return real, masks
+
+    def _fused_embedding(self, own, camera_images, image_masks, text_prompts, return_cls_only=True):
+        """The embedder's batched embedding; grafted, the cached features stand in for the resized pixels: one
+        [T, C] "image" per view (zeros for the padded views), with T `<IMG_CONTEXT>` slots per view."""
+        if not self.grafted:
+            return own(camera_images, image_masks, text_prompts, return_cls_only)
+        counts = {f.shape[1] for f in camera_images}
+        if len(counts) != 1:
+            raise BackboneError(f"{self.name}: cameras carry different token counts ({sorted(counts)})")
+        embedder, views = self.policy.model.embedder, int(image_masks.shape[1])
+        padded = [*camera_images, *[torch.zeros_like(camera_images[0])] * (views - len(camera_images))]
+        features = torch.stack(padded[:views], dim=1).flatten(0, 1)
+        saved, embedder.num_image_token = embedder.num_image_token, counts.pop()
+        try:
+            return embedder._forward_vlm(features, [[1] * views] * int(image_masks.shape[0]), image_masks,
+                                         text_prompts, return_cls_only)
+        finally:
+            embedder.num_image_token = saved
+
+    def _image_features(self, own, pixel_values: torch.Tensor, **kwargs):
+        """InternVL's `get_image_features`, or grafted: the cached features through the pass-through and the
+        projector (no CLS to drop, no pixel shuffle: the cache holds the grid the projector takes)."""
+        if not self.grafted:
+            return own(pixel_values, **kwargs)
+        tower, connector = self._tower_and_connector()
+        return BaseModelOutputWithPooling(last_hidden_state=pixel_values,
+                                          pooler_output=connector(tower(pixel_values).last_hidden_state))
+
+    # ------------------------------------------------------------------------------ native tower
+    def _native_pixels(self, images: torch.Tensor) -> torch.Tensor:
+        """[0, 1] frames -> the embedder's own pixel step (uint8 quantise, bicubic resize, ImageNet normalise)."""
+        from lerobot.policies.evo1.internvl3_embedder import IMAGENET_MEAN, IMAGENET_STD, _batched_pixel_values
+
+        if self.grafted:
+            raise BackboneError(f"{self.name}: the native tower was removed by graft(); read it before grafting")
+        if images.ndim != 4 or images.shape[1] != 3:
+            raise BackboneError(f"{self.name}: native images must be [B, 3, H, W] in [0, 1], got {tuple(images.shape)}")
+        embedder = self.policy.model.embedder
+        return _batched_pixel_values([images.to(self.device)], 1, embedder.image_size, torch.tensor(IMAGENET_MEAN),
+                                     torch.tensor(IMAGENET_STD), embedder.model_dtype, self.device)
+
+    @torch.no_grad()
+    def native_patch_grid(self, images: torch.Tensor) -> torch.Tensor:
+        """InternViT's patch grid before the pixel shuffle [B, gh, gw, C] (its CLS token dropped, as InternVL's
+        `default` feature selection drops it)."""
+        internvl = self._vision_owner
+        layer = internvl.config.vision_feature_layer
+        out = internvl.vision_tower(pixel_values=self._native_pixels(images), output_hidden_states=layer != -1)
+        hidden = out.last_hidden_state if layer == -1 else out.hidden_states[layer]
+        if internvl.config.vision_feature_select_strategy == "default":
+            hidden = hidden[:, 1:]
+        side = int(round(hidden.shape[1] ** 0.5))
+        return hidden.reshape(hidden.shape[0], side, side, hidden.shape[-1]).float()
+
+    @torch.no_grad()
+    def native_tokens(self, images: torch.Tensor) -> torch.Tensor:
+        """The projector's tokens [B, T, D], what InternVL scatters into a camera's `<IMG_CONTEXT>` slots."""
+        return self._vision_owner.get_image_features(pixel_values=self._native_pixels(images)).pooler_output.float()
+
+    # ------------------------------------------------------------------------------ objectives
+    def sample_noise(self, batch_size: int, generator: torch.Generator | None = None) -> torch.Tensor:
+        """EVO1's start noise: uniform in [-1, 1] (flow_matching.py), [B, chunk, max_action_dim]."""
+        noise = torch.rand(batch_size, self.chunk_size, self.max_action_dim, generator=generator) * 2 - 1
+        return noise.to(self.device)
+
+    def loss(self, batch: Mapping[str, Any], noise: torch.Tensor | None = None,
+             time: torch.Tensor | None = None) -> torch.Tensor:
+        """The common masked loss; `time` defaults to EVO1's own draw (Beta(2, 2) in [0.02, 0.98], symmetric,
+        so the same as a noise level)."""
+        if time is None:
+            size = batch[STATE].shape[0]
+            time = torch.distributions.Beta(2.0, 2.0).sample((size,)).clamp(0.02, 0.98).to(self.device)
+        return super().loss(batch, noise, time)
+
+    def _context(self, batch: Mapping[str, Any]) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
+        """The head's context as lerobot builds it: (context tokens, key padding mask, embodiment ids)."""
+        policy = self.policy
+        prompts = policy._normalize_task_batch(batch)
+        images, masks = policy._collect_image_batches(batch)
+        states, _ = policy._prepare_state(batch)
+        embodiment = policy._get_embodiment_ids(batch, states.shape[0])
+        fused, context = policy._compute_fused_tokens(prompts, images, masks)
+        return policy.model.action_head._prepare_context(fused, states, embodiment, context)
+
+    def _velocity(self, context, padding, embodiment, seq: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+        """One pass of EVO1's head: the velocity [B, chunk * max_action_dim] at `seq` and time indices [B]."""
+        head = self.policy.model.action_head
+        time_emb = head.time_pos_enc(1000)[0, index.to(context.device)].to(head.dtype)
+        x = head._project_actions(seq, embodiment).to(head.dtype)
+        for block in head.transformer_blocks:
+            x = block(x, context.to(head.dtype), time_emb, padding)
+        x = head.norm_out(x)
+        pooled = head.seq_pool_proj(x.reshape(x.shape[0], -1)) if head.horizon > 1 else x.squeeze(1)
+        return head.mlp_head(pooled, embodiment)
+
+    def _flow_losses(self, batch: Mapping[str, Any], noise: torch.Tensor, time: torch.Tensor) -> torch.Tensor:
+        """EVO1's `forward` with the given draws: the squared velocity error per element [B, chunk, max_dim]."""
+        policy = self.policy
+        with policy._maybe_autocast():
+            context, padding, embodiment = self._context(batch)
+            actions, mask = policy._prepare_actions(batch)
+            mask = mask.to(policy._compute_dtype)
+            t = (1 - time).to(self.device, policy._compute_dtype)
+            index = (t * 999).long().clamp_(0, 999)
+            noise = noise.to(self.device, policy._compute_dtype) * mask
+            x_t = (1 - t).view(-1, 1, 1) * noise + t.view(-1, 1, 1) * (actions * mask)
+            velocity = self._velocity(context, padding, embodiment, x_t, index)
+        target = actions.float() - noise.float()
+        return (velocity.float().view(target.shape) - target) ** 2
+
+    @torch.no_grad()
+    def _predict_chunk(self, batch: Mapping[str, Any], noise: torch.Tensor, num_steps: int) -> torch.Tensor:
+        """`Evo1Policy.predict_action_chunk` from `noise` with `num_steps` Euler steps, cut to the real dims."""
+        policy, head = self.policy, self.policy.model.action_head
+        policy.eval()
+        with policy._maybe_autocast():
+            context, padding, embodiment = self._context(batch)
+            size = context.shape[0]
+            mask = head._expand_action_mask(policy._prepare_inference_action_mask(size), size, head.per_action_dim,
+                                            context.device, context.dtype)
+            seq = noise.to(context.device, context.dtype).view_as(mask) * mask
+            steps = max(1, int(num_steps))
+            dt = 1.0 / steps
+            for i in range(steps):
+                index = torch.full((size,), min(int(i / steps * 999), 999), dtype=torch.long)
+                velocity = self._velocity(context, padding, embodiment, seq * mask, index).view_as(mask) * mask
+                seq = seq + dt * velocity
+        return (seq * mask).float()[:, :, : self.action_dim]
+
+    # ------------------------------------------------------------------------------ reporting
+    module_paths = {
+        "language model": ("_vision_owner.language_model",),
+        "action head": ("policy.model.action_head",),
+    }
