@@ -24,13 +24,16 @@ EVO1's head draws its own flow time (Beta(2, 2) clamped to [0.02, 0.98]) and noi
 `forward` / `get_action`, with the flow running from noise at t = 0 to the action at t = 1. `loss` and
 `predict` therefore run the head's own modules (`_prepare_context`, `_project_actions`, its blocks, pooling and
 MLP) with the given draws: graftcache's `time` is the noise level (1 at pure noise, as for pi0), EVO1's t is
-1 - time; noise is EVO1's uniform (`sample_noise`). tests/test_backbones_evo1.py checks both against lerobot's
-`forward` and `predict_action_chunk` under the same random draws.
+1 - time; graftcache's noise is standard normal for every backbone (training draws and the scorer's fixed
+per-frame draws), mapped here onto EVO1's uniform through the normal CDF (`_uniform`).
+tests/test_backbones_evo1.py checks both against lerobot's `forward` and `predict_action_chunk` under the same
+random draws.
 """
 
 from __future__ import annotations
 
 import functools
+import math
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -40,7 +43,7 @@ from torch import nn
 from transformers.modeling_outputs import BaseModelOutputWithPooling
 
 from graftcache.backbones.base import BackboneAdapter, is_empty_camera
-from graftcache.backbones.batches import STATE
+from graftcache.backbones.batches import ACTION, STATE
 from graftcache.backbones.checkpoint import cached_repo
 from graftcache.backbones.tiny import TinySpec
 from graftcache.backbones.tiny_evo1 import INTERNVL_DIR, build_tiny_evo1, construct
@@ -204,10 +207,21 @@ class Evo1Adapter(BackboneAdapter):
         return self._vision_owner.get_image_features(pixel_values=self._native_pixels(images)).pooler_output.float()
 
     # ------------------------------------------------------------------------------ objectives
-    def sample_noise(self, batch_size: int, generator: torch.Generator | None = None) -> torch.Tensor:
-        """EVO1's start noise: uniform in [-1, 1] (flow_matching.py), [B, chunk, max_action_dim]."""
-        noise = torch.rand(batch_size, self.chunk_size, self.max_action_dim, generator=generator) * 2 - 1
-        return noise.to(self.device)
+    def prepare(self, raw: Mapping[str, Any]) -> dict[str, Any]:
+        """lerobot's preprocessor, with its padding of the action chunk (and of the mask saying so) to
+        `max_action_dim` cut back to the real dims: the policy pads them again itself (`_prepare_actions`), and
+        the fit reads the batch's `action` as the normalised target of the real dims, as for every backbone."""
+        batch = super().prepare(raw)
+        for key in (ACTION, "action_mask"):
+            if key in batch:
+                batch[key] = batch[key][..., : self.action_dim]
+        return batch
+
+    @staticmethod
+    def _uniform(noise: torch.Tensor) -> torch.Tensor:
+        """graftcache's standard-normal noise as EVO1's uniform noise in [-1, 1]: u = 2 Phi(z) - 1 = erf(z / sqrt 2)
+        (each normal draw through its own CDF: exactly uniform, and a fixed draw stays fixed)."""
+        return torch.erf(noise / math.sqrt(2.0))
 
     def loss(self, batch: Mapping[str, Any], noise: torch.Tensor | None = None,
              time: torch.Tensor | None = None) -> torch.Tensor:
@@ -248,7 +262,7 @@ class Evo1Adapter(BackboneAdapter):
             mask = mask.to(policy._compute_dtype)
             t = (1 - time).to(self.device, policy._compute_dtype)
             index = (t * 999).long().clamp_(0, 999)
-            noise = noise.to(self.device, policy._compute_dtype) * mask
+            noise = self._uniform(noise.to(self.device, policy._compute_dtype)) * mask
             x_t = (1 - t).view(-1, 1, 1) * noise + t.view(-1, 1, 1) * (actions * mask)
             velocity = self._velocity(context, padding, embodiment, x_t, index)
         target = actions.float() - noise.float()
@@ -264,7 +278,7 @@ class Evo1Adapter(BackboneAdapter):
             size = context.shape[0]
             mask = head._expand_action_mask(policy._prepare_inference_action_mask(size), size, head.per_action_dim,
                                             context.device, context.dtype)
-            seq = noise.to(context.device, context.dtype).view_as(mask) * mask
+            seq = self._uniform(noise.to(context.device, context.dtype)).view_as(mask) * mask
             steps = max(1, int(num_steps))
             dt = 1.0 / steps
             for i in range(steps):
@@ -272,6 +286,12 @@ class Evo1Adapter(BackboneAdapter):
                 velocity = self._velocity(context, padding, embodiment, seq * mask, index).view_as(mask) * mask
                 seq = seq + dt * velocity
         return (seq * mask).float()[:, :, : self.action_dim]
+
+    def unnormalize(self, actions: torch.Tensor) -> torch.Tensor:
+        """lerobot's EVO1 postprocessor unnormalises at the padded width, then cuts to the real dims: the real
+        dims are padded with zeros for it (the padding never reaches the output)."""
+        pad = self.max_action_dim - actions.shape[-1]
+        return super().unnormalize(torch.nn.functional.pad(actions, (0, pad)) if pad > 0 else actions)
 
     # ------------------------------------------------------------------------------ reporting
     module_paths = {
