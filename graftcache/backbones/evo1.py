@@ -167,13 +167,17 @@ class Evo1Adapter(BackboneAdapter):
             embedder.num_image_token = saved
 
     def _image_features(self, own, pixel_values: torch.Tensor, **kwargs):
-        """InternVL's `get_image_features`, or grafted: the cached features through the pass-through and the
-        projector (no CLS to drop, no pixel shuffle: the cache holds the grid the projector takes)."""
+        """InternVL's `get_image_features`, or grafted: the cached features [B x views, T, C] through the
+        pass-through and the projector (no CLS to drop, no pixel shuffle: the cache holds the grid the projector
+        takes). The projector sees one row per sample ([B, views x T, C]), so a fused pass's projectors
+        (graftcache.graft.FusedProjector) each take their own cell's samples."""
         if not self.grafted:
             return own(pixel_values, **kwargs)
         tower, connector = self._tower_and_connector()
-        return BaseModelOutputWithPooling(last_hidden_state=pixel_values,
-                                          pooler_output=connector(tower(pixel_values).last_hidden_state))
+        features = tower(pixel_values).last_hidden_state
+        per_sample = features.unflatten(0, (-1, self.config.max_views)).flatten(1, 2)
+        tokens = connector(per_sample).reshape(*features.shape[:2], -1)
+        return BaseModelOutputWithPooling(last_hidden_state=pixel_values, pooler_output=tokens)
 
     # ------------------------------------------------------------------------------ native tower
     def _native_pixels(self, images: torch.Tensor) -> torch.Tensor:
