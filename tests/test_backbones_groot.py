@@ -24,7 +24,7 @@ from helpers.backbones import (
 
 from graftcache.backbones import load_backbone
 from graftcache.backbones.checkpoint import state_dict_sha256
-from graftcache.backbones.groot import GrootAdapter, merged_grid
+from graftcache.backbones.groot import PADDED_ACTION, GrootAdapter, merged_grid
 from graftcache.backbones.released import hub_cache, publish
 from graftcache.errors import BackboneError
 from graftcache.graft import GraftProjector, feature_key
@@ -91,15 +91,18 @@ def test_loss_and_prediction_are_lerobots_under_the_same_draws() -> None:
     head = adapter.policy._groot_model.action_head
     shape = (3, adapter.chunk_size, adapter.max_action_dim)
     with torch.no_grad():
+        assert batch["action"].shape == (3, 10, 7) and batch[PADDED_ACTION].shape == (3, 10, 8)
+        torch.testing.assert_close(batch[PADDED_ACTION][..., :7], batch["action"])
+        assert not batch[PADDED_ACTION][..., 7:].any()
         torch.manual_seed(7)
-        reference, _ = adapter.policy.forward(dict(batch))
+        reference, _ = adapter.policy.forward({**batch, "action": batch[PADDED_ACTION]})
         torch.manual_seed(7)  # groot_n1_7.py draws the noise, then the time
         noise = torch.randn(shape)
         time = head.sample_time(3, torch.device("cpu"), torch.float32)
         mask = batch["action_mask"]
         error = adapter._flow_losses(batch, noise, time)
         torch.testing.assert_close((error * mask).sum() / (mask.sum() + 1e-6), reference)
-        inference = {k: v for k, v in batch.items() if k not in ("action", "action_is_pad")}
+        inference = {k: v for k, v in batch.items() if k not in ("action", "action_is_pad", PADDED_ACTION)}
         torch.manual_seed(11)
         chunk_ref = adapter.policy.predict_action_chunk(dict(inference))
         torch.manual_seed(11)

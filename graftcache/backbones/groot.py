@@ -56,6 +56,9 @@ from graftcache.errors import BackboneError
 from graftcache.graft import feature_key
 
 VLM_STEP, PACK_STEP = "GrootN17VLMEncodeStep", "GrootN17PackInputsStep"
+#: The normalised action chunk as GR00T's pack step pads it to `max_action_dim` (what its forward reads); the
+#: prepared batch's `action` is the chunk at the dataset's action width, like every other backbone's.
+PADDED_ACTION = "groot_padded_action"
 
 
 def merged_grid(size: tuple[int, int], pixels: tuple[int, int]) -> tuple[int, int]:
@@ -299,20 +302,24 @@ class GrootAdapter(BackboneAdapter):
         step = self._vlm_step
         image = step.proc.image_processor
         h, w = gh * PATCH * MERGE, gw * PATCH * MERGE
-        saved = step.image_target_size, step.image_crop_size, step.crop_fraction, step.shortest_image_edge, image.size
-        step.image_target_size, step.image_crop_size, step.crop_fraction, step.shortest_image_edge = [h, w], None, None, None
+        fields = ("image_target_size", "image_crop_size", "crop_fraction", "shortest_image_edge")
+        saved, size = {f: getattr(step, f) for f in fields}, image.size
+        for field, value in zip(fields, ([h, w], None, None, None)):
+            setattr(step, field, value)
         image.size = {"shortest_edge": h * w, "longest_edge": h * w}
         try:
             yield h, w
         finally:
-            step.image_target_size, step.image_crop_size, step.crop_fraction, step.shortest_image_edge, image.size = saved
+            for field, value in saved.items():
+                setattr(step, field, value)
+            image.size = size
 
     def prepare(self, raw: Mapping[str, Any]) -> dict[str, Any]:
         """lerobot's preprocessor (packing, normalisation, prompt). Grafted, the prompt is made from blank frames
         whose processed grid is the cached features' (the native grid, or a pooling control's square grid), and
         the features ride along for `_feature_images`."""
         if not self.grafted:
-            return super().prepare(raw)
+            return self._unpadded(super().prepare(raw))
         batch = dict(raw)
         missing = [k for k in [feature_key(c) for c in self.camera_keys] + [STATE, "task"] if k not in batch]
         if missing:
@@ -327,7 +334,14 @@ class GrootAdapter(BackboneAdapter):
             out = self.preprocessor(batch)
         for key in self.camera_keys:
             out.pop(key, None)
-        return out
+        return self._unpadded(out)
+
+    def _unpadded(self, batch: dict[str, Any]) -> dict[str, Any]:
+        """`action` cut back to the dataset's width (the scored target), the padded chunk kept for GR00T."""
+        if ACTION in batch:
+            batch[PADDED_ACTION] = batch[ACTION]
+            batch[ACTION] = batch[ACTION][..., : self.action_dim]
+        return batch
 
     # ------------------------------------------------------------------------------ objectives
     def loss(self, batch: Mapping[str, Any], noise: torch.Tensor | None = None,
@@ -345,10 +359,10 @@ class GrootAdapter(BackboneAdapter):
         hook = head.action_decoder.register_forward_hook(lambda m, args, out: decoded.append(out))
         try:
             with drawing(noise), shadowed(head, sample_time=lambda size, device, dtype: time.to(device, dtype)):
-                self.policy.forward(dict(batch))
+                self.policy.forward({**batch, ACTION: batch[PADDED_ACTION]})
         finally:
             hook.remove()
-        action = batch[ACTION].to(noise.dtype)
+        action = batch[PADDED_ACTION].to(noise.dtype)
         velocity = action - noise
         return (decoded[0][:, -action.shape[1]:].to(velocity.dtype) - velocity) ** 2
 
