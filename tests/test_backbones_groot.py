@@ -49,7 +49,11 @@ def no_deepstack(adapter) -> Iterator[None]:
 
 
 def test_tiny_geometry() -> None:
+    from lerobot.policies.groot.groot_n1_7 import GR00TN17
+
+    own = GR00TN17.__dict__["from_pretrained"]
     adapter = tiny("groot")
+    assert GR00TN17.__dict__["from_pretrained"] is own  # lerobot's loader is back after construction
     assert adapter.native_grid == (4, 4) and adapter.lm_width == 64 and adapter.embed_scale == 1.0
     assert adapter.cameras == ("image", "image2") and adapter.max_action_dim == 8 and adapter.chunk_size == 10
     assert adapter.num_steps == 4 and len(_qwen(adapter).language_model.layers) == 2  # cut at select_layer

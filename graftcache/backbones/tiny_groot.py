@@ -149,11 +149,12 @@ def base_model(base) -> Iterator[None]:
                                                    tune_vlln=flags["tune_vlln"])
         return model
 
+    own = GR00TN17.__dict__["from_pretrained"]
     GR00TN17.from_pretrained = classmethod(build)
     try:
         yield
     finally:
-        del GR00TN17.from_pretrained  # back to the inherited (lerobot's own) classmethod
+        GR00TN17.from_pretrained = own
 
 
 def construct(config, base):
