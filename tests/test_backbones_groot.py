@@ -102,9 +102,9 @@ def test_loss_and_prediction_are_lerobots_under_the_same_draws() -> None:
         reference, _ = adapter.policy.forward({**batch, "action": batch[PADDED_ACTION]})
         torch.manual_seed(7)  # groot_n1_7.py draws the noise, then the time
         noise = torch.randn(shape)
-        time = head.sample_time(3, torch.device("cpu"), torch.float32)
+        time = head.sample_time(3, torch.device("cpu"), torch.float32)  # GR00T's: 1 is the action
         mask = batch["action_mask"]
-        error = adapter._flow_losses(batch, noise, time)
+        error = adapter._flow_losses(batch, noise, 1 - time)  # graftcache's: 1 is pure noise
         torch.testing.assert_close((error * mask).sum() / (mask.sum() + 1e-6), reference)
         inference = {k: v for k, v in batch.items() if k not in ("action", "action_is_pad", PADDED_ACTION)}
         torch.manual_seed(11)
@@ -115,6 +115,24 @@ def test_loss_and_prediction_are_lerobots_under_the_same_draws() -> None:
     assert chunk_ref.shape == (3, adapter.chunk_size, adapter.action_dim)
     with pytest.raises(BackboneError, match=r"noise of shape \(3, 4, 8\) given, GR00T draws \(3, 10, 8\)"):
         adapter.predict(batch, start[:, :4])
+
+
+def test_time_one_is_pure_noise_as_in_fit() -> None:
+    """graftcache's flow time (graftcache.fit.loop.flow_time, the pi0 family's: 1 is pure noise) is GR00T's 1 - t:
+    at time 1 the action head is fed the noise itself, at time 0 the (normalised, padded) action."""
+    adapter = tiny("groot")
+    adapter.policy.eval()
+    batch = adapter.prepare(raw_images(adapter, 2, size=SIZE))
+    noise, _ = fixed_noise_time(adapter, 2)
+    fed = []
+    encoder = adapter.policy._groot_model.action_head.action_encoder
+    hook = encoder.register_forward_pre_hook(lambda m, args: fed.append(args[0]))
+    with torch.no_grad():
+        adapter.loss(batch, noise, torch.ones(2))
+        adapter.loss(batch, noise, torch.zeros(2))
+    hook.remove()
+    torch.testing.assert_close(fed[0], noise)
+    torch.testing.assert_close(fed[1], batch[PADDED_ACTION])
 
 
 def test_loss_masks_padded_steps_and_padded_dims_per_sample() -> None:

@@ -21,6 +21,9 @@ only, never on the pixels), so the pad positions, M-RoPE positions and masks are
 GR00T draws its flow time (`sample_time`) and noise (`torch.randn` in groot_n1_7.py) inside `forward` and
 `get_action`; `loss` and `predict` run lerobot's own code with the time sampler shadowed and that module's
 `torch.randn` answering with the given noise, and `loss` reads the velocity from the action decoder's output.
+GR00T's time runs the other way from the pi0 family's that `fit` draws (graftcache.fit.loop.flow_time: 1 is pure
+noise there, the action here; GR00T samples (1 - Beta(1.5, 1)) * 0.999, the mirror of lerobot's pi0 draw), so a
+given time t is GR00T's 1 - t: the same draw means the same noise level on every backbone.
 """
 
 from __future__ import annotations
@@ -346,19 +349,20 @@ class GrootAdapter(BackboneAdapter):
     # ------------------------------------------------------------------------------ objectives
     def loss(self, batch: Mapping[str, Any], noise: torch.Tensor | None = None,
              time: torch.Tensor | None = None) -> torch.Tensor:
-        """The masked per-sample flow loss; the time defaults to GR00T's own Beta sampler."""
+        """The masked per-sample flow loss; the time (1 = pure noise) defaults to GR00T's own Beta sampler."""
         if time is None:
-            time = self._groot.action_head.sample_time(batch[STATE].shape[0], self.device, torch.float32)
+            time = 1 - self._groot.action_head.sample_time(batch[STATE].shape[0], self.device, torch.float32)
         return super().loss(batch, noise, time)
 
     def _flow_losses(self, batch: Mapping[str, Any], noise: torch.Tensor, time: torch.Tensor) -> torch.Tensor:
-        """lerobot's GR00T forward with the given draws; the per-element loss from the action decoder's output
-        (GR00T's time runs from noise at 0 to the action at 1, its velocity is action - noise)."""
+        """lerobot's GR00T forward with the given draws (`time` 1 = pure noise, GR00T's 1 - time); the per-element
+        loss from the action decoder's output (GR00T's velocity is action - noise)."""
         head = self._groot.action_head
+        own = 1 - time
         decoded = []
         hook = head.action_decoder.register_forward_hook(lambda m, args, out: decoded.append(out))
         try:
-            with drawing(noise), shadowed(head, sample_time=lambda size, device, dtype: time.to(device, dtype)):
+            with drawing(noise), shadowed(head, sample_time=lambda size, device, dtype: own.to(device, dtype)):
                 self.policy.forward({**batch, ACTION: batch[PADDED_ACTION]})
         finally:
             hook.remove()
