@@ -15,6 +15,7 @@ BACKBONES: dict[str, str] = {
     "pi0_fast": "graftcache.backbones.pi0_fast:PI0FastAdapter",
     "eo1": "graftcache.backbones.eo1:EO1Adapter",
     "evo1": "graftcache.backbones.evo1:Evo1Adapter",
+    "groot": "graftcache.backbones.groot:GrootAdapter",
 }
 
 #: Approximate parameter counts of the released policies (lerobot's docs), for results tables written before rows

@@ -1,0 +1,390 @@
+"""GR00T N1.7 (lerobot 0.6: Cosmos-Reason2-2B's Qwen3-VL cut at LM layer 16 + a DiT flow head) as a graftable backbone.
+
+Vision path (processor_groot.py, groot_n1_7.py; transformers qwen3_vl): the preprocessor packs the cameras
+(sorted by key unless the checkpoint names its video keys) into one video, GR00T's VLM step resizes every frame
+to its target size (256 px, after a 230/256 centre crop) and Qwen3-VL's processor cuts it into 16 px patches
+ordered by 2x2 merge block, writing one `<|image_pad|>` per merged block into one user message (all frames, then
+the task). In the model, `Qwen3VLModel.get_image_features` runs the ViT (`visual.blocks`) and its `merger`
+(LayerNorm, 2x2 concat, MLP into the LM width), scatters the tokens into the image pads, camera after camera,
+and adds three "deepstack" features (mergers of ViT blocks 5, 11, 17) to the first LM layers' hidden states at
+those positions. The action head reads the LM's layer-16 states. Tokens per camera: 256 px -> 16x16 patches ->
+8x8 = 64, whatever the dataset's frame size.
+
+Graft slots: the image-pad positions, every camera. The tower (`visual.blocks`) becomes the pass-through and the
+merger (the connector) the projector; Qwen's `get_image_features` is shadowed on the instance so that, grafted, it
+projects the cached features instead of running the ViT (unchanged otherwise). Deepstack features come out of
+the native ViT's inner blocks, so a grafted encoder has none: grafted, none are added (the native control's
+ViT is likewise a cached tower, so its deepstack is absent too). The prompt is the policy's own, built by its
+processor steps from blank frames sized so that they give the cached grid (the prompt depends on the frame size
+only, never on the pixels), so the pad positions, M-RoPE positions and masks are exactly the policy's.
+
+GR00T draws its flow time (`sample_time`) and noise (`torch.randn` in groot_n1_7.py) inside `forward` and
+`get_action`; `loss` and `predict` run lerobot's own code with the time sampler shadowed and that module's
+`torch.randn` answering with the given noise, and `loss` reads the velocity from the action decoder's output.
+GR00T's time runs the other way from the pi0 family's that `fit` draws (graftcache.fit.loop.flow_time: 1 is pure
+noise there, the action here; GR00T samples (1 - Beta(1.5, 1)) * 0.999, the mirror of lerobot's pi0 draw), so a
+given time t is GR00T's 1 - t: the same draw means the same noise level on every backbone.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+from collections.abc import Iterator, Mapping
+from typing import Any
+
+import torch
+from torch import nn
+
+from graftcache.backbones.base import BackboneAdapter
+from graftcache.backbones.batches import ACTION, STATE
+from graftcache.backbones.checkpoint import cached_repo
+from graftcache.backbones.eo1 import shadowed
+from graftcache.backbones.tiny import TinySpec
+from graftcache.backbones.tiny_groot import (
+    GROOT_DIR,
+    MERGE,
+    PATCH,
+    QWEN3_VL_PIXELS,
+    TINY_PIXELS,
+    TINY_TARGET,
+    base_config,
+    build_tiny_groot,
+    construct,
+    tiny_base_for,
+    tiny_image_geometry,
+    vlm_step_name,
+)
+from graftcache.errors import BackboneError
+from graftcache.graft import feature_key
+
+VLM_STEP, PACK_STEP = "GrootN17VLMEncodeStep", "GrootN17PackInputsStep"
+#: The normalised action chunk as GR00T's pack step pads it to `max_action_dim` (what its forward reads); the
+#: prepared batch's `action` is the chunk at the dataset's action width, like every other backbone's.
+PADDED_ACTION = "groot_padded_action"
+
+
+def merged_grid(size: tuple[int, int], pixels: tuple[int, int]) -> tuple[int, int]:
+    """The merged token grid Qwen3-VL's processor gives a frame of `size` (smart_resize, then patch x merge)."""
+    from transformers.models.qwen2_vl.image_processing_qwen2_vl import smart_resize
+
+    factor = PATCH * MERGE
+    h, w = smart_resize(size[0], size[1], factor=factor, min_pixels=pixels[0], max_pixels=pixels[1])
+    return h // factor, w // factor
+
+
+class _NoiseTorch:
+    """groot_n1_7.py's `torch` for the duration of one call: `randn` returns the given draw, the rest is torch."""
+
+    def __init__(self, noise: torch.Tensor) -> None:
+        self._noise = noise
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(torch, name)
+
+    def randn(self, *args: Any, size=None, device=None, dtype=None, **_: Any) -> torch.Tensor:
+        shape = tuple(size if size is not None else (args[0] if len(args) == 1 else args))
+        if tuple(self._noise.shape) != shape:
+            raise BackboneError(f"groot: noise of shape {tuple(self._noise.shape)} given, GR00T draws {shape}")
+        return self._noise.to(device=device, dtype=dtype)
+
+
+@contextlib.contextmanager
+def drawing(noise: torch.Tensor) -> Iterator[None]:
+    """GR00T's own noise draws return `noise` while the block runs."""
+    from lerobot.policies.groot import groot_n1_7
+
+    groot_n1_7.torch = _NoiseTorch(noise)
+    try:
+        yield
+    finally:
+        groot_n1_7.torch = torch
+
+
+class GrootAdapter(BackboneAdapter):
+    name = "groot"
+    vision_slots = ("blocks", "merger")
+    steps_field = "num_inference_timesteps"
+    image_method = "_filter_groot_inputs"
+    token_steps = (VLM_STEP,)
+    prompt_uses_state = True  # the prompt is built per batch (images and all) by lerobot's processor
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        qwen = self._qwen
+        qwen.get_image_features = functools.partial(self._image_features, type(qwen).get_image_features, qwen)
+
+    # ------------------------------------------------------------------------------ construction
+    @classmethod
+    def _build_tiny(cls, spec: TinySpec, stats: dict | None, device: str):
+        policy, pre, post = build_tiny_groot(spec, stats, device)
+        return policy, pre, post, {"backbone": cls.name, "geometry": None}
+
+    @classmethod
+    def _configure(cls, folder, config, marker: dict | None) -> None:
+        """A tiny checkpoint's base model is the shipped tiny folder (its saved path points into the package that
+        saved it)."""
+        if marker is not None:
+            config.base_model_path = str(GROOT_DIR)
+
+    @classmethod
+    def _construct(cls, config, marker: dict | None) -> nn.Module:
+        """GrootPolicy on its base model's config (the tiny one, or `base_model_path`'s config.json), no base
+        weights read: the checkpoint holds them all."""
+        return construct(config, tiny_base_for(config) if marker is not None else base_config(config.base_model_path))
+
+    @classmethod
+    def _vlm_folder(cls, marker: dict | None) -> str:
+        """Where the Qwen3-VL tokenizer and processors come from: the tiny folder, or Cosmos-Reason2-2B (a local
+        HF cache snapshot: lerobot's step names the hub id)."""
+        from lerobot.policies.groot.configuration_groot import GROOT_N1_7_BACKBONE_MODEL
+
+        if marker is not None:
+            return str(GROOT_DIR)
+        return str(cached_repo(GROOT_N1_7_BACKBONE_MODEL, "GR00T's Qwen3-VL processor"))
+
+    @classmethod
+    def _processor_overrides(cls, config, marker: dict | None, device: str) -> tuple[dict, dict]:
+        pre, post = super()._processor_overrides(config, marker, device)
+        pre[vlm_step_name()] = {"model_name": cls._vlm_folder(marker), "device": device}
+        return pre, post
+
+    @classmethod
+    def _make_processors(cls, config, stats: dict, marker: dict | None):
+        from lerobot.policies.groot.processor_groot import make_groot_pre_post_processors
+
+        pre, post = make_groot_pre_post_processors(config, dataset_stats=stats)
+        if marker is not None:
+            tiny_image_geometry(pre)
+        else:
+            cls._step(pre, VLM_STEP).model_name = cls._vlm_folder(marker)
+        return pre, post
+
+    # ------------------------------------------------------------------------------ geometry
+    @property
+    def _groot(self) -> nn.Module:
+        return self.policy._groot_model  # GR00TN17
+
+    @property
+    def _qwen(self) -> nn.Module:
+        return self._groot.backbone.model.model  # Qwen3VLModel
+
+    @property
+    def _vision_owner(self) -> nn.Module:
+        return self._qwen.visual  # Qwen3VLVisionModel
+
+    @classmethod
+    def _grid_of_config(cls, config, marker: dict | None) -> tuple[int, int]:
+        """The merged grid of GR00T's frame: its VLM step's target size (the tiny one; a raw base checkpoint's
+        processor_config.json; lerobot's N1.7 default 256 px) through Qwen3-VL's processor bounds."""
+        from lerobot.policies.groot.configuration_groot import N1_7_DEFAULT_IMAGE_TARGET_SIZE
+        from lerobot.policies.groot.processor_groot import _load_n1_7_checkpoint_processor_assets
+
+        if marker is not None:
+            return merged_grid((TINY_TARGET, TINY_TARGET), TINY_PIXELS)
+        assets = _load_n1_7_checkpoint_processor_assets(config)
+        target = assets.image_target_size if assets is not None and assets.image_target_size else None
+        return merged_grid(tuple(target or N1_7_DEFAULT_IMAGE_TARGET_SIZE), QWEN3_VL_PIXELS)
+
+    @property
+    def lm_width(self) -> int:
+        return self._groot.backbone.model.config.text_config.hidden_size
+
+    @property
+    def embed_scale(self) -> float:
+        return 1.0
+
+    @property
+    def chunk_size(self) -> int:
+        """The action head's horizon (GR00T draws its noise at the model's `action_horizon`)."""
+        return self._groot.config.action_horizon
+
+    @property
+    def num_steps(self) -> int:
+        """GrootConfig's override, else the base model's `num_inference_timesteps`."""
+        return self.config.num_inference_timesteps or self._groot.action_head.num_inference_timesteps
+
+    # ------------------------------------------------------------------------------ images
+    @staticmethod
+    def _step(pipeline, name: str):
+        steps = [s for s in pipeline.steps if type(s).__name__ == name]
+        if not steps:
+            raise BackboneError(f"groot: the preprocessor has no {name}")
+        return steps[0]
+
+    @functools.cached_property
+    def _vlm_step(self):
+        return self._step(self.preprocessor, VLM_STEP)
+
+    @functools.cached_property
+    def _view_keys(self) -> list[str]:
+        """The cameras in the order GR00T's pack step puts them into its video (and so into the prompt)."""
+        return self._step(self.preprocessor, PACK_STEP)._ordered_image_keys({k: None for k in self.camera_keys})
+
+    def _image_features(self, own, qwen: nn.Module, pixel_values: torch.Tensor, image_grid_thw=None, **kwargs):
+        """Qwen's `get_image_features`, or grafted: the cached features [images x tokens, C] through the
+        pass-through and the projector, split per image as Qwen splits them, and no deepstack features."""
+        from transformers.models.qwen3_vl.modeling_qwen3_vl import BaseModelOutputWithDeepstackFeatures
+
+        if not self.grafted:
+            return own(qwen, pixel_values, image_grid_thw, **kwargs)
+        tower, connector = self._tower_and_connector()
+        tokens = connector(tower(pixel_values).last_hidden_state)
+        sizes = (image_grid_thw.prod(-1) // qwen.visual.spatial_merge_size ** 2).tolist()
+        return BaseModelOutputWithDeepstackFeatures(last_hidden_state=pixel_values,
+                                                    pooler_output=torch.split(tokens, sizes),
+                                                    deepstack_features=None)
+
+    def _vision(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """[B, 3, H, W] in [0, 1] through GR00T's own frame transform, Qwen3-VL's processor and ViT: (pre-merger
+        patch grid [B, gh, gw, C] in raster order, post-merger tokens [B, T, D])."""
+        from lerobot.policies.groot.processor_groot import _to_uint8_np_bthwc
+
+        if self.grafted:
+            raise BackboneError(f"{self.name}: the native tower was removed by graft(); read it before grafting")
+        if images.ndim != 4 or images.shape[1] != 3:
+            raise BackboneError(f"{self.name}: native images must be [B, 3, H, W] in [0, 1], got {tuple(images.shape)}")
+        step, size = self._vlm_step, len(images)
+        video = _to_uint8_np_bthwc(images.cpu())[:, :, None]  # (B, T=1, V=1, H, W, C), as the pack step makes it
+        frames = [f for sample in step._build_sample_images(video, size, None) for f in sample]
+        inputs = step.proc.image_processor(images=frames, return_tensors="pt")
+        visual = self._vision_owner
+        thw = inputs["image_grid_thw"].to(self.device)
+        out = visual(inputs["pixel_values"].to(self.device, visual.dtype), grid_thw=thw)
+        m = visual.spatial_merge_size
+        _, gh, gw = thw[0].tolist()
+        hidden = out.last_hidden_state  # merge-block order: (gh/m, gw/m, m, m) per image -> raster
+        grid = hidden.view(size, gh // m, gw // m, m, m, -1).permute(0, 1, 3, 2, 4, 5).reshape(size, gh, gw, -1)
+        tokens = out.pooler_output.view(size, (gh // m) * (gw // m), -1)
+        return grid.float(), tokens.float()
+
+    @torch.no_grad()
+    def native_patch_grid(self, images: torch.Tensor) -> torch.Tensor:
+        """The ViT's last block before the merger, [B, gh, gw, C] at patch resolution (2x the merged grid)."""
+        return self._vision(images)[0]
+
+    @torch.no_grad()
+    def native_tokens(self, images: torch.Tensor) -> torch.Tensor:
+        """Post-merger tokens [B, gh/2 * gw/2, D], in the order Qwen scatters them into the prompt."""
+        return self._vision(images)[1]
+
+    def _feature_images(self, batch: Mapping[str, Any], include_action: bool) -> dict[str, Any]:
+        """Grafted stand-in for GrootPolicy._filter_groot_inputs: Qwen's `pixel_values` are the cached features of
+        every image, sample after sample, camera after camera in the video's order (the image pads' order)."""
+        from lerobot.policies.groot.modeling_groot import GrootPolicy
+
+        feats = [batch.get(feature_key(k)) for k in self._view_keys]
+        if any(f is None for f in feats):
+            raise BackboneError(f"{self.name} batch has no features for camera(s) "
+                                f"{[k for k, f in zip(self._view_keys, feats) if f is None]}")
+        slots = set((batch["image_grid_thw"].prod(-1) // self._vision_owner.spatial_merge_size ** 2).tolist())
+        tokens = {f.shape[1] for f in feats}
+        if tokens != slots or len(slots) != 1:
+            raise BackboneError(f"{self.name}: cached features have {sorted(tokens)} tokens per camera; the prompt "
+                                f"has {sorted(slots)} image slots per camera")
+        inputs = GrootPolicy._filter_groot_inputs(self.policy, batch, include_action=include_action)
+        inputs["pixel_values"] = torch.stack(feats, dim=1).flatten(0, 2)
+        return inputs
+
+    def _prompt_grid(self, tokens: int) -> tuple[int, int]:
+        """The merged grid a prompt needs for `tokens` cached tokens per camera: the native grid, or the square
+        grid of a pooling control (the cache keeps no shape, so any other count is refused, not guessed)."""
+        gh, gw = self.native_grid
+        if tokens == gh * gw:
+            return gh, gw
+        side = round(tokens ** 0.5)
+        if side * side != tokens:
+            raise BackboneError(f"{self.name}: {tokens} cached tokens per camera is neither the native {gh}x{gw} "
+                                "grid nor a square one; GR00T's prompt needs the grid's shape")
+        return side, side
+
+    @contextlib.contextmanager
+    def _frames_of_grid(self, gh: int, gw: int) -> Iterator[tuple[int, int]]:
+        """GR00T's VLM step and Qwen's processor set, for the block, to keep a (gh*32, gw*32) frame as it is (no
+        crop, that target size, pixel bounds of exactly that frame): yields the frame size."""
+        step = self._vlm_step
+        image = step.proc.image_processor
+        h, w = gh * PATCH * MERGE, gw * PATCH * MERGE
+        fields = ("image_target_size", "image_crop_size", "crop_fraction", "shortest_image_edge")
+        saved, size = {f: getattr(step, f) for f in fields}, image.size
+        for field, value in zip(fields, ([h, w], None, None, None)):
+            setattr(step, field, value)
+        image.size = {"shortest_edge": h * w, "longest_edge": h * w}
+        try:
+            yield h, w
+        finally:
+            for field, value in saved.items():
+                setattr(step, field, value)
+            image.size = size
+
+    def prepare(self, raw: Mapping[str, Any]) -> dict[str, Any]:
+        """lerobot's preprocessor (packing, normalisation, prompt). Grafted, the prompt is made from blank frames
+        whose processed grid is the cached features' (the native grid, or a pooling control's square grid), and
+        the features ride along for `_feature_images`."""
+        if not self.grafted:
+            return self._unpadded(super().prepare(raw))
+        batch = dict(raw)
+        missing = [k for k in [feature_key(c) for c in self.camera_keys] + [STATE, "task"] if k not in batch]
+        if missing:
+            raise BackboneError(f"{self.name} batch is missing {', '.join(missing)}")
+        counts = {k: batch[feature_key(k)].shape[1] for k in self.camera_keys}
+        if len(set(counts.values())) != 1:
+            raise BackboneError(f"{self.name}: cameras carry different token counts ({counts})")
+        with self._frames_of_grid(*self._prompt_grid(next(iter(counts.values())))) as (h, w):
+            size = batch[STATE].shape[0]
+            for key in self.camera_keys:
+                batch[key] = torch.zeros(size, 3, h, w)
+            out = self.preprocessor(batch)
+        for key in self.camera_keys:
+            out.pop(key, None)
+        return self._unpadded(out)
+
+    def _unpadded(self, batch: dict[str, Any]) -> dict[str, Any]:
+        """`action` cut back to the dataset's width (the scored target), the padded chunk kept for GR00T."""
+        if ACTION in batch:
+            batch[PADDED_ACTION] = batch[ACTION]
+            batch[ACTION] = batch[ACTION][..., : self.action_dim]
+        return batch
+
+    # ------------------------------------------------------------------------------ objectives
+    def loss(self, batch: Mapping[str, Any], noise: torch.Tensor | None = None,
+             time: torch.Tensor | None = None) -> torch.Tensor:
+        """The masked per-sample flow loss; the time (1 = pure noise) defaults to GR00T's own Beta sampler."""
+        if time is None:
+            time = 1 - self._groot.action_head.sample_time(batch[STATE].shape[0], self.device, torch.float32)
+        return super().loss(batch, noise, time)
+
+    def _flow_losses(self, batch: Mapping[str, Any], noise: torch.Tensor, time: torch.Tensor) -> torch.Tensor:
+        """lerobot's GR00T forward with the given draws (`time` 1 = pure noise, GR00T's 1 - time); the per-element
+        loss from the action decoder's output (GR00T's velocity is action - noise)."""
+        head = self._groot.action_head
+        own = 1 - time
+        decoded = []
+        hook = head.action_decoder.register_forward_hook(lambda m, args, out: decoded.append(out))
+        try:
+            with drawing(noise), shadowed(head, sample_time=lambda size, device, dtype: own.to(device, dtype)):
+                self.policy.forward({**batch, ACTION: batch[PADDED_ACTION]})
+        finally:
+            hook.remove()
+        action = batch[PADDED_ACTION].to(noise.dtype)
+        velocity = action - noise
+        return (decoded[0][:, -action.shape[1]:].to(velocity.dtype) - velocity) ** 2
+
+    @torch.no_grad()
+    def _predict_chunk(self, batch: Mapping[str, Any], noise: torch.Tensor, num_steps: int) -> torch.Tensor:
+        """`GrootPolicy.predict_action_chunk` from `noise` with `num_steps` Euler steps."""
+        head = self._groot.action_head
+        steps, head.num_inference_timesteps = head.num_inference_timesteps, int(num_steps)
+        try:
+            with drawing(noise):
+                return self.policy.predict_action_chunk(dict(batch))
+        finally:
+            head.num_inference_timesteps = steps
+
+    # ------------------------------------------------------------------------------ reporting
+    module_paths = {
+        "patch embedding": ("_vision_owner.patch_embed",),
+        "deepstack mergers": ("_vision_owner.deepstack_merger_list",),
+        "language model": ("_qwen.language_model",),
+        "action head": ("_groot.action_head",),
+    }

@@ -1,0 +1,236 @@
+"""Tiny and released GR00T N1.7 configurations (lerobot 0.6 `GrootConfig` + `GR00TN17`), buildable offline.
+
+A lerobot GR00T checkpoint keeps only `GrootConfig`; its model is rebuilt by `GR00TN17.from_pretrained(
+base_model_path)`, which downloads the base checkpoint (its `GR00TN17Config` and weights). The backbone inside
+comes from `Qwen3Backbone._from_backbone_config(model_name)`: lerobot's hard-coded copy of
+nvidia/Cosmos-Reason2-2B's Qwen3-VL config for that name, `AutoConfig.from_pretrained(model_name)` for any other;
+the processor step loads the tokenizer, image and video processors from the same `model_name`. So:
+
+- `construct` builds the policy with `GR00TN17.from_pretrained` shadowed to build from a `GR00TN17Config` without
+  any weights (graftcache fills them from the checkpoint, lean): the base config is read from the base
+  checkpoint's config.json (a folder, or the local HF cache), or is the tiny one below;
+- the tiny Cosmos-Reason2 stand-in is graftcache/resources/tiny/groot/ (generated once by
+  `python -m graftcache.backbones.tiny_groot`, like tiny_assets.py's folders): the tiny Qwen3-VL config.json,
+  a byte-level BPE tokenizer with Qwen's chat tokens and a Qwen3-VL style chat template (no default system
+  message), Qwen2-VL's image processor at Qwen3-VL's settings (patch 16, merge 2, temporal patch 2, mean/std 0.5)
+  and Qwen3-VL's video processor. It is `model_name` of the tiny base config, so the backbone and the processor
+  come from it through the code path a real folder takes.
+
+- tiny: Qwen3-VL vision 32 wide x 2 blocks (one deepstack merger, after block 0), merger into a Qwen3 text model
+  64 wide x 3 layers, cut at layer 2 (GR00T's `select_layer`); GR00T's VLM step resizes every frame to 128 px
+  (crop 115/128, GR00T's 230/256 ratio), the processor keeps it: 8x8 patches -> 2x2 merge -> 4x4 = 16 tokens per
+  camera; action head: state/action encoders 32/48 wide, an alternate-VL DiT 4 blocks x 2 heads x 24, one
+  VL self-attention layer, action horizon = the chunk.
+- released (nvidia/GR00T-N1.7-3B, lerobot's `GR00T_N1_7_DEFAULTS` and hard-coded Cosmos-Reason2-2B config):
+  vision 1024 wide x 24 blocks, merger into a 2048-wide Qwen3 LM of 28 layers cut at 16; frames resized to
+  256 px, patch 16 x merge 2 -> 8x8 = 64 tokens per camera (Qwen3-VL-2B's processor keeps 256x256: its pixel
+  bounds are 65536 .. 16777216).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import io
+import json
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from graftcache.backbones.checkpoint import cached_repo
+from graftcache.backbones.tiny import TinySpec, _action_features, _require_stats, _visual_features
+from graftcache.backbones.tiny_assets import TINY_ROOT, _train_bpe
+from graftcache.errors import BackboneError
+
+GROOT_DIR = TINY_ROOT / "groot"
+TINY_TARGET = 128            # GR00T's VLM step resizes every frame to this (released: 256)
+TINY_CROP = 115              # centre crop before the resize, GR00T's 230/256 ratio
+PATCH, MERGE = 16, 2         # Qwen3-VL's patch and merge sizes
+#: Qwen3-VL-2B-Instruct's image processor pixel bounds ("size" of its preprocessor_config.json), and the tiny one's.
+QWEN3_VL_PIXELS = (65536, 16777216)
+TINY_PIXELS = (4 * (PATCH * MERGE) ** 2, 16 * (PATCH * MERGE) ** 2)
+QWEN_SPECIALS = ("<|endoftext|>", "<|im_start|>", "<|im_end|>", "<|vision_start|>", "<|vision_end|>",
+                 "<|image_pad|>", "<|video_pad|>")
+#: Qwen3-VL's chat template reduced to what GR00T's prompt uses (one user message, images then text; no default
+#: system message, unlike Qwen2-VL's).
+CHAT_TEMPLATE = (
+    "{% for message in messages %}<|im_start|>{{ message['role'] }}\n"
+    "{% if message['content'] is string %}{{ message['content'] }}{% else %}"
+    "{% for content in message['content'] %}"
+    "{% if content['type'] == 'image' or 'image' in content %}<|vision_start|><|image_pad|><|vision_end|>"
+    "{% elif content['type'] == 'video' or 'video' in content %}<|vision_start|><|video_pad|><|vision_end|>"
+    "{% elif 'text' in content %}{{ content['text'] }}{% endif %}{% endfor %}{% endif %}<|im_end|>\n"
+    "{% endfor %}{% if add_generation_prompt %}<|im_start|>assistant\n{% endif %}"
+)
+TINY_QWEN3_VL = {
+    "vision_config": {"depth": 2, "hidden_size": 32, "intermediate_size": 64, "num_heads": 2, "in_channels": 3,
+                      "out_hidden_size": 64, "patch_size": PATCH, "spatial_merge_size": MERGE,
+                      "temporal_patch_size": 2, "num_position_embeddings": 64, "deepstack_visual_indexes": [0]},
+    "text_config": {"hidden_size": 64, "intermediate_size": 128, "num_hidden_layers": 3, "num_attention_heads": 4,
+                    "num_key_value_heads": 2, "head_dim": 16, "vocab_size": 1088, "max_position_embeddings": 4096,
+                    "rope_parameters": {"rope_type": "default", "mrope_section": [4, 2, 2], "mrope_interleaved": True,
+                                        "rope_theta": 10000.0},
+                    "tie_word_embeddings": True},
+    "tie_word_embeddings": True,
+}
+#: GR00TN17Config overrides of the tiny base model (the rest: lerobot's GR00T_N1_7_DEFAULTS).
+TINY_GROOT = {
+    "backbone_embedding_dim": 64, "select_layer": 2, "hidden_size": 32, "input_embedding_dim": 48,
+    "max_seq_len": 64, "max_num_embodiments": 32, "num_inference_timesteps": 4,
+    "diffusion_model_cfg": {"positional_embeddings": None, "num_layers": 4, "num_attention_heads": 2,
+                            "attention_head_dim": 24, "norm_type": "ada_norm", "dropout": 0.0,
+                            "final_dropout": True, "output_dim": 32, "interleave_self_attention": True},
+    "vl_self_attention_cfg": {"positional_embeddings": None, "num_layers": 1, "num_attention_heads": 2,
+                              "attention_head_dim": 32, "dropout": 0.0, "final_dropout": True},
+    "dtype": "float32", "model_dtype": "float32",
+}
+
+
+def write_groot(out: Path = GROOT_DIR) -> Path:
+    """Write the tiny Cosmos-Reason2 stand-in: Qwen3-VL config, tokenizer, chat template, image/video processors."""
+    from transformers import PreTrainedTokenizerFast, Qwen3VLConfig, Qwen3VLProcessor
+    from transformers.models.qwen2_vl import Qwen2VLImageProcessor
+    from transformers.models.qwen3_vl.video_processing_qwen3_vl import Qwen3VLVideoProcessor
+
+    tok = PreTrainedTokenizerFast(tokenizer_object=_train_bpe(QWEN_SPECIALS), eos_token="<|im_end|>",
+                                  pad_token="<|endoftext|>", unk_token="<|endoftext|>")
+    tok.chat_template = CHAT_TEMPLATE
+    out.mkdir(parents=True, exist_ok=True)
+    pixels = {"shortest_edge": TINY_PIXELS[0], "longest_edge": TINY_PIXELS[1]}
+    image = Qwen2VLImageProcessor(size=pixels, patch_size=PATCH, merge_size=MERGE, temporal_patch_size=2,
+                                  image_mean=[0.5] * 3, image_std=[0.5] * 3)
+    Qwen3VLProcessor(image_processor=image, tokenizer=tok, video_processor=Qwen3VLVideoProcessor(),
+                     chat_template=CHAT_TEMPLATE).save_pretrained(out)
+    ids = {name: tok.convert_tokens_to_ids(t) for name, t in (
+        ("image_token_id", "<|image_pad|>"), ("video_token_id", "<|video_pad|>"),
+        ("vision_start_token_id", "<|vision_start|>"), ("vision_end_token_id", "<|vision_end|>"))}
+    Qwen3VLConfig(**TINY_QWEN3_VL, **ids).save_pretrained(out)
+    return out
+
+
+def tiny_base_config():
+    """The tiny GR00TN17Config: its backbone is the shipped tiny Qwen3-VL folder."""
+    from lerobot.policies.groot.groot_n1_7 import GR00TN17Config
+
+    return GR00TN17Config(model_name=str(GROOT_DIR), **TINY_GROOT)
+
+
+def base_config(path: str):
+    """The GR00TN17Config of a base checkpoint (`GrootConfig.base_model_path`): a folder, or a hub id from the
+    local HF cache (what lerobot's `GR00TN17.from_pretrained` would download)."""
+    from lerobot.policies.groot.groot_n1_7 import GR00TN17Config
+
+    folder = Path(path) if Path(path).is_dir() else cached_repo(path, "GR00T's base model config")
+    try:
+        return GR00TN17Config(**json.loads((folder / "config.json").read_text()))
+    except (OSError, ValueError) as exc:
+        raise BackboneError(f"{folder / 'config.json'}: not a GR00T N1.7 base config ({exc})") from None
+
+
+@contextlib.contextmanager
+def base_model(base) -> Iterator[None]:
+    """`GR00TN17.from_pretrained` builds from `base` (a GR00TN17Config) with no weights while the block runs, with
+    the overrides and trainable flags lerobot's GrootPolicy passes (transformers would set the overrides on the
+    loaded config); the backbone is built from its config (`load_backbone_weights=False`, as lerobot does)."""
+    from lerobot.policies.groot.groot_n1_7 import GR00TN17
+
+    def build(cls, pretrained_model_name_or_path: str, **kwargs: Any):
+        flags = {k: kwargs.pop(k) for k in ("tune_visual", "tune_llm", "tune_projector", "tune_diffusion_model",
+                                            "tune_vlln")}
+        loading = kwargs.pop("transformers_loading_kwargs", None)
+        config = base.__class__(**{**base.to_dict(), **kwargs})
+        model = cls(config, transformers_loading_kwargs=loading, load_backbone_weights=False)
+        model.backbone.set_trainable_parameters(tune_visual=flags["tune_visual"], tune_llm=flags["tune_llm"],
+                                                tune_top_llm_layers=config.tune_top_llm_layers)
+        model.action_head.set_trainable_parameters(tune_projector=flags["tune_projector"],
+                                                   tune_diffusion_model=flags["tune_diffusion_model"],
+                                                   tune_vlln=flags["tune_vlln"])
+        return model
+
+    own = GR00TN17.__dict__["from_pretrained"]
+    GR00TN17.from_pretrained = classmethod(build)
+    try:
+        yield
+    finally:
+        GR00TN17.from_pretrained = own
+
+
+def construct(config, base):
+    """GrootPolicy(config) on the base model config `base`, no weights read."""
+    from lerobot.policies.groot.modeling_groot import GrootPolicy
+
+    with base_model(base):
+        return GrootPolicy(config)
+
+
+def groot_tiny_config(spec: TinySpec, device: str, image_size: int = TINY_TARGET):
+    """Tiny GrootConfig at the dataset's `image_size` (GR00T's VLM step resizes frames to TINY_TARGET)."""
+    from lerobot.policies.groot.configuration_groot import GrootConfig
+
+    dims = max(spec.state_dim, spec.action_dim, 8)
+    return GrootConfig(base_model_path=str(GROOT_DIR), device=device, chunk_size=spec.chunk_size,
+                       n_action_steps=spec.chunk_size, max_state_dim=dims, max_action_dim=dims,
+                       num_inference_timesteps=spec.num_steps, use_bf16=False,
+                       input_features=_visual_features(spec, image_size), output_features=_action_features(spec))
+
+
+def tiny_base_for(config):
+    """The tiny base model at a tiny GrootConfig's sizes (the action head's widths follow the padded dims)."""
+    base = tiny_base_config()
+    base.max_state_dim, base.max_action_dim = config.max_state_dim, config.max_action_dim
+    base.action_horizon = config.chunk_size
+    return base
+
+
+def groot_released_config(cameras: tuple[str, ...], image_size: int, state_dim: int, action_dim: int, device: str):
+    """nvidia/GR00T-N1.7-3B fine-tuned on a dataset, as lerobot configures it (its defaults: chunk 40, state and
+    action padded to 132, the new_embodiment tag)."""
+    from lerobot.policies.groot.configuration_groot import GrootConfig
+
+    spec = TinySpec(cameras=cameras, state_dim=state_dim, action_dim=action_dim)
+    return GrootConfig(device=device, input_features=_visual_features(spec, image_size),
+                       output_features=_action_features(spec))
+
+
+def released_base_config():
+    """nvidia/GR00T-N1.7-3B's GR00TN17Config as lerobot mirrors it (GR00T_N1_7_DEFAULTS; backbone
+    nvidia/Cosmos-Reason2-2B, whose Qwen3-VL config lerobot hard-codes)."""
+    from lerobot.policies.groot.groot_n1_7 import GR00TN17Config
+
+    return GR00TN17Config()
+
+
+@functools.cache
+def vlm_step_name() -> str:
+    """Registry name of GR00T's Qwen3-VL prompt step (the processor override key)."""
+    from lerobot.policies.groot.processor_groot import GrootN17VLMEncodeStep
+
+    return GrootN17VLMEncodeStep._registry_name
+
+
+def tiny_image_geometry(pre) -> None:
+    """GR00T's VLM step at the tiny frame size (what a tiny checkpoint's saved preprocessor keeps)."""
+    for step in pre.steps:
+        if type(step).__name__ == "GrootN17VLMEncodeStep":
+            step.model_name = str(GROOT_DIR)
+            step.image_target_size, step.image_crop_size = [TINY_TARGET] * 2, [TINY_CROP] * 2
+
+
+def build_tiny_groot(spec: TinySpec, stats: dict | None, device: str):
+    """Random-init tiny GR00T + its lerobot pre/post processors (deterministic for `spec.seed`)."""
+    from lerobot.policies.groot.processor_groot import make_groot_pre_post_processors
+
+    config = groot_tiny_config(spec, device)
+    with torch.random.fork_rng(devices=[]), contextlib.redirect_stdout(io.StringIO()):
+        torch.manual_seed(spec.seed)
+        policy = construct(config, tiny_base_for(config))
+    pre, post = make_groot_pre_post_processors(config, dataset_stats=_require_stats(stats))
+    tiny_image_geometry(pre)
+    return policy.to(device), pre, post
+
+
+if __name__ == "__main__":
+    folder = write_groot()
+    print(folder, sorted(p.name for p in folder.iterdir()))
