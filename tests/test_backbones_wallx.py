@@ -26,7 +26,7 @@ from graftcache.backbones.checkpoint import state_dict_sha256
 from graftcache.backbones.released import hub_cache, publish
 from graftcache.backbones.wallx import WallXAdapter, drawn
 from graftcache.errors import BackboneError
-from graftcache.graft import GraftProjector, feature_key
+from graftcache.graft import FusedProjector, GraftProjector, feature_key
 
 SIZE = 128  # the tiny policy's frames: Wall-X resizes to 256 -> 252 px, the tiny processor to 112 px -> 4x4 tokens
 TINY_PARAMS = 250_784
@@ -141,6 +141,26 @@ def test_graft_fills_the_image_pads_with_projected_features() -> None:
         adapter.loss(adapter.prepare(odd), noise, time)
     with pytest.raises(BackboneError, match="different token counts"):
         adapter.loss(adapter.prepare({**raw, feature_key("image"): raw[feature_key("image")][:, :9]}), noise, time)
+
+
+def test_fused_projectors_each_fill_their_own_samples_image_pads() -> None:
+    """A backbone pass of two cells (graftcache.graft.FusedProjector): each member projects its own sample's
+    cameras into that sample's image pads."""
+    adapter = tiny("wall_x")
+    members = [GraftProjector(ENC_DIM, adapter.lm_width) for _ in range(2)]
+    adapter.graft(FusedProjector(members))
+    raw = raw_features(adapter, 2)
+    batch = adapter.prepare(raw)
+    seen = {}
+    hook = adapter.policy.model.model.register_forward_pre_hook(lambda m, a, kw: seen.update(kw), with_kwargs=True)
+    with adapter.projector.rows([1, 1]), torch.no_grad():
+        adapter.loss(batch, *fixed_noise_time(adapter, 2))
+    hook.remove()
+    pads = _image_pads(adapter, adapter.policy.preprocess_inputs(batch))
+    for i, member in enumerate(members):
+        cameras = torch.cat([raw[feature_key(k)][i] for k in adapter.camera_keys]).bfloat16()
+        with torch.no_grad():
+            torch.testing.assert_close(seen["inputs_embeds"][i][pads[i]], member(cameras).bfloat16())
 
 
 def test_pooled_features_get_a_prompt_with_their_grid() -> None:

@@ -199,11 +199,14 @@ class WallXAdapter(WrappedCheckpointing, BackboneAdapter):
     # ------------------------------------------------------------------------------ images
     def _visual_forward(self, own, visual: nn.Module, hidden_states: torch.Tensor, grid_thw=None, **kwargs):
         """The ViT's forward, or grafted: the cached features [images x tokens, C] through the pass-through and
-        the projector (`pooler_output`, what Wall-X scatters into the image pads)."""
+        the projector (`pooler_output`, what Wall-X scatters into the image pads). The projector sees them a sample
+        a row, [B, cameras x tokens, C]: a fused projector (graftcache.graft.FusedProjector) routes rows."""
         if not self.grafted:
             return own(visual, hidden_states, grid_thw, **kwargs)
         tower, connector = self._tower_and_connector()
-        tokens = connector(tower(hidden_states).last_hidden_state)
+        features = tower(hidden_states).last_hidden_state
+        samples = len(grid_thw) // len(self.config.image_features)
+        tokens = connector(features.reshape(samples, -1, features.shape[-1])).flatten(0, 1)
         return BaseModelOutputWithPooling(last_hidden_state=hidden_states, pooler_output=tokens)
 
     def _vision(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
