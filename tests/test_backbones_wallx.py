@@ -24,7 +24,7 @@ from helpers.backbones import (
 from graftcache.backbones import load_backbone
 from graftcache.backbones.checkpoint import state_dict_sha256
 from graftcache.backbones.released import hub_cache, publish
-from graftcache.backbones.wallx import WallXAdapter, drawn
+from graftcache.backbones.wallx import GivenDraw, WallXAdapter
 from graftcache.errors import BackboneError
 from graftcache.graft import FusedProjector, GraftProjector, feature_key
 
@@ -103,7 +103,7 @@ def test_loss_and_prediction_are_lerobots_under_the_same_draws() -> None:
     assert few.shape == chunk_ref.shape and not torch.allclose(few, chunk_ref)  # the step count reaches the ODE
     with pytest.raises(BackboneError, match=r"draws \(3, 10, 20\) from randn_like; the given draw is \(3, 10, 7\)"):
         adapter._flow_losses(batch, noise[:, :, :7], time)
-    with drawn(torch.randn, noise), pytest.raises(BackboneError, match="the given draw"):
+    with GivenDraw(torch.randn, noise), pytest.raises(BackboneError, match="the given draw"):
         torch.randn(2, 2)
 
 

@@ -21,7 +21,8 @@ tokenizer (`<|propri|>`, `<|action|>`; no FAST tokens: graftcache runs Wall-X's 
   (1280 wide x 32 blocks) and 36-layer 2048-wide LM, the second expert 2048 -> 2048 for the action tokens
   (wall-x's workspace/models_config/qwen2_5_moe_flash.json), 20 action and 20 proprioception dims (lerobot's
   `max_action_dim` / `max_state_dim`, the sizes of the action head's input projections); Qwen's own pixel
-  bounds: 256 px -> 252 -> 18x18 patches -> 9x9 = 81 tokens per camera.
+  bounds: 256 px -> 252 -> 18x18 patches -> 9x9 = 81 tokens per camera. The hub repo is unreachable here: its
+  config and vocabulary (`WALL_OSS_VOCAB`) are reconstructed from wall-x's public repo, not read from it.
 """
 
 from __future__ import annotations

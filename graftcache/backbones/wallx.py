@@ -21,7 +21,7 @@ only `<|action|>` tokens, which `preprocesser_call` masks out of the labels, so 
 cross-entropy term is never computed: the loss is `flow_loss_weight` x the flow MSE. Wall-X draws its time and
 noise inside `ActionHead.forward` / `predict` (`sample_time`, `torch.randn_like`, `torch.randn`); `loss` and
 `predict` run lerobot's own code with the sampler shadowed and those two calls answered with the given draws
-(`graftcache.backbones.wallx.drawn`). Wall-X's time runs the other way from graftcache's noise level (its
+(`graftcache.backbones.wallx.GivenDraw`). Wall-X's time runs the other way from graftcache's noise level (its
 x_t = (1 - t) noise + t action, pi0's x_t = t noise + (1 - t) action) and its draw (1 - Beta(1.5, 1)) x 0.999 is
 exactly 1 - graftcache's: the given time is passed on as 1 - time.
 """
@@ -53,7 +53,7 @@ from graftcache.errors import BackboneError
 BOUND_SLACK = 1.01
 
 
-class drawn(TorchFunctionMode):  # noqa: N801  (used as a context manager, like torch's own modes)
+class GivenDraw(TorchFunctionMode):
     """While open, calls of the torch function `func` (Wall-X's `torch.randn` / `torch.randn_like`) return `value`
     instead of a fresh draw; the shape asked for must be `value`'s."""
 
@@ -285,7 +285,7 @@ class WallXAdapter(WrappedCheckpointing, BackboneAdapter):
                  head.action_proj_back.register_forward_hook(lambda m, args, out: seen.update(pred=out))]
         try:
             with shadowed(head, sample_time=lambda size, device: (1 - time).to(device, torch.float32)), \
-                    drawn(torch.randn_like, noise):
+                    GivenDraw(torch.randn_like, noise):
                 self.policy.forward(dict(batch))
         finally:
             for hook in hooks:
@@ -298,7 +298,7 @@ class WallXAdapter(WrappedCheckpointing, BackboneAdapter):
         """`WallXPolicy.predict_action_chunk` from `noise` with `num_steps` Euler steps."""
         model = self.policy.model
         predict = functools.partial(type(model).predict, model, num_inference_timesteps=int(num_steps))
-        with shadowed(model, predict=predict), drawn(torch.randn, noise):
+        with shadowed(model, predict=predict), GivenDraw(torch.randn, noise):
             return self.policy.predict_action_chunk(dict(batch))
 
     def _checkpoint_slots(self) -> Iterator[tuple[nn.Module, str]]:
