@@ -16,6 +16,7 @@ BACKBONES: dict[str, str] = {
     "eo1": "graftcache.backbones.eo1:EO1Adapter",
     "evo1": "graftcache.backbones.evo1:Evo1Adapter",
     "groot": "graftcache.backbones.groot:GrootAdapter",
+    "wall_x": "graftcache.backbones.wallx:WallXAdapter",
 }
 
 #: Approximate parameter counts of the released policies (lerobot's docs), for results tables written before rows

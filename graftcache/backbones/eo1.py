@@ -57,6 +57,24 @@ def merged_grid(size: tuple[int, int], vision, min_pixels: int | None, max_pixel
     return h // factor, w // factor
 
 
+def vit_outputs(visual: nn.Module, pixel_values: torch.Tensor,
+                grid_thw: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Qwen2.5-VL's ViT on one processor call's images of one size: (pre-merger patch grid [N, gh, gw, C] in raster
+    order, post-merger tokens [N, gh/2 * gw/2, D] in the order Qwen scatters them into the prompt), both fp32."""
+    device = next(visual.parameters()).device
+    thw = grid_thw.to(device)
+    out = visual(pixel_values.to(device, visual.dtype), grid_thw=thw)
+    m = visual.spatial_merge_size
+    _, gh, gw = thw[0].tolist()
+    size = len(thw)
+    # ViT states come in window order, by merge block: back to the processor's block order, then raster
+    window, _ = visual.get_window_index(thw)
+    hidden = out.last_hidden_state.view(-1, m * m, out.last_hidden_state.shape[-1])[torch.argsort(window)]
+    grid = hidden.view(size, gh // m, gw // m, m, m, -1).permute(0, 1, 3, 2, 4, 5).reshape(size, gh, gw, -1)
+    tokens = out.pooler_output.view(size, (gh // m) * (gw // m), -1)
+    return grid.float(), tokens.float()
+
+
 def left_padded(batch: Mapping[str, Any]) -> dict[str, Any]:
     """A right-padded prompt batch re-laid with its padding on the left (what lerobot's processor writes at
     inference): each right-padded row rolled right by its number of pad tokens."""
@@ -207,18 +225,7 @@ class EO1Adapter(BackboneAdapter):
         frames = images.clamp(0, 1).mul(255.0).round().to(torch.uint8).cpu()  # EO1ConversationTemplateStep
         inputs = step._processor.image_processor(images=list(frames), min_pixels=step.image_min_pixels,
                                                  max_pixels=step.image_max_pixels, return_tensors="pt")
-        visual = self._vision_owner
-        thw = inputs["image_grid_thw"].to(self.device)
-        out = visual(inputs["pixel_values"].to(self.device, visual.dtype), grid_thw=thw)
-        m = visual.spatial_merge_size
-        _, gh, gw = thw[0].tolist()
-        size = len(images)
-        # ViT states come in window order, by merge block: back to the processor's block order, then raster
-        window, _ = visual.get_window_index(thw)
-        hidden = out.last_hidden_state.view(-1, m * m, out.last_hidden_state.shape[-1])[torch.argsort(window)]
-        grid = hidden.view(size, gh // m, gw // m, m, m, -1).permute(0, 1, 3, 2, 4, 5).reshape(size, gh, gw, -1)
-        tokens = out.pooler_output.view(size, (gh // m) * (gw // m), -1)
-        return grid.float(), tokens.float()
+        return vit_outputs(self._vision_owner, inputs["pixel_values"], inputs["image_grid_thw"])
 
     @torch.no_grad()
     def native_patch_grid(self, images: torch.Tensor) -> torch.Tensor:
