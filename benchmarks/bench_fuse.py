@@ -68,9 +68,9 @@ def step_seconds(adapter, low, feats, cams, n: int, batch_size: int, dtype: torc
 
 def released_step_seconds(name: str, root: Path, counts: list[int], batch_size: int, dtype: torch.dtype,
                           repeats: int, rounds: int) -> dict[int, float]:
-    """Seconds a cell-step at the released geometry (random init, graftcache.backbones.released), synthetic
+    """Seconds a cell-step at the released geometry (random init, devtools.released), synthetic
     features of the backbone's token grid at SigLIP-B's width (768) and LIBERO's state and action sizes."""
-    from graftcache.backbones.released import LIBERO, build_pi05, build_smolvla, hub_cache
+    from devtools.released import LIBERO, build_pi05, build_smolvla, hub_cache
 
     builders = {"smolvla": build_smolvla, "pi05": build_pi05}
     with hub_cache(root / "hub"):

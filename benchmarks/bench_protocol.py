@@ -5,7 +5,7 @@ beside the same protocol run online and beside the FLOP bound.
     python benchmarks/bench_protocol.py [--recipe cli/paper.toml] [--device cuda] [--dtype auto]
         [--steps 24] [--eval-frames 128] [--tiny] [--batch-size N] [--hub DIR] [--out FILE]
 
-Backbones are the recipe's at the released geometry, random-init (graftcache.backbones.released, written into
+Backbones are the recipe's at the released geometry, random-init (devtools.released, written into
 `--hub` and loaded by hub id as `--policy org/name` loads them; the cost does not depend on what the weights
 learned), or with `--tiny` the tiny configurations (a CPU smoke test: CI runs it). Features are synthetic, in
 memory, fp16 like a cache, at each encoder's true width (its registry spec) and at the grid each cell reads
@@ -19,7 +19,7 @@ LoRA, trained or not) it measures:
   untimed warm-up.
 Then, over the recipe's cells (backbones x suites x seeds x encoders x controls; native-cache controls once per
 backbone, suite and seed, as `sweep` runs them) and lerobot/libero's held-out frames per suite
-(graftcache.datasets.tile.LIBERO_COUNTS x eval_fraction, capped by the recipe's eval_frames):
+(devtools.tile.LIBERO_COUNTS x eval_fraction, capped by the recipe's eval_frames):
 - cached protocol = loads (one per backbone, as a sweep's BackbonePool) + training + evaluation; stage 1
   (decoding and encoding every frame once per encoder) is printed beside it, not in the sum;
 - online protocol = loads + the same steps and scoring with every batch's frames decoded (the project's own
@@ -50,10 +50,10 @@ import torch
 from common import DEFAULT_DATASET, machine
 from torch.utils.flop_counter import FlopCounterMode
 
+from devtools.released import BUILDERS, LIBERO, built_here, hub_cache, unit_stats
+from devtools.tile import LIBERO_COUNTS
 from graftcache.backbones import TinySpec, load_backbone
-from graftcache.backbones.released import BUILDERS, LIBERO, built_here, hub_cache, unit_stats
 from graftcache.datasets import open_dataset
-from graftcache.datasets.tile import LIBERO_COUNTS
 from graftcache.encoders import load_encoder
 from graftcache.encoders.registry import get_spec
 from graftcache.fit.controls import get_control
@@ -126,7 +126,7 @@ def load(name: str, a: argparse.Namespace, device: torch.device, dtype_name: str
                                 tiny=TinySpec(cameras=LIBERO.cameras))
         return adapter, time.perf_counter() - t0
     if name not in BUILDERS:
-        raise SystemExit(f"no released-geometry builder for {name} (graftcache.backbones.released knows "
+        raise SystemExit(f"no released-geometry builder for {name} (devtools.released knows "
                          f"{', '.join(BUILDERS)}): run it with --tiny")
     options = {"dtype": {"bf16": "bfloat16", "fp32": "float32"}[dtype_name]} if name == "pi05" else {}
     repo = f"graftcache-bench/{name}-libero-random" + (f"-{dtype_name}" if options else "")

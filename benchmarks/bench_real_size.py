@@ -6,7 +6,7 @@ cached features and online from pixels.
         [--backbones smolvla,pi05] [--batches 1,4] [--repeats 5] [--hub DIR] [--out results.json]
         [--only load]
 
-The backbones are random-init at the released geometry (graftcache.backbones.released: SmolVLM2-500M,
+The backbones are random-init at the released geometry (devtools.released: SmolVLM2-500M,
 PaliGemma gemma_2b + gemma_300m expert), written as lerobot writes a released policy into a HF hub cache
 (`--hub`, reused when present) and loaded by hub id as `--policy org/name` loads them; the cost of a step
 does not depend on what the weights learned. Per backbone and batch size, median wall time, peak RSS and
@@ -41,8 +41,8 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from common import DEFAULT_DATASET, machine, median_seconds, warm_page_cache  # noqa: E402
 
+from devtools.released import BUILDERS, LIBERO, built_here, hub_cache  # noqa: E402
 from graftcache.backbones import get_backbone, load_backbone  # noqa: E402
-from graftcache.backbones.released import BUILDERS, LIBERO, built_here, hub_cache  # noqa: E402
 from graftcache.backbones.surgery import freeze_all_but  # noqa: E402
 from graftcache.datasets import open_dataset  # noqa: E402
 from graftcache.graft import GraftProjector, feature_key  # noqa: E402

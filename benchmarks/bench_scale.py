@@ -4,8 +4,8 @@ streamed fit on a whole suite.
 
     python benchmarks/bench_scale.py [--work DIR] [--extract-episodes 12] [--encoder timm:test_vit]
 
-1. `graftcache tile --preset libero` from the bundled sample: 1,693 episodes, 273,465 frames, 2 cameras at
-   256x256, each episode a window of the sample's AV1 frames (graftcache/datasets/tile.py). Time, files.
+1. `python -m devtools.tile --preset libero` from the bundled sample: 1,693 episodes, 273,465 frames, 2 cameras at
+   256x256, each episode a window of the sample's AV1 frames (devtools/tile/). Time, files.
 2. Extraction of the first `--extract-episodes` episodes with a cheap random-init encoder (the whole dataset is
    546,930 images: hours of any encoder on 2 cores): frames/s end to end and excluding the encoder (the
    encoder's bare forward time on as many images, measured in this process, subtracted from the extraction's
@@ -43,14 +43,14 @@ from pathlib import Path  # noqa: E402
 import torch  # noqa: E402
 from common import DEFAULT_DATASET, machine  # noqa: E402
 
+from devtools.tile import TileRequest, tile  # noqa: E402
 from graftcache.datasets import open_dataset  # noqa: E402
-from graftcache.datasets.tile import tile  # noqa: E402
 from graftcache.encoders import load_encoder  # noqa: E402
 from graftcache.fit.buffer import ShuffleBuffer, buffer_frames  # noqa: E402
 from graftcache.fit.data import load_lowdim  # noqa: E402
 from graftcache.fit.feed import SplitFeed  # noqa: E402
 from graftcache.fit.stream import FeatureSource, read_chunks  # noqa: E402
-from graftcache.requests import ExtractRequest, TileRequest  # noqa: E402
+from graftcache.requests import ExtractRequest  # noqa: E402
 from graftcache.store import FeatureCache, list_caches  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))

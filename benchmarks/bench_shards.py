@@ -9,7 +9,7 @@ as N concurrent `--shard i/N` processes with cores/N torch threads each (OMP_NUM
 graftcache.runtime.set_main_threads honours). Prints both wall times, the speed-up (target: > 1 when the
 per-process startup is small against the encoding), and checks that both runs made the same cache (same key,
 same block checksums). `sharded_vs_single` is the function other benchmarks call (e.g. on a dataset built by
-`graftcache tile`).
+`python -m devtools.tile`).
 """
 
 from __future__ import annotations

@@ -34,46 +34,29 @@ import uuid  # noqa: E402
 from concurrent.futures import ThreadPoolExecutor  # noqa: E402
 from pathlib import Path  # noqa: E402
 
-import numpy as np  # noqa: E402
 from common import DEFAULT_DATASET, machine  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from helpers.caches import manifest as cache_manifest  # noqa: E402
+from helpers.caches import dataset_cache  # noqa: E402
 
-from graftcache.datasets import open_dataset  # noqa: E402
-from graftcache.datasets.suites import SUITES  # noqa: E402
-from graftcache.extract import build_index  # noqa: E402
 from graftcache.fit.data import load_lowdim  # noqa: E402
 from graftcache.fit.feed import SplitFeed  # noqa: E402
 from graftcache.fit.stream import FeatureSource, read_chunks  # noqa: E402
-from graftcache.store import FeatureCache, cache_key, open_root  # noqa: E402
-from graftcache.store.cache import ArraySpec  # noqa: E402
+from graftcache.store import FeatureCache, open_root  # noqa: E402
 from graftcache.store.readthrough import ReadThroughRoot  # noqa: E402
 from graftcache.store.roots import Root  # noqa: E402
 from graftcache.store.transfer import COPY_THREADS, copy_cache  # noqa: E402
 
-GRID, TOKENS, CHUNK, BLOCK = (8, 8), 64, 50, 256
+GRID, CHUNK, BLOCK = (8, 8), 50, 256
 
 
 def make_cache(root: Path, dataset: str, width: int) -> tuple[str, list[str], list[str]]:
-    source = open_dataset(dataset)
-    episodes = [e.index for e in source.meta.episodes]
-    index = build_index(source, episodes)
-    cameras = list(source.meta.cameras)
-    manifest = cache_manifest(encoder={"name": "bench", "width": width}, cameras=cameras, grids=["8x8"],
-                              suites=list(SUITES), tasks=list(source.meta.tasks), n_frames=index.height,
-                              dataset={"source": dataset})
-    key = cache_key(manifest.to_dict())
-    cache = FeatureCache.create(root / key, manifest, [ArraySpec(f"features/{c}/8x8", (TOKENS, width))
-                                                       for c in cameras], index, block_frames=BLOCK)
-    rng = np.random.default_rng(0)
-    for b in range(cache.layout["n_blocks"]):
-        start, stop = cache.block_range(b)
-        cache.write_block(b, {f"features/{c}/8x8": rng.standard_normal((stop - start, TOKENS, width))
-                              .astype(np.float16) for c in cameras})
-    cache.finalize()
-    present = sorted({manifest.suites[i] for i in index["suite_index"].unique().to_list()})
-    return key, cameras, present
+    """A cache of every episode of `dataset` at 8x8 x `width` (tests/helpers/caches.py's writer): its key, cameras
+    and the suites its episodes are in."""
+    cache = dataset_cache(root, dataset, None, grid=GRID, width=width, block_frames=BLOCK)
+    suites = cache.manifest.suites
+    present = sorted({suites[i] for i in cache.index()["suite_index"].unique().to_list()})
+    return cache.key, list(cache.manifest.cameras), present
 
 
 def frames_per_s(root: Root, key: str, cameras: list[str], suite: str, repeats: int) -> tuple[float, int]:

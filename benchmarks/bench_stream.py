@@ -32,19 +32,17 @@ from contextlib import closing
 from pathlib import Path
 
 import numpy as np
-import polars as pl
 import torch
 from common import machine
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from helpers.caches import manifest as cache_manifest  # noqa: E402
+from helpers.caches import synthetic_cache  # noqa: E402
 
 from graftcache.fit.buffer import ShuffleBuffer, buffer_frames
 from graftcache.fit.data import load_lowdim
 from graftcache.fit.feed import SplitFeed
 from graftcache.fit.stream import FeatureSource, read_chunks
-from graftcache.store import FeatureCache, cache_key
-from graftcache.store.cache import ArraySpec
+from graftcache.store import FeatureCache
 
 CAMERAS = ("image", "image2")
 BLOCK = 256
@@ -63,26 +61,9 @@ def measured_pi05() -> tuple[float, str]:
 
 
 def make_cache(path: Path, frames: int, width: int) -> FeatureCache:
-    episode = np.arange(frames) // EPISODE
-    frame = np.arange(frames) % EPISODE
-    rng = np.random.default_rng(0)
-    index = pl.DataFrame({"index": np.arange(frames), "episode_index": episode, "frame_index": frame,
-                          "task_index": episode % 10, "suite_index": np.zeros(frames, dtype=np.int64),
-                          "timestamp": frame / 10.0, "state": rng.standard_normal((frames, 8)).astype(np.float32),
-                          "action": rng.standard_normal((frames, 7)).astype(np.float32)}).with_columns(
-        pl.col("state").cast(pl.Array(pl.Float32, 8)), pl.col("action").cast(pl.Array(pl.Float32, 7)))
-    manifest = cache_manifest(encoder={"name": "bench", "width": width}, cameras=list(CAMERAS), grids=["16x16"],
-                              suites=["libero_spatial"], tasks=[f"task {i}" for i in range(10)], n_frames=frames,
-                              dataset={"source": "bench"})
-    path = path / cache_key(manifest.to_dict())
-    cache = FeatureCache.create(path, manifest, [ArraySpec(f"features/{c}/16x16", (256, width)) for c in CAMERAS],
-                                index, block_frames=BLOCK)
-    for b in range(cache.layout["n_blocks"]):
-        start, stop = cache.block_range(b)
-        cache.write_block(b, {f"features/{c}/16x16": rng.standard_normal((stop - start, 256, width))
-                              .astype(np.float16) for c in CAMERAS})
-    cache.finalize()
-    return FeatureCache(path, writable=False)
+    """`frames` frames of EPISODE-frame episodes at 16x16 x `width` (tests/helpers/caches.py's writer)."""
+    lengths = [EPISODE] * (frames // EPISODE) + ([frames % EPISODE] if frames % EPISODE else [])
+    return synthetic_cache(path, lengths, grid=(16, 16), width=width, block_frames=BLOCK)
 
 
 def feed_of(cache: FeatureCache, grid: tuple[int, int]) -> SplitFeed:

@@ -33,7 +33,6 @@ from graftcache.backbone_table import BACKBONES, native_name
 from graftcache.cameras import SYNTAX, valid_camera_map
 from graftcache.checks import EPISODES, FRACTION, NAMES, NON_NEGATIVE, POSITIVE, SEED, SEEDS, SHARD, Rule
 from graftcache.dtypes import COMPUTE_DTYPES, STORED_DTYPES
-from graftcache.errors import GraftcacheError
 from graftcache.lazy import import_string
 from graftcache.pooling import NATIVE, valid_grid_names
 from graftcache.settings import Checked, Twin, setting
@@ -220,29 +219,6 @@ class ExecutorSettings(Checked):
     max_retries: int = setting(3, rule=NON_NEGATIVE, metavar="N",
                                help="reruns of a task whose worker or node died (a task that raised an error is not "
                                "rerun)")
-
-
-@dataclass(frozen=True)
-class TileRequest(Checked):
-    """What `graftcache tile` builds: a dataset of `preset`'s dimensions, or of `episodes` episodes (and
-    `frames` frames; default: the source's mean length times `episodes`) over the source's tasks."""
-
-    source: str = setting(positional=True,
-                          help="v3.0 dataset with video cameras (folder or hub repo id in the local HF cache)")
-    dest: str = setting(positional=True, help="new dataset folder (must not exist)")
-    preset: str | None = setting(None, help="libero: 1,693 episodes, 273,465 frames in 4 suites")
-    episodes: int | None = setting(None, rule=POSITIVE, metavar="N",
-                                   help="N episodes over SOURCE's tasks (N = k x SOURCE's episodes for k times SOURCE)")
-    frames: int | None = setting(None, rule=POSITIVE, metavar="M",
-                                 help="frames in all, with --episodes (default: SOURCE's mean episode length x N)")
-    seed: int = setting(0, rule=SEED, help="seed of episode lengths and window positions")
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        if (self.preset is None) == (self.episodes is None):
-            raise GraftcacheError("tile needs exactly one of preset and episodes")
-        if self.frames is not None and self.episodes is None:
-            raise GraftcacheError("frames goes with episodes (a preset fixes its own frame counts)")
 
 
 @dataclass(frozen=True)

@@ -121,9 +121,9 @@ EXPERT = _gemma(1024, 18, 4096, 8, 1, 256, None) + VOCAB * 1024  # gemma_300m: n
 def _released(name: str):
     """lerobot's own constructor at the released geometry (LIBERO's cameras and dims, chunk 50, pi0 with the
     LIBERO recipe's masked third slot), on the meta device, wrapped in the adapter."""
+    from devtools.released import LIBERO, _construct_on_meta, _features, unit_stats
     from graftcache.backbones import get_backbone
     from graftcache.backbones.pi0_fast import fit_tiny_fast, policy_tokenizers
-    from graftcache.backbones.released import LIBERO, _construct_on_meta, _features, unit_stats
     from graftcache.backbones.tiny import TinySpec
     from graftcache.backbones.tiny_assets import PALIGEMMA_DIR
 

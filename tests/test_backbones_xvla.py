@@ -20,8 +20,8 @@ from helpers.backbones import (
     tiny,
 )
 
+from devtools.released import hub_cache, publish
 from graftcache.backbones import load_backbone
-from graftcache.backbones.released import hub_cache, publish
 from graftcache.backbones.xvla import XVLAAdapter, conv_grid
 from graftcache.graft import GraftProjector, feature_key
 

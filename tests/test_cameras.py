@@ -10,16 +10,16 @@ from __future__ import annotations
 
 import shutil
 from pathlib import Path
+from typing import Any
 
 import pytest
-from helpers.backbones import tiny
 from helpers.datasets import Written, build_lerobot
+from helpers.world import World
 
 from graftcache import results
 from graftcache.backbones import get_backbone
 from graftcache.cli import main
 from graftcache.errors import GraftcacheError
-from graftcache.extract import ExtractRequest, extract
 from graftcache.recipe import RecipeError, load_recipe
 from graftcache.store import list_caches
 from graftcache.sweep import run_sweep
@@ -31,31 +31,18 @@ SWAPPED = "image=eye_in_hand,image2=agentview"
 BOTH_SIDES = ("image, image2", "agentview, eye_in_hand")
 
 
-class World:
-    """The agentview/eye_in_hand dataset, a tiny smolvla on image/image2, and one encoder cache of each dataset."""
-
-    def __init__(self, root: Path, dataset: Written, same_frames: Written) -> None:
-        self.root, self.dataset, self.same_frames = root, dataset, same_frames
-        self.cache = root / "cache"
-        self.policy = root / "policy_smolvla"
-        tiny("smolvla").save(self.policy)
-        for ds in (dataset, same_frames):
-            extract(ExtractRequest(dataset=str(ds.root), encoder=ENCODER, random_init=True, num_workers=0,
-                                   batch_size=8, cache=str(self.cache), progress=False), log=lambda _: None)
-
-    def fit(self, results_path: Path, *extra: str, dataset: Written | None = None, policy: Path | None = None,
-            cache: Path | None = None) -> int:
-        return main(["fit", "--backbone", "smolvla", "--policy", str(policy or self.policy), "--encoder", ENCODER,
-                     "--dataset", str((dataset or self.dataset).root), "--suite", "libero_spatial", "--seed", "0",
-                     "--steps", "2", "--batch-size", "4", "--eval-fraction", "0.5", "--eval-frames", "4",
-                     "--num-denoise-steps", "2", "--num-workers", "0", "--cache", str(cache or self.cache),
-                     "--results", str(results_path), "--no-progress", *extra])
-
-
 @pytest.fixture(scope="module")
 def world(tmp_path_factory: pytest.TempPathFactory, v3_image: Written) -> World:
+    """The agentview/eye_in_hand dataset, a tiny smolvla on image/image2, and one encoder cache of each dataset
+    (`v3_image`: the same frames under the policy's camera names)."""
     dataset = build_lerobot(tmp_path_factory, "agentview", video=False, cameras=CAMERAS)
-    return World(tmp_path_factory.mktemp("cameras"), dataset, v3_image)
+    return World(tmp_path_factory.mktemp("cameras"), dataset, encoder=ENCODER, extract_settings={"batch_size": 8},
+                 others=(v3_image,), fit={"steps": 2, "eval_frames": 4, "num_denoise_steps": 2})
+
+
+def fit(world: World, results_path: Path, *extra: str, **given: Any) -> int:
+    """`graftcache fit` of the world's smolvla; `given`: another dataset, policy or cache than the world's."""
+    return main(world.fit_argv(results_path, *extra, **given))
 
 
 def _one_error_line(capsys: pytest.CaptureFixture) -> str:
@@ -67,7 +54,7 @@ def _one_error_line(capsys: pytest.CaptureFixture) -> str:
 def test_fit_refuses_differing_names_naming_both_sides(world: World, tmp_path: Path,
                                                        capsys: pytest.CaptureFixture) -> None:
     out = tmp_path / "r.parquet"
-    assert world.fit(out) == 2
+    assert fit(world, out) == 2
     err = _one_error_line(capsys)
     assert all(side in err for side in BOTH_SIDES) and "--camera-map" in err and str(world.policy) in err
     assert not out.exists()
@@ -76,9 +63,9 @@ def test_fit_refuses_differing_names_naming_both_sides(world: World, tmp_path: P
 def test_a_map_feeds_each_slot_the_camera_it_names_and_rows_record_it(world: World, tmp_path: Path,
                                                                       capsys: pytest.CaptureFixture) -> None:
     mapped, swapped, by_name = (tmp_path / f"{n}.parquet" for n in ("mapped", "swapped", "by_name"))
-    assert world.fit(mapped, "--camera-map", " image2 = eye_in_hand , image=agentview") == 0  # any order, spaces
-    assert world.fit(swapped, "--camera-map", SWAPPED) == 0
-    assert world.fit(by_name, dataset=world.same_frames) == 0
+    assert fit(world, mapped, "--camera-map", " image2 = eye_in_hand , image=agentview") == 0  # any order, spaces
+    assert fit(world, swapped, "--camera-map", SWAPPED) == 0
+    assert fit(world, by_name, dataset=world.others[0]) == 0
     assert f"cameras mapped as asked (policy=cache): {MAP}" in capsys.readouterr().out
     m, s, n = (results.read(p).row(0, named=True) for p in (mapped, swapped, by_name))
     assert (m["camera_map"], s["camera_map"], n["camera_map"]) == (MAP, SWAPPED, "image=image,image2=image2")
@@ -86,7 +73,7 @@ def test_a_map_feeds_each_slot_the_camera_it_names_and_rows_record_it(world: Wor
     assert (m["eval_mse"], m["train_loss_final"]) == (n["eval_mse"], n["train_loss_final"])
     assert s["eval_mse"] != m["eval_mse"]  # the other map feeds the slots the other way round
     assert s["cache_key"] == m["cache_key"] and s["run_id"] != m["run_id"]  # so it is another row
-    assert world.fit(mapped, "--camera-map", MAP) == 0  # the same map is the same row: skipped
+    assert fit(world, mapped, "--camera-map", MAP) == 0  # the same map is the same row: skipped
     assert "already in" in capsys.readouterr().out and results.read(mapped).height == 1
 
 
@@ -102,7 +89,7 @@ def test_ambiguous_or_unknown_maps_are_one_line_errors(world: World, tmp_path: P
                                                        camera_map: str, says: str) -> None:
     out = tmp_path / "r.parquet"
     try:
-        code = world.fit(out, "--camera-map", camera_map)
+        code = fit(world, out, "--camera-map", camera_map)
     except SystemExit as e:  # argparse's usage error for a map that cannot be right whatever the cameras
         code = e.code
     assert code == 2 and not out.exists()
@@ -129,10 +116,10 @@ def test_native_extract_refuses_differing_names_unless_mapped(world: World, tmp_
     (encoder_cache,) = [c for c in list_caches(world.cache) if c.manifest.dataset.root == str(world.dataset.root)]
     shutil.copytree(world.cache / encoder_cache.key, cache / encoder_cache.key)
     out = tmp_path / "r.parquet"
-    assert world.fit(out, "--controls", "native", cache=cache) == 2
+    assert fit(world, out, "--controls", "native", cache=cache) == 2
     err = _one_error_line(capsys)
     assert all(side in err for side in BOTH_SIDES)
-    assert world.fit(out, "--controls", "native", "--camera-map", MAP, cache=cache) == 0
+    assert fit(world, out, "--controls", "native", "--camera-map", MAP, cache=cache) == 0
     rows = results.read(out)
     assert sorted(rows["control"]) == ["native", "none"] and rows["camera_map"].to_list() == [MAP, MAP]
 
@@ -151,7 +138,7 @@ def test_train_tiny_takes_the_datasets_cameras_and_fits_match_them_by_name(world
     assert main([*train, "--cache", str(tmp_path / "c"), "--cameras", "agentview,eye_in_hand"]) == 0
     assert f"reusing natively trained tiny smolvla: {default}" in capsys.readouterr().out
     out = tmp_path / "r.parquet"
-    assert world.fit(out, policy=tmp_path / "chosen") == 0  # no map needed
+    assert fit(world, out, policy=tmp_path / "chosen") == 0  # no map needed
     assert results.read(out)["camera_map"].to_list() == ["eye_in_hand=eye_in_hand,agentview=agentview"]
     assert main([*train, "--cameras", "wrist_image", "--out", str(tmp_path / "x")]) == 2
     err = _one_error_line(capsys)

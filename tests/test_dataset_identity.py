@@ -19,6 +19,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 from helpers.caches import manifest
+from helpers.requests import extract_request
 
 from graftcache.datasets import identity, open_dataset
 from graftcache.errors import CacheError, DatasetError
@@ -223,11 +224,10 @@ def test_compare_identity_names_the_first_differing_file() -> None:
 
 # ------------------------------------------------------------------------------------------ caches
 def _extract(dataset: Path, cache: Path, log: list[str], allow_nonfinite: bool = False):
-    from graftcache.extract import ExtractRequest, extract
+    from graftcache.extract import extract
 
-    req = ExtractRequest(dataset=str(dataset), encoder=ENCODER, grids=("2x2",), episodes=(0,), cameras=("image",),
-                         random_init=True, seed=0, num_workers=0, batch_size=16, cache=str(cache), progress=False,
-                         allow_nonfinite=allow_nonfinite)
+    req = extract_request(dataset, cache, encoder=ENCODER, grids=("2x2",), episodes=(0,), cameras=("image",), seed=0,
+                          batch_size=16, allow_nonfinite=allow_nonfinite)
     return extract(req, log=log.append)
 
 

@@ -1,4 +1,4 @@
-"""`graftcache tile`: bigger datasets made of windows of the bundled sample's frames.
+"""`python -m devtools.tile` (devtools/tile/): bigger datasets made of windows of the bundled sample's frames.
 
 Each tiled episode is checked against the source itself: its frames against an independent PyAV decode of
 the source mp4 at the window it points to, its state/action rows against the source rows of the same
@@ -18,12 +18,11 @@ import polars as pl
 import pyarrow.parquet as pq
 import pytest
 
-from graftcache.cli import main
+from devtools.tile import LIBERO_COUNTS, TileRequest, tile
+from devtools.tile.cli import main
 from graftcache.datasets import open_dataset, suite_of
 from graftcache.datasets.suites import suite_tasks
-from graftcache.datasets.tile import LIBERO_COUNTS, tile
 from graftcache.errors import GraftcacheError
-from graftcache.requests import TileRequest
 
 SAMPLE = Path(__file__).resolve().parents[1] / "data" / "libero_sample"
 CAMERAS = ("observation.images.image", "observation.images.image2")
@@ -75,7 +74,7 @@ def _assert_rows_follow_windows(root: Path, low: pl.DataFrame, fps: float) -> pl
 def test_tiled_episodes_are_source_windows(source, tmp_path: Path) -> None:
     low, fps = source
     dest = tmp_path / "tiled"
-    assert main(["tile", str(SAMPLE), str(dest), "--episodes", "6", "--frames", "300", "--seed", "3"]) == 0
+    assert main([str(SAMPLE), str(dest), "--episodes", "6", "--frames", "300", "--seed", "3"]) == 0
     tiled = open_dataset(dest)
     meta = tiled.meta
     assert (len(meta.episodes), meta.n_frames) == (6, 300)
@@ -168,7 +167,7 @@ def test_lerobot_reads_a_tiled_dataset(source, tmp_path: Path, monkeypatch: pyte
     (["--preset", "libero", "--frames", "10"], "frames goes with episodes"),
 ])
 def test_bad_requests_are_one_line_errors(args: list[str], message: str, tmp_path: Path, capsys) -> None:
-    assert main(["tile", str(SAMPLE), str(tmp_path / "out"), *args]) == 2
+    assert main([str(SAMPLE), str(tmp_path / "out"), *args]) == 2
     err = capsys.readouterr().err.strip()
     assert message in err and len(err.splitlines()) == 1
     assert list(tmp_path.iterdir()) == []  # nothing half-written

@@ -9,6 +9,7 @@ import signal
 import subprocess
 import sys
 import time
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +18,7 @@ import timm
 import torch
 import torch.nn.functional as F
 from helpers.datasets import LENGTHS, TASKS, Written, build_lerobot
+from helpers.requests import extract_request
 from PIL import Image
 
 from graftcache.cli import main
@@ -30,10 +32,7 @@ ENCODER = "timm:vit_tiny_patch16_224"  # a real ViT architecture, cheap on CPU
 GRAFTCACHE = Path(sys.executable).with_name("graftcache")
 
 
-def _req(dataset: Path, cache: Path, **kw) -> ExtractRequest:
-    base = dict(dataset=str(dataset), encoder=ENCODER, grids=("native", "2x2", "7x7"), random_init=True, seed=0,
-                num_workers=0, batch_size=8, block_frames=6, cache=str(cache), progress=False)
-    return ExtractRequest(**{**base, **kw})
+_req = partial(extract_request, encoder=ENCODER, grids=("native", "2x2", "7x7"), seed=0, batch_size=8, block_frames=6)
 
 
 def _quiet(_: str) -> None:

@@ -13,15 +13,17 @@ import subprocess
 import sys
 import time
 from collections.abc import Iterator
+from functools import partial
 from pathlib import Path
 
 import pytest
 from helpers.caches import assert_same_cache, folder_files
+from helpers.requests import extract_request
 
 from graftcache.cli import main
 from graftcache.codecs import shard_value
 from graftcache.errors import GraftcacheError
-from graftcache.extract import ExtractRequest, extract, shard_blocks
+from graftcache.extract import extract, shard_blocks
 from graftcache.recipe import SECTION_KEYS
 from graftcache.store import FeatureCache
 
@@ -33,9 +35,8 @@ FLAGS = ("--encoder", ENCODER, "--random-init", "--dataset", str(SAMPLE), "--epi
          "--block-frames", "8", "--batch-size", "8", "--num-workers", "0", "--no-progress")
 
 
-def _req(cache: Path, **kw) -> ExtractRequest:
-    return ExtractRequest(dataset=str(SAMPLE), encoder=ENCODER, random_init=True, episodes=(0, 1), grids=("2x2",),
-                          block_frames=8, batch_size=8, num_workers=0, progress=False, cache=str(cache), **kw)
+#: `_req(cache, **settings)`: the sample's first two episodes into the cache root `cache`.
+_req = partial(extract_request, SAMPLE, encoder=ENCODER, episodes=(0, 1), grids=("2x2",), block_frames=8, batch_size=8)
 
 
 def _cli(cache: Path, shard: str) -> list[str]:

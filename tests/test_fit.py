@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import math
 import shutil
 from contextlib import closing
 from pathlib import Path
@@ -14,18 +13,17 @@ import numpy as np
 import polars as pl
 import pytest
 import torch
-from helpers.backbones import tiny
 from helpers.caches import rekeyed
 from helpers.datasets import Written
-from safetensors import safe_open
+from helpers.requests import extract_request
+from helpers.world import World
 from safetensors.torch import load_file
 
 from graftcache import results
-from graftcache.backbone_table import native_name
 from graftcache.backbones import load_backbone
 from graftcache.cli import main
 from graftcache.errors import FitError
-from graftcache.extract import ExtractRequest, extract
+from graftcache.extract import extract
 from graftcache.fit.buffer import ShuffleBuffer
 from graftcache.fit.controls import get_control
 from graftcache.fit.data import load_lowdim, split_episodes
@@ -38,45 +36,20 @@ from graftcache.store import FeatureCache
 
 ENCODER = "timm:vit_tiny_patch16_224"
 CONTROLS = ("native", "native-graft", "zero-image", "shuffled-image", "pool-2x2", "lora")
+EXTRACT = {"batch_size": 8}
+FIT = {"steps": 3, "eval_frames": 4, "num_denoise_steps": 2}
 
 
 def _quiet(_: str) -> None:
     pass
 
 
-class World:
-    """A dataset, tiny policy checkpoints and the caches a fit reads, built once per module."""
-
-    def __init__(self, root: Path, dataset: Written) -> None:
-        self.root, self.dataset = root, dataset
-        self.cache = root / "cache"
-        self.policies = {}
-        for name in ("smolvla", "pi05"):
-            self.policies[name] = root / f"policy_{name}"
-            tiny(name).save(self.policies[name])
-        common = dict(dataset=str(dataset.root), num_workers=0, batch_size=8, cache=str(self.cache), progress=False)
-        # the encoder's own 14x14 grid alone (the default): the fits pool it to 4x4 (both tiny backbones) and 2x2
-        self.encoder_key = extract(ExtractRequest(encoder=ENCODER, random_init=True, **common), log=_quiet).key
-        self.native_keys = {name: extract(ExtractRequest(encoder=native_name(name), grids=("4x4",),
-                                                         policy=str(folder), **common), log=_quiet).key
-                            for name, folder in self.policies.items()}
-
-    def request(self, backbone: str = "smolvla", **kw) -> FitRequest:
-        base = dict(backbone=backbone, encoder=ENCODER, suite="libero_spatial", policy=str(self.policies[backbone]),
-                    dataset=str(self.dataset.root), seeds=(0,), steps=3, batch_size=4, eval_fraction=0.5,
-                    eval_frames=4, num_denoise_steps=2, cache=str(self.cache), progress=False,
-                    results=str(self.root / "results.parquet"), out=str(self.root / "runs"), command="pytest")
-        return FitRequest(**{**base, **kw})
-
-    def policy_params(self, backbone: str) -> int:
-        """Parameters of a saved policy counted from its weights file's tensor shapes (not by graftcache)."""
-        with safe_open(self.policies[backbone] / "model.safetensors", "pt") as f:
-            return sum(math.prod(f.get_slice(k).get_shape()) for k in f.keys())  # noqa: SIM118 (a safe_open handle)
-
-
 @pytest.fixture(scope="module")
 def world(v3_video: Written, tmp_path_factory: pytest.TempPathFactory) -> World:
-    return World(tmp_path_factory.mktemp("fit"), v3_video)
+    """Both tiny backbones; the encoder's own 14x14 grid alone (the default: the fits pool it to 4x4, both tiny
+    backbones, and 2x2) and each backbone's native tower at 4x4."""
+    return World(tmp_path_factory.mktemp("fit"), v3_video, encoder=ENCODER, backbones=("smolvla", "pi05"),
+                 extract_settings=EXTRACT, native_grid="4x4", fit=FIT)
 
 
 def test_every_control_writes_one_schema_valid_row(world: World, tmp_path: Path) -> None:
@@ -274,10 +247,11 @@ def test_one_backbone_load_serves_every_cell_and_finished_cells_load_nothing(wor
 
 def test_frame_stride_thins_features_not_actions(world: World, tmp_path: Path) -> None:
     """A stride-2 cache holds every other frame; its action chunks equal the full cache's for those frames."""
-    common = dict(dataset=str(world.dataset.root), num_workers=1, batch_size=8, cache=str(world.cache),
-                  progress=False, encoder=ENCODER, random_init=True)
-    full = FeatureCache(world.cache / extract(ExtractRequest(**common), log=_quiet).key)
-    strided = FeatureCache(world.cache / extract(ExtractRequest(frame_stride=2, **common), log=_quiet).key)
+    common = dict(num_workers=1, encoder=ENCODER, **EXTRACT)
+    full = FeatureCache(world.cache / extract(extract_request(world.dataset.root, world.cache, **common),
+                                              log=_quiet).key)
+    strided = FeatureCache(world.cache / extract(extract_request(world.dataset.root, world.cache, frame_stride=2,
+                                                                 **common), log=_quiet).key)
     assert strided.key != full.key and strided.manifest.frame_stride == 2
     idx = strided.index()
     assert (idx["frame_index"].to_numpy() % 2 == 0).all()
@@ -389,8 +363,7 @@ def test_cells_sharing_a_backbone_pass_get_the_rows_they_get_alone(world: World,
     from graftcache.executors.local import LocalExecutor
     from graftcache.requests import ExecutorSettings
 
-    other = extract(ExtractRequest(encoder=ENCODER, random_init=True, seed=1, dataset=str(world.dataset.root),
-                                   num_workers=0, batch_size=8, cache=str(world.cache), progress=False),
+    other = extract(extract_request(world.dataset.root, world.cache, encoder=ENCODER, seed=1, **EXTRACT),
                     log=_quiet).key
 
     class Bar:

@@ -1,4 +1,5 @@
-"""The package's import graph follows the data: no cycles, and stage 1 never imports stage 2.
+"""The package's import graph follows the data: no cycles, stage 1 never imports stage 2, and the library never
+imports the developer tools beside it (devtools/: what tests and benchmarks build).
 
 Read statically with `ast` (module-level and function-level imports alike, `TYPE_CHECKING` blocks
 included), so a cycle hidden behind a lazy import fails here too, not only at whatever import order
@@ -87,6 +88,24 @@ def cycles(graph: dict[str, set[str]]) -> list[list[str]]:
     return found
 
 
+def devtools_imports(source: str) -> list[str]:
+    """What a module's source takes from devtools: imports anywhere in it, and "devtools.x:name" strings (the
+    lazy registries' import strings, graftcache.lazy), which would import it at run time."""
+    def ours(name: str | None) -> bool:
+        return (name or "").partition(".")[0] == "devtools"
+
+    found = []
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Import):
+            found += [a.name for a in node.names if ours(a.name)]
+        elif isinstance(node, ast.ImportFrom) and not node.level and ours(node.module):
+            found.append(node.module)
+        elif isinstance(node, ast.Constant) and isinstance(node.value, str) and node.value.startswith(
+                ("devtools.", "devtools:")):
+            found.append(node.value)
+    return found
+
+
 def _in(module: str, stage: tuple[str, ...]) -> bool:
     rest = module.removeprefix("graftcache.")
     return any(rest == s or rest.startswith(f"{s}.") for s in stage)
@@ -113,3 +132,11 @@ def test_stage_1_never_imports_stage_2() -> None:
     wrong = sorted(f"{m} -> {t}" for m, targets in graph.items() if _in(m, STAGE_1)
                    for t in targets if _in(t, STAGE_2))
     assert not wrong, "stage 1 imports stage 2: " + ", ".join(wrong)
+
+
+def test_the_library_never_imports_devtools() -> None:
+    seen = devtools_imports("import devtools.tile\nfrom devtools.released import BUILDERS\n"
+                            "def f():\n    from devtools import tile\nX = 'devtools.tile:tile'\nY = 'devtools'\n")
+    assert seen == ["devtools.tile", "devtools.released", "devtools", "devtools.tile:tile"]
+    wrong = {m: found for m, (path, _) in _modules().items() if (found := devtools_imports(path.read_text()))}
+    assert not wrong, f"graftcache imports devtools: {wrong}"

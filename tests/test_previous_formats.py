@@ -9,7 +9,8 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-from helpers.caches import CAMERAS, previous_format, synthetic_cache
+from helpers.caches import CAMERAS, synthetic_cache
+from helpers.previous_formats import previous_format, previous_results
 from helpers.tables import row, table
 
 from graftcache import results
@@ -55,7 +56,7 @@ def test_a_previous_format_results_file_is_refused_in_one_line(tmp_path: Path,
                                                                 capsys: pytest.CaptureFixture) -> None:
     old = tmp_path / "old.parquet"
     rows = table([row("smolvla", "libero_spatial", "siglip", seed, 0.5) for seed in (0, 1)])
-    rows.drop("format_version").write_parquet(old)  # format 1 had no such column
+    previous_results(old, rows)
     command = rows["command"][0]
     line = (f"{old}: 2 row(s) of an older results format than 2 (run_ids of cells of another shape); move the "
             f"file aside and rebuild it: `{command}` (and 1 other command(s) its rows record)")

@@ -14,6 +14,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from functools import partial
 from pathlib import Path
 
 import boto3
@@ -24,10 +25,11 @@ from fixtures.s3 import bucket_objects
 from helpers.backbones import tiny
 from helpers.caches import CAMERAS, assert_same_cache, folder_files, rekeyed, synthetic_cache
 from helpers.datasets import Written
+from helpers.requests import extract_request
 
 from graftcache.cli import main
 from graftcache.errors import CacheError
-from graftcache.extract import ExtractRequest, extract
+from graftcache.extract import extract
 from graftcache.fit.data import load_lowdim
 from graftcache.fit.feed import SplitFeed
 from graftcache.fit.run import FitRequest, Fitter
@@ -50,10 +52,7 @@ def _put_object(url: str, rel: str, data: bytes) -> None:
     boto3.client("s3").put_object(Bucket=bucket, Key=f"{prefix}/{rel}", Body=data)
 
 
-def _req(dataset: Path, cache: str | Path, **kw) -> ExtractRequest:
-    base = dict(dataset=str(dataset), encoder=ENCODER, grids=("2x2",), random_init=True, num_workers=0,
-                batch_size=8, block_frames=2, cache=str(cache), progress=False)
-    return ExtractRequest(**{**base, **kw})
+_req = partial(extract_request, encoder=ENCODER, grids=("2x2",), batch_size=8, block_frames=2)
 
 
 @pytest.fixture(scope="module")

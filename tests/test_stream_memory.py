@@ -2,7 +2,7 @@
 
 Two real `python -m graftcache fit` processes with the same settings, one on a cache of the bundled sample's
 libero_spatial suite (1x: 18 episodes, 912 frames), one on a cache of a dataset with 8x the sample's episodes
-(graftcache.datasets.tile: windows of the sample's frames, ~144 libero_spatial episodes, ~7.2k frames). The caches
+(devtools.tile: windows of the sample's frames, ~144 libero_spatial episodes, ~7.2k frames). The caches
 are laid out as `extract` writes them, with each dataset's own index, low-dim and action columns, and random
 features (tests/helpers/caches.py: decoding 8x the sample's AV1 frames alone would take minutes here, and a fit
 cannot tell random features from an encoder's). Features are 4x4 (the tiny SmolVLA's grid) x 2048 fp16 for each of
@@ -46,8 +46,7 @@ def _fit_peak_rss(cache_root: Path, encoder: str, policy: Path, out: Path) -> in
 
 
 def test_peak_memory_of_a_fit_does_not_grow_with_the_dataset(tmp_path: Path) -> None:
-    from graftcache.datasets.tile import tile
-    from graftcache.requests import TileRequest
+    from devtools.tile import TileRequest, tile
 
     big = tile(TileRequest(source=str(SAMPLE), dest=str(tmp_path / "x8"), episodes=K * 36))
     policy = tmp_path / "policy"

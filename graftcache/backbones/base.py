@@ -35,6 +35,7 @@ from graftcache.backbones.batches import ACTION, STATE, PromptBatches
 from graftcache.backbones.checkpoint import (
     PREPROCESSOR_FILE,
     follow_umask,
+    is_random_release,
     load_processors,
     quiet,
     resolve_source,
@@ -44,7 +45,6 @@ from graftcache.backbones.checkpoint import (
 from graftcache.backbones.lean import construct, load_checkpoint, read_header
 from graftcache.backbones.objectives import FlowObjective
 from graftcache.backbones.recompute import ActivationCheckpointing
-from graftcache.backbones.released import is_random_release
 from graftcache.backbones.surgery import GraftSurgery
 from graftcache.backbones.tiny import TinySpec, read_marker, write_marker
 from graftcache.errors import BackboneError
@@ -119,7 +119,7 @@ class BackboneAdapter(GraftSurgery, PromptBatches, FlowObjective, ActivationChec
                 raise BackboneError(f"{folder}: no {PREPROCESSOR_FILE}; pass dataset_stats to build the processors")
             processors = cls._make_processors(policy.config, dataset_stats, marker)
         # A tiny checkpoint is never released weights: random init, at most trained natively on a sample;
-        # nor is one written at the released geometry by graftcache.backbones.released.
+        # nor is one written at the released geometry by devtools.released.
         random_init = marker is not None or is_random_release(folder)
         return cls(policy, *processors, source=str(source), random_init=random_init, tiny_marker=marker)
 

@@ -23,6 +23,8 @@ from graftcache.hub_cache import hub_cache, repo_dir
 WEIGHTS_FILE = "model.safetensors"
 PREPROCESSOR_FILE = "policy_preprocessor.json"
 POSTPROCESSOR_FILE = "policy_postprocessor.json"
+#: Written into a checkpoint folder by devtools.released (random weights at a released policy's geometry).
+RANDOM_MARKER = "graftcache_random_init.json"
 
 
 def cached_repo(repo_id: str, what: str) -> Path:
@@ -113,6 +115,12 @@ def load_processors(folder: Path, pre_overrides: dict, post_overrides: dict):
     except (OSError, ValueError, KeyError) as exc:
         raise BackboneError(f"{folder / PREPROCESSOR_FILE}: cannot load the policy processors ({exc})") from None
     return pre, post
+
+
+def is_random_release(folder: Path) -> bool:
+    """Whether a checkpoint folder carries RANDOM_MARKER: random weights at the released geometry, written by
+    devtools.released, so rows and manifests say random_init although no tiny marker is there."""
+    return (folder / RANDOM_MARKER).is_file()
 
 
 def state_dict_sha256(module: nn.Module) -> str:

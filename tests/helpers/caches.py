@@ -1,11 +1,13 @@
-"""Feature caches for tests: synthetic ones written with the store's own writer (seeded random features at any
-size, real index / low-dim / action-stream columns, for stage 2's data path without an encoder), a cache as an
-older graftcache left it (`previous_format`), and comparing two caches file by file (a folder, or the objects of
-a bucket under a key)."""
+"""Feature caches for tests and benchmarks: synthetic ones written with the store's own writer by `write_cache`
+(seeded random features at any size, real index / low-dim / action-stream columns, for stage 2's data path
+without an encoder), a copy of a cache whose manifest says other settings (`rekeyed`; helpers.previous_formats
+builds caches of an older format on it), and comparing two caches file by file (a folder, or the objects of a
+bucket under a key)."""
 
 from __future__ import annotations
 
 import json
+import math
 import shutil
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
@@ -18,7 +20,6 @@ import graftcache
 from graftcache.store import FORMAT_VERSION, DatasetRecord, FeatureCache, Manifest, cache_key
 from graftcache.store.cache import ArraySpec
 from graftcache.store.key import IDENTITY_FIELDS
-from graftcache.store.manifest import PREVIOUS_GAPS
 
 SUITES = ["libero_spatial", "libero_object", "libero_goal", "libero_10", "libero_90", "unknown"]
 TASKS = ["put the bowl on the plate", "open the drawer", "turn on the stove"]
@@ -43,6 +44,23 @@ def manifest(**over: Any) -> Manifest:
     return Manifest(dataset=DatasetRecord(**dataset), **fields)
 
 
+def write_cache(root: Path, made: Manifest, index: pl.DataFrame, *, block_frames: int,
+                features: Callable[[int, int, str], np.ndarray]) -> FeatureCache:
+    """The one synthetic-cache writer (tests and benchmarks): a complete cache of `made` (its one grid, every
+    camera, `made.encoder["width"]` wide) under `root` in the folder of its key, written with the store's own
+    writer, block by block, camera by camera: `features(start, stop, camera)` gives rows start..stop."""
+    (name,) = made.grids
+    tokens = math.prod(int(n) for n in name.split("x"))
+    path = root / cache_key(made.to_dict())
+    cache = FeatureCache.create(path, made, [ArraySpec(f"features/{c}/{name}", (tokens, made.encoder["width"]))
+                                             for c in made.cameras], index, block_frames=block_frames)
+    for b in range(cache.layout["n_blocks"]):
+        start, stop = cache.block_range(b)
+        cache.write_block(b, {f"features/{c}/{name}": features(start, stop, c) for c in made.cameras})
+    cache.finalize()
+    return FeatureCache(path, writable=False)
+
+
 def synthetic_cache(root: Path, lengths: Sequence[int], *, grid: tuple[int, int] = (4, 4), width: int = 8,
                     block_frames: int = 8, state_dim: int = 8, action_dim: int = 7, seed: int = 0,
                     nan_at: tuple[int, int] | None = None) -> FeatureCache:
@@ -60,52 +78,39 @@ def synthetic_cache(root: Path, lengths: Sequence[int], *, grid: tuple[int, int]
         "action": rng.standard_normal((n, action_dim)).astype(np.float32),
     }).with_columns(pl.col("state").cast(pl.Array(pl.Float32, state_dim)),
                     pl.col("action").cast(pl.Array(pl.Float32, action_dim)))
-    name = f"{grid[0]}x{grid[1]}"
-    made = manifest(encoder={"name": "synthetic", "width": width}, grids=[name], n_frames=n)
-    path = root / cache_key(made.to_dict())
-    cache = FeatureCache.create(path, made, [ArraySpec(f"features/{c}/{name}", (grid[0] * grid[1], width))
-                                                 for c in CAMERAS], index, block_frames=block_frames)
-    for b in range(cache.layout["n_blocks"]):
-        start, stop = cache.block_range(b)
-        data = {f"features/{c}/{name}": rng.standard_normal((stop - start, grid[0] * grid[1], width))
-                .astype(np.float16) for c in CAMERAS}
-        if nan_at is not None:
-            row = int(np.flatnonzero((episode == nan_at[0]) & (frame == nan_at[1]))[0])
-            if start <= row < stop:
-                data[f"features/image/{name}"][row - start, 0, 0] = np.nan
-        cache.write_block(b, data)
-    cache.finalize()
-    return FeatureCache(path, writable=False)
+    made = manifest(encoder={"name": "synthetic", "width": width}, grids=[f"{grid[0]}x{grid[1]}"], n_frames=n)
+    nan_row = None if nan_at is None else int(np.flatnonzero((episode == nan_at[0]) & (frame == nan_at[1]))[0])
+
+    def features(start: int, stop: int, camera: str) -> np.ndarray:
+        x = rng.standard_normal((stop - start, grid[0] * grid[1], width)).astype(np.float16)
+        if camera == "image" and nan_row is not None and start <= nan_row < stop:
+            x[nan_row - start, 0, 0] = np.nan
+        return x
+
+    return write_cache(root, made, index, block_frames=block_frames, features=features)
 
 
-def dataset_cache(root: Path, dataset: str | Path, suite: str, *, grid: tuple[int, int], width: int,
+def dataset_cache(root: Path, dataset: str | Path, suite: str | None, *, grid: tuple[int, int], width: int,
                   block_frames: int = 256) -> FeatureCache:
-    """A complete fp16 cache under `root` (in the folder of its key) of `dataset`'s `suite` episodes as
-    `extract` lays it out (the dataset's own index, low-dim and action columns), with seeded random features
+    """A complete fp16 cache under `root` (in the folder of its key) of `dataset`'s `suite` episodes (None: all)
+    as `extract` lays it out (the dataset's own index, low-dim and action columns), with seeded random features
     at `grid`, `width` wide, for every camera: what a fit reads of a real cache, without paying for decoding
     and encoding (the fit cannot tell the difference).
-    One random block is written for every block (memory and read costs do not depend on the values)."""
+    One random block is written for every block (memory, read and copy costs do not depend on the values)."""
     from graftcache.datasets import open_dataset, suite_of
     from graftcache.datasets.suites import SUITES
     from graftcache.extract import build_index
 
     source = open_dataset(str(dataset))
     meta = source.meta
-    episodes = [e.index for e in meta.episodes if suite_of(meta.tasks[e.task_index]) == suite]
+    episodes = [e.index for e in meta.episodes if suite is None or suite_of(meta.tasks[e.task_index]) == suite]
     index = build_index(source, episodes)
-    name = f"{grid[0]}x{grid[1]}"
-    made = manifest(encoder={"name": f"synthetic-{width}", "width": width}, cameras=list(meta.cameras), grids=[name],
-                    suites=list(SUITES), tasks=list(meta.tasks), n_frames=index.height,
+    made = manifest(encoder={"name": f"synthetic-{width}", "width": width}, cameras=list(meta.cameras),
+                    grids=[f"{grid[0]}x{grid[1]}"], suites=list(SUITES), tasks=list(meta.tasks), n_frames=index.height,
                     dataset={"source": str(dataset), "root": str(meta.root)})
-    path = root / cache_key(made.to_dict())
-    cache = FeatureCache.create(path, made, [ArraySpec(f"features/{c}/{name}", (grid[0] * grid[1], width))
-                                                 for c in meta.cameras], index, block_frames=block_frames)
     block = np.random.default_rng(0).standard_normal((block_frames, grid[0] * grid[1], width)).astype(np.float16)
-    for b in range(cache.layout["n_blocks"]):
-        start, stop = cache.block_range(b)
-        cache.write_block(b, {f"features/{c}/{name}": block[:stop - start] for c in meta.cameras})
-    cache.finalize()
-    return FeatureCache(path, writable=False)
+    return write_cache(root, made, index, block_frames=block_frames,
+                       features=lambda start, stop, _: block[:stop - start])
 
 
 def rekeyed(folder: Path, root: Path, edit: Callable[[dict], dict]) -> Path:
@@ -113,22 +118,6 @@ def rekeyed(folder: Path, root: Path, edit: Callable[[dict], dict]) -> Path:
     in the folder of the key that manifest hashes to: a cache made with those settings as far as its folder name
     and manifest go (its arrays are `folder`'s)."""
     return _restored(folder, root, edit)
-
-
-def previous_format(folder: Path, root: Path, lacking: str | None = None) -> Path:
-    """Where a copy of the cache in `folder` now lies as graftcache's previous format (1) stored it, under `root`
-    in the folder of the key that manifest hashes to: fields outside the format at the top level, and, when
-    `lacking` names one of store.manifest.PREVIOUS_GAPS ("frame_stride", ...), made before graftcache recorded
-    it (a metadata-only dataset identity for "dataset_fingerprint.files")."""
-    def older(stored: dict) -> dict:
-        old = {**{k: v for k, v in stored.items() if k != "extra"}, **stored["extra"], "format_version": 1}
-        if lacking == "dataset_fingerprint.files":
-            old["dataset_fingerprint"] = {"codebase_version": "v3.0", "meta/info.json": "0" * 64}
-        elif lacking is not None:
-            assert lacking in dict(PREVIOUS_GAPS), lacking
-            del old[lacking]
-        return old
-    return _restored(folder, root, older)
 
 
 def _restored(folder: Path, root: Path, edit: Callable[[dict], dict]) -> Path:

@@ -13,8 +13,11 @@ with the policy files `config.json`, `model.safetensors`, `policy_{pre,post}proc
 their state files, plus the hub repos construction reads: SmolVLA's `vlm_model_name`
 (HuggingFaceTB/SmolVLM2-500M-Video-Instruct: the real SmolVLM2-500M config, graftcache's tiny
 tokenizer) and pi0.5's hard-coded tokenizer (google/paligemma-3b-pt-224: the tiny PaliGemma-style
-tokenizer). Every policy folder carries RANDOM_MARKER, so whatever graftcache records from it
-(cache manifests, results rows, reports) says random_init. Run offline (HF_HUB_OFFLINE=1).
+tokenizer). Every policy folder carries graftcache.backbones.checkpoint.RANDOM_MARKER, whose reader
+(`is_random_release`) is library code, so whatever graftcache records from it (cache manifests, results
+rows, reports) says random_init. Run offline (HF_HUB_OFFLINE=1).
+
+A developer tool, not library code: only tests and benchmarks build these checkpoints.
 """
 
 from __future__ import annotations
@@ -34,13 +37,12 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from graftcache.backbones.checkpoint import follow_umask, quiet
+from graftcache.backbones.checkpoint import RANDOM_MARKER, follow_umask, quiet
 from graftcache.backbones.tiny_assets import PALIGEMMA_DIR, SMOLVLM_DIR
 from graftcache.hashing import sha256_file
 from graftcache.hub_cache import hub_cache as default_hub_cache
 from graftcache.hub_cache import repo_dir
 
-RANDOM_MARKER = "graftcache_random_init.json"
 SMOLVLM_REPO = "HuggingFaceTB/SmolVLM2-500M-Video-Instruct"  # SmolVLAConfig.vlm_model_name's default
 PALIGEMMA_REPO = "google/paligemma-3b-pt-224"  # hard-coded by lerobot's pi0.5 processor
 SAFETENSORS_DTYPES = {torch.float32: "F32", torch.bfloat16: "BF16", torch.float16: "F16"}
@@ -70,11 +72,6 @@ class Recipe:
 
 
 LIBERO = Recipe()
-
-
-def is_random_release(folder: Path) -> bool:
-    """Whether a checkpoint folder was written by this module (random weights, released geometry)."""
-    return (folder / RANDOM_MARKER).is_file()
 
 
 def versions() -> dict[str, str]:

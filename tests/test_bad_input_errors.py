@@ -42,11 +42,12 @@ from helpers.probes import (
     run_cli,
     start_process,
 )
+from helpers.requests import extract_request
 from safetensors.torch import save_file
 
 from graftcache import results
 from graftcache.cli.signals import stoppable
-from graftcache.extract import ExtractRequest, extract
+from graftcache.extract import extract
 from graftcache.store import FeatureCache, list_caches, open_root
 from graftcache.store.cache import PROGRESS_DIR
 from graftcache.store.roots import LocalRoot
@@ -115,8 +116,9 @@ RECIPES = {
 
 
 @dataclass
-class World:
-    """Paths the probes name, as a dict for str.format."""
+class Inputs:
+    """The inputs the probes run on (datasets, policies, caches, good and broken): their paths, as a dict for
+    str.format."""
 
     paths: dict[str, str]
     clean_key: str
@@ -129,7 +131,7 @@ class World:
 
 
 @pytest.fixture(scope="module")
-def world(v3_video: Written, tmp_path_factory: pytest.TempPathFactory) -> World:  # noqa: F811
+def world(v3_video: Written, tmp_path_factory: pytest.TempPathFactory) -> Inputs:  # noqa: F811
     base = tmp_path_factory.mktemp("probes")
     ds = base / "ds"
     shutil.copytree(v3_video.root, ds)
@@ -157,9 +159,8 @@ def world(v3_video: Written, tmp_path_factory: pytest.TempPathFactory) -> World:
     (base / "not_parquet.parquet").write_text("run_id,eval_mse\nx,1\n")
     (base / "empty.parquet").write_bytes(b"")
 
-    common = dict(encoder=ENCODER, random_init=True, num_workers=0, batch_size=8, progress=False)
-    clean = extract(ExtractRequest(dataset=str(ds), cache=str(base / "cache"), **common), log=lambda _: None).key
-    nan = extract(ExtractRequest(dataset=str(nan_ds), cache=str(base / "nan_cache"), allow_nonfinite=True, **common),
+    clean = extract(extract_request(ds, base / "cache", encoder=ENCODER, batch_size=8), log=lambda _: None).key
+    nan = extract(extract_request(nan_ds, base / "nan_cache", encoder=ENCODER, batch_size=8, allow_nonfinite=True),
                   log=lambda _: None).key
     paths = {"base": str(base), "ds": str(ds), "nan_ds": str(nan_ds), "evil": str(evil), "policy": str(policy),
              **{name: str(base / f"ds_{name}") for name in ("empty", "skewed", "tasks")},
@@ -168,7 +169,7 @@ def world(v3_video: Written, tmp_path_factory: pytest.TempPathFactory) -> World:
         path = base / f"{name}.toml"
         path.write_text(RECIPE.format(**paths, **{**RECIPE_DEFAULTS, **parts}))
         paths[name] = str(path)
-    return World(paths, clean, nan)
+    return Inputs(paths, clean, nan)
 
 
 @dataclass(frozen=True)
@@ -254,7 +255,7 @@ def _complete(root: Path) -> list[str]:
 
 
 @pytest.mark.parametrize("name", list(PROBES))
-def test_probe_is_one_line_error(name: str, world: World, tmp_path: Path, capsys: pytest.CaptureFixture,
+def test_probe_is_one_line_error(name: str, world: Inputs, tmp_path: Path, capsys: pytest.CaptureFixture,
                                  monkeypatch: pytest.MonkeyPatch) -> None:
     probe = PROBES[name]
     root, out = tmp_path / "cache", tmp_path / "results.parquet"
@@ -267,7 +268,7 @@ def test_probe_is_one_line_error(name: str, world: World, tmp_path: Path, capsys
     before.assert_unchanged(world.base)
 
 
-def test_disk_full_extract_resumes_once_there_is_space(world: World, tmp_path: Path, capsys: pytest.CaptureFixture,
+def test_disk_full_extract_resumes_once_there_is_space(world: Inputs, tmp_path: Path, capsys: pytest.CaptureFixture,
                                                        monkeypatch: pytest.MonkeyPatch) -> None:
     args = PROBES["disk full during extract"].args.format(**world.paths, root=tmp_path).split()
     with monkeypatch.context() as patched:
@@ -284,7 +285,7 @@ def test_disk_full_extract_resumes_once_there_is_space(world: World, tmp_path: P
     assert run_cli(["verify", cache.key, "--cache", tmp_path], capsys).code == 0
 
 
-def test_fit_drops_nonfinite_frames_only_when_asked(world: World, tmp_path: Path,
+def test_fit_drops_nonfinite_frames_only_when_asked(world: Inputs, tmp_path: Path,
                                                     capsys: pytest.CaptureFixture) -> None:
     out = tmp_path / "results.parquet"
     args = (FIT + " --cache {nan_cache} --drop-nonfinite").format(**world.paths, out=out).split()
@@ -296,13 +297,13 @@ def test_fit_drops_nonfinite_frames_only_when_asked(world: World, tmp_path: Path
     assert results.read(tmp_path / "clean.parquet")["n_dropped_nonfinite"].to_list() == [0]
 
 
-def test_a_copied_cache_is_found_and_verifies(world: World, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+def test_a_copied_cache_is_found_and_verifies(world: Inputs, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     shutil.copytree(Path(world.paths["cache"]) / world.clean_key, tmp_path / world.clean_key)
     done = run_cli(["verify", world.clean_key, "--cache", tmp_path], capsys)
     assert done.code == 0 and "all checksums match" in done.out, done.out + done.err
 
 
-def test_fit_refuses_a_flipped_byte_in_a_shard(world: World, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+def test_fit_refuses_a_flipped_byte_in_a_shard(world: Inputs, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     shutil.copytree(Path(world.paths["cache"]) / world.clean_key, tmp_path / world.clean_key)
     shard = next(p for p in sorted((tmp_path / world.clean_key / "features").rglob("*")) if p.is_file()
                  and p.name != "zarr.json")
@@ -315,7 +316,7 @@ def test_fit_refuses_a_flipped_byte_in_a_shard(world: World, tmp_path: Path, cap
     assert not out.exists()
 
 
-def test_ls_lists_healthy_caches_and_flags_a_broken_one(world: World, tmp_path: Path,
+def test_ls_lists_healthy_caches_and_flags_a_broken_one(world: Inputs, tmp_path: Path,
                                                         capsys: pytest.CaptureFixture) -> None:
     shutil.copytree(Path(world.paths["cache"]) / world.clean_key, tmp_path / world.clean_key)
     broken = tmp_path / "resnet18-broken"
@@ -330,7 +331,7 @@ def test_ls_lists_healthy_caches_and_flags_a_broken_one(world: World, tmp_path: 
 # cannot write and asserts they succeed and leave it unchanged.
 
 
-def test_extracted_caches_hold_what_the_probes_assume(world: World) -> None:
+def test_extracted_caches_hold_what_the_probes_assume(world: Inputs) -> None:
     """The fixtures themselves: the NaN cache holds exactly one non-finite state, the clean one none."""
     nan = FeatureCache(Path(world.paths["nan_cache"]) / world.nan_key).index()
     bad = ~np.isfinite(np.stack(nan["state"].to_numpy())).all(axis=1)
@@ -351,7 +352,7 @@ S3_PROBES = {  # command -> its arguments; {url} is the object-store root, {root
 }
 
 
-def _s3_probe(command: str, world: World, url: str, tmp_path: Path, capsys: pytest.CaptureFixture) -> Outcome:
+def _s3_probe(command: str, world: Inputs, url: str, tmp_path: Path, capsys: pytest.CaptureFixture) -> Outcome:
     root, out = tmp_path / "cache", tmp_path / "results.parquet"
     before = Snapshot.of(world.base)
     args = S3_PROBES[command].format(**world.paths, key=world.clean_key, url=url, root=root, out=out).split()
@@ -362,7 +363,7 @@ def _s3_probe(command: str, world: World, url: str, tmp_path: Path, capsys: pyte
 
 
 @pytest.fixture()
-def s3_with_cache(s3: str, world: World, monkeypatch: pytest.MonkeyPatch) -> str:
+def s3_with_cache(s3: str, world: Inputs, monkeypatch: pytest.MonkeyPatch) -> str:
     """The bucket holding the world's clean cache; unanswered requests give up after 1 s."""
     monkeypatch.setenv("GRAFTCACHE_STORE_RETRY_S", "1")
     copy_cache(open_root(world.paths["cache"]), open_root(s3), world.clean_key, log=lambda _: None)
@@ -370,7 +371,7 @@ def s3_with_cache(s3: str, world: World, monkeypatch: pytest.MonkeyPatch) -> str
 
 
 @pytest.mark.parametrize("command", list(S3_PROBES))
-def test_a_missing_bucket_is_one_line(command: str, world: World, s3_with_cache: str, tmp_path: Path,
+def test_a_missing_bucket_is_one_line(command: str, world: Inputs, s3_with_cache: str, tmp_path: Path,
                                       capsys: pytest.CaptureFixture) -> None:
     url = "s3://graftcache-no-such-bucket/caches"
     done = _s3_probe(command, world, url, tmp_path, capsys)
@@ -379,7 +380,7 @@ def test_a_missing_bucket_is_one_line(command: str, world: World, s3_with_cache:
 
 @pytest.mark.parametrize("credentials", ["wrong", "missing"])
 @pytest.mark.parametrize("command", ["ls", "info", "push", "pull", "fit"])
-def test_refused_credentials_are_one_line(command: str, credentials: str, world: World, s3_with_cache: str,
+def test_refused_credentials_are_one_line(command: str, credentials: str, world: Inputs, s3_with_cache: str,
                                           tmp_path: Path, capsys: pytest.CaptureFixture,
                                           monkeypatch: pytest.MonkeyPatch) -> None:
     import moto.settings
@@ -396,7 +397,7 @@ def test_refused_credentials_are_one_line(command: str, credentials: str, world:
 
 
 @pytest.mark.parametrize("command", ["ls", "info", "pull", "fit"])
-def test_an_endpoint_that_does_not_answer_is_one_line(command: str, world: World, s3_with_cache: str,
+def test_an_endpoint_that_does_not_answer_is_one_line(command: str, world: Inputs, s3_with_cache: str,
                                                       tmp_path: Path, capsys: pytest.CaptureFixture,
                                                       monkeypatch: pytest.MonkeyPatch) -> None:
     closed = f"http://127.0.0.1:{free_port()}"
@@ -408,7 +409,7 @@ def test_an_endpoint_that_does_not_answer_is_one_line(command: str, world: World
 
 
 def test_an_endpoint_going_down_mid_pull_is_one_line_and_the_rerun_resumes(
-        world: World, s3_with_cache: str, tmp_path: Path, capsys: pytest.CaptureFixture,
+        world: Inputs, s3_with_cache: str, tmp_path: Path, capsys: pytest.CaptureFixture,
         monkeypatch: pytest.MonkeyPatch) -> None:
     """A second moto server (same buckets: moto's state is per process) serves the pull and stops after the
     third object arrives; the rerun against the first one copies only what is missing."""
@@ -482,7 +483,7 @@ def _terminate(proc: subprocess.Popen) -> tuple[Outcome, list[int]]:
 
 @pytest.mark.slow
 @pytest.mark.parametrize("delay", [0.5, 1.5, 3.0])
-def test_ctrl_c_while_the_cli_imports_is_one_line(delay: float, world: World, tmp_path: Path) -> None:
+def test_ctrl_c_while_the_cli_imports_is_one_line(delay: float, world: Inputs, tmp_path: Path) -> None:
     proc = start_process(EXTRACT.format(**world.paths, root=tmp_path / "cache").split())
     time.sleep(delay)  # the CLI needs seconds to import torch, lerobot and transformers
     proc.send_signal(signal.SIGINT)
@@ -507,7 +508,7 @@ def test_a_ctrl_c_lost_in_a_finaliser_is_raised_again() -> None:
 
 @pytest.mark.slow
 def test_sigterm_during_extract_stops_workers_keeps_blocks_and_the_rerun_resumes(
-        world: World, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+        world: Inputs, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     args = (EXTRACT + " --block-frames 2").replace("--num-workers 0", "--num-workers 2")
     root = tmp_path / "cache"
     before = Snapshot.of(world.base)
@@ -530,7 +531,7 @@ def test_sigterm_during_extract_stops_workers_keeps_blocks_and_the_rerun_resumes
 
 @pytest.mark.slow
 def test_sigterm_during_fit_stops_workers_keeps_rows_and_the_rerun_resumes(
-        world: World, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+        world: Inputs, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     out = tmp_path / "results.parquet"
     args = (FIT.replace("--seed 0", "--seeds 2") + " --num-workers 2 --cache {cache}").format(**world.paths, out=out)
     before = Snapshot.of(world.base)

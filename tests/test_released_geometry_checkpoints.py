@@ -22,17 +22,17 @@ import pytest
 import torch
 from torch import nn
 
-from graftcache.backbones import load_backbone
-from graftcache.backbones.batches import TOKEN_MASK, TOKENS
-from graftcache.backbones.checkpoint import state_dict_sha256
-from graftcache.backbones.pool import BackbonePool
-from graftcache.backbones.released import (
+from devtools.released import (
     RANDOM_MARKER,
     build_pi05,
     build_smolvla,
     hub_cache,
     write_random_weights,
 )
+from graftcache.backbones import load_backbone
+from graftcache.backbones.batches import TOKEN_MASK, TOKENS
+from graftcache.backbones.checkpoint import state_dict_sha256
+from graftcache.backbones.pool import BackbonePool
 from graftcache.backbones.tiny_record import resolve_policy
 from graftcache.graft import GraftProjector, feature_key
 

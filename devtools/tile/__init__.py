@@ -9,6 +9,10 @@ writes metadata and low-dim rows only: each window's rows are the source rows of
 images, state and action stay consistent. Tasks are real LIBERO instructions (or the source's own), so
 `graftcache.datasets.suite_of` gives every episode the suite it was built for; the frames are the
 source's scenes, whatever the instruction says, so a tiled dataset is for measuring, not for fitting.
+
+A developer tool, not library code (benchmarks and tests build datasets with it): the command is
+`python -m devtools.tile SOURCE DEST (--preset libero | --episodes N) [--frames M] [--seed S]`
+(devtools/tile/cli.py), its flags built from TileRequest's `setting(...)` declarations as graftcache's own are.
 """
 
 from __future__ import annotations
@@ -27,11 +31,12 @@ import polars as pl
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from graftcache.checks import POSITIVE, SEED
 from graftcache.datasets.meta import DatasetMeta
 from graftcache.datasets.source import open_dataset
 from graftcache.datasets.suites import suite_tasks
-from graftcache.errors import DatasetError
-from graftcache.requests import TileRequest
+from graftcache.errors import DatasetError, GraftcacheError
+from graftcache.settings import Checked, setting
 
 #: lerobot/libero per suite: (episodes, frames). Spatial, libero_10 and the totals (1,693 / 273,465) are
 #: measured; object and goal frames are derived so that the suites add up to the total.
@@ -48,6 +53,29 @@ RECORD = "tile.json"
 _QUANTILES = {"q01": 0.01, "q10": 0.10, "q50": 0.50, "q90": 0.90, "q99": 0.99}
 _DATA_FILE = "data/chunk-000/file-000.parquet"
 _EPISODES_FILE = "meta/episodes/chunk-000/file-000.parquet"
+
+
+@dataclass(frozen=True)
+class TileRequest(Checked):
+    """What `python -m devtools.tile` builds: a dataset of `preset`'s dimensions, or of `episodes` episodes (and
+    `frames` frames; default: the source's mean length times `episodes`) over the source's tasks."""
+
+    source: str = setting(positional=True,
+                          help="v3.0 dataset with video cameras (folder or hub repo id in the local HF cache)")
+    dest: str = setting(positional=True, help="new dataset folder (must not exist)")
+    preset: str | None = setting(None, help="libero: 1,693 episodes, 273,465 frames in 4 suites")
+    episodes: int | None = setting(None, rule=POSITIVE, metavar="N",
+                                   help="N episodes over SOURCE's tasks (N = k x SOURCE's episodes for k times SOURCE)")
+    frames: int | None = setting(None, rule=POSITIVE, metavar="M",
+                                 help="frames in all, with --episodes (default: SOURCE's mean episode length x N)")
+    seed: int = setting(0, rule=SEED, help="seed of episode lengths and window positions")
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if (self.preset is None) == (self.episodes is None):
+            raise GraftcacheError("tile needs exactly one of preset and episodes")
+        if self.frames is not None and self.episodes is None:
+            raise GraftcacheError("frames goes with episodes (a preset fixes its own frame counts)")
 
 
 @dataclass(frozen=True)

@@ -5,6 +5,7 @@ them), an unchanged one passes."""
 from __future__ import annotations
 
 import json
+from functools import partial
 from importlib.metadata import version
 from pathlib import Path
 
@@ -14,6 +15,8 @@ import torch
 import transformers
 from helpers.backbones import tiny
 from helpers.datasets import Written
+from helpers.requests import extract_request
+from helpers.world import World
 from transformers.models.smolvlm import modeling_smolvlm
 
 import graftcache.extract
@@ -23,9 +26,9 @@ from graftcache.cli import main
 from graftcache.encoders import fingerprint as fp
 from graftcache.encoders import registry
 from graftcache.errors import NumericsError
-from graftcache.extract import ExtractRequest, extract
+from graftcache.extract import extract
 from graftcache.fit import run as run_module
-from graftcache.fit.run import FitRequest, Fitter
+from graftcache.fit.run import Fitter
 from graftcache.store import FeatureCache
 
 ENCODER = "timm:vit_tiny_patch16_224"  # a real ViT architecture, cheap on CPU
@@ -36,10 +39,8 @@ def _quiet(_: str) -> None:
     pass
 
 
-def _req(dataset: Path, cache: Path, **kw) -> ExtractRequest:
-    base = dict(dataset=str(dataset), encoder=ENCODER, grids=("2x2",), random_init=True, seed=0, num_workers=0,
-                batch_size=4, block_frames=4, cache=str(cache), progress=False, compute_dtype="fp32")
-    return ExtractRequest(**{**base, **kw})
+EXTRACT = {"grids": ("2x2",), "seed": 0, "batch_size": 4, "block_frames": 4, "compute_dtype": "fp32"}
+_req = partial(extract_request, encoder=ENCODER, **EXTRACT)
 
 
 def nudge(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -216,58 +217,41 @@ def test_pull_and_push_refuse_drift_unless_accepted(made: FeatureCache, tmp_path
 
 
 # ------------------------------------------------------------------------------------------------ fit
-class World:
-    """A tiny SmolVLA checkpoint and a timm cache of the same dataset; a fit reads nothing else."""
-
-    def __init__(self, root: Path, dataset: Written) -> None:
-        self.root, self.dataset = root, dataset
-        self.policy = root / "policy"
-        tiny("smolvla").save(self.policy)
-        self.cache = FeatureCache(extract(_req(dataset.root, root / "cache", grids=("4x4",)), log=_quiet).path)
-
-    def request(self, tmp: Path, **kw) -> FitRequest:
-        base = dict(backbone="smolvla", encoder=ENCODER, suite="libero_spatial", policy=str(self.policy),
-                    dataset=str(self.dataset.root), seeds=(0,), steps=1, batch_size=4, eval_fraction=0.5,
-                    eval_frames=2, num_denoise_steps=1, cache=str(self.cache.path.parent), progress=False,
-                    results=str(tmp / "results.parquet"), out=str(tmp / "runs"), command="pytest")
-        return FitRequest(**{**base, **kw})
-
-
 @pytest.fixture(scope="module")
 def world(v3_image: Written, tmp_path_factory: pytest.TempPathFactory) -> World:
-    return World(tmp_path_factory.mktemp("numerics_fit"), v3_image)
+    """A tiny SmolVLA checkpoint and a timm cache of the same dataset; a fit reads nothing else."""
+    return World(tmp_path_factory.mktemp("numerics_fit"), v3_image, encoder=ENCODER,
+                 extract_settings={**EXTRACT, "grids": ("4x4",)},
+                 fit={"steps": 1, "eval_frames": 2, "num_denoise_steps": 1})
 
 
 def _cli_fit(world: World, results_file: Path, *flags: str) -> int:
-    return main(["fit", "--backbone", "smolvla", "--policy", str(world.policy), "--encoder", ENCODER,
-                 "--suite", "libero_spatial", "--seed", "0", "--steps", "1", "--batch-size", "4",
-                 "--eval-fraction", "0.5", "--eval-frames", "2", "--num-denoise-steps", "1", "--no-progress",
-                 "--cache", str(world.cache.path.parent), "--results", str(results_file),
-                 "--out", str(results_file.parent / "runs"), *flags])
+    return main(world.fit_argv(results_file, "--out", str(results_file.parent / "runs"), *flags))
 
 
 def test_fit_refuses_drift_unless_accepted_and_records_it(world: World, tmp_path: Path, capsys: pytest.CaptureFixture,
                                                          monkeypatch: pytest.MonkeyPatch) -> None:
     nudge(monkeypatch)
     lines: list[str] = []
-    with pytest.raises(NumericsError, match=f"^cache {world.cache.key}: this environment computes different .*"
+    with pytest.raises(NumericsError, match=f"^cache {world.encoder_key}: this environment computes different .*"
                                             f"pass --accept-numerics-drift"):
-        Fitter(world.request(tmp_path), log=lines.append).run()
+        Fitter(world.request(under=tmp_path), log=lines.append).run()
     assert not (tmp_path / "results.parquet").exists() and not any(ln.startswith("cell ") for ln in lines)
     capsys.readouterr()
     assert _cli_fit(world, tmp_path / "r.parquet") == 2
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and err.startswith(f"graftcache fit: error: cache {world.cache.key}: this environment")
+    assert err.count("\n") == 1
+    assert err.startswith(f"graftcache fit: error: cache {world.encoder_key}: this environment")
     assert _cli_fit(world, tmp_path / "r.parquet", "--accept-numerics-drift") == 0
-    assert f"warning: cache {world.cache.key}: this environment" in capsys.readouterr().out
-    measured = fp.check_numerics(world.cache)
+    assert f"warning: cache {world.encoder_key}: this environment" in capsys.readouterr().out
+    measured = fp.check_numerics(world.encoder_cache)
     assert measured.status == "drift" and measured.drift > fp.TOLERANCE["fp32"]
     (row,) = results.read(tmp_path / "r.parquet").iter_rows(named=True)
     assert row["numerics_drift"] == pytest.approx(measured.drift, rel=1e-3)
 
 
 def test_fit_in_an_unchanged_environment_records_no_drift(world: World, tmp_path: Path) -> None:
-    (row,) = Fitter(world.request(tmp_path), log=_quiet).run()
+    (row,) = Fitter(world.request(under=tmp_path), log=_quiet).run()
     assert 0 <= row["numerics_drift"] <= fp.TOLERANCE["fp32"]
     assert results.read(tmp_path / "results.parquet")["numerics_drift"].to_list() == [row["numerics_drift"]]
 
@@ -278,16 +262,16 @@ def test_fitters_sharing_verdicts_probe_each_cache_once_and_each_enforces(world:
     real = run_module.check_numerics
     monkeypatch.setattr(run_module, "check_numerics", lambda cache, **kw: calls.append(cache.key) or real(cache, **kw))
     shared: dict = {}
-    Fitter(world.request(tmp_path / "a"), log=_quiet, numerics=shared).run()
-    Fitter(world.request(tmp_path / "b", seeds=(1,)), log=_quiet, numerics=shared).run()
-    assert calls == [world.cache.key] and shared[world.cache.key].status == "match"
+    Fitter(world.request(under=tmp_path / "a"), log=_quiet, numerics=shared).run()
+    Fitter(world.request(under=tmp_path / "b", seeds=(1,)), log=_quiet, numerics=shared).run()
+    assert calls == [world.encoder_key] and shared[world.encoder_key].status == "match"
     nudge(monkeypatch)
-    drifted = {world.cache.key: fp.check_numerics(world.cache)}
-    assert drifted[world.cache.key].status == "drift"
+    drifted = {world.encoder_key: fp.check_numerics(world.encoder_cache)}
+    assert drifted[world.encoder_key].status == "drift"
     for folder in ("c", "d"):  # a shared drift verdict is refused by every request that reads the cache
-        with pytest.raises(NumericsError, match=f"^cache {world.cache.key}: this environment computes different"):
-            Fitter(world.request(tmp_path / folder), log=_quiet, numerics=drifted).run()
-    assert calls == [world.cache.key]
+        with pytest.raises(NumericsError, match=f"^cache {world.encoder_key}: this environment computes different"):
+            Fitter(world.request(under=tmp_path / folder), log=_quiet, numerics=drifted).run()
+    assert calls == [world.encoder_key]
 
 
 # ------------------------------------------------------------------------------------------------ native towers

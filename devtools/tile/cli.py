@@ -1,21 +1,25 @@
-"""`graftcache tile`: a bigger LeRobot v3.0 dataset made of windows of a small one's frames (no encoding).
+"""`python -m devtools.tile`: a bigger LeRobot v3.0 dataset made of windows of a small one's frames (no encoding).
 
-A command rather than a benchmark script because anyone testing graftcache at scale without the real
-data needs it (sharded extraction, memory, LIBERO-sized runs), and benchmarks call the same function
-(graftcache.datasets.tile.tile) with the same request.
+Its flags come from TileRequest's `setting(...)` declarations through graftcache.cli.common.add_flag, as every
+graftcache command's do, so ranges and help are declared once; errors are one line and exit 2, as there.
 """
 
 from __future__ import annotations
 
 import argparse
+import sys
+from collections.abc import Sequence
 
+from devtools.tile import TileRequest, tile
 from graftcache.cli.common import add_flag, request_from
-from graftcache.requests import TileRequest
+from graftcache.errors import GraftcacheError
+
+PROG = "python -m devtools.tile"
 
 
-def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "tile", help="build a bigger v3.0 dataset (e.g. LIBERO-sized) from windows of a small one's videos",
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog=PROG,
         description="Write a LeRobot v3.0 dataset whose episodes are windows of SOURCE's frames: its mp4s are "
         "linked, not copied or re-encoded; each episode's state and action are the source rows of the same "
         "frames. Tasks are the four LIBERO suites' real instructions (--preset libero: lerobot/libero's episode "
@@ -28,14 +32,19 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     add_flag(what, TileRequest, "episodes")
     add_flag(p, TileRequest, "frames")
     add_flag(p, TileRequest, "seed")
-    p.set_defaults(func=run)
+    return p
 
 
-def run(args: argparse.Namespace) -> int:
+def main(argv: Sequence[str] | None = None) -> int:
+    """Build the dataset and print its episodes and frames per suite; a GraftcacheError is one line, exit 2."""
     from graftcache.datasets import open_dataset, suite_of
-    from graftcache.datasets.tile import tile
 
-    dest = tile(request_from(TileRequest, args))
+    args = build_parser().parse_args(argv)
+    try:
+        dest = tile(request_from(TileRequest, args))
+    except GraftcacheError as e:
+        print(f"{PROG}: error: {e}", file=sys.stderr)
+        return 2
     meta = open_dataset(dest).meta
     per_suite: dict[str, list[int]] = {}
     for ep in meta.episodes:
