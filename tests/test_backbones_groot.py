@@ -22,10 +22,10 @@ from helpers.backbones import (
     tiny,
 )
 
+from devtools.released import hub_cache, publish
 from graftcache.backbones import load_backbone
 from graftcache.backbones.checkpoint import state_dict_sha256
 from graftcache.backbones.groot import PADDED_ACTION, GrootAdapter, merged_grid
-from graftcache.backbones.released import hub_cache, publish
 from graftcache.errors import BackboneError
 from graftcache.graft import GraftProjector, feature_key
 

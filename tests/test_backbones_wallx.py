@@ -21,9 +21,9 @@ from helpers.backbones import (
     tiny,
 )
 
+from devtools.released import hub_cache, publish
 from graftcache.backbones import load_backbone
 from graftcache.backbones.checkpoint import state_dict_sha256
-from graftcache.backbones.released import hub_cache, publish
 from graftcache.backbones.wallx import GivenDraw, WallXAdapter
 from graftcache.errors import BackboneError
 from graftcache.graft import FusedProjector, GraftProjector, feature_key
