@@ -14,6 +14,7 @@ BACKBONES: dict[str, str] = {
     "pi0": "graftcache.backbones.pi0:PI0Adapter",
     "pi0_fast": "graftcache.backbones.pi0_fast:PI0FastAdapter",
     "eo1": "graftcache.backbones.eo1:EO1Adapter",
+    "vla_jepa": "graftcache.backbones.vla_jepa:VLAJEPAAdapter",
 }
 
 #: Approximate parameter counts of the released policies (lerobot's docs), for results tables written before rows
