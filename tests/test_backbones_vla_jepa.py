@@ -111,15 +111,22 @@ def test_loss_and_prediction_are_lerobots_under_the_same_draws() -> None:
         adapter.loss(batch, torch.zeros(3, 10, 8), 1 - t)
 
 
-def test_loss_masks_padded_steps_per_sample() -> None:
+def test_loss_masks_padded_steps_per_sample_and_ignores_batch_mates() -> None:
+    """Padded steps are masked per sample, and a sample's loss does not depend on the other prompts of its batch
+    (they set its left padding): what lets cells share a backbone pass (per_sample_loss)."""
     adapter = tiny("vla_jepa")
     adapter.policy.eval()
-    batch = adapter.prepare(raw_images(adapter, 3, size=SIZE))
+    raw = raw_images(adapter, 3, size=SIZE)
+    batch = adapter.prepare(raw)
     noise, time = fixed_noise_time(adapter, 3)
     with torch.no_grad():
         error = adapter._flow_losses(batch, noise, time)
         loss = adapter.loss(batch, noise, time)
+        alone = adapter.prepare({k: v[2:] for k, v in raw.items()})  # the shortest task: no padding alone
+        single = adapter.loss(alone, noise[2:], time[2:])
     torch.testing.assert_close(loss, torch.stack([error[0, :-3].mean(), error[1].mean(), error[2].mean()]))
+    assert adapter.per_sample_loss
+    torch.testing.assert_close(single, loss[2:], atol=1e-3, rtol=1e-2)  # Qwen runs under bf16 autocast
 
 
 def test_graft_fills_the_image_pads_with_projected_features_and_no_deepstack() -> None:

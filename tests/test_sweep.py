@@ -67,16 +67,16 @@ def test_shipped_recipes_parse(name: str, cells: int, rows: int) -> None:
 
 
 def test_zoo_recipe_names_every_backbone_by_a_hub_id() -> None:
-    """cli/zoo.toml (never run here: released policies only). Counted by hand: 6 backbones x 4 encoders x 2 suites
-    x 3 seeds x (plain + 6 controls) = 1008 cells; rows per (backbone, suite, seed): 4 encoders x (plain,
-    zero-image, shuffled-image, pool-4x4, lora) + native + native-graft = 22, x 6 x 2 x 3 = 792."""
+    """cli/zoo.toml (never run here: released policies only). Counted by hand: 7 backbones x 4 encoders x 2 suites
+    x 3 seeds x (plain + 6 controls) = 1176 cells; rows per (backbone, suite, seed): 4 encoders x (plain,
+    zero-image, shuffled-image, pool-4x4, lora) + native + native-graft = 22, x 7 x 2 x 3 = 924."""
     from graftcache.backbone_table import BACKBONES
 
     recipe = load_recipe(ROOT / "cli" / "zoo.toml")
     assert sorted(b.name for b in recipe.backbones) == sorted(BACKBONES)
     assert all(b.policy != "tiny" and b.policy.count("/") == 1 for b in recipe.backbones)
     assert {b.name: b.policy for b in recipe.backbones}["pi0_fast"] == "lerobot/pi0fast_base"
-    assert (recipe.n_fits, recipe.n_rows) == (1008, 792) and recipe.dataset == "lerobot/libero"
+    assert (recipe.n_fits, recipe.n_rows) == (1176, 924) and recipe.dataset == "lerobot/libero"
 
 
 def test_section_keys_are_fields_of_the_requests_they_override() -> None:
