@@ -26,6 +26,7 @@ from graftcache.backbones.checkpoint import state_dict_sha256
 from graftcache.backbones.released import hub_cache, publish
 from graftcache.backbones.vla_jepa import VLAJEPAAdapter, merged_grid
 from graftcache.errors import BackboneError
+from graftcache.fit.controls import IdentityProjector
 from graftcache.graft import GraftProjector, feature_key
 
 SIZE = 128  # the tiny policy's frames (train-tiny's size): 8x8 patches of 16 px -> 4x4 merged tokens
@@ -181,6 +182,34 @@ def test_native_control_reproduces_the_ungrafted_policy_without_deepstack() -> N
     with_deepstack, control = tiny("vla_jepa"), tiny("vla_jepa")
     with pytest.raises(AssertionError, match="not close"):
         assert_native_control_reproduces(with_deepstack, control, 3, size=SIZE)
+
+
+def test_resize_images_to_sets_the_grid_the_native_tower_and_the_grafted_prompt() -> None:
+    """A checkpoint with `resize_images_to` (converted VLA-JEPA checkpoints set the training resolution there):
+    `predict_action` resizes frames to it, so the native grid, the native tokens and the grafted prompt follow it
+    (96 px -> 6x6 patches -> 3x3 tokens in the tiny processor), and the grafted sampler does not resize features."""
+    native = tiny("vla_jepa")
+    native.config.resize_images_to = (96, 96)
+    native._vision_owner.deepstack_visual_indexes = []  # so the native control reproduces it exactly
+    assert native.native_grid == (3, 3)
+    raw = raw_images(native, 2, size=SIZE)
+    seen = []
+    qwen = native._qwen
+    hook = qwen.language_model.register_forward_pre_hook(
+        lambda m, args, kwargs: seen.append(kwargs["inputs_embeds"][kwargs["visual_pos_masks"]]), with_kwargs=True)
+    noise, _ = fixed_noise_time(native, 2)
+    chunk = native.predict(native.prepare(raw), noise)
+    hook.remove()
+    tokens = [native.native_tokens(raw[k]) for k in native.camera_keys]
+    assert tokens[0].shape == (2, 9, 64)
+    torch.testing.assert_close(seen[0].float(), torch.stack(tokens, dim=1).flatten(0, 2), atol=0.02, rtol=0.02)
+    control = tiny("vla_jepa")
+    control.config.resize_images_to = (96, 96)
+    control.graft(IdentityProjector(control.lm_width))
+    cached = {**{k: v for k, v in raw.items() if not k.startswith("observation.images.")},
+              **{feature_key(k): t for k, t in zip(native.camera_keys, tokens)}}
+    torch.testing.assert_close(control.predict(control.prepare(cached), noise), chunk)
+    assert control.config.resize_images_to == (96, 96)
 
 
 def test_lora_adapts_the_qwen_language_model_and_reset_restores_the_policy() -> None:

@@ -185,12 +185,14 @@ class VLAJEPAAdapter(BackboneAdapter):
 
     @classmethod
     def _grid_of_config(cls, config, marker: dict | None) -> tuple[int, int]:
-        """The merged grid of the first camera's frame (the dataset's size, as the config declares it) under the
-        Qwen folder's image processor."""
+        """The merged grid of the frames the policy's inference sees under the Qwen folder's image processor: the
+        first camera's size as the config declares it, or `resize_images_to` where set (`predict_action` resizes
+        to it; lerobot's training forward does not)."""
         cameras = list(config.image_features.values())
         if not cameras:
             raise BackboneError("vla_jepa config declares no camera")
-        return merged_grid(tuple(cameras[0].shape[-2:]), image_processor_config(cls._qwen_folder(config, marker)))
+        size = tuple(config.resize_images_to or cameras[0].shape[-2:])
+        return merged_grid(size, image_processor_config(cls._qwen_folder(config, marker)))
 
     @property
     def lm_width(self) -> int:
@@ -220,14 +222,17 @@ class VLAJEPAAdapter(BackboneAdapter):
                                                     pooler_output=torch.split(tokens, sizes), deepstack_features=[])
 
     def _vision(self, images: torch.Tensor):
-        """[B, 3, H, W] in [0, 1] through the policy's own processor call (float frames, no rescale) and Qwen's
-        own `get_image_features`, under the policy's autocast: its output for those images."""
+        """[B, 3, H, W] in [0, 1] through the policy's own inference path - `predict_action`'s resize to
+        `resize_images_to` where set, the processor call (float frames, no rescale), Qwen's own
+        `get_image_features` under the policy's autocast: its output for those images."""
         from lerobot.policies.vla_jepa.modeling_vla_jepa import _get_autocast_context
 
         if self.grafted:
             raise BackboneError(f"{self.name}: the native tower was removed by graft(); read it before grafting")
         if images.ndim != 4 or images.shape[1] != 3:
             raise BackboneError(f"{self.name}: native images must be [B, 3, H, W] in [0, 1], got {tuple(images.shape)}")
+        if self.config.resize_images_to is not None:
+            images = torch.nn.functional.interpolate(images, size=tuple(self.config.resize_images_to), mode="area")
         processor = self.policy.model.qwen.processor.image_processor
         inputs = processor(images=list(images.clamp(0, 1).float()), do_rescale=False, return_tensors="pt")
         thw = inputs["image_grid_thw"].to(self.device)
@@ -332,14 +337,19 @@ class VLAJEPAAdapter(BackboneAdapter):
 
     @torch.no_grad()
     def _predict_chunk(self, batch: Mapping[str, Any], noise: torch.Tensor, num_steps: int) -> torch.Tensor:
-        """`VLAJEPAPolicy.predict_action_chunk` from `noise` with `num_steps` Euler steps."""
-        head = self.policy.model.action_model
+        """`VLAJEPAPolicy.predict_action_chunk` from `noise` with `num_steps` Euler steps. Grafted, its resize to
+        `resize_images_to` is off for the call: it acts on frames, and the cached features are already at the
+        grid that resize gives (native_grid)."""
+        head, config = self.policy.model.action_model, self.config
         steps, head.num_inference_timesteps = head.num_inference_timesteps, int(num_steps)
+        resize = config.resize_images_to
+        if self.grafted:
+            config.resize_images_to = None
         try:
             with given_draws(head, noise):
                 return self.policy.predict_action_chunk(dict(batch))
         finally:
-            head.num_inference_timesteps = steps
+            head.num_inference_timesteps, config.resize_images_to = steps, resize
 
     # ------------------------------------------------------------------------------ reporting
     module_paths = {
