@@ -20,6 +20,7 @@ from helpers.backbones import (
     raw_images,
     tiny,
 )
+from helpers.memory import peak_tensor_bytes
 
 from graftcache.backbones import lean, load_backbone
 from graftcache.backbones.checkpoint import state_dict_sha256
@@ -210,6 +211,32 @@ def test_resize_images_to_sets_the_grid_the_native_tower_and_the_grafted_prompt(
               **{feature_key(k): t for k, t in zip(native.camera_keys, tokens)}}
     torch.testing.assert_close(control.predict(control.prepare(cached), noise), chunk)
     assert control.config.resize_images_to == (96, 96)
+
+
+def test_activation_checkpointing_keeps_the_projector_gradients_and_lowers_the_peak() -> None:
+    """Qwen's decoder layers and the DiT blocks recompute during backward: the same gradients, less memory held
+    by Qwen's forward and backward (measured as tensors alive at once, as tests/test_checkpointing.py measures the
+    other backbones; the tiny step's own peak is the processor's pass over the prompt's blank frames, before Qwen
+    runs: 31.5 MB either way at this batch, so Qwen is measured on its own, from the grafted prompt)."""
+    adapter = grafted("vla_jepa")
+    adapter.policy.train()
+    batch = adapter.prepare(raw_features(adapter, 8))
+    noise, time = fixed_noise_time(adapter, 8)
+    model = adapter.policy.model
+    inputs = adapter.policy._prepare_model_inputs(batch)
+    prompt = model.qwen.build_inputs(inputs["images"], inputs["instructions"], model.replace_prompt,
+                                     model.embodied_replace_prompt)
+    grads, peaks = {}, {}
+    for on in (False, True, False):  # off again: the switch restores the plain step, KV cache included
+        adapter.set_activation_checkpointing(on)
+        adapter.projector.zero_grad(set_to_none=True)
+        adapter.loss(batch, noise=noise, time=time).mean().backward()
+        grads[on] = [p.grad.clone() for p in adapter.projector.parameters()]
+        peaks[on] = peak_tensor_bytes(lambda: model._qwen_last_decoder_hidden(prompt).float().sum().backward())
+    assert adapter.can_checkpoint and adapter._qwen.language_model.config.use_cache
+    for plain, checkpointed in zip(grads[False], grads[True], strict=True):
+        torch.testing.assert_close(checkpointed, plain, rtol=0, atol=1e-6)
+    assert peaks[True] < 0.6 * peaks[False], peaks  # measured: 7.6 of 16.2 MB
 
 
 def test_lora_adapts_the_qwen_language_model_and_reset_restores_the_policy() -> None:

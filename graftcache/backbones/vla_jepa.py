@@ -37,6 +37,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import json
+import warnings
 from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
@@ -48,6 +49,7 @@ from graftcache.backbones.base import BackboneAdapter
 from graftcache.backbones.batches import ACTION, STATE
 from graftcache.backbones.checkpoint import cached_repo
 from graftcache.backbones.eo1 import shadowed
+from graftcache.backbones.recompute import WrappedCheckpointing
 from graftcache.backbones.tiny import TinySpec
 from graftcache.backbones.tiny_vla_jepa import QWEN3_VL_DIR, build_tiny_vla_jepa, construct
 from graftcache.errors import BackboneError
@@ -117,7 +119,7 @@ def given_draws(head: nn.Module, noise: torch.Tensor, time: torch.Tensor | None 
         action_head.torch = module_torch
 
 
-class VLAJEPAAdapter(BackboneAdapter):
+class VLAJEPAAdapter(WrappedCheckpointing, BackboneAdapter):
     name = "vla_jepa"
     vision_slots = ("blocks", "merger")
     steps_field = "num_inference_timesteps"
@@ -326,7 +328,9 @@ class VLAJEPAAdapter(BackboneAdapter):
         hook = model.action_model.action_decoder.register_forward_hook(lambda m, args, out: velocity.append(out))
         repeats, config.repeated_diffusion_steps = config.repeated_diffusion_steps, 1
         try:
-            with given_draws(model.action_model, noise, 1 - time):
+            with given_draws(model.action_model, noise, 1 - time), warnings.catch_warnings():
+                # lerobot asks CPU autocast for float32 around the head; torch declines (the head runs in fp32)
+                warnings.filterwarnings("ignore", "In CPU autocast, but the target dtype is not supported")
                 self.policy.forward(dict(batch))
         finally:
             hook.remove()
@@ -350,6 +354,24 @@ class VLAJEPAAdapter(BackboneAdapter):
                 return self.policy.predict_action_chunk(dict(batch))
         finally:
             head.num_inference_timesteps, config.resize_images_to = steps, resize
+
+    def _switch_checkpointing(self, on: bool) -> None:
+        """The wrapped layers, and Qwen's KV cache off meanwhile (as transformers turns it off under its own
+        checkpointing): a recomputed layer would append its keys and values to the cache a second time. The
+        policy's single forward never reads that cache."""
+        super()._switch_checkpointing(on)
+        config = self._qwen.language_model.config
+        if on:
+            self._use_cache, config.use_cache = config.use_cache, False
+        else:
+            config.use_cache = self._use_cache
+
+    def _checkpoint_slots(self) -> Iterator[tuple[nn.Module, str]]:
+        """Every decoder layer of the Qwen3 LM and every block of the DiT action head."""
+        for layer in self._qwen.language_model.layers:
+            yield layer, "forward"
+        for block in self.policy.model.action_model.model.transformer_blocks:
+            yield block, "forward"
 
     # ------------------------------------------------------------------------------ reporting
     module_paths = {
