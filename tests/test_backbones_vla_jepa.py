@@ -283,7 +283,8 @@ def test_missing_qwen_folder_is_one_line(tmp_path, monkeypatch: pytest.MonkeyPat
     config = json.loads((folder / "config.json").read_text())
     (folder / "config.json").write_text(json.dumps({**config, "qwen_model_name": "Qwen/Qwen3-VL-2B-Instruct"}))
     monkeypatch.setenv("HF_HUB_CACHE", str(tmp_path / "empty"))
-    with pytest.raises(BackboneError, match="VLA-JEPA's Qwen3-VL processor 'Qwen/Qwen3-VL-2B-Instruct' is neither"):
+    with pytest.raises(BackboneError, match="VLA-JEPA's Qwen3-VL config and processor 'Qwen/Qwen3-VL-2B-Instruct' "
+                                            "is neither a local folder nor in the Hugging Face cache"):
         load_backbone("vla_jepa", folder)
 
 

@@ -55,7 +55,7 @@ from graftcache.backbones.tiny_vla_jepa import QWEN3_VL_DIR, build_tiny_vla_jepa
 from graftcache.errors import BackboneError
 from graftcache.graft import feature_key
 
-QWEN_MODEL = "Qwen3-VL processor"
+QWEN_MODEL = "Qwen3-VL config and processor"
 
 
 def merged_grid(size: tuple[int, int], processor: Mapping[str, Any]) -> tuple[int, int]:
