@@ -17,6 +17,7 @@ BACKBONES: dict[str, str] = {
     "evo1": "graftcache.backbones.evo1:Evo1Adapter",
     "groot": "graftcache.backbones.groot:GrootAdapter",
     "wall_x": "graftcache.backbones.wallx:WallXAdapter",
+    "vla_jepa": "graftcache.backbones.vla_jepa:VLAJEPAAdapter",
 }
 
 #: Approximate parameter counts of the released policies (lerobot's docs), for results tables written before rows

@@ -29,7 +29,7 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")  # tests/fixtures/torch
 
 NAMES = ("smolvla", "pi05", "pi0", "pi0_fast")
 FLOW = ("smolvla", "pi05", "pi0")
-ZOO = ("xvla", "eo1", "evo1", "groot", "wall_x")  # tested in their own files (tests/test_backbones_<name>.py)
+ZOO = ("xvla", "eo1", "evo1", "groot", "wall_x", "vla_jepa")  # tested in tests/test_backbones_<name>.py
 
 
 def test_registry_maps_names_to_adapters() -> None:

@@ -22,11 +22,11 @@ CONTROLS = ("native", "native-graft", "zero-image", "shuffled-image", "pool-2x2"
 SUBSET = ["--dataset", str(SAMPLE), "--episodes", "0-3", "--frame-stride", "8", "--num-workers", "0",
           "--batch-size", "16", "--no-progress"]
 #: backbone -> (native token grid, the tower's own grid before its connector, post-connector tokens per camera, LM
-#: width) of its tiny configuration (the Qwen ViTs of EO-1, GR00T and Wall-X, and EVO1's InternViT: 8x8 patches,
-#: merged 2x2 by their connectors)
+#: width) of its tiny configuration (the Qwen ViTs of EO-1, GR00T, Wall-X and VLA-JEPA, and EVO1's InternViT: 8x8
+#: patches, merged 2x2 by their connectors)
 TINY = {"xvla": ((4, 4), (4, 4), 17, 64), "pi0": ((4, 4), (4, 4), 16, 128), "pi0_fast": ((4, 4), (4, 4), 16, 128),
         "eo1": ((4, 4), (8, 8), 16, 64), "evo1": ((4, 4), (8, 8), 16, 64), "groot": ((4, 4), (8, 8), 16, 64),
-        "wall_x": ((4, 4), (8, 8), 16, 64)}
+        "wall_x": ((4, 4), (8, 8), 16, 64), "vla_jepa": ((4, 4), (8, 8), 16, 64)}
 
 
 @pytest.mark.slow  # ~1-2 min per backbone on 2 cores: 1 native step, two small extractions, 7 tiny fits

@@ -1,0 +1,179 @@
+"""Tiny and released VLA-JEPA configurations (lerobot 0.6 `VLAJEPAConfig`: Qwen3-VL + a DiT flow head), buildable
+offline.
+
+lerobot's `Qwen3VLInterface` builds its VLM with `Qwen3VLForConditionalGeneration.from_pretrained(qwen_model_name)`
+(weights and all, from the hub) and its processor with `AutoProcessor.from_pretrained(qwen_model_name)`. `construct`
+rebinds the first name in lerobot's qwen_interface module, for the time of the constructor, to a loader that
+builds the model from the folder's config.json alone (`_from_config`: the policy checkpoint holds the weights),
+so a Qwen folder - the tiny one shipped under graftcache/resources/tiny/qwen3_vl/, or Qwen/Qwen3-VL-2B-Instruct's
+snapshot in the HF cache - is read through one code path. The tiny folder is generated once by
+`python -m graftcache.backbones.tiny_vla_jepa` (like tiny_assets.py's): a byte-level BPE tokenizer with Qwen's chat
+and vision tokens, Qwen3-VL's chat template (no default system turn), Qwen2-VL's image processor at Qwen3-VL's
+patch 16 / merge 2 / mean-std 0.5, and the tiny Qwen3-VL config.
+
+The world model (V-JEPA2 encoder `jepa_encoder_name` + `ActionConditionedVideoPredictor`) is a training-only
+auxiliary loss on future video frames; inference never runs it. `construct` builds the policy with
+`enable_world_model=False`: the prompt is the same (its action-token count comes from `jepa_tubelet_size`, which
+must match the encoder's), the world-model weights of a checkpoint are simply not read.
+
+- tiny: vision 32 wide x 2 blocks (deepstack after block 0, as the released tower injects three), merger into a
+  Qwen3 text model 64 wide x 2 layers (4 heads, 2 KV heads, vocabulary 1088 >= the tokenizer's 773 + 41 action
+  tokens); DiT-test action head (2 heads x 8) x 2 layers; pixels bounded to 4..16 x 32*32, so a 128 px frame ->
+  8x8 patches -> 2x2 merge -> 4x4 = 16 tokens per camera.
+- released (lerobot/VLA-JEPA-LIBERO on Qwen/Qwen3-VL-2B-Instruct): vision 1024 wide x 24 blocks (deepstack after
+  5, 11, 17), merger into the 2048-wide, 28-layer text model; Qwen3-VL's processor bounds (65536 .. 16777216
+  pixels): 256 px -> 16x16 patches -> 8x8 = 64 tokens per camera; DiT-B x 16 layers; lerobot's defaults otherwise.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+from collections.abc import Iterator
+from pathlib import Path
+
+import torch
+
+from graftcache.backbones.tiny import TinySpec, _action_features, _require_stats, _visual_features
+from graftcache.backbones.tiny_assets import TINY_ROOT, _train_bpe
+from graftcache.backbones.tiny_eo1 import QWEN_SPECIALS
+
+QWEN3_VL_DIR = TINY_ROOT / "qwen3_vl"
+TINY_IMAGE_SIZE = 128  # what train-tiny resizes frames to (requests.TinyTrainConfig.image_size)
+FACTOR = 32  # patch 16 x merge 2
+#: Qwen3-VL's chat template, reduced to what a VLA prompt uses: no default system turn, images as
+#: vision_start/image_pad/vision_end, the assistant turn opened by add_generation_prompt.
+CHAT_TEMPLATE = (
+    "{% for message in messages %}<|im_start|>{{ message['role'] }}\n"
+    "{% if message['content'] is string %}{{ message['content'] }}{% else %}"
+    "{% for content in message['content'] %}"
+    "{% if content['type'] == 'image' or 'image' in content %}<|vision_start|><|image_pad|><|vision_end|>"
+    "{% elif content['type'] == 'video' or 'video' in content %}<|vision_start|><|video_pad|><|vision_end|>"
+    "{% elif 'text' in content %}{{ content['text'] }}{% endif %}{% endfor %}{% endif %}<|im_end|>\n"
+    "{% endfor %}{% if add_generation_prompt %}<|im_start|>assistant\n{% endif %}"
+)
+TINY_QWEN3 = {
+    "vision_config": {"depth": 2, "hidden_size": 32, "intermediate_size": 64, "num_heads": 2, "in_channels": 3,
+                      "out_hidden_size": 64, "patch_size": 16, "spatial_merge_size": 2, "temporal_patch_size": 2,
+                      "num_position_embeddings": 64, "deepstack_visual_indexes": [0]},
+    "text_config": {"hidden_size": 64, "intermediate_size": 128, "num_hidden_layers": 2, "num_attention_heads": 4,
+                    "num_key_value_heads": 2, "head_dim": 16, "vocab_size": 1088, "max_position_embeddings": 1024,
+                    "rope_parameters": {"rope_type": "default", "mrope_section": [4, 2, 2], "mrope_interleaved": True,
+                                        "rope_theta": 10000.0},
+                    "tie_word_embeddings": True},
+    "tie_word_embeddings": True,
+}
+#: Qwen/Qwen3-VL-2B-Instruct's config.json (the fields that set the geometry; the rest are transformers' defaults).
+QWEN3_VL_2B = {
+    "vision_config": {"depth": 24, "hidden_size": 1024, "intermediate_size": 4096, "num_heads": 16, "in_channels": 3,
+                      "out_hidden_size": 2048, "patch_size": 16, "spatial_merge_size": 2, "temporal_patch_size": 2,
+                      "num_position_embeddings": 2304, "deepstack_visual_indexes": [5, 11, 17],
+                      "hidden_act": "gelu_pytorch_tanh"},
+    "text_config": {"hidden_size": 2048, "intermediate_size": 6144, "num_hidden_layers": 28,
+                    "num_attention_heads": 16, "num_key_value_heads": 8, "head_dim": 128, "vocab_size": 151936,
+                    "max_position_embeddings": 262144, "tie_word_embeddings": True, "dtype": "bfloat16",
+                    "rope_parameters": {"rope_type": "default", "mrope_section": [24, 20, 20],
+                                        "mrope_interleaved": True, "rope_theta": 5000000.0}},
+    "tie_word_embeddings": True, "dtype": "bfloat16", "image_token_id": 151655, "video_token_id": 151656,
+    "vision_start_token_id": 151652, "vision_end_token_id": 151653,
+}
+#: Qwen/Qwen3-VL-2B-Instruct's preprocessor_config.json pixel bounds (size.shortest_edge / longest_edge).
+QWEN3_VL_PIXELS = (65536, 16777216)
+
+
+def write_qwen3_vl(out: Path = QWEN3_VL_DIR) -> Path:
+    """Write the tiny Qwen3-VL folder (config, tokenizer, chat template, image/video processors)."""
+    from transformers import PreTrainedTokenizerFast, Qwen3VLConfig, Qwen3VLProcessor
+    from transformers.models.qwen2_vl import Qwen2VLImageProcessor
+    from transformers.models.qwen3_vl.video_processing_qwen3_vl import Qwen3VLVideoProcessor
+
+    tok = PreTrainedTokenizerFast(tokenizer_object=_train_bpe(QWEN_SPECIALS), eos_token="<|im_end|>",
+                                  pad_token="<|endoftext|>", unk_token="<|endoftext|>")
+    images = Qwen2VLImageProcessor(patch_size=16, merge_size=2, temporal_patch_size=2, min_pixels=4 * FACTOR ** 2,
+                                   max_pixels=16 * FACTOR ** 2, image_mean=[0.5] * 3, image_std=[0.5] * 3)
+    out.mkdir(parents=True, exist_ok=True)
+    Qwen3VLProcessor(image_processor=images, tokenizer=tok, video_processor=Qwen3VLVideoProcessor(),
+                     chat_template=CHAT_TEMPLATE).save_pretrained(out)
+    ids = {name: tok.convert_tokens_to_ids(t) for name, t in (
+        ("image_token_id", "<|image_pad|>"), ("video_token_id", "<|video_pad|>"),
+        ("vision_start_token_id", "<|vision_start|>"), ("vision_end_token_id", "<|vision_end|>"))}
+    Qwen3VLConfig(**TINY_QWEN3, **ids).save_pretrained(out)
+    return out
+
+
+@contextlib.contextmanager
+def qwen_from_config(qwen_config=None) -> Iterator[None]:
+    """lerobot's `Qwen3VLInterface` with its VLM built from a config instead of downloaded weights: from
+    `qwen_config` when given, else from the config.json of the folder it names."""
+    from lerobot.policies.vla_jepa import qwen_interface
+
+    real = qwen_interface.Qwen3VLForConditionalGeneration
+
+    class FromConfig:
+        @staticmethod
+        def from_pretrained(name: str, torch_dtype: torch.dtype | None = None, **_: object):
+            from transformers import AutoConfig
+
+            config = qwen_config if qwen_config is not None else AutoConfig.from_pretrained(name)
+            return real._from_config(config, dtype=torch_dtype)
+
+    qwen_interface.Qwen3VLForConditionalGeneration = FromConfig
+    try:
+        yield
+    finally:
+        qwen_interface.Qwen3VLForConditionalGeneration = real
+
+
+def construct(config, folder: Path, qwen_config=None):
+    """VLAJEPAPolicy(config) without its world model, its Qwen3-VL built from `qwen_config` or `folder`'s config
+    and its processor read from `folder` (the config keeps the Qwen name it had)."""
+    from lerobot.policies.vla_jepa.modeling_vla_jepa import VLAJEPAPolicy
+
+    config.enable_world_model = False
+    saved, config.qwen_model_name = config.qwen_model_name, str(folder)
+    try:
+        with qwen_from_config(qwen_config):
+            return VLAJEPAPolicy(config)
+    finally:
+        config.qwen_model_name = saved
+
+
+def _config(spec: TinySpec, image_size: int, qwen: str, device: str, **kwargs):
+    from lerobot.policies.vla_jepa.configuration_vla_jepa import VLAJEPAConfig
+
+    return VLAJEPAConfig(qwen_model_name=qwen, enable_world_model=False, device=device,
+                         input_features=_visual_features(spec, image_size), output_features=_action_features(spec),
+                         action_dim=spec.action_dim, state_dim=spec.state_dim, **kwargs)
+
+
+def vla_jepa_tiny_config(spec: TinySpec, device: str, image_size: int = TINY_IMAGE_SIZE):
+    """Tiny VLA-JEPA at the dataset's `image_size` (the tiny processor bounds it to 4x4 merged tokens)."""
+    return _config(spec, image_size, str(QWEN3_VL_DIR), device, torch_dtype="float32", action_model_type="DiT-test",
+                   action_num_layers=2, action_hidden_size=32, action_dropout=0.0,
+                   num_embodied_action_tokens_per_instruction=4, num_action_tokens_per_timestep=2,
+                   chunk_size=spec.chunk_size, n_action_steps=spec.chunk_size, num_inference_timesteps=spec.num_steps)
+
+
+def vla_jepa_released_config(cameras: tuple[str, ...], image_size: int, state_dim: int, action_dim: int,
+                             device: str):
+    """lerobot/VLA-JEPA-LIBERO's geometry for a dataset: Qwen/Qwen3-VL-2B-Instruct, DiT-B x 16 layers, chunk 7,
+    32 embodied-action tokens, 4 denoising steps (lerobot's defaults, which the port set from the checkpoints)."""
+    spec = TinySpec(cameras=cameras, state_dim=state_dim, action_dim=action_dim)
+    return _config(spec, image_size, "Qwen/Qwen3-VL-2B-Instruct", device)
+
+
+def build_tiny_vla_jepa(spec: TinySpec, stats: dict | None, device: str):
+    """Random-init tiny VLA-JEPA + its lerobot pre/post processors (deterministic for `spec.seed`)."""
+    from lerobot.policies.vla_jepa.processor_vla_jepa import make_vla_jepa_pre_post_processors
+
+    config = vla_jepa_tiny_config(spec, device)
+    with torch.random.fork_rng(devices=[]), contextlib.redirect_stdout(io.StringIO()):
+        torch.manual_seed(spec.seed)
+        policy = construct(config, QWEN3_VL_DIR)
+    pre, post = make_vla_jepa_pre_post_processors(config, dataset_stats=_require_stats(stats))
+    return policy.to(device), pre, post
+
+
+if __name__ == "__main__":
+    folder = write_qwen3_vl()
+    print(folder, sorted(p.name for p in folder.iterdir()))

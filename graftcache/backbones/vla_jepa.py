@@ -1,0 +1,382 @@
+"""VLA-JEPA (lerobot 0.6: Qwen3-VL-2B + a DiT flow-matching action head, a JEPA world model in training) as a
+graftable backbone.
+
+What runs when (modeling_vla_jepa.py): the policy builds one Qwen3-VL chat prompt per sample - every camera's
+current frame as an image, then the task, 24 world-model action tokens and 32 embodied-action tokens - and takes
+the last decoder layer's hidden states (before the final norm) at those tokens. The DiT action head
+cross-attends to the embodied-action states and is trained by flow matching (`action_loss`, the velocity MSE over
+the real action steps, repeated over 8 noise draws per sample); inference integrates it from noise in 4 Euler steps.
+The world model - a frozen V-JEPA2 video encoder and an action-conditioned predictor fed the action-token states -
+only adds `0.1 * wm_loss` (L1 on the next V-JEPA2 frame embeddings of an 8-frame clip) in training; inference never
+runs it. graftcache builds the policy without it (graftcache.backbones.tiny_vla_jepa.construct): the fit's objective
+is the policy's own action loss, `action_loss`, with one noise draw per sample and step (the 8 repeats are a variance
+reduction of the same expectation; graftcache's steps draw their own noise), and the world-model term, which needs
+future video the cache does not hold and a second 300M-parameter encoder, is left out.
+
+Vision path (transformers qwen3_vl): Qwen's processor resizes each frame (`smart_resize`: multiples of 32 between
+its min and max pixels), cuts 16 px patches ordered by 2x2 merge block, and writes one `<|image_pad|>` per merged
+block. `Qwen3VLModel.get_image_features` runs the ViT (`visual.blocks`) and its `merger` (LayerNorm, 2x2 concat,
+MLP into the LM width) and scatters the tokens into the image pads, camera after camera; three `deepstack` mergers
+also add features of blocks 5, 11 and 17 to the hidden states of the first three LM layers at those positions.
+Tokens per camera: LIBERO's 256 px -> 16x16 patches -> 8x8 = 64 with Qwen3-VL-2B's processor bounds.
+
+Graft slots: the image-pad positions, every camera. The tower (`visual.blocks`) becomes the pass-through and the
+merger the projector; Qwen's `get_image_features` is shadowed on the instance so that, grafted, it projects the
+cached features, with no deepstack features (a grafted encoder replaces the whole tower, side paths included; the
+`native` control therefore differs from the ungrafted policy by exactly those deepstack additions, which the tests
+pin). The prompt is the policy's own, built by its own `build_inputs` from blank frames of the grid's size, so pad
+positions, M-RoPE positions and masks are the policy's; the cached features then stand in for `pixel_values`.
+
+The head draws its noise with `torch.randn_like` / `torch.randn` and its time with `sample_time`; `loss` and
+`predict` run lerobot's own code with those draws given (`given_draws`). graftcache's flow time is the noise
+fraction (lerobot's pi0 convention: Beta(1.5, 1)); VLA-JEPA's t is the clean fraction, so t = 1 - time.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import json
+import warnings
+from collections.abc import Iterable, Iterator, Mapping
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import nn
+
+from graftcache.backbones.base import BackboneAdapter
+from graftcache.backbones.batches import ACTION, STATE
+from graftcache.backbones.checkpoint import cached_repo
+from graftcache.backbones.eo1 import shadowed
+from graftcache.backbones.recompute import WrappedCheckpointing
+from graftcache.backbones.tiny import TinySpec
+from graftcache.backbones.tiny_vla_jepa import QWEN3_VL_DIR, build_tiny_vla_jepa, construct
+from graftcache.errors import BackboneError
+from graftcache.graft import feature_key
+
+QWEN_MODEL = "Qwen3-VL config and processor"
+
+
+def merged_grid(size: tuple[int, int], processor: Mapping[str, Any]) -> tuple[int, int]:
+    """The merged token grid Qwen's image processor (its saved config: patch and merge size, pixel bounds) gives
+    an image of `size`."""
+    from transformers.models.qwen2_vl.image_processing_qwen2_vl import smart_resize
+
+    factor = processor["patch_size"] * processor["merge_size"]
+    bounds = processor["size"]
+    h, w = smart_resize(size[0], size[1], factor=factor, min_pixels=bounds["shortest_edge"],
+                        max_pixels=bounds["longest_edge"])
+    return h // factor, w // factor
+
+
+def image_processor_config(folder: Path) -> dict:
+    """The image processor's saved settings in a Qwen folder: preprocessor_config.json (the hub's layout) or the
+    `image_processor` entry of processor_config.json (what transformers 5 saves)."""
+    for name, key in (("preprocessor_config.json", None), ("processor_config.json", "image_processor")):
+        path = folder / name
+        if path.is_file():
+            data = json.loads(path.read_text())
+            data = data.get(key, {}) if key else data
+            if "size" in data:
+                return data
+    raise BackboneError(f"{folder}: no Qwen image processor config (preprocessor_config.json or processor_config.json)")
+
+
+class TorchWithDraws:
+    """lerobot's action_head module sees this in place of `torch` while a draw is given: `randn_like` / `randn`
+    return the given noise (refused if its shape is not the one asked for), everything else is torch's."""
+
+    def __init__(self, noise: torch.Tensor) -> None:
+        self._noise = noise
+
+    def _given(self, shape: tuple[int, ...], device, dtype) -> torch.Tensor:
+        if tuple(shape) != tuple(self._noise.shape):
+            raise BackboneError(f"vla_jepa: noise of shape {tuple(self._noise.shape)} given, {tuple(shape)} drawn")
+        return self._noise.to(device=device, dtype=dtype)
+
+    def randn_like(self, like: torch.Tensor, **_: object) -> torch.Tensor:
+        return self._given(like.shape, like.device, like.dtype)
+
+    def randn(self, *size: int, dtype=None, device=None, **_: object) -> torch.Tensor:
+        return self._given(size, device, dtype)
+
+    def __getattr__(self, name: str):
+        return getattr(torch, name)
+
+
+@contextlib.contextmanager
+def given_draws(head: nn.Module, noise: torch.Tensor, time: torch.Tensor | None = None) -> Iterator[None]:
+    """The action head's noise (and, given, its time t) fixed for the block."""
+    from lerobot.policies.vla_jepa import action_head
+
+    module_torch, action_head.torch = action_head.torch, TorchWithDraws(noise)
+    samplers = {} if time is None else {"sample_time": lambda size, device, dtype: time.to(device, dtype)}
+    try:
+        with shadowed(head, **samplers):
+            yield
+    finally:
+        action_head.torch = module_torch
+
+
+class VLAJEPAAdapter(WrappedCheckpointing, BackboneAdapter):
+    name = "vla_jepa"
+    vision_slots = ("blocks", "merger")
+    steps_field = "num_inference_timesteps"
+    image_method = "_prepare_model_inputs"
+    token_steps = ()  # the prompt is tokenised inside the model (Qwen3VLInterface.build_inputs)
+    prompt_uses_state = True  # so prepare() runs lerobot's preprocessor as it is, task strings and all
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        qwen = self._qwen
+        qwen.get_image_features = functools.partial(self._image_features, type(qwen).get_image_features, qwen)
+        interface = self.policy.model.qwen
+        interface.build_inputs = functools.partial(self._build_inputs, type(interface).build_inputs, interface)
+
+    # ------------------------------------------------------------------------------ construction
+    @classmethod
+    def _build_tiny(cls, spec: TinySpec, stats: dict | None, device: str):
+        policy, pre, post = build_tiny_vla_jepa(spec, stats, device)
+        return policy, pre, post, {"backbone": cls.name, "geometry": None}
+
+    @classmethod
+    def _construct(cls, config, marker: dict | None) -> nn.Module:
+        """VLAJEPAPolicy without its world model, Qwen3-VL built from the Qwen folder's config (the checkpoint
+        holds the weights). Built on the meta device, the LM head comes out untied from the word embedding: tied
+        again, as transformers ties it, so the policy holds (and counts) that tensor once."""
+        policy = construct(config, cls._qwen_folder(config, marker))
+        policy.model.qwen.model.tie_weights()
+        return policy
+
+    @classmethod
+    def _checkpoint_keys(cls, policy: nn.Module, file_keys: Iterable[str]) -> dict[str, str]:
+        """Qwen3-VL-2B ties its LM head to the word embedding; safetensors keeps one of the two names: read the
+        other from it."""
+        keys = {k: k for k in file_keys}
+        head, embed = "model.qwen.model.lm_head.weight", "model.qwen.model.model.language_model.embed_tokens.weight"
+        for a, b in ((head, embed), (embed, head)):
+            if a in keys and b not in keys:
+                keys[b] = keys[a]
+        return keys
+
+    @classmethod
+    def _qwen_folder(cls, config, marker: dict | None) -> Path:
+        """The Qwen3-VL folder (config, processor): the shipped tiny one (a tiny checkpoint's saved path points into
+        the package that saved it), a local folder, or `qwen_model_name`'s snapshot in the local HF cache."""
+        if marker is not None:
+            return QWEN3_VL_DIR
+        if Path(config.qwen_model_name).is_dir():
+            return Path(config.qwen_model_name)
+        return cached_repo(config.qwen_model_name, f"VLA-JEPA's {QWEN_MODEL}")
+
+    @classmethod
+    def _make_processors(cls, config, stats: dict, marker: dict | None):
+        from lerobot.policies.vla_jepa.processor_vla_jepa import make_vla_jepa_pre_post_processors
+
+        return make_vla_jepa_pre_post_processors(config, dataset_stats=stats)
+
+    # ------------------------------------------------------------------------------ geometry
+    @property
+    def _qwen(self) -> nn.Module:
+        return self.policy.model.qwen.model.model  # Qwen3VLModel
+
+    @property
+    def _vision_owner(self) -> nn.Module:
+        return self._qwen.visual  # Qwen3VLVisionModel
+
+    @classmethod
+    def _grid_of_config(cls, config, marker: dict | None) -> tuple[int, int]:
+        """The merged grid of the frames the policy's inference sees under the Qwen folder's image processor: the
+        first camera's size as the config declares it, or `resize_images_to` where set (`predict_action` resizes
+        to it; lerobot's training forward does not)."""
+        cameras = list(config.image_features.values())
+        if not cameras:
+            raise BackboneError("vla_jepa config declares no camera")
+        size = tuple(config.resize_images_to or cameras[0].shape[-2:])
+        return merged_grid(size, image_processor_config(cls._qwen_folder(config, marker)))
+
+    @property
+    def lm_width(self) -> int:
+        return self._qwen.config.text_config.hidden_size
+
+    @property
+    def embed_scale(self) -> float:
+        return 1.0
+
+    @property
+    def max_action_dim(self) -> int:
+        """VLA-JEPA's head works in the real action width (no padding)."""
+        return self.action_dim
+
+    # ------------------------------------------------------------------------------ images
+    def _image_features(self, own, qwen: nn.Module, pixel_values: torch.Tensor, image_grid_thw=None, **kwargs):
+        """Qwen's `get_image_features`, or grafted: the cached features [images x tokens, C] through the
+        pass-through and the projector, split per image as Qwen splits them, and no deepstack features."""
+        from transformers.models.qwen3_vl.modeling_qwen3_vl import BaseModelOutputWithDeepstackFeatures
+
+        if not self.grafted:
+            return own(qwen, pixel_values, image_grid_thw, **kwargs)
+        tower, connector = self._tower_and_connector()
+        tokens = connector(tower(pixel_values).last_hidden_state)
+        sizes = (image_grid_thw.prod(-1) // qwen.visual.spatial_merge_size ** 2).tolist()
+        return BaseModelOutputWithDeepstackFeatures(last_hidden_state=pixel_values,
+                                                    pooler_output=torch.split(tokens, sizes), deepstack_features=[])
+
+    def _vision(self, images: torch.Tensor):
+        """[B, 3, H, W] in [0, 1] through the policy's own inference path - `predict_action`'s resize to
+        `resize_images_to` where set, the processor call (float frames, no rescale), Qwen's own
+        `get_image_features` under the policy's autocast: its output for those images."""
+        from lerobot.policies.vla_jepa.modeling_vla_jepa import _get_autocast_context
+
+        if self.grafted:
+            raise BackboneError(f"{self.name}: the native tower was removed by graft(); read it before grafting")
+        if images.ndim != 4 or images.shape[1] != 3:
+            raise BackboneError(f"{self.name}: native images must be [B, 3, H, W] in [0, 1], got {tuple(images.shape)}")
+        if self.config.resize_images_to is not None:
+            images = torch.nn.functional.interpolate(images, size=tuple(self.config.resize_images_to), mode="area")
+        processor = self.policy.model.qwen.processor.image_processor
+        inputs = processor(images=list(images.clamp(0, 1).float()), do_rescale=False, return_tensors="pt")
+        thw = inputs["image_grid_thw"].to(self.device)
+        with _get_autocast_context(self.device.type, torch.bfloat16):
+            out = type(self._qwen).get_image_features(self._qwen, inputs["pixel_values"].to(self.device), thw)
+        return out, thw
+
+    @torch.no_grad()
+    def native_patch_grid(self, images: torch.Tensor) -> torch.Tensor:
+        """The ViT's last block before the merger, [B, gh, gw, C] at patch resolution (2x the merged grid), in
+        raster order (Qwen orders patches by 2x2 merge block)."""
+        out, thw = self._vision(images)
+        m = self._vision_owner.spatial_merge_size
+        _, gh, gw = thw[0].tolist()
+        hidden = out.last_hidden_state
+        grid = hidden.view(len(images), gh // m, gw // m, m, m, -1).permute(0, 1, 3, 2, 4, 5)
+        return grid.reshape(len(images), gh, gw, -1).float()
+
+    @torch.no_grad()
+    def native_tokens(self, images: torch.Tensor) -> torch.Tensor:
+        """Post-merger tokens [B, gh/2 * gw/2, D], in the order Qwen scatters them into the prompt."""
+        out, _ = self._vision(images)
+        return torch.stack(out.pooler_output).float()
+
+    def _feature_images(self, batch: Mapping[str, Any], training: bool = True) -> dict[str, Any]:
+        """Grafted stand-in for VLAJEPAPolicy._prepare_model_inputs: lerobot's own conversion (state, actions,
+        tasks) with 1-pixel blank frames for the cameras, then each sample's cached features [T, C], camera after
+        camera, in place of its images (the grafted `build_inputs` makes the prompt from them)."""
+        images, _ = super()._feature_images(batch)
+        counts = {f.shape[1] for f in images}
+        if len(counts) != 1:
+            raise BackboneError(f"{self.name}: cameras carry different token counts ({sorted(counts)})")
+        size = images[0].shape[0]
+        blanks = {k: torch.zeros(size, 3, 1, 1, device=images[0].device) for k in self.config.image_features}
+        rest = {k: v for k, v in batch.items() if not k.startswith(feature_key(""))}
+        inputs = type(self.policy)._prepare_model_inputs(self.policy, {**rest, **blanks}, training=training)
+        inputs["images"] = [[f[b] for f in images] for b in range(size)]
+        return inputs
+
+    def _prompt_grid(self, tokens: int) -> tuple[int, int]:
+        """The merged grid a prompt needs for `tokens` cached tokens per camera: the native grid, or the square
+        grid of a pooling control (the cache keeps no shape, so any other count is refused, not guessed)."""
+        gh, gw = self.native_grid
+        if tokens == gh * gw:
+            return gh, gw
+        side = round(tokens ** 0.5)
+        if side * side != tokens:
+            raise BackboneError(f"{self.name}: {tokens} cached tokens per camera is neither the native {gh}x{gw} "
+                                "grid nor a square one; VLA-JEPA's prompt needs the grid's shape")
+        return side, side
+
+    def _build_inputs(self, own, interface: nn.Module, images, instructions, action_prompt, embodied_prompt):
+        """Qwen3VLInterface.build_inputs, or grafted: the policy's prompt for blank frames whose processed grid is
+        the cached features' (the processor's pixel bounds set to that frame for the call), with the features of
+        every image, sample after sample, camera after camera, as `pixel_values`."""
+        if not self.grafted:
+            return own(interface, images, instructions, action_prompt, embodied_prompt)
+        features = [f for views in images for f in views]
+        gh, gw = self._prompt_grid(features[0].shape[0])
+        processor = interface.processor.image_processor
+        factor = processor.patch_size * processor.merge_size
+        frames = [[torch.zeros(3, gh * factor, gw * factor) for _ in views] for views in images]
+        size = processor.size
+        processor.size = type(size)(shortest_edge=gh * gw * factor ** 2, longest_edge=gh * gw * factor ** 2)
+        try:
+            inputs = own(interface, frames, instructions, action_prompt, embodied_prompt)
+        finally:
+            processor.size = size
+        slots = set((inputs["image_grid_thw"].prod(-1) // processor.merge_size ** 2).tolist())
+        tokens = {f.shape[0] for f in features}
+        if tokens != slots:
+            raise BackboneError(f"{self.name}: cached features have {sorted(tokens)} tokens per camera; the prompt "
+                                f"has {sorted(slots)} image slots per camera")
+        inputs["pixel_values"] = torch.cat(features)
+        return inputs
+
+    # ------------------------------------------------------------------------------ objectives
+    def loss(self, batch: Mapping[str, Any], noise: torch.Tensor | None = None,
+             time: torch.Tensor | None = None) -> torch.Tensor:
+        """Per-sample action loss [B]; `time` (noise fraction) defaults to the head's own draw (1 - its t)."""
+        if time is None:
+            head = self.policy.model.action_model
+            time = 1 - head.sample_time(batch[STATE].shape[0], self.device, torch.float32)
+        return super().loss(batch, noise, time)
+
+    def _flow_losses(self, batch: Mapping[str, Any], noise: torch.Tensor, time: torch.Tensor) -> torch.Tensor:
+        """lerobot's VLA-JEPA forward (one noise draw per sample) with the given draws; the per-element velocity
+        error from the action decoder's output (lerobot reduces the loss to a scalar)."""
+        model, config = self.policy.model, self.config
+        velocity = []
+        hook = model.action_model.action_decoder.register_forward_hook(lambda m, args, out: velocity.append(out))
+        repeats, config.repeated_diffusion_steps = config.repeated_diffusion_steps, 1
+        try:
+            with given_draws(model.action_model, noise, 1 - time), warnings.catch_warnings():
+                # lerobot asks CPU autocast for float32 around the head; torch declines (the head runs in fp32)
+                warnings.filterwarnings("ignore", "In CPU autocast, but the target dtype is not supported")
+                self.policy.forward(dict(batch))
+        finally:
+            hook.remove()
+            config.repeated_diffusion_steps = repeats
+        action = batch[ACTION][:, -config.chunk_size:].float()
+        target = action - noise.to(action)
+        return (velocity[0].float() - target) ** 2
+
+    @torch.no_grad()
+    def _predict_chunk(self, batch: Mapping[str, Any], noise: torch.Tensor, num_steps: int) -> torch.Tensor:
+        """`VLAJEPAPolicy.predict_action_chunk` from `noise` with `num_steps` Euler steps. Grafted, its resize to
+        `resize_images_to` is off for the call: it acts on frames, and the cached features are already at the
+        grid that resize gives (native_grid)."""
+        head, config = self.policy.model.action_model, self.config
+        steps, head.num_inference_timesteps = head.num_inference_timesteps, int(num_steps)
+        resize = config.resize_images_to
+        if self.grafted:
+            config.resize_images_to = None
+        try:
+            with given_draws(head, noise):
+                return self.policy.predict_action_chunk(dict(batch))
+        finally:
+            head.num_inference_timesteps, config.resize_images_to = steps, resize
+
+    def _switch_checkpointing(self, on: bool) -> None:
+        """The wrapped layers, and Qwen's KV cache off meanwhile (as transformers turns it off under its own
+        checkpointing): a recomputed layer would append its keys and values to the cache a second time. The
+        policy's single forward never reads that cache."""
+        super()._switch_checkpointing(on)
+        config = self._qwen.language_model.config
+        if on:
+            self._use_cache, config.use_cache = config.use_cache, False
+        else:
+            config.use_cache = self._use_cache
+
+    def _checkpoint_slots(self) -> Iterator[tuple[nn.Module, str]]:
+        """Every decoder layer of the Qwen3 LM and every block of the DiT action head."""
+        for layer in self._qwen.language_model.layers:
+            yield layer, "forward"
+        for block in self.policy.model.action_model.model.transformer_blocks:
+            yield block, "forward"
+
+    # ------------------------------------------------------------------------------ reporting
+    module_paths = {
+        "patch embedding": ("_vision_owner.patch_embed", "_vision_owner.pos_embed"),
+        "deepstack mergers": ("_vision_owner.deepstack_merger_list",),
+        "language model": ("_qwen.language_model",),
+        "action head": ("policy.model.action_model",),
+    }
