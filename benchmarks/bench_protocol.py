@@ -144,7 +144,7 @@ def kinds_of(recipe: Recipe, name: str, adapter, native_width: int) -> dict[tupl
         spec = get_spec(entry.name)
         for control_name in ("none", *recipe.controls):
             control = get_control(control_name)
-            grid = control.grid or adapter.native_grid
+            grid = control.grid or adapter.token_grid
             width = (adapter.lm_width if control.extra else native_width) if control.native_cache else spec.width
             out[entry.name, control_name] = Kind(name, grid[0] * grid[1], width, control.lora, control.train,
                                                  control.native_cache)

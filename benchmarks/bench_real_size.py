@@ -250,7 +250,7 @@ def bench_backbone(name: str, a: argparse.Namespace, device: torch.device, dtype
     adapter.graft(GraftProjector(width, adapter.lm_width))
     log({"backbone": name, "batch": None, "phase": "graft", "seconds": time.perf_counter() - t0,
          **memory.peaks()})
-    tokens = adapter.native_grid[0] * adapter.native_grid[1]
+    tokens = adapter.token_grid[0] * adapter.token_grid[1]
     pool = torch.randn(64, tokens, width, generator=g).half()  # a cache's rows, in memory
 
     def cached(rows: np.ndarray) -> dict:

@@ -28,7 +28,7 @@ FIT = FitRequest(backbone="pi05", encoder="dinov2-s", suite="libero_goal", polic
                  cells_per_pass=3,
                  compute_dtype="fp32", results="/r.parquet", out="/o",
                  cache="s3://b/p", progress=False, drop_nonfinite=True, accept_numerics_drift=True, command="x")
-EXTRACT = ExtractRequest(dataset="/data", encoder="siglip", grids=("native", "4x4"), cameras=("a", "b"),
+EXTRACT = ExtractRequest(dataset="/data", encoder="siglip", grids=("unpooled", "4x4"), cameras=("a", "b"),
                          episodes=(0, 2, 5), weights="/w", random_init=True, seed=4, policy="/p", frame_stride=2,
                          dtype="bf16", compute_dtype="bf16", camera_map="image=a", device="cuda", batch_size=3,
                          num_workers=1, block_frames=16, shard=(1, 4), cache="/c", progress=False,

@@ -163,7 +163,7 @@ def test_a_manifest_is_read_typed_and_a_wrong_field_is_refused_by_name() -> None
     assert Manifest.read(stored, "here", "k") == _manifest()
     for edit, says in ((lambda m: m["dataset"].update(fps="ten"), "field dataset.fps is 'ten', not float"),
                        (lambda m: m.update(episodes="all"), "field episodes is 'all', not list or NoneType"),
-                       (lambda m: m.pop("grids"), "of format 2 lacks grids"),
+                       (lambda m: m.pop("grids"), "of format 3 lacks grids"),
                        (lambda m: m.update(encoder={"width": 8}), "field encoder has no name")):
         broken = _manifest().to_dict()
         edit(broken)

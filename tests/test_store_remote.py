@@ -294,7 +294,7 @@ def test_ls_flags_a_broken_cache_and_lists_the_healthy_ones(local: tuple[Path, s
     assert "complete" in rows[key] and "BROKEN" not in rows[key]
     assert "BROKEN" in rows[damaged.name] and "BROKEN" in rows[partial]
     flat = " ".join(out.replace("│", " ").split())  # a long reason wraps inside its cell
-    assert "zarr.json is not a feature cache" in flat and "manifest of format 2 lacks n_frames" in flat
+    assert "zarr.json is not a feature cache" in flat and "manifest of format 3 lacks n_frames" in flat
     assert [c.key for c in list_caches(tmp_path)] == [key]
     assert torch.equal(FeatureCache(tmp_path / key).read_features("image", "2x2"),
                        FeatureCache(root / key).read_features("image", "2x2"))

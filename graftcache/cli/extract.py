@@ -23,7 +23,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def _policy(args: argparse.Namespace) -> str | None:
-    """`--policy tiny` names the tiny backbone natively trained on this dataset: find its folder."""
+    """`--policy tiny` names the tiny backbone trained on this dataset by train-tiny: find its folder."""
     if args.policy != "tiny":
         return args.policy
     from graftcache.backbone_table import backbone_of_native

@@ -47,7 +47,7 @@ def plan(req: ExtractRequest, log: Callable[[str], None]) -> Job:
     encoder = load_encoder(spec, weights=req.weights, random_init=req.random_init, seed=req.seed,
                            device=device, policy=req.policy)
     check_policy_cameras(req, encoder, cameras, meta.root, log)
-    # "native" -> the encoder's own grid (measured for native towers), so the key never depends on the spelling
+    # "unpooled" -> the encoder's own grid (measured for native towers), so the key never depends on the spelling
     req = replace(req, grids=tuple(map(format_grid, resolve_grids(req.grids, encoder.spec.grid))))
     chosen = set(episodes)
     n_frames = sum(-(-e.length // req.frame_stride) for e in meta.episodes if e.index in chosen)

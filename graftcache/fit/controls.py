@@ -26,7 +26,7 @@ from torch import nn
 from graftcache.errors import FitError
 from graftcache.graft import GraftProjector, IdentityProjector
 from graftcache.pooling import format_grid, parse_grids
-from graftcache.requests import POOL_PREFIX
+from graftcache.requests import NATIVE_CONTROL, NATIVE_GRAFT_CONTROL, POOL_PREFIX
 
 SHUFFLE_SEED_OFFSET = 7919
 SHUFFLE_GROUP = 64  # frames that exchange features as a group (see shuffle)
@@ -104,13 +104,13 @@ class Control:
     lora: bool = False              # LoRA adapters on the LM train with the projector
     fuses: bool = True              # may share a backbone pass with other cells (graftcache/fit/passes.py); LoRA
                                     # adapts the backbone itself, which every row of a pass would go through
-    grid: tuple[int, int] | None = None  # overrides the backbone's native grid
+    grid: tuple[int, int] | None = None  # overrides the backbone's token grid
 
 
 CONTROLS: dict[str, Control] = {
     "none": Control("none"),
-    "native": Control("native", projector=identity, native_cache=True, extra="connector", train=False),
-    "native-graft": Control("native-graft", native_cache=True),
+    NATIVE_CONTROL: Control(NATIVE_CONTROL, projector=identity, native_cache=True, extra="connector", train=False),
+    NATIVE_GRAFT_CONTROL: Control(NATIVE_GRAFT_CONTROL, native_cache=True),
     "zero-image": Control("zero-image", transform=zero),
     "shuffled-image": Control("shuffled-image", pairing=shuffle),
     "lora": Control("lora", lora=True, fuses=False),

@@ -131,7 +131,7 @@ def suite_index_table(cache: FeatureCache, suite: str) -> pl.DataFrame:
 def read_grid(cache: FeatureCache, camera: str, grid: tuple[int, int], rows: np.ndarray) -> torch.Tensor:
     """Features of `camera` at `grid` for cache rows `rows`, [len(rows), H*W, C] in stored precision: the grid
     itself when the cache stores it, else adaptive-average-pooled at read time from the encoder's own grid as
-    the manifest names it (`native_grid`; a cache of pooled grids only: the finest stored grid).
+    the manifest names it (`unpooled_grid`; a cache of pooled grids only: the finest stored grid).
 
     What pooling here costs in precision: extraction pools the fp32 activations and rounds the mean once to
     the stored dtype; here the stored, already rounded values are averaged in fp32 and the mean rounded
@@ -148,7 +148,7 @@ def read_grid(cache: FeatureCache, camera: str, grid: tuple[int, int], rows: np.
     stored = cache.manifest.grids
     if name in stored:
         return cache.read_features(camera, name, rows)
-    source = cache.manifest.native_grid or max(stored, key=lambda g: math.prod(parse_grid(g)))
+    source = cache.manifest.unpooled_grid or max(stored, key=lambda g: math.prod(parse_grid(g)))
     (h, w), width = parse_grid(source), cache.layout["arrays"][cache.feature_path(camera, source)][-1]
     block = int(cache.layout["block_frames"])
     per_chunk = block * max(1, POOL_CHUNK_BYTES // (block * h * w * width * 4))

@@ -16,6 +16,7 @@ which feature transform) and its objective (fit/objectives.py: how the projector
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -71,7 +72,8 @@ class Cell:
     suite: str
     seed: int
     control: str
-    pool_grid: str            # "native" or the control's HxW
+    pool_grid: str            # the grid its features are pooled to, resolved ("8x8": the control's, else the
+                              # backbone's token grid), so that the run_id hashes what the row writes
     objective: str            # "flow" | "align" | "eval"
     steps: int
     lr: float
@@ -206,7 +208,7 @@ class Fitter:
         scheduled = objective.scheduled
         return Cell(
             backbone=req.backbone, policy=policy_id, cache_key=self._source(control).key, suite=req.suite, seed=seed,
-            control=control.name, pool_grid=format_grid(control.grid) if control.grid else "native",
+            control=control.name, pool_grid=format_grid(control.grid or self.token_grid),
             objective=objective.name, steps=req.steps if scheduled else 0, lr=req.lr if scheduled else 0.0,
             batch_size=req.batch_size if scheduled else 0, buffer_mib=req.buffer_mib if scheduled else 0,
             lora_rank=req.lora_rank if control.lora else 0,
@@ -214,6 +216,11 @@ class Fitter:
             num_denoise_steps=req.num_denoise_steps, compute_dtype=req.compute_dtype,
             camera_map=format_camera_map(self.cameras) if renames(self.cameras) else None,
         )
+
+    @functools.cached_property
+    def token_grid(self) -> tuple[int, int]:
+        """The backbone's per-camera token grid, read from the policy's config (nothing is loaded)."""
+        return get_backbone(self.req.backbone).read_token_grid(self.policy_folder)
 
     @property
     def policy_id(self) -> str:
@@ -255,7 +262,7 @@ class Fitter:
             adapter = get_backbone(self.req.backbone)
             if control.fuses and self._objective(control).fuses and adapter.per_sample_loss:
                 req = self.req
-                grid = control.grid or adapter.read_native_grid(self.policy_folder)
+                grid = control.grid or self.token_grid
                 source = FeatureSource.of(self._source(control), list(self.cameras.values()), grid)
                 width = source.frame_shape(source.cameras[0])[1]
                 key = (req.backbone, str(self.policy_folder), str(self.device), req.compute_dtype, grid, width,
@@ -292,7 +299,7 @@ class Fitter:
     # ---------------------------------------------------------------- one cell
     def _material(self, adapter, control: Control) -> _Material:
         """The splits' low-dim rows a control reads, loaded once per (cache, array) and kept for the next cell."""
-        grid = control.grid or adapter.native_grid
+        grid = control.grid or adapter.token_grid
         source = self._source(control)
         key = (source.key, control.extra, None if control.extra else grid)
         if key not in self._materials:

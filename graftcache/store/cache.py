@@ -45,7 +45,7 @@ from graftcache.store.key import (
     compare_identity,
     identity_of,
 )
-from graftcache.store.manifest import Manifest
+from graftcache.store.manifest import Manifest, stored_key
 from graftcache.store.roots import GROUP_META, Root, open_root, split_location
 
 if TYPE_CHECKING:  # torch is imported where features are converted: listing caches (graftcache ls) needs none
@@ -166,7 +166,7 @@ class FeatureCache:
         except (ValueError, KeyError, TypeError) as e:
             raise CacheError(f"{location}: zarr.json is not a feature cache's ({type(e).__name__}: {e})") from None
         try:
-            own = cache_key(stored)  # what is stored, in its own format, names the folder
+            own = stored_key(stored)  # what is stored, in its own format, names the folder
         except (KeyError, TypeError):
             own = key  # identity fields absent: a format older than any Manifest.read upgrades, refused there
         if own != key:

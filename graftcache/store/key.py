@@ -58,18 +58,19 @@ IDENTITY_FIELDS = (
 )
 
 
-def identity_of(manifest: Mapping[str, Any]) -> dict[str, Any]:
-    """The identity sub-dict of a stored manifest (canonical JSON types)."""
-    return json.loads(json.dumps({k: manifest[k] for k in IDENTITY_FIELDS}, sort_keys=True, default=str))
+def identity_of(manifest: Mapping[str, Any], fields: tuple[str, ...] = IDENTITY_FIELDS) -> dict[str, Any]:
+    """The identity sub-dict of a stored manifest (canonical JSON types); `fields`: the identity fields' names
+    in the manifest's format (graftcache.store.manifest.stored_key names those of older formats)."""
+    return json.loads(json.dumps({k: manifest[k] for k in fields}, sort_keys=True, default=str))
 
 
-def cache_key(manifest: Mapping[str, Any]) -> str:
+def cache_key(manifest: Mapping[str, Any], fields: tuple[str, ...] = IDENTITY_FIELDS) -> str:
     """`<encoder-name>-<16 hex>`: readable prefix + sha256 of the canonical identity JSON. Characters a file
     name should not hold (':' and '/' of `timm:`/`hf:<folder>` names, spaces) become '_': keys match `KEY`."""
     name = _UNSAFE.sub("_", str(manifest["encoder"]["name"]))[:NAME_MAX]
     if name[:1] in ("", ".", "+", "-"):  # '.x' would be hidden, '-x' reads as a flag
         name = f"_{name}"[:NAME_MAX]
-    return f"{name}-{sha256_json(identity_of(manifest), compact=True)[:16]}"
+    return f"{name}-{sha256_json(identity_of(manifest, fields), compact=True)[:16]}"
 
 
 def check_key(key: object) -> str:

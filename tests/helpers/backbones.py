@@ -55,9 +55,9 @@ def raw_lowdim(adapter: BackboneAdapter, batch: int, seed: int = 0) -> dict:
 
 
 def raw_features(adapter: BackboneAdapter, batch: int, enc_dim: int = ENC_DIM, seed: int = 0) -> dict:
-    """A raw batch with cached features [B, T, enc_dim] per camera at the backbone's native grid."""
+    """A raw batch with cached features [B, T, enc_dim] per camera at the backbone's token grid."""
     g = torch.Generator().manual_seed(seed + 1)
-    tokens = adapter.native_grid[0] * adapter.native_grid[1]
+    tokens = adapter.token_grid[0] * adapter.token_grid[1]
     feats = {feature_key(c): torch.randn(batch, tokens, enc_dim, generator=g) for c in adapter.cameras}
     return {**feats, **raw_lowdim(adapter, batch, seed)}
 

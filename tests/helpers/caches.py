@@ -18,7 +18,7 @@ import graftcache
 from graftcache.store import FORMAT_VERSION, DatasetRecord, FeatureCache, Manifest, cache_key
 from graftcache.store.cache import ArraySpec
 from graftcache.store.key import IDENTITY_FIELDS
-from graftcache.store.manifest import PREVIOUS_GAPS
+from graftcache.store.manifest import PREVIOUS_GAPS, RENAMED, stored_key
 
 SUITES = ["libero_spatial", "libero_object", "libero_goal", "libero_10", "libero_90", "unknown"]
 TASKS = ["put the bowl on the plate", "open the drawer", "turn on the stove"]
@@ -36,7 +36,7 @@ def manifest(**over: Any) -> Manifest:
         "created_at": "2026-01-01T00:00:00+00:00", "dataset_fingerprint": {"codebase_version": "v3.0", "files": {}},
         "episodes": None, "frame_stride": 1, "cameras": list(CAMERAS), "encoder": {"name": "synthetic", "width": 8},
         "weights": {"source": "random-init", "seed": 0, "sha256": "0" * 64}, "weights_sha256": "0" * 64,
-        "random_init": True, "grids": ["4x4"], "native_grid": None, "extras": {}, "dtype": "fp16",
+        "random_init": True, "grids": ["4x4"], "unpooled_grid": None, "extras": {}, "dtype": "fp16",
         "compute_dtype": "fp32", "n_frames": 0, "tasks": TASKS, "suites": SUITES, "state_key": "observation.state",
         "action_key": "action", "versions": {}, "numerics": {}, "run": {}, **over}
     fields.setdefault("camera_keys", {c: f"observation.images.{c}" for c in fields["cameras"]})
@@ -115,18 +115,26 @@ def rekeyed(folder: Path, root: Path, edit: Callable[[dict], dict]) -> Path:
     return _restored(folder, root, edit)
 
 
-def previous_format(folder: Path, root: Path, lacking: str | None = None) -> Path:
-    """Where a copy of the cache in `folder` now lies as graftcache's previous format (1) stored it, under `root`
-    in the folder of the key that manifest hashes to: fields outside the format at the top level, and, when
-    `lacking` names one of store.manifest.PREVIOUS_GAPS ("frame_stride", ...), made before graftcache recorded
-    it (a metadata-only dataset identity for "dataset_fingerprint.files")."""
+def previous_format(folder: Path, root: Path, lacking: str | None = None, version: int = 1) -> Path:
+    """Where a copy of the cache in `folder` now lies as graftcache's format `version` (1 or 2) stored it, under
+    `root` in the folder of the key that manifest hashes to: the keys store.manifest.RENAMED has renamed since
+    under their former names, and of format 1 the fields outside the format at the top level and, when `lacking`
+    names one of store.manifest.PREVIOUS_GAPS ("frame_stride", ...), made before graftcache recorded it (a
+    metadata-only dataset identity for "dataset_fingerprint.files")."""
+    former = {new: old for old, new in RENAMED.items()}
+
     def older(stored: dict) -> dict:
-        old = {**{k: v for k, v in stored.items() if k != "extra"}, **stored["extra"], "format_version": 1}
-        if lacking == "dataset_fingerprint.files":
-            old["dataset_fingerprint"] = {"codebase_version": "v3.0", "meta/info.json": "0" * 64}
-        elif lacking is not None:
-            assert lacking in dict(PREVIOUS_GAPS), lacking
-            del old[lacking]
+        old = {former.get(k, k): v for k, v in stored.items()}
+        if version == 1:
+            old = {**{k: v for k, v in old.items() if k != "extra"}, **old["extra"]}
+        old["format_version"] = version
+        if lacking is not None:
+            assert version == 1 and lacking in dict(PREVIOUS_GAPS), lacking
+            head, _, sub = lacking.partition(".")
+            if sub:
+                old[head] = {"codebase_version": "v3.0", "meta/info.json": "0" * 64}
+            else:
+                del old[head]
         return old
     return _restored(folder, root, older)
 
@@ -137,7 +145,10 @@ def _restored(folder: Path, root: Path, edit: Callable[[dict], dict]) -> Path:
     meta = json.loads((staging / "zarr.json").read_text())
     meta["attributes"]["manifest"] = stored = edit(meta["attributes"]["manifest"])
     (staging / "zarr.json").write_text(json.dumps(meta))
-    target = root / cache_key({**dict.fromkeys(IDENTITY_FIELDS), **stored})  # an absent field hashed as null
+    try:
+        target = root / stored_key(stored)  # as graftcache names the folder of a manifest of that format
+    except KeyError:  # a format no graftcache reads: any folder of a key's shape
+        target = root / cache_key({**dict.fromkeys(IDENTITY_FIELDS), **stored})
     staging.rename(target)
     shutil.rmtree(root / ".staging")
     return target
