@@ -79,7 +79,8 @@ class ExtractRequest(Checked):
         1, rule=POSITIVE, metavar="K",
         help="features for every K-th frame of each episode (frame_index %% K == 0); actions stay at the full rate "
         "for action chunks. Part of the cache key (1: every frame)")
-    dtype: str = setting("fp16", choices=STORED_DTYPES, help="stored feature dtype")
+    storage_dtype: str = setting("fp16", choices=STORED_DTYPES, help="dtype the features are stored in (what "
+                                 "the model computes in is --compute-dtype)")
     compute_dtype: str = compute_dtype()
     camera_map: str | None = setting(  # native towers: policy camera <- dataset camera where names differ
         None, rule=CAMERA_MAP, codec=codecs.CAMERA_MAP, recipe=False,

@@ -126,7 +126,7 @@ def test_index_lowdim_and_manifest_are_copied_in(extracted, v3_image: Written) -
                                                                        for _ in range(n)]
     assert m.suites[index["suite_index"][0]] == "libero_spatial"
     assert m.random_init is True and m.weights["seed"] == 0 and len(m.weights_sha256) == 64
-    assert m.dataset.codebase_version == "v3.0" and m.dtype == "fp16"
+    assert m.dataset.codebase_version == "v3.0" and m.storage_dtype == "fp16"
     assert m.encoder["preprocessing"]["mean"] == [0.5, 0.5, 0.5]
     assert set(m.versions) >= {"torch", "timm", "transformers", "lerobot", "zarr"}
     json.dumps(m.to_dict())
@@ -137,7 +137,8 @@ def test_cache_key_follows_the_numbers_only(extracted, v3_image: Written) -> Non
     same = extract(_req(v3_image.root, Path(req.cache), batch_size=3, num_workers=1), log=_quiet)
     assert same.key == result.key and same.reused and same.frames_encoded == 0
     keys = {result.key}
-    for change in ({"grids": ("2x2",)}, {"seed": 1}, {"dtype": "fp32"}, {"episodes": (0, 2)}, {"cameras": ("image",)}):
+    for change in ({"grids": ("2x2",)}, {"seed": 1}, {"storage_dtype": "fp32"}, {"episodes": (0, 2)},
+                   {"cameras": ("image",)}):
         r = extract(_req(v3_image.root, Path(req.cache), **change), log=_quiet)
         assert r.key not in keys, change
         keys.add(r.key)

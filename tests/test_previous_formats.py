@@ -22,7 +22,7 @@ from graftcache.store import FORMAT_VERSION, BrokenCache, FeatureCache, list_cac
 from graftcache.store.manifest import PREVIOUS_GAPS, RENAMED
 
 REBUILD = ("graftcache extract --encoder synthetic --dataset synthetic --random-init --seed 0 --grids 4x4 "
-           "--cameras image,image2 --dtype fp16 --compute-dtype fp32")
+           "--cameras image,image2 --storage-dtype fp16 --compute-dtype fp32")
 
 
 @pytest.fixture(scope="module")

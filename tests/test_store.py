@@ -46,7 +46,7 @@ def _at(root: Path, **over) -> Path:
 
 
 def _filled(root: Path, dtype: str = "fp16") -> tuple[FeatureCache, np.ndarray]:
-    cache = FeatureCache.create(_at(root, dtype=dtype), _manifest(dtype=dtype),
+    cache = FeatureCache.create(_at(root, storage_dtype=dtype), _manifest(storage_dtype=dtype),
                                 [ArraySpec("features/image/2x2", (T, C))], _index(), block_frames=32)
     data = torch.randn(N, T, C, generator=torch.Generator().manual_seed(1))
     for b in range(cache.layout["n_blocks"]):
@@ -113,7 +113,7 @@ def test_key_ignores_provenance_but_not_numbers() -> None:
     assert base.startswith("toy-")
     assert _key(run={"batch_size": 64, "num_workers": 0}) == base
     assert _key(created_at="later") == base
-    for change in ({"grids": ["4x4"]}, {"dtype": "bf16"}, {"weights_sha256": "v"}, {"episodes": [0, 1]},
+    for change in ({"grids": ["4x4"]}, {"storage_dtype": "bf16"}, {"weights_sha256": "v"}, {"episodes": [0, 1]},
                    {"cameras": ["image", "image2"]}, {"compute_dtype": "bf16"},
                    {"dataset_fingerprint": {"files": {"meta/info.json": {"sha256": "b"}}}}):
         assert _key(**change) != base, change

@@ -59,7 +59,7 @@ def build_manifest(job: Job, numerics: dict[str, Any]) -> Manifest:
         grids=list(req.grids),
         unpooled_grid=unpooled if unpooled in req.grids else None,
         extras=extras,
-        dtype=req.dtype,
+        storage_dtype=req.storage_dtype,
         compute_dtype=req.compute_dtype,
         n_frames=job.index.height,
         tasks=list(meta.tasks),

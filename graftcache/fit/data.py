@@ -153,7 +153,7 @@ def read_grid(cache: FeatureCache, camera: str, grid: tuple[int, int], rows: np.
     block = int(cache.layout["block_frames"])
     per_chunk = block * max(1, POOL_CHUNK_BYTES // (block * h * w * width * 4))
     rows = np.asarray(rows)
-    out = torch.empty((len(rows), grid[0] * grid[1], width), dtype=resolve_dtype(cache.manifest.dtype))
+    out = torch.empty((len(rows), grid[0] * grid[1], width), dtype=resolve_dtype(cache.manifest.storage_dtype))
     for chunk in np.unique(rows // per_chunk):
         at = np.flatnonzero(rows // per_chunk == chunk)
         src = cache.read_features(camera, source, rows[at])

@@ -128,7 +128,7 @@ class FeatureSource:
 
     def frame_bytes(self, cameras: Sequence[str] | None = None) -> int:
         """Bytes of one frame as read (after pooling, in stored precision) of `cameras`, default every camera."""
-        itemsize = STORAGE_DTYPES[self.open().manifest.dtype].itemsize
+        itemsize = STORAGE_DTYPES[self.open().manifest.storage_dtype].itemsize
         return sum(int(np.prod(self.frame_shape(c))) for c in (self.cameras if cameras is None else cameras)) * itemsize
 
 

@@ -210,7 +210,7 @@ class FeatureCache:
             raise CacheError(f"{path}: a cache is made under its own key, {own}, not under {key!r}")
         root.delete_prefix(f"{key}/")
         n = index.height
-        dtype = manifest.dtype
+        dtype = manifest.storage_dtype
         np_dtype = STORAGE_DTYPES[dtype]
         group = zarr.open_group(store=root.zarr_store(key, read_only=False), mode="w", zarr_format=3)
         group.attrs.update({"manifest": manifest.to_dict(), "initialized": False, "complete": False})
@@ -376,7 +376,7 @@ class FeatureCache:
             rows = np.arange(self.n_frames)
         elif isinstance(rows, slice):
             rows = np.arange(self.n_frames)[rows]
-        return from_storage(self._read_rows(path, np.asarray(rows)), self.manifest.dtype)
+        return from_storage(self._read_rows(path, np.asarray(rows)), self.manifest.storage_dtype)
 
     def _read_rows(self, name: str, rows: np.ndarray) -> np.ndarray:
         """`arr[rows]` read one block at a time, each block checked against its checksum the first time this

@@ -53,7 +53,7 @@ IDENTITY_FIELDS = (
     "weights_sha256",
     "grids",
     "extras",
-    "dtype",
+    "storage_dtype",
     "compute_dtype",
 )
 

@@ -27,6 +27,7 @@ FORMAT_VERSION = 3
 #: `upgrade` and `stored_key` apply; the values are unchanged.
 RENAMED = {
     "native_grid": "unpooled_grid",
+    "dtype": "storage_dtype",
 }
 #: What format 1 manifests may lack, in the order graftcache began recording it: (field as format 1 named it,
 #: what it records). A format 1 manifest holding all of them is format 2 but for its version; one lacking any
@@ -78,7 +79,7 @@ class Manifest:
     grids: list[str]                         # stored grids, resolved ("16x16", never "unpooled")
     unpooled_grid: str | None                  # which of them is the encoder's own grid, unpooled; None: only pooled
     extras: dict[str, list[int]]             # extra token arrays of native towers -> one frame's shape
-    dtype: str                               # stored feature dtype
+    storage_dtype: str                       # the dtype features are stored in
     compute_dtype: str                       # resolved ("bf16" | "fp32"), never "auto"
     n_frames: int
     tasks: list[str]
@@ -167,7 +168,7 @@ def rebuild_command(raw: Mapping[str, Any]) -> str:
         parts.append(f"--episodes {','.join(map(str, raw['episodes']))}")
     if (raw.get("frame_stride") or 1) > 1:
         parts.append(f"--frame-stride {raw['frame_stride']}")
-    for flag, name in (("--dtype", "dtype"), ("--compute-dtype", "compute_dtype")):
+    for flag, name in (("--storage-dtype", "storage_dtype"), ("--compute-dtype", "compute_dtype")):
         if raw.get(name):
             parts.append(f"{flag} {raw[name]}")
     return " ".join(parts)

@@ -36,7 +36,7 @@ def manifest(**over: Any) -> Manifest:
         "created_at": "2026-01-01T00:00:00+00:00", "dataset_fingerprint": {"codebase_version": "v3.0", "files": {}},
         "episodes": None, "frame_stride": 1, "cameras": list(CAMERAS), "encoder": {"name": "synthetic", "width": 8},
         "weights": {"source": "random-init", "seed": 0, "sha256": "0" * 64}, "weights_sha256": "0" * 64,
-        "random_init": True, "grids": ["4x4"], "unpooled_grid": None, "extras": {}, "dtype": "fp16",
+        "random_init": True, "grids": ["4x4"], "unpooled_grid": None, "extras": {}, "storage_dtype": "fp16",
         "compute_dtype": "fp32", "n_frames": 0, "tasks": TASKS, "suites": SUITES, "state_key": "observation.state",
         "action_key": "action", "versions": {}, "numerics": {}, "run": {}, **over}
     fields.setdefault("camera_keys", {c: f"observation.images.{c}" for c in fields["cameras"]})
