@@ -31,7 +31,7 @@ from graftcache.datasets import DatasetMeta, open_dataset
 from graftcache.errors import BackboneError, DatasetError
 from graftcache.file_lease import FileLease
 from graftcache.fit.data import action_chunks
-from graftcache.fit.lookup import dataset_fingerprint
+from graftcache.fit.lookup import dataset_identity
 from graftcache.fit.loop import optimise
 from graftcache.progress import progress
 from graftcache.requests import DEFAULT_TINY_TRAIN, TinyTrainConfig
@@ -107,7 +107,7 @@ def _cameras(cfg: TinyTrainConfig, meta: DatasetMeta) -> tuple[TinyTrainConfig, 
     return replace(cfg, cameras=None if tuple(cameras) == meta.cameras else tuple(cameras)), tuple(cameras)
 
 
-def _reusable(folder: Path, backbone: str, fingerprint: dict, cfg: TinyTrainConfig, force: bool) -> bool:
+def _reusable(folder: Path, backbone: str, identity: dict, cfg: TinyTrainConfig, force: bool) -> bool:
     """Whether `folder` already holds the checkpoint asked for. A folder holding another backbone's checkpoint is
     refused whatever `force` says (retraining would mix two policies' files); one trained on another dataset or
     recipe is refused unless `force` (retrain it there)."""
@@ -120,7 +120,7 @@ def _reusable(folder: Path, backbone: str, fingerprint: dict, cfg: TinyTrainConf
                             f"another --out for {backbone} (or remove the folder)")
     if force:
         return False
-    if record is None or record.get("dataset_fingerprint") != fingerprint or \
+    if record is None or record.get("dataset_identity") != identity or \
             record.get("config") != cfg.as_dict(backbone):
         raise BackboneError(f"{folder} holds a {backbone} checkpoint trained on another dataset or with another "
                             f"recipe (steps, seed, cameras, ...): pass --force to retrain it there, or another --out")
@@ -145,14 +145,14 @@ def train_tiny(backbone: str, dataset: str, *, cfg: TinyTrainConfig = DEFAULT_TI
     cfg = replace(cfg, compute_dtype=resolve_compute_dtype(cfg.compute_dtype, dev))
     compute = resolve_dtype(cfg.compute_dtype)
     home = cache_root(cache)  # a --cache that cannot be a root is refused before any work
-    fingerprint = dataset_fingerprint(dataset)
+    identity = dataset_identity(dataset)
     cfg, cameras = _cameras(cfg, open_dataset(dataset).meta)
-    folder = Path(out) if out else policy_dir(home, backbone, fingerprint, cfg)
+    folder = Path(out) if out else policy_dir(home, backbone, identity, cfg)
     with _checkpoint_lease(folder, backbone, log):
-        if _reusable(folder, backbone, fingerprint, cfg, force):
+        if _reusable(folder, backbone, identity, cfg, force):
             log(f"reusing tiny {backbone} trained by train-tiny: {folder}")
         else:
-            _train(backbone, dataset, folder, cfg=cfg, cameras=cameras, fingerprint=fingerprint, device=dev,
+            _train(backbone, dataset, folder, cfg=cfg, cameras=cameras, identity=identity, device=dev,
                    compute=compute, log=log)
     return folder
 
@@ -175,7 +175,7 @@ def _checkpoint_lease(folder: Path, backbone: str, log: Callable[[str], None]) -
 
 
 def _train(backbone: str, dataset: str, folder: Path, *, cfg: TinyTrainConfig, cameras: tuple[str, ...],
-           fingerprint: dict, device: torch.device, compute: torch.dtype, log: Callable[[str], None]) -> None:
+           identity: dict, device: torch.device, compute: torch.dtype, log: Callable[[str], None]) -> None:
     """Train the tiny `backbone` on `dataset` (all parameters) and save it with its record in `folder`."""
     t0 = time.perf_counter()
     source, frames, table = _decode_all(dataset, cameras, cfg.image_size, log)
@@ -208,7 +208,7 @@ def _train(backbone: str, dataset: str, folder: Path, *, cfg: TinyTrainConfig, c
                       desc=f"train-tiny {backbone}")
     adapter.save(folder)
     record = {"backbone": backbone, "dataset": str(dataset), "dataset_root": str(meta.root),
-              "dataset_fingerprint": fingerprint, "cameras": list(cameras),
+              "dataset_identity": identity, "cameras": list(cameras),
               "config": cfg.as_dict(backbone), "final_loss": float(np.mean(losses[-max(1, cfg.steps // 10):])),
               "wall_s": time.perf_counter() - t0, "random_init": True,
               "note": "tiny architecture, random init, trained by graftcache train-tiny (not released weights)"}

@@ -231,7 +231,7 @@ def test_padded_action_targets_do_not_change_the_smolvla_loss() -> None:
 
 @pytest.mark.parametrize("name", NAMES)
 def test_native_control_reproduces_the_ungrafted_policy(name: str) -> None:
-    """Cached post-connector tokens through the identity projector = the policy on pixels."""
+    """Cached post-connector tokens through the pass-through projector = the policy on pixels."""
     assert_native_control_reproduces(tiny(name), tiny(name), 4)
 
 

@@ -30,7 +30,7 @@ def test_pool_grid_is_block_mean(unpooled: tuple[int, int], out: tuple[int, int]
     torch.testing.assert_close(pooled, _block_mean(grid, out), rtol=1e-5, atol=1e-6)
 
 
-def test_pool_grid_identity_and_row_major_order() -> None:
+def test_pool_grid_to_its_own_size_is_unchanged_and_row_major() -> None:
     grid = torch.arange(2 * 3 * 4 * 1, dtype=torch.float32).reshape(2, 3, 4, 1)
     tokens = pool_grid(grid, (3, 4))
     assert torch.equal(tokens[:, :, 0], grid[..., 0].reshape(2, 12))

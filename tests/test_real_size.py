@@ -83,7 +83,7 @@ def _assert_released_layout(snapshot: Path, repo_id: str) -> None:
 def test_smolvla_released_layout_loads_by_hub_id_and_grafts_at_real_geometry(real_hub: Path) -> None:
     _assert_released_layout(build_smolvla(SMOLVLA, cache=real_hub), SMOLVLA)
     # the CLI's path: `--policy org/name` passes through resolve_policy to the backbone pool (load_backbone)
-    source = resolve_policy("smolvla", SMOLVLA, fingerprint={}, root=real_hub)
+    source = resolve_policy("smolvla", SMOLVLA, identity={}, root=real_hub)
     assert source == SMOLVLA
     adapter = BackbonePool().get("smolvla", source, "cpu")
     assert adapter.random_init and adapter.source == SMOLVLA  # recorded as random weights, not a release

@@ -31,7 +31,7 @@ def _index(n: int = N) -> pl.DataFrame:
 
 
 def _manifest(**over) -> Manifest:
-    return manifest(**{"dataset_fingerprint": {"files": {"meta/info.json": {"sha256": "a"}}}, "cameras": ["image"],
+    return manifest(**{"dataset_identity": {"files": {"meta/info.json": {"sha256": "a"}}}, "cameras": ["image"],
                        "encoder": {"name": "toy", "model_id": "x"}, "weights_sha256": "w", "grids": ["2x2"],
                        "n_frames": N, "run": {"batch_size": 8}, **over})
 
@@ -115,7 +115,7 @@ def test_key_ignores_provenance_but_not_numbers() -> None:
     assert _key(created_at="later") == base
     for change in ({"grids": ["4x4"]}, {"storage_dtype": "bf16"}, {"weights_sha256": "v"}, {"episodes": [0, 1]},
                    {"cameras": ["image", "image2"]}, {"compute_dtype": "bf16"},
-                   {"dataset_fingerprint": {"files": {"meta/info.json": {"sha256": "b"}}}}):
+                   {"dataset_identity": {"files": {"meta/info.json": {"sha256": "b"}}}}):
         assert _key(**change) != base, change
 
 

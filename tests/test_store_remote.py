@@ -70,7 +70,7 @@ def _features(cache: FeatureCache) -> dict[str, np.ndarray]:
 def test_extract_into_s3_equals_local_and_ls_info_verify_read_it(
         s3: str, local: tuple[Path, str], v3_image: Written, capsys: pytest.CaptureFixture) -> None:  # noqa: F811
     result = extract(_req(v3_image.root, s3), log=_quiet)
-    assert result.key == local[1] and result.path == f"{s3}/{result.key}"  # the same identity, the same key
+    assert result.key == local[1] and result.path == f"{s3}/{result.key}"  # the same identity fields, the same key
     objects = bucket_objects(s3)
     assert json.loads(objects[f"{result.key}/zarr.json"])["attributes"]["complete"] is True
     assert not [k for k in objects if "/_progress/" in k]  # markers removed once complete

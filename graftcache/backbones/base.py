@@ -159,7 +159,7 @@ class BackboneAdapter(GraftSurgery, PromptBatches, FlowObjective, ActivationChec
 
     @classmethod
     def _checkpoint_keys(cls, policy: nn.Module, file_keys: Iterable[str]) -> dict[str, str]:
-        """{policy state-dict key: checkpoint key}: identity unless the policy's from_pretrained renames keys
+        """{policy state-dict key: checkpoint key}: each key as it is unless the policy's from_pretrained renames keys
         (pi0.5: graftcache.backbones.lean.openpi_keys)."""
         return {k: k for k in file_keys}
 

@@ -47,7 +47,7 @@ def build_manifest(job: Job, numerics: dict[str, Any]) -> Manifest:
         dataset=DatasetRecord(source=str(req.dataset), root=str(meta.root), repo_id=meta.repo_id,
                               revision=meta.revision, codebase_version=meta.codebase_version, fps=meta.fps,
                               n_episodes_total=len(meta.episodes), n_frames_total=meta.n_frames),
-        dataset_fingerprint=meta.identity,
+        dataset_identity=meta.identity,
         episodes=None if len(job.episodes) == len(meta.episodes) else [int(e) for e in job.episodes],
         frame_stride=req.frame_stride,
         cameras=list(job.cameras),

@@ -25,7 +25,7 @@ STREAM_ROWS = 4096
 
 
 def _as_grid(tokens: torch.Tensor, grid: tuple[int, int]) -> torch.Tensor:
-    """[N, T, D] tokens on a square grid -> pooled to `grid` (identity when T already matches)."""
+    """[N, T, D] tokens on a square grid -> pooled to `grid` (unchanged when T already matches)."""
     n, t, d = tokens.shape
     if t == grid[0] * grid[1]:
         return tokens

@@ -24,7 +24,7 @@ import torch
 from torch import nn
 
 from graftcache.errors import FitError
-from graftcache.graft import GraftProjector, IdentityProjector
+from graftcache.graft import GraftProjector, PassThroughProjector
 from graftcache.pooling import format_grid, parse_grids
 from graftcache.requests import NATIVE_CONTROL, NATIVE_GRAFT_CONTROL, POOL_PREFIX
 
@@ -85,11 +85,11 @@ def shuffle(n: int, seed: int) -> np.ndarray:
     return out
 
 
-def identity(width: int, lm_width: int) -> nn.Module:
+def pass_through(width: int, lm_width: int) -> nn.Module:
     """The native control's projector: the cached connector tokens must already be the LM's width."""
     if width != lm_width:
         raise FitError(f"native connector tokens are {width} wide, the backbone's LM expects {lm_width}")
-    return IdentityProjector(lm_width)
+    return PassThroughProjector(lm_width)
 
 
 @dataclass(frozen=True)
@@ -109,7 +109,7 @@ class Control:
 
 CONTROLS: dict[str, Control] = {
     "none": Control("none"),
-    NATIVE_CONTROL: Control(NATIVE_CONTROL, projector=identity, native_cache=True, extra="connector", train=False),
+    NATIVE_CONTROL: Control(NATIVE_CONTROL, projector=pass_through, native_cache=True, extra="connector", train=False),
     NATIVE_GRAFT_CONTROL: Control(NATIVE_GRAFT_CONTROL, native_cache=True),
     "zero-image": Control("zero-image", transform=zero),
     "shuffled-image": Control("shuffled-image", pairing=shuffle),

@@ -108,7 +108,7 @@ class Cell:
 @dataclass
 class _Material:
     """What one (request, control) reads: the splits' low-dim rows, where their features stream from, and the
-    encoder identity. Features are never held: each cell streams them (graftcache.fit.stream)."""
+    encoder's name. Features are never held: each cell streams them (graftcache.fit.stream)."""
 
     train: LowDim
     eval: LowDim
@@ -148,7 +148,7 @@ class Fitter:
             if len(strides) > 1:
                 raise FitError(f"caches {self.cache.key} and {self.native_cache.key} hold different frames (frame "
                                f"strides {sorted(strides)}); extract both with the same --frame-stride")
-        self.policy_folder = resolve_policy(req.backbone, req.policy, self.cache.manifest.dataset_fingerprint,
+        self.policy_folder = resolve_policy(req.backbone, req.policy, self.cache.manifest.dataset_identity,
                                             cache_root(req.cache), self.cache.manifest.dataset.source)
         self.cameras = self._match_cameras()
         self.index = suite_index_table(self.cache, req.suite)
@@ -228,7 +228,7 @@ class Fitter:
         return self.req.policy if self.req.policy != "tiny" else f"tiny:{Path(self.policy_folder).name}"
 
     def cells(self) -> list[tuple[Control, int, Cell]]:
-        """Every (control, seed) of the request with its identity, in the order `run` visits them."""
+        """Every (control, seed) of the request with its Cell, in the order `run` visits them."""
         return [(control, seed, self.cell(control, seed, self.policy_id))
                 for seed in self.req.seeds for control in self.controls]
 

@@ -299,16 +299,16 @@ class FeatureCache:
         """Whether this cache holds exactly what `manifest` asks for."""
         return identity_of(self.manifest.to_dict()) == identity_of(manifest.to_dict())
 
-    def dataset_difference(self, fingerprint: Mapping[str, Any]) -> IdentityDifference | None:
-        """The first file where the dataset this cache was extracted from differs from `fingerprint`
-        (a dataset's current `dataset_fingerprint`), or None when they are the same dataset."""
-        return compare_identity(self.manifest.dataset_fingerprint, fingerprint)
+    def dataset_difference(self, identity: Mapping[str, Any]) -> IdentityDifference | None:
+        """The first file where the dataset this cache was extracted from differs from `identity`
+        (a dataset's current `dataset_identity`), or None when they are the same dataset."""
+        return compare_identity(self.manifest.dataset_identity, identity)
 
-    def check_dataset(self, fingerprint: Mapping[str, Any], dataset: str | None = None) -> None:
+    def check_dataset(self, identity: Mapping[str, Any], dataset: str | None = None) -> None:
         """Raise CacheError (one line, naming the first differing file) unless this cache was extracted
-        from the dataset whose current identity is `fingerprint`. For every use of an existing cache with
+        from the dataset whose current identity is `identity`. For every use of an existing cache with
         a dataset: resuming an extraction, sharing a cache."""
-        diff = self.dataset_difference(fingerprint)
+        diff = self.dataset_difference(identity)
         if diff is not None:
             recorded = self.manifest.dataset.source
             raise CacheError(f"cache {self.key} does not match dataset {dataset or recorded}: it was extracted "

@@ -1,11 +1,11 @@
 """Cache identity: what changes the stored numbers, and the key derived from it.
 
-The key hashes exactly the fields that change the numbers (dataset content fingerprint, episode
+The key hashes exactly the fields that change the numbers (dataset content identity, episode
 subset, encoder recipe, weights, grids, dtypes, cameras, cache format) and nothing that does not
 (batch size, worker count, device, cache folder, dataset path). Two users who extract the same
 dataset with the same encoder therefore land on the same key and can share the folder.
 
-The dataset part (`dataset_fingerprint`) is the dataset's content identity: size and sha256 of its
+The dataset part (`dataset_identity`) is the dataset's content identity: size and sha256 of its
 metadata files and of every data parquet and video the episodes use (graftcache.datasets.identity), so a
 dataset edited under unchanged metadata gets another key. `compare_identity` names the first file in
 which a recorded identity differs from a dataset's current one, for every place that uses an existing
@@ -45,7 +45,7 @@ class RefusedPlace(CacheError):
 # Manifest fields that make up the identity; everything else in the manifest is provenance only.
 IDENTITY_FIELDS = (
     "format_version",
-    "dataset_fingerprint",
+    "dataset_identity",
     "episodes",
     "frame_stride",
     "cameras",
@@ -102,7 +102,7 @@ class IdentityDifference:
 
 
 def compare_identity(recorded: Mapping[str, Any], current: Mapping[str, Any]) -> IdentityDifference | None:
-    """None when `recorded` (e.g. a cache manifest's `dataset_fingerprint`) equals `current`; otherwise
+    """None when `recorded` (e.g. a cache manifest's `dataset_identity`) equals `current`; otherwise
     the first differing file (metadata files first, then data and videos in path order)."""
     recorded, current = _canonical(recorded), _canonical(current)
     if recorded == current:

@@ -28,6 +28,7 @@ FORMAT_VERSION = 3
 RENAMED = {
     "native_grid": "unpooled_grid",
     "dtype": "storage_dtype",
+    "dataset_fingerprint": "dataset_identity",
 }
 #: What format 1 manifests may lack, in the order graftcache began recording it: (field as format 1 named it,
 #: what it records). A format 1 manifest holding all of them is format 2 but for its version; one lacking any
@@ -47,7 +48,7 @@ class UnreadableManifest(RefusedPlace):
 
 @dataclass(frozen=True)
 class DatasetRecord:
-    """Where the cached frames came from (provenance: the content identity is `Manifest.dataset_fingerprint`)."""
+    """Where the cached frames came from (provenance: the content identity is `Manifest.dataset_identity`)."""
 
     source: str                   # as the user named it (folder or hub id)
     root: str                     # the folder it was read from
@@ -67,7 +68,7 @@ class Manifest:
     graftcache_version: str
     created_at: str
     dataset: DatasetRecord
-    dataset_fingerprint: dict[str, Any]      # the dataset's content identity (graftcache.datasets.identity)
+    dataset_identity: dict[str, Any]         # the dataset's content identity (graftcache.datasets.identity)
     episodes: list[int] | None               # None: every episode
     frame_stride: int                        # features of every k-th frame of each episode
     cameras: list[str]

@@ -33,7 +33,7 @@ def manifest(**over: Any) -> Manifest:
                **over.pop("dataset", {})}
     fields: dict[str, Any] = {
         "format_version": FORMAT_VERSION, "graftcache_version": graftcache.__version__,
-        "created_at": "2026-01-01T00:00:00+00:00", "dataset_fingerprint": {"codebase_version": "v3.0", "files": {}},
+        "created_at": "2026-01-01T00:00:00+00:00", "dataset_identity": {"codebase_version": "v3.0", "files": {}},
         "episodes": None, "frame_stride": 1, "cameras": list(CAMERAS), "encoder": {"name": "synthetic", "width": 8},
         "weights": {"source": "random-init", "seed": 0, "sha256": "0" * 64}, "weights_sha256": "0" * 64,
         "random_init": True, "grids": ["4x4"], "unpooled_grid": None, "extras": {}, "storage_dtype": "fp16",
