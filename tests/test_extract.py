@@ -176,7 +176,7 @@ def test_read_grid_pools_the_stored_unpooled_grid(extracted, unpooled_only: Feat
     (half an fp16 step on each input and on the mean; the frame's per-channel maximum bounds the window's)."""
     from graftcache.fit import data
 
-    monkeypatch.setattr(data, "POOL_CHUNK_BYTES", 1)  # one 6-frame block per chunk: 3 chunks
+    monkeypatch.setattr(data, "POOL_READ_BYTES", 1)  # one 6-frame block per read: 3 reads
     rows = np.array([17, 0, 5, 6, 11, 12])
     pooled = FeatureCache(extracted[1].path)
     for cam in ("image", "image2"):

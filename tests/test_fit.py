@@ -33,7 +33,7 @@ from graftcache.fit.data import load_lowdim, split_episodes
 from graftcache.fit.feed import SplitFeed
 from graftcache.fit.loop import train
 from graftcache.fit.run import Cell, FitRequest, Fitter
-from graftcache.fit.stream import FeatureSource, read_chunks
+from graftcache.fit.stream import FeatureSource, read_blocks
 from graftcache.graft import GraftProjector
 from graftcache.store import FeatureCache
 
@@ -157,8 +157,8 @@ def test_training_changes_only_the_projector_and_lora(world: World, lora: bool) 
     if lora:
         adapter.add_lora(rank=4)
     before = {k: v.clone() for k, v in adapter.policy.state_dict().items()}
-    with closing(read_chunks(feed.features(seed=0), num_workers=0)) as chunks:
-        train(adapter, feed.low, ShuffleBuffer(chunks, 8), cams, steps=3, batch_size=4, lr=1e-2, seed=0, show=False)
+    with closing(read_blocks(feed.features(seed=0), num_workers=0)) as blocks:
+        train(adapter, feed.low, ShuffleBuffer(blocks, 8), cams, steps=3, batch_size=4, lr=1e-2, seed=0, show=False)
     after = adapter.policy.state_dict()
     changed = {k for k in before if not torch.equal(before[k], after[k])}
     trainable = {n for n, p in adapter.policy.named_parameters() if p.requires_grad}
@@ -193,7 +193,7 @@ def test_rerun_is_bit_identical_and_a_finished_cell_is_skipped(world: World, tmp
 
 
 def test_rows_do_not_depend_on_how_many_processes_read_the_cache(world: World, tmp_path: Path) -> None:
-    """The stream's chunk order is fixed by the seed, not by the readers: in-process and two workers agree bit
+    """The stream's block order is fixed by the seed, not by the readers: in-process and two workers agree bit
     for bit (and the cell, hence the run_id, does not name the worker count)."""
     rows = {w: Fitter(world.request(controls=("shuffled-image",), num_workers=w,
                                     results=str(tmp_path / f"{w}.parquet")), log=_quiet).run() for w in (0, 2)}

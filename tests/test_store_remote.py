@@ -31,7 +31,7 @@ from graftcache.extract import ExtractRequest, extract
 from graftcache.fit.data import load_lowdim
 from graftcache.fit.feed import SplitFeed
 from graftcache.fit.run import FitRequest, Fitter
-from graftcache.fit.stream import FeatureSource, read_chunks
+from graftcache.fit.stream import FeatureSource, read_blocks
 from graftcache.store import FeatureCache, cache_key, list_caches, open_root, scan_caches
 from graftcache.store.cache import MisplacedCache
 from graftcache.store.readthrough import reading_root
@@ -312,7 +312,7 @@ def test_object_store_workers_check_each_block_once_per_fit(s3: str, tmp_path: P
     feed = SplitFeed(load_lowdim(cache, "libero_spatial", chunk=2), FeatureSource.of(cache, CAMERAS, (2, 2)),
                      int(cache.layout["block_frames"]))
     reported = [b for _ in range(3)  # three streams of one fit (epochs, cells), each with a new worker
-                for chunk in read_chunks(feed.features(seed=None), 1) for b in chunk.verified]
+                for block in read_blocks(feed.features(seed=None), 1) for b in block.verified]
     features = {(str(cache.path), f"features/{c}/4x4", b) for c in CAMERAS for b in range(cache.layout["n_blocks"])}
     assert sorted(b for b in reported if b[2] >= 0) == sorted(features)  # every block, each checked once
     assert feed.source.reader.checks.count == len(reported) and set(reported) <= feed.source.reader.checks.done

@@ -70,7 +70,7 @@ def shuffle(n: int, seed: int) -> np.ndarray:
     each group sees a seeded arrangement of another group's frames (a derangement of the groups, when there
     are at least two equal ones), else a derangement of its own. A group of a split is a run of one or two
     episodes, so a frame's features come from another episode, at a random time of it; and the frames one
-    chunk of features goes with lie in a few runs, so `align` reads both sides run by run instead of frame by
+    block of features goes with lie in a few runs, so `align` reads both sides run by run instead of frame by
     frame across the whole split.
     """
     g = torch.Generator().manual_seed(seed + SHUFFLE_SEED_OFFSET)

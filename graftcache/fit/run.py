@@ -49,7 +49,7 @@ from graftcache.fit.loop import Scoring, evaluate, evaluate_together, learner, o
 from graftcache.fit.objectives import EVAL_ONLY, OBJECTIVES, Fitting, Objective, flow_buffer
 from graftcache.fit.passes import Member, default_cells_per_pass, run_passes
 from graftcache.fit.step_memory import check_step_memory
-from graftcache.fit.stream import BlockMemo, CacheReader, FeatureSource, StreamStats, read_chunks
+from graftcache.fit.stream import BlockMemo, CacheReader, FeatureSource, StreamStats, read_blocks
 from graftcache.graft import FusedProjector
 from graftcache.pooling import format_grid
 from graftcache.requests import FitRequest
@@ -349,9 +349,9 @@ class Fitter:
             cams=cams, targets=(mat.targets, mat.target_rows) if mat.targets is not None else None, grid=mat.grid,
             seed=cell.seed, dtype=self.dtype, stats=stats))
         t_eval = time.perf_counter()
-        with closing(read_chunks(self._feed(mat, mat.eval, control, cell.seed + 1).features(seed=None),
-                                 self.req.num_workers, stats)) as chunks:
-            score = evaluate(adapter, mat.eval, chunks, cams, batch_size=self.req.eval_batch_size,
+        with closing(read_blocks(self._feed(mat, mat.eval, control, cell.seed + 1).features(seed=None),
+                                 self.req.num_workers, stats)) as blocks:
+            score = evaluate(adapter, mat.eval, blocks, cams, batch_size=self.req.eval_batch_size,
                              transform=control.transform, dtype=self.dtype,
                              num_denoise_steps=self.req.num_denoise_steps)
         eval_s = time.perf_counter() - t_eval
@@ -401,7 +401,7 @@ class Fitter:
         t_eval = time.perf_counter()
         with ExitStack() as stack:
             scores = evaluate_together(adapter, [
-                Scoring(mat.eval, stack.enter_context(closing(read_chunks(
+                Scoring(mat.eval, stack.enter_context(closing(read_blocks(
                     m.fitter._feed(mat, mat.eval, m.control, m.seed + 1).features(seed=None), m.fitter.req.num_workers,
                     st))), m.fitter.cameras, m.control.transform)
                 for m, mat, st in zip(members, mats, stats, strict=True)],

@@ -5,7 +5,7 @@ Layout choices (why):
   consecutive frames, and each block is exactly one Zarr shard. A block is written in a single
   call, so zarr writes each shard file once (atomically: LocalStore writes a temp file and renames
   it), and a run killed mid-block leaves no half-written shard that looks finished.
-- Inside a shard, inner chunks hold ~4 MiB of uncompressed features, so random access to a few
+- Inside a shard, inner zarr chunks hold ~4 MiB of uncompressed features, so random access to a few
   frames (stage 2 batches, `verify`) decompresses little, while a shard of 256 frames keeps the
   file count of a 273k-frame LIBERO cache in the low thousands.
 - Blosc-zstd with byte shuffle on 2-byte floats: fast to decode, and shuffling the high bytes
@@ -51,7 +51,7 @@ from graftcache.store.roots import GROUP_META, Root, open_root, split_location
 if TYPE_CHECKING:  # torch is imported where features are converted: listing caches (graftcache ls) needs none
     import torch
 
-INNER_CHUNK_BYTES = 4 << 20
+ZARR_CHUNK_BYTES = 4 << 20
 ACTION_STREAM = "action_stream"  # group of the full-rate actions (see FeatureCache.create)
 STORAGE_DTYPES: dict[str, np.dtype] = {
     "fp16": np.dtype(np.float16),
@@ -217,7 +217,7 @@ class FeatureCache:
         arrays = list(arrays)
         for spec in arrays:
             frame_bytes = int(np.prod(spec.frame_shape)) * np_dtype.itemsize
-            inner = max(1, min(block_frames, INNER_CHUNK_BYTES // max(frame_bytes, 1)))
+            inner = max(1, min(block_frames, ZARR_CHUNK_BYTES // max(frame_bytes, 1)))
             while block_frames % inner:
                 inner -= 1
             group.create_array(
@@ -258,8 +258,8 @@ class FeatureCache:
 
     @staticmethod
     def _write_static(group: zarr.Group, name: str, values: np.ndarray) -> str:
-        chunks = (min(max(values.shape[0], 1), 1 << 16), *values.shape[1:])
-        arr = group.create_array(name, shape=values.shape, dtype=values.dtype, chunks=chunks,
+        zarr_chunks = (min(max(values.shape[0], 1), 1 << 16), *values.shape[1:])
+        arr = group.create_array(name, shape=values.shape, dtype=values.dtype, chunks=zarr_chunks,
                                  compressors=_compressor(values.dtype.itemsize), fill_value=0)
         arr[...] = values
         return _sha256(values)
@@ -382,7 +382,7 @@ class FeatureCache:
         """`arr[rows]` read one block at a time, each block checked against its checksum the first time this
         handle's reader reads it (whole, which is what the checksum covers); later reads take the rows' span only.
 
-        zarr's orthogonal selection on sharded arrays costs ~50 ms per shard in chunk bookkeeping (4.6 s
+        zarr's orthogonal selection on sharded arrays costs ~50 ms per shard in zarr chunk bookkeeping (4.6 s
         for 1k rows here); slicing inside each shard and indexing in numpy reads the same bytes and holds at
         most one shard beyond the result in memory.
         """
@@ -470,7 +470,7 @@ class FeatureCache:
         for name, expected in self.layout["static_checksums"].items():
             try:
                 got = _sha256(self.group[name][...])
-            except Exception as e:  # a damaged chunk fails to decode
+            except Exception as e:  # a damaged zarr chunk fails to decode
                 problems.append((f"{name}/", f"{self.key}: {name} unreadable ({type(e).__name__})"))
                 continue
             if got != expected:
