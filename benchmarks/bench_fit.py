@@ -38,7 +38,7 @@ from graftcache.fit.data import load_lowdim
 from graftcache.fit.feed import SplitFeed
 from graftcache.fit.loop import flow_time, raw_batch, train
 from graftcache.fit.run import FitRequest, Fitter
-from graftcache.fit.stream import FeatureSource, read_chunks
+from graftcache.fit.stream import FeatureSource, read_blocks
 from graftcache.graft import GraftProjector, feature_key
 from graftcache.pooling import pool_grid
 from graftcache.pretrain import dataset_stats
@@ -149,8 +149,8 @@ def main() -> None:
             load_lowdim(native, SUITE, chunk=adapter.chunk_size).rows)
         feed = SplitFeed(low, source, cache.layout["block_frames"])
         t0 = time.perf_counter()
-        with closing(read_chunks(feed.features(seed=0), 0)) as chunks:
-            train(adapter, low, ShuffleBuffer(chunks, len(low)), cams, steps=a.steps, batch_size=a.batch_size,
+        with closing(read_blocks(feed.features(seed=0), 0)) as blocks:
+            train(adapter, low, ShuffleBuffer(blocks, len(low)), cams, steps=a.steps, batch_size=a.batch_size,
                   lr=FitRequest.lr, seed=0, show=False)
         train_s = time.perf_counter() - t0
         projector = GraftProjector(width, adapter.lm_width)

@@ -76,7 +76,7 @@ def released_step_seconds(name: str, root: Path, counts: list[int], batch_size: 
     with hub_cache(root / "hub"):
         folder = builders[name](f"bench/{name}-released", cache=root / "hub")
         adapter = load_backbone(name, folder)
-        tokens = adapter.native_grid[0] * adapter.native_grid[1]
+        tokens = adapter.token_grid[0] * adapter.token_grid[1]
         generator = torch.Generator().manual_seed(0)
         n_frames = 64
         feats = {c: torch.randn(n_frames, tokens, 768, generator=generator) for c in adapter.cameras}
@@ -179,7 +179,7 @@ def main() -> None:
             adapter = pool.get(name, folder, "cpu")
             cams = {c: c for c in adapter.cameras}
             low = load_lowdim(cache, SUITE, chunk=adapter.chunk_size)
-            grid = adapter.native_grid
+            grid = adapter.token_grid
             feats = FeatureSource.of(cache, list(cams.values()), grid).read(low.rows)
             step_times: dict[int, list[float]] = {n: [] for n in counts}
             for _ in range(a.rounds):

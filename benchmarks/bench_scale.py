@@ -49,7 +49,7 @@ from graftcache.encoders import load_encoder  # noqa: E402
 from graftcache.fit.buffer import ShuffleBuffer, buffer_frames  # noqa: E402
 from graftcache.fit.data import load_lowdim  # noqa: E402
 from graftcache.fit.feed import SplitFeed  # noqa: E402
-from graftcache.fit.stream import FeatureSource, read_chunks  # noqa: E402
+from graftcache.fit.stream import FeatureSource, read_blocks  # noqa: E402
 from graftcache.requests import ExtractRequest  # noqa: E402
 from graftcache.store import FeatureCache, list_caches  # noqa: E402
 
@@ -192,8 +192,8 @@ def section_stream(dataset: Path, work: Path, args: argparse.Namespace) -> None:
             g = torch.Generator().manual_seed(0)
             n = 64 * 200
             t0 = time.perf_counter()
-            with closing(read_chunks(feed.features(seed=0), 2)) as chunks:
-                buffer = ShuffleBuffer(chunks, capacity)
+            with closing(read_blocks(feed.features(seed=0), 2)) as blocks:
+                buffer = ShuffleBuffer(blocks, capacity)
                 for _ in range(n // 64):
                     buffer.draw(64, g)
             print(f"stream ({args.suite}, {cache.n_frames} frames, {grid[0]}x{grid[1]}x{width} fp16 x 2 cameras): "

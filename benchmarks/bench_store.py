@@ -41,7 +41,7 @@ from helpers.caches import dataset_cache  # noqa: E402
 
 from graftcache.fit.data import load_lowdim  # noqa: E402
 from graftcache.fit.feed import SplitFeed  # noqa: E402
-from graftcache.fit.stream import FeatureSource, read_chunks  # noqa: E402
+from graftcache.fit.stream import FeatureSource, read_blocks  # noqa: E402
 from graftcache.store import FeatureCache, open_root  # noqa: E402
 from graftcache.store.readthrough import ReadThroughRoot  # noqa: E402
 from graftcache.store.roots import Root  # noqa: E402
@@ -66,7 +66,7 @@ def frames_per_s(root: Root, key: str, cameras: list[str], suite: str, repeats: 
         t0 = time.perf_counter()
         cache = FeatureCache.in_root(root, key)  # a new handle: its blocks are checked again
         feed = SplitFeed(load_lowdim(cache, suite, chunk=CHUNK), FeatureSource.of(cache, cameras, GRID), BLOCK)
-        n = sum(len(c.owners) for c in read_chunks(feed.features(seed=None), 0))
+        n = sum(len(c.owners) for c in read_blocks(feed.features(seed=None), 0))
         times.append(time.perf_counter() - t0)
     return n / statistics.median(times), n
 

@@ -14,7 +14,8 @@ frames as `extract` writes them. Prints:
   ~0.5-0.7 s per step at batch 64 on one A100, i.e. <= ~128 frames/s; target >= 5x that. The 16x16 grid is
   also set against pi0.5's grafted step as measured on an H100 (bf16, features from a cache:
   benchmarks/results/bench_real_size_pi05_h100_bf16.json, written by bench_real_size.py), its largest batch;
-- the read cost per frame of a whole block against runs of 32 rows inside a block (why a chunk is a block);
+- the read cost per frame of a whole block against runs of 32 rows inside a block (why the streamed
+  unit is a whole block);
 - peak RSS of a process streaming 200 batches, per `--buffer-mib` (the fit's memory flag), in a fresh
   subprocess each (ru_maxrss of the consumer; workers hold at most their prefetched blocks).
 """
@@ -41,7 +42,7 @@ from helpers.caches import synthetic_cache  # noqa: E402
 from graftcache.fit.buffer import ShuffleBuffer, buffer_frames
 from graftcache.fit.data import load_lowdim
 from graftcache.fit.feed import SplitFeed
-from graftcache.fit.stream import FeatureSource, read_chunks
+from graftcache.fit.stream import FeatureSource, read_blocks
 from graftcache.store import FeatureCache
 
 CAMERAS = ("image", "image2")
@@ -75,8 +76,8 @@ def batches_per_s(feed: SplitFeed, workers: int, batch: int, frames: int, mib: i
     capacity = buffer_frames(mib, feed.source.frame_bytes(), batch, len(feed.low))
     g = torch.Generator().manual_seed(0)
     t0 = time.perf_counter()
-    with closing(read_chunks(feed.features(seed=0), workers)) as chunks:
-        buffer = ShuffleBuffer(chunks, capacity)
+    with closing(read_blocks(feed.features(seed=0), workers)) as blocks:
+        buffer = ShuffleBuffer(blocks, capacity)
         for _ in range(frames // batch):
             buffer.draw(batch, g)
     return frames / (time.perf_counter() - t0)
@@ -100,13 +101,13 @@ from contextlib import closing
 sys.path.insert(0, {bench!r})
 from bench_stream import feed_of
 from graftcache.fit.buffer import ShuffleBuffer, buffer_frames
-from graftcache.fit.stream import read_chunks
+from graftcache.fit.stream import read_blocks
 from graftcache.store import FeatureCache
 feed = feed_of(FeatureCache({path!r}, writable=False), (16, 16))
 capacity = buffer_frames({mib}, feed.source.frame_bytes(), 64, len(feed.low))
 g = torch.Generator().manual_seed(0)
-with closing(read_chunks(feed.features(seed=0), {workers})) as chunks:
-    buffer = ShuffleBuffer(chunks, capacity)
+with closing(read_blocks(feed.features(seed=0), {workers})) as blocks:
+    buffer = ShuffleBuffer(blocks, capacity)
     for _ in range(200):
         buffer.draw(64, g)
 print(capacity, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)

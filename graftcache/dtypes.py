@@ -1,5 +1,5 @@
-"""Dtype names as plain data (no torch): the choices of --compute-dtype and extract's --dtype, read by the requests
-and the CLI's parser without importing torch. graftcache.runtime maps them to torch dtypes, and
+"""Dtype names as plain data (no torch): the choices of --compute-dtype and extract's --storage-dtype, read by the
+requests and the CLI's parser without importing torch. graftcache.runtime maps them to torch dtypes, and
 graftcache.store.cache.STORAGE_DTYPES the stored ones to numpy dtypes.
 """
 

@@ -48,7 +48,7 @@ class GraftProjector(nn.Module):
         return self.proj(self.norm(features.to(self.proj.weight.dtype)))
 
 
-class IdentityProjector(nn.Module):
+class PassThroughProjector(nn.Module):
     """The `native` control: cached post-connector tokens are fed as they are (no parameters).
 
     The backbone still applies its own post-connector scaling (SmolVLA multiplies by sqrt(width)),

@@ -1,7 +1,7 @@
 """sha256 in one place: of bytes, files, canonical JSON and tensors.
 
-Every identity graftcache records (cache keys, run_ids, weights and dataset file hashes, block
-checksums, tiny-checkpoint folders) is one of these; keeping them together keeps each identity's bytes
+Every hash graftcache records (cache keys, run_ids, weights and dataset file hashes, block
+checksums, tiny-checkpoint folders) is one of these; keeping them together keeps each hash's bytes
 defined once, so a value recorded by an earlier version is reproduced exactly.
 """
 

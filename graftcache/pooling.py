@@ -1,11 +1,11 @@
 """Pool an encoder's patch grid to the token grid a backbone expects (8x8 SmolVLA, 16x16 pi0.5), and
-name grids: "HxW", or NATIVE for the encoder's own patch grid.
+name grids: "HxW", or UNPOOLED for the encoder's own patch grid.
 
 Adaptive average pooling keeps every encoder comparable at a fixed token count without learning
-anything: when the native grid is a multiple of the target, each token is the exact mean of its
-block of cells; pooling to a finer grid than the native one only repeats (or, for non-multiples,
+anything: when the unpooled grid is a multiple of the target, each token is the exact mean of its
+block of cells; pooling to a finer grid than the unpooled one only repeats (or, for non-multiples,
 blends neighbouring) cells and adds no information. So a cache stores the encoder's own grid by default
-(NATIVE) and stage 2 pools it to whatever grid a fit reads (graftcache.fit.data.read_grid).
+(UNPOOLED) and stage 2 pools it to whatever grid a fit reads (graftcache.fit.data.read_grid).
 
 The grid names are read by graftcache/requests.py, which stays free of torch: torch is imported where
 pooling runs, not with this module.
@@ -25,7 +25,7 @@ if TYPE_CHECKING:
 _GRID = re.compile(r"^\s*(\d+)\s*x\s*(\d+)\s*$")
 #: The grid name of the encoder's own patch grid (EncoderSpec.grid), stored unpooled: the default of
 #: `extract --grids`. Resolved to the encoder's HxW (`resolve_grids`) before anything is keyed.
-NATIVE = "native"
+UNPOOLED = "unpooled"
 
 
 def pool_grid(grid: torch.Tensor, out: tuple[int, int]) -> torch.Tensor:
@@ -72,24 +72,24 @@ def format_grid(grid: tuple[int, int]) -> str:
 
 
 def grid_names(text: str) -> tuple[str, ...]:
-    """"native, 8x8,8x8" -> ("native", "8x8"): the grids `extract --grids` names, normalised (order kept,
-    duplicates dropped), NATIVE still unresolved; a malformed name is a GraftcacheError."""
+    """"unpooled, 8x8,8x8" -> ("unpooled", "8x8"): the grids `extract --grids` names, normalised (order kept,
+    duplicates dropped), UNPOOLED still unresolved; a malformed name is a GraftcacheError."""
     names: list[str] = []
     for part in text.split(","):
         g = _hxw(part)
-        if g is None and part.strip() != NATIVE:
-            raise GraftcacheError(f"grid {part.strip()!r} in {text!r}: expected {NATIVE} (the encoder's own patch "
-                                  f"grid) or HxW with positive sizes, e.g. {NATIVE},4x4")
-        names.append(NATIVE if g is None else format_grid(g))
+        if g is None and part.strip() != UNPOOLED:
+            raise GraftcacheError(f"grid {part.strip()!r} in {text!r}: expected {UNPOOLED} (the encoder's own patch "
+                                  f"grid) or HxW with positive sizes, e.g. {UNPOOLED},4x4")
+        names.append(UNPOOLED if g is None else format_grid(g))
     return tuple(dict.fromkeys(names))
 
 
 def valid_grid_names(names: Sequence[str]) -> bool:
-    """At least one entry, each a grid name (NATIVE or HxW): the rule of ExtractRequest.grids."""
-    return bool(names) and all(isinstance(n, str) and (n.strip() == NATIVE or _hxw(n)) for n in names)
+    """At least one entry, each a grid name (UNPOOLED or HxW): the rule of ExtractRequest.grids."""
+    return bool(names) and all(isinstance(n, str) and (n.strip() == UNPOOLED or _hxw(n)) for n in names)
 
 
-def resolve_grids(names: Sequence[str], native: tuple[int, int]) -> list[tuple[int, int]]:
-    """Grid names -> grids, NATIVE as the encoder's `native` grid, duplicates dropped (order kept): `native` and
-    the encoder's grid spelled out store the same arrays under the same cache key."""
-    return list(dict.fromkeys(native if n == NATIVE else parse_grid(n) for text in names for n in grid_names(text)))
+def resolve_grids(names: Sequence[str], unpooled: tuple[int, int]) -> list[tuple[int, int]]:
+    """Grid names -> grids, UNPOOLED as the encoder's own grid `unpooled`, duplicates dropped (order kept):
+    `unpooled` and the encoder's grid spelled out store the same arrays under the same cache key."""
+    return list(dict.fromkeys(unpooled if n == UNPOOLED else parse_grid(n) for text in names for n in grid_names(text)))

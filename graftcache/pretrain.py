@@ -1,4 +1,4 @@
-"""Natively train a tiny backbone (all parameters, its own vision tower, on pixels).
+"""`graftcache train-tiny`: train a tiny backbone (all parameters, its own vision tower, on pixels).
 
 The frozen-backbone diagnostic is only meaningful on a backbone whose image tokens matter. No
 released SmolVLA / pi0.5 weights can be fetched here, so `graftcache train-tiny` trains lerobot's
@@ -31,7 +31,7 @@ from graftcache.datasets import DatasetMeta, open_dataset
 from graftcache.errors import BackboneError, DatasetError
 from graftcache.file_lease import FileLease
 from graftcache.fit.data import action_chunks
-from graftcache.fit.lookup import dataset_fingerprint
+from graftcache.fit.lookup import dataset_identity
 from graftcache.fit.loop import optimise
 from graftcache.progress import progress
 from graftcache.requests import DEFAULT_TINY_TRAIN, TinyTrainConfig
@@ -88,7 +88,7 @@ def _decode_all(dataset: str, cameras: tuple[str, ...], size: int, log: Callable
 
 
 def _unfreeze_all(policy: torch.nn.Module) -> None:
-    """Native training trains everything: lift lerobot's default freezing flags and grads."""
+    """train-tiny trains everything: lift lerobot's default freezing flags and grads."""
     for module in policy.modules():
         for flag in ("freeze_vision_encoder", "train_expert_only"):
             if hasattr(module, flag) and isinstance(getattr(module, flag), bool):
@@ -107,7 +107,7 @@ def _cameras(cfg: TinyTrainConfig, meta: DatasetMeta) -> tuple[TinyTrainConfig, 
     return replace(cfg, cameras=None if tuple(cameras) == meta.cameras else tuple(cameras)), tuple(cameras)
 
 
-def _reusable(folder: Path, backbone: str, fingerprint: dict, cfg: TinyTrainConfig, force: bool) -> bool:
+def _reusable(folder: Path, backbone: str, identity: dict, cfg: TinyTrainConfig, force: bool) -> bool:
     """Whether `folder` already holds the checkpoint asked for. A folder holding another backbone's checkpoint is
     refused whatever `force` says (retraining would mix two policies' files); one trained on another dataset or
     recipe is refused unless `force` (retrain it there)."""
@@ -120,7 +120,7 @@ def _reusable(folder: Path, backbone: str, fingerprint: dict, cfg: TinyTrainConf
                             f"another --out for {backbone} (or remove the folder)")
     if force:
         return False
-    if record is None or record.get("dataset_fingerprint") != fingerprint or \
+    if record is None or record.get("dataset_identity") != identity or \
             record.get("config") != cfg.as_dict(backbone):
         raise BackboneError(f"{folder} holds a {backbone} checkpoint trained on another dataset or with another "
                             f"recipe (steps, seed, cameras, ...): pass --force to retrain it there, or another --out")
@@ -139,20 +139,20 @@ def _config_type(folder: Path) -> str | None:
 def train_tiny(backbone: str, dataset: str, *, cfg: TinyTrainConfig = DEFAULT_TINY_TRAIN, cache: str | None = None,
                device: str = "cpu", out: str | Path | None = None, force: bool = False,
                log: Callable[[str], None] = print) -> Path:
-    """Train (or reuse) the tiny `backbone` natively on `dataset`; returns the checkpoint folder."""
+    """Train (or reuse) the tiny `backbone` on `dataset` (all parameters); returns the checkpoint folder."""
     set_main_threads()
     dev = resolve_device(device)
     cfg = replace(cfg, compute_dtype=resolve_compute_dtype(cfg.compute_dtype, dev))
     compute = resolve_dtype(cfg.compute_dtype)
     home = cache_root(cache)  # a --cache that cannot be a root is refused before any work
-    fingerprint = dataset_fingerprint(dataset)
+    identity = dataset_identity(dataset)
     cfg, cameras = _cameras(cfg, open_dataset(dataset).meta)
-    folder = Path(out) if out else policy_dir(home, backbone, fingerprint, cfg)
+    folder = Path(out) if out else policy_dir(home, backbone, identity, cfg)
     with _checkpoint_lease(folder, backbone, log):
-        if _reusable(folder, backbone, fingerprint, cfg, force):
-            log(f"reusing natively trained tiny {backbone}: {folder}")
+        if _reusable(folder, backbone, identity, cfg, force):
+            log(f"reusing tiny {backbone} trained by train-tiny: {folder}")
         else:
-            _train(backbone, dataset, folder, cfg=cfg, cameras=cameras, fingerprint=fingerprint, device=dev,
+            _train(backbone, dataset, folder, cfg=cfg, cameras=cameras, identity=identity, device=dev,
                    compute=compute, log=log)
     return folder
 
@@ -175,8 +175,8 @@ def _checkpoint_lease(folder: Path, backbone: str, log: Callable[[str], None]) -
 
 
 def _train(backbone: str, dataset: str, folder: Path, *, cfg: TinyTrainConfig, cameras: tuple[str, ...],
-           fingerprint: dict, device: torch.device, compute: torch.dtype, log: Callable[[str], None]) -> None:
-    """Train the tiny `backbone` natively on `dataset` (all parameters) and save it with its record in `folder`."""
+           identity: dict, device: torch.device, compute: torch.dtype, log: Callable[[str], None]) -> None:
+    """Train the tiny `backbone` on `dataset` (all parameters) and save it with its record in `folder`."""
     t0 = time.perf_counter()
     source, frames, table = _decode_all(dataset, cameras, cfg.image_size, log)
     meta = source.meta
@@ -185,7 +185,7 @@ def _train(backbone: str, dataset: str, folder: Path, *, cfg: TinyTrainConfig, c
     policy = adapter.policy
     _unfreeze_all(policy)
     n_params = sum(p.numel() for p in policy.parameters())
-    log(f"training tiny {backbone} natively: {n_params:,} parameters, all trainable, {cfg.steps} steps, "
+    log(f"training tiny {backbone} (train-tiny): {n_params:,} parameters, all trainable, {cfg.steps} steps, "
         f"compute {cfg.compute_dtype}")
     episode = table["episode_index"].to_numpy()
     acts, pad = action_chunks(np.stack(table["action"].to_numpy()).astype(np.float32), episode, adapter.chunk_size)
@@ -208,10 +208,10 @@ def _train(backbone: str, dataset: str, folder: Path, *, cfg: TinyTrainConfig, c
                       desc=f"train-tiny {backbone}")
     adapter.save(folder)
     record = {"backbone": backbone, "dataset": str(dataset), "dataset_root": str(meta.root),
-              "dataset_fingerprint": fingerprint, "cameras": list(cameras),
+              "dataset_identity": identity, "cameras": list(cameras),
               "config": cfg.as_dict(backbone), "final_loss": float(np.mean(losses[-max(1, cfg.steps // 10):])),
               "wall_s": time.perf_counter() - t0, "random_init": True,
-              "note": "tiny architecture, random init, trained natively by graftcache (not released weights)"}
+              "note": "tiny architecture, random init, trained by graftcache train-tiny (not released weights)"}
     write_record(folder, record)
-    log(f"saved natively trained tiny {backbone} to {folder} (final loss {record['final_loss']:.4f}, "
+    log(f"saved tiny {backbone} trained by train-tiny to {folder} (final loss {record['final_loss']:.4f}, "
         f"{record['wall_s']:.0f}s)")

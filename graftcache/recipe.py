@@ -6,16 +6,16 @@ Recipe keys (unknown keys are errors, so a typo never silently falls back to a d
     name, dataset, results, cache, device, suites, seeds, controls, objective
     camera_map     "POLICY=CACHE,...": which dataset camera feeds each policy camera where the names differ
                    (graftcache/cameras.py); passed to every fit and native-tower extract
-    [[backbones]]  name, policy ("tiny" = natively trained on `dataset`, else hub id or folder)
+    [[backbones]]  name, policy ("tiny" = trained on `dataset` by train-tiny, else hub id or folder)
     [[encoders]]   name, weights, random_init, seed
     [extract]      fields of ExtractRequest  } except those the grid sets (`recipe=False`): e.g. batch_size,
-    [fit]          fields of FitRequest      } dtype, frame_stride, grids; steps, lr, eval_frames, lora_rank;
+    [fit]          fields of FitRequest      } storage_dtype, frame_stride, grids; steps, lr, eval_frames, lora_rank;
     [train_tiny]   fields of TinyTrainConfig } steps, seed (backbones with policy = "tiny")
     [executor]     fields of ExecutorSettings: where extractions and cells run (executor = "ray", address,
                    gpus_per_task, ...); `graftcache sweep --executor ...` flags override them
 
-[extract] grids (default ["native"]: each encoder's own patch grid, pooled at read time to whatever a fit
-reads) is for storing pooled grids as well or instead, e.g. ["native", "4x4"] (graftcache.sweep.encoder_grids).
+[extract] grids (default ["unpooled"]: each encoder's own patch grid, pooled at read time to whatever a fit
+reads) is for storing pooled grids as well or instead, e.g. ["unpooled", "4x4"] (graftcache.sweep.encoder_grids).
 
 Every value is checked against the type of the request field it sets (a string where a number, list
 or boolean belongs is an error naming file, table and key), and against its range and choices: each declared once,

@@ -34,12 +34,12 @@ from graftcache.cameras import SYNTAX, valid_camera_map
 from graftcache.checks import EPISODES, FRACTION, NAMES, NON_NEGATIVE, POSITIVE, SEED, SEEDS, SHARD, Rule
 from graftcache.dtypes import COMPUTE_DTYPES, STORED_DTYPES
 from graftcache.lazy import import_string
-from graftcache.pooling import NATIVE, valid_grid_names
+from graftcache.pooling import UNPOOLED, valid_grid_names
 from graftcache.settings import Checked, Twin, setting
 
 #: A camera map's text (graftcache/cameras.py); the CLI's parser names what is wrong with one in more detail.
 CAMERA_MAP: Rule = (valid_camera_map, f"must be {SYNTAX}, each policy camera once, each from a camera of its own")
-GRIDS: Rule = (valid_grid_names, f"must name grids: {NATIVE} or HxW, e.g. {NATIVE},4x4")
+GRIDS: Rule = (valid_grid_names, f"must name grids: {UNPOOLED} or HxW, e.g. {UNPOOLED},4x4")
 CACHE_HELP = "cache root: a folder or an s3:// gs:// az:// URL (default: $GRAFTCACHE_HOME or ~/.cache/graftcache)"
 PROGRESS_HELP = "no progress bars or lines"
 
@@ -48,7 +48,7 @@ def compute_dtype() -> Any:
     """The compute_dtype field of every request that runs a model: resolved per device
     (runtime.resolve_compute_dtype) before anything is keyed or recorded."""
     return setting("auto", choices=COMPUTE_DTYPES,
-                   help="model compute precision. auto: bf16 where the device computes it natively (CUDA with bf16, "
+                   help="model compute precision. auto: bf16 where the device computes it in hardware (CUDA with bf16, "
                    "CPUs with AVX512-BF16/AMX), else fp32. The resolved dtype is recorded in manifests, keys and rows")
 
 
@@ -61,9 +61,9 @@ class ExtractRequest(Checked):
     encoder: str = setting(recipe=False, help="registry name (siglip, dinov2-s, mobilenetv2, ...), timm:<name> or "
                            "hf:<id-or-path>")
     grids: tuple[str, ...] = setting(
-        (NATIVE,), rule=GRIDS, codec=codecs.GRIDS,
-        help=f"grids to store: {NATIVE} (the encoder's own patch grid, unpooled; `fit` pools it to each backbone's "
-        f"token grid as it reads it) and/or pooled HxW grids, e.g. {NATIVE},4x4 or 8x8,16x16. {NATIVE} and the "
+        (UNPOOLED,), rule=GRIDS, codec=codecs.GRIDS,
+        help=f"grids to store: {UNPOOLED} (the encoder's own patch grid, unpooled; `fit` pools it to each backbone's "
+        f"token grid as it reads it) and/or pooled HxW grids, e.g. {UNPOOLED},4x4 or 8x8,16x16. {UNPOOLED} and the "
         "encoder's grid spelled out make the same cache")
     cameras: tuple[str, ...] | None = setting(None, rule=NAMES, help="comma-separated camera names (default: all)")
     episodes: tuple[int, ...] | None = setting(None, rule=EPISODES, recipe=False, help="episode subset, e.g. 0-9,20")
@@ -73,12 +73,13 @@ class ExtractRequest(Checked):
     policy: str | None = setting(  # native towers (smolvla-native, pi05-native) come from a policy
         None, recipe=False,
         help=lambda: f"policy for native towers ({', '.join(native_name(b) for b in BACKBONES)}): hub id, checkpoint "
-        "folder, or 'tiny' (the tiny backbone natively trained on --dataset by `graftcache train-tiny`)")
+        "folder, or 'tiny' (the tiny backbone trained on --dataset by `graftcache train-tiny`)")
     frame_stride: int = setting(  # features for frames whose frame_index % frame_stride == 0 (actions full rate)
         1, rule=POSITIVE, metavar="K",
         help="features for every K-th frame of each episode (frame_index %% K == 0); actions stay at the full rate "
         "for action chunks. Part of the cache key (1: every frame)")
-    dtype: str = setting("fp16", choices=STORED_DTYPES, help="stored feature dtype")
+    storage_dtype: str = setting("fp16", choices=STORED_DTYPES, help="dtype the features are stored in (what "
+                                 "the model computes in is --compute-dtype)")
     compute_dtype: str = compute_dtype()
     camera_map: str | None = setting(  # native towers: policy camera <- dataset camera where names differ
         None, rule=CAMERA_MAP, codec=codecs.CAMERA_MAP, recipe=False,
@@ -114,7 +115,9 @@ CONTROL_LIST: Rule = (lambda v: len(set(v)) == len(v) and "none" not in v,
 OBJECTIVES = ("flow", "align")
 #: The controls a fit runs besides the plain graft, as plain data for the CLI's help (graftcache.fit.controls.CONTROLS
 #: implements each; tests/test_settings.py keeps the two equal); pool-HxW pools the candidate to another grid.
-CONTROLS = ("native", "native-graft", "zero-image", "shuffled-image", "lora")
+NATIVE_CONTROL = "native"              # the policy's own tower, no graft: the one control evaluated as loaded
+NATIVE_GRAFT_CONTROL = "native-graft"  # the policy's own tower through the graft
+CONTROLS = (NATIVE_CONTROL, NATIVE_GRAFT_CONTROL, "zero-image", "shuffled-image", "lora")
 POOL_PREFIX = "pool-"
 #: Activation checkpointing of the frozen LM and expert (graftcache/backbones/recompute.py): `auto` turns it on
 #: when a training step would not fit the device's memory without it (graftcache/fit/step_memory.py).
@@ -129,7 +132,7 @@ class FitRequest(Checked):
     encoder: str = setting(recipe=False, help="encoder whose cache to graft (registry name)")
     suite: str = setting(recipe=False, rule=SUITE, help=lambda: f"LIBERO suite: {', '.join(_suites()[:-1])}")
     policy: str = setting("tiny", recipe=False,
-                          help="hub id (HF cache), local checkpoint folder, or 'tiny' (the natively trained tiny "
+                          help="hub id (HF cache), local checkpoint folder, or 'tiny' (the sample-trained tiny "
                           "backbone)")
     dataset: str | None = setting(None, recipe=False, help="dataset the cache must come from (path or hub id)")
     cache_key: str | None = setting(None, recipe=False, help="use this cache (when several match)")

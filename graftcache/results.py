@@ -37,8 +37,9 @@ from graftcache.file_lease import FileLease
 from graftcache.hashing import sha256_json
 
 #: The format of results rows and of the cells their run_ids hash (graftcache.fit.run.Cell). Files of an older
-#: format go through `upgrade`, the one place that knows them.
-FORMAT_VERSION = 2
+#: format go through `upgrade`, the one place that knows them. Format 3 (issue 23, one word per idea) renamed no
+#: column but changed what cells hold (`pool_grid` is the resolved grid, never "native"), hence every run_id.
+FORMAT_VERSION = 3
 
 SCHEMA: dict[str, pl.DataType] = {
     "run_id": pl.String,
@@ -89,8 +90,6 @@ SCHEMA: dict[str, pl.DataType] = {
     "eval_batch_size": pl.Int64,      # held-out frames denoised at once (the scores do not depend on it)
     "eval_seconds_per_frame": pl.Float64,  # scoring's wall time (reading, prefix, denoising) / n_eval_frames
 }
-
-CONTROLS_NATIVE = ("native",)
 
 # What a report needs of a table: enough to place every MSE in the (backbone, suite, encoder, control, seed)
 # grid. Tables from older versions, other tools or a paper need only these (conform fills the other SCHEMA
@@ -216,8 +215,9 @@ def read(path: str | Path) -> pl.DataFrame:
 
 def upgrade(rows: pl.DataFrame, path: Path) -> pl.DataFrame:
     """The one upgrade path for results files: rows of this format as they are; rows of an older format (format 1
-    had no format_version column) are refused in one line with the commands that rebuild them, since their
-    run_ids hash cells of another shape: a rerun could not skip their cells and would write each twice."""
+    had no format_version column; format 2 hashed `pool_grid="native"` and the format version 2 into its run_ids)
+    are refused in one line with the commands that rebuild them, since their run_ids hash cells of another
+    shape: a rerun could not skip their cells and would write each twice."""
     if "format_version" in rows.columns and rows["format_version"].eq(FORMAT_VERSION).all():
         return rows
     old = rows if "format_version" not in rows.columns else rows.filter(pl.col("format_version") != FORMAT_VERSION)

@@ -5,7 +5,7 @@ Why this exists: with torch on a 2-core machine, two intra-op threads in a data 
 while the main process keeps the cores for the model.
 
 Why `auto` is the default compute dtype: bf16 autocast is ~2x faster than fp32 where the hardware
-computes bf16 natively (CUDA GPUs with bf16, x86 CPUs with AVX512-BF16 or AMX), and 3-4x *slower*
+computes bf16 in hardware (CUDA GPUs with bf16, x86 CPUs with AVX512-BF16 or AMX), and 3-4x *slower*
 where torch emulates it (measured: MobileNetV2 on an AMD EPYC without AVX512-BF16, 4.7 vs 17.4
 img/s). A default tuned to one CPU is wrong on the next machine, so `auto` asks the hardware, and
 only the resolved dtype (never "auto") is written into manifests, cache keys and results rows.
@@ -61,20 +61,20 @@ def resolve_device(name: str) -> torch.device:
     return dev
 
 
-#: Overrides what `auto` assumes of this CPU: "1" as if it computed bf16 natively, "0" as if it did not, unset
+#: Overrides what `auto` assumes of this CPU: "1" as if it computed bf16 in hardware, "0" as if it did not, unset
 #: (or empty) to ask torch. Machines of one kind differ in CPU (some AMD EPYC have AVX512-BF16, some only AVX2),
 #: so this is how one machine reproduces the other family's `auto` (the tests of both resolutions, CI on the
 #: family it does not run on), and the way out where a hypervisor hides or fakes the flag.
 CPU_BF16_ENV = "GRAFTCACHE_CPU_BF16"
 
 
-def cpu_has_native_bf16() -> bool:
+def cpu_has_bf16() -> bool:
     """Whether this CPU computes bf16 in hardware (x86 AVX512-BF16 or AMX tiles), as torch reports it, unless
     $GRAFTCACHE_CPU_BF16 says otherwise."""
     forced = os.environ.get(CPU_BF16_ENV, "")
     if forced:
         if forced not in ("0", "1"):
-            raise GraftcacheError(f"${CPU_BF16_ENV}={forced!r}: expected 1 (native bf16), 0 (none) or unset")
+            raise GraftcacheError(f"${CPU_BF16_ENV}={forced!r}: expected 1 (bf16 in hardware), 0 (none) or unset")
         return forced == "1"
     probes: list[Callable[[], bool]] = [
         getattr(torch.cpu, name) for name in ("_is_avx512_bf16_supported", "_is_amx_tile_supported")
@@ -88,14 +88,14 @@ def cuda_has_bf16(device: torch.device) -> bool:
 
 
 #: How `auto` is decided per device type: True -> bf16, False -> fp32.
-NATIVE_BF16: dict[str, Callable[[torch.device], bool]] = {
-    "cpu": lambda _dev: cpu_has_native_bf16(),
+HARDWARE_BF16: dict[str, Callable[[torch.device], bool]] = {
+    "cpu": lambda _dev: cpu_has_bf16(),
     "cuda": cuda_has_bf16,
 }
 
 
 def resolve_compute_dtype(name: str, device: torch.device | str) -> str:
-    """`auto` -> "bf16" where `device` computes bf16 natively, else "fp32"; explicit names pass through.
+    """`auto` -> "bf16" where `device` computes bf16 in hardware, else "fp32"; explicit names pass through.
 
     Returns the resolved *name*, the form recorded in manifests, keys and rows.
     """
@@ -104,7 +104,7 @@ def resolve_compute_dtype(name: str, device: torch.device | str) -> str:
     if name != AUTO:
         return name
     dev = torch.device(device) if isinstance(device, str) else device
-    return "bf16" if NATIVE_BF16.get(dev.type, lambda _d: False)(dev) else "fp32"
+    return "bf16" if HARDWARE_BF16.get(dev.type, lambda _d: False)(dev) else "fp32"
 
 
 def resolve_dtype(name: str) -> torch.dtype:

@@ -6,7 +6,7 @@ recipe, and finished cells by `run_id` in the results file. Rerunning a sweep af
 therefore continues where it stopped, and rerunning a finished one only reads. What produced each cache
 and policy is kept as the equivalent command line, for the report.
 
-Each encoder is extracted once, at its own patch grid (`extract --grids native`) unless the recipe's [extract]
+Each encoder is extracted once, at its own patch grid (`extract --grids unpooled`) unless the recipe's [extract]
 table names `grids`: one cache serves every backbone, pool control and the align objective, each pooled from
 it at read time (graftcache.fit.data.read_grid). A native tower's cache serves its own backbone only, so it
 stores that backbone's token grid, the one grid its controls read (a released SmolVLA tower's own grid is
@@ -25,7 +25,7 @@ from graftcache.cameras import match_cameras
 from graftcache.errors import GraftcacheError
 from graftcache.executors import Executor, get_executor
 from graftcache.fit.controls import get_control
-from graftcache.pooling import NATIVE, format_grid, grid_names
+from graftcache.pooling import UNPOOLED, format_grid, grid_names
 from graftcache.progress import progress, write
 from graftcache.recipe import EncoderEntry, Recipe
 from graftcache.requests import DEFAULT_TINY_TRAIN, ExecutorSettings, ExtractRequest, FitRequest, TinyTrainConfig
@@ -40,10 +40,10 @@ def command_line(command: str, request: type, **values: Any) -> str:
 
 @dataclass
 class SweepState:
-    """What the sweep resolved on the way: policy folders, native grids, cache keys."""
+    """What the sweep resolved on the way: policy folders, token grids, cache keys."""
 
     policies: dict[str, str] = field(default_factory=dict)           # backbone -> policy folder / id
-    native_grids: dict[str, tuple[int, int]] = field(default_factory=dict)
+    token_grids: dict[str, tuple[int, int]] = field(default_factory=dict)
     encoder_caches: dict[EncoderEntry, str] = field(default_factory=dict)
     native_caches: dict[str, str] = field(default_factory=dict)      # backbone -> native tower cache key
     commands: dict[str, str] = field(default_factory=dict)           # what produced each cache / policy
@@ -58,7 +58,7 @@ def _pool_grids(recipe: Recipe) -> list[tuple[int, int]]:
 
 
 def prepare_policies(recipe: Recipe, state: SweepState, log: Callable[[str], None]) -> None:
-    """Train (or reuse) tiny backbones, then read each backbone's native token grid from its config."""
+    """Train (or reuse) tiny backbones, then read each backbone's token grid from its config."""
     from graftcache.backbones import get_backbone
     from graftcache.pretrain import train_tiny
 
@@ -72,7 +72,7 @@ def prepare_policies(recipe: Recipe, state: SweepState, log: Callable[[str], Non
                 "train-tiny", TinyTrainConfig, backbone=entry.name, dataset=recipe.dataset, steps=cfg.steps,
                 cameras=cfg.cameras)
         state.policies[entry.name] = policy
-        state.native_grids[entry.name] = get_backbone(entry.name).read_native_grid(policy)
+        state.token_grids[entry.name] = get_backbone(entry.name).read_token_grid(policy)
     check_cameras(recipe, state)
 
 
@@ -103,15 +103,15 @@ def _extract_settings(recipe: Recipe, grids: tuple[str, ...]) -> dict[str, Any]:
 
 def encoder_grids(recipe: Recipe, state: SweepState) -> tuple[str, ...]:
     """The grids every encoder's cache stores: the recipe's [extract] grids, by default the encoder's own grid
-    alone. Explicit grids without `native` must include every grid the fits read (each backbone's token grid
+    alone. Explicit grids without `unpooled` must include every grid the fits read (each backbone's token grid
     and each pool control's): pooling a coarser stored grid up to one of them would only repeat cells."""
     names = grid_names(",".join(recipe.extract.get("grids", ExtractRequest.grids)))
-    if NATIVE not in names:
-        read = sorted(set(state.native_grids.values()) | set(_pool_grids(recipe)))
+    if UNPOOLED not in names:
+        read = sorted(set(state.token_grids.values()) | set(_pool_grids(recipe)))
         missing = [format_grid(g) for g in read if format_grid(g) not in names]
         if missing:
             raise GraftcacheError(f"{recipe.path} [extract]: grids = {list(names)} lacks {', '.join(missing)}, which "
-                                  f"the fits read; add them, or {NATIVE!r} to pool them from the encoder's own grid")
+                                  f"the fits read; add them, or {UNPOOLED!r} to pool them from the encoder's own grid")
     return names
 
 
@@ -130,7 +130,7 @@ def prepare_caches(recipe: Recipe, state: SweepState, log: Callable[[str], None]
     if not _needs_native(recipe):
         return
     for backbone, policy in state.policies.items():
-        grid = (format_grid(state.native_grids[backbone]),)
+        grid = (format_grid(state.token_grids[backbone]),)
         key = _extract(recipe, executor, native_name(backbone), grid, log, policy=policy,
                        camera_map=recipe.camera_map)
         state.native_caches[backbone] = key
@@ -166,7 +166,7 @@ def check_sweep(recipe: Recipe) -> list[str]:
     notes = check_inputs(recipe)
     read = [b for b in recipe.backbones if b.policy != "tiny"]  # a missing checkpoint is refused here
     state = SweepState(policies={b.name: b.policy for b in read},
-                       native_grids={b.name: get_backbone(b.name).read_native_grid(b.policy) for b in read})
+                       token_grids={b.name: get_backbone(b.name).read_token_grid(b.policy) for b in read})
     check_cameras(recipe, state)
     if len(read) == len(recipe.backbones):
         encoder_grids(recipe, state)

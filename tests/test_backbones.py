@@ -43,7 +43,7 @@ def test_registry_maps_names_to_adapters() -> None:
                                                     ("pi0", 128, 1.0), ("pi0_fast", 128, 1.0)])
 def test_tiny_geometry(name: str, width: int, scale: float) -> None:
     adapter = tiny(name)
-    assert adapter.native_grid == (4, 4)
+    assert adapter.token_grid == (4, 4)
     assert adapter.lm_width == width
     assert adapter.embed_scale == pytest.approx(scale)
     assert adapter.cameras == ("image", "image2")
@@ -231,13 +231,13 @@ def test_padded_action_targets_do_not_change_the_smolvla_loss() -> None:
 
 @pytest.mark.parametrize("name", NAMES)
 def test_native_control_reproduces_the_ungrafted_policy(name: str) -> None:
-    """Cached post-connector tokens through the identity projector = the policy on pixels."""
+    """Cached post-connector tokens through the pass-through projector = the policy on pixels."""
     assert_native_control_reproduces(tiny(name), tiny(name), 4)
 
 
 @pytest.mark.parametrize("name", NAMES)
 def test_full_policy_trains_on_pixels(name: str) -> None:
-    """What native training of the tiny backbones needs: the real tower, all parameters, raw images."""
+    """What train-tiny needs of the tiny backbones: the real tower, all parameters, raw images."""
     adapter = tiny(name)
     for p in adapter.policy.parameters():
         p.requires_grad_(True)

@@ -32,7 +32,7 @@ SIZE = 128  # the tiny policy's frames (train-tiny's size): smart_resize -> 112 
 
 def test_tiny_geometry() -> None:
     adapter = tiny("eo1")
-    assert adapter.native_grid == (4, 4) and adapter.lm_width == 64 and adapter.embed_scale == 1.0
+    assert adapter.token_grid == (4, 4) and adapter.lm_width == 64 and adapter.embed_scale == 1.0
     assert adapter.cameras == ("image", "image2") and adapter.max_action_dim == 8 and adapter.chunk_size == 10
     images = torch.rand(2, 3, SIZE, SIZE)
     assert adapter.native_patch_grid(images).shape == (2, 8, 8, 32)
@@ -121,7 +121,7 @@ def test_graft_fills_the_image_pads_with_projected_features() -> None:
     loss.mean().backward()
     assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in adapter.projector.parameters())
     odd = {**raw, **{feature_key(k): raw[feature_key(k)][:, :6] for k in adapter.camera_keys}}
-    with pytest.raises(BackboneError, match="6 cached tokens per camera is neither the native 4x4 grid nor a square"):
+    with pytest.raises(BackboneError, match="6 cached tokens per camera is neither its token grid 4x4 nor a square"):
         adapter.prepare(odd)
     with pytest.raises(BackboneError, match="different token counts"):
         adapter.prepare({**raw, feature_key("image"): raw[feature_key("image")][:, :9]})
@@ -175,7 +175,7 @@ def test_saved_tiny_loads_by_hub_id(tmp_path, monkeypatch: pytest.MonkeyPatch) -
         monkeypatch.setenv("HF_HUB_CACHE", str(cache))
         publish(tmp_path / "stage", "graftcache-tests/eo1-tiny", cache)
         loaded = load_backbone("eo1", "graftcache-tests/eo1-tiny")
-        assert EO1Adapter.read_native_grid("graftcache-tests/eo1-tiny") == (4, 4)
+        assert EO1Adapter.read_token_grid("graftcache-tests/eo1-tiny") == (4, 4)
         assert EO1Adapter.read_cameras("graftcache-tests/eo1-tiny") == ("image", "image2")
     assert loaded.policy_sha256 == adapter.policy_sha256 and loaded.random_init
     assert loaded.n_params == adapter.n_params == 245_800  # the LM head tied to the embedding again, counted once
@@ -215,7 +215,7 @@ def test_released_geometry_on_the_meta_device() -> None:
         ("vit", qwen.visual), ("merger", qwen.visual.merger), ("lm", qwen.language_model), ("eo1", policy))}
     assert params["vit"] == 668_684_288 and params["merger"] == 36_708_608 and params["lm"] == 3_085_938_688
     assert params["eo1"] == adapter.n_params == 3_771_607_072, params
-    assert adapter.native_grid == (9, 9) and adapter.lm_width == 2048
+    assert adapter.token_grid == (9, 9) and adapter.lm_width == 2048
     assert qwen.visual.merger.mlp[-1].out_features == 2048
     assert adapter.max_action_dim == 32 and adapter.chunk_size == 16 and adapter.num_steps == 10
     assert {p.dtype for p in qwen.parameters()} == {torch.bfloat16}

@@ -49,7 +49,7 @@ def _lm_inputs(adapter, batch: dict, noise, time) -> tuple[torch.Tensor, dict, t
 
 def test_tiny_geometry() -> None:
     adapter = tiny("evo1")
-    assert adapter.native_grid == (4, 4) and adapter.lm_width == 64 and adapter.embed_scale == 1.0
+    assert adapter.token_grid == (4, 4) and adapter.lm_width == 64 and adapter.embed_scale == 1.0
     assert adapter.cameras == ("image", "image2") and adapter.max_action_dim == 8 and adapter.chunk_size == 10
     assert len(adapter._vision_owner.language_model.layers) == 2  # the tiny LM's 3 layers cut as lerobot cuts
     images = torch.rand(2, 3, SIZE, SIZE)
@@ -213,7 +213,7 @@ def test_saved_tiny_loads_by_hub_id(tmp_path, monkeypatch: pytest.MonkeyPatch) -
         monkeypatch.setenv("HF_HUB_CACHE", str(cache))
         publish(tmp_path / "stage", "graftcache-tests/evo1-tiny", cache)
         loaded = load_backbone("evo1", "graftcache-tests/evo1-tiny")
-        assert Evo1Adapter.read_native_grid("graftcache-tests/evo1-tiny") == (4, 4)
+        assert Evo1Adapter.read_token_grid("graftcache-tests/evo1-tiny") == (4, 4)
         assert Evo1Adapter.read_cameras("graftcache-tests/evo1-tiny") == ("image", "image2")
     assert loaded.policy_sha256 == adapter.policy_sha256 and loaded.random_init
     assert loaded.n_params == adapter.n_params == TINY_PARAMS
@@ -256,7 +256,7 @@ def test_released_geometry_on_the_meta_device(tmp_path) -> None:
     assert params == {"vit": 304_012_288, "projector": 4_482_816, "lm": 344_674_176, "head": 122_029_360,
                       "evo1": 775_198_640}
     assert adapter.n_params == 775_198_640
-    assert adapter.native_grid == (16, 16) and adapter.lm_width == 896 and adapter.embed_scale == 1.0
+    assert adapter.token_grid == (16, 16) and adapter.lm_width == 896 and adapter.embed_scale == 1.0
     assert adapter.max_action_dim == 24 and adapter.chunk_size == 50 and adapter.num_steps == 32
     assert {p.dtype for p in internvl.parameters()} == {torch.bfloat16}
     embedder = policy.model.embedder

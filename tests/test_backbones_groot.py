@@ -54,7 +54,7 @@ def test_tiny_geometry() -> None:
     own = GR00TN17.__dict__["from_pretrained"]
     adapter = tiny("groot")
     assert GR00TN17.__dict__["from_pretrained"] is own  # lerobot's loader is back after construction
-    assert adapter.native_grid == (4, 4) and adapter.lm_width == 64 and adapter.embed_scale == 1.0
+    assert adapter.token_grid == (4, 4) and adapter.lm_width == 64 and adapter.embed_scale == 1.0
     assert adapter.cameras == ("image", "image2") and adapter.max_action_dim == 8 and adapter.chunk_size == 10
     assert adapter.num_steps == 4 and len(_qwen(adapter).language_model.layers) == 2  # cut at select_layer
     images = torch.rand(2, 3, SIZE, SIZE)
@@ -234,7 +234,7 @@ def test_saved_tiny_loads_by_hub_id(tmp_path, monkeypatch: pytest.MonkeyPatch) -
         monkeypatch.setenv("HF_HUB_CACHE", str(cache))
         publish(tmp_path / "stage", "graftcache-tests/groot-tiny", cache)
         loaded = load_backbone("groot", "graftcache-tests/groot-tiny")
-        assert GrootAdapter.read_native_grid("graftcache-tests/groot-tiny") == (4, 4)
+        assert GrootAdapter.read_token_grid("graftcache-tests/groot-tiny") == (4, 4)
         assert GrootAdapter.read_cameras("graftcache-tests/groot-tiny") == ("image", "image2")
     assert loaded.policy_sha256 == adapter.policy_sha256 and loaded.random_init
     assert loaded.n_params == adapter.n_params == PARAMS
@@ -284,7 +284,7 @@ def test_released_geometry_on_the_meta_device() -> None:
     assert params["head"] == 1_620_515_968 and params["groot"] == adapter.n_params == 3_144_016_000, params
     assert {p.device.type for p in policy.parameters()} == {"meta"}
     assert len(qwen.language_model.layers) == 16 and qwen.visual.deepstack_visual_indexes == [5, 11, 17]
-    assert adapter.native_grid == (8, 8) and adapter.lm_width == 2048
+    assert adapter.token_grid == (8, 8) and adapter.lm_width == 2048
     assert qwen.visual.merger.linear_fc2.out_features == 2048
     assert adapter.max_action_dim == 132 and adapter.chunk_size == 40 and adapter.num_steps == 4
     pre, _ = make_groot_pre_post_processors(config, dataset_stats=lowdim_stats())

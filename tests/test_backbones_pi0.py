@@ -171,7 +171,7 @@ def test_released_geometry_on_the_meta_device(name: str, slots: tuple[str, ...],
     assert total == sum(expected.values()) + (lm_head if name == "pi0" else 0)
     assert total == {"pi0": 4_028_019_472, "pi0_fast": 3_449_982_704}[name]
 
-    assert adapter.native_grid == (16, 16) and adapter.lm_width == 2048 and adapter.embed_scale == 1.0
+    assert adapter.token_grid == (16, 16) and adapter.lm_width == 2048 and adapter.embed_scale == 1.0
     assert tuple(k.removeprefix("observation.images.") for k in adapter.config.image_features) == slots
     assert adapter.cameras == ("image", "image2")
     tower, connector = adapter._tower_and_connector()

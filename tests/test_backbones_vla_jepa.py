@@ -27,7 +27,7 @@ from graftcache.backbones import lean, load_backbone
 from graftcache.backbones.checkpoint import state_dict_sha256
 from graftcache.backbones.vla_jepa import VLAJEPAAdapter, merged_grid
 from graftcache.errors import BackboneError
-from graftcache.fit.controls import IdentityProjector
+from graftcache.fit.controls import PassThroughProjector
 from graftcache.graft import GraftProjector, feature_key
 
 SIZE = 128  # the tiny policy's frames (train-tiny's size): 8x8 patches of 16 px -> 4x4 merged tokens
@@ -49,7 +49,7 @@ def _cameras_tokens(adapter, batch: dict) -> tuple[dict, torch.Tensor]:
 
 def test_tiny_geometry() -> None:
     adapter = tiny("vla_jepa")
-    assert adapter.native_grid == (4, 4) and adapter.lm_width == 64 and adapter.embed_scale == 1.0
+    assert adapter.token_grid == (4, 4) and adapter.lm_width == 64 and adapter.embed_scale == 1.0
     assert adapter.cameras == ("image", "image2") and adapter.max_action_dim == 7 and adapter.chunk_size == 10
     assert not adapter.config.enable_world_model and adapter.policy.model.video_predictor is None
     images = torch.rand(2, 3, SIZE, SIZE)
@@ -187,12 +187,12 @@ def test_native_control_reproduces_the_ungrafted_policy_without_deepstack() -> N
 
 def test_resize_images_to_sets_the_grid_the_native_tower_and_the_grafted_prompt() -> None:
     """A checkpoint with `resize_images_to` (converted VLA-JEPA checkpoints set the training resolution there):
-    `predict_action` resizes frames to it, so the native grid, the native tokens and the grafted prompt follow it
+    `predict_action` resizes frames to it, so the token grid, the native tokens and the grafted prompt follow it
     (96 px -> 6x6 patches -> 3x3 tokens in the tiny processor), and the grafted sampler does not resize features."""
     native = tiny("vla_jepa")
     native.config.resize_images_to = (96, 96)
     native._vision_owner.deepstack_visual_indexes = []  # so the native control reproduces it exactly
-    assert native.native_grid == (3, 3)
+    assert native.token_grid == (3, 3)
     raw = raw_images(native, 2, size=SIZE)
     seen = []
     qwen = native._qwen
@@ -206,7 +206,7 @@ def test_resize_images_to_sets_the_grid_the_native_tower_and_the_grafted_prompt(
     torch.testing.assert_close(seen[0].float(), torch.stack(tokens, dim=1).flatten(0, 2), atol=0.02, rtol=0.02)
     control = tiny("vla_jepa")
     control.config.resize_images_to = (96, 96)
-    control.graft(IdentityProjector(control.lm_width))
+    control.graft(PassThroughProjector(control.lm_width))
     cached = {**{k: v for k, v in raw.items() if not k.startswith("observation.images.")},
               **{feature_key(k): t for k, t in zip(native.camera_keys, tokens)}}
     torch.testing.assert_close(control.predict(control.prepare(cached), noise), chunk)
@@ -266,7 +266,7 @@ def test_saved_tiny_loads_by_hub_id(tmp_path, monkeypatch: pytest.MonkeyPatch) -
         monkeypatch.setenv("HF_HUB_CACHE", str(cache))
         publish(tmp_path / "stage", "graftcache-tests/vla-jepa-tiny", cache)
         loaded = load_backbone("vla_jepa", "graftcache-tests/vla-jepa-tiny")
-        assert VLAJEPAAdapter.read_native_grid("graftcache-tests/vla-jepa-tiny") == (4, 4)
+        assert VLAJEPAAdapter.read_token_grid("graftcache-tests/vla-jepa-tiny") == (4, 4)
         assert VLAJEPAAdapter.read_cameras("graftcache-tests/vla-jepa-tiny") == ("image", "image2")
     assert loaded.policy_sha256 == adapter.policy_sha256 and loaded.random_init
     assert loaded.n_params == adapter.n_params == 295_927  # the LM head tied to the embedding again, counted once

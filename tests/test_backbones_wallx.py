@@ -38,7 +38,7 @@ def _image_pads(adapter, batch) -> torch.Tensor:
 
 def test_tiny_geometry() -> None:
     adapter = tiny("wall_x")
-    assert adapter.native_grid == (4, 4) and adapter.lm_width == 64 and adapter.embed_scale == 1.0
+    assert adapter.token_grid == (4, 4) and adapter.lm_width == 64 and adapter.embed_scale == 1.0
     assert adapter.cameras == ("image", "image2") and adapter.max_action_dim == 20 and adapter.chunk_size == 10
     assert adapter.num_steps == 10  # `predict`'s default: lerobot's policy passes no other
     images = torch.rand(2, 3, SIZE, SIZE)
@@ -224,7 +224,7 @@ def test_saved_tiny_loads_by_hub_id(tmp_path, monkeypatch: pytest.MonkeyPatch) -
         monkeypatch.setenv("HF_HUB_CACHE", str(cache))
         publish(tmp_path / "stage", "graftcache-tests/wall_x-tiny", cache)
         loaded = load_backbone("wall_x", "graftcache-tests/wall_x-tiny")
-        assert WallXAdapter.read_native_grid("graftcache-tests/wall_x-tiny") == (4, 4)
+        assert WallXAdapter.read_token_grid("graftcache-tests/wall_x-tiny") == (4, 4)
         assert WallXAdapter.read_cameras("graftcache-tests/wall_x-tiny") == ("image", "image2")
     assert loaded.policy_sha256 == adapter.policy_sha256 and loaded.random_init
     assert loaded.n_params == adapter.n_params == TINY_PARAMS  # the LM head tied to the embedding again, counted once
@@ -285,7 +285,7 @@ def test_released_geometry_on_the_meta_device(tmp_path) -> None:
     assert params["lm"] == 3_085_938_688 - 151_936 * 2048 + WALL_OSS_VOCAB * 2048 + 36 * 3 * 2048 * 2048, params
     assert params["wall_x"] == adapter.n_params == 4_224_038_912, params
     assert model.lm_head.weight is model.model.embed_tokens.weight
-    assert adapter.native_grid == (9, 9) and adapter.lm_width == 2048
+    assert adapter.token_grid == (9, 9) and adapter.lm_width == 2048
     assert adapter.max_action_dim == 20 and adapter.chunk_size == 32 and adapter.num_steps == 10
     assert {p.dtype for p in model.model.layers.parameters() if p.ndim == 2} == {torch.bfloat16}
     assert {p.dtype for p in model.action_preprocessor.parameters()} == {torch.float32}  # lerobot keeps it fp32

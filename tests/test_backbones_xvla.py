@@ -28,7 +28,7 @@ from graftcache.graft import GraftProjector, feature_key
 
 def test_tiny_geometry() -> None:
     adapter = tiny("xvla")
-    assert adapter.native_grid == (4, 4) and adapter.lm_width == 64 and adapter.embed_scale == 1.0
+    assert adapter.token_grid == (4, 4) and adapter.lm_width == 64 and adapter.embed_scale == 1.0
     assert adapter.cameras == ("image", "image2") and adapter.max_action_dim == 8 and adapter.chunk_size == 10
     images = torch.rand(2, 3, 200, 160)  # any size: the tiny config resizes with padding to 128
     grid, tokens = adapter.native_patch_grid(images), adapter.native_tokens(images)
@@ -142,7 +142,7 @@ def test_saved_tiny_loads_by_hub_id(tmp_path, monkeypatch: pytest.MonkeyPatch) -
         monkeypatch.setenv("HF_HUB_CACHE", str(cache))
         snapshot = publish(tmp_path / "stage", "graftcache-tests/xvla-tiny", cache)
         loaded = load_backbone("xvla", "graftcache-tests/xvla-tiny")
-        assert XVLAAdapter.read_native_grid("graftcache-tests/xvla-tiny") == (4, 4)
+        assert XVLAAdapter.read_token_grid("graftcache-tests/xvla-tiny") == (4, 4)
         assert XVLAAdapter.read_cameras("graftcache-tests/xvla-tiny") == ("image", "image2")
     assert (snapshot / "config.json").is_file() and json.loads((snapshot / "config.json").read_text())["type"] == "xvla"
     assert loaded.policy_sha256 == adapter.policy_sha256 and loaded.random_init
@@ -170,7 +170,7 @@ def test_released_geometry_on_the_meta_device() -> None:
     total = sum(p.numel() for p in policy.parameters())
     assert total == sum(params.values()) and 0.85e9 < total < 0.95e9, params
     assert params["tower"] == pytest.approx(360e6, rel=0.05)  # DaViT of Florence-2-large
-    assert adapter.native_grid == conv_grid((256, 256), config.get_florence_config().vision_config) == (8, 8)
+    assert adapter.token_grid == conv_grid((256, 256), config.get_florence_config().vision_config) == (8, 8)
     assert adapter.lm_width == 1024 == policy.model.vlm.config.text_config.d_model
     hidden = policy.model.vlm.vision_tower(torch.empty(2, 3, 256, 256, device="meta")).last_hidden_state
     tokens = policy.model.vlm.multi_modal_projector(hidden)
@@ -179,4 +179,4 @@ def test_released_geometry_on_the_meta_device() -> None:
     pixels = {k: torch.empty(2, 3, 256, 256, device="meta") for k in adapter.camera_keys}
     images, masks = policy._prepare_images(pixels)  # both real views, no empty slot in this recipe
     assert tuple(images.shape) == (2, 2, 3, 256, 256) and tuple(masks.shape) == (2, 2)
-    assert config.num_image_views == 2 and math.prod(adapter.native_grid) == 64
+    assert config.num_image_views == 2 and math.prod(adapter.token_grid) == 64

@@ -23,8 +23,9 @@ def test_bench_protocol_runs_and_its_json_adds_up(tmp_path: Path, monkeypatch: p
     import bench_protocol
 
     out = tmp_path / "protocol.json"
-    report = bench_protocol.main(["--tiny", "--device", "cpu", "--dtype", "fp32", "--steps", "1", "--eval-frames",
-                                  "1", "--batch-size", "1", "--encoders", "dinov2-s", "--out", str(out)])
+    report = bench_protocol.main(["--tiny", "--device", "cpu", "--compute-dtype", "fp32", "--steps", "1",
+                                  "--eval-frames", "1", "--batch-size", "1", "--encoders", "dinov2-s",
+                                  "--out", str(out)])
     assert json.loads(out.read_text()) == report
     assert report["device"] == "cpu" and "cores" in report["cpu"] and report["tiny"] is True
     # cli/paper.toml: 2 backbones x 2 suites x 3 seeds x (1 encoder x 6 encoder-reading kinds of row + 2 native)

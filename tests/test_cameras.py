@@ -136,7 +136,7 @@ def test_train_tiny_takes_the_datasets_cameras_and_fits_match_them_by_name(world
     assert smolvla.read_cameras(default) == ("agentview", "eye_in_hand")
     # naming the default cameras in the default order is the same policy: found again, not retrained
     assert main([*train, "--cache", str(tmp_path / "c"), "--cameras", "agentview,eye_in_hand"]) == 0
-    assert f"reusing natively trained tiny smolvla: {default}" in capsys.readouterr().out
+    assert f"reusing tiny smolvla trained by train-tiny: {default}" in capsys.readouterr().out
     out = tmp_path / "r.parquet"
     assert fit(world, out, policy=tmp_path / "chosen") == 0  # no map needed
     assert results.read(out)["camera_map"].to_list() == ["eye_in_hand=eye_in_hand,agentview=agentview"]

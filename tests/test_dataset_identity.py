@@ -47,14 +47,14 @@ def sample(tmp_path: Path) -> Path:
     return root
 
 
-def _fingerprint(root: Path) -> dict:
+def _identity_of(root: Path) -> dict:
     meta = open_dataset(root).meta
-    return {"codebase_version": meta.codebase_version, **meta.fingerprint}
+    return {"codebase_version": meta.codebase_version, **meta.content_identity}
 
 
-def _key(fingerprint: dict) -> str:
+def _key(dataset_identity: dict) -> str:
     """The cache key of a fixed extraction request on a dataset with this identity."""
-    return cache_key(manifest(dataset_fingerprint=fingerprint, encoder={"name": "toy"}).to_dict())
+    return cache_key(manifest(dataset_identity=dataset_identity, encoder={"name": "toy"}).to_dict())
 
 
 def _flip_byte(path: Path, offset: int) -> None:
@@ -78,7 +78,7 @@ def _nan_episode(path: Path, episode: int) -> None:
 
 # ------------------------------------------------------------------------------------------ what it covers
 def test_identity_covers_metadata_data_and_videos(sample: Path, memo: Path) -> None:
-    files = _fingerprint(sample)["files"]
+    files = _identity_of(sample)["files"]
     assert set(files) == {INFO, "meta/tasks.parquet", "meta/episodes/chunk-000/file-000.parquet", DATA, VIDEO,
                           "videos/observation.images.image2/chunk-000/file-000.mp4"}
     for rel, entry in files.items():
@@ -89,7 +89,7 @@ def test_identity_covers_metadata_data_and_videos(sample: Path, memo: Path) -> N
 @pytest.mark.parametrize("rel, offset", [(VIDEO, 400_000), (DATA, 100_000), (INFO, None)],
                          ids=["video", "data-parquet", "metadata"])
 def test_one_changed_byte_changes_the_key(sample: Path, memo: Path, rel: str, offset: int | None) -> None:
-    before = _fingerprint(sample)
+    before = _identity_of(sample)
     path = sample / rel
     if offset is None:  # keep info.json valid JSON: one byte of a string value
         text = path.read_bytes()
@@ -97,7 +97,7 @@ def test_one_changed_byte_changes_the_key(sample: Path, memo: Path, rel: str, of
         path.write_bytes(text.replace(b'"panda"', b'"pandA"'))
     else:
         _flip_byte(path, offset)
-    after = _fingerprint(sample)
+    after = _identity_of(sample)
     assert _key(after) != _key(before)
     diff = compare_identity(before, after)
     assert diff is not None and diff.path == rel and "sha256" in diff.detail
@@ -105,29 +105,29 @@ def test_one_changed_byte_changes_the_key(sample: Path, memo: Path, rel: str, of
 
 
 def test_changed_byte_is_seen_even_with_the_mtime_put_back(sample: Path, memo: Path) -> None:
-    before = _fingerprint(sample)
+    before = _identity_of(sample)
     path = sample / DATA
     st = path.stat()
     _flip_byte(path, 50_000)
     os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns))  # same size, same mtime, other bytes
-    assert compare_identity(before, _fingerprint(sample)).path == DATA
+    assert compare_identity(before, _identity_of(sample)).path == DATA
 
 
 def test_touching_a_file_changes_nothing(sample: Path, memo: Path) -> None:
-    before = _fingerprint(sample)
+    before = _identity_of(sample)
     for rel in (VIDEO, DATA, INFO):
         later = time.time() + 3600
         os.utime(sample / rel, (later, later))
-    assert _fingerprint(sample) == before
+    assert _identity_of(sample) == before
 
 
 def test_a_rerun_reuses_the_remembered_hashes(sample: Path, memo: Path) -> None:
     t0 = time.perf_counter()
-    first = _fingerprint(sample)
+    first = _identity_of(sample)
     first_s = time.perf_counter() - t0
     assert identity.last_stats.hashed_files == 6 and identity.last_stats.hashed_bytes > 14e6
     t0 = time.perf_counter()
-    again = _fingerprint(sample)  # a new DatasetMeta: only the sidecar can make this cheap
+    again = _identity_of(sample)  # a new DatasetMeta: only the sidecar can make this cheap
     rerun_s = time.perf_counter() - t0
     stats = identity.last_stats
     assert again == first and stats.hashed_files == 0 and stats.from_memo == 6
@@ -140,8 +140,8 @@ def test_an_unwritable_sidecar_only_costs_time(sample: Path, tmp_path: Path, mon
     blocker = tmp_path / "not-a-folder"
     blocker.write_text("x")
     monkeypatch.setenv(identity.MEMO_ENV, str(blocker / "memo"))
-    first = _fingerprint(sample)
-    assert _fingerprint(sample) == first and identity.last_stats.hashed_files == 6
+    first = _identity_of(sample)
+    assert _identity_of(sample) == first and identity.last_stats.hashed_files == 6
 
 
 def test_a_shared_home_not_writable_falls_back_to_the_user_cache(sample: Path, tmp_path: Path,
@@ -152,22 +152,22 @@ def test_a_shared_home_not_writable_falls_back_to_the_user_cache(sample: Path, t
     monkeypatch.delenv(identity.MEMO_ENV, raising=False)
     monkeypatch.setenv("GRAFTCACHE_HOME", str(shared))
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
-    first = _fingerprint(sample)
+    first = _identity_of(sample)
     assert len(list((tmp_path / "xdg" / "graftcache" / identity.MEMO_DIR).glob("*.json"))) == 1
-    assert _fingerprint(sample) == first and identity.last_stats.hashed_files == 0
+    assert _identity_of(sample) == first and identity.last_stats.hashed_files == 0
 
 
 def test_a_missing_data_file_is_named(sample: Path, memo: Path) -> None:
     (sample / VIDEO).unlink()
     meta = open_dataset(sample).meta  # opening still works; the identity needs every file
     with pytest.raises(DatasetError, match=f"{sample / VIDEO}: missing"):
-        _ = meta.fingerprint
+        _ = meta.content_identity
 
 
 # ------------------------------------------------------------------------------------------ hub stand-ins
 def test_hub_snapshot_blob_names_stand_in_for_hashing(sample: Path, memo: Path, tmp_path: Path,
                                                       monkeypatch: pytest.MonkeyPatch) -> None:
-    plain = _fingerprint(sample)
+    plain = _identity_of(sample)
     hub = tmp_path / "hub"
     repo = hub / "datasets--org--sample"
     rev = "0123456789abcdef0123456789abcdef01234567"
@@ -183,24 +183,24 @@ def test_hub_snapshot_blob_names_stand_in_for_hashing(sample: Path, memo: Path, 
     (repo / "refs").mkdir()
     (repo / "refs" / "main").write_text(rev)
     monkeypatch.setenv("HF_HUB_CACHE", str(hub))
-    assert _fingerprint("org/sample") == plain  # same identity as a plain copy: caches are shared
+    assert _identity_of("org/sample") == plain  # same identity as a plain copy: caches are shared
     stats = identity.last_stats
     assert stats.from_hub == 5 and stats.hashed_files == 1  # only info.json was read
 
 
 def test_local_dir_download_metadata_stands_in_while_fresh(sample: Path, memo: Path) -> None:
-    plain = _fingerprint(sample)
+    plain = _identity_of(sample)
     sha = plain["files"][DATA]["sha256"]
     meta_file = sample / ".cache" / "huggingface" / "download" / f"{DATA}.metadata"
     meta_file.parent.mkdir(parents=True)
     meta_file.write_text(f"{'a' * 40}\n{sha}\n{time.time() + 5:.3f}\n")
     shutil.rmtree(memo)
-    assert _fingerprint(sample) == plain and identity.last_stats.from_hub == 1
+    assert _identity_of(sample) == plain and identity.last_stats.from_hub == 1
     # edited after the download: huggingface_hub's freshness rule no longer holds, so it is hashed
     _flip_byte(sample / DATA, 1000)
     later = time.time() + 60
     os.utime(sample / DATA, (later, later))
-    now = _fingerprint(sample)
+    now = _identity_of(sample)
     assert now["files"][DATA]["sha256"] == identity.sha256_file(sample / DATA) != sha
 
 

@@ -35,7 +35,7 @@ def test_v20_pi_layout_meta(v2_pi: Written) -> None:
     assert [(e.index, e.length, e.task_index, e.dataset_from_index) for e in m.episodes] == [
         (0, 5, 0, 0), (1, 7, 1, 5), (2, 6, 0, 12)]
     # the identity covers the metadata and every data file (PNG frames live in the per-episode parquets)
-    assert list(m.fingerprint["files"]) == ["meta/info.json", "meta/tasks.jsonl", "meta/episodes.jsonl",
+    assert list(m.content_identity["files"]) == ["meta/info.json", "meta/tasks.jsonl", "meta/episodes.jsonl",
                                             *(f"data/chunk-000/episode_{e:06d}.parquet" for e in range(3))]
 
 

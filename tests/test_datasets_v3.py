@@ -88,7 +88,7 @@ def test_meta(v3_video: Written) -> None:
     assert [(e.index, e.length, e.task_index, e.dataset_from_index) for e in m.episodes] == [
         (0, 5, 0, 0), (1, 7, 1, 5), (2, 6, 0, 12)]
     assert m.n_frames == sum(LENGTHS)
-    files = m.fingerprint["files"]
+    files = m.content_identity["files"]
     assert set(files) == {"meta/info.json", "meta/tasks.parquet", "meta/episodes/chunk-000/file-000.parquet",
                           "data/chunk-000/file-000.parquet",
                           *(f"videos/{k}/chunk-000/file-000.mp4" for k in V3_CAMERAS)}

@@ -32,7 +32,7 @@ ENCODER = "timm:vit_tiny_patch16_224"  # a real ViT architecture, cheap on CPU
 GRAFTCACHE = Path(sys.executable).with_name("graftcache")
 
 
-_req = partial(extract_request, encoder=ENCODER, grids=("native", "2x2", "7x7"), seed=0, batch_size=8, block_frames=6)
+_req = partial(extract_request, encoder=ENCODER, grids=("unpooled", "2x2", "7x7"), seed=0, batch_size=8, block_frames=6)
 
 
 def _quiet(_: str) -> None:
@@ -46,10 +46,10 @@ def extracted(v3_image: Written, tmp_path_factory: pytest.TempPathFactory):
 
 
 @pytest.fixture(scope="module")
-def native_only(extracted, v3_image: Written) -> FeatureCache:
+def unpooled_only(extracted, v3_image: Written) -> FeatureCache:
     """The default extraction (the encoder's own grid alone) beside `extracted`, in the same blocks and batches."""
     req, _ = extracted
-    assert ExtractRequest.grids == ("native",)
+    assert ExtractRequest.grids == ("unpooled",)
     return FeatureCache(extract(_req(v3_image.root, Path(req.cache), grids=ExtractRequest.grids), log=_quiet).path)
 
 
@@ -74,7 +74,7 @@ def _reference_features(frames: np.ndarray, model: torch.nn.Module, grid: tuple[
 
 @pytest.fixture(scope="module", params=["0", "1"], ids=["auto=fp32", "auto=bf16"])
 def extracted_auto(request: pytest.FixtureRequest, v3_image: Written, tmp_path_factory: pytest.TempPathFactory):
-    """The same extraction under both resolutions of `--compute-dtype auto`: a CPU without native bf16 (fp32) and
+    """The same extraction under both resolutions of `--compute-dtype auto`: a CPU without bf16 in hardware (fp32) and
     one with it (bf16), whichever this machine is ($GRAFTCACHE_CPU_BF16 stands in for the other family)."""
     with pytest.MonkeyPatch.context() as mp:
         mp.setenv(CPU_BF16_ENV, request.param)
@@ -99,7 +99,7 @@ def test_features_equal_an_independent_computation(extracted_auto, v3_image: Wri
     for key in v3_image.cameras:
         frames = np.concatenate([v3_image.frames[ep, key] for ep in range(len(LENGTHS))])
         cam = key.rsplit(".", 1)[-1]
-        for grid in ((14, 14), (2, 2), (7, 7)):  # 14x14: the ViT's own patch grid (`native`), stored as it is
+        for grid in ((14, 14), (2, 2), (7, 7)):  # 14x14: the ViT's own patch grid (`unpooled`), stored as it is
             want = _reference_features(frames, model, grid)
             got = cache.read_features(cam, f"{grid[0]}x{grid[1]}").float().numpy()
             assert got.dtype == np.float32 and got.shape == want.shape == (len(frames), grid[0] * grid[1], 192)
@@ -125,7 +125,7 @@ def test_index_lowdim_and_manifest_are_copied_in(extracted, v3_image: Written) -
                                                                        for _ in range(n)]
     assert m.suites[index["suite_index"][0]] == "libero_spatial"
     assert m.random_init is True and m.weights["seed"] == 0 and len(m.weights_sha256) == 64
-    assert m.dataset.codebase_version == "v3.0" and m.dtype == "fp16"
+    assert m.dataset.codebase_version == "v3.0" and m.storage_dtype == "fp16"
     assert m.encoder["preprocessing"]["mean"] == [0.5, 0.5, 0.5]
     assert set(m.versions) >= {"torch", "timm", "transformers", "lerobot", "zarr"}
     json.dumps(m.to_dict())
@@ -136,50 +136,51 @@ def test_cache_key_follows_the_numbers_only(extracted, v3_image: Written) -> Non
     same = extract(_req(v3_image.root, Path(req.cache), batch_size=3, num_workers=1), log=_quiet)
     assert same.key == result.key and same.reused and same.frames_encoded == 0
     keys = {result.key}
-    for change in ({"grids": ("2x2",)}, {"seed": 1}, {"dtype": "fp32"}, {"episodes": (0, 2)}, {"cameras": ("image",)}):
+    for change in ({"grids": ("2x2",)}, {"seed": 1}, {"storage_dtype": "fp32"}, {"episodes": (0, 2)},
+                   {"cameras": ("image",)}):
         r = extract(_req(v3_image.root, Path(req.cache), **change), log=_quiet)
         assert r.key not in keys, change
         keys.add(r.key)
         if "grids" in change:  # pooled grids only: no stored grid is the encoder's own
-            assert FeatureCache(r.path).manifest.native_grid is None
+            assert FeatureCache(r.path).manifest.unpooled_grid is None
 
 
-def test_native_grid_is_stored_once_under_one_key_whatever_its_spelling(
-        extracted, native_only: FeatureCache, v3_image: Written, capsys: pytest.CaptureFixture) -> None:
-    """`native` (the default) stores the encoder's own grid (ViT-Ti/16 at 224 px: 14x14) unpooled and nothing
-    else; spelled out as 14x14, or both, it is the same cache; the manifest names the native grid."""
+def test_unpooled_grid_is_stored_once_under_one_key_whatever_its_spelling(
+        extracted, unpooled_only: FeatureCache, v3_image: Written, capsys: pytest.CaptureFixture) -> None:
+    """`unpooled` (the default) stores the encoder's own grid (ViT-Ti/16 at 224 px: 14x14) unpooled and nothing
+    else; spelled out as 14x14, or both, it is the same cache; the manifest names the unpooled grid."""
     req, with_pooled = extracted
-    m = native_only.manifest
-    assert m.grids == ["14x14"] and m.native_grid == "14x14" and m.encoder["grid"] == [14, 14]
-    assert {p: s for p, s in native_only.layout["arrays"].items() if p.startswith("features/")} == \
+    m = unpooled_only.manifest
+    assert m.grids == ["14x14"] and m.unpooled_grid == "14x14" and m.encoder["grid"] == [14, 14]
+    assert {p: s for p, s in unpooled_only.layout["arrays"].items() if p.startswith("features/")} == \
         {"features/image/14x14": [196, 192], "features/image2/14x14": [196, 192]}
     pooled = FeatureCache(with_pooled.path)
-    assert pooled.manifest.grids == ["14x14", "2x2", "7x7"] and pooled.manifest.native_grid == "14x14"
+    assert pooled.manifest.grids == ["14x14", "2x2", "7x7"] and pooled.manifest.unpooled_grid == "14x14"
     for cam in ("image", "image2"):  # the same activations, stored as they are
-        assert torch.equal(native_only.read_features(cam, "14x14"), pooled.read_features(cam, "14x14"))
-    for spelled in (("14x14",), ("14x14", "native")):
+        assert torch.equal(unpooled_only.read_features(cam, "14x14"), pooled.read_features(cam, "14x14"))
+    for spelled in (("14x14",), ("14x14", "unpooled")):
         again = extract(_req(v3_image.root, Path(req.cache), grids=spelled), log=_quiet)
-        assert again.key == native_only.key and again.reused, spelled
+        assert again.key == unpooled_only.key and again.reused, spelled
     assert main(["extract", "--encoder", ENCODER, "--random-init", "--dataset", str(v3_image.root), "--num-workers",
                  "0", "--batch-size", "8", "--block-frames", "6", "--no-progress", "--cache", req.cache]) == 0
-    assert capsys.readouterr().out.strip().splitlines()[-1] == native_only.key  # the CLI's default is native too
+    assert capsys.readouterr().out.strip().splitlines()[-1] == unpooled_only.key  # the CLI's default is unpooled too
 
 
 @pytest.mark.parametrize("grid", [(7, 7), (2, 2), (4, 4), (3, 5)])
-def test_read_grid_pools_the_stored_native_grid(extracted, native_only: FeatureCache, grid: tuple[int, int],
+def test_read_grid_pools_the_stored_unpooled_grid(extracted, unpooled_only: FeatureCache, grid: tuple[int, int],
                                                 monkeypatch: pytest.MonkeyPatch) -> None:
-    """read_grid from a native-only cache equals adaptive average pooling of the stored 14x14 grid written here
+    """read_grid from an unpooled-only cache equals adaptive average pooling of the stored 14x14 grid written here
     (in fp32, rounded to fp16), read a block at a time in any row order. Against the grids pooled at extraction
     (fp32 activations pooled, rounded once) it differs by at most 3 x 2^-11 of the largest magnitude pooled
     (half an fp16 step on each input and on the mean; the frame's per-channel maximum bounds the window's)."""
     from graftcache.fit import data
 
-    monkeypatch.setattr(data, "POOL_CHUNK_BYTES", 1)  # one 6-frame block per chunk: 3 chunks
+    monkeypatch.setattr(data, "POOL_READ_BYTES", 1)  # one 6-frame block per read: 3 reads
     rows = np.array([17, 0, 5, 6, 11, 12])
     pooled = FeatureCache(extracted[1].path)
     for cam in ("image", "image2"):
-        got = data.read_grid(native_only, cam, grid, rows)
-        stored = native_only.read_features(cam, "14x14")[rows].float().reshape(len(rows), 14, 14, 192)
+        got = data.read_grid(unpooled_only, cam, grid, rows)
+        stored = unpooled_only.read_features(cam, "14x14")[rows].float().reshape(len(rows), 14, 14, 192)
         want = F.adaptive_avg_pool2d(stored.permute(0, 3, 1, 2), grid).flatten(2).transpose(1, 2).half()
         assert got.dtype == torch.float16 and got.shape == (len(rows), grid[0] * grid[1], 192)
         assert torch.equal(got, want)

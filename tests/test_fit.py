@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import shutil
 from contextlib import closing
@@ -30,7 +31,7 @@ from graftcache.fit.data import load_lowdim, split_episodes
 from graftcache.fit.feed import SplitFeed
 from graftcache.fit.loop import train
 from graftcache.fit.run import Cell, FitRequest, Fitter
-from graftcache.fit.stream import FeatureSource, read_chunks
+from graftcache.fit.stream import FeatureSource, read_blocks
 from graftcache.graft import GraftProjector
 from graftcache.store import FeatureCache
 
@@ -49,13 +50,14 @@ def world(v3_video: Written, tmp_path_factory: pytest.TempPathFactory) -> World:
     """Both tiny backbones; the encoder's own 14x14 grid alone (the default: the fits pool it to 4x4, both tiny
     backbones, and 2x2) and each backbone's native tower at 4x4."""
     return World(tmp_path_factory.mktemp("fit"), v3_video, encoder=ENCODER, backbones=("smolvla", "pi05"),
-                 extract_settings=EXTRACT, native_grid="4x4", fit=FIT)
+                 extract_settings=EXTRACT, native_tower_grid="4x4", fit=FIT)
 
 
 def test_every_control_writes_one_schema_valid_row(world: World, tmp_path: Path) -> None:
     out = tmp_path / "r.parquet"
     lines: list[str] = []
-    rows = Fitter(world.request(controls=CONTROLS, results=str(out)), log=lines.append).run()
+    fitter = Fitter(world.request(controls=CONTROLS, results=str(out)), log=lines.append)
+    rows = fitter.run()
     table = results.read(out)  # validated against results.SCHEMA
     assert table.height == len(rows) == 1 + len(CONTROLS)
     by = {r["control"]: r for r in table.iter_rows(named=True)}
@@ -65,6 +67,8 @@ def test_every_control_writes_one_schema_valid_row(world: World, tmp_path: Path)
     assert by["native"]["cache_key"] == world.native_keys["smolvla"]
     assert by["none"]["cache_key"] == world.encoder_key and by["none"]["encoder"] == ENCODER
     assert by["pool-2x2"]["pool_grid"] == "2x2" and by["none"]["pool_grid"] == "4x4"
+    cells = {cell.run_id: cell for _, _, cell in fitter.cells()}  # each run_id hashes the grid its row writes
+    assert {r["run_id"]: r["pool_grid"] for r in by.values()} == {k: c.pool_grid for k, c in cells.items()}
     assert FeatureCache(world.cache / world.encoder_key).manifest.grids == ["14x14"]  # both pooled at read time
     assert by["pool-2x2"]["eval_mse"] != by["none"]["eval_mse"]
     assert by["zero-image"]["eval_mse"] != by["none"]["eval_mse"]
@@ -126,8 +130,8 @@ def test_training_changes_only_the_projector_and_lora(world: World, lora: bool) 
     if lora:
         adapter.add_lora(rank=4)
     before = {k: v.clone() for k, v in adapter.policy.state_dict().items()}
-    with closing(read_chunks(feed.features(seed=0), num_workers=0)) as chunks:
-        train(adapter, feed.low, ShuffleBuffer(chunks, 8), cams, steps=3, batch_size=4, lr=1e-2, seed=0, show=False)
+    with closing(read_blocks(feed.features(seed=0), num_workers=0)) as blocks:
+        train(adapter, feed.low, ShuffleBuffer(blocks, 8), cams, steps=3, batch_size=4, lr=1e-2, seed=0, show=False)
     after = adapter.policy.state_dict()
     changed = {k for k in before if not torch.equal(before[k], after[k])}
     trainable = {n for n, p in adapter.policy.named_parameters() if p.requires_grad}
@@ -162,7 +166,7 @@ def test_rerun_is_bit_identical_and_a_finished_cell_is_skipped(world: World, tmp
 
 
 def test_rows_do_not_depend_on_how_many_processes_read_the_cache(world: World, tmp_path: Path) -> None:
-    """The stream's chunk order is fixed by the seed, not by the readers: in-process and two workers agree bit
+    """The stream's block order is fixed by the seed, not by the readers: in-process and two workers agree bit
     for bit (and the cell, hence the run_id, does not name the worker count)."""
     rows = {w: Fitter(world.request(controls=("shuffled-image",), num_workers=w,
                                     results=str(tmp_path / f"{w}.parquet")), log=_quiet).run() for w in (0, 2)}
@@ -269,31 +273,44 @@ def test_frame_stride_thins_features_not_actions(world: World, tmp_path: Path) -
 
 
 @pytest.mark.parametrize("name", ["smolvla", "pi05"])
-def test_native_grid_is_read_from_the_config_without_loading(world: World, name: str) -> None:
+def test_token_grid_is_read_from_the_config_without_loading(world: World, name: str) -> None:
     from graftcache.backbones import get_backbone
 
     loaded = load_backbone(name, world.policies[name])
-    assert get_backbone(name).read_native_grid(world.policies[name]) == loaded.native_grid
+    assert get_backbone(name).read_token_grid(world.policies[name]) == loaded.token_grid
+
+
+def _run_id(**fields: object) -> str:
+    """A run_id computed here, independently of Cell and results.make_run_id: sha256 of the fields as JSON with
+    sorted keys (the default separators), 16 hex digits."""
+    return hashlib.sha256(json.dumps(fields, sort_keys=True).encode()).hexdigest()[:16]
 
 
 def test_cell_run_ids_are_pinned() -> None:
     """Finished rows are recognised by run_id: a Cell must hash the same in every later version of its results
-    format. The pins changed on purpose when fits began to stream (issue 12: `buffer_mib` joined the cell), and
-    with results format 2 (issue 23: every field hashed, `camera_map` and `format_version` included); rows of
-    earlier formats are refused by results.upgrade. (Values computed with `results.make_run_id` of format 2.)"""
-    plain = Cell(backbone="smolvla", policy="tiny:tiny-smolvla-0123456789ab", cache_key="siglip-0123456789abcdef",
-                 suite="libero_spatial", seed=1, control="none", pool_grid="native", objective="flow", steps=300,
-                 lr=1e-3, batch_size=16, buffer_mib=2048, lora_rank=0, eval_fraction=0.2, eval_split_seed=0,
-                 eval_frames=None, num_denoise_steps=None, compute_dtype="fp32")
-    native = dataclasses.replace(plain, control="native", objective="eval", steps=0, lr=0.0, batch_size=0,
-                                 buffer_mib=0, cache_key="smolvla-native-00aa", seed=0)
-    lora = dataclasses.replace(plain, control="lora", lora_rank=8, eval_frames=40, num_denoise_steps=4)
-    assert (plain.run_id, native.run_id, lora.run_id) == ("9488a82c63b641da", "3c4a458da720ea27", "b2b929518c905ffe")
+    format. The run_ids changed on purpose when fits began to stream (issue 12: `buffer_mib` joined the cell),
+    with results format 2 (issue 23: every field hashed, `camera_map` and `format_version` included) and with
+    format 3 (issue 23: `pool_grid` the resolved grid, never "native"); rows of earlier formats are refused by
+    results.upgrade. Each is checked against its fields hashed here, every field by name."""
+    fields = dict(backbone="smolvla", policy="tiny:tiny-smolvla-0123456789ab", cache_key="siglip-0123456789abcdef",
+                  suite="libero_spatial", seed=1, control="none", pool_grid="8x8", objective="flow", steps=300,
+                  lr=1e-3, batch_size=16, buffer_mib=2048, lora_rank=0, eval_fraction=0.2, eval_split_seed=0,
+                  eval_frames=None, num_denoise_steps=None, compute_dtype="fp32")
+    plain = Cell(**fields)
+    changes = {"native": dict(control="native", objective="eval", steps=0, lr=0.0, batch_size=0, buffer_mib=0,
+                              cache_key="smolvla-native-00aa", seed=0),
+               "lora": dict(control="lora", lora_rank=8, eval_frames=40, num_denoise_steps=4),
+               "mapped": dict(camera_map="image=agentview")}
+    assert results.FORMAT_VERSION == 3
+    assert plain.run_id == _run_id(**fields, camera_map=None, format_version=3)
+    for name, change in changes.items():
+        got = dataclasses.replace(plain, **change).run_id
+        assert got == _run_id(**{"camera_map": None, **fields, **change, "format_version": 3}), name
 
 
 def test_cell_row_takes_each_column_from_measurements_then_cell_then_request() -> None:
     cell = Cell(backbone="pi05", policy="org/p", cache_key="k", suite="libero_goal", seed=2, control="zero-image",
-                pool_grid="native", objective="align", steps=0, lr=0.0, batch_size=0, buffer_mib=0, lora_rank=0,
+                pool_grid="8x8", objective="align", steps=0, lr=0.0, batch_size=0, buffer_mib=0, lora_rank=0,
                 eval_fraction=0.2,
                 eval_split_seed=3, eval_frames=None, num_denoise_steps=None, compute_dtype="bf16")
     req = FitRequest(backbone="pi05", encoder="siglip", suite="libero_goal", steps=123, command="graftcache fit x")

@@ -7,7 +7,7 @@ import torch
 from torch import nn
 
 from graftcache.backbones.surgery import FreezeReport, PassThroughTower, freeze_all_but, freeze_report
-from graftcache.graft import FusedProjector, GraftProjector, IdentityProjector, feature_key
+from graftcache.graft import FusedProjector, GraftProjector, PassThroughProjector, feature_key
 
 
 def test_feature_key_strips_the_image_prefix() -> None:
@@ -33,9 +33,9 @@ def test_projector_accepts_half_precision_cached_features() -> None:
     assert out.dtype == torch.float32 and out.shape == (2, 7, 3)
 
 
-def test_identity_projector_feeds_tokens_unchanged() -> None:
+def test_pass_through_projector_feeds_tokens_unchanged() -> None:
     x = torch.randn(2, 3, 8, dtype=torch.bfloat16)
-    ident = IdentityProjector(8)
+    ident = PassThroughProjector(8)
     assert torch.equal(ident(x), x.float())
     assert list(ident.parameters()) == [] and ident.out_features == 8
 

@@ -57,7 +57,7 @@ def test_outputs_equal_the_policy_tower_and_connector(saved: tuple[str, Path]) -
 def test_extract_stores_grid_and_connector_tokens(saved: tuple[str, Path], v3_video: Written,
                                                   tmp_path: Path) -> None:
     name, folder = saved
-    result = extract(ExtractRequest(dataset=str(v3_video.root), encoder=native_name(name), grids=("native", "2x2"),
+    result = extract(ExtractRequest(dataset=str(v3_video.root), encoder=native_name(name), grids=("unpooled", "2x2"),
                                     policy=str(folder), num_workers=0, batch_size=4, cache=str(tmp_path),
                                     progress=False), log=lambda _: None)
     cache = FeatureCache(result.path)
@@ -71,8 +71,8 @@ def test_extract_stores_grid_and_connector_tokens(saved: tuple[str, Path], v3_vi
     width = manifest.encoder["width"]
     assert sorted(p for p in shapes if p.endswith("/2x2")) == [f"features/{c}/2x2" for c in ("image", "image2")]
     assert all(shapes[p] == [4, width] for p in shapes if p.endswith("/2x2"))
-    gh, gw = manifest.encoder["grid"]  # `native`: the tower's own pre-connector grid, measured on the policy
-    assert manifest.grids == [f"{gh}x{gw}", "2x2"] and manifest.native_grid == f"{gh}x{gw}"
+    gh, gw = manifest.encoder["grid"]  # `unpooled`: the tower's own pre-connector grid, measured on the policy
+    assert manifest.grids == [f"{gh}x{gw}", "2x2"] and manifest.unpooled_grid == f"{gh}x{gw}"
     assert [shapes[f"features/{c}/{gh}x{gw}"] for c in ("image", "image2")] == [[gh * gw, width]] * 2
     assert [shapes[p] for p in shapes if p.endswith("/connector")] == [connector, connector]
     json.dumps(manifest.to_dict())  # the manifest stays plain JSON

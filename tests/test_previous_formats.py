@@ -1,11 +1,13 @@
-"""Caches and results files of the previous format (1) go through one upgrade path each: a format 1 cache that
-records everything format 2 does is read as format 2; one made before graftcache recorded frame strides, native
-grids, numerics fingerprints or content identities is refused in one line naming the cache and the command that
-rebuilds it; a results file of format 1 (run_ids of cells of another shape) is refused in one line naming the
-command that wrote it."""
+"""Caches and results files of previous formats (1 and 2) go through one upgrade path each: a format 2 cache, and
+a format 1 cache that records everything format 2 does, is read as format 3 (its keys renamed as
+store.manifest.RENAMED declares); a format 1 cache made before graftcache recorded frame strides, unpooled grids,
+numerics fingerprints or content identities is refused in one line naming the cache and the command that
+rebuilds it; a results file of format 1 or 2 (run_ids of cells of another shape) is refused in one line naming
+the command that wrote it."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import pytest
@@ -17,10 +19,10 @@ from graftcache import results
 from graftcache.cli import main
 from graftcache.errors import CacheError, ResultsError
 from graftcache.store import FORMAT_VERSION, BrokenCache, FeatureCache, list_caches, scan_caches
-from graftcache.store.manifest import PREVIOUS_GAPS
+from graftcache.store.manifest import PREVIOUS_GAPS, RENAMED
 
 REBUILD = ("graftcache extract --encoder synthetic --dataset synthetic --random-init --seed 0 --grids 4x4 "
-           "--cameras image,image2 --dtype fp16 --compute-dtype fp32")
+           "--cameras image,image2 --storage-dtype fp16 --compute-dtype fp32")
 
 
 @pytest.fixture(scope="module")
@@ -28,11 +30,15 @@ def made(tmp_path_factory: pytest.TempPathFactory) -> FeatureCache:
     return synthetic_cache(tmp_path_factory.mktemp("formats"), (5, 7), block_frames=4)
 
 
-def test_a_previous_format_cache_recording_everything_is_read_as_this_format(made: FeatureCache,
-                                                                              tmp_path: Path) -> None:
-    old = FeatureCache(previous_format(made.path, tmp_path))
-    assert old.key != made.key  # its folder is named by what it stores: format 1
-    assert old.manifest == made.manifest and old.manifest.format_version == FORMAT_VERSION == 2
+@pytest.mark.parametrize("version", [1, 2])
+def test_a_previous_format_cache_recording_everything_is_read_as_this_format(made: FeatureCache, tmp_path: Path,
+                                                                              version: int) -> None:
+    path = previous_format(made.path, tmp_path, version=version)
+    stored = json.loads((path / "zarr.json").read_text())["attributes"]["manifest"]
+    assert stored["format_version"] == version and not set(RENAMED.values()) & set(stored)  # the former names
+    old = FeatureCache(path)
+    assert old.key != made.key  # its folder is named by what it stores, in its format
+    assert old.manifest == made.manifest and old.manifest.format_version == FORMAT_VERSION == 3
     for camera in CAMERAS:
         assert old.read_features(camera, "4x4").equal(made.read_features(camera, "4x4"))
     assert [c.key for c in list_caches(tmp_path)] == [old.key]
@@ -43,7 +49,7 @@ def test_a_previous_format_cache_made_before_a_record_is_refused_in_one_line(
         made: FeatureCache, tmp_path: Path, capsys: pytest.CaptureFixture, lacking: str, what: str) -> None:
     path = previous_format(made.path, tmp_path, lacking)
     line = (f"cache {path.name} ({path}): it was made before graftcache recorded {what} (format 1); graftcache "
-            f"reads caches of format 2 and the format 1 caches made since; rebuild it: {REBUILD}")
+            f"reads caches of format 3 and the format 1 and 2 caches made since; rebuild it: {REBUILD}")
     with pytest.raises(CacheError) as refused:
         FeatureCache(path)
     assert str(refused.value) == line
@@ -52,13 +58,14 @@ def test_a_previous_format_cache_made_before_a_record_is_refused_in_one_line(
     assert scan_caches(tmp_path) == ([], [BrokenCache(path.name, line)])  # what `ls` lists as broken
 
 
-def test_a_previous_format_results_file_is_refused_in_one_line(tmp_path: Path,
-                                                                capsys: pytest.CaptureFixture) -> None:
+@pytest.mark.parametrize("version", [1, 2])
+def test_a_previous_format_results_file_is_refused_in_one_line(tmp_path: Path, capsys: pytest.CaptureFixture,
+                                                                version: int) -> None:
     old = tmp_path / "old.parquet"
     rows = table([row("smolvla", "libero_spatial", "siglip", seed, 0.5) for seed in (0, 1)])
-    previous_results(old, rows)
+    previous_results(old, rows, version)
     command = rows["command"][0]
-    line = (f"{old}: 2 row(s) of an older results format than 2 (run_ids of cells of another shape); move the "
+    line = (f"{old}: 2 row(s) of an older results format than 3 (run_ids of cells of another shape); move the "
             f"file aside and rebuild it: `{command}` (and 1 other command(s) its rows record)")
     with pytest.raises(ResultsError) as refused:
         results.read(old)
@@ -67,4 +74,5 @@ def test_a_previous_format_results_file_is_refused_in_one_line(tmp_path: Path,
     table([row("smolvla", "libero_spatial", "siglip", 2, 0.4)]).write_parquet(kept)
     assert main(["merge-rows", str(kept), "--results", str(old)]) == 2
     assert capsys.readouterr().err == f"graftcache merge-rows: error: {line}\n"
-    assert results.read(kept)["format_version"].to_list() == [2]  # this format's rows read as they are
+    assert results.read(kept)["format_version"].to_list() == [3]  # this format's rows read as they are
+

@@ -131,7 +131,7 @@ def test_dry_run_reads_a_checkpoint_s_cameras_and_grid(v2_pi: Written, tmp_path:
                    tables='[extract]\ngrids = ["2x2"]\n')
     line = _one_line(["sweep", "--dry-run", str(path)], capsys)
     assert line == (f"graftcache sweep: error: {path} [extract]: grids = ['2x2'] lacks 4x4, which the fits read; "
-                    "add them, or 'native' to pool them from the encoder's own grid")
+                    "add them, or 'unpooled' to pool them from the encoder's own grid")
     assert _one_line(["sweep", str(path)], capsys) == line
     _nothing_made(tmp_path)
     path = _recipe(tmp_path, v2_pi.root, top=mapped, backbones=backbone, controls="[]",

@@ -61,7 +61,7 @@ def real_hub(hub: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
 
 def _raw(adapter, enc_dim: int, batch: int, seed: int = 0) -> dict:
     g = torch.Generator().manual_seed(seed)
-    tokens = adapter.native_grid[0] * adapter.native_grid[1]
+    tokens = adapter.token_grid[0] * adapter.token_grid[1]
     raw = {feature_key(c): torch.randn(batch, tokens, enc_dim, generator=g) for c in adapter.cameras}
     raw["observation.state"] = torch.randn(batch, adapter.state_dim, generator=g) * 0.5
     raw["action"] = torch.randn(batch, adapter.chunk_size, adapter.action_dim, generator=g) * 0.5
@@ -83,14 +83,14 @@ def _assert_released_layout(snapshot: Path, repo_id: str) -> None:
 def test_smolvla_released_layout_loads_by_hub_id_and_grafts_at_real_geometry(real_hub: Path) -> None:
     _assert_released_layout(build_smolvla(SMOLVLA, cache=real_hub), SMOLVLA)
     # the CLI's path: `--policy org/name` passes through resolve_policy to the backbone pool (load_backbone)
-    source = resolve_policy("smolvla", SMOLVLA, fingerprint={}, root=real_hub)
+    source = resolve_policy("smolvla", SMOLVLA, identity={}, root=real_hub)
     assert source == SMOLVLA
     adapter = BackbonePool().get("smolvla", source, "cpu")
     assert adapter.random_init and adapter.source == SMOLVLA  # recorded as random weights, not a release
 
     vlm = adapter.policy.model.vlm_with_expert.get_vlm_model().config
     assert (vlm.text_config.hidden_size, vlm.vision_config.image_size, vlm.scale_factor) == (960, 512, 4)
-    assert adapter.native_grid == (8, 8) and adapter.lm_width == 960 and adapter.embed_scale == math.sqrt(960)
+    assert adapter.token_grid == (8, 8) and adapter.lm_width == 960 and adapter.embed_scale == math.sqrt(960)
     assert adapter.cameras == ("image", "image2") and (adapter.chunk_size, adapter.action_dim) == (50, 7)
 
     torch.manual_seed(0)
@@ -143,7 +143,7 @@ def test_pi05_released_layout_loads_by_hub_id_at_real_geometry(real_hub: Path) -
     assert (text.num_attention_heads, text.num_key_value_heads, text.head_dim) == (8, 1, 256)
     assert (text.hidden_size, text.num_hidden_layers, text.vocab_size) == (2048, 18, 257152)
     assert paligemma.language_model.embed_tokens.weight.shape == (257152, 2048)
-    assert adapter.native_grid == (16, 16) and adapter.lm_width == 2048 and adapter.embed_scale == 1.0
+    assert adapter.token_grid == (16, 16) and adapter.lm_width == 2048 and adapter.embed_scale == 1.0
     assert list(adapter.config.image_features) == [
         "observation.images.image", "observation.images.image2", "observation.images.empty_camera_0"]
 

@@ -289,6 +289,6 @@ def test_two_sweeps_of_one_recipe_compute_each_cell_once(v3_video: Written, tmp_
     assert sorted(computed) == sorted(table["run_id"].to_list())  # each of the 4 cells once, over both sweeps
     logs = [out + err for out, err in outs]
     # the tiny policy is trained by one sweep and reused by the other, which waited for it
-    assert sum("training tiny smolvla natively" in log for log in logs) == 1
-    assert sum("reusing natively trained tiny smolvla" in log for log in logs) == 1
+    assert sum("training tiny smolvla (train-tiny)" in log for log in logs) == 1
+    assert sum("reusing tiny smolvla trained by train-tiny" in log for log in logs) == 1
     assert leftovers(tmp_path) == []

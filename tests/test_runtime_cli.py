@@ -40,7 +40,7 @@ def test_the_other_cpu_family_is_reproduced_by_the_environment(monkeypatch, forc
     monkeypatch.setenv(runtime.CPU_BF16_ENV, forced)
     assert runtime.resolve_compute_dtype("auto", "cpu") == want
     monkeypatch.setenv(runtime.CPU_BF16_ENV, "yes")
-    with pytest.raises(GraftcacheError, match=r"\$GRAFTCACHE_CPU_BF16='yes': expected 1 \(native bf16\), 0"):
+    with pytest.raises(GraftcacheError, match=r"\$GRAFTCACHE_CPU_BF16='yes': expected 1 \(bf16 in hardware\), 0"):
         runtime.resolve_compute_dtype("auto", "cpu")
     monkeypatch.setenv(runtime.CPU_BF16_ENV, "")  # empty: ask torch
     assert runtime.resolve_compute_dtype("auto", "cpu") == ("fp32" if forced == "1" else "bf16")
@@ -48,7 +48,7 @@ def test_the_other_cpu_family_is_reproduced_by_the_environment(monkeypatch, forc
 
 @pytest.mark.parametrize(("bf16", "want"), [(True, "bf16"), (False, "fp32")])
 def test_auto_compute_dtype_on_cuda(monkeypatch, bf16: bool, want: str) -> None:
-    monkeypatch.setitem(runtime.NATIVE_BF16, "cuda", lambda _dev: bf16)
+    monkeypatch.setitem(runtime.HARDWARE_BF16, "cuda", lambda _dev: bf16)
     assert runtime.resolve_compute_dtype("auto", torch.device("cuda", 0)) == want
 
 

@@ -28,9 +28,9 @@ FIT = FitRequest(backbone="pi05", encoder="dinov2-s", suite="libero_goal", polic
                  cells_per_pass=3,
                  compute_dtype="fp32", results="/r.parquet", out="/o",
                  cache="s3://b/p", progress=False, drop_nonfinite=True, accept_numerics_drift=True, command="x")
-EXTRACT = ExtractRequest(dataset="/data", encoder="siglip", grids=("native", "4x4"), cameras=("a", "b"),
+EXTRACT = ExtractRequest(dataset="/data", encoder="siglip", grids=("unpooled", "4x4"), cameras=("a", "b"),
                          episodes=(0, 2, 5), weights="/w", random_init=True, seed=4, policy="/p", frame_stride=2,
-                         dtype="bf16", compute_dtype="bf16", camera_map="image=a", device="cuda", batch_size=3,
+                         storage_dtype="bf16", compute_dtype="bf16", camera_map="image=a", device="cuda", batch_size=3,
                          num_workers=1, block_frames=16, shard=(1, 4), cache="/c", progress=False,
                          allow_nonfinite=True)
 
@@ -78,13 +78,16 @@ def test_recipe_tables_take_every_field_but_those_the_grid_sets() -> None:
     assert SECTION_KEYS["executor"] == tuple(f.name for f in fields(ExecutorSettings))
 
 
-def test_fit_dtype_is_gone_with_a_one_line_pointer(capsys: pytest.CaptureFixture) -> None:
-    done = run_cli(["fit", "--backbone", "smolvla", "--encoder", "e", "--suite", "libero_spatial", "--dtype", "bf16"],
-                   capsys)
+@pytest.mark.parametrize("command", [["fit", "--backbone", "smolvla", "--encoder", "e", "--suite", "libero_spatial"],
+                                     ["extract", "--encoder", "e", "--dataset", "d"]])
+def test_no_command_takes_a_bare_dtype(command: list[str], capsys: pytest.CaptureFixture) -> None:
+    """One word per dtype: extract stores in --storage-dtype, models compute in --compute-dtype; `--dtype` (fit's
+    former refusal, extract's former storage flag) is an unknown argument to both."""
+    done = run_cli([*command, "--dtype", "bf16"], capsys)
     assert done.code == 2
-    assert done.last == ("graftcache fit: error: --dtype is gone from this command: use --compute-dtype "
-                         "(--dtype is the stored feature dtype, an extract setting)")
-    assert build_parser().parse_args(["extract", "--encoder", "e", "--dataset", "d", "--dtype", "bf16"]).dtype == "bf16"
+    assert done.last == "graftcache: error: unrecognized arguments: --dtype bf16"
+    args = build_parser().parse_args(["extract", "--encoder", "e", "--dataset", "d", "--storage-dtype", "bf16"])
+    assert args.storage_dtype == "bf16" and not hasattr(args, "dtype")
 
 
 def test_plain_choices_name_what_the_registries_implement() -> None:

@@ -31,7 +31,7 @@ def _index(n: int = N) -> pl.DataFrame:
 
 
 def _manifest(**over) -> Manifest:
-    return manifest(**{"dataset_fingerprint": {"files": {"meta/info.json": {"sha256": "a"}}}, "cameras": ["image"],
+    return manifest(**{"dataset_identity": {"files": {"meta/info.json": {"sha256": "a"}}}, "cameras": ["image"],
                        "encoder": {"name": "toy", "model_id": "x"}, "weights_sha256": "w", "grids": ["2x2"],
                        "n_frames": N, "run": {"batch_size": 8}, **over})
 
@@ -46,7 +46,7 @@ def _at(root: Path, **over) -> Path:
 
 
 def _filled(root: Path, dtype: str = "fp16") -> tuple[FeatureCache, np.ndarray]:
-    cache = FeatureCache.create(_at(root, dtype=dtype), _manifest(dtype=dtype),
+    cache = FeatureCache.create(_at(root, storage_dtype=dtype), _manifest(storage_dtype=dtype),
                                 [ArraySpec("features/image/2x2", (T, C))], _index(), block_frames=32)
     data = torch.randn(N, T, C, generator=torch.Generator().manual_seed(1))
     for b in range(cache.layout["n_blocks"]):
@@ -113,9 +113,9 @@ def test_key_ignores_provenance_but_not_numbers() -> None:
     assert base.startswith("toy-")
     assert _key(run={"batch_size": 64, "num_workers": 0}) == base
     assert _key(created_at="later") == base
-    for change in ({"grids": ["4x4"]}, {"dtype": "bf16"}, {"weights_sha256": "v"}, {"episodes": [0, 1]},
+    for change in ({"grids": ["4x4"]}, {"storage_dtype": "bf16"}, {"weights_sha256": "v"}, {"episodes": [0, 1]},
                    {"cameras": ["image", "image2"]}, {"compute_dtype": "bf16"},
-                   {"dataset_fingerprint": {"files": {"meta/info.json": {"sha256": "b"}}}}):
+                   {"dataset_identity": {"files": {"meta/info.json": {"sha256": "b"}}}}):
         assert _key(**change) != base, change
 
 
@@ -163,7 +163,7 @@ def test_a_manifest_is_read_typed_and_a_wrong_field_is_refused_by_name() -> None
     assert Manifest.read(stored, "here", "k") == _manifest()
     for edit, says in ((lambda m: m["dataset"].update(fps="ten"), "field dataset.fps is 'ten', not float"),
                        (lambda m: m.update(episodes="all"), "field episodes is 'all', not list or NoneType"),
-                       (lambda m: m.pop("grids"), "of format 2 lacks grids"),
+                       (lambda m: m.pop("grids"), "of format 3 lacks grids"),
                        (lambda m: m.update(encoder={"width": 8}), "field encoder has no name")):
         broken = _manifest().to_dict()
         edit(broken)

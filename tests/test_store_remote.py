@@ -33,7 +33,7 @@ from graftcache.extract import extract
 from graftcache.fit.data import load_lowdim
 from graftcache.fit.feed import SplitFeed
 from graftcache.fit.run import FitRequest, Fitter
-from graftcache.fit.stream import FeatureSource, read_chunks
+from graftcache.fit.stream import FeatureSource, read_blocks
 from graftcache.store import FeatureCache, cache_key, list_caches, open_root, scan_caches
 from graftcache.store.cache import MisplacedCache
 from graftcache.store.readthrough import reading_root
@@ -69,7 +69,7 @@ def _features(cache: FeatureCache) -> dict[str, np.ndarray]:
 def test_extract_into_s3_equals_local_and_ls_info_verify_read_it(
         s3: str, local: tuple[Path, str], v3_image: Written, capsys: pytest.CaptureFixture) -> None:  # noqa: F811
     result = extract(_req(v3_image.root, s3), log=_quiet)
-    assert result.key == local[1] and result.path == f"{s3}/{result.key}"  # the same identity, the same key
+    assert result.key == local[1] and result.path == f"{s3}/{result.key}"  # the same identity fields, the same key
     objects = bucket_objects(s3)
     assert json.loads(objects[f"{result.key}/zarr.json"])["attributes"]["complete"] is True
     assert not [k for k in objects if "/_progress/" in k]  # markers removed once complete
@@ -293,7 +293,7 @@ def test_ls_flags_a_broken_cache_and_lists_the_healthy_ones(local: tuple[Path, s
     assert "complete" in rows[key] and "BROKEN" not in rows[key]
     assert "BROKEN" in rows[damaged.name] and "BROKEN" in rows[partial]
     flat = " ".join(out.replace("│", " ").split())  # a long reason wraps inside its cell
-    assert "zarr.json is not a feature cache" in flat and "manifest of format 2 lacks n_frames" in flat
+    assert "zarr.json is not a feature cache" in flat and "manifest of format 3 lacks n_frames" in flat
     assert [c.key for c in list_caches(tmp_path)] == [key]
     assert torch.equal(FeatureCache(tmp_path / key).read_features("image", "2x2"),
                        FeatureCache(root / key).read_features("image", "2x2"))
@@ -311,7 +311,7 @@ def test_object_store_workers_check_each_block_once_per_fit(s3: str, tmp_path: P
     feed = SplitFeed(load_lowdim(cache, "libero_spatial", chunk=2), FeatureSource.of(cache, CAMERAS, (2, 2)),
                      int(cache.layout["block_frames"]))
     reported = [b for _ in range(3)  # three streams of one fit (epochs, cells), each with a new worker
-                for chunk in read_chunks(feed.features(seed=None), 1) for b in chunk.verified]
+                for block in read_blocks(feed.features(seed=None), 1) for b in block.verified]
     features = {(str(cache.path), f"features/{c}/4x4", b) for c in CAMERAS for b in range(cache.layout["n_blocks"])}
     assert sorted(b for b in reported if b[2] >= 0) == sorted(features)  # every block, each checked once
     assert feed.source.reader.checks.count == len(reported) and set(reported) <= feed.source.reader.checks.done

@@ -1,5 +1,5 @@
 """Stage 2's streamed data path on synthetic caches (seeded random features written by the store's own writer):
-chunks, their order across epochs and worker counts, the shuffle buffer, the shuffled-image pairing, NaN checks
+blocks, their order across epochs and worker counts, the shuffle buffer, the shuffled-image pairing, NaN checks
 in workers, and scoring from a stream against a computation written here."""
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from graftcache.fit.controls import SHUFFLE_GROUP, shuffle
 from graftcache.fit.data import LowDim, load_lowdim
 from graftcache.fit.feed import SplitFeed
 from graftcache.fit.loop import evaluate
-from graftcache.fit.stream import BlockMemo, Chunk, FeatureSource, StreamStats, read_chunks
+from graftcache.fit.stream import Block, BlockMemo, FeatureSource, StreamStats, read_blocks
 from graftcache.graft import GraftProjector, feature_key
 from graftcache.nonfinite import nonfinite_rows
 from graftcache.scoring import frame_noise
@@ -45,30 +45,30 @@ def _pooled(cache: FeatureCache, rows: np.ndarray, camera: str) -> torch.Tensor:
     return cells.mean(dim=(2, 4)).reshape(len(rows), 4, -1).half()
 
 
-def _chunks(stream, workers: int, n: int | None = None, stats: StreamStats | None = None) -> list[Chunk]:
-    with closing(read_chunks(stream, workers, stats)) as chunks:
-        return list(islice(chunks, n) if n is not None else chunks)
+def _blocks(stream, workers: int, n: int | None = None, stats: StreamStats | None = None) -> list[Block]:
+    with closing(read_blocks(stream, workers, stats)) as blocks:
+        return list(islice(blocks, n) if n is not None else blocks)
 
 
 def test_every_frame_once_per_epoch_in_one_order_for_any_worker_count(cache: FeatureCache) -> None:
     low = load_lowdim(cache, "libero_spatial", chunk=5).subset([0, 2, 3, 5, 6, 7])
     feed = SplitFeed(low, FeatureSource.of(cache, CAMERAS, (2, 2)), BLOCK)
-    n = feed.n_chunks
-    runs = {w: _chunks(feed.features(seed=3), w, 2 * n) for w in (0, 1, 2)}
+    n = feed.n_blocks
+    runs = {w: _blocks(feed.features(seed=3), w, 2 * n) for w in (0, 1, 2)}
     epochs = [np.concatenate([c.owners for c in runs[0][e * n:(e + 1) * n]]) for e in (0, 1)]
     for owners in epochs:
         assert sorted(owners) == list(range(len(low)))  # every train frame exactly once per epoch
     assert not np.array_equal(epochs[0], epochs[1])  # the next epoch has its own order
-    for chunk in runs[0]:
-        assert len(np.unique(low.rows[chunk.owners] // BLOCK)) == 1  # a chunk is (part of) one block
+    for block in runs[0]:
+        assert len(np.unique(low.rows[block.owners] // BLOCK)) == 1  # each Block lies in one cache block
         for camera in CAMERAS:  # pooled to 2x2 in the worker, as read_grid pools
-            torch.testing.assert_close(chunk.features[0][camera], _pooled(cache, low.rows[chunk.owners], camera))
-    for w in (1, 2):  # the same chunks in the same order, bit for bit, whatever reads them
+            torch.testing.assert_close(block.features[0][camera], _pooled(cache, low.rows[block.owners], camera))
+    for w in (1, 2):  # the same blocks in the same order, bit for bit, whatever reads them
         assert len(runs[w]) == len(runs[0])
         for a, b in zip(runs[0], runs[w], strict=True):
             assert np.array_equal(a.owners, b.owners)
             assert all(torch.equal(a.features[0][c], b.features[0][c]) for c in CAMERAS)
-    assert np.array_equal(np.concatenate([c.owners for c in _chunks(feed.features(seed=None), 2)]),
+    assert np.array_equal(np.concatenate([c.owners for c in _blocks(feed.features(seed=None), 2)]),
                           np.arange(len(low)))  # unshuffled: once, in cache order
 
 
@@ -77,16 +77,16 @@ def test_shuffle_buffer_holds_its_capacity_and_draws_each_frame_once(cache: Feat
     feed = SplitFeed(low, FeatureSource.of(cache, CAMERAS, (4, 4)), BLOCK)
     delivered: list[np.ndarray] = []
 
-    def tapped(chunks: Iterator[Chunk]) -> Iterator[Chunk]:
-        for chunk in chunks:
-            delivered.append(chunk.owners)
-            yield chunk
+    def tapped(blocks: Iterator[Block]) -> Iterator[Block]:
+        for block in blocks:
+            delivered.append(block.owners)
+            yield block
 
     capacity, k, draws = 20, 6, 30  # 200 frames drawn: more than an epoch (117)
     g = torch.Generator().manual_seed(0)
     stored = {c: torch.from_numpy(cache.group[f"features/{c}/4x4"][...]) for c in CAMERAS}
-    with closing(read_chunks(feed.features(seed=1), 0)) as chunks:
-        buffer = ShuffleBuffer(tapped(chunks), capacity)
+    with closing(read_blocks(feed.features(seed=1), 0)) as blocks:
+        buffer = ShuffleBuffer(tapped(blocks), capacity)
         drawn = []
         for _ in range(draws):
             owners, features = buffer.draw(k, g)
@@ -98,12 +98,12 @@ def test_shuffle_buffer_holds_its_capacity_and_draws_each_frame_once(cache: Feat
         held = buffer._owners.copy()
     stream = np.concatenate(delivered)
     used = capacity + draws * k  # what the buffer took from the stream: its fill, then one frame per frame drawn
-    assert len(stream) - used < BLOCK  # it read ahead by less than one chunk
+    assert len(stream) - used < BLOCK  # it read ahead by less than one block
     assert sorted(np.concatenate([*drawn, held]).tolist()) == sorted(stream[:used].tolist())
     first = np.concatenate(drawn)[:len(low) - capacity]
     assert len(set(first.tolist())) == len(first)  # no frame drawn twice before the epoch is through
-    with closing(read_chunks(feed.features(seed=1), 0)) as chunks, pytest.raises(FitError, match="batch of 21"):
-        ShuffleBuffer(chunks, capacity).draw(21, g)
+    with closing(read_blocks(feed.features(seed=1), 0)) as blocks, pytest.raises(FitError, match="batch of 21"):
+        ShuffleBuffer(blocks, capacity).draw(21, g)
 
 
 @pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16, torch.float32, torch.float64])
@@ -141,11 +141,11 @@ def test_a_pairing_hands_each_frame_the_features_of_its_partner(cache: FeatureCa
     low = load_lowdim(cache, "libero_spatial", chunk=5)
     pairing = shuffle(len(low), 4)
     feed = SplitFeed(low, FeatureSource.of(cache, CAMERAS, (4, 4)), BLOCK, pairing=pairing)
-    chunks = _chunks(feed.features(seed=None), 2)
-    assert sorted(np.concatenate([c.owners for c in chunks]).tolist()) == list(range(len(low)))
-    for chunk in chunks:
-        want = torch.from_numpy(cache.group["features/image/4x4"][...][low.rows[pairing[chunk.owners]]])
-        assert torch.equal(chunk.features[0]["image"], want)
+    blocks = _blocks(feed.features(seed=None), 2)
+    assert sorted(np.concatenate([c.owners for c in blocks]).tolist()) == list(range(len(low)))
+    for block in blocks:
+        want = torch.from_numpy(cache.group["features/image/4x4"][...][low.rows[pairing[block.owners]]])
+        assert torch.equal(block.features[0]["image"], want)
 
 
 def test_nan_features_are_refused_by_name_from_a_worker_or_dropped_and_counted(tmp_path: Path) -> None:
@@ -153,13 +153,13 @@ def test_nan_features_are_refused_by_name_from_a_worker_or_dropped_and_counted(t
     low = load_lowdim(nan, "libero_spatial", chunk=5)
     source = FeatureSource.of(nan, CAMERAS, (4, 4))
     with pytest.raises(FitError) as refused:
-        _chunks(SplitFeed(low, source, BLOCK).features(seed=None), 2)
+        _blocks(SplitFeed(low, source, BLOCK).features(seed=None), 2)
     message = str(refused.value)
     assert "\n" not in message and "Traceback" not in message
     for text in (f"cache {nan.key}", "features/image", "episode 2 frame 3", "--drop-nonfinite"):
         assert text in message
     stats = StreamStats()
-    kept = _chunks(SplitFeed(low, source, BLOCK, drop=True).features(seed=None), 2, stats=stats)
+    kept = _blocks(SplitFeed(low, source, BLOCK, drop=True).features(seed=None), 2, stats=stats)
     row = int(np.flatnonzero((low.episode_index == 2) & (low.frame_index == 3))[0])
     assert stats.dropped == {int(low.rows[row])}
     assert sorted(np.concatenate([c.owners for c in kept]).tolist()) == sorted(set(range(len(low))) - {row})
@@ -184,7 +184,7 @@ def test_streamed_scoring_equals_scoring_written_out_here(cache: FeatureCache) -
     low = load_lowdim(cache, "libero_spatial", chunk=adapter.chunk_size).subset([5, 6, 7])  # 67 frames: 2 batches
     cams = {c: c for c in adapter.cameras}  # CAMERAS are the tiny policy's cameras
     feed = SplitFeed(low, FeatureSource.of(cache, CAMERAS, (4, 4)), BLOCK)
-    score = evaluate(adapter, low, read_chunks(feed.features(seed=None), 2), cams, batch_size=EVAL_BATCH_SIZE,
+    score = evaluate(adapter, low, read_blocks(feed.features(seed=None), 2), cams, batch_size=EVAL_BATCH_SIZE,
                      num_denoise_steps=2)
 
     adapter.policy.eval()
@@ -257,10 +257,10 @@ def test_a_memo_never_travels_to_a_worker(cache: FeatureCache) -> None:
     memo = BlockMemo(budget=1 << 20)
     stream = SplitFeed(low, FeatureSource.of(cache, CAMERAS, (2, 2)), BLOCK, memo=memo).features(seed=0)
     assert stream.memo is memo and pickle.loads(pickle.dumps(stream)).memo is None
-    first = _chunks(stream, 0, 3)
+    first = _blocks(stream, 0, 3)
     kept = memo.nbytes
     assert kept > 0  # read in this process: kept
-    second = _chunks(stream, 2, 6)  # read by workers: the same chunks, and the next ones are not kept here
+    second = _blocks(stream, 2, 6)  # read by workers: the same blocks, and the next ones are not kept here
     assert memo.nbytes == kept
     assert all(torch.equal(a.features[0][c], b.features[0][c]) for a, b in zip(first, second[:3], strict=True)
                for c in CAMERAS)

@@ -112,19 +112,19 @@ def test_unknown_missing_and_invalid_keys_name_file_and_key(tmp_path: Path) -> N
     assert main(["sweep", str(tmp_path / "absent.toml")]) == 2
 
 
-def test_extract_grids_default_to_native_and_explicit_ones_must_cover_the_fits(tmp_path: Path) -> None:
+def test_extract_grids_default_to_unpooled_and_explicit_ones_must_cover_the_fits(tmp_path: Path) -> None:
     base = BASE.format(dataset="x", results="r", controls='["pool-2x2"]')
-    state = SweepState(native_grids={"smolvla": (4, 4)})
-    assert encoder_grids(load_recipe(_write(tmp_path, base)), state) == ("native",)
-    explicit = load_recipe(_write(tmp_path, base + '[extract]\ngrids = ["native", " 3x3"]\n'))
-    assert explicit.extract["grids"] == ("native", " 3x3") and encoder_grids(explicit, state) == ("native", "3x3")
+    state = SweepState(token_grids={"smolvla": (4, 4)})
+    assert encoder_grids(load_recipe(_write(tmp_path, base)), state) == ("unpooled",)
+    explicit = load_recipe(_write(tmp_path, base + '[extract]\ngrids = ["unpooled", " 3x3"]\n'))
+    assert explicit.extract["grids"] == ("unpooled", " 3x3") and encoder_grids(explicit, state) == ("unpooled", "3x3")
     covered = load_recipe(_write(tmp_path, base + '[extract]\ngrids = ["4x4", "2x2"]\n'))
     assert encoder_grids(covered, state) == ("4x4", "2x2")
     short = load_recipe(_write(tmp_path, base + '[extract]\ngrids = ["2x2"]\n'))
     with pytest.raises(GraftcacheError, match=r"recipe.toml \[extract\]: grids = \['2x2'\] lacks 4x4, which the fits"):
         encoder_grids(short, state)
     with pytest.raises(RecipeError,
-                       match=r"recipe.toml \[extract\]: grids = \('4y4',\) must name grids: native or HxW"):
+                       match=r"recipe.toml \[extract\]: grids = \('4y4',\) must name grids: unpooled or HxW"):
         load_recipe(_write(tmp_path, base + '[extract]\ngrids = ["4y4"]\n'))
     with pytest.raises(RecipeError, match=r"\[extract\]: grids = \(\(4, 4\),\) is not a tuple"):
         load_recipe(_write(tmp_path, base + '[extract]\ngrids = [[4, 4]]\n'))
@@ -169,7 +169,7 @@ def test_small_sweep_end_to_end_then_rerun_skips(tmp_path: Path, v3_video: Writt
     # one cache for the encoder, its own 14x14 grid alone, read at the backbone's 4x4 and the control's 2x2
     key = state.encoder_caches[recipe.encoders[0]]
     (cache,) = [c for c in list_caches(tmp_path / "cache") if c.manifest.encoder_name == recipe.encoders[0].name]
-    assert cache.key == key and cache.manifest.grids == ["14x14"] and cache.manifest.native_grid == "14x14"
+    assert cache.key == key and cache.manifest.grids == ["14x14"] and cache.manifest.unpooled_grid == "14x14"
     grafts = rows.filter(pl.col("encoder") == recipe.encoders[0].name).sort("control")
     assert grafts["cache_key"].to_list() == [key, key] and grafts["pool_grid"].to_list() == ["4x4", "2x2"]
     native = FeatureCache(tmp_path / "cache" / state.native_caches["smolvla"])
@@ -185,4 +185,4 @@ def test_small_sweep_end_to_end_then_rerun_skips(tmp_path: Path, v3_video: Writt
     assert results.read(out).height == 3
     assert sum("skip" in line for line in again) == 3
     assert any("reusing complete cache" in line for line in again)
-    assert any("reusing natively trained tiny smolvla" in line for line in again)
+    assert any("reusing tiny smolvla trained by train-tiny" in line for line in again)

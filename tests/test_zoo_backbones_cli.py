@@ -39,7 +39,7 @@ def test_train_tiny_extract_native_and_fit_every_control(name: str, tmp_path: Pa
     assert done.code == 0, done.err[-2000:]
     record = json.loads((policy / "graftcache_pretrain.json").read_text())
     assert record["backbone"] == name and record["cameras"] == ["image", "image2"]
-    assert get_backbone(name).read_native_grid(policy) == grid
+    assert get_backbone(name).read_token_grid(policy) == grid
 
     native = run_cli(["extract", "--encoder", f"{name}-native", "--policy", str(policy), *SUBSET,
                       "--cache", str(cache)], capsys)

@@ -12,8 +12,8 @@ from graftcache.analysis.summaries import seed_summary
 from graftcache.analysis.table import (
     CELL,
     GROUP,
-    NATIVE,
-    NATIVE_GRAFT,
+    NATIVE_CONTROL,
+    NATIVE_GRAFT_CONTROL,
     NOT_ENCODER_CONTROLS,
     PLAIN,
     SHUFFLED_IMAGE,
@@ -49,7 +49,8 @@ def wrapper_non_neutrality(results: pl.DataFrame, *, by_suite: bool = True) -> p
             )
         )
 
-    out = side(NATIVE, "native").join(side(NATIVE_GRAFT, "native_graft"), on=keys, how="full", coalesce=True)
+    out = side(NATIVE_CONTROL, "native").join(side(NATIVE_GRAFT_CONTROL, "native_graft"), on=keys, how="full",
+                                              coalesce=True)
     out = out.with_columns(pl.col("native_n", "native_graft_n").fill_null(0))
     ok = (pl.col("native_mse") > 0) & pl.col("native_graft_mse").is_not_null()
     note = (

@@ -6,14 +6,13 @@ from __future__ import annotations
 import polars as pl
 
 from graftcache.errors import GraftcacheError
+from graftcache.requests import NATIVE_CONTROL, NATIVE_GRAFT_CONTROL
 from graftcache.results import REPORT_COLUMNS
 
 PLAIN = "none"
-NATIVE = "native"
-NATIVE_GRAFT = "native-graft"
 ZERO_IMAGE = "zero-image"
 SHUFFLED_IMAGE = "shuffled-image"
-NOT_ENCODER_CONTROLS = (PLAIN, NATIVE, NATIVE_GRAFT)
+NOT_ENCODER_CONTROLS = (PLAIN, NATIVE_CONTROL, NATIVE_GRAFT_CONTROL)
 
 BACKBONE_LABELS = {"smolvla": "SmolVLA", "pi05": "pi0.5"}
 

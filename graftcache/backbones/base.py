@@ -118,7 +118,7 @@ class BackboneAdapter(GraftSurgery, PromptBatches, FlowObjective, ActivationChec
             if dataset_stats is None:
                 raise BackboneError(f"{folder}: no {PREPROCESSOR_FILE}; pass dataset_stats to build the processors")
             processors = cls._make_processors(policy.config, dataset_stats, marker)
-        # A tiny checkpoint is never released weights: random init, at most trained natively on a sample;
+        # A tiny checkpoint is never released weights: random init, at most trained by train-tiny on a sample;
         # nor is one written at the released geometry by devtools.released.
         random_init = marker is not None or is_random_release(folder)
         return cls(policy, *processors, source=str(source), random_init=random_init, tiny_marker=marker)
@@ -159,7 +159,7 @@ class BackboneAdapter(GraftSurgery, PromptBatches, FlowObjective, ActivationChec
 
     @classmethod
     def _checkpoint_keys(cls, policy: nn.Module, file_keys: Iterable[str]) -> dict[str, str]:
-        """{policy state-dict key: checkpoint key}: identity unless the policy's from_pretrained renames keys
+        """{policy state-dict key: checkpoint key}: each key as it is unless the policy's from_pretrained renames keys
         (pi0.5: graftcache.backbones.lean.openpi_keys)."""
         return {k: k for k in file_keys}
 
@@ -233,13 +233,13 @@ class BackboneAdapter(GraftSurgery, PromptBatches, FlowObjective, ActivationChec
         return self.config.max_action_dim
 
     @functools.cached_property
-    def native_grid(self) -> tuple[int, int]:
-        """Per-camera token grid the LM sees natively (post-connector)."""
+    def token_grid(self) -> tuple[int, int]:
+        """Per-camera token grid the LM sees (post-connector), of the policy's own tower."""
         return self._grid_of_config(self.config, self.tiny_marker)
 
     @classmethod
-    def read_native_grid(cls, source: str | Path) -> tuple[int, int]:
-        """The native token grid of a checkpoint from its config alone: a sweep needs it to key its caches,
+    def read_token_grid(cls, source: str | Path) -> tuple[int, int]:
+        """The token grid of a checkpoint from its config alone: a sweep needs it to key its caches,
         and a finished sweep must not load a 3B-parameter policy to learn it."""
         if str(source) == "tiny":
             raise BackboneError(f"{cls.name}: an in-memory tiny policy has no checkpoint to read; load it")

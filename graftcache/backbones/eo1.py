@@ -252,20 +252,20 @@ class EO1Adapter(BackboneAdapter):
         return inputs
 
     def _prompt_grid(self, tokens: int) -> tuple[int, int]:
-        """The merged grid a prompt needs for `tokens` cached tokens per camera: the native grid, or the square
+        """The merged grid a prompt needs for `tokens` cached tokens per camera: the token grid, or the square
         grid of a pooling control (the cache keeps no shape, so any other count is refused, not guessed)."""
-        gh, gw = self.native_grid
+        gh, gw = self.token_grid
         if tokens == gh * gw:
             return gh, gw
         side = round(tokens ** 0.5)
         if side * side != tokens:
-            raise BackboneError(f"{self.name}: {tokens} cached tokens per camera is neither the native {gh}x{gw} "
-                                "grid nor a square one; EO-1's prompt needs the grid's shape")
+            raise BackboneError(f"{self.name}: {tokens} cached tokens per camera is neither its token grid {gh}x{gw} "
+                                "nor a square grid; EO-1's prompt needs the grid's shape")
         return side, side
 
     def prepare(self, raw: Mapping[str, Any]) -> dict[str, Any]:
         """lerobot's preprocessor (prompt, padding, normalisation). Grafted, the prompt is made from blank frames
-        whose processed grid is the cached features' (the native grid, or a pooling control's square grid; the
+        whose processed grid is the cached features' (the token grid, or a pooling control's square grid; the
         processor's pixel bounds are set to that frame for the call), and the features ride along for
         `_feature_images`."""
         if not self.grafted:

@@ -287,9 +287,9 @@ class GrootAdapter(BackboneAdapter):
         return inputs
 
     def _prompt_grid(self, tokens: int) -> tuple[int, int]:
-        """The merged grid a prompt needs for `tokens` cached tokens per camera: the native grid, or the square
+        """The merged grid a prompt needs for `tokens` cached tokens per camera: the token grid, or the square
         grid of a pooling control (the cache keeps no shape, so any other count is refused, not guessed)."""
-        gh, gw = self.native_grid
+        gh, gw = self.token_grid
         if tokens == gh * gw:
             return gh, gw
         side = round(tokens ** 0.5)
@@ -319,7 +319,7 @@ class GrootAdapter(BackboneAdapter):
 
     def prepare(self, raw: Mapping[str, Any]) -> dict[str, Any]:
         """lerobot's preprocessor (packing, normalisation, prompt). Grafted, the prompt is made from blank frames
-        whose processed grid is the cached features' (the native grid, or a pooling control's square grid), and
+        whose processed grid is the cached features' (the token grid, or a pooling control's square grid), and
         the features ride along for `_feature_images`."""
         if not self.grafted:
             return self._unpadded(super().prepare(raw))

@@ -68,7 +68,7 @@ class NativeEncoder(Encoder):
 
 def build_native(spec: EncoderSpec, req: LoadRequest) -> NativeEncoder:
     """Load the policy named by `--policy` and measure its tower's grid and connector shapes. The pixel
-    size is the one a natively trained tiny checkpoint records, else the catalog's (released policies
+    size is the one a tiny checkpoint trained by train-tiny records, else the catalog's (released policies
     take the dataset's frames as they are)."""
     backbone = backbone_of_native(spec.name)
     if req.policy is None:

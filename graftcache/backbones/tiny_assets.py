@@ -1,7 +1,7 @@
 """Generate the small tokenizer/config folders shipped under graftcache/resources/tiny/ (run once).
 
 Why shipped files instead of building them at import time: byte-level BPE training is fast, but its
-merges may change between `tokenizers` releases, and a natively trained tiny backbone saved today
+merges may change between `tokenizers` releases, and a tiny backbone trained by train-tiny saved today
 must still see the same token ids next year. So the files are generated once by this script,
 committed (~100 KB), and loaded offline by `graftcache.backbones.tiny`.
 

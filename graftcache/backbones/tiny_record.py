@@ -1,4 +1,4 @@
-"""Natively trained tiny checkpoints: where they live, the record beside their weights, finding them again.
+"""Tiny checkpoints trained by train-tiny: where they live, the record beside their weights, finding them again.
 
 `graftcache train-tiny` (graftcache.pretrain) writes a checkpoint folder keyed by the dataset's identity and
 the training recipe, with RECORD_FILE beside the weights; `--policy tiny` (fit, extract) finds it again
@@ -20,9 +20,9 @@ POLICIES_DIR = "policies"
 RECORD_FILE = "graftcache_pretrain.json"
 
 
-def policy_dir(root: Path, backbone: str, fingerprint: dict, cfg: TinyTrainConfig) -> Path:
-    """Folder of a natively trained tiny backbone, keyed by dataset content and training recipe."""
-    digest = sha256_json({"fp": fingerprint, "cfg": cfg.as_dict(backbone)})
+def policy_dir(root: Path, backbone: str, identity: dict, cfg: TinyTrainConfig) -> Path:
+    """Folder of a tiny backbone trained by train-tiny, keyed by dataset content and training recipe."""
+    digest = sha256_json({"fp": identity, "cfg": cfg.as_dict(backbone)})
     return root / POLICIES_DIR / f"tiny-{backbone}-{digest[:12]}"
 
 
@@ -39,33 +39,33 @@ def read_record(folder: Path) -> dict[str, Any] | None:
 
 
 def trained_image_size(folder: Path) -> int | None:
-    """The pixel size a natively trained tower was trained on (None: not a graftcache-trained checkpoint)."""
+    """The pixel size a tower trained by train-tiny was trained on (None: not a graftcache-trained checkpoint)."""
     record = read_record(folder)
     return int(record["config"]["image_size"]) if record else None
 
 
-def tiny_policies(root: Path, backbone: str, fingerprint: dict) -> list[tuple[Path, dict]]:
-    """Natively trained tiny checkpoints of `backbone` for the dataset with `fingerprint`, with their records."""
+def tiny_policies(root: Path, backbone: str, identity: dict) -> list[tuple[Path, dict]]:
+    """Tiny checkpoints trained by train-tiny of `backbone` for the dataset with `identity`, with their records."""
     found = []
     for folder in sorted((root / POLICIES_DIR).glob(f"tiny-{backbone}-*")):
         record = read_record(folder)
         if (folder / "config.json").is_file() and record is not None and record.get("backbone") == backbone \
-                and record.get("dataset_fingerprint") == fingerprint:
+                and record.get("dataset_identity") == identity:
             found.append((folder, record))
     return found
 
 
-def resolve_policy(backbone: str, policy: str, fingerprint: dict, root: Path, dataset_name: str = "DATASET") -> str:
-    """`tiny` -> the natively trained tiny checkpoint for the dataset with `fingerprint`; else as given.
+def resolve_policy(backbone: str, policy: str, identity: dict, root: Path, dataset_name: str = "DATASET") -> str:
+    """`tiny` -> the tiny checkpoint trained by train-tiny for the dataset with `identity`; else as given.
 
     With several tiny checkpoints for the dataset (other steps or seeds), the one trained with the default
     recipe wins (at whichever compute dtype this machine resolved); otherwise the user must pick a folder.
     """
     if policy != "tiny":
         return policy
-    found = tiny_policies(root, backbone, fingerprint)
+    found = tiny_policies(root, backbone, identity)
     if not found:
-        raise BackboneError(f"no natively trained tiny {backbone} for dataset {dataset_name} in "
+        raise BackboneError(f"no tiny {backbone} trained by train-tiny for dataset {dataset_name} in "
                             f"{root / POLICIES_DIR}; run: graftcache train-tiny --backbone {backbone} "
                             f"--dataset {dataset_name}")
     if len(found) > 1:

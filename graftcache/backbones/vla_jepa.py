@@ -275,9 +275,9 @@ class VLAJEPAAdapter(WrappedCheckpointing, BackboneAdapter):
         return inputs
 
     def _prompt_grid(self, tokens: int) -> tuple[int, int]:
-        """The merged grid a prompt needs for `tokens` cached tokens per camera: the native grid, or the square
+        """The merged grid a prompt needs for `tokens` cached tokens per camera: the token grid, or the square
         grid of a pooling control (the cache keeps no shape, so any other count is refused, not guessed)."""
-        gh, gw = self.native_grid
+        gh, gw = self.token_grid
         if tokens == gh * gw:
             return gh, gw
         side = round(tokens ** 0.5)
@@ -343,7 +343,7 @@ class VLAJEPAAdapter(WrappedCheckpointing, BackboneAdapter):
     def _predict_chunk(self, batch: Mapping[str, Any], noise: torch.Tensor, num_steps: int) -> torch.Tensor:
         """`VLAJEPAPolicy.predict_action_chunk` from `noise` with `num_steps` Euler steps. Grafted, its resize to
         `resize_images_to` is off for the call: it acts on frames, and the cached features are already at the
-        grid that resize gives (native_grid)."""
+        grid that resize gives (token_grid)."""
         head, config = self.policy.model.action_model, self.config
         steps, head.num_inference_timesteps = head.num_inference_timesteps, int(num_steps)
         resize = config.resize_images_to

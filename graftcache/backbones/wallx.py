@@ -178,7 +178,7 @@ class WallXAdapter(WrappedCheckpointing, BackboneAdapter):
         return image_grid(cls._frame_shape(config), load_processor(folder).image_processor, vision)
 
     @functools.cached_property
-    def native_grid(self) -> tuple[int, int]:
+    def token_grid(self) -> tuple[int, int]:
         return image_grid(self._frame_shape(self.config), self._image_processor, self._vision_owner.config)
 
     @property
@@ -232,9 +232,9 @@ class WallXAdapter(WrappedCheckpointing, BackboneAdapter):
         return self._vision(images)[1]
 
     def _prompt_grid(self, tokens: int) -> tuple[int, int]:
-        """The merged grid a prompt needs for `tokens` cached tokens per camera: the native grid, or the square
+        """The merged grid a prompt needs for `tokens` cached tokens per camera: the token grid, or the square
         grid of a pooling control (the cache keeps no shape, so any other count is refused, not guessed)."""
-        gh, gw = self.native_grid
+        gh, gw = self.token_grid
         if tokens == gh * gw:
             return gh, gw
         side = round(tokens ** 0.5)

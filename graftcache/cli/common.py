@@ -120,16 +120,6 @@ def request_from[R](request: type[R], args: argparse.Namespace, **values: Any) -
     return request(**{n: v for n, v in vars(args).items() if n in names}, **values)
 
 
-def add_renamed(p: argparse.ArgumentParser, old: str, new: str, why: str) -> None:
-    """A flag that no longer exists: using it is a one-line usage error naming the flag to use instead."""
-
-    class Renamed(argparse.Action):
-        def __call__(self, parser: argparse.ArgumentParser, *_: Any) -> None:
-            parser.error(f"{old} is gone from this command: use {new} ({why})")
-
-    p.add_argument(old, action=Renamed, help=argparse.SUPPRESS)
-
-
 def add_cache_flag(p: argparse.ArgumentParser) -> None:
     """--cache for commands that take no request (ls, info, verify, push, pull): the request's flag, as declared."""
     from graftcache.requests import ExtractRequest

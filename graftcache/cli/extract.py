@@ -23,15 +23,15 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def _policy(args: argparse.Namespace) -> str | None:
-    """`--policy tiny` names the tiny backbone natively trained on this dataset: find its folder."""
+    """`--policy tiny` names the tiny backbone trained on this dataset by train-tiny: find its folder."""
     if args.policy != "tiny":
         return args.policy
     from graftcache.backbone_table import backbone_of_native
     from graftcache.backbones.tiny_record import resolve_policy
-    from graftcache.fit.lookup import dataset_fingerprint
+    from graftcache.fit.lookup import dataset_identity
     from graftcache.store import cache_root
 
-    return resolve_policy(backbone_of_native(args.encoder), "tiny", dataset_fingerprint(args.dataset),
+    return resolve_policy(backbone_of_native(args.encoder), "tiny", dataset_identity(args.dataset),
                           cache_root(args.cache), args.dataset)
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from graftcache.cli.common import add_flags, add_renamed, request_from
+from graftcache.cli.common import add_flags, request_from
 from graftcache.requests import FitRequest
 
 
@@ -14,7 +14,6 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                        "across seeds and controls, and score offline action MSE on held-out episodes. Finished cells "
                        "in --results are skipped.")
     add_flags(p, FitRequest)  # every flag is a FitRequest field, declared in graftcache/requests.py
-    add_renamed(p, "--dtype", "--compute-dtype", "--dtype is the stored feature dtype, an extract setting")
     p.set_defaults(func=run)
 
 

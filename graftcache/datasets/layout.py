@@ -33,7 +33,7 @@ class EpisodeFiles:
 
 @dataclass(frozen=True)
 class Layout:
-    """A version reader's answer: tasks, episodes (ascending), their files, and the files to fingerprint."""
+    """A version reader's answer: tasks, episodes (ascending), their files, and the files its identity hashes."""
 
     tasks: tuple[str, ...]
     episodes: tuple[EpisodeMeta, ...]

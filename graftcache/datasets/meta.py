@@ -64,7 +64,7 @@ class DatasetMeta:
     identity_files: tuple[Path, ...]  # metadata files, then every data parquet and mp4 the episodes use
 
     @functools.cached_property
-    def fingerprint(self) -> dict[str, dict[str, dict[str, int | str]]]:
+    def content_identity(self) -> dict[str, dict[str, dict[str, int | str]]]:
         """{"files": {path relative to root: {"size", "sha256"}}} over `identity_files` (see identity.py).
 
         Computed on first use, not when the dataset is opened: the first time a dataset is seen this
@@ -76,8 +76,8 @@ class DatasetMeta:
 
     @property
     def identity(self) -> dict[str, Any]:
-        """What a cache manifest records as `dataset_fingerprint`: the format version and the content."""
-        return {"codebase_version": self.codebase_version, **self.fingerprint}
+        """What a cache manifest records as `dataset_identity`: the format version and the content."""
+        return {"codebase_version": self.codebase_version, **self.content_identity}
 
 
 @dataclass(frozen=True)

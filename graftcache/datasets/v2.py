@@ -31,7 +31,9 @@ def load(root: Path, info: dict[str, Any], video_keys: Sequence[str]) -> Layout:
     tasks = tuple(by_index[i] for i in range(len(by_index)))
     task_index = {t: i for i, t in enumerate(tasks)}
 
-    chunks_size = int(info.get("chunks_size", 1000))
+    # lerobot groups episode files in folders of `chunks_size` episodes ({episode_chunk} in the path templates:
+    # lerobot's names for its file layout, kept as it writes them); graftcache calls such a folder a file group
+    file_group_size = int(info.get("chunks_size", 1000))
     data_tpl = info.get("data_path", DEFAULT_DATA_PATH)
     video_tpl = info.get("video_path") or DEFAULT_VIDEO_PATH
     episodes, files, start = [], [], 0
@@ -48,7 +50,7 @@ def load(root: Path, info: dict[str, Any], video_keys: Sequence[str]) -> Layout:
         episodes.append(EpisodeMeta(index=ep, length=length, task_index=listed[0], dataset_from_index=start,
                                     task_indices=listed))
         start += length
-        fmt = {"episode_chunk": ep // chunks_size, "episode_index": ep}
+        fmt = {"episode_chunk": ep // file_group_size, "episode_index": ep}
         files.append(EpisodeFiles(
             data=template_path(root, "data_path", data_tpl, ep, **fmt),
             videos={key: VideoSpan(template_path(root, "video_path", video_tpl, ep, video_key=key, **fmt), 0.0)

@@ -1,7 +1,8 @@
 """LeRobot v3.0 layout: episodes in meta/episodes/chunk-XXX/file-YYY.parquet, many episodes per file.
 
-Each episode row names its data file (data/chunk_index, data/file_index) and, per camera, its mp4
-(videos/<key>/chunk_index, file_index) and where it starts inside it (from_timestamp).
+Each episode row names its data file (data/chunk_index, data/file_index: lerobot's names for its file group and
+file) and, per camera, its mp4 (videos/<key>/chunk_index, file_index) and where it starts inside it
+(from_timestamp).
 Task strings live in meta/tasks.parquet (pandas wrote the task as the frame index).
 """
 

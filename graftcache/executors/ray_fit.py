@@ -85,7 +85,7 @@ def fit(requests: Sequence[tuple[str, FitRequest]], settings: ExecutorSettings, 
                                                                          options[req.device])
         req = shared_request(req, dtypes[req.compute_dtype, req.device])
         seen = done.setdefault(req.results, results.done_run_ids(req.results))
-        # listing cells reads the caches' index only; a cell's identity holds no device (the dtype is resolved)
+        # listing cells reads the caches' index only; a Cell holds no device (the dtype is resolved)
         lister = Fitter(dataclasses.replace(req, device="cpu"), log=log)
         for control, seed, cell in lister.cells():
             if cell.run_id not in seen and cell.run_id not in cells:

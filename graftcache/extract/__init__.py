@@ -1,5 +1,5 @@
 """Stage 1: decode every frame once, encode, and persist fp16 features with provenance: the encoder's own
-patch grid (`--grids native`, the default) and any pooled grids asked for.
+patch grid (`--grids unpooled`, the default) and any pooled grids asked for.
 
 Data flow (forward only): worker processes decode whole episodes (frames.py) -> the main process fills a block
 buffer of `block_frames` frames and encodes it in batches (blocks.py, encode.py) -> a writer thread writes it

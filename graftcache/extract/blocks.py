@@ -68,9 +68,9 @@ def fill(cache: FeatureCache, job: Job, blocks: Sequence[int]) -> int:
                             for cam in cameras
                             for name, arr in encode_frames(job.encoder, buf[cam], grids, batch_size=req.batch_size,
                                                            device=job.device, compute=job.compute,
-                                                           dtype=req.dtype).items()}
+                                                           dtype=req.storage_dtype).items()}
                     if not req.allow_nonfinite:
-                        check_features(data, index, start, req.dtype, cache.key)
+                        check_features(data, index, start, req.storage_dtype, cache.key)
                     writer.put(block, data)
                     encoded += stop - start
                     bar.update(stop - start)

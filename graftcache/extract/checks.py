@@ -40,7 +40,7 @@ def check_policy_cameras(req: ExtractRequest, encoder: Any, cameras: Sequence[st
 
 def stored_bytes(req: ExtractRequest, width: int) -> int:
     """Bytes one camera's features of one frame take in the cache before compression (every stored grid)."""
-    return sum(h * w for h, w in map(parse_grid, req.grids)) * width * STORAGE_DTYPES[req.dtype].itemsize
+    return sum(h * w for h, w in map(parse_grid, req.grids)) * width * STORAGE_DTYPES[req.storage_dtype].itemsize
 
 
 def check_memory(req: ExtractRequest, meta: DatasetMeta, cameras: Sequence[str], width: int, n_frames: int,
@@ -82,7 +82,7 @@ def check_disk(target: Target, job: Job) -> None:
     per_frame = len(job.cameras) * stored_bytes(job.req, job.encoder.spec.width)
     budget.require(f"cache {key}: {todo} frames x {per_frame} bytes a frame", todo * per_frame, free[0],
                    f"the free space of the file system of {root.location(key)}",
-                   "free space, pick a --cache on a larger disk, or store coarser --grids or --dtype")
+                   "free space, pick a --cache on a larger disk, or store coarser --grids or --storage-dtype")
 
 
 def check_features(data: dict[str, np.ndarray], index: pl.DataFrame, start: int, dtype: str, key: str) -> None:
@@ -95,7 +95,7 @@ def check_features(data: dict[str, np.ndarray], index: pl.DataFrame, start: int,
             raise EncoderError(f"cache {key}: {name} is NaN/inf for episode {row['episode_index']} frame "
                                f"{row['frame_index']} ({int(bad.sum())} frame(s) in frames {start}-"
                                f"{start + len(bad) - 1}); the cache stays incomplete. Values past {dtype}'s range? "
-                               f"try --dtype fp32, or pass {KEEP_FLAG} to keep them")
+                               f"try --storage-dtype fp32, or pass {KEEP_FLAG} to keep them")
 
 
 def out_of_space(cache: FeatureCache, error: OSError) -> str:
@@ -104,7 +104,7 @@ def out_of_space(cache: FeatureCache, error: OSError) -> str:
     done = cache.blocks_done()
     todo = [b for b in range(int(cache.layout["n_blocks"])) if b not in done]
     frames = sum(stop - start for start, stop in map(cache.block_range, todo))
-    itemsize = STORAGE_DTYPES[cache.manifest.dtype].itemsize
+    itemsize = STORAGE_DTYPES[cache.manifest.storage_dtype].itemsize
     per_frame = sum(int(np.prod(shape)) * itemsize for shape in cache.layout["arrays"].values())
     where = f" writing {error.filename}" if error.filename else ""
     return (f"cache {cache.key}: {error.strerror}{where}; {frames} of {cache.n_frames} frames are not written yet, "

@@ -18,7 +18,7 @@ from graftcache.store import Manifest, Root
 
 @dataclass(frozen=True)
 class Job:
-    """One request resolved: `req` with its compute dtype and grids resolved (never "auto" or "native"), the
+    """One request resolved: `req` with its compute dtype and grids resolved (never "auto" or "unpooled"), the
     opened dataset and loaded encoder, and the frames to cache."""
 
     req: ExtractRequest

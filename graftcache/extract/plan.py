@@ -25,8 +25,8 @@ def plan(req: ExtractRequest, log: Callable[[str], None]) -> Job:
     """Open the dataset, load the encoder and choose the frames; every refusal that needs no decoding is here."""
     device = resolve_device(req.device)
     req = replace(req, compute_dtype=resolve_compute_dtype(req.compute_dtype, device))  # never "auto" in a key
-    if req.dtype not in STORAGE_DTYPES:
-        raise GraftcacheError(f"--dtype {req.dtype!r}: choose one of {', '.join(STORAGE_DTYPES)}")
+    if req.storage_dtype not in STORAGE_DTYPES:
+        raise GraftcacheError(f"--storage-dtype {req.storage_dtype!r}: choose one of {', '.join(STORAGE_DTYPES)}")
     source = open_dataset(req.dataset)
     meta = source.meta
     cameras = list(req.cameras or meta.cameras)
@@ -47,7 +47,7 @@ def plan(req: ExtractRequest, log: Callable[[str], None]) -> Job:
     encoder = load_encoder(spec, weights=req.weights, random_init=req.random_init, seed=req.seed,
                            device=device, policy=req.policy)
     check_policy_cameras(req, encoder, cameras, meta.root, log)
-    # "native" -> the encoder's own grid (measured for native towers), so the key never depends on the spelling
+    # "unpooled" -> the encoder's own grid (measured for native towers), so the key never depends on the spelling
     req = replace(req, grids=tuple(map(format_grid, resolve_grids(req.grids, encoder.spec.grid))))
     chosen = set(episodes)
     n_frames = sum(-(-e.length // req.frame_stride) for e in meta.episodes if e.index in chosen)

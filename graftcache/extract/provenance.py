@@ -33,11 +33,11 @@ def build_index(source: LeRobotSource, episodes: Sequence[int]) -> pl.DataFrame:
 def build_manifest(job: Job, numerics: dict[str, Any]) -> Manifest:
     """Provenance manifest. Identity fields (see store.key) decide the cache key; the numerics fingerprint
     (encoders/fingerprint.py) is not one of them: it decides whether this environment may extend the cache.
-    `req.grids` are resolved names (never "native"); `native_grid` says which of them is the encoder's own grid,
+    `req.grids` are resolved names (never "unpooled"); `unpooled_grid` says which of them is the encoder's own grid,
     stored unpooled (None when only pooled grids are stored), for stage 2 to pool from. It is provenance: the
     encoder's grid and the stored grids, both in the key, already decide it."""
     req, meta, encoder = job.req, job.source.meta, job.encoder
-    native = format_grid(encoder.spec.grid)
+    unpooled = format_grid(encoder.spec.grid)
     winfo = dict(encoder.weights_info)
     extras = {name: list(shape) for name, shape in getattr(encoder, "extra_shapes", {}).items()}
     return Manifest(
@@ -47,7 +47,7 @@ def build_manifest(job: Job, numerics: dict[str, Any]) -> Manifest:
         dataset=DatasetRecord(source=str(req.dataset), root=str(meta.root), repo_id=meta.repo_id,
                               revision=meta.revision, codebase_version=meta.codebase_version, fps=meta.fps,
                               n_episodes_total=len(meta.episodes), n_frames_total=meta.n_frames),
-        dataset_fingerprint=meta.identity,
+        dataset_identity=meta.identity,
         episodes=None if len(job.episodes) == len(meta.episodes) else [int(e) for e in job.episodes],
         frame_stride=req.frame_stride,
         cameras=list(job.cameras),
@@ -57,9 +57,9 @@ def build_manifest(job: Job, numerics: dict[str, Any]) -> Manifest:
         weights_sha256=winfo["sha256"],
         random_init=bool(winfo.get("random_init", False)),
         grids=list(req.grids),
-        native_grid=native if native in req.grids else None,
+        unpooled_grid=unpooled if unpooled in req.grids else None,
         extras=extras,
-        dtype=req.dtype,
+        storage_dtype=req.storage_dtype,
         compute_dtype=req.compute_dtype,
         n_frames=job.index.height,
         tasks=list(meta.tasks),

@@ -147,7 +147,7 @@ def find_complete(target: Target, job: Job) -> FeatureCache | None:
         return None
     if not (cache.initialized and cache.complete and cache.matches(manifest)):
         return None
-    cache.check_dataset(manifest.dataset_fingerprint, job.req.dataset)
+    cache.check_dataset(manifest.dataset_identity, job.req.dataset)
     return cache
 
 
@@ -163,7 +163,7 @@ def open_or_create(target: Target, job: Job, log: Callable[[str], None]) -> Feat
         cache = None
     if cache is not None:
         if cache.initialized:  # never resume or reuse features of other data under this key (e.g. a copied cache)
-            cache.check_dataset(manifest.dataset_fingerprint, req.dataset)
+            cache.check_dataset(manifest.dataset_identity, req.dataset)
         if cache.initialized and cache.matches(manifest):
             check_numerics(cache, manifest, log)
             if not cache.complete:

@@ -3,7 +3,7 @@
 Instead of back-propagating the policy's flow loss, regress the native tower's post-connector
 tokens (cached by `graftcache extract --encoder <backbone>-native`) on the LayerNorm'd candidate
 tokens at the same grid positions: ridge regression with a bias, solved from streamed sufficient
-statistics (X^T X, X^T Y, sums) fed chunk by chunk from the cache, so memory is O(C^2 + C*D) whatever the
+statistics (X^T X, X^T Y, sums) fed block by block from the cache, so memory is O(C^2 + C*D) whatever the
 number of frames. The
 projector then holds LN(weight=1, bias=0) -> Linear(W, b) and is scored with the same offline
 action MSE as a `flow` fit. One linear solve replaces hundreds of backward passes through the LM.
@@ -25,7 +25,7 @@ STREAM_ROWS = 4096
 
 
 def _as_grid(tokens: torch.Tensor, grid: tuple[int, int]) -> torch.Tensor:
-    """[N, T, D] tokens on a square grid -> pooled to `grid` (identity when T already matches)."""
+    """[N, T, D] tokens on a square grid -> pooled to `grid` (unchanged when T already matches)."""
     n, t, d = tokens.shape
     if t == grid[0] * grid[1]:
         return tokens
@@ -41,7 +41,7 @@ def fit_ridge(projector: nn.Module, pairs: Iterable[tuple[torch.Tensor, torch.Te
     """Set `projector` (a GraftProjector) to the ridge solution; returns the train R^2.
 
     `pairs` streams (candidate features [n, T, C], native tokens [n, T', D]) of the same frames and camera, a
-    chunk at a time (graftcache.fit.stream): only the statistics are kept.
+    block at a time (graftcache.fit.stream): only the statistics are kept.
     """
     c = projector.in_features
     d = projector.out_features
@@ -59,8 +59,8 @@ def fit_ridge(projector: nn.Module, pairs: Iterable[tuple[torch.Tensor, torch.Te
         x_all = src.reshape(-1, c)
         y_all = tgt.reshape(-1, d)
         for s in range(0, x_all.shape[0], STREAM_ROWS):
-            # float32 products per chunk (2x the float64 GEMM speed; chunk sums of layer-normed rows agree
-            # with float64 to ~1e-7), accumulated across chunks in float64
+            # float32 products per block (2x the float64 GEMM speed; block sums of layer-normed rows agree
+            # with float64 to ~1e-7), accumulated across blocks in float64
             x = F.layer_norm(x_all[s:s + STREAM_ROWS].float(), (c,))
             y = y_all[s:s + STREAM_ROWS].float()
             xtx += (x.T @ x).double()

@@ -1,6 +1,6 @@
-"""The bounded shuffle buffer between the chunk stream and the training batches.
+"""The bounded shuffle buffer between the block stream and the training batches.
 
-Chunks arrive in a seeded block order (graftcache.fit.stream); the buffer holds `capacity` frames, and each
+Blocks arrive in a seeded block order (graftcache.fit.stream); the buffer holds `capacity` frames, and each
 batch takes `k` distinct slots drawn by the cell's generator and refills them with the stream's next frames.
 Every frame that enters is drawn exactly once, and at most `capacity` + what the stream prefetches is ever in
 memory, whatever the size of the split. Frames drawn together come from up to capacity / block_frames blocks,
@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from graftcache.errors import FitError
-from graftcache.fit.stream import Chunk, Features, FrameQueue
+from graftcache.fit.stream import Block, Features, FrameQueue
 
 MIB = 1 << 20
 
@@ -26,18 +26,18 @@ def buffer_frames(mib: int, frame_bytes: int, batch_size: int, n_frames: int) ->
 
 
 class ShuffleBuffer:
-    """Batches drawn from a bounded buffer over an endless chunk stream (one source's features)."""
+    """Batches drawn from a bounded buffer over an endless block stream (one source's features)."""
 
-    def __init__(self, chunks: Iterator[Chunk], capacity: int, *, empty_limit: int | None = None) -> None:
+    def __init__(self, blocks: Iterator[Block], capacity: int, *, empty_limit: int | None = None) -> None:
         self.capacity = capacity
-        self._queue = FrameQueue(chunks, empty_limit=empty_limit)
+        self._queue = FrameQueue(blocks, empty_limit=empty_limit)
         self._owners = np.empty(capacity, dtype=np.int64)
         self._features: Features | None = None
 
     def _next(self, k: int) -> tuple[np.ndarray, Features]:
         taken = self._queue.take(k)
         if taken is None or len(taken[0]) < k:
-            raise FitError("the training stream ended: it must repeat its chunks forever")
+            raise FitError("the training stream ended: it must repeat its blocks forever")
         return taken[0], taken[1][0]
 
     def draw(self, k: int, generator: torch.Generator) -> tuple[np.ndarray, Features]:

@@ -24,9 +24,9 @@ import torch
 from torch import nn
 
 from graftcache.errors import FitError
-from graftcache.graft import GraftProjector, IdentityProjector
+from graftcache.graft import GraftProjector, PassThroughProjector
 from graftcache.pooling import format_grid, parse_grids
-from graftcache.requests import POOL_PREFIX
+from graftcache.requests import NATIVE_CONTROL, NATIVE_GRAFT_CONTROL, POOL_PREFIX
 
 SHUFFLE_SEED_OFFSET = 7919
 SHUFFLE_GROUP = 64  # frames that exchange features as a group (see shuffle)
@@ -70,7 +70,7 @@ def shuffle(n: int, seed: int) -> np.ndarray:
     each group sees a seeded arrangement of another group's frames (a derangement of the groups, when there
     are at least two equal ones), else a derangement of its own. A group of a split is a run of one or two
     episodes, so a frame's features come from another episode, at a random time of it; and the frames one
-    chunk of features goes with lie in a few runs, so `align` reads both sides run by run instead of frame by
+    block of features goes with lie in a few runs, so `align` reads both sides run by run instead of frame by
     frame across the whole split.
     """
     g = torch.Generator().manual_seed(seed + SHUFFLE_SEED_OFFSET)
@@ -85,11 +85,11 @@ def shuffle(n: int, seed: int) -> np.ndarray:
     return out
 
 
-def identity(width: int, lm_width: int) -> nn.Module:
+def pass_through(width: int, lm_width: int) -> nn.Module:
     """The native control's projector: the cached connector tokens must already be the LM's width."""
     if width != lm_width:
         raise FitError(f"native connector tokens are {width} wide, the backbone's LM expects {lm_width}")
-    return IdentityProjector(lm_width)
+    return PassThroughProjector(lm_width)
 
 
 @dataclass(frozen=True)
@@ -104,13 +104,13 @@ class Control:
     lora: bool = False              # LoRA adapters on the LM train with the projector
     fuses: bool = True              # may share a backbone pass with other cells (graftcache/fit/passes.py); LoRA
                                     # adapts the backbone itself, which every row of a pass would go through
-    grid: tuple[int, int] | None = None  # overrides the backbone's native grid
+    grid: tuple[int, int] | None = None  # overrides the backbone's token grid
 
 
 CONTROLS: dict[str, Control] = {
     "none": Control("none"),
-    "native": Control("native", projector=identity, native_cache=True, extra="connector", train=False),
-    "native-graft": Control("native-graft", native_cache=True),
+    NATIVE_CONTROL: Control(NATIVE_CONTROL, projector=pass_through, native_cache=True, extra="connector", train=False),
+    NATIVE_GRAFT_CONTROL: Control(NATIVE_GRAFT_CONTROL, native_cache=True),
     "zero-image": Control("zero-image", transform=zero),
     "shuffled-image": Control("shuffled-image", pairing=shuffle),
     "lora": Control("lora", lora=True, fuses=False),

@@ -1,7 +1,7 @@
 """Stage 2 data path: everything a fit needs comes from the feature cache, never from videos.
 
 Only the low-dim part of a suite is held in memory (`LowDim`: state, task, where each frame's action chunk
-lies in the action stream); features are read chunk by chunk where they are used (graftcache.fit.stream,
+lies in the action stream); features are read block by block where they are used (graftcache.fit.stream,
 through `read_grid`). The held-out split is by episode within each task, with a fixed split seed that is
 recorded in every results row.
 """
@@ -24,7 +24,7 @@ from graftcache.runtime import resolve_dtype
 from graftcache.store import FeatureCache
 
 #: How much of a stored grid (as fp32) `read_grid` holds at a time while it pools to a coarser one.
-POOL_CHUNK_BYTES = 2**28
+POOL_READ_BYTES = 2**28
 
 
 @dataclass(frozen=True)
@@ -131,7 +131,7 @@ def suite_index_table(cache: FeatureCache, suite: str) -> pl.DataFrame:
 def read_grid(cache: FeatureCache, camera: str, grid: tuple[int, int], rows: np.ndarray) -> torch.Tensor:
     """Features of `camera` at `grid` for cache rows `rows`, [len(rows), H*W, C] in stored precision: the grid
     itself when the cache stores it, else adaptive-average-pooled at read time from the encoder's own grid as
-    the manifest names it (`native_grid`; a cache of pooled grids only: the finest stored grid).
+    the manifest names it (`unpooled_grid`; a cache of pooled grids only: the finest stored grid).
 
     What pooling here costs in precision: extraction pools the fp32 activations and rounds the mean once to
     the stored dtype; here the stored, already rounded values are averaged in fp32 and the mean rounded
@@ -141,21 +141,21 @@ def read_grid(cache: FeatureCache, camera: str, grid: tuple[int, int], rows: np.
     caches pool exactly what extraction would have. Exact-multiple grids (16x16 -> 8x8) average whole
     blocks of cells; others average overlapping windows.
 
-    The stored grid is read and pooled `POOL_CHUNK_BYTES` of fp32 at a time (whole cache blocks), so a
+    The stored grid is read and pooled `POOL_READ_BYTES` of fp32 at a time (whole cache blocks), so a
     suite of 16x16x768 frames never sits in memory unpooled.
     """
     name = format_grid(grid)
     stored = cache.manifest.grids
     if name in stored:
         return cache.read_features(camera, name, rows)
-    source = cache.manifest.native_grid or max(stored, key=lambda g: math.prod(parse_grid(g)))
+    source = cache.manifest.unpooled_grid or max(stored, key=lambda g: math.prod(parse_grid(g)))
     (h, w), width = parse_grid(source), cache.layout["arrays"][cache.feature_path(camera, source)][-1]
     block = int(cache.layout["block_frames"])
-    per_chunk = block * max(1, POOL_CHUNK_BYTES // (block * h * w * width * 4))
+    per_read = block * max(1, POOL_READ_BYTES // (block * h * w * width * 4))
     rows = np.asarray(rows)
-    out = torch.empty((len(rows), grid[0] * grid[1], width), dtype=resolve_dtype(cache.manifest.dtype))
-    for chunk in np.unique(rows // per_chunk):
-        at = np.flatnonzero(rows // per_chunk == chunk)
+    out = torch.empty((len(rows), grid[0] * grid[1], width), dtype=resolve_dtype(cache.manifest.storage_dtype))
+    for part in np.unique(rows // per_read):
+        at = np.flatnonzero(rows // per_read == part)
         src = cache.read_features(camera, source, rows[at])
         out[torch.from_numpy(at)] = pool_grid(src.float().reshape(len(at), h, w, width), grid).to(out.dtype)
     return out
@@ -223,7 +223,7 @@ def drop_nonfinite(low: LowDim, cache: FeatureCache, *, drop: bool) -> tuple[Low
     """`low` without the frames whose state or action chunk hold a NaN/inf, and how many those were. Without
     `drop` any such frame is a FitError naming the cache, episode and frame: a NaN would flow into the
     normalisation, the loss and the MSE. (Caches extracted before stage 1 refused them, or with
-    `extract --allow-nonfinite`, can hold them.) Features are checked chunk by chunk as they stream
+    `extract --allow-nonfinite`, can hold them.) Features are checked block by block as they stream
     (graftcache.fit.stream), since they are never all in memory."""
     bad = low.nonfinite()
     any_bad = np.logical_or.reduce(list(bad.values()))

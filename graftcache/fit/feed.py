@@ -1,4 +1,4 @@
-"""What each consumer of a split streams: which frames' features a chunk reads, and which frames they go with.
+"""What each consumer of a split streams: which frames' features a block reads, and which frames they go with.
 
 A control's pairing (graftcache.fit.controls) says that frame r sees the features of frame pairing[r]. Training
 and scoring read features block by block and hand each frame's features to the frame that sees them
@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from graftcache.fit.data import LowDim
-from graftcache.fit.stream import BlockMemo, ChunkStream, FeatureSource, Planned, block_chunks
+from graftcache.fit.stream import BlockMemo, BlockStream, FeatureSource, Planned, rows_by_block
 
 
 @dataclass(frozen=True)
@@ -28,23 +28,23 @@ class SplitFeed:
     memo: BlockMemo | None = None        # blocks kept for the next streams, when read in this process
 
     def _blocks(self) -> list[np.ndarray]:
-        return block_chunks(self.low.rows, self.block_frames)
+        return rows_by_block(self.low.rows, self.block_frames)
 
-    def features(self, seed: int | None) -> ChunkStream:
+    def features(self, seed: int | None) -> BlockStream:
         """Each block's frames' features, with the frames that see them: forever in a new order each epoch
         (`seed`), or once in cache order (None)."""
         seen_by = np.argsort(self.pairing) if self.pairing is not None else None
         plan = [Planned(pos if seen_by is None else seen_by[pos], (pos,)) for pos in self._blocks()]
-        return ChunkStream(self.low, [(self.source, self.low.rows)], plan, seed=seed, drop=self.drop,
+        return BlockStream(self.low, [(self.source, self.low.rows)], plan, seed=seed, drop=self.drop,
                            memo=self.memo)
 
-    def with_targets(self, targets: FeatureSource, target_rows: np.ndarray) -> ChunkStream:
+    def with_targets(self, targets: FeatureSource, target_rows: np.ndarray) -> BlockStream:
         """Once in cache order: each block's frames' targets (`targets` at `target_rows`, one per frame) as the
         second source, the features those frames see as the first."""
         plan = [Planned(pos, (pos if self.pairing is None else self.pairing[pos], pos)) for pos in self._blocks()]
-        return ChunkStream(self.low, [(self.source, self.low.rows), (targets, target_rows)], plan, drop=self.drop,
+        return BlockStream(self.low, [(self.source, self.low.rows), (targets, target_rows)], plan, drop=self.drop,
                            memo=self.memo)
 
     @property
-    def n_chunks(self) -> int:
+    def n_blocks(self) -> int:
         return len(self._blocks())

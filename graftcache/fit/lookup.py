@@ -19,8 +19,8 @@ from graftcache.store import FeatureCache, Root, list_caches, open_root
 from graftcache.store.key import check_key
 
 
-def dataset_fingerprint(dataset: str) -> dict:
-    """The dataset's identity as a cache manifest records it (`dataset_fingerprint`)."""
+def dataset_identity(dataset: str) -> dict:
+    """The dataset's identity as a cache manifest records it (`dataset_identity`)."""
     return open_dataset(dataset).meta.identity
 
 
@@ -36,9 +36,9 @@ def find_cache(root: Root | str | Path, encoder: str, *, dataset: str | None = N
     if key:
         check_key(key)  # a key is a name: refused before the dataset is hashed or the root read
     root = open_root(root)
-    wanted_fp, wanted_root = _dataset_identity(dataset) if dataset else (None, None)
+    wanted_identity, wanted_root = _dataset_identity(dataset) if dataset else (None, None)
     if same_dataset_as is not None:
-        wanted_fp = same_dataset_as.manifest.dataset_fingerprint
+        wanted_identity = same_dataset_as.manifest.dataset_identity
         wanted_root = same_dataset_as.manifest.dataset.root
     if key:
         cache = FeatureCache.in_root(root, key)
@@ -47,9 +47,9 @@ def find_cache(root: Root | str | Path, encoder: str, *, dataset: str | None = N
         candidates = [cache]
     else:
         candidates = [c for c in list_caches(root) if c.manifest.encoder_name == encoder]
-    if wanted_fp is not None:
+    if wanted_identity is not None:
         named = dataset or same_dataset_as.manifest.dataset.source
-        diffs = {c.key: c.dataset_difference(wanted_fp) for c in candidates}
+        diffs = {c.key: c.dataset_difference(wanted_identity) for c in candidates}
         other = [c for c in candidates if diffs[c.key] is not None]
         if key and other:
             src = other[0].manifest.dataset.source

@@ -3,13 +3,13 @@
 `fit` (projector, plus LoRA for that control) and `train-tiny` (the whole tiny policy, graftcache.pretrain)
 both run `optimise`: draw a batch, the policy's own flow loss with padded steps masked, one optimiser
 step. `train` and `evaluate` are the fit's use of it on streamed cached features (graftcache.fit.stream):
-`train` draws from a bounded shuffle buffer, `evaluate` scores the held-out frames chunk by chunk.
+`train` draws from a bounded shuffle buffer, `evaluate` scores the held-out frames block by block.
 Both are written for several cells at once (`optimise_together`, `evaluate_together`: the cells of one backbone
 pass, graftcache/fit/passes.py, their batches concatenated, each with its own loss, optimiser and random
 stream); one cell is the case of one.
 
 Determinism: batch draws, flow noise and flow time all come from one generator seeded by the caller
-(the cell's seed), and the stream's chunk order from the same seed, so a CPU rerun is bit-identical. Time is drawn
+(the cell's seed), and the stream's block order from the same seed, so a CPU rerun is bit-identical. Time is drawn
 like lerobot's `sample_time` (Beta(1.5, 1) scaled to [0.001, 1]) by inverse-CDF sampling from that generator.
 """
 
@@ -26,7 +26,7 @@ from graftcache.errors import FitError
 from graftcache.fit.buffer import ShuffleBuffer
 from graftcache.fit.controls import Transform, keep
 from graftcache.fit.data import LowDim
-from graftcache.fit.stream import Chunk, FrameQueue
+from graftcache.fit.stream import Block, FrameQueue
 from graftcache.graft import feature_key
 from graftcache.progress import progress
 from graftcache.runtime import autocast
@@ -178,21 +178,21 @@ class Scoring:
     """One cell's share of an evaluation: its held-out rows, their features as streamed, how they are fed."""
 
     low: LowDim
-    chunks: Iterator[Chunk]
+    blocks: Iterator[Block]
     cams: Mapping[str, str]
     transform: Transform = keep
 
 
-def evaluate(adapter, low: LowDim, chunks: Iterator[Chunk], cams: Mapping[str, str], *, batch_size: int,
+def evaluate(adapter, low: LowDim, blocks: Iterator[Block], cams: Mapping[str, str], *, batch_size: int,
              transform: Transform = keep, dtype: torch.dtype = torch.float32,
              num_denoise_steps: int | None = None) -> Score:
-    """Offline action MSE of the denoised chunk on the frames of `low` that `chunks` deliver (in cache order,
+    """Offline action MSE of the denoised chunk on the frames of `low` that `blocks` deliver (in cache order,
     re-cut into batches of `batch_size`; fixed noise per frame); only predictions are kept.
 
     Each batch's prefix (images and prompt through the frozen LM) is computed once and its KV cache reused by
     every denoising step: lerobot's `sample_actions` does so (`predict` calls it), so a step costs only the
     action expert's pass over the chunk."""
-    return evaluate_together(adapter, [Scoring(low, chunks, cams, transform)], batch_size=batch_size, dtype=dtype,
+    return evaluate_together(adapter, [Scoring(low, blocks, cams, transform)], batch_size=batch_size, dtype=dtype,
                              num_denoise_steps=num_denoise_steps)[0]
 
 
@@ -203,7 +203,7 @@ def evaluate_together(adapter, parts: Sequence[Scoring], *, batch_size: int, dty
     (fewer once a part runs short), concatenated in part order; each part's score from its own rows."""
     adapter.policy.eval()
     device = adapter.device
-    queues = [FrameQueue(p.chunks) for p in parts]
+    queues = [FrameQueue(p.blocks) for p in parts]
     kept: list[tuple[list, list, list]] = [([], [], []) for _ in parts]  # owners, targets, predictions
     open_parts = list(range(len(parts)))
     while True:

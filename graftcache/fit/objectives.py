@@ -22,7 +22,7 @@ from graftcache.fit.buffer import ShuffleBuffer, buffer_frames
 from graftcache.fit.controls import Control
 from graftcache.fit.feed import SplitFeed
 from graftcache.fit.loop import train
-from graftcache.fit.stream import FeatureSource, StreamStats, read_chunks
+from graftcache.fit.stream import FeatureSource, StreamStats, read_blocks
 from graftcache.requests import FitRequest
 
 if TYPE_CHECKING:
@@ -50,8 +50,8 @@ def flow_buffer(train: SplitFeed, req: FitRequest, seed: int, stats: StreamStats
     """The shuffle buffer a flow fit draws its batches from (`req.buffer_mib`), over the train split's endless
     stream in the order `seed` gives; the stream's readers stop when the block ends."""
     capacity = buffer_frames(req.buffer_mib, train.source.frame_bytes(), req.batch_size, len(train.low))
-    with closing(read_chunks(train.features(seed=seed), req.num_workers, stats)) as chunks:
-        yield ShuffleBuffer(chunks, capacity, empty_limit=train.n_chunks)
+    with closing(read_blocks(train.features(seed=seed), req.num_workers, stats)) as blocks:
+        yield ShuffleBuffer(blocks, capacity, empty_limit=train.n_blocks)
 
 
 def _flow(f: Fitting) -> float:
@@ -63,13 +63,13 @@ def _flow(f: Fitting) -> float:
 def _align(f: Fitting) -> float:
     cameras = list(f.cams.values())
 
-    def pairs(chunks: Iterator) -> Iterator[tuple[torch.Tensor, torch.Tensor]]:
-        for chunk in chunks:
-            seen, native = f.control.transform(chunk.features[0]), chunk.features[1]
+    def pairs(blocks: Iterator) -> Iterator[tuple[torch.Tensor, torch.Tensor]]:
+        for block in blocks:
+            seen, native = f.control.transform(block.features[0]), block.features[1]
             yield from ((seen[c], native[c]) for c in cameras)
 
-    with closing(read_chunks(f.train.with_targets(*f.targets), f.req.num_workers, f.stats)) as chunks:
-        return 1.0 - fit_ridge(f.adapter.projector, pairs(chunks), f.grid)
+    with closing(read_blocks(f.train.with_targets(*f.targets), f.req.num_workers, f.stats)) as blocks:
+        return 1.0 - fit_ridge(f.adapter.projector, pairs(blocks), f.grid)
 
 
 def _nothing(f: Fitting) -> float:

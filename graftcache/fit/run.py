@@ -16,6 +16,7 @@ which feature transform) and its objective (fit/objectives.py: how the projector
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -48,7 +49,7 @@ from graftcache.fit.loop import Scoring, evaluate, evaluate_together, learner, o
 from graftcache.fit.objectives import EVAL_ONLY, OBJECTIVES, Fitting, Objective, flow_buffer
 from graftcache.fit.passes import Member, default_cells_per_pass, run_passes
 from graftcache.fit.step_memory import check_step_memory
-from graftcache.fit.stream import BlockMemo, CacheReader, FeatureSource, StreamStats, read_chunks
+from graftcache.fit.stream import BlockMemo, CacheReader, FeatureSource, StreamStats, read_blocks
 from graftcache.graft import FusedProjector
 from graftcache.pooling import format_grid
 from graftcache.requests import FitRequest
@@ -71,7 +72,8 @@ class Cell:
     suite: str
     seed: int
     control: str
-    pool_grid: str            # "native" or the control's HxW
+    pool_grid: str            # the grid its features are pooled to, resolved ("8x8": the control's, else the
+                              # backbone's token grid), so that the run_id hashes what the row writes
     objective: str            # "flow" | "align" | "eval"
     steps: int
     lr: float
@@ -106,7 +108,7 @@ class Cell:
 @dataclass
 class _Material:
     """What one (request, control) reads: the splits' low-dim rows, where their features stream from, and the
-    encoder identity. Features are never held: each cell streams them (graftcache.fit.stream)."""
+    encoder's name. Features are never held: each cell streams them (graftcache.fit.stream)."""
 
     train: LowDim
     eval: LowDim
@@ -146,7 +148,7 @@ class Fitter:
             if len(strides) > 1:
                 raise FitError(f"caches {self.cache.key} and {self.native_cache.key} hold different frames (frame "
                                f"strides {sorted(strides)}); extract both with the same --frame-stride")
-        self.policy_folder = resolve_policy(req.backbone, req.policy, self.cache.manifest.dataset_fingerprint,
+        self.policy_folder = resolve_policy(req.backbone, req.policy, self.cache.manifest.dataset_identity,
                                             cache_root(req.cache), self.cache.manifest.dataset.source)
         self.cameras = self._match_cameras()
         self.index = suite_index_table(self.cache, req.suite)
@@ -206,7 +208,7 @@ class Fitter:
         scheduled = objective.scheduled
         return Cell(
             backbone=req.backbone, policy=policy_id, cache_key=self._source(control).key, suite=req.suite, seed=seed,
-            control=control.name, pool_grid=format_grid(control.grid) if control.grid else "native",
+            control=control.name, pool_grid=format_grid(control.grid or self.token_grid),
             objective=objective.name, steps=req.steps if scheduled else 0, lr=req.lr if scheduled else 0.0,
             batch_size=req.batch_size if scheduled else 0, buffer_mib=req.buffer_mib if scheduled else 0,
             lora_rank=req.lora_rank if control.lora else 0,
@@ -215,13 +217,18 @@ class Fitter:
             camera_map=format_camera_map(self.cameras) if renames(self.cameras) else None,
         )
 
+    @functools.cached_property
+    def token_grid(self) -> tuple[int, int]:
+        """The backbone's per-camera token grid, read from the policy's config (nothing is loaded)."""
+        return get_backbone(self.req.backbone).read_token_grid(self.policy_folder)
+
     @property
     def policy_id(self) -> str:
         """How rows name the policy: as given, or `tiny:<folder>` for the tiny policy trained on this dataset."""
         return self.req.policy if self.req.policy != "tiny" else f"tiny:{Path(self.policy_folder).name}"
 
     def cells(self) -> list[tuple[Control, int, Cell]]:
-        """Every (control, seed) of the request with its identity, in the order `run` visits them."""
+        """Every (control, seed) of the request with its Cell, in the order `run` visits them."""
         return [(control, seed, self.cell(control, seed, self.policy_id))
                 for seed in self.req.seeds for control in self.controls]
 
@@ -255,7 +262,7 @@ class Fitter:
             adapter = get_backbone(self.req.backbone)
             if control.fuses and self._objective(control).fuses and adapter.per_sample_loss:
                 req = self.req
-                grid = control.grid or adapter.read_native_grid(self.policy_folder)
+                grid = control.grid or self.token_grid
                 source = FeatureSource.of(self._source(control), list(self.cameras.values()), grid)
                 width = source.frame_shape(source.cameras[0])[1]
                 key = (req.backbone, str(self.policy_folder), str(self.device), req.compute_dtype, grid, width,
@@ -292,7 +299,7 @@ class Fitter:
     # ---------------------------------------------------------------- one cell
     def _material(self, adapter, control: Control) -> _Material:
         """The splits' low-dim rows a control reads, loaded once per (cache, array) and kept for the next cell."""
-        grid = control.grid or adapter.native_grid
+        grid = control.grid or adapter.token_grid
         source = self._source(control)
         key = (source.key, control.extra, None if control.extra else grid)
         if key not in self._materials:
@@ -342,9 +349,9 @@ class Fitter:
             cams=cams, targets=(mat.targets, mat.target_rows) if mat.targets is not None else None, grid=mat.grid,
             seed=cell.seed, dtype=self.dtype, stats=stats))
         t_eval = time.perf_counter()
-        with closing(read_chunks(self._feed(mat, mat.eval, control, cell.seed + 1).features(seed=None),
-                                 self.req.num_workers, stats)) as chunks:
-            score = evaluate(adapter, mat.eval, chunks, cams, batch_size=self.req.eval_batch_size,
+        with closing(read_blocks(self._feed(mat, mat.eval, control, cell.seed + 1).features(seed=None),
+                                 self.req.num_workers, stats)) as blocks:
+            score = evaluate(adapter, mat.eval, blocks, cams, batch_size=self.req.eval_batch_size,
                              transform=control.transform, dtype=self.dtype,
                              num_denoise_steps=self.req.num_denoise_steps)
         eval_s = time.perf_counter() - t_eval
@@ -394,7 +401,7 @@ class Fitter:
         t_eval = time.perf_counter()
         with ExitStack() as stack:
             scores = evaluate_together(adapter, [
-                Scoring(mat.eval, stack.enter_context(closing(read_chunks(
+                Scoring(mat.eval, stack.enter_context(closing(read_blocks(
                     m.fitter._feed(mat, mat.eval, m.control, m.seed + 1).features(seed=None), m.fitter.req.num_workers,
                     st))), m.fitter.cameras, m.control.transform)
                 for m, mat, st in zip(members, mats, stats, strict=True)],

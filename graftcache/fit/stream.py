@@ -1,17 +1,17 @@
-"""Features streamed out of a cache in chunks, read by prefetching worker processes.
+"""Features streamed out of a cache in blocks, read by prefetching worker processes.
 
 A fit never holds a split's features: at LIBERO scale (pi0.5's 16x16 grid, 768 wide, fp16, two cameras:
-~0.8 MB a frame) a suite is 40-80 GB. Workers read chunks, pool them to the cell's grid
+~0.8 MB a frame) a suite is 40-80 GB. Workers read blocks, pool them to the cell's grid
 (graftcache.fit.data.read_grid), check them for NaN/inf and hand them over; the consumer keeps what it needs
 (a bounded shuffle buffer for training, predictions for scoring, sufficient statistics for `align`).
 
-The unit is a chunk: the wanted frames of one cache block (`block_chunks`). A block is one zarr shard, the unit
+The unit is a `Block`: the wanted frames of one cache block (`rows_by_block`). A block is one zarr shard, the unit
 a block checksum covers (stage 2 reads a block whole the first time it checks it) and the unit a remote root
-copies locally (graftcache.store.readthrough), so a chunk costs one shard read; benchmarks/bench_stream.py
+copies locally (graftcache.store.readthrough), so a block costs one shard read; benchmarks/bench_stream.py
 measures what smaller runs inside a block would save.
 
-Determinism: the chunk order is a pure function of (seed, epoch), chunk k is read by worker k mod W, and torch's
-DataLoader takes items from IterableDataset workers round-robin, so the consumer sees chunk 0, 1, 2, ... for
+Determinism: the block order is a pure function of (seed, epoch), block k is read by worker k mod W, and torch's
+DataLoader takes items from IterableDataset workers round-robin, so the consumer sees block 0, 1, 2, ... for
 any W and any timing. A GraftcacheError raised in a worker comes back as data (`Failure`) and is raised again
 in the consumer with its own type and one-line message (torch would wrap it in a traceback).
 """
@@ -39,7 +39,7 @@ from graftcache.store.cache import STORAGE_DTYPES, BlockChecks
 from graftcache.store.readthrough import reading_root
 from graftcache.store.roots import is_url
 
-PREFETCH_CHUNKS = 2  # chunks each worker reads ahead: with the consumer's one, what the stream holds beyond its buffer
+PREFETCH_BLOCKS = 2  # blocks each worker reads ahead: with the consumer's one, what the stream holds beyond its buffer
 Features = dict[str, torch.Tensor]  # camera -> [n, T, C] in stored precision
 
 
@@ -50,7 +50,7 @@ class CacheReader:
     Handed to the worker processes with the stream they read: pickled (a fork server's or spawned workers), it
     keeps the checked blocks and drops the handles, whose store clients do not survive a process boundary; a
     forked worker inherits both and opens its own handles too. Either way each worker opens a cache once and
-    checks only blocks no process of the fit has checked (the consumer adds what workers checked, `read_chunks`)."""
+    checks only blocks no process of the fit has checked (the consumer adds what workers checked, `read_blocks`)."""
 
     def __init__(self) -> None:
         self.checks = BlockChecks()
@@ -128,7 +128,7 @@ class FeatureSource:
 
     def frame_bytes(self, cameras: Sequence[str] | None = None) -> int:
         """Bytes of one frame as read (after pooling, in stored precision) of `cameras`, default every camera."""
-        itemsize = STORAGE_DTYPES[self.open().manifest.dtype].itemsize
+        itemsize = STORAGE_DTYPES[self.open().manifest.storage_dtype].itemsize
         return sum(int(np.prod(self.frame_shape(c))) for c in (self.cameras if cameras is None else cameras)) * itemsize
 
 
@@ -137,9 +137,9 @@ class BlockMemo:
     read them, up to `budget` bytes (the least recently used go first).
 
     The cells of one (backbone, encoder, suite) read the same blocks again and again: every control and seed,
-    for training and for scoring. On a small cache that is a large share of a cell (the demo's 8x8x1280 native
+    for training and for scoring. On a small cache that is a large share of a cell (the demo's 8x8x1280 unpooled
     grids: ~0.45 s of a ~2.9 s cell on 2 cores of an AMD EPYC). Only reading in this process can keep them:
-    workers are new processes for each stream, so a memo never travels to one (ChunkStream drops it when
+    workers are new processes for each stream, so a memo never travels to one (BlockStream drops it when
     pickled).
     """
 
@@ -181,14 +181,14 @@ class BlockMemo:
 
 @dataclass(frozen=True)
 class Planned:
-    """One chunk to read: per source, the split positions whose features it reads (source i reads
+    """One block to read: per source, the split positions whose features it reads (source i reads
     `reads[i]`), and `owners`: the position whose low-dim row (or target) each frame goes with."""
 
     owners: np.ndarray
     reads: tuple[np.ndarray, ...]
 
 
-def block_chunks(rows: np.ndarray, block_frames: int) -> list[np.ndarray]:
+def rows_by_block(rows: np.ndarray, block_frames: int) -> list[np.ndarray]:
     """The positions of a table whose cache rows are `rows`, grouped by cache block, in cache order."""
     positions = np.argsort(rows, kind="stable")
     blocks = rows[positions] // block_frames
@@ -197,15 +197,15 @@ def block_chunks(rows: np.ndarray, block_frames: int) -> list[np.ndarray]:
 
 
 @dataclass
-class Chunk:
+class Block:
     """What a worker hands over: features of the frames it read and kept, with the positions they go with."""
 
     owners: np.ndarray                 # [n] split positions (low-dim rows) the frames go with
     features: tuple[Features, ...]     # per source
     dropped: np.ndarray                # cache rows of the owners left out for NaN/inf features (drop_nonfinite)
-    fetched: int = 0                   # bytes a worker's remote root copied locally for this chunk (a root read in
+    fetched: int = 0                   # bytes a worker's remote root copied locally for this block (a root read in
                                        # the consumer's process counts its own)
-    verified: frozenset = field(default_factory=frozenset)  # blocks checked for this chunk
+    verified: frozenset = field(default_factory=frozenset)  # cache blocks checked reading it
 
 
 @dataclass(frozen=True)
@@ -218,14 +218,14 @@ class Failure:
 
 @dataclass
 class StreamStats:
-    """What the consumer learns from the chunks it took: frames dropped for NaN/inf, bytes copied locally."""
+    """What the consumer learns from the blocks it took: frames dropped for NaN/inf, bytes copied locally."""
 
     dropped: set[int] = field(default_factory=set)  # cache rows
     fetched: int = 0
 
 
-class ChunkStream(IterableDataset):
-    """The planned chunks, once in plan order (`seed` None), or forever in a new seeded order each epoch."""
+class BlockStream(IterableDataset):
+    """The planned blocks, once in plan order (`seed` None), or forever in a new seeded order each epoch."""
 
     def __init__(self, low: LowDim, sources: Sequence[tuple[FeatureSource, np.ndarray]], plan: Sequence[Planned],
                  *, seed: int | None = None, drop: bool = False, memo: BlockMemo | None = None) -> None:
@@ -248,7 +248,7 @@ class ChunkStream(IterableDataset):
             for i in np.random.default_rng((self.seed, epoch)).permutation(len(self.plan)):
                 yield self.plan[i]
 
-    def __iter__(self) -> Iterator[Chunk | Failure]:
+    def __iter__(self) -> Iterator[Block | Failure]:
         info = get_worker_info()
         worker, workers = (info.id, info.num_workers) if info is not None else (0, 1)
         for k, planned in enumerate(self.order()):
@@ -264,7 +264,7 @@ class ChunkStream(IterableDataset):
         """The blocks the readers of this stream's sources have checked."""
         return frozenset().union(*(src.reader.checks.done for src, _ in self.sources))
 
-    def read(self, planned: Planned) -> Chunk:
+    def read(self, planned: Planned) -> Block:
         before = self._checked()
         roots = [src.open().root for src, _ in self.sources] if get_worker_info() is not None else []
         fetched = sum(getattr(r, "fetched_bytes", 0) for r in roots)
@@ -284,7 +284,7 @@ class ChunkStream(IterableDataset):
             keep = torch.from_numpy(~bad)
             feats = tuple({c: v[keep] for c, v in per_camera.items()} for per_camera in feats)
         fetched = sum(getattr(r, "fetched_bytes", 0) for r in roots) - fetched
-        return Chunk(planned.owners[~bad], feats, self.low.rows[planned.owners[bad]], fetched,
+        return Block(planned.owners[~bad], feats, self.low.rows[planned.owners[bad]], fetched,
                      self._checked() - before)
 
 
@@ -298,14 +298,14 @@ def _fresh_context() -> multiprocessing.context.BaseContext:
     return context
 
 
-def read_chunks(stream: ChunkStream, num_workers: int, stats: StreamStats | None = None) -> Iterator[Chunk]:
-    """The stream's chunks in order, read by `num_workers` prefetching processes (0: in this process). The blocks
+def read_blocks(stream: BlockStream, num_workers: int, stats: StreamStats | None = None) -> Iterator[Block]:
+    """The stream's blocks in order, read by `num_workers` prefetching processes (0: in this process). The blocks
     a worker checked count as checked by the sources' readers, so the next workers of this fit, which take the
     readers with the stream, do not check them again."""
     remote = any(is_url(src.root) for src, _ in stream.sources)
     loader = DataLoader(stream, batch_size=None, num_workers=num_workers,
                         worker_init_fn=single_thread_worker if num_workers else None,
-                        prefetch_factor=PREFETCH_CHUNKS if num_workers else None,
+                        prefetch_factor=PREFETCH_BLOCKS if num_workers else None,
                         multiprocessing_context=_fresh_context() if remote and num_workers else None)
     for item in loader:
         if isinstance(item, Failure):
@@ -320,30 +320,30 @@ def read_chunks(stream: ChunkStream, num_workers: int, stats: StreamStats | None
 
 
 class FrameQueue:
-    """The frames of a chunk iterator as a queue: `take(k)` returns the next k (fewer only when the chunks end)."""
+    """The frames of a block iterator as a queue: `take(k)` returns the next k (fewer only when the blocks end)."""
 
-    def __init__(self, chunks: Iterator[Chunk], *, empty_limit: int | None = None) -> None:
-        """`empty_limit`: this many chunks in a row with no frame left (all dropped) is an error, not a hang."""
-        self._chunks, self._empty_limit = chunks, empty_limit
-        self._chunk: Chunk | None = None
+    def __init__(self, blocks: Iterator[Block], *, empty_limit: int | None = None) -> None:
+        """`empty_limit`: this many blocks in a row with no frame left (all dropped) is an error, not a hang."""
+        self._blocks, self._empty_limit = blocks, empty_limit
+        self._block: Block | None = None
         self._at = 0
 
     def take(self, k: int) -> tuple[np.ndarray, tuple[Features, ...]] | None:
         """(owners [n], per-source features [n, ...]) of the next n = k frames; None when nothing is left."""
         owners, parts, empty = [], [], 0
         while k > 0:
-            if self._chunk is None or self._at == len(self._chunk.owners):
-                self._chunk, self._at = next(self._chunks, None), 0
-                if self._chunk is None:
+            if self._block is None or self._at == len(self._block.owners):
+                self._block, self._at = next(self._blocks, None), 0
+                if self._block is None:
                     break
-                empty = empty + 1 if not len(self._chunk.owners) else 0
+                empty = empty + 1 if not len(self._block.owners) else 0
                 if self._empty_limit is not None and empty >= self._empty_limit:
-                    raise FitError(f"{empty} chunks in a row kept no frame: every frame's features are NaN/inf")
+                    raise FitError(f"{empty} blocks in a row kept no frame: every frame's features are NaN/inf")
                 continue
-            n = min(k, len(self._chunk.owners) - self._at)
+            n = min(k, len(self._block.owners) - self._at)
             cut = slice(self._at, self._at + n)
-            owners.append(self._chunk.owners[cut])
-            parts.append(tuple({c: v[cut] for c, v in per.items()} for per in self._chunk.features))
+            owners.append(self._block.owners[cut])
+            parts.append(tuple({c: v[cut] for c, v in per.items()} for per in self._block.features))
             self._at += n
             k -= n
         if not owners:

@@ -5,7 +5,7 @@ Layout choices (why):
   consecutive frames, and each block is exactly one Zarr shard. A block is written in a single
   call, so zarr writes each shard file once (atomically: LocalStore writes a temp file and renames
   it), and a run killed mid-block leaves no half-written shard that looks finished.
-- Inside a shard, inner chunks hold ~4 MiB of uncompressed features, so random access to a few
+- Inside a shard, inner zarr chunks hold ~4 MiB of uncompressed features, so random access to a few
   frames (stage 2 batches, `verify`) decompresses little, while a shard of 256 frames keeps the
   file count of a 273k-frame LIBERO cache in the low thousands.
 - Blosc-zstd with byte shuffle on 2-byte floats: fast to decode, and shuffling the high bytes
@@ -45,13 +45,13 @@ from graftcache.store.key import (
     compare_identity,
     identity_of,
 )
-from graftcache.store.manifest import Manifest
+from graftcache.store.manifest import Manifest, stored_key
 from graftcache.store.roots import GROUP_META, Root, open_root, split_location
 
 if TYPE_CHECKING:  # torch is imported where features are converted: listing caches (graftcache ls) needs none
     import torch
 
-INNER_CHUNK_BYTES = 4 << 20
+ZARR_CHUNK_BYTES = 4 << 20
 ACTION_STREAM = "action_stream"  # group of the full-rate actions (see FeatureCache.create)
 STORAGE_DTYPES: dict[str, np.dtype] = {
     "fp16": np.dtype(np.float16),
@@ -166,7 +166,7 @@ class FeatureCache:
         except (ValueError, KeyError, TypeError) as e:
             raise CacheError(f"{location}: zarr.json is not a feature cache's ({type(e).__name__}: {e})") from None
         try:
-            own = cache_key(stored)  # what is stored, in its own format, names the folder
+            own = stored_key(stored)  # what is stored, in its own format, names the folder
         except (KeyError, TypeError):
             own = key  # identity fields absent: a format older than any Manifest.read upgrades, refused there
         if own != key:
@@ -210,14 +210,14 @@ class FeatureCache:
             raise CacheError(f"{path}: a cache is made under its own key, {own}, not under {key!r}")
         root.delete_prefix(f"{key}/")
         n = index.height
-        dtype = manifest.dtype
+        dtype = manifest.storage_dtype
         np_dtype = STORAGE_DTYPES[dtype]
         group = zarr.open_group(store=root.zarr_store(key, read_only=False), mode="w", zarr_format=3)
         group.attrs.update({"manifest": manifest.to_dict(), "initialized": False, "complete": False})
         arrays = list(arrays)
         for spec in arrays:
             frame_bytes = int(np.prod(spec.frame_shape)) * np_dtype.itemsize
-            inner = max(1, min(block_frames, INNER_CHUNK_BYTES // max(frame_bytes, 1)))
+            inner = max(1, min(block_frames, ZARR_CHUNK_BYTES // max(frame_bytes, 1)))
             while block_frames % inner:
                 inner -= 1
             group.create_array(
@@ -258,8 +258,8 @@ class FeatureCache:
 
     @staticmethod
     def _write_static(group: zarr.Group, name: str, values: np.ndarray) -> str:
-        chunks = (min(max(values.shape[0], 1), 1 << 16), *values.shape[1:])
-        arr = group.create_array(name, shape=values.shape, dtype=values.dtype, chunks=chunks,
+        zarr_chunks = (min(max(values.shape[0], 1), 1 << 16), *values.shape[1:])
+        arr = group.create_array(name, shape=values.shape, dtype=values.dtype, chunks=zarr_chunks,
                                  compressors=_compressor(values.dtype.itemsize), fill_value=0)
         arr[...] = values
         return _sha256(values)
@@ -299,16 +299,16 @@ class FeatureCache:
         """Whether this cache holds exactly what `manifest` asks for."""
         return identity_of(self.manifest.to_dict()) == identity_of(manifest.to_dict())
 
-    def dataset_difference(self, fingerprint: Mapping[str, Any]) -> IdentityDifference | None:
-        """The first file where the dataset this cache was extracted from differs from `fingerprint`
-        (a dataset's current `dataset_fingerprint`), or None when they are the same dataset."""
-        return compare_identity(self.manifest.dataset_fingerprint, fingerprint)
+    def dataset_difference(self, identity: Mapping[str, Any]) -> IdentityDifference | None:
+        """The first file where the dataset this cache was extracted from differs from `identity`
+        (a dataset's current `dataset_identity`), or None when they are the same dataset."""
+        return compare_identity(self.manifest.dataset_identity, identity)
 
-    def check_dataset(self, fingerprint: Mapping[str, Any], dataset: str | None = None) -> None:
+    def check_dataset(self, identity: Mapping[str, Any], dataset: str | None = None) -> None:
         """Raise CacheError (one line, naming the first differing file) unless this cache was extracted
-        from the dataset whose current identity is `fingerprint`. For every use of an existing cache with
+        from the dataset whose current identity is `identity`. For every use of an existing cache with
         a dataset: resuming an extraction, sharing a cache."""
-        diff = self.dataset_difference(fingerprint)
+        diff = self.dataset_difference(identity)
         if diff is not None:
             recorded = self.manifest.dataset.source
             raise CacheError(f"cache {self.key} does not match dataset {dataset or recorded}: it was extracted "
@@ -376,13 +376,13 @@ class FeatureCache:
             rows = np.arange(self.n_frames)
         elif isinstance(rows, slice):
             rows = np.arange(self.n_frames)[rows]
-        return from_storage(self._read_rows(path, np.asarray(rows)), self.manifest.dtype)
+        return from_storage(self._read_rows(path, np.asarray(rows)), self.manifest.storage_dtype)
 
     def _read_rows(self, name: str, rows: np.ndarray) -> np.ndarray:
         """`arr[rows]` read one block at a time, each block checked against its checksum the first time this
         handle's reader reads it (whole, which is what the checksum covers); later reads take the rows' span only.
 
-        zarr's orthogonal selection on sharded arrays costs ~50 ms per shard in chunk bookkeeping (4.6 s
+        zarr's orthogonal selection on sharded arrays costs ~50 ms per shard in zarr chunk bookkeeping (4.6 s
         for 1k rows here); slicing inside each shard and indexing in numpy reads the same bytes and holds at
         most one shard beyond the result in memory.
         """
@@ -470,7 +470,7 @@ class FeatureCache:
         for name, expected in self.layout["static_checksums"].items():
             try:
                 got = _sha256(self.group[name][...])
-            except Exception as e:  # a damaged chunk fails to decode
+            except Exception as e:  # a damaged zarr chunk fails to decode
                 problems.append((f"{name}/", f"{self.key}: {name} unreadable ({type(e).__name__})"))
                 continue
             if got != expected:

@@ -1,11 +1,11 @@
 """Cache identity: what changes the stored numbers, and the key derived from it.
 
-The key hashes exactly the fields that change the numbers (dataset content fingerprint, episode
+The key hashes exactly the fields that change the numbers (dataset content identity, episode
 subset, encoder recipe, weights, grids, dtypes, cameras, cache format) and nothing that does not
 (batch size, worker count, device, cache folder, dataset path). Two users who extract the same
 dataset with the same encoder therefore land on the same key and can share the folder.
 
-The dataset part (`dataset_fingerprint`) is the dataset's content identity: size and sha256 of its
+The dataset part (`dataset_identity`) is the dataset's content identity: size and sha256 of its
 metadata files and of every data parquet and video the episodes use (graftcache.datasets.identity), so a
 dataset edited under unchanged metadata gets another key. `compare_identity` names the first file in
 which a recorded identity differs from a dataset's current one, for every place that uses an existing
@@ -45,7 +45,7 @@ class RefusedPlace(CacheError):
 # Manifest fields that make up the identity; everything else in the manifest is provenance only.
 IDENTITY_FIELDS = (
     "format_version",
-    "dataset_fingerprint",
+    "dataset_identity",
     "episodes",
     "frame_stride",
     "cameras",
@@ -53,23 +53,24 @@ IDENTITY_FIELDS = (
     "weights_sha256",
     "grids",
     "extras",
-    "dtype",
+    "storage_dtype",
     "compute_dtype",
 )
 
 
-def identity_of(manifest: Mapping[str, Any]) -> dict[str, Any]:
-    """The identity sub-dict of a stored manifest (canonical JSON types)."""
-    return json.loads(json.dumps({k: manifest[k] for k in IDENTITY_FIELDS}, sort_keys=True, default=str))
+def identity_of(manifest: Mapping[str, Any], fields: tuple[str, ...] = IDENTITY_FIELDS) -> dict[str, Any]:
+    """The identity sub-dict of a stored manifest (canonical JSON types); `fields`: the identity fields' names
+    in the manifest's format (graftcache.store.manifest.stored_key names those of older formats)."""
+    return json.loads(json.dumps({k: manifest[k] for k in fields}, sort_keys=True, default=str))
 
 
-def cache_key(manifest: Mapping[str, Any]) -> str:
+def cache_key(manifest: Mapping[str, Any], fields: tuple[str, ...] = IDENTITY_FIELDS) -> str:
     """`<encoder-name>-<16 hex>`: readable prefix + sha256 of the canonical identity JSON. Characters a file
     name should not hold (':' and '/' of `timm:`/`hf:<folder>` names, spaces) become '_': keys match `KEY`."""
     name = _UNSAFE.sub("_", str(manifest["encoder"]["name"]))[:NAME_MAX]
     if name[:1] in ("", ".", "+", "-"):  # '.x' would be hidden, '-x' reads as a flag
         name = f"_{name}"[:NAME_MAX]
-    return f"{name}-{sha256_json(identity_of(manifest), compact=True)[:16]}"
+    return f"{name}-{sha256_json(identity_of(manifest, fields), compact=True)[:16]}"
 
 
 def check_key(key: object) -> str:
@@ -101,7 +102,7 @@ class IdentityDifference:
 
 
 def compare_identity(recorded: Mapping[str, Any], current: Mapping[str, Any]) -> IdentityDifference | None:
-    """None when `recorded` (e.g. a cache manifest's `dataset_fingerprint`) equals `current`; otherwise
+    """None when `recorded` (e.g. a cache manifest's `dataset_identity`) equals `current`; otherwise
     the first differing file (metadata files first, then data and videos in path order)."""
     recorded, current = _canonical(recorded), _canonical(current)
     if recorded == current:

@@ -3,10 +3,11 @@
 The manifest is what a cache says it holds and how it was made. Its identity fields (graftcache.store.key)
 decide the cache key; everything else is provenance. It is stored as JSON in the group attributes
 (`Manifest.to_dict`) and read back through `Manifest.read`, which is the only place that knows older formats:
-a manifest of format 1 that records everything format 2 does is upgraded in memory (`upgrade`: its key, the
-hash of what is stored, stays its folder's name); one made before a record existed is refused in one line
-that names the cache and gives the `graftcache extract` command that rebuilds it. No other module branches on
-a cache's age.
+a manifest of format 1 that records everything later formats do, and one of format 2, are upgraded in memory
+(`upgrade`: their keys renamed as `RENAMED` declares; the cache's key, the hash of what is stored in its own
+format, stays its folder's name: `stored_key`); one made before a record existed is refused in one line that
+names the cache and gives the `graftcache extract` command that rebuilds it. No other module branches on a
+cache's age.
 """
 
 from __future__ import annotations
@@ -19,14 +20,22 @@ from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
-from graftcache.store.key import RefusedPlace
+from graftcache.store.key import IDENTITY_FIELDS, RefusedPlace, cache_key
 
-FORMAT_VERSION = 2
-#: What format 1 manifests may lack, in the order graftcache began recording it: (field, what it records). A
-#: format 1 manifest holding all of them is format 2 but for its version; one lacking any cannot be upgraded.
+FORMAT_VERSION = 3
+#: Manifest keys of formats 1 and 2 -> their format 3 names (issue 23: one word per idea), the one rename map
+#: `upgrade` and `stored_key` apply; the values are unchanged.
+RENAMED = {
+    "native_grid": "unpooled_grid",
+    "dtype": "storage_dtype",
+    "dataset_fingerprint": "dataset_identity",
+}
+#: What format 1 manifests may lack, in the order graftcache began recording it: (field as format 1 named it,
+#: what it records). A format 1 manifest holding all of them is format 2 but for its version; one lacking any
+#: cannot be upgraded.
 PREVIOUS_GAPS = (
     ("frame_stride", "frame strides"),
-    ("native_grid", "native grids"),
+    ("native_grid", "unpooled grids"),
     ("numerics", "numerics fingerprints"),
     ("dataset_fingerprint.files", "content identities"),
 )
@@ -39,7 +48,7 @@ class UnreadableManifest(RefusedPlace):
 
 @dataclass(frozen=True)
 class DatasetRecord:
-    """Where the cached frames came from (provenance: the content identity is `Manifest.dataset_fingerprint`)."""
+    """Where the cached frames came from (provenance: the content identity is `Manifest.dataset_identity`)."""
 
     source: str                   # as the user named it (folder or hub id)
     root: str                     # the folder it was read from
@@ -59,7 +68,7 @@ class Manifest:
     graftcache_version: str
     created_at: str
     dataset: DatasetRecord
-    dataset_fingerprint: dict[str, Any]      # the dataset's content identity (graftcache.datasets.identity)
+    dataset_identity: dict[str, Any]         # the dataset's content identity (graftcache.datasets.identity)
     episodes: list[int] | None               # None: every episode
     frame_stride: int                        # features of every k-th frame of each episode
     cameras: list[str]
@@ -68,10 +77,10 @@ class Manifest:
     weights: dict[str, Any]                  # where its weights came from
     weights_sha256: str
     random_init: bool
-    grids: list[str]                         # stored grids, resolved ("16x16", never "native")
-    native_grid: str | None                  # which of them is the encoder's own grid, unpooled; None: only pooled
+    grids: list[str]                         # stored grids, resolved ("16x16", never "unpooled")
+    unpooled_grid: str | None                  # which of them is the encoder's own grid, unpooled; None: only pooled
     extras: dict[str, list[int]]             # extra token arrays of native towers -> one frame's shape
-    dtype: str                               # stored feature dtype
+    storage_dtype: str                       # the dtype features are stored in
     compute_dtype: str                       # resolved ("bf16" | "fp32"), never "auto"
     n_frames: int
     tasks: list[str]
@@ -111,25 +120,39 @@ class Manifest:
 
 
 def upgrade(raw: Mapping[str, Any], where: str, key: str) -> dict[str, Any]:
-    """The one upgrade path: a stored manifest of format 1 as format 2 (only the version changes; fields outside
-    the format move into `extra`), format 2 as it is; anything else is refused (UnreadableManifest) naming the
-    cache and the command that rebuilds it."""
+    """The one upgrade path: a stored manifest of format 1 or 2 as format 3 (keys renamed as `RENAMED` says; of
+    format 1, fields outside the format move into `extra`), format 3 as it is; anything else is refused
+    (UnreadableManifest) naming the cache and the command that rebuilds it."""
     version = raw.get("format_version")
     if version == FORMAT_VERSION:
         return dict(raw)
-    if version != 1:
+    if version not in (1, 2):
         _refuse(raw, where, key, f"it is of format {version!r}, which this graftcache does not read")
-    for name, what in PREVIOUS_GAPS:
-        head, _, sub = name.partition(".")
-        if head not in raw or (sub and sub not in (raw[head] or {})):
-            _refuse(raw, where, key, f"it was made before graftcache recorded {what} (format 1)")
+    if version == 1:
+        for name, what in PREVIOUS_GAPS:
+            head, _, sub = name.partition(".")
+            if head not in raw or (sub and sub not in (raw[head] or {})):
+                _refuse(raw, where, key, f"it was made before graftcache recorded {what} (format 1)")
+    renamed = {RENAMED.get(k, k): v for k, v in raw.items()}
     fields = {f.name for f in dataclasses.fields(Manifest)}
-    return {**{k: v for k, v in raw.items() if k in fields}, "format_version": FORMAT_VERSION,
-            "extra": {k: v for k, v in raw.items() if k not in fields}}
+    return {**{k: v for k, v in renamed.items() if k in fields}, "format_version": FORMAT_VERSION,
+            "extra": {**{k: v for k, v in renamed.items() if k not in fields}, **(renamed.get("extra") or {})}}
+
+
+def stored_key(raw: Mapping[str, Any]) -> str:
+    """The key a stored manifest hashes to in its own format's names (what its folder is named by): formats 1
+    and 2 hashed their identity fields under the names `RENAMED` has since replaced. KeyError or TypeError when
+    it lacks an identity field (a format older than any `upgrade` reads, refused there)."""
+    if raw.get("format_version") == FORMAT_VERSION:
+        return cache_key(raw)
+    former = {new: old for old, new in RENAMED.items()}
+    return cache_key(raw, tuple(former.get(f, f) for f in IDENTITY_FIELDS))
 
 
 def rebuild_command(raw: Mapping[str, Any]) -> str:
-    """The `graftcache extract` command that makes, in this format, the cache a manifest describes."""
+    """The `graftcache extract` command that makes, in this format, the cache a manifest (of any format)
+    describes."""
+    raw = {RENAMED.get(k, k): v for k, v in raw.items()}
     enc, weights = raw.get("encoder") or {}, raw.get("weights") or {}
     parts = ["graftcache extract", f"--encoder {enc.get('name', 'ENCODER')}",
              f"--dataset {(raw.get('dataset') or {}).get('source', 'DATASET')}"]
@@ -146,7 +169,7 @@ def rebuild_command(raw: Mapping[str, Any]) -> str:
         parts.append(f"--episodes {','.join(map(str, raw['episodes']))}")
     if (raw.get("frame_stride") or 1) > 1:
         parts.append(f"--frame-stride {raw['frame_stride']}")
-    for flag, name in (("--dtype", "dtype"), ("--compute-dtype", "compute_dtype")):
+    for flag, name in (("--storage-dtype", "storage_dtype"), ("--compute-dtype", "compute_dtype")):
         if raw.get(name):
             parts.append(f"{flag} {raw[name]}")
     return " ".join(parts)
@@ -154,7 +177,7 @@ def rebuild_command(raw: Mapping[str, Any]) -> str:
 
 def _refuse(raw: Mapping[str, Any], where: str, key: str, why: str) -> typing.NoReturn:
     raise UnreadableManifest(f"cache {key} ({where}): {why}; graftcache reads caches of format {FORMAT_VERSION} "
-                             f"and the format 1 caches made since; rebuild it: {rebuild_command(raw)}")
+                             f"and the format 1 and 2 caches made since; rebuild it: {rebuild_command(raw)}")
 
 
 def _record(raw: Any, where: str) -> DatasetRecord:

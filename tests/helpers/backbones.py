@@ -6,7 +6,7 @@ import torch
 
 from graftcache.backbones import TinySpec, load_backbone
 from graftcache.backbones.base import BackboneAdapter
-from graftcache.fit.controls import IdentityProjector
+from graftcache.fit.controls import PassThroughProjector
 from graftcache.graft import GraftProjector, feature_key
 
 SPEC = TinySpec()
@@ -55,9 +55,9 @@ def raw_lowdim(adapter: BackboneAdapter, batch: int, seed: int = 0) -> dict:
 
 
 def raw_features(adapter: BackboneAdapter, batch: int, enc_dim: int = ENC_DIM, seed: int = 0) -> dict:
-    """A raw batch with cached features [B, T, enc_dim] per camera at the backbone's native grid."""
+    """A raw batch with cached features [B, T, enc_dim] per camera at the backbone's token grid."""
     g = torch.Generator().manual_seed(seed + 1)
-    tokens = adapter.native_grid[0] * adapter.native_grid[1]
+    tokens = adapter.token_grid[0] * adapter.token_grid[1]
     feats = {feature_key(c): torch.randn(batch, tokens, enc_dim, generator=g) for c in adapter.cameras}
     return {**feats, **raw_lowdim(adapter, batch, seed)}
 
@@ -76,7 +76,7 @@ def fixed_noise_time(adapter: BackboneAdapter, batch: int, seed: int = 0) -> tup
 
 def assert_native_control_reproduces(native: BackboneAdapter, control: BackboneAdapter, batch: int,
                                      size: int = 96) -> None:
-    """Cached post-connector tokens of `native` through `control`'s identity projector give the loss and the
+    """Cached post-connector tokens of `native` through `control`'s pass-through projector give the loss and the
     predicted chunk `native` gives on pixels (`native` and `control`: two loads of one policy)."""
     raw = raw_images(native, batch, size=size)
     noise, time = fixed_noise_time(native, batch)
@@ -84,7 +84,7 @@ def assert_native_control_reproduces(native: BackboneAdapter, control: BackboneA
     with torch.no_grad():
         pixel_loss = native.loss(native.prepare(raw), noise, time)
         pixel_chunk = native.predict(native.prepare(raw), noise)
-    control.graft(IdentityProjector(control.lm_width))
+    control.graft(PassThroughProjector(control.lm_width))
     assert control.freeze_report().trainable == 0
     cached = {**{k: v for k, v in raw.items() if not k.startswith("observation.images.")}, **tokens}
     with torch.no_grad():

@@ -20,6 +20,7 @@ import graftcache
 from graftcache.store import FORMAT_VERSION, DatasetRecord, FeatureCache, Manifest, cache_key
 from graftcache.store.cache import ArraySpec
 from graftcache.store.key import IDENTITY_FIELDS
+from graftcache.store.manifest import stored_key
 
 SUITES = ["libero_spatial", "libero_object", "libero_goal", "libero_10", "libero_90", "unknown"]
 TASKS = ["put the bowl on the plate", "open the drawer", "turn on the stove"]
@@ -34,10 +35,10 @@ def manifest(**over: Any) -> Manifest:
                **over.pop("dataset", {})}
     fields: dict[str, Any] = {
         "format_version": FORMAT_VERSION, "graftcache_version": graftcache.__version__,
-        "created_at": "2026-01-01T00:00:00+00:00", "dataset_fingerprint": {"codebase_version": "v3.0", "files": {}},
+        "created_at": "2026-01-01T00:00:00+00:00", "dataset_identity": {"codebase_version": "v3.0", "files": {}},
         "episodes": None, "frame_stride": 1, "cameras": list(CAMERAS), "encoder": {"name": "synthetic", "width": 8},
         "weights": {"source": "random-init", "seed": 0, "sha256": "0" * 64}, "weights_sha256": "0" * 64,
-        "random_init": True, "grids": ["4x4"], "native_grid": None, "extras": {}, "dtype": "fp16",
+        "random_init": True, "grids": ["4x4"], "unpooled_grid": None, "extras": {}, "storage_dtype": "fp16",
         "compute_dtype": "fp32", "n_frames": 0, "tasks": TASKS, "suites": SUITES, "state_key": "observation.state",
         "action_key": "action", "versions": {}, "numerics": {}, "run": {}, **over}
     fields.setdefault("camera_keys", {c: f"observation.images.{c}" for c in fields["cameras"]})
@@ -126,7 +127,10 @@ def _restored(folder: Path, root: Path, edit: Callable[[dict], dict]) -> Path:
     meta = json.loads((staging / "zarr.json").read_text())
     meta["attributes"]["manifest"] = stored = edit(meta["attributes"]["manifest"])
     (staging / "zarr.json").write_text(json.dumps(meta))
-    target = root / cache_key({**dict.fromkeys(IDENTITY_FIELDS), **stored})  # an absent field hashed as null
+    try:
+        target = root / stored_key(stored)  # as graftcache names the folder of a manifest of that format
+    except KeyError:  # a format no graftcache reads: any folder of a key's shape
+        target = root / cache_key({**dict.fromkeys(IDENTITY_FIELDS), **stored})
     staging.rename(target)
     shutil.rmtree(root / ".staging")
     return target

@@ -1,4 +1,4 @@
-"""Caches and results files as graftcache's previous format (1) left them: the one place tests write them
+"""Caches and results files as graftcache's previous formats (1 and 2) left them: the one place tests write them
 (tests/test_previous_formats.py reads them back through the one upgrade path, or sees them refused)."""
 
 from __future__ import annotations
@@ -7,28 +7,38 @@ from pathlib import Path
 
 import polars as pl
 
-from graftcache.store.manifest import PREVIOUS_GAPS
+from graftcache.store.manifest import PREVIOUS_GAPS, RENAMED
 from helpers.caches import rekeyed
 
 
-def previous_format(folder: Path, root: Path, lacking: str | None = None) -> Path:
-    """Where a copy of the cache in `folder` now lies as graftcache's previous format (1) stored it, under `root`
-    in the folder of the key that manifest hashes to: fields outside the format at the top level, and, when
-    `lacking` names one of store.manifest.PREVIOUS_GAPS ("frame_stride", ...), made before graftcache recorded
-    it (a metadata-only dataset identity for "dataset_fingerprint.files")."""
+def previous_format(folder: Path, root: Path, lacking: str | None = None, version: int = 1) -> Path:
+    """Where a copy of the cache in `folder` now lies as graftcache's format `version` (1 or 2) stored it, under
+    `root` in the folder of the key that manifest hashes to: the keys store.manifest.RENAMED has renamed since
+    under their former names, and of format 1 the fields outside the format at the top level and, when `lacking`
+    names one of store.manifest.PREVIOUS_GAPS ("frame_stride", ...), made before graftcache recorded it (a
+    metadata-only dataset identity for "dataset_fingerprint.files")."""
+    former = {new: old for old, new in RENAMED.items()}
+
     def older(stored: dict) -> dict:
-        old = {**{k: v for k, v in stored.items() if k != "extra"}, **stored["extra"], "format_version": 1}
-        if lacking == "dataset_fingerprint.files":
-            old["dataset_fingerprint"] = {"codebase_version": "v3.0", "meta/info.json": "0" * 64}
-        elif lacking is not None:
-            assert lacking in dict(PREVIOUS_GAPS), lacking
-            del old[lacking]
+        old = {former.get(k, k): v for k, v in stored.items()}
+        if version == 1:
+            old = {**{k: v for k, v in old.items() if k != "extra"}, **old["extra"]}
+        old["format_version"] = version
+        if lacking is not None:
+            assert version == 1 and lacking in dict(PREVIOUS_GAPS), lacking
+            head, _, sub = lacking.partition(".")
+            if sub:
+                old[head] = {"codebase_version": "v3.0", "meta/info.json": "0" * 64}
+            else:
+                del old[head]
         return old
     return rekeyed(folder, root, older)
 
 
-def previous_results(path: Path, rows: pl.DataFrame) -> Path:
-    """`rows` (a results table of this format) written to `path` as format 1 wrote them: without the
-    format_version column, which format 1 did not have."""
-    rows.drop("format_version").write_parquet(path)
+def previous_results(path: Path, rows: pl.DataFrame, version: int = 1) -> Path:
+    """`rows` (a results table of this format) written to `path` as format `version` held them: format 1 had no
+    format_version column; format 2 hashed cells whose pool_grid was "native" (the backbone's token grid,
+    unresolved), so its run_ids are of cells of another shape."""
+    old = rows.drop("format_version") if version == 1 else rows.with_columns(pl.lit(version).alias("format_version"))
+    old.write_parquet(path)
     return path

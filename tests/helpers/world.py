@@ -30,11 +30,11 @@ def _quiet(_: str) -> None:
 
 class World:
     """`dataset` (and `others`, extracted into the same cache root), a tiny checkpoint per backbone in
-    `backbones`, the cache of `encoder` with `extract_settings`, and with `native_grid` each backbone's native
+    `backbones`, the cache of `encoder` with `extract_settings`, and with `native_tower_grid` each backbone's native
     tower cached at that grid."""
 
     def __init__(self, root: Path, dataset: Written, *, encoder: str, backbones: Sequence[str] = ("smolvla",),
-                 extract_settings: dict[str, Any] | None = None, native_grid: str | None = None,
+                 extract_settings: dict[str, Any] | None = None, native_tower_grid: str | None = None,
                  others: Sequence[Written] = (), fit: dict[str, Any] | None = None) -> None:
         self.root, self.dataset, self.encoder, self.others = root, dataset, encoder, tuple(others)
         self.cache = root / "cache"
@@ -46,8 +46,8 @@ class World:
         self.encoder_key = extract(extract_request(dataset.root, self.cache, **settings), log=_quiet).key
         for other in others:
             extract(extract_request(other.root, self.cache, **settings), log=_quiet)
-        native = {**settings, "grids": (native_grid,), "random_init": False}  # the policy's own tower, as trained
-        self.native_keys = {} if native_grid is None else {
+        native = {**settings, "grids": (native_tower_grid,), "random_init": False}  # the policy's own tower, as trained
+        self.native_keys = {} if native_tower_grid is None else {
             name: extract(extract_request(dataset.root, self.cache, **{**native, "encoder": native_name(name),
                                                                        "policy": str(folder)}), log=_quiet).key
             for name, folder in self.policies.items()}
