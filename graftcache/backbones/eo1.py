@@ -206,11 +206,14 @@ class EO1Adapter(BackboneAdapter):
 
     def _image_features(self, own, qwen: nn.Module, pixel_values: torch.Tensor, image_grid_thw=None, **kwargs):
         """Qwen's `get_image_features`, or grafted: the cached features [images x tokens, C] through the
-        pass-through and the projector, split per image as Qwen splits them."""
+        pass-through and the projector, split per image as Qwen splits them. The projector sees them a sample a
+        row, [B, cameras x tokens, C]: a fused projector (graftcache.graft.FusedProjector) routes rows."""
         if not self.grafted:
             return own(qwen, pixel_values, image_grid_thw, **kwargs)
         tower, connector = self._tower_and_connector()
-        tokens = connector(tower(pixel_values).last_hidden_state)
+        features = tower(pixel_values).last_hidden_state
+        samples = len(image_grid_thw) // len(self.config.image_features)  # _feature_images: one image each
+        tokens = connector(features.reshape(samples, -1, features.shape[-1])).flatten(0, 1)
         sizes = (image_grid_thw.prod(-1) // qwen.visual.spatial_merge_size ** 2).tolist()
         return BaseModelOutputWithPooling(last_hidden_state=pixel_values, pooler_output=torch.split(tokens, sizes))
 

@@ -24,11 +24,13 @@ their own (tests/test_backbones_xvla.py checks both against lerobot's under the 
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Iterable, Iterator, Mapping
 from typing import Any
 
 import torch
 from torch import nn
+from transformers.modeling_outputs import BaseModelOutputWithPooling
 
 from graftcache.backbones.base import BackboneAdapter, is_empty_camera
 from graftcache.backbones.batches import ACTION_PAD
@@ -53,6 +55,11 @@ class XVLAAdapter(WrappedCheckpointing, BackboneAdapter):
     steps_field = "num_denoising_steps"
     image_method = "_prepare_images"
     token_steps = ("TokenizerProcessorStep",)
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        vlm = self._vision_owner
+        vlm.get_image_features = functools.partial(self._image_features, type(vlm).get_image_features, vlm)
 
     # ------------------------------------------------------------------------------ construction
     @classmethod
@@ -157,6 +164,19 @@ class XVLAAdapter(WrappedCheckpointing, BackboneAdapter):
         tower, _ = self._tower_and_connector()
         hidden = tower(self._native_pixels(images)).last_hidden_state.float()
         return hidden.permute(0, 2, 3, 1).contiguous()
+
+    def _image_features(self, own, vlm: nn.Module, pixel_values: torch.Tensor, **kwargs):
+        """Florence-2's `get_image_features`, or grafted: the cached features of the valid views [views, T, C]
+        through the pass-through and the projector a sample a row, [B, cameras x T, C] (every sample has the same
+        real cameras), so that a fused projector (graftcache.graft.FusedProjector) routes rows."""
+        if not self.grafted:
+            return own(vlm, pixel_values, **kwargs)
+        tower, connector = self._tower_and_connector()
+        features = tower(pixel_values).last_hidden_state
+        samples = len(features) // len(self.camera_keys)  # forward_vlm keeps the real cameras' views
+        tokens = connector(features.reshape(samples, -1, features.shape[-1]))
+        return BaseModelOutputWithPooling(last_hidden_state=features,
+                                          pooler_output=tokens.reshape(len(features), -1, tokens.shape[-1]))
 
     def _feature_images(self, batch: Mapping[str, Any]) -> tuple[torch.Tensor, torch.Tensor]:
         """Cached features as `_prepare_images` returns pixels: stacked views [B, V, T, C], masks [B, V], padded
