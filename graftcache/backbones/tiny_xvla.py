@@ -5,9 +5,10 @@ checkpoint needs no geometry in its marker: the folder's config rebuilds it.
 
 - tiny: DaViT 4 stages (16/32/48/64 wide, one block each, strides 4-2-2-2) at 128 px -> 4x4 grid, projector
   to 64 = 1 + 16 tokens per camera; BART encoder 64 wide x 2 layers; soft-prompted transformer 64 wide x 2
-  layers; "auto" action space (loss on the real action dims, padded to 8). No dropout, no drop-path, so the
-  tiny policy is deterministic in train mode too. The tokenizer is graftcache's tiny PaliGemma-style one
-  (771 tokens < the 1024-row vocabulary), standing in for facebook/bart-large.
+  layers; "auto" action space (loss on the real action dims, padded to 8). Florence-2 without dropout or
+  drop-path; lerobot's soft-prompted transformer keeps the Dropout(0.1) its code fixes (released and tiny alike),
+  so the policy draws dropout masks in train mode (as fits run it). The tokenizer is graftcache's tiny
+  PaliGemma-style one (771 tokens < the 1024-row vocabulary), standing in for facebook/bart-large.
 - released (lerobot/xvla-base, X-VLA-0.9B): Florence-2-large: DaViT 256/512/1024/2048 wide, depths 1-1-9-1,
   projection 1024, BART-large encoder (1024 wide, 12 layers, vocabulary 51289), transformer 1024 x 24.
 """
