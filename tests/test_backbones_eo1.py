@@ -121,7 +121,7 @@ def test_graft_fills_the_image_pads_with_projected_features() -> None:
     loss.mean().backward()
     assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in adapter.projector.parameters())
     odd = {**raw, **{feature_key(k): raw[feature_key(k)][:, :6] for k in adapter.camera_keys}}
-    with pytest.raises(BackboneError, match="6 cached tokens per camera is neither its token grid 4x4 nor a square"):
+    with pytest.raises(BackboneError, match="6 cached tokens per camera is neither the native 4x4 grid nor a square"):
         adapter.prepare(odd)
     with pytest.raises(BackboneError, match="different token counts"):
         adapter.prepare({**raw, feature_key("image"): raw[feature_key("image")][:, :9]})
