@@ -2,15 +2,21 @@
 
 from __future__ import annotations
 
+import pytest
 import torch
 
 from graftcache.backbones import TinySpec, load_backbone
 from graftcache.backbones.base import BackboneAdapter
+from graftcache.errors import BackboneError
 from graftcache.fit.controls import PassThroughProjector
 from graftcache.graft import GraftProjector, feature_key
 
 SPEC = TinySpec()
 ENC_DIM = 48
+#: Parameters of each zoo adapter's tiny policy as loaded (shared tensors once).
+TINY_PARAMS = {"eo1": 245_800, "groot": 810_496, "wall_x": 250_784, "vla_jepa": 295_927, "evo1": 354_800}
+#: The tiny zoo policies' frames (train-tiny's size): each processor makes a 4x4 token grid of them.
+TINY_SIZE = 128
 TASKS = (
     "pick up the black bowl between the plate and the ramekin and place it on the plate",
     "open the middle drawer of the cabinet",
@@ -90,3 +96,32 @@ def assert_native_control_reproduces(native: BackboneAdapter, control: BackboneA
     with torch.no_grad():
         torch.testing.assert_close(control.loss(control.prepare(cached), noise, time), pixel_loss)
         torch.testing.assert_close(control.predict(control.prepare(cached), noise), pixel_chunk)
+
+
+def assert_tiny_zoo_geometry(adapter: BackboneAdapter, max_action_dim: int, connector: int) -> dict[str, int]:
+    """What every tiny zoo policy (EO-1, GR00T, Wall-X, VLA-JEPA, EVO1) shares: a 4x4 token grid of 64-wide tokens
+    from an 8x8 grid of 32-wide patches, two cameras, 10-step chunks, its parameter count (TINY_PARAMS) in the
+    freeze report, and a `connector` of the given size. Returns the report's {module: parameters}."""
+    assert adapter.token_grid == (4, 4) and adapter.lm_width == 64 and adapter.embed_scale == 1.0
+    assert adapter.cameras == ("image", "image2") and adapter.max_action_dim == max_action_dim
+    assert adapter.chunk_size == 10
+    images = torch.rand(2, 3, TINY_SIZE, TINY_SIZE)
+    assert adapter.native_patch_grid(images).shape == (2, 8, 8, 32)
+    assert adapter.native_tokens(images).shape == (2, 16, 64)
+    params = TINY_PARAMS[adapter.name]
+    assert adapter.n_params == params
+    report = {r.module: r.params for r in adapter.freeze_report().rows}
+    assert sum(report.values()) == params and report["connector"] == connector
+    return report
+
+
+def assert_refuses_odd_token_counts(adapter: BackboneAdapter, raw: dict, noise: torch.Tensor,
+                                    time: torch.Tensor) -> None:
+    """A grafted pad-filling adapter (tiny, 4x4 token grid) refuses, in one line, 6 cached tokens per camera (neither
+    its grid nor a square one) and cameras carrying different token counts."""
+    odd = {**raw, **{feature_key(k): raw[feature_key(k)][:, :6] for k in adapter.camera_keys}}
+    with pytest.raises(BackboneError, match="6 cached tokens per camera is neither the native 4x4 grid nor a square"):
+        adapter.loss(adapter.prepare(odd), noise, time)
+    uneven = {**raw, feature_key("image"): raw[feature_key("image")][:, :9]}
+    with pytest.raises(BackboneError, match="different token counts"):
+        adapter.loss(adapter.prepare(uneven), noise, time)
