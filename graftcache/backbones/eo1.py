@@ -42,7 +42,7 @@ from graftcache.backbones.qwen_vl import (
     cached_token_count,
     check_slots,
     image_token_counts,
-    projected_rows,
+    projected_images,
     prompt_grid,
     raster_patches,
     shadow_method,
@@ -215,11 +215,9 @@ class EO1Adapter(BackboneAdapter):
         row, [B, cameras x tokens, C]: a fused projector (graftcache.graft.FusedProjector) routes rows."""
         if not self.grafted:
             return own(qwen, pixel_values, image_grid_thw, **kwargs)
-        # _feature_images: one image each camera
-        tokens = projected_rows(*self._tower_and_connector(), pixel_values, len(image_grid_thw),
-                                len(self.config.image_features))
-        sizes = image_token_counts(image_grid_thw, qwen.visual.spatial_merge_size)
-        return BaseModelOutputWithPooling(last_hidden_state=pixel_values, pooler_output=torch.split(tokens, sizes))
+        tokens = projected_images(*self._tower_and_connector(), pixel_values, image_grid_thw,
+                                  qwen.visual.spatial_merge_size, len(self.config.image_features))
+        return BaseModelOutputWithPooling(last_hidden_state=pixel_values, pooler_output=tokens)
 
     def _vision(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """[B, 3, H, W] in [0, 1] through the policy's own processor and ViT: (pre-merger patch grid [B, gh, gw,

@@ -44,7 +44,7 @@ from graftcache.backbones.qwen_vl import (
     cached_token_count,
     check_slots,
     image_token_counts,
-    projected_rows,
+    projected_images,
     prompt_grid,
     raster_patches,
     shadow_method,
@@ -238,11 +238,9 @@ class GrootAdapter(BackboneAdapter):
 
         if not self.grafted:
             return own(qwen, pixel_values, image_grid_thw, **kwargs)
-        # _feature_images: every view, one image each
-        tokens = projected_rows(*self._tower_and_connector(), pixel_values, len(image_grid_thw), len(self._view_keys))
-        sizes = image_token_counts(image_grid_thw, qwen.visual.spatial_merge_size)
-        return BaseModelOutputWithDeepstackFeatures(last_hidden_state=pixel_values,
-                                                    pooler_output=torch.split(tokens, sizes),
+        tokens = projected_images(*self._tower_and_connector(), pixel_values, image_grid_thw,
+                                  qwen.visual.spatial_merge_size, len(self._view_keys))  # every view, one image each
+        return BaseModelOutputWithDeepstackFeatures(last_hidden_state=pixel_values, pooler_output=tokens,
                                                     deepstack_features=None)
 
     def _vision(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

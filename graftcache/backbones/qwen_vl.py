@@ -58,6 +58,15 @@ def projected_rows(tower: nn.Module, connector: nn.Module, features: torch.Tenso
     return connector(hidden.reshape(images // cameras, -1, hidden.shape[-1])).flatten(0, 1)
 
 
+def projected_images(tower: nn.Module, connector: nn.Module, features: torch.Tensor, grid_thw: torch.Tensor,
+                     merge: int, cameras: int) -> tuple[torch.Tensor, ...]:
+    """What a grafted `get_image_features` returns as its `pooler_output`: the cached features of every image
+    (one per camera, sample after sample) projected a sample a row (`projected_rows`), split per image as Qwen
+    splits its own tokens."""
+    tokens = projected_rows(tower, connector, features, len(grid_thw), cameras)
+    return torch.split(tokens, image_token_counts(grid_thw, merge))
+
+
 def cached_token_count(name: str, batch: Mapping[str, Any], camera_keys: Sequence[str]) -> int:
     """The cached tokens per camera of a grafted batch, refused in one line when a camera's features, the state
     or the task is missing or the cameras disagree."""

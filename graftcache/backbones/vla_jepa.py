@@ -51,7 +51,7 @@ from graftcache.backbones.eo1 import shadowed
 from graftcache.backbones.qwen_vl import (
     check_slots,
     image_token_counts,
-    projected_rows,
+    projected_images,
     prompt_grid,
     raster_patches,
     shadow_method,
@@ -221,12 +221,10 @@ class VLAJEPAAdapter(WrappedCheckpointing, BackboneAdapter):
 
         if not self.grafted:
             return own(qwen, pixel_values, image_grid_thw, **kwargs)
-        # _feature_images: one image each camera
-        tokens = projected_rows(*self._tower_and_connector(), pixel_values, len(image_grid_thw),
-                                len(self.config.image_features))
-        sizes = image_token_counts(image_grid_thw, qwen.visual.spatial_merge_size)
-        return BaseModelOutputWithDeepstackFeatures(last_hidden_state=pixel_values,
-                                                    pooler_output=torch.split(tokens, sizes), deepstack_features=[])
+        tokens = projected_images(*self._tower_and_connector(), pixel_values, image_grid_thw,
+                                  qwen.visual.spatial_merge_size, len(self.config.image_features))
+        return BaseModelOutputWithDeepstackFeatures(last_hidden_state=pixel_values, pooler_output=tokens,
+                                                    deepstack_features=[])
 
     def _vision(self, images: torch.Tensor):
         """[B, 3, H, W] in [0, 1] through the policy's own inference path - `predict_action`'s resize to
