@@ -39,6 +39,7 @@ from graftcache.backbones.base import BackboneAdapter
 from graftcache.backbones.batches import ACTION, STATE
 from graftcache.backbones.checkpoint import cached_repo
 from graftcache.backbones.qwen_vl import (
+    NativeVision,
     cached_token_count,
     check_slots,
     image_token_counts,
@@ -121,7 +122,7 @@ def shadowed(module: nn.Module, **methods) -> Iterator[None]:
             module.__dict__.pop(name, None)
 
 
-class EO1Adapter(BackboneAdapter):
+class EO1Adapter(NativeVision, BackboneAdapter):
     name = "eo1"
     vision_slots = ("blocks", "merger")
     steps_field = "num_denoise_steps"
@@ -228,16 +229,6 @@ class EO1Adapter(BackboneAdapter):
         inputs = step._processor.image_processor(images=list(frames), min_pixels=step.image_min_pixels,
                                                  max_pixels=step.image_max_pixels, return_tensors="pt")
         return vit_outputs(self._vision_owner, inputs["pixel_values"], inputs["image_grid_thw"])
-
-    @torch.no_grad()
-    def native_patch_grid(self, images: torch.Tensor) -> torch.Tensor:
-        """The ViT's last block before the merger, [B, gh, gw, C] at patch resolution (2x the merged grid)."""
-        return self._vision(images)[0]
-
-    @torch.no_grad()
-    def native_tokens(self, images: torch.Tensor) -> torch.Tensor:
-        """Post-merger tokens [B, gh/2 * gw/2, D], in the order Qwen scatters them into the prompt."""
-        return self._vision(images)[1]
 
     def _feature_images(self, batch: Mapping[str, Any], excluded_keys: set[str]) -> dict[str, Any]:
         """Grafted stand-in for EO1Policy._get_model_inputs: Qwen's `pixel_values` are the cached features of

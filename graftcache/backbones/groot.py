@@ -41,6 +41,7 @@ from graftcache.backbones.batches import ACTION, STATE
 from graftcache.backbones.checkpoint import cached_repo
 from graftcache.backbones.eo1 import shadowed
 from graftcache.backbones.qwen_vl import (
+    NativeVision,
     cached_token_count,
     check_slots,
     image_token_counts,
@@ -110,7 +111,7 @@ def drawing(noise: torch.Tensor) -> Iterator[None]:
         groot_n1_7.torch = torch
 
 
-class GrootAdapter(BackboneAdapter):
+class GrootAdapter(NativeVision, BackboneAdapter):
     name = "groot"
     vision_slots = ("blocks", "merger")
     steps_field = "num_inference_timesteps"
@@ -261,16 +262,6 @@ class GrootAdapter(BackboneAdapter):
         grid = raster_patches(out.last_hidden_state, size, gh, gw, m)
         tokens = out.pooler_output.view(size, (gh // m) * (gw // m), -1)
         return grid.float(), tokens.float()
-
-    @torch.no_grad()
-    def native_patch_grid(self, images: torch.Tensor) -> torch.Tensor:
-        """The ViT's last block before the merger, [B, gh, gw, C] at patch resolution (2x the merged grid)."""
-        return self._vision(images)[0]
-
-    @torch.no_grad()
-    def native_tokens(self, images: torch.Tensor) -> torch.Tensor:
-        """Post-merger tokens [B, gh/2 * gw/2, D], in the order Qwen scatters them into the prompt."""
-        return self._vision(images)[1]
 
     def _feature_images(self, batch: Mapping[str, Any], include_action: bool) -> dict[str, Any]:
         """Grafted stand-in for GrootPolicy._filter_groot_inputs: Qwen's `pixel_values` are the cached features of

@@ -20,6 +20,22 @@ from graftcache.errors import BackboneError
 from graftcache.graft import feature_key
 
 
+class NativeVision:
+    """Mixin for an adapter whose `_vision(images)` runs its policy's own processor and ViT once and returns both
+    native reads, (pre-merger patch grid [B, gh, gw, C] in raster order, post-merger tokens [B, T, D]): a method
+    pair, so a mixin rather than a function (placed before BackboneAdapter, whose defaults it overrides)."""
+
+    @torch.no_grad()
+    def native_patch_grid(self, images: torch.Tensor) -> torch.Tensor:
+        """The ViT's last block before the merger, [B, gh, gw, C] at patch resolution (2x the merged grid)."""
+        return self._vision(images)[0]
+
+    @torch.no_grad()
+    def native_tokens(self, images: torch.Tensor) -> torch.Tensor:
+        """Post-merger tokens [B, gh/2 * gw/2, D], in the order the policy scatters them into the prompt."""
+        return self._vision(images)[1]
+
+
 def shadow_method(module: nn.Module, name: str, replacement: Callable) -> None:
     """Shadow `module.name` on the instance with `replacement(own, module, *args, **kwargs)`, `own` being the
     class's method: the replacement falls back to it when the policy is not grafted."""

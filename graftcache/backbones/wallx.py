@@ -44,7 +44,7 @@ from graftcache.backbones.base import BackboneAdapter
 from graftcache.backbones.batches import STATE
 from graftcache.backbones.checkpoint import cached_repo
 from graftcache.backbones.eo1 import merged_grid, shadowed, vit_outputs
-from graftcache.backbones.qwen_vl import projected_rows, prompt_grid, shadow_method, tied_head_keys
+from graftcache.backbones.qwen_vl import NativeVision, projected_rows, prompt_grid, shadow_method, tied_head_keys
 from graftcache.backbones.recompute import WrappedCheckpointing
 from graftcache.backbones.tiny import TinySpec
 from graftcache.backbones.tiny_wallx import WALLX_DIR, build_tiny_wallx, construct, load_processor
@@ -96,7 +96,7 @@ def pixel_bounds(image_processor, pixels: int) -> Iterator[None]:
         image_processor.size = saved
 
 
-class WallXAdapter(WrappedCheckpointing, BackboneAdapter):
+class WallXAdapter(NativeVision, WrappedCheckpointing, BackboneAdapter):
     name = "wall_x"
     vision_slots = ("blocks", "merger")
     steps_field = ""  # Wall-X's config has no such field: `num_steps` reads `predict`'s default
@@ -210,16 +210,6 @@ class WallXAdapter(WrappedCheckpointing, BackboneAdapter):
         resized, _ = _resize_wall_x_image_batch(images.clamp(0, 1))
         inputs = self._image_processor(images=list(resized), return_tensors="pt", device=resized.device)
         return vit_outputs(self._vision_owner, inputs["pixel_values"], inputs["image_grid_thw"])
-
-    @torch.no_grad()
-    def native_patch_grid(self, images: torch.Tensor) -> torch.Tensor:
-        """The ViT's last block before the merger, [B, gh, gw, C] at patch resolution (2x the merged grid)."""
-        return self._vision(images)[0]
-
-    @torch.no_grad()
-    def native_tokens(self, images: torch.Tensor) -> torch.Tensor:
-        """Post-merger tokens [B, gh/2 * gw/2, D], in the order Wall-X scatters them into the prompt."""
-        return self._vision(images)[1]
 
     def _feature_images(self, batch: Mapping[str, Any], *, compute_position_ids: bool = False):
         """Grafted stand-in for WallXPolicy.preprocess_inputs: lerobot's own on blank frames whose processed grid
