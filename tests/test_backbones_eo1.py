@@ -10,11 +10,14 @@ import pytest
 import torch
 from helpers.backbones import (
     ENC_DIM,
+    assert_projector_trained,
     assert_refuses_odd_token_counts,
     assert_tiny_zoo_geometry,
     fixed_noise_time,
     grafted,
+    lm_inputs_of_loss,
     lowdim_stats,
+    projected_cameras,
     raw_features,
     raw_images,
     tiny,
@@ -81,25 +84,17 @@ def test_loss_and_prediction_are_lerobots_under_the_same_draws() -> None:
     assert chunk_ref.shape == (3, adapter.chunk_size, adapter.action_dim)
 
 
-
 def test_graft_fills_the_image_pads_with_projected_features() -> None:
     adapter = grafted("eo1")
     assert {n for n, p in adapter.policy.named_parameters() if p.requires_grad} == {
         f"model.vlm_backbone.model.visual.merger.{p}" for p in ("norm.weight", "norm.bias", "proj.weight", "proj.bias")}
     raw = raw_features(adapter, 2)
     batch = adapter.prepare(raw)
-    seen = {}
-    lm = adapter.policy.model.vlm_backbone.model.language_model
-    hook = lm.register_forward_pre_hook(lambda m, args, kwargs: seen.update(kwargs), with_kwargs=True)
     noise, time = fixed_noise_time(adapter, 2)
-    loss = adapter.loss(batch, noise, time)
-    hook.remove()
+    seen, loss = lm_inputs_of_loss(adapter, adapter.policy.model.vlm_backbone.model.language_model, batch, noise, time)
     pads = batch["input_ids"] == adapter.policy.model.vlm_backbone.config.image_token_id
-    cameras = [raw[feature_key(k)] for k in adapter.camera_keys]
-    expected = adapter.projector(torch.stack(cameras, dim=1).flatten(0, 2))
-    torch.testing.assert_close(seen["inputs_embeds"][pads], expected)
-    loss.mean().backward()
-    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in adapter.projector.parameters())
+    torch.testing.assert_close(seen["inputs_embeds"][pads], projected_cameras(adapter, raw))
+    assert_projector_trained(adapter, loss)
     assert_refuses_odd_token_counts(adapter, raw, noise, time)
     batch = adapter.prepare(raw)
     batch[feature_key("image2")] = batch[feature_key("image2")][:, :4]
@@ -118,10 +113,6 @@ def test_pooled_features_get_a_prompt_with_their_grid() -> None:
     noise, time = fixed_noise_time(adapter, 2)
     assert torch.isfinite(adapter.loss(batch, noise, time)).all()
     assert adapter._qwen_processor.image_max_pixels == 16 * 28 * 28  # the bounds are the policy's again
-
-
-
-
 
 
 def test_released_geometry_on_the_meta_device() -> None:

@@ -14,11 +14,14 @@ import torch
 from helpers.backbones import (
     ENC_DIM,
     assert_native_control_reproduces,
+    assert_projector_trained,
     assert_refuses_odd_token_counts,
     assert_tiny_zoo_geometry,
     fixed_noise_time,
     grafted,
+    lm_inputs_of_loss,
     lowdim_stats,
+    projected_cameras,
     raw_features,
     raw_images,
     tiny,
@@ -127,7 +130,6 @@ def test_time_one_is_pure_noise_as_in_fit() -> None:
     torch.testing.assert_close(fed[1], batch[PADDED_ACTION])
 
 
-
 def test_graft_fills_the_image_pads_with_projected_features_and_no_deepstack() -> None:
     adapter = grafted("groot")
     assert {n for n, p in adapter.policy.named_parameters() if p.requires_grad} == {
@@ -135,19 +137,13 @@ def test_graft_fills_the_image_pads_with_projected_features_and_no_deepstack() -
         for p in ("norm.weight", "norm.bias", "proj.weight", "proj.bias")}
     raw = raw_features(adapter, 2)
     batch = adapter.prepare(raw)
-    seen = {}
-    lm = _qwen(adapter).language_model
-    hook = lm.register_forward_pre_hook(lambda m, args, kwargs: seen.update(kwargs), with_kwargs=True)
     noise, time = fixed_noise_time(adapter, 2)
-    loss = adapter.loss(batch, noise, time)
-    hook.remove()
+    seen, loss = lm_inputs_of_loss(adapter, _qwen(adapter).language_model, batch, noise, time)
     pads = batch["input_ids"] == _qwen(adapter).config.image_token_id
-    cameras = [raw[feature_key(k)] for k in adapter.camera_keys]  # image, image2: also the video's sorted order
-    expected = adapter.projector(torch.stack(cameras, dim=1).flatten(0, 2))
+    expected = projected_cameras(adapter, raw)  # image, image2: also the video's sorted order
     torch.testing.assert_close(seen["inputs_embeds"][pads], expected)
     assert seen["deepstack_visual_embeds"] is None and torch.equal(seen["visual_pos_masks"], pads)
-    loss.mean().backward()
-    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in adapter.projector.parameters())
+    assert_projector_trained(adapter, loss)
     assert_refuses_odd_token_counts(adapter, raw, noise, time)
     batch = adapter.prepare(raw)
     batch[feature_key("image2")] = batch[feature_key("image2")][:, :4]
@@ -183,8 +179,6 @@ def test_native_control_reproduces_the_policy_without_deepstack() -> None:
     assert not torch.allclose(with_deepstack, without)
     with no_deepstack(native):
         assert_native_control_reproduces(native, control, 2, size=SIZE)
-
-
 
 
 def test_missing_base_model_is_one_line(tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:

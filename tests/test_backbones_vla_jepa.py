@@ -14,10 +14,13 @@ import torch
 from helpers.backbones import (
     ENC_DIM,
     assert_native_control_reproduces,
+    assert_projector_trained,
     assert_refuses_odd_token_counts,
     assert_tiny_zoo_geometry,
     fixed_noise_time,
     grafted,
+    lm_inputs_of_loss,
+    projected_cameras,
     raw_features,
     raw_images,
     tiny,
@@ -130,19 +133,13 @@ def test_graft_fills_the_image_pads_with_projected_features_and_no_deepstack() -
         f"model.qwen.model.model.visual.merger.{p}" for p in ("norm.weight", "norm.bias", "proj.weight", "proj.bias")}
     raw = raw_features(adapter, 2)
     batch = adapter.prepare(raw)
-    seen = {}
-    lm = adapter._qwen.language_model
-    hook = lm.register_forward_pre_hook(lambda m, args, kwargs: seen.update(kwargs), with_kwargs=True)
     noise, time = fixed_noise_time(adapter, 2)
-    loss = adapter.loss(batch, noise, time)
-    hook.remove()
+    seen, loss = lm_inputs_of_loss(adapter, adapter._qwen.language_model, batch, noise, time)
     pads = seen["visual_pos_masks"]
-    cameras = [raw[feature_key(k)] for k in adapter.camera_keys]
-    expected = adapter.projector(torch.stack(cameras, dim=1).flatten(0, 2))
+    expected = projected_cameras(adapter, raw)
     assert pads.sum(dim=1).tolist() == [2 * 16, 2 * 16] and seen["deepstack_visual_embeds"] == []
     torch.testing.assert_close(seen["inputs_embeds"][pads].float(), expected, atol=0.02, rtol=0.02)  # bf16 autocast
-    loss.mean().backward()
-    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in adapter.projector.parameters())
+    assert_projector_trained(adapter, loss)
     assert_refuses_odd_token_counts(adapter, raw, noise, time)
 
 
@@ -226,9 +223,6 @@ def test_activation_checkpointing_keeps_the_projector_gradients_and_lowers_the_p
     for plain, checkpointed in zip(grads[False], grads[True], strict=True):
         torch.testing.assert_close(checkpointed, plain, rtol=0, atol=1e-6)
     assert peaks[True] < 0.6 * peaks[False], peaks  # measured: 7.6 of 16.2 MB
-
-
-
 
 
 def test_released_geometry_on_the_meta_device(tmp_path) -> None:

@@ -13,10 +13,12 @@ import pytest
 import torch
 from helpers.backbones import (
     ENC_DIM,
+    assert_projector_trained,
     assert_refuses_odd_token_counts,
     assert_tiny_zoo_geometry,
     fixed_noise_time,
     grafted,
+    lm_inputs_of_loss,
     raw_features,
     raw_images,
     tiny,
@@ -97,25 +99,19 @@ def test_loss_and_prediction_are_lerobots_under_the_same_draws() -> None:
         torch.randn(2, 2)
 
 
-
 def test_graft_fills_the_image_pads_with_projected_features() -> None:
     adapter = grafted("wall_x")
     assert {n for n, p in adapter.policy.named_parameters() if p.requires_grad} == {
         f"model.visual.merger.{p}" for p in ("norm.weight", "norm.bias", "proj.weight", "proj.bias")}
     raw = raw_features(adapter, 2)
     batch = adapter.prepare(raw)
-    seen = {}
-    lm = adapter.policy.model.model
-    hook = lm.register_forward_pre_hook(lambda m, args, kwargs: seen.update(kwargs), with_kwargs=True)
     noise, time = fixed_noise_time(adapter, 2)
-    loss = adapter.loss(batch, noise, time)
-    hook.remove()
+    seen, loss = lm_inputs_of_loss(adapter, adapter.policy.model.model, batch, noise, time)
     inputs = adapter.policy.preprocess_inputs(batch)
     cameras = [raw[feature_key(k)] for k in adapter.camera_keys]
     expected = adapter.projector(torch.stack(cameras, dim=1).flatten(0, 2).bfloat16())  # Wall-X's cast to the ViT's
     torch.testing.assert_close(seen["inputs_embeds"][_image_pads(adapter, inputs)], expected.bfloat16())
-    loss.mean().backward()
-    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in adapter.projector.parameters())
+    assert_projector_trained(adapter, loss)
     assert_refuses_odd_token_counts(adapter, raw, noise, time)
 
 
@@ -154,8 +150,6 @@ def test_pooled_features_get_a_prompt_with_their_grid() -> None:
     assert dict(adapter._image_processor.size) == bounds  # the bounds are the policy's again
 
 
-
-
 def test_activation_checkpointing_keeps_the_gradients() -> None:
     adapter = grafted("wall_x")
     batch = adapter.prepare(raw_features(adapter, 2))
@@ -168,8 +162,6 @@ def test_activation_checkpointing_keeps_the_gradients() -> None:
         grads.append([p.grad.clone() for p in adapter.projector.parameters()])
     for plain, recomputed in zip(*grads):
         torch.testing.assert_close(plain, recomputed)
-
-
 
 
 def _released_base(folder: Path) -> Path:

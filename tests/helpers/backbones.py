@@ -125,3 +125,28 @@ def assert_refuses_odd_token_counts(adapter: BackboneAdapter, raw: dict, noise: 
     uneven = {**raw, feature_key("image"): raw[feature_key("image")][:, :9]}
     with pytest.raises(BackboneError, match="different token counts"):
         adapter.loss(adapter.prepare(uneven), noise, time)
+
+
+def lm_inputs_of_loss(adapter: BackboneAdapter, lm: torch.nn.Module, batch: dict, noise: torch.Tensor,
+                      time: torch.Tensor) -> tuple[dict, torch.Tensor]:
+    """The keyword inputs `lm` (the policy's language model) is called with during `adapter.loss`, and the loss."""
+    seen: dict = {}
+    hook = lm.register_forward_pre_hook(lambda m, args, kwargs: seen.update(kwargs), with_kwargs=True)
+    try:
+        loss = adapter.loss(batch, noise, time)
+    finally:
+        hook.remove()
+    return seen, loss
+
+
+def projected_cameras(adapter: BackboneAdapter, raw: dict) -> torch.Tensor:
+    """What a grafted adapter must write into its image slots, independently computed: every sample's cached features
+    camera after camera, through the projector."""
+    cameras = [raw[feature_key(k)] for k in adapter.camera_keys]
+    return adapter.projector(torch.stack(cameras, dim=1).flatten(0, 2))
+
+
+def assert_projector_trained(adapter: BackboneAdapter, loss: torch.Tensor) -> None:
+    """The loss back-propagates into every projector parameter (a nonzero gradient each)."""
+    loss.mean().backward()
+    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in adapter.projector.parameters())
