@@ -20,6 +20,7 @@ from helpers.backbones import (
     fixed_noise_time,
     grafted,
     lm_inputs_of_loss,
+    pooled_raw,
     projected_cameras,
     raw_features,
     raw_images,
@@ -147,8 +148,7 @@ def test_pooled_features_get_a_prompt_with_their_grid() -> None:
     """The pool-HxW controls: a 2x2 pooled grid gets 4 image pads per camera and the grid_thw of a 2x2 merged image
     (what Qwen's processor writes for a 64 px image), so the projected tokens fill exactly those slots."""
     adapter = grafted("vla_jepa")
-    raw = {**raw_features(adapter, 2), **{feature_key(k): torch.randn(2, 4, ENC_DIM) for k in adapter.camera_keys}}
-    batch = adapter.prepare(raw)
+    batch = adapter.prepare(pooled_raw(adapter))
     model = adapter.policy.model
     inputs = model.qwen.build_inputs(adapter.policy._prepare_model_inputs(batch)["images"], batch["task"],
                                      model.replace_prompt, model.embodied_replace_prompt)

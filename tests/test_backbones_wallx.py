@@ -19,6 +19,7 @@ from helpers.backbones import (
     fixed_noise_time,
     grafted,
     lm_inputs_of_loss,
+    pooled_raw,
     raw_features,
     raw_images,
     tiny,
@@ -140,8 +141,7 @@ def test_pooled_features_get_a_prompt_with_their_grid() -> None:
     (the processor's bounds pinned to 56x56 px for the call), so the projected tokens fill exactly those slots."""
     adapter = grafted("wall_x")
     bounds = dict(adapter._image_processor.size)
-    raw = {**raw_features(adapter, 2), **{feature_key(k): torch.randn(2, 4, ENC_DIM) for k in adapter.camera_keys}}
-    batch = adapter.prepare(raw)
+    batch = adapter.prepare(pooled_raw(adapter))
     inputs = adapter.policy.preprocess_inputs(batch)
     assert _image_pads(adapter, inputs).sum(dim=1).tolist() == [8, 8]
     assert inputs["image_grid_thw"].tolist() == [[1, 4, 4]] * 4 and inputs["pixel_values"].shape == (16, ENC_DIM)

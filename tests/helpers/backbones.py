@@ -116,15 +116,27 @@ def assert_tiny_zoo_geometry(adapter: BackboneAdapter, max_action_dim: int, conn
 
 
 def assert_refuses_odd_token_counts(adapter: BackboneAdapter, raw: dict, noise: torch.Tensor,
-                                    time: torch.Tensor) -> None:
+                                    time: torch.Tensor, slots: bool = False) -> None:
     """A grafted pad-filling adapter (tiny, 4x4 token grid) refuses, in one line, 6 cached tokens per camera (neither
-    its grid nor a square one) and cameras carrying different token counts."""
+    its grid nor a square one) and cameras carrying different token counts; with `slots`, also a prepared batch
+    whose features no longer match its prompt's 16 image slots per camera."""
     odd = {**raw, **{feature_key(k): raw[feature_key(k)][:, :6] for k in adapter.camera_keys}}
     with pytest.raises(BackboneError, match="6 cached tokens per camera is neither the native 4x4 grid nor a square"):
         adapter.loss(adapter.prepare(odd), noise, time)
     uneven = {**raw, feature_key("image"): raw[feature_key("image")][:, :9]}
     with pytest.raises(BackboneError, match="different token counts"):
         adapter.loss(adapter.prepare(uneven), noise, time)
+    if slots:
+        batch = adapter.prepare(raw)
+        batch[feature_key("image2")] = batch[feature_key("image2")][:, :4]
+        with pytest.raises(BackboneError, match=r"features have \[4, 16\] tokens per camera; the prompt has \[16\]"):
+            adapter.loss(batch, noise, time)
+
+
+def pooled_raw(adapter: BackboneAdapter, batch: int = 2) -> dict:
+    """A raw batch whose cached features are a pool-2x2 control's: 4 tokens per camera."""
+    pooled = {feature_key(k): torch.randn(batch, 4, ENC_DIM) for k in adapter.camera_keys}
+    return {**raw_features(adapter, batch), **pooled}
 
 
 def lm_inputs_of_loss(adapter: BackboneAdapter, lm: torch.nn.Module, batch: dict, noise: torch.Tensor,
