@@ -1,46 +1,36 @@
 """EO-1 as a backbone: tiny geometry, the native tower against the policy's own image path (and the merger's
 2x2 order), the loss and the sampler against lerobot's `forward` / `predict_action_chunk` under the same random
-draws, the graft slots (the image-pad positions of the Qwen sequence), the native control, LoRA and reset,
-save/load by hub id, and the released geometry on the meta device (3.8B parameters are never materialised)."""
+draws, the graft slots (the image-pad positions of the Qwen sequence), and the released geometry on the meta
+device (3.8B parameters are never materialised). The native control, LoRA and reset, save/load by hub id and the
+missing base: tests/test_backbones_zoo_common.py."""
 
 from __future__ import annotations
 
-import json
-
-import pytest
 import torch
 from helpers.backbones import (
-    ENC_DIM,
-    assert_native_control_reproduces,
+    assert_projector_trained,
+    assert_refuses_odd_token_counts,
+    assert_tiny_zoo_geometry,
     fixed_noise_time,
     grafted,
+    lm_inputs_of_loss,
     lowdim_stats,
+    pooled_raw,
+    projected_cameras,
     raw_features,
     raw_images,
     tiny,
 )
 
-from devtools.released import hub_cache, publish
-from graftcache.backbones import load_backbone
-from graftcache.backbones.checkpoint import state_dict_sha256
 from graftcache.backbones.eo1 import EO1Adapter, left_padded, merged_grid
-from graftcache.errors import BackboneError
-from graftcache.graft import GraftProjector, feature_key
 
 SIZE = 128  # the tiny policy's frames (train-tiny's size): smart_resize -> 112 px -> 8x8 patches -> 4x4 tokens
 
 
 def test_tiny_geometry() -> None:
     adapter = tiny("eo1")
-    assert adapter.token_grid == (4, 4) and adapter.lm_width == 64 and adapter.embed_scale == 1.0
-    assert adapter.cameras == ("image", "image2") and adapter.max_action_dim == 8 and adapter.chunk_size == 10
-    images = torch.rand(2, 3, SIZE, SIZE)
-    assert adapter.native_patch_grid(images).shape == (2, 8, 8, 32)
-    assert adapter.native_tokens(images).shape == (2, 16, 64)
-    assert adapter.n_params == 245_800
-    report = {r.module: r.params for r in adapter.freeze_report().rows}
     merger = 32 + (128 * 128 + 128) + (128 * 64 + 64)  # RMSNorm(32), Linear(4 x 32 -> 128), Linear(128 -> 64)
-    assert sum(report.values()) == 245_800 and report["connector"] == merger
+    assert_tiny_zoo_geometry(adapter, 8, merger)
     tokenizer = adapter._qwen_processor._processor.tokenizer  # EO-1's 7 tokens added to the tiny vocabulary
     assert len(tokenizer) <= adapter.policy.model.vlm_backbone.config.text_config.vocab_size
 
@@ -91,109 +81,30 @@ def test_loss_and_prediction_are_lerobots_under_the_same_draws() -> None:
     assert chunk_ref.shape == (3, adapter.chunk_size, adapter.action_dim)
 
 
-def test_loss_masks_padded_steps_and_padded_dims_per_sample() -> None:
-    adapter = tiny("eo1")
-    adapter.policy.eval()
-    batch = adapter.prepare(raw_images(adapter, 3, size=SIZE))
-    noise, time = fixed_noise_time(adapter, 3)
-    with torch.no_grad():
-        error = adapter._flow_losses(batch, noise, time)[:, :, :7]
-        loss = adapter.loss(batch, noise, time)
-    torch.testing.assert_close(loss, torch.stack([error[0, :-3].mean(), error[1].mean(), error[2].mean()]))
-
-
 def test_graft_fills_the_image_pads_with_projected_features() -> None:
     adapter = grafted("eo1")
     assert {n for n, p in adapter.policy.named_parameters() if p.requires_grad} == {
         f"model.vlm_backbone.model.visual.merger.{p}" for p in ("norm.weight", "norm.bias", "proj.weight", "proj.bias")}
     raw = raw_features(adapter, 2)
     batch = adapter.prepare(raw)
-    seen = {}
-    lm = adapter.policy.model.vlm_backbone.model.language_model
-    hook = lm.register_forward_pre_hook(lambda m, args, kwargs: seen.update(kwargs), with_kwargs=True)
     noise, time = fixed_noise_time(adapter, 2)
-    loss = adapter.loss(batch, noise, time)
-    hook.remove()
+    seen, loss = lm_inputs_of_loss(adapter, adapter.policy.model.vlm_backbone.model.language_model, batch, noise, time)
     pads = batch["input_ids"] == adapter.policy.model.vlm_backbone.config.image_token_id
-    cameras = [raw[feature_key(k)] for k in adapter.camera_keys]
-    expected = adapter.projector(torch.stack(cameras, dim=1).flatten(0, 2))
-    torch.testing.assert_close(seen["inputs_embeds"][pads], expected)
-    loss.mean().backward()
-    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in adapter.projector.parameters())
-    odd = {**raw, **{feature_key(k): raw[feature_key(k)][:, :6] for k in adapter.camera_keys}}
-    with pytest.raises(BackboneError, match="6 cached tokens per camera is neither its token grid 4x4 nor a square"):
-        adapter.prepare(odd)
-    with pytest.raises(BackboneError, match="different token counts"):
-        adapter.prepare({**raw, feature_key("image"): raw[feature_key("image")][:, :9]})
-    batch = adapter.prepare(raw)
-    batch[feature_key("image2")] = batch[feature_key("image2")][:, :4]
-    with pytest.raises(BackboneError, match=r"features have \[4, 16\] tokens per camera; the prompt has \[16\]"):
-        adapter.loss(batch, noise, time)
+    torch.testing.assert_close(seen["inputs_embeds"][pads], projected_cameras(adapter, raw))
+    assert_projector_trained(adapter, loss)
+    assert_refuses_odd_token_counts(adapter, raw, noise, time, slots=True)
 
 
 def test_pooled_features_get_a_prompt_with_their_grid() -> None:
     """The pool-HxW controls: a 2x2 pooled grid gets 4 image pads per camera and the grid_thw of a 2x2 merged image
     (what Qwen's processor writes for a 56 px image), so the projected tokens fill exactly those slots."""
     adapter = grafted("eo1")
-    raw = {**raw_features(adapter, 2), **{feature_key(k): torch.randn(2, 4, ENC_DIM) for k in adapter.camera_keys}}
-    batch = adapter.prepare(raw)
+    batch = adapter.prepare(pooled_raw(adapter))
     pads = batch["input_ids"] == adapter.policy.model.vlm_backbone.config.image_token_id
     assert pads.sum(dim=1).tolist() == [8, 8] and batch["image_grid_thw"].tolist() == [[1, 4, 4]] * 4
     noise, time = fixed_noise_time(adapter, 2)
     assert torch.isfinite(adapter.loss(batch, noise, time)).all()
     assert adapter._qwen_processor.image_max_pixels == 16 * 28 * 28  # the bounds are the policy's again
-
-
-def test_native_control_reproduces_the_ungrafted_policy() -> None:
-    assert_native_control_reproduces(tiny("eo1"), tiny("eo1"), 3, size=SIZE)
-
-
-def test_lora_adapts_the_qwen_language_model_and_reset_restores_the_policy() -> None:
-    adapter = tiny("eo1")
-    sha = adapter.policy_sha256
-    images = torch.rand(1, 3, SIZE, SIZE)
-    before = adapter.native_tokens(images)
-    adapter.graft(GraftProjector(ENC_DIM, adapter.lm_width))
-    adapter.add_lora(4)
-    lora = {n for n, p in adapter.policy.named_parameters() if p.requires_grad and "lora_" in n}
-    assert lora and all(n.startswith("model.vlm_backbone.model.language_model.layers.") for n in lora)
-    report = {r.module: r for r in adapter.freeze_report().rows}
-    assert report["action head"].trainable == 0 and report["patch embedding"].trainable == 0
-    assert 0 < report["language model"].trainable < report["language model"].params
-    adapter.reset()
-    assert not adapter.grafted and state_dict_sha256(adapter.policy) == sha
-    torch.testing.assert_close(adapter.native_tokens(images), before)  # the ViT is back
-
-
-def test_saved_tiny_loads_by_hub_id(tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """Saved as lerobot saves a policy, placed in a hub cache snapshot, loaded offline by `org/name` (the VLM built
-    from the saved config, its processor from the shipped tiny folder)."""
-    adapter = tiny("eo1")
-    adapter.save(tmp_path / "stage")
-    cache = tmp_path / "hub"
-    with hub_cache(cache):
-        monkeypatch.setenv("HF_HUB_CACHE", str(cache))
-        publish(tmp_path / "stage", "graftcache-tests/eo1-tiny", cache)
-        loaded = load_backbone("eo1", "graftcache-tests/eo1-tiny")
-        assert EO1Adapter.read_token_grid("graftcache-tests/eo1-tiny") == (4, 4)
-        assert EO1Adapter.read_cameras("graftcache-tests/eo1-tiny") == ("image", "image2")
-    assert loaded.policy_sha256 == adapter.policy_sha256 and loaded.random_init
-    assert loaded.n_params == adapter.n_params == 245_800  # the LM head tied to the embedding again, counted once
-    raw = raw_images(adapter, 2, size=SIZE)
-    noise, _ = fixed_noise_time(adapter, 2)
-    torch.testing.assert_close(loaded.predict(loaded.prepare(raw), noise), adapter.predict(adapter.prepare(raw), noise))
-
-
-def test_missing_qwen_processor_is_one_line(tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """A (non-tiny) checkpoint whose Qwen2.5-VL processor is not in the HF cache: one line naming it."""
-    adapter = tiny("eo1")
-    folder = adapter.save(tmp_path / "policy")
-    (folder / "graftcache_tiny.json").unlink()
-    config = json.loads((folder / "config.json").read_text())
-    (folder / "config.json").write_text(json.dumps({**config, "vlm_base": "Qwen/Qwen2.5-VL-3B-Instruct"}))
-    monkeypatch.setenv("HF_HUB_CACHE", str(tmp_path / "empty"))
-    with pytest.raises(BackboneError, match="EO-1's Qwen2.5-VL processor 'Qwen/Qwen2.5-VL-3B-Instruct' is neither"):
-        load_backbone("eo1", folder)
 
 
 def test_released_geometry_on_the_meta_device() -> None:

@@ -1,18 +1,17 @@
 """EVO1 as a backbone: tiny geometry, the native tower against the policy's own image path (CLS dropped, pixel
 shuffle, projector), the loss and the sampler against lerobot's `forward` / `predict_action_chunk` under the same
-random draws, the graft slots (the `<IMG_CONTEXT>` positions of the InternVL prompt), pooled grids, the native
-control, LoRA and reset, save/load by hub id, and the released geometry on the meta device (nothing of the
-~0.8B parameters is materialised)."""
+random draws, the graft slots (the `<IMG_CONTEXT>` positions of the InternVL prompt), pooled grids, and the
+released geometry on the meta device (nothing of the ~0.8B parameters is materialised). The native control, LoRA
+and reset, save/load by hub id and the missing base: tests/test_backbones_zoo_common.py."""
 
 from __future__ import annotations
-
-import json
 
 import pytest
 import torch
 from helpers.backbones import (
     ENC_DIM,
-    assert_native_control_reproduces,
+    assert_projector_trained,
+    assert_tiny_zoo_geometry,
     fixed_noise_time,
     grafted,
     raw_features,
@@ -20,15 +19,11 @@ from helpers.backbones import (
     tiny,
 )
 
-from devtools.released import hub_cache, publish
-from graftcache.backbones import load_backbone
-from graftcache.backbones.checkpoint import state_dict_sha256
 from graftcache.backbones.evo1 import Evo1Adapter
 from graftcache.errors import BackboneError
 from graftcache.graft import FusedProjector, GraftProjector, feature_key
 
 SIZE = 128  # the tiny policy's frames (train-tiny's size): resized to 112 px -> 8x8 patches -> 4x4 tokens
-TINY_PARAMS = 354_800
 
 
 def _lm_inputs(adapter, batch: dict, noise, time) -> tuple[torch.Tensor, dict, torch.Tensor]:
@@ -49,16 +44,9 @@ def _lm_inputs(adapter, batch: dict, noise, time) -> tuple[torch.Tensor, dict, t
 
 def test_tiny_geometry() -> None:
     adapter = tiny("evo1")
-    assert adapter.token_grid == (4, 4) and adapter.lm_width == 64 and adapter.embed_scale == 1.0
-    assert adapter.cameras == ("image", "image2") and adapter.max_action_dim == 8 and adapter.chunk_size == 10
     assert len(adapter._vision_owner.language_model.layers) == 2  # the tiny LM's 3 layers cut as lerobot cuts
-    images = torch.rand(2, 3, SIZE, SIZE)
-    assert adapter.native_patch_grid(images).shape == (2, 8, 8, 32)
-    assert adapter.native_tokens(images).shape == (2, 16, 64)
-    assert adapter.n_params == TINY_PARAMS
-    report = {r.module: r.params for r in adapter.freeze_report().rows}
     projector = 2 * 128 + (128 * 64 + 64) + (64 * 64 + 64)  # LayerNorm(4 x 32), Linear(128, 64), Linear(64, 64)
-    assert sum(report.values()) == TINY_PARAMS and report["connector"] == projector and "other" not in report
+    assert "other" not in assert_tiny_zoo_geometry(adapter, 8, projector)
     noise = adapter._uniform(adapter.sample_noise(1000, torch.Generator().manual_seed(0)))  # EVO1's start noise
     quartiles = torch.quantile(noise.flatten(), torch.tensor([0.25, 0.5, 0.75]))
     assert noise.abs().max() <= 1 and torch.allclose(quartiles, torch.tensor([-0.5, 0.0, 0.5]), atol=0.01)
@@ -127,8 +115,7 @@ def test_graft_fills_the_image_context_slots_with_projected_features() -> None:
     torch.testing.assert_close(seen["inputs_embeds"][pads], expected)
     attended = seen["attention_mask"].bool() & pads
     assert attended.sum(dim=1).tolist() == [2 * 16, 2 * 16]  # the padded view's slots are masked
-    loss.mean().backward()
-    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in adapter.projector.parameters())
+    assert_projector_trained(adapter, loss)
     with pytest.raises(BackboneError, match="different token counts"):
         adapter.loss(adapter.prepare({**raw, feature_key("image"): raw[feature_key("image")][:, :9]}), noise, time)
 
@@ -179,58 +166,6 @@ def test_pooled_features_get_as_many_slots_as_tokens() -> None:
     expected = adapter.projector(torch.stack([*cameras, torch.zeros_like(cameras[0])], dim=1).flatten(0, 2))
     torch.testing.assert_close(seen["inputs_embeds"][pads], expected)
     assert adapter.policy.model.embedder.num_image_token == 16
-
-
-def test_native_control_reproduces_the_ungrafted_policy() -> None:
-    assert_native_control_reproduces(tiny("evo1"), tiny("evo1"), 3, size=SIZE)
-
-
-def test_lora_adapts_the_internvl_language_model_and_reset_restores_the_policy() -> None:
-    adapter = tiny("evo1")
-    sha = adapter.policy_sha256
-    images = torch.rand(1, 3, SIZE, SIZE)
-    before = adapter.native_tokens(images)
-    adapter.graft(GraftProjector(ENC_DIM, adapter.lm_width))
-    adapter.add_lora(4)
-    lora = {n for n, p in adapter.policy.named_parameters() if p.requires_grad and "lora_" in n}
-    assert lora and all(n.startswith("model.embedder.model.language_model.layers.") for n in lora)
-    report = {r.module: r for r in adapter.freeze_report().rows}
-    assert report["action head"].trainable == 0 and report["vision tower"].params == 0  # the pass-through
-    assert 0 < report["language model"].trainable < report["language model"].params
-    adapter.reset()
-    assert not adapter.grafted and state_dict_sha256(adapter.policy) == sha
-    assert "_compute_fused_tokens" not in adapter.policy.__dict__
-    torch.testing.assert_close(adapter.native_tokens(images), before)  # the tower is back
-
-
-def test_saved_tiny_loads_by_hub_id(tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """Saved as lerobot saves a policy, placed in a hub cache snapshot, loaded offline by `org/name` (the InternVL
-    built from the shipped tiny folder's config, the weights from the checkpoint)."""
-    adapter = tiny("evo1")
-    adapter.save(tmp_path / "stage")
-    cache = tmp_path / "hub"
-    with hub_cache(cache):
-        monkeypatch.setenv("HF_HUB_CACHE", str(cache))
-        publish(tmp_path / "stage", "graftcache-tests/evo1-tiny", cache)
-        loaded = load_backbone("evo1", "graftcache-tests/evo1-tiny")
-        assert Evo1Adapter.read_token_grid("graftcache-tests/evo1-tiny") == (4, 4)
-        assert Evo1Adapter.read_cameras("graftcache-tests/evo1-tiny") == ("image", "image2")
-    assert loaded.policy_sha256 == adapter.policy_sha256 and loaded.random_init
-    assert loaded.n_params == adapter.n_params == TINY_PARAMS
-    raw = raw_images(adapter, 2, size=SIZE)
-    noise, _ = fixed_noise_time(adapter, 2)
-    torch.testing.assert_close(loaded.predict(loaded.prepare(raw), noise), adapter.predict(adapter.prepare(raw), noise))
-
-
-def test_missing_internvl_folder_is_one_line(tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """A (non-tiny) checkpoint whose InternVL config and tokenizer are not in the HF cache: one line naming them."""
-    folder = tiny("evo1").save(tmp_path / "policy")
-    (folder / "graftcache_tiny.json").unlink()
-    config = json.loads((folder / "config.json").read_text())
-    (folder / "config.json").write_text(json.dumps({**config, "vlm_model_name": "OpenGVLab/InternVL3-1B-hf"}))
-    monkeypatch.setenv("HF_HUB_CACHE", str(tmp_path / "empty"))
-    with pytest.raises(BackboneError, match="InternVL config and tokenizer 'OpenGVLab/InternVL3-1B-hf' is neither"):
-        load_backbone("evo1", folder)
 
 
 def test_released_geometry_on_the_meta_device(tmp_path) -> None:

@@ -1,8 +1,8 @@
 """GR00T N1.7 as a backbone: tiny geometry, the native tower against the policy's own image path (and the merger's
 2x2 order), the loss and the sampler against lerobot's `forward` / `predict_action_chunk` under the same random
 draws, the graft slots (the image-pad positions of the Qwen3-VL sequence, no deepstack features), the native
-control, LoRA and reset, save/load by hub id, and the released geometry on the meta device (3.1B parameters are
-never materialised)."""
+control without deepstack, the missing base model, and the released geometry on the meta device (3.1B parameters
+are never materialised). LoRA and reset, save/load by hub id: tests/test_backbones_zoo_common.py."""
 
 from __future__ import annotations
 
@@ -12,25 +12,26 @@ from collections.abc import Iterator
 import pytest
 import torch
 from helpers.backbones import (
-    ENC_DIM,
     assert_native_control_reproduces,
+    assert_projector_trained,
+    assert_refuses_odd_token_counts,
+    assert_tiny_zoo_geometry,
     fixed_noise_time,
     grafted,
+    lm_inputs_of_loss,
     lowdim_stats,
+    pooled_raw,
+    projected_cameras,
     raw_features,
     raw_images,
     tiny,
 )
 
-from devtools.released import hub_cache, publish
 from graftcache.backbones import load_backbone
-from graftcache.backbones.checkpoint import state_dict_sha256
 from graftcache.backbones.groot import PADDED_ACTION, GrootAdapter, merged_grid
 from graftcache.errors import BackboneError
-from graftcache.graft import GraftProjector, feature_key
 
 SIZE = 128  # the tiny policy's frames; GR00T's VLM step resizes to 128 px anyway: 8x8 patches -> 4x4 tokens
-PARAMS = 810_496
 
 
 def _qwen(adapter):
@@ -54,16 +55,9 @@ def test_tiny_geometry() -> None:
     own = GR00TN17.__dict__["from_pretrained"]
     adapter = tiny("groot")
     assert GR00TN17.__dict__["from_pretrained"] is own  # lerobot's loader is back after construction
-    assert adapter.token_grid == (4, 4) and adapter.lm_width == 64 and adapter.embed_scale == 1.0
-    assert adapter.cameras == ("image", "image2") and adapter.max_action_dim == 8 and adapter.chunk_size == 10
     assert adapter.num_steps == 4 and len(_qwen(adapter).language_model.layers) == 2  # cut at select_layer
-    images = torch.rand(2, 3, SIZE, SIZE)
-    assert adapter.native_patch_grid(images).shape == (2, 8, 8, 32)
-    assert adapter.native_tokens(images).shape == (2, 16, 64)
-    assert adapter.n_params == PARAMS
-    report = {r.module: r.params for r in adapter.freeze_report().rows}
     merger = 2 * 32 + (128 * 128 + 128) + (128 * 64 + 64)  # LayerNorm(32), Linear(4 x 32 -> 128), Linear(128 -> 64)
-    assert sum(report.values()) == PARAMS and report["connector"] == merger
+    assert_tiny_zoo_geometry(adapter, 8, merger)
     tokenizer = adapter._vlm_step.proc.tokenizer
     assert len(tokenizer) <= _qwen(adapter).config.text_config.vocab_size
 
@@ -135,17 +129,6 @@ def test_time_one_is_pure_noise_as_in_fit() -> None:
     torch.testing.assert_close(fed[1], batch[PADDED_ACTION])
 
 
-def test_loss_masks_padded_steps_and_padded_dims_per_sample() -> None:
-    adapter = tiny("groot")
-    adapter.policy.eval()
-    batch = adapter.prepare(raw_images(adapter, 3, size=SIZE))
-    noise, time = fixed_noise_time(adapter, 3)
-    with torch.no_grad():
-        error = adapter._flow_losses(batch, noise, time)[:, :, :7]
-        loss = adapter.loss(batch, noise, time)
-    torch.testing.assert_close(loss, torch.stack([error[0, :-3].mean(), error[1].mean(), error[2].mean()]))
-
-
 def test_graft_fills_the_image_pads_with_projected_features_and_no_deepstack() -> None:
     adapter = grafted("groot")
     assert {n for n, p in adapter.policy.named_parameters() if p.requires_grad} == {
@@ -153,36 +136,21 @@ def test_graft_fills_the_image_pads_with_projected_features_and_no_deepstack() -
         for p in ("norm.weight", "norm.bias", "proj.weight", "proj.bias")}
     raw = raw_features(adapter, 2)
     batch = adapter.prepare(raw)
-    seen = {}
-    lm = _qwen(adapter).language_model
-    hook = lm.register_forward_pre_hook(lambda m, args, kwargs: seen.update(kwargs), with_kwargs=True)
     noise, time = fixed_noise_time(adapter, 2)
-    loss = adapter.loss(batch, noise, time)
-    hook.remove()
+    seen, loss = lm_inputs_of_loss(adapter, _qwen(adapter).language_model, batch, noise, time)
     pads = batch["input_ids"] == _qwen(adapter).config.image_token_id
-    cameras = [raw[feature_key(k)] for k in adapter.camera_keys]  # image, image2: also the video's sorted order
-    expected = adapter.projector(torch.stack(cameras, dim=1).flatten(0, 2))
+    expected = projected_cameras(adapter, raw)  # image, image2: also the video's sorted order
     torch.testing.assert_close(seen["inputs_embeds"][pads], expected)
     assert seen["deepstack_visual_embeds"] is None and torch.equal(seen["visual_pos_masks"], pads)
-    loss.mean().backward()
-    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in adapter.projector.parameters())
-    odd = {**raw, **{feature_key(k): raw[feature_key(k)][:, :6] for k in adapter.camera_keys}}
-    with pytest.raises(BackboneError, match="6 cached tokens per camera is neither the native 4x4 grid nor a square"):
-        adapter.prepare(odd)
-    with pytest.raises(BackboneError, match="different token counts"):
-        adapter.prepare({**raw, feature_key("image"): raw[feature_key("image")][:, :9]})
-    batch = adapter.prepare(raw)
-    batch[feature_key("image2")] = batch[feature_key("image2")][:, :4]
-    with pytest.raises(BackboneError, match=r"features have \[4, 16\] tokens per camera; the prompt has \[16\]"):
-        adapter.loss(batch, noise, time)
+    assert_projector_trained(adapter, loss)
+    assert_refuses_odd_token_counts(adapter, raw, noise, time, slots=True)
 
 
 def test_pooled_features_get_a_prompt_with_their_grid() -> None:
     """The pool-HxW controls: a 2x2 pooled grid gets 4 image pads per camera and the grid_thw of a 2x2 merged image
     (what Qwen's processor writes for a 64 px frame), so the projected tokens fill exactly those slots."""
     adapter = grafted("groot")
-    raw = {**raw_features(adapter, 2), **{feature_key(k): torch.randn(2, 4, ENC_DIM) for k in adapter.camera_keys}}
-    batch = adapter.prepare(raw)
+    batch = adapter.prepare(pooled_raw(adapter))
     pads = batch["input_ids"] == _qwen(adapter).config.image_token_id
     assert pads.sum(dim=1).tolist() == [8, 8] and batch["image_grid_thw"].tolist() == [[1, 4, 4]] * 4
     noise, time = fixed_noise_time(adapter, 2)
@@ -205,42 +173,6 @@ def test_native_control_reproduces_the_policy_without_deepstack() -> None:
     assert not torch.allclose(with_deepstack, without)
     with no_deepstack(native):
         assert_native_control_reproduces(native, control, 2, size=SIZE)
-
-
-def test_lora_adapts_the_qwen_language_model_and_reset_restores_the_policy() -> None:
-    adapter = tiny("groot")
-    sha = adapter.policy_sha256
-    images = torch.rand(1, 3, SIZE, SIZE)
-    before = adapter.native_tokens(images)
-    adapter.graft(GraftProjector(ENC_DIM, adapter.lm_width))
-    adapter.add_lora(4)
-    lora = {n for n, p in adapter.policy.named_parameters() if p.requires_grad and "lora_" in n}
-    assert lora and all(n.startswith("_groot_model.backbone.model.model.language_model.layers.") for n in lora)
-    report = {r.module: r for r in adapter.freeze_report().rows}
-    assert report["action head"].trainable == 0 and report["patch embedding"].trainable == 0
-    assert 0 < report["language model"].trainable < report["language model"].params
-    adapter.reset()
-    assert not adapter.grafted and state_dict_sha256(adapter.policy) == sha
-    torch.testing.assert_close(adapter.native_tokens(images), before)  # the ViT is back
-
-
-def test_saved_tiny_loads_by_hub_id(tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """Saved as lerobot saves a policy, placed in a hub cache snapshot, loaded offline by `org/name` (the model
-    built from the tiny base config, its Qwen3-VL processor from the shipped tiny folder)."""
-    adapter = tiny("groot")
-    adapter.save(tmp_path / "stage")
-    cache = tmp_path / "hub"
-    with hub_cache(cache):
-        monkeypatch.setenv("HF_HUB_CACHE", str(cache))
-        publish(tmp_path / "stage", "graftcache-tests/groot-tiny", cache)
-        loaded = load_backbone("groot", "graftcache-tests/groot-tiny")
-        assert GrootAdapter.read_token_grid("graftcache-tests/groot-tiny") == (4, 4)
-        assert GrootAdapter.read_cameras("graftcache-tests/groot-tiny") == ("image", "image2")
-    assert loaded.policy_sha256 == adapter.policy_sha256 and loaded.random_init
-    assert loaded.n_params == adapter.n_params == PARAMS
-    raw = raw_images(adapter, 2, size=SIZE)
-    noise, _ = fixed_noise_time(adapter, 2)
-    torch.testing.assert_close(loaded.predict(loaded.prepare(raw), noise), adapter.predict(adapter.prepare(raw), noise))
 
 
 def test_missing_base_model_is_one_line(tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:

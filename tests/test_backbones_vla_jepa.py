@@ -1,8 +1,8 @@
 """VLA-JEPA as a backbone: tiny geometry, the native tower against the policy's own image path (and the merger's
 2x2 order), the action loss and the sampler against lerobot's `forward` / `predict_action_chunk` under the same
-random draws, the graft slots (the image-pad positions of the Qwen3-VL prompt, no deepstack), the native control,
-LoRA and reset, save/load by hub id, and the released geometry on the meta device (2.3B parameters are never
-materialised)."""
+random draws, the graft slots (the image-pad positions of the Qwen3-VL prompt, no deepstack), the native control
+without deepstack, and the released geometry on the meta device (2.3B parameters are never materialised). LoRA
+and reset, save/load by hub id and the missing base: tests/test_backbones_zoo_common.py."""
 
 from __future__ import annotations
 
@@ -14,21 +14,25 @@ import torch
 from helpers.backbones import (
     ENC_DIM,
     assert_native_control_reproduces,
+    assert_projector_trained,
+    assert_refuses_odd_token_counts,
+    assert_tiny_zoo_geometry,
     fixed_noise_time,
     grafted,
+    lm_inputs_of_loss,
+    pooled_raw,
+    projected_cameras,
     raw_features,
     raw_images,
     tiny,
 )
 from helpers.memory import peak_tensor_bytes
 
-from devtools.released import hub_cache, publish
-from graftcache.backbones import lean, load_backbone
-from graftcache.backbones.checkpoint import state_dict_sha256
+from graftcache.backbones import lean
 from graftcache.backbones.vla_jepa import VLAJEPAAdapter, merged_grid
 from graftcache.errors import BackboneError
 from graftcache.fit.controls import PassThroughProjector
-from graftcache.graft import GraftProjector, feature_key
+from graftcache.graft import feature_key
 
 SIZE = 128  # the tiny policy's frames (train-tiny's size): 8x8 patches of 16 px -> 4x4 merged tokens
 
@@ -49,16 +53,9 @@ def _cameras_tokens(adapter, batch: dict) -> tuple[dict, torch.Tensor]:
 
 def test_tiny_geometry() -> None:
     adapter = tiny("vla_jepa")
-    assert adapter.token_grid == (4, 4) and adapter.lm_width == 64 and adapter.embed_scale == 1.0
-    assert adapter.cameras == ("image", "image2") and adapter.max_action_dim == 7 and adapter.chunk_size == 10
     assert not adapter.config.enable_world_model and adapter.policy.model.video_predictor is None
-    images = torch.rand(2, 3, SIZE, SIZE)
-    assert adapter.native_patch_grid(images).shape == (2, 8, 8, 32)
-    assert adapter.native_tokens(images).shape == (2, 16, 64)
-    assert adapter.n_params == 295_927
-    report = {r.module: r.params for r in adapter.freeze_report().rows}
     merger = 2 * 32 + (128 * 128 + 128) + (128 * 64 + 64)  # LayerNorm(32), Linear(4 x 32 -> 128), Linear(128 -> 64)
-    assert sum(report.values()) == 295_927 and report["connector"] == merger
+    report = assert_tiny_zoo_geometry(adapter, 7, merger)
     assert report["deepstack mergers"] == 2 * 128 + (128 * 128 + 128) + (128 * 64 + 64)  # one, LayerNorm after 2x2
     tokenizer = adapter.policy.model.qwen.processor.tokenizer  # 40 action tokens + the embodied one added
     assert len(tokenizer) <= adapter._qwen.config.text_config.vocab_size
@@ -137,32 +134,21 @@ def test_graft_fills_the_image_pads_with_projected_features_and_no_deepstack() -
         f"model.qwen.model.model.visual.merger.{p}" for p in ("norm.weight", "norm.bias", "proj.weight", "proj.bias")}
     raw = raw_features(adapter, 2)
     batch = adapter.prepare(raw)
-    seen = {}
-    lm = adapter._qwen.language_model
-    hook = lm.register_forward_pre_hook(lambda m, args, kwargs: seen.update(kwargs), with_kwargs=True)
     noise, time = fixed_noise_time(adapter, 2)
-    loss = adapter.loss(batch, noise, time)
-    hook.remove()
+    seen, loss = lm_inputs_of_loss(adapter, adapter._qwen.language_model, batch, noise, time)
     pads = seen["visual_pos_masks"]
-    cameras = [raw[feature_key(k)] for k in adapter.camera_keys]
-    expected = adapter.projector(torch.stack(cameras, dim=1).flatten(0, 2))
+    expected = projected_cameras(adapter, raw)
     assert pads.sum(dim=1).tolist() == [2 * 16, 2 * 16] and seen["deepstack_visual_embeds"] == []
     torch.testing.assert_close(seen["inputs_embeds"][pads].float(), expected, atol=0.02, rtol=0.02)  # bf16 autocast
-    loss.mean().backward()
-    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in adapter.projector.parameters())
-    odd = {**raw, **{feature_key(k): raw[feature_key(k)][:, :6] for k in adapter.camera_keys}}
-    with pytest.raises(BackboneError, match="6 cached tokens per camera is neither the native 4x4 grid nor a square"):
-        adapter.loss(adapter.prepare(odd), noise, time)
-    with pytest.raises(BackboneError, match="different token counts"):
-        adapter.loss(adapter.prepare({**raw, feature_key("image"): raw[feature_key("image")][:, :9]}), noise, time)
+    assert_projector_trained(adapter, loss)
+    assert_refuses_odd_token_counts(adapter, raw, noise, time)
 
 
 def test_pooled_features_get_a_prompt_with_their_grid() -> None:
     """The pool-HxW controls: a 2x2 pooled grid gets 4 image pads per camera and the grid_thw of a 2x2 merged image
     (what Qwen's processor writes for a 64 px image), so the projected tokens fill exactly those slots."""
     adapter = grafted("vla_jepa")
-    raw = {**raw_features(adapter, 2), **{feature_key(k): torch.randn(2, 4, ENC_DIM) for k in adapter.camera_keys}}
-    batch = adapter.prepare(raw)
+    batch = adapter.prepare(pooled_raw(adapter))
     model = adapter.policy.model
     inputs = model.qwen.build_inputs(adapter.policy._prepare_model_inputs(batch)["images"], batch["task"],
                                      model.replace_prompt, model.embodied_replace_prompt)
@@ -237,55 +223,6 @@ def test_activation_checkpointing_keeps_the_projector_gradients_and_lowers_the_p
     for plain, checkpointed in zip(grads[False], grads[True], strict=True):
         torch.testing.assert_close(checkpointed, plain, rtol=0, atol=1e-6)
     assert peaks[True] < 0.6 * peaks[False], peaks  # measured: 7.6 of 16.2 MB
-
-
-def test_lora_adapts_the_qwen_language_model_and_reset_restores_the_policy() -> None:
-    adapter = tiny("vla_jepa")
-    sha = adapter.policy_sha256
-    images = torch.rand(1, 3, SIZE, SIZE)
-    before = adapter.native_tokens(images)
-    adapter.graft(GraftProjector(ENC_DIM, adapter.lm_width))
-    adapter.add_lora(4)
-    lora = {n for n, p in adapter.policy.named_parameters() if p.requires_grad and "lora_" in n}
-    assert lora and all(n.startswith("model.qwen.model.model.language_model.layers.") for n in lora)
-    report = {r.module: r for r in adapter.freeze_report().rows}
-    assert report["action head"].trainable == 0 and report["deepstack mergers"].trainable == 0
-    assert 0 < report["language model"].trainable < report["language model"].params
-    adapter.reset()
-    assert not adapter.grafted and state_dict_sha256(adapter.policy) == sha
-    torch.testing.assert_close(adapter.native_tokens(images), before)  # the ViT is back
-
-
-def test_saved_tiny_loads_by_hub_id(tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """Saved as lerobot saves a policy, placed in a hub cache snapshot, loaded offline by `org/name` (Qwen3-VL built
-    from the shipped tiny folder's config, its processor from the same folder)."""
-    adapter = tiny("vla_jepa")
-    adapter.save(tmp_path / "stage")
-    cache = tmp_path / "hub"
-    with hub_cache(cache):
-        monkeypatch.setenv("HF_HUB_CACHE", str(cache))
-        publish(tmp_path / "stage", "graftcache-tests/vla-jepa-tiny", cache)
-        loaded = load_backbone("vla_jepa", "graftcache-tests/vla-jepa-tiny")
-        assert VLAJEPAAdapter.read_token_grid("graftcache-tests/vla-jepa-tiny") == (4, 4)
-        assert VLAJEPAAdapter.read_cameras("graftcache-tests/vla-jepa-tiny") == ("image", "image2")
-    assert loaded.policy_sha256 == adapter.policy_sha256 and loaded.random_init
-    assert loaded.n_params == adapter.n_params == 295_927  # the LM head tied to the embedding again, counted once
-    raw = raw_images(adapter, 2, size=SIZE)
-    noise, _ = fixed_noise_time(adapter, 2)
-    torch.testing.assert_close(loaded.predict(loaded.prepare(raw), noise), adapter.predict(adapter.prepare(raw), noise))
-
-
-def test_missing_qwen_folder_is_one_line(tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """A (non-tiny) checkpoint whose Qwen3-VL folder is not in the HF cache: one line naming it."""
-    adapter = tiny("vla_jepa")
-    folder = adapter.save(tmp_path / "policy")
-    (folder / "graftcache_tiny.json").unlink()
-    config = json.loads((folder / "config.json").read_text())
-    (folder / "config.json").write_text(json.dumps({**config, "qwen_model_name": "Qwen/Qwen3-VL-2B-Instruct"}))
-    monkeypatch.setenv("HF_HUB_CACHE", str(tmp_path / "empty"))
-    with pytest.raises(BackboneError, match="VLA-JEPA's Qwen3-VL config and processor 'Qwen/Qwen3-VL-2B-Instruct' "
-                                            "is neither a local folder nor in the Hugging Face cache"):
-        load_backbone("vla_jepa", folder)
 
 
 def test_released_geometry_on_the_meta_device(tmp_path) -> None:

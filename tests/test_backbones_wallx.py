@@ -1,35 +1,35 @@
 """Wall-X as a backbone: tiny geometry (built offline from the shipped tiny MoE config and EO-1's tiny Qwen
 processor), the native tower against the policy's own image path, the loss and the sampler against lerobot's
 `forward` / `predict_action_chunk` under the same random draws (flow loss only: no token labels in flow mode), the
-graft slots (the image-pad positions), the native control, LoRA and reset, save/load by hub id, and the released
-geometry on the meta device (4.2B parameters are never materialised)."""
+graft slots (the image-pad positions), and the released geometry on the meta device (4.2B
+parameters are never materialised). The native control, LoRA and reset, save/load by hub id and the missing base:
+tests/test_backbones_zoo_common.py."""
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import pytest
 import torch
 from helpers.backbones import (
     ENC_DIM,
-    assert_native_control_reproduces,
+    assert_projector_trained,
+    assert_refuses_odd_token_counts,
+    assert_tiny_zoo_geometry,
     fixed_noise_time,
     grafted,
+    lm_inputs_of_loss,
+    pooled_raw,
     raw_features,
     raw_images,
     tiny,
 )
 
-from devtools.released import hub_cache, publish
-from graftcache.backbones import load_backbone
-from graftcache.backbones.checkpoint import state_dict_sha256
 from graftcache.backbones.wallx import GivenDraw, WallXAdapter
 from graftcache.errors import BackboneError
 from graftcache.graft import FusedProjector, GraftProjector, feature_key
 
 SIZE = 128  # the tiny policy's frames: Wall-X resizes to 256 -> 252 px, the tiny processor to 112 px -> 4x4 tokens
-TINY_PARAMS = 250_784
 
 
 def _image_pads(adapter, batch) -> torch.Tensor:
@@ -38,17 +38,10 @@ def _image_pads(adapter, batch) -> torch.Tensor:
 
 def test_tiny_geometry() -> None:
     adapter = tiny("wall_x")
-    assert adapter.token_grid == (4, 4) and adapter.lm_width == 64 and adapter.embed_scale == 1.0
-    assert adapter.cameras == ("image", "image2") and adapter.max_action_dim == 20 and adapter.chunk_size == 10
     assert adapter.num_steps == 10  # `predict`'s default: lerobot's policy passes no other
-    images = torch.rand(2, 3, SIZE, SIZE)
-    assert adapter.native_patch_grid(images).shape == (2, 8, 8, 32)
-    assert adapter.native_tokens(images).shape == (2, 16, 64)
-    assert adapter.n_params == TINY_PARAMS
-    report = {r.module: r.params for r in adapter.freeze_report().rows}
     merger = 32 + (128 * 128 + 128) + (128 * 64 + 64)  # RMSNorm(32), Linear(4 x 32 -> 128), Linear(128 -> 64)
+    assert_tiny_zoo_geometry(adapter, 20, merger)
     experts = 2 * 3 * 64 * (128 + 64)  # two layers, each with Wall-X's VLM expert (64 -> 128) and action expert
-    assert sum(report.values()) == TINY_PARAMS and report["connector"] == merger
     assert sum(p.numel() for n, p in adapter.policy.model.model.named_parameters() if ".moe." in n) == experts
     tokenizer = adapter.policy.model.processor.tokenizer  # merge_tokenizer.py's two tokens, left padding
     assert tokenizer.padding_side == "left" and len(tokenizer) == adapter.policy.model.config.vocab_size
@@ -107,40 +100,20 @@ def test_loss_and_prediction_are_lerobots_under_the_same_draws() -> None:
         torch.randn(2, 2)
 
 
-def test_loss_masks_padded_steps_and_padded_dims_per_sample() -> None:
-    adapter = tiny("wall_x")
-    adapter.policy.eval()
-    batch = adapter.prepare(raw_images(adapter, 3, size=SIZE))
-    noise, time = fixed_noise_time(adapter, 3)
-    with torch.no_grad():
-        error = adapter._flow_losses(batch, noise, time)[:, :, :7]
-        loss = adapter.loss(batch, noise, time)
-    torch.testing.assert_close(loss, torch.stack([error[0, :-3].mean(), error[1].mean(), error[2].mean()]))
-
-
 def test_graft_fills_the_image_pads_with_projected_features() -> None:
     adapter = grafted("wall_x")
     assert {n for n, p in adapter.policy.named_parameters() if p.requires_grad} == {
         f"model.visual.merger.{p}" for p in ("norm.weight", "norm.bias", "proj.weight", "proj.bias")}
     raw = raw_features(adapter, 2)
     batch = adapter.prepare(raw)
-    seen = {}
-    lm = adapter.policy.model.model
-    hook = lm.register_forward_pre_hook(lambda m, args, kwargs: seen.update(kwargs), with_kwargs=True)
     noise, time = fixed_noise_time(adapter, 2)
-    loss = adapter.loss(batch, noise, time)
-    hook.remove()
+    seen, loss = lm_inputs_of_loss(adapter, adapter.policy.model.model, batch, noise, time)
     inputs = adapter.policy.preprocess_inputs(batch)
     cameras = [raw[feature_key(k)] for k in adapter.camera_keys]
     expected = adapter.projector(torch.stack(cameras, dim=1).flatten(0, 2).bfloat16())  # Wall-X's cast to the ViT's
     torch.testing.assert_close(seen["inputs_embeds"][_image_pads(adapter, inputs)], expected.bfloat16())
-    loss.mean().backward()
-    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in adapter.projector.parameters())
-    odd = {**raw, **{feature_key(k): raw[feature_key(k)][:, :6] for k in adapter.camera_keys}}
-    with pytest.raises(BackboneError, match="6 cached tokens per camera is neither the native 4x4 grid nor a square"):
-        adapter.loss(adapter.prepare(odd), noise, time)
-    with pytest.raises(BackboneError, match="different token counts"):
-        adapter.loss(adapter.prepare({**raw, feature_key("image"): raw[feature_key("image")][:, :9]}), noise, time)
+    assert_projector_trained(adapter, loss)
+    assert_refuses_odd_token_counts(adapter, raw, noise, time)
 
 
 def test_fused_projectors_each_fill_their_own_samples_image_pads() -> None:
@@ -168,36 +141,13 @@ def test_pooled_features_get_a_prompt_with_their_grid() -> None:
     (the processor's bounds pinned to 56x56 px for the call), so the projected tokens fill exactly those slots."""
     adapter = grafted("wall_x")
     bounds = dict(adapter._image_processor.size)
-    raw = {**raw_features(adapter, 2), **{feature_key(k): torch.randn(2, 4, ENC_DIM) for k in adapter.camera_keys}}
-    batch = adapter.prepare(raw)
+    batch = adapter.prepare(pooled_raw(adapter))
     inputs = adapter.policy.preprocess_inputs(batch)
     assert _image_pads(adapter, inputs).sum(dim=1).tolist() == [8, 8]
     assert inputs["image_grid_thw"].tolist() == [[1, 4, 4]] * 4 and inputs["pixel_values"].shape == (16, ENC_DIM)
     noise, time = fixed_noise_time(adapter, 2)
     assert torch.isfinite(adapter.loss(batch, noise, time)).all()
     assert dict(adapter._image_processor.size) == bounds  # the bounds are the policy's again
-
-
-def test_native_control_reproduces_the_ungrafted_policy() -> None:
-    assert_native_control_reproduces(tiny("wall_x"), tiny("wall_x"), 3, size=SIZE)
-
-
-def test_lora_adapts_the_moe_language_model_and_reset_restores_the_policy() -> None:
-    adapter = tiny("wall_x")
-    sha = adapter.policy_sha256
-    images = torch.rand(1, 3, SIZE, SIZE)
-    before = adapter.native_tokens(images)
-    adapter.graft(GraftProjector(ENC_DIM, adapter.lm_width))
-    adapter.add_lora(4)
-    lora = {n for n, p in adapter.policy.named_parameters() if p.requires_grad and "lora_" in n}
-    assert lora and all(n.startswith("model.model.layers.") for n in lora)
-    assert any(".moe.experts.1." in n for n in lora)  # the action expert's MLP is adapted too
-    report = {r.module: r for r in adapter.freeze_report().rows}
-    assert report["action head"].trainable == 0 and report["patch embedding"].trainable == 0
-    assert 0 < report["language model"].trainable < report["language model"].params
-    adapter.reset()
-    assert not adapter.grafted and state_dict_sha256(adapter.policy) == sha
-    torch.testing.assert_close(adapter.native_tokens(images), before)  # the ViT is back
 
 
 def test_activation_checkpointing_keeps_the_gradients() -> None:
@@ -212,38 +162,6 @@ def test_activation_checkpointing_keeps_the_gradients() -> None:
         grads.append([p.grad.clone() for p in adapter.projector.parameters()])
     for plain, recomputed in zip(*grads):
         torch.testing.assert_close(plain, recomputed)
-
-
-def test_saved_tiny_loads_by_hub_id(tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """Saved as lerobot saves a policy, placed in a hub cache snapshot, loaded offline by `org/name` (the model built
-    from the shipped tiny config and processor, the weights read lean)."""
-    adapter = tiny("wall_x")
-    adapter.save(tmp_path / "stage")
-    cache = tmp_path / "hub"
-    with hub_cache(cache):
-        monkeypatch.setenv("HF_HUB_CACHE", str(cache))
-        publish(tmp_path / "stage", "graftcache-tests/wall_x-tiny", cache)
-        loaded = load_backbone("wall_x", "graftcache-tests/wall_x-tiny")
-        assert WallXAdapter.read_token_grid("graftcache-tests/wall_x-tiny") == (4, 4)
-        assert WallXAdapter.read_cameras("graftcache-tests/wall_x-tiny") == ("image", "image2")
-    assert loaded.policy_sha256 == adapter.policy_sha256 and loaded.random_init
-    assert loaded.n_params == adapter.n_params == TINY_PARAMS  # the LM head tied to the embedding again, counted once
-    raw = raw_images(adapter, 2, size=SIZE)
-    noise, _ = fixed_noise_time(adapter, 2)
-    torch.testing.assert_close(loaded.predict(loaded.prepare(raw), noise), adapter.predict(adapter.prepare(raw), noise))
-
-
-def test_missing_base_repo_is_one_line(tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """A (non-tiny) checkpoint whose base repo (config and processor) is not in the HF cache: one line naming it."""
-    folder = tiny("wall_x").save(tmp_path / "policy")
-    (folder / "graftcache_tiny.json").unlink()
-    config = json.loads((folder / "config.json").read_text())
-    config["pretrained_name_or_path"] = "x-square-robot/wall-oss-flow"
-    (folder / "config.json").write_text(json.dumps(config))
-    monkeypatch.setenv("HF_HUB_CACHE", str(tmp_path / "empty"))
-    with pytest.raises(BackboneError, match="Wall-X's base config and processor 'x-square-robot/wall-oss-flow' is "
-                                            "neither"):
-        load_backbone("wall_x", folder)
 
 
 def _released_base(folder: Path) -> Path:

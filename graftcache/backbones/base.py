@@ -262,12 +262,16 @@ class BackboneAdapter(GraftSurgery, PromptBatches, FlowObjective, ActivationChec
         """Factor lerobot applies to image tokens after the connector (and so after a graft projector)."""
 
     # ------------------------------------------------------------------------------ native tower
-    def _native_pixels(self, images: torch.Tensor) -> torch.Tensor:
-        """[B, 3, H, W] in [0, 1] -> the tower's input, through the policy's own image preparation."""
+    def _check_native(self, images: torch.Tensor) -> None:
+        """Refuse, in one line, a native-tower read after graft() or of images not [B, 3, H, W]."""
         if self.grafted:
             raise BackboneError(f"{self.name}: the native tower was removed by graft(); read it before grafting")
         if images.ndim != 4 or images.shape[1] != 3:
             raise BackboneError(f"{self.name}: native images must be [B, 3, H, W] in [0, 1], got {tuple(images.shape)}")
+
+    def _native_pixels(self, images: torch.Tensor) -> torch.Tensor:
+        """[B, 3, H, W] in [0, 1] -> the tower's input, through the policy's own image preparation."""
+        self._check_native(images)
         prepare = getattr(type(self.policy), self.image_method)
         prepared, _ = prepare(self.policy, {self.camera_keys[0]: images.to(self.device)})
         return prepared[0]

@@ -38,6 +38,17 @@ from transformers.modeling_outputs import BaseModelOutputWithPooling
 from graftcache.backbones.base import BackboneAdapter
 from graftcache.backbones.batches import ACTION, STATE
 from graftcache.backbones.checkpoint import cached_repo
+from graftcache.backbones.qwen_vl import (
+    NativeVision,
+    cached_token_count,
+    check_slots,
+    image_token_counts,
+    projected_images,
+    prompt_grid,
+    raster_patches,
+    shadow_method,
+    tied_head_keys,
+)
 from graftcache.backbones.tiny import TinySpec
 from graftcache.backbones.tiny_eo1 import QWEN_VL_DIR, build_tiny_eo1, construct
 from graftcache.errors import BackboneError
@@ -70,7 +81,7 @@ def vit_outputs(visual: nn.Module, pixel_values: torch.Tensor,
     # ViT states come in window order, by merge block: back to the processor's block order, then raster
     window, _ = visual.get_window_index(thw)
     hidden = out.last_hidden_state.view(-1, m * m, out.last_hidden_state.shape[-1])[torch.argsort(window)]
-    grid = hidden.view(size, gh // m, gw // m, m, m, -1).permute(0, 1, 3, 2, 4, 5).reshape(size, gh, gw, -1)
+    grid = raster_patches(hidden, size, gh, gw, m)
     tokens = out.pooler_output.view(size, (gh // m) * (gw // m), -1)
     return grid.float(), tokens.float()
 
@@ -111,7 +122,7 @@ def shadowed(module: nn.Module, **methods) -> Iterator[None]:
             module.__dict__.pop(name, None)
 
 
-class EO1Adapter(BackboneAdapter):
+class EO1Adapter(NativeVision, BackboneAdapter):
     name = "eo1"
     vision_slots = ("blocks", "merger")
     steps_field = "num_denoise_steps"
@@ -121,8 +132,7 @@ class EO1Adapter(BackboneAdapter):
 
     def __init__(self, *args, **kwargs) -> None:
         super().__init__(*args, **kwargs)
-        qwen = self.policy.model.vlm_backbone.model
-        qwen.get_image_features = functools.partial(self._image_features, type(qwen).get_image_features, qwen)
+        shadow_method(self.policy.model.vlm_backbone.model, "get_image_features", self._image_features)
 
     # ------------------------------------------------------------------------------ construction
     @classmethod
@@ -144,12 +154,8 @@ class EO1Adapter(BackboneAdapter):
     def _checkpoint_keys(cls, policy: nn.Module, file_keys: Iterable[str]) -> dict[str, str]:
         """Qwen2.5-VL-3B ties its LM head to the word embedding; safetensors keeps one of the two names: read the
         other from it."""
-        keys = {k: k for k in file_keys}
-        head, embed = "model.vlm_backbone.lm_head.weight", "model.vlm_backbone.model.language_model.embed_tokens.weight"
-        for a, b in ((head, embed), (embed, head)):
-            if a in keys and b not in keys:
-                keys[b] = keys[a]
-        return keys
+        return tied_head_keys(file_keys, "model.vlm_backbone.lm_head.weight",
+                              "model.vlm_backbone.model.language_model.embed_tokens.weight")
 
     @classmethod
     def _qwen_folder(cls, config, marker: dict | None) -> Path:
@@ -210,61 +216,30 @@ class EO1Adapter(BackboneAdapter):
         row, [B, cameras x tokens, C]: a fused projector (graftcache.graft.FusedProjector) routes rows."""
         if not self.grafted:
             return own(qwen, pixel_values, image_grid_thw, **kwargs)
-        tower, connector = self._tower_and_connector()
-        features = tower(pixel_values).last_hidden_state
-        samples = len(image_grid_thw) // len(self.config.image_features)  # _feature_images: one image each
-        tokens = connector(features.reshape(samples, -1, features.shape[-1])).flatten(0, 1)
-        sizes = (image_grid_thw.prod(-1) // qwen.visual.spatial_merge_size ** 2).tolist()
-        return BaseModelOutputWithPooling(last_hidden_state=pixel_values, pooler_output=torch.split(tokens, sizes))
+        tokens = projected_images(*self._tower_and_connector(), pixel_values, image_grid_thw,
+                                  qwen.visual.spatial_merge_size, len(self.config.image_features))
+        return BaseModelOutputWithPooling(last_hidden_state=pixel_values, pooler_output=tokens)
 
     def _vision(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """[B, 3, H, W] in [0, 1] through the policy's own processor and ViT: (pre-merger patch grid [B, gh, gw,
         C] in raster order, post-merger tokens [B, T, D])."""
-        if self.grafted:
-            raise BackboneError(f"{self.name}: the native tower was removed by graft(); read it before grafting")
-        if images.ndim != 4 or images.shape[1] != 3:
-            raise BackboneError(f"{self.name}: native images must be [B, 3, H, W] in [0, 1], got {tuple(images.shape)}")
+        self._check_native(images)
         step = self._qwen_processor
         frames = images.clamp(0, 1).mul(255.0).round().to(torch.uint8).cpu()  # EO1ConversationTemplateStep
         inputs = step._processor.image_processor(images=list(frames), min_pixels=step.image_min_pixels,
                                                  max_pixels=step.image_max_pixels, return_tensors="pt")
         return vit_outputs(self._vision_owner, inputs["pixel_values"], inputs["image_grid_thw"])
 
-    @torch.no_grad()
-    def native_patch_grid(self, images: torch.Tensor) -> torch.Tensor:
-        """The ViT's last block before the merger, [B, gh, gw, C] at patch resolution (2x the merged grid)."""
-        return self._vision(images)[0]
-
-    @torch.no_grad()
-    def native_tokens(self, images: torch.Tensor) -> torch.Tensor:
-        """Post-merger tokens [B, gh/2 * gw/2, D], in the order Qwen scatters them into the prompt."""
-        return self._vision(images)[1]
-
     def _feature_images(self, batch: Mapping[str, Any], excluded_keys: set[str]) -> dict[str, Any]:
         """Grafted stand-in for EO1Policy._get_model_inputs: Qwen's `pixel_values` are the cached features of
         every image, sample after sample, camera after camera (the order of the image pads in the prompts)."""
         images, _ = super()._feature_images(batch)
-        slots = set((batch["image_grid_thw"].prod(-1) // self._vision_owner.spatial_merge_size ** 2).tolist())
-        tokens = {f.shape[1] for f in images}
-        if tokens != slots or len(slots) != 1:
-            raise BackboneError(f"{self.name}: cached features have {sorted(tokens)} tokens per camera; the prompt "
-                                f"has {sorted(slots)} image slots per camera")
+        check_slots(self.name, {f.shape[1] for f in images},
+                    set(image_token_counts(batch["image_grid_thw"], self._vision_owner.spatial_merge_size)))
         inputs = {k: v for k, v in batch.items()
                   if k not in excluded_keys and not k.startswith(feature_key(""))}
         inputs["pixel_values"] = torch.stack(images, dim=1).flatten(0, 2)
         return inputs
-
-    def _prompt_grid(self, tokens: int) -> tuple[int, int]:
-        """The merged grid a prompt needs for `tokens` cached tokens per camera: the token grid, or the square
-        grid of a pooling control (the cache keeps no shape, so any other count is refused, not guessed)."""
-        gh, gw = self.token_grid
-        if tokens == gh * gw:
-            return gh, gw
-        side = round(tokens ** 0.5)
-        if side * side != tokens:
-            raise BackboneError(f"{self.name}: {tokens} cached tokens per camera is neither its token grid {gh}x{gw} "
-                                "nor a square grid; EO-1's prompt needs the grid's shape")
-        return side, side
 
     def prepare(self, raw: Mapping[str, Any]) -> dict[str, Any]:
         """lerobot's preprocessor (prompt, padding, normalisation). Grafted, the prompt is made from blank frames
@@ -275,13 +250,7 @@ class EO1Adapter(BackboneAdapter):
             with processor_kwargs_quiet():
                 return super().prepare(raw)
         batch = dict(raw)
-        missing = [k for k in [feature_key(c) for c in self.camera_keys] + [STATE, "task"] if k not in batch]
-        if missing:
-            raise BackboneError(f"{self.name} batch is missing {', '.join(missing)}")
-        counts = {k: batch[feature_key(k)].shape[1] for k in self.camera_keys}
-        if len(set(counts.values())) != 1:
-            raise BackboneError(f"{self.name}: cameras carry different token counts ({counts})")
-        gh, gw = self._prompt_grid(next(iter(counts.values())))
+        gh, gw = prompt_grid(self.name, "EO-1", self.token_grid, cached_token_count(self.name, batch, self.camera_keys))
         factor = self._vision_owner.config.patch_size * self._vision_owner.spatial_merge_size
         size = batch[STATE].shape[0]
         for key in self.config.image_features:

@@ -184,10 +184,7 @@ class Evo1Adapter(BackboneAdapter):
         """[0, 1] frames -> the embedder's own pixel step (uint8 quantise, bicubic resize, ImageNet normalise)."""
         from lerobot.policies.evo1.internvl3_embedder import IMAGENET_MEAN, IMAGENET_STD, _batched_pixel_values
 
-        if self.grafted:
-            raise BackboneError(f"{self.name}: the native tower was removed by graft(); read it before grafting")
-        if images.ndim != 4 or images.shape[1] != 3:
-            raise BackboneError(f"{self.name}: native images must be [B, 3, H, W] in [0, 1], got {tuple(images.shape)}")
+        self._check_native(images)
         embedder = self.policy.model.embedder
         return _batched_pixel_values([images.to(self.device)], 1, embedder.image_size, torch.tensor(IMAGENET_MEAN),
                                      torch.tensor(IMAGENET_STD), embedder.model_dtype, self.device)

@@ -40,6 +40,16 @@ from graftcache.backbones.base import BackboneAdapter
 from graftcache.backbones.batches import ACTION, STATE
 from graftcache.backbones.checkpoint import cached_repo
 from graftcache.backbones.eo1 import shadowed
+from graftcache.backbones.qwen_vl import (
+    NativeVision,
+    cached_token_count,
+    check_slots,
+    image_token_counts,
+    projected_images,
+    prompt_grid,
+    raster_patches,
+    shadow_method,
+)
 from graftcache.backbones.tiny import TinySpec
 from graftcache.backbones.tiny_groot import (
     GROOT_DIR,
@@ -101,7 +111,7 @@ def drawing(noise: torch.Tensor) -> Iterator[None]:
         groot_n1_7.torch = torch
 
 
-class GrootAdapter(BackboneAdapter):
+class GrootAdapter(NativeVision, BackboneAdapter):
     name = "groot"
     vision_slots = ("blocks", "merger")
     steps_field = "num_inference_timesteps"
@@ -111,8 +121,7 @@ class GrootAdapter(BackboneAdapter):
 
     def __init__(self, *args, **kwargs) -> None:
         super().__init__(*args, **kwargs)
-        qwen = self._qwen
-        qwen.get_image_features = functools.partial(self._image_features, type(qwen).get_image_features, qwen)
+        shadow_method(self._qwen, "get_image_features", self._image_features)
 
     # ------------------------------------------------------------------------------ construction
     @classmethod
@@ -230,13 +239,9 @@ class GrootAdapter(BackboneAdapter):
 
         if not self.grafted:
             return own(qwen, pixel_values, image_grid_thw, **kwargs)
-        tower, connector = self._tower_and_connector()
-        features = tower(pixel_values).last_hidden_state
-        samples = len(image_grid_thw) // len(self._view_keys)  # _feature_images: every view, one image each
-        tokens = connector(features.reshape(samples, -1, features.shape[-1])).flatten(0, 1)
-        sizes = (image_grid_thw.prod(-1) // qwen.visual.spatial_merge_size ** 2).tolist()
-        return BaseModelOutputWithDeepstackFeatures(last_hidden_state=pixel_values,
-                                                    pooler_output=torch.split(tokens, sizes),
+        tokens = projected_images(*self._tower_and_connector(), pixel_values, image_grid_thw,
+                                  qwen.visual.spatial_merge_size, len(self._view_keys))  # every view, one image each
+        return BaseModelOutputWithDeepstackFeatures(last_hidden_state=pixel_values, pooler_output=tokens,
                                                     deepstack_features=None)
 
     def _vision(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -244,10 +249,7 @@ class GrootAdapter(BackboneAdapter):
         patch grid [B, gh, gw, C] in raster order, post-merger tokens [B, T, D])."""
         from lerobot.policies.groot.processor_groot import _to_uint8_np_bthwc
 
-        if self.grafted:
-            raise BackboneError(f"{self.name}: the native tower was removed by graft(); read it before grafting")
-        if images.ndim != 4 or images.shape[1] != 3:
-            raise BackboneError(f"{self.name}: native images must be [B, 3, H, W] in [0, 1], got {tuple(images.shape)}")
+        self._check_native(images)
         step, size = self._vlm_step, len(images)
         video = _to_uint8_np_bthwc(images.cpu())[:, :, None]  # (B, T=1, V=1, H, W, C), as the pack step makes it
         frames = [f for sample in step._build_sample_images(video, size, None) for f in sample]
@@ -257,20 +259,9 @@ class GrootAdapter(BackboneAdapter):
         out = visual(inputs["pixel_values"].to(self.device, visual.dtype), grid_thw=thw)
         m = visual.spatial_merge_size
         _, gh, gw = thw[0].tolist()
-        hidden = out.last_hidden_state  # merge-block order: (gh/m, gw/m, m, m) per image -> raster
-        grid = hidden.view(size, gh // m, gw // m, m, m, -1).permute(0, 1, 3, 2, 4, 5).reshape(size, gh, gw, -1)
+        grid = raster_patches(out.last_hidden_state, size, gh, gw, m)
         tokens = out.pooler_output.view(size, (gh // m) * (gw // m), -1)
         return grid.float(), tokens.float()
-
-    @torch.no_grad()
-    def native_patch_grid(self, images: torch.Tensor) -> torch.Tensor:
-        """The ViT's last block before the merger, [B, gh, gw, C] at patch resolution (2x the merged grid)."""
-        return self._vision(images)[0]
-
-    @torch.no_grad()
-    def native_tokens(self, images: torch.Tensor) -> torch.Tensor:
-        """Post-merger tokens [B, gh/2 * gw/2, D], in the order Qwen scatters them into the prompt."""
-        return self._vision(images)[1]
 
     def _feature_images(self, batch: Mapping[str, Any], include_action: bool) -> dict[str, Any]:
         """Grafted stand-in for GrootPolicy._filter_groot_inputs: Qwen's `pixel_values` are the cached features of
@@ -281,26 +272,11 @@ class GrootAdapter(BackboneAdapter):
         if any(f is None for f in feats):
             raise BackboneError(f"{self.name} batch has no features for camera(s) "
                                 f"{[k for k, f in zip(self._view_keys, feats) if f is None]}")
-        slots = set((batch["image_grid_thw"].prod(-1) // self._vision_owner.spatial_merge_size ** 2).tolist())
-        tokens = {f.shape[1] for f in feats}
-        if tokens != slots or len(slots) != 1:
-            raise BackboneError(f"{self.name}: cached features have {sorted(tokens)} tokens per camera; the prompt "
-                                f"has {sorted(slots)} image slots per camera")
+        check_slots(self.name, {f.shape[1] for f in feats},
+                    set(image_token_counts(batch["image_grid_thw"], self._vision_owner.spatial_merge_size)))
         inputs = GrootPolicy._filter_groot_inputs(self.policy, batch, include_action=include_action)
         inputs["pixel_values"] = torch.stack(feats, dim=1).flatten(0, 2)
         return inputs
-
-    def _prompt_grid(self, tokens: int) -> tuple[int, int]:
-        """The merged grid a prompt needs for `tokens` cached tokens per camera: the token grid, or the square
-        grid of a pooling control (the cache keeps no shape, so any other count is refused, not guessed)."""
-        gh, gw = self.token_grid
-        if tokens == gh * gw:
-            return gh, gw
-        side = round(tokens ** 0.5)
-        if side * side != tokens:
-            raise BackboneError(f"{self.name}: {tokens} cached tokens per camera is neither the native {gh}x{gw} "
-                                "grid nor a square one; GR00T's prompt needs the grid's shape")
-        return side, side
 
     @contextlib.contextmanager
     def _frames_of_grid(self, gh: int, gw: int) -> Iterator[tuple[int, int]]:
@@ -328,13 +304,8 @@ class GrootAdapter(BackboneAdapter):
         if not self.grafted:
             return self._unpadded(super().prepare(raw))
         batch = dict(raw)
-        missing = [k for k in [feature_key(c) for c in self.camera_keys] + [STATE, "task"] if k not in batch]
-        if missing:
-            raise BackboneError(f"{self.name} batch is missing {', '.join(missing)}")
-        counts = {k: batch[feature_key(k)].shape[1] for k in self.camera_keys}
-        if len(set(counts.values())) != 1:
-            raise BackboneError(f"{self.name}: cameras carry different token counts ({counts})")
-        with self._frames_of_grid(*self._prompt_grid(next(iter(counts.values())))) as (h, w):
+        tokens = cached_token_count(self.name, batch, self.camera_keys)
+        with self._frames_of_grid(*prompt_grid(self.name, "GR00T", self.token_grid, tokens)) as (h, w):
             size = batch[STATE].shape[0]
             for key in self.camera_keys:
                 batch[key] = torch.zeros(size, 3, h, w)

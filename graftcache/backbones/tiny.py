@@ -28,11 +28,12 @@ import dataclasses
 import functools
 import io
 import json
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
 import torch
+from torch import nn
 
 from graftcache.backbones.tiny_assets import PALIGEMMA_DIR, SMOLVLM_DIR, SMOLVLM_GEOMETRY
 from graftcache.errors import BackboneError
@@ -93,6 +94,14 @@ def _require_stats(stats: dict | None) -> dict:
 
 
 # ---------------------------------------------------------------------------------------------- SmolVLA
+def seeded_policy(seed: int, construct: Callable[[], nn.Module]) -> nn.Module:
+    """`construct()` with the global RNG seeded to `seed` (and restored after) and its prints muted: a tiny
+    policy's weights depend on its spec's seed only."""
+    with torch.random.fork_rng(devices=[]), contextlib.redirect_stdout(io.StringIO()):
+        torch.manual_seed(seed)
+        return construct()
+
+
 def smolvla_tiny_config(spec: TinySpec, device: str):
     from lerobot.policies.smolvla.configuration_smolvla import SmolVLAConfig
 
@@ -114,9 +123,7 @@ def build_tiny_smolvla(spec: TinySpec, stats: dict | None, device: str):
     from lerobot.policies.smolvla.processor_smolvla import make_smolvla_pre_post_processors
 
     config = smolvla_tiny_config(spec, device)
-    with torch.random.fork_rng(devices=[]), contextlib.redirect_stdout(io.StringIO()):
-        torch.manual_seed(spec.seed)
-        policy = SmolVLAPolicy(config)
+    policy = seeded_policy(spec.seed, lambda: SmolVLAPolicy(config))
     pre, post = make_smolvla_pre_post_processors(config, dataset_stats=_require_stats(stats))
     return policy.to(device), pre, post
 

@@ -31,6 +31,21 @@ SMOLVLM_SPECIALS = (
     "<fake_token_around_image>", "<image>", "<global-img>", "<end_of_utterance>",
 )
 PALIGEMMA_SPECIALS = ("<pad>", "<eos>", "<bos>", "<unk>", "<image>")
+#: Qwen-VL's special tokens, what the tiny Qwen2.5-VL and Qwen3-VL folders (EO-1, Wall-X, GR00T, VLA-JEPA) hold.
+QWEN_SPECIALS = ("<|endoftext|>", "<|im_start|>", "<|im_end|>", "<|vision_start|>", "<|vision_end|>",
+                 "<|image_pad|>", "<|video_pad|>")
+#: Qwen3-VL's chat template, reduced to what a VLA prompt uses (one user message, images as
+#: vision_start/image_pad/vision_end, then text; no default system message, unlike Qwen2-VL's; the assistant turn
+#: opened by add_generation_prompt).
+QWEN3_VL_CHAT_TEMPLATE = (
+    "{% for message in messages %}<|im_start|>{{ message['role'] }}\n"
+    "{% if message['content'] is string %}{{ message['content'] }}{% else %}"
+    "{% for content in message['content'] %}"
+    "{% if content['type'] == 'image' or 'image' in content %}<|vision_start|><|image_pad|><|vision_end|>"
+    "{% elif content['type'] == 'video' or 'video' in content %}<|vision_start|><|video_pad|><|vision_end|>"
+    "{% elif 'text' in content %}{{ content['text'] }}{% endif %}{% endfor %}{% endif %}<|im_end|>\n"
+    "{% endfor %}{% if add_generation_prompt %}<|im_start|>assistant\n{% endif %}"
+)
 
 # SmolVLM geometry baked into smolvlm/config.json.
 SMOLVLM_GEOMETRY = {
@@ -61,6 +76,21 @@ def _train_bpe(specials: tuple[str, ...]):
     )
     tok.train_from_iterator(_corpus(), trainer=trainer)
     return tok
+
+
+def qwen_tokenizer():
+    """The tiny Qwen-VL tokenizer: byte-level BPE over the shared corpus with Qwen's specials."""
+    from transformers import PreTrainedTokenizerFast
+
+    return PreTrainedTokenizerFast(tokenizer_object=_train_bpe(QWEN_SPECIALS), eos_token="<|im_end|>",
+                                   pad_token="<|endoftext|>", unk_token="<|endoftext|>")
+
+
+def qwen_vision_ids(tok) -> dict[str, int]:
+    """The vision token ids a Qwen-VL config names, read from its tokenizer."""
+    return {name: tok.convert_tokens_to_ids(t) for name, t in (
+        ("image_token_id", "<|image_pad|>"), ("video_token_id", "<|video_pad|>"),
+        ("vision_start_token_id", "<|vision_start|>"), ("vision_end_token_id", "<|vision_end|>"))}
 
 
 def write_smolvlm(out: Path = SMOLVLM_DIR) -> Path:

@@ -17,20 +17,14 @@ Qwen2-VL's image processor (patch 14, merge 2, temporal patch 2, CLIP mean/std).
 
 from __future__ import annotations
 
-import contextlib
-import io
 from pathlib import Path
 
-import torch
-
-from graftcache.backbones.tiny import TinySpec, _action_features, _require_stats, _visual_features
-from graftcache.backbones.tiny_assets import TINY_ROOT, _train_bpe
+from graftcache.backbones.tiny import TinySpec, _action_features, _require_stats, _visual_features, seeded_policy
+from graftcache.backbones.tiny_assets import TINY_ROOT, qwen_tokenizer, qwen_vision_ids
 
 QWEN_VL_DIR = TINY_ROOT / "qwen2_5_vl"
 TINY_IMAGE_SIZE = 128  # what train-tiny resizes frames to (requests.TinyTrainConfig.image_size)
 TINY_PIXELS = 16 * 28 * 28  # max pixels of the tiny processor: 112 x 112
-QWEN_SPECIALS = ("<|endoftext|>", "<|im_start|>", "<|im_end|>", "<|vision_start|>", "<|vision_end|>",
-                 "<|image_pad|>", "<|video_pad|>")
 #: Qwen2-VL's chat template (what Qwen/Qwen2.5-VL-3B-Instruct ships): images as vision_start/image_pad/vision_end.
 CHAT_TEMPLATE = (
     "{% set image_count = namespace(value=0) %}{% set video_count = namespace(value=0) %}"
@@ -72,12 +66,11 @@ QWEN25_VL_3B = {
 
 def write_qwen_vl(out: Path = QWEN_VL_DIR) -> Path:
     """Write the tiny Qwen2.5-VL processor folder (tokenizer, chat template, image/video processors)."""
-    from transformers import PreTrainedTokenizerFast, Qwen2_5_VLProcessor
+    from transformers import Qwen2_5_VLProcessor
     from transformers.models.qwen2_vl import Qwen2VLImageProcessor
     from transformers.models.qwen2_vl.video_processing_qwen2_vl import Qwen2VLVideoProcessor
 
-    tok = PreTrainedTokenizerFast(tokenizer_object=_train_bpe(QWEN_SPECIALS), eos_token="<|im_end|>",
-                                  pad_token="<|endoftext|>", unk_token="<|endoftext|>")
+    tok = qwen_tokenizer()
     out.mkdir(parents=True, exist_ok=True)
     Qwen2_5_VLProcessor(image_processor=Qwen2VLImageProcessor(min_pixels=4 * 28 * 28, max_pixels=TINY_PIXELS),
                         tokenizer=tok, video_processor=Qwen2VLVideoProcessor(),
@@ -88,11 +81,7 @@ def write_qwen_vl(out: Path = QWEN_VL_DIR) -> Path:
 def _qwen_ids() -> dict:
     from transformers import AutoTokenizer
 
-    tok = AutoTokenizer.from_pretrained(QWEN_VL_DIR)
-    ids = {name: tok.convert_tokens_to_ids(t) for name, t in (
-        ("image_token_id", "<|image_pad|>"), ("video_token_id", "<|video_pad|>"),
-        ("vision_start_token_id", "<|vision_start|>"), ("vision_end_token_id", "<|vision_end|>"))}
-    return {**TINY_QWEN, **ids}
+    return {**TINY_QWEN, **qwen_vision_ids(AutoTokenizer.from_pretrained(QWEN_VL_DIR))}
 
 
 def _config(spec: TinySpec, vlm_config: dict, vlm_base: str, image_size: int, pixels: tuple[int, int] | None,
@@ -143,9 +132,7 @@ def build_tiny_eo1(spec: TinySpec, stats: dict | None, device: str):
     from lerobot.policies.eo1.processor_eo1 import make_eo1_pre_post_processors
 
     config = eo1_tiny_config(spec, device)
-    with torch.random.fork_rng(devices=[]), contextlib.redirect_stdout(io.StringIO()):
-        torch.manual_seed(spec.seed)
-        policy = construct(config)
+    policy = seeded_policy(spec.seed, lambda: construct(config))
     pre, post = make_eo1_pre_post_processors(config, dataset_stats=_require_stats(stats))
     return policy.to(device), pre, post
 

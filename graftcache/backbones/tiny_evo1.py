@@ -26,13 +26,10 @@ tokenizer carrying InternVL's image tokens `<img>`, `</img>`, `<IMG_CONTEXT>`.
 from __future__ import annotations
 
 import contextlib
-import io
 from collections.abc import Iterator
 from pathlib import Path
 
-import torch
-
-from graftcache.backbones.tiny import TinySpec, _action_features, _require_stats, _visual_features
+from graftcache.backbones.tiny import TinySpec, _action_features, _require_stats, _visual_features, seeded_policy
 from graftcache.backbones.tiny_assets import TINY_ROOT, _train_bpe
 
 INTERNVL_DIR = TINY_ROOT / "internvl"
@@ -129,9 +126,7 @@ def build_tiny_evo1(spec: TinySpec, stats: dict | None, device: str):
     from lerobot.policies.evo1.processor_evo1 import make_evo1_pre_post_processors
 
     config = evo1_tiny_config(spec, device)
-    with torch.random.fork_rng(devices=[]), contextlib.redirect_stdout(io.StringIO()):
-        torch.manual_seed(spec.seed)
-        policy = construct(config)
+    policy = seeded_policy(spec.seed, lambda: construct(config))
     pre, post = make_evo1_pre_post_processors(config, dataset_stats=_require_stats(stats))
     return policy.to(device), pre, post
 

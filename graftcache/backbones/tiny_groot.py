@@ -31,17 +31,14 @@ from __future__ import annotations
 
 import contextlib
 import functools
-import io
 import json
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-import torch
-
 from graftcache.backbones.checkpoint import cached_repo
-from graftcache.backbones.tiny import TinySpec, _action_features, _require_stats, _visual_features
-from graftcache.backbones.tiny_assets import TINY_ROOT, _train_bpe
+from graftcache.backbones.tiny import TinySpec, _action_features, _require_stats, _visual_features, seeded_policy
+from graftcache.backbones.tiny_assets import QWEN3_VL_CHAT_TEMPLATE, TINY_ROOT, qwen_tokenizer, qwen_vision_ids
 from graftcache.errors import BackboneError
 
 GROOT_DIR = TINY_ROOT / "groot"
@@ -51,19 +48,6 @@ PATCH, MERGE = 16, 2         # Qwen3-VL's patch and merge sizes
 #: Qwen3-VL-2B-Instruct's image processor pixel bounds ("size" of its preprocessor_config.json), and the tiny one's.
 QWEN3_VL_PIXELS = (65536, 16777216)
 TINY_PIXELS = (4 * (PATCH * MERGE) ** 2, 16 * (PATCH * MERGE) ** 2)
-QWEN_SPECIALS = ("<|endoftext|>", "<|im_start|>", "<|im_end|>", "<|vision_start|>", "<|vision_end|>",
-                 "<|image_pad|>", "<|video_pad|>")
-#: Qwen3-VL's chat template reduced to what GR00T's prompt uses (one user message, images then text; no default
-#: system message, unlike Qwen2-VL's).
-CHAT_TEMPLATE = (
-    "{% for message in messages %}<|im_start|>{{ message['role'] }}\n"
-    "{% if message['content'] is string %}{{ message['content'] }}{% else %}"
-    "{% for content in message['content'] %}"
-    "{% if content['type'] == 'image' or 'image' in content %}<|vision_start|><|image_pad|><|vision_end|>"
-    "{% elif content['type'] == 'video' or 'video' in content %}<|vision_start|><|video_pad|><|vision_end|>"
-    "{% elif 'text' in content %}{{ content['text'] }}{% endif %}{% endfor %}{% endif %}<|im_end|>\n"
-    "{% endfor %}{% if add_generation_prompt %}<|im_start|>assistant\n{% endif %}"
-)
 TINY_QWEN3_VL = {
     "vision_config": {"depth": 2, "hidden_size": 32, "intermediate_size": 64, "num_heads": 2, "in_channels": 3,
                       "out_hidden_size": 64, "patch_size": PATCH, "spatial_merge_size": MERGE,
@@ -90,23 +74,19 @@ TINY_GROOT = {
 
 def write_groot(out: Path = GROOT_DIR) -> Path:
     """Write the tiny Cosmos-Reason2 stand-in: Qwen3-VL config, tokenizer, chat template, image/video processors."""
-    from transformers import PreTrainedTokenizerFast, Qwen3VLConfig, Qwen3VLProcessor
+    from transformers import Qwen3VLConfig, Qwen3VLProcessor
     from transformers.models.qwen2_vl import Qwen2VLImageProcessor
     from transformers.models.qwen3_vl.video_processing_qwen3_vl import Qwen3VLVideoProcessor
 
-    tok = PreTrainedTokenizerFast(tokenizer_object=_train_bpe(QWEN_SPECIALS), eos_token="<|im_end|>",
-                                  pad_token="<|endoftext|>", unk_token="<|endoftext|>")
-    tok.chat_template = CHAT_TEMPLATE
+    tok = qwen_tokenizer()
+    tok.chat_template = QWEN3_VL_CHAT_TEMPLATE
     out.mkdir(parents=True, exist_ok=True)
     pixels = {"shortest_edge": TINY_PIXELS[0], "longest_edge": TINY_PIXELS[1]}
     image = Qwen2VLImageProcessor(size=pixels, patch_size=PATCH, merge_size=MERGE, temporal_patch_size=2,
                                   image_mean=[0.5] * 3, image_std=[0.5] * 3)
     Qwen3VLProcessor(image_processor=image, tokenizer=tok, video_processor=Qwen3VLVideoProcessor(),
-                     chat_template=CHAT_TEMPLATE).save_pretrained(out)
-    ids = {name: tok.convert_tokens_to_ids(t) for name, t in (
-        ("image_token_id", "<|image_pad|>"), ("video_token_id", "<|video_pad|>"),
-        ("vision_start_token_id", "<|vision_start|>"), ("vision_end_token_id", "<|vision_end|>"))}
-    Qwen3VLConfig(**TINY_QWEN3_VL, **ids).save_pretrained(out)
+                     chat_template=QWEN3_VL_CHAT_TEMPLATE).save_pretrained(out)
+    Qwen3VLConfig(**TINY_QWEN3_VL, **qwen_vision_ids(tok)).save_pretrained(out)
     return out
 
 
@@ -223,9 +203,7 @@ def build_tiny_groot(spec: TinySpec, stats: dict | None, device: str):
     from lerobot.policies.groot.processor_groot import make_groot_pre_post_processors
 
     config = groot_tiny_config(spec, device)
-    with torch.random.fork_rng(devices=[]), contextlib.redirect_stdout(io.StringIO()):
-        torch.manual_seed(spec.seed)
-        policy = construct(config, tiny_base_for(config))
+    policy = seeded_policy(spec.seed, lambda: construct(config, tiny_base_for(config)))
     pre, post = make_groot_pre_post_processors(config, dataset_stats=_require_stats(stats))
     tiny_image_geometry(pre)
     return policy.to(device), pre, post

@@ -28,30 +28,17 @@ must match the encoder's), the world-model weights of a checkpoint are simply no
 from __future__ import annotations
 
 import contextlib
-import io
 from collections.abc import Iterator
 from pathlib import Path
 
 import torch
 
-from graftcache.backbones.tiny import TinySpec, _action_features, _require_stats, _visual_features
-from graftcache.backbones.tiny_assets import TINY_ROOT, _train_bpe
-from graftcache.backbones.tiny_eo1 import QWEN_SPECIALS
+from graftcache.backbones.tiny import TinySpec, _action_features, _require_stats, _visual_features, seeded_policy
+from graftcache.backbones.tiny_assets import QWEN3_VL_CHAT_TEMPLATE, TINY_ROOT, qwen_tokenizer, qwen_vision_ids
 
 QWEN3_VL_DIR = TINY_ROOT / "qwen3_vl"
 TINY_IMAGE_SIZE = 128  # what train-tiny resizes frames to (requests.TinyTrainConfig.image_size)
 FACTOR = 32  # patch 16 x merge 2
-#: Qwen3-VL's chat template, reduced to what a VLA prompt uses: no default system turn, images as
-#: vision_start/image_pad/vision_end, the assistant turn opened by add_generation_prompt.
-CHAT_TEMPLATE = (
-    "{% for message in messages %}<|im_start|>{{ message['role'] }}\n"
-    "{% if message['content'] is string %}{{ message['content'] }}{% else %}"
-    "{% for content in message['content'] %}"
-    "{% if content['type'] == 'image' or 'image' in content %}<|vision_start|><|image_pad|><|vision_end|>"
-    "{% elif content['type'] == 'video' or 'video' in content %}<|vision_start|><|video_pad|><|vision_end|>"
-    "{% elif 'text' in content %}{{ content['text'] }}{% endif %}{% endfor %}{% endif %}<|im_end|>\n"
-    "{% endfor %}{% if add_generation_prompt %}<|im_start|>assistant\n{% endif %}"
-)
 TINY_QWEN3 = {
     "vision_config": {"depth": 2, "hidden_size": 32, "intermediate_size": 64, "num_heads": 2, "in_channels": 3,
                       "out_hidden_size": 64, "patch_size": 16, "spatial_merge_size": 2, "temporal_patch_size": 2,
@@ -83,21 +70,17 @@ QWEN3_VL_PIXELS = (65536, 16777216)
 
 def write_qwen3_vl(out: Path = QWEN3_VL_DIR) -> Path:
     """Write the tiny Qwen3-VL folder (config, tokenizer, chat template, image/video processors)."""
-    from transformers import PreTrainedTokenizerFast, Qwen3VLConfig, Qwen3VLProcessor
+    from transformers import Qwen3VLConfig, Qwen3VLProcessor
     from transformers.models.qwen2_vl import Qwen2VLImageProcessor
     from transformers.models.qwen3_vl.video_processing_qwen3_vl import Qwen3VLVideoProcessor
 
-    tok = PreTrainedTokenizerFast(tokenizer_object=_train_bpe(QWEN_SPECIALS), eos_token="<|im_end|>",
-                                  pad_token="<|endoftext|>", unk_token="<|endoftext|>")
+    tok = qwen_tokenizer()
     images = Qwen2VLImageProcessor(patch_size=16, merge_size=2, temporal_patch_size=2, min_pixels=4 * FACTOR ** 2,
                                    max_pixels=16 * FACTOR ** 2, image_mean=[0.5] * 3, image_std=[0.5] * 3)
     out.mkdir(parents=True, exist_ok=True)
     Qwen3VLProcessor(image_processor=images, tokenizer=tok, video_processor=Qwen3VLVideoProcessor(),
-                     chat_template=CHAT_TEMPLATE).save_pretrained(out)
-    ids = {name: tok.convert_tokens_to_ids(t) for name, t in (
-        ("image_token_id", "<|image_pad|>"), ("video_token_id", "<|video_pad|>"),
-        ("vision_start_token_id", "<|vision_start|>"), ("vision_end_token_id", "<|vision_end|>"))}
-    Qwen3VLConfig(**TINY_QWEN3, **ids).save_pretrained(out)
+                     chat_template=QWEN3_VL_CHAT_TEMPLATE).save_pretrained(out)
+    Qwen3VLConfig(**TINY_QWEN3, **qwen_vision_ids(tok)).save_pretrained(out)
     return out
 
 
@@ -167,9 +150,7 @@ def build_tiny_vla_jepa(spec: TinySpec, stats: dict | None, device: str):
     from lerobot.policies.vla_jepa.processor_vla_jepa import make_vla_jepa_pre_post_processors
 
     config = vla_jepa_tiny_config(spec, device)
-    with torch.random.fork_rng(devices=[]), contextlib.redirect_stdout(io.StringIO()):
-        torch.manual_seed(spec.seed)
-        policy = construct(config, QWEN3_VL_DIR)
+    policy = seeded_policy(spec.seed, lambda: construct(config, QWEN3_VL_DIR))
     pre, post = make_vla_jepa_pre_post_processors(config, dataset_stats=_require_stats(stats))
     return policy.to(device), pre, post
 

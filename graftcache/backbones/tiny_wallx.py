@@ -28,14 +28,11 @@ tokenizer (`<|propri|>`, `<|action|>`; no FAST tokens: graftcache runs Wall-X's 
 from __future__ import annotations
 
 import contextlib
-import io
 import json
 from collections.abc import Iterator
 from pathlib import Path
 
-import torch
-
-from graftcache.backbones.tiny import TinySpec, _action_features, _require_stats, _visual_features
+from graftcache.backbones.tiny import TinySpec, _action_features, _require_stats, _visual_features, seeded_policy
 from graftcache.backbones.tiny_assets import TINY_ROOT
 from graftcache.backbones.tiny_eo1 import QWEN25_VL_3B, QWEN_VL_DIR, TINY_QWEN, _qwen_ids
 from graftcache.errors import BackboneError
@@ -168,9 +165,7 @@ def build_tiny_wallx(spec: TinySpec, stats: dict | None, device: str):
     from lerobot.policies.wall_x.processor_wall_x import make_wall_x_pre_post_processors
 
     config = wallx_tiny_config(spec, device)
-    with torch.random.fork_rng(devices=[]), contextlib.redirect_stdout(io.StringIO()):
-        torch.manual_seed(spec.seed)
-        policy = construct(config, WALLX_DIR)
+    policy = seeded_policy(spec.seed, lambda: construct(config, WALLX_DIR))
     pre, post = make_wall_x_pre_post_processors(config, dataset_stats=_require_stats(stats))
     return policy.to(device), pre, post
 

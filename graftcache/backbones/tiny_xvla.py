@@ -15,12 +15,7 @@ checkpoint needs no geometry in its marker: the folder's config rebuilds it.
 
 from __future__ import annotations
 
-import contextlib
-import io
-
-import torch
-
-from graftcache.backbones.tiny import TinySpec, _action_features, _require_stats, _visual_features
+from graftcache.backbones.tiny import TinySpec, _action_features, _require_stats, _visual_features, seeded_policy
 from graftcache.backbones.tiny_assets import PALIGEMMA_DIR
 
 TINY_IMAGE_SIZE = 128
@@ -82,8 +77,6 @@ def build_tiny_xvla(spec: TinySpec, stats: dict | None, device: str):
     from lerobot.policies.xvla.processor_xvla import make_xvla_pre_post_processors
 
     config = xvla_tiny_config(spec, device)
-    with torch.random.fork_rng(devices=[]), contextlib.redirect_stdout(io.StringIO()):
-        torch.manual_seed(spec.seed)
-        policy = XVLAPolicy(config)
+    policy = seeded_policy(spec.seed, lambda: XVLAPolicy(config))
     pre, post = make_xvla_pre_post_processors(config, dataset_stats=_require_stats(stats))
     return policy.to(device), pre, post

@@ -35,7 +35,6 @@ fraction (lerobot's pi0 convention: Beta(1.5, 1)); VLA-JEPA's t is the clean fra
 from __future__ import annotations
 
 import contextlib
-import functools
 import json
 import warnings
 from collections.abc import Iterable, Iterator, Mapping
@@ -49,6 +48,15 @@ from graftcache.backbones.base import BackboneAdapter
 from graftcache.backbones.batches import ACTION, STATE
 from graftcache.backbones.checkpoint import cached_repo
 from graftcache.backbones.eo1 import shadowed
+from graftcache.backbones.qwen_vl import (
+    check_slots,
+    image_token_counts,
+    projected_images,
+    prompt_grid,
+    raster_patches,
+    shadow_method,
+    tied_head_keys,
+)
 from graftcache.backbones.recompute import WrappedCheckpointing
 from graftcache.backbones.tiny import TinySpec
 from graftcache.backbones.tiny_vla_jepa import QWEN3_VL_DIR, build_tiny_vla_jepa, construct
@@ -129,10 +137,8 @@ class VLAJEPAAdapter(WrappedCheckpointing, BackboneAdapter):
 
     def __init__(self, *args, **kwargs) -> None:
         super().__init__(*args, **kwargs)
-        qwen = self._qwen
-        qwen.get_image_features = functools.partial(self._image_features, type(qwen).get_image_features, qwen)
-        interface = self.policy.model.qwen
-        interface.build_inputs = functools.partial(self._build_inputs, type(interface).build_inputs, interface)
+        shadow_method(self._qwen, "get_image_features", self._image_features)
+        shadow_method(self.policy.model.qwen, "build_inputs", self._build_inputs)
 
     # ------------------------------------------------------------------------------ construction
     @classmethod
@@ -153,12 +159,8 @@ class VLAJEPAAdapter(WrappedCheckpointing, BackboneAdapter):
     def _checkpoint_keys(cls, policy: nn.Module, file_keys: Iterable[str]) -> dict[str, str]:
         """Qwen3-VL-2B ties its LM head to the word embedding; safetensors keeps one of the two names: read the
         other from it."""
-        keys = {k: k for k in file_keys}
-        head, embed = "model.qwen.model.lm_head.weight", "model.qwen.model.model.language_model.embed_tokens.weight"
-        for a, b in ((head, embed), (embed, head)):
-            if a in keys and b not in keys:
-                keys[b] = keys[a]
-        return keys
+        return tied_head_keys(file_keys, "model.qwen.model.lm_head.weight",
+                              "model.qwen.model.model.language_model.embed_tokens.weight")
 
     @classmethod
     def _qwen_folder(cls, config, marker: dict | None) -> Path:
@@ -219,13 +221,10 @@ class VLAJEPAAdapter(WrappedCheckpointing, BackboneAdapter):
 
         if not self.grafted:
             return own(qwen, pixel_values, image_grid_thw, **kwargs)
-        tower, connector = self._tower_and_connector()
-        features = tower(pixel_values).last_hidden_state
-        samples = len(image_grid_thw) // len(self.config.image_features)  # _feature_images: one image each
-        tokens = connector(features.reshape(samples, -1, features.shape[-1])).flatten(0, 1)
-        sizes = (image_grid_thw.prod(-1) // qwen.visual.spatial_merge_size ** 2).tolist()
-        return BaseModelOutputWithDeepstackFeatures(last_hidden_state=pixel_values,
-                                                    pooler_output=torch.split(tokens, sizes), deepstack_features=[])
+        tokens = projected_images(*self._tower_and_connector(), pixel_values, image_grid_thw,
+                                  qwen.visual.spatial_merge_size, len(self.config.image_features))
+        return BaseModelOutputWithDeepstackFeatures(last_hidden_state=pixel_values, pooler_output=tokens,
+                                                    deepstack_features=[])
 
     def _vision(self, images: torch.Tensor):
         """[B, 3, H, W] in [0, 1] through the policy's own inference path - `predict_action`'s resize to
@@ -233,10 +232,7 @@ class VLAJEPAAdapter(WrappedCheckpointing, BackboneAdapter):
         `get_image_features` under the policy's autocast: its output for those images."""
         from lerobot.policies.vla_jepa.modeling_vla_jepa import _get_autocast_context
 
-        if self.grafted:
-            raise BackboneError(f"{self.name}: the native tower was removed by graft(); read it before grafting")
-        if images.ndim != 4 or images.shape[1] != 3:
-            raise BackboneError(f"{self.name}: native images must be [B, 3, H, W] in [0, 1], got {tuple(images.shape)}")
+        self._check_native(images)
         if self.config.resize_images_to is not None:
             images = torch.nn.functional.interpolate(images, size=tuple(self.config.resize_images_to), mode="area")
         processor = self.policy.model.qwen.processor.image_processor
@@ -253,9 +249,7 @@ class VLAJEPAAdapter(WrappedCheckpointing, BackboneAdapter):
         out, thw = self._vision(images)
         m = self._vision_owner.spatial_merge_size
         _, gh, gw = thw[0].tolist()
-        hidden = out.last_hidden_state
-        grid = hidden.view(len(images), gh // m, gw // m, m, m, -1).permute(0, 1, 3, 2, 4, 5)
-        return grid.reshape(len(images), gh, gw, -1).float()
+        return raster_patches(out.last_hidden_state, len(images), gh, gw, m).float()
 
     @torch.no_grad()
     def native_tokens(self, images: torch.Tensor) -> torch.Tensor:
@@ -278,18 +272,6 @@ class VLAJEPAAdapter(WrappedCheckpointing, BackboneAdapter):
         inputs["images"] = [[f[b] for f in images] for b in range(size)]
         return inputs
 
-    def _prompt_grid(self, tokens: int) -> tuple[int, int]:
-        """The merged grid a prompt needs for `tokens` cached tokens per camera: the token grid, or the square
-        grid of a pooling control (the cache keeps no shape, so any other count is refused, not guessed)."""
-        gh, gw = self.token_grid
-        if tokens == gh * gw:
-            return gh, gw
-        side = round(tokens ** 0.5)
-        if side * side != tokens:
-            raise BackboneError(f"{self.name}: {tokens} cached tokens per camera is neither the native {gh}x{gw} "
-                                "grid nor a square one; VLA-JEPA's prompt needs the grid's shape")
-        return side, side
-
     def _build_inputs(self, own, interface: nn.Module, images, instructions, action_prompt, embodied_prompt):
         """Qwen3VLInterface.build_inputs, or grafted: the policy's prompt for blank frames whose processed grid is
         the cached features' (the processor's pixel bounds set to that frame for the call), with the features of
@@ -297,7 +279,7 @@ class VLAJEPAAdapter(WrappedCheckpointing, BackboneAdapter):
         if not self.grafted:
             return own(interface, images, instructions, action_prompt, embodied_prompt)
         features = [f for views in images for f in views]
-        gh, gw = self._prompt_grid(features[0].shape[0])
+        gh, gw = prompt_grid(self.name, "VLA-JEPA", self.token_grid, features[0].shape[0])
         processor = interface.processor.image_processor
         factor = processor.patch_size * processor.merge_size
         frames = [[torch.zeros(3, gh * factor, gw * factor) for _ in views] for views in images]
@@ -307,11 +289,8 @@ class VLAJEPAAdapter(WrappedCheckpointing, BackboneAdapter):
             inputs = own(interface, frames, instructions, action_prompt, embodied_prompt)
         finally:
             processor.size = size
-        slots = set((inputs["image_grid_thw"].prod(-1) // processor.merge_size ** 2).tolist())
-        tokens = {f.shape[0] for f in features}
-        if tokens != slots:
-            raise BackboneError(f"{self.name}: cached features have {sorted(tokens)} tokens per camera; the prompt "
-                                f"has {sorted(slots)} image slots per camera")
+        check_slots(self.name, {f.shape[0] for f in features},
+                    set(image_token_counts(inputs["image_grid_thw"], processor.merge_size)))
         inputs["pixel_values"] = torch.cat(features)
         return inputs
 

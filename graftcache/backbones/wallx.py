@@ -44,6 +44,7 @@ from graftcache.backbones.base import BackboneAdapter
 from graftcache.backbones.batches import STATE
 from graftcache.backbones.checkpoint import cached_repo
 from graftcache.backbones.eo1 import merged_grid, shadowed, vit_outputs
+from graftcache.backbones.qwen_vl import NativeVision, projected_rows, prompt_grid, shadow_method, tied_head_keys
 from graftcache.backbones.recompute import WrappedCheckpointing
 from graftcache.backbones.tiny import TinySpec
 from graftcache.backbones.tiny_wallx import WALLX_DIR, build_tiny_wallx, construct, load_processor
@@ -95,7 +96,7 @@ def pixel_bounds(image_processor, pixels: int) -> Iterator[None]:
         image_processor.size = saved
 
 
-class WallXAdapter(WrappedCheckpointing, BackboneAdapter):
+class WallXAdapter(NativeVision, WrappedCheckpointing, BackboneAdapter):
     name = "wall_x"
     vision_slots = ("blocks", "merger")
     steps_field = ""  # Wall-X's config has no such field: `num_steps` reads `predict`'s default
@@ -105,8 +106,7 @@ class WallXAdapter(WrappedCheckpointing, BackboneAdapter):
 
     def __init__(self, *args, **kwargs) -> None:
         super().__init__(*args, **kwargs)
-        visual = self._vision_owner
-        visual.forward = functools.partial(self._visual_forward, type(visual).forward, visual)
+        shadow_method(self._vision_owner, "forward", self._visual_forward)
 
     # ------------------------------------------------------------------------------ construction
     @classmethod
@@ -138,12 +138,7 @@ class WallXAdapter(WrappedCheckpointing, BackboneAdapter):
     def _checkpoint_keys(cls, policy: nn.Module, file_keys: Iterable[str]) -> dict[str, str]:
         """The LM head is tied to the word embedding; safetensors keeps one of the two names: read the other
         from it."""
-        keys = {k: k for k in file_keys}
-        head, embed = "model.lm_head.weight", "model.model.embed_tokens.weight"
-        for a, b in ((head, embed), (embed, head)):
-            if a in keys and b not in keys:
-                keys[b] = keys[a]
-        return keys
+        return tied_head_keys(file_keys, "model.lm_head.weight", "model.model.embed_tokens.weight")
 
     @classmethod
     def _make_processors(cls, config, stats: dict, marker: dict | None):
@@ -203,45 +198,18 @@ class WallXAdapter(WrappedCheckpointing, BackboneAdapter):
         a row, [B, cameras x tokens, C]: a fused projector (graftcache.graft.FusedProjector) routes rows."""
         if not self.grafted:
             return own(visual, hidden_states, grid_thw, **kwargs)
-        tower, connector = self._tower_and_connector()
-        features = tower(hidden_states).last_hidden_state
-        samples = len(grid_thw) // len(self.config.image_features)
-        tokens = connector(features.reshape(samples, -1, features.shape[-1])).flatten(0, 1)
+        tokens = projected_rows(*self._tower_and_connector(), hidden_states, len(grid_thw),
+                                len(self.config.image_features))
         return BaseModelOutputWithPooling(last_hidden_state=hidden_states, pooler_output=tokens)
 
     def _vision(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """[B, 3, H, W] in [0, 1] through the policy's own resize, processor and ViT."""
         from lerobot.policies.wall_x.modeling_wall_x import _resize_wall_x_image_batch
 
-        if self.grafted:
-            raise BackboneError(f"{self.name}: the native tower was removed by graft(); read it before grafting")
-        if images.ndim != 4 or images.shape[1] != 3:
-            raise BackboneError(f"{self.name}: native images must be [B, 3, H, W] in [0, 1], got {tuple(images.shape)}")
+        self._check_native(images)
         resized, _ = _resize_wall_x_image_batch(images.clamp(0, 1))
         inputs = self._image_processor(images=list(resized), return_tensors="pt", device=resized.device)
         return vit_outputs(self._vision_owner, inputs["pixel_values"], inputs["image_grid_thw"])
-
-    @torch.no_grad()
-    def native_patch_grid(self, images: torch.Tensor) -> torch.Tensor:
-        """The ViT's last block before the merger, [B, gh, gw, C] at patch resolution (2x the merged grid)."""
-        return self._vision(images)[0]
-
-    @torch.no_grad()
-    def native_tokens(self, images: torch.Tensor) -> torch.Tensor:
-        """Post-merger tokens [B, gh/2 * gw/2, D], in the order Wall-X scatters them into the prompt."""
-        return self._vision(images)[1]
-
-    def _prompt_grid(self, tokens: int) -> tuple[int, int]:
-        """The merged grid a prompt needs for `tokens` cached tokens per camera: the token grid, or the square
-        grid of a pooling control (the cache keeps no shape, so any other count is refused, not guessed)."""
-        gh, gw = self.token_grid
-        if tokens == gh * gw:
-            return gh, gw
-        side = round(tokens ** 0.5)
-        if side * side != tokens:
-            raise BackboneError(f"{self.name}: {tokens} cached tokens per camera is neither the native {gh}x{gw} "
-                                "grid nor a square one; Wall-X's prompt needs the grid's shape")
-        return side, side
 
     def _feature_images(self, batch: Mapping[str, Any], *, compute_position_ids: bool = False):
         """Grafted stand-in for WallXPolicy.preprocess_inputs: lerobot's own on blank frames whose processed grid
@@ -251,7 +219,7 @@ class WallXAdapter(WrappedCheckpointing, BackboneAdapter):
         counts = {f.shape[1] for f in images}
         if len(counts) != 1:
             raise BackboneError(f"{self.name}: cameras carry different token counts ({sorted(counts)})")
-        gh, gw = self._prompt_grid(counts.pop())
+        gh, gw = prompt_grid(self.name, "Wall-X", self.token_grid, counts.pop())
         blank = dict(batch)
         size = batch[STATE].shape[0]
         for key in self.config.image_features:

@@ -2,15 +2,21 @@
 
 from __future__ import annotations
 
+import pytest
 import torch
 
 from graftcache.backbones import TinySpec, load_backbone
 from graftcache.backbones.base import BackboneAdapter
+from graftcache.errors import BackboneError
 from graftcache.fit.controls import PassThroughProjector
 from graftcache.graft import GraftProjector, feature_key
 
 SPEC = TinySpec()
 ENC_DIM = 48
+#: Parameters of each zoo adapter's tiny policy as loaded (shared tensors once).
+TINY_PARAMS = {"eo1": 245_800, "groot": 810_496, "wall_x": 250_784, "vla_jepa": 295_927, "evo1": 354_800}
+#: The tiny zoo policies' frames (train-tiny's size): each processor makes a 4x4 token grid of them.
+TINY_SIZE = 128
 TASKS = (
     "pick up the black bowl between the plate and the ramekin and place it on the plate",
     "open the middle drawer of the cabinet",
@@ -90,3 +96,69 @@ def assert_native_control_reproduces(native: BackboneAdapter, control: BackboneA
     with torch.no_grad():
         torch.testing.assert_close(control.loss(control.prepare(cached), noise, time), pixel_loss)
         torch.testing.assert_close(control.predict(control.prepare(cached), noise), pixel_chunk)
+
+
+def assert_tiny_zoo_geometry(adapter: BackboneAdapter, max_action_dim: int, connector: int) -> dict[str, int]:
+    """What every tiny zoo policy (EO-1, GR00T, Wall-X, VLA-JEPA, EVO1) shares: a 4x4 token grid of 64-wide tokens
+    from an 8x8 grid of 32-wide patches, two cameras, 10-step chunks, its parameter count (TINY_PARAMS) in the
+    freeze report, and a `connector` of the given size. Returns the report's {module: parameters}."""
+    assert adapter.token_grid == (4, 4) and adapter.lm_width == 64 and adapter.embed_scale == 1.0
+    assert adapter.cameras == ("image", "image2") and adapter.max_action_dim == max_action_dim
+    assert adapter.chunk_size == 10
+    images = torch.rand(2, 3, TINY_SIZE, TINY_SIZE)
+    assert adapter.native_patch_grid(images).shape == (2, 8, 8, 32)
+    assert adapter.native_tokens(images).shape == (2, 16, 64)
+    params = TINY_PARAMS[adapter.name]
+    assert adapter.n_params == params
+    report = {r.module: r.params for r in adapter.freeze_report().rows}
+    assert sum(report.values()) == params and report["connector"] == connector
+    return report
+
+
+def assert_refuses_odd_token_counts(adapter: BackboneAdapter, raw: dict, noise: torch.Tensor,
+                                    time: torch.Tensor, slots: bool = False) -> None:
+    """A grafted pad-filling adapter (tiny, 4x4 token grid) refuses, in one line, 6 cached tokens per camera (neither
+    its grid nor a square one) and cameras carrying different token counts; with `slots`, also a prepared batch
+    whose features no longer match its prompt's 16 image slots per camera."""
+    odd = {**raw, **{feature_key(k): raw[feature_key(k)][:, :6] for k in adapter.camera_keys}}
+    with pytest.raises(BackboneError, match="6 cached tokens per camera is neither the native 4x4 grid nor a square"):
+        adapter.loss(adapter.prepare(odd), noise, time)
+    uneven = {**raw, feature_key("image"): raw[feature_key("image")][:, :9]}
+    with pytest.raises(BackboneError, match="different token counts"):
+        adapter.loss(adapter.prepare(uneven), noise, time)
+    if slots:
+        batch = adapter.prepare(raw)
+        batch[feature_key("image2")] = batch[feature_key("image2")][:, :4]
+        with pytest.raises(BackboneError, match=r"features have \[4, 16\] tokens per camera; the prompt has \[16\]"):
+            adapter.loss(batch, noise, time)
+
+
+def pooled_raw(adapter: BackboneAdapter, batch: int = 2) -> dict:
+    """A raw batch whose cached features are a pool-2x2 control's: 4 tokens per camera."""
+    pooled = {feature_key(k): torch.randn(batch, 4, ENC_DIM) for k in adapter.camera_keys}
+    return {**raw_features(adapter, batch), **pooled}
+
+
+def lm_inputs_of_loss(adapter: BackboneAdapter, lm: torch.nn.Module, batch: dict, noise: torch.Tensor,
+                      time: torch.Tensor) -> tuple[dict, torch.Tensor]:
+    """The keyword inputs `lm` (the policy's language model) is called with during `adapter.loss`, and the loss."""
+    seen: dict = {}
+    hook = lm.register_forward_pre_hook(lambda m, args, kwargs: seen.update(kwargs), with_kwargs=True)
+    try:
+        loss = adapter.loss(batch, noise, time)
+    finally:
+        hook.remove()
+    return seen, loss
+
+
+def projected_cameras(adapter: BackboneAdapter, raw: dict) -> torch.Tensor:
+    """What a grafted adapter must write into its image slots, independently computed: every sample's cached features
+    camera after camera, through the projector."""
+    cameras = [raw[feature_key(k)] for k in adapter.camera_keys]
+    return adapter.projector(torch.stack(cameras, dim=1).flatten(0, 2))
+
+
+def assert_projector_trained(adapter: BackboneAdapter, loss: torch.Tensor) -> None:
+    """The loss back-propagates into every projector parameter (a nonzero gradient each)."""
+    loss.mean().backward()
+    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in adapter.projector.parameters())
