@@ -30,7 +30,7 @@ def test_ridge_recovers_a_known_projection_on_every_camera() -> None:
 def test_ridge_pools_finer_native_tokens_and_reports_partial_fit() -> None:
     g = torch.Generator().manual_seed(1)
     src = torch.randn(200, 4, 8, generator=g)
-    native = torch.randn(200, 16, 5, generator=g)  # a 4x4 native grid, pooled to the graft's 2x2
+    native = torch.randn(200, 16, 5, generator=g)  # the tower's 4x4 grid, pooled to the graft's 2x2
     r2 = fit_ridge(GraftProjector(8, 5), [(src, native)], (2, 2))
     assert 0.0 <= r2 < 0.2  # unrelated noise: little variance explained
     with pytest.raises(FitError, match="do not line up"):

@@ -16,7 +16,7 @@ native tokens cached for the `native` control are that projector's output. Graft
 (resize, normalise) is bypassed: the cached features of each camera, with zero features for the padded views,
 go straight to `get_image_features`, which is shadowed on the instance to project them instead of running
 InternViT and the shuffle; the prompt carries as many `<IMG_CONTEXT>` per view as the features have tokens (the
-native 16x16 or a pooling control's grid: InternVL's LM positions are 1-D, so any count fits). EVO1 embeds
+token grid 16x16 or a pooling control's grid: InternVL's LM positions are 1-D, so any count fits). EVO1 embeds
 without gradients unless its config finetunes the VLM (stage 2): grafted, its `_compute_fused_tokens` is
 replaced by the same call with gradients, so the projector (and LoRA) train whatever the checkpoint's stage.
 

@@ -110,6 +110,6 @@ def prompt_grid(name: str, policy: str, token_grid: tuple[int, int], tokens: int
         return gh, gw
     side = round(tokens ** 0.5)
     if side * side != tokens:
-        raise BackboneError(f"{name}: {tokens} cached tokens per camera is neither the native {gh}x{gw} grid nor "
+        raise BackboneError(f"{name}: {tokens} cached tokens per camera is neither the token grid {gh}x{gw} nor "
                             f"a square one; {policy}'s prompt needs the grid's shape")
     return side, side

@@ -121,7 +121,7 @@ def assert_refuses_odd_token_counts(adapter: BackboneAdapter, raw: dict, noise: 
     its grid nor a square one) and cameras carrying different token counts; with `slots`, also a prepared batch
     whose features no longer match its prompt's 16 image slots per camera."""
     odd = {**raw, **{feature_key(k): raw[feature_key(k)][:, :6] for k in adapter.camera_keys}}
-    with pytest.raises(BackboneError, match="6 cached tokens per camera is neither the native 4x4 grid nor a square"):
+    with pytest.raises(BackboneError, match="6 cached tokens per camera is neither the token grid 4x4 nor a square"):
         adapter.loss(adapter.prepare(odd), noise, time)
     uneven = {**raw, feature_key("image"): raw[feature_key("image")][:, :9]}
     with pytest.raises(BackboneError, match="different token counts"):
