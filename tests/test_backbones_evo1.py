@@ -21,7 +21,7 @@ from helpers.backbones import (
 
 from graftcache.backbones.evo1 import Evo1Adapter
 from graftcache.errors import BackboneError
-from graftcache.graft import FusedProjector, GraftProjector, feature_key
+from graftcache.graft import feature_key
 
 SIZE = 128  # the tiny policy's frames (train-tiny's size): resized to 112 px -> 8x8 patches -> 4x4 tokens
 
@@ -130,28 +130,6 @@ def test_stage1_checkpoints_still_train_the_graft() -> None:
     batch = adapter.prepare(raw_features(adapter, 2))
     adapter.loss(batch, *fixed_noise_time(adapter, 2)).mean().backward()
     assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in adapter.projector.parameters())
-
-
-def test_a_fused_pass_gives_each_projector_its_own_samples() -> None:
-    """Two cells' projectors in one pass (graftcache.graft.FusedProjector, one sample each) give each sample the
-    loss its own projector gives it alone."""
-    adapter = tiny("evo1")
-    torch.manual_seed(0)
-    members = [GraftProjector(ENC_DIM, adapter.lm_width) for _ in range(2)]
-    raw = raw_features(adapter, 2)
-    noise, time = fixed_noise_time(adapter, 2)
-    alone = []
-    for i, projector in enumerate(members):
-        adapter.graft(projector)
-        one = {k: v[i:i + 1] for k, v in raw.items()}
-        with torch.no_grad():
-            alone.append(adapter.loss(adapter.prepare(one), noise[i:i + 1], time[i:i + 1]))
-        adapter.reset()
-    fused = FusedProjector(members)
-    adapter.graft(fused)
-    with torch.no_grad(), fused.rows([1, 1]):
-        together = adapter.loss(adapter.prepare(raw), noise, time)
-    torch.testing.assert_close(together, torch.cat(alone))
 
 
 def test_pooled_features_get_as_many_slots_as_tokens() -> None:
