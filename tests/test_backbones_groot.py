@@ -196,9 +196,9 @@ def test_released_geometry_on_the_meta_device() -> None:
     from lerobot.policies.groot.processor_groot import make_groot_pre_post_processors
 
     from graftcache.backbones.lean import construct as on_meta
+    from graftcache.backbones.tiny_assets import QWEN3_VL_PIXELS
     from graftcache.backbones.tiny_groot import (
         GROOT_DIR,
-        QWEN3_VL_PIXELS,
         construct,
         groot_released_config,
         released_base_config,

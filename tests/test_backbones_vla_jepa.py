@@ -232,10 +232,9 @@ def test_released_geometry_on_the_meta_device(tmp_path) -> None:
     `build_inputs` at Qwen3-VL-2B's processor bounds."""
     from transformers import Qwen3VLConfig
 
+    from graftcache.backbones.tiny_assets import QWEN3_VL_DIR, QWEN3_VL_PIXELS
     from graftcache.backbones.tiny_vla_jepa import (
         QWEN3_VL_2B,
-        QWEN3_VL_DIR,
-        QWEN3_VL_PIXELS,
         construct,
         vla_jepa_released_config,
     )

@@ -51,12 +51,9 @@ from graftcache.backbones.qwen_vl import (
     shadow_method,
 )
 from graftcache.backbones.tiny import TinySpec
+from graftcache.backbones.tiny_assets import QWEN3_VL_MERGE, QWEN3_VL_PATCH, QWEN3_VL_PIXELS, TINY_QWEN3_VL_PIXELS
 from graftcache.backbones.tiny_groot import (
     GROOT_DIR,
-    MERGE,
-    PATCH,
-    QWEN3_VL_PIXELS,
-    TINY_PIXELS,
     TINY_TARGET,
     base_config,
     build_tiny_groot,
@@ -78,7 +75,7 @@ def merged_grid(size: tuple[int, int], pixels: tuple[int, int]) -> tuple[int, in
     """The merged token grid Qwen3-VL's processor gives a frame of `size` (smart_resize, then patch x merge)."""
     from transformers.models.qwen2_vl.image_processing_qwen2_vl import smart_resize
 
-    factor = PATCH * MERGE
+    factor = QWEN3_VL_PATCH * QWEN3_VL_MERGE
     h, w = smart_resize(size[0], size[1], factor=factor, min_pixels=pixels[0], max_pixels=pixels[1])
     return h // factor, w // factor
 
@@ -190,7 +187,7 @@ class GrootAdapter(NativeVision, BackboneAdapter):
         from lerobot.policies.groot.processor_groot import _load_n1_7_checkpoint_processor_assets
 
         if marker is not None:
-            return merged_grid((TINY_TARGET, TINY_TARGET), TINY_PIXELS)
+            return merged_grid((TINY_TARGET, TINY_TARGET), TINY_QWEN3_VL_PIXELS)
         assets = _load_n1_7_checkpoint_processor_assets(config)
         target = assets.image_target_size if assets is not None and assets.image_target_size else None
         return merged_grid(tuple(target or N1_7_DEFAULT_IMAGE_TARGET_SIZE), QWEN3_VL_PIXELS)
@@ -284,7 +281,7 @@ class GrootAdapter(NativeVision, BackboneAdapter):
         crop, that target size, pixel bounds of exactly that frame): yields the frame size."""
         step = self._vlm_step
         image = step.proc.image_processor
-        h, w = gh * PATCH * MERGE, gw * PATCH * MERGE
+        h, w = gh * QWEN3_VL_PATCH * QWEN3_VL_MERGE, gw * QWEN3_VL_PATCH * QWEN3_VL_MERGE
         fields = ("image_target_size", "image_crop_size", "crop_fraction", "shortest_image_edge")
         saved, size = {f: getattr(step, f) for f in fields}, image.size
         for field, value in zip(fields, ([h, w], None, None, None)):

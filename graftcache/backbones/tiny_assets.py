@@ -14,16 +14,23 @@ Two folders:
   shuffle 2 -> 4x4 = 16 tokens per camera, Llama text model 192 wide x 4 layers).
 - `paligemma/`: a PaliGemma-style tokenizer (<pad>=0, <eos>=1, <bos>=2, prepends <bos>) that
   replaces the gated `google/paligemma-3b-pt-224` tokenizer lerobot's pi0.5 processor hard-codes.
+
+It also holds the Qwen-VL pieces the other tiny folders share: the tokenizer, Qwen3-VL's chat template, and
+`write_qwen3_vl`, which writes `qwen3_vl/` (`python -m graftcache.backbones.tiny_vla_jepa`) and, with one text layer
+more, `groot/` (`python -m graftcache.backbones.tiny_groot`).
 """
 
 from __future__ import annotations
 
 import json
+from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
 
 TINY_ROOT = Path(__file__).resolve().parent.parent / "resources" / "tiny"
 SMOLVLM_DIR = TINY_ROOT / "smolvlm"
 PALIGEMMA_DIR = TINY_ROOT / "paligemma"
+QWEN3_VL_DIR = TINY_ROOT / "qwen3_vl"
 
 VOCAB_SIZE = 1024
 SMOLVLM_SPECIALS = (
@@ -46,6 +53,26 @@ QWEN3_VL_CHAT_TEMPLATE = (
     "{% elif 'text' in content %}{{ content['text'] }}{% endif %}{% endfor %}{% endif %}<|im_end|>\n"
     "{% endfor %}{% if add_generation_prompt %}<|im_start|>assistant\n{% endif %}"
 )
+
+#: Qwen3-VL's patch and merge sizes: one merged token per 32x32 pixels.
+QWEN3_VL_PATCH, QWEN3_VL_MERGE = 16, 2
+#: Qwen/Qwen3-VL-2B-Instruct's image-processor pixel bounds (size.shortest_edge / longest_edge of its
+#: preprocessor_config.json), which GR00T's Cosmos-Reason2-2B keeps.
+QWEN3_VL_PIXELS = (65536, 16777216)
+#: The tiny Qwen3-VL processor's pixel bounds: 4 to 16 merged tokens an image.
+TINY_QWEN3_VL_PIXELS = (4 * (QWEN3_VL_PATCH * QWEN3_VL_MERGE) ** 2, 16 * (QWEN3_VL_PATCH * QWEN3_VL_MERGE) ** 2)
+#: The tiny Qwen3-VL config (VLA-JEPA's VLM, and GR00T's backbone with one text layer more: tiny_groot.py).
+TINY_QWEN3_VL = {
+    "vision_config": {"depth": 2, "hidden_size": 32, "intermediate_size": 64, "num_heads": 2, "in_channels": 3,
+                      "out_hidden_size": 64, "patch_size": QWEN3_VL_PATCH, "spatial_merge_size": QWEN3_VL_MERGE,
+                      "temporal_patch_size": 2, "num_position_embeddings": 64, "deepstack_visual_indexes": [0]},
+    "text_config": {"hidden_size": 64, "intermediate_size": 128, "num_hidden_layers": 2, "num_attention_heads": 4,
+                    "num_key_value_heads": 2, "head_dim": 16, "vocab_size": 1088, "max_position_embeddings": 1024,
+                    "rope_parameters": {"rope_type": "default", "mrope_section": [4, 2, 2], "mrope_interleaved": True,
+                                        "rope_theta": 10000.0},
+                    "tie_word_embeddings": True},
+    "tie_word_embeddings": True,
+}
 
 # SmolVLM geometry baked into smolvlm/config.json.
 SMOLVLM_GEOMETRY = {
@@ -92,6 +119,25 @@ def qwen_vision_ids(tok) -> dict[str, int]:
         ("image_token_id", "<|image_pad|>"), ("video_token_id", "<|video_pad|>"),
         ("vision_start_token_id", "<|vision_start|>"), ("vision_end_token_id", "<|vision_end|>"))}
 
+
+def write_qwen3_vl(out: Path = QWEN3_VL_DIR, text: Mapping[str, Any] | None = None) -> Path:
+    """Write a tiny Qwen3-VL folder: the tiny config (`text` overrides fields of its text config), the tiny Qwen
+    tokenizer with Qwen3-VL's chat template, Qwen2-VL's image processor at Qwen3-VL's settings (patch 16, merge 2,
+    temporal patch 2, mean/std 0.5) within TINY_QWEN3_VL_PIXELS, and Qwen3-VL's video processor."""
+    from transformers import Qwen3VLConfig, Qwen3VLProcessor
+    from transformers.models.qwen2_vl import Qwen2VLImageProcessor
+    from transformers.models.qwen3_vl.video_processing_qwen3_vl import Qwen3VLVideoProcessor
+
+    tok = qwen_tokenizer()
+    pixels = {"shortest_edge": TINY_QWEN3_VL_PIXELS[0], "longest_edge": TINY_QWEN3_VL_PIXELS[1]}
+    images = Qwen2VLImageProcessor(size=pixels, patch_size=QWEN3_VL_PATCH, merge_size=QWEN3_VL_MERGE,
+                                   temporal_patch_size=2, image_mean=[0.5] * 3, image_std=[0.5] * 3)
+    out.mkdir(parents=True, exist_ok=True)
+    Qwen3VLProcessor(image_processor=images, tokenizer=tok, video_processor=Qwen3VLVideoProcessor(),
+                     chat_template=QWEN3_VL_CHAT_TEMPLATE).save_pretrained(out)
+    config = {**TINY_QWEN3_VL, "text_config": {**TINY_QWEN3_VL["text_config"], **(text or {})}}
+    Qwen3VLConfig(**config, **qwen_vision_ids(tok)).save_pretrained(out)
+    return out
 
 def write_smolvlm(out: Path = SMOLVLM_DIR) -> Path:
     from transformers import PreTrainedTokenizerFast, SmolVLMConfig

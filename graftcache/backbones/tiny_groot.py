@@ -38,27 +38,15 @@ from typing import Any
 
 from graftcache.backbones.checkpoint import cached_repo
 from graftcache.backbones.tiny import TinySpec, _action_features, _require_stats, _visual_features, seeded_policy
-from graftcache.backbones.tiny_assets import QWEN3_VL_CHAT_TEMPLATE, TINY_ROOT, qwen_tokenizer, qwen_vision_ids
+from graftcache.backbones.tiny_assets import TINY_ROOT, write_qwen3_vl
 from graftcache.errors import BackboneError
 
 GROOT_DIR = TINY_ROOT / "groot"
 TINY_TARGET = 128            # GR00T's VLM step resizes every frame to this (released: 256)
 TINY_CROP = 115              # centre crop before the resize, GR00T's 230/256 ratio
-PATCH, MERGE = 16, 2         # Qwen3-VL's patch and merge sizes
-#: Qwen3-VL-2B-Instruct's image processor pixel bounds ("size" of its preprocessor_config.json), and the tiny one's.
-QWEN3_VL_PIXELS = (65536, 16777216)
-TINY_PIXELS = (4 * (PATCH * MERGE) ** 2, 16 * (PATCH * MERGE) ** 2)
-TINY_QWEN3_VL = {
-    "vision_config": {"depth": 2, "hidden_size": 32, "intermediate_size": 64, "num_heads": 2, "in_channels": 3,
-                      "out_hidden_size": 64, "patch_size": PATCH, "spatial_merge_size": MERGE,
-                      "temporal_patch_size": 2, "num_position_embeddings": 64, "deepstack_visual_indexes": [0]},
-    "text_config": {"hidden_size": 64, "intermediate_size": 128, "num_hidden_layers": 3, "num_attention_heads": 4,
-                    "num_key_value_heads": 2, "head_dim": 16, "vocab_size": 1088, "max_position_embeddings": 4096,
-                    "rope_parameters": {"rope_type": "default", "mrope_section": [4, 2, 2], "mrope_interleaved": True,
-                                        "rope_theta": 10000.0},
-                    "tie_word_embeddings": True},
-    "tie_word_embeddings": True,
-}
+#: The tiny Cosmos-Reason2 stand-in is the tiny Qwen3-VL with a third text layer, so that GR00T's `select_layer` (2)
+#: cuts the LM as the released one cuts 28 layers at 16.
+GROOT_TEXT = {"num_hidden_layers": 3, "max_position_embeddings": 4096}
 #: GR00TN17Config overrides of the tiny base model (the rest: lerobot's GR00T_N1_7_DEFAULTS).
 TINY_GROOT = {
     "backbone_embedding_dim": 64, "select_layer": 2, "hidden_size": 32, "input_embedding_dim": 48,
@@ -70,24 +58,6 @@ TINY_GROOT = {
                               "attention_head_dim": 32, "dropout": 0.0, "final_dropout": True},
     "dtype": "float32", "model_dtype": "float32",
 }
-
-
-def write_groot(out: Path = GROOT_DIR) -> Path:
-    """Write the tiny Cosmos-Reason2 stand-in: Qwen3-VL config, tokenizer, chat template, image/video processors."""
-    from transformers import Qwen3VLConfig, Qwen3VLProcessor
-    from transformers.models.qwen2_vl import Qwen2VLImageProcessor
-    from transformers.models.qwen3_vl.video_processing_qwen3_vl import Qwen3VLVideoProcessor
-
-    tok = qwen_tokenizer()
-    tok.chat_template = QWEN3_VL_CHAT_TEMPLATE
-    out.mkdir(parents=True, exist_ok=True)
-    pixels = {"shortest_edge": TINY_PIXELS[0], "longest_edge": TINY_PIXELS[1]}
-    image = Qwen2VLImageProcessor(size=pixels, patch_size=PATCH, merge_size=MERGE, temporal_patch_size=2,
-                                  image_mean=[0.5] * 3, image_std=[0.5] * 3)
-    Qwen3VLProcessor(image_processor=image, tokenizer=tok, video_processor=Qwen3VLVideoProcessor(),
-                     chat_template=QWEN3_VL_CHAT_TEMPLATE).save_pretrained(out)
-    Qwen3VLConfig(**TINY_QWEN3_VL, **qwen_vision_ids(tok)).save_pretrained(out)
-    return out
 
 
 def tiny_base_config():
@@ -210,5 +180,5 @@ def build_tiny_groot(spec: TinySpec, stats: dict | None, device: str):
 
 
 if __name__ == "__main__":
-    folder = write_groot()
+    folder = write_qwen3_vl(GROOT_DIR, GROOT_TEXT)
     print(folder, sorted(p.name for p in folder.iterdir()))

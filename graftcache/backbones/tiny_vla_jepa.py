@@ -34,22 +34,9 @@ from pathlib import Path
 import torch
 
 from graftcache.backbones.tiny import TinySpec, _action_features, _require_stats, _visual_features, seeded_policy
-from graftcache.backbones.tiny_assets import QWEN3_VL_CHAT_TEMPLATE, TINY_ROOT, qwen_tokenizer, qwen_vision_ids
+from graftcache.backbones.tiny_assets import QWEN3_VL_DIR, write_qwen3_vl
 
-QWEN3_VL_DIR = TINY_ROOT / "qwen3_vl"
 TINY_IMAGE_SIZE = 128  # what train-tiny resizes frames to (requests.TinyTrainConfig.image_size)
-FACTOR = 32  # patch 16 x merge 2
-TINY_QWEN3 = {
-    "vision_config": {"depth": 2, "hidden_size": 32, "intermediate_size": 64, "num_heads": 2, "in_channels": 3,
-                      "out_hidden_size": 64, "patch_size": 16, "spatial_merge_size": 2, "temporal_patch_size": 2,
-                      "num_position_embeddings": 64, "deepstack_visual_indexes": [0]},
-    "text_config": {"hidden_size": 64, "intermediate_size": 128, "num_hidden_layers": 2, "num_attention_heads": 4,
-                    "num_key_value_heads": 2, "head_dim": 16, "vocab_size": 1088, "max_position_embeddings": 1024,
-                    "rope_parameters": {"rope_type": "default", "mrope_section": [4, 2, 2], "mrope_interleaved": True,
-                                        "rope_theta": 10000.0},
-                    "tie_word_embeddings": True},
-    "tie_word_embeddings": True,
-}
 #: Qwen/Qwen3-VL-2B-Instruct's config.json (the fields that set the geometry; the rest are transformers' defaults).
 QWEN3_VL_2B = {
     "vision_config": {"depth": 24, "hidden_size": 1024, "intermediate_size": 4096, "num_heads": 16, "in_channels": 3,
@@ -64,24 +51,6 @@ QWEN3_VL_2B = {
     "tie_word_embeddings": True, "dtype": "bfloat16", "image_token_id": 151655, "video_token_id": 151656,
     "vision_start_token_id": 151652, "vision_end_token_id": 151653,
 }
-#: Qwen/Qwen3-VL-2B-Instruct's preprocessor_config.json pixel bounds (size.shortest_edge / longest_edge).
-QWEN3_VL_PIXELS = (65536, 16777216)
-
-
-def write_qwen3_vl(out: Path = QWEN3_VL_DIR) -> Path:
-    """Write the tiny Qwen3-VL folder (config, tokenizer, chat template, image/video processors)."""
-    from transformers import Qwen3VLConfig, Qwen3VLProcessor
-    from transformers.models.qwen2_vl import Qwen2VLImageProcessor
-    from transformers.models.qwen3_vl.video_processing_qwen3_vl import Qwen3VLVideoProcessor
-
-    tok = qwen_tokenizer()
-    images = Qwen2VLImageProcessor(patch_size=16, merge_size=2, temporal_patch_size=2, min_pixels=4 * FACTOR ** 2,
-                                   max_pixels=16 * FACTOR ** 2, image_mean=[0.5] * 3, image_std=[0.5] * 3)
-    out.mkdir(parents=True, exist_ok=True)
-    Qwen3VLProcessor(image_processor=images, tokenizer=tok, video_processor=Qwen3VLVideoProcessor(),
-                     chat_template=QWEN3_VL_CHAT_TEMPLATE).save_pretrained(out)
-    Qwen3VLConfig(**TINY_QWEN3, **qwen_vision_ids(tok)).save_pretrained(out)
-    return out
 
 
 @contextlib.contextmanager
