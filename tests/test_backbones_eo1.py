@@ -22,7 +22,8 @@ from helpers.backbones import (
     tiny,
 )
 
-from graftcache.backbones.eo1 import EO1Adapter, left_padded, merged_grid
+from graftcache.backbones.eo1 import EO1Adapter, left_padded
+from graftcache.backbones.qwen_vl import merged_grid
 
 SIZE = 128  # the tiny policy's frames (train-tiny's size): smart_resize -> 112 px -> 8x8 patches -> 4x4 tokens
 
@@ -52,7 +53,8 @@ def test_native_tower_is_the_policys_own_image_path() -> None:
     blocks = grid.view(3, 4, 2, 4, 2, 32).permute(0, 1, 3, 2, 4, 5).reshape(-1, 32)
     with torch.no_grad():
         torch.testing.assert_close(qwen.visual.merger(blocks).view(3, 16, 64), own[:, 0])
-    assert merged_grid((256, 256), qwen.visual.config, 64 * 28 * 28, 128 * 28 * 28) == (9, 9)
+    vision = qwen.visual.config
+    assert merged_grid((256, 256), vision.patch_size, vision.spatial_merge_size, 64 * 28 * 28, 128 * 28 * 28) == (9, 9)
 
 
 def test_loss_and_prediction_are_lerobots_under_the_same_draws() -> None:

@@ -28,7 +28,8 @@ from helpers.backbones import (
 )
 
 from graftcache.backbones import load_backbone
-from graftcache.backbones.groot import PADDED_ACTION, GrootAdapter, merged_grid
+from graftcache.backbones.groot import PADDED_ACTION, GrootAdapter
+from graftcache.backbones.qwen_vl import merged_grid
 from graftcache.errors import BackboneError
 
 SIZE = 128  # the tiny policy's frames; GR00T's VLM step resizes to 128 px anyway: 8x8 patches -> 4x4 tokens
@@ -79,7 +80,8 @@ def test_native_tower_is_the_policys_own_image_path() -> None:
     blocks = grid.view(3, 4, 2, 4, 2, 32).permute(0, 1, 3, 2, 4, 5).reshape(-1, 32)
     with torch.no_grad():
         torch.testing.assert_close(qwen.visual.merger(blocks).view(3, 16, 64), own[:, 0])
-    assert merged_grid((256, 256), (65536, 16777216)) == (8, 8) and merged_grid((128, 128), (65536, 16777216)) == (8, 8)
+    assert merged_grid((256, 256), 16, 2, 65536, 16777216) == (8, 8)
+    assert merged_grid((128, 128), 16, 2, 65536, 16777216) == (8, 8)
 
 
 def test_loss_and_prediction_are_lerobots_under_the_same_draws() -> None:

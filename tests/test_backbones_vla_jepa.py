@@ -29,7 +29,8 @@ from helpers.backbones import (
 from helpers.memory import peak_tensor_bytes
 
 from graftcache.backbones import lean
-from graftcache.backbones.vla_jepa import VLAJEPAAdapter, merged_grid
+from graftcache.backbones.qwen_vl import merged_grid
+from graftcache.backbones.vla_jepa import VLAJEPAAdapter
 from graftcache.errors import BackboneError
 from graftcache.fit.controls import PassThroughProjector
 from graftcache.graft import feature_key
@@ -75,8 +76,8 @@ def test_native_tower_is_the_policys_own_image_path() -> None:
     with torch.no_grad():
         merged = adapter._vision_owner.merger(blocks).view(3, 16, 64)
     torch.testing.assert_close(merged, own[:, 0].float(), atol=0.02, rtol=0.02)  # the policy's merger ran in bf16
-    bounds = {"patch_size": 16, "merge_size": 2, "size": {"shortest_edge": 65536, "longest_edge": 16777216}}
-    assert merged_grid((256, 256), bounds) == (8, 8) and merged_grid((480, 640), bounds) == (15, 20)
+    assert merged_grid((256, 256), 16, 2, 65536, 16777216) == (8, 8)
+    assert merged_grid((480, 640), 16, 2, 65536, 16777216) == (15, 20)
 
 
 def test_loss_and_prediction_are_lerobots_under_the_same_draws() -> None:

@@ -43,6 +43,7 @@ from graftcache.backbones.qwen_vl import (
     cached_token_count,
     check_slots,
     image_token_counts,
+    merged_grid,
     projected_images,
     prompt_grid,
     raster_patches,
@@ -56,16 +57,6 @@ from graftcache.graft import feature_key
 
 QWEN_STEP = "EO1QwenProcessorStep"
 SEQUENCE_KEYS = ("input_ids", "attention_mask", "mm_token_type_ids")
-
-
-def merged_grid(size: tuple[int, int], vision, min_pixels: int | None, max_pixels: int | None) -> tuple[int, int]:
-    """The merged token grid Qwen's processor gives an image of `size` (smart_resize, then patch x merge)."""
-    from transformers.models.qwen2_vl.image_processing_qwen2_vl import smart_resize
-
-    factor = vision.patch_size * vision.spatial_merge_size
-    bounds = {k: v for k, v in (("min_pixels", min_pixels), ("max_pixels", max_pixels)) if v is not None}
-    h, w = smart_resize(size[0], size[1], factor=factor, **bounds)
-    return h // factor, w // factor
 
 
 def vit_outputs(visual: nn.Module, pixel_values: torch.Tensor,
@@ -191,8 +182,9 @@ class EO1Adapter(NativeVision, BackboneAdapter):
         cameras = list(config.image_features.values())
         if not cameras:
             raise BackboneError("eo1 config declares no camera")
-        return merged_grid(tuple(cameras[0].shape[-2:]), config.vision_config, config.image_min_pixels,
-                           config.image_max_pixels)
+        vision = config.vision_config
+        return merged_grid(tuple(cameras[0].shape[-2:]), vision.patch_size, vision.spatial_merge_size,
+                           config.image_min_pixels, config.image_max_pixels)
 
     @property
     def lm_width(self) -> int:

@@ -45,6 +45,7 @@ from graftcache.backbones.qwen_vl import (
     cached_token_count,
     check_slots,
     image_token_counts,
+    merged_grid,
     projected_images,
     prompt_grid,
     raster_patches,
@@ -69,15 +70,6 @@ VLM_STEP, PACK_STEP = "GrootN17VLMEncodeStep", "GrootN17PackInputsStep"
 #: The normalised action chunk as GR00T's pack step pads it to `max_action_dim` (what its forward reads); the
 #: prepared batch's `action` is the chunk at the dataset's action width, like every other backbone's.
 PADDED_ACTION = "groot_padded_action"
-
-
-def merged_grid(size: tuple[int, int], pixels: tuple[int, int]) -> tuple[int, int]:
-    """The merged token grid Qwen3-VL's processor gives a frame of `size` (smart_resize, then patch x merge)."""
-    from transformers.models.qwen2_vl.image_processing_qwen2_vl import smart_resize
-
-    factor = QWEN3_VL_PATCH * QWEN3_VL_MERGE
-    h, w = smart_resize(size[0], size[1], factor=factor, min_pixels=pixels[0], max_pixels=pixels[1])
-    return h // factor, w // factor
 
 
 class _NoiseTorch:
@@ -187,10 +179,11 @@ class GrootAdapter(NativeVision, BackboneAdapter):
         from lerobot.policies.groot.processor_groot import _load_n1_7_checkpoint_processor_assets
 
         if marker is not None:
-            return merged_grid((TINY_TARGET, TINY_TARGET), TINY_QWEN3_VL_PIXELS)
+            return merged_grid((TINY_TARGET, TINY_TARGET), QWEN3_VL_PATCH, QWEN3_VL_MERGE, *TINY_QWEN3_VL_PIXELS)
         assets = _load_n1_7_checkpoint_processor_assets(config)
         target = assets.image_target_size if assets is not None and assets.image_target_size else None
-        return merged_grid(tuple(target or N1_7_DEFAULT_IMAGE_TARGET_SIZE), QWEN3_VL_PIXELS)
+        return merged_grid(tuple(target or N1_7_DEFAULT_IMAGE_TARGET_SIZE), QWEN3_VL_PATCH, QWEN3_VL_MERGE,
+                           *QWEN3_VL_PIXELS)
 
     @property
     def lm_width(self) -> int:

@@ -52,6 +52,18 @@ def tied_head_keys(file_keys: Iterable[str], head: str, embed: str) -> dict[str,
     return keys
 
 
+def merged_grid(size: tuple[int, int], patch: int, merge: int, min_pixels: int | None = None,
+                max_pixels: int | None = None) -> tuple[int, int]:
+    """The merged token grid Qwen's image processor gives an image of `size`: smart_resize to multiples of
+    patch x merge within the pixel bounds (transformers' defaults where None), then one token per merge block."""
+    from transformers.models.qwen2_vl.image_processing_qwen2_vl import smart_resize
+
+    factor = patch * merge
+    bounds = {k: v for k, v in (("min_pixels", min_pixels), ("max_pixels", max_pixels)) if v is not None}
+    h, w = smart_resize(size[0], size[1], factor=factor, **bounds)
+    return h // factor, w // factor
+
+
 def image_token_counts(grid_thw: torch.Tensor, merge: int) -> list[int]:
     """Tokens Qwen's merger makes of each image of a processor call: its patch grid over merge x merge blocks."""
     return (grid_thw.prod(-1) // merge ** 2).tolist()

@@ -51,6 +51,7 @@ from graftcache.backbones.eo1 import shadowed
 from graftcache.backbones.qwen_vl import (
     check_slots,
     image_token_counts,
+    merged_grid,
     projected_images,
     prompt_grid,
     raster_patches,
@@ -64,18 +65,6 @@ from graftcache.errors import BackboneError
 from graftcache.graft import feature_key
 
 QWEN_MODEL = "Qwen3-VL config and processor"
-
-
-def merged_grid(size: tuple[int, int], processor: Mapping[str, Any]) -> tuple[int, int]:
-    """The merged token grid Qwen's image processor (its saved config: patch and merge size, pixel bounds) gives
-    an image of `size`."""
-    from transformers.models.qwen2_vl.image_processing_qwen2_vl import smart_resize
-
-    factor = processor["patch_size"] * processor["merge_size"]
-    bounds = processor["size"]
-    h, w = smart_resize(size[0], size[1], factor=factor, min_pixels=bounds["shortest_edge"],
-                        max_pixels=bounds["longest_edge"])
-    return h // factor, w // factor
 
 
 def image_processor_config(folder: Path) -> dict:
@@ -196,7 +185,10 @@ class VLAJEPAAdapter(WrappedCheckpointing, BackboneAdapter):
         if not cameras:
             raise BackboneError("vla_jepa config declares no camera")
         size = tuple(config.resize_images_to or cameras[0].shape[-2:])
-        return merged_grid(size, image_processor_config(cls._qwen_folder(config, marker)))
+        processor = image_processor_config(cls._qwen_folder(config, marker))
+        bounds = processor["size"]
+        return merged_grid(size, processor["patch_size"], processor["merge_size"], bounds["shortest_edge"],
+                           bounds["longest_edge"])
 
     @property
     def lm_width(self) -> int:

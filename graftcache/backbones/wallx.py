@@ -43,8 +43,15 @@ from transformers.modeling_outputs import BaseModelOutputWithPooling
 from graftcache.backbones.base import BackboneAdapter
 from graftcache.backbones.batches import STATE
 from graftcache.backbones.checkpoint import cached_repo
-from graftcache.backbones.eo1 import merged_grid, shadowed, vit_outputs
-from graftcache.backbones.qwen_vl import NativeVision, projected_rows, prompt_grid, shadow_method, tied_head_keys
+from graftcache.backbones.eo1 import shadowed, vit_outputs
+from graftcache.backbones.qwen_vl import (
+    NativeVision,
+    merged_grid,
+    projected_rows,
+    prompt_grid,
+    shadow_method,
+    tied_head_keys,
+)
 from graftcache.backbones.recompute import WrappedCheckpointing
 from graftcache.backbones.tiny import TinySpec
 from graftcache.backbones.tiny_wallx import WALLX_DIR, build_tiny_wallx, construct, load_processor
@@ -82,7 +89,8 @@ def image_grid(shape: tuple[int, int], image_processor, vision) -> tuple[int, in
 
     _, _, height, width = _wall_x_resize_dimensions(*shape)
     size = image_processor.size
-    return merged_grid((height, width), vision, size["shortest_edge"], size["longest_edge"])
+    return merged_grid((height, width), vision.patch_size, vision.spatial_merge_size, size["shortest_edge"],
+                       size["longest_edge"])
 
 
 @contextlib.contextmanager
