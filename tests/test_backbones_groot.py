@@ -109,7 +109,8 @@ def test_loss_and_prediction_are_lerobots_under_the_same_draws() -> None:
         start = torch.randn(shape)
     torch.testing.assert_close(adapter.predict(batch, start), chunk_ref)
     assert chunk_ref.shape == (3, adapter.chunk_size, adapter.action_dim)
-    with pytest.raises(BackboneError, match=r"noise of shape \(3, 4, 8\) given, GR00T draws \(3, 10, 8\)"):
+    drawn = r"groot: noise of shape \(3, 4, 8\) given, \(3, 10, 8\) drawn by torch.randn in lerobot.policies.groot"
+    with pytest.raises(BackboneError, match=drawn + r".groot_n1_7"):
         adapter.predict(batch, start[:, :4])
 
 

@@ -107,7 +107,8 @@ def test_loss_and_prediction_are_lerobots_under_the_same_draws() -> None:
     torch.testing.assert_close(adapter.predict(batch, start), chunk_ref)
     assert chunk_ref.shape == (3, adapter.chunk_size, adapter.action_dim)
     assert not torch.equal(adapter.predict(batch, start, num_steps=1), chunk_ref)  # the step count is honoured
-    with pytest.raises(BackboneError, match=r"noise of shape \(3, 10, 8\) given, \(3, 10, 7\) drawn"):
+    drawn = r"vla_jepa: noise of shape \(3, 10, 8\) given, \(3, 10, 7\) drawn by torch.randn_like"
+    with pytest.raises(BackboneError, match=drawn):
         adapter.loss(batch, torch.zeros(3, 10, 8), 1 - t)
 
 

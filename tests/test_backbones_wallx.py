@@ -25,7 +25,8 @@ from helpers.backbones import (
     tiny,
 )
 
-from graftcache.backbones.wallx import GivenDraw, WallXAdapter
+from graftcache.backbones.draws import given_noise
+from graftcache.backbones.wallx import WallXAdapter
 from graftcache.errors import BackboneError
 from graftcache.graft import FusedProjector, GraftProjector, feature_key
 
@@ -71,6 +72,8 @@ def test_native_tower_is_the_policys_own_image_path() -> None:
 def test_loss_and_prediction_are_lerobots_under_the_same_draws() -> None:
     """Wall-X's loss is its flow MSE alone (no labels in flow mode, so no cross-entropy term): lerobot's scalar is
     the mean of the per-element losses over its 20 padded dims with the padded ones zeroed (its dof mask)."""
+    from lerobot.policies.wall_x import modeling_wall_x
+
     adapter = tiny("wall_x")
     adapter.policy.eval()
     batch = adapter.prepare(raw_images(adapter, 3, size=SIZE))
@@ -94,10 +97,12 @@ def test_loss_and_prediction_are_lerobots_under_the_same_draws() -> None:
     assert chunk_ref.shape == (3, adapter.chunk_size, adapter.action_dim)
     few = adapter.predict(batch, start, num_steps=2)
     assert few.shape == chunk_ref.shape and not torch.allclose(few, chunk_ref)  # the step count reaches the ODE
-    with pytest.raises(BackboneError, match=r"draws \(3, 10, 20\) from randn_like; the given draw is \(3, 10, 7\)"):
+    with pytest.raises(BackboneError, match=r"wall_x: noise of shape \(3, 10, 7\) given, \(3, 10, 20\) drawn by "
+                                            r"torch.randn_like in lerobot.policies.wall_x.modeling_wall_x"):
         adapter._flow_losses(batch, noise[:, :, :7], time)
-    with GivenDraw(torch.randn, noise), pytest.raises(BackboneError, match="the given draw"):
-        torch.randn(2, 2)
+    with given_noise(modeling_wall_x, noise, "wall_x", draws=("randn",)), \
+            pytest.raises(BackboneError, match=r"given, \(2, 2\) drawn by torch.randn in"):
+        modeling_wall_x.torch.randn(2, 2)
 
 
 def test_graft_fills_the_image_pads_with_projected_features() -> None:

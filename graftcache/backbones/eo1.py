@@ -38,6 +38,7 @@ from transformers.modeling_outputs import BaseModelOutputWithPooling
 from graftcache.backbones.base import BackboneAdapter
 from graftcache.backbones.batches import ACTION, STATE
 from graftcache.backbones.checkpoint import cached_repo
+from graftcache.backbones.draws import shadowed
 from graftcache.backbones.qwen_vl import (
     NativeVision,
     cached_token_count,
@@ -99,18 +100,6 @@ def processor_kwargs_quiet() -> Iterator[None]:
         yield
     finally:
         logger.setLevel(level)
-
-
-@contextlib.contextmanager
-def shadowed(module: nn.Module, **methods) -> Iterator[None]:
-    """Instance attributes shadowing `module`'s methods for the duration of the block."""
-    for name, value in methods.items():
-        setattr(module, name, value)
-    try:
-        yield
-    finally:
-        for name in methods:
-            module.__dict__.pop(name, None)
 
 
 class EO1Adapter(NativeVision, BackboneAdapter):

@@ -39,7 +39,7 @@ from torch import nn
 from graftcache.backbones.base import BackboneAdapter
 from graftcache.backbones.batches import ACTION, STATE
 from graftcache.backbones.checkpoint import cached_repo
-from graftcache.backbones.eo1 import shadowed
+from graftcache.backbones.draws import given_noise, shadowed
 from graftcache.backbones.qwen_vl import (
     NativeVision,
     cached_token_count,
@@ -70,34 +70,6 @@ VLM_STEP, PACK_STEP = "GrootN17VLMEncodeStep", "GrootN17PackInputsStep"
 #: The normalised action chunk as GR00T's pack step pads it to `max_action_dim` (what its forward reads); the
 #: prepared batch's `action` is the chunk at the dataset's action width, like every other backbone's.
 PADDED_ACTION = "groot_padded_action"
-
-
-class _NoiseTorch:
-    """groot_n1_7.py's `torch` for the duration of one call: `randn` returns the given draw, the rest is torch."""
-
-    def __init__(self, noise: torch.Tensor) -> None:
-        self._noise = noise
-
-    def __getattr__(self, name: str) -> Any:
-        return getattr(torch, name)
-
-    def randn(self, *args: Any, size=None, device=None, dtype=None, **_: Any) -> torch.Tensor:
-        shape = tuple(size if size is not None else (args[0] if len(args) == 1 else args))
-        if tuple(self._noise.shape) != shape:
-            raise BackboneError(f"groot: noise of shape {tuple(self._noise.shape)} given, GR00T draws {shape}")
-        return self._noise.to(device=device, dtype=dtype)
-
-
-@contextlib.contextmanager
-def drawing(noise: torch.Tensor) -> Iterator[None]:
-    """GR00T's own noise draws return `noise` while the block runs."""
-    from lerobot.policies.groot import groot_n1_7
-
-    groot_n1_7.torch = _NoiseTorch(noise)
-    try:
-        yield
-    finally:
-        groot_n1_7.torch = torch
 
 
 class GrootAdapter(NativeVision, BackboneAdapter):
@@ -322,12 +294,15 @@ class GrootAdapter(NativeVision, BackboneAdapter):
     def _flow_losses(self, batch: Mapping[str, Any], noise: torch.Tensor, time: torch.Tensor) -> torch.Tensor:
         """lerobot's GR00T forward with the given draws (`time` 1 = pure noise, GR00T's 1 - time); the per-element
         loss from the action decoder's output (GR00T's velocity is action - noise)."""
+        from lerobot.policies.groot import groot_n1_7
+
         head = self._groot.action_head
         own = 1 - time
         decoded = []
         hook = head.action_decoder.register_forward_hook(lambda m, args, out: decoded.append(out))
         try:
-            with drawing(noise), shadowed(head, sample_time=lambda size, device, dtype: own.to(device, dtype)):
+            with given_noise(groot_n1_7, noise, self.name), \
+                    shadowed(head, sample_time=lambda size, device, dtype: own.to(device, dtype)):
                 self.policy.forward({**batch, ACTION: batch[PADDED_ACTION]})
         finally:
             hook.remove()
@@ -338,10 +313,12 @@ class GrootAdapter(NativeVision, BackboneAdapter):
     @torch.no_grad()
     def _predict_chunk(self, batch: Mapping[str, Any], noise: torch.Tensor, num_steps: int) -> torch.Tensor:
         """`GrootPolicy.predict_action_chunk` from `noise` with `num_steps` Euler steps."""
+        from lerobot.policies.groot import groot_n1_7
+
         head = self._groot.action_head
         steps, head.num_inference_timesteps = head.num_inference_timesteps, int(num_steps)
         try:
-            with drawing(noise):
+            with given_noise(groot_n1_7, noise, self.name):
                 return self.policy.predict_action_chunk(dict(batch))
         finally:
             head.num_inference_timesteps = steps

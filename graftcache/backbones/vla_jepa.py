@@ -47,7 +47,7 @@ from torch import nn
 from graftcache.backbones.base import BackboneAdapter
 from graftcache.backbones.batches import ACTION, STATE
 from graftcache.backbones.checkpoint import cached_repo
-from graftcache.backbones.eo1 import shadowed
+from graftcache.backbones.draws import given_noise, shadowed
 from graftcache.backbones.qwen_vl import (
     check_slots,
     image_token_counts,
@@ -80,40 +80,14 @@ def image_processor_config(folder: Path) -> dict:
     raise BackboneError(f"{folder}: no Qwen image processor config (preprocessor_config.json or processor_config.json)")
 
 
-class TorchWithDraws:
-    """lerobot's action_head module sees this in place of `torch` while a draw is given: `randn_like` / `randn`
-    return the given noise (refused if its shape is not the one asked for), everything else is torch's."""
-
-    def __init__(self, noise: torch.Tensor) -> None:
-        self._noise = noise
-
-    def _given(self, shape: tuple[int, ...], device, dtype) -> torch.Tensor:
-        if tuple(shape) != tuple(self._noise.shape):
-            raise BackboneError(f"vla_jepa: noise of shape {tuple(self._noise.shape)} given, {tuple(shape)} drawn")
-        return self._noise.to(device=device, dtype=dtype)
-
-    def randn_like(self, like: torch.Tensor, **_: object) -> torch.Tensor:
-        return self._given(like.shape, like.device, like.dtype)
-
-    def randn(self, *size: int, dtype=None, device=None, **_: object) -> torch.Tensor:
-        return self._given(size, device, dtype)
-
-    def __getattr__(self, name: str):
-        return getattr(torch, name)
-
-
 @contextlib.contextmanager
 def given_draws(head: nn.Module, noise: torch.Tensor, time: torch.Tensor | None = None) -> Iterator[None]:
     """The action head's noise (and, given, its time t) fixed for the block."""
     from lerobot.policies.vla_jepa import action_head
 
-    module_torch, action_head.torch = action_head.torch, TorchWithDraws(noise)
     samplers = {} if time is None else {"sample_time": lambda size, device, dtype: time.to(device, dtype)}
-    try:
-        with shadowed(head, **samplers):
-            yield
-    finally:
-        action_head.torch = module_torch
+    with given_noise(action_head, noise, VLAJEPAAdapter.name), shadowed(head, **samplers):
+        yield
 
 
 class VLAJEPAAdapter(WrappedCheckpointing, BackboneAdapter):

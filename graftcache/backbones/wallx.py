@@ -21,7 +21,7 @@ only `<|action|>` tokens, which `preprocesser_call` masks out of the labels, so 
 cross-entropy term is never computed: the loss is `flow_loss_weight` x the flow MSE. Wall-X draws its time and
 noise inside `ActionHead.forward` / `predict` (`sample_time`, `torch.randn_like`, `torch.randn`); `loss` and
 `predict` run lerobot's own code with the sampler shadowed and those two calls answered with the given draws
-(`graftcache.backbones.wallx.GivenDraw`). Wall-X's time runs the other way from graftcache's noise level (its
+(`graftcache.backbones.draws.given_noise`). Wall-X's time runs the other way from graftcache's noise level (its
 x_t = (1 - t) noise + t action, pi0's x_t = t noise + (1 - t) action) and its draw (1 - Beta(1.5, 1)) x 0.999 is
 exactly 1 - graftcache's: the given time is passed on as 1 - time.
 """
@@ -31,19 +31,19 @@ from __future__ import annotations
 import contextlib
 import functools
 import inspect
-from collections.abc import Callable, Iterable, Iterator, Mapping
+from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
 import torch
 from torch import nn
-from torch.overrides import TorchFunctionMode
 from transformers.modeling_outputs import BaseModelOutputWithPooling
 
 from graftcache.backbones.base import BackboneAdapter
 from graftcache.backbones.batches import STATE
 from graftcache.backbones.checkpoint import cached_repo
-from graftcache.backbones.eo1 import shadowed, vit_outputs
+from graftcache.backbones.draws import given_noise, shadowed
+from graftcache.backbones.eo1 import vit_outputs
 from graftcache.backbones.qwen_vl import (
     NativeVision,
     merged_grid,
@@ -59,27 +59,6 @@ from graftcache.errors import BackboneError
 
 #: Slack on the pixel bounds that pin the processor's resize to a grid (smart_resize's floor/ceil of a ratio).
 BOUND_SLACK = 1.01
-
-
-class GivenDraw(TorchFunctionMode):
-    """While open, calls of the torch function `func` (Wall-X's `torch.randn` / `torch.randn_like`) return `value`
-    instead of a fresh draw; the shape asked for must be `value`'s."""
-
-    def __init__(self, func: Callable, value: torch.Tensor) -> None:
-        super().__init__()
-        self.func, self.value = func, value
-
-    def __torch_function__(self, func, types, args=(), kwargs=None):
-        kwargs = kwargs or {}
-        if func is not self.func:
-            return func(*args, **kwargs)
-        like = args[0] if func is torch.randn_like else None
-        shape = tuple(like.shape) if like is not None else tuple(kwargs.get("size") or args)
-        if shape != tuple(self.value.shape):
-            raise BackboneError(f"wall_x draws {shape} from {func.__name__}; the given draw is "
-                                f"{tuple(self.value.shape)}")
-        device = kwargs.get("device") or (like.device if like is not None else None)
-        return self.value.to(device=device, dtype=kwargs.get("dtype") or torch.float32)
 
 
 def image_grid(shape: tuple[int, int], image_processor, vision) -> tuple[int, int]:
@@ -255,13 +234,15 @@ class WallXAdapter(NativeVision, WrappedCheckpointing, BackboneAdapter):
     def _flow_losses(self, batch: Mapping[str, Any], noise: torch.Tensor, time: torch.Tensor) -> torch.Tensor:
         """lerobot's Wall-X forward with the given draws; the per-element loss from the action head's prediction
         and flow target (lerobot reduces the loss to a scalar)."""
+        from lerobot.policies.wall_x import modeling_wall_x
+
         head = self.policy.model.action_preprocessor
         seen: dict[str, torch.Tensor] = {}
         hooks = [head.register_forward_hook(lambda m, args, out: seen.update(flow=out[1])),
                  head.action_proj_back.register_forward_hook(lambda m, args, out: seen.update(pred=out))]
         try:
             with shadowed(head, sample_time=lambda size, device: (1 - time).to(device, torch.float32)), \
-                    GivenDraw(torch.randn_like, noise):
+                    given_noise(modeling_wall_x, noise, self.name, draws=("randn_like",)):
                 self.policy.forward(dict(batch))
         finally:
             for hook in hooks:
@@ -272,9 +253,11 @@ class WallXAdapter(NativeVision, WrappedCheckpointing, BackboneAdapter):
     @torch.no_grad()
     def _predict_chunk(self, batch: Mapping[str, Any], noise: torch.Tensor, num_steps: int) -> torch.Tensor:
         """`WallXPolicy.predict_action_chunk` from `noise` with `num_steps` Euler steps."""
+        from lerobot.policies.wall_x import modeling_wall_x
+
         model = self.policy.model
         predict = functools.partial(type(model).predict, model, num_inference_timesteps=int(num_steps))
-        with shadowed(model, predict=predict), GivenDraw(torch.randn, noise):
+        with shadowed(model, predict=predict), given_noise(modeling_wall_x, noise, self.name, draws=("randn",)):
             return self.policy.predict_action_chunk(dict(batch))
 
     def _checkpoint_slots(self) -> Iterator[tuple[nn.Module, str]]:
