@@ -78,7 +78,7 @@ class Manifest:
     weights_sha256: str
     random_init: bool
     grids: list[str]                         # stored grids, resolved ("16x16", never "unpooled")
-    unpooled_grid: str | None                  # which of them is the encoder's own grid, unpooled; None: only pooled
+    unpooled_grid: str | None                # which of them is the encoder's own grid, unpooled; None: only pooled
     extras: dict[str, list[int]]             # extra token arrays of native towers -> one frame's shape
     storage_dtype: str                       # the dtype features are stored in
     compute_dtype: str                       # resolved ("bf16" | "fp32"), never "auto"
