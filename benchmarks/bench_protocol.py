@@ -19,7 +19,7 @@ LoRA, trained or not) it measures:
   untimed warm-up.
 Then, over the recipe's cells (backbones x suites x seeds x encoders x controls; native-cache controls once per
 backbone, suite and seed, as `sweep` runs them) and lerobot/libero's held-out frames per suite
-(devtools.tile.LIBERO_COUNTS x eval_fraction, capped by the recipe's eval_frames):
+(devtools.libero_counts.LIBERO_COUNTS x eval_fraction, capped by the recipe's eval_frames):
 - cached protocol = loads (one per backbone, as a sweep's BackbonePool) + training + evaluation; stage 1
   (decoding and encoding every frame once per encoder) is printed beside it, not in the sum;
 - online protocol = loads + the same steps and scoring with every batch's frames decoded (the project's own
@@ -50,10 +50,9 @@ import torch
 from common import DEFAULT_DATASET, machine
 from torch.utils.flop_counter import FlopCounterMode
 
+from devtools.libero_counts import LIBERO_COUNTS
 from devtools.released import BUILDERS, LIBERO, built_here, hub_cache, unit_stats
-from devtools.tile import LIBERO_COUNTS
 from graftcache.backbones import TinySpec, load_backbone
-from graftcache.datasets import open_dataset
 from graftcache.encoders import load_encoder
 from graftcache.encoders.registry import get_spec
 from graftcache.fit.controls import get_control
@@ -208,7 +207,12 @@ def measure_kind(adapter, kind: Kind, settings: Settings, a: argparse.Namespace,
         except torch.OutOfMemoryError:
             if settings.checkpointing != "auto":
                 raise
+            out_of_memory = True
+        else:
+            out_of_memory = False
+        if out_of_memory:  # retried here, not in the except block, whose traceback holds the step's activations
             opt.zero_grad(set_to_none=True)
+            gc.collect()
             torch.cuda.empty_cache()
             adapter.set_activation_checkpointing(True)
             torch.cuda.reset_peak_memory_stats(device)
@@ -244,6 +248,8 @@ def measure_kind(adapter, kind: Kind, settings: Settings, a: argparse.Namespace,
 
 def decode_seconds_per_frame(dataset: Path) -> float:
     """The project's decoder on one episode (every camera), per frame: sequential throughput."""
+    from graftcache.datasets import open_dataset  # PyAV: imported only here (benchmarks/gpu_check.py runs without it)
+
     source = open_dataset(dataset)
     episode = source.meta.episodes[0]
     source.decode_episode(episode.index, list(source.meta.cameras))  # warm-up (file open, codec init)

@@ -30,7 +30,7 @@ import os
 import shutil
 import struct
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -217,16 +217,9 @@ def write_random_weights(policy: nn.Module, path: Path, seed: int) -> None:
     CPUs), seeded-initialised (`_init_module`), cast to its dtype, written and put back on the meta device,
     so memory peaks at the largest module (pi0.5's 257152 x 2048 embedding), not at the policy. The global
     RNG is left as it was."""
-    from transformers import PreTrainedModel
-
     state = policy.state_dict(keep_vars=True)
     modules = dict(policy.named_modules())
-    hf_models = [name for name, m in modules.items() if isinstance(m, PreTrainedModel)]
-
-    def owner(name: str):
-        prefixes = [p for p in hf_models if name == p or name.startswith(p + ".")]
-        return modules[max(prefixes, key=len)] if prefixes else None
-
+    owner = _hf_owner(policy)
     sizes = sorted({t.element_size() for t in state.values()}, reverse=True)
     order = [name for size in sizes for name, t in state.items() if t.element_size() == size]
     header: dict = {"__metadata__": {"format": "pt"}}
@@ -281,21 +274,65 @@ def _features(recipe: Recipe) -> tuple[dict, dict]:
 
 
 # ---------------------------------------------------------------------------------------------- policies
+def smolvla_config(cache: Path, recipe: Recipe = LIBERO):
+    """lerobot's SmolVLA config at the released geometry (SmolVLM2-500M, first 16 LM layers, expert 0.75 wide;
+    lerobot's defaults) for `recipe`'s dataset side, with the hub repo its construction reads written to `cache`."""
+    from lerobot.policies.smolvla.configuration_smolvla import SmolVLAConfig
+
+    inputs, outputs = _features(recipe)
+    write_smolvlm2(cache)
+    return SmolVLAConfig(vlm_model_name=SMOLVLM_REPO, load_vlm_weights=False, chunk_size=recipe.chunk_size,
+                         n_action_steps=recipe.chunk_size, device="cpu", input_features=inputs,
+                         output_features=outputs)
+
+
+def _mean_std() -> dict:
+    """The LIBERO recipe's normalisation of the PaliGemma policies (pi0, pi0.5)."""
+    from lerobot.configs.types import NormalizationMode
+
+    return {"VISUAL": NormalizationMode.IDENTITY, "STATE": NormalizationMode.MEAN_STD,
+            "ACTION": NormalizationMode.MEAN_STD}
+
+
+def pi05_config(cache: Path, recipe: Recipe = LIBERO, dtype: str = "bfloat16"):
+    """lerobot's pi0.5 config at the released geometry (PaliGemma gemma_2b + gemma_300m expert, SigLIP So400m/14
+    at 224 px) for `recipe`, with the tokenizer repo its processors read written to `cache`. `dtype` is
+    `PI05Config.dtype` ("bfloat16": LM and expert bf16, vision path, norms and adaRMS projections fp32)."""
+    from lerobot.policies.pi05.configuration_pi05 import PI05Config
+
+    inputs, outputs = _features(recipe)
+    write_paligemma_tokenizer(cache)
+    return PI05Config(dtype=dtype, chunk_size=recipe.chunk_size, n_action_steps=recipe.chunk_size,
+                      empty_cameras=recipe.pi05_empty_cameras, normalization_mapping=_mean_std(), device="cpu",
+                      input_features=inputs, output_features=outputs)
+
+
+def pi0_config(cache: Path, recipe: Recipe = LIBERO, dtype: str = "bfloat16"):
+    """lerobot's pi0 config at the released geometry (PaliGemma gemma_2b + gemma_300m expert, a masked third
+    camera slot as pi0.5's LIBERO recipe), with the tokenizer repo its processors read written to `cache`."""
+    from lerobot.policies.pi0.configuration_pi0 import PI0Config
+
+    inputs, outputs = _features(recipe)
+    write_paligemma_tokenizer(cache)
+    return PI0Config(dtype=dtype, chunk_size=recipe.chunk_size, n_action_steps=recipe.chunk_size,
+                     empty_cameras=recipe.pi05_empty_cameras, normalization_mapping=_mean_std(), device="cpu",
+                     input_features=inputs, output_features=outputs)
+
+
+#: Backbones whose released geometry this module can build: name -> its config builder.
+CONFIGS = {"smolvla": smolvla_config, "pi05": pi05_config, "pi0": pi0_config}
+
+
 def build_smolvla(repo_id: str, *, cache: Path | None = None, recipe: Recipe = LIBERO,
                   stats: dict | None = None) -> Path:
-    """Random-init SmolVLA (SmolVLM2-500M, first 16 LM layers, expert 0.75 wide; lerobot's defaults)
-    published as `repo_id`; returns its snapshot folder. fp32, ~450M parameters."""
-    from lerobot.policies.smolvla.configuration_smolvla import SmolVLAConfig
+    """Random-init SmolVLA (smolvla_config) published as `repo_id`; returns its snapshot folder. fp32, ~450M
+    parameters."""
     from lerobot.policies.smolvla.modeling_smolvla import SmolVLAPolicy
     from lerobot.policies.smolvla.processor_smolvla import make_smolvla_pre_post_processors
 
     cache = Path(cache or default_hub_cache())
-    inputs, outputs = _features(recipe)
     with hub_cache(cache), quiet():
-        write_smolvlm2(cache)
-        config = SmolVLAConfig(vlm_model_name=SMOLVLM_REPO, load_vlm_weights=False,
-                               chunk_size=recipe.chunk_size, n_action_steps=recipe.chunk_size, device="cpu",
-                               input_features=inputs, output_features=outputs)
+        config = smolvla_config(cache, recipe)
         policy = _construct_on_meta(SmolVLAPolicy, config)
         pre, post = make_smolvla_pre_post_processors(config, dataset_stats=stats or unit_stats(recipe))
         return _publish_policy(policy, pre, post, repo_id, cache, recipe)
@@ -303,28 +340,88 @@ def build_smolvla(repo_id: str, *, cache: Path | None = None, recipe: Recipe = L
 
 def build_pi05(repo_id: str, *, cache: Path | None = None, recipe: Recipe = LIBERO, stats: dict | None = None,
                dtype: str = "bfloat16") -> Path:
-    """Random-init pi0.5 (PaliGemma gemma_2b + gemma_300m expert, SigLIP So400m/14 at 224 px) published as
-    `repo_id`; returns its snapshot folder. `dtype` is lerobot's `PI05Config.dtype` ("bfloat16": LM and
-    expert bf16, vision path, norms and adaRMS projections fp32, 9.4 GB; "float32": 16.6 GB; 4.1B
-    parameters, both Gemmas' 257152-row lm_heads included). Building takes ~5 GB of memory whatever the
-    dtype (`write_random_weights`)."""
-    from lerobot.configs.types import NormalizationMode
-    from lerobot.policies.pi05.configuration_pi05 import PI05Config
+    """Random-init pi0.5 (pi05_config) published as `repo_id`; returns its snapshot folder. bf16: 9.4 GB;
+    "float32": 16.6 GB; 4.1B parameters, both Gemmas' 257152-row lm_heads included. Building takes ~5 GB of
+    memory whatever the dtype (`write_random_weights`)."""
     from lerobot.policies.pi05.modeling_pi05 import PI05Policy
     from lerobot.policies.pi05.processor_pi05 import make_pi05_pre_post_processors
 
     cache = Path(cache or default_hub_cache())
-    inputs, outputs = _features(recipe)
-    mean_std = {"VISUAL": NormalizationMode.IDENTITY, "STATE": NormalizationMode.MEAN_STD,
-                "ACTION": NormalizationMode.MEAN_STD}  # the LIBERO recipe's normalisation
     with hub_cache(cache), quiet():
-        write_paligemma_tokenizer(cache)
-        config = PI05Config(dtype=dtype, chunk_size=recipe.chunk_size, n_action_steps=recipe.chunk_size,
-                            empty_cameras=recipe.pi05_empty_cameras, normalization_mapping=mean_std,
-                            device="cpu", input_features=inputs, output_features=outputs)
+        config = pi05_config(cache, recipe, dtype)
         policy = _construct_on_meta(PI05Policy, config, getattr(torch, dtype))
         pre, post = make_pi05_pre_post_processors(config, dataset_stats=stats or unit_stats(recipe))
         return _publish_policy(policy, pre, post, repo_id, cache, recipe)
+
+
+# ---------------------------------------------------------------------------------------------- on a device
+def _hf_owner(policy: nn.Module) -> Callable[[str], nn.Module | None]:
+    """module name -> the innermost transformers model holding it (whose `_init_weights` initialises it)."""
+    from transformers import PreTrainedModel
+
+    modules = dict(policy.named_modules())
+    hf_models = [name for name, m in modules.items() if isinstance(m, PreTrainedModel)]
+
+    def owner(name: str) -> nn.Module | None:
+        prefixes = [p for p in hf_models if name == p or name.startswith(p + ".")]
+        return modules[max(prefixes, key=len)] if prefixes else None
+
+    return owner
+
+
+@torch.no_grad()
+def materialise(policy: nn.Module, device: torch.device, seed: int = 0) -> None:
+    """Create every meta parameter of `policy` on `device` and initialise it as its model would (`_init_module`,
+    module by module, in fp32, then cast to the parameter's own dtype), and move every buffer there: random
+    weights at any size with no host copy and nothing written. Tied parameters stay one object. The global RNG
+    (CPU and `device`'s) is left as it was."""
+    owner = _hf_owner(policy)
+    made: dict[int, nn.Parameter] = {}
+    devices = [device] if device.type == "cuda" else []
+    with torch.random.fork_rng(devices=devices):
+        torch.manual_seed(seed)
+        for name, module in policy.named_modules():
+            meta = {local: p for local, p in module.named_parameters(recurse=False) if p.is_meta}
+            if not meta:
+                continue
+            fresh = {local: id(p) not in made for local, p in meta.items()}
+            for local, p in meta.items():
+                setattr(module, local, made.get(id(p)) or nn.Parameter(
+                    torch.empty(p.shape, dtype=torch.float32, device=device), requires_grad=p.requires_grad))
+            if any(fresh.values()):
+                _init_module(module, owner(name))
+            for local, p in meta.items():
+                if fresh[local]:
+                    made[id(p)] = nn.Parameter(getattr(module, local).detach().to(p.dtype),
+                                               requires_grad=p.requires_grad)
+                setattr(module, local, made[id(p)])
+    for module in policy.modules():
+        for local, buffer in module._buffers.items():
+            if buffer is not None and buffer.device != device:
+                module._buffers[local] = buffer.to(device)
+
+
+def on_device(name: str, device: str | torch.device, *, cache: Path, recipe: Recipe = LIBERO, seed: int = 0):
+    """Backbone `name` at the released geometry, random-init, built straight on `device` (lerobot's constructor
+    with its parameters on the meta device, then `materialise`): the graftcache adapter with the policy's own
+    processors over identity stats. Its `source` says what it is; `random_init` is True."""
+    from graftcache.backbones import get_backbone
+    from graftcache.backbones.lean import construct
+
+    if name not in CONFIGS:
+        raise ValueError(f"no released-geometry config for {name!r} (devtools.released knows {', '.join(CONFIGS)})")
+    device = torch.device(device)
+    adapter_cls = get_backbone(name)
+    cache = Path(cache)
+    with hub_cache(cache), quiet():
+        config = CONFIGS[name](cache, recipe)
+        config.device = str(device)
+        policy = construct(lambda: adapter_cls._construct(config, None), config)
+        materialise(policy, device, seed)
+        policy.eval()
+        pre, post = adapter_cls._make_processors(policy.config, unit_stats(recipe), None)
+    return adapter_cls(policy, pre, post, source=f"{name} released geometry, random init on {device}",
+                       random_init=True)
 
 
 BUILDERS = {"smolvla": build_smolvla, "pi05": build_pi05}

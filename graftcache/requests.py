@@ -103,7 +103,7 @@ class ExtractRequest(Checked):
 
 
 def _suites() -> tuple[str, ...]:
-    return import_string("graftcache.datasets.suites:SUITES")  # imported on use: the package loads polars
+    return import_string("graftcache.datasets.suites:SUITES")  # imported on use: requests come before datasets
 
 
 #: A suite a cache can record (graftcache.datasets.suites.SUITES): a typo is refused before any cache is made.

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from devtools.tile import LIBERO_COUNTS
+from devtools.libero_counts import LIBERO_COUNTS
 
 BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
 

@@ -18,7 +18,8 @@ import polars as pl
 import pyarrow.parquet as pq
 import pytest
 
-from devtools.tile import LIBERO_COUNTS, TileRequest, tile
+from devtools.libero_counts import LIBERO_COUNTS
+from devtools.tile import TileRequest, tile
 from devtools.tile.cli import main
 from graftcache.datasets import open_dataset, suite_of
 from graftcache.datasets.suites import suite_tasks

@@ -31,6 +31,7 @@ import polars as pl
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from devtools.libero_counts import LIBERO_COUNTS
 from graftcache.checks import POSITIVE, SEED
 from graftcache.datasets.meta import DatasetMeta
 from graftcache.datasets.source import open_dataset
@@ -38,14 +39,6 @@ from graftcache.datasets.suites import suite_tasks
 from graftcache.errors import DatasetError, GraftcacheError
 from graftcache.settings import Checked, setting
 
-#: lerobot/libero per suite: (episodes, frames). Spatial, libero_10 and the totals (1,693 / 273,465) are
-#: measured; object and goal frames are derived so that the suites add up to the total.
-LIBERO_COUNTS: dict[str, tuple[int, int]] = {
-    "libero_spatial": (432, 52_970),
-    "libero_object": (454, 66_984),
-    "libero_goal": (428, 52_042),
-    "libero_10": (379, 101_469),
-}
 #: Episode lengths are drawn uniformly within this factor of their part's mean length (then made to add up).
 LENGTH_SPREAD = 0.3
 #: Provenance of a tiled dataset, at its root (outside meta/, so not part of its identity).

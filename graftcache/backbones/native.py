@@ -76,7 +76,7 @@ def build_native(spec: EncoderSpec, req: LoadRequest) -> NativeEncoder:
                            f"printed by `graftcache train-tiny --backbone {backbone}`)")
     if req.weights is not None or req.random_init:
         raise EncoderError(f"encoder {spec.name!r} takes its weights from --policy, not --weights/--random-init")
-    adapter = get_backbone(backbone).load(req.policy)
+    adapter = get_backbone(backbone).load(req.policy, device=req.device)
     folder = Path(req.policy)
     size = (trained_image_size(folder) if folder.is_dir() else None) or spec.image_size
     probe = torch.zeros(1, 3, size, size)

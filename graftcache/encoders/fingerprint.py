@@ -17,6 +17,7 @@ judged relative to the recorded sketch's RMS, so one tolerance fits encoders of 
 from __future__ import annotations
 
 import base64
+import gc
 import hashlib
 import math
 import platform
@@ -200,12 +201,27 @@ def check_numerics(cache: FeatureCache, *, device: str | torch.device = "cpu",
     "unchecked" with the reason, never a silent match. Raise with `.require_match(remedy)`.
     """
     manifest = cache.manifest
+    if encoder is not None:
+        return _check_with(cache, encoder, device)
+    try:
+        loaded = encoder_of(manifest, device)
+    except GraftcacheError as e:
+        return NumericsCheck(cache.key, "unchecked", reason=f"its encoder cannot be loaded here ({e})")
+    try:
+        return _check_with(cache, loaded, device)
+    finally:
+        # A native tower is a whole policy (a released pi0.5: 9 GB on the device), and some adapters' method
+        # shadows make it a reference cycle: collect it now, before the fit loads its own copy, not whenever the
+        # garbage collector next runs.
+        del loaded
+        gc.collect()
+        if torch.device(device).type == "cuda":
+            torch.cuda.empty_cache()
+
+
+def _check_with(cache: FeatureCache, encoder: Encoder, device: str | torch.device) -> NumericsCheck:
+    manifest = cache.manifest
     recorded = manifest.numerics
-    if encoder is None:
-        try:
-            encoder = encoder_of(manifest, device)
-        except GraftcacheError as e:
-            return NumericsCheck(cache.key, "unchecked", reason=f"its encoder cannot be loaded here ({e})")
     if encoder.weights_info.get("sha256") != manifest.weights_sha256:
         return NumericsCheck(cache.key, "unchecked", reason=f"the weights found here (sha256 "
                              f"{str(encoder.weights_info.get('sha256'))[:12]}...) are not the ones it was made with "

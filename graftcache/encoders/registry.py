@@ -85,10 +85,10 @@ def load_encoder(spec: EncoderSpec | str, *, weights: str | Path | None = None, 
         raise EncoderError(f"encoder {spec.name!r}: choose either --weights or --random-init, not both")
     if policy is not None and spec.library != "native":
         raise EncoderError(f"encoder {spec.name!r} takes no --policy (only native towers do)")
-    req = LoadRequest(weights=Path(weights).expanduser() if weights is not None else None,
-                      random_init=random_init, seed=seed, policy=policy)
-    encoder = _builder_of(spec)(spec, req)
     dev = device if isinstance(device, torch.device) else resolve_device(device)
+    req = LoadRequest(weights=Path(weights).expanduser() if weights is not None else None,
+                      random_init=random_init, seed=seed, policy=policy, device=str(dev))
+    encoder = _builder_of(spec)(spec, req)
     encoder.to(dev).eval().requires_grad_(False)
     encoder.compute_dtype = resolve_dtype(dtype) if isinstance(dtype, str) else dtype
     s = encoder.spec.image_size  # builders may measure a more specific spec (native towers)

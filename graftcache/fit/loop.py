@@ -18,19 +18,25 @@ from __future__ import annotations
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
 from graftcache.errors import FitError
-from graftcache.fit.buffer import ShuffleBuffer
 from graftcache.fit.controls import Transform, keep
-from graftcache.fit.data import LowDim
-from graftcache.fit.stream import Block, FrameQueue
 from graftcache.graft import feature_key
 from graftcache.progress import progress
 from graftcache.runtime import autocast
 from graftcache.scoring import Score, frame_noise, score_chunks
+
+if TYPE_CHECKING:  # the step needs none of the data layer (polars, zarr): benchmarks/gpu_check.py runs without it
+    from graftcache.fit.buffer import ShuffleBuffer
+    from graftcache.fit.data import LowDim
+    from graftcache.fit.stream import Block
+
+#: Steps between the progress bar's loss readings (each one waits for the device).
+POSTFIX_EVERY = 20
 
 
 def raw_batch(low: LowDim, pos: np.ndarray, features: Mapping[str, torch.Tensor], cams: Mapping[str, str], *,
@@ -63,7 +69,21 @@ class Learner:
     generator: torch.Generator
     scheduler: torch.optim.lr_scheduler.LRScheduler | None = None
     clip_norm: float | None = None
-    losses: list[float] = field(default_factory=list)  # the loss of every step so far
+    _done: list[float] = field(default_factory=list, repr=False)
+    _pending: list[torch.Tensor] = field(default_factory=list, repr=False)
+
+    def record(self, loss: torch.Tensor) -> None:
+        """Keep a step's loss on its device: reading it now (`.item()`) would make the host wait for the device
+        at every step, so the next batch could not be prepared while the device computes this one."""
+        self._pending.append(loss.detach())
+
+    @property
+    def losses(self) -> list[float]:
+        """The loss of every step so far (one device sync for all the steps not read yet)."""
+        if self._pending:
+            self._done.extend(torch.stack(self._pending).float().cpu().tolist())
+            self._pending.clear()
+        return self._done
 
     @property
     def params(self) -> list[torch.nn.Parameter]:
@@ -120,7 +140,7 @@ def optimise_together(adapter, learners: Sequence[Learner], *, steps: int, batch
     adapter.policy.train()
     sizes = [batch_size] * len(learners)
     bar = progress(range(steps), desc=desc, unit="step", enabled=show, leave=leave)
-    for _ in bar:
+    for step in bar:
         raws, noises, times = [], [], []
         for learner in learners:
             raws.append(learner.draw(learner.generator))
@@ -143,8 +163,9 @@ def optimise_together(adapter, learners: Sequence[Learner], *, steps: int, batch
             learner.optimizer.step()
             if learner.scheduler is not None:
                 learner.scheduler.step()
-            learner.losses.append(loss.item())
-        bar.set_postfix(loss=f"{np.mean([np.mean(x.losses[-20:]) for x in learners]):.4f}")
+            learner.record(loss)
+        if show and (step % POSTFIX_EVERY == POSTFIX_EVERY - 1 or step == steps - 1):
+            bar.set_postfix(loss=f"{np.mean([np.mean(x.losses[-POSTFIX_EVERY:]) for x in learners]):.4f}")
 
 
 def learner(low: LowDim, buffer: ShuffleBuffer, cams: Mapping[str, str], params: Sequence[torch.nn.Parameter], *,
@@ -201,6 +222,8 @@ def evaluate_together(adapter, parts: Sequence[Scoring], *, batch_size: int, dty
                       num_denoise_steps: int | None = None, route: Route = alone) -> list[Score]:
     """`evaluate` of several cells in one pass of the policy per batch: `batch_size` frames of each part
     (fewer once a part runs short), concatenated in part order; each part's score from its own rows."""
+    from graftcache.fit.stream import FrameQueue  # here: the training step above must import without the data layer
+
     adapter.policy.eval()
     device = adapter.device
     queues = [FrameQueue(p.blocks) for p in parts]

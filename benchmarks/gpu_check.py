@@ -1,0 +1,782 @@
+#!/usr/bin/env python
+"""The GPU truth in one command: what graftcache's CUDA paths compute and cost, stage by stage, in priority order.
+
+    python benchmarks/gpu_check.py [--device cuda] [--budget-s 480] [--out FILE] [--stages 1,2,3,4,5,6]
+    python benchmarks/gpu_check.py --tiny --device cpu      # the dry run CI runs (tests/test_gpu_check.py)
+
+A GPU is lent now and then for minutes, so every stage writes its results into the JSON as it ends (device,
+driver, torch, CUDA and the libraries named at the top) and a run cut short keeps what it measured. A stage that
+would start past `--budget-s` is skipped and says so; an error in one check is recorded in one line and the next
+check runs.
+
+1. correctness, every backbone of graftcache.backbone_table.BACKBONES at tiny size: graft; two cells in one pass
+   (graftcache.graft.FusedProjector) for a few AdamW steps land on the projectors each cell reaches alone;
+   activation checkpointing on gives the projector gradients it gives off; predict in the compute dtype is
+   finite; a tiny policy saved to disk and lean-loaded onto the device (graftcache.backbones.lean) predicts what
+   the in-memory one predicts. Equality checks run in fp32 with TF32 off (what they test is the plumbing, not
+   bf16 rounding); the compute-dtype step and predict are checked for finiteness.
+2. pi0.5 at the released geometry, random-init and built on the device (devtools.released.on_device: meta ->
+   device, no host copy, nothing downloaded): step seconds and peak device memory at each `--batches` with
+   activation checkpointing off and on; the step's FLOPs (FlopCounterMode, counted once at the smallest batch:
+   a step's FLOPs are linear in the batch) and MFU against the device's dense bf16 peak.
+3. SmolVLA the same at `--smolvla-batches`, and `--cells-per-pass` 1, 2, 4 at the first of them: training cells
+   per GPU-hour at cli/paper.toml's steps per cell.
+4. pi0.5 (`--load-backbone`) lean load from a checkpoint on local disk (written from stage 2's weights, page
+   cache dropped where the kernel allows), in a fresh process: seconds, host peak RSS against the checkpoint,
+   whether the host ever held the model.
+5. benchmarks/bench_protocol.py's measurements on cli/paper.toml with stage 2 and 3's backbones: projected
+   GPU-hours of the paper's protocol from caches, online, and the FLOP bound at 100% and 40% MFU.
+6. The other backbones devtools.released can build (pi0): one step at batch 8 (seconds, memory, MFU); the rest
+   are listed as not buildable at released size here.
+
+With `--tiny` every stage runs on the tiny backbones (stage 2-6's built through the same meta -> device path), so
+the first GPU run cannot fail on a typo. Needs only the repository on PYTHONPATH beside lerobot 0.6.1, its
+transformers pin and draccus/gymnasium (what the device image lacks travels as one bundle: benchmarks/device/README.md).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import gc
+import json
+import math
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+import traceback
+from collections.abc import Callable, Iterator
+from dataclasses import replace
+from datetime import date
+from pathlib import Path
+
+os.environ.setdefault("HF_HUB_OFFLINE", "1")
+
+import torch  # noqa: E402
+from torch import nn  # noqa: E402
+from torch.utils.flop_counter import FlopCounterMode  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path[:0] = [str(ROOT), str(ROOT / "benchmarks")]
+
+from devtools.released import CONFIGS, LIBERO, Recipe, materialise, on_device, unit_stats  # noqa: E402
+from graftcache.backbone_table import BACKBONES  # noqa: E402
+from graftcache.backbones import TinySpec, load_backbone  # noqa: E402
+from graftcache.backbones.lean import construct  # noqa: E402
+from graftcache.fit.loop import Learner, alone, flow_time, optimise_together  # noqa: E402
+from graftcache.fit.step_bytes import peak_step_bytes  # noqa: E402
+from graftcache.graft import FusedProjector, GraftProjector, feature_key  # noqa: E402
+from graftcache.runtime import autocast, resolve_compute_dtype, resolve_device, resolve_dtype  # noqa: E402
+
+#: Dense bf16 tensor-core peaks (TFLOP/s, no sparsity) from the vendors' data sheets (bench_protocol's table).
+GPU_PEAKS = {"H200": 989.0, "H100": 989.0, "A100": 312.0, "L40S": 362.0, "L4": 121.0}
+ENC_WIDTH = 768  # SigLIP-B's width: the graft's input in stages 2-6 (the cost hardly depends on it)
+TINY_ENC = 48
+TASK = "put the black bowl on the plate"
+PAPER = ROOT / "cli" / "paper.toml"
+
+
+# ---------------------------------------------------------------------------------------------- the report
+class Report:
+    """The JSON, rewritten after every check; `check` runs one named part, recording seconds, its results or
+    its error in one line (plus the traceback's last lines), so nothing stops the stages after it."""
+
+    def __init__(self, path: Path, budget_s: float, header: dict) -> None:
+        self.path, self.budget_s, self.t0 = path, budget_s, time.perf_counter()
+        self.data: dict = {"header": header, "budget_s": budget_s, "stages": {}}
+        self.write()
+
+    def elapsed(self) -> float:
+        return time.perf_counter() - self.t0
+
+    def left(self) -> float:
+        return self.budget_s - self.elapsed()
+
+    def write(self) -> None:
+        self.data["elapsed_s"] = round(self.elapsed(), 1)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = self.path.with_suffix(".tmp")
+        tmp.write_text(json.dumps(self.data, indent=1, default=str))
+        tmp.replace(self.path)
+
+    @contextlib.contextmanager
+    def check(self, stage: str, name: str, need_s: float = 0.0) -> Iterator[dict | None]:
+        """One check: yields the dict its results go in, or None (recorded as skipped) when fewer than `need_s`
+        seconds of the budget are left."""
+        entry: dict = {}
+        self.data["stages"].setdefault(stage, {})[name] = entry
+        if self.left() < need_s:
+            entry.update(status="skipped", reason=f"budget: {self.left():.0f} s left, needs ~{need_s:.0f} s")
+            self.write()
+            print(f"[{self.elapsed():6.0f}s] {stage}/{name}: skipped (budget)", flush=True)
+            yield None
+            return
+        t0 = time.perf_counter()
+        try:
+            yield entry
+            entry.setdefault("status", "ok")
+        except Exception as exc:  # recorded, and the next check runs
+            entry.update(status="error", error=f"{type(exc).__name__}: {exc}".splitlines()[0][:400],
+                         traceback=traceback.format_exc().splitlines()[-6:])
+        entry["seconds"] = round(time.perf_counter() - t0, 2)
+        self.write()
+        shown = {k: v for k, v in entry.items() if k != "traceback"}
+        print(f"[{self.elapsed():6.0f}s] {stage}/{name}: {json.dumps(shown, default=str)[:600]}", flush=True)
+
+
+def header(device: torch.device, dtype_name: str) -> dict:
+    """Where and with what this ran."""
+    import importlib.metadata
+
+    def version(name: str) -> str | None:
+        try:
+            return importlib.metadata.version(name)
+        except importlib.metadata.PackageNotFoundError:
+            return None
+
+    cpu = next((ln.split(":", 1)[1].strip() for ln in Path("/proc/cpuinfo").read_text().splitlines()
+                if ln.startswith("model name")), platform.processor())
+    out = {"date": date.today().isoformat(), "device": str(device), "compute_dtype": dtype_name, "cpu": cpu,
+           "cpu_avx512_bf16": "avx512_bf16" in Path("/proc/cpuinfo").read_text(), "cores": os.cpu_count(),
+           "python": platform.python_version(), "torch": torch.__version__, "cuda": torch.version.cuda,
+           **{name: version(name) for name in ("transformers", "lerobot", "tokenizers", "huggingface-hub",
+                                                 "safetensors", "numpy")}}
+    if device.type == "cuda":
+        props = torch.cuda.get_device_properties(device)
+        out.update(gpu=torch.cuda.get_device_name(device), gpu_memory_gb=round(props.total_memory / 1e9, 1),
+                   sms=props.multi_processor_count)
+        try:
+            out["driver"] = subprocess.run(["nvidia-smi", "--query-gpu=driver_version", "--format=csv,noheader"],
+                                           capture_output=True, text=True, timeout=20).stdout.strip()
+        except (OSError, subprocess.SubprocessError) as exc:
+            out["driver"] = f"unknown ({exc})"
+    return out
+
+
+def peak_flops(device: torch.device) -> tuple[float | None, str]:
+    """The dense bf16 peak MFU is taken against, and where it comes from (None on a CPU: no MFU there)."""
+    if device.type != "cuda":
+        return None, "cpu: no peak (MFU is for GPUs)"
+    name = torch.cuda.get_device_name(device)
+    for key, tflops in GPU_PEAKS.items():
+        if key in name:
+            return tflops * 1e12, f"{name}: {tflops:g} TFLOP/s dense bf16 (data sheet)"
+    return None, f"{name}: no bf16 peak known"
+
+
+def sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def free(device: torch.device) -> None:
+    """Collect cycles (a graft's instance overrides make policy and adapter one) and return cached blocks."""
+    gc.collect()
+    if device.type == "cuda":
+        torch.cuda.empty_cache()
+
+
+def peak_gb(device: torch.device) -> float | None:
+    return round(torch.cuda.max_memory_allocated(device) / 1e9, 2) if device.type == "cuda" else None
+
+
+def reset_peak(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.reset_peak_memory_stats(device)
+
+
+@contextlib.contextmanager
+def exact() -> Iterator[None]:
+    """fp32 matmuls and convolutions without TF32, for the equality checks."""
+    saved = torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32
+    torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = False
+    try:
+        yield
+    finally:
+        torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32 = saved
+
+
+# ---------------------------------------------------------------------------------------------- batches
+def spec_recipe(spec: TinySpec) -> Recipe:
+    return replace(LIBERO, cameras=spec.cameras, state_dim=spec.state_dim, action_dim=spec.action_dim)
+
+
+def features(adapter, frames: int, width: int, seed: int = 0) -> torch.Tensor:
+    """Synthetic cached features [frames, tokens, width] at the backbone's token grid, fp16 like a cache."""
+    g = torch.Generator().manual_seed(seed)
+    tokens = adapter.token_grid[0] * adapter.token_grid[1]
+    return torch.randn(frames, tokens, width, generator=g).half()
+
+
+def lowdim(adapter, batch: int, g: torch.Generator) -> dict:
+    """Random raw state and action chunks, LIBERO's prompt (evaluation's batches carry the actions too)."""
+    return {"observation.state": torch.randn(batch, adapter.state_dim, generator=g) * 0.5, "task": [TASK] * batch,
+            "action": torch.randn(batch, adapter.chunk_size, adapter.action_dim, generator=g) * 0.5,
+            "action_is_pad": torch.zeros(batch, adapter.chunk_size, dtype=torch.bool)}
+
+
+def draw_from(adapter, feats: torch.Tensor, batch: int) -> Callable[[torch.Generator], dict]:
+    """A Learner's draw: `batch` frames of `feats` for every camera, random state and action chunks."""
+    def draw(g: torch.Generator) -> dict:
+        pos = torch.randint(0, len(feats), (batch,), generator=g)
+        return {**{feature_key(c): feats[pos].float() for c in adapter.cameras}, **lowdim(adapter, batch, g)}
+    return draw
+
+
+@contextlib.contextmanager
+def no_dropout(policy: nn.Module) -> Iterator[None]:
+    """Dropout off in training mode (the fit's step trains), so a batch of two draws no masks one sample would
+    not: what the equality checks compare is the plumbing."""
+    saved = {m: m.p for m in policy.modules() if isinstance(m, nn.modules.dropout._DropoutNd)}
+    for m in saved:
+        m.p = 0.0
+    try:
+        yield
+    finally:
+        for m, p in saved.items():
+            m.p = p
+
+
+def learners(adapter, projectors: list[nn.Module], feats: torch.Tensor, batch: int, seed0: int = 0,
+             optimizer: Callable = lambda params: torch.optim.AdamW(params, lr=1e-3)) -> list[Learner]:
+    """One Learner a projector (the fit's AdamW unless `optimizer` says otherwise), cell i seeded `seed0 + i`."""
+    return [Learner(draw_from(adapter, feats, batch), optimizer(list(p.parameters())),
+                    torch.Generator().manual_seed(seed0 + i)) for i, p in enumerate(projectors)]
+
+
+def sgd(params: list[nn.Parameter]) -> torch.optim.Optimizer:
+    """Plain SGD for the equality checks: a weight moves by lr x its gradient, so two runs differ by what their
+    gradients differ (Adam's first steps move every weight by ~lr whatever its gradient's size, so a rounding
+    difference in a near-zero gradient would become a whole step)."""
+    return torch.optim.SGD(params, lr=1e-2)
+
+
+def graft_cells(adapter, n: int, width: int, seed: int = 0) -> tuple[list[GraftProjector], Callable]:
+    """Graft `n` fresh projectors (fused when n > 1): (projectors, the route of their rows)."""
+    torch.manual_seed(seed)
+    projectors = [GraftProjector(width, adapter.lm_width) for _ in range(n)]
+    adapter.reset()
+    if n == 1:
+        adapter.graft(projectors[0])
+        return projectors, alone
+    fused = FusedProjector(projectors)
+    adapter.graft(fused)
+    return projectors, fused.rows
+
+
+def max_rel(a: list[torch.Tensor], b: list[torch.Tensor]) -> float:
+    """Largest |a - b| over all tensors, relative to the largest |b|."""
+    diff = max(float((x.float() - y.float()).abs().max()) for x, y in zip(a, b, strict=True))
+    scale = max(float(y.float().abs().max()) for y in b) or 1.0
+    return diff / scale
+
+
+# ---------------------------------------------------------------------------------------------- stage 1
+def tiny_stats(spec: TinySpec) -> dict:
+    return unit_stats(spec_recipe(spec))
+
+
+def stage_tiny(report: Report, device: torch.device, dtype: torch.dtype, names: list[str]) -> None:
+    """Correctness of every backbone at tiny size on the device."""
+    spec = TinySpec()
+    steps, batch = 3, 2
+    for name in names:
+        with report.check("1_tiny", name, need_s=15) as out:
+            if out is None:
+                continue
+            adapter = load_backbone(name, "tiny", device=str(device), dataset_stats=tiny_stats(spec), tiny=spec)
+            out["params"] = adapter.n_params
+            feats = features(adapter, 16, TINY_ENC)
+            with exact(), no_dropout(adapter.policy):
+                out.update(fused_vs_solo(adapter, feats, steps, batch))
+                out.update(checkpointing_gradients(adapter, feats, batch))
+                out.update(lean_roundtrip(name, adapter, spec, device))
+            out.update(compute_dtype_step_and_predict(adapter, feats, batch, dtype))
+            out["status"] = "ok" if all(v for k, v in out.items() if k.endswith("_ok")) else "failed"
+            del adapter
+            free(device)
+
+
+def fused_vs_solo(adapter, feats: torch.Tensor, steps: int, batch: int) -> dict:
+    """Two cells trained `steps` SGD steps in one pass against each alone: the projectors' weights after."""
+    if not adapter.per_sample_loss:
+        return {"fused_ok": True, "fused": "not fusable (one loss a batch): cells run alone"}
+    solo = []
+    for i in range(2):
+        (projector,), route = graft_cells(adapter, 1, feats.shape[-1], seed=i)
+        optimise_together(adapter, learners(adapter, [projector], feats, batch, seed0=i, optimizer=sgd),
+                          steps=steps, batch_size=batch, dtype=torch.float32, route=route, show=False)
+        solo.extend(p.detach().clone() for p in projector.parameters())
+    projectors, route = graft_cells(adapter, 2, feats.shape[-1], seed=0)
+    torch.manual_seed(1)  # the second projector's initial weights as when it was made alone
+    projectors[1].load_state_dict(GraftProjector(feats.shape[-1], adapter.lm_width).state_dict())
+    cells = learners(adapter, projectors, feats, batch, optimizer=sgd)
+    optimise_together(adapter, cells, steps=steps, batch_size=batch, dtype=torch.float32, route=route, show=False)
+    fused = [p.detach().clone() for projector in projectors for p in projector.parameters()]
+    adapter.reset()
+    rel = max_rel(fused, solo)
+    return {"fused_max_rel_diff": rel, "fused_ok": rel < 1e-4, "fused_losses": [c.final_loss for c in cells]}
+
+
+def checkpointing_gradients(adapter, feats: torch.Tensor, batch: int) -> dict:
+    """The projector's gradients of one loss with activation checkpointing on against off."""
+    if not adapter.can_checkpoint:
+        return {"checkpointing_ok": True, "checkpointing": "not supported by this backbone"}
+    (projector,), route = graft_cells(adapter, 1, feats.shape[-1])
+    raw = draw_from(adapter, feats, batch)(torch.Generator().manual_seed(0))
+    g = torch.Generator().manual_seed(1)
+    noise, t = adapter.sample_noise(batch, generator=g), flow_time(batch, g).to(adapter.device)
+    grads = {}
+    adapter.policy.train()
+    for on in (False, True):
+        adapter.set_activation_checkpointing(on)
+        projector.zero_grad(set_to_none=True)
+        torch.manual_seed(0)  # the same dropout masks
+        adapter.loss(adapter.prepare(raw), noise=noise, time=t).mean().backward()
+        grads[on] = [p.grad.detach().clone() for p in projector.parameters()]
+    adapter.set_activation_checkpointing(False)
+    adapter.reset()
+    rel = max_rel(grads[True], grads[False])
+    return {"checkpointing_max_rel_diff": rel, "checkpointing_ok": rel < 1e-4}
+
+
+def compute_dtype_step_and_predict(adapter, feats: torch.Tensor, batch: int, dtype: torch.dtype) -> dict:
+    """A fused two-cell step and a predict in the compute dtype: finite, and the predicted chunk's shape."""
+    n = 2 if adapter.per_sample_loss else 1
+    projectors, route = graft_cells(adapter, n, feats.shape[-1])
+    cells = learners(adapter, projectors, feats, batch)
+    optimise_together(adapter, cells, steps=2, batch_size=batch, dtype=dtype, route=route, show=False)
+    raw = draw_from(adapter, feats, batch)(torch.Generator().manual_seed(0))
+    adapter.policy.eval()
+    noise = adapter.sample_noise(batch * n, generator=torch.Generator().manual_seed(2))
+    both = {k: (v * n if isinstance(v, list) else torch.cat([v] * n)) for k, v in raw.items()}
+    with torch.no_grad(), route([batch] * n), autocast(adapter.device, dtype):
+        chunk = adapter.predict(adapter.prepare(both), noise=noise)
+    adapter.reset()
+    losses = [c.losses[-1] for c in cells]
+    finite = all(torch.isfinite(torch.tensor(losses))) and bool(torch.isfinite(chunk).all())
+    return {"compute_dtype_losses": losses, "predict_shape": list(chunk.shape), "compute_dtype_ok": finite}
+
+
+def lean_roundtrip(name: str, adapter, spec: TinySpec, device: torch.device) -> dict:
+    """The tiny policy saved to disk and lean-loaded onto the device: the same weights (sha256) and chunk."""
+    from graftcache.backbone_table import native_name
+    from graftcache.encoders import load_encoder
+
+    adapter.reset()
+    with tempfile.TemporaryDirectory(prefix="gpu-check-") as tmp:
+        adapter.save(Path(tmp) / name)
+        t0 = time.perf_counter()
+        loaded = load_backbone(name, Path(tmp) / name, device=str(device))
+        seconds = time.perf_counter() - t0
+        native = load_encoder(native_name(name), policy=str(Path(tmp) / name), device=device)  # no host copy
+        native_on = sorted({p.device.type for p in native.adapter.policy.parameters()})
+        del native
+    images = {k: torch.rand(2, 3, 128, 128, generator=torch.Generator().manual_seed(3)) for k in adapter.camera_keys}
+    raw = {**images, **lowdim(adapter, 2, torch.Generator().manual_seed(0))}
+    chunks = []
+    for a in (adapter, loaded):
+        a.policy.eval()
+        noise = a.sample_noise(2, generator=torch.Generator().manual_seed(4))
+        with torch.no_grad():
+            chunks.append(a.predict(a.prepare(dict(raw)), noise=noise))
+    same_weights = loaded.policy_sha256 == adapter.policy_sha256
+    on_device = {p.device.type for p in loaded.policy.parameters()} == {device.type}
+    rel = max_rel([chunks[1]], [chunks[0]])
+    del loaded
+    return {"lean_load_s": round(seconds, 2), "lean_same_sha256": same_weights, "lean_chunk_max_rel_diff": rel,
+            "native_encoder_on": native_on, "lean_ok": same_weights and on_device and rel < 1e-4,
+            "native_ok": native_on == [device.type]}
+
+
+# ---------------------------------------------------------------------------------------------- stages 2, 3, 6
+def built(name: str, device: torch.device, tiny: bool, hub: Path):
+    """Backbone `name` random-init on `device` through meta -> device: at the released geometry, or (`--tiny`) at
+    the tiny one (lerobot's constructor at the tiny marker's sizes)."""
+    if not tiny:
+        return on_device(name, device, cache=hub)
+    spec = TinySpec()
+    base = load_backbone(name, "tiny", device="cpu", dataset_stats=tiny_stats(spec), tiny=spec)
+    cls, config, marker = type(base), base.policy.config, base.tiny_marker
+    config.device = str(device)
+    policy = construct(lambda: cls._construct(config, marker), config)
+    materialise(policy, device)
+    policy.eval()
+    pre, post = cls._make_processors(policy.config, tiny_stats(spec), marker)
+    return cls(policy, pre, post, source=f"tiny {name} on {device}", random_init=True, tiny_marker=marker)
+
+
+def step_flops(adapter, feats: torch.Tensor, batch: int, dtype: torch.dtype) -> int:
+    """FLOPs of one training step of one cell at `batch` (checkpointing off: model FLOPs, no recomputation)."""
+    (projector,), route = graft_cells(adapter, 1, feats.shape[-1])
+    adapter.set_activation_checkpointing(False)
+    with FlopCounterMode(display=False) as counter:
+        optimise_together(adapter, learners(adapter, [projector], feats, batch), steps=1, batch_size=batch,
+                          dtype=dtype, route=route, show=False)
+    sync(adapter.device)
+    return counter.get_total_flops()
+
+
+def time_step(adapter, feats: torch.Tensor, batch: int, dtype: torch.dtype, cells: int, repeats: int,
+              checkpointing: bool) -> dict:
+    """Median seconds of one step of `cells` fused cells at `batch` each, and the peak device memory; an
+    out-of-memory step is recorded as such (and its memory released outside the except block, where the
+    traceback no longer holds the step's activations)."""
+    device = adapter.device
+    projectors, route = graft_cells(adapter, cells, feats.shape[-1])
+    adapter.set_activation_checkpointing(checkpointing)
+    group = learners(adapter, projectors, feats, batch)
+    sync(device)
+    base = torch.cuda.memory_allocated(device) if device.type == "cuda" else None
+    reset_peak(device)
+    times: list[float] = []
+    oom = None
+    try:
+        for i in range(repeats + 1):
+            t0 = time.perf_counter()
+            optimise_together(adapter, group, steps=1, batch_size=batch, dtype=dtype, route=route, show=False)
+            sync(device)
+            if i:
+                times.append(time.perf_counter() - t0)
+    except torch.OutOfMemoryError as exc:
+        oom = str(exc).splitlines()[0][:200]
+    out = {"batch": batch, "cells": cells, "checkpointing": checkpointing, "peak_gb": peak_gb(device)}
+    if oom is None:
+        out["loss_finite"] = all(math.isfinite(x) for cell in group for x in cell.losses)
+    if base is not None:  # what the step adds to the weights (and optimiser state) already there
+        out["step_peak_gb"] = round(out["peak_gb"] - base / 1e9, 2)
+    del group, projectors
+    adapter.reset()
+    adapter.set_activation_checkpointing(False)
+    free(device)
+    if oom is not None:
+        return {**out, "oom": oom}
+    return {**out, "step_s": statistics.median(times)}
+
+
+def step_estimate(adapter, feats: torch.Tensor, dtype: torch.dtype, checkpointing: bool) -> dict:
+    """What graftcache.fit.step_memory measures before a CUDA fit: the peak of a 1- and a 2-frame step."""
+    if adapter.device.type != "cuda":
+        return {"status": "skipped", "reason": "the allocator's peak is a CUDA measurement"}
+    graft_cells(adapter, 1, feats.shape[-1])
+    adapter.set_activation_checkpointing(checkpointing)
+    one, two = (peak_step_bytes(adapter, draw_from(adapter, feats, f)(torch.Generator().manual_seed(0)), f, dtype)
+                for f in (1, 2))
+    adapter.reset()
+    adapter.set_activation_checkpointing(False)
+    free(adapter.device)
+    return {"one_frame_gb": one / 1e9, "per_frame_gb": (two - one) / 1e9}
+
+
+def scaling(report: Report, stage: str, adapter, batches: list[int], dtype: torch.dtype, repeats: int,
+            peak: float | None) -> None:
+    """Step time and memory against batch, checkpointing off and on, with FLOPs and MFU."""
+    width = ENC_WIDTH if adapter.tiny_marker is None else TINY_ENC
+    feats = features(adapter, 64, width)
+    with report.check(stage, "flops", need_s=20) as out:
+        if out is not None:
+            flops = step_flops(adapter, feats, batches[0], dtype)
+            out.update(batch=batches[0], step_flops=flops, flops_per_sample=flops / batches[0])
+    per_sample = report.data["stages"][stage]["flops"].get("flops_per_sample")
+    for checkpointing in (False, True):
+        if checkpointing and not adapter.can_checkpoint:
+            continue
+        ckpt = "on" if checkpointing else "off"
+        with report.check(stage, f"estimate_ckpt_{ckpt}", need_s=15) as out:
+            if out is not None:
+                out.update(step_estimate(adapter, feats, dtype, checkpointing))
+        rule = report.data["stages"][stage][f"estimate_ckpt_{ckpt}"]
+        for batch in batches:
+            key = f"batch{batch}_ckpt_{'on' if checkpointing else 'off'}"
+            with report.check(stage, key, need_s=25) as out:
+                if out is None:
+                    continue
+                out.update(time_step(adapter, feats, batch, dtype, 1, repeats, checkpointing))
+                if "one_frame_gb" in rule:  # graftcache.fit.step_memory's CUDA rule against the step's own peak
+                    out["estimate_gb"] = round(rule["one_frame_gb"] + (batch - 1) * rule["per_frame_gb"], 2)
+                if "step_s" in out and per_sample:
+                    achieved = per_sample * batch / out["step_s"]
+                    out["tflops"] = round(achieved / 1e12, 1)
+                    out["mfu"] = round(achieved / peak, 4) if peak else None
+                if "oom" in out:
+                    out["status"] = "oom"
+            if out is not None and "oom" in out:
+                break  # larger batches would not fit either
+
+
+def cells_per_pass(report: Report, stage: str, adapter, batch: int, counts: list[int], dtype: torch.dtype,
+                   repeats: int, steps_per_cell: int) -> None:
+    """Seconds a cell-step against cells per pass at `batch`, and training cells per GPU-hour at
+    `steps_per_cell` (checkpointing on only where off does not fit)."""
+    width = ENC_WIDTH if adapter.tiny_marker is None else TINY_ENC
+    feats = features(adapter, 64, width)
+    for n in counts:
+        with report.check(stage, f"cells_per_pass_{n}", need_s=30) as out:
+            if out is None:
+                continue
+            if n > 1 and not adapter.per_sample_loss:
+                out.update(status="skipped", reason="one loss a batch: cells run alone")
+                continue
+            result = time_step(adapter, feats, batch, dtype, n, repeats, False)
+            if "oom" in result and adapter.can_checkpoint:
+                result = time_step(adapter, feats, batch, dtype, n, repeats, True)
+            out.update(result)
+            if "step_s" in result:
+                cell_step = result["step_s"] / n
+                out.update(cell_step_s=cell_step, steps_per_cell=steps_per_cell,
+                           training_cells_per_gpu_hour=3600 / (steps_per_cell * cell_step))
+            else:
+                out["status"] = "oom"
+
+
+# ---------------------------------------------------------------------------------------------- stage 4
+LOAD_SCRIPT = r"""
+import json, os, sys, time
+from pathlib import Path
+sys.path[:0] = [sys.argv[3]]
+def rss(field):
+    return next(int(l.split()[1]) * 1024 for l in Path('/proc/self/status').read_text().splitlines()
+                if l.startswith(field + ':'))
+t0 = time.perf_counter()
+import torch
+from graftcache.backbones import get_backbone, load_backbone
+from lerobot.policies.factory import get_policy_class
+get_backbone(sys.argv[1]); get_policy_class(sys.argv[1])
+imported = time.perf_counter() - t0
+try:
+    Path('/proc/self/clear_refs').write_text('5')
+    cleared = True
+except OSError:
+    cleared = False
+before = rss('VmRSS')
+t0 = time.perf_counter()
+adapter = load_backbone(sys.argv[1], Path(sys.argv[2]), device=sys.argv[4])
+seconds = time.perf_counter() - t0
+dev = torch.device(sys.argv[4])
+print(json.dumps({'import_s': imported, 'load_s': seconds, 'rss_before_gb': before / 1e9,
+                  'peak_rss_gb': rss('VmHWM') / 1e9, 'peak_reset_before_load': cleared,
+                  'rss_after_gb': rss('VmRSS') / 1e9,
+                  'device_gb': torch.cuda.memory_allocated(dev) / 1e9 if dev.type == 'cuda' else None,
+                  'params_on': sorted({p.device.type for p in adapter.policy.parameters()})}))
+"""
+
+
+def save_checkpoint(adapter, folder: Path) -> dict:
+    """Write the ungrafted policy as lerobot writes it (config, model.safetensors, processors)."""
+    adapter.reset()
+    t0 = time.perf_counter()
+    adapter.save(folder)
+    size = (folder / "model.safetensors").stat().st_size
+    return {"save_s": round(time.perf_counter() - t0, 1), "checkpoint_gb": round(size / 1e9, 2)}
+
+
+def save(report: Report, adapter, folder: Path) -> None:
+    with report.check("4_lean_load", "save", need_s=60) as info:
+        if info is not None:
+            info.update(backbone=adapter.name, **save_checkpoint(adapter, folder))
+
+
+def drop_page_cache() -> bool:
+    """Ask the kernel to drop clean pages (root only), so the load reads the disk; whether it did."""
+    try:
+        os.sync()
+        Path("/proc/sys/vm/drop_caches").write_text("3")
+        return True
+    except OSError:
+        return False
+
+
+def lean_load(name: str, folder: Path, device: torch.device, hub: Path) -> dict:
+    """Lean-load the checkpoint in a fresh process (the hub repos its processors read in `hub`): seconds, host
+    peak RSS against the checkpoint's bytes."""
+    dropped = drop_page_cache()
+    env = {**os.environ, "HF_HUB_OFFLINE": "1", "HF_HUB_CACHE": str(hub)}
+    done = subprocess.run([sys.executable, "-c", LOAD_SCRIPT, name, str(folder), str(ROOT), str(device)],
+                          capture_output=True, text=True, env=env, timeout=600)
+    if done.returncode != 0:
+        raise RuntimeError(f"load process exited {done.returncode}: {done.stderr.strip().splitlines()[-1:]}")
+    out = json.loads(done.stdout.strip().splitlines()[-1])
+    checkpoint = (folder / "model.safetensors").stat().st_size / 1e9
+    growth = out["peak_rss_gb"] - out["rss_before_gb"]
+    return {**out, "page_cache_dropped": dropped, "checkpoint_gb": round(checkpoint, 2),
+            "host_peak_growth_gb": round(growth, 2),
+            "host_held_model": growth > 0.5 * checkpoint if device.type == "cuda" else "cpu target"}
+
+
+# ---------------------------------------------------------------------------------------------- stage 5
+def protocol(report: Report, adapters: dict, device: torch.device, dtype: torch.dtype, dtype_name: str,
+             peak: float | None, tiny: bool) -> None:
+    """bench_protocol's per-kind measurements on cli/paper.toml with these adapters, and its projection."""
+    stage = "5_protocol"
+    with report.check(stage, "recipe", need_s=60) as out:
+        if out is None:
+            return
+        import bench_protocol as bp
+
+        from graftcache.encoders import load_encoder
+        from graftcache.recipe import load_recipe
+
+        recipe = load_recipe(PAPER)
+        settings = bp.recipe_settings(recipe, 2 if tiny else None)
+        out.update(recipe=str(PAPER.relative_to(ROOT)), settings=settings.__dict__)
+    if out.get("status") != "ok":
+        return
+    a = argparse.Namespace(steps=2 if tiny else 4, eval_frames=2 if tiny else 32)
+    encode_s: dict[str, float] = {}
+    for entry in recipe.encoders:
+        with report.check(stage, f"encoder_{entry.name}", need_s=15) as out:
+            if out is None:
+                return
+            encoder = load_encoder(entry.name, random_init=True, device=device)
+            encode_s[entry.name] = bp.encode_seconds_per_image(encoder.forward_grid, encoder.spec.image_size,
+                                                               settings.batch_size, device, dtype)
+            out["encode_s_per_image"] = encode_s[entry.name]
+            del encoder
+    measured: dict[str, dict] = {}
+    tower_s, cameras = {}, {}
+    for entry in recipe.backbones:
+        adapter = adapters.get(entry.name)
+        if adapter is None:
+            report.data["stages"][stage][entry.name] = {"status": "skipped", "reason": "not built in this run"}
+            return
+        adapter.reset()
+        side = LIBERO.image_size
+        cameras[entry.name] = len(adapter.cameras)
+        tower_s[entry.name] = bp.encode_seconds_per_image(adapter.native_tokens, side, settings.batch_size, device,
+                                                          dtype)
+        native_width = adapter.native_patch_grid(torch.zeros(1, 3, side, side)).shape[-1]
+        by_kind: dict = {}
+        measured[entry.name] = {}
+        for cell, kind in bp.kinds_of(recipe, entry.name, adapter, native_width).items():
+            if kind not in by_kind:
+                name = f"{entry.name}_{kind.tokens}x{kind.width}{'_lora' if kind.lora else ''}" + (
+                    "" if kind.train else "_eval")
+                with report.check(stage, name, need_s=30) as out:
+                    if out is None:
+                        return
+                    out.update({**kind.__dict__, **bp.measure_kind(adapter, kind, settings, a, dtype)})
+                    by_kind[kind] = out
+            measured[entry.name][cell] = by_kind[kind]
+        adapter.reset()
+        free(device)
+    with report.check(stage, "projection") as out:
+        if out is None:
+            return
+        decode = report.data["header"].get("decode_s_per_frame") or 0.0
+        hours = bp.project(recipe, settings, measured, {n: 0.0 for n in measured}, decode, encode_s, tower_s,
+                           cameras, peak or bp.peak_flops(device, dtype, None)[0])
+        out.update(hours, rows=sum(1 for _ in bp.cells(recipe)) * len(recipe.seeds),
+                   settings=settings.__dict__, decode_s_per_frame=decode,
+                   notes="loads excluded (stage 4 times one); online hours exclude video decoding unless "
+                         "--decode-ms is given (no PyAV on the device image): a lower bound")
+
+
+# ---------------------------------------------------------------------------------------------- main
+def main(argv: list[str] | None = None) -> dict:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--device", default="cuda")
+    p.add_argument("--compute-dtype", default="auto", choices=("auto", "bf16", "fp32"))
+    p.add_argument("--tiny", action="store_true", help="tiny backbones everywhere (the CPU dry run)")
+    p.add_argument("--budget-s", type=float, default=480.0, help="no stage starts past this many seconds")
+    p.add_argument("--stages", default="1,2,3,4,5,6")
+    p.add_argument("--backbones", default=",".join(BACKBONES), help="stage 1's backbones")
+    p.add_argument("--batches", default=None, help="stage 2's batches (default 8,16,32,64; tiny 2,4)")
+    p.add_argument("--smolvla-batches", default=None, help="stage 3's batches (default 32,64; tiny 2,4)")
+    p.add_argument("--repeats", type=int, default=3, help="timed steps per measurement, after one warm-up")
+    p.add_argument("--load-backbone", default="pi05", choices=("pi05", "smolvla"),
+                   help="stage 4's checkpoint (smolvla: a released-size dry run a CPU can afford)")
+    p.add_argument("--decode-ms", type=float, default=None,
+                   help="video decode per frame (a CPU measurement) for stage 5's online protocol")
+    p.add_argument("--scratch", type=Path, default=None, help="local disk for stage 4's checkpoint and the hub")
+    p.add_argument("--out", type=Path, default=None,
+                   help="JSON (default benchmarks/results/gpu_check_<gpu>_<date>.json)")
+    a = p.parse_args(argv)
+    stages = {int(s) for s in a.stages.split(",") if s}
+    device = resolve_device(a.device)
+    dtype_name = resolve_compute_dtype(a.compute_dtype, device)
+    dtype = resolve_dtype(dtype_name)
+    batches = [int(b) for b in (a.batches or ("2,4" if a.tiny else "8,16,32,64")).split(",")]
+    smol_batches = [int(b) for b in (a.smolvla_batches or ("2,4" if a.tiny else "32,64")).split(",")]
+    head = header(device, dtype_name)
+    head.update(tiny=a.tiny, decode_s_per_frame=None if a.decode_ms is None else a.decode_ms / 1e3,
+                random_init=True, note="every policy here is random-init: costs, not what weights learned")
+    peak, head["peak_source"] = peak_flops(device)
+    slug = "".join(c if c.isalnum() else "-" for c in (head.get("gpu") or device.type).lower())
+    out = a.out or ROOT / "benchmarks" / "results" / f"gpu_check_{slug}_{head['date']}{'_tiny' if a.tiny else ''}.json"
+    report = Report(out, a.budget_s, head)
+    print(f"gpu_check: {json.dumps(head)} -> {out}", flush=True)
+    scratch = Path(a.scratch or tempfile.mkdtemp(prefix="gpu-check-"))
+    hub = scratch / "hub"
+    from graftcache.recipe import load_recipe
+
+    steps_per_cell = int(load_recipe(PAPER).fit["steps"])  # what one cell of the paper's protocol trains
+
+    if 1 in stages:
+        stage_tiny(report, device, dtype, [n for n in a.backbones.split(",") if n])
+    adapters: dict = {}
+    load_name = a.load_backbone
+    if 2 in stages or 5 in stages or (4 in stages and load_name == "pi05"):
+        with report.check("2_pi05", "build", need_s=30) as info:
+            if info is not None:
+                adapters["pi05"] = built("pi05", device, a.tiny, hub)
+                info.update(params=adapters["pi05"].n_params, source=adapters["pi05"].source,
+                            device_gb=peak_gb(device))
+    if 2 in stages and "pi05" in adapters:
+        scaling(report, "2_pi05", adapters["pi05"], batches, dtype, a.repeats, peak)
+    if 4 in stages and load_name in adapters:
+        save(report, adapters[load_name], scratch / load_name)
+    if 3 in stages or 5 in stages or (4 in stages and load_name == "smolvla"):
+        with report.check("3_smolvla", "build", need_s=20) as info:
+            if info is not None:
+                adapters["smolvla"] = built("smolvla", device, a.tiny, hub)
+                info.update(params=adapters["smolvla"].n_params, source=adapters["smolvla"].source)
+    if 4 in stages and load_name == "smolvla" and "smolvla" in adapters:
+        save(report, adapters["smolvla"], scratch / "smolvla")
+    if 3 in stages and "smolvla" in adapters:
+        scaling(report, "3_smolvla", adapters["smolvla"], smol_batches, dtype, a.repeats, peak)
+        cells_per_pass(report, "3_smolvla", adapters["smolvla"], smol_batches[0], [1, 2, 4], dtype, a.repeats,
+                       steps_per_cell)
+    if 4 in stages and (scratch / load_name / "model.safetensors").is_file():
+        with report.check("4_lean_load", "load", need_s=60) as info:
+            if info is not None:
+                info.update(backbone=load_name, **lean_load(load_name, scratch / load_name, device, hub))
+    if 5 in stages:
+        protocol(report, adapters, device, dtype, dtype_name, peak, a.tiny)
+    adapters.clear()
+    free(device)
+    if 6 in stages:
+        for name in BACKBONES:
+            if name in ("pi05", "smolvla"):
+                continue
+            if name not in CONFIGS:
+                report.data["stages"].setdefault("6_zoo", {})[name] = {
+                    "status": "skipped", "reason": "no released-geometry builder in devtools.released yet"}
+                continue
+            with report.check("6_zoo", name, need_s=60) as info:
+                if info is None:
+                    continue
+                adapter = built(name, device, a.tiny, hub)
+                info["params"] = adapter.n_params
+                width = TINY_ENC if a.tiny else ENC_WIDTH
+                feats = features(adapter, 64, width)
+                batch = 2 if a.tiny else 8
+                flops = step_flops(adapter, feats, batch, dtype)
+                info.update(time_step(adapter, feats, batch, dtype, 1, a.repeats, False), step_flops=flops)
+                if "step_s" in info:
+                    info["tflops"] = round(flops / info["step_s"] / 1e12, 1)
+                    info["mfu"] = round(flops / info["step_s"] / peak, 4) if peak else None
+                del adapter
+                free(device)
+        report.write()
+    report.data["done"] = True
+    report.write()
+    print(f"gpu_check: done in {report.elapsed():.0f} s -> {out}", flush=True)
+    return report.data
+
+
+if __name__ == "__main__":
+    main()
