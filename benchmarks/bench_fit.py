@@ -42,7 +42,7 @@ from graftcache.fit.stream import FeatureSource, read_blocks
 from graftcache.graft import GraftProjector, feature_key
 from graftcache.pooling import pool_grid
 from graftcache.pretrain import dataset_stats
-from graftcache.runtime import autocast, set_main_threads
+from graftcache.runtime import autocast, resolve_compute_dtype, resolve_device, resolve_dtype, set_main_threads
 from graftcache.store import FeatureCache
 
 SUITE = "libero_spatial"
@@ -62,6 +62,8 @@ def step_fn(adapter, opt, make_raw, batch_size: int, g: torch.Generator):
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
+        if adapter.device.type == "cuda":  # the step's time, not its launch's
+            torch.cuda.synchronize(adapter.device)
     return step
 
 
@@ -74,16 +76,21 @@ def main() -> None:
     p.add_argument("--batch-size", type=int, default=16)
     p.add_argument("--repeats", type=int, default=20)
     p.add_argument("--steps", type=int, default=300, help="flow steps per cell (the CLI default)")
+    p.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N (extraction, fits and steps run there)")
+    p.add_argument("--compute-dtype", default="auto", choices=("auto", "bf16", "fp32"))
     a = p.parse_args()
+    device = resolve_device(a.device)
+    compute = resolve_compute_dtype(a.compute_dtype, device)
 
     set_main_threads()
     lo, hi = (int(v) for v in a.episodes.split("-"))
     episodes = tuple(range(lo, hi + 1))
     warm_page_cache(a.dataset)
-    print(f"machine: {machine()}")
+    print(f"machine: {machine()}; device {device}, compute {compute}")
     with tempfile.TemporaryDirectory(prefix="bench_fit_") as tmp:
         root = Path(tmp)
-        common = dict(dataset=str(a.dataset), episodes=episodes, num_workers=1, batch_size=32, compute_dtype="bf16",
+        common = dict(dataset=str(a.dataset), episodes=episodes, num_workers=1, batch_size=32, compute_dtype=compute,
+                      device=str(device),
                       cache=str(root / "cache"), progress=False)
         enc_key = extract(ExtractRequest(encoder=a.encoder, grids=("4x4",), random_init=a.random_init, **common),
                           log=_quiet).key
@@ -94,7 +101,7 @@ def main() -> None:
         native_key = extract(ExtractRequest(encoder=native_name("smolvla"), grids=("4x4",), policy=str(policy_dir),
                                             **common), log=_quiet).key
 
-        adapter = load_backbone("smolvla", policy_dir)
+        adapter = load_backbone("smolvla", policy_dir, device=str(device))
         cams = match_cameras(adapter.cameras, cache.manifest.cameras, None, policy_name=adapter.name,
                              cache_name=str(cache.path))
         low = load_lowdim(cache, SUITE, chunk=adapter.chunk_size)
@@ -117,7 +124,7 @@ def main() -> None:
         from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
         online_ds = LeRobotDataset("local/bench", root=a.dataset, video_backend="pyav")
-        encoder = load_encoder(a.encoder, random_init=a.random_init)
+        encoder = load_encoder(a.encoder, random_init=a.random_init, device=device)
         dataset_rows = low.rows  # cache row == dataset index (the cache keeps dataset order)
 
         def online_raw(pos: np.ndarray) -> dict:
@@ -125,9 +132,9 @@ def main() -> None:
             raw = cached_raw(pos % n)
             for key, cam in cams.items():
                 frames = torch.stack([(it[f"observation.images.{cam}"] * 255).round().to(torch.uint8) for it in items])
-                with torch.inference_mode(), autocast(torch.device("cpu"), torch.bfloat16):
+                with torch.inference_mode(), autocast(device, resolve_dtype(compute)):
                     grid = encoder.forward_grid(encoder.preprocess(frames.permute(0, 2, 3, 1)))
-                raw[feature_key(key)] = pool_grid(grid.float(), (4, 4)).clone()
+                raw[feature_key(key)] = pool_grid(grid.float(), (4, 4)).cpu().clone()
             return raw
 
         online = median_seconds(step_fn(adapter, opt, online_raw, a.batch_size, g), max(5, a.repeats // 4))
@@ -137,7 +144,8 @@ def main() -> None:
         results = root / "results.parquet"
         req = FitRequest(backbone="smolvla", encoder=a.encoder, suite=SUITE, policy=str(policy_dir),
                          cache_key=enc_key, seeds=(0,), steps=a.steps, batch_size=a.batch_size,
-                         cache=str(root / "cache"), results=str(results), progress=False, command="bench_fit")
+                         cache=str(root / "cache"), results=str(results), progress=False, command="bench_fit",
+                         device=str(device), compute_dtype=compute)
         (flow_row,) = Fitter(req, log=_quiet).run()
         (align_row,) = Fitter(FitRequest(**{**req.__dict__, "objective": "align"}), log=_quiet).run()
         print(f"flow cell ({a.steps} steps + scoring {flow_row['n_eval_frames']} frames): {flow_row['wall_s']:.1f}s; "

@@ -35,7 +35,7 @@ from graftcache.fit.run import FitRequest, Fitter
 from graftcache.fit.stream import FeatureSource
 from graftcache.graft import FusedProjector, GraftProjector, feature_key
 from graftcache.pretrain import dataset_stats
-from graftcache.runtime import resolve_compute_dtype, resolve_dtype, set_main_threads
+from graftcache.runtime import resolve_compute_dtype, resolve_device, resolve_dtype, set_main_threads
 from graftcache.store import FeatureCache
 
 SUITE = "libero_spatial"
@@ -44,6 +44,13 @@ CELLS = 4  # cells fitted per setting: every N in --cells divides it
 
 def _quiet(_: str) -> None:
     pass
+
+
+def synced_step(adapter, learners: list[Learner], batch_size: int, dtype: torch.dtype, route) -> None:
+    """One fused step, finished: on CUDA the host waits for the device, so a timing counts the step, not its launch."""
+    optimise_together(adapter, learners, steps=1, batch_size=batch_size, dtype=dtype, route=route, show=False)
+    if adapter.device.type == "cuda":
+        torch.cuda.synchronize(adapter.device)
 
 
 def step_seconds(adapter, low, feats, cams, n: int, batch_size: int, dtype: torch.dtype, repeats: int) -> float:
@@ -60,14 +67,13 @@ def step_seconds(adapter, low, feats, cams, n: int, batch_size: int, dtype: torc
 
     learners = [Learner(draw, torch.optim.AdamW(list(p.parameters()), lr=1e-3), torch.Generator().manual_seed(i))
                 for i, p in enumerate(projectors)]
-    seconds = median_seconds(lambda: optimise_together(adapter, learners, steps=1, batch_size=batch_size, dtype=dtype,
-                                                       route=fused.rows, show=False), repeats)
+    seconds = median_seconds(lambda: synced_step(adapter, learners, batch_size, dtype, fused.rows), repeats)
     adapter.reset()
     return seconds
 
 
 def released_step_seconds(name: str, root: Path, counts: list[int], batch_size: int, dtype: torch.dtype,
-                          repeats: int, rounds: int) -> dict[int, float]:
+                          repeats: int, rounds: int, device: torch.device) -> dict[int, float]:
     """Seconds a cell-step at the released geometry (random init, devtools.released), synthetic
     features of the backbone's token grid at SigLIP-B's width (768) and LIBERO's state and action sizes."""
     from devtools.released import LIBERO, build_pi05, build_smolvla, hub_cache
@@ -75,7 +81,7 @@ def released_step_seconds(name: str, root: Path, counts: list[int], batch_size: 
     builders = {"smolvla": build_smolvla, "pi05": build_pi05}
     with hub_cache(root / "hub"):
         folder = builders[name](f"bench/{name}-released", cache=root / "hub")
-        adapter = load_backbone(name, folder)
+        adapter = load_backbone(name, folder, device=str(device))
         tokens = adapter.token_grid[0] * adapter.token_grid[1]
         generator = torch.Generator().manual_seed(0)
         n_frames = 64
@@ -98,8 +104,7 @@ def released_step_seconds(name: str, root: Path, counts: list[int], batch_size: 
 
             learners = [Learner(draw, torch.optim.AdamW(list(p.parameters()), lr=1e-3),
                                 torch.Generator().manual_seed(i)) for i, p in enumerate(projectors)]
-            return median_seconds(lambda: optimise_together(adapter, learners, steps=1, batch_size=batch_size,
-                                                            dtype=dtype, route=fused.rows, show=False), repeats) / n
+            return median_seconds(lambda: synced_step(adapter, learners, batch_size, dtype, fused.rows), repeats) / n
 
         times: dict[int, list[float]] = {n: [] for n in counts}
         for _ in range(rounds):
@@ -128,6 +133,7 @@ def main() -> None:
     p.add_argument("--released", default="", help="comma list of backbones to time at the released geometry too "
                    "(step only, random init; smolvla: ~450M parameters, pi05: ~4B, far past a CPU's budget)")
     p.add_argument("--released-batch-size", type=int, default=2)
+    p.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N (the fits and the steps run there)")
     p.add_argument("--json", type=Path, help="write the measurements here")
     a = p.parse_args()
 
@@ -140,10 +146,11 @@ def main() -> None:
     lo, hi = (int(v) for v in a.episodes.split("-"))
     warm_page_cache(a.dataset)
     where = machine()
-    device = torch.device("cpu")
+    device = resolve_device(a.device)
     compute = resolve_compute_dtype(a.compute_dtype, device)
     print(f"machine: {where}; compute dtype {compute}")
-    report: dict = {"machine": where, "threads": torch.get_num_threads(), "device": "cpu", "compute_dtype": compute,
+    report: dict = {"machine": where, "threads": torch.get_num_threads(), "device": str(device),
+                    "compute_dtype": compute,
                     "steps": a.steps, "batch_size": a.batch_size, "eval_frames": a.eval_frames,
                     "num_denoise_steps": a.num_denoise_steps,
                     "cells": CELLS, "backbones": {}}
@@ -164,6 +171,7 @@ def main() -> None:
                                   seeds=seeds, steps=a.steps, batch_size=a.batch_size, eval_frames=a.eval_frames,
                                   num_denoise_steps=a.num_denoise_steps, num_workers=0, compute_dtype=compute,
                                   cells_per_pass=n, cache=str(root / "cache"), results=str(root / out),
+                                  device=str(device),
                                   progress=False, command="bench_fuse")
 
             Fitter(request(1, "warm.parquet", seeds=(99,)), log=_quiet, backbones=pool, numerics=numerics).run()
@@ -176,7 +184,7 @@ def main() -> None:
                     times[n].append((time.perf_counter() - t0) / len(rows))
                     assert {r["cells_per_pass"] for r in rows} == {n}
             per_cell = {n: float(np.median(t)) for n, t in times.items()}
-            adapter = pool.get(name, folder, "cpu")
+            adapter = pool.get(name, folder, str(device))
             cams = {c: c for c in adapter.cameras}
             low = load_lowdim(cache, SUITE, chunk=adapter.chunk_size)
             grid = adapter.token_grid
@@ -197,7 +205,7 @@ def main() -> None:
                                          "fastest": min(counts, key=lambda n: per_cell[n])}
         for name in filter(None, a.released.split(",")):
             steps = released_step_seconds(name, root, counts, a.released_batch_size, resolve_dtype(compute),
-                                          a.repeats, a.rounds)
+                                          a.repeats, a.rounds, device)
             for n in counts:
                 print(f"{name} at the released geometry: {n} cell(s) per pass: step {steps[n]:.2f} s a cell-step "
                       f"({steps[n] / steps[1]:.2f}x N=1; batch {a.released_batch_size} a cell)")

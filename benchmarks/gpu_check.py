@@ -654,17 +654,24 @@ def protocol(report: Report, adapters: dict, device: torch.device, dtype: torch.
         for cell, kind in bp.kinds_of(recipe, entry.name, adapter, native_width).items():
             if kind not in by_kind:
                 name = f"{entry.name}_{kind.tokens}x{kind.width}{'_lora' if kind.lora else ''}" + (
-                    "" if kind.train else "_eval")
+                    "" if kind.train else "_eval") + ("_native" if kind.native_tower else "")
                 with report.check(stage, name, need_s=30) as out:
                     if out is None:
                         return
                     out.update({**kind.__dict__, **bp.measure_kind(adapter, kind, settings, a, dtype)})
-                    by_kind[kind] = out
+                by_kind[kind] = out
+                adapter.reset()
+                adapter.set_activation_checkpointing(False)
+                free(device)  # each kind starts from the weights alone, as a sweep's cell does
             measured[entry.name][cell] = by_kind[kind]
         adapter.reset()
         free(device)
+    failed = sorted({k for per in measured.values() for k, m in per.items() if m.get("status") != "ok"}, key=str)
     with report.check(stage, "projection") as out:
         if out is None:
+            return
+        if failed:
+            out.update(status="skipped", reason=f"{len(failed)} cell kinds were not measured: {failed[:3]}")
             return
         decode = report.data["header"].get("decode_s_per_frame") or 0.0
         hours = bp.project(recipe, settings, measured, {n: 0.0 for n in measured}, decode, encode_s, tower_s,

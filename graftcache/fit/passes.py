@@ -23,11 +23,12 @@ took SmolVLA 4.2 / 5.0 / 5.0 s, then 5.8 / 5.5 / 2.6 s; pi0.5 3.5 / 3.8 / 7.1 s,
 rounds of one setting differed up to 3x, so no gain stands out of the noise. The grafted step alone got 10-30%
 cheaper a cell at 4, but at SmolVLA's released geometry (~450M parameters, random init, batch 2 a cell:
 benchmarks/results/bench_fuse_cpu_smolvla_released.json) the step is compute-bound, 3.30 / 3.25 / 3.23 s a
-cell-step, and every cell of a pass holds its own shuffle buffer. So 1 on CPU. On CUDA (unmeasured here: no
-GPU was lent) a grafted step leaves the device mostly idle (issue 21: ~39 ms a sample for pi0.5 at batch 4
-against a ~11 ms FLOP bound), so SmolVLA (~450M parameters, 64 tokens a camera) defaults to 4 cells, and
-pi0.5, whose batch 32 alone needs more than an 80 GB device without activation checkpointing (issue 21's
-estimate), to 1. A pass that would not fit is refused before its first step (graftcache.fit.step_memory,
+cell-step, and every cell of a pass holds its own shuffle buffer. So 1 on CPU. On CUDA, measured on an H200
+(benchmarks/results/gpu_check_nvidia-h200_2026-11-26.json, released geometry, random init, bf16, batch 32 a
+cell): SmolVLA's step is latency-bound (3% MFU alone), and 1 / 2 / 4 cells per pass cost 124 / 56 / 47 ms a
+cell-step (14.5 / 32 / 38.5 training cells of 2000 steps per GPU-hour) at 16 / 20 / 29 GB, so 4; pi0.5 already
+runs at 35% MFU alone and needs 117 GB at batch 32 without activation checkpointing (21 GB with it), so 1.
+A pass that would not fit is refused before its first step (graftcache.fit.step_memory,
 naming --cells-per-pass).
 """
 
@@ -50,7 +51,7 @@ from graftcache.runtime import set_main_threads
 #: Cells per backbone pass when a request does not say: (device type, backbone) -> cells. Unlisted pairs: 1.
 CELLS_PER_PASS: dict[tuple[str, str], int] = {
     ("cpu", "smolvla"): 1, ("cpu", "pi05"): 1,     # measured: benchmarks/results/bench_fuse_cpu_*.json
-    ("cuda", "smolvla"): 4, ("cuda", "pi05"): 1,   # unmeasured (no GPU lent): chosen as the module docstring says
+    ("cuda", "smolvla"): 4, ("cuda", "pi05"): 1,   # measured: benchmarks/results/gpu_check_nvidia-h200_*.json
 }
 
 
