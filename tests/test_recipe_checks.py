@@ -54,6 +54,9 @@ BAD = {
                           "#1 and #2 of [[backbones]] are the same; list each once"),
     "repeated_control": ({"controls": '["native", "native"]'},
                          "controls = ('native', 'native') must name each control once"),
+    "backbone_with_two_policies": ({"backbones": '[[backbones]]\nname = "smolvla"\npolicy = "/other/policy"\n'},
+                                   "#1 and #2 of [[backbones]] both name 'smolvla' (policies 'tiny' and "
+                                   "'/other/policy'); a sweep and its report key backbones by name: list each once"),
     "unknown_backbone": ({"backbones": '[[backbones]]\nname = "octo"\n'},
                          "[[backbones]] #2: unknown backbone 'octo'"),
     "suite_not_in_dataset": ({"suites": '["libero_goal"]'},
