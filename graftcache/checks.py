@@ -6,14 +6,20 @@ the request is built and to a recipe's tables, and the CLI when it parses the fl
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from numbers import Integral, Real
 from typing import Any
 
+#: The largest int any setting takes: rows record int settings in Int64 columns (graftcache.results.SCHEMA), and
+#: manifests, cache keys and checkpoint records hold them as JSON ints read back as int64; a count past it could
+#: not be held anyway.
+MAX_INT = 2**63 - 1
 #: The largest seed anything accepts: results store seeds as Int64 (graftcache.results.SCHEMA), and every RNG
 #: a seed feeds takes it, with the small offsets the fits add (torch.manual_seed up to 2**64 - 1,
 #: numpy.random.default_rng any non-negative int).
-MAX_SEED = 2**63 - 1
+MAX_SEED = MAX_INT
 
 
 @dataclass(frozen=True)
@@ -54,7 +60,34 @@ SEED: Rule = (lambda v: 0 <= v <= MAX_SEED, f"must be in 0..{MAX_SEED} (results 
 SEEDS = IntList("seed", MAX_SEED, 1_000_000)
 EPISODES = IntList("episode", 2**63 - 1, 10_000_000)
 NAMES: Rule = (lambda v: len(v) > 0 and len(set(v)) == len(v), "must name at least one, each once")
-SHARD: Rule = (lambda v: len(v) == 2 and 0 <= v[0] < v[1], "must be i/N with 0 <= i < N")
+SHARD: Rule = (lambda v: len(v) == 2 and 0 <= v[0] < v[1] <= MAX_INT, f"must be i/N with 0 <= i < N <= {MAX_INT}")
+
+
+#: AdamW's learning rate: each step moves a weight by about lr, and lr x weight_decay <= 1 keeps its decoupled decay
+#: (weights times 1 - lr x weight_decay) from flipping their sign; past these a fit diverges, its rows NaN.
+LEARNING_RATE: Rule = (lambda v: 0 < v <= 1, "must be in (0, 1] (AdamW moves each weight by about lr a step)")
+WEIGHT_DECAY: Rule = (lambda v: 0 <= v <= 1, "must be in [0, 1] (AdamW scales weights by 1 - lr x weight_decay)")
+#: Worker processes: more than any machine's cores gain nothing, and each is a process started at once.
+MAX_WORKERS = 1024
+WORKERS: Rule = (lambda v: 0 <= v <= MAX_WORKERS, f"must be in 0..{MAX_WORKERS} (processes started at once)")
+
+
+def number_problem(kind: type, value: Any) -> str | None:
+    """Why `value` is no value of a numeric setting of type `kind` (int or float) for its own rule to judge: an
+    int setting takes an integer (not a bool), a float one a finite number (one phrase), or None. The CLI's codecs
+    and a recipe's types refuse most of these as text; this holds for a request built in Python too."""
+    if isinstance(value, bool) or not isinstance(value, Integral if kind is int else Real):
+        return f"must be {'an integer' if kind is int else 'a number'}"
+    if kind is float and not math.isfinite(value):
+        return "must be a finite number"
+    return None
+
+
+def storable_problem(kind: type, value: Any) -> str | None:
+    """Why an int setting's `value`, within its own rule, still cannot be recorded (past Int64), or None."""
+    if kind is int and not -MAX_INT - 1 <= value <= MAX_INT:
+        return f"must be at most {MAX_INT} in size (rows and manifests store it as an int64)"
+    return None
 
 
 def problem(rule: Rule, value: Any) -> str | None:

@@ -87,6 +87,19 @@ def _decode_all(dataset: str, cameras: tuple[str, ...], size: int, log: Callable
     return source, {c: torch.cat(v) for c, v in frames.items()}, table
 
 
+def _require_finite(backbone: str, policy: torch.nn.Module, losses: list[float], cfg: TinyTrainConfig) -> None:
+    """Refuse to save a policy that training broke (a NaN/inf loss or weight, from an --lr or --weight-decay its
+    steps diverge under): saved, it would be a checkpoint saying nothing about it, found again by every later
+    `--policy tiny` and grafted onto."""
+    bad = next((i for i, loss in enumerate(losses) if not math.isfinite(loss)), None)
+    if bad is None and all(torch.isfinite(p).all() for p in policy.parameters()):
+        return
+    when = (f"its loss was {losses[bad]} at step {bad + 1} of {cfg.steps}" if bad is not None else
+            f"its weights hold NaN/inf after {cfg.steps} step(s)")
+    raise BackboneError(f"train-tiny {backbone}: training diverged ({when}, lr {cfg.lr}, weight_decay "
+                        f"{cfg.weight_decay}); nothing saved: lower --lr or --weight-decay")
+
+
 def _unfreeze_all(policy: torch.nn.Module) -> None:
     """train-tiny trains everything: lift lerobot's default freezing flags and grads."""
     for module in policy.modules():
@@ -206,6 +219,7 @@ def _train(backbone: str, dataset: str, folder: Path, *, cfg: TinyTrainConfig, c
                       scheduler=torch.optim.lr_scheduler.LambdaLR(opt, warmup_cosine(cfg.steps, cfg.warmup)),
                       clip_norm=1.0, generator=torch.Generator().manual_seed(cfg.seed), dtype=compute,
                       desc=f"train-tiny {backbone}")
+    _require_finite(backbone, policy, losses, cfg)
     adapter.save(folder)
     record = {"backbone": backbone, "dataset": str(dataset), "dataset_root": str(meta.root),
               "dataset_identity": identity, "cameras": list(cameras),

@@ -6,7 +6,7 @@ Recipe keys (unknown keys are errors, so a typo never silently falls back to a d
     name, dataset, results, cache, device, suites, seeds, controls, objective
     camera_map     "POLICY=CACHE,...": which dataset camera feeds each policy camera where the names differ
                    (graftcache/cameras.py); passed to every fit and native-tower extract
-    [[backbones]]  name, policy ("tiny" = trained on `dataset` by train-tiny, else hub id or folder)
+    [[backbones]]  name, policy ("tiny" = trained on `dataset` by train-tiny, else hub id or folder); each name once
     [[encoders]]   name, weights, random_init, seed
     [extract]      fields of ExtractRequest  } except those the grid sets (`recipe=False`): e.g. batch_size,
     [fit]          fields of FitRequest      } storage_dtype, frame_stride, grids; steps, lr, eval_frames, lora_rank;
@@ -206,7 +206,11 @@ def load_recipe(path: str | Path) -> Recipe:
 def _check_grid(recipe: Recipe, path: Path) -> None:
     """The grid's axes by the rules of the requests they become (seeds, suites, controls, objective: FitRequest's;
     an encoder's seed: ExtractRequest's), and no entry twice: a repeated seed, suite, encoder or backbone
-    would visit its cells twice (each written once), so the counts the sweep reports would be wrong."""
+    would visit its cells twice (each written once), so the counts the sweep reports would be wrong.
+
+    Backbones are told apart by name alone, as the sweep keys its policies, token grids and native caches
+    (graftcache.sweep.SweepState) and the report its rows (backbone, suite, encoder, control, seed): two
+    entries of one name with different policies would have the last policy's cells computed for both."""
     for key, values in (("seeds", recipe.seeds), ("controls", recipe.controls), ("objective", recipe.objective)):
         _rule(FitRequest, key, values, str(path))
     for suite in recipe.suites:
@@ -218,12 +222,18 @@ def _check_grid(recipe: Recipe, path: Path) -> None:
             raise RecipeError(f"{path} [[backbones]] #{i + 1}: unknown backbone {entry.name!r}; known: "
                               f"{', '.join(BACKBONES)}")
     for key, entries in (("suites", recipe.suites), ("encoders", tuple(map(_same_cache, recipe.encoders))),
-                         ("backbones", recipe.backbones)):
+                         ("backbones", tuple(b.name for b in recipe.backbones))):
         first: dict[Any, int] = {}
         for i, entry in enumerate(entries):
             if entry in first:
                 which = (f"suites lists {entry!r} twice" if key == "suites" else
                          f"#{first[entry] + 1} and #{i + 1} of [[{key}]] are the same")
+                if key == "backbones" and recipe.backbones[first[entry]] != recipe.backbones[i]:
+                    raise RecipeError(
+                        f"{path}: #{first[entry] + 1} and #{i + 1} of [[backbones]] both name {entry!r} (policies "
+                        f"{recipe.backbones[first[entry]].policy!r} and {recipe.backbones[i].policy!r}); a sweep "
+                        "and its report key backbones by name: list each once (another policy: a recipe and "
+                        "results file of its own)")
                 raise RecipeError(f"{path}: {which}; list each once")
             first[entry] = i
 

@@ -31,7 +31,20 @@ from typing import Any
 from graftcache import codecs
 from graftcache.backbone_table import BACKBONES, native_name
 from graftcache.cameras import SYNTAX, valid_camera_map
-from graftcache.checks import EPISODES, FRACTION, NAMES, NON_NEGATIVE, POSITIVE, SEED, SEEDS, SHARD, Rule
+from graftcache.checks import (
+    EPISODES,
+    FRACTION,
+    LEARNING_RATE,
+    NAMES,
+    NON_NEGATIVE,
+    POSITIVE,
+    SEED,
+    SEEDS,
+    SHARD,
+    WEIGHT_DECAY,
+    WORKERS,
+    Rule,
+)
 from graftcache.dtypes import COMPUTE_DTYPES, STORED_DTYPES
 from graftcache.lazy import import_string
 from graftcache.pooling import UNPOOLED, valid_grid_names
@@ -87,7 +100,7 @@ class ExtractRequest(Checked):
         "decoding; the cache keeps the dataset's camera names)")
     device: str = setting("cpu", recipe=False, help="cpu, cuda or cuda:N")
     batch_size: int = setting(32, rule=POSITIVE)
-    num_workers: int = setting(2, rule=NON_NEGATIVE, help="decode worker processes (0: decode in-process)")
+    num_workers: int = setting(2, rule=WORKERS, help="decode worker processes (0: decode in-process; at most 1024)")
     block_frames: int = setting(256, rule=POSITIVE, help="frames per Zarr shard / resumable unit")
     shard: tuple[int, int] | None = setting(  # (i, N): write only shard i of N's blocks (graftcache/extract.py)
         None, rule=SHARD, codec=codecs.SHARD, recipe=False,
@@ -124,6 +137,12 @@ POOL_PREFIX = "pool-"
 CHECKPOINTING_MODES = ("auto", "on", "off")
 
 
+#: A LoRA rank past the language model's width adds nothing (every backbone's is at most 2048), and each adapter's
+#: matrices grow with it: past this the control only allocates.
+MAX_LORA_RANK = 4096
+LORA_RANK: Rule = (lambda v: 0 < v <= MAX_LORA_RANK, f"must be in 1..{MAX_LORA_RANK} (past every backbone's LM width)")
+
+
 @dataclass(frozen=True)
 class FitRequest(Checked):
     """Everything `graftcache fit` needs: one (backbone, encoder, suite) over seeds and controls."""
@@ -153,7 +172,7 @@ class FitRequest(Checked):
         "flow", choices=OBJECTIVES, recipe=False,
         help="flow: the policy's loss; align: closed-form ridge onto the native tokens (cheap screening)")
     steps: int = setting(300, rule=POSITIVE)
-    lr: float = setting(1e-3, rule=POSITIVE)
+    lr: float = setting(1e-3, rule=LEARNING_RATE, help="AdamW's learning rate, in (0, 1]")
     batch_size: int = setting(16, rule=POSITIVE)
     buffer_mib: int = setting(
         2048, rule=POSITIVE,
@@ -166,7 +185,7 @@ class FitRequest(Checked):
     eval_batch_size: int = setting(64, rule=POSITIVE, help="held-out frames denoised at once (memory, not the "
                                    "scores); rows record eval_seconds_per_frame")
     num_denoise_steps: int | None = setting(None, rule=POSITIVE)
-    lora_rank: int = setting(8, rule=POSITIVE)
+    lora_rank: int = setting(8, rule=LORA_RANK, help=f"rank of the lora control's adapters (1..{MAX_LORA_RANK})")
     activation_checkpointing: str = setting(
         "auto", choices=CHECKPOINTING_MODES,
         help="recompute the frozen LM's and action expert's activations during backward (same gradients, less "
@@ -174,8 +193,8 @@ class FitRequest(Checked):
         "record what it resolved to")
     device: str = setting("cpu", recipe=False, help="cpu, cuda or cuda:N")
     num_workers: int = setting(  # the numbers do not depend on it
-        2, rule=NON_NEGATIVE,
-        help="processes reading and pooling cached features ahead of the model (0: in this process)")
+        2, rule=WORKERS,
+        help="processes reading and pooling cached features ahead of the model (0: in this process; at most 1024)")
     cells_per_pass: int | None = setting(
         None, rule=POSITIVE, metavar="N",
         help="cells (seeds, image controls, encoders of one grid and width) trained together in one forward and "
@@ -224,16 +243,26 @@ class ExecutorSettings(Checked):
                                "rerun)")
 
 
+#: train-tiny's frame size: the tiny towers read 128 px at most, and every frame of the dataset is decoded and held at
+#: this size (uint8, per camera) for the whole training: past this it only fills memory.
+MAX_IMAGE_SIZE = 1024
+IMAGE_SIZE: Rule = (lambda v: 0 < v <= MAX_IMAGE_SIZE, f"must be in 1..{MAX_IMAGE_SIZE} (frames held in memory at "
+                    "this size)")
+
+
 @dataclass(frozen=True)
 class TinyTrainConfig(Checked):
     """The recipe of `graftcache train-tiny` (it keys the checkpoint folder, with the dataset's identity)."""
 
     steps: int = setting(300, rule=POSITIVE)  # enough for the tiny backbones to use vision (native beats zero-image)
     batch_size: int = setting(32, rule=POSITIVE)
-    lr: float = setting(1e-3, rule=POSITIVE)
-    weight_decay: float = setting(1e-4, rule=NON_NEGATIVE)
+    lr: float = setting(1e-3, rule=LEARNING_RATE, help="AdamW's learning rate, in (0, 1]")
+    weight_decay: float = setting(1e-4, rule=WEIGHT_DECAY, help="AdamW's weight decay, in [0, 1]")
     seed: int = setting(0, rule=SEED)
-    image_size: int = setting(128, rule=POSITIVE, help="frames are resized once to this (>= every tiny tower's input)")
+    image_size: int = setting(
+        128, rule=IMAGE_SIZE,
+        help=f"frames are resized once to this (>= every tiny tower's input; at most {MAX_IMAGE_SIZE}: every frame of "
+        "the dataset is held at this size while training)")
     warmup: float = setting(0.1, rule=(lambda v: 0 <= v < 1, "must be in [0, 1)"),
                             help="share of the steps with a linear warm-up, then cosine decay to 0")
     compute_dtype: str = compute_dtype()

@@ -25,8 +25,8 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from graftcache.checks import Rule, problem
-from graftcache.codecs import Codec, codec_for
+from graftcache.checks import Rule, number_problem, problem, storable_problem
+from graftcache.codecs import Codec, codec_for, without_none
 from graftcache.errors import GraftcacheError
 
 KEY = "graftcache.setting"
@@ -131,11 +131,18 @@ def recipe_keys(cls: type) -> tuple[str, ...]:
 
 
 def value_problem(d: Declared, value: Any) -> str | None:
-    """Why `value` breaks field `d`'s choices or rule (one phrase), or None."""
+    """Why `value` breaks field `d`'s choices or rule (one phrase), or None. A number must also be what every
+    numeric setting must be, so that downstream code and the column recording it can take it: an integer or a
+    finite float before its rule judges it (graftcache.checks.number_problem), an int64 after
+    (storable_problem: a field's own rule, e.g. a seed's range, says more)."""
     choices = d.choices
     if choices is not None and value not in choices:
         return f"is not one of {', '.join(choices)}"
-    return problem(d.setting.rule, value) if d.setting.rule is not None else None
+    kind = without_none(d.hint)
+    numeric = kind in (int, float)
+    return ((numeric and number_problem(kind, value))
+            or (problem(d.setting.rule, value) if d.setting.rule is not None else None)
+            or (numeric and storable_problem(kind, value)) or None)
 
 
 def write_flags(cls: type, values: Mapping[str, Any]) -> list[str]:

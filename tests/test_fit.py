@@ -450,3 +450,32 @@ def test_pi05_cells_sharing_a_pass_get_their_rows_alone_too(world: World, tmp_pa
     assert {r["cells_per_pass"] for r in fused.values()} == {4}
     for run_id, a in alone.items():
         assert abs(a["eval_mse"] - fused[run_id]["eval_mse"]) <= 1e-5
+
+
+def test_a_pass_whose_cells_hold_out_unequal_frames_scores_each_as_alone(world: World, tmp_path: Path) -> None:
+    """Cells of one backbone pass may score unequal numbers of held-out frames (another --eval-frames, a cache with
+    frames dropped for NaN/inf): once the shorter one runs out, the rows of each batch still go to their own
+    projectors, and every row equals the one its cell gets alone."""
+    from graftcache.executors.local import LocalExecutor
+    from graftcache.requests import ExecutorSettings
+
+    def fit(n: int) -> dict[str, dict]:
+        out = tmp_path / f"{n}.parquet"
+        requests = [(f"eval_frames {k}", world.request(seeds=(0,), controls=(), steps=2, compute_dtype="fp32",
+                                                       eval_frames=k, eval_batch_size=2, cells_per_pass=n,
+                                                       results=str(out), out=str(tmp_path / f"runs{n}")))
+                    for k in (2, 5)]
+        LocalExecutor(ExecutorSettings()).fit(requests, _quiet, Bar())
+        return _by_run_id(out)
+
+    class Bar:
+        def update(self, k: int) -> None:
+            pass
+
+    alone, fused = fit(1), fit(2)
+    assert set(alone) == set(fused) and len(alone) == 2
+    assert sorted(r["n_eval_frames"] for r in fused.values()) == [2, 5]
+    assert {r["cells_per_pass"] for r in fused.values()} == {2}
+    for run_id, a in alone.items():
+        assert abs(a["eval_mse"] - fused[run_id]["eval_mse"]) <= 1e-5
+        assert np.allclose(a["eval_mse_episodes"], fused[run_id]["eval_mse_episodes"], rtol=0, atol=1e-5)

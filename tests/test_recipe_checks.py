@@ -54,6 +54,9 @@ BAD = {
                           "#1 and #2 of [[backbones]] are the same; list each once"),
     "repeated_control": ({"controls": '["native", "native"]'},
                          "controls = ('native', 'native') must name each control once"),
+    "backbone_with_two_policies": ({"backbones": '[[backbones]]\nname = "smolvla"\npolicy = "/other/policy"\n'},
+                                   "#1 and #2 of [[backbones]] both name 'smolvla' (policies 'tiny' and "
+                                   "'/other/policy'); a sweep and its report key backbones by name: list each once"),
     "unknown_backbone": ({"backbones": '[[backbones]]\nname = "octo"\n'},
                          "[[backbones]] #2: unknown backbone 'octo'"),
     "suite_not_in_dataset": ({"suites": '["libero_goal"]'},
@@ -70,6 +73,15 @@ BAD = {
     "grid_past_memory": ({"tables": '[extract]\ngrids = ["100000x100000"]\n'},
                          "2 camera(s) of grids 100000x100000 x 192 channels needs about"),
     "no_cells_per_pass": ({"tables": '[fit]\ncells_per_pass = 0\n'}, "cells_per_pass = 0 must be > 0"),
+    # values no column, allocation or optimiser can take (graftcache.checks.number_problem and the fields' ranges)
+    "infinite_lr": ({"tables": '[fit]\nlr = inf\n'}, "[fit]: lr = inf must be a finite number"),
+    "diverging_lr": ({"tables": '[train_tiny]\nlr = 1e30\n'}, "[train_tiny]: lr = 1e+30 must be in (0, 1]"),
+    "steps_past_int64": ({"tables": '[fit]\nsteps = 9223372036854775808\n'},
+                         "[fit]: steps = 9223372036854775808 must be at most 9223372036854775807 in size"),
+    "image_size_past_memory": ({"tables": '[train_tiny]\nimage_size = 100000\n'},
+                               "[train_tiny]: image_size = 100000 must be in 1..1024"),
+    "workers_by_the_thousand": ({"tables": '[extract]\nnum_workers = 5000\n'},
+                                "[extract]: num_workers = 5000 must be in 0..1024"),
 }
 
 
@@ -158,6 +170,14 @@ FIT = ["fit", "--backbone", "smolvla", "--encoder", "e", "--suite", "libero_spat
     ([*FIT, "--controls", "native,native"], "argument --controls: ('native', 'native') must name each control once"),
     ([*FIT, "--objective", "mse"], "argument --objective: invalid choice: 'mse' (choose from 'flow', 'align')"),
     (["sweep", "recipe.toml", "--cells-per-pass", "0"], "argument --cells-per-pass: 0 must be > 0"),
+    # numbers nothing downstream can take: before, a 6.1 TB allocation, a NaN checkpoint, a row Int64 cannot hold
+    (["train-tiny", "--backbone", "pi0_fast", "--image-size", "100000"],
+     "argument --image-size: 100000 must be in 1..1024"),
+    (["train-tiny", "--backbone", "smolvla", "--lr", "inf"], "argument --lr: inf must be a finite number"),
+    (["train-tiny", "--backbone", "smolvla", "--weight-decay", "1e300"], "argument --weight-decay: 1e+300 must be in"),
+    ([*FIT, "--steps", str(2**63)], f"argument --steps: {2**63} must be at most {MAX_SEED} in size"),
+    ([*FIT, "--lora-rank", "1000000000"], "argument --lora-rank: 1000000000 must be in 1..4096"),
+    ([*FIT, "--num-workers", "100000"], "argument --num-workers: 100000 must be in 0..1024"),
 ])
 def test_values_past_their_rules_are_refused_at_parse_time(argv: list[str], expected: str,
                                                            capsys: pytest.CaptureFixture) -> None:

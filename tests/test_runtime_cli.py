@@ -131,3 +131,26 @@ def test_train_tiny_runs_ten_steps(tmp_path: Path, capsys) -> None:
     record = (tmp_path / "p" / "graftcache_pretrain.json").read_text()
     assert '"steps": 10' in record and '"compute_dtype": "' + runtime.resolve_compute_dtype("auto", "cpu") in record
     assert len(done.err.splitlines()) < 40  # sparse log lines, not a redraw per step
+
+
+def test_train_tiny_saves_no_checkpoint_that_training_broke(v2_pi, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                           capsys: pytest.CaptureFixture) -> None:
+    """A run whose weights end NaN (an lr or weight decay its steps diverge under, within their ranges) is refused
+    in one line with nothing saved: saved, `--policy tiny` would find it again and graft onto it."""
+    from graftcache import pretrain
+    from graftcache.cli import main
+
+    def diverging(adapter, *args, **kwargs) -> list[float]:
+        losses = real(adapter, *args, **kwargs)
+        next(adapter.policy.parameters()).data.fill_(float("nan"))
+        return losses
+
+    real = pretrain.optimise
+    monkeypatch.setattr(pretrain, "optimise", diverging)
+    out = tmp_path / "policy"
+    assert main(["train-tiny", "--backbone", "smolvla", "--dataset", str(v2_pi.root), "--steps", "1",
+                 "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()  # decoding's progress lines, then the one error line
+    assert "Traceback" not in "".join(err)
+    assert "train-tiny smolvla: training diverged (its weights hold NaN/inf after 1 step(s), lr 0.001" in err[-1]
+    assert "nothing saved" in err[-1] and not (out / "config.json").exists()

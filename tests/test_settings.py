@@ -102,3 +102,33 @@ def test_plain_choices_name_what_the_registries_implement() -> None:
     from graftcache.cli.report import SCORE_NAMES
 
     assert SCORE_NAMES == tuple(SCORES)
+
+
+def _numeric_fields() -> list[tuple[type, str, type]]:
+    from graftcache.analysis.stats import BootSettings
+    from graftcache.codecs import without_none
+    from graftcache.requests import TinyTrainConfig
+
+    return [(cls, name, without_none(d.hint)) for cls in (ExtractRequest, FitRequest, TinyTrainConfig,
+                                                          ExecutorSettings, BootSettings)
+            for name, d in declared(cls).items() if without_none(d.hint) in (int, float)]
+
+
+@pytest.mark.parametrize(("cls", "name", "kind"), _numeric_fields(),
+                         ids=lambda x: x if isinstance(x, str) else getattr(x, "__name__", ""))
+def test_every_numeric_setting_refuses_what_nothing_downstream_can_take(cls: type, name: str, kind: type) -> None:
+    """NaN, infinities, ints past Int64 (the columns and manifests that record them), a float or a bool where an
+    int belongs: refused as a request is built, whichever way (Python, a recipe's table, a flag), in one phrase
+    naming the field, before any work."""
+    from graftcache.cli.common import _parser
+    from graftcache.codecs import BadText
+
+    hostile = [float("nan"), float("inf"), float("-inf"), True, *([2**63, -(2**63) - 1, 1.5] if kind is int else [])]
+    for value in hostile:
+        with pytest.raises(GraftcacheError, match=rf"^{name} = "):
+            cls.check({name: value})
+    d = declared(cls)[name]
+    if d.flag is not None and d.choices is None:
+        for text in ("nan", "inf", "-inf", *([str(2**63), "1e3"] if kind is int else ["1e400"])):
+            with pytest.raises(BadText):
+                _parser(d)(text)

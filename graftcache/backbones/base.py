@@ -49,6 +49,24 @@ from graftcache.backbones.surgery import GraftSurgery
 from graftcache.backbones.tiny import TinySpec, read_marker, write_marker
 from graftcache.errors import BackboneError
 
+#: Switches of lerobot's policy configs that change how a policy computes behind graftcache's back, and the value
+#: `load` sets each to (where the config has the field) before the policy is built, tiny or from a checkpoint whose
+#: config sets them, as public fine-tunes do: torch.compile of forward and sample_actions (SmolVLA, pi0, pi0.5,
+#: pi0-FAST; every graft and reset would recompile), lerobot's own gradient checkpointing (pi0, pi0.5, pi0-FAST,
+#: EO-1; EVO1's `enable_gradient_checkpointing`), which rows would record as `activation_checkpointing = off`, and
+#: EVO1's bf16 autocast on CUDA (`use_amp`), under rows that say fp32. Checkpointing is graftcache's switch
+#: (`set_activation_checkpointing`), precision its autocast (--compute-dtype); GR00T's `use_bf16`, which decides
+#: either way, follows the caller's autocast (graftcache.backbones.groot).
+NEUTRAL_CONFIG: dict[str, Any] = {"compile_model": False, "gradient_checkpointing": False,
+                                  "enable_gradient_checkpointing": False, "use_amp": False}
+
+
+def neutralise(config) -> None:
+    """Set `config`'s NEUTRAL_CONFIG switches to their neutral values."""
+    for field, value in NEUTRAL_CONFIG.items():
+        if hasattr(config, field):
+            setattr(config, field, value)
+
 
 def is_empty_camera(key: str) -> bool:
     """lerobot's placeholder camera slots (`empty_cameras`): masked out, never fed real images."""
@@ -96,6 +114,7 @@ class BackboneAdapter(GraftSurgery, PromptBatches, FlowObjective, ActivationChec
         if str(source) == "tiny":
             with quiet():
                 policy, pre, post, marker = cls._build_tiny(tiny or TinySpec(), dataset_stats, device)
+            neutralise(policy.config)  # those read as the policy runs (use_amp); the tiny builders set none of the rest
             return cls(policy, pre, post, source="tiny", random_init=True, tiny_marker=marker)
         folder = resolve_source(source)
         marker = read_marker(folder)
@@ -103,6 +122,7 @@ class BackboneAdapter(GraftSurgery, PromptBatches, FlowObjective, ActivationChec
             raise BackboneError(f"{folder}: a tiny {marker['backbone']} checkpoint, not {cls.name}")
         config = cls._read_config(folder)
         config.device = device
+        neutralise(config)
         cls._configure(folder, config, marker)
         weights = weights_file(folder)  # header read before anything is built: a non-safetensors file is one line
         with quiet():  # lerobot's construction chatter, and pi0.5's key renaming warns per vision key

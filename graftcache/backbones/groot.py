@@ -301,7 +301,7 @@ class GrootAdapter(NativeVision, BackboneAdapter):
         decoded = []
         hook = head.action_decoder.register_forward_hook(lambda m, args, out: decoded.append(out))
         try:
-            with given_noise(groot_n1_7, noise, self.name), \
+            with given_noise(groot_n1_7, noise, self.name), self._callers_autocast(), \
                     shadowed(head, sample_time=lambda size, device, dtype: own.to(device, dtype)):
                 self.policy.forward({**batch, ACTION: batch[PADDED_ACTION]})
         finally:
@@ -318,10 +318,23 @@ class GrootAdapter(NativeVision, BackboneAdapter):
         head = self._groot.action_head
         steps, head.num_inference_timesteps = head.num_inference_timesteps, int(num_steps)
         try:
-            with given_noise(groot_n1_7, noise, self.name):
+            with given_noise(groot_n1_7, noise, self.name), self._callers_autocast():
                 return self.policy.predict_action_chunk(dict(batch))
         finally:
             head.num_inference_timesteps = steps
+
+    @contextlib.contextmanager
+    def _callers_autocast(self) -> Iterator[None]:
+        """GR00T's forward and get_action run in `autocast(bf16, enabled=config.use_bf16)`: on (public configs),
+        bf16 whatever --compute-dtype says; off (the tiny config), graftcache's own bf16 autocast turned off, fp32.
+        Meanwhile `use_bf16` says what the caller's autocast is, so the dtype rows record is the one that runs."""
+        config, kind = self.policy.config, self.device.type
+        saved = config.use_bf16
+        config.use_bf16 = torch.is_autocast_enabled(kind) and torch.get_autocast_dtype(kind) == torch.bfloat16
+        try:
+            yield
+        finally:
+            config.use_bf16 = saved
 
     # ------------------------------------------------------------------------------ reporting
     module_paths = {

@@ -50,15 +50,16 @@ class ActivationCheckpointing:
         return self._checkpointing
 
     def set_activation_checkpointing(self, on: bool) -> None:
-        """Turn checkpointing on or off (a no-op when it already is); the numbers do not change, only the
-        memory a training step holds and the FLOPs it spends."""
-        if on != self._checkpointing:
+        """Turn checkpointing on or off in the model itself, whatever state it is in (lerobot's own switch may have
+        turned it on), so that the flag rows record is what runs; the numbers do not change, only the memory a
+        training step holds and the FLOPs it spends."""
+        if on or self.can_checkpoint:
             self._switch_checkpointing(on)
-            self._checkpointing = on
+        self._checkpointing = on
 
     def _switch_checkpointing(self, on: bool) -> None:
-        """The backbone's own way of turning checkpointing of its LM and expert on or off (none by default:
-        `auto` then keeps it off, `on` is refused in one line)."""
+        """The backbone's own way of turning checkpointing of its LM and expert on or off, from whatever state (none
+        by default: `auto` then keeps it off, `on` is refused in one line)."""
         raise BackboneError(f"{self.name}: no activation checkpointing for this backbone; use "
                             "--activation-checkpointing off")
 
@@ -78,7 +79,7 @@ class WrappedCheckpointing(ActivationCheckpointing):
 
     def _switch_checkpointing(self, on: bool) -> None:
         for owner, attribute in self._checkpoint_slots():
-            if on:
+            if not on:
+                owner.__dict__.pop(attribute, None)
+            elif attribute not in owner.__dict__:  # wrapped once, however often it is turned on
                 setattr(owner, attribute, checkpointed(getattr(owner, attribute), owner))
-            else:
-                delattr(owner, attribute)

@@ -311,9 +311,10 @@ class VLAJEPAAdapter(WrappedCheckpointing, BackboneAdapter):
         super()._switch_checkpointing(on)
         config = self._qwen.language_model.config
         if on:
-            self._use_cache, config.use_cache = config.use_cache, False
+            self.__dict__.setdefault("_use_cache", config.use_cache)  # the policy's own, kept by a second `on`
+            config.use_cache = False
         else:
-            config.use_cache = self._use_cache
+            config.use_cache = self.__dict__.pop("_use_cache", config.use_cache)
 
     def _checkpoint_slots(self) -> Iterator[tuple[nn.Module, str]]:
         """Every decoder layer of the Qwen3 LM and every block of the DiT action head."""

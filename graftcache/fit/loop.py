@@ -221,7 +221,9 @@ def evaluate(adapter, low: LowDim, blocks: Iterator[Block], cams: Mapping[str, s
 def evaluate_together(adapter, parts: Sequence[Scoring], *, batch_size: int, dtype: torch.dtype = torch.float32,
                       num_denoise_steps: int | None = None, route: Route = alone) -> list[Score]:
     """`evaluate` of several cells in one pass of the policy per batch: `batch_size` frames of each part
-    (fewer once a part runs short), concatenated in part order; each part's score from its own rows."""
+    (fewer once a part runs short, none once it has run out), concatenated in part order; each part's score from
+    its own rows. `route` is told every part's rows, 0 for one that has run out: parts may hold out unequal numbers
+    of frames (another --eval-frames, frames dropped for NaN/inf), and part i's rows are member i's."""
     from graftcache.fit.stream import FrameQueue  # here: the training step above must import without the data layer
 
     adapter.policy.eval()
@@ -242,7 +244,8 @@ def evaluate_together(adapter, parts: Sequence[Scoring], *, batch_size: int, dty
             raws.append(raw_batch(part.low, pos, part.transform(features), part.cams))
             sizes.append(len(pos))
         batch = adapter.prepare(concat_raw(raws))
-        with route(sizes), autocast(device, dtype):
+        owned = dict(zip(open_parts, sizes, strict=True))
+        with route([owned.get(i, 0) for i in range(len(parts))]), autocast(device, dtype):
             pred = adapter.predict(batch, noise=torch.cat(noises), num_steps=num_denoise_steps)
         for (i, (pos, _)), target, rows in zip(taken, batch["action"].float().cpu().split(sizes),
                                                pred.float().cpu().split(sizes), strict=True):
