@@ -453,6 +453,32 @@ import time, graftcache.extract as x
 encode = x.encode_frames
 x.encode_frames = lambda *a, **k: (time.sleep(0.4), encode(*a, **k))[1]
 """
+#: Block writes (on the extraction's writer thread) that take WRITE_S, each logged as it starts and ends in the file
+#: $WRITES: SIGTERM is sent while one is under way, the moment a write left running used to be cut off at exit.
+WRITE_S = 2.0
+SLOW_WRITES = SLOW_EXTRACT + f"""
+import os, pathlib, graftcache.store.cache as c
+write, log = c.FeatureCache.write_block, pathlib.Path(os.environ["WRITES"])
+def logged(self, block, data):
+    with log.open("a") as f: f.write(f"start {{block}}\\n")
+    time.sleep({WRITE_S} / 2)
+    write(self, block, data)
+    time.sleep({WRITE_S} / 2)
+    with log.open("a") as f: f.write(f"end {{block}}\\n")
+c.FeatureCache.write_block = logged
+"""
+#: A command whose main thread waits for a zarr store call when SIGTERM arrives, zarr's IO loop busy, so the call has
+#: not started there yet: Python used to print "coroutine '_runner' was never awaited" after the command's last line.
+CUT_OFF_IO = """
+import asyncio, os, signal, sys, threading, time
+import graftcache.cli.merge_rows as command
+from zarr.core.sync import _get_loop, sync
+def run(args):
+    _get_loop().call_soon_threadsafe(time.sleep, 0.15)  # the IO loop busy until after the exit begins
+    threading.Timer(0.05, os.kill, (os.getpid(), signal.SIGTERM)).start()
+    sync(asyncio.sleep(0.05))
+command.run = run
+"""
 SLOW_FIT = """
 import time, graftcache.fit.stream as s
 take = s.FrameQueue.take
@@ -506,18 +532,34 @@ def test_a_ctrl_c_lost_in_a_finaliser_is_raised_again() -> None:
             time.sleep(0.002)
 
 
+def test_a_store_call_cut_off_by_sigterm_finishes_before_the_last_line(tmp_path: Path) -> None:
+    proc = start_process(["merge-rows", tmp_path / "a.parquet", "--results", tmp_path / "r.parquet"],
+                         prelude=CUT_OFF_IO)
+    stopped = finish(proc, 60)
+    assert_one_line_error(stopped, ("merge-rows", "SIGTERM"), code=143)
+    assert stopped.err.splitlines() == [stopped.last], stopped.err
+
+
 @pytest.mark.slow
 def test_sigterm_during_extract_stops_workers_keeps_blocks_and_the_rerun_resumes(
         world: Inputs, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     args = (EXTRACT + " --block-frames 2").replace("--num-workers 0", "--num-workers 2")
-    root = tmp_path / "cache"
+    root, writes = tmp_path / "cache", tmp_path / "writes.log"
     before = Snapshot.of(world.base)
-    proc = start_process(args.format(**world.paths, root=root).split(), prelude=SLOW_EXTRACT)
-    _wait_for(lambda: bool(list_caches(root)) and bool(list_caches(root)[0].blocks_done()) and
-              bool(children(proc.pid)), proc, "a finished block with workers running")
+    proc = start_process(args.format(**world.paths, root=root).split(), env={"WRITES": str(writes)},
+                         prelude=SLOW_WRITES)
+
+    def writing() -> bool:  # a block finished, the next one being written, the workers running
+        log = writes.read_text().split() if writes.exists() else []
+        return log.count("end") >= 1 and log[-2:-1] == ["start"] and bool(children(proc.pid))
+
+    _wait_for(writing, proc, "a finished block, the next one being written, with workers running")
     stopped, left = _terminate(proc)
     assert_one_line_error(stopped, ("extract", "SIGTERM", "run the same command again to resume"), code=143)
+    assert len(stopped.err.splitlines()) == 1, stopped.err  # nothing printed after it either
     assert not left, f"worker processes {left} outlived the command by {GONE_WITHIN_S} s"
+    log = writes.read_text().split()
+    assert log.count("start") == log.count("end"), f"a block write outlived the command: {log}"
     (cache,) = list_caches(root)
     kept = cache.blocks_done()
     assert not cache.complete and kept and not _complete(root)
