@@ -32,6 +32,7 @@ from typing import Any
 
 import polars as pl
 
+import graftcache
 from graftcache.errors import GraftcacheError, ResultsError
 from graftcache.file_lease import FileLease
 from graftcache.hashing import sha256_json
@@ -217,12 +218,25 @@ def upgrade(rows: pl.DataFrame, path: Path) -> pl.DataFrame:
     """The one upgrade path for results files: rows of this format as they are; rows of an older format (format 1
     had no format_version column; format 2 hashed `pool_grid="native"` and the format version 2 into its run_ids)
     are refused in one line with the commands that rebuild them, since their run_ids hash cells of another
-    shape: a rerun could not skip their cells and would write each twice."""
+    shape: a rerun could not skip their cells and would write each twice. Rows of a newer format (a later
+    graftcache wrote them) and tables that are no graftcache results at all (no run_id or report column) are
+    refused as such."""
     if "format_version" in rows.columns and rows["format_version"].eq(FORMAT_VERSION).all():
         return rows
+    lacking = [c for c in ("run_id", *REPORT_COLUMNS) if c not in rows.columns]
+    if lacking:
+        raise ResultsError(f"{path}: not a graftcache results table (no column {', '.join(lacking)}); pass another "
+                           "--results")
+    if "format_version" in rows.columns:
+        newer = rows.filter(pl.col("format_version") > FORMAT_VERSION)
+        if newer.height:
+            raise ResultsError(f"{path}: {newer.height} row(s) of results format {newer['format_version'].max()}, "
+                               f"newer than this graftcache's ({FORMAT_VERSION}, graftcache {graftcache.__version__}): "
+                               "read it with the graftcache that wrote it, or pass another --results")
     old = rows if "format_version" not in rows.columns else rows.filter(pl.col("format_version") != FORMAT_VERSION)
-    commands = old["command"].unique(maintain_order=True).to_list() if "command" in old.columns else []
-    rebuild = f"`{commands[0]}`" if commands else "the fits or sweeps that wrote them"
+    recorded = old["command"].drop_nulls().unique(maintain_order=True).to_list() if "command" in old.columns else []
+    commands = [c for c in recorded if c.startswith("graftcache ")]  # graftcache < issue 29 recorded `fit` alone
+    rebuild = f"`{commands[0]}`" if commands else "the fits or sweeps that wrote them (its rows record no command line)"
     more = f" (and {len(commands) - 1} other command(s) its rows record)" if len(commands) > 1 else ""
     raise ResultsError(f"{path}: {old.height} row(s) of an older results format than {FORMAT_VERSION} (run_ids "
                        f"of cells of another shape); move the file aside and rebuild it: {rebuild}{more}")
