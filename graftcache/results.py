@@ -312,11 +312,13 @@ def _publish(path: Path, table: pl.DataFrame, lease: FileLease) -> bool:
 def append(path: str | Path, rows: Iterable[Mapping[str, Any]] | pl.DataFrame) -> pl.DataFrame:
     """Validate `rows` and append them to the Parquet file under its writers' lease (see the module docstring).
 
-    A row whose run_id is already present replaces the old one, so a file never holds duplicates. Anything
-    that stops the file being written is a ResultsError naming it; the file is then unchanged.
+    A row whose run_id is already present replaces the old one, and of rows of one run_id among `rows` the last
+    is kept, so a file never holds duplicates (appending a table twice changes nothing). Anything that stops the
+    file being written is a ResultsError naming it; the file is then unchanged.
     """
     path = Path(path)
     new = validate(rows if isinstance(rows, pl.DataFrame) else from_rows(rows))
+    new = new.unique(subset="run_id", keep="last", maintain_order=True)
     _refuse_directory(path)
     while True:
         try:
@@ -345,29 +347,38 @@ def keep_row(folder: str | Path, row: Mapping[str, Any]) -> Path:
     return kept
 
 
-def append_or_keep(path: str | Path, row: Mapping[str, Any], folder: str | Path) -> None:
-    """Append one cell's row; a row the results file cannot take is kept in the cell's run folder `folder`
-    (`keep_row`), and the ResultsError says where it is and how to merge it."""
+def append_or_keep(path: str | Path, rows: Sequence[tuple[Mapping[str, Any], str | Path]]) -> None:
+    """Append finished cells' rows, each given with its cell's run folder, to `path` at once. Rows the results file
+    cannot take are kept, every one, in their run folders (`keep_row`), and one ResultsError says where they are
+    and how to merge them: the cells are done, and a pass of several must not lose the rows after the first."""
     try:
-        append(path, [row])
+        append(path, [row for row, _ in rows])
     except ResultsError as e:
-        try:
-            kept = keep_row(folder, row)
-        except OSError as k:
-            raise ResultsError(f"{e}; the row of cell {row['run_id']} could not be kept either "
-                               f"({k.strerror or k})") from None
-        raise ResultsError(f"{e}; the row of cell {row['run_id']} is kept in {kept}: once {path} can be written, "
-                           f"merge it with `graftcache merge-rows {kept} --results {path}`") from None
+        kept, lost = [], []
+        for row, folder in rows:
+            try:
+                kept.append((row["run_id"], keep_row(folder, row)))
+            except OSError as k:
+                lost.append(f"the row of cell {row['run_id']} could not be kept either ({k.strerror or k})")
+        where = []
+        if kept:
+            ids, files = ", ".join(i for i, _ in kept), " ".join(str(f) for _, f in kept)
+            one = len(kept) == 1
+            where.append(f"the row{'' if one else 's'} of cell{'' if one else 's'} {ids} {'is' if one else 'are'} "
+                         f"kept in {', '.join(str(f) for _, f in kept)}: once {path} can be written, merge "
+                         f"{'it' if one else 'them'} with `graftcache merge-rows {files} --results {path}`")
+        raise ResultsError("; ".join([str(e), *lost, *where])) from None
 
 
 def merge(path: str | Path, kept: Sequence[str | Path]) -> pl.DataFrame:
     """Append the rows of results files `kept` (rows `keep_row` kept, or another results file) to `path`; a
-    run_id already in `path` is replaced, so merging twice changes nothing. Returns the merged rows."""
+    run_id already in `path` is replaced, and of one run_id in several of `kept` the last is taken, so merging
+    twice (or a file and its copy) changes nothing. Returns the merged rows, one per run_id."""
     tables = [read(k) if Path(k).is_file() else None for k in kept]
     absent = [str(k) for k, t in zip(kept, tables) if t is None]
     if absent:
         raise ResultsError(f"no results file at {', '.join(absent)}")
-    rows = pl.concat(tables)
+    rows = pl.concat(tables).unique(subset="run_id", keep="last", maintain_order=True)
     if not len(rows):
         raise ResultsError(f"no rows in {', '.join(map(str, kept))}")
     append(path, rows)

@@ -1,12 +1,15 @@
 """Results files with many writers (issue 24, item 2): concurrent appends and fits keep every row once, a reader
 never sees a torn file, a row that cannot be written is kept in its run folder with a one-line error that says
 how to merge it, a float seed is refused rather than rounded, and two sweeps of one recipe compute each cell once.
-The lease file under all of it (graftcache/file_lease.py) is taken over only from a dead or silent holder."""
+The lease file under all of it (graftcache/file_lease.py) is taken over only from a dead or silent holder.
+Issue 29: a fused pass keeps every row, and merging is idempotent."""
 
 from __future__ import annotations
 
 import json
 import os
+import shlex
+import shutil
 import socket
 import subprocess
 import sys
@@ -292,3 +295,41 @@ def test_two_sweeps_of_one_recipe_compute_each_cell_once(v3_video: Written, tmp_
     assert sum("training tiny smolvla (train-tiny)" in log for log in logs) == 1
     assert sum("reusing tiny smolvla trained by train-tiny" in log for log in logs) == 1
     assert leftovers(tmp_path) == []
+
+
+def test_a_fused_pass_whose_results_file_cannot_be_written_keeps_every_row(world: Path, tmp_path: Path,
+                                                                           capsys: pytest.CaptureFixture) -> None:
+    """Issue 29, items 3 and 5: a pass of three cells keeps all three rows, not only the first; the rows record
+    the command line that made them (the subcommand's name used to overwrite it: `command = "fit"`)."""
+    runs = tmp_path / "runs"
+    args = [*fit_args(world, tmp_path / "ro" / "results.parquet", "0,1,2", runs), "--cells-per-pass", "3"]
+    with read_only_folder(tmp_path / "ro") as ro:
+        assert main(args) == 2
+        assert list(ro.iterdir()) == []
+    err = one_line_error(capsys)
+    kept = sorted(runs.glob("*/row.parquet"))
+    assert len(kept) == 3 and all((k.parent / "projector.safetensors").is_file() for k in kept)
+    rows = pl.concat([results.read(k) for k in kept])
+    assert sorted(rows["seed"]) == [0, 1, 2] and set(rows["cells_per_pass"]) == {3}
+    assert set(rows["command"]) == {shlex.join(["graftcache", *args])}
+    target = ro / "results.parquet"
+    assert f"{target}: cannot write the results file" in err and all(str(k) in err for k in kept)
+    assert "merge them with `graftcache merge-rows " in err and err.endswith(f" --results {target}`")
+    merged = tmp_path / "merged.parquet"
+    assert main(["merge-rows", *map(str, kept), "--results", str(merged)]) == 0
+    assert sorted(results.read(merged)["seed"]) == [0, 1, 2] and leftovers(tmp_path) == []
+
+
+def test_merging_rows_twice_or_a_copy_of_them_adds_nothing(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """Issue 29, item 2: `merge-rows A A`, or A and a copy of A, appended every row twice."""
+    rows, merged = tmp_path / "a.parquet", tmp_path / "merged.parquet"
+    results.append(rows, [row("smolvla", SUITE, "e", seed, 1.0 + seed) for seed in (0, 1)])
+    shutil.copy(rows, tmp_path / "copy.parquet")
+    assert main(["merge-rows", str(rows), str(rows), "--results", str(merged)]) == 0
+    once = results.read(merged)
+    assert once.height == 2 and once["run_id"].n_unique() == 2
+    assert "merged 2 row(s)" in capsys.readouterr().out
+    assert main(["merge-rows", str(rows), str(tmp_path / "copy.parquet"), "--results", str(merged)]) == 0
+    assert results.read(merged).equals(once)
+    assert ": 0 new, 2 replacing" in capsys.readouterr().out
+    assert results.read_for_report(merged).height == 2

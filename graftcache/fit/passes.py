@@ -42,6 +42,7 @@ from typing import Any, Protocol
 import torch
 
 from graftcache import results
+from graftcache.errors import ResultsError
 from graftcache.file_lease import FileLease
 from graftcache.fit.controls import Control
 from graftcache.requests import FitRequest
@@ -117,6 +118,23 @@ def _take(claim: FileLease) -> bool:
         return True
 
 
+def _write(members: Sequence[Member], rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Append the rows of a pass's cells to their results files, each file's rows at once; the rows a file cannot
+    take are all kept in their cells' run folders (results.append_or_keep), then one ResultsError names them."""
+    files: dict[str, list[tuple[dict[str, Any], Any]]] = {}
+    for m, row in zip(members, rows, strict=True):
+        files.setdefault(m.at[0], []).append((row, m.fitter.run_folder(m.cell)))
+    refused = []
+    for path, pairs in files.items():
+        try:
+            results.append_or_keep(path, pairs)
+        except ResultsError as e:
+            refused.append(str(e))
+    if refused:
+        raise ResultsError("; ".join(refused))
+    return list(rows)
+
+
 def run_passes(fitters: Sequence[Host], visited: Callable[[int], None] = lambda n: None) -> list[dict[str, Any]]:
     """Every missing cell of `fitters` (which share one BackbonePool), pass by pass, each row appended to its
     results file as its pass finishes; returns the rows written. `visited(n)`: n more cells were run or skipped.
@@ -160,9 +178,7 @@ def run_passes(fitters: Sequence[Host], visited: Callable[[int], None] = lambda 
             try:
                 fresh = [m for m in got if not m.fitter.skip(m.control, m.cell, results.done_run_ids(m.at[0]))]
                 if fresh:
-                    for m, row in zip(fresh, fresh[0].fitter.run_pass(fresh), strict=True):
-                        results.append_or_keep(m.at[0], row, m.fitter.run_folder(m.cell))
-                        rows.append(row)
+                    rows += _write(fresh, fresh[0].fitter.run_pass(fresh))
             finally:
                 for m in got:
                     claims[m.at].release()
