@@ -16,6 +16,9 @@ it the fsync: benchmarks/bench_results.py), which the cell's minutes of training
 A row that cannot be written (a read-only place, a full disk) is kept in its cell's run folder
 (`keep_row`) and merged later with `merge` (`graftcache merge-rows`). `cell_claim` is the lease a process
 holds while it computes a cell, so that two fits or sweeps writing one file never compute the same cell.
+
+A results path that is a symbolic link is followed (`target`): the file it points to is replaced, with its lease
+and claims beside it, and the link stays (replacing the path itself would turn the link into a regular file).
 """
 
 from __future__ import annotations
@@ -24,9 +27,11 @@ import errno
 import io
 import os
 import socket
+import sys
 import time
 import uuid
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from contextlib import suppress
 from pathlib import Path
 from typing import Any
 
@@ -36,6 +41,11 @@ import graftcache
 from graftcache.errors import GraftcacheError, ResultsError
 from graftcache.file_lease import FileLease
 from graftcache.hashing import sha256_json
+from graftcache.store.lease import lease_seconds
+
+#: A writer waiting this long for a results file's lease says what it waits for and on whom (an append holds it ~20
+#: ms; a dead, empty or other machine's lease file is waited on until it is judged stale: graftcache.file_lease).
+WAIT_TOLD_S = 1.0
 
 #: The format of results rows and of the cells their run_ids hash (graftcache.fit.run.Cell). Files of an older
 #: format go through `upgrade`, the one place that knows them. Format 3 (issue 23, one word per idea) renamed no
@@ -173,6 +183,12 @@ def _refuse_directory(path: Path) -> None:
         raise ResultsError(f"{path}: is a directory, not a results file; pass a .parquet file")
 
 
+def target(path: str | Path) -> Path:
+    """The file a results path names: a symbolic link followed (see the module docstring)."""
+    path = Path(path)
+    return Path(os.path.realpath(path)) if path.is_symlink() else path
+
+
 def _load(path: Path) -> pl.DataFrame:
     """The Parquet table at `path`, read through one open descriptor: polars opening the path again (footer,
     then row groups) could read two files when a writer replaces it in between. A stale NFS handle (the file
@@ -276,10 +292,25 @@ def lock_path(path: str | Path) -> Path:
     return path.with_name(f".{path.name}.lock")
 
 
+def claims_folder(path: str | Path) -> Path:
+    """Where the cell claims of the results file `path` are: a hidden folder beside it, removed once empty."""
+    path = target(path)
+    return path.with_name(f".{path.name}.claims")
+
+
 def cell_claim(path: str | Path, run_id: str) -> FileLease:
     """The lease a process holds while it computes the cell `run_id` whose row goes to `path`."""
-    path = Path(path)
-    return FileLease(path.with_name(f".{path.name}.claims") / f"{run_id}.claim")
+    return FileLease(claims_folder(path) / f"{run_id}.claim")
+
+
+def drop_claims_folder(path: str | Path) -> None:
+    """Remove the claims folder of `path` if no claim is left in it (another process's claims keep it)."""
+    with suppress(OSError):
+        claims_folder(path).rmdir()
+
+
+def _to_stderr(line: str) -> None:
+    print(f"graftcache: {line}", file=sys.stderr)
 
 
 def _fsync(path: Path) -> None:
@@ -309,25 +340,36 @@ def _publish(path: Path, table: pl.DataFrame, lease: FileLease) -> bool:
     return True
 
 
-def append(path: str | Path, rows: Iterable[Mapping[str, Any]] | pl.DataFrame) -> pl.DataFrame:
+def append(path: str | Path, rows: Iterable[Mapping[str, Any]] | pl.DataFrame,
+           log: Callable[[str], None] = _to_stderr) -> pl.DataFrame:
     """Validate `rows` and append them to the Parquet file under its writers' lease (see the module docstring).
 
     A row whose run_id is already present replaces the old one, and of rows of one run_id among `rows` the last
     is kept, so a file never holds duplicates (appending a table twice changes nothing). Anything that stops the
-    file being written is a ResultsError naming it; the file is then unchanged.
+    file being written is a ResultsError naming it; the file is then unchanged. A wait for the lease longer than
+    WAIT_TOLD_S is said once through `log`, naming the lock and its holder.
     """
-    path = Path(path)
+    path = target(path)
     new = validate(rows if isinstance(rows, pl.DataFrame) else from_rows(rows))
     new = new.unique(subset="run_id", keep="last", maintain_order=True)
     _refuse_directory(path)
+    lock = lock_path(path)
+    if lock.is_dir():
+        raise ResultsError(f"{lock}: is a directory, where the writers of {path} keep their lock file; remove it")
     while True:
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
-            with FileLease(lock_path(path)) as lease:
+            lease = FileLease(lock)
+            lease.acquire(on_wait=lambda holder: log(
+                f"waiting for {lock} (the lock of {path}), held by {holder}; a holder that is dead, or silent for "
+                f"{lease_seconds():g} s, is taken over"), patience=WAIT_TOLD_S)
+            try:
                 old = read(path)
                 table = pl.concat([old.filter(~pl.col("run_id").is_in(new["run_id"].implode())), new])
                 if _publish(path, table, lease):
                     return table
+            finally:
+                lease.release()
         except (OSError, pl.exceptions.PolarsError) as e:
             raise ResultsError(f"{path}: cannot write the results file ({_reason(e, path)})") from None
         time.sleep(0.1)  # presumed dead and taken over while writing: read the successor's table and retry

@@ -91,7 +91,7 @@ def _with_state_nan(src: Path, dst: Path) -> Path:
 #: A one-encoder sweep recipe; each probe replaces one of its values with a string of the wrong type.
 RECIPE = """name = "probe"
 dataset = "{ds}"
-results = "{base}/sweep.parquet"
+results = "{results}"
 {suites}
 {seeds}
 [[backbones]]
@@ -112,6 +112,9 @@ RECIPES = {
     "seeds_negative": {"seeds": "seeds = [0, -1]"},
     "seeds_repeated": {"seeds": "seeds = [0, 1, 1]"},
     "suite_path": {"suites": 'suites = ["../../x"]'},
+    "results_empty": {"results": ""},
+    "results_folder": {"results": "rdir/"},
+    "pool_finer": {"suites": 'suites = ["libero_spatial"]\ncontrols = ["pool-16x16"]'},
 }
 
 
@@ -167,7 +170,7 @@ def world(v3_video: Written, tmp_path_factory: pytest.TempPathFactory) -> Inputs
              "bad_policy": str(bad_policy), "cache": str(base / "cache"), "nan_cache": str(base / "nan_cache")}
     for name, parts in RECIPES.items():
         path = base / f"{name}.toml"
-        path.write_text(RECIPE.format(**paths, **{**RECIPE_DEFAULTS, **parts}))
+        path.write_text(RECIPE.format(**paths, **{**RECIPE_DEFAULTS, "results": f"{base}/sweep.parquet", **parts}))
         paths[name] = str(path)
     return Inputs(paths, clean, nan)
 
@@ -245,6 +248,16 @@ PROBES: dict[str, Probe] = {
     "tasks against the frames' task_index": Probe(EXTRACT.replace("{ds}", "{tasks}"),
                                                   ("ds_tasks/data", "episode 1", "task_index [1]")),
     "extract --grids 100000x100000": Probe(EXTRACT + " --grids 100000x100000", ("100000x100000", "needs about")),
+    "sweep results = \"\"": Probe("sweep {results_empty} --dry-run", ("results_empty.toml", "results = ''",
+                                                                       "must name a file")),
+    "sweep results = \"rdir/\"": Probe("sweep {results_folder} --dry-run", ("results_folder.toml", "'rdir/'",
+                                                                             "must name a file")),
+    "fit --results rdir/": Probe(FIT.replace("{out}", "rdir/") + " --cache {cache}", ("--results", "'rdir/'",
+                                                                                        "must name a file")),
+    "sweep controls = [\"pool-16x16\"]": Probe("sweep {pool_finer} --dry-run", ("pool_finer.toml", "pool-16x16",
+                                                                                 "would only repeat its cells")),
+    "fit --controls pool-16x16": Probe(FIT + " --cache {cache} --controls pool-16x16",
+                                       ("pool-16x16", "would only repeat its cells", "H < 16")),
     "sweep random_init = \"false\"": Probe("sweep {random_init_str} --dry-run", ("random_init_str.toml",
                                                                                 "random_init")),
 }
@@ -583,6 +596,7 @@ def test_sigterm_during_fit_stops_workers_keeps_rows_and_the_rerun_resumes(
     assert_one_line_error(stopped, ("fit", "SIGTERM", "run the same command again to resume"), code=143)
     assert not left, f"worker processes {left} outlived the command by {GONE_WITHIN_S} s"
     assert results.read(out)["seed"].to_list() == [0]  # the finished cell's row stays
+    assert not results.claims_folder(out).exists()  # no claim outlives its cell, nor their folder
     assert_succeeded(run_cli(args.split(), capsys))
     reference = tmp_path / "reference.parquet"
     assert_succeeded(run_cli(args.replace(str(out), str(reference)).split(), capsys))

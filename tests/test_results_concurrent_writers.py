@@ -2,7 +2,8 @@
 never sees a torn file, a row that cannot be written is kept in its run folder with a one-line error that says
 how to merge it, a float seed is refused rather than rounded, and two sweeps of one recipe compute each cell once.
 The lease file under all of it (graftcache/file_lease.py) is taken over only from a dead or silent holder.
-Issue 29: a fused pass keeps every row, and merging is idempotent."""
+Issue 29: a fused pass keeps every row, merging is idempotent, a wait for the lock is said, a results path that is
+a link is followed, and claims never outlive their cells."""
 
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ import socket
 import subprocess
 import sys
 import textwrap
+import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -30,6 +32,7 @@ from graftcache import results
 from graftcache.cli import main
 from graftcache.errors import ResultsError
 from graftcache.file_lease import FileLease
+from graftcache.fit.passes import release_all
 
 SAMPLE = Path(__file__).resolve().parents[1] / "data" / "libero_sample"
 SUITE, GRID, WIDTH = "libero_spatial", (4, 4), 16
@@ -333,3 +336,76 @@ def test_merging_rows_twice_or_a_copy_of_them_adds_nothing(tmp_path: Path, capsy
     assert results.read(merged).equals(once)
     assert ": 0 new, 2 replacing" in capsys.readouterr().out
     assert results.read_for_report(merged).height == 2
+
+
+def test_a_writer_waiting_for_a_lock_says_for_what_and_on_whom(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Issue 29, item 6: a stale, empty or other machine's lock made a writer wait the lease out without a word."""
+    monkeypatch.setenv("GRAFTCACHE_LEASE_S", "1.5")
+    path = tmp_path / "results.parquet"
+    lock = results.lock_path(path)
+    for holder, named in ((lambda: _lease_file(lock, "another-host", 1), "another-host pid 1 since"),
+                          (lambda: lock.write_bytes(b""), "an empty or unreadable lock file")):
+        holder()
+        said: list[str] = []
+        results.append(path, [row("smolvla", SUITE, "e", 0, 1.0)], log=said.append)
+        assert len(said) == 1 and said[0].startswith(f"waiting for {lock} (the lock of {path}), held by ")
+        assert named in said[0] and "silent for 1.5 s, is taken over" in said[0]
+    said = []
+    results.append(path, [row("smolvla", SUITE, "e", 1, 1.0)], log=said.append)
+    assert said == [] and leftovers(tmp_path) == []  # a free lock: nothing said
+
+
+def test_a_directory_at_the_locks_path_is_named_as_such(tmp_path: Path) -> None:
+    """Issue 29, item 6: it was reported as "cannot write the results file (Is a directory)"."""
+    path = tmp_path / "results.parquet"
+    results.lock_path(path).mkdir()
+    with pytest.raises(ResultsError) as refused:
+        results.append(path, [row("smolvla", SUITE, "e", 0, 1.0)])
+    assert str(refused.value) == (f"{results.lock_path(path)}: is a directory, where the writers of {path} keep "
+                                  "their lock file; remove it")
+    assert not path.exists()
+
+
+def test_a_results_path_that_is_a_link_is_followed(tmp_path: Path) -> None:
+    """Issue 29, item 6: the link used to be replaced by a regular file. It is followed: the file it points to is
+    replaced, the link stays, and the lock and claims are beside the file (writers through other links share them)."""
+    real, link = tmp_path / "shared" / "results.parquet", tmp_path / "mine.parquet"
+    real.parent.mkdir()
+    link.symlink_to(real)
+    results.append(link, [row("smolvla", SUITE, "e", 0, 1.0)])
+    results.append(real, [row("smolvla", SUITE, "e", 1, 1.0)])
+    assert link.is_symlink() and link.resolve() == real
+    assert sorted(results.read(link)["seed"]) == [0, 1] == sorted(results.read(real)["seed"])
+    assert results.claims_folder(link) == results.claims_folder(real)
+    assert sorted(p.name for p in tmp_path.rglob("*")) == ["mine.parquet", "results.parquet", "shared"]
+
+
+def test_claims_are_given_back_whatever_interrupts_them(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Issue 29, item 6: Ctrl-C left claim files of finished cells and an empty claims folder. A claim is given
+    back when the interrupt lands while it is taken or while another is given back, and the folder goes once empty."""
+    path = tmp_path / "results.parquet"
+    claims = [results.cell_claim(path, f"cell{i}") for i in range(3)]
+    assert all(c.try_acquire() for c in claims)
+    release = claims[0].release
+    monkeypatch.setattr(claims[0], "release", lambda: (release(), _raise(KeyboardInterrupt())))
+    with pytest.raises(KeyboardInterrupt):
+        release_all(claims)
+    assert list(results.claims_folder(path).iterdir()) == []
+    results.drop_claims_folder(path)
+    assert list(tmp_path.iterdir()) == []
+
+    late = results.cell_claim(path, "late")
+    monkeypatch.setattr(threading.Thread, "start", lambda self: _raise(KeyboardInterrupt()))
+    with pytest.raises(KeyboardInterrupt):
+        late.try_acquire()  # interrupted after its file was made, before the caller knew it held the claim
+    monkeypatch.undo()
+    assert list(results.claims_folder(path).iterdir()) == []
+
+
+def _raise(e: BaseException) -> None:
+    raise e
+
+
+def test_a_fit_leaves_no_claims_folder(world: Path, tmp_path: Path) -> None:
+    assert main(fit_args(world, tmp_path / "results.parquet", "0", tmp_path / "runs")) == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["results.parquet", "runs"]

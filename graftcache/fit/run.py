@@ -41,7 +41,7 @@ from graftcache.cameras import format_camera_map, match_cameras, renames
 from graftcache.encoders.fingerprint import NumericsCheck, check_numerics
 from graftcache.errors import FitError
 from graftcache.fit.buffer import MIB
-from graftcache.fit.controls import Control, get_control
+from graftcache.fit.controls import Control, check_pool_grid, get_control
 from graftcache.fit.data import LowDim, drop_nonfinite, load_lowdim, split_episodes, suite_index_table
 from graftcache.fit.feed import SplitFeed
 from graftcache.fit.lookup import find_cache
@@ -51,7 +51,7 @@ from graftcache.fit.passes import Member, default_cells_per_pass, run_passes
 from graftcache.fit.step_memory import check_step_memory
 from graftcache.fit.stream import BlockMemo, CacheReader, FeatureSource, StreamStats, read_blocks
 from graftcache.graft import FusedProjector
-from graftcache.pooling import format_grid
+from graftcache.pooling import format_grid, parse_grid
 from graftcache.requests import FitRequest
 from graftcache.runtime import resolve_compute_dtype, resolve_device, resolve_dtype
 from graftcache.store import FeatureCache, cache_root
@@ -148,6 +148,11 @@ class Fitter:
             if len(strides) > 1:
                 raise FitError(f"caches {self.cache.key} and {self.native_cache.key} hold different frames (frame "
                                f"strides {sorted(strides)}); extract both with the same --frame-stride")
+        for control in self.controls:  # a pool control far finer than the stored grid: refused before any load
+            source = self._source(control)
+            note = check_pool_grid(control, [parse_grid(g) for g in source.manifest.grids], f"cache {source.key}")
+            if note:
+                log(note)
         self.policy_folder = resolve_policy(req.backbone, req.policy, self.cache.manifest.dataset_identity,
                                             cache_root(req.cache), self.cache.manifest.dataset.source)
         self.cameras = self._match_cameras()
