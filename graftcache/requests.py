@@ -188,8 +188,8 @@ class FitRequest(Checked):
         "(default: per backbone and device, graftcache.fit.passes.CELLS_PER_PASS: 1 on CPU)")
     compute_dtype: str = compute_dtype()
     results: str = setting("results.parquet", rule=RESULTS_FILE, recipe=False)
-    out: str | None = setting(None, help="run folder for projectors (default: runs/ beside --results; never the "
-                              "cache root)")
+    out: str | None = setting(None, help="run folder for projectors (default: runs/ beside --results, or, where that "
+                              "cannot be written, runs/ in the local cache folder, as the log says)")
     cache: str | None = setting(None, recipe=False, metavar="DIR|URL", help=CACHE_HELP)
     progress: bool = setting(True, recipe=False, help=PROGRESS_HELP)
     drop_nonfinite: bool = setting(

@@ -3,7 +3,7 @@ never sees a torn file, a row that cannot be written is kept in its run folder w
 how to merge it, a float seed is refused rather than rounded, and two sweeps of one recipe compute each cell once.
 The lease file under all of it (graftcache/file_lease.py) is taken over only from a dead or silent holder.
 Issue 29: a fused pass keeps every row, merging is idempotent, a wait for the lock is said, a results path that is
-a link is followed, and claims never outlive their cells."""
+a link is followed, claims never outlive their cells, and an unwritable results folder does not lose the cell."""
 
 from __future__ import annotations
 
@@ -321,6 +321,24 @@ def test_a_fused_pass_whose_results_file_cannot_be_written_keeps_every_row(world
     merged = tmp_path / "merged.parquet"
     assert main(["merge-rows", *map(str, kept), "--results", str(merged)]) == 0
     assert sorted(results.read(merged)["seed"]) == [0, 1, 2] and leftovers(tmp_path) == []
+
+
+def test_a_read_only_results_folder_without_out_keeps_the_cells_work(world: Path, tmp_path: Path,
+                                                                     capsys: pytest.CaptureFixture) -> None:
+    """Issue 29, item 7: with no --out, the run folders beside an unwritable results file fall back to runs/ in
+    the local cache folder, said in the log, instead of the projector save failing and losing the cell."""
+    cache = tmp_path / "cache"
+    shutil.copytree(world / "cache", cache)
+    args = fit_args(world, tmp_path / "ro" / "results.parquet", "0", tmp_path / "unused")
+    args = [*args[:args.index("--out")], *args[args.index("--out") + 2:]]
+    args[args.index("--cache") + 1] = str(cache)
+    with read_only_folder(tmp_path / "ro"):
+        assert main(args) == 2
+    captured = capsys.readouterr()
+    (kept,) = (cache / "runs").glob("*/row.parquet")
+    assert (kept.parent / "projector.safetensors").is_file() and results.read(kept)["seed"].to_list() == [0]
+    assert f"are kept in {cache / 'runs'}" in captured.out
+    assert f"is kept in {kept}: once" in captured.err and len(captured.err.strip().splitlines()) == 1
 
 
 def test_merging_rows_twice_or_a_copy_of_them_adds_nothing(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:

@@ -18,6 +18,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import json
+import os
 import time
 from collections.abc import Callable, Mapping, Sequence
 from contextlib import ExitStack, closing
@@ -447,7 +448,23 @@ class Fitter:
 
     def run_folder(self, cell: Cell) -> Path:
         """Where a cell's projector (and a row its results file could not take) is kept."""
-        return (Path(self.req.out) if self.req.out else Path(self.req.results).parent / "runs") / cell.run_id
+        return self.runs / cell.run_id
+
+    @functools.cached_property
+    def runs(self) -> Path:
+        """The folder of the run folders: --out, else runs/ beside the results file; where that cannot be written
+        (a read-only results folder), runs/ in the local cache folder (store.cache_root), said in the log: the
+        projector save would fail first and lose the cell's work, its row then being kept there too."""
+        if self.req.out:
+            return Path(self.req.out)
+        beside = Path(self.req.results).absolute().parent / "runs"
+        existing = next(p for p in (beside, *beside.parents) if p.exists())  # what creating it writes into
+        if os.access(existing, os.W_OK | os.X_OK):  # False on a read-only mount, also for root
+            return beside
+        runs = cache_root(self.req.cache) / "runs"
+        self.log(f"cannot write run folders beside {self.req.results} ({existing} is not writable): projectors, and "
+                 f"rows the results file cannot take, are kept in {runs} (--out names another folder)")
+        return runs
 
     def _save_projector(self, adapter, cell: Cell, trainable: Mapping[str, torch.Tensor] | None = None) -> None:
         """The cell's trained parameters (default: every trainable one of the policy), named as in the policy."""
