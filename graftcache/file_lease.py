@@ -71,8 +71,12 @@ class FileLease:
             return {}
 
     def holder(self) -> str:
-        """The holder as a user reads it: `host pid N since HH:MM:SS`."""
-        rec = self.record() or {}
+        """The holder as a user reads it: `host pid N since HH:MM:SS`, or what the lease file says of none."""
+        rec = self.record()
+        if rec is None:
+            return "no one (the lock file is gone)"
+        if not rec:
+            return "no one it names (an empty or unreadable lock file, being written or left by a killed process)"
         since = time.strftime("%H:%M:%S", time.localtime(rec["since"])) if "since" in rec else "?"
         return f"{rec.get('host', '?')} pid {rec.get('pid', '?')} since {since}"
 
@@ -120,10 +124,12 @@ class FileLease:
     # ------------------------------------------------------------------ taking and giving back
     def try_acquire(self) -> bool:
         """Take the lease if it is free or stale; False while another process holds it."""
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        for _ in range(2):  # once more after breaking a stale lease
+        for _ in range(3):  # once more after breaking a stale lease, or after the folder was removed meanwhile
+            self.path.parent.mkdir(parents=True, exist_ok=True)
             try:
                 fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+            except FileNotFoundError:  # its folder removed by a process that left it empty (results claims)
+                continue
             except FileExistsError:
                 judged = self._stale()
                 if judged is None:
@@ -131,21 +137,27 @@ class FileLease:
                 self._break(judged)
                 continue
             try:
-                os.write(fd, json.dumps({"owner": self.owner, "host": self.host, "pid": os.getpid(),
-                                         "since": time.time()}).encode())
-            finally:
-                os.close(fd)
-            self._stop.clear()
-            self._thread = threading.Thread(target=self._heartbeat, daemon=True, name=f"lease {self.path.name}")
-            self._thread.start()
+                try:
+                    os.write(fd, json.dumps({"owner": self.owner, "host": self.host, "pid": os.getpid(),
+                                             "since": time.time()}).encode())
+                finally:
+                    os.close(fd)
+                self._stop.clear()
+                self._thread = threading.Thread(target=self._heartbeat, daemon=True, name=f"lease {self.path.name}")
+                self._thread.start()
+            except BaseException:  # Ctrl-C or SIGTERM before the caller knows it holds the lease: not left behind
+                self._stop.set()
+                self.path.unlink(missing_ok=True)
+                raise
             return True
         return False
 
-    def acquire(self, on_wait: Callable[[str], None] | None = None) -> None:
-        """Wait until the lease is ours; `on_wait(holder)` is called once if another process holds it."""
-        delay, told = POLL_S, False
+    def acquire(self, on_wait: Callable[[str], None] | None = None, patience: float = 0.0) -> None:
+        """Wait until the lease is ours; `on_wait(holder)` is called once if another process holds it for
+        longer than `patience` seconds."""
+        delay, told, start = POLL_S, False, time.monotonic()
         while not self.try_acquire():
-            if not told and on_wait is not None:
+            if not told and on_wait is not None and time.monotonic() - start >= patience:
                 on_wait(self.holder())
                 told = True
             time.sleep(delay * random.uniform(0.5, 1.5))  # jittered: waiters do not retry in lockstep
@@ -163,11 +175,13 @@ class FileLease:
     def release(self) -> None:
         """Give the lease back (a lease taken over by another process is left to it)."""
         self._stop.set()
-        if self._thread is not None:
-            self._thread.join()
+        try:
+            if self._thread is not None:
+                self._thread.join()
+        finally:  # the lease file goes even when Ctrl-C or SIGTERM lands in the join
             self._thread = None
-        if self.holds():
-            self.path.unlink(missing_ok=True)
+            if self.holds():
+                self.path.unlink(missing_ok=True)
 
     def __enter__(self) -> FileLease:
         self.acquire()

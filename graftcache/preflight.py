@@ -22,7 +22,7 @@ from graftcache.datasets import DatasetMeta, open_dataset, suite_of
 from graftcache.encoders import get_spec
 from graftcache.errors import GraftcacheError
 from graftcache.extract import check_memory
-from graftcache.fit.controls import get_control
+from graftcache.fit.controls import check_pool_grid, get_control
 from graftcache.fit.data import split_episodes
 from graftcache.pooling import format_grid, resolve_grids
 from graftcache.recipe import Recipe, RecipeError
@@ -55,7 +55,13 @@ def check_inputs(recipe: Recipe) -> list[str]:
         spec = get_spec(req.encoder)  # an unknown encoder name is refused before any policy is trained
         if spec.library == "native":
             continue  # a native tower's grid and width are measured from its policy, which may not exist yet
-        grids = tuple(map(format_grid, resolve_grids(req.grids, spec.grid)))
+        stored = resolve_grids(req.grids, spec.grid)
+        try:  # a pool control far finer than the grids the cache will store: refused before it is extracted
+            notes += filter(None, (check_pool_grid(get_control(c), stored, f"the cache of encoder {req.encoder}")
+                                   for c in recipe.controls))
+        except GraftcacheError as e:
+            raise RecipeError(f"{recipe.path}: controls: {e}") from None
+        grids = tuple(map(format_grid, stored))
         frames = sum(-(-e.length // req.frame_stride) for e in meta.episodes)
         check_memory(dataclasses.replace(req, grids=grids), meta, list(req.cameras or meta.cameras),
                      spec.width, frames, device)

@@ -24,6 +24,7 @@ help that lists what a heavy module registers is a function the CLI calls only t
 
 from __future__ import annotations
 
+import os
 import sys
 from dataclasses import asdict, dataclass
 from typing import Any
@@ -135,6 +136,9 @@ POOL_PREFIX = "pool-"
 #: Activation checkpointing of the frozen LM and expert (graftcache/backbones/recompute.py): `auto` turns it on
 #: when a training step would not fit the device's memory without it (graftcache/fit/step_memory.py).
 CHECKPOINTING_MODES = ("auto", "on", "off")
+#: A results path names a file: "" would be the current folder, and "rdir/" used to write a file named rdir.
+RESULTS_FILE: Rule = (lambda v: bool(v.strip()) and not v.endswith(("/", os.sep)),
+                      "must name a file, e.g. results.parquet (not empty, not ending in /)")
 
 
 #: A LoRA rank past the language model's width adds nothing (every backbone's is at most 2048), and each adapter's
@@ -202,9 +206,9 @@ class FitRequest(Checked):
         "one-cell-at-a-time rows up to float rounding and keep their run_ids; lora, align and native cells run alone "
         "(default: per backbone and device, graftcache.fit.passes.CELLS_PER_PASS: 1 on CPU)")
     compute_dtype: str = compute_dtype()
-    results: str = setting("results.parquet", recipe=False)
-    out: str | None = setting(None, help="run folder for projectors (default: runs/ beside --results; never the "
-                              "cache root)")
+    results: str = setting("results.parquet", rule=RESULTS_FILE, recipe=False)
+    out: str | None = setting(None, help="run folder for projectors (default: runs/ beside --results, or, where that "
+                              "cannot be written, runs/ in the local cache folder, as the log says)")
     cache: str | None = setting(None, recipe=False, metavar="DIR|URL", help=CACHE_HELP)
     progress: bool = setting(True, recipe=False, help=PROGRESS_HELP)
     drop_nonfinite: bool = setting(

@@ -16,6 +16,9 @@ it the fsync: benchmarks/bench_results.py), which the cell's minutes of training
 A row that cannot be written (a read-only place, a full disk) is kept in its cell's run folder
 (`keep_row`) and merged later with `merge` (`graftcache merge-rows`). `cell_claim` is the lease a process
 holds while it computes a cell, so that two fits or sweeps writing one file never compute the same cell.
+
+A results path that is a symbolic link is followed (`target`): the file it points to is replaced, with its lease
+and claims beside it, and the link stays (replacing the path itself would turn the link into a regular file).
 """
 
 from __future__ import annotations
@@ -24,17 +27,25 @@ import errno
 import io
 import os
 import socket
+import sys
 import time
 import uuid
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from contextlib import suppress
 from pathlib import Path
 from typing import Any
 
 import polars as pl
 
+import graftcache
 from graftcache.errors import GraftcacheError, ResultsError
 from graftcache.file_lease import FileLease
 from graftcache.hashing import sha256_json
+from graftcache.store.lease import lease_seconds
+
+#: A writer waiting this long for a results file's lease says what it waits for and on whom (an append holds it ~20
+#: ms; a dead, empty or other machine's lease file is waited on until it is judged stale: graftcache.file_lease).
+WAIT_TOLD_S = 1.0
 
 #: The format of results rows and of the cells their run_ids hash (graftcache.fit.run.Cell). Files of an older
 #: format go through `upgrade`, the one place that knows them. Format 3 (issue 23, one word per idea) renamed no
@@ -172,6 +183,12 @@ def _refuse_directory(path: Path) -> None:
         raise ResultsError(f"{path}: is a directory, not a results file; pass a .parquet file")
 
 
+def target(path: str | Path) -> Path:
+    """The file a results path names: a symbolic link followed (see the module docstring)."""
+    path = Path(path)
+    return Path(os.path.realpath(path)) if path.is_symlink() else path
+
+
 def _load(path: Path) -> pl.DataFrame:
     """The Parquet table at `path`, read through one open descriptor: polars opening the path again (footer,
     then row groups) could read two files when a writer replaces it in between. A stale NFS handle (the file
@@ -217,12 +234,25 @@ def upgrade(rows: pl.DataFrame, path: Path) -> pl.DataFrame:
     """The one upgrade path for results files: rows of this format as they are; rows of an older format (format 1
     had no format_version column; format 2 hashed `pool_grid="native"` and the format version 2 into its run_ids)
     are refused in one line with the commands that rebuild them, since their run_ids hash cells of another
-    shape: a rerun could not skip their cells and would write each twice."""
+    shape: a rerun could not skip their cells and would write each twice. Rows of a newer format (a later
+    graftcache wrote them) and tables that are no graftcache results at all (no run_id or report column) are
+    refused as such."""
     if "format_version" in rows.columns and rows["format_version"].eq(FORMAT_VERSION).all():
         return rows
+    lacking = [c for c in ("run_id", *REPORT_COLUMNS) if c not in rows.columns]
+    if lacking:
+        raise ResultsError(f"{path}: not a graftcache results table (no column {', '.join(lacking)}); pass another "
+                           "--results")
+    if "format_version" in rows.columns:
+        newer = rows.filter(pl.col("format_version") > FORMAT_VERSION)
+        if newer.height:
+            raise ResultsError(f"{path}: {newer.height} row(s) of results format {newer['format_version'].max()}, "
+                               f"newer than this graftcache's ({FORMAT_VERSION}, graftcache {graftcache.__version__}): "
+                               "read it with the graftcache that wrote it, or pass another --results")
     old = rows if "format_version" not in rows.columns else rows.filter(pl.col("format_version") != FORMAT_VERSION)
-    commands = old["command"].unique(maintain_order=True).to_list() if "command" in old.columns else []
-    rebuild = f"`{commands[0]}`" if commands else "the fits or sweeps that wrote them"
+    recorded = old["command"].drop_nulls().unique(maintain_order=True).to_list() if "command" in old.columns else []
+    commands = [c for c in recorded if c.startswith("graftcache ")]  # graftcache < issue 29 recorded `fit` alone
+    rebuild = f"`{commands[0]}`" if commands else "the fits or sweeps that wrote them (its rows record no command line)"
     more = f" (and {len(commands) - 1} other command(s) its rows record)" if len(commands) > 1 else ""
     raise ResultsError(f"{path}: {old.height} row(s) of an older results format than {FORMAT_VERSION} (run_ids "
                        f"of cells of another shape); move the file aside and rebuild it: {rebuild}{more}")
@@ -262,10 +292,25 @@ def lock_path(path: str | Path) -> Path:
     return path.with_name(f".{path.name}.lock")
 
 
+def claims_folder(path: str | Path) -> Path:
+    """Where the cell claims of the results file `path` are: a hidden folder beside it, removed once empty."""
+    path = target(path)
+    return path.with_name(f".{path.name}.claims")
+
+
 def cell_claim(path: str | Path, run_id: str) -> FileLease:
     """The lease a process holds while it computes the cell `run_id` whose row goes to `path`."""
-    path = Path(path)
-    return FileLease(path.with_name(f".{path.name}.claims") / f"{run_id}.claim")
+    return FileLease(claims_folder(path) / f"{run_id}.claim")
+
+
+def drop_claims_folder(path: str | Path) -> None:
+    """Remove the claims folder of `path` if no claim is left in it (another process's claims keep it)."""
+    with suppress(OSError):
+        claims_folder(path).rmdir()
+
+
+def _to_stderr(line: str) -> None:
+    print(f"graftcache: {line}", file=sys.stderr)
 
 
 def _fsync(path: Path) -> None:
@@ -295,23 +340,36 @@ def _publish(path: Path, table: pl.DataFrame, lease: FileLease) -> bool:
     return True
 
 
-def append(path: str | Path, rows: Iterable[Mapping[str, Any]] | pl.DataFrame) -> pl.DataFrame:
+def append(path: str | Path, rows: Iterable[Mapping[str, Any]] | pl.DataFrame,
+           log: Callable[[str], None] = _to_stderr) -> pl.DataFrame:
     """Validate `rows` and append them to the Parquet file under its writers' lease (see the module docstring).
 
-    A row whose run_id is already present replaces the old one, so a file never holds duplicates. Anything
-    that stops the file being written is a ResultsError naming it; the file is then unchanged.
+    A row whose run_id is already present replaces the old one, and of rows of one run_id among `rows` the last
+    is kept, so a file never holds duplicates (appending a table twice changes nothing). Anything that stops the
+    file being written is a ResultsError naming it; the file is then unchanged. A wait for the lease longer than
+    WAIT_TOLD_S is said once through `log`, naming the lock and its holder.
     """
-    path = Path(path)
+    path = target(path)
     new = validate(rows if isinstance(rows, pl.DataFrame) else from_rows(rows))
+    new = new.unique(subset="run_id", keep="last", maintain_order=True)
     _refuse_directory(path)
+    lock = lock_path(path)
+    if lock.is_dir():
+        raise ResultsError(f"{lock}: is a directory, where the writers of {path} keep their lock file; remove it")
     while True:
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
-            with FileLease(lock_path(path)) as lease:
+            lease = FileLease(lock)
+            lease.acquire(on_wait=lambda holder: log(
+                f"waiting for {lock} (the lock of {path}), held by {holder}; a holder that is dead, or silent for "
+                f"{lease_seconds():g} s, is taken over"), patience=WAIT_TOLD_S)
+            try:
                 old = read(path)
                 table = pl.concat([old.filter(~pl.col("run_id").is_in(new["run_id"].implode())), new])
                 if _publish(path, table, lease):
                     return table
+            finally:
+                lease.release()
         except (OSError, pl.exceptions.PolarsError) as e:
             raise ResultsError(f"{path}: cannot write the results file ({_reason(e, path)})") from None
         time.sleep(0.1)  # presumed dead and taken over while writing: read the successor's table and retry
@@ -331,29 +389,38 @@ def keep_row(folder: str | Path, row: Mapping[str, Any]) -> Path:
     return kept
 
 
-def append_or_keep(path: str | Path, row: Mapping[str, Any], folder: str | Path) -> None:
-    """Append one cell's row; a row the results file cannot take is kept in the cell's run folder `folder`
-    (`keep_row`), and the ResultsError says where it is and how to merge it."""
+def append_or_keep(path: str | Path, rows: Sequence[tuple[Mapping[str, Any], str | Path]]) -> None:
+    """Append finished cells' rows, each given with its cell's run folder, to `path` at once. Rows the results file
+    cannot take are kept, every one, in their run folders (`keep_row`), and one ResultsError says where they are
+    and how to merge them: the cells are done, and a pass of several must not lose the rows after the first."""
     try:
-        append(path, [row])
+        append(path, [row for row, _ in rows])
     except ResultsError as e:
-        try:
-            kept = keep_row(folder, row)
-        except OSError as k:
-            raise ResultsError(f"{e}; the row of cell {row['run_id']} could not be kept either "
-                               f"({k.strerror or k})") from None
-        raise ResultsError(f"{e}; the row of cell {row['run_id']} is kept in {kept}: once {path} can be written, "
-                           f"merge it with `graftcache merge-rows {kept} --results {path}`") from None
+        kept, lost = [], []
+        for row, folder in rows:
+            try:
+                kept.append((row["run_id"], keep_row(folder, row)))
+            except OSError as k:
+                lost.append(f"the row of cell {row['run_id']} could not be kept either ({k.strerror or k})")
+        where = []
+        if kept:
+            ids, files = ", ".join(i for i, _ in kept), " ".join(str(f) for _, f in kept)
+            one = len(kept) == 1
+            where.append(f"the row{'' if one else 's'} of cell{'' if one else 's'} {ids} {'is' if one else 'are'} "
+                         f"kept in {', '.join(str(f) for _, f in kept)}: once {path} can be written, merge "
+                         f"{'it' if one else 'them'} with `graftcache merge-rows {files} --results {path}`")
+        raise ResultsError("; ".join([str(e), *lost, *where])) from None
 
 
 def merge(path: str | Path, kept: Sequence[str | Path]) -> pl.DataFrame:
     """Append the rows of results files `kept` (rows `keep_row` kept, or another results file) to `path`; a
-    run_id already in `path` is replaced, so merging twice changes nothing. Returns the merged rows."""
+    run_id already in `path` is replaced, and of one run_id in several of `kept` the last is taken, so merging
+    twice (or a file and its copy) changes nothing. Returns the merged rows, one per run_id."""
     tables = [read(k) if Path(k).is_file() else None for k in kept]
     absent = [str(k) for k, t in zip(kept, tables) if t is None]
     if absent:
         raise ResultsError(f"no results file at {', '.join(absent)}")
-    rows = pl.concat(tables)
+    rows = pl.concat(tables).unique(subset="run_id", keep="last", maintain_order=True)
     if not len(rows):
         raise ResultsError(f"no rows in {', '.join(map(str, kept))}")
     append(path, rows)

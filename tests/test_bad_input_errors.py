@@ -91,7 +91,7 @@ def _with_state_nan(src: Path, dst: Path) -> Path:
 #: A one-encoder sweep recipe; each probe replaces one of its values with a string of the wrong type.
 RECIPE = """name = "probe"
 dataset = "{ds}"
-results = "{base}/sweep.parquet"
+results = "{results}"
 {suites}
 {seeds}
 [[backbones]]
@@ -112,6 +112,9 @@ RECIPES = {
     "seeds_negative": {"seeds": "seeds = [0, -1]"},
     "seeds_repeated": {"seeds": "seeds = [0, 1, 1]"},
     "suite_path": {"suites": 'suites = ["../../x"]'},
+    "results_empty": {"results": ""},
+    "results_folder": {"results": "rdir/"},
+    "pool_finer": {"suites": 'suites = ["libero_spatial"]\ncontrols = ["pool-16x16"]'},
 }
 
 
@@ -167,7 +170,7 @@ def world(v3_video: Written, tmp_path_factory: pytest.TempPathFactory) -> Inputs
              "bad_policy": str(bad_policy), "cache": str(base / "cache"), "nan_cache": str(base / "nan_cache")}
     for name, parts in RECIPES.items():
         path = base / f"{name}.toml"
-        path.write_text(RECIPE.format(**paths, **{**RECIPE_DEFAULTS, **parts}))
+        path.write_text(RECIPE.format(**paths, **{**RECIPE_DEFAULTS, "results": f"{base}/sweep.parquet", **parts}))
         paths[name] = str(path)
     return Inputs(paths, clean, nan)
 
@@ -245,6 +248,16 @@ PROBES: dict[str, Probe] = {
     "tasks against the frames' task_index": Probe(EXTRACT.replace("{ds}", "{tasks}"),
                                                   ("ds_tasks/data", "episode 1", "task_index [1]")),
     "extract --grids 100000x100000": Probe(EXTRACT + " --grids 100000x100000", ("100000x100000", "needs about")),
+    "sweep results = \"\"": Probe("sweep {results_empty} --dry-run", ("results_empty.toml", "results = ''",
+                                                                       "must name a file")),
+    "sweep results = \"rdir/\"": Probe("sweep {results_folder} --dry-run", ("results_folder.toml", "'rdir/'",
+                                                                             "must name a file")),
+    "fit --results rdir/": Probe(FIT.replace("{out}", "rdir/") + " --cache {cache}", ("--results", "'rdir/'",
+                                                                                        "must name a file")),
+    "sweep controls = [\"pool-16x16\"]": Probe("sweep {pool_finer} --dry-run", ("pool_finer.toml", "pool-16x16",
+                                                                                 "would only repeat its cells")),
+    "fit --controls pool-16x16": Probe(FIT + " --cache {cache} --controls pool-16x16",
+                                       ("pool-16x16", "would only repeat its cells", "H < 16")),
     "sweep random_init = \"false\"": Probe("sweep {random_init_str} --dry-run", ("random_init_str.toml",
                                                                                 "random_init")),
 }
@@ -453,6 +466,32 @@ import time, graftcache.extract as x
 encode = x.encode_frames
 x.encode_frames = lambda *a, **k: (time.sleep(0.4), encode(*a, **k))[1]
 """
+#: Block writes (on the extraction's writer thread) that take WRITE_S, each logged as it starts and ends in the file
+#: $WRITES: SIGTERM is sent while one is under way, the moment a write left running used to be cut off at exit.
+WRITE_S = 2.0
+SLOW_WRITES = SLOW_EXTRACT + f"""
+import os, pathlib, graftcache.store.cache as c
+write, log = c.FeatureCache.write_block, pathlib.Path(os.environ["WRITES"])
+def logged(self, block, data):
+    with log.open("a") as f: f.write(f"start {{block}}\\n")
+    time.sleep({WRITE_S} / 2)
+    write(self, block, data)
+    time.sleep({WRITE_S} / 2)
+    with log.open("a") as f: f.write(f"end {{block}}\\n")
+c.FeatureCache.write_block = logged
+"""
+#: A command whose main thread waits for a zarr store call when SIGTERM arrives, zarr's IO loop busy, so the call has
+#: not started there yet: Python used to print "coroutine '_runner' was never awaited" after the command's last line.
+CUT_OFF_IO = """
+import asyncio, os, signal, sys, threading, time
+import graftcache.cli.merge_rows as command
+from zarr.core.sync import _get_loop, sync
+def run(args):
+    _get_loop().call_soon_threadsafe(time.sleep, 0.15)  # the IO loop busy until after the exit begins
+    threading.Timer(0.05, os.kill, (os.getpid(), signal.SIGTERM)).start()
+    sync(asyncio.sleep(0.05))
+command.run = run
+"""
 SLOW_FIT = """
 import time, graftcache.fit.stream as s
 take = s.FrameQueue.take
@@ -506,18 +545,34 @@ def test_a_ctrl_c_lost_in_a_finaliser_is_raised_again() -> None:
             time.sleep(0.002)
 
 
+def test_a_store_call_cut_off_by_sigterm_finishes_before_the_last_line(tmp_path: Path) -> None:
+    proc = start_process(["merge-rows", tmp_path / "a.parquet", "--results", tmp_path / "r.parquet"],
+                         prelude=CUT_OFF_IO)
+    stopped = finish(proc, 60)
+    assert_one_line_error(stopped, ("merge-rows", "SIGTERM"), code=143)
+    assert stopped.err.splitlines() == [stopped.last], stopped.err
+
+
 @pytest.mark.slow
 def test_sigterm_during_extract_stops_workers_keeps_blocks_and_the_rerun_resumes(
         world: Inputs, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     args = (EXTRACT + " --block-frames 2").replace("--num-workers 0", "--num-workers 2")
-    root = tmp_path / "cache"
+    root, writes = tmp_path / "cache", tmp_path / "writes.log"
     before = Snapshot.of(world.base)
-    proc = start_process(args.format(**world.paths, root=root).split(), prelude=SLOW_EXTRACT)
-    _wait_for(lambda: bool(list_caches(root)) and bool(list_caches(root)[0].blocks_done()) and
-              bool(children(proc.pid)), proc, "a finished block with workers running")
+    proc = start_process(args.format(**world.paths, root=root).split(), env={"WRITES": str(writes)},
+                         prelude=SLOW_WRITES)
+
+    def writing() -> bool:  # a block finished, the next one being written, the workers running
+        log = writes.read_text().split() if writes.exists() else []
+        return log.count("end") >= 1 and log[-2:-1] == ["start"] and bool(children(proc.pid))
+
+    _wait_for(writing, proc, "a finished block, the next one being written, with workers running")
     stopped, left = _terminate(proc)
     assert_one_line_error(stopped, ("extract", "SIGTERM", "run the same command again to resume"), code=143)
+    assert len(stopped.err.splitlines()) == 1, stopped.err  # nothing printed after it either
     assert not left, f"worker processes {left} outlived the command by {GONE_WITHIN_S} s"
+    log = writes.read_text().split()
+    assert log.count("start") == log.count("end"), f"a block write outlived the command: {log}"
     (cache,) = list_caches(root)
     kept = cache.blocks_done()
     assert not cache.complete and kept and not _complete(root)
@@ -541,6 +596,7 @@ def test_sigterm_during_fit_stops_workers_keeps_rows_and_the_rerun_resumes(
     assert_one_line_error(stopped, ("fit", "SIGTERM", "run the same command again to resume"), code=143)
     assert not left, f"worker processes {left} outlived the command by {GONE_WITHIN_S} s"
     assert results.read(out)["seed"].to_list() == [0]  # the finished cell's row stays
+    assert not results.claims_folder(out).exists()  # no claim outlives its cell, nor their folder
     assert_succeeded(run_cli(args.split(), capsys))
     reference = tmp_path / "reference.parquet"
     assert_succeeded(run_cli(args.replace(str(out), str(reference)).split(), capsys))

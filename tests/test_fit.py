@@ -26,7 +26,7 @@ from graftcache.cli import main
 from graftcache.errors import FitError
 from graftcache.extract import extract
 from graftcache.fit.buffer import ShuffleBuffer
-from graftcache.fit.controls import get_control
+from graftcache.fit.controls import check_pool_grid, get_control
 from graftcache.fit.data import load_lowdim, split_episodes
 from graftcache.fit.feed import SplitFeed
 from graftcache.fit.loop import train
@@ -229,6 +229,21 @@ def test_cli_fit_end_to_end(world: World, tmp_path: Path, capsys: pytest.Capture
     assert main(args) == 2
     assert "libero_goal" in capsys.readouterr().err
     assert get_control("pool-3x5").grid == (3, 5)
+
+
+def test_a_pool_control_far_finer_than_the_stored_grid_is_refused() -> None:
+    """Issue 29, item 6: pool-16x16 on an 8x8 cache up-sampled silently (each cell repeated). Finer by less than
+    twice is the blend any encoder gets from a backbone grid finer than its own (clip-b16's 14x14 in the paper's
+    pool-16x16 control), said in the log."""
+    with pytest.raises(FitError, match=r"^control pool-16x16: cache k stores grids no finer than 8x8, so 16x16 would "
+                       r"only repeat its cells; choose pool-HxW with H < 16 and W < 16"):
+        check_pool_grid(get_control("pool-16x16"), [(8, 8), (4, 4)], "cache k")
+    with pytest.raises(FitError, match="16x8 would only repeat"):
+        check_pool_grid(get_control("pool-16x8"), [(8, 8)], "cache k")
+    assert "blended up to 16x16" in check_pool_grid(get_control("pool-16x16"), [(14, 14)], "cache k")
+    assert check_pool_grid(get_control("pool-16x16"), [(16, 16)], "k") is None
+    assert check_pool_grid(get_control("pool-4x4"), [(8, 8)], "k") is None
+    assert check_pool_grid(get_control("zero-image"), [(8, 8)], "k") is None
 
 
 def test_one_backbone_load_serves_every_cell_and_finished_cells_load_nothing(world: World, tmp_path: Path) -> None:

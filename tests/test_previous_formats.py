@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import polars as pl
 import pytest
 from helpers.caches import CAMERAS, synthetic_cache
 from helpers.previous_formats import previous_format, previous_results
@@ -76,3 +77,35 @@ def test_a_previous_format_results_file_is_refused_in_one_line(tmp_path: Path, c
     assert capsys.readouterr().err == f"graftcache merge-rows: error: {line}\n"
     assert results.read(kept)["format_version"].to_list() == [3]  # this format's rows read as they are
 
+
+
+def test_an_older_results_file_whose_rows_name_no_command_line_is_refused_without_one(tmp_path: Path) -> None:
+    """Issue 29, item 5: rows written by `graftcache fit` before it recorded its command line say `fit`, which the
+    refusal offered as the command that rebuilds the file."""
+    old = previous_results(tmp_path / "old.parquet", table([row("smolvla", "libero_spatial", "siglip", 0, 0.5,
+                                                                 command="fit")]), 2)
+    with pytest.raises(ResultsError) as refused:
+        results.read(old)
+    assert str(refused.value).endswith("move the file aside and rebuild it: the fits or sweeps that wrote them (its "
+                                       "rows record no command line)")
+
+
+def test_a_newer_results_file_is_called_newer(tmp_path: Path) -> None:
+    newer = previous_results(tmp_path / "newer.parquet", table([row("smolvla", "libero_spatial", "siglip", 0, 0.5)]),
+                             results.FORMAT_VERSION + 1)
+    with pytest.raises(ResultsError) as refused:
+        results.read(newer)
+    assert str(refused.value).startswith(f"{newer}: 1 row(s) of results format 4, newer than this graftcache's (3, ")
+    assert "older" not in str(refused.value)
+
+
+def test_a_foreign_parquet_file_is_called_foreign(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    foreign = tmp_path / "prices.parquet"
+    pl.DataFrame({"item": ["a"], "price": [1.0]}).write_parquet(foreign)
+    line = (f"{foreign}: not a graftcache results table (no column run_id, backbone, suite, encoder, control, seed, "
+            "eval_mse); pass another --results")
+    with pytest.raises(ResultsError) as refused:
+        results.read(foreign)
+    assert str(refused.value) == line
+    assert main(["merge-rows", str(foreign), "--results", str(tmp_path / "r.parquet")]) == 2
+    assert capsys.readouterr().err == f"graftcache merge-rows: error: {line}\n"

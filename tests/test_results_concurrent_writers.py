@@ -1,16 +1,21 @@
 """Results files with many writers (issue 24, item 2): concurrent appends and fits keep every row once, a reader
 never sees a torn file, a row that cannot be written is kept in its run folder with a one-line error that says
 how to merge it, a float seed is refused rather than rounded, and two sweeps of one recipe compute each cell once.
-The lease file under all of it (graftcache/file_lease.py) is taken over only from a dead or silent holder."""
+The lease file under all of it (graftcache/file_lease.py) is taken over only from a dead or silent holder.
+Issue 29: a fused pass keeps every row, merging is idempotent, a wait for the lock is said, a results path that is
+a link is followed, claims never outlive their cells, and an unwritable results folder does not lose the cell."""
 
 from __future__ import annotations
 
 import json
 import os
+import shlex
+import shutil
 import socket
 import subprocess
 import sys
 import textwrap
+import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -27,6 +32,7 @@ from graftcache import results
 from graftcache.cli import main
 from graftcache.errors import ResultsError
 from graftcache.file_lease import FileLease
+from graftcache.fit.passes import release_all
 
 SAMPLE = Path(__file__).resolve().parents[1] / "data" / "libero_sample"
 SUITE, GRID, WIDTH = "libero_spatial", (4, 4), 16
@@ -292,3 +298,132 @@ def test_two_sweeps_of_one_recipe_compute_each_cell_once(v3_video: Written, tmp_
     assert sum("training tiny smolvla (train-tiny)" in log for log in logs) == 1
     assert sum("reusing tiny smolvla trained by train-tiny" in log for log in logs) == 1
     assert leftovers(tmp_path) == []
+
+
+def test_a_fused_pass_whose_results_file_cannot_be_written_keeps_every_row(world: Path, tmp_path: Path,
+                                                                           capsys: pytest.CaptureFixture) -> None:
+    """Issue 29, items 3 and 5: a pass of three cells keeps all three rows, not only the first; the rows record
+    the command line that made them (the subcommand's name used to overwrite it: `command = "fit"`)."""
+    runs = tmp_path / "runs"
+    args = [*fit_args(world, tmp_path / "ro" / "results.parquet", "0,1,2", runs), "--cells-per-pass", "3"]
+    with read_only_folder(tmp_path / "ro") as ro:
+        assert main(args) == 2
+        assert list(ro.iterdir()) == []
+    err = one_line_error(capsys)
+    kept = sorted(runs.glob("*/row.parquet"))
+    assert len(kept) == 3 and all((k.parent / "projector.safetensors").is_file() for k in kept)
+    rows = pl.concat([results.read(k) for k in kept])
+    assert sorted(rows["seed"]) == [0, 1, 2] and set(rows["cells_per_pass"]) == {3}
+    assert set(rows["command"]) == {shlex.join(["graftcache", *args])}
+    target = ro / "results.parquet"
+    assert f"{target}: cannot write the results file" in err and all(str(k) in err for k in kept)
+    assert "merge them with `graftcache merge-rows " in err and err.endswith(f" --results {target}`")
+    merged = tmp_path / "merged.parquet"
+    assert main(["merge-rows", *map(str, kept), "--results", str(merged)]) == 0
+    assert sorted(results.read(merged)["seed"]) == [0, 1, 2] and leftovers(tmp_path) == []
+
+
+def test_a_read_only_results_folder_without_out_keeps_the_cells_work(world: Path, tmp_path: Path,
+                                                                     capsys: pytest.CaptureFixture) -> None:
+    """Issue 29, item 7: with no --out, the run folders beside an unwritable results file fall back to runs/ in
+    the local cache folder, said in the log, instead of the projector save failing and losing the cell."""
+    cache = tmp_path / "cache"
+    shutil.copytree(world / "cache", cache)
+    args = fit_args(world, tmp_path / "ro" / "results.parquet", "0", tmp_path / "unused")
+    args = [*args[:args.index("--out")], *args[args.index("--out") + 2:]]
+    args[args.index("--cache") + 1] = str(cache)
+    with read_only_folder(tmp_path / "ro"):
+        assert main(args) == 2
+    captured = capsys.readouterr()
+    (kept,) = (cache / "runs").glob("*/row.parquet")
+    assert (kept.parent / "projector.safetensors").is_file() and results.read(kept)["seed"].to_list() == [0]
+    assert f"are kept in {cache / 'runs'}" in captured.out
+    assert f"is kept in {kept}: once" in captured.err and len(captured.err.strip().splitlines()) == 1
+
+
+def test_merging_rows_twice_or_a_copy_of_them_adds_nothing(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """Issue 29, item 2: `merge-rows A A`, or A and a copy of A, appended every row twice."""
+    rows, merged = tmp_path / "a.parquet", tmp_path / "merged.parquet"
+    results.append(rows, [row("smolvla", SUITE, "e", seed, 1.0 + seed) for seed in (0, 1)])
+    shutil.copy(rows, tmp_path / "copy.parquet")
+    assert main(["merge-rows", str(rows), str(rows), "--results", str(merged)]) == 0
+    once = results.read(merged)
+    assert once.height == 2 and once["run_id"].n_unique() == 2
+    assert "merged 2 row(s)" in capsys.readouterr().out
+    assert main(["merge-rows", str(rows), str(tmp_path / "copy.parquet"), "--results", str(merged)]) == 0
+    assert results.read(merged).equals(once)
+    assert ": 0 new, 2 replacing" in capsys.readouterr().out
+    assert results.read_for_report(merged).height == 2
+
+
+def test_a_writer_waiting_for_a_lock_says_for_what_and_on_whom(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Issue 29, item 6: a stale, empty or other machine's lock made a writer wait the lease out without a word."""
+    monkeypatch.setenv("GRAFTCACHE_LEASE_S", "1.5")
+    path = tmp_path / "results.parquet"
+    lock = results.lock_path(path)
+    for holder, named in ((lambda: _lease_file(lock, "another-host", 1), "another-host pid 1 since"),
+                          (lambda: lock.write_bytes(b""), "an empty or unreadable lock file")):
+        holder()
+        said: list[str] = []
+        results.append(path, [row("smolvla", SUITE, "e", 0, 1.0)], log=said.append)
+        assert len(said) == 1 and said[0].startswith(f"waiting for {lock} (the lock of {path}), held by ")
+        assert named in said[0] and "silent for 1.5 s, is taken over" in said[0]
+    said = []
+    results.append(path, [row("smolvla", SUITE, "e", 1, 1.0)], log=said.append)
+    assert said == [] and leftovers(tmp_path) == []  # a free lock: nothing said
+
+
+def test_a_directory_at_the_locks_path_is_named_as_such(tmp_path: Path) -> None:
+    """Issue 29, item 6: it was reported as "cannot write the results file (Is a directory)"."""
+    path = tmp_path / "results.parquet"
+    results.lock_path(path).mkdir()
+    with pytest.raises(ResultsError) as refused:
+        results.append(path, [row("smolvla", SUITE, "e", 0, 1.0)])
+    assert str(refused.value) == (f"{results.lock_path(path)}: is a directory, where the writers of {path} keep "
+                                  "their lock file; remove it")
+    assert not path.exists()
+
+
+def test_a_results_path_that_is_a_link_is_followed(tmp_path: Path) -> None:
+    """Issue 29, item 6: the link used to be replaced by a regular file. It is followed: the file it points to is
+    replaced, the link stays, and the lock and claims are beside the file (writers through other links share them)."""
+    real, link = tmp_path / "shared" / "results.parquet", tmp_path / "mine.parquet"
+    real.parent.mkdir()
+    link.symlink_to(real)
+    results.append(link, [row("smolvla", SUITE, "e", 0, 1.0)])
+    results.append(real, [row("smolvla", SUITE, "e", 1, 1.0)])
+    assert link.is_symlink() and link.resolve() == real
+    assert sorted(results.read(link)["seed"]) == [0, 1] == sorted(results.read(real)["seed"])
+    assert results.claims_folder(link) == results.claims_folder(real)
+    assert sorted(p.name for p in tmp_path.rglob("*")) == ["mine.parquet", "results.parquet", "shared"]
+
+
+def test_claims_are_given_back_whatever_interrupts_them(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Issue 29, item 6: Ctrl-C left claim files of finished cells and an empty claims folder. A claim is given
+    back when the interrupt lands while it is taken or while another is given back, and the folder goes once empty."""
+    path = tmp_path / "results.parquet"
+    claims = [results.cell_claim(path, f"cell{i}") for i in range(3)]
+    assert all(c.try_acquire() for c in claims)
+    release = claims[0].release
+    monkeypatch.setattr(claims[0], "release", lambda: (release(), _raise(KeyboardInterrupt())))
+    with pytest.raises(KeyboardInterrupt):
+        release_all(claims)
+    assert list(results.claims_folder(path).iterdir()) == []
+    results.drop_claims_folder(path)
+    assert list(tmp_path.iterdir()) == []
+
+    late = results.cell_claim(path, "late")
+    monkeypatch.setattr(threading.Thread, "start", lambda self: _raise(KeyboardInterrupt()))
+    with pytest.raises(KeyboardInterrupt):
+        late.try_acquire()  # interrupted after its file was made, before the caller knew it held the claim
+    monkeypatch.undo()
+    assert list(results.claims_folder(path).iterdir()) == []
+
+
+def _raise(e: BaseException) -> None:
+    raise e
+
+
+def test_a_fit_leaves_no_claims_folder(world: Path, tmp_path: Path) -> None:
+    assert main(fit_args(world, tmp_path / "results.parquet", "0", tmp_path / "runs")) == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["results.parquet", "runs"]

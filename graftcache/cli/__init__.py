@@ -1,6 +1,7 @@
 """The `graftcache` console script: one module per command, registered here (no if-chains).
 
-Every command module exposes `add_parser(subparsers)` (which sets `func`) and returns an exit code.
+Every command module exposes `add_parser(subparsers)` (which sets `func`) and returns an exit code; `func` finds
+the command line it was given, as a shell would run it again, in `args.command_line` (what results rows record).
 A GraftcacheError becomes one line on stderr and exit code 2; Ctrl-C (exit 130) and SIGTERM (exit 143), at any
 moment, one line that says how to resume (graftcache.cli.signals).
 """
@@ -10,6 +11,7 @@ from __future__ import annotations
 import argparse
 import errno
 import os
+import shlex
 import sys
 from collections.abc import Sequence
 from importlib import import_module
@@ -39,16 +41,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Run one command. `argv` None: this is the process's own entry point (the console script,
     `python -m graftcache`), which also keeps signals to one line during interpreter teardown."""
     os.environ.setdefault("TOKENIZERS_PARALLELISM", "false")
-    from graftcache.cli.signals import describe, exit_code, stoppable
+    from graftcache.cli.signals import describe, exit_code, settle_io, stoppable
 
     command, started = "", False
     with stoppable(whole_process=argv is None) as stops:
         try:  # from the first import on: Ctrl-C while torch is still loading is one line too
             args = build_parser().parse_args(argv)
+            args.command_line = shlex.join(["graftcache", *(sys.argv[1:] if argv is None else argv)])
             command, started = f" {args.command}", True
             stops.command_started()
             return _run(args)
         except KeyboardInterrupt as stop:
+            settle_io()  # nothing the command started may print after its last line
             then = ("; run the same command again to resume" if started
                     else " while starting; nothing was done")
             print(f"graftcache{command}: {describe(stop)}{then}", file=sys.stderr)

@@ -115,8 +115,11 @@ def given(request: type, args: argparse.Namespace) -> dict[str, Any]:
 
 
 def request_from[R](request: type[R], args: argparse.Namespace, **values: Any) -> R:
-    """The request whose fields are the namespace's values of the same name, then `values`."""
-    names = set(declared(request)) - set(values)
+    """The request whose fields with a flag are the namespace's values of the same name, then `values`. Fields
+    without one (the command sets them: `values`, else their default) are never read from the namespace, where
+    argparse's own entries may share their names: the subcommand's name is `command`, which FitRequest's field of
+    that name took for the command line, so rows recorded `command = "fit"`."""
+    names = {n for n, d in declared(request).items() if d.flag is not None} - set(values)
     return request(**{n: v for n, v in vars(args).items() if n in names}, **values)
 
 

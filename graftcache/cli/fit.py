@@ -20,5 +20,5 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from graftcache.fit.run import Fitter
 
-    Fitter(request_from(FitRequest, args)).run()
+    Fitter(request_from(FitRequest, args, command=args.command_line)).run()
     return 0

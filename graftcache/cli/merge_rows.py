@@ -17,8 +17,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from graftcache.results import merge
+    from graftcache.results import done_run_ids, merge
 
+    had = done_run_ids(args.results)
     rows = merge(args.results, args.rows)
-    print(f"merged {len(rows)} row(s) into {args.results}")
+    new = rows.filter(~rows["run_id"].is_in(list(had))).height
+    print(f"merged {len(rows)} row(s) into {args.results}: {new} new, {len(rows) - new} replacing rows of the same "
+          "run_id")
     return 0

@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import shlex
-import sys
 
 from graftcache.cli.common import LazyText
 
@@ -39,4 +37,4 @@ def _description() -> str:
 def run(args: argparse.Namespace) -> int:
     from graftcache.report import report_command
 
-    return report_command(args.results, args.out, command=shlex.join(["graftcache", *sys.argv[1:]]), score=args.score)
+    return report_command(args.results, args.out, command=args.command_line, score=args.score)

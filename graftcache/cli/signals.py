@@ -8,6 +8,11 @@ this process started (DataLoader readers and decoders, fork-server children for 
 SIGTERM, so none outlives the command; forked workers get the default SIGTERM action back (`_reset_in_child`), so
 they die at once instead of running this handler. While a whole process is still starting (importing torch) or
 already tearing down, there is nothing to keep: a signal is one line and an immediate exit (`_exit_at_once`).
+
+Zarr runs every store read and write as a coroutine on an event loop thread of its own, which it stops and closes
+at exit. A signal that cuts the main thread off from one it is waiting for leaves it running there; closed under
+it, the loop drops it and Python prints "coroutine '_runner' was never awaited" after the command's last line.
+So before that line, the stopped command lets the IO it started finish (`settle_io`).
 """
 
 from __future__ import annotations
@@ -18,7 +23,7 @@ import signal
 import sys
 import threading
 from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from types import FrameType
 from typing import Any
 
@@ -27,6 +32,7 @@ EXIT_CODES = {signal.SIGINT: 128 + signal.SIGINT, signal.SIGTERM: 128 + signal.S
 STOPPED = {signal.SIGINT: "interrupted", signal.SIGTERM: "terminated (SIGTERM)"}  # what the one line says
 WORKER_GRACE_S = 2.0  # how long stopped workers get to exit before SIGKILL
 REDELIVER_S = 0.01  # a signal lost in a finaliser is sent again this much later (`_redeliver`)
+SETTLE_S = 10.0  # how long a stopped command waits for the store IO it started (`settle_io`)
 
 
 class Terminated(KeyboardInterrupt):
@@ -53,6 +59,29 @@ def stop_workers() -> None:
         child.join(WORKER_GRACE_S)
         if child.is_alive():
             child.kill()
+
+
+def settle_io() -> None:
+    """Wait (up to SETTLE_S, then cancel) for the coroutines still running on zarr's IO loop: the reads and writes
+    the interrupted command had started (see the module). A second signal meanwhile ends the wait."""
+    sync = sys.modules.get("zarr.core.sync")
+    loop = sync.loop[0] if sync is not None else None
+    if loop is None or loop.is_closed() or not loop.is_running():
+        return
+    import asyncio
+
+    async def drain() -> None:
+        # queued behind every coroutine submitted before it, so each of them is a task by now
+        started = asyncio.all_tasks() - {asyncio.current_task()}
+        if started:
+            _, late = await asyncio.wait(started, timeout=SETTLE_S)
+            for task in late:
+                task.cancel()
+            if late:
+                await asyncio.wait(late, timeout=1.0)
+
+    with suppress(KeyboardInterrupt, TimeoutError):
+        asyncio.run_coroutine_threadsafe(drain(), loop).result(SETTLE_S + 2.0)
 
 
 def _on_term(signum: int, frame: FrameType | None) -> None:

@@ -21,7 +21,7 @@ import ray
 from graftcache import results
 from graftcache.backbones.pool import BackbonePool
 from graftcache.encoders.fingerprint import NumericsCheck
-from graftcache.errors import ExecutorError
+from graftcache.errors import ExecutorError, ResultsError
 from graftcache.executors import Log
 from graftcache.executors.ray_cluster import (
     connect,
@@ -98,12 +98,18 @@ def fit(requests: Sequence[tuple[str, FitRequest]], settings: ExecutorSettings, 
             "cells_per_pass 1)")
     tasks = {fit_cell_task.options(**options[req.device]).remote(req, control, seed): run_id
              for run_id, (_, req, control, seed) in cells.items()}
+    refused: list[str] = []  # rows their results file could not take, each kept in its run folder
     for run_id, row in finished(tasks):
         label, req, control, seed = cells[run_id]
         if row["run_id"] != run_id:
             raise ExecutorError(f"{label} seed {seed} control {control}: the worker's cell is {row['run_id']}, "
                                 f"the driver's {run_id}: do the nodes see the same policy and caches?")
-        results.append_or_keep(req.results, row, folders[run_id])
+        try:
+            results.append_or_keep(req.results, [(row, folders[run_id])])
+        except ResultsError as e:  # the row is kept in its run folder: the rows of the tasks still running too
+            refused.append(str(e))
         bar.set_postfix_str(label)
         bar.update(1)
         log(f"{label} seed {seed} control {control}: eval_mse {row['eval_mse']:.4f} ({row['wall_s']:.1f}s on Ray)")
+    if refused:
+        raise ResultsError("; ".join(refused))

@@ -8,6 +8,7 @@ from __future__ import annotations
 import queue
 import threading
 from collections.abc import Sequence
+from contextlib import suppress
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -76,24 +77,30 @@ def fill(cache: FeatureCache, job: Job, blocks: Sequence[int]) -> int:
                     bar.update(stop - start)
         writer.close()
     finally:
+        writer.close(finish=False)  # unwinding (an error, Ctrl-C, SIGTERM): no write outlives the extraction
         bar.close()
     return encoded
 
 
 class BlockWriter:
     """Writes finished blocks on a background thread (Blosc and file I/O release the GIL), so
-    encoding of block k+1 overlaps the compression and write of block k. At most one block waits."""
+    encoding of block k+1 overlaps the compression and write of block k. At most one block waits.
+
+    The thread never outlives the extraction: left running after an interrupt, it went on writing while the
+    interpreter shut down, and zarr's event loop, stopped and closed at exit, dropped the write it had just
+    submitted ("coroutine '_runner' was never awaited" after the command's last line)."""
 
     def __init__(self, cache: FeatureCache) -> None:
         self.cache = cache
         self.queue: queue.Queue = queue.Queue(maxsize=1)
         self.error: BaseException | None = None
+        self.dropping = False  # close(finish=False): write nothing more
         self.thread = threading.Thread(target=self._run, daemon=True)
         self.thread.start()
 
     def _run(self) -> None:
         while (item := self.queue.get()) is not None:
-            if self.error is None:
+            if self.error is None and not self.dropping:
                 try:
                     self.cache.write_block(*item)
                 except BaseException as e:  # surfaced in the main thread by put()/close()
@@ -104,8 +111,16 @@ class BlockWriter:
             raise self.error
         self.queue.put((block, data))
 
-    def close(self) -> None:
+    def close(self, *, finish: bool = True) -> None:
+        """Wait for the thread to end: after writing every waiting block, or (`finish` False, when unwinding) after
+        the block being written, the waiting one dropped unmarked for a rerun to write. A no-op once it has ended."""
+        if not self.thread.is_alive():
+            return
+        if not finish:
+            self.dropping = True
+            with suppress(queue.Empty):
+                self.queue.get_nowait()
         self.queue.put(None)
         self.thread.join()
-        if self.error:
+        if finish and self.error:
             raise self.error

@@ -16,7 +16,7 @@ permutation of a feature tensor), so the fit only calls them.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -115,6 +115,25 @@ CONTROLS: dict[str, Control] = {
     "shuffled-image": Control("shuffled-image", pairing=shuffle),
     "lora": Control("lora", lora=True, fuses=False),
 }
+
+
+def check_pool_grid(control: Control, stored: Sequence[tuple[int, int]], cache: str) -> str | None:
+    """A pool-HxW control finer than the finest grid `cache` stores (`stored`) is up-sampled by read_grid, which
+    adds no information. Twice as fine or more (pool-16x16 on an 8x8 cache) each stored cell is only repeated: refused.
+    Finer by less, neighbouring cells are blended, as for any encoder meeting a backbone grid finer than its own
+    (clip-b16's 14x14 and pi0.5's 16x16; the paper's pool-16x16 control of clip-b16): returned as a note to log."""
+    if control.grid is None or control.grid in stored:
+        return None
+    finest = max(stored, key=lambda g: g[0] * g[1])
+    (h, w), (fh, fw) = control.grid, finest
+    if h >= 2 * fh or w >= 2 * fw:
+        raise FitError(f"control {control.name}: {cache} stores grids no finer than {format_grid(finest)}, so "
+                       f"{format_grid(control.grid)} would only repeat its cells; choose {POOL_PREFIX}HxW with "
+                       f"H < {2 * fh} and W < {2 * fw}, or extract a finer grid")
+    if h > fh or w > fw:
+        return (f"control {control.name}: {cache} stores grids no finer than {format_grid(finest)}: its cells are "
+                f"blended up to {format_grid(control.grid)}")
+    return None
 
 
 def get_control(name: str) -> Control:

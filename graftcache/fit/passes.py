@@ -37,12 +37,14 @@ from __future__ import annotations
 import time
 from collections import Counter
 from collections.abc import Callable, Sequence
+from contextlib import ExitStack
 from dataclasses import dataclass
 from typing import Any, Protocol
 
 import torch
 
 from graftcache import results
+from graftcache.errors import ResultsError
 from graftcache.file_lease import FileLease
 from graftcache.fit.controls import Control
 from graftcache.requests import FitRequest
@@ -118,6 +120,31 @@ def _take(claim: FileLease) -> bool:
         return True
 
 
+def release_all(claims: Sequence[FileLease]) -> None:
+    """Give back every claim of a pass, also when Ctrl-C or SIGTERM lands while one is given back (it is raised once
+    all are): a claim left behind outlives its finished cell."""
+    with ExitStack() as stack:
+        for claim in claims:
+            stack.callback(claim.release)
+
+
+def _write(members: Sequence[Member], rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Append the rows of a pass's cells to their results files, each file's rows at once; the rows a file cannot
+    take are all kept in their cells' run folders (results.append_or_keep), then one ResultsError names them."""
+    files: dict[str, list[tuple[dict[str, Any], Any]]] = {}
+    for m, row in zip(members, rows, strict=True):
+        files.setdefault(m.at[0], []).append((row, m.fitter.run_folder(m.cell)))
+    refused = []
+    for path, pairs in files.items():
+        try:
+            results.append_or_keep(path, pairs)
+        except ResultsError as e:
+            refused.append(str(e))
+    if refused:
+        raise ResultsError("; ".join(refused))
+    return list(rows)
+
+
 def run_passes(fitters: Sequence[Host], visited: Callable[[int], None] = lambda n: None) -> list[dict[str, Any]]:
     """Every missing cell of `fitters` (which share one BackbonePool), pass by pass, each row appended to its
     results file as its pass finishes; returns the rows written. `visited(n)`: n more cells were run or skipped.
@@ -145,34 +172,35 @@ def run_passes(fitters: Sequence[Host], visited: Callable[[int], None] = lambda 
     left = Counter(id(m.fitter) for m in members)
     rows: list[dict[str, Any]] = []
     told: set[tuple[str, str]] = set()
-    while members:
-        busy = []
-        for planned in plan_passes(members):
-            got = []
-            for m in planned:
-                if _take(claims[m.at]):
-                    got.append(m)
-                    continue
-                if m.at not in told:
-                    m.fitter.log(f"cell {m.cell.run_id} (seed {m.seed} control {m.control.name}) is being computed "
-                                 f"by {claims[m.at].holder()}: waiting for its row")
-                    told.add(m.at)
-                busy.append(m)
-            try:
-                fresh = [m for m in got if not m.fitter.skip(m.control, m.cell, results.done_run_ids(m.at[0]))]
-                if fresh:
-                    for m, row in zip(fresh, fresh[0].fitter.run_pass(fresh), strict=True):
-                        results.append_or_keep(m.at[0], row, m.fitter.run_folder(m.cell))
-                        rows.append(row)
-            finally:
+    try:
+        while members:
+            busy = []
+            for planned in plan_passes(members):
+                got = []
+                try:
+                    for m in planned:
+                        if _take(claims[m.at]):
+                            got.append(m)
+                            continue
+                        if m.at not in told:
+                            m.fitter.log(f"cell {m.cell.run_id} (seed {m.seed} control {m.control.name}) is being "
+                                         f"computed by {claims[m.at].holder()}: waiting for its row")
+                            told.add(m.at)
+                        busy.append(m)
+                    fresh = [m for m in got if not m.fitter.skip(m.control, m.cell, results.done_run_ids(m.at[0]))]
+                    if fresh:
+                        rows += _write(fresh, fresh[0].fitter.run_pass(fresh))
+                finally:
+                    release_all([claims[m.at] for m in got])
+                visited(len(got))
                 for m in got:
-                    claims[m.at].release()
-            visited(len(got))
-            for m in got:
-                left[id(m.fitter)] -= 1
-                if not left[id(m.fitter)]:
-                    m.fitter.close()  # its kept blocks and tables go before the next requests' are read
-        if busy:
-            time.sleep(1.0)
-        members = busy
+                    left[id(m.fitter)] -= 1
+                    if not left[id(m.fitter)]:
+                        m.fitter.close()  # its kept blocks and tables go before the next requests' are read
+            if busy:
+                time.sleep(1.0)
+            members = busy
+    finally:
+        for path in {path for path, _ in claims}:
+            results.drop_claims_folder(path)
     return rows

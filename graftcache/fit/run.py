@@ -18,6 +18,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import json
+import os
 import time
 from collections.abc import Callable, Mapping, Sequence
 from contextlib import ExitStack, closing
@@ -41,7 +42,7 @@ from graftcache.cameras import format_camera_map, match_cameras, renames
 from graftcache.encoders.fingerprint import NumericsCheck, check_numerics
 from graftcache.errors import FitError
 from graftcache.fit.buffer import MIB
-from graftcache.fit.controls import Control, get_control
+from graftcache.fit.controls import Control, check_pool_grid, get_control
 from graftcache.fit.data import LowDim, drop_nonfinite, load_lowdim, split_episodes, suite_index_table
 from graftcache.fit.feed import SplitFeed
 from graftcache.fit.lookup import find_cache
@@ -51,7 +52,7 @@ from graftcache.fit.passes import Member, default_cells_per_pass, run_passes
 from graftcache.fit.step_memory import check_step_memory
 from graftcache.fit.stream import BlockMemo, CacheReader, FeatureSource, StreamStats, read_blocks
 from graftcache.graft import FusedProjector
-from graftcache.pooling import format_grid
+from graftcache.pooling import format_grid, parse_grid
 from graftcache.requests import FitRequest
 from graftcache.runtime import resolve_compute_dtype, resolve_device, resolve_dtype
 from graftcache.store import FeatureCache, cache_root
@@ -148,6 +149,11 @@ class Fitter:
             if len(strides) > 1:
                 raise FitError(f"caches {self.cache.key} and {self.native_cache.key} hold different frames (frame "
                                f"strides {sorted(strides)}); extract both with the same --frame-stride")
+        for control in self.controls:  # a pool control far finer than the stored grid: refused before any load
+            source = self._source(control)
+            note = check_pool_grid(control, [parse_grid(g) for g in source.manifest.grids], f"cache {source.key}")
+            if note:
+                log(note)
         self.policy_folder = resolve_policy(req.backbone, req.policy, self.cache.manifest.dataset_identity,
                                             cache_root(req.cache), self.cache.manifest.dataset.source)
         self.cameras = self._match_cameras()
@@ -442,7 +448,23 @@ class Fitter:
 
     def run_folder(self, cell: Cell) -> Path:
         """Where a cell's projector (and a row its results file could not take) is kept."""
-        return (Path(self.req.out) if self.req.out else Path(self.req.results).parent / "runs") / cell.run_id
+        return self.runs / cell.run_id
+
+    @functools.cached_property
+    def runs(self) -> Path:
+        """The folder of the run folders: --out, else runs/ beside the results file; where that cannot be written
+        (a read-only results folder), runs/ in the local cache folder (store.cache_root), said in the log: the
+        projector save would fail first and lose the cell's work, its row then being kept there too."""
+        if self.req.out:
+            return Path(self.req.out)
+        beside = Path(self.req.results).absolute().parent / "runs"
+        existing = next(p for p in (beside, *beside.parents) if p.exists())  # what creating it writes into
+        if os.access(existing, os.W_OK | os.X_OK):  # False on a read-only mount, also for root
+            return beside
+        runs = cache_root(self.req.cache) / "runs"
+        self.log(f"cannot write run folders beside {self.req.results} ({existing} is not writable): projectors, and "
+                 f"rows the results file cannot take, are kept in {runs} (--out names another folder)")
+        return runs
 
     def _save_projector(self, adapter, cell: Cell, trainable: Mapping[str, torch.Tensor] | None = None) -> None:
         """The cell's trained parameters (default: every trainable one of the policy), named as in the policy."""
