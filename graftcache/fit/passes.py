@@ -26,8 +26,9 @@ benchmarks/results/bench_fuse_cpu_smolvla_released.json) the step is compute-bou
 cell-step, and every cell of a pass holds its own shuffle buffer. So 1 on CPU. On CUDA, measured on an H200
 (benchmarks/results/gpu_check_nvidia-h200_2026-11-26.json, released geometry, random init, bf16, batch 32 a
 cell): SmolVLA's step is latency-bound (3% MFU alone), and 1 / 2 / 4 cells per pass cost 124 / 56 / 47 ms a
-cell-step (14.5 / 32 / 38.5 training cells of 2000 steps per GPU-hour) at 16 / 20 / 29 GB, so 4; pi0.5 already
-runs at 35% MFU alone and needs 117 GB at batch 32 without activation checkpointing (21 GB with it), so 1.
+cell-step (14.5 / 32 / 38.5 training cells of 2000 steps per GPU-hour) at 16 / 20 / 29 GB; on an H100 15.4 / 32.3 /
+32.4 (gpu_check_nvidia-h100-80gb-hbm3_2026-11-26.json): so 4. pi0.5 already runs at 29-35% MFU alone and needs
+117 GB at batch 32 without activation checkpointing (out of memory on an H100; 21 GB with it), so 1.
 A pass that would not fit is refused before its first step (graftcache.fit.step_memory,
 naming --cells-per-pass).
 """
