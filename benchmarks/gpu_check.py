@@ -609,7 +609,7 @@ def lean_load(name: str, folder: Path, device: torch.device, hub: Path) -> dict:
 
 # ---------------------------------------------------------------------------------------------- stage 5
 def protocol(report: Report, adapters: dict, device: torch.device, dtype: torch.dtype, dtype_name: str,
-             peak: float | None, tiny: bool) -> None:
+             peak: float | None, tiny: bool, encoders: list[str] | None) -> None:
     """bench_protocol's per-kind measurements on cli/paper.toml with these adapters, and its projection."""
     stage = "5_protocol"
     with report.check(stage, "recipe", need_s=60) as out:
@@ -621,8 +621,14 @@ def protocol(report: Report, adapters: dict, device: torch.device, dtype: torch.
         from graftcache.recipe import load_recipe
 
         recipe = load_recipe(PAPER)
+        if encoders:  # a subset of the recipe's encoders (the CPU dry run's, to stay short)
+            unknown = sorted(set(encoders) - {e.name for e in recipe.encoders})
+            if unknown:
+                raise ValueError(f"--encoders {', '.join(unknown)}: not in {PAPER.relative_to(ROOT)}")
+            recipe = replace(recipe, encoders=tuple(e for e in recipe.encoders if e.name in encoders))
         settings = bp.recipe_settings(recipe, 2 if tiny else None)
-        out.update(recipe=str(PAPER.relative_to(ROOT)), settings=settings.__dict__)
+        out.update(recipe=str(PAPER.relative_to(ROOT)), encoders=[e.name for e in recipe.encoders],
+                   settings=settings.__dict__)
     if out.get("status") != "ok":
         return
     a = argparse.Namespace(steps=2 if tiny else 4, eval_frames=2 if tiny else 32)
@@ -696,6 +702,7 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--repeats", type=int, default=3, help="timed steps per measurement, after one warm-up")
     p.add_argument("--load-backbone", default="pi05", choices=("pi05", "smolvla"),
                    help="stage 4's checkpoint (smolvla: a released-size dry run a CPU can afford)")
+    p.add_argument("--encoders", default=None, help="stage 5: only these of cli/paper.toml's encoders (comma list)")
     p.add_argument("--decode-ms", type=float, default=None,
                    help="video decode per frame (a CPU measurement) for stage 5's online protocol")
     p.add_argument("--scratch", type=Path, default=None, help="local disk for stage 4's checkpoint and the hub")
@@ -752,7 +759,8 @@ def main(argv: list[str] | None = None) -> dict:
             if info is not None:
                 info.update(backbone=load_name, **lean_load(load_name, scratch / load_name, device, hub))
     if 5 in stages:
-        protocol(report, adapters, device, dtype, dtype_name, peak, a.tiny)
+        protocol(report, adapters, device, dtype, dtype_name, peak, a.tiny,
+                 [e for e in a.encoders.split(",") if e] if a.encoders else None)
     adapters.clear()
     free(device)
     if 6 in stages:

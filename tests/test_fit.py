@@ -357,7 +357,7 @@ def test_a_batch_past_memory_is_refused_before_training(world: World, tmp_path: 
     # --activation-checkpointing auto: refused without it, then measured and refused with it
     assert line.startswith("graftcache fit: error: a training step of --batch-size 100000 with activation "
                            "checkpointing (")
-    assert "a frame, measured on a 2-frame step of features image 16x192, image2 16x192)" in line
+    assert "a frame, measured on a 1- and a 2-frame step of features image 16x192, image2 16x192)" in line
     need = line.split("needs about ")[1].split(",")[0]
     amount, unit = need.split()[:2]
     assert float(amount) * 1024 ** ["MiB", "GiB", "TiB"].index(unit) >= 100000 * 2 * 16 * 192 * 4 / 2**20
@@ -477,6 +477,7 @@ def test_a_pass_whose_cells_hold_out_unequal_frames_scores_each_as_alone(world: 
     def fit(n: int) -> dict[str, dict]:
         out = tmp_path / f"{n}.parquet"
         requests = [(f"eval_frames {k}", world.request(seeds=(0,), controls=(), steps=2, compute_dtype="fp32",
+                                                       cache_key=world.encoder_key,  # other tests add caches
                                                        eval_frames=k, eval_batch_size=2, cells_per_pass=n,
                                                        results=str(out), out=str(tmp_path / f"runs{n}")))
                     for k in (2, 5)]

@@ -29,7 +29,8 @@ def report(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict, Path]:
         tmp = tmp_path_factory.mktemp("gpu-check")
         out = tmp / "check.json"
         data = gpu_check.main(["--tiny", "--device", "cpu", "--compute-dtype", "fp32", "--repeats", "1",
-                               "--budget-s", "3600", "--scratch", str(tmp / "scratch"), "--out", str(out)])
+                               "--encoders", "dinov2-s", "--budget-s", "3600", "--scratch", str(tmp / "scratch"),
+                               "--out", str(out)])
     return data, out
 
 
@@ -87,7 +88,9 @@ def test_the_protocol_projection_adds_up_and_the_zoo_says_what_it_skipped(report
     hours = protocol["projection"]
     assert hours["projected_h"] == pytest.approx(hours["loads_h"] + hours["training_h"] + hours["evaluation_h"])
     assert hours["flop_bound_h_40"] == pytest.approx(hours["flop_bound_h_100"] / 0.4)
-    assert hours["rows"] == 2 * 2 * 3 * (4 * 6 + 2)  # paper.toml: 2 backbones x 2 suites x 3 seeds x its kinds
+    # paper.toml with one encoder: 2 backbones x 2 suites x 3 seeds x (the plain graft + 5 encoder-reading
+    # controls + the 2 native ones)
+    assert protocol["recipe"]["encoders"] == ["dinov2-s"] and hours["rows"] == 2 * 2 * 3 * (1 + 5 + 2)
     zoo = data["stages"]["6_zoo"]
     assert zoo["pi0"]["status"] == "ok" and zoo["pi0"]["step_s"] > 0 and zoo["pi0"]["step_flops"] > 0
     skipped = set(BACKBONES) - {"smolvla", "pi05", "pi0"}
