@@ -63,17 +63,16 @@ from torch.utils.flop_counter import FlopCounterMode  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT), str(ROOT / "benchmarks")]
 
-from devtools.released import CONFIGS, LIBERO, Recipe, materialise, on_device, unit_stats  # noqa: E402
+import bench_protocol as bp  # noqa: E402  (the GPU peaks, a sync, the protocol's measurements)
+
+from devtools.released import CONFIGS, LIBERO, Recipe, built_on, on_device, unit_stats  # noqa: E402
 from graftcache.backbone_table import BACKBONES  # noqa: E402
 from graftcache.backbones import TinySpec, load_backbone  # noqa: E402
-from graftcache.backbones.lean import construct  # noqa: E402
 from graftcache.fit.loop import Learner, alone, flow_time, optimise_together  # noqa: E402
 from graftcache.fit.step_bytes import peak_step_bytes  # noqa: E402
 from graftcache.graft import FusedProjector, GraftProjector, feature_key  # noqa: E402
 from graftcache.runtime import autocast, resolve_compute_dtype, resolve_device, resolve_dtype  # noqa: E402
 
-#: Dense bf16 tensor-core peaks (TFLOP/s, no sparsity) from the vendors' data sheets (bench_protocol's table).
-GPU_PEAKS = {"H200": 989.0, "H100": 989.0, "A100": 312.0, "L40S": 362.0, "L4": 121.0}
 ENC_WIDTH = 768  # SigLIP-B's width: the graft's input in stages 2-6 (the cost hardly depends on it)
 TINY_ENC = 48
 TASK = "put the black bowl on the plate"
@@ -162,15 +161,10 @@ def peak_flops(device: torch.device) -> tuple[float | None, str]:
     if device.type != "cuda":
         return None, "cpu: no peak (MFU is for GPUs)"
     name = torch.cuda.get_device_name(device)
-    for key, tflops in GPU_PEAKS.items():
+    for key, tflops in bp.GPU_PEAKS.items():
         if key in name:
             return tflops * 1e12, f"{name}: {tflops:g} TFLOP/s dense bf16 (data sheet)"
     return None, f"{name}: no bf16 peak known"
-
-
-def sync(device: torch.device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
 
 
 def free(device: torch.device) -> None:
@@ -401,13 +395,8 @@ def built(name: str, device: torch.device, tiny: bool, hub: Path):
         return on_device(name, device, cache=hub)
     spec = TinySpec()
     base = load_backbone(name, "tiny", device="cpu", dataset_stats=tiny_stats(spec), tiny=spec)
-    cls, config, marker = type(base), base.policy.config, base.tiny_marker
-    config.device = str(device)
-    policy = construct(lambda: cls._construct(config, marker), config)
-    materialise(policy, device)
-    policy.eval()
-    pre, post = cls._make_processors(policy.config, tiny_stats(spec), marker)
-    return cls(policy, pre, post, source=f"tiny {name} on {device}", random_init=True, tiny_marker=marker)
+    return built_on(type(base), base.policy.config, device, tiny_stats(spec), source=f"tiny {name} on {device}",
+                    marker=base.tiny_marker)
 
 
 def step_flops(adapter, feats: torch.Tensor, batch: int, dtype: torch.dtype) -> int:
@@ -417,7 +406,7 @@ def step_flops(adapter, feats: torch.Tensor, batch: int, dtype: torch.dtype) -> 
     with FlopCounterMode(display=False) as counter:
         optimise_together(adapter, learners(adapter, [projector], feats, batch), steps=1, batch_size=batch,
                           dtype=dtype, route=route, show=False)
-    sync(adapter.device)
+    bp.sync(adapter.device)
     return counter.get_total_flops()
 
 
@@ -430,7 +419,7 @@ def time_step(adapter, feats: torch.Tensor, batch: int, dtype: torch.dtype, cell
     projectors, route = graft_cells(adapter, cells, feats.shape[-1])
     adapter.set_activation_checkpointing(checkpointing)
     group = learners(adapter, projectors, feats, batch)
-    sync(device)
+    bp.sync(device)
     base = torch.cuda.memory_allocated(device) if device.type == "cuda" else None
     reset_peak(device)
     times: list[float] = []
@@ -439,7 +428,7 @@ def time_step(adapter, feats: torch.Tensor, batch: int, dtype: torch.dtype, cell
         for i in range(repeats + 1):
             t0 = time.perf_counter()
             optimise_together(adapter, group, steps=1, batch_size=batch, dtype=dtype, route=route, show=False)
-            sync(device)
+            bp.sync(device)
             if i:
                 times.append(time.perf_counter() - t0)
     except torch.OutOfMemoryError as exc:
@@ -615,8 +604,6 @@ def protocol(report: Report, adapters: dict, device: torch.device, dtype: torch.
     with report.check(stage, "recipe", need_s=60) as out:
         if out is None:
             return
-        import bench_protocol as bp
-
         from graftcache.encoders import load_encoder
         from graftcache.recipe import load_recipe
 

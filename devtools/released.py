@@ -406,22 +406,29 @@ def on_device(name: str, device: str | torch.device, *, cache: Path, recipe: Rec
     with its parameters on the meta device, then `materialise`): the graftcache adapter with the policy's own
     processors over identity stats. Its `source` says what it is; `random_init` is True."""
     from graftcache.backbones import get_backbone
-    from graftcache.backbones.lean import construct
 
     if name not in CONFIGS:
         raise ValueError(f"no released-geometry config for {name!r} (devtools.released knows {', '.join(CONFIGS)})")
     device = torch.device(device)
-    adapter_cls = get_backbone(name)
     cache = Path(cache)
     with hub_cache(cache), quiet():
-        config = CONFIGS[name](cache, recipe)
-        config.device = str(device)
-        policy = construct(lambda: adapter_cls._construct(config, None), config)
-        materialise(policy, device, seed)
-        policy.eval()
-        pre, post = adapter_cls._make_processors(policy.config, unit_stats(recipe), None)
-    return adapter_cls(policy, pre, post, source=f"{name} released geometry, random init on {device}",
-                       random_init=True)
+        return built_on(get_backbone(name), CONFIGS[name](cache, recipe), device, unit_stats(recipe),
+                        source=f"{name} released geometry, random init on {device}", seed=seed)
+
+
+def built_on(adapter_cls, config, device: torch.device, stats: dict, *, source: str, marker: dict | None = None,
+             seed: int = 0):
+    """The adapter of a random-init policy of `config` built on `device`: lerobot's constructor (at a tiny
+    `marker`'s sizes where given) with its parameters on the meta device, `materialise`, and the policy's own
+    processors over `stats`."""
+    from graftcache.backbones.lean import construct
+
+    config.device = str(device)
+    policy = construct(lambda: adapter_cls._construct(config, marker), config)
+    materialise(policy, device, seed)
+    policy.eval()
+    pre, post = adapter_cls._make_processors(policy.config, stats, marker)
+    return adapter_cls(policy, pre, post, source=source, random_init=True, tiny_marker=marker)
 
 
 BUILDERS = {"smolvla": build_smolvla, "pi05": build_pi05}
