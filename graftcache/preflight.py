@@ -46,7 +46,8 @@ def check_inputs(recipe: Recipe) -> list[str]:
     for suite, episodes in _suite_episodes(recipe, meta).items():
         fit = fits[0]  # the split depends on the suite and the [fit] settings alone
         try:
-            split = split_episodes(episodes, eval_fraction=fit.eval_fraction, seed=fit.eval_split_seed)
+            split = split_episodes(episodes, eval_fraction=fit.eval_fraction, seed=fit.eval_split_seed,
+                                   rule=fit.eval_split)
         except GraftcacheError as e:
             raise RecipeError(f"{recipe.path}: suite {suite!r} of {meta.root}: {e}") from None
         notes.append(f"suite     {suite}: {len(split.train_episodes)} train / {len(split.eval_episodes)} "

@@ -133,6 +133,9 @@ NATIVE_CONTROL = "native"              # the policy's own tower, no graft: the o
 NATIVE_GRAFT_CONTROL = "native-graft"  # the policy's own tower through the graft
 CONTROLS = (NATIVE_CONTROL, NATIVE_GRAFT_CONTROL, "zero-image", "shuffled-image", "lora")
 POOL_PREFIX = "pool-"
+#: Which episodes of each task a fit holds out (graftcache.fit.data.SPLITS implements each; tests/test_settings.py
+#: keeps the two equal): graftcache's seeded draw (the default), or lerobot's last ceil(n * eval_fraction).
+EVAL_SPLITS = ("graftcache", "lerobot")
 #: Activation checkpointing of the frozen LM and expert (graftcache/backbones/recompute.py): `auto` turns it on
 #: when a training step would not fit the device's memory without it (graftcache/fit/step_memory.py).
 CHECKPOINTING_MODES = ("auto", "on", "off")
@@ -185,6 +188,11 @@ class FitRequest(Checked):
         "process (--num-workers 0), up to as much again of read blocks is kept for the next cells")
     eval_fraction: float = setting(0.2, rule=FRACTION, help="held-out share of each task's episodes")
     eval_split_seed: int = setting(0, rule=SEED)
+    eval_split: str = setting(
+        EVAL_SPLITS[0], choices=EVAL_SPLITS, flag="--split",
+        help="which --eval-fraction of each task's episodes is held out: graftcache (drawn with --eval-split-seed) or "
+        "lerobot (the last ceil(n * fraction), as `lerobot-train --dataset.eval_split` holds out, to compare with "
+        "lerobot's validation); rows record it (eval_split)")
     eval_frames: int | None = setting(None, rule=POSITIVE, help="cap on scored held-out frames (evenly spaced)")
     eval_batch_size: int = setting(64, rule=POSITIVE, help="held-out frames denoised at once (memory, not the "
                                    "scores); rows record eval_seconds_per_frame")

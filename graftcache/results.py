@@ -47,14 +47,21 @@ from graftcache.store.lease import lease_seconds
 #: ms; a dead, empty or other machine's lease file is waited on until it is judged stale: graftcache.file_lease).
 WAIT_TOLD_S = 1.0
 
-#: The format of results rows and of the cells their run_ids hash (graftcache.fit.run.Cell). Files of an older
-#: format go through `upgrade`, the one place that knows them. Format 3 (issue 23, one word per idea) renamed no
-#: column but changed what cells hold (`pool_grid` is the resolved grid, never "native"), hence every run_id.
-FORMAT_VERSION = 3
+#: The format of results rows. Files of an older format go through `upgrade`, the one place that knows them. Format 3
+#: (issue 23, one word per idea) renamed no column but changed what cells hold (`pool_grid` is the resolved grid,
+#: never "native"), hence every run_id. Format 4 (issue 31) added columns and one cell field, `eval_split`, hashed
+#: only off its default (graftcache.fit.run.Cell.run_id), so its cells hash as format 3's: format 3 rows are upgraded.
+FORMAT_VERSION = 4
+#: The shape of the cells run_ids hash (graftcache.fit.run.Cell, whose `format_version` field holds it): rows of
+#: formats CELL_FORMAT..FORMAT_VERSION name the same cell by the same run_id, so a rerun skips what any of them holds.
+CELL_FORMAT = 3
+#: What a format 3 row held, without a column for it, in a column format 4 added (every other added column is
+#: null there: format 3 did not measure it): every format 3 cell was split the graftcache way.
+FORMAT_3_VALUES: dict[str, Any] = {"eval_split": "graftcache"}
 
 SCHEMA: dict[str, pl.DataType] = {
     "run_id": pl.String,
-    "format_version": pl.Int64,       # FORMAT_VERSION of the row and of the cell its run_id hashes
+    "format_version": pl.Int64,       # FORMAT_VERSION of the row (the cell its run_id hashes: CELL_FORMAT)
     "backbone": pl.String,            # a graftcache.backbone_table.BACKBONES name, e.g. "smolvla"
     "backbone_params": pl.Int64,      # parameters of the policy as loaded (before the graft): the analysis
                                       # orders backbones by it (graftcache/analysis/ladder.py)
@@ -83,6 +90,12 @@ SCHEMA: dict[str, pl.DataType] = {
     "n_eval_frames": pl.Int64,
     "n_eval_episodes": pl.Int64,
     "eval_split_seed": pl.Int64,
+    "eval_split": pl.String,          # which episodes of each task are held out (graftcache.fit.data.SPLITS):
+                                      # "graftcache" (seeded draw) | "lerobot" (the last ceil(n * eval_fraction))
+    "eval_mse_arm": pl.Float64,       # eval_mse over the first action_dim - 1 dims (LIBERO: the 6-d end-effector
+                                      # delta), normalised units; null: 1-d actions, or a row of format 3
+    "eval_mse_gripper": pl.Float64,   # eval_mse over the last action dim (LIBERO: the gripper), normalised units;
+                                      # per frame eval_mse = ((A - 1) * arm + gripper) / A; null: a format 3 row
     "wall_s": pl.Float64,             # a cell trained in a pass of several: its share (the pass's wall time / cells)
     "cells_per_pass": pl.Int64,       # cells trained in the backbone pass that produced the row (1: alone)
     "device": pl.String,
@@ -231,14 +244,17 @@ def read(path: str | Path) -> pl.DataFrame:
 
 
 def upgrade(rows: pl.DataFrame, path: Path) -> pl.DataFrame:
-    """The one upgrade path for results files: rows of this format as they are; rows of an older format (format 1
-    had no format_version column; format 2 hashed `pool_grid="native"` and the format version 2 into its run_ids)
-    are refused in one line with the commands that rebuild them, since their run_ids hash cells of another
-    shape: a rerun could not skip their cells and would write each twice. Rows of a newer format (a later
-    graftcache wrote them) and tables that are no graftcache results at all (no run_id or report column) are
-    refused as such."""
+    """The one upgrade path for results files: rows of this format as they are; rows of format 3 (their run_ids
+    hash cells as this format's do: CELL_FORMAT) with the columns format 4 added, each holding FORMAT_3_VALUES'
+    value or null; rows of an older format (format 1 had no format_version column; format 2 hashed
+    `pool_grid="native"` and the format version 2 into its run_ids) are refused in one line with the commands
+    that rebuild them, since their run_ids hash cells of another shape: a rerun could not skip their cells and
+    would write each twice. Rows of a newer format (a later graftcache wrote them) and tables that are no
+    graftcache results at all (no run_id or report column) are refused as such."""
     if "format_version" in rows.columns and rows["format_version"].eq(FORMAT_VERSION).all():
         return rows
+    if "format_version" in rows.columns and rows["format_version"].is_in([CELL_FORMAT, FORMAT_VERSION]).all():
+        return _from_format_3(rows)
     lacking = [c for c in ("run_id", *REPORT_COLUMNS) if c not in rows.columns]
     if lacking:
         raise ResultsError(f"{path}: not a graftcache results table (no column {', '.join(lacking)}); pass another "
@@ -249,13 +265,25 @@ def upgrade(rows: pl.DataFrame, path: Path) -> pl.DataFrame:
             raise ResultsError(f"{path}: {newer.height} row(s) of results format {newer['format_version'].max()}, "
                                f"newer than this graftcache's ({FORMAT_VERSION}, graftcache {graftcache.__version__}): "
                                "read it with the graftcache that wrote it, or pass another --results")
-    old = rows if "format_version" not in rows.columns else rows.filter(pl.col("format_version") != FORMAT_VERSION)
+    old = rows if "format_version" not in rows.columns else rows.filter(pl.col("format_version") < CELL_FORMAT)
     recorded = old["command"].drop_nulls().unique(maintain_order=True).to_list() if "command" in old.columns else []
     commands = [c for c in recorded if c.startswith("graftcache ")]  # graftcache < issue 29 recorded `fit` alone
     rebuild = f"`{commands[0]}`" if commands else "the fits or sweeps that wrote them (its rows record no command line)"
     more = f" (and {len(commands) - 1} other command(s) its rows record)" if len(commands) > 1 else ""
-    raise ResultsError(f"{path}: {old.height} row(s) of an older results format than {FORMAT_VERSION} (run_ids "
+    raise ResultsError(f"{path}: {old.height} row(s) of an older results format than {CELL_FORMAT} (run_ids "
                        f"of cells of another shape); move the file aside and rebuild it: {rebuild}{more}")
+
+
+def _from_format_3(rows: pl.DataFrame) -> pl.DataFrame:
+    """Rows of formats 3 and 4 as format 4: the columns format 3 lacked added, null but where FORMAT_3_VALUES
+    knows what its rows held (also filled on format 3 rows of a table that has the column)."""
+    was_3 = pl.col("format_version") == CELL_FORMAT
+    added = rows.with_columns(pl.lit(None, dtype=t).alias(c) for c, t in SCHEMA.items() if c not in rows.columns)
+    return added.with_columns(
+        *(pl.when(was_3).then(pl.col(c).fill_null(pl.lit(v, dtype=SCHEMA[c]))).otherwise(pl.col(c)).alias(c)
+          for c, v in FORMAT_3_VALUES.items()),
+        format_version=pl.lit(FORMAT_VERSION, dtype=pl.Int64),
+    )
 
 
 def read_for_report(path: str | Path) -> pl.DataFrame:

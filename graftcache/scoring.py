@@ -10,6 +10,11 @@ CI-MSE (critical-interval MSE) is the same squared error restricted to the chunk
 critical interval of their episode (graftcache/critical.py states the rule): the mean over every critical
 (frame, chunk step) pair and action dimension, in normalised units, padded steps never included. It is null
 for a split (or an episode) whose scored chunks reach no critical step.
+
+The full-chunk error is also split by action dimension, from the same per-frame squared errors: the arm (the
+end-effector dimensions, the first action_dim - 1: LIBERO's 6-d delta pose) and the gripper (the last
+dimension). Per frame the full-chunk error is their mix weighted by dimensions, ((A-1) * arm + gripper) / A, so a
+score that ranks encoders by the arm alone shows whether the gripper's one dimension drives eval_mse.
 """
 
 from __future__ import annotations
@@ -27,6 +32,8 @@ class Score:
     mse: float            # full chunk, normalised units, padded steps excluded
     mse_first: float      # first action of the chunk, normalised units
     mse_raw: float        # full chunk, raw action units
+    mse_arm: float | None  # full chunk, normalised units, the first action_dim - 1 dims (None: 1-d actions)
+    mse_gripper: float    # full chunk, normalised units, the last action dim
     n_frames: int
     per_episode: dict[int, float]  # normalised full-chunk MSE per held-out episode (for bootstraps)
     ci_mse: float | None  # normalised MSE over the critical chunk steps (None: no critical step was scored)
@@ -66,6 +73,8 @@ def score_chunks(pred_norm: torch.Tensor, target_norm: torch.Tensor, pred_raw: t
     per_frame = masked_mse(pred_norm, target_norm, pad)
     first = ((pred_norm[:, 0] - target_norm[:, 0]) ** 2).mean(-1)
     raw = masked_mse(pred_raw, target_raw, pad)
+    arm = masked_mse(pred_norm[..., :-1], target_norm[..., :-1], pad) if pred_norm.shape[-1] > 1 else None
+    gripper = masked_mse(pred_norm[..., -1:], target_norm[..., -1:], pad)
     critical = critical & ~pad
     per_ep, ci_per_ep = {}, {}
     for e in np.unique(episodes):
@@ -73,5 +82,6 @@ def score_chunks(pred_norm: torch.Tensor, target_norm: torch.Tensor, pred_raw: t
         per_ep[int(e)] = float(per_frame[at].mean())
         ci_per_ep[int(e)] = critical_mse(pred_norm[at], target_norm[at], critical[at])
     ci = critical_mse(pred_norm, target_norm, critical)
-    return Score(float(per_frame.mean()), float(first.mean()), float(raw.mean()), len(per_frame), per_ep, ci,
+    return Score(float(per_frame.mean()), float(first.mean()), float(raw.mean()),
+                 None if arm is None else float(arm.mean()), float(gripper.mean()), len(per_frame), per_ep, ci,
                  ci_per_ep)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import math
 import shutil
 from contextlib import closing
 from pathlib import Path
@@ -80,6 +81,10 @@ def test_every_control_writes_one_schema_valid_row(world: World, tmp_path: Path)
         # held-out chunk reaches a critical step
         assert np.isfinite(row["eval_ci_mse"]) and np.isfinite(row["eval_ci_mse_episodes"]).all()
         assert len(row["eval_ci_mse_episodes"]) == row["n_eval_episodes"]
+        # 7-d LIBERO actions: per frame eval_mse averages 6 arm dims and the gripper, so the dims-weighted mean of
+        # the two parts is eval_mse (frames and chunk steps weigh the same in all three)
+        assert (6 * row["eval_mse_arm"] + row["eval_mse_gripper"]) / 7 == pytest.approx(row["eval_mse"], rel=1e-6)
+        assert row["eval_split"] == "graftcache" and row["format_version"] == results.FORMAT_VERSION == 4
     # the policy as loaded, counted before the graft: every control of one backbone records the same size
     assert {r["backbone_params"] for r in by.values()} == {world.policy_params("smolvla")}
     # Prismatic's habit: every cell logs which modules are frozen and which train
@@ -183,6 +188,49 @@ def test_split_holds_out_episodes_within_each_task() -> None:
     assert sorted(e % 3 for e in split.eval_episodes) == [0, 1, 2]  # one per task
     assert split == split_episodes(index, eval_fraction=0.25, seed=7)
     assert split != split_episodes(index, eval_fraction=0.25, seed=8)
+
+
+def test_the_lerobot_split_holds_out_the_last_ceil_n_f_episodes_of_each_task() -> None:
+    """As `lerobot-train --dataset.eval_split f` holds them out: per task, its episodes in episode order, the last
+    ceil(n * f). Tasks of 1, 3, 4 and 25 episodes, interleaved (episode e belongs to task TASK[e])."""
+    tasks = [0] + [1] * 3 + [2] * 4 + [3] * 25
+    order = np.random.default_rng(0).permutation(len(tasks))  # episode indices shuffled across tasks
+    episode_task = {int(e): t for e, t in zip(order, tasks)}
+    index = pl.DataFrame({"episode_index": [e for e in episode_task for _ in range(2)],
+                          "task_index": [episode_task[e] for e in episode_task for _ in range(2)]})
+    of = {t: sorted(e for e, k in episode_task.items() if k == t) for t in range(4)}
+    # f = 0.25: ceil(0.25) = 1 (the single episode too: lerobot holds it out), ceil(0.75) = 1, ceil(1.0) = 1,
+    # ceil(6.25) = 7
+    split = split_episodes(index, eval_fraction=0.25, seed=7, rule="lerobot")
+    assert split.eval_episodes == tuple(sorted([*of[0], of[1][-1], of[2][-1], *of[3][-7:]]))
+    assert split.train_episodes == tuple(sorted([*of[1][:2], *of[2][:3], *of[3][:18]]))
+    assert split.rule == "lerobot"  # and it draws nothing: another seed holds out the same episodes
+    assert dataclasses.replace(split_episodes(index, eval_fraction=0.25, seed=8, rule="lerobot"), seed=7) == split
+    # f = 0.28: 25 * 0.28 is 7.000000000000001 in floats, whose ceil lerobot takes: 8 episodes, not 7
+    assert 25 * 0.28 > 7
+    held = split_episodes(index, eval_fraction=0.28, seed=0, rule="lerobot").eval_episodes
+    assert [e for e in held if episode_task[e] == 3] == of[3][-8:]
+    assert [e for e in held if episode_task[e] == 2] == of[2][-2:]  # ceil(1.12) = 2
+    with pytest.raises(FitError, match="holds out every episode"):
+        split_episodes(index.filter(pl.col("task_index") == 0), eval_fraction=0.5, seed=0, rule="lerobot")
+
+
+def test_a_lerobot_split_cell_is_its_own_cell_and_holds_out_the_last_episodes(world: World, tmp_path: Path) -> None:
+    out = tmp_path / "r.parquet"
+    default = Fitter(world.request(controls=(), seeds=(0,), results=str(out)), log=_quiet)
+    fitter = Fitter(world.request(controls=(), seeds=(0,), results=str(out), eval_split="lerobot"), log=_quiet)
+    (row,) = fitter.run()
+    ((_, _, cell),) = fitter.cells()
+    ((_, _, plain),) = default.cells()
+    assert row["eval_split"] == "lerobot" and row["run_id"] == cell.run_id != plain.run_id
+    assert dataclasses.replace(cell, eval_split="graftcache").run_id == plain.run_id
+    episodes = fitter.index.group_by("task_index").agg(pl.col("episode_index").unique().sort())
+    fraction = world.request().eval_fraction
+    last = sorted(e for eps in episodes["episode_index"].to_list()
+                  for e in eps[len(eps) - math.ceil(len(eps) * fraction):])
+    sidecar = json.loads((fitter.run_folder(cell) / "projector.json").read_text())
+    assert sidecar["split"]["eval_episodes"] == last and sidecar["split"]["rule"] == "lerobot"
+    assert row["n_eval_episodes"] <= len(last)
 
 
 def test_align_fits_in_closed_form(world: World, tmp_path: Path) -> None:
@@ -306,7 +354,8 @@ def test_cell_run_ids_are_pinned() -> None:
     format. The run_ids changed on purpose when fits began to stream (issue 12: `buffer_mib` joined the cell),
     with results format 2 (issue 23: every field hashed, `camera_map` and `format_version` included) and with
     format 3 (issue 23: `pool_grid` the resolved grid, never "native"); rows of earlier formats are refused by
-    results.upgrade. Each is checked against its fields hashed here, every field by name."""
+    results.upgrade. Results format 4 (issue 31) kept them: its one new cell field, `eval_split`, is hashed only off
+    its default ("lerobot" below). Each is checked against its fields hashed here, every field by name."""
     fields = dict(backbone="smolvla", policy="tiny:tiny-smolvla-0123456789ab", cache_key="siglip-0123456789abcdef",
                   suite="libero_spatial", seed=1, control="none", pool_grid="8x8", objective="flow", steps=300,
                   lr=1e-3, batch_size=16, buffer_mib=2048, lora_rank=0, eval_fraction=0.2, eval_split_seed=0,
@@ -315,8 +364,8 @@ def test_cell_run_ids_are_pinned() -> None:
     changes = {"native": dict(control="native", objective="eval", steps=0, lr=0.0, batch_size=0, buffer_mib=0,
                               cache_key="smolvla-native-00aa", seed=0),
                "lora": dict(control="lora", lora_rank=8, eval_frames=40, num_denoise_steps=4),
-               "mapped": dict(camera_map="image=agentview")}
-    assert results.FORMAT_VERSION == 3
+               "mapped": dict(camera_map="image=agentview"), "lerobot": dict(eval_split="lerobot")}
+    assert results.CELL_FORMAT == 3
     assert plain.run_id == _run_id(**fields, camera_map=None, format_version=3)
     for name, change in changes.items():
         got = dataclasses.replace(plain, **change).run_id

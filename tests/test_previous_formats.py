@@ -75,7 +75,23 @@ def test_a_previous_format_results_file_is_refused_in_one_line(tmp_path: Path, c
     table([row("smolvla", "libero_spatial", "siglip", 2, 0.4)]).write_parquet(kept)
     assert main(["merge-rows", str(kept), "--results", str(old)]) == 2
     assert capsys.readouterr().err == f"graftcache merge-rows: error: {line}\n"
-    assert results.read(kept)["format_version"].to_list() == [3]  # this format's rows read as they are
+    assert results.read(kept)["format_version"].to_list() == [results.FORMAT_VERSION]  # read as they are
+
+
+def test_format_3_rows_are_read_as_format_4_with_their_run_ids(tmp_path: Path) -> None:
+    """Format 4 added columns and a cell field hashed only off its default (issue 31): a format 3 row names its cell
+    by the run_id format 4 gives it, so it is upgraded, not refused: split the graftcache way, arm and gripper
+    MSEs null (not measured then), and appending to it rewrites the file as format 4."""
+    old = tmp_path / "old.parquet"
+    rows = table([row("smolvla", "libero_spatial", "siglip", seed, 0.5) for seed in (0, 1)])
+    previous_results(old, rows, 3)
+    assert "eval_split" not in pl.read_parquet(old).columns
+    read = results.read(old)
+    assert read["run_id"].to_list() == rows["run_id"].to_list()
+    assert read["format_version"].to_list() == [4, 4] and read["eval_split"].to_list() == ["graftcache"] * 2
+    assert read["eval_mse_arm"].null_count() == read["eval_mse_gripper"].null_count() == 2
+    results.append(old, table([row("smolvla", "libero_spatial", "siglip", 2, 0.4, eval_split="graftcache")]))
+    assert pl.read_parquet(old)["format_version"].to_list() == [4, 4, 4]
 
 
 
@@ -95,7 +111,7 @@ def test_a_newer_results_file_is_called_newer(tmp_path: Path) -> None:
                              results.FORMAT_VERSION + 1)
     with pytest.raises(ResultsError) as refused:
         results.read(newer)
-    assert str(refused.value).startswith(f"{newer}: 1 row(s) of results format 4, newer than this graftcache's (3, ")
+    assert str(refused.value).startswith(f"{newer}: 1 row(s) of results format 5, newer than this graftcache's (4, ")
     assert "older" not in str(refused.value)
 
 

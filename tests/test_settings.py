@@ -16,14 +16,15 @@ from graftcache.cli import build_parser
 from graftcache.cli.common import add_flags, request_from
 from graftcache.errors import GraftcacheError
 from graftcache.recipe import SECTION_KEYS
-from graftcache.requests import CONTROLS, OBJECTIVES, ExecutorSettings, ExtractRequest, FitRequest
+from graftcache.requests import CONTROLS, EVAL_SPLITS, OBJECTIVES, ExecutorSettings, ExtractRequest, FitRequest
 from graftcache.settings import Checked, declared, recipe_keys, setting
 from graftcache.sweep import command_line
 
 FIT = FitRequest(backbone="pi05", encoder="dinov2-s", suite="libero_goal", policy="/ckpt", dataset="/data",
                  cache_key="k1", native_cache_key="k2", camera_map="image=agentview,image2=wrist", seeds=(3,),
                  controls=("zero-image", "pool-4x4"), objective="align", steps=7, lr=2.5e-4, batch_size=5,
-                 buffer_mib=64, eval_fraction=0.25, eval_split_seed=9, eval_frames=11, num_denoise_steps=3,
+                 buffer_mib=64, eval_fraction=0.25, eval_split_seed=9, eval_split="lerobot", eval_frames=11,
+                 num_denoise_steps=3,
                  lora_rank=2, eval_batch_size=6, activation_checkpointing="on", device="cuda:1", num_workers=0,
                  cells_per_pass=3,
                  compute_dtype="fp32", results="/r.parquet", out="/o",
@@ -93,10 +94,12 @@ def test_no_command_takes_a_bare_dtype(command: list[str], capsys: pytest.Captur
 def test_plain_choices_name_what_the_registries_implement() -> None:
     """The CLI's choices are plain data (building the parser imports no torch); each names a registered entry."""
     from graftcache.fit.controls import CONTROLS as REGISTERED
+    from graftcache.fit.data import SPLITS
     from graftcache.fit.objectives import OBJECTIVES as IMPLEMENTED
 
     assert OBJECTIVES == tuple(IMPLEMENTED)
     assert set(CONTROLS) == set(REGISTERED) - {"none"}
+    assert EVAL_SPLITS == tuple(SPLITS)
 
     from graftcache.analysis.scores import SCORES
     from graftcache.cli.report import SCORE_NAMES

@@ -211,6 +211,9 @@ def test_streamed_scoring_equals_scoring_written_out_here(cache: FeatureCache) -
     assert score.mse == pytest.approx(per_frame.mean(), rel=1e-5)
     assert score.mse_first == pytest.approx(((pred[:, 0] - target[:, 0]) ** 2).mean(), rel=1e-5)
     assert score.mse_raw == pytest.approx(raw_mse, rel=1e-5)
+    for part, dims in ((score.mse_arm, slice(0, -1)), (score.mse_gripper, slice(-1, None))):  # arm: all but the last
+        err = ((pred[..., dims] - target[..., dims]) ** 2).mean(-1)
+        assert part == pytest.approx(((err * valid).sum(-1) / valid.sum(-1)).mean(), rel=1e-5)
     for episode in np.unique(low.episode_index):
         assert score.per_episode[int(episode)] == pytest.approx(per_frame[low.episode_index == episode].mean(),
                                                                  rel=1e-5)

@@ -2,14 +2,14 @@
 
 Only the low-dim part of a suite is held in memory (`LowDim`: state, task, where each frame's action chunk
 lies in the action stream); features are read block by block where they are used (graftcache.fit.stream,
-through `read_grid`). The held-out split is by episode within each task, with a fixed split seed that is
-recorded in every results row.
+through `read_grid`). The held-out split is by episode within each task, by one of two rules (SPLITS) recorded
+in every results row with the split seed.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -29,30 +29,58 @@ POOL_READ_BYTES = 2**28
 
 @dataclass(frozen=True)
 class Split:
-    """Episode split, per task: `eval_fraction` of each task's episodes (at least one when a task
-    has two or more) are held out, chosen by a generator seeded with `seed`."""
+    """Episode split, per task, by the rule `rule` names (SPLITS): `eval_fraction` of each task's episodes held
+    out (`seed` seeds the graftcache rule's draw; the lerobot rule draws nothing)."""
 
     train_episodes: tuple[int, ...]
     eval_episodes: tuple[int, ...]
     seed: int
     eval_fraction: float
+    rule: str = "graftcache"
 
 
-def split_episodes(index: pl.DataFrame, *, eval_fraction: float, seed: int) -> Split:
-    """Split the episodes of `index` (columns episode_index, task_index) by task."""
+def _drawn(episodes: list[int], fraction: float, rng: np.random.Generator) -> list[int]:
+    """graftcache's rule: round(n * fraction) of a task's n episodes (at least one when it has two or more),
+    drawn by the split seed's generator, so no part of a recording session is favoured."""
+    n_eval = max(1, round(fraction * len(episodes))) if len(episodes) >= 2 else 0
+    return [episodes[i] for i in rng.permutation(len(episodes))[:n_eval]]
+
+
+def _last(episodes: list[int], fraction: float, _: np.random.Generator) -> list[int]:
+    """lerobot's rule (`lerobot-train --dataset.eval_split`, lerobot.datasets.factory.make_train_eval_datasets):
+    the last ceil(n * fraction) of a task's n episodes in episode order, computed as lerobot computes it (the same
+    float product, so the same episodes), so graftcache's scores and lerobot's validation loss see one split."""
+    return episodes[len(episodes) - math.ceil(len(episodes) * fraction):]
+
+
+#: How each split rule picks a task's held-out episodes from its sorted episodes (graftcache.requests.EVAL_SPLITS
+#: names them for the CLI; tests/test_settings.py keeps the two equal). "graftcache" is the default, and cells split
+#: by it keep the run_ids they had before the rule was a setting (graftcache.fit.run.Cell.run_id).
+SPLITS: dict[str, Callable[[list[int], float, np.random.Generator], list[int]]] = {
+    "graftcache": _drawn,
+    "lerobot": _last,
+}
+
+
+def split_episodes(index: pl.DataFrame, *, eval_fraction: float, seed: int, rule: str = "graftcache") -> Split:
+    """Split the episodes of `index` (columns episode_index, task_index) by task, by `rule` (a SPLITS name)."""
     if not 0.0 < eval_fraction < 1.0:
         raise FitError(f"--eval-fraction must be in (0, 1), got {eval_fraction}")
+    if rule not in SPLITS:
+        raise FitError(f"--split {rule!r}: choose one of {', '.join(SPLITS)}")
     rng = np.random.default_rng(seed)
     per_task = (index.group_by("task_index").agg(pl.col("episode_index").unique().sort()).sort("task_index"))
     train, held = [], []
     for episodes in per_task["episode_index"].to_list():
-        order = rng.permutation(len(episodes))
-        n_eval = max(1, round(eval_fraction * len(episodes))) if len(episodes) >= 2 else 0
-        held += [episodes[i] for i in order[:n_eval]]
-        train += [episodes[i] for i in order[n_eval:]]
+        out = set(SPLITS[rule](episodes, eval_fraction, rng))
+        held += [e for e in episodes if e in out]
+        train += [e for e in episodes if e not in out]
     if not held:
         raise FitError("no episode can be held out: every task has a single episode")
-    return Split(tuple(sorted(train)), tuple(sorted(held)), seed, eval_fraction)
+    if not train:
+        raise FitError(f"--split {rule} with --eval-fraction {eval_fraction} holds out every episode: nothing to "
+                       "train on")
+    return Split(tuple(sorted(train)), tuple(sorted(held)), seed, eval_fraction, rule)
 
 
 @dataclass

@@ -64,8 +64,10 @@ __all__ = ["Cell", "FitRequest", "Fitter"]
 @dataclass(frozen=True)
 class Cell:
     """What identifies one results row: every field, by name and value, is hashed into the row's run_id, with the
-    results format (`format_version`); a change of its shape is a new results.FORMAT_VERSION, whose
-    results.upgrade says what becomes of older rows."""
+    shape of cells (`format_version`: results.CELL_FORMAT); a change of its shape is a new results.FORMAT_VERSION,
+    whose results.upgrade says what becomes of older rows. A field added since CELL_FORMAT is hashed only where it
+    differs from what every cell of that format held (results.FORMAT_3_VALUES), so that a cell format 3 could
+    express keeps its run_id."""
 
     backbone: str
     policy: str
@@ -87,11 +89,13 @@ class Cell:
     num_denoise_steps: int | None
     compute_dtype: str
     camera_map: str | None = None  # canonical text, only when a policy camera is fed by another name
-    format_version: int = results.FORMAT_VERSION
+    eval_split: str = "graftcache"  # which episodes are held out (graftcache.fit.data.SPLITS)
+    format_version: int = results.CELL_FORMAT
 
     @property
     def run_id(self) -> str:
-        return results.make_run_id(asdict(self))
+        known = results.FORMAT_3_VALUES
+        return results.make_run_id({k: v for k, v in asdict(self).items() if not (k in known and known[k] == v)})
 
     def row(self, req: FitRequest, measured: Mapping[str, Any]) -> dict[str, Any]:
         """The results row: each SCHEMA column from what the cell measured, else the cell, else the request
@@ -158,7 +162,8 @@ class Fitter:
                                             cache_root(req.cache), self.cache.manifest.dataset.source)
         self.cameras = self._match_cameras()
         self.index = suite_index_table(self.cache, req.suite)
-        self.split = split_episodes(self.index, eval_fraction=req.eval_fraction, seed=req.eval_split_seed)
+        self.split = split_episodes(self.index, eval_fraction=req.eval_fraction, seed=req.eval_split_seed,
+                                    rule=req.eval_split)
         self._materials: dict[tuple, _Material] = {}
         self._pass_keys: dict[str, tuple | None] = {}  # control name -> its pass key
         self._numerics = {} if numerics is None else numerics  # cache key -> verdict, before the first cell runs
@@ -218,7 +223,8 @@ class Fitter:
             objective=objective.name, steps=req.steps if scheduled else 0, lr=req.lr if scheduled else 0.0,
             batch_size=req.batch_size if scheduled else 0, buffer_mib=req.buffer_mib if scheduled else 0,
             lora_rank=req.lora_rank if control.lora else 0,
-            eval_fraction=req.eval_fraction, eval_split_seed=req.eval_split_seed, eval_frames=req.eval_frames,
+            eval_fraction=req.eval_fraction, eval_split_seed=req.eval_split_seed, eval_split=req.eval_split,
+            eval_frames=req.eval_frames,
             num_denoise_steps=req.num_denoise_steps, compute_dtype=req.compute_dtype,
             camera_map=format_camera_map(self.cameras) if renames(self.cameras) else None,
         )
@@ -431,9 +437,11 @@ class Fitter:
         if isinstance(self.root, ReadThroughRoot):  # what the reading processes copied locally for this cell
             self.root.fetched_bytes += stats.fetched
         return cell.row(self.req, {
-            "run_id": cell.run_id, "policy_sha256": adapter.policy_sha256, "encoder": mat.encoder,
+            "run_id": cell.run_id, "format_version": results.FORMAT_VERSION, "policy_sha256": adapter.policy_sha256,
+            "encoder": mat.encoder,
             "pool_grid": format_grid(mat.grid), "train_loss_final": loss, "eval_mse": score.mse,
-            "eval_mse_first": score.mse_first, "eval_mse_raw": score.mse_raw,
+            "eval_mse_first": score.mse_first, "eval_mse_raw": score.mse_raw, "eval_mse_arm": score.mse_arm,
+            "eval_mse_gripper": score.mse_gripper,
             "eval_mse_episodes": [score.per_episode[e] for e in sorted(score.per_episode)],
             "eval_ci_mse": score.ci_mse,
             "eval_ci_mse_episodes": [score.ci_per_episode[e] for e in sorted(score.per_episode)],

@@ -104,6 +104,7 @@ def row(backbone: str, suite: str, encoder: str, seed: int, eval_mse: float | No
         "n_eval_frames": 120,
         "n_eval_episodes": 4,
         "eval_split_seed": 0,
+        "eval_split": "graftcache",
         "wall_s": 1.0,
         "device": "cpu",
         "compute_dtype": "fp32",
