@@ -29,6 +29,9 @@ Statistics (stated once here, cited by the report):
   backbones, per suite and per seed-level cell (one seed's rows alone); a target tier that holds every
   shared encoder is a near-tie band, not a transfer (see graftcache.analysis.transfer).
 
+Given rollouts (graftcache.analysis.rollouts), the offline scores are set against closed-loop success per cell
+(graftcache.analysis.closed_loop: Wilson intervals; Spearman, Kendall tau-b and MMRV over run_ids).
+
 Missing cells are never dropped: they appear as rows with null statistics and a `status`/`note`, and a
 verdict that cannot be reached is "insufficient data". Non-finite eval_mse (a diverged fit) counts as invalid.
 """
@@ -47,9 +50,20 @@ from graftcache.analysis.agreement import (
     seed_pairings,
     tau_matrix,
 )
+from graftcache.analysis.closed_loop import (
+    AGREEMENT_SCHEMA,
+    CELL_SCHEMA,
+    CLOSED_LOOP_SCORES,
+    ClosedLoop,
+    closed_loop,
+    mmrv,
+    spearman,
+    wilson,
+)
 from graftcache.analysis.controls import CONTROLS_SCHEMA, controls_distance, wrapper_non_neutrality
 from graftcache.analysis.headline import HEADLINE_SCHEMA, ladder_headline
 from graftcache.analysis.ladder import PARAMS_COLUMN, Ladder, backbone_ladder, format_params
+from graftcache.analysis.rollouts import ROLLOUT_COLUMNS, read_rollouts
 from graftcache.analysis.scores import (
     DISAGREEMENT_SCHEMA,
     SCORE_LABELS,
@@ -98,6 +112,8 @@ from graftcache.errors import GraftcacheError
 from graftcache.results import conform
 
 __all__ = [
+    "AGREEMENT_SCHEMA", "CELL_SCHEMA", "CLOSED_LOOP_SCORES", "ROLLOUT_COLUMNS", "ClosedLoop", "closed_loop", "mmrv",
+    "read_rollouts", "spearman", "wilson",
     "BACKBONE_LABELS", "BASIS_MISSING", "CELL", "CONTROLS_SCHEMA", "COUNT_COLUMNS", "DISAGREEMENT_SCHEMA",
     "DOES_NOT_TRANSFER", "EPISODE_COLUMN", "GROUP", "HEADLINE_SCHEMA", "INSUFFICIENT",
     "NATIVE_CONTROL", "NATIVE_GRAFT_CONTROL",
@@ -130,6 +146,7 @@ class Analysis:
     controls: pl.DataFrame  # every encoder-level control in the table
     missing: pl.DataFrame
     scores: pl.DataFrame  # where the MSE and CI-MSE rankings disagree (empty without CI-MSE)
+    closed_loop: ClosedLoop | None = None  # offline scores vs rollouts' success (None: no rollouts given)
 
     @property
     def small(self) -> str | None:
@@ -162,9 +179,11 @@ class Analysis:
         return episode_coverage(self.results)
 
 
-def analyze(results: pl.DataFrame, *, score: str = "mse", boot: BootSettings = BootSettings()) -> Analysis:
+def analyze(results: pl.DataFrame, *, score: str = "mse", boot: BootSettings = BootSettings(),
+            rollouts: pl.DataFrame | None = None) -> Analysis:
     """All questions at once, on the table conformed to SCHEMA (results.conform: absent columns null), ranked
-    by `score` (a SCORES name).
+    by `score` (a SCORES name); with `rollouts` (read_rollouts: run_id, success per episode), closed-loop success
+    against every offline score too.
 
     Raises GraftcacheError when rows share (backbone, suite, encoder, control, seed) - the table mixes
     recipes (objective, lr, ...) and must be filtered to one before ranking - and when the backbones cannot be
@@ -181,6 +200,7 @@ def analyze(results: pl.DataFrame, *, score: str = "mse", boot: BootSettings = B
             "filter the table to one recipe"
         )
     disagreement = score_disagreement(results)
+    against = None if rollouts is None else closed_loop(results, rollouts)  # every score, before `scored`
     results = scored(results, score)
     ladder = backbone_ladder(results)
     verdicts = transfer_verdicts(results, ladder=ladder, boot=boot)
@@ -200,4 +220,5 @@ def analyze(results: pl.DataFrame, *, score: str = "mse", boot: BootSettings = B
         controls=controls_distance(results, controls=None, boot=boot),
         missing=missing_cells(results),
         scores=disagreement,
+        closed_loop=against,
     )

@@ -20,7 +20,7 @@ EPISODE_COLUMN = "eval_mse_episodes"
 
 CELL = ["backbone", "suite", "encoder"]
 GROUP = ["backbone", "suite"]
-RECIPE_COLUMNS = ("policy", "objective", "pool_grid", "steps", "lr", "batch_size", "eval_split_seed")
+RECIPE_COLUMNS = ("policy", "objective", "pool_grid", "steps", "lr", "batch_size", "eval_split_seed", "eval_split")
 
 
 def backbone_label(name: str) -> str:

@@ -22,6 +22,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="rank encoders by offline action MSE (mse, the default) or critical-interval MSE (ci-mse: "
                    "the error near gripper open/close transitions); where the table holds both, the report "
                    "shows where the two rankings disagree")
+    p.add_argument("--rollouts", metavar="PATH",
+                   help="rollouts Parquet file (one row per episode; only its run_id and success columns are read, "
+                   "so episodes run with other tools join too): adds each rolled-out cell's success rate (95%% Wilson "
+                   "interval) and, per backbone and suite, Spearman, Kendall tau-b and MMRV of every offline score "
+                   "(eval_mse, eval_ci_mse, eval_mse_arm, eval_mse_gripper) against success, in the report and in "
+                   "closed_loop.csv; a run_id not in RESULTS is refused")
     p.set_defaults(func=run)
 
 
@@ -37,4 +43,5 @@ def _description() -> str:
 def run(args: argparse.Namespace) -> int:
     from graftcache.report import report_command
 
-    return report_command(args.results, args.out, command=args.command_line, score=args.score)
+    return report_command(args.results, args.out, command=args.command_line, score=args.score,
+                          rollouts=args.rollouts)

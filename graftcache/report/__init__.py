@@ -16,9 +16,11 @@ import polars as pl
 
 from graftcache import analysis as A
 from graftcache import results as R
+from graftcache.report.closed_loop_csv import CLOSED_LOOP_CSV, CLOSED_LOOP_CSV_COLUMNS, closed_loop_table
 from graftcache.report.document import Block, Heading, Image
 from graftcache.report.figures import (
     FIGURES,
+    figure_closed_loop,
     figure_controls,
     figure_mse,
     figure_rank_bump,
@@ -36,6 +38,7 @@ from graftcache.report.sentences import (
 from graftcache.report.transfer_csv import TRANSFER_CSV, TRANSFER_CSV_COLUMNS, transfer_table
 
 __all__ = [
+    "CLOSED_LOOP_CSV", "CLOSED_LOOP_CSV_COLUMNS", "closed_loop_table", "figure_closed_loop",
     "FIGURES", "PROXY_NOTE", "TITLE", "TRANSFER_CSV", "TRANSFER_CSV_COLUMNS", "ReportPaths", "bootstrap_sentence",
     "figure_controls", "figure_mse", "figure_rank_bump", "figure_rank_transfer", "headline_sentences",
     "render_html", "render_markdown", "report_command", "transfer_summary", "transfer_table", "verdict_sentences",
@@ -52,6 +55,7 @@ class ReportPaths:
     figures: tuple[Path, ...]
     transfer: Path  # transfer.csv: one row per verdict (graftcache.report.transfer_csv)
     notes: tuple[str, ...] = ()  # how the backbones were ordered where the rows did not say (also in the report)
+    closed_loop: Path | None = None  # closed_loop.csv (graftcache.report.closed_loop_csv), given rollouts
 
 
 def write_report(
@@ -61,9 +65,11 @@ def write_report(
     commands: Mapping[str, str] | None = None,
     score: str = "mse",
     boot: A.BootSettings = A.BootSettings(),
+    rollouts: str | Path | None = None,
 ) -> ReportPaths:
     """Analyse a results table (or Parquet path), ranked by `score` (graftcache.analysis.SCORES), and write
-    report.md, report.html, PNG figures and transfer.csv to out_dir.
+    report.md, report.html, PNG figures and transfer.csv to out_dir; given a rollouts Parquet file
+    (graftcache.analysis.rollouts), the closed-loop section and closed_loop.csv too.
 
     The table needs only results.REPORT_COLUMNS; a path is read with results.read_for_report, so an absent,
     empty, non-Parquet or row-less file is a GraftcacheError naming it. `commands` (name -> command line)
@@ -72,10 +78,12 @@ def write_report(
     """
     source = str(results) if isinstance(results, (str, Path)) else "in-memory table"
     table = R.read_for_report(results) if isinstance(results, (str, Path)) else results
-    a = A.analyze(table, score=score, boot=boot)
+    table = R.conform(table)
+    episodes = None if rollouts is None else A.read_rollouts(rollouts, table)
+    a = A.analyze(table, score=score, boot=boot, rollouts=episodes)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    for name in FIGURES:  # a rerun must not leave a stale figure the new report no longer shows
+    for name in (*FIGURES, CLOSED_LOOP_CSV):  # a rerun must not leave a stale file the new report no longer has
         (out / name).unlink(missing_ok=True)
     blocks: list[Block] = [Heading(TITLE, 1), *random_init_warning(a), *header(a, source)]
     for section in SECTIONS:
@@ -85,22 +93,27 @@ def write_report(
     md.write_text(render_markdown(blocks, out), encoding="utf-8")
     page.write_text(render_html(blocks, out, TITLE), encoding="utf-8")
     transfer_table(a).write_csv(out / TRANSFER_CSV)
+    closed = None
+    if a.closed_loop is not None:
+        closed = out / CLOSED_LOOP_CSV
+        closed_loop_table(a).write_csv(closed)
     figures = tuple(out / b.name for b in blocks if isinstance(b, Image))
-    return ReportPaths(md, page, figures, out / TRANSFER_CSV, a.ladder.notes)
+    return ReportPaths(md, page, figures, out / TRANSFER_CSV, a.ladder.notes, closed)
 
 
 def report_command(results_path: str | Path, out_dir: str | Path, *, command: str | None = None,
-                   score: str = "mse") -> int:
-    """`graftcache report RESULTS --out DIR [--score mse|ci-mse]`: write the report, print where it is, return
-    the exit code.
+                   score: str = "mse", rollouts: str | Path | None = None) -> int:
+    """`graftcache report RESULTS --out DIR [--score mse|ci-mse] [--rollouts PATH]`: write the report, print where
+    it is, return the exit code.
 
     Every unusable results file is a GraftcacheError (the CLI prints it as one line); `command` is the
     exact invocation to cite in the report (the CLI passes its argv), defaulting to the canonical form.
     """
     path = Path(results_path)
     cited = command or f"graftcache report {path} --out {out_dir}"
-    paths = write_report(path, out_dir, commands={"report": cited}, score=score)
+    paths = write_report(path, out_dir, commands={"report": cited}, score=score, rollouts=rollouts)
     for note in paths.notes:
         print(f"note: {note}", file=sys.stderr)
-    print(f"report: {paths.markdown}\n        {paths.html}\n        {paths.transfer}")
+    written = [paths.markdown, paths.html, paths.transfer, *([paths.closed_loop] if paths.closed_loop else [])]
+    print("report: " + "\n        ".join(map(str, written)))
     return 0

@@ -269,6 +269,61 @@ def figure_controls(a: A.Analysis) -> Figure | None:
     return fig
 
 
+def _agreement_title(row: dict | None) -> str:
+    """A panel's agreement figures, or why there are none."""
+    if row is None:
+        return ""
+    if row["mmrv"] is None:
+        return f"undefined: {row['note']}"
+    rho, tau = (_signed(row[k]) for k in ("spearman", "kendall_tau_b"))
+    return f"ρ = {rho}, τb = {tau}, MMRV = {row['mmrv']:.2f}"
+
+
+def _signed(x: float | None) -> str:
+    return "—" if x is None else f"{x:+.2f}"
+
+
+def figure_closed_loop(a: A.Analysis) -> Figure | None:
+    """Per (backbone, suite) with rollouts: each cell (run_id) as a dot at its offline score (the report's
+    `--score`) and success rate, with the rate's 95% Wilson interval, coloured by encoder; the panel's title gives
+    rho, tau-b and MMRV of that score, or why they are undefined. None without rollouts."""
+    if a.closed_loop is None or not len(a.closed_loop.cells):
+        return None
+    column = A.SCORES[a.score][0]
+    cells = a.closed_loop.cells
+    panels = cells.select(A.GROUP).unique(maintain_order=True).rows()
+    rows, cols = _grid(len(panels), max_cols=3)
+    fig = _new_figure(3.8 * cols, 3.2 * rows + 0.6)
+    axes = fig.subplots(rows, cols, squeeze=False)
+    encoders = sorted(set(cells["encoder"]))
+    colors = {e: f"C{i % 10}" for i, e in enumerate(encoders)}
+    agree = {(r["backbone"], r["suite"]): r for r in a.closed_loop.agreement.filter(pl.col("score") == column)
+             .iter_rows(named=True)}
+    for ax, (backbone, suite) in zip(axes.flat, panels):
+        panel = cells.filter(pl.col("backbone") == backbone, pl.col("suite") == suite, pl.col(column).is_finite())
+        for r in panel.iter_rows(named=True):
+            spread = [[r["success_rate"] - r["ci_low"]], [r["ci_high"] - r["success_rate"]]]
+            ax.errorbar(r[column], r["success_rate"], yerr=spread, fmt="o", color=colors[r["encoder"]], ms=5,
+                        capsize=3, lw=1.2, alpha=0.8, zorder=3)  # see-through: cells of one score and rate overlap
+        if len(panel):
+            ax.set_xlim(*value_limits(panel[column].to_list()))
+        else:
+            ax.text(0.5, 0.5, f"no cell has {column}", transform=ax.transAxes, ha="center", color="0.4")
+        ax.set_ylim(-0.05, 1.05)
+        ax.grid(color="0.9", zorder=0)
+        ax.set_xlabel(f"{column} (lower is better; axis not from 0)", fontsize=8)
+        ax.set_ylabel("success rate (95% Wilson)", fontsize=8)
+        ax.tick_params(labelsize=7)
+        ax.set_title(f"{A.backbone_label(backbone)} · {suite}\n{_agreement_title(agree.get((backbone, suite)))}",
+                     fontsize=8)
+    for ax in list(axes.flat)[len(panels):]:
+        ax.set_visible(False)
+    fig.legend(handles=[Line2D([], [], ls="", marker="o", color=colors[e], label=e) for e in encoders],
+               loc="outside lower center", ncols=min(len(encoders), 4), fontsize=8,
+               title="one dot per cell (run_id)", title_fontsize=7)
+    return fig
+
+
 FIGURES: dict[str, tuple[Callable[[A.Analysis], Figure | None], str]] = {
     "mse.png": (
         figure_mse,
@@ -285,4 +340,9 @@ FIGURES: dict[str, tuple[Callable[[A.Analysis], Figure | None], str]] = {
          "top tier."),
     ),
     "controls.png": (figure_controls, "Distance of each encoder from its controls (> 0: the encoder helps)."),
+    "closed_loop.png": (
+        figure_closed_loop,
+        "Closed-loop success rate (95% Wilson interval) against the offline score, one dot per cell (run_id); "
+        "each panel's title gives Spearman ρ, Kendall τb and MMRV of that score against success.",
+    ),
 }

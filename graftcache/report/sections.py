@@ -24,12 +24,14 @@ from graftcache.report.sentences import (
     verdict_sentences,
 )
 from graftcache.report.tables import (
+    AGREEMENT_COLUMNS,
     CONTROL_COLUMNS,
     MISSING_COLUMNS,
     MSE_COLUMNS,
     PROVENANCE_COLUMNS,
     SCORE_COLUMNS,
     SEED_COLUMNS,
+    SUCCESS_COLUMNS,
     WRAPPER_COLUMNS,
     in_backbone_order,
     ladder_block,
@@ -179,6 +181,32 @@ def _controls_section(a: A.Analysis, out: Path) -> list[Block]:
     return blocks
 
 
+def _closed_loop_section(a: A.Analysis, out: Path) -> list[Block]:
+    """Offline scores against rollouts' success (only with `report --rollouts`)."""
+    if a.closed_loop is None:
+        return []
+    head = Heading("Offline scores vs closed-loop success")
+    cells, agreement = a.closed_loop.cells, a.closed_loop.agreement
+    if not len(cells):
+        return [head, Paragraph("No results row has rollouts.")]
+    about = (
+        "A cell is one results row (one run_id: one seed of an encoder or control) that was rolled out; its success "
+        "rate is over its episodes, with a 95% Wilson score interval. Agreement is computed over run_ids, not "
+        "over seed means: a run_id is the very policy that was scored offline and rolled out, so its score and "
+        "success rate are one paired measurement. Per backbone, suite and offline score (lower is better): "
+        "Spearman ρ and Kendall τb of −score against success (positive: lower scores go with more success), and "
+        "MMRV (SIMPLER, arXiv 2405.05941: with proxy S = −score and success R, (1/N) Σ_i max_j |R_i − R_j| "
+        "[(S_i < S_j) ≠ (R_i < R_j)], 0 when no pair is misordered). `eval_mse_arm` is the error on the first "
+        "action_dim − 1 dimensions (LIBERO's end effector), `eval_mse_gripper` on the last."
+    )
+    undefined = ("A figure shown as — (empty in closed_loop.csv) is undefined, never 0: with fewer than 2 cells, or "
+                 "where every cell has the same success rate (e.g. every episode failed: no order to agree with); ρ "
+                 "and τb also where every cell has the same score. The note says which.")
+    return [head, Paragraph(about), *_figure(a, out, "closed_loop.png"), Paragraph(undefined),
+            table_block(in_backbone_order(a, agreement), AGREEMENT_COLUMNS),
+            table_block(in_backbone_order(a, cells), SUCCESS_COLUMNS)]
+
+
 def _missing_section(a: A.Analysis, _: Path) -> list[Block]:
     if not len(a.missing):
         return []
@@ -231,5 +259,5 @@ def provenance_section(a: A.Analysis, commands: Mapping[str, str] | None) -> lis
 
 SECTIONS: tuple[Callable[[A.Analysis, Path], list[Block]], ...] = (
     _transfer_section, _mse_section, _score_section, _seed_section, _wrapper_section, _controls_section,
-    _missing_section, _methods_section,
+    _closed_loop_section, _missing_section, _methods_section,
 )
