@@ -101,6 +101,8 @@ def row(backbone: str, suite: str, encoder: str, seed: int, eval_mse: float | No
         "eval_mse": eval_mse,
         "eval_mse_first": eval_mse,
         "eval_mse_raw": eval_mse,
+        "eval_mse_arm": eval_mse,  # both parts equal: their dims-weighted mean is eval_mse
+        "eval_mse_gripper": eval_mse,
         "n_eval_frames": 120,
         "n_eval_episodes": 4,
         "eval_split_seed": 0,
