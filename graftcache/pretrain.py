@@ -206,11 +206,18 @@ def _train(backbone: str, dataset: str, folder: Path, *, cfg: TinyTrainConfig, c
     state = torch.from_numpy(np.stack(table["state"].to_numpy()).astype(np.float32))
     tasks = [meta.tasks[i] for i in table["task_index"].to_list()]
 
+    mean_state = state.mean(0)
+
     def draw(generator: torch.Generator) -> dict:
-        """A batch of frames drawn with replacement (decoded frames are all in memory here)."""
+        """A batch of frames drawn with replacement (decoded frames are all in memory here); with `state_dropout`,
+        a share of them read the mean state, so the policy must find where the arm is in its cameras."""
         pos = torch.randint(0, len(table), (cfg.batch_size,), generator=generator)
         raw = {f"observation.images.{c}": frames[c][pos].float() / 255.0 for c in spec.cameras}
-        raw.update({"observation.state": state[pos], "action": actions[pos], "action_is_pad": action_pad[pos],
+        seen = state[pos]
+        if cfg.state_dropout:  # no draw at 0: the batches of recipes from before the setting stay the same
+            dropped = torch.rand(cfg.batch_size, generator=generator) < cfg.state_dropout
+            seen = torch.where(dropped[:, None], mean_state, seen)
+        raw.update({"observation.state": seen, "action": actions[pos], "action_is_pad": action_pad[pos],
                     "task": [tasks[int(i)] for i in pos]})
         return raw
 

@@ -126,7 +126,7 @@ SUITE: Rule = (lambda v: v in _suites(), lambda: f"is not a suite; choose one of
 CONTROL_LIST: Rule = (lambda v: len(set(v)) == len(v) and "none" not in v,
                       "must name each control once, and not none (the plain graft always runs)")
 #: The fit objectives (graftcache.fit.objectives.OBJECTIVES implements each), as plain data for the CLI.
-OBJECTIVES = ("flow", "align")
+OBJECTIVES = ("flow", "align", "align-flow")
 #: The controls a fit runs besides the plain graft, as plain data for the CLI's help (graftcache.fit.controls.CONTROLS
 #: implements each; tests/test_settings.py keeps the two equal); pool-HxW pools the candidate to another grid.
 NATIVE_CONTROL = "native"              # the policy's own tower, no graft: the one control evaluated as loaded
@@ -277,6 +277,10 @@ class TinyTrainConfig(Checked):
         "the dataset is held at this size while training)")
     warmup: float = setting(0.1, rule=(lambda v: 0 <= v < 1, "must be in [0, 1)"),
                             help="share of the steps with a linear warm-up, then cosine decay to 0")
+    state_dropout: float = setting(
+        0.0, rule=(lambda v: 0 <= v <= 1, "must be in [0, 1]"),
+        help="share of training samples whose proprioceptive state reads as the dataset's mean state: a tiny "
+        "policy that can always read its state learns to lean on it and barely looks at its cameras")
     compute_dtype: str = compute_dtype()
     cameras: tuple[str, ...] | None = setting(
         None, rule=NAMES, metavar="A,B",
@@ -284,11 +288,13 @@ class TinyTrainConfig(Checked):
         "config records their names, so a fit on this dataset matches them by name")
 
     def as_dict(self, backbone: str) -> dict:
-        """The recipe as it keys the checkpoint folder. `cameras` None (the dataset's own, the only choice before
-        the field existed) is left out, so checkpoints trained before it are found again under their keys."""
+        """The recipe as it keys the checkpoint folder. `cameras` None (the dataset's own) and `state_dropout` 0, the
+        only choices before those fields existed, are left out, so checkpoints trained before them are found again
+        under their keys."""
         values = asdict(self)
-        if values["cameras"] is None:
-            del values["cameras"]
+        for name, unset in (("cameras", None), ("state_dropout", 0.0)):  # fields added later: keys stay as they were
+            if values[name] == unset:
+                del values[name]
         return {"backbone": backbone, **values}
 
 

@@ -73,7 +73,7 @@ SCHEMA: dict[str, pl.DataType] = {
     "seed": pl.Int64,
     "control": pl.String,             # "none" for the plain graft
     "pool_grid": pl.String,           # e.g. "8x8"
-    "objective": pl.String,           # "flow" | "align" | "eval" (native control)
+    "objective": pl.String,           # "flow" | "align" | "align-flow" | "eval" (native control)
     "steps": pl.Int64,
     "lr": pl.Float64,
     "batch_size": pl.Int64,

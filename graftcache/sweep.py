@@ -25,6 +25,7 @@ from graftcache.cameras import match_cameras
 from graftcache.errors import GraftcacheError
 from graftcache.executors import Executor, get_executor
 from graftcache.fit.controls import get_control
+from graftcache.fit.objectives import OBJECTIVES
 from graftcache.pooling import UNPOOLED, format_grid, grid_names
 from graftcache.progress import progress, write
 from graftcache.recipe import EncoderEntry, Recipe
@@ -50,7 +51,7 @@ class SweepState:
 
 
 def _needs_native(recipe: Recipe) -> bool:
-    return recipe.objective == "align" or any(get_control(c).native_cache for c in recipe.controls)
+    return OBJECTIVES[recipe.objective].needs_native or any(get_control(c).native_cache for c in recipe.controls)
 
 
 def _pool_grids(recipe: Recipe) -> list[tuple[int, int]]:

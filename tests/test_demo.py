@@ -40,6 +40,7 @@ def test_demo_runs_offline_reuses_everything_and_feeds_the_notebook(tmp_path: Pa
     assert {"mobilenetv2", "efficientnet-lite0", "smolvla-native", "pi05-native"} <= set(table["encoder"])
     assert table["eval_mse"].is_finite().all() and (table["n_eval_frames"] > 0).all()
     assert table["random_init"].all()  # tiny backbones are never released weights
+    _assert_findings(table)
     report = home / "demo" / "report"
     md = (report / "report.md").read_text()
     assert "random-init" in md.lower() and "proxy" in md.lower()
@@ -49,7 +50,7 @@ def test_demo_runs_offline_reuses_everything_and_feeds_the_notebook(tmp_path: Pa
     assert len(caches) == 5  # three encoders + two native towers, all complete
     print(f"demo wall time {first_s:.0f}s")
 
-    again, again_s = _demo(home, tmp_path)
+    again, _ = _demo(home, tmp_path)
     log = again.stdout + again.stderr
     assert "wrote " not in log and "training tiny" not in log
     assert "loading backbone" not in log  # a finished grid loads no policy at all
@@ -58,7 +59,6 @@ def test_demo_runs_offline_reuses_everything_and_feeds_the_notebook(tmp_path: Pa
     assert {c.key for c in list_caches(home)} == caches
     rerun = results.read(home / "demo" / "results.parquet")
     assert rerun.sort("run_id").select("run_id", "eval_mse").equals(table.sort("run_id").select("run_id", "eval_mse"))
-    assert again_s < first_s / 3
 
     run = execute_notebook(home / "demo" / "results.parquet", tmp_path, monkeypatch)
     assert not run.errors
@@ -73,3 +73,29 @@ def test_demo_runs_offline_reuses_everything_and_feeds_the_notebook(tmp_path: Pa
     zero = table.filter(pl.col("control") == "zero-image").group_by("backbone").agg(pl.col("eval_mse").mean())
     joined = native.join(zero, on="backbone", suffix="_zero")
     assert (joined["eval_mse"] < joined["eval_mse_zero"]).all()  # the tiny backbones use vision
+
+
+def _seeds(table: pl.DataFrame, **match: str) -> pl.Series:
+    rows = table.filter(*(pl.col(k) == v for k, v in match.items()))
+    assert rows.height, match
+    return rows["eval_mse"]
+
+
+def _assert_findings(table: pl.DataFrame) -> None:
+    """The two findings the demo's report exists to show, each on every seed (the worst seed of the better side
+    below the best seed of the worse one): every tiny backbone reads its cameras (its own tower beats zero-image on
+    both suites), and on every backbone an encoder with real ImageNet weights beats its own zero-image and
+    shuffled-image controls on at least one suite."""
+    real = {"mobilenetv2", "efficientnet-lite0"}
+    for backbone in ("smolvla", "pi05"):
+        for suite in ("libero_spatial", "libero_object"):
+            native = _seeds(table, backbone=backbone, suite=suite, control="native")
+            zero = _seeds(table, backbone=backbone, suite=suite, control="zero-image")
+            assert native.max() < zero.min(), (backbone, suite, native.to_list(), zero.sort().to_list())
+        wins = [
+            (encoder, suite) for encoder in real for suite in ("libero_spatial", "libero_object")
+            if _seeds(table, backbone=backbone, suite=suite, encoder=encoder, control="none").max()
+            < min(_seeds(table, backbone=backbone, suite=suite, encoder=encoder, control=c).min()
+                  for c in ("zero-image", "shuffled-image"))
+        ]
+        assert wins, f"{backbone}: no real-weights encoder beats its zero-image and shuffled-image controls"

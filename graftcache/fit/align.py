@@ -74,7 +74,10 @@ def fit_ridge(projector: nn.Module, pairs: Iterable[tuple[torch.Tensor, torch.Te
     mx, my = sx / n, sy / n
     cxx = xtx - n * torch.outer(mx, mx)
     cxy = xty - n * torch.outer(mx, my)
-    lam = alpha * torch.trace(cxx) / c
+    # ridge scaled to the features' mean variance; features that never vary (the zero-image control) have none, and
+    # any positive ridge then gives what least squares means for them: W = 0, b = the mean target
+    spread = torch.trace(cxx) / c
+    lam = alpha * spread if spread > 0 else 1.0
     w = torch.linalg.solve(cxx + lam * torch.eye(c, dtype=torch.float64), cxy)  # [C, D]
     b = my - mx @ w
     projector.norm.weight.fill_(1.0)

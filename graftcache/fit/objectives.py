@@ -4,6 +4,9 @@
          AdamW steps of `batch_size` at `lr` (fit/loop.py)
 - align  closed-form ridge regression of the native tower's post-connector tokens on the candidate's
          features (fit/align.py): no steps, no learning rate, needs the native tower's cache
+- align-flow  align's closed form as the projector's starting point, then flow's steps from there: a short fit
+         (the demo's) starts where the projector already speaks the backbone's token language, so its steps go
+         into what the flow loss adds instead of into learning that language from a random projector
 - eval   (not selectable) controls that train nothing, such as `native`, are scored as loaded
 """
 
@@ -72,6 +75,11 @@ def _align(f: Fitting) -> float:
         return 1.0 - fit_ridge(f.adapter.projector, pairs(blocks), f.grid)
 
 
+def _align_flow(f: Fitting) -> float:
+    _align(f)
+    return _flow(f)
+
+
 def _nothing(f: Fitting) -> float:
     return float("nan")
 
@@ -89,5 +97,6 @@ class Objective:
 OBJECTIVES: dict[str, Objective] = {
     "flow": Objective("flow", _flow, scheduled=True, fuses=True),
     "align": Objective("align", _align, needs_native=True),
+    "align-flow": Objective("align-flow", _align_flow, scheduled=True, needs_native=True),
 }
 EVAL_ONLY = Objective("eval", _nothing)

@@ -77,7 +77,7 @@ class Cell:
     control: str
     pool_grid: str            # the grid its features are pooled to, resolved ("8x8": the control's, else the
                               # backbone's token grid), so that the run_id hashes what the row writes
-    objective: str            # "flow" | "align" | "eval"
+    objective: str            # "flow" | "align" | "align-flow" | "eval"
     steps: int
     lr: float
     batch_size: int
