@@ -75,6 +75,8 @@ def test_every_control_writes_one_schema_valid_row(world: World, tmp_path: Path)
     assert by["zero-image"]["eval_mse"] != by["none"]["eval_mse"]
     for row in by.values():
         assert row["random_init"] and row["suite"] == "libero_spatial" and row["n_eval_frames"] == 4
+        # a tiny policy, a random-init ViT and the tiny policy's own tower (native controls): random-init all three
+        assert row["encoder_random_init"] and row["backbone_random_init"]
         assert np.isfinite(row["eval_mse"]) and row["eval_mse_raw"] >= 0 and row["n_eval_episodes"] == 1
         assert row["policy_sha256"] and row["graftcache_version"] and row["device"] == "cpu"
         # the fixture's gripper commands are uniform in [-1, 1], so they open and close every few steps: every
@@ -91,6 +93,20 @@ def test_every_control_writes_one_schema_valid_row(world: World, tmp_path: Path)
     assert sum(line.startswith("cell ") and "graft projector" in line for line in lines) == 1 + len(CONTROLS)
     lora_log = next(line for line in lines if f"cell {by['lora']['run_id']}" in line)
     assert "partial" in lora_log  # LoRA makes part of the language model trainable
+
+
+def test_rows_record_the_encoders_and_the_backbones_weights_apart(world: World, tmp_path: Path) -> None:
+    """The demo grafts ImageNet encoders into tiny backbones: random_init (either) is true for every row, and
+    encoder_random_init says whether the cache's own weights were (here a cache whose manifest says it holds
+    real weights, as a wheel's ImageNet encoder's does)."""
+    real = rekeyed(world.cache / world.encoder_key, tmp_path / "real", lambda m: {
+        **m, "random_init": False, "weights": {**m["weights"], "source": "file", "seed": None, "random_init": False}})
+    (row,) = Fitter(world.request(cache=str(tmp_path / "real"), cache_key=real.name, accept_numerics_drift=True,
+                                  results=str(tmp_path / "r.parquet")), log=_quiet).run()
+    assert FeatureCache(real).manifest.random_init is False
+    assert (row["encoder_random_init"], row["backbone_random_init"], row["random_init"]) == (False, True, True)
+    assert results.read(tmp_path / "r.parquet").select("encoder_random_init", "backbone_random_init",
+                                                       "random_init").row(0) == (False, True, True)
 
 
 def test_checkpointing_and_the_eval_batch_size_change_no_number_and_rows_record_them(world: World,

@@ -449,6 +449,8 @@ class Fitter:
             "n_eval_frames": score.n_frames, "n_eval_episodes": len(score.per_episode), "wall_s": wall,
             "cells_per_pass": cells, "device": str(self.device),
             "random_init": bool(mat.cache.manifest.random_init or adapter.random_init),
+            "encoder_random_init": bool(mat.cache.manifest.random_init),
+            "backbone_random_init": bool(adapter.random_init),
             "n_dropped_nonfinite": mat.dropped + len(stats.dropped), "numerics_drift": self._drift(mat),
             "camera_map": format_camera_map(self.cameras), "graftcache_version": graftcache.__version__,
             "activation_checkpointing": checkpointing, "eval_seconds_per_frame": eval_s / score.n_frames,

@@ -73,19 +73,6 @@ def header(a: A.Analysis, source: str) -> list[Block]:
     return [Bullets(facts), Paragraph(PROXY_NOTE)]
 
 
-def random_init_warning(a: A.Analysis) -> list[Block]:
-    rand = a.results.filter(pl.col("random_init").fill_null(False))
-    if not len(rand):
-        return []
-    per = rand.group_by("backbone").agg(pl.col("encoder").unique().sort(), n=pl.len()).sort("backbone")
-    lead = (
-        f"{len(rand)} of {len(a.results)} rows were produced with random-init weights in the encoder or the "
-        "backbone: their MSEs say nothing about pretrained representations."
-    )
-    lines = [f"{A.backbone_label(b)} (`{b}`): {', '.join(encs)} ({n} rows)" for b, encs, n in per.iter_rows()]
-    return [Alert("random-init weights", (lead, *lines))]
-
-
 def _figure(a: A.Analysis, out: Path, name: str) -> list[Block]:
     draw, caption = FIGURES[name]
     fig = draw(a)
