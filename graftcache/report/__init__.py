@@ -33,6 +33,7 @@ from graftcache.report.sentences import (
     PROXY_NOTE,
     bootstrap_sentence,
     headline_sentences,
+    stability_sentences,
     transfer_summary,
     verdict_sentences,
 )
@@ -42,8 +43,8 @@ __all__ = [
     "CLOSED_LOOP_CSV", "CLOSED_LOOP_CSV_COLUMNS", "closed_loop_table", "figure_closed_loop",
     "FIGURES", "PROXY_NOTE", "TITLE", "TRANSFER_CSV", "TRANSFER_CSV_COLUMNS", "ReportPaths", "bootstrap_sentence",
     "figure_controls", "figure_mse", "figure_rank_bump", "figure_rank_transfer", "headline_sentences",
-    "random_init_warning", "render_html", "render_markdown", "report_command", "transfer_summary", "transfer_table",
-    "verdict_sentences",
+    "random_init_warning", "render_html", "render_markdown", "report_command", "stability_sentences",
+    "transfer_summary", "transfer_table", "verdict_sentences",
     "write_report",
 ]
 
