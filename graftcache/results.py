@@ -58,6 +58,13 @@ CELL_FORMAT = 3
 #: What a format 3 row held, without a column for it, in a column format 4 added (every other added column is
 #: null there: format 3 did not measure it): every format 3 cell was split the graftcache way.
 FORMAT_3_VALUES: dict[str, Any] = {"eval_split": "graftcache"}
+#: What a row without a column of format 4 (of format 3, or of format 4 written before issue 32 split random_init)
+#: held in it, where its other columns say so: random_init is the union of the encoder's and the backbone's, so a
+#: row whose random_init is false had neither; a true one leaves both unknown (null).
+DERIVED: dict[str, pl.Expr] = {
+    "encoder_random_init": pl.when(~pl.col("random_init")).then(False),
+    "backbone_random_init": pl.when(~pl.col("random_init")).then(False),
+}
 
 SCHEMA: dict[str, pl.DataType] = {
     "run_id": pl.String,
@@ -100,7 +107,10 @@ SCHEMA: dict[str, pl.DataType] = {
     "cells_per_pass": pl.Int64,       # cells trained in the backbone pass that produced the row (1: alone)
     "device": pl.String,
     "compute_dtype": pl.String,       # resolved model compute dtype ("bf16" | "fp32"), never "auto"
-    "random_init": pl.Boolean,        # any random-init weights in the encoder or the backbone
+    "random_init": pl.Boolean,        # any random-init weights: encoder_random_init or backbone_random_init
+    "encoder_random_init": pl.Boolean,  # the cache's encoder weights were random-init (its manifest's random_init;
+                                      # a native tower's cache: the policy's tower, so a tiny policy's says True)
+    "backbone_random_init": pl.Boolean,  # the policy was random-init or trained by train-tiny, not released weights
     "n_dropped_nonfinite": pl.Int64,  # frames dropped for NaN/inf by `fit --drop-nonfinite` (0: none): the suite's
                                       # with NaN/inf state or action chunk, plus those whose features the cell read
                                       # and found NaN/inf (features are checked as they stream)
@@ -245,13 +255,15 @@ def read(path: str | Path) -> pl.DataFrame:
 
 def upgrade(rows: pl.DataFrame, path: Path) -> pl.DataFrame:
     """The one upgrade path for results files: rows of this format as they are; rows of format 3 (their run_ids
-    hash cells as this format's do: CELL_FORMAT) with the columns format 4 added, each holding FORMAT_3_VALUES'
-    value or null; rows of an older format (format 1 had no format_version column; format 2 hashed
-    `pool_grid="native"` and the format version 2 into its run_ids) are refused in one line with the commands
+    hash cells as this format's do: CELL_FORMAT), and rows of format 4 written before it gained a column, with the
+    columns they lack, each holding FORMAT_3_VALUES' value, what DERIVED derives from the row, or null; rows of an
+    older format (format 1 had no format_version column; format 2 hashed `pool_grid="native"` and the format
+    version 2 into its run_ids) are refused in one line with the commands
     that rebuild them, since their run_ids hash cells of another shape: a rerun could not skip their cells and
     would write each twice. Rows of a newer format (a later graftcache wrote them) and tables that are no
     graftcache results at all (no run_id or report column) are refused as such."""
-    if "format_version" in rows.columns and rows["format_version"].eq(FORMAT_VERSION).all():
+    current = "format_version" in rows.columns and rows["format_version"].eq(FORMAT_VERSION).all()
+    if current and set(SCHEMA) <= set(rows.columns):
         return rows
     if "format_version" in rows.columns and rows["format_version"].is_in([CELL_FORMAT, FORMAT_VERSION]).all():
         return _from_format_3(rows)
@@ -275,13 +287,15 @@ def upgrade(rows: pl.DataFrame, path: Path) -> pl.DataFrame:
 
 
 def _from_format_3(rows: pl.DataFrame) -> pl.DataFrame:
-    """Rows of formats 3 and 4 as format 4: the columns format 3 lacked added, null but where FORMAT_3_VALUES
-    knows what its rows held (also filled on format 3 rows of a table that has the column)."""
+    """Rows of formats 3 and 4 as format 4: the columns they lack added, null but where FORMAT_3_VALUES knows what
+    format 3 rows held (also filled on format 3 rows of a table that has the column) or DERIVED derives it."""
     was_3 = pl.col("format_version") == CELL_FORMAT
-    added = rows.with_columns(pl.lit(None, dtype=t).alias(c) for c, t in SCHEMA.items() if c not in rows.columns)
+    lacking = [c for c in SCHEMA if c not in rows.columns]
+    added = rows.with_columns(pl.lit(None, dtype=SCHEMA[c]).alias(c) for c in lacking)
     return added.with_columns(
         *(pl.when(was_3).then(pl.col(c).fill_null(pl.lit(v, dtype=SCHEMA[c]))).otherwise(pl.col(c)).alias(c)
           for c, v in FORMAT_3_VALUES.items()),
+        *(how.cast(SCHEMA[c]).alias(c) for c, how in DERIVED.items() if c in lacking),
         format_version=pl.lit(FORMAT_VERSION, dtype=pl.Int64),
     )
 

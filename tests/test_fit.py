@@ -75,6 +75,8 @@ def test_every_control_writes_one_schema_valid_row(world: World, tmp_path: Path)
     assert by["zero-image"]["eval_mse"] != by["none"]["eval_mse"]
     for row in by.values():
         assert row["random_init"] and row["suite"] == "libero_spatial" and row["n_eval_frames"] == 4
+        # a tiny policy, a random-init ViT and the tiny policy's own tower (native controls): random-init all three
+        assert row["encoder_random_init"] and row["backbone_random_init"]
         assert np.isfinite(row["eval_mse"]) and row["eval_mse_raw"] >= 0 and row["n_eval_episodes"] == 1
         assert row["policy_sha256"] and row["graftcache_version"] and row["device"] == "cpu"
         # the fixture's gripper commands are uniform in [-1, 1], so they open and close every few steps: every
@@ -87,10 +89,30 @@ def test_every_control_writes_one_schema_valid_row(world: World, tmp_path: Path)
         assert row["eval_split"] == "graftcache" and row["format_version"] == results.FORMAT_VERSION == 4
     # the policy as loaded, counted before the graft: every control of one backbone records the same size
     assert {r["backbone_params"] for r in by.values()} == {world.policy_params("smolvla")}
-    # Prismatic's habit: every cell logs which modules are frozen and which train
-    assert sum(line.startswith("cell ") and "graft projector" in line for line in lines) == 1 + len(CONTROLS)
-    lora_log = next(line for line in lines if f"cell {by['lora']['run_id']}" in line)
-    assert "partial" in lora_log  # LoRA makes part of the language model trainable
+    # Prismatic's habit, once per loaded policy: the first cell logs which modules are frozen and which train, and a
+    # later cell only a graft that differs (the native tower's width, no projector, LoRA), as what differs
+    tables = [line for line in lines if "parameters per module" in line]
+    assert len(tables) == 1 and f"cell {by['none']['run_id']} " in tables[0] and "graft projector" in tables[0]
+    changed = {c: [line for line in lines if f"cell {by[c]['run_id']} " in line and "as the table above but" in line]
+               for c in by}
+    assert {c for c, found in changed.items() if found} == {"native", "native-graft", "lora"}
+    lora = load_file(str(fitter.run_folder(cells[by["lora"]["run_id"]]) / "projector.safetensors"))  # every trainable
+    assert changed["lora"][0].endswith(f", {sum(t.numel() for t in lora.values()):,} trainable")
+    assert "language model" in changed["lora"][0] and "0 trainable" in changed["native"][0]
+
+
+def test_rows_record_the_encoders_and_the_backbones_weights_apart(world: World, tmp_path: Path) -> None:
+    """The demo grafts ImageNet encoders into tiny backbones: random_init (either) is true for every row, and
+    encoder_random_init says whether the cache's own weights were (here a cache whose manifest says it holds
+    real weights, as a wheel's ImageNet encoder's does)."""
+    real = rekeyed(world.cache / world.encoder_key, tmp_path / "real", lambda m: {
+        **m, "random_init": False, "weights": {**m["weights"], "source": "file", "seed": None, "random_init": False}})
+    (row,) = Fitter(world.request(cache=str(tmp_path / "real"), cache_key=real.name, accept_numerics_drift=True,
+                                  results=str(tmp_path / "r.parquet")), log=_quiet).run()
+    assert FeatureCache(real).manifest.random_init is False
+    assert (row["encoder_random_init"], row["backbone_random_init"], row["random_init"]) == (False, True, True)
+    assert results.read(tmp_path / "r.parquet").select("encoder_random_init", "backbone_random_init",
+                                                       "random_init").row(0) == (False, True, True)
 
 
 def test_checkpointing_and_the_eval_batch_size_change_no_number_and_rows_record_them(world: World,
@@ -156,7 +178,9 @@ def test_rerun_is_bit_identical_and_a_finished_cell_is_skipped(world: World, tmp
         assert a["eval_mse_episodes"] == b["eval_mse_episodes"]
     lines: list[str] = []
     assert Fitter(req, log=lines.append).run() == []
-    assert sum(line.startswith("skip ") for line in lines) == 2
+    assert [line for line in lines if line.startswith("skip ")] == [  # one line for the request's skipped cells
+        f"skip smolvla/{ENCODER}/libero_spatial: 2 cells already in {req.results} (control none: seed 0; "
+        "shuffled-image: seed 0)"]
     assert results.read(req.results).height == 2
 
     folder = tmp_path / "runs" / first[0]["run_id"]
@@ -304,7 +328,10 @@ def test_one_backbone_load_serves_every_cell_and_finished_cells_load_nothing(wor
     rerun = BackbonePool()
     lines: list[str] = []
     assert Fitter(req, log=lines.append, backbones=rerun).run() == []
-    assert rerun.loads == 0 and sum(line.startswith("skip ") for line in lines) == 8
+    (skip,) = [line for line in lines if line.startswith("skip ")]
+    assert rerun.loads == 0 and skip.startswith(f"skip smolvla/{ENCODER}/libero_spatial: 8 cells already in ")
+    assert skip.endswith("(control none: seeds 0, 1; zero-image: seeds 0, 1; lora: seeds 0, 1; native "
+                         "(smolvla-native): seeds 0, 1)")
     # the shared, reset backbone gives exactly what a freshly loaded one gives, LoRA cell included
     fresh = {r["control"]: r for r in Fitter(world.request(seeds=(1,), controls=("zero-image", "lora", "native"),
                                                              results=str(tmp_path / "f.parquet")), log=_quiet).run()}
@@ -481,7 +508,9 @@ def test_cells_sharing_a_backbone_pass_get_the_rows_they_get_alone(world: World,
         assert set(saved[0]) == set(saved[1])
         for name, value in saved[0].items():
             torch.testing.assert_close(saved[1][name], value, rtol=1e-4, atol=1e-6)
-    assert sum("one of 3 cells of a backbone pass" in line for line in lines) == 6
+    assert sum(line.endswith("s (its share of a pass of 3); activation checkpointing off") for line in lines) == 6
+    # the graft of a pass of 3 (3 projectors) is said once, for both passes of 3
+    assert sum("as grafted for the 3 cells of a backbone pass" in line for line in lines) == 1
     # the passes did not mix cells up: seeds and encoders give distinct rows (zero-image ignores the encoder)
     assert len({r["eval_mse"] for r in many.values() if r["control"] != "zero-image"}) == 8
 
@@ -493,7 +522,8 @@ def test_cells_sharing_a_backbone_pass_get_the_rows_they_get_alone(world: World,
     redone = {k: v for k, v in _by_run_id(partial).items() if k not in {r["run_id"] for r in kept}}
     assert sorted((r["control"], r["seed"], r["cells_per_pass"]) for r in redone.values()) == \
         [("lora", 1, 1), ("lora", 1, 1), ("none", 1, 2), ("none", 1, 2)]
-    assert sum(line.startswith("skip ") for line in lines) == 8
+    skips = [line for line in lines if line.startswith("skip ")]  # one line per request: 4 cells of each
+    assert len(skips) == 2 and all(": 4 cells already in " in line for line in skips)
     for run_id, row in redone.items():
         assert abs(row["eval_mse"] - one[run_id]["eval_mse"]) <= 1e-5
 

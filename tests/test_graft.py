@@ -73,6 +73,17 @@ def test_freeze_report_counts_each_parameter_once_and_reports_the_rest() -> None
     assert "other" in text and "trainable" in text and "29" in text
 
 
+def test_freeze_report_changes_name_only_the_rows_that_differ_and_the_total() -> None:
+    """What a log says of a later graft of the same policy: a module made trainable, beside the first table."""
+    model = nn.ModuleDict({"a": nn.Linear(4, 2), "c": nn.Linear(2, 1)})  # a: 10 params, c: 3
+    freeze_all_but(model, model["c"])
+    first = freeze_report({"a": model["a"], "c": model["c"]}, model)
+    freeze_all_but(model, model)
+    later = freeze_report({"a": model["a"], "c": model["c"]}, model)
+    assert later.changes(first) == "a 10 params, 10 trainable; total 13 params, 13 trainable"
+    assert first.changes(first) == "total 13 params, 3 trainable" and later != first
+
+
 @pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
 def test_projector_gradients_flow(dtype: torch.dtype) -> None:
     proj = GraftProjector(5, 3)

@@ -90,8 +90,23 @@ def test_format_3_rows_are_read_as_format_4_with_their_run_ids(tmp_path: Path) -
     assert read["run_id"].to_list() == rows["run_id"].to_list()
     assert read["format_version"].to_list() == [4, 4] and read["eval_split"].to_list() == ["graftcache"] * 2
     assert read["eval_mse_arm"].null_count() == read["eval_mse_gripper"].null_count() == 2
+    # random_init is the union of the encoder's and the backbone's: false says both were false
+    assert read["encoder_random_init"].to_list() == read["backbone_random_init"].to_list() == [False, False]
     results.append(old, table([row("smolvla", "libero_spatial", "siglip", 2, 0.4, eval_split="graftcache")]))
     assert pl.read_parquet(old)["format_version"].to_list() == [4, 4, 4]
+
+
+def test_format_4_rows_from_before_the_random_init_split_are_read_with_what_random_init_says(tmp_path: Path) -> None:
+    """Issue 32 split random_init into the encoder's and the backbone's within format 4: rows written before lack
+    the two columns, and get false where random_init says both were false, else null (which of the two was
+    random-init is unknown); their run_ids stand."""
+    old = tmp_path / "old.parquet"
+    rows = table([row("smolvla", "libero_spatial", "siglip", seed, 0.5, random_init=seed == 1) for seed in (0, 1)])
+    rows.drop("encoder_random_init", "backbone_random_init").write_parquet(old)
+    read = results.read(old)
+    assert read["run_id"].to_list() == rows["run_id"].to_list() and read["format_version"].to_list() == [4, 4]
+    assert read["encoder_random_init"].to_list() == read["backbone_random_init"].to_list() == [False, None]
+    assert read["random_init"].to_list() == [False, True]
 
 
 

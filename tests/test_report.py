@@ -15,6 +15,7 @@ from PIL import Image
 from graftcache import analysis, report
 from graftcache.cli import main
 from graftcache.errors import GraftcacheError
+from graftcache.report.random_init import random_init_warning
 from graftcache.results import REPORT_COLUMNS
 
 # fewer bootstrap replicates than the default, for speed
@@ -96,9 +97,48 @@ def test_random_init_rows_trigger_the_warning(tmp_path):
     paths = report.write_report(full_table(random_init_for=("pi05", "resnet18")), tmp_path, boot=QUICK)
     md = paths.markdown.read_text()
     assert "> **Warning: random-init weights**" in md
-    assert "> - pi0.5 (`pi05`): resnet18 (7 rows)" in md
+    assert ("> - pi0.5 (`pi05`): backbone released (not random-init) weights; encoders with random-init weights: "
+            "resnet18; real weights: dinov2-s, pi05-native, siglip") in md
+    assert "SmolVLA (`smolvla`)" not in md  # no random-init weights in any of its rows
     assert md.index("random-init weights") < md.index("## Does the ranking transfer?")
     assert 'class="warning"' in paths.html.read_text()
+
+
+DEMO_SHAPE = {("smolvla", "libero_spatial", e): [1.0, 1.1] for e in ("mobilenetv2", "timm:vit_tiny_patch16_224")}
+DEMO_SHAPE |= {("pi05", "libero_spatial", e): [1.0, 1.1] for e in ("mobilenetv2", "timm:vit_tiny_patch16_224")}
+
+
+def _banner(rows: list[dict]) -> tuple[str, ...]:
+    (alert,) = random_init_warning(analysis.analyze(table(rows), boot=QUICK))
+    return alert.lines
+
+
+def test_the_banner_says_per_backbone_which_weights_were_random_init():
+    """The demo's shape: tiny (train-tiny) backbones, a real-weights encoder beside a random-init one. Every row is
+    random-init somewhere, but the banner must say the encoders' weights apart from the backbones'."""
+    rows = [{**r, "backbone_random_init": True, "encoder_random_init": r["encoder"].startswith("timm:"),
+             "random_init": True} for r in plain_rows(DEMO_SHAPE)]
+    lead, *lines = _banner(rows)
+    assert lead.startswith("8 of 8 rows were produced with random-init weights in the encoder or the backbone.")
+    assert lines == [f"{label} (`{b}`): backbone random-init or train-tiny weights (all 4 rows); encoders with "
+                     "random-init weights: timm:vit_tiny_patch16_224; real weights: mobilenetv2"
+                     for label, b in (("SmolVLA", "smolvla"), ("pi0.5", "pi05"))]  # ladder order: smaller first
+
+
+def test_the_banner_falls_back_to_random_init_where_rows_do_not_record_the_two_apart():
+    """A table from before the split (or another tool): only random_init, said as such and never guessed apart;
+    rows that record the split beside them are still said apart."""
+    old = [{**r, "backbone_random_init": None, "encoder_random_init": None, "random_init": r["backbone"] == "pi05"}
+           for r in plain_rows(DEMO_SHAPE)]
+    old[0] |= {"backbone_random_init": True, "encoder_random_init": False, "random_init": True}  # smolvla's first
+    lead, *lines = _banner(old)
+    assert lead.startswith("5 of 8 rows were produced")
+    assert lines == [
+        "SmolVLA (`smolvla`): backbone random-init or train-tiny weights (1 of 4 rows); real weights: mobilenetv2",
+        ("pi0.5 (`pi05`): encoder and backbone not recorded apart (only random_init), random-init in one or both: "
+         "mobilenetv2, timm:vit_tiny_patch16_224 (4 rows)"),
+    ]
+    assert random_init_warning(analysis.analyze(table(plain_rows(DEMO_SHAPE)), boot=QUICK)) == []
 
 
 def test_one_backbone_says_transfer_needs_two(tmp_path):

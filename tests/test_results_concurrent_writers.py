@@ -290,8 +290,8 @@ def test_two_sweeps_of_one_recipe_compute_each_cell_once(v3_video: Written, tmp_
         assert proc.returncode == 0, err[-3000:]
     table = results.read(shared)
     assert table.height == 4 and sorted(table["control"]) == ["none", "none", "zero-image", "zero-image"]
-    computed = [line.split()[1].rstrip(":") for out, err in outs for line in (out + err).splitlines()
-                if line.startswith("cell ") and "being computed" not in line]
+    computed = [line.split("(cell ")[1].split(")")[0] for out, err in outs for line in (out + err).splitlines()
+                if ": eval_mse " in line]  # each computed cell's one result line
     assert sorted(computed) == sorted(table["run_id"].to_list())  # each of the 4 cells once, over both sweeps
     logs = [out + err for out, err in outs]
     # the tiny policy is trained by one sweep and reused by the other, which waited for it

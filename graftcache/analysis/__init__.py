@@ -27,7 +27,9 @@ Statistics (stated once here, cited by the report):
   results are deterministic and do not depend on row order;
 - transfer is tested in both directions (smaller -> larger and larger -> smaller) for every pair of
   backbones, per suite and per seed-level cell (one seed's rows alone); a target tier that holds every
-  shared encoder is a near-tie band, not a transfer (see graftcache.analysis.transfer).
+  shared encoder is a near-tie band, not a transfer (see graftcache.analysis.transfer);
+- seed stability repeats every judged comparison on each seed alone (with 4 seeds or more: on each half of the
+  seeds) and says whether it gives the same verdict and target top tier (graftcache.analysis.stability).
 
 Given rollouts (graftcache.analysis.rollouts), the offline scores are set against closed-loop success per cell
 (graftcache.analysis.closed_loop: Wilson intervals; Spearman, Kendall tau-b and MMRV over run_ids).
@@ -72,6 +74,7 @@ from graftcache.analysis.scores import (
     score_disagreement,
     scored,
 )
+from graftcache.analysis.stability import HALVES_FROM, STABILITY_SCHEMA, seed_parts, seed_stability
 from graftcache.analysis.stats import BASIS_MISSING, SOLID_BASES, BootSettings, tau_b
 from graftcache.analysis.summaries import (
     duplicate_rows,
@@ -115,14 +118,16 @@ __all__ = [
     "AGREEMENT_SCHEMA", "CELL_SCHEMA", "CLOSED_LOOP_SCORES", "ROLLOUT_COLUMNS", "ClosedLoop", "closed_loop", "mmrv",
     "read_rollouts", "spearman", "wilson",
     "BACKBONE_LABELS", "BASIS_MISSING", "CELL", "CONTROLS_SCHEMA", "COUNT_COLUMNS", "DISAGREEMENT_SCHEMA",
-    "DOES_NOT_TRANSFER", "EPISODE_COLUMN", "GROUP", "HEADLINE_SCHEMA", "INSUFFICIENT",
+    "DOES_NOT_TRANSFER", "EPISODE_COLUMN", "GROUP", "HALVES_FROM", "HEADLINE_SCHEMA", "INSUFFICIENT",
     "NATIVE_CONTROL", "NATIVE_GRAFT_CONTROL",
     "NEAR_TIE", "NOT_ENCODER_CONTROLS", "PAIRING_SCHEMA", "PARAMS_COLUMN", "PLAIN", "RECIPE_COLUMNS",
-    "SCORES", "SCORE_LABELS", "SEED_VERDICT_SCHEMA", "SHUFFLED_IMAGE", "SOLID_BASES", "TAU_SCHEMA", "TRANSFERS",
+    "SCORES", "SCORE_LABELS", "SEED_VERDICT_SCHEMA", "SHUFFLED_IMAGE", "SOLID_BASES", "STABILITY_SCHEMA", "TAU_SCHEMA",
+    "TRANSFERS",
     "VERDICTS", "VERDICT_SCHEMA", "ZERO_IMAGE", "Analysis", "BootSettings", "Ladder", "analyze",
     "backbone_label", "backbone_ladder", "controls_distance", "duplicate_rows", "episode_coverage",
     "format_params", "has_score", "kendall_tau", "ladder_headline", "missing_cells", "near_tie_band", "rankings",
-    "score_disagreement", "scored", "seed_disagreement_counts", "seed_pairings", "seed_summary", "seed_verdicts",
+    "score_disagreement", "scored", "seed_disagreement_counts", "seed_pairings", "seed_parts", "seed_stability",
+    "seed_summary", "seed_verdicts",
     "tau_b", "tau_matrix", "transfer_verdicts", "verdict_counts", "wrapper_non_neutrality",
 ]
 
@@ -138,6 +143,7 @@ class Analysis:
     band: pl.DataFrame  # seed_summary + rank + top tier, per (backbone, suite, encoder)
     verdicts: pl.DataFrame  # per (suite, pair, direction)
     seed_verdicts: pl.DataFrame  # per (suite, pair, seed, direction)
+    stability: pl.DataFrame  # per judged (suite, pair, direction) and part of the seeds: same verdict and tier?
     headline: pl.DataFrame  # per suite: smallest -> largest, and the rung where the ranking breaks
     pairings: pl.DataFrame
     disagreements: pl.DataFrame
@@ -204,6 +210,7 @@ def analyze(results: pl.DataFrame, *, score: str = "mse", boot: BootSettings = B
     results = scored(results, score)
     ladder = backbone_ladder(results)
     verdicts = transfer_verdicts(results, ladder=ladder, boot=boot)
+    per_seed = seed_verdicts(results, ladder=ladder, boot=boot)
     return Analysis(
         results=results,
         ladder=ladder,
@@ -211,7 +218,8 @@ def analyze(results: pl.DataFrame, *, score: str = "mse", boot: BootSettings = B
         boot=boot,
         band=near_tie_band(results, boot=boot),
         verdicts=verdicts,
-        seed_verdicts=seed_verdicts(results, ladder=ladder, boot=boot),
+        seed_verdicts=per_seed,
+        stability=seed_stability(results, verdicts, per_seed, ladder=ladder, boot=boot),
         headline=ladder_headline(verdicts, ladder),
         pairings=seed_pairings(results, ladder=ladder),
         disagreements=seed_disagreement_counts(results, ladder=ladder),

@@ -2,7 +2,8 @@
 
 A backbone is loaded once per (name, policy, device) and handed out reset to its frozen state as loaded
 (`BackboneAdapter.reset`: the graft's surgery undone; no weight is written, so none is copied), so a grid
-of cells costs one load per backbone, and cells that are already done load nothing at all.
+of cells costs one load per backbone, and cells that are already done load nothing at all. What each load was
+grafted as is logged once per kind of graft (`describe`), not once per cell.
 """
 
 from __future__ import annotations
@@ -15,11 +16,13 @@ from graftcache.backbones import load_backbone
 
 if TYPE_CHECKING:
     from graftcache.backbones.base import BackboneAdapter
+    from graftcache.backbones.surgery import FreezeReport
 
 
 class BackbonePool:
     def __init__(self, log: Callable[[str], None] = print) -> None:
         self._loaded: dict[tuple[str, str, str], BackboneAdapter] = {}
+        self._said: dict[int, list[FreezeReport]] = {}  # id of a loaded adapter -> the freeze reports logged of it
         self.log = log
 
     def get(self, name: str, policy: str | Path, device: str) -> BackboneAdapter:
@@ -31,6 +34,20 @@ class BackbonePool:
         adapter = self._loaded[key]
         adapter.reset()
         return adapter
+
+    def describe(self, adapter: BackboneAdapter, cells: str) -> None:
+        """Log which modules of the grafted `adapter` train, for `cells` (who grafted it): the whole table the first
+        time a loaded policy is grafted, then only a table not logged of it yet, as what differs from the first
+        (a grid of cells logs each kind of graft once, not a table per cell)."""
+        report = adapter.freeze_report()
+        said = self._said.setdefault(id(adapter), [])
+        if not said:
+            self.log(f"{adapter.name} as grafted for {cells}, parameters per module (said once per loaded policy; "
+                     f"a later graft of it says what differs):\n{report}")
+        elif report not in said:
+            self.log(f"{adapter.name} as grafted for {cells}: as the table above but {report.changes(said[0])}")
+        if report not in said:
+            said.append(report)
 
     @property
     def loads(self) -> int:

@@ -79,6 +79,15 @@ class FreezeReport:
         lines.append(f"{'total':<{width}}  {self.total:>13,}  {self.trainable:>13,}")
         return "\n".join(lines)
 
+    def changes(self, base: FreezeReport) -> str:
+        """What differs from `base` (another graft of the same policy), row by row and the total, on one line: a
+        log says the whole table once per loaded policy and then only this (e.g. LoRA's trainable share of the
+        language model, a wider encoder's projector)."""
+        before = {r.module: r for r in base.rows}
+        rows = [r for r in self.rows if before.get(r.module) != r]
+        return "; ".join([*(f"{r.module} {r.params:,} params, {r.trainable:,} trainable" for r in rows),
+                          f"total {self.total:,} params, {self.trainable:,} trainable"])
+
 
 def freeze_report(groups: Mapping[str, nn.Module | tuple[nn.Module, ...]], model: nn.Module) -> FreezeReport:
     """Count parameters per named group; each parameter is counted once (tied weights included),

@@ -76,7 +76,7 @@ class Host(Protocol):
     log: Callable[[str], None]
 
     def cells(self) -> list[tuple[Control, int, Identified]]: ...
-    def skip(self, control: Control, cell: Identified, done: set[str]) -> bool: ...
+    def skipped(self, cells: Sequence[tuple[Control, int]]) -> None: ...
     def pass_key(self, control: Control) -> tuple | None: ...
     def run_pass(self, members: Sequence[Member]) -> list[dict[str, Any]]: ...
     def run_folder(self, cell: Identified) -> Any: ...
@@ -157,18 +157,27 @@ def run_passes(fitters: Sequence[Host], visited: Callable[[int], None] = lambda 
     set_main_threads()
     members: list[Member] = []
     seen: set[tuple[str, str]] = set()
+    shared: Counter[str] = Counter()  # control -> cells of an earlier request too
     done = {path: results.done_run_ids(path) for path in {f.req.results for f in fitters}}
     for fitter in fitters:
+        finished = []
         for control, seed, cell in fitter.cells():
             m = Member(fitter, control, seed, cell)
             if m.at in seen:  # a cell two requests share (the native controls of every encoder) runs once
-                fitter.log(f"cell {cell.run_id} (seed {seed} control {control.name}) is a cell of an earlier "
-                           f"request too: computed once")
-            if m.at in seen or fitter.skip(control, cell, done[fitter.req.results]):
+                shared[control.name] += 1
                 visited(1)
                 continue
             seen.add(m.at)
-            members.append(m)
+            if cell.run_id in done[fitter.req.results]:
+                finished.append((control, seed))
+                visited(1)
+            else:
+                members.append(m)
+        if finished:
+            fitter.skipped(finished)
+    if shared:
+        which = ", ".join(f"{control} {n}" for control, n in shared.items())
+        fitters[0].log(f"{shared.total()} cells are cells of earlier requests too ({which}): each computed once")
     claims = {m.at: results.cell_claim(*m.at) for m in members}
     left = Counter(id(m.fitter) for m in members)
     rows: list[dict[str, Any]] = []
@@ -188,7 +197,12 @@ def run_passes(fitters: Sequence[Host], visited: Callable[[int], None] = lambda 
                                          f"computed by {claims[m.at].holder()}: waiting for its row")
                             told.add(m.at)
                         busy.append(m)
-                    fresh = [m for m in got if not m.fitter.skip(m.control, m.cell, results.done_run_ids(m.at[0]))]
+                    fresh = []
+                    for m in got:  # another process may have written its row since
+                        if m.cell.run_id in results.done_run_ids(m.at[0]):
+                            m.fitter.skipped([(m.control, m.seed)])
+                        else:
+                            fresh.append(m)
                     if fresh:
                         rows += _write(fresh, fresh[0].fitter.run_pass(fresh))
                 finally:

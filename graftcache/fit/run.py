@@ -249,14 +249,17 @@ class Fitter:
         (graftcache/fit/passes.py), each row appended to the results file as its pass finishes."""
         return run_passes([self])
 
-    def skip(self, control: Control, cell: Cell, done: set[str]) -> bool:
-        """Whether the cell's row is in the results file already (said so in the log)."""
-        if cell.run_id not in done:
-            return False
-        encoder = self._source(control).manifest.encoder_name
-        self.log(f"skip {self.req.backbone}/{encoder}/{self.req.suite} seed {cell.seed} "
-                 f"control {control.name}: already in {self.req.results}")
-        return True
+    def skipped(self, cells: Sequence[tuple[Control, int]]) -> None:
+        """Say in one line which of this request's cells are skipped, their rows being in the results file already:
+        by control (with the tower a native control reads), the seeds of each."""
+        seeds: dict[str, list[str]] = {}
+        for control, seed in cells:
+            source = self._source(control).manifest.encoder_name
+            name = control.name if source == self.req.encoder else f"{control.name} ({source})"
+            seeds.setdefault(name, []).append(str(seed))
+        which = "; ".join(f"{name}: seed{'s' * (len(s) > 1)} {', '.join(s)}" for name, s in seeds.items())
+        self.log(f"skip {self.req.backbone}/{self.req.encoder}/{self.req.suite}: {len(cells)} "
+                 f"cell{'s' * (len(cells) > 1)} already in {self.req.results} (control {which})")
 
     def close(self) -> None:
         """Drop what this Fitter keeps for its next cells (blocks read, low-dim tables) once it has none left."""
@@ -300,8 +303,8 @@ class Fitter:
     def _told(self, row: dict[str, Any], control: Control) -> dict[str, Any]:
         """`row`, once its scores are in the log."""
         shared = f" (its share of a pass of {row['cells_per_pass']})" if row["cells_per_pass"] > 1 else ""
-        self.log(f"{row['backbone']}/{row['encoder']}/{row['suite']} seed {row['seed']} control {control.name}: "
-                 f"eval_mse {row['eval_mse']:.4f} (first {row['eval_mse_first']:.4f}, raw "
+        self.log(f"{row['backbone']}/{row['encoder']}/{row['suite']} seed {row['seed']} control {control.name} "
+                 f"(cell {row['run_id']}): eval_mse {row['eval_mse']:.4f} (first {row['eval_mse_first']:.4f}, raw "
                  f"{row['eval_mse_raw']:.5f}) on {row['n_eval_frames']} frames "
                  f"({row['eval_seconds_per_frame'] * 1e3:.1f} ms a frame at --eval-batch-size "
                  f"{row['eval_batch_size']}), {row['wall_s']:.1f}s{shared}; activation checkpointing "
@@ -347,7 +350,7 @@ class Fitter:
         adapter.graft(control.projector(width, adapter.lm_width))
         if control.lora:
             adapter.add_lora(rank=self.req.lora_rank)
-        self.log(f"cell {cell.run_id}: {adapter.freeze_report()}")
+        self.backbones.describe(adapter, f"cell {cell.run_id} ({mat.encoder} seed {cell.seed} control {control.name})")
         cams = self.cameras
         adapter.set_activation_checkpointing(False)  # only a training step uses it (what the last cell left)
         if control.train and self._objective(control).scheduled:  # refused here, not OOM-killed later
@@ -388,10 +391,8 @@ class Fitter:
             projectors.append(m.control.projector(mat.source.frame_shape(mat.source.cameras[0])[1], adapter.lm_width))
         fused = FusedProjector(projectors)
         adapter.graft(fused)
-        report = adapter.freeze_report()
-        for m in members:
-            self.log(f"cell {m.cell.run_id}: one of {len(members)} cells of a backbone pass, each training its own "
-                     f"projector: {report}")
+        self.backbones.describe(adapter, f"the {len(members)} cells of a backbone pass, each training its own "
+                                f"projector ({', '.join(m.cell.run_id for m in members)})")
         check_step_memory(adapter, mats[0].train, self.cameras, mats[0].source, batch_size=self.req.batch_size,
                           buffer_mib=self.req.buffer_mib, dtype=self.dtype,
                           checkpointing=self.req.activation_checkpointing,
@@ -449,6 +450,8 @@ class Fitter:
             "n_eval_frames": score.n_frames, "n_eval_episodes": len(score.per_episode), "wall_s": wall,
             "cells_per_pass": cells, "device": str(self.device),
             "random_init": bool(mat.cache.manifest.random_init or adapter.random_init),
+            "encoder_random_init": bool(mat.cache.manifest.random_init),
+            "backbone_random_init": bool(adapter.random_init),
             "n_dropped_nonfinite": mat.dropped + len(stats.dropped), "numerics_drift": self._drift(mat),
             "camera_map": format_camera_map(self.cameras), "graftcache_version": graftcache.__version__,
             "activation_checkpointing": checkpointing, "eval_seconds_per_frame": eval_s / score.n_frames,

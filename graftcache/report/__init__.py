@@ -26,12 +26,14 @@ from graftcache.report.figures import (
     figure_rank_bump,
     figure_rank_transfer,
 )
+from graftcache.report.random_init import random_init_warning
 from graftcache.report.render import render_html, render_markdown
-from graftcache.report.sections import SECTIONS, header, provenance_section, random_init_warning
+from graftcache.report.sections import SECTIONS, header, provenance_section
 from graftcache.report.sentences import (
     PROXY_NOTE,
     bootstrap_sentence,
     headline_sentences,
+    stability_sentences,
     transfer_summary,
     verdict_sentences,
 )
@@ -41,7 +43,8 @@ __all__ = [
     "CLOSED_LOOP_CSV", "CLOSED_LOOP_CSV_COLUMNS", "closed_loop_table", "figure_closed_loop",
     "FIGURES", "PROXY_NOTE", "TITLE", "TRANSFER_CSV", "TRANSFER_CSV_COLUMNS", "ReportPaths", "bootstrap_sentence",
     "figure_controls", "figure_mse", "figure_rank_bump", "figure_rank_transfer", "headline_sentences",
-    "render_html", "render_markdown", "report_command", "transfer_summary", "transfer_table", "verdict_sentences",
+    "random_init_warning", "render_html", "render_markdown", "report_command", "stability_sentences",
+    "transfer_summary", "transfer_table", "verdict_sentences",
     "write_report",
 ]
 

@@ -17,9 +17,11 @@ from graftcache.report.sentences import (
     PROXY_NOTE,
     SEED_LEVEL_BOOTSTRAP,
     bootstrap_sentence,
+    by_halves,
     direction,
     headline_sentences,
     score_sentence,
+    stability_sentences,
     transfer_summary,
     verdict_sentences,
 )
@@ -73,19 +75,6 @@ def header(a: A.Analysis, source: str) -> list[Block]:
     return [Bullets(facts), Paragraph(PROXY_NOTE)]
 
 
-def random_init_warning(a: A.Analysis) -> list[Block]:
-    rand = a.results.filter(pl.col("random_init").fill_null(False))
-    if not len(rand):
-        return []
-    per = rand.group_by("backbone").agg(pl.col("encoder").unique().sort(), n=pl.len()).sort("backbone")
-    lead = (
-        f"{len(rand)} of {len(a.results)} rows were produced with random-init weights in the encoder or the "
-        "backbone: their MSEs say nothing about pretrained representations."
-    )
-    lines = [f"{A.backbone_label(b)} (`{b}`): {', '.join(encs)} ({n} rows)" for b, encs, n in per.iter_rows()]
-    return [Alert("random-init weights", (lead, *lines))]
-
-
 def _figure(a: A.Analysis, out: Path, name: str) -> list[Block]:
     draw, caption = FIGURES[name]
     fig = draw(a)
@@ -101,7 +90,7 @@ def _transfer_section(a: A.Analysis, out: Path) -> list[Block]:
         return [head, Paragraph(f"The transfer question {a.transfer_gap}, so no verdict is given.")]
     if len(a.ladder.backbones) == 2:  # the paper's framing: one small and one large backbone
         return [
-            head, Paragraph(transfer_summary(a)), Bullets(tuple(verdict_sentences(a))),
+            head, Paragraph(transfer_summary(a)), Bullets(tuple(verdict_sentences(a))), *_stability(a),
             table_block(a.verdicts, transfer_columns(a)), *_figure(a, out, "rank_transfer.png"),
         ]
     about = ("Backbones stand on a ladder by parameter count; each rung is a backbone and the next larger one. "
@@ -112,9 +101,17 @@ def _transfer_section(a: A.Analysis, out: Path) -> list[Block]:
     return [
         head, Paragraph(about), ladder_block(a), Bullets(tuple(headline_sentences(a))),
         *_figure(a, out, "rank_bump.png"),
-        Paragraph(transfer_summary(a)), Bullets(tuple(verdict_sentences(a))),
+        Paragraph(transfer_summary(a)), Bullets(tuple(verdict_sentences(a))), *_stability(a),
         table_block(a.verdicts, transfer_columns(a)), *taus,
     ]
+
+
+def _stability(a: A.Analysis) -> list[Block]:
+    """Would a rerun with other seeds keep these verdicts? Each judged comparison repeated on parts of the seeds."""
+    parts = f"each half of the seeds (with {A.HALVES_FROM} seeds or more)" if by_halves(a) else "each seed alone"
+    about = (f"Seed stability: every judged comparison repeated on {parts}; a verdict holds under a part when the "
+             "part gives the same verdict and the same target top tier as all seeds.")
+    return [Paragraph(about), Bullets(tuple(stability_sentences(a)))]
 
 
 def _score_section(a: A.Analysis, _: Path) -> list[Block]:

@@ -104,6 +104,43 @@ def verdict_sentences(a: A.Analysis) -> list[str]:
     return list(out)
 
 
+def by_halves(a: A.Analysis) -> bool:
+    """Whether seed stability judged halves of the seeds (A.HALVES_FROM seeds or more), not each seed alone."""
+    return bool(len(a.stability)) and a.stability["part"][0].startswith("seeds ")
+
+
+def stability_sentences(a: A.Analysis) -> list[str]:
+    """Per suite, the seed-stability line: under how many parts of the seeds (each seed alone, or each half) every
+    judged comparison keeps its verdict and its target top tier (graftcache.analysis.stability), and each change."""
+    st = a.stability
+    if not len(st):
+        seeds = sorted(set(a.results.filter(pl.col("control") == A.PLAIN)["seed"].to_list()))
+        held = f"one seed ({seeds[0]})" if len(seeds) == 1 else "no judged comparison"
+        return [f"Seed stability cannot be measured: the table holds {held}; a rerun with other seeds would say "
+                "whether these verdicts hold."]
+    units = ("half of the seeds", "halves of the seeds") if by_halves(a) else ("seed alone", "seeds alone")
+    out = []
+    for suite in sorted(set(st["suite"].to_list())):
+        rows = st.filter(pl.col("suite") == suite)
+        parts = rows["part"].unique(maintain_order=True).to_list()
+        open_ = [p for p in parts if rows.filter(pl.col("part") == p)["same_verdict"].null_count()]
+        judged = [p for p in parts if p not in open_]
+        held = [p for p in judged if rows.filter(pl.col("part") == p).select(
+            pl.col("same_verdict").all() & pl.col("same_tier").all()).item()]
+        text = (f"Seed stability on {suite}: every verdict and its top tier hold under {len(held)} of "
+                f"{len(judged)} {units[len(judged) != 1]}")
+        changes = [
+            f"under {r['part']}, {direction(r['source'], r['target'])} gives '{r['part_verdict']}' with "
+            f"{A.backbone_label(r['target'])}'s top tier {_tier(sorted(r['part_band']))}, all seeds "
+            f"'{r['verdict']}' with {_tier(sorted(r['target_band']))}"
+            for r in rows.filter(~(pl.col("same_verdict") & pl.col("same_tier"))).iter_rows(named=True)
+        ]
+        if open_:
+            text += f" ({len(open_)} could not be judged: {', '.join(open_)})"
+        out.append(text + (": " + "; ".join(changes) if changes else "") + ".")
+    return out
+
+
 def _pair(x: str, y: str) -> str:
     """Two backbones, as an unordered pair (the two directions of an unjudgeable pair say the same)."""
     return " and ".join(A.backbone_label(b) for b in sorted((x, y)))

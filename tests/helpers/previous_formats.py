@@ -35,8 +35,8 @@ def previous_format(folder: Path, root: Path, lacking: str | None = None, versio
     return rekeyed(folder, root, older)
 
 
-#: The columns results format 4 added (issue 31), which rows of formats 1 to 3 lack.
-FORMAT_4_COLUMNS = ("eval_split", "eval_mse_arm", "eval_mse_gripper")
+#: The columns results format 4 added (issue 31; issue 32 the last two), which rows of formats 1 to 3 lack.
+FORMAT_4_COLUMNS = ("eval_split", "eval_mse_arm", "eval_mse_gripper", "encoder_random_init", "backbone_random_init")
 
 
 def previous_results(path: Path, rows: pl.DataFrame, version: int = 1) -> Path:

@@ -111,6 +111,8 @@ def row(backbone: str, suite: str, encoder: str, seed: int, eval_mse: float | No
         "device": "cpu",
         "compute_dtype": "fp32",
         "random_init": False,
+        "encoder_random_init": False,
+        "backbone_random_init": False,
         "n_dropped_nonfinite": 0,
         "numerics_drift": 0.0,
         "camera_map": "image=image,image2=image2",
@@ -143,11 +145,12 @@ def control_rows(cells: dict[tuple[str, str, str, str], list[float]] = CONTROL_M
 
 
 def full_table(*, random_init_for: tuple[str, str] | None = None) -> pl.DataFrame:
-    """The whole hand-built table; random_init_for=(backbone, encoder) marks those rows random-init."""
+    """The whole hand-built table; random_init_for=(backbone, encoder) marks that encoder's rows on that backbone
+    as of a random-init encoder."""
     rows = plain_rows() + control_rows()
     if random_init_for:
         for r in rows:
-            r["random_init"] = (r["backbone"], r["encoder"]) == random_init_for
+            r["random_init"] = r["encoder_random_init"] = (r["backbone"], r["encoder"]) == random_init_for
     return table(rows)
 
 
