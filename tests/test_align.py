@@ -35,3 +35,17 @@ def test_ridge_pools_finer_native_tokens_and_reports_partial_fit() -> None:
     assert 0.0 <= r2 < 0.2  # unrelated noise: little variance explained
     with pytest.raises(FitError, match="do not line up"):
         fit_ridge(GraftProjector(8, 5), [(src[:100], native)], (2, 2))
+
+
+def test_ridge_on_features_that_never_vary_gives_the_mean_target() -> None:
+    """The zero-image control feeds zeros: no spread to scale the ridge by. Least squares then says W = 0 and b = the
+    mean target (once a singular solve)."""
+    g = torch.Generator().manual_seed(1)
+    targets = torch.randn(50, 4, 6, generator=g)
+    projector = GraftProjector(8, 6)
+    r2 = fit_ridge(projector, [(torch.zeros(50, 4, 8), targets)], (2, 2))
+    assert r2 == pytest.approx(0.0, abs=1e-6)
+    with torch.no_grad():
+        torch.testing.assert_close(projector.proj.weight, torch.zeros(6, 8))
+        torch.testing.assert_close(projector(torch.zeros(3, 4, 8)), targets.reshape(-1, 6).mean(0).expand(3, 4, 6),
+                                   atol=1e-5, rtol=1e-5)
