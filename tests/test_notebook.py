@@ -18,4 +18,6 @@ def test_notebook_executes_and_draws_figures(tmp_path, monkeypatch):
     run = execute_notebook(write_results(tmp_path / "results.parquet"), tmp_path, monkeypatch)
     assert not run.errors
     assert "On libero_spatial, the SmolVLA winner (siglip) is in pi0.5's top tier: the ranking transfers." in run.text
+    assert "SmolVLA · libero_spatial: separated on every seed" in run.text  # the controls' findings
+    assert "SmolVLA: siglip on libero_spatial (real weights) beats both image controls on every seed" in run.text
     assert run.figures == 3  # rank transfer, MSE, controls

@@ -28,6 +28,9 @@ Statistics (stated once here, cited by the report):
 - transfer is tested in both directions (smaller -> larger and larger -> smaller) for every pair of
   backbones, per suite and per seed-level cell (one seed's rows alone); a target tier that holds every
   shared encoder is a near-tie band, not a transfer (see graftcache.analysis.transfer);
+- the controls' two findings hold "on every seed" when one side's worst seed is below the other's best (no
+  bootstrap): the backbone's own tower against zero-image, each encoder against zero-image and shuffled-image
+  (graftcache.analysis.findings);
 - seed stability repeats every judged comparison on each seed alone (with 4 seeds or more: on each half of the
   seeds) and says whether it gives the same verdict and target top tier (graftcache.analysis.stability).
 
@@ -63,6 +66,14 @@ from graftcache.analysis.closed_loop import (
     wilson,
 )
 from graftcache.analysis.controls import CONTROLS_SCHEMA, controls_distance, wrapper_non_neutrality
+from graftcache.analysis.findings import (
+    BEATS,
+    BEATS_BOTH,
+    NOT_SEPARATED,
+    SEPARATED,
+    beats_image_controls,
+    native_vs_zero_image,
+)
 from graftcache.analysis.headline import HEADLINE_SCHEMA, ladder_headline
 from graftcache.analysis.ladder import PARAMS_COLUMN, Ladder, backbone_ladder, format_params
 from graftcache.analysis.rollouts import ROLLOUT_COLUMNS, read_rollouts
@@ -117,6 +128,7 @@ from graftcache.results import conform
 __all__ = [
     "AGREEMENT_SCHEMA", "CELL_SCHEMA", "CLOSED_LOOP_SCORES", "ROLLOUT_COLUMNS", "ClosedLoop", "closed_loop", "mmrv",
     "read_rollouts", "spearman", "wilson",
+    "BEATS", "BEATS_BOTH", "NOT_SEPARATED", "SEPARATED", "beats_image_controls", "native_vs_zero_image",
     "BACKBONE_LABELS", "BASIS_MISSING", "CELL", "CONTROLS_SCHEMA", "COUNT_COLUMNS", "DISAGREEMENT_SCHEMA",
     "DOES_NOT_TRANSFER", "EPISODE_COLUMN", "GROUP", "HALVES_FROM", "HEADLINE_SCHEMA", "INSUFFICIENT",
     "NATIVE_CONTROL", "NATIVE_GRAFT_CONTROL",
@@ -150,6 +162,8 @@ class Analysis:
     tau: pl.DataFrame  # per (suite, pair)
     wrapper: pl.DataFrame
     controls: pl.DataFrame  # every encoder-level control in the table
+    reads_images: pl.DataFrame  # per (backbone, suite): native tower vs pooled zero-image, on every seed
+    beats_controls: pl.DataFrame  # per (backbone, suite, encoder): plain graft vs both image controls, every seed
     missing: pl.DataFrame
     scores: pl.DataFrame  # where the MSE and CI-MSE rankings disagree (empty without CI-MSE)
     closed_loop: ClosedLoop | None = None  # offline scores vs rollouts' success (None: no rollouts given)
@@ -226,6 +240,8 @@ def analyze(results: pl.DataFrame, *, score: str = "mse", boot: BootSettings = B
         tau=kendall_tau(results, ladder=ladder),
         wrapper=wrapper_non_neutrality(results),
         controls=controls_distance(results, controls=None, boot=boot),
+        reads_images=native_vs_zero_image(results),
+        beats_controls=beats_image_controls(results),
         missing=missing_cells(results),
         scores=disagreement,
         closed_loop=against,

@@ -26,6 +26,7 @@ from graftcache.report.figures import (
     figure_rank_bump,
     figure_rank_transfer,
 )
+from graftcache.report.findings import beats_controls_sentences, reads_images_sentences
 from graftcache.report.random_init import random_init_warning
 from graftcache.report.render import render_html, render_markdown
 from graftcache.report.sections import SECTIONS, header, provenance_section
@@ -43,7 +44,8 @@ __all__ = [
     "CLOSED_LOOP_CSV", "CLOSED_LOOP_CSV_COLUMNS", "closed_loop_table", "figure_closed_loop",
     "FIGURES", "PROXY_NOTE", "TITLE", "TRANSFER_CSV", "TRANSFER_CSV_COLUMNS", "ReportPaths", "bootstrap_sentence",
     "figure_controls", "figure_mse", "figure_rank_bump", "figure_rank_transfer", "headline_sentences",
-    "random_init_warning", "render_html", "render_markdown", "report_command", "stability_sentences",
+    "beats_controls_sentences", "reads_images_sentences", "random_init_warning", "render_html", "render_markdown",
+    "report_command", "stability_sentences",
     "transfer_summary", "transfer_table", "verdict_sentences",
     "write_report",
 ]

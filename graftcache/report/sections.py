@@ -13,6 +13,7 @@ from graftcache import results as R
 from graftcache.critical import WINDOW
 from graftcache.report.document import Alert, Block, Bullets, Heading, Image, Paragraph
 from graftcache.report.figures import FIGURES
+from graftcache.report.findings import findings_blocks
 from graftcache.report.sentences import (
     PROXY_NOTE,
     SEED_LEVEL_BOOTSTRAP,
@@ -155,10 +156,11 @@ def _wrapper_section(a: A.Analysis, _: Path) -> list[Block]:
 
 
 def _controls_section(a: A.Analysis, out: Path) -> list[Block]:
-    head = Heading("Controls: does the encoder matter?")
+    head = [Heading("Controls: does the encoder matter?"), *findings_blocks(a),
+            Heading("Each encoder's distance from each control", 3)]
     have = in_backbone_order(a, a.controls.filter(pl.col("control_n") > 0))
     if not len(have):
-        return [head, Paragraph(
+        return [*head, Paragraph(
             "No encoder-level control rows (zero-image, shuffled-image, pool-HxW, lora)."
         )]
     about = (
@@ -166,7 +168,7 @@ def _controls_section(a: A.Analysis, out: Path) -> list[Block]:
         f"removes. 'within noise' = the encoder is not better than the control at {a.boot.confidence:.0%} "
         "under the seed bootstrap."
     )
-    blocks: list[Block] = [head, Paragraph(about)]
+    blocks: list[Block] = [*head, Paragraph(about)]
     noisy = have.filter(pl.col("control") == A.ZERO_IMAGE, pl.col("within_noise")).select(A.CELL).rows()
     if noisy:
         lines = tuple(f"{A.backbone_label(b)} · {s} · {e}: the image features add nothing measurable"

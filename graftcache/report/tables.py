@@ -11,11 +11,13 @@ from graftcache.report.document import Table
 from graftcache.report.sentences import direction, seed_counts
 
 
-def _num(x: float | None, fmt: str = ".4g") -> str:
+def num(x: float | None, fmt: str = ".4g") -> str:
+    """A number as every table and sentence writes it; null -> '—'."""
     return "—" if x is None else format(x, fmt)
 
 
-def _pct(x: float | None) -> str:
+def pct(x: float | None) -> str:
+    """A ratio as a signed percentage; null -> '—'."""
     return "—" if x is None else f"{100 * x:+.1f}%"
 
 
@@ -56,31 +58,46 @@ TARGET_TIER: Column = ("target top tier", lambda r: ", ".join(r["target_band"] o
 
 MSE_COLUMNS: tuple[Column, ...] = (
     BACKBONE, ("suite", _col("suite")), ("encoder", _col("encoder")), ("rank", _col("rank")),
-    ("mean ± std", lambda r: "—" if r["mean"] is None else f"{r['mean']:.4g} ± {_num(r['std'])}"),
-    ("n", _col("n")), ("min", _col("min", _num)), ("max", _col("max", _num)),
-    ("top tier", _col("in_band", _yes)), ("P(worse than best)", _col("p_worse", lambda x: _num(x, ".3f"))),
+    ("mean ± std", lambda r: "—" if r["mean"] is None else f"{r['mean']:.4g} ± {num(r['std'])}"),
+    ("n", _col("n")), ("min", _col("min", num)), ("max", _col("max", num)),
+    ("top tier", _col("in_band", _yes)), ("P(worse than best)", _col("p_worse", lambda x: num(x, ".3f"))),
     ("basis", _col("basis")),
 )
 WRAPPER_COLUMNS: tuple[Column, ...] = (
     BACKBONE, ("suite", _col("suite")), ("native tower", _col("native_encoder")),
-    ("native MSE (n)", lambda r: f"{_num(r['native_mse'])} ({r['native_n']})"),
-    ("native-graft MSE (n)", lambda r: f"{_num(r['native_graft_mse'])} ({r['native_graft_n']})"),
-    ("non-neutrality", _col("non_neutrality", _pct)),
-    ("seed spread", _col("non_neutrality_seed_std", _pct)), NOTE,
+    ("native MSE (n)", lambda r: f"{num(r['native_mse'])} ({r['native_n']})"),
+    ("native-graft MSE (n)", lambda r: f"{num(r['native_graft_mse'])} ({r['native_graft_n']})"),
+    ("non-neutrality", _col("non_neutrality", pct)),
+    ("seed spread", _col("non_neutrality_seed_std", pct)), NOTE,
 )
 CONTROL_COLUMNS: tuple[Column, ...] = (
     BACKBONE, ("suite", _col("suite")), ("encoder", _col("encoder")), ("control", _col("control")),
-    ("encoder MSE (n)", lambda r: f"{_num(r['enc_mse'])} ({r['enc_n']})"),
-    ("control MSE (n)", lambda r: f"{_num(r['control_mse'])} ({r['control_n']})"),
-    ("distance", _col("distance", _pct)), ("P(encoder better)", _col("p_better", lambda x: _num(x, ".3f"))),
+    ("encoder MSE (n)", lambda r: f"{num(r['enc_mse'])} ({r['enc_n']})"),
+    ("control MSE (n)", lambda r: f"{num(r['control_mse'])} ({r['control_n']})"),
+    ("distance", _col("distance", pct)), ("P(encoder better)", _col("p_better", lambda x: num(x, ".3f"))),
     ("within noise", _col("within_noise", _yes)), NOTE,
+)
+#: an encoder's weights as its rows record them (encoder_random_init; null: not recorded, or rows disagree)
+WEIGHTS = {True: "random-init", False: "real", None: "unknown"}
+
+
+def _extreme(which: str, name: str) -> Callable[[Row], str]:
+    """One side's worst or best seed, with its count of valid rows."""
+    return lambda r: f"{num(r[f'{name}_{which}'])} ({r[f'{name}_n']})"
+
+
+BEATS_COLUMNS: tuple[Column, ...] = (
+    BACKBONE, ("suite", _col("suite")), ("encoder", _col("encoder")),
+    ("weights", lambda r: WEIGHTS[r["encoder_random_init"]]),
+    ("plain-graft worst seed (n)", _extreme("max", "plain")), ("zero-image best seed (n)", _extreme("min", "zero")),
+    ("shuffled-image best seed (n)", _extreme("min", "shuffled")), ("verdict", _col("verdict")), NOTE,
 )
 MISSING_COLUMNS: tuple[Column, ...] = (
     BACKBONE, ("suite", _col("suite")), ("encoder", _col("encoder")), ("problem", _col("problem")),
 )
 PROVENANCE_COLUMNS: tuple[Column, ...] = (
     ("backbone", _col("backbone")), ("suite", _col("suite")), ("encoder", _col("encoder")),
-    ("control", _col("control")), ("seed", _col("seed")), ("eval_mse", _col("eval_mse", _num)),
+    ("control", _col("control")), ("seed", _col("seed")), ("eval_mse", _col("eval_mse", num)),
     ("cache key", _col("cache_key", _code)), ("command", _col("command", _code)),
 )
 SEED_COLUMNS: tuple[Column, ...] = (
@@ -119,7 +136,7 @@ def transfer_columns(a: A.Analysis) -> tuple[Column, ...]:
     return (
         ("suite", _col("suite")), DIRECTION, ("source winner", _col("source_winner")), TARGET_TIER,
         ("shared encoders", _col("n_common")), ("seed-level cells transferring", seed_level),
-        ("Kendall τb", lambda r: _num(tau.get(_pair_key(a, r)), ".2f")),
+        ("Kendall τb", lambda r: num(tau.get(_pair_key(a, r)), ".2f")),
         ("seed pairings disagreeing on top-1", disagreeing), ("verdict", _col("verdict")), NOTE,
     )
 
@@ -129,7 +146,7 @@ def tau_matrix_block(a: A.Analysis, suite: str) -> Table:
     names = a.ladder.backbones
     matrix = A.tau_matrix(a.tau, suite, names)
     return Table(("τb", *(A.backbone_label(b) for b in names)),
-                 tuple((A.backbone_label(b), *(_num(x, ".2f") for x in row)) for b, row in zip(names, matrix)))
+                 tuple((A.backbone_label(b), *(num(x, ".2f") for x in row)) for b, row in zip(names, matrix)))
 
 
 def ladder_block(a: A.Analysis) -> Table:
@@ -146,17 +163,17 @@ def _rate(r: Row) -> str:
 SUCCESS_COLUMNS: tuple[Column, ...] = (
     BACKBONE, ("suite", _col("suite")), ("encoder", _col("encoder")), ("control", _col("control")),
     ("seed", _col("seed")), ("run_id", _col("run_id", _code)), ("episodes", _col("episodes")),
-    ("success (95% Wilson)", _rate), *((s, _col(s, _num)) for s in A.CLOSED_LOOP_SCORES),
+    ("success (95% Wilson)", _rate), *((s, _col(s, num)) for s in A.CLOSED_LOOP_SCORES),
 )
 AGREEMENT_COLUMNS: tuple[Column, ...] = (
     BACKBONE, ("suite", _col("suite")), ("score", _col("score", _code)), ("cells", _col("cells")),
-    ("Spearman ρ", _col("spearman", lambda x: _num(x, "+.2f"))),
-    ("Kendall τb", _col("kendall_tau_b", lambda x: _num(x, "+.2f"))),
-    ("MMRV", _col("mmrv", lambda x: _num(x, ".3f"))), NOTE,
+    ("Spearman ρ", _col("spearman", lambda x: num(x, "+.2f"))),
+    ("Kendall τb", _col("kendall_tau_b", lambda x: num(x, "+.2f"))),
+    ("MMRV", _col("mmrv", lambda x: num(x, ".3f"))), NOTE,
 )
 SCORE_COLUMNS: tuple[Column, ...] = (
     BACKBONE, ("suite", _col("suite")), ("top-1 by MSE", _col("mse_top1")), ("top-1 by CI-MSE", _col("ci_mse_top1")),
     ("same top-1", _col("same_top1", _yes)), ("encoders", _col("n_common")),
-    ("Kendall τb (MSE vs CI-MSE)", _col("tau_b", lambda x: _num(x, ".2f"))),
+    ("Kendall τb (MSE vs CI-MSE)", _col("tau_b", lambda x: num(x, ".2f"))),
     ("rank changes (MSE -> CI-MSE)", lambda r: "; ".join(r["moved"] or []) or "none"),
 )
