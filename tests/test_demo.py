@@ -40,6 +40,9 @@ def test_demo_runs_offline_reuses_everything_and_feeds_the_notebook(tmp_path: Pa
     assert {"mobilenetv2", "efficientnet-lite0", "smolvla-native", "pi05-native"} <= set(table["encoder"])
     assert table["eval_mse"].is_finite().all() and (table["n_eval_frames"] > 0).all()
     assert table["random_init"].all()  # tiny backbones are never released weights
+    assert table["backbone_random_init"].all()
+    real = pl.col("encoder").is_in(["mobilenetv2", "efficientnet-lite0"])
+    assert not table.filter(real)["encoder_random_init"].any() and table.filter(~real)["encoder_random_init"].all()
     _assert_findings(table)
     report = home / "demo" / "report"
     md = (report / "report.md").read_text()
@@ -55,7 +58,7 @@ def test_demo_runs_offline_reuses_everything_and_feeds_the_notebook(tmp_path: Pa
     assert "wrote " not in log and "training tiny" not in log
     assert "loading backbone" not in log  # a finished grid loads no policy at all
     assert first.stdout.count("loading backbone") == 2  # one load per backbone for all 120 cells
-    assert log.count("skip ") == 120
+    assert log.count("skip ") == 12  # one line per request: backbone x encoder x suite
     assert {c.key for c in list_caches(home)} == caches
     rerun = results.read(home / "demo" / "results.parquet")
     assert rerun.sort("run_id").select("run_id", "eval_mse").equals(table.sort("run_id").select("run_id", "eval_mse"))
