@@ -168,7 +168,8 @@ FIT = ["fit", "--backbone", "smolvla", "--encoder", "e", "--suite", "libero_spat
      f"argument --seed: 99999999999999999999999 must be in 0..{MAX_SEED}"),
     ([*FIT, "--suite", "../../x"], "argument --suite: '../../x' is not a suite; choose one of libero_spatial"),
     ([*FIT, "--controls", "native,native"], "argument --controls: ('native', 'native') must name each control once"),
-    ([*FIT, "--objective", "mse"], "argument --objective: invalid choice: 'mse' (choose from 'flow', 'align', 'align-flow')"),
+    ([*FIT, "--objective", "mse"],
+     "argument --objective: invalid choice: 'mse' (choose from 'flow', 'align', 'align-flow')"),
     (["sweep", "recipe.toml", "--cells-per-pass", "0"], "argument --cells-per-pass: 0 must be > 0"),
     # numbers nothing downstream can take: before, a 6.1 TB allocation, a NaN checkpoint, a row Int64 cannot hold
     (["train-tiny", "--backbone", "pi0_fast", "--image-size", "100000"],
