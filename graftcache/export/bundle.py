@@ -89,7 +89,8 @@ def export_run(run_id: str, results_path: str | Path, out: str | Path, *, cache:
     """Write the export of cell `run_id` of `results_path` to `out`; returns `out`."""
     from graftcache.backbones import get_backbone
     from graftcache.export.configuration_graftcache import GraftcacheConfig
-    from graftcache.export.modeling_graftcache import MANIFEST_FILE, PROJECTOR_FILE, GraftcachePolicy
+    from graftcache.export.features import MANIFEST_FILE, load_cell_features
+    from graftcache.export.modeling_graftcache import PROJECTOR_FILE, GraftcachePolicy
     from graftcache.export.processors import export_pipelines
 
     row = find_row(results_path, run_id)
@@ -123,11 +124,12 @@ def export_run(run_id: str, results_path: str | Path, out: str | Path, *, cache:
                                                       "manifest": feature_cache.manifest.to_dict()}, default=str))
     if control.train:
         shutil.copyfile(run_folder(row, results_path, cache, runs) / "projector.safetensors", partial / PROJECTOR_FILE)
-    for pipeline in export_pipelines(row["backbone"], policy):
+    for pipeline in export_pipelines(str(out.absolute()), row["backbone"], policy):
         pipeline.save_pretrained(partial)
     check_processors(partial)
     del base
-    GraftcachePolicy(config, partial)  # refuses a drifted environment or a projector that does not fit, here
+    load_cell_features(partial, json.loads((partial / "config.json").read_text()), "cpu")  # refuses numerics drift
+    GraftcachePolicy(config, partial)  # refuses a projector that does not fit, here
     shutil.rmtree(out, ignore_errors=True)
     partial.rename(out)
     log(f"exported {row['backbone']}/{row['encoder']}/{row['suite']} seed {row['seed']} control {control.name} "

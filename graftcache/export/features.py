@@ -9,14 +9,22 @@ offline score saw, up to the decoding of the pixels.
 
 from __future__ import annotations
 
+import json
 import math
+from pathlib import Path
 
 import torch
 
 from graftcache.encoders import Encoder
+from graftcache.encoders.fingerprint import compare, encoder_of, fingerprint
+from graftcache.errors import ExportError
+from graftcache.fit.controls import get_control
+from graftcache.fit.controls import zero as zero_features
 from graftcache.pooling import format_grid, parse_grid, pool_grid
 from graftcache.runtime import autocast, resolve_dtype
 from graftcache.store import Manifest
+
+MANIFEST_FILE = "manifest.json"
 
 
 def to_uint8(images: torch.Tensor) -> torch.Tensor:
@@ -56,3 +64,32 @@ class CellFeatures:
     def describe(self) -> str:
         what = self.extra or f"grid {format_grid(self.stored)} pooled to {format_grid(self.pool)}"
         return f"{self.encoder.spec.name}: {what}" + (" (zeroed: zero-image)" if self.zero else "")
+
+
+def read_manifest(folder: Path) -> Manifest:
+    """The cache manifest an export carries (how to rebuild its encoder, its numerics fingerprint)."""
+    path = folder / MANIFEST_FILE
+    try:
+        raw = json.loads(path.read_text())
+    except (OSError, ValueError) as e:
+        raise ExportError(f"{path}: cannot read the cache manifest of this export ({e})") from None
+    return Manifest.read(raw["manifest"], str(path), raw["key"])
+
+
+def load_cell_features(folder: Path, config: dict, device: str) -> CellFeatures:
+    """An export's feature path, its encoder rebuilt from the manifest and its numerics fingerprint recomputed here:
+    an environment whose encoder computes other features than the ones the cell was scored on is refused in one
+    line, as `fit` refuses it (`accept_numerics_drift` in config.json lets it run)."""
+    manifest = read_manifest(folder)
+    encoder = encoder_of(manifest, device)
+    if encoder.weights_info.get("sha256") != manifest.weights_sha256:
+        raise ExportError(f"{folder}: the {manifest.encoder_name} weights found here are not those of cache "
+                          f"{config['cache_key']}")
+    recorded = manifest.numerics
+    check = compare(config["cache_key"], recorded, fingerprint(encoder, recorded["compute_dtype"], device),
+                    manifest.versions)
+    if check.status == "drift" and not config.get("accept_numerics_drift"):
+        raise ExportError(f"{folder}: {check.line()}; refused (set accept_numerics_drift in its config.json to run it)")
+    control = get_control(config["control"])
+    return CellFeatures(encoder, manifest, config["pool_grid"], extra=control.extra,
+                        zero=control.transform is zero_features)

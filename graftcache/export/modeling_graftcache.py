@@ -2,14 +2,13 @@
 cell's encoder computes from the camera frames (graftcache.export.features), acting on chunks as the base does.
 
 lerobot builds it with `from_pretrained` (its factory, `lerobot-eval --policy.path`); it never reads a weights file of
-its own: the base policy loads through its graftcache adapter (the same loading a fit does), the encoder is rebuilt
-from the cache's manifest, and the numerics fingerprint is recomputed here, refusing a drifted environment as `fit`
-does. The saved processors are the base policy's own (normalisation stats, tokenizer).
+its own: the base policy loads through its graftcache adapter (the same loading a fit does). The features reach it
+from the export's preprocessor (graftcache.export.processors); the base policy's own preprocessing runs here, through
+the adapter's `prepare`, as offline scoring runs it.
 """
 
 from __future__ import annotations
 
-import json
 from collections import deque
 from pathlib import Path
 from typing import Any
@@ -20,29 +19,13 @@ from safetensors.torch import load_file
 from torch import Tensor
 
 from graftcache.backbones import get_backbone
-from graftcache.encoders.fingerprint import compare, encoder_of, fingerprint
 from graftcache.errors import ExportError
 from graftcache.export.configuration_graftcache import GraftcacheConfig
-from graftcache.export.features import CellFeatures
+from graftcache.export.features import read_manifest
 from graftcache.fit.controls import get_control
-from graftcache.fit.controls import zero as zero_features
-from graftcache.graft import feature_key
 from graftcache.runtime import autocast, resolve_dtype
-from graftcache.store import Manifest
 
-MANIFEST_FILE = "manifest.json"
 PROJECTOR_FILE = "projector.safetensors"
-IMAGE_PREFIX = "observation.images."
-
-
-def read_manifest(folder: Path) -> Manifest:
-    """The cache manifest an export carries (how to rebuild its encoder, its numerics fingerprint)."""
-    path = folder / MANIFEST_FILE
-    try:
-        raw = json.loads(path.read_text())
-    except (OSError, ValueError) as e:
-        raise ExportError(f"{path}: cannot read the cache manifest of this export ({e})") from None
-    return Manifest.read(raw["manifest"], str(path), raw["key"])
 
 
 class GraftcachePolicy(PreTrainedPolicy):
@@ -60,10 +43,6 @@ class GraftcachePolicy(PreTrainedPolicy):
         device = str(config.device or "cpu")
         manifest = read_manifest(folder)
         control = get_control(config.control)
-        encoder = encoder_of(manifest, device)
-        self._check_numerics(manifest, encoder, device)
-        self.features = CellFeatures(encoder, manifest, config.pool_grid, extra=control.extra,
-                                     zero=control.transform is zero_features)
         adapter = get_backbone(config.backbone).load(config.base_policy, device=device)
         width = manifest.extras[control.extra][-1] if control.extra else int(manifest.encoder["width"])
         adapter.graft(control.projector(width, adapter.lm_width))
@@ -85,19 +64,6 @@ class GraftcachePolicy(PreTrainedPolicy):
         policy = cls(config, folder)
         policy.eval()
         return policy
-
-    def _check_numerics(self, manifest: Manifest, encoder, device: str) -> None:
-        """The cache's numerics fingerprint recomputed here: an environment whose encoder computes other features
-        than the ones the cell was scored on is refused in one line (`accept_numerics_drift` lets it run)."""
-        cfg = self.config
-        if encoder.weights_info.get("sha256") != manifest.weights_sha256:
-            raise ExportError(f"{self.folder}: the {manifest.encoder_name} weights found here are not those of cache "
-                              f"{cfg.cache_key}")
-        recorded = manifest.numerics
-        check = compare(cfg.cache_key, recorded, fingerprint(encoder, recorded["compute_dtype"], device),
-                        manifest.versions)
-        if check.status == "drift" and not cfg.accept_numerics_drift:
-            raise ExportError(f"{self.folder}: {check.line()}; refused (--policy.accept_numerics_drift=true runs it)")
 
     def _load_trained(self, adapter, path: Path) -> None:
         """The cell's trained parameters (projector, LoRA), by the names its fit saved them under."""
@@ -126,17 +92,13 @@ class GraftcachePolicy(PreTrainedPolicy):
 
     @torch.no_grad()
     def predict_action_chunk(self, batch: dict[str, Tensor], noise: Tensor | None = None, **kwargs: Any) -> Tensor:
-        """Normalised action chunk [B, chunk, action_dim] of a preprocessed batch (the base policy's processors);
-        `noise` [B, chunk, max_action_dim] fixes the flow's start, as offline scoring fixes it per frame."""
-        fed = {k: v for k, v in batch.items() if not k.startswith(IMAGE_PREFIX)}
-        for policy_camera, camera in self.config.cameras.items():
-            key = IMAGE_PREFIX + camera
-            if key not in batch:
-                raise ExportError(f"{self.folder}: the observation has no {key} (feeds policy camera "
-                                  f"{policy_camera}); pass lerobot-eval a --rename_map that provides it")
-            fed[feature_key(IMAGE_PREFIX + policy_camera)] = self.features(batch[key].to(self.adapter.device))
+        """Normalised action chunk [B, chunk, action_dim] of a batch from the export's preprocessor (features, raw
+        state, task strings); `noise` [B, chunk, max_action_dim] fixes the flow's start, as offline scoring fixes it
+        per frame."""
+        task = batch["task"]
+        prepared = self.adapter.prepare({**batch, "task": [task] if isinstance(task, str) else list(task)})
         with autocast(self.adapter.device, self.dtype):
-            return self.adapter.predict(fed, noise=noise, num_steps=self.config.num_denoise_steps).float()
+            return self.adapter.predict(prepared, noise=noise, num_steps=self.config.num_denoise_steps).float()
 
     @torch.no_grad()
     def select_action(self, batch: dict[str, Tensor], **kwargs: Any) -> Tensor:
