@@ -4,10 +4,14 @@ export HF_HUB_OFFLINE := 1
 export HF_DATASETS_OFFLINE := 1
 export TRANSFORMERS_OFFLINE := 1
 
-.PHONY: setup demo lint test test-fast bench
+# `make test` also sets up the LIBERO simulator (the closed-loop smoke test); `make demo` does not need it.
+.PHONY: setup setup-libero demo lint test test-fast bench
 
 setup:
 	bash scripts/setup.sh
+
+setup-libero:
+	bash scripts/setup.sh libero
 
 demo: setup
 	.venv/bin/graftcache demo
@@ -15,7 +19,7 @@ demo: setup
 lint: setup
 	.venv/bin/ruff check .
 
-test: lint
+test: setup-libero lint
 	.venv/bin/python -m pytest -q
 
 test-fast: setup

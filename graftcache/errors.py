@@ -37,3 +37,7 @@ class ExecutorError(GraftcacheError):
 class ResultsError(GraftcacheError):
     """A results file cannot be read or written: not Parquet, a directory, a read-only place, a value its
     column cannot hold without changing it."""
+
+
+class ExportError(GraftcacheError):
+    """A cell that cannot be exported as a policy, or an export folder that cannot be run here."""

@@ -144,6 +144,20 @@ class BackboneAdapter(GraftSurgery, PromptBatches, FlowObjective, ActivationChec
         return cls(policy, *processors, source=str(source), random_init=random_init, tiny_marker=marker)
 
     @classmethod
+    def saved_processors(cls, source: str | Path, device: str = "cpu") -> tuple[Any, Any]:
+        """A checkpoint's own saved (pre, post) processors, loaded as `load` loads them (its overrides: local
+        tokenizers of tiny checkpoints, the device), without building the policy (graftcache.export.processors)."""
+        folder = resolve_source(source)
+        config, marker = cls._read_config(folder), read_marker(folder)
+        config.device = device
+        cls._configure(folder, config, marker)
+        processors = load_processors(folder, *cls._processor_overrides(config, marker, device))
+        if processors is None:
+            raise BackboneError(f"{folder}: no {PREPROCESSOR_FILE}; a policy without saved processors cannot be run "
+                                "outside graftcache")
+        return processors
+
+    @classmethod
     def _read_config(cls, folder: Path):
         import lerobot.policies  # noqa: F401  (its __init__ registers every policy's config type)
         from lerobot.configs.policies import PreTrainedConfig

@@ -214,7 +214,7 @@ class Evo1Adapter(BackboneAdapter):
         the fit reads the batch's `action` as the normalised target of the real dims, as for every backbone."""
         batch = super().prepare(raw)
         for key in (ACTION, "action_mask"):
-            if key in batch:
+            if batch.get(key) is not None:  # None: a batch without actions (a policy acting: graftcache.export)
                 batch[key] = batch[key][..., : self.action_dim]
         return batch
 

@@ -277,8 +277,9 @@ class GrootAdapter(NativeVision, BackboneAdapter):
         return self._unpadded(out)
 
     def _unpadded(self, batch: dict[str, Any]) -> dict[str, Any]:
-        """`action` cut back to the dataset's width (the scored target), the padded chunk kept for GR00T."""
-        if ACTION in batch:
+        """`action` cut back to the dataset's width (the scored target), the padded chunk kept for GR00T; a batch
+        without actions (a policy acting: graftcache.export) comes back from the preprocessor with `action` None."""
+        if batch.get(ACTION) is not None:
             batch[PADDED_ACTION] = batch[ACTION]
             batch[ACTION] = batch[ACTION][..., : self.action_dim]
         return batch

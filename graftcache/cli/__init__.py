@@ -22,7 +22,7 @@ from graftcache import __version__
 #: one line naming the file, like any other bad input.
 ENVIRONMENT_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EACCES, errno.EPERM, errno.EROFS})
 
-COMMANDS = ("extract", "caches", "transfer", "train_tiny", "fit", "sweep", "report", "demo", "merge_rows")
+COMMANDS = ("extract", "caches", "transfer", "train_tiny", "fit", "sweep", "report", "demo", "merge_rows", "export")
 
 
 def build_parser() -> argparse.ArgumentParser:

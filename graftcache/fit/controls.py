@@ -105,6 +105,7 @@ class Control:
     fuses: bool = True              # may share a backbone pass with other cells (graftcache/fit/passes.py); LoRA
                                     # adapts the backbone itself, which every row of a pass would go through
     grid: tuple[int, int] | None = None  # overrides the backbone's token grid
+    closed_loop: bool = True        # has a meaning as a policy run in the simulator (graftcache export, rollout)
 
 
 CONTROLS: dict[str, Control] = {
@@ -112,7 +113,7 @@ CONTROLS: dict[str, Control] = {
     NATIVE_CONTROL: Control(NATIVE_CONTROL, projector=pass_through, native_cache=True, extra="connector", train=False),
     NATIVE_GRAFT_CONTROL: Control(NATIVE_GRAFT_CONTROL, native_cache=True),
     "zero-image": Control("zero-image", transform=zero),
-    "shuffled-image": Control("shuffled-image", pairing=shuffle),
+    "shuffled-image": Control("shuffled-image", pairing=shuffle, closed_loop=False),  # other frames: none live
     "lora": Control("lora", lora=True, fuses=False),
 }
 

@@ -1,0 +1,151 @@
+"""`graftcache export`: a results row's cell -> a folder lerobot loads as a policy of type `graftcache`.
+
+The folder is written beside its destination and renamed into place only once the policy it describes has been built
+from it (the numerics fingerprint recomputed, the projector loaded into the grafted base), so a folder at `out` is
+always a complete export.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import shlex
+import shutil
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from graftcache import results
+from graftcache.cameras import parse_camera_map, renames
+from graftcache.errors import ExportError
+from graftcache.fit.controls import get_control
+from graftcache.fit.lookup import find_cache
+from graftcache.fit.run import Cell
+from graftcache.store import cache_root
+from graftcache.store.readthrough import reading_root
+
+POLICY_PREFIX = "tiny:"  # how rows name a policy trained by train-tiny (graftcache.fit.run.Fitter.policy_id)
+
+
+def find_row(path: str | Path, run_id: str) -> dict[str, Any]:
+    """The results row of `run_id` in the results file at `path`."""
+    table = results.read(path)
+    rows = table.filter(table["run_id"] == run_id)
+    if rows.height == 0:
+        raise ExportError(f"{path}: no row with run_id {run_id}")
+    return rows.row(0, named=True)
+
+
+def cell_of(row: dict[str, Any]) -> Cell:
+    """The row's Cell, its fields not in the row (LoRA rank, denoising steps, split settings) read back from the
+    fit command line the row records (sweeps record theirs so that it parses back to the request), and checked:
+    it must hash to the row's run_id."""
+    from graftcache.cli import build_parser
+    from graftcache.cli.common import request_from
+    from graftcache.requests import FitRequest
+
+    try:
+        req = request_from(FitRequest, build_parser().parse_args(shlex.split(row["command"])[1:]))
+    except (SystemExit, ValueError, TypeError):
+        raise ExportError(f"run {row['run_id']}: its recorded command does not parse back to a fit request: "
+                          f"{row['command']}") from None
+    control = get_control(row["control"])
+    fields = {f.name for f in dataclasses.fields(Cell)} - {"lora_rank", "format_version"}
+    cell = Cell(**{n: (row[n] if n in row else getattr(req, n)) for n in fields},
+                lora_rank=req.lora_rank if control.lora else 0, format_version=row["format_version"])
+    if cell.camera_map is not None and not renames(parse_camera_map(cell.camera_map)):
+        cell = dataclasses.replace(cell, camera_map=None)  # rows spell out a name-matched mapping; cells omit it
+    if cell.run_id != row["run_id"]:
+        raise ExportError(f"run {row['run_id']}: its recorded command gives another cell ({cell.run_id}); the row "
+                          "cannot be exported faithfully")
+    return cell
+
+
+def base_policy(row: dict[str, Any], cache: str | None) -> str:
+    """The row's policy as lerobot-loadable source: train-tiny's folder for `tiny:<name>`, else as the row says."""
+    policy = row["policy"]
+    if policy.startswith(POLICY_PREFIX):
+        folder = cache_root(cache) / "policies" / policy.removeprefix(POLICY_PREFIX)
+        if not (folder / "config.json").is_file():
+            raise ExportError(f"run {row['run_id']}: its policy {policy} is not in {folder.parent} (pass the --cache "
+                              f"its fit used)")
+        return str(folder.resolve())
+    return str(Path(policy).resolve()) if Path(policy).is_dir() else policy
+
+
+def run_folder(row: dict[str, Any], results_path: str | Path, cache: str | None, runs: str | None) -> Path:
+    """Where the cell's fit kept its projector (graftcache.fit.run.Fitter.runs: --out, beside the results file, or
+    the local cache folder)."""
+    places = [Path(runs)] if runs else [Path(results_path).absolute().parent / "runs", cache_root(cache) / "runs"]
+    for place in places:
+        if (place / row["run_id"] / "projector.safetensors").is_file():
+            return place / row["run_id"]
+    raise ExportError(f"run {row['run_id']}: no projector.safetensors in {' or '.join(str(p) for p in places)} "
+                      f"(pass --runs, the folder its fit's --out named)")
+
+
+def export_run(run_id: str, results_path: str | Path, out: str | Path, *, cache: str | None = None,
+               runs: str | None = None, log: Callable[[str], None] = print) -> Path:
+    """Write the export of cell `run_id` of `results_path` to `out`; returns `out`."""
+    from graftcache.backbones import get_backbone
+    from graftcache.export.configuration_graftcache import GraftcacheConfig
+    from graftcache.export.features import MANIFEST_FILE, load_cell_features
+    from graftcache.export.modeling_graftcache import PROJECTOR_FILE, GraftcachePolicy
+    from graftcache.export.processors import export_pipelines
+
+    row = find_row(results_path, run_id)
+    cell = cell_of(row)
+    control = get_control(row["control"])
+    if not control.closed_loop:
+        raise ExportError(f"run {run_id}: control {control.name} has no closed-loop meaning (it feeds features of "
+                          f"other frames); export another control")
+    out = Path(out)
+    if (out / "config.json").is_file():
+        raise ExportError(f"{out}: already holds an export; remove it or choose another --out")
+    policy = base_policy(row, cache)
+    feature_cache = find_cache(reading_root(cache), row["encoder"], key=row["cache_key"])
+    adapter_cls = get_backbone(row["backbone"])
+    base = adapter_cls.load(policy, device="cpu")
+    cameras = parse_camera_map(row["camera_map"])
+    image_features = {f"observation.images.{cameras[c]}": base.config.image_features[f"observation.images.{c}"]
+                      for c in base.cameras}
+    config = GraftcacheConfig(
+        run_id=run_id, backbone=row["backbone"], base_policy=policy, cache_key=row["cache_key"],
+        encoder=row["encoder"], control=control.name, pool_grid=row["pool_grid"], cameras=cameras,
+        lora_rank=cell.lora_rank, num_denoise_steps=cell.num_denoise_steps,
+        compute_dtype=row["compute_dtype"], n_action_steps=int(getattr(base.config, "n_action_steps", 1)),
+        input_features={**image_features, "observation.state": base.config.input_features["observation.state"]},
+        output_features=dict(base.config.output_features), device="cpu")
+    partial = out.with_name(out.name + ".partial")
+    shutil.rmtree(partial, ignore_errors=True)
+    partial.mkdir(parents=True)
+    config._save_pretrained(partial)
+    (partial / MANIFEST_FILE).write_text(json.dumps({"key": feature_cache.key,
+                                                      "manifest": feature_cache.manifest.to_dict()}, default=str))
+    if control.train:
+        shutil.copyfile(run_folder(row, results_path, cache, runs) / "projector.safetensors", partial / PROJECTOR_FILE)
+    for pipeline in export_pipelines(str(out.absolute()), row["backbone"], policy):
+        pipeline.save_pretrained(partial)
+    check_processors(partial)
+    del base
+    load_cell_features(partial, json.loads((partial / "config.json").read_text()), "cpu")  # refuses numerics drift
+    GraftcachePolicy(config, partial)  # refuses a projector that does not fit, here
+    shutil.rmtree(out, ignore_errors=True)
+    partial.rename(out)
+    log(f"exported {row['backbone']}/{row['encoder']}/{row['suite']} seed {row['seed']} control {control.name} "
+        f"(run {run_id}) to {out}")
+    return out
+
+
+#: Steps lerobot-eval overrides in every preprocessor it loads (lerobot/scripts/lerobot_eval.py): a saved
+#: preprocessor without either fails there with a KeyError.
+EVAL_OVERRIDDEN_STEPS = ("device_processor", "rename_observations_processor")
+
+
+def check_processors(folder: Path) -> None:
+    """Refuse, in one line, a saved preprocessor that lerobot-eval could not load."""
+    path = folder / "policy_preprocessor.json"
+    names = {s.get("registry_name") for s in json.loads(path.read_text())["steps"]}
+    missing = [n for n in EVAL_OVERRIDDEN_STEPS if n not in names]
+    if missing:
+        raise ExportError(f"{path}: has no {', '.join(missing)} step, which lerobot-eval overrides")
