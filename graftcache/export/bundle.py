@@ -52,7 +52,7 @@ def cell_of(row: dict[str, Any]) -> Cell:
     control = get_control(row["control"])
     fields = {f.name for f in dataclasses.fields(Cell)} - {"lora_rank", "format_version"}
     cell = Cell(**{n: (row[n] if n in row else getattr(req, n)) for n in fields},
-                lora_rank=req.lora_rank if control.lora else 0, format_version=row["format_version"])
+                lora_rank=req.lora_rank if control.lora else 0)  # format_version: the cells' (results.CELL_FORMAT)
     if cell.camera_map is not None and not renames(parse_camera_map(cell.camera_map)):
         cell = dataclasses.replace(cell, camera_map=None)  # rows spell out a name-matched mapping; cells omit it
     if cell.run_id != row["run_id"]:
