@@ -120,8 +120,8 @@ def test_four_writers_and_two_fits_keep_every_row(world: Path, tmp_path: Path) -
     assert appended["eval_mse"].to_list() == [float(s) for s in appended["seed"]]
     fitted = table.filter(pl.col("encoder") == ENCODER)
     assert sorted(fitted["seed"].to_list()) == [0, 1, 2] and table["run_id"].n_unique() == table.height == 103
-    computed = [line.split()[1].rstrip(":") for out, _ in outs for line in out.splitlines() if line.startswith("cell ")
-                and "being computed" not in line]
+    computed = [line.split("(cell ")[1].split(")")[0] for out, err in outs for line in (out + err).splitlines()
+                if ": eval_mse " in line]  # each computed cell's one result line
     assert sorted(computed) == sorted(fitted["run_id"].to_list())  # every cell computed exactly once
     assert len(list((tmp_path / "runs").glob("*/projector.safetensors"))) == 3
     assert leftovers(tmp_path) == []
