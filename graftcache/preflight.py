@@ -24,7 +24,7 @@ from graftcache.errors import GraftcacheError
 from graftcache.extract import check_memory
 from graftcache.fit.controls import check_pool_grid, get_control
 from graftcache.fit.data import split_episodes
-from graftcache.fit.objectives import OBJECTIVES
+from graftcache.fit.objectives import reads_native
 from graftcache.pooling import format_grid, resolve_grids
 from graftcache.recipe import Recipe, RecipeError
 from graftcache.requests import ExtractRequest, FitRequest
@@ -37,7 +37,7 @@ def check_inputs(recipe: Recipe) -> list[str]:
     meta = open_dataset(recipe.dataset).meta  # missing, malformed, self-contradicting or empty: refused here
     extracts = [_extract_request(recipe, enc.name, weights=enc.weights, random_init=enc.random_init,
                                  seed=enc.seed) for enc in recipe.encoders]
-    if OBJECTIVES[recipe.objective].needs_native or any(get_control(c).native_cache for c in recipe.controls):
+    if reads_native(recipe.objective, recipe.controls):
         extracts += [_extract_request(recipe, native_name(b.name), camera_map=recipe.camera_map)
                      for b in recipe.backbones]
     fits = [_fit_request(recipe, backbone.name, backbone.policy, enc.name, suite)

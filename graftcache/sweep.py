@@ -25,7 +25,7 @@ from graftcache.cameras import match_cameras
 from graftcache.errors import GraftcacheError
 from graftcache.executors import Executor, get_executor
 from graftcache.fit.controls import get_control
-from graftcache.fit.objectives import OBJECTIVES
+from graftcache.fit.objectives import reads_native
 from graftcache.pooling import UNPOOLED, format_grid, grid_names
 from graftcache.progress import progress, write
 from graftcache.recipe import EncoderEntry, Recipe
@@ -48,10 +48,6 @@ class SweepState:
     encoder_caches: dict[EncoderEntry, str] = field(default_factory=dict)
     native_caches: dict[str, str] = field(default_factory=dict)      # backbone -> native tower cache key
     commands: dict[str, str] = field(default_factory=dict)           # what produced each cache / policy
-
-
-def _needs_native(recipe: Recipe) -> bool:
-    return OBJECTIVES[recipe.objective].needs_native or any(get_control(c).native_cache for c in recipe.controls)
 
 
 def _pool_grids(recipe: Recipe) -> list[tuple[int, int]]:
@@ -128,7 +124,7 @@ def prepare_caches(recipe: Recipe, state: SweepState, log: Callable[[str], None]
             seed=enc.seed if enc.random_init else None, weights=None if enc.random_init else enc.weights,
             dataset=recipe.dataset,
             **_extract_settings(recipe, grids))
-    if not _needs_native(recipe):
+    if not reads_native(recipe.objective, recipe.controls):
         return
     for backbone, policy in state.policies.items():
         grid = (format_grid(state.token_grids[backbone]),)

@@ -12,7 +12,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from contextlib import closing, contextmanager
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -22,7 +22,7 @@ import torch
 
 from graftcache.fit.align import fit_ridge
 from graftcache.fit.buffer import ShuffleBuffer, buffer_frames
-from graftcache.fit.controls import Control
+from graftcache.fit.controls import Control, get_control
 from graftcache.fit.feed import SplitFeed
 from graftcache.fit.loop import train
 from graftcache.fit.stream import FeatureSource, StreamStats, read_blocks
@@ -100,3 +100,9 @@ OBJECTIVES: dict[str, Objective] = {
     "align-flow": Objective("align-flow", _align_flow, scheduled=True, needs_native=True),
 }
 EVAL_ONLY = Objective("eval", _nothing)
+
+
+def reads_native(objective: str, controls: Iterable[str]) -> bool:
+    """Whether a fit of `objective` with `controls` reads the native tower's cache (its targets, or its features), so
+    that a sweep extracts that cache first and its dry run lists it."""
+    return OBJECTIVES[objective].needs_native or any(get_control(c).native_cache for c in controls)
