@@ -289,7 +289,7 @@ def upgrade(rows: pl.DataFrame, path: Path) -> pl.DataFrame:
 def _from_format_3(rows: pl.DataFrame) -> pl.DataFrame:
     """Rows of formats 3 and 4 as format 4: the columns they lack added, null but where FORMAT_3_VALUES knows what
     format 3 rows held (also filled on format 3 rows of a table that has the column) or DERIVED derives it."""
-    was_3 = pl.col("format_version") == CELL_FORMAT
+    was_3 = pl.col("format_version") == 3  # the row format FORMAT_3_VALUES speaks of (not the cells' CELL_FORMAT)
     lacking = [c for c in SCHEMA if c not in rows.columns]
     added = rows.with_columns(pl.lit(None, dtype=SCHEMA[c]).alias(c) for c in lacking)
     return added.with_columns(
