@@ -1,24 +1,44 @@
-"""The backbone registry's table: name -> adapter class, as import strings (data only).
+"""The backbone registry: one folder per backbone, found by convention (data only: nothing here imports a backbone).
 
-Every place that names a backbone (the backbone loader, the native towers in the encoder catalog, the
-CLI's choices, recipes) reads the names from here; the adapters themselves, which import lerobot, are
-imported only when a backbone is used (graftcache.backbones.get_backbone).
+A backbone is a folder `graftcache/backbones/<name>/` holding (the registry's required pieces, `PIECES`):
+
+- `adapter.py`: the one `graftcache.backbones.base.BackboneAdapter` subclass defined there whose `name` is <name>
+  (graftcache.backbones.get_backbone finds it, as lerobot's policy factory finds a policy's classes by name);
+- `tiny.py`: `build_tiny(spec, stats, device)`, its tiny configuration (graftcache.backbones.base.BackboneAdapter.load
+  of "tiny" calls it).
+
+Every place that names a backbone (the backbone loader, the native towers in the encoder catalog, the CLI's choices,
+recipes) reads the names from `BACKBONES`, which lists the folders: adding a backbone is adding its folder (the
+checklist: docs/ARCHITECTURE.md, "Adding a backbone"). The adapters themselves, which import lerobot, are imported only
+when a backbone is used.
 """
 
 from __future__ import annotations
 
-BACKBONES: dict[str, str] = {
-    "smolvla": "graftcache.backbones.smolvla:SmolVLAAdapter",
-    "pi05": "graftcache.backbones.pi05:PI05Adapter",
-    "xvla": "graftcache.backbones.xvla:XVLAAdapter",
-    "pi0": "graftcache.backbones.pi0:PI0Adapter",
-    "pi0_fast": "graftcache.backbones.pi0_fast:PI0FastAdapter",
-    "eo1": "graftcache.backbones.eo1:EO1Adapter",
-    "evo1": "graftcache.backbones.evo1:Evo1Adapter",
-    "groot": "graftcache.backbones.groot:GrootAdapter",
-    "wall_x": "graftcache.backbones.wallx:WallXAdapter",
-    "vla_jepa": "graftcache.backbones.vla_jepa:VLAJEPAAdapter",
-}
+from pathlib import Path
+
+#: The files every backbone folder holds (tests/test_backbone_registry.py fails on a registered folder lacking one).
+PIECES = ("adapter", "tiny")
+FOLDER = Path(__file__).resolve().parent / "backbones"
+
+
+def backbone_module(name: str, piece: str = "adapter") -> str:
+    """The dotted module of one piece of a backbone's folder, e.g. "graftcache.backbones.wall_x.tiny"."""
+    return f"graftcache.backbones.{name}.{piece}"
+
+
+def missing_pieces(folder: Path) -> list[str]:
+    """The required pieces (`PIECES`) a backbone folder lacks, e.g. ["tiny"]."""
+    return [piece for piece in PIECES if not (folder / f"{piece}.py").is_file()]
+
+
+def _discover() -> dict[str, str]:
+    return {folder.name: backbone_module(folder.name) for folder in sorted(FOLDER.iterdir())
+            if (folder / "adapter.py").is_file()}
+
+
+#: Registered backbone name -> its adapter module: every folder of graftcache/backbones/ that holds an adapter.py.
+BACKBONES: dict[str, str] = _discover()
 
 #: Approximate parameter counts of the released policies (lerobot's docs), for results tables written before rows
 #: recorded `backbone_params`: the analysis orders such a table's backbones by these, and says so in the report

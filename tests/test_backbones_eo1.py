@@ -22,7 +22,7 @@ from helpers.backbones import (
     tiny,
 )
 
-from graftcache.backbones.eo1 import EO1Adapter, left_padded
+from graftcache.backbones.eo1.adapter import EO1Adapter, left_padded
 from graftcache.backbones.qwen_vl import merged_grid
 
 SIZE = 128  # the tiny policy's frames (train-tiny's size): smart_resize -> 112 px -> 8x8 patches -> 4x4 tokens
@@ -116,7 +116,7 @@ def test_released_geometry_on_the_meta_device() -> None:
     processor is Qwen2-VL's defaults, the same in the tiny folder)."""
     from lerobot.policies.eo1.processor_eo1 import make_eo1_pre_post_processors
 
-    from graftcache.backbones.tiny_eo1 import QWEN_VL_DIR, construct, eo1_released_config
+    from graftcache.backbones.eo1.tiny import QWEN_VL_DIR, construct, eo1_released_config
 
     config = eo1_released_config(("image", "image2"), 256, 8, 7, "cpu")
     config.device = "meta"

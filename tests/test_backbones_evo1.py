@@ -19,7 +19,7 @@ from helpers.backbones import (
     tiny,
 )
 
-from graftcache.backbones.evo1 import Evo1Adapter
+from graftcache.backbones.evo1.adapter import Evo1Adapter
 from graftcache.errors import BackboneError
 from graftcache.graft import feature_key
 
@@ -151,7 +151,7 @@ def test_released_geometry_on_the_meta_device(tmp_path) -> None:
     pixel shuffle -> 16x16 = 256 tokens per camera, projector into the 896-wide Qwen2.5 LM cut to 14 of its 24
     layers), counted from shapes on the meta device. The prompt's slots come from lerobot's own prompt builder
     and tokenizer call (a folder with the released config.json and the tiny tokenizer)."""
-    from graftcache.backbones.tiny_evo1 import INTERNVL3_1B, construct, evo1_released_config, write_internvl
+    from graftcache.backbones.evo1.tiny import INTERNVL3_1B, construct, evo1_released_config, write_internvl
 
     folder = write_internvl(tmp_path / "internvl3-1b", INTERNVL3_1B)
     config = evo1_released_config(("image", "image2"), 256, 8, 7, "cpu", vlm=str(folder))

@@ -28,7 +28,7 @@ from helpers.backbones import (
 )
 
 from graftcache.backbones import load_backbone
-from graftcache.backbones.groot import PADDED_ACTION, GrootAdapter
+from graftcache.backbones.groot.adapter import PADDED_ACTION, GrootAdapter
 from graftcache.backbones.qwen_vl import merged_grid
 from graftcache.errors import BackboneError
 
@@ -198,14 +198,14 @@ def test_released_geometry_on_the_meta_device() -> None:
     lerobot's own processor steps at Qwen3-VL-2B's pixel bounds."""
     from lerobot.policies.groot.processor_groot import make_groot_pre_post_processors
 
-    from graftcache.backbones.lean import construct as on_meta
-    from graftcache.backbones.tiny_assets import QWEN3_VL_PIXELS
-    from graftcache.backbones.tiny_groot import (
+    from graftcache.backbones.groot.tiny import (
         GROOT_DIR,
         construct,
         groot_released_config,
         released_base_config,
     )
+    from graftcache.backbones.lean import construct as on_meta
+    from graftcache.backbones.tiny_assets import QWEN3_VL_PIXELS
 
     config = groot_released_config(("image", "image2"), 256, 8, 7, "cpu")
     policy = on_meta(lambda: construct(config, released_base_config()), config)

@@ -18,7 +18,8 @@ from torch import nn
 
 from graftcache.backbones import get_backbone, load_backbone
 from graftcache.backbones.lean import read_into
-from graftcache.backbones.tiny import pi05_tiny_sizes, read_marker
+from graftcache.backbones.paligemma import pi05_tiny_sizes
+from graftcache.backbones.tiny import read_marker
 from graftcache.backbones.tiny_assets import SMOLVLM_DIR
 from graftcache.errors import BackboneError
 from graftcache.graft import GraftProjector

@@ -14,7 +14,7 @@ from helpers.backbones import ENC_DIM, fixed_noise_time, grafted, raw_features, 
 from scipy.fft import dct, idct
 
 from graftcache.backbones import load_backbone
-from graftcache.backbones.pi0_fast import FAST_DIR
+from graftcache.backbones.pi0_fast.fast import FAST_DIR
 from graftcache.errors import BackboneError
 from graftcache.graft import GraftProjector, feature_key
 
@@ -123,7 +123,8 @@ def _released(name: str):
     LIBERO recipe's masked third slot), on the meta device, wrapped in the adapter."""
     from devtools.released import LIBERO, _construct_on_meta, _features, unit_stats
     from graftcache.backbones import get_backbone
-    from graftcache.backbones.pi0_fast import fit_tiny_fast, policy_tokenizers
+    from graftcache.backbones.pi0_fast.fast import policy_tokenizers
+    from graftcache.backbones.pi0_fast.tiny import fit_tiny_fast
     from graftcache.backbones.tiny import TinySpec
     from graftcache.backbones.tiny_assets import PALIGEMMA_DIR
 

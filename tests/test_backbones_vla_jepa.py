@@ -30,7 +30,7 @@ from helpers.memory import peak_tensor_bytes
 
 from graftcache.backbones import lean
 from graftcache.backbones.qwen_vl import merged_grid
-from graftcache.backbones.vla_jepa import VLAJEPAAdapter
+from graftcache.backbones.vla_jepa.adapter import VLAJEPAAdapter
 from graftcache.errors import BackboneError
 from graftcache.fit.controls import PassThroughProjector
 from graftcache.graft import feature_key
@@ -235,7 +235,7 @@ def test_released_geometry_on_the_meta_device(tmp_path) -> None:
     from transformers import Qwen3VLConfig
 
     from graftcache.backbones.tiny_assets import QWEN3_VL_DIR, QWEN3_VL_PIXELS
-    from graftcache.backbones.tiny_vla_jepa import (
+    from graftcache.backbones.vla_jepa.tiny import (
         QWEN3_VL_2B,
         construct,
         vla_jepa_released_config,

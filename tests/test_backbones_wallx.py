@@ -26,7 +26,7 @@ from helpers.backbones import (
 )
 
 from graftcache.backbones.draws import given_noise
-from graftcache.backbones.wallx import WallXAdapter
+from graftcache.backbones.wall_x.adapter import WallXAdapter
 from graftcache.errors import BackboneError
 from graftcache.graft import FusedProjector, GraftProjector, feature_key
 
@@ -176,7 +176,7 @@ def _released_base(folder: Path) -> Path:
     from transformers import Qwen2_5_VLProcessor
     from transformers.models.qwen2_vl import Qwen2VLImageProcessor
 
-    from graftcache.backbones.tiny_wallx import WALL_OSS_FLOW, tiny_processor
+    from graftcache.backbones.wall_x.tiny import WALL_OSS_FLOW, tiny_processor
 
     Qwen2_5_VLConfig(**WALL_OSS_FLOW).save_pretrained(folder)
     tiny = tiny_processor()
@@ -191,7 +191,7 @@ def test_released_geometry_on_the_meta_device(tmp_path) -> None:
     camera, ~4.2B parameters with the vocabulary from_pretrained resizes to (counted from shapes, nothing
     allocated). The prompt's image pads come from the policy's own `preprocess_inputs`."""
     from graftcache.backbones.lean import construct as lean_construct
-    from graftcache.backbones.tiny_wallx import WALL_OSS_VOCAB, construct, wallx_released_config
+    from graftcache.backbones.wall_x.tiny import WALL_OSS_VOCAB, construct, wallx_released_config
 
     base = _released_base(tmp_path / "wall-oss-flow")
     config = wallx_released_config(("image", "image2"), 256, 8, 7, "cpu")

@@ -22,7 +22,7 @@ from helpers.backbones import (
 
 from devtools.released import hub_cache, publish
 from graftcache.backbones import load_backbone
-from graftcache.backbones.xvla import XVLAAdapter, conv_grid
+from graftcache.backbones.xvla.adapter import XVLAAdapter, conv_grid
 from graftcache.graft import GraftProjector, feature_key
 
 
@@ -157,7 +157,7 @@ def test_released_geometry_on_the_meta_device() -> None:
     real views plus none empty, ~0.9B parameters (counted from shapes, nothing allocated)."""
     from lerobot.policies.xvla.modeling_xvla import XVLAPolicy
 
-    from graftcache.backbones.tiny_xvla import xvla_released_config
+    from graftcache.backbones.xvla.tiny import xvla_released_config
 
     config = xvla_released_config(("image", "image2"), 256, 8, 7, "cpu")
     config.device = "meta"

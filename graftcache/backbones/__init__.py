@@ -1,27 +1,35 @@
 """Backbone registry: a name from graftcache.backbone_table -> adapter class (see base.BackboneAdapter).
 
-Adapters are imported on first use: importing lerobot costs ~5 s, which commands such as
-`graftcache ls` should not pay.
+Each backbone is a folder of this package (graftcache.backbone_table.BACKBONES lists them); its adapter class is the
+one class its `adapter.py` defines with that `name`. Adapters are imported on first use: importing lerobot costs
+~5 s, which commands such as `graftcache ls` should not pay.
 """
 
 from __future__ import annotations
 
+from importlib import import_module
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 from graftcache.backbone_table import BACKBONES
 from graftcache.backbones.tiny import TinySpec
 from graftcache.errors import BackboneError
-from graftcache.lazy import import_string
 
 if TYPE_CHECKING:
     from graftcache.backbones.base import BackboneAdapter
 
+
 def get_backbone(name: str) -> type[BackboneAdapter]:
-    """The adapter class registered under `name`."""
+    """The adapter class registered under `name`: the class `graftcache.backbones.<name>.adapter` defines whose
+    `name` is `name` (exactly one)."""
     if name not in BACKBONES:
         raise BackboneError(f"unknown backbone {name!r}; choose one of {', '.join(BACKBONES)}")
-    return import_string(BACKBONES[name])
+    module = import_module(BACKBONES[name])
+    found = [v for v in vars(module).values()
+             if isinstance(v, type) and v.__module__ == module.__name__ and v.__dict__.get("name") == name]
+    if len(found) != 1:
+        raise BackboneError(f"{module.__name__} defines {len(found)} adapter classes named {name!r}, not one")
+    return found[0]
 
 
 def load_backbone(name: str, source: str | Path, *, device: str = "cpu", dataset_stats: dict | None = None,

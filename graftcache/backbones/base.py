@@ -25,12 +25,14 @@ import functools
 import operator
 from abc import ABC, abstractmethod
 from collections.abc import Iterable
+from importlib import import_module
 from pathlib import Path
 from typing import Any, ClassVar, Self
 
 import torch
 from torch import nn
 
+from graftcache.backbone_table import backbone_module
 from graftcache.backbones.batches import ACTION, STATE, PromptBatches
 from graftcache.backbones.checkpoint import (
     PREPROCESSOR_FILE,
@@ -56,7 +58,7 @@ from graftcache.errors import BackboneError
 #: EO-1; EVO1's `enable_gradient_checkpointing`), which rows would record as `activation_checkpointing = off`, and
 #: EVO1's bf16 autocast on CUDA (`use_amp`), under rows that say fp32. Checkpointing is graftcache's switch
 #: (`set_activation_checkpointing`), precision its autocast (--compute-dtype); GR00T's `use_bf16`, which decides
-#: either way, follows the caller's autocast (graftcache.backbones.groot).
+#: either way, follows the caller's autocast (graftcache.backbones.groot.adapter).
 NEUTRAL_CONFIG: dict[str, Any] = {"compile_model": False, "gradient_checkpointing": False,
                                   "enable_gradient_checkpointing": False, "use_amp": False}
 
@@ -173,9 +175,11 @@ class BackboneAdapter(GraftSurgery, PromptBatches, FlowObjective, ActivationChec
         return config
 
     @classmethod
-    @abstractmethod
     def _build_tiny(cls, spec: TinySpec, stats: dict | None, device: str) -> tuple[nn.Module, Any, Any, dict]:
-        """Random-init tiny policy, processors and the marker that lets it be saved and reloaded."""
+        """Random-init tiny policy, processors and the marker that lets it be saved and reloaded: the backbone's own
+        `graftcache.backbones.<name>.tiny.build_tiny` (the registry's convention: graftcache/backbone_table.py)."""
+        policy, pre, post, geometry = import_module(backbone_module(cls.name, "tiny")).build_tiny(spec, stats, device)
+        return policy, pre, post, {"backbone": cls.name, "geometry": geometry}
 
     @classmethod
     def _configure(cls, folder: Path, config, marker: dict | None) -> None:

@@ -76,6 +76,25 @@ def raster_patches(hidden: torch.Tensor, images: int, gh: int, gw: int, merge: i
     return blocks.permute(0, 1, 3, 2, 4, 5).reshape(images, gh, gw, -1)
 
 
+def vit_outputs(visual: nn.Module, pixel_values: torch.Tensor,
+                grid_thw: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Qwen2.5-VL's ViT on one processor call's images of one size: (pre-merger patch grid [N, gh, gw, C] in raster
+    order, post-merger tokens [N, gh/2 * gw/2, D] in the order Qwen scatters them into the prompt), both fp32."""
+    device = next(visual.parameters()).device
+    thw = grid_thw.to(device)
+    out = visual(pixel_values.to(device, visual.dtype), grid_thw=thw)
+    m = visual.spatial_merge_size
+    _, gh, gw = thw[0].tolist()
+    size = len(thw)
+    # ViT states come in window order, by merge block: back to the processor's block order, then raster
+    window, _ = visual.get_window_index(thw)
+    hidden = out.last_hidden_state.view(-1, m * m, out.last_hidden_state.shape[-1])[torch.argsort(window)]
+    grid = raster_patches(hidden, size, gh, gw, m)
+    tokens = out.pooler_output.view(size, (gh // m) * (gw // m), -1)
+    return grid.float(), tokens.float()
+
+
+
 def projected_rows(tower: nn.Module, connector: nn.Module, features: torch.Tensor, images: int,
                    cameras: int) -> torch.Tensor:
     """The cached features of `images` images, [images x tokens, C] (what a grafted Qwen reads as

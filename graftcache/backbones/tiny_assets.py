@@ -16,8 +16,8 @@ Two folders:
   replaces the gated `google/paligemma-3b-pt-224` tokenizer lerobot's pi0.5 processor hard-codes.
 
 It also holds the Qwen-VL pieces the other tiny folders share: the tokenizer, Qwen3-VL's chat template, and
-`write_qwen3_vl`, which writes `qwen3_vl/` (`python -m graftcache.backbones.tiny_vla_jepa`) and, with one text layer
-more, `groot/` (`python -m graftcache.backbones.tiny_groot`).
+`write_qwen3_vl`, which writes `qwen3_vl/` (`python -m graftcache.backbones.vla_jepa.tiny`) and, with one text layer
+more, `groot/` (`python -m graftcache.backbones.groot.tiny`).
 """
 
 from __future__ import annotations
@@ -91,7 +91,7 @@ def _corpus() -> list[str]:
     return (tasks + [t + "\n" for t in tasks] + scaffold) * 4
 
 
-def _train_bpe(specials: tuple[str, ...]):
+def train_bpe(specials: tuple[str, ...]):
     from tokenizers import Tokenizer, decoders, models, pre_tokenizers, trainers
 
     tok = Tokenizer(models.BPE(unk_token=None))
@@ -109,7 +109,7 @@ def qwen_tokenizer():
     """The tiny Qwen-VL tokenizer: byte-level BPE over the shared corpus with Qwen's specials."""
     from transformers import PreTrainedTokenizerFast
 
-    return PreTrainedTokenizerFast(tokenizer_object=_train_bpe(QWEN_SPECIALS), eos_token="<|im_end|>",
+    return PreTrainedTokenizerFast(tokenizer_object=train_bpe(QWEN_SPECIALS), eos_token="<|im_end|>",
                                    pad_token="<|endoftext|>", unk_token="<|endoftext|>")
 
 
@@ -146,7 +146,7 @@ def write_smolvlm(out: Path = SMOLVLM_DIR) -> Path:
 
     g = SMOLVLM_GEOMETRY
     tok = PreTrainedTokenizerFast(
-        tokenizer_object=_train_bpe(SMOLVLM_SPECIALS),
+        tokenizer_object=train_bpe(SMOLVLM_SPECIALS),
         bos_token="<|im_start|>", eos_token="<end_of_utterance>", pad_token="<|im_end|>",
         unk_token="<|endoftext|>",
         extra_special_tokens={
@@ -189,7 +189,7 @@ def write_paligemma(out: Path = PALIGEMMA_DIR) -> Path:
     from tokenizers import processors
     from transformers import PreTrainedTokenizerFast
 
-    bpe = _train_bpe(PALIGEMMA_SPECIALS)
+    bpe = train_bpe(PALIGEMMA_SPECIALS)
     bpe.post_processor = processors.TemplateProcessing(
         single="<bos> $A", pair="<bos> $A $B", special_tokens=[("<bos>", bpe.token_to_id("<bos>"))]
     )
@@ -199,6 +199,70 @@ def write_paligemma(out: Path = PALIGEMMA_DIR) -> Path:
     out.mkdir(parents=True, exist_ok=True)
     tok.save_pretrained(out)
     return out
+
+
+
+# ------------------------------------------------------------------------------------ Qwen2.5-VL (EO-1, Wall-X)
+QWEN_VL_DIR = TINY_ROOT / "qwen2_5_vl"
+QWEN_VL_TINY_PIXELS = 16 * 28 * 28  # max pixels of the tiny processor: 112 x 112
+#: Qwen2-VL's chat template (what Qwen/Qwen2.5-VL-3B-Instruct ships): images as vision_start/image_pad/vision_end.
+QWEN25_VL_CHAT_TEMPLATE = (
+    "{% set image_count = namespace(value=0) %}{% set video_count = namespace(value=0) %}"
+    "{% for message in messages %}{% if loop.first and message['role'] != 'system' %}<|im_start|>system\n"
+    "You are a helpful assistant.<|im_end|>\n{% endif %}<|im_start|>{{ message['role'] }}\n"
+    "{% if message['content'] is string %}{{ message['content'] }}<|im_end|>\n{% else %}"
+    "{% for content in message['content'] %}"
+    "{% if content['type'] == 'image' or 'image' in content or 'image_url' in content %}"
+    "{% set image_count.value = image_count.value + 1 %}<|vision_start|><|image_pad|><|vision_end|>"
+    "{% elif content['type'] == 'video' or 'video' in content %}"
+    "{% set video_count.value = video_count.value + 1 %}<|vision_start|><|video_pad|><|vision_end|>"
+    "{% elif 'text' in content %}{{ content['text'] }}{% endif %}{% endfor %}<|im_end|>\n{% endif %}"
+    "{% endfor %}{% if add_generation_prompt %}<|im_start|>assistant\n{% endif %}"
+)
+TINY_QWEN25_VL = {
+    "vision_config": {"depth": 2, "hidden_size": 32, "intermediate_size": 64, "num_heads": 2, "in_chans": 3,
+                      "out_hidden_size": 64, "patch_size": 14, "spatial_merge_size": 2, "temporal_patch_size": 2,
+                      "window_size": 56, "fullatt_block_indexes": [1]},
+    "text_config": {"hidden_size": 64, "intermediate_size": 128, "num_hidden_layers": 2, "num_attention_heads": 4,
+                    "num_key_value_heads": 2, "vocab_size": 1088, "max_position_embeddings": 1024,
+                    "rope_parameters": {"rope_type": "default", "mrope_section": [2, 2, 4], "rope_theta": 10000.0},
+                    "tie_word_embeddings": True},
+    "tie_word_embeddings": True,
+}
+#: Qwen/Qwen2.5-VL-3B-Instruct's config.json (the fields that set the geometry; the rest are transformers' defaults).
+QWEN25_VL_3B = {
+    "vision_config": {"depth": 32, "hidden_size": 1280, "intermediate_size": 3420, "num_heads": 16, "in_chans": 3,
+                      "out_hidden_size": 2048, "patch_size": 14, "spatial_merge_size": 2, "temporal_patch_size": 2,
+                      "window_size": 112, "fullatt_block_indexes": [7, 15, 23, 31], "hidden_act": "silu"},
+    "text_config": {"hidden_size": 2048, "intermediate_size": 11008, "num_hidden_layers": 36,
+                    "num_attention_heads": 16, "num_key_value_heads": 2, "vocab_size": 151936,
+                    "max_position_embeddings": 128000, "tie_word_embeddings": True,
+                    "rope_parameters": {"rope_type": "default", "mrope_section": [16, 24, 24],
+                                        "rope_theta": 1000000.0}},
+    "tie_word_embeddings": True, "dtype": "bfloat16", "image_token_id": 151655, "video_token_id": 151656,
+    "vision_start_token_id": 151652, "vision_end_token_id": 151653,
+}
+
+
+def write_qwen_vl(out: Path = QWEN_VL_DIR) -> Path:
+    """Write the tiny Qwen2.5-VL processor folder (tokenizer, chat template, image/video processors)."""
+    from transformers import Qwen2_5_VLProcessor
+    from transformers.models.qwen2_vl import Qwen2VLImageProcessor
+    from transformers.models.qwen2_vl.video_processing_qwen2_vl import Qwen2VLVideoProcessor
+
+    tok = qwen_tokenizer()
+    out.mkdir(parents=True, exist_ok=True)
+    Qwen2_5_VLProcessor(image_processor=Qwen2VLImageProcessor(min_pixels=4 * 28 * 28, max_pixels=QWEN_VL_TINY_PIXELS),
+                        tokenizer=tok, video_processor=Qwen2VLVideoProcessor(),
+                        chat_template=QWEN25_VL_CHAT_TEMPLATE).save_pretrained(out)
+    return out
+
+
+def qwen25_vl_ids() -> dict:
+    """The tiny Qwen2.5-VL config with the tiny tokenizer's vision token ids."""
+    from transformers import AutoTokenizer
+
+    return {**TINY_QWEN25_VL, **qwen_vision_ids(AutoTokenizer.from_pretrained(QWEN_VL_DIR))}
 
 
 if __name__ == "__main__":

@@ -39,6 +39,7 @@ from graftcache.backbones.base import BackboneAdapter
 from graftcache.backbones.batches import ACTION, STATE
 from graftcache.backbones.checkpoint import cached_repo
 from graftcache.backbones.draws import shadowed
+from graftcache.backbones.eo1.tiny import construct
 from graftcache.backbones.qwen_vl import (
     NativeVision,
     cached_token_count,
@@ -47,35 +48,16 @@ from graftcache.backbones.qwen_vl import (
     merged_grid,
     projected_images,
     prompt_grid,
-    raster_patches,
     shadow_method,
     tied_head_keys,
+    vit_outputs,
 )
-from graftcache.backbones.tiny import TinySpec
-from graftcache.backbones.tiny_eo1 import QWEN_VL_DIR, build_tiny_eo1, construct
+from graftcache.backbones.tiny_assets import QWEN_VL_DIR
 from graftcache.errors import BackboneError
 from graftcache.graft import feature_key
 
 QWEN_STEP = "EO1QwenProcessorStep"
 SEQUENCE_KEYS = ("input_ids", "attention_mask", "mm_token_type_ids")
-
-
-def vit_outputs(visual: nn.Module, pixel_values: torch.Tensor,
-                grid_thw: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Qwen2.5-VL's ViT on one processor call's images of one size: (pre-merger patch grid [N, gh, gw, C] in raster
-    order, post-merger tokens [N, gh/2 * gw/2, D] in the order Qwen scatters them into the prompt), both fp32."""
-    device = next(visual.parameters()).device
-    thw = grid_thw.to(device)
-    out = visual(pixel_values.to(device, visual.dtype), grid_thw=thw)
-    m = visual.spatial_merge_size
-    _, gh, gw = thw[0].tolist()
-    size = len(thw)
-    # ViT states come in window order, by merge block: back to the processor's block order, then raster
-    window, _ = visual.get_window_index(thw)
-    hidden = out.last_hidden_state.view(-1, m * m, out.last_hidden_state.shape[-1])[torch.argsort(window)]
-    grid = raster_patches(hidden, size, gh, gw, m)
-    tokens = out.pooler_output.view(size, (gh // m) * (gw // m), -1)
-    return grid.float(), tokens.float()
 
 
 def left_padded(batch: Mapping[str, Any]) -> dict[str, Any]:
@@ -115,11 +97,6 @@ class EO1Adapter(NativeVision, BackboneAdapter):
         shadow_method(self.policy.model.vlm_backbone.model, "get_image_features", self._image_features)
 
     # ------------------------------------------------------------------------------ construction
-    @classmethod
-    def _build_tiny(cls, spec: TinySpec, stats: dict | None, device: str):
-        policy, pre, post = build_tiny_eo1(spec, stats, device)
-        return policy, pre, post, {"backbone": cls.name, "geometry": None}
-
     @classmethod
     def _construct(cls, config, marker: dict | None) -> nn.Module:
         """EO1Policy with its VLM built from the saved `vlm_config` (the checkpoint holds the weights): lerobot's

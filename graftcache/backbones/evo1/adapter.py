@@ -45,8 +45,7 @@ from transformers.modeling_outputs import BaseModelOutputWithPooling
 from graftcache.backbones.base import BackboneAdapter, is_empty_camera
 from graftcache.backbones.batches import ACTION, STATE
 from graftcache.backbones.checkpoint import cached_repo
-from graftcache.backbones.tiny import TinySpec
-from graftcache.backbones.tiny_evo1 import INTERNVL_DIR, build_tiny_evo1, construct
+from graftcache.backbones.evo1.tiny import INTERNVL_DIR, construct
 from graftcache.errors import BackboneError
 
 
@@ -73,11 +72,6 @@ class Evo1Adapter(BackboneAdapter):
         internvl.get_image_features = functools.partial(self._image_features, internvl.get_image_features)
 
     # ------------------------------------------------------------------------------ construction
-    @classmethod
-    def _build_tiny(cls, spec: TinySpec, stats: dict | None, device: str):
-        policy, pre, post = build_tiny_evo1(spec, stats, device)
-        return policy, pre, post, {"backbone": cls.name, "geometry": None}
-
     @classmethod
     def _internvl_folder(cls, config, marker: dict | None) -> Path:
         """The InternVL config and tokenizer: the shipped tiny folder (a tiny checkpoint's saved path points into

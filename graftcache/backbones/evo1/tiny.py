@@ -10,7 +10,7 @@ meta device. `construct` therefore runs lerobot's constructor with that one call
 same architecture, read from the same folder or hub snapshot (config.json and tokenizer only), no weights.
 
 The tiny InternVL folder is shipped under graftcache/resources/tiny/internvl/ (generated once by
-`python -m graftcache.backbones.tiny_evo1`, like tiny_assets.py's folders): config.json and a byte-level BPE
+`python -m graftcache.backbones.evo1.tiny`, like tiny_assets.py's folders): config.json and a byte-level BPE
 tokenizer carrying InternVL's image tokens `<img>`, `</img>`, `<IMG_CONTEXT>`.
 
 - tiny: InternViT 32 wide x 2 layers at 112 px / patch 14 -> 8x8 patches (+ CLS, dropped) -> pixel shuffle 0.5
@@ -29,8 +29,8 @@ import contextlib
 from collections.abc import Iterator
 from pathlib import Path
 
-from graftcache.backbones.tiny import TinySpec, _action_features, _require_stats, _visual_features, seeded_policy
-from graftcache.backbones.tiny_assets import TINY_ROOT, _train_bpe
+from graftcache.backbones.tiny import TinySpec, action_features, require_stats, seeded_policy, visual_features
+from graftcache.backbones.tiny_assets import TINY_ROOT, train_bpe
 
 INTERNVL_DIR = TINY_ROOT / "internvl"
 TINY_IMAGE_SIZE = 112  # the tiny InternViT's native size (EVO1 requires image_resolution == the tower's size)
@@ -61,7 +61,7 @@ def write_internvl(out: Path = INTERNVL_DIR, geometry: dict = TINY_INTERNVL) -> 
     tokenizer's `<IMG_CONTEXT>`) and the tiny tokenizer (right padding, as EVO1's prompts assume)."""
     from transformers import InternVLConfig, PreTrainedTokenizerFast
 
-    tok = PreTrainedTokenizerFast(tokenizer_object=_train_bpe(INTERNVL_SPECIALS), eos_token="<|im_end|>",
+    tok = PreTrainedTokenizerFast(tokenizer_object=train_bpe(INTERNVL_SPECIALS), eos_token="<|im_end|>",
                                   pad_token="<|endoftext|>", unk_token="<|endoftext|>", padding_side="right")
     out.mkdir(parents=True, exist_ok=True)
     tok.save_pretrained(out)
@@ -100,8 +100,8 @@ def construct(config):
 def _config(spec: TinySpec, vlm: str, image_size: int, device: str, **fields):
     from lerobot.policies.evo1.configuration_evo1 import Evo1Config
 
-    return Evo1Config(vlm_model_name=vlm, device=device, input_features=_visual_features(spec, image_size),
-                      output_features=_action_features(spec), **fields)
+    return Evo1Config(vlm_model_name=vlm, device=device, input_features=visual_features(spec, image_size),
+                      output_features=action_features(spec), **fields)
 
 
 def evo1_tiny_config(spec: TinySpec, device: str, image_size: int = 128):
@@ -121,14 +121,15 @@ def evo1_released_config(cameras: tuple[str, ...], image_size: int, state_dim: i
     return _config(TinySpec(cameras=cameras, state_dim=state_dim, action_dim=action_dim), vlm, image_size, device)
 
 
-def build_tiny_evo1(spec: TinySpec, stats: dict | None, device: str):
-    """Random-init tiny EVO1 + its lerobot pre/post processors (deterministic for `spec.seed`)."""
+def build_tiny(spec: TinySpec, stats: dict | None, device: str):
+    """Random-init tiny EVO1 and its lerobot pre/post processors (deterministic for `spec.seed`); no geometry (its
+    config keeps it)."""
     from lerobot.policies.evo1.processor_evo1 import make_evo1_pre_post_processors
 
     config = evo1_tiny_config(spec, device)
     policy = seeded_policy(spec.seed, lambda: construct(config))
-    pre, post = make_evo1_pre_post_processors(config, dataset_stats=_require_stats(stats))
-    return policy.to(device), pre, post
+    pre, post = make_evo1_pre_post_processors(config, dataset_stats=require_stats(stats))
+    return policy.to(device), pre, post, None
 
 
 if __name__ == "__main__":

@@ -40,6 +40,15 @@ from graftcache.backbones.base import BackboneAdapter
 from graftcache.backbones.batches import ACTION, STATE
 from graftcache.backbones.checkpoint import cached_repo
 from graftcache.backbones.draws import given_noise, shadowed
+from graftcache.backbones.groot.tiny import (
+    GROOT_DIR,
+    TINY_TARGET,
+    base_config,
+    construct,
+    tiny_base_for,
+    tiny_image_geometry,
+    vlm_step_name,
+)
 from graftcache.backbones.qwen_vl import (
     NativeVision,
     cached_token_count,
@@ -51,18 +60,7 @@ from graftcache.backbones.qwen_vl import (
     raster_patches,
     shadow_method,
 )
-from graftcache.backbones.tiny import TinySpec
 from graftcache.backbones.tiny_assets import QWEN3_VL_MERGE, QWEN3_VL_PATCH, QWEN3_VL_PIXELS, TINY_QWEN3_VL_PIXELS
-from graftcache.backbones.tiny_groot import (
-    GROOT_DIR,
-    TINY_TARGET,
-    base_config,
-    build_tiny_groot,
-    construct,
-    tiny_base_for,
-    tiny_image_geometry,
-    vlm_step_name,
-)
 from graftcache.errors import BackboneError
 from graftcache.graft import feature_key
 
@@ -85,11 +83,6 @@ class GrootAdapter(NativeVision, BackboneAdapter):
         shadow_method(self._qwen, "get_image_features", self._image_features)
 
     # ------------------------------------------------------------------------------ construction
-    @classmethod
-    def _build_tiny(cls, spec: TinySpec, stats: dict | None, device: str):
-        policy, pre, post = build_tiny_groot(spec, stats, device)
-        return policy, pre, post, {"backbone": cls.name, "geometry": None}
-
     @classmethod
     def _configure(cls, folder, config, marker: dict | None) -> None:
         """A tiny checkpoint's base model is the shipped tiny folder (its saved path points into the package that

@@ -10,7 +10,7 @@ the processor step loads the tokenizer, image and video processors from the same
   any weights (graftcache fills them from the checkpoint, lean): the base config is read from the base
   checkpoint's config.json (a folder, or the local HF cache), or is the tiny one below;
 - the tiny Cosmos-Reason2 stand-in is graftcache/resources/tiny/groot/ (generated once by
-  `python -m graftcache.backbones.tiny_groot`, like tiny_assets.py's folders): the tiny Qwen3-VL config.json,
+  `python -m graftcache.backbones.groot.tiny`, like tiny_assets.py's folders): the tiny Qwen3-VL config.json,
   a byte-level BPE tokenizer with Qwen's chat tokens and a Qwen3-VL style chat template (no default system
   message), Qwen2-VL's image processor at Qwen3-VL's settings (patch 16, merge 2, temporal patch 2, mean/std 0.5)
   and Qwen3-VL's video processor. It is `model_name` of the tiny base config, so the backbone and the processor
@@ -37,7 +37,7 @@ from pathlib import Path
 from typing import Any
 
 from graftcache.backbones.checkpoint import cached_repo
-from graftcache.backbones.tiny import TinySpec, _action_features, _require_stats, _visual_features, seeded_policy
+from graftcache.backbones.tiny import TinySpec, action_features, require_stats, seeded_policy, visual_features
 from graftcache.backbones.tiny_assets import TINY_ROOT, write_qwen3_vl
 from graftcache.errors import BackboneError
 
@@ -123,7 +123,7 @@ def groot_tiny_config(spec: TinySpec, device: str, image_size: int = TINY_TARGET
     return GrootConfig(base_model_path=str(GROOT_DIR), device=device, chunk_size=spec.chunk_size,
                        n_action_steps=spec.chunk_size, max_state_dim=dims, max_action_dim=dims,
                        num_inference_timesteps=spec.num_steps, use_bf16=False,
-                       input_features=_visual_features(spec, image_size), output_features=_action_features(spec))
+                       input_features=visual_features(spec, image_size), output_features=action_features(spec))
 
 
 def tiny_base_for(config):
@@ -140,8 +140,8 @@ def groot_released_config(cameras: tuple[str, ...], image_size: int, state_dim: 
     from lerobot.policies.groot.configuration_groot import GrootConfig
 
     spec = TinySpec(cameras=cameras, state_dim=state_dim, action_dim=action_dim)
-    return GrootConfig(device=device, input_features=_visual_features(spec, image_size),
-                       output_features=_action_features(spec))
+    return GrootConfig(device=device, input_features=visual_features(spec, image_size),
+                       output_features=action_features(spec))
 
 
 def released_base_config():
@@ -168,15 +168,16 @@ def tiny_image_geometry(pre) -> None:
             step.image_target_size, step.image_crop_size = [TINY_TARGET] * 2, [TINY_CROP] * 2
 
 
-def build_tiny_groot(spec: TinySpec, stats: dict | None, device: str):
-    """Random-init tiny GR00T + its lerobot pre/post processors (deterministic for `spec.seed`)."""
+def build_tiny(spec: TinySpec, stats: dict | None, device: str):
+    """Random-init tiny GR00T and its lerobot pre/post processors (deterministic for `spec.seed`); no geometry (its
+    config keeps it)."""
     from lerobot.policies.groot.processor_groot import make_groot_pre_post_processors
 
     config = groot_tiny_config(spec, device)
     policy = seeded_policy(spec.seed, lambda: construct(config, tiny_base_for(config)))
-    pre, post = make_groot_pre_post_processors(config, dataset_stats=_require_stats(stats))
+    pre, post = make_groot_pre_post_processors(config, dataset_stats=require_stats(stats))
     tiny_image_geometry(pre)
-    return policy.to(device), pre, post
+    return policy.to(device), pre, post, None
 
 
 if __name__ == "__main__":

@@ -5,7 +5,7 @@ Vision path (modeling_pi0.py:297, 1000): as pi0.5's. `_preprocess_images` pads/r
 -> multi_modal_projector Linear(1152 -> 2048) = 256 tokens x 2048 per camera, no further scaling. The graft
 replaces SigLIP with a pass-through and the projector with the graft projector.
 
-What differs from pi0.5 (so this adapter differs from graftcache.backbones.pi05 there and nowhere else): the
+What differs from pi0.5 (so this adapter differs from graftcache.backbones.pi05.adapter there and nowhere else): the
 state is not in the prompt but a token of the expert's suffix (`state_proj`), so the prompt is the task alone
 ("<task>\\n", processor_pi0.py) and is tokenised once per task; the flow model takes the padded state
 (`prepare_state`); time enters through `action_time_mlp_*`, not adaRMS.
@@ -21,19 +21,9 @@ from torch import nn
 
 from graftcache.backbones.batches import TOKEN_MASK, TOKENS
 from graftcache.backbones.lean import openpi_keys
-from graftcache.backbones.pi05 import PI05Adapter
-from graftcache.backbones.tiny import (
-    Pi05TinyGeometry,
-    TinySpec,
-    _action_features,
-    _require_stats,
-    _visual_features,
-    pi05_processors,
-    pi05_tiny_sizes,
-)
-
-MODELING = "lerobot.policies.pi0.modeling_pi0"
-PROCESSOR = "lerobot.policies.pi0.processor_pi0"
+from graftcache.backbones.paligemma import pi05_processors, pi05_tiny_sizes
+from graftcache.backbones.pi0.tiny import MODELING, PROCESSOR
+from graftcache.backbones.pi05.adapter import PI05Adapter
 
 
 class PI0Adapter(PI05Adapter):
@@ -42,25 +32,6 @@ class PI0Adapter(PI05Adapter):
     prompt_uses_state = False
 
     # ------------------------------------------------------------------------------ construction
-    @classmethod
-    def _build_tiny(cls, spec: TinySpec, stats: dict | None, device: str):
-        from lerobot.policies.pi0.configuration_pi0 import PI0Config
-        from lerobot.policies.pi0.modeling_pi0 import PI0Policy
-
-        geometry = Pi05TinyGeometry()
-        config = PI0Config(
-            chunk_size=spec.chunk_size, n_action_steps=spec.chunk_size, num_inference_steps=spec.num_steps,
-            image_resolution=(geometry.image_size, geometry.image_size),
-            max_state_dim=max(spec.state_dim, 8), max_action_dim=max(spec.action_dim, 8),
-            tokenizer_max_length=geometry.tokenizer_max_length, device=device, dtype="float32",
-            input_features=_visual_features(spec, geometry.image_size), output_features=_action_features(spec),
-        )
-        with torch.random.fork_rng(devices=[]), pi05_tiny_sizes(geometry, MODELING):
-            torch.manual_seed(spec.seed)
-            policy = PI0Policy(config)
-        pre, post = cls._make_processors(config, _require_stats(stats), {"geometry": geometry})
-        return policy.to(device), pre, post, {"backbone": cls.name, "geometry": geometry}
-
     @classmethod
     def _construct(cls, config, marker: dict | None) -> nn.Module:
         from lerobot.policies.pi0.modeling_pi0 import PI0Policy

@@ -23,14 +23,7 @@ from graftcache.backbones.base import BackboneAdapter
 from graftcache.backbones.batches import TOKEN_MASK, TOKENS
 from graftcache.backbones.checkpoint import cached_repo
 from graftcache.backbones.lean import openpi_keys
-from graftcache.backbones.tiny import (
-    Pi05TinyGeometry,
-    TinySpec,
-    build_tiny_pi05,
-    paligemma_tiny_tokenizer,
-    pi05_processors,
-    pi05_tiny_sizes,
-)
+from graftcache.backbones.paligemma import paligemma_tiny_tokenizer, pi05_processors, pi05_tiny_sizes
 
 PALIGEMMA_TOKENIZER = "google/paligemma-3b-pt-224"  # hard-coded by processor_pi05.py:145
 
@@ -44,12 +37,6 @@ class PI05Adapter(BackboneAdapter):
     prompt_uses_state = True
 
     # ------------------------------------------------------------------------------ construction
-    @classmethod
-    def _build_tiny(cls, spec: TinySpec, stats: dict | None, device: str):
-        geometry = Pi05TinyGeometry()
-        policy, pre, post = build_tiny_pi05(spec, stats, device, geometry)
-        return policy, pre, post, {"backbone": cls.name, "geometry": geometry}
-
     @classmethod
     def _construct(cls, config, marker: dict | None) -> nn.Module:
         from lerobot.policies.pi05.modeling_pi05 import PI05Policy

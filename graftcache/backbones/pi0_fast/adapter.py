@@ -26,128 +26,24 @@ processor's `fit` (the FAST recipe: BPE on the quantised DCT coefficients), save
 from __future__ import annotations
 
 import contextlib
-import math
-import os
-import sys
 from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
-from types import SimpleNamespace
 from typing import Any
 
-import numpy as np
 import torch
 from torch import nn
 
 from graftcache.backbones.batches import TOKEN_MASK, TOKENS
-from graftcache.backbones.checkpoint import cached_repo, quiet
+from graftcache.backbones.checkpoint import cached_repo
 from graftcache.backbones.lean import openpi_keys
-from graftcache.backbones.pi05 import PI05Adapter
-from graftcache.backbones.tiny import (
-    Pi05TinyGeometry,
-    TinySpec,
-    _action_features,
-    _require_stats,
-    _visual_features,
-    paligemma_tiny_tokenizer,
-    pi05_tiny_sizes,
-)
+from graftcache.backbones.paligemma import pi05_tiny_sizes
+from graftcache.backbones.pi0_fast.fast import FAST_DIR, MODELING, fast_processors, load_fast, policy_tokenizers
+from graftcache.backbones.pi05.adapter import PI05Adapter
 from graftcache.backbones.tiny_assets import PALIGEMMA_DIR
 from graftcache.errors import BackboneError
 
-MODELING = "lerobot.policies.pi0_fast.modeling_pi0_fast"
-FAST_DIR = "fast_tokenizer"  # a checkpoint's own FAST tokenizer, beside its weights
 ACTION_TOKENS = "action.tokens"  # lerobot.utils.constants.ACTION_TOKENS / ACTION_TOKEN_MASK
 ACTION_TOKEN_MASK = "action.token_mask"
-#: Tiny FAST tokenizer: FAST's default quantisation scale, lowered where the alphabet of quantised coefficients
-#: would not fit, and a vocabulary inside the tiny PaliGemma tokenizer's merge range (ids 261..770: action tokens
-#: map to ids 770 - t with fast_skip_tokens 0, above every byte token, so "|" and "Action: " stay recognisable).
-FAST_SCALE = 10.0
-TINY_FAST_ALPHABET = 301
-TINY_FAST_VOCAB = 480
-TINY_FAST_CORPUS = 2000
-
-
-def load_fast(path: Path):
-    """A saved FAST processor folder (tokenizer files + processor_config.json) as lerobot's FAST processor."""
-    from lerobot.policies.molmoact2.molmoact2_hf_model.action_tokenizer import UniversalActionProcessor
-
-    if not (path / "tokenizer.json").is_file():
-        raise BackboneError(f"{path}: not a FAST action tokenizer (no tokenizer.json)")
-    return UniversalActionProcessor.from_pretrained_local(str(path))
-
-
-def fit_tiny_fast(stats: dict, spec: TinySpec):
-    """A FAST tokenizer for a tiny policy, fitted with lerobot's FAST processor on seeded smooth chunks spanning
-    the dataset's normalised action range (MEAN_STD, the tiny config's). Two constant chunks at +-M (M the
-    largest normalised |action|) pin the alphabet to the bound sqrt(chunk) * M * scale that every in-range
-    chunk's DCT coefficients obey (|c_k| <= ||x||_2), so no in-range chunk loses a coefficient."""
-    from lerobot.policies.molmoact2.molmoact2_hf_model.action_tokenizer import UniversalActionProcessor
-
-    act = stats["action"]
-    std = act["std"].double().clamp(min=1e-6)
-    lo, hi = ((act["min"].double() - act["mean"]) / std).numpy(), ((act["max"].double() - act["mean"]) / std).numpy()
-    bound = float(max(np.abs(lo).max(), np.abs(hi).max(), 1e-3))
-    scale = min(FAST_SCALE, (TINY_FAST_ALPHABET - 1) / 2 / (math.sqrt(spec.chunk_size) * bound))
-    rng = np.random.default_rng(spec.seed)
-    shape = (TINY_FAST_CORPUS, spec.chunk_size, spec.action_dim)
-    walk = rng.uniform(lo, hi, (shape[0], 1, shape[2])) + np.cumsum(rng.normal(0, 0.05, shape) * (hi - lo), axis=1)
-    chunks = [*np.clip(walk, lo, hi), np.full(shape[1:], bound), np.full(shape[1:], -bound)]
-    with quiet(), _stdout_fd_silenced():
-        return UniversalActionProcessor.fit(chunks, scale=scale, vocab_size=TINY_FAST_VOCAB,
-                                            time_horizon=spec.chunk_size, action_dim=spec.action_dim)
-
-
-@contextlib.contextmanager
-def _stdout_fd_silenced() -> Iterator[None]:
-    """The BPE trainer's progress bar (on in lerobot's `fit`) writes blank lines to file descriptor 1 itself,
-    past Python's sys.stdout, into the stdout that commands keep for their results."""
-    sys.stdout.flush()
-    saved, devnull = os.dup(1), os.open(os.devnull, os.O_WRONLY)
-    os.dup2(devnull, 1)
-    try:
-        yield
-    finally:
-        os.dup2(saved, 1)
-        os.close(saved)
-        os.close(devnull)
-
-
-@contextlib.contextmanager
-def policy_tokenizers(fast, text: Path) -> Iterator[None]:
-    """PI0FastPolicy's constructor loads the FAST processor as remote code and the PaliGemma tokenizer by name
-    (modeling_pi0_fast.py:768): hand it these instead."""
-    import importlib
-
-    from transformers import AutoTokenizer
-
-    module = importlib.import_module(MODELING)
-    saved = module.AutoProcessor, module.AutoTokenizer
-    module.AutoProcessor = SimpleNamespace(from_pretrained=lambda *_, **__: fast)
-    module.AutoTokenizer = SimpleNamespace(from_pretrained=lambda _, **kw: AutoTokenizer.from_pretrained(text, **kw))
-    try:
-        yield
-    finally:
-        module.AutoProcessor, module.AutoTokenizer = saved
-
-
-def _processors(config, stats: dict, fast):
-    """lerobot's pi0-FAST processors with the given FAST processor and the PaliGemma tokenizer folder the config
-    names (the factory loads both by name, processor_pi0_fast.py:134-150)."""
-    import functools
-
-    import lerobot.policies.pi0_fast.processor_pi0_fast as pf
-    from lerobot.processor import ActionTokenizerProcessorStep, TokenizerProcessorStep
-    from transformers import AutoTokenizer
-
-    text = AutoTokenizer.from_pretrained(config.text_tokenizer_name)
-    saved = pf.TokenizerProcessorStep, pf.ActionTokenizerProcessorStep
-    pf.TokenizerProcessorStep = functools.partial(TokenizerProcessorStep, tokenizer=text)
-    pf.ActionTokenizerProcessorStep = functools.partial(ActionTokenizerProcessorStep,
-                                                        action_tokenizer_input_object=fast)
-    try:
-        return pf.make_pi0_fast_pre_post_processors(config, dataset_stats=stats)
-    finally:
-        pf.TokenizerProcessorStep, pf.ActionTokenizerProcessorStep = saved
 
 
 class PI0FastAdapter(PI05Adapter):
@@ -159,31 +55,6 @@ class PI0FastAdapter(PI05Adapter):
     prompt_uses_state = True
 
     # ------------------------------------------------------------------------------ construction
-    @classmethod
-    def _build_tiny(cls, spec: TinySpec, stats: dict | None, device: str):
-        from lerobot.policies.pi0_fast.configuration_pi0_fast import PI0FastConfig
-        from lerobot.policies.pi0_fast.modeling_pi0_fast import PI0FastPolicy
-
-        stats = _require_stats(stats)
-        geometry = Pi05TinyGeometry(vocab_size=len(paligemma_tiny_tokenizer()))  # every id the LM emits decodes
-        tokens = spec.chunk_size * spec.action_dim + 6  # <bos> "Action: " (3) ... "|" <eos>: never truncated
-        config = PI0FastConfig(
-            chunk_size=spec.chunk_size, n_action_steps=spec.chunk_size,
-            image_resolution=(geometry.image_size, geometry.image_size),
-            max_state_dim=max(spec.state_dim, 8), max_action_dim=max(spec.action_dim, 8),
-            tokenizer_max_length=geometry.tokenizer_max_length, device=device, dtype="float32",
-            text_tokenizer_name=str(PALIGEMMA_DIR), action_tokenizer_name=FAST_DIR, fast_skip_tokens=0,
-            max_action_tokens=tokens, max_decoding_steps=tokens,
-            input_features=_visual_features(spec, geometry.image_size), output_features=_action_features(spec),
-        )
-        fast = fit_tiny_fast(stats, spec)
-        with torch.random.fork_rng(devices=[]), pi05_tiny_sizes(geometry, MODELING), \
-                policy_tokenizers(fast, PALIGEMMA_DIR):
-            torch.manual_seed(spec.seed)
-            policy = PI0FastPolicy(config)
-        pre, post = _processors(config, stats, fast)
-        return policy.to(device), pre, post, {"backbone": cls.name, "geometry": geometry}
-
     @classmethod
     def _construct(cls, config, marker: dict | None) -> nn.Module:
         from lerobot.policies.pi0_fast.modeling_pi0_fast import PI0FastPolicy
@@ -231,7 +102,7 @@ class PI0FastAdapter(PI05Adapter):
 
     @classmethod
     def _make_processors(cls, config, stats: dict, marker: dict | None):
-        return _processors(config, stats, load_fast(Path(config.action_tokenizer_name)))
+        return fast_processors(config, stats, load_fast(Path(config.action_tokenizer_name)))
 
     def save(self, folder: str | Path) -> Path:
         """The lerobot checkpoint plus its FAST tokenizer (`fast_tokenizer/`), which loading prefers."""

@@ -21,7 +21,6 @@ from graftcache.backbones.base import BackboneAdapter
 from graftcache.backbones.batches import TOKEN_MASK, TOKENS
 from graftcache.backbones.checkpoint import cached_repo
 from graftcache.backbones.recompute import WrappedCheckpointing
-from graftcache.backbones.tiny import TinySpec, build_tiny_smolvla
 from graftcache.backbones.tiny_assets import SMOLVLM_DIR
 
 
@@ -33,11 +32,6 @@ class SmolVLAAdapter(WrappedCheckpointing, BackboneAdapter):
     token_steps = ("NewLineTaskProcessorStep", "TokenizerProcessorStep")
 
     # ------------------------------------------------------------------------------ construction
-    @classmethod
-    def _build_tiny(cls, spec: TinySpec, stats: dict | None, device: str):
-        policy, pre, post = build_tiny_smolvla(spec, stats, device)
-        return policy, pre, post, {"backbone": cls.name, "geometry": None}
-
     @classmethod
     def _construct(cls, config, marker: dict | None) -> nn.Module:
         from lerobot.policies.smolvla.modeling_smolvla import SmolVLAPolicy

@@ -8,7 +8,7 @@ cross-attends to the embodied-action states and is trained by flow matching (`ac
 the real action steps, repeated over 8 noise draws per sample); inference integrates it from noise in 4 Euler steps.
 The world model - a frozen V-JEPA2 video encoder and an action-conditioned predictor fed the action-token states -
 only adds `0.1 * wm_loss` (L1 on the next V-JEPA2 frame embeddings of an 8-frame clip) in training; inference never
-runs it. graftcache builds the policy without it (graftcache.backbones.tiny_vla_jepa.construct): the fit's objective
+runs it. graftcache builds the policy without it (graftcache.backbones.vla_jepa.tiny.construct): the fit's objective
 is the policy's own action loss, `action_loss`, with one noise draw per sample and step (the 8 repeats are a variance
 reduction of the same expectation; graftcache's steps draw their own noise), and the world-model term, which needs
 future video the cache does not hold and a second 300M-parameter encoder, is left out.
@@ -59,8 +59,7 @@ from graftcache.backbones.qwen_vl import (
     tied_head_keys,
 )
 from graftcache.backbones.recompute import WrappedCheckpointing
-from graftcache.backbones.tiny import TinySpec
-from graftcache.backbones.tiny_vla_jepa import QWEN3_VL_DIR, build_tiny_vla_jepa, construct
+from graftcache.backbones.vla_jepa.tiny import QWEN3_VL_DIR, construct
 from graftcache.errors import BackboneError
 from graftcache.graft import feature_key
 
@@ -104,11 +103,6 @@ class VLAJEPAAdapter(WrappedCheckpointing, BackboneAdapter):
         shadow_method(self.policy.model.qwen, "build_inputs", self._build_inputs)
 
     # ------------------------------------------------------------------------------ construction
-    @classmethod
-    def _build_tiny(cls, spec: TinySpec, stats: dict | None, device: str):
-        policy, pre, post = build_tiny_vla_jepa(spec, stats, device)
-        return policy, pre, post, {"backbone": cls.name, "geometry": None}
-
     @classmethod
     def _construct(cls, config, marker: dict | None) -> nn.Module:
         """VLAJEPAPolicy without its world model, Qwen3-VL built from the Qwen folder's config (the checkpoint

@@ -7,7 +7,7 @@ rebinds the first name in lerobot's qwen_interface module, for the time of the c
 builds the model from the folder's config.json alone (`_from_config`: the policy checkpoint holds the weights),
 so a Qwen folder - the tiny one shipped under graftcache/resources/tiny/qwen3_vl/, or Qwen/Qwen3-VL-2B-Instruct's
 snapshot in the HF cache - is read through one code path. The tiny folder is generated once by
-`python -m graftcache.backbones.tiny_vla_jepa` (like tiny_assets.py's): a byte-level BPE tokenizer with Qwen's chat
+`python -m graftcache.backbones.vla_jepa.tiny` (like tiny_assets.py's): a byte-level BPE tokenizer with Qwen's chat
 and vision tokens, Qwen3-VL's chat template (no default system turn), Qwen2-VL's image processor at Qwen3-VL's
 patch 16 / merge 2 / mean-std 0.5, and the tiny Qwen3-VL config.
 
@@ -33,7 +33,7 @@ from pathlib import Path
 
 import torch
 
-from graftcache.backbones.tiny import TinySpec, _action_features, _require_stats, _visual_features, seeded_policy
+from graftcache.backbones.tiny import TinySpec, action_features, require_stats, seeded_policy, visual_features
 from graftcache.backbones.tiny_assets import QWEN3_VL_DIR, write_qwen3_vl
 
 TINY_IMAGE_SIZE = 128  # what train-tiny resizes frames to (requests.TinyTrainConfig.image_size)
@@ -94,7 +94,7 @@ def _config(spec: TinySpec, image_size: int, qwen: str, device: str, **kwargs):
     from lerobot.policies.vla_jepa.configuration_vla_jepa import VLAJEPAConfig
 
     return VLAJEPAConfig(qwen_model_name=qwen, enable_world_model=False, device=device,
-                         input_features=_visual_features(spec, image_size), output_features=_action_features(spec),
+                         input_features=visual_features(spec, image_size), output_features=action_features(spec),
                          action_dim=spec.action_dim, state_dim=spec.state_dim, **kwargs)
 
 
@@ -114,14 +114,15 @@ def vla_jepa_released_config(cameras: tuple[str, ...], image_size: int, state_di
     return _config(spec, image_size, "Qwen/Qwen3-VL-2B-Instruct", device)
 
 
-def build_tiny_vla_jepa(spec: TinySpec, stats: dict | None, device: str):
-    """Random-init tiny VLA-JEPA + its lerobot pre/post processors (deterministic for `spec.seed`)."""
+def build_tiny(spec: TinySpec, stats: dict | None, device: str):
+    """Random-init tiny VLA-JEPA and its lerobot pre/post processors (deterministic for `spec.seed`); no geometry (its
+    config keeps it)."""
     from lerobot.policies.vla_jepa.processor_vla_jepa import make_vla_jepa_pre_post_processors
 
     config = vla_jepa_tiny_config(spec, device)
     policy = seeded_policy(spec.seed, lambda: construct(config, QWEN3_VL_DIR))
-    pre, post = make_vla_jepa_pre_post_processors(config, dataset_stats=_require_stats(stats))
-    return policy.to(device), pre, post
+    pre, post = make_vla_jepa_pre_post_processors(config, dataset_stats=require_stats(stats))
+    return policy.to(device), pre, post, None
 
 
 if __name__ == "__main__":

@@ -43,7 +43,6 @@ from graftcache.backbones.base import BackboneAdapter
 from graftcache.backbones.batches import STATE
 from graftcache.backbones.checkpoint import cached_repo
 from graftcache.backbones.draws import given_noise, shadowed
-from graftcache.backbones.eo1 import vit_outputs
 from graftcache.backbones.qwen_vl import (
     NativeVision,
     merged_grid,
@@ -51,10 +50,10 @@ from graftcache.backbones.qwen_vl import (
     prompt_grid,
     shadow_method,
     tied_head_keys,
+    vit_outputs,
 )
 from graftcache.backbones.recompute import WrappedCheckpointing
-from graftcache.backbones.tiny import TinySpec
-from graftcache.backbones.tiny_wallx import WALLX_DIR, build_tiny_wallx, construct, load_processor
+from graftcache.backbones.wall_x.tiny import WALLX_DIR, construct, load_processor
 from graftcache.errors import BackboneError
 
 #: Slack on the pixel bounds that pin the processor's resize to a grid (smart_resize's floor/ceil of a ratio).
@@ -96,11 +95,6 @@ class WallXAdapter(NativeVision, WrappedCheckpointing, BackboneAdapter):
         shadow_method(self._vision_owner, "forward", self._visual_forward)
 
     # ------------------------------------------------------------------------------ construction
-    @classmethod
-    def _build_tiny(cls, spec: TinySpec, stats: dict | None, device: str):
-        policy, pre, post = build_tiny_wallx(spec, stats, device)
-        return policy, pre, post, {"backbone": cls.name, "geometry": None}
-
     @classmethod
     def _base_folder(cls, config, marker: dict | None) -> Path:
         """Where Wall-X's base config and processor come from (`pretrained_name_or_path`): the shipped tiny folder

@@ -9,7 +9,7 @@ of the whole policy, so `from_config` below does the first two reads and the con
 `from_pretrained` does, and skips the third (the checkpoint's weights follow).
 
 The tiny folder graftcache/resources/tiny/wall_x/ holds only the tiny MoE config (generated once by
-`python -m graftcache.backbones.tiny_wallx`); its processor is EO-1's tiny Qwen2.5-VL one
+`python -m graftcache.backbones.wall_x.tiny`); its processor is EO-1's tiny Qwen2.5-VL one
 (graftcache/resources/tiny/qwen2_5_vl/) with the tokens wall-x's scripts/merge_tokenizer.py adds to Qwen's
 tokenizer (`<|propri|>`, `<|action|>`; no FAST tokens: graftcache runs Wall-X's flow mode) and its left padding.
 
@@ -32,9 +32,8 @@ import json
 from collections.abc import Iterator
 from pathlib import Path
 
-from graftcache.backbones.tiny import TinySpec, _action_features, _require_stats, _visual_features, seeded_policy
-from graftcache.backbones.tiny_assets import TINY_ROOT
-from graftcache.backbones.tiny_eo1 import QWEN25_VL_3B, QWEN_VL_DIR, TINY_QWEN, _qwen_ids
+from graftcache.backbones.tiny import TinySpec, action_features, require_stats, seeded_policy, visual_features
+from graftcache.backbones.tiny_assets import QWEN25_VL_3B, QWEN_VL_DIR, TINY_QWEN25_VL, TINY_ROOT, qwen25_vl_ids
 from graftcache.errors import BackboneError
 
 WALLX_DIR = TINY_ROOT / "wall_x"
@@ -73,8 +72,8 @@ def write_wallx_config(out: Path = WALLX_DIR) -> Path:
     from lerobot.policies.wall_x.qwen_model import Qwen2_5_VLConfig
 
     out.mkdir(parents=True, exist_ok=True)
-    moe = _moe(TINY_QWEN["text_config"]["hidden_size"], 128, 64)
-    Qwen2_5_VLConfig(**_with_moe(_qwen_ids(), moe)).save_pretrained(out)
+    moe = _moe(TINY_QWEN25_VL["text_config"]["hidden_size"], 128, 64)
+    Qwen2_5_VLConfig(**_with_moe(qwen25_vl_ids(), moe)).save_pretrained(out)
     return out
 
 
@@ -147,8 +146,8 @@ def wallx_tiny_config(spec: TinySpec, device: str, image_size: int = TINY_IMAGE_
     from lerobot.policies.wall_x.configuration_wall_x import WallXConfig
 
     return WallXConfig(pretrained_name_or_path=str(WALLX_DIR), device=device, chunk_size=spec.chunk_size,
-                       n_action_steps=spec.chunk_size, input_features=_visual_features(spec, image_size),
-                       output_features=_action_features(spec))
+                       n_action_steps=spec.chunk_size, input_features=visual_features(spec, image_size),
+                       output_features=action_features(spec))
 
 
 def wallx_released_config(cameras: tuple[str, ...], image_size: int, state_dim: int, action_dim: int, device: str):
@@ -156,18 +155,19 @@ def wallx_released_config(cameras: tuple[str, ...], image_size: int, state_dim: 
     from lerobot.policies.wall_x.configuration_wall_x import WallXConfig
 
     spec = TinySpec(cameras=cameras, state_dim=state_dim, action_dim=action_dim)
-    return WallXConfig(device=device, input_features=_visual_features(spec, image_size),
-                       output_features=_action_features(spec))
+    return WallXConfig(device=device, input_features=visual_features(spec, image_size),
+                       output_features=action_features(spec))
 
 
-def build_tiny_wallx(spec: TinySpec, stats: dict | None, device: str):
-    """Random-init tiny Wall-X + its lerobot pre/post processors (deterministic for `spec.seed`)."""
+def build_tiny(spec: TinySpec, stats: dict | None, device: str):
+    """Random-init tiny Wall-X and its lerobot pre/post processors (deterministic for `spec.seed`); no geometry (its
+    config keeps it)."""
     from lerobot.policies.wall_x.processor_wall_x import make_wall_x_pre_post_processors
 
     config = wallx_tiny_config(spec, device)
     policy = seeded_policy(spec.seed, lambda: construct(config, WALLX_DIR))
-    pre, post = make_wall_x_pre_post_processors(config, dataset_stats=_require_stats(stats))
-    return policy.to(device), pre, post
+    pre, post = make_wall_x_pre_post_processors(config, dataset_stats=require_stats(stats))
+    return policy.to(device), pre, post, None
 
 
 if __name__ == "__main__":

@@ -35,9 +35,7 @@ from transformers.modeling_outputs import BaseModelOutputWithPooling
 from graftcache.backbones.base import BackboneAdapter, is_empty_camera
 from graftcache.backbones.batches import ACTION_PAD
 from graftcache.backbones.recompute import WrappedCheckpointing
-from graftcache.backbones.tiny import TinySpec
 from graftcache.backbones.tiny_assets import PALIGEMMA_DIR
-from graftcache.backbones.tiny_xvla import build_tiny_xvla
 from graftcache.errors import BackboneError
 
 
@@ -62,11 +60,6 @@ class XVLAAdapter(WrappedCheckpointing, BackboneAdapter):
         vlm.get_image_features = functools.partial(self._image_features, type(vlm).get_image_features, vlm)
 
     # ------------------------------------------------------------------------------ construction
-    @classmethod
-    def _build_tiny(cls, spec: TinySpec, stats: dict | None, device: str):
-        policy, pre, post = build_tiny_xvla(spec, stats, device)
-        return policy, pre, post, {"backbone": cls.name, "geometry": None}
-
     @classmethod
     def _construct(cls, config, marker: dict | None) -> nn.Module:
         """XVLAPolicy's own constructor. Built on the meta device, Florence-2's BART word embedding comes out

@@ -15,7 +15,7 @@ checkpoint needs no geometry in its marker: the folder's config rebuilds it.
 
 from __future__ import annotations
 
-from graftcache.backbones.tiny import TinySpec, _action_features, _require_stats, _visual_features, seeded_policy
+from graftcache.backbones.tiny import TinySpec, action_features, require_stats, seeded_policy, visual_features
 from graftcache.backbones.tiny_assets import PALIGEMMA_DIR
 
 TINY_IMAGE_SIZE = 128
@@ -56,7 +56,7 @@ def xvla_tiny_config(spec: TinySpec, device: str):
         action_mode="auto", max_action_dim=max(spec.action_dim, 8), max_state_dim=max(spec.state_dim, 8),
         chunk_size=spec.chunk_size, n_action_steps=spec.chunk_size, num_denoising_steps=spec.num_steps,
         resize_imgs_with_padding=(TINY_IMAGE_SIZE, TINY_IMAGE_SIZE), normalization_mapping=_mean_std(),
-        device=device, input_features=_visual_features(spec, TINY_IMAGE_SIZE), output_features=_action_features(spec),
+        device=device, input_features=visual_features(spec, TINY_IMAGE_SIZE), output_features=action_features(spec),
     )
 
 
@@ -67,16 +67,17 @@ def xvla_released_config(cameras: tuple[str, ...], image_size: int, state_dim: i
 
     spec = TinySpec(cameras=cameras, state_dim=state_dim, action_dim=action_dim)
     return XVLAConfig(florence_config=FLORENCE2_LARGE, action_mode="auto", normalization_mapping=_mean_std(),
-                      device=device, input_features=_visual_features(spec, image_size),
-                      output_features=_action_features(spec))
+                      device=device, input_features=visual_features(spec, image_size),
+                      output_features=action_features(spec))
 
 
-def build_tiny_xvla(spec: TinySpec, stats: dict | None, device: str):
-    """Random-init tiny X-VLA + its lerobot pre/post processors (deterministic for `spec.seed`)."""
+def build_tiny(spec: TinySpec, stats: dict | None, device: str):
+    """Random-init tiny X-VLA and its lerobot pre/post processors (deterministic for `spec.seed`); no geometry (its
+    config keeps it)."""
     from lerobot.policies.xvla.modeling_xvla import XVLAPolicy
     from lerobot.policies.xvla.processor_xvla import make_xvla_pre_post_processors
 
     config = xvla_tiny_config(spec, device)
     policy = seeded_policy(spec.seed, lambda: XVLAPolicy(config))
-    pre, post = make_xvla_pre_post_processors(config, dataset_stats=_require_stats(stats))
-    return policy.to(device), pre, post
+    pre, post = make_xvla_pre_post_processors(config, dataset_stats=require_stats(stats))
+    return policy.to(device), pre, post, None

@@ -1,0 +1,1 @@
+"""The groot backbone (graftcache/backbone_table.py): adapter.py, its adapter; tiny.py, its tiny configuration."""

@@ -1,0 +1,111 @@
+"""The PaliGemma family (pi0.5, pi0, pi0-FAST): its tiny sizes, tiny tokenizer and processors with a given tokenizer.
+
+pi0.5 hard-codes its sizes (`get_gemma_config` knows two variants; PaliGemma's projector width and
+the 257152-token vocabulary are fixed in `PaliGemmaWithExpertModel.__init__`, lerobot 0.6
+modeling_pi05.py:158-242), so `pi05_tiny_sizes` rebinds three module-level names of lerobot's
+modeling_pi05 (the variant table and its PiGemma model classes) while a tiny policy is constructed or
+loaded (pi0's and pi0-FAST's modules build PaliGemma the same way).
+
+- tiny geometry (`Pi05TinyGeometry`): SigLIP 96 wide x 2 layers at 56 px / patch 14 -> 4x4 = 16 tokens per camera,
+  Gemma 128 wide x 3 layers, expert 64 wide x 3 layers (8 heads x 1 KV head, as lerobot hard-codes), vocabulary
+  shrunk from 257152 to 1024 (the tiny tokenizer has 771 tokens). pi0 and pi0-FAST take pi0.5's geometry;
+  pi0-FAST's vocabulary is the tiny tokenizer's 771, so every token it generates decodes.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+from graftcache.backbones.tiny_assets import PALIGEMMA_DIR
+
+PI05_MODELING = "lerobot.policies.pi05.modeling_pi05"
+
+
+@dataclass(frozen=True)
+class Pi05TinyGeometry:
+    lm_width: int = 128
+    lm_mlp: int = 256
+    expert_width: int = 64
+    expert_mlp: int = 128
+    depth: int = 3                # LM and expert must share depth and head size (modeling_pi05.py:267)
+    head_dim: int = 16
+    vision_width: int = 96
+    vision_mlp: int = 384
+    vision_layers: int = 2
+    vision_heads: int = 3
+    patch_size: int = 14
+    image_size: int = 56
+    vocab_size: int = 1024        # >= the tiny PaliGemma tokenizer's size (771)
+    tokenizer_max_length: int = 80
+
+
+def paligemma_tiny_tokenizer():
+    from transformers import AutoTokenizer
+
+    return AutoTokenizer.from_pretrained(PALIGEMMA_DIR)
+
+
+@contextlib.contextmanager
+def pi05_tiny_sizes(geometry: Pi05TinyGeometry,
+                    modeling: str = PI05_MODELING) -> Iterator[None]:
+    """Construct lerobot PaliGemma policies at `geometry` instead of gemma_2b / gemma_300m / So400m.
+
+    `modeling` is the lerobot module whose names are rebound: pi0.5's, pi0's or pi0-FAST's (all three build
+    PaliGemma the same way; pi0-FAST has no expert and no PiGemmaForCausalLM, and leaves SigLIP at 224 px, so
+    the vision config's image size is set here too)."""
+    import importlib
+
+    m05 = importlib.import_module(modeling)
+    g = geometry
+    variants = {
+        "gemma_2b": m05.GemmaConfig(g.lm_width, g.depth, g.lm_mlp, 8, 1, g.head_dim),
+        "gemma_300m": m05.GemmaConfig(g.expert_width, g.depth, g.expert_mlp, 8, 1, g.head_dim),
+    }
+    names = tuple(n for n in ("get_gemma_config", "PaliGemmaForConditionalGenerationWithPiGemma", "PiGemmaForCausalLM")
+                  if hasattr(m05, n))
+    saved = tuple(getattr(m05, n) for n in names)
+    real_paligemma, real_gemma = saved[1], saved[2] if len(saved) > 2 else None
+
+    def paligemma(config):
+        vision = config.vision_config
+        vision.hidden_size, vision.intermediate_size = g.vision_width, g.vision_mlp
+        vision.num_hidden_layers, vision.num_attention_heads = g.vision_layers, g.vision_heads
+        vision.patch_size, vision.projection_dim, vision.image_size = g.patch_size, g.lm_width, g.image_size
+        config._vocab_size = config.text_config.vocab_size = g.vocab_size
+        config.image_token_index = g.vocab_size - 1
+        return real_paligemma(config=config)
+
+    def gemma(config):
+        config.vocab_size = g.vocab_size
+        return real_gemma(config=config)
+
+    for name, value in zip(names, (variants.__getitem__, paligemma, gemma)):
+        setattr(m05, name, value)
+    try:
+        yield
+    finally:
+        for name, value in zip(names, saved):
+            setattr(m05, name, value)
+
+
+
+def pi05_processors(config, stats: dict | None, tokenizer, processor: str = "lerobot.policies.pi05.processor_pi05",
+                    factory: str = "make_pi05_pre_post_processors"):
+    """lerobot's pi0.5 (or pi0: `processor`, `factory`) processors with a given tokenizer (both processor
+    modules hard-code the PaliGemma hub id: processor_pi05.py:145, processor_pi0.py:141)."""
+    import importlib
+
+    from lerobot.processor import TokenizerProcessorStep
+
+    module = importlib.import_module(processor)
+    saved = module.TokenizerProcessorStep
+    module.TokenizerProcessorStep = functools.partial(TokenizerProcessorStep, tokenizer=tokenizer)
+    try:
+        return getattr(module, factory)(config, dataset_stats=stats)
+    finally:
+        module.TokenizerProcessorStep = saved
+
+

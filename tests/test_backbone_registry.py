@@ -1,0 +1,34 @@
+"""The backbone registry is the folders of graftcache/backbones/: every registered backbone has every required piece
+(graftcache.backbone_table.PIECES: its adapter class, its tiny configuration), found by convention."""
+
+from __future__ import annotations
+
+import inspect
+from importlib import import_module
+from pathlib import Path
+
+import pytest
+
+from graftcache.backbone_table import BACKBONES, FOLDER, PIECES, backbone_module, missing_pieces
+from graftcache.backbones import get_backbone
+from graftcache.backbones.base import BackboneAdapter
+
+
+def test_the_registry_lists_the_folders_holding_an_adapter() -> None:
+    folders = {p.name for p in FOLDER.iterdir() if p.is_dir() and (p / "adapter.py").is_file()}
+    assert set(BACKBONES) == folders
+    assert all(BACKBONES[name] == backbone_module(name) for name in BACKBONES)
+
+
+def test_a_folder_lacking_a_piece_is_named(tmp_path: Path) -> None:
+    (tmp_path / "adapter.py").write_text("")
+    assert missing_pieces(tmp_path) == [p for p in PIECES if p != "adapter"]
+
+
+@pytest.mark.parametrize("name", sorted(BACKBONES))
+def test_every_registered_backbone_has_every_piece(name: str) -> None:
+    assert missing_pieces(FOLDER / name) == [], f"graftcache/backbones/{name}/ lacks a required piece"
+    adapter = get_backbone(name)
+    assert issubclass(adapter, BackboneAdapter) and not inspect.isabstract(adapter), adapter.__abstractmethods__
+    assert adapter.name == name and adapter.__module__ == backbone_module(name)
+    assert callable(import_module(backbone_module(name, "tiny")).build_tiny)
