@@ -20,6 +20,7 @@ from typing import Any
 import torch
 from torch import nn
 
+from graftcache.backbones.patching import patched
 from graftcache.errors import BackboneError
 
 DRAWS = ("randn", "randn_like")
@@ -27,14 +28,10 @@ DRAWS = ("randn", "randn_like")
 
 @contextlib.contextmanager
 def shadowed(module: nn.Module, **methods) -> Iterator[None]:
-    """Instance attributes shadowing `module`'s methods for the duration of the block."""
-    for name, value in methods.items():
-        setattr(module, name, value)
-    try:
+    """Instance attributes shadowing `module`'s methods for the duration of the block
+    (graftcache.backbones.patching.patched)."""
+    with patched(module, **methods):
         yield
-    finally:
-        for name in methods:
-            module.__dict__.pop(name, None)
 
 
 class DrawingTorch:
@@ -73,9 +70,5 @@ class DrawingTorch:
 def given_noise(module: ModuleType, noise: torch.Tensor, backbone: str,
                 draws: tuple[str, ...] = DRAWS) -> Iterator[None]:
     """`module`'s draws named in `draws` return `noise` while the block runs (see DrawingTorch)."""
-    real = module.torch
-    module.torch = DrawingTorch(noise, module.__name__, backbone, draws)
-    try:
+    with patched(module, torch=DrawingTorch(noise, module.__name__, backbone, draws)):
         yield
-    finally:
-        module.torch = real

@@ -30,6 +30,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
+from graftcache.backbones.patching import patched
 from graftcache.errors import BackboneError
 
 #: safetensors dtype names (the format's header) -> torch dtypes.
@@ -49,11 +50,8 @@ def parameters_on_meta() -> Iterator[None]:
             param = nn.Parameter(param.detach().to("meta"), requires_grad=param.requires_grad)
         register(module, name, param)
 
-    nn.Module.register_parameter = on_meta
-    try:
+    with patched(nn.Module, register_parameter=on_meta):
         yield
-    finally:
-        nn.Module.register_parameter = register
 
 
 def construct(build: Callable[[], nn.Module], config) -> nn.Module:
@@ -63,12 +61,8 @@ def construct(build: Callable[[], nn.Module], config) -> nn.Module:
     cannot leave: it is None meanwhile."""
     from transformers.initialization import no_init_weights
 
-    device, config.device = config.device, None
-    try:
-        with parameters_on_meta(), no_init_weights():
-            return build()
-    finally:
-        config.device = device
+    with patched(config, device=None), parameters_on_meta(), no_init_weights():
+        return build()
 
 
 def read_header(path: Path) -> tuple[int, dict[str, dict]]:

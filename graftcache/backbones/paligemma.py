@@ -19,6 +19,7 @@ import functools
 from collections.abc import Iterator
 from dataclasses import dataclass
 
+from graftcache.backbones.patching import patched
 from graftcache.backbones.tiny_assets import PALIGEMMA_DIR
 
 PI05_MODELING = "lerobot.policies.pi05.modeling_pi05"
@@ -64,10 +65,8 @@ def pi05_tiny_sizes(geometry: Pi05TinyGeometry,
         "gemma_2b": m05.GemmaConfig(g.lm_width, g.depth, g.lm_mlp, 8, 1, g.head_dim),
         "gemma_300m": m05.GemmaConfig(g.expert_width, g.depth, g.expert_mlp, 8, 1, g.head_dim),
     }
-    names = tuple(n for n in ("get_gemma_config", "PaliGemmaForConditionalGenerationWithPiGemma", "PiGemmaForCausalLM")
-                  if hasattr(m05, n))
-    saved = tuple(getattr(m05, n) for n in names)
-    real_paligemma, real_gemma = saved[1], saved[2] if len(saved) > 2 else None
+    real_paligemma = m05.PaliGemmaForConditionalGenerationWithPiGemma
+    real_gemma = getattr(m05, "PiGemmaForCausalLM", None)
 
     def paligemma(config):
         vision = config.vision_config
@@ -82,13 +81,11 @@ def pi05_tiny_sizes(geometry: Pi05TinyGeometry,
         config.vocab_size = g.vocab_size
         return real_gemma(config=config)
 
-    for name, value in zip(names, (variants.__getitem__, paligemma, gemma)):
-        setattr(m05, name, value)
-    try:
+    sizes = {"get_gemma_config": variants.__getitem__, "PaliGemmaForConditionalGenerationWithPiGemma": paligemma,
+             "PiGemmaForCausalLM": gemma}
+    sizes = {name: value for name, value in sizes.items() if hasattr(m05, name)}
+    with patched(m05, **sizes):
         yield
-    finally:
-        for name, value in zip(names, saved):
-            setattr(m05, name, value)
 
 
 
@@ -101,11 +98,7 @@ def pi05_processors(config, stats: dict | None, tokenizer, processor: str = "ler
     from lerobot.processor import TokenizerProcessorStep
 
     module = importlib.import_module(processor)
-    saved = module.TokenizerProcessorStep
-    module.TokenizerProcessorStep = functools.partial(TokenizerProcessorStep, tokenizer=tokenizer)
-    try:
+    with patched(module, TokenizerProcessorStep=functools.partial(TokenizerProcessorStep, tokenizer=tokenizer)):
         return getattr(module, factory)(config, dataset_stats=stats)
-    finally:
-        module.TokenizerProcessorStep = saved
 
 

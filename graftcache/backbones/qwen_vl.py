@@ -8,8 +8,7 @@ the arithmetic that are the same for all of them live here, once, so their one-l
 
 from __future__ import annotations
 
-import functools
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
 import torch
@@ -34,12 +33,6 @@ class NativeVision:
     def native_tokens(self, images: torch.Tensor) -> torch.Tensor:
         """Post-merger tokens [B, gh/2 * gw/2, D], in the order the policy scatters them into the prompt."""
         return self._vision(images)[1]
-
-
-def shadow_method(module: nn.Module, name: str, replacement: Callable) -> None:
-    """Shadow `module.name` on the instance with `replacement(own, module, *args, **kwargs)`, `own` being the
-    class's method: the replacement falls back to it when the policy is not grafted."""
-    setattr(module, name, functools.partial(replacement, getattr(type(module), name), module))
 
 
 def tied_head_keys(file_keys: Iterable[str], head: str, embed: str) -> dict[str, str]:

@@ -23,6 +23,7 @@ import torch
 from torch import nn
 from torch.utils.checkpoint import checkpoint
 
+from graftcache.backbones.patching import Patches
 from graftcache.errors import BackboneError
 
 
@@ -64,6 +65,12 @@ class ActivationCheckpointing:
                             "--activation-checkpointing off")
 
     @property
+    def checkpoint_patches(self) -> Patches:
+        """What turning checkpointing on changed in the policy (graftcache.backbones.patching), undone to turn it
+        off."""
+        return self.__dict__.setdefault("_checkpoint_patches", Patches())
+
+    @property
     def can_checkpoint(self) -> bool:
         """Whether this backbone has a way to checkpoint (what `auto` may fall back on)."""
         return type(self)._switch_checkpointing is not ActivationCheckpointing._switch_checkpointing
@@ -71,15 +78,18 @@ class ActivationCheckpointing:
 
 class WrappedCheckpointing(ActivationCheckpointing):
     """Checkpointing by wrapping callables given as (owner module, attribute) pairs: an instance attribute
-    shadows the class's method while on, and is deleted to turn it off."""
+    shadows the class's method while on (recorded in `checkpoint_patches`), and is undone to turn it off."""
 
     @abstractmethod
     def _checkpoint_slots(self) -> Iterator[tuple[nn.Module, str]]:
         """(module, attribute) of every callable to checkpoint, e.g. (layer.mlp, "forward")."""
 
     def _switch_checkpointing(self, on: bool) -> None:
+        patches = self.checkpoint_patches
+        if not on:
+            patches.undo()
+            return
+        if patches.changes:
+            return  # wrapped once, however often it is turned on
         for owner, attribute in self._checkpoint_slots():
-            if not on:
-                owner.__dict__.pop(attribute, None)
-            elif attribute not in owner.__dict__:  # wrapped once, however often it is turned on
-                setattr(owner, attribute, checkpointed(getattr(owner, attribute), owner))
+            patches.set(owner, attribute, checkpointed(getattr(owner, attribute), owner))

@@ -16,6 +16,7 @@ import torch
 from torch import nn
 from transformers.modeling_outputs import BaseModelOutput
 
+from graftcache.backbones.patching import Patches
 from graftcache.errors import BackboneError
 from graftcache.graft import feature_key
 
@@ -117,29 +118,31 @@ def freeze_report(groups: Mapping[str, nn.Module | tuple[nn.Module, ...]], model
 
 class Graft:
     """One graft on a policy and everything needed to take it off again, held by the graft itself as peft's
-    tuner holds its base model: the modules it replaced, the requires_grad flags it changed, the method it
-    overrode on the policy, and the LoRA tuner. `undo()` gives the policy back as it was loaded. Nothing is
-    copied for that: a graft writes no frozen weight (projector and LoRA modules are its own, and LoRA is
-    unloaded, never merged), which `undo()` checks on every tensor's version counter."""
+    tuner holds its base model: its changes to the policy (the modules it replaced, the methods it shadowed, as one
+    graftcache.backbones.patching.Patches record), the requires_grad flags it changed, and the LoRA tuner. `undo()`
+    gives the policy back as it was loaded. Nothing is copied for that: a graft writes no frozen weight (projector
+    and LoRA modules are its own, and LoRA is unloaded, never merged), which `undo()` checks on every tensor's
+    version counter."""
 
     def __init__(self, policy: nn.Module, projector: nn.Module) -> None:
         self.policy = policy
         self.projector = projector
-        self._replaced: list[tuple[nn.Module, str, nn.Module]] = []  # (owner, attribute, original module)
-        self._overridden: list[str] = []  # instance attributes set on the policy (shadowing its methods)
+        self.patches = Patches()  # every attribute the graft set on the policy's modules, with what it replaced
         self._requires_grad = {n: p.requires_grad for n, p in policy.named_parameters()}
         self._versions = {n: t._version for n, t in policy.state_dict(keep_vars=True).items()}
         self._lora = None  # peft's LoraModel around the adapted module: its unload() removes the adapters
 
     def replace(self, owner: nn.Module, attribute: str, module: nn.Module) -> None:
         """setattr that remembers the module it replaced."""
-        self._replaced.append((owner, attribute, getattr(owner, attribute)))
-        setattr(owner, attribute, module)
+        self.patches.set(owner, attribute, module)
 
     def override(self, method: str, replacement: Callable) -> None:
         """Shadow one of the policy's methods with `replacement` (an instance attribute) until undone."""
-        setattr(self.policy, method, replacement)
-        self._overridden.append(method)
+        self.patches.set(self.policy, method, replacement)
+
+    def shadow(self, module: nn.Module, name: str, replacement: Callable) -> None:
+        """Shadow `module.name` with `replacement(own, module, ...)` until undone (graftcache.backbones.patching)."""
+        self.patches.shadow(module, name, replacement)
 
     def add_lora(self, module: nn.Module, config) -> None:
         """peft LoRA adapters injected into `module` in place; only they become trainable in it."""
@@ -150,18 +153,13 @@ class Graft:
             param.requires_grad_("lora_" in name)
 
     def undo(self) -> None:
-        """Remove LoRA (unloaded without merging), put the replaced modules back, drop the overrides, restore
-        the requires_grad flags; BackboneError if a frozen tensor was written meanwhile (the policy is then not
-        the one loaded: reload it)."""
+        """Remove LoRA (unloaded without merging), undo the changes (the replaced modules back, the shadows gone),
+        restore the requires_grad flags; BackboneError if a frozen tensor was written meanwhile (the policy is then
+        not the one loaded: reload it)."""
         if self._lora is not None:
             self._lora.unload()  # each LoRA layer -> its base layer; peft_config dropped from the module
             self._lora = None
-        while self._replaced:
-            owner, attribute, original = self._replaced.pop()
-            setattr(owner, attribute, original)
-        for method in self._overridden:
-            self.policy.__dict__.pop(method, None)
-        self._overridden.clear()
+        self.patches.undo()
         for name, param in self.policy.named_parameters():
             param.requires_grad_(self._requires_grad.get(name, param.requires_grad))
         written = [n for n, t in self.policy.state_dict(keep_vars=True).items()
@@ -200,8 +198,13 @@ class GraftSurgery:
         graft.replace(owner, tower, PassThroughTower().to(self.device))
         graft.replace(owner, connector, graft.projector)
         graft.override(self.image_method, self._feature_images)
+        self._patch_graft(graft)
         freeze_all_but(self.policy, graft.projector)
         self._graft = graft
+
+    def _patch_graft(self, graft: Graft) -> None:
+        """Further changes a backbone's graft makes to the policy, each through `graft` (Graft.shadow, Graft.override)
+        so that `reset` undoes it: none by default."""
 
     def reset(self) -> None:
         """Back to the policy as loaded (`Graft.undo`), so one loaded policy serves every cell of a run (a

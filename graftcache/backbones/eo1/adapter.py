@@ -40,6 +40,7 @@ from graftcache.backbones.batches import ACTION, STATE
 from graftcache.backbones.checkpoint import cached_repo
 from graftcache.backbones.draws import shadowed
 from graftcache.backbones.eo1.tiny import construct
+from graftcache.backbones.patching import patched
 from graftcache.backbones.qwen_vl import (
     NativeVision,
     cached_token_count,
@@ -48,7 +49,6 @@ from graftcache.backbones.qwen_vl import (
     merged_grid,
     projected_images,
     prompt_grid,
-    shadow_method,
     tied_head_keys,
     vit_outputs,
 )
@@ -92,9 +92,9 @@ class EO1Adapter(NativeVision, BackboneAdapter):
     token_steps = ("EO1ConversationTemplateStep", QWEN_STEP)
     prompt_uses_state = True  # the prompt is built per batch (images and all) by lerobot's processor
 
-    def __init__(self, *args, **kwargs) -> None:
-        super().__init__(*args, **kwargs)
-        shadow_method(self.policy.model.vlm_backbone.model, "get_image_features", self._image_features)
+    def _patch_graft(self, graft) -> None:
+        """Grafted, Qwen's `get_image_features` projects the cached features (undone by reset)."""
+        graft.shadow(self.policy.model.vlm_backbone.model, "get_image_features", self._image_features)
 
     # ------------------------------------------------------------------------------ construction
     @classmethod
@@ -214,13 +214,9 @@ class EO1Adapter(NativeVision, BackboneAdapter):
         for key in self.config.image_features:
             batch[key] = torch.zeros(size, 3, gh * factor, gw * factor)
         step = self._qwen_processor
-        bounds = step.image_min_pixels, step.image_max_pixels
-        step.image_min_pixels = step.image_max_pixels = gh * gw * factor * factor
-        try:
-            with processor_kwargs_quiet():
-                out = self.preprocessor(batch)
-        finally:
-            step.image_min_pixels, step.image_max_pixels = bounds
+        pixels = gh * gw * factor * factor
+        with patched(step, image_min_pixels=pixels, image_max_pixels=pixels), processor_kwargs_quiet():
+            out = self.preprocessor(batch)
         for key in self.config.image_features:
             out.pop(key, None)
         return out
@@ -245,12 +241,9 @@ class EO1Adapter(NativeVision, BackboneAdapter):
     def _predict_chunk(self, batch: Mapping[str, Any], noise: torch.Tensor, num_steps: int) -> torch.Tensor:
         """`EO1Policy.predict_action_chunk` from `noise` with `num_steps` Euler steps."""
         config, model = self.config, self.policy.model
-        steps, config.num_denoise_steps = config.num_denoise_steps, int(num_steps)
-        try:
-            with shadowed(model, sample_noise=lambda shape, device: noise.to(device)):
-                return self.policy.predict_action_chunk(left_padded(batch))
-        finally:
-            config.num_denoise_steps = steps
+        with patched(config, num_denoise_steps=int(num_steps)), \
+                shadowed(model, sample_noise=lambda shape, device: noise.to(device)):
+            return self.policy.predict_action_chunk(left_padded(batch))
 
     # ------------------------------------------------------------------------------ reporting
     module_paths = {

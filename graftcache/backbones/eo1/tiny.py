@@ -19,6 +19,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from graftcache.backbones.patching import patched
 from graftcache.backbones.tiny import TinySpec, action_features, require_stats, seeded_policy, visual_features
 from graftcache.backbones.tiny_assets import (
     QWEN25_VL_3B,
@@ -67,11 +68,8 @@ def construct(config):
     `pretrained_path` (a checkpoint's weights follow), else downloads `vlm_base`'s weights."""
     from lerobot.policies.eo1.modeling_eo1 import EO1Policy
 
-    saved, config.pretrained_path = config.pretrained_path, config.pretrained_path or Path("graftcache-no-weights")
-    try:
+    with patched(config, pretrained_path=config.pretrained_path or Path("graftcache-no-weights")):
         return EO1Policy(config)
-    finally:
-        config.pretrained_path = saved
 
 
 def build_tiny(spec: TinySpec, stats: dict | None, device: str):

@@ -46,6 +46,7 @@ from graftcache.backbones.base import BackboneAdapter, is_empty_camera
 from graftcache.backbones.batches import ACTION, STATE
 from graftcache.backbones.checkpoint import cached_repo
 from graftcache.backbones.evo1.tiny import INTERNVL_DIR, construct
+from graftcache.backbones.patching import patched
 from graftcache.errors import BackboneError
 
 
@@ -64,12 +65,15 @@ class Evo1Adapter(BackboneAdapter):
     token_steps = ()
     prompt_uses_state = True  # the prompt is tokenised inside the model; the preprocessor passes the task through
 
-    def __init__(self, *args, **kwargs) -> None:
-        super().__init__(*args, **kwargs)
+    def _patch_graft(self, graft) -> None:
+        """Grafted, the embedder takes the cached features, InternVL's `get_image_features` projects them, and images
+        are embedded with gradients (see the module docstring; undone by reset)."""
         embedder, internvl = self.policy.model.embedder, self._vision_owner
-        embedder.get_fused_image_text_embedding_batched = functools.partial(
-            self._fused_embedding, embedder.get_fused_image_text_embedding_batched)
-        internvl.get_image_features = functools.partial(self._image_features, internvl.get_image_features)
+        graft.patches.set(embedder, "get_fused_image_text_embedding_batched", functools.partial(
+            self._fused_embedding, embedder.get_fused_image_text_embedding_batched))
+        graft.patches.set(internvl, "get_image_features",
+                          functools.partial(self._image_features, internvl.get_image_features))
+        graft.override("_compute_fused_tokens", self._fused_tokens)
 
     # ------------------------------------------------------------------------------ construction
     @classmethod
@@ -120,11 +124,6 @@ class Evo1Adapter(BackboneAdapter):
         return 1.0
 
     # ------------------------------------------------------------------------------ images
-    def graft(self, projector: nn.Module) -> None:
-        """The common graft, plus image embedding with gradients (see the module docstring)."""
-        super().graft(projector)
-        self._graft.override("_compute_fused_tokens", self._fused_tokens)
-
     def _fused_tokens(self, prompts: list[str], images: list[torch.Tensor], masks: torch.Tensor):
         """Evo1Policy._compute_fused_tokens with gradients to the graft: the LM's context tokens and mask."""
         policy = self.policy
@@ -153,12 +152,9 @@ class Evo1Adapter(BackboneAdapter):
         embedder, views = self.policy.model.embedder, int(image_masks.shape[1])
         padded = [*camera_images, *[torch.zeros_like(camera_images[0])] * (views - len(camera_images))]
         features = torch.stack(padded[:views], dim=1).flatten(0, 1)
-        saved, embedder.num_image_token = embedder.num_image_token, counts.pop()
-        try:
+        with patched(embedder, num_image_token=counts.pop()):
             return embedder._forward_vlm(features, [[1] * views] * int(image_masks.shape[0]), image_masks,
                                          text_prompts, return_cls_only)
-        finally:
-            embedder.num_image_token = saved
 
     def _image_features(self, own, pixel_values: torch.Tensor, **kwargs):
         """InternVL's `get_image_features`, or grafted: the cached features [B x views, T, C] through the

@@ -29,6 +29,7 @@ import contextlib
 from collections.abc import Iterator
 from pathlib import Path
 
+from graftcache.backbones.patching import patched
 from graftcache.backbones.tiny import TinySpec, action_features, require_stats, seeded_policy, visual_features
 from graftcache.backbones.tiny_assets import TINY_ROOT, train_bpe
 
@@ -82,11 +83,8 @@ def internvl_from_config() -> Iterator[None]:
             config = AutoConfig.from_pretrained(name, **hub)
             return AutoModel.from_config(config, dtype=torch_dtype, attn_implementation=attn_implementation)
 
-    own, internvl3_embedder.AutoModel = internvl3_embedder.AutoModel, FromConfig
-    try:
+    with patched(internvl3_embedder, AutoModel=FromConfig):
         yield
-    finally:
-        internvl3_embedder.AutoModel = own
 
 
 def construct(config):

@@ -49,6 +49,7 @@ from graftcache.backbones.groot.tiny import (
     tiny_image_geometry,
     vlm_step_name,
 )
+from graftcache.backbones.patching import patched
 from graftcache.backbones.qwen_vl import (
     NativeVision,
     cached_token_count,
@@ -58,7 +59,6 @@ from graftcache.backbones.qwen_vl import (
     projected_images,
     prompt_grid,
     raster_patches,
-    shadow_method,
 )
 from graftcache.backbones.tiny_assets import QWEN3_VL_MERGE, QWEN3_VL_PATCH, QWEN3_VL_PIXELS, TINY_QWEN3_VL_PIXELS
 from graftcache.errors import BackboneError
@@ -78,9 +78,9 @@ class GrootAdapter(NativeVision, BackboneAdapter):
     token_steps = (VLM_STEP,)
     prompt_uses_state = True  # the prompt is built per batch (images and all) by lerobot's processor
 
-    def __init__(self, *args, **kwargs) -> None:
-        super().__init__(*args, **kwargs)
-        shadow_method(self._qwen, "get_image_features", self._image_features)
+    def _patch_graft(self, graft) -> None:
+        """Grafted, Qwen's `get_image_features` projects the cached features (undone by reset)."""
+        graft.shadow(self._qwen, "get_image_features", self._image_features)
 
     # ------------------------------------------------------------------------------ construction
     @classmethod
@@ -241,16 +241,9 @@ class GrootAdapter(NativeVision, BackboneAdapter):
         image = step.proc.image_processor
         h, w = gh * QWEN3_VL_PATCH * QWEN3_VL_MERGE, gw * QWEN3_VL_PATCH * QWEN3_VL_MERGE
         fields = ("image_target_size", "image_crop_size", "crop_fraction", "shortest_image_edge")
-        saved, size = {f: getattr(step, f) for f in fields}, image.size
-        for field, value in zip(fields, ([h, w], None, None, None)):
-            setattr(step, field, value)
-        image.size = {"shortest_edge": h * w, "longest_edge": h * w}
-        try:
+        with patched(step, **dict(zip(fields, ([h, w], None, None, None)))), \
+                patched(image, size={"shortest_edge": h * w, "longest_edge": h * w}):
             yield h, w
-        finally:
-            for field, value in saved.items():
-                setattr(step, field, value)
-            image.size = size
 
     def prepare(self, raw: Mapping[str, Any]) -> dict[str, Any]:
         """lerobot's preprocessor (packing, normalisation, prompt). Grafted, the prompt is made from blank frames
@@ -309,26 +302,19 @@ class GrootAdapter(NativeVision, BackboneAdapter):
         """`GrootPolicy.predict_action_chunk` from `noise` with `num_steps` Euler steps."""
         from lerobot.policies.groot import groot_n1_7
 
-        head = self._groot.action_head
-        steps, head.num_inference_timesteps = head.num_inference_timesteps, int(num_steps)
-        try:
-            with given_noise(groot_n1_7, noise, self.name), self._callers_autocast():
-                return self.policy.predict_action_chunk(dict(batch))
-        finally:
-            head.num_inference_timesteps = steps
+        with patched(self._groot.action_head, num_inference_timesteps=int(num_steps)), \
+                given_noise(groot_n1_7, noise, self.name), self._callers_autocast():
+            return self.policy.predict_action_chunk(dict(batch))
 
     @contextlib.contextmanager
     def _callers_autocast(self) -> Iterator[None]:
         """GR00T's forward and get_action run in `autocast(bf16, enabled=config.use_bf16)`: on (public configs),
         bf16 whatever --compute-dtype says; off (the tiny config), graftcache's own bf16 autocast turned off, fp32.
         Meanwhile `use_bf16` says what the caller's autocast is, so the dtype rows record is the one that runs."""
-        config, kind = self.policy.config, self.device.type
-        saved = config.use_bf16
-        config.use_bf16 = torch.is_autocast_enabled(kind) and torch.get_autocast_dtype(kind) == torch.bfloat16
-        try:
+        kind = self.device.type
+        bf16 = torch.is_autocast_enabled(kind) and torch.get_autocast_dtype(kind) == torch.bfloat16
+        with patched(self.policy.config, use_bf16=bf16):
             yield
-        finally:
-            config.use_bf16 = saved
 
     # ------------------------------------------------------------------------------ reporting
     module_paths = {

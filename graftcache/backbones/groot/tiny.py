@@ -37,6 +37,7 @@ from pathlib import Path
 from typing import Any
 
 from graftcache.backbones.checkpoint import cached_repo
+from graftcache.backbones.patching import patched
 from graftcache.backbones.tiny import TinySpec, action_features, require_stats, seeded_policy, visual_features
 from graftcache.backbones.tiny_assets import TINY_ROOT, write_qwen3_vl
 from graftcache.errors import BackboneError
@@ -99,12 +100,8 @@ def base_model(base) -> Iterator[None]:
                                                    tune_vlln=flags["tune_vlln"])
         return model
 
-    own = GR00TN17.__dict__["from_pretrained"]
-    GR00TN17.from_pretrained = classmethod(build)
-    try:
+    with patched(GR00TN17, from_pretrained=classmethod(build)):
         yield
-    finally:
-        GR00TN17.from_pretrained = own
 
 
 def construct(config, base):

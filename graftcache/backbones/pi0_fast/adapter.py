@@ -37,6 +37,7 @@ from graftcache.backbones.batches import TOKEN_MASK, TOKENS
 from graftcache.backbones.checkpoint import cached_repo
 from graftcache.backbones.lean import openpi_keys
 from graftcache.backbones.paligemma import pi05_tiny_sizes
+from graftcache.backbones.patching import patched
 from graftcache.backbones.pi0_fast.fast import FAST_DIR, MODELING, fast_processors, load_fast, policy_tokenizers
 from graftcache.backbones.pi05.adapter import PI05Adapter
 from graftcache.backbones.tiny_assets import PALIGEMMA_DIR
@@ -148,11 +149,5 @@ def _greedy_chunks(config, chunk: int) -> Iterator[None]:
     """Greedy decoding of whole chunks for scoring: temperature 0, decoded over the chunk the tokens encode
     (lerobot decodes `n_action_steps`), no prefix assertion (see the module docstring)."""
     fields = {"temperature": 0.0, "n_action_steps": chunk, "validate_action_token_prefix": False}
-    saved = {k: getattr(config, k) for k in fields}
-    for k, v in fields.items():
-        setattr(config, k, v)
-    try:
+    with patched(config, **fields):
         yield
-    finally:
-        for k, v in saved.items():
-            setattr(config, k, v)

@@ -12,6 +12,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from types import SimpleNamespace
 
+from graftcache.backbones.patching import patched
 from graftcache.errors import BackboneError
 
 MODELING = "lerobot.policies.pi0_fast.modeling_pi0_fast"
@@ -35,13 +36,12 @@ def policy_tokenizers(fast, text: Path) -> Iterator[None]:
     from transformers import AutoTokenizer
 
     module = importlib.import_module(MODELING)
-    saved = module.AutoProcessor, module.AutoTokenizer
-    module.AutoProcessor = SimpleNamespace(from_pretrained=lambda *_, **__: fast)
-    module.AutoTokenizer = SimpleNamespace(from_pretrained=lambda _, **kw: AutoTokenizer.from_pretrained(text, **kw))
-    try:
+    def text_tokenizer(_, **kw):
+        return AutoTokenizer.from_pretrained(text, **kw)
+
+    with patched(module, AutoProcessor=SimpleNamespace(from_pretrained=lambda *_, **__: fast),
+                 AutoTokenizer=SimpleNamespace(from_pretrained=text_tokenizer)):
         yield
-    finally:
-        module.AutoProcessor, module.AutoTokenizer = saved
 
 def fast_processors(config, stats: dict, fast):
     """lerobot's pi0-FAST processors with the given FAST processor and the PaliGemma tokenizer folder the config
@@ -53,11 +53,7 @@ def fast_processors(config, stats: dict, fast):
     from transformers import AutoTokenizer
 
     text = AutoTokenizer.from_pretrained(config.text_tokenizer_name)
-    saved = pf.TokenizerProcessorStep, pf.ActionTokenizerProcessorStep
-    pf.TokenizerProcessorStep = functools.partial(TokenizerProcessorStep, tokenizer=text)
-    pf.ActionTokenizerProcessorStep = functools.partial(ActionTokenizerProcessorStep,
-                                                        action_tokenizer_input_object=fast)
-    try:
+    with patched(pf, TokenizerProcessorStep=functools.partial(TokenizerProcessorStep, tokenizer=text),
+                 ActionTokenizerProcessorStep=functools.partial(ActionTokenizerProcessorStep,
+                                                                action_tokenizer_input_object=fast)):
         return pf.make_pi0_fast_pre_post_processors(config, dataset_stats=stats)
-    finally:
-        pf.TokenizerProcessorStep, pf.ActionTokenizerProcessorStep = saved

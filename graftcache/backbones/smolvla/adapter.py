@@ -20,6 +20,7 @@ from torch import nn
 from graftcache.backbones.base import BackboneAdapter
 from graftcache.backbones.batches import TOKEN_MASK, TOKENS
 from graftcache.backbones.checkpoint import cached_repo
+from graftcache.backbones.patching import patched
 from graftcache.backbones.recompute import WrappedCheckpointing
 from graftcache.backbones.tiny_assets import SMOLVLM_DIR
 
@@ -122,9 +123,6 @@ class SmolVLAAdapter(WrappedCheckpointing, BackboneAdapter):
 @contextlib.contextmanager
 def _num_steps(config, steps: int):
     """SmolVLA's sampler reads `config.num_steps` (it takes no argument); set it for one call."""
-    saved, config.num_steps = config.num_steps, steps
-    try:
+    with patched(config, num_steps=steps):
         yield
-    finally:
-        config.num_steps = saved
 

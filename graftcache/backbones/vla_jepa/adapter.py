@@ -48,6 +48,7 @@ from graftcache.backbones.base import BackboneAdapter
 from graftcache.backbones.batches import ACTION, STATE
 from graftcache.backbones.checkpoint import cached_repo
 from graftcache.backbones.draws import given_noise, shadowed
+from graftcache.backbones.patching import patched
 from graftcache.backbones.qwen_vl import (
     check_slots,
     image_token_counts,
@@ -55,7 +56,6 @@ from graftcache.backbones.qwen_vl import (
     projected_images,
     prompt_grid,
     raster_patches,
-    shadow_method,
     tied_head_keys,
 )
 from graftcache.backbones.recompute import WrappedCheckpointing
@@ -97,10 +97,11 @@ class VLAJEPAAdapter(WrappedCheckpointing, BackboneAdapter):
     token_steps = ()  # the prompt is tokenised inside the model (Qwen3VLInterface.build_inputs)
     prompt_uses_state = True  # so prepare() runs lerobot's preprocessor as it is, task strings and all
 
-    def __init__(self, *args, **kwargs) -> None:
-        super().__init__(*args, **kwargs)
-        shadow_method(self._qwen, "get_image_features", self._image_features)
-        shadow_method(self.policy.model.qwen, "build_inputs", self._build_inputs)
+    def _patch_graft(self, graft) -> None:
+        """Grafted, Qwen's `get_image_features` projects the cached features and the prompt is built for them
+        (undone by reset)."""
+        graft.shadow(self._qwen, "get_image_features", self._image_features)
+        graft.shadow(self.policy.model.qwen, "build_inputs", self._build_inputs)
 
     # ------------------------------------------------------------------------------ construction
     @classmethod
@@ -243,12 +244,9 @@ class VLAJEPAAdapter(WrappedCheckpointing, BackboneAdapter):
         processor = interface.processor.image_processor
         factor = processor.patch_size * processor.merge_size
         frames = [[torch.zeros(3, gh * factor, gw * factor) for _ in views] for views in images]
-        size = processor.size
-        processor.size = type(size)(shortest_edge=gh * gw * factor ** 2, longest_edge=gh * gw * factor ** 2)
-        try:
+        pixels = gh * gw * factor ** 2
+        with patched(processor, size=type(processor.size)(shortest_edge=pixels, longest_edge=pixels)):
             inputs = own(interface, frames, instructions, action_prompt, embodied_prompt)
-        finally:
-            processor.size = size
         check_slots(self.name, {f.shape[0] for f in features},
                     set(image_token_counts(inputs["image_grid_thw"], processor.merge_size)))
         inputs["pixel_values"] = torch.cat(features)
@@ -269,15 +267,14 @@ class VLAJEPAAdapter(WrappedCheckpointing, BackboneAdapter):
         model, config = self.policy.model, self.config
         velocity = []
         hook = model.action_model.action_decoder.register_forward_hook(lambda m, args, out: velocity.append(out))
-        repeats, config.repeated_diffusion_steps = config.repeated_diffusion_steps, 1
         try:
-            with given_draws(model.action_model, noise, 1 - time), warnings.catch_warnings():
+            with patched(config, repeated_diffusion_steps=1), given_draws(model.action_model, noise, 1 - time), \
+                    warnings.catch_warnings():
                 # lerobot asks CPU autocast for float32 around the head; torch declines (the head runs in fp32)
                 warnings.filterwarnings("ignore", "In CPU autocast, but the target dtype is not supported")
                 self.policy.forward(dict(batch))
         finally:
             hook.remove()
-            config.repeated_diffusion_steps = repeats
         action = batch[ACTION][:, -config.chunk_size:].float()
         target = action - noise.to(action)
         return (velocity[0].float() - target) ** 2
@@ -288,27 +285,18 @@ class VLAJEPAAdapter(WrappedCheckpointing, BackboneAdapter):
         `resize_images_to` is off for the call: it acts on frames, and the cached features are already at the
         grid that resize gives (token_grid)."""
         head, config = self.policy.model.action_model, self.config
-        steps, head.num_inference_timesteps = head.num_inference_timesteps, int(num_steps)
-        resize = config.resize_images_to
-        if self.grafted:
-            config.resize_images_to = None
-        try:
-            with given_draws(head, noise):
-                return self.policy.predict_action_chunk(dict(batch))
-        finally:
-            head.num_inference_timesteps, config.resize_images_to = steps, resize
+        resize = None if self.grafted else config.resize_images_to
+        with patched(head, num_inference_timesteps=int(num_steps)), patched(config, resize_images_to=resize), \
+                given_draws(head, noise):
+            return self.policy.predict_action_chunk(dict(batch))
 
     def _switch_checkpointing(self, on: bool) -> None:
         """The wrapped layers, and Qwen's KV cache off meanwhile (as transformers turns it off under its own
         checkpointing): a recomputed layer would append its keys and values to the cache a second time. The
         policy's single forward never reads that cache."""
-        super()._switch_checkpointing(on)
-        config = self._qwen.language_model.config
-        if on:
-            self.__dict__.setdefault("_use_cache", config.use_cache)  # the policy's own, kept by a second `on`
-            config.use_cache = False
-        else:
-            config.use_cache = self.__dict__.pop("_use_cache", config.use_cache)
+        super()._switch_checkpointing(on)  # off: every change undone, the cache's switch too
+        if on and not any(change.attribute == "use_cache" for change in self.checkpoint_patches.changes):
+            self.checkpoint_patches.set(self._qwen.language_model.config, "use_cache", False)
 
     def _checkpoint_slots(self) -> Iterator[tuple[nn.Module, str]]:
         """Every decoder layer of the Qwen3 LM and every block of the DiT action head."""

@@ -33,6 +33,7 @@ from pathlib import Path
 
 import torch
 
+from graftcache.backbones.patching import patched
 from graftcache.backbones.tiny import TinySpec, action_features, require_stats, seeded_policy, visual_features
 from graftcache.backbones.tiny_assets import QWEN3_VL_DIR, write_qwen3_vl
 
@@ -69,11 +70,8 @@ def qwen_from_config(qwen_config=None) -> Iterator[None]:
             config = qwen_config if qwen_config is not None else AutoConfig.from_pretrained(name)
             return real._from_config(config, dtype=torch_dtype)
 
-    qwen_interface.Qwen3VLForConditionalGeneration = FromConfig
-    try:
+    with patched(qwen_interface, Qwen3VLForConditionalGeneration=FromConfig):
         yield
-    finally:
-        qwen_interface.Qwen3VLForConditionalGeneration = real
 
 
 def construct(config, folder: Path, qwen_config=None):
@@ -82,12 +80,8 @@ def construct(config, folder: Path, qwen_config=None):
     from lerobot.policies.vla_jepa.modeling_vla_jepa import VLAJEPAPolicy
 
     config.enable_world_model = False
-    saved, config.qwen_model_name = config.qwen_model_name, str(folder)
-    try:
-        with qwen_from_config(qwen_config):
-            return VLAJEPAPolicy(config)
-    finally:
-        config.qwen_model_name = saved
+    with patched(config, qwen_model_name=str(folder)), qwen_from_config(qwen_config):
+        return VLAJEPAPolicy(config)
 
 
 def _config(spec: TinySpec, image_size: int, qwen: str, device: str, **kwargs):

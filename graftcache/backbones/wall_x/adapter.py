@@ -43,12 +43,12 @@ from graftcache.backbones.base import BackboneAdapter
 from graftcache.backbones.batches import STATE
 from graftcache.backbones.checkpoint import cached_repo
 from graftcache.backbones.draws import given_noise, shadowed
+from graftcache.backbones.patching import patched
 from graftcache.backbones.qwen_vl import (
     NativeVision,
     merged_grid,
     projected_rows,
     prompt_grid,
-    shadow_method,
     tied_head_keys,
     vit_outputs,
 )
@@ -74,12 +74,9 @@ def image_grid(shape: tuple[int, int], image_processor, vision) -> tuple[int, in
 @contextlib.contextmanager
 def pixel_bounds(image_processor, pixels: int) -> Iterator[None]:
     """The image processor's pixel bounds pinned around `pixels` for the block."""
-    saved = image_processor.size
-    image_processor.size = {"shortest_edge": int(pixels / BOUND_SLACK), "longest_edge": int(pixels * BOUND_SLACK)}
-    try:
+    with patched(image_processor, size={"shortest_edge": int(pixels / BOUND_SLACK),
+                                        "longest_edge": int(pixels * BOUND_SLACK)}):
         yield
-    finally:
-        image_processor.size = saved
 
 
 class WallXAdapter(NativeVision, WrappedCheckpointing, BackboneAdapter):
@@ -90,9 +87,9 @@ class WallXAdapter(NativeVision, WrappedCheckpointing, BackboneAdapter):
     token_steps = ()
     prompt_uses_state = True  # the prompt (images, state, action tokens) is built per batch by the policy itself
 
-    def __init__(self, *args, **kwargs) -> None:
-        super().__init__(*args, **kwargs)
-        shadow_method(self._vision_owner, "forward", self._visual_forward)
+    def _patch_graft(self, graft) -> None:
+        """Grafted, the ViT's forward projects the cached features (undone by reset)."""
+        graft.shadow(self._vision_owner, "forward", self._visual_forward)
 
     # ------------------------------------------------------------------------------ construction
     @classmethod

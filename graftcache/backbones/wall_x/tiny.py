@@ -32,6 +32,7 @@ import json
 from collections.abc import Iterator
 from pathlib import Path
 
+from graftcache.backbones.patching import patched
 from graftcache.backbones.tiny import TinySpec, action_features, require_stats, seeded_policy, visual_features
 from graftcache.backbones.tiny_assets import QWEN25_VL_3B, QWEN_VL_DIR, TINY_QWEN25_VL, TINY_ROOT, qwen25_vl_ids
 from graftcache.errors import BackboneError
@@ -120,17 +121,11 @@ def built_from(folder: Path) -> Iterator[None]:
     processor) whatever `config.pretrained_name_or_path` names."""
     from lerobot.policies.wall_x import modeling_wall_x
 
-    model_cls = modeling_wall_x.Qwen2_5_VLMoEForAction
-    own = model_cls.__dict__["from_pretrained"]
-
     def build(cls, pretrained_name_or_path, **kwargs):
         return from_config(cls, folder, **kwargs)
 
-    model_cls.from_pretrained = classmethod(build)
-    try:
+    with patched(modeling_wall_x.Qwen2_5_VLMoEForAction, from_pretrained=classmethod(build)):
         yield
-    finally:
-        model_cls.from_pretrained = own
 
 
 def construct(config, folder: Path):

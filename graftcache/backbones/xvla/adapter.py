@@ -24,7 +24,6 @@ their own (tests/test_backbones_xvla.py checks both against lerobot's under the 
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Iterable, Iterator, Mapping
 from typing import Any
 
@@ -54,10 +53,9 @@ class XVLAAdapter(WrappedCheckpointing, BackboneAdapter):
     image_method = "_prepare_images"
     token_steps = ("TokenizerProcessorStep",)
 
-    def __init__(self, *args, **kwargs) -> None:
-        super().__init__(*args, **kwargs)
-        vlm = self._vision_owner
-        vlm.get_image_features = functools.partial(self._image_features, type(vlm).get_image_features, vlm)
+    def _patch_graft(self, graft) -> None:
+        """Grafted, Florence-2's `get_image_features` projects the cached features (undone by reset)."""
+        graft.shadow(self._vision_owner, "get_image_features", self._image_features)
 
     # ------------------------------------------------------------------------------ construction
     @classmethod
