@@ -11,7 +11,7 @@ the ratio to N=1 (median of `--rounds` fits per N, interleaved across N). The ba
 numerics checked once, before the timed runs (`--num-workers 0`: features read in this process, so the timings count
 no reader processes' start-up). The grafted step alone (features in memory, no scoring) is timed too, as seconds per
 cell-step: the part a pass shares; `--released smolvla` times that step at the released geometry as well. The JSON
-(with `--json`) names the machine; graftcache.fit.passes.CELLS_PER_PASS cites it. """
+(with `--json`) names the machine; the backbones' specs (cells_per_pass) cite it. """
 
 from __future__ import annotations
 

@@ -212,7 +212,7 @@ class FitRequest(Checked):
         help="cells (seeds, image controls, encoders of one grid and width) trained together in one forward and "
         "backward of the frozen backbone, each with its own projector, loss, optimiser and random streams; rows equal "
         "one-cell-at-a-time rows up to float rounding and keep their run_ids; lora, align and native cells run alone "
-        "(default: per backbone and device, graftcache.fit.passes.CELLS_PER_PASS: 1 on CPU)")
+        "(default: per backbone and device, its spec's cells_per_pass: 1 on CPU)")
     compute_dtype: str = compute_dtype()
     results: str = setting("results.parquet", rule=RESULTS_FILE, recipe=False)
     out: str | None = setting(None, help="run folder for projectors (default: runs/ beside --results, or, where that "

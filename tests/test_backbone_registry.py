@@ -12,6 +12,9 @@ import pytest
 from graftcache.backbone_table import BACKBONES, FOLDER, PIECES, backbone_module, missing_pieces
 from graftcache.backbones import get_backbone
 from graftcache.backbones.base import BackboneAdapter
+from graftcache.backbones.objectives import FlowObjective, Objective, TokenObjective
+from graftcache.backbones.recompute import ActivationCheckpointing
+from graftcache.backbones.spec import BackboneSpec
 
 
 def test_the_registry_lists_the_folders_holding_an_adapter() -> None:
@@ -32,3 +35,16 @@ def test_every_registered_backbone_has_every_piece(name: str) -> None:
     assert issubclass(adapter, BackboneAdapter) and not inspect.isabstract(adapter), adapter.__abstractmethods__
     assert adapter.name == name and adapter.__module__ == backbone_module(name)
     assert callable(import_module(backbone_module(name, "tiny")).build_tiny)
+
+
+@pytest.mark.parametrize("name", sorted(BACKBONES))
+def test_every_registered_backbone_declares_a_spec_its_hooks_agree_with(name: str) -> None:
+    adapter = get_backbone(name)
+    spec = adapter.spec
+    assert isinstance(spec, BackboneSpec)
+    assert spec.activation_checkpointing == (
+        adapter._switch_checkpointing is not ActivationCheckpointing._switch_checkpointing)
+    assert (spec.flow_time is None) == issubclass(adapter, TokenObjective)
+    assert issubclass(adapter, FlowObjective) or "_flow_losses" not in dir(adapter)  # no flow loss that only raises
+    assert spec.steps_field is not None or adapter.num_steps is not Objective.num_steps
+    assert all(n >= 1 for n in spec.cells_per_pass.values())

@@ -24,7 +24,7 @@ from __future__ import annotations
 import functools
 import operator
 from abc import ABC, abstractmethod
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from importlib import import_module
 from pathlib import Path
 from typing import Any, ClassVar, Self
@@ -45,8 +45,9 @@ from graftcache.backbones.checkpoint import (
     weights_file,
 )
 from graftcache.backbones.lean import construct, load_checkpoint, read_header
-from graftcache.backbones.objectives import FlowObjective
+from graftcache.backbones.objectives import Objective
 from graftcache.backbones.recompute import ActivationCheckpointing
+from graftcache.backbones.spec import BackboneSpec
 from graftcache.backbones.surgery import GraftSurgery
 from graftcache.backbones.tiny import TinySpec, read_marker, write_marker
 from graftcache.errors import BackboneError
@@ -79,18 +80,47 @@ def _camera_names(keys: Iterable[str]) -> tuple[str, ...]:
     return tuple(k.removeprefix("observation.images.") for k in keys)
 
 
-class BackboneAdapter(GraftSurgery, PromptBatches, FlowObjective, ActivationCheckpointing, ABC):
-    """A frozen lerobot VLA policy that a projector can be grafted onto."""
+class BackboneAdapter(GraftSurgery, PromptBatches, Objective, ActivationCheckpointing, ABC):
+    """A frozen lerobot VLA policy that a projector can be grafted onto: its registry `name`, its constants as data
+    (`spec`), and hooks where its behaviour differs."""
 
     name: ClassVar[str]
-    image_method: ClassVar[str]              # policy method turning a batch into (images, masks)
-    vision_slots: ClassVar[tuple[str, str]]  # (tower attribute, connector attribute) of `_vision_owner`
-    steps_field: ClassVar[str]               # config field holding the default number of denoising steps
-    #: Freeze-report groups after the tower and connector: name -> attribute paths from the adapter.
-    module_paths: ClassVar[dict[str, tuple[str, ...]]]
-    token_steps: ClassVar[tuple[str, ...]]   # preprocessor steps that build the prompt tokens
-    prompt_uses_state: ClassVar[bool] = False
-    per_sample_loss: ClassVar[bool] = True   # `loss` gives one value a sample: cells may share a backbone pass
+    spec: ClassVar[BackboneSpec]
+
+    # ------------------------------------------------------------------------------ the spec, as attributes
+    @property
+    def image_method(self) -> str:
+        return self.spec.image_method
+
+    @property
+    def vision_slots(self) -> tuple[str, str]:
+        return self.spec.vision_slots
+
+    @property
+    def steps_field(self) -> str | None:
+        return self.spec.steps_field
+
+    @property
+    def token_steps(self) -> tuple[str, ...]:
+        return self.spec.token_steps
+
+    @property
+    def prompt_uses_state(self) -> bool:
+        return self.spec.prompt_uses_state
+
+    @property
+    def per_sample_loss(self) -> bool:
+        """`loss` gives one value a sample: cells may share a backbone pass."""
+        return self.spec.loss_per_sample
+
+    @property
+    def module_paths(self) -> Mapping[str, tuple[str, ...]]:
+        return self.spec.module_paths
+
+    @property
+    def can_checkpoint(self) -> bool:
+        """Whether this backbone has a way to checkpoint (what `auto` may fall back on)."""
+        return self.spec.activation_checkpointing
 
     def __init__(self, policy: nn.Module, preprocessor, postprocessor, *, source: str,
                  random_init: bool, tiny_marker: dict | None = None) -> None:
@@ -290,14 +320,14 @@ class BackboneAdapter(GraftSurgery, PromptBatches, FlowObjective, ActivationChec
         """Per-camera post-connector token grid implied by a policy config (and the tiny marker)."""
 
     @property
-    @abstractmethod
     def lm_width(self) -> int:
-        """Width of the LM's token embeddings, i.e. the projector's output width."""
+        """Width of the LM's token embeddings, i.e. the projector's output width (read where `spec.lm_width` says)."""
+        return int(operator.attrgetter(self.spec.lm_width)(self))
 
     @property
-    @abstractmethod
     def embed_scale(self) -> float:
         """Factor lerobot applies to image tokens after the connector (and so after a graft projector)."""
+        return float(self.lm_width) ** 0.5 if self.spec.scaled_embeddings else 1.0
 
     # ------------------------------------------------------------------------------ native tower
     def _check_native(self, images: torch.Tensor) -> None:

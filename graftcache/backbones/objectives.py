@@ -1,4 +1,5 @@
-"""The policy's own objectives on a (grafted) backbone: masked flow loss and deterministic prediction.
+"""The policy's own objectives on a (grafted) backbone: masked flow loss or token cross-entropy, and deterministic
+prediction.
 
 lerobot's policies return the unreduced per-element loss from `model.forward`, so padded action steps
 are masked here, once, the same way for both backbones.
@@ -15,8 +16,10 @@ import torch
 from graftcache.backbones.batches import ACTION, ACTION_PAD, STATE
 
 
-class FlowObjective(ABC):
-    """The objective half of a BackboneAdapter (mixed into it; uses its policy, chunking and device)."""
+class Objective(ABC):
+    """The objective half of a BackboneAdapter (mixed into it; uses its policy, chunking and device): what every
+    objective shares (the start noise, the steps of prediction, the normalised chunk predicted, unnormalising) and
+    the one member each must have, `loss`. Flow backbones take `FlowObjective`, pi0-FAST `TokenObjective`."""
 
     def sample_noise(self, batch_size: int, generator: torch.Generator | None = None) -> torch.Tensor:
         """Flow-matching start noise [B, chunk, max_action_dim] (on CPU from `generator`, then moved)."""
@@ -24,24 +27,9 @@ class FlowObjective(ABC):
         return noise.to(self.device)
 
     @abstractmethod
-    def _flow_losses(self, batch: Mapping[str, Any], noise: torch.Tensor | None,
-                     time: torch.Tensor | None) -> torch.Tensor:
-        """lerobot's per-element flow-matching loss [B, chunk, max_action_dim] (no masking)."""
-
     def loss(self, batch: Mapping[str, Any], noise: torch.Tensor | None = None,
              time: torch.Tensor | None = None) -> torch.Tensor:
-        """Per-sample flow loss [B]: mean over real action dims and the chunk steps that are not padding.
-
-        `noise` [B, chunk, max_action_dim] and `time` [B] default to the model's own samplers (global RNG).
-        """
-        batch_size = batch[STATE].shape[0]
-        noise = self.sample_noise(batch_size) if noise is None else noise
-        time = self.policy.model.sample_time(batch_size, self.device) if time is None else time
-        losses = self._flow_losses(batch, noise, time)[:, :, : self.action_dim]
-        pad = batch.get(ACTION_PAD)
-        valid = torch.ones(losses.shape[:2], device=losses.device) if pad is None else (~pad.bool()).float()
-        per_step = losses.mean(dim=2)
-        return (per_step * valid).sum(dim=1) / valid.sum(dim=1).clamp(min=1.0)
+        """The training loss of a prepared batch: per sample [B] where `spec.loss_per_sample`, else a scalar."""
 
     @abstractmethod
     def _predict_chunk(self, batch: Mapping[str, Any], noise: torch.Tensor, num_steps: int) -> torch.Tensor:
@@ -49,8 +37,8 @@ class FlowObjective(ABC):
 
     @property
     def num_steps(self) -> int:
-        """Default number of denoising steps (from the policy config)."""
-        return getattr(self.config, self.steps_field)
+        """Default number of denoising (or decoding) steps: the config field `spec.steps_field` names."""
+        return getattr(self.config, self.spec.steps_field)
 
     def predict(self, batch: Mapping[str, Any], noise: torch.Tensor | None = None,
                 num_steps: int | None = None) -> torch.Tensor:
@@ -67,3 +55,42 @@ class FlowObjective(ABC):
     def unnormalize(self, actions: torch.Tensor) -> torch.Tensor:
         """Normalised action chunk -> raw action units, through lerobot's postprocessor."""
         return self.postprocessor(actions)
+
+
+class FlowObjective(Objective):
+    """Flow matching: the policy's own per-element flow loss, padded action steps masked here, once, the same way
+    for every flow backbone. `time` is the noise level (1 = pure noise) whichever way the policy's own t runs
+    (`spec.flow_time`)."""
+
+    def sample_time(self, batch_size: int) -> torch.Tensor:
+        """The policy's own time draw [B], as a noise level (the hook a backbone with another sampler overrides)."""
+        return self.noise_level(self.policy.model.sample_time(batch_size, self.device))
+
+    def noise_level(self, t: torch.Tensor) -> torch.Tensor:
+        """The policy's own time `t` as graftcache's noise level (and back: the map is its own inverse)."""
+        return t if self.spec.flow_time == "noise" else 1 - t
+
+    @abstractmethod
+    def _flow_losses(self, batch: Mapping[str, Any], noise: torch.Tensor, time: torch.Tensor) -> torch.Tensor:
+        """lerobot's per-element flow-matching loss [B, chunk, max_action_dim] (no masking)."""
+
+    def loss(self, batch: Mapping[str, Any], noise: torch.Tensor | None = None,
+             time: torch.Tensor | None = None) -> torch.Tensor:
+        """Per-sample flow loss [B]: mean over real action dims and the chunk steps that are not padding.
+
+        `noise` [B, chunk, max_action_dim] and `time` [B] default to the model's own samplers (global RNG).
+        """
+        batch_size = batch[STATE].shape[0]
+        noise = self.sample_noise(batch_size) if noise is None else noise
+        time = self.sample_time(batch_size) if time is None else time
+        losses = self._flow_losses(batch, noise, time)[:, :, : self.action_dim]
+        pad = batch.get(ACTION_PAD)
+        valid = torch.ones(losses.shape[:2], device=losses.device) if pad is None else (~pad.bool()).float()
+        per_step = losses.mean(dim=2)
+        return (per_step * valid).sum(dim=1) / valid.sum(dim=1).clamp(min=1.0)
+
+
+class TokenObjective(Objective):
+    """Cross-entropy on action tokens (pi0-FAST): no flow time, and lerobot's loss is one token-weighted mean over
+    the batch (`spec.loss_per_sample` False: its cells never share a pass). Prediction decodes tokens; the noise a
+    caller passes is ignored."""

@@ -70,11 +70,6 @@ class ActivationCheckpointing:
         off."""
         return self.__dict__.setdefault("_checkpoint_patches", Patches())
 
-    @property
-    def can_checkpoint(self) -> bool:
-        """Whether this backbone has a way to checkpoint (what `auto` may fall back on)."""
-        return type(self)._switch_checkpointing is not ActivationCheckpointing._switch_checkpointing
-
 
 class WrappedCheckpointing(ActivationCheckpointing):
     """Checkpointing by wrapping callables given as (owner module, attribute) pairs: an instance attribute

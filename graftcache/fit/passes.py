@@ -15,7 +15,7 @@ request asks for only groups cells; it is an execution setting like the reader c
 depends on it, and a rerun whose pass is partly done runs only its missing cells. Rows record how many cells their
 pass held (`cells_per_pass`) and, as `wall_s`, their share of the pass's time.
 
-The default (`CELLS_PER_PASS`, by device type and backbone) is what benchmarks/bench_fuse.py measured cheapest
+The default (the backbone's spec, `cells_per_pass` by device type) is what benchmarks/bench_fuse.py measured cheapest
 per cell. On CPU (2 AMD EPYC cores shared with other work, load 6-11, 1 thread, bf16; tiny backbones, 4 cells
 of 10 steps of 16 frames plus 32 scored frames, median of interleaved rounds:
 benchmarks/results/bench_fuse_cpu_run1.json, bench_fuse_cpu_run2.json) whole cells at 1 / 2 / 4 cells per pass
@@ -45,21 +45,19 @@ from typing import Any, Protocol
 import torch
 
 from graftcache import results
+from graftcache.backbones import get_backbone
 from graftcache.errors import ResultsError
 from graftcache.file_lease import FileLease
 from graftcache.fit.controls import Control
 from graftcache.requests import FitRequest
 from graftcache.runtime import set_main_threads
 
-#: Cells per backbone pass when a request does not say: (device type, backbone) -> cells. Unlisted pairs: 1.
-CELLS_PER_PASS: dict[tuple[str, str], int] = {
-    ("cpu", "smolvla"): 1, ("cpu", "pi05"): 1,     # measured: benchmarks/results/bench_fuse_cpu_*.json
-    ("cuda", "smolvla"): 4, ("cuda", "pi05"): 1,   # measured: benchmarks/results/gpu_check_nvidia-h200_*.json
-}
-
 
 def default_cells_per_pass(backbone: str, device: torch.device) -> int:
-    return CELLS_PER_PASS.get((device.type, backbone), 1)
+    """Cells per backbone pass when a request does not say: the backbone's spec, by device type
+    (graftcache.backbones.spec.BackboneSpec.cells_per_pass; SmolVLA's and pi0.5's measured by benchmarks/bench_fuse.py
+    and benchmarks/gpu_check.py); unlisted: 1."""
+    return get_backbone(backbone).spec.cells_per_pass.get(device.type, 1)
 
 
 class Identified(Protocol):

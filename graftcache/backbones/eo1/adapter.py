@@ -40,6 +40,7 @@ from graftcache.backbones.batches import ACTION, STATE
 from graftcache.backbones.checkpoint import cached_repo
 from graftcache.backbones.draws import shadowed
 from graftcache.backbones.eo1.tiny import construct
+from graftcache.backbones.objectives import FlowObjective
 from graftcache.backbones.patching import patched
 from graftcache.backbones.qwen_vl import (
     NativeVision,
@@ -52,6 +53,7 @@ from graftcache.backbones.qwen_vl import (
     tied_head_keys,
     vit_outputs,
 )
+from graftcache.backbones.spec import BackboneSpec
 from graftcache.backbones.tiny_assets import QWEN_VL_DIR
 from graftcache.errors import BackboneError
 from graftcache.graft import feature_key
@@ -84,13 +86,22 @@ def processor_kwargs_quiet() -> Iterator[None]:
         logger.setLevel(level)
 
 
-class EO1Adapter(NativeVision, BackboneAdapter):
+class EO1Adapter(NativeVision, FlowObjective, BackboneAdapter):
     name = "eo1"
-    vision_slots = ("blocks", "merger")
-    steps_field = "num_denoise_steps"
-    image_method = "_get_model_inputs"
-    token_steps = ("EO1ConversationTemplateStep", QWEN_STEP)
-    prompt_uses_state = True  # the prompt is built per batch (images and all) by lerobot's processor
+    spec = BackboneSpec(
+        image_method="_get_model_inputs",
+        vision_slots=("blocks", "merger"),
+        lm_width="policy.model.vlm_backbone.config.text_config.hidden_size",
+        module_paths={
+            "patch embedding": ("_vision_owner.patch_embed",),
+            "language model": ("policy.model.vlm_backbone.model.language_model",),
+            "action head": tuple(f"policy.model.{m}" for m in (
+                "state_proj", "action_in_proj", "action_out_proj", "action_time_mlp_in", "action_time_mlp_out")),
+        },
+        steps_field="num_denoise_steps",
+        token_steps=("EO1ConversationTemplateStep", QWEN_STEP),
+        prompt_uses_state=True,
+    )
 
     def _patch_graft(self, graft) -> None:
         """Grafted, Qwen's `get_image_features` projects the cached features (undone by reset)."""
@@ -151,14 +162,6 @@ class EO1Adapter(NativeVision, BackboneAdapter):
         vision = config.vision_config
         return merged_grid(tuple(cameras[0].shape[-2:]), vision.patch_size, vision.spatial_merge_size,
                            config.image_min_pixels, config.image_max_pixels)
-
-    @property
-    def lm_width(self) -> int:
-        return self.policy.model.vlm_backbone.config.text_config.hidden_size
-
-    @property
-    def embed_scale(self) -> float:
-        return 1.0
 
     # ------------------------------------------------------------------------------ images
     @functools.cached_property
@@ -244,11 +247,3 @@ class EO1Adapter(NativeVision, BackboneAdapter):
         with patched(config, num_denoise_steps=int(num_steps)), \
                 shadowed(model, sample_noise=lambda shape, device: noise.to(device)):
             return self.policy.predict_action_chunk(left_padded(batch))
-
-    # ------------------------------------------------------------------------------ reporting
-    module_paths = {
-        "patch embedding": ("_vision_owner.patch_embed",),
-        "language model": ("policy.model.vlm_backbone.model.language_model",),
-        "action head": tuple(f"policy.model.{m}" for m in (
-            "state_proj", "action_in_proj", "action_out_proj", "action_time_mlp_in", "action_time_mlp_out")),
-    }

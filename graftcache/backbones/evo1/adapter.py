@@ -43,10 +43,12 @@ from torch import nn
 from transformers.modeling_outputs import BaseModelOutputWithPooling
 
 from graftcache.backbones.base import BackboneAdapter, is_empty_camera
-from graftcache.backbones.batches import ACTION, STATE
+from graftcache.backbones.batches import ACTION
 from graftcache.backbones.checkpoint import cached_repo
 from graftcache.backbones.evo1.tiny import INTERNVL_DIR, construct
+from graftcache.backbones.objectives import FlowObjective
 from graftcache.backbones.patching import patched
+from graftcache.backbones.spec import BackboneSpec
 from graftcache.errors import BackboneError
 
 
@@ -57,13 +59,20 @@ def token_grid(image_size: int, vision, downsample_ratio: float) -> tuple[int, i
     return side, side
 
 
-class Evo1Adapter(BackboneAdapter):
+class Evo1Adapter(FlowObjective, BackboneAdapter):
     name = "evo1"
-    vision_slots = ("vision_tower", "multi_modal_projector")
-    steps_field = "num_inference_timesteps"
-    image_method = "_collect_image_batches"
-    token_steps = ()
-    prompt_uses_state = True  # the prompt is tokenised inside the model; the preprocessor passes the task through
+    spec = BackboneSpec(
+        image_method="_collect_image_batches",
+        vision_slots=("vision_tower", "multi_modal_projector"),
+        lm_width="_vision_owner.config.text_config.hidden_size",
+        module_paths={
+            "language model": ("_vision_owner.language_model",),
+            "action head": ("policy.model.action_head",),
+        },
+        steps_field="num_inference_timesteps",
+        prompt_uses_state=True,
+        flow_time="data",
+    )
 
     def _patch_graft(self, graft) -> None:
         """Grafted, the embedder takes the cached features, InternVL's `get_image_features` projects them, and images
@@ -114,14 +123,6 @@ class Evo1Adapter(BackboneAdapter):
 
         internvl = AutoConfig.from_pretrained(cls._internvl_folder(config, marker))
         return token_grid(int(config.image_resolution[0]), internvl.vision_config, internvl.downsample_ratio)
-
-    @property
-    def lm_width(self) -> int:
-        return self._vision_owner.config.text_config.hidden_size
-
-    @property
-    def embed_scale(self) -> float:
-        return 1.0
 
     # ------------------------------------------------------------------------------ images
     def _fused_tokens(self, prompts: list[str], images: list[torch.Tensor], masks: torch.Tensor):
@@ -214,14 +215,9 @@ class Evo1Adapter(BackboneAdapter):
         (each normal draw through its own CDF: exactly uniform, and a fixed draw stays fixed)."""
         return torch.erf(noise / math.sqrt(2.0))
 
-    def loss(self, batch: Mapping[str, Any], noise: torch.Tensor | None = None,
-             time: torch.Tensor | None = None) -> torch.Tensor:
-        """The common masked loss; `time` defaults to EVO1's own draw (Beta(2, 2) in [0.02, 0.98], symmetric,
-        so the same as a noise level)."""
-        if time is None:
-            size = batch[STATE].shape[0]
-            time = torch.distributions.Beta(2.0, 2.0).sample((size,)).clamp(0.02, 0.98).to(self.device)
-        return super().loss(batch, noise, time)
+    def sample_time(self, batch_size: int) -> torch.Tensor:
+        """EVO1's own draw (Beta(2, 2) in [0.02, 0.98], symmetric, so the same as a noise level)."""
+        return torch.distributions.Beta(2.0, 2.0).sample((batch_size,)).clamp(0.02, 0.98).to(self.device)
 
     def _context(self, batch: Mapping[str, Any]) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
         """The head's context as lerobot builds it: (context tokens, key padding mask, embodiment ids)."""
@@ -283,9 +279,3 @@ class Evo1Adapter(BackboneAdapter):
         dims are padded with zeros for it (the padding never reaches the output)."""
         pad = self.max_action_dim - actions.shape[-1]
         return super().unnormalize(torch.nn.functional.pad(actions, (0, pad)) if pad > 0 else actions)
-
-    # ------------------------------------------------------------------------------ reporting
-    module_paths = {
-        "language model": ("_vision_owner.language_model",),
-        "action head": ("policy.model.action_head",),
-    }

@@ -49,6 +49,7 @@ from graftcache.backbones.groot.tiny import (
     tiny_image_geometry,
     vlm_step_name,
 )
+from graftcache.backbones.objectives import FlowObjective
 from graftcache.backbones.patching import patched
 from graftcache.backbones.qwen_vl import (
     NativeVision,
@@ -60,6 +61,7 @@ from graftcache.backbones.qwen_vl import (
     prompt_grid,
     raster_patches,
 )
+from graftcache.backbones.spec import BackboneSpec
 from graftcache.backbones.tiny_assets import QWEN3_VL_MERGE, QWEN3_VL_PATCH, QWEN3_VL_PIXELS, TINY_QWEN3_VL_PIXELS
 from graftcache.errors import BackboneError
 from graftcache.graft import feature_key
@@ -70,13 +72,23 @@ VLM_STEP, PACK_STEP = "GrootN17VLMEncodeStep", "GrootN17PackInputsStep"
 PADDED_ACTION = "groot_padded_action"
 
 
-class GrootAdapter(NativeVision, BackboneAdapter):
+class GrootAdapter(NativeVision, FlowObjective, BackboneAdapter):
     name = "groot"
-    vision_slots = ("blocks", "merger")
-    steps_field = "num_inference_timesteps"
-    image_method = "_filter_groot_inputs"
-    token_steps = (VLM_STEP,)
-    prompt_uses_state = True  # the prompt is built per batch (images and all) by lerobot's processor
+    spec = BackboneSpec(
+        image_method="_filter_groot_inputs",
+        vision_slots=("blocks", "merger"),
+        lm_width="_groot.backbone.model.config.text_config.hidden_size",
+        module_paths={
+            "patch embedding": ("_vision_owner.patch_embed",),
+            "deepstack mergers": ("_vision_owner.deepstack_merger_list",),
+            "language model": ("_qwen.language_model",),
+            "action head": ("_groot.action_head",),
+        },
+        steps_field="num_inference_timesteps",
+        token_steps=(VLM_STEP,),
+        prompt_uses_state=True,
+        flow_time="data",
+    )
 
     def _patch_graft(self, graft) -> None:
         """Grafted, Qwen's `get_image_features` projects the cached features (undone by reset)."""
@@ -149,14 +161,6 @@ class GrootAdapter(NativeVision, BackboneAdapter):
         target = assets.image_target_size if assets is not None and assets.image_target_size else None
         return merged_grid(tuple(target or N1_7_DEFAULT_IMAGE_TARGET_SIZE), QWEN3_VL_PATCH, QWEN3_VL_MERGE,
                            *QWEN3_VL_PIXELS)
-
-    @property
-    def lm_width(self) -> int:
-        return self._groot.backbone.model.config.text_config.hidden_size
-
-    @property
-    def embed_scale(self) -> float:
-        return 1.0
 
     @property
     def chunk_size(self) -> int:
@@ -271,12 +275,9 @@ class GrootAdapter(NativeVision, BackboneAdapter):
         return batch
 
     # ------------------------------------------------------------------------------ objectives
-    def loss(self, batch: Mapping[str, Any], noise: torch.Tensor | None = None,
-             time: torch.Tensor | None = None) -> torch.Tensor:
-        """The masked per-sample flow loss; the time (1 = pure noise) defaults to GR00T's own Beta sampler."""
-        if time is None:
-            time = 1 - self._groot.action_head.sample_time(batch[STATE].shape[0], self.device, torch.float32)
-        return super().loss(batch, noise, time)
+    def sample_time(self, batch_size: int) -> torch.Tensor:
+        """GR00T's own Beta sampler, as a noise level (1 = pure noise)."""
+        return self.noise_level(self._groot.action_head.sample_time(batch_size, self.device, torch.float32))
 
     def _flow_losses(self, batch: Mapping[str, Any], noise: torch.Tensor, time: torch.Tensor) -> torch.Tensor:
         """lerobot's GR00T forward with the given draws (`time` 1 = pure noise, GR00T's 1 - time); the per-element
@@ -315,11 +316,3 @@ class GrootAdapter(NativeVision, BackboneAdapter):
         bf16 = torch.is_autocast_enabled(kind) and torch.get_autocast_dtype(kind) == torch.bfloat16
         with patched(self.policy.config, use_bf16=bf16):
             yield
-
-    # ------------------------------------------------------------------------------ reporting
-    module_paths = {
-        "patch embedding": ("_vision_owner.patch_embed",),
-        "deepstack mergers": ("_vision_owner.deepstack_merger_list",),
-        "language model": ("_qwen.language_model",),
-        "action head": ("_groot.action_head",),
-    }

@@ -13,14 +13,14 @@ state is not in the prompt but a token of the expert's suffix (`state_proj`), so
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Mapping
+import dataclasses
+from collections.abc import Mapping
 from typing import Any
 
 import torch
 from torch import nn
 
 from graftcache.backbones.batches import TOKEN_MASK, TOKENS
-from graftcache.backbones.lean import openpi_keys
 from graftcache.backbones.paligemma import pi05_processors, pi05_tiny_sizes
 from graftcache.backbones.pi0.tiny import MODELING, PROCESSOR
 from graftcache.backbones.pi05.adapter import PI05Adapter
@@ -28,8 +28,18 @@ from graftcache.backbones.pi05.adapter import PI05Adapter
 
 class PI0Adapter(PI05Adapter):
     name = "pi0"
-    token_steps = ("Pi0NewLineProcessor", "TokenizerProcessorStep")
-    prompt_uses_state = False
+    spec = dataclasses.replace(
+        PI05Adapter.spec,
+        module_paths={
+            "language model": ("_vision_owner.language_model",),
+            "action expert": ("policy.model.paligemma_with_expert.gemma_expert",),
+            "state projection": ("policy.model.state_proj",),
+            "action/time projections": tuple(f"policy.model.{m}" for m in (
+                "action_in_proj", "action_out_proj", "action_time_mlp_in", "action_time_mlp_out")),
+        },
+        token_steps=("Pi0NewLineProcessor", "TokenizerProcessorStep"),
+        prompt_uses_state=False,
+    )
 
     # ------------------------------------------------------------------------------ construction
     @classmethod
@@ -42,11 +52,6 @@ class PI0Adapter(PI05Adapter):
             return PI0Policy(config)
 
     @classmethod
-    def _checkpoint_keys(cls, policy: nn.Module, file_keys: Iterable[str]) -> dict[str, str]:
-        """As PI0Policy.from_pretrained renames: openpi key fixes, then a "model." prefix."""
-        return openpi_keys(policy, file_keys)
-
-    @classmethod
     def _make_processors(cls, config, stats: dict, marker: dict | None):
         return pi05_processors(config, stats, cls._tokenizer(marker), PROCESSOR, "make_pi0_pre_post_processors")
 
@@ -56,12 +61,3 @@ class PI0Adapter(PI05Adapter):
         images, img_masks = policy._preprocess_images(batch)
         return policy.model.forward(images, img_masks, batch[TOKENS], batch[TOKEN_MASK], policy.prepare_state(batch),
                                     policy.prepare_action(batch), noise, time)
-
-    # ------------------------------------------------------------------------------ reporting
-    module_paths = {
-        "language model": ("_vision_owner.language_model",),
-        "action expert": ("policy.model.paligemma_with_expert.gemma_expert",),
-        "state projection": ("policy.model.state_proj",),
-        "action/time projections": tuple(f"policy.model.{m}" for m in (
-            "action_in_proj", "action_out_proj", "action_time_mlp_in", "action_time_mlp_out")),
-    }

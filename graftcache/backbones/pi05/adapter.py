@@ -23,32 +23,21 @@ from graftcache.backbones.base import BackboneAdapter
 from graftcache.backbones.batches import TOKEN_MASK, TOKENS
 from graftcache.backbones.checkpoint import cached_repo
 from graftcache.backbones.lean import openpi_keys
+from graftcache.backbones.objectives import FlowObjective
 from graftcache.backbones.paligemma import paligemma_tiny_tokenizer, pi05_processors, pi05_tiny_sizes
+from graftcache.backbones.spec import BackboneSpec
 
 PALIGEMMA_TOKENIZER = "google/paligemma-3b-pt-224"  # hard-coded by processor_pi05.py:145
 
 
-class PI05Adapter(BackboneAdapter):
-    name = "pi05"
-    vision_slots = ("vision_tower", "multi_modal_projector")
-    steps_field = "num_inference_steps"
-    image_method = "_preprocess_images"
-    token_steps = ("Pi05PrepareStateTokenizerProcessorStep", "TokenizerProcessorStep")
-    prompt_uses_state = True
+class PaliGemmaAdapter(BackboneAdapter):
+    """What the PaliGemma policies (pi0.5, pi0, pi0-FAST) share: openpi's checkpoint keys, the PaliGemma tokenizer, the
+    tower and its grid; each adds its construction, processors and objective."""
 
     # ------------------------------------------------------------------------------ construction
     @classmethod
-    def _construct(cls, config, marker: dict | None) -> nn.Module:
-        from lerobot.policies.pi05.modeling_pi05 import PI05Policy
-
-        if marker is None:
-            return PI05Policy(config)
-        with pi05_tiny_sizes(marker["geometry"]):
-            return PI05Policy(config)
-
-    @classmethod
     def _checkpoint_keys(cls, policy: nn.Module, file_keys: Iterable[str]) -> dict[str, str]:
-        """As PI05Policy.from_pretrained renames: openpi key fixes, then a "model." prefix."""
+        """As the policies' from_pretrained rename: openpi key fixes, then a "model." prefix."""
         return openpi_keys(policy, file_keys)
 
     @classmethod
@@ -64,10 +53,6 @@ class PI05Adapter(BackboneAdapter):
         pre, post = super()._processor_overrides(config, marker, device)
         pre["tokenizer_processor"] = {"tokenizer": cls._tokenizer(marker)}
         return pre, post
-
-    @classmethod
-    def _make_processors(cls, config, stats: dict, marker: dict | None):
-        return pi05_processors(config, stats, cls._tokenizer(marker))
 
     # ------------------------------------------------------------------------------ geometry
     @property
@@ -85,13 +70,40 @@ class PI05Adapter(BackboneAdapter):
         side = config.image_resolution[0] // patch
         return side, side
 
-    @property
-    def lm_width(self) -> int:
-        return self._vision_owner.config.text_config.hidden_size
 
-    @property
-    def embed_scale(self) -> float:
-        return 1.0
+class PI05Adapter(FlowObjective, PaliGemmaAdapter):
+    name = "pi05"
+    spec = BackboneSpec(
+        image_method="_preprocess_images",
+        vision_slots=("vision_tower", "multi_modal_projector"),
+        lm_width="_vision_owner.config.text_config.hidden_size",
+        module_paths={
+            "language model": ("_vision_owner.language_model",),
+            "action expert": ("policy.model.paligemma_with_expert.gemma_expert",),
+            "action/time projections": tuple(f"policy.model.{m}" for m in (
+                "action_in_proj", "action_out_proj", "time_mlp_in", "time_mlp_out")),
+        },
+        steps_field="num_inference_steps",
+        token_steps=("Pi05PrepareStateTokenizerProcessorStep", "TokenizerProcessorStep"),
+        prompt_uses_state=True,
+        cells_per_pass={"cpu": 1, "cuda": 1},
+        activation_checkpointing=True,
+    )
+
+    # ------------------------------------------------------------------------------ construction
+    @classmethod
+    def _construct(cls, config, marker: dict | None) -> nn.Module:
+        from lerobot.policies.pi05.modeling_pi05 import PI05Policy
+
+        if marker is None:
+            return PI05Policy(config)
+        with pi05_tiny_sizes(marker["geometry"]):
+            return PI05Policy(config)
+
+    @classmethod
+    def _make_processors(cls, config, stats: dict, marker: dict | None):
+        return pi05_processors(config, stats, cls._tokenizer(marker))
+
 
     # ------------------------------------------------------------------------------ objectives
     def _flow_losses(self, batch: Mapping[str, Any], noise, time) -> torch.Tensor:
@@ -110,12 +122,3 @@ class PI05Adapter(BackboneAdapter):
             self.policy.model.gradient_checkpointing_enable()
         else:
             self.policy.model.gradient_checkpointing_disable()
-
-    # ------------------------------------------------------------------------------ reporting
-    module_paths = {
-        "language model": ("_vision_owner.language_model",),
-        "action expert": ("policy.model.paligemma_with_expert.gemma_expert",),
-        "action/time projections": tuple(f"policy.model.{m}" for m in (
-            "action_in_proj", "action_out_proj", "time_mlp_in", "time_mlp_out")),
-    }
-

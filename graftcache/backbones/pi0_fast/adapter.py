@@ -26,7 +26,7 @@ processor's `fit` (the FAST recipe: BPE on the quantised DCT coefficients), save
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Iterable, Iterator, Mapping
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -35,25 +35,34 @@ from torch import nn
 
 from graftcache.backbones.batches import TOKEN_MASK, TOKENS
 from graftcache.backbones.checkpoint import cached_repo
-from graftcache.backbones.lean import openpi_keys
+from graftcache.backbones.objectives import TokenObjective
 from graftcache.backbones.paligemma import pi05_tiny_sizes
 from graftcache.backbones.patching import patched
 from graftcache.backbones.pi0_fast.fast import FAST_DIR, MODELING, fast_processors, load_fast, policy_tokenizers
-from graftcache.backbones.pi05.adapter import PI05Adapter
+from graftcache.backbones.pi05.adapter import PaliGemmaAdapter
+from graftcache.backbones.spec import BackboneSpec
 from graftcache.backbones.tiny_assets import PALIGEMMA_DIR
-from graftcache.errors import BackboneError
 
 ACTION_TOKENS = "action.tokens"  # lerobot.utils.constants.ACTION_TOKENS / ACTION_TOKEN_MASK
 ACTION_TOKEN_MASK = "action.token_mask"
 
 
-class PI0FastAdapter(PI05Adapter):
+class PI0FastAdapter(TokenObjective, PaliGemmaAdapter):
     name = "pi0_fast"
-    per_sample_loss = False  # lerobot's cross-entropy is one mean over the batch: its cells run alone
-    steps_field = "max_decoding_steps"
-    token_steps = ("Pi0FastPrepareStateAndLanguageTokenizerProcessorStep", "TokenizerProcessorStep",
-                   "ActionTokenizerProcessorStep")
-    prompt_uses_state = True
+    spec = BackboneSpec(
+        image_method="_preprocess_images",
+        vision_slots=("vision_tower", "multi_modal_projector"),
+        lm_width="_vision_owner.config.text_config.hidden_size",
+        module_paths={"language model": ("_vision_owner.language_model",),
+                      "LM head": ("policy.model.paligemma_with_expert.paligemma.lm_head",)},
+        steps_field="max_decoding_steps",
+        token_steps=("Pi0FastPrepareStateAndLanguageTokenizerProcessorStep", "TokenizerProcessorStep",
+                     "ActionTokenizerProcessorStep"),
+        prompt_uses_state=True,
+        loss_per_sample=False,
+        flow_time=None,
+        activation_checkpointing=True,
+    )
 
     # ------------------------------------------------------------------------------ construction
     @classmethod
@@ -64,11 +73,6 @@ class PI0FastAdapter(PI05Adapter):
         sizes = pi05_tiny_sizes(marker["geometry"], MODELING) if marker is not None else contextlib.nullcontext()
         with sizes, policy_tokenizers(load_fast(fast), text):
             return PI0FastPolicy(config)
-
-    @classmethod
-    def _checkpoint_keys(cls, policy: nn.Module, file_keys: Iterable[str]) -> dict[str, str]:
-        """As PI0FastPolicy.from_pretrained renames: openpi key fixes, then a "model." prefix."""
-        return openpi_keys(policy, file_keys)
 
     @classmethod
     def _configure(cls, folder: Path, config, marker: dict | None) -> None:
@@ -94,7 +98,7 @@ class PI0FastAdapter(PI05Adapter):
         of the action step (lerobot's ActionTokenizerProcessorStep.get_config): given here from the config."""
         from transformers import AutoTokenizer
 
-        pre, post = super(PI05Adapter, cls)._processor_overrides(config, marker, device)  # not pi0.5's tokenizer
+        pre, post = super(PaliGemmaAdapter, cls)._processor_overrides(config, marker, device)  # not PaliGemma's
         pre["tokenizer_processor"] = {"tokenizer": AutoTokenizer.from_pretrained(config.text_tokenizer_name)}
         pre["action_tokenizer_processor"] = {
             "action_tokenizer_input_object": load_fast(Path(config.action_tokenizer_name)),
@@ -121,9 +125,6 @@ class PI0FastAdapter(PI05Adapter):
         return policy.model.forward(images, img_masks, batch[TOKENS], batch[TOKEN_MASK], batch[ACTION_TOKENS],
                                     batch[ACTION_TOKEN_MASK])["loss"]
 
-    def _flow_losses(self, batch: Mapping[str, Any], noise, time) -> torch.Tensor:
-        raise BackboneError(f"{self.name} has no flow loss: its loss is cross-entropy on FAST action tokens")
-
     def _predict_chunk(self, batch: Mapping[str, Any], noise: torch.Tensor, num_steps: int) -> torch.Tensor:
         with _greedy_chunks(self.config, self.chunk_size):
             return self.policy.predict_action_chunk(dict(batch)).to(self.device)
@@ -139,9 +140,6 @@ class PI0FastAdapter(PI05Adapter):
         else:
             language_model.gradient_checkpointing_disable()
 
-    # ------------------------------------------------------------------------------ reporting
-    module_paths = {"language model": ("_vision_owner.language_model",),
-                    "LM head": ("policy.model.paligemma_with_expert.paligemma.lm_head",)}
 
 
 @contextlib.contextmanager

@@ -20,17 +20,32 @@ from torch import nn
 from graftcache.backbones.base import BackboneAdapter
 from graftcache.backbones.batches import TOKEN_MASK, TOKENS
 from graftcache.backbones.checkpoint import cached_repo
+from graftcache.backbones.objectives import FlowObjective
 from graftcache.backbones.patching import patched
 from graftcache.backbones.recompute import WrappedCheckpointing
+from graftcache.backbones.spec import BackboneSpec
 from graftcache.backbones.tiny_assets import SMOLVLM_DIR
 
 
-class SmolVLAAdapter(WrappedCheckpointing, BackboneAdapter):
+class SmolVLAAdapter(WrappedCheckpointing, FlowObjective, BackboneAdapter):
     name = "smolvla"
-    vision_slots = ("vision_model", "connector")
-    steps_field = "num_steps"
-    image_method = "prepare_images"
-    token_steps = ("NewLineTaskProcessorStep", "TokenizerProcessorStep")
+    spec = BackboneSpec(
+        image_method="prepare_images",
+        vision_slots=("vision_model", "connector"),
+        lm_width="_vision_owner.config.text_config.hidden_size",
+        module_paths={
+            "language model": ("_vision_owner.text_model",),
+            "action expert": ("policy.model.vlm_with_expert.lm_expert",),
+            "state projection": ("policy.model.state_proj",),
+            "action/time projections": tuple(f"policy.model.{m}" for m in (
+                "action_in_proj", "action_out_proj", "action_time_mlp_in", "action_time_mlp_out")),
+        },
+        steps_field="num_steps",
+        token_steps=("NewLineTaskProcessorStep", "TokenizerProcessorStep"),
+        scaled_embeddings=True,
+        cells_per_pass={"cpu": 1, "cuda": 4},
+        activation_checkpointing=True,
+    )
 
     # ------------------------------------------------------------------------------ construction
     @classmethod
@@ -81,14 +96,6 @@ class SmolVLAAdapter(WrappedCheckpointing, BackboneAdapter):
     def _vision_owner(self) -> nn.Module:
         return self.policy.model.vlm_with_expert.get_vlm_model()
 
-    @property
-    def lm_width(self) -> int:
-        return self._vision_owner.config.text_config.hidden_size
-
-    @property
-    def embed_scale(self) -> float:
-        return float(self.lm_width) ** 0.5
-
     # ------------------------------------------------------------------------------ objectives
     def _flow_losses(self, batch: Mapping[str, Any], noise, time) -> torch.Tensor:
         policy = self.policy
@@ -110,14 +117,6 @@ class SmolVLAAdapter(WrappedCheckpointing, BackboneAdapter):
             for layer in layers:
                 yield layer.mlp, "forward"
 
-    # ------------------------------------------------------------------------------ reporting
-    module_paths = {
-        "language model": ("_vision_owner.text_model",),
-        "action expert": ("policy.model.vlm_with_expert.lm_expert",),
-        "state projection": ("policy.model.state_proj",),
-        "action/time projections": tuple(f"policy.model.{m}" for m in (
-            "action_in_proj", "action_out_proj", "action_time_mlp_in", "action_time_mlp_out")),
-    }
 
 
 @contextlib.contextmanager
@@ -125,4 +124,3 @@ def _num_steps(config, steps: int):
     """SmolVLA's sampler reads `config.num_steps` (it takes no argument); set it for one call."""
     with patched(config, num_steps=steps):
         yield
-

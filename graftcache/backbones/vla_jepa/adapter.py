@@ -45,9 +45,10 @@ import torch
 from torch import nn
 
 from graftcache.backbones.base import BackboneAdapter
-from graftcache.backbones.batches import ACTION, STATE
+from graftcache.backbones.batches import ACTION
 from graftcache.backbones.checkpoint import cached_repo
 from graftcache.backbones.draws import given_noise, shadowed
+from graftcache.backbones.objectives import FlowObjective
 from graftcache.backbones.patching import patched
 from graftcache.backbones.qwen_vl import (
     check_slots,
@@ -59,6 +60,7 @@ from graftcache.backbones.qwen_vl import (
     tied_head_keys,
 )
 from graftcache.backbones.recompute import WrappedCheckpointing
+from graftcache.backbones.spec import BackboneSpec
 from graftcache.backbones.vla_jepa.tiny import QWEN3_VL_DIR, construct
 from graftcache.errors import BackboneError
 from graftcache.graft import feature_key
@@ -89,13 +91,23 @@ def given_draws(head: nn.Module, noise: torch.Tensor, time: torch.Tensor | None 
         yield
 
 
-class VLAJEPAAdapter(WrappedCheckpointing, BackboneAdapter):
+class VLAJEPAAdapter(WrappedCheckpointing, FlowObjective, BackboneAdapter):
     name = "vla_jepa"
-    vision_slots = ("blocks", "merger")
-    steps_field = "num_inference_timesteps"
-    image_method = "_prepare_model_inputs"
-    token_steps = ()  # the prompt is tokenised inside the model (Qwen3VLInterface.build_inputs)
-    prompt_uses_state = True  # so prepare() runs lerobot's preprocessor as it is, task strings and all
+    spec = BackboneSpec(
+        image_method="_prepare_model_inputs",
+        vision_slots=("blocks", "merger"),
+        lm_width="_qwen.config.text_config.hidden_size",
+        module_paths={
+            "patch embedding": ("_vision_owner.patch_embed", "_vision_owner.pos_embed"),
+            "deepstack mergers": ("_vision_owner.deepstack_merger_list",),
+            "language model": ("_qwen.language_model",),
+            "action head": ("policy.model.action_model",),
+        },
+        steps_field="num_inference_timesteps",
+        prompt_uses_state=True,
+        flow_time="data",
+        activation_checkpointing=True,
+    )
 
     def _patch_graft(self, graft) -> None:
         """Grafted, Qwen's `get_image_features` projects the cached features and the prompt is built for them
@@ -158,14 +170,6 @@ class VLAJEPAAdapter(WrappedCheckpointing, BackboneAdapter):
         bounds = processor["size"]
         return merged_grid(size, processor["patch_size"], processor["merge_size"], bounds["shortest_edge"],
                            bounds["longest_edge"])
-
-    @property
-    def lm_width(self) -> int:
-        return self._qwen.config.text_config.hidden_size
-
-    @property
-    def embed_scale(self) -> float:
-        return 1.0
 
     @property
     def max_action_dim(self) -> int:
@@ -253,13 +257,9 @@ class VLAJEPAAdapter(WrappedCheckpointing, BackboneAdapter):
         return inputs
 
     # ------------------------------------------------------------------------------ objectives
-    def loss(self, batch: Mapping[str, Any], noise: torch.Tensor | None = None,
-             time: torch.Tensor | None = None) -> torch.Tensor:
-        """Per-sample action loss [B]; `time` (noise fraction) defaults to the head's own draw (1 - its t)."""
-        if time is None:
-            head = self.policy.model.action_model
-            time = 1 - head.sample_time(batch[STATE].shape[0], self.device, torch.float32)
-        return super().loss(batch, noise, time)
+    def sample_time(self, batch_size: int) -> torch.Tensor:
+        """The action head's own draw, as a noise level (1 - its t)."""
+        return self.noise_level(self.policy.model.action_model.sample_time(batch_size, self.device, torch.float32))
 
     def _flow_losses(self, batch: Mapping[str, Any], noise: torch.Tensor, time: torch.Tensor) -> torch.Tensor:
         """lerobot's VLA-JEPA forward (one noise draw per sample) with the given draws; the per-element velocity
@@ -304,11 +304,3 @@ class VLAJEPAAdapter(WrappedCheckpointing, BackboneAdapter):
             yield layer, "forward"
         for block in self.policy.model.action_model.model.transformer_blocks:
             yield block, "forward"
-
-    # ------------------------------------------------------------------------------ reporting
-    module_paths = {
-        "patch embedding": ("_vision_owner.patch_embed", "_vision_owner.pos_embed"),
-        "deepstack mergers": ("_vision_owner.deepstack_merger_list",),
-        "language model": ("_qwen.language_model",),
-        "action head": ("policy.model.action_model",),
-    }

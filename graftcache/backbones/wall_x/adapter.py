@@ -43,6 +43,7 @@ from graftcache.backbones.base import BackboneAdapter
 from graftcache.backbones.batches import STATE
 from graftcache.backbones.checkpoint import cached_repo
 from graftcache.backbones.draws import given_noise, shadowed
+from graftcache.backbones.objectives import FlowObjective
 from graftcache.backbones.patching import patched
 from graftcache.backbones.qwen_vl import (
     NativeVision,
@@ -53,6 +54,7 @@ from graftcache.backbones.qwen_vl import (
     vit_outputs,
 )
 from graftcache.backbones.recompute import WrappedCheckpointing
+from graftcache.backbones.spec import BackboneSpec
 from graftcache.backbones.wall_x.tiny import WALLX_DIR, construct, load_processor
 from graftcache.errors import BackboneError
 
@@ -79,13 +81,22 @@ def pixel_bounds(image_processor, pixels: int) -> Iterator[None]:
         yield
 
 
-class WallXAdapter(NativeVision, WrappedCheckpointing, BackboneAdapter):
+class WallXAdapter(NativeVision, WrappedCheckpointing, FlowObjective, BackboneAdapter):
     name = "wall_x"
-    vision_slots = ("blocks", "merger")
-    steps_field = ""  # Wall-X's config has no such field: `num_steps` reads `predict`'s default
-    image_method = "preprocess_inputs"
-    token_steps = ()
-    prompt_uses_state = True  # the prompt (images, state, action tokens) is built per batch by the policy itself
+    spec = BackboneSpec(
+        image_method="preprocess_inputs",
+        vision_slots=("blocks", "merger"),
+        lm_width="policy.model.config.text_config.hidden_size",
+        module_paths={
+            "patch embedding": ("_vision_owner.patch_embed",),
+            "language model": ("policy.model.model",),
+            "action head": ("policy.model.action_preprocessor",),
+        },
+        steps_field=None,
+        prompt_uses_state=True,
+        flow_time="data",
+        activation_checkpointing=True,
+    )
 
     def _patch_graft(self, graft) -> None:
         """Grafted, the ViT's forward projects the cached features (undone by reset)."""
@@ -155,14 +166,6 @@ class WallXAdapter(NativeVision, WrappedCheckpointing, BackboneAdapter):
         return image_grid(self._frame_shape(self.config), self._image_processor, self._vision_owner.config)
 
     @property
-    def lm_width(self) -> int:
-        return self.policy.model.config.text_config.hidden_size
-
-    @property
-    def embed_scale(self) -> float:
-        return 1.0
-
-    @property
     def num_steps(self) -> int:
         """Wall-X's Euler steps: `predict`'s default (lerobot's policy never passes another)."""
         from lerobot.policies.wall_x.modeling_wall_x import Qwen2_5_VLMoEForAction
@@ -213,14 +216,9 @@ class WallXAdapter(NativeVision, WrappedCheckpointing, BackboneAdapter):
         return inputs
 
     # ------------------------------------------------------------------------------ objectives
-    def loss(self, batch: Mapping[str, Any], noise: torch.Tensor | None = None,
-             time: torch.Tensor | None = None) -> torch.Tensor:
-        """Per-sample flow loss [B]; `time` is the noise level (graftcache's convention), by default Wall-X's own
-        draw turned into one."""
-        if time is None:
-            head = self.policy.model.action_preprocessor
-            time = 1 - head.sample_time(batch[STATE].shape[0], self.device)
-        return super().loss(batch, noise, time)
+    def sample_time(self, batch_size: int) -> torch.Tensor:
+        """Wall-X's own draw, as a noise level (graftcache's convention: 1 - its t)."""
+        return self.noise_level(self.policy.model.action_preprocessor.sample_time(batch_size, self.device))
 
     def _flow_losses(self, batch: Mapping[str, Any], noise: torch.Tensor, time: torch.Tensor) -> torch.Tensor:
         """lerobot's Wall-X forward with the given draws; the per-element loss from the action head's prediction
@@ -255,10 +253,3 @@ class WallXAdapter(NativeVision, WrappedCheckpointing, BackboneAdapter):
         """Every decoder layer of the MoE language model (attention and both experts)."""
         for layer in self.policy.model.model.layers:
             yield layer, "forward"
-
-    # ------------------------------------------------------------------------------ reporting
-    module_paths = {
-        "patch embedding": ("_vision_owner.patch_embed",),
-        "language model": ("policy.model.model",),
-        "action head": ("policy.model.action_preprocessor",),
-    }

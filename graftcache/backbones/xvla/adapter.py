@@ -34,6 +34,7 @@ from transformers.modeling_outputs import BaseModelOutputWithPooling
 from graftcache.backbones.base import BackboneAdapter, is_empty_camera
 from graftcache.backbones.batches import ACTION_PAD
 from graftcache.backbones.recompute import WrappedCheckpointing
+from graftcache.backbones.spec import BackboneSpec
 from graftcache.backbones.tiny_assets import PALIGEMMA_DIR
 from graftcache.errors import BackboneError
 
@@ -48,10 +49,18 @@ def conv_grid(size: tuple[int, int], vision) -> tuple[int, int]:
 
 class XVLAAdapter(WrappedCheckpointing, BackboneAdapter):
     name = "xvla"
-    vision_slots = ("vision_tower", "multi_modal_projector")
-    steps_field = "num_denoising_steps"
-    image_method = "_prepare_images"
-    token_steps = ("TokenizerProcessorStep",)
+    spec = BackboneSpec(
+        image_method="_prepare_images",
+        vision_slots=("vision_tower", "multi_modal_projector"),
+        lm_width="_vision_owner.config.vision_config.projection_dim",
+        module_paths={
+            "language model": ("_vision_owner.language_model",),
+            "action transformer": ("policy.model.transformer",),
+        },
+        steps_field="num_denoising_steps",
+        token_steps=("TokenizerProcessorStep",),
+        activation_checkpointing=True,
+    )
 
     def _patch_graft(self, graft) -> None:
         """Grafted, Florence-2's `get_image_features` projects the cached features (undone by reset)."""
@@ -122,14 +131,6 @@ class XVLAAdapter(WrappedCheckpointing, BackboneAdapter):
         return conv_grid(tuple(size), config.get_florence_config().vision_config)
 
     @property
-    def lm_width(self) -> int:
-        return self._vision_owner.config.vision_config.projection_dim
-
-    @property
-    def embed_scale(self) -> float:
-        return 1.0
-
-    @property
     def max_action_dim(self) -> int:
         """The action space's model-facing width (the "auto" space pads the real dims to `max_action_dim`)."""
         return self.policy.model.dim_action
@@ -195,10 +196,6 @@ class XVLAAdapter(WrappedCheckpointing, BackboneAdapter):
         proprio, x_t = model.action_space.preprocess(inputs["proprio"].to(x_t.dtype), x_t)
         return model.transformer(domain_id=inputs["domain_id"], action_with_noise=x_t, t=t, proprio=proprio, **enc)
 
-    def _flow_losses(self, batch, noise, time) -> torch.Tensor:
-        raise BackboneError(f"{self.name}: X-VLA's loss is its action space's reduced loss, not a per-element "
-                            "flow loss; call loss()")
-
     def loss(self, batch: Mapping[str, Any], noise: torch.Tensor | None = None,
              time: torch.Tensor | None = None) -> torch.Tensor:
         """Per-sample X-VLA loss [B]: the action space's own loss (`compute_loss`, summed over its terms as
@@ -242,10 +239,3 @@ class XVLAAdapter(WrappedCheckpointing, BackboneAdapter):
             yield layer, "forward"
         for block in self.policy.model.transformer.blocks:
             yield block, "forward"
-
-    # ------------------------------------------------------------------------------ reporting
-    module_paths = {
-        "language model": ("_vision_owner.language_model",),
-        "action transformer": ("policy.model.transformer",),
-    }
-

@@ -1,0 +1,44 @@
+"""What never varies per backbone, declared once as data on its adapter (`BackboneAdapter.spec`), as timm declares a
+model's pretrained configuration: which policy method makes the images, where the tower and connector sit, where the
+LM width is read, how lerobot scales image tokens, which way its flow time runs, how its loss is reduced, whether its
+LM and expert can recompute activations, and how many cells share a pass by default. What differs in behaviour, not
+data, is a hook on the adapter, each declared once with one signature (`sample_time`, `_grid_of_config`,
+`_flow_losses`, `_predict_chunk`, ...).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Literal
+
+
+@dataclass(frozen=True)
+class BackboneSpec:
+    """One backbone's constants (see the module docstring)."""
+
+    #: The policy method turning a batch into (images, masks) or the model's inputs; grafted, it reads cached features.
+    image_method: str
+    #: (tower attribute, connector attribute) of the adapter's `_vision_owner`: the graft's two slots.
+    vision_slots: tuple[str, str]
+    #: Attribute path from the adapter to the LM's embedding width (the projector's output width).
+    lm_width: str
+    #: Freeze-report groups after the tower and connector: name -> attribute paths from the adapter.
+    module_paths: Mapping[str, tuple[str, ...]]
+    #: The config field holding the default number of denoising (or decoding) steps; None: the `num_steps` hook.
+    steps_field: str | None = None
+    #: Preprocessor steps that build the prompt tokens (tokenised once per task unless `prompt_uses_state`).
+    token_steps: tuple[str, ...] = ()
+    #: The prompt embeds the state (or is built per batch by the policy): tokens are made per batch.
+    prompt_uses_state: bool = False
+    #: lerobot multiplies image tokens by sqrt(LM width) after the connector (SmolVLA); else by 1.
+    scaled_embeddings: bool = False
+    #: What the policy's own flow time t is: "noise" (t = 1 at pure noise, graftcache's convention for `time`) or
+    #: "data" (t = 1 at the action: graftcache's time is 1 - t); None: no flow time (a token objective).
+    flow_time: Literal["noise", "data"] | None = "noise"
+    #: `loss` gives one value a sample, so cells may share a backbone pass (fused); False: one mean over the batch.
+    loss_per_sample: bool = True
+    #: The frozen LM and expert can recompute activations in backward (`_switch_checkpointing`).
+    activation_checkpointing: bool = False
+    #: Cells per backbone pass when a request does not say, by device type (graftcache.fit.passes); unlisted: 1.
+    cells_per_pass: Mapping[str, int] = field(default_factory=dict)
