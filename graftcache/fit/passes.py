@@ -100,6 +100,9 @@ class Runner(Protocol):
 
     slots: int  # passes in flight at once
 
+    def planned(self, members: Sequence[Member]) -> None:
+        """The cells left to run once finished ones are skipped (before any is claimed)."""
+
     def submit(self, members: Sequence[Member]) -> int:
         """Start a pass; returns its ticket."""
 
@@ -187,6 +190,7 @@ def run_passes(plans: Sequence[Plan], runner: Runner,
     then skipped once its row is in the file (or computed here if that process died)."""
     set_main_threads()
     members = missing_cells(plans, visited)
+    runner.planned(members)
     claims = {m.at: results.cell_claim(*m.at) for m in members}
     left = Counter(id(m.plan) for m in members)
     rows: list[dict[str, Any]] = []

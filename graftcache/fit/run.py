@@ -192,15 +192,20 @@ class LocalRunner:
         self.numerics = {} if numerics is None else numerics
         self._materials: dict[int, Materials] = {}  # id(plan) -> its materials
         self._queue: list[tuple[int, Sequence[Member]]] = []
+        self._tickets = 0
 
     def materials(self, plan: Plan) -> Materials:
         if id(plan) not in self._materials:
             self._materials[id(plan)] = Materials(plan, self.backbones, self.numerics)
         return self._materials[id(plan)]
 
+    def planned(self, members: Sequence[Member]) -> None:
+        """Nothing to say: each pass's rows are told as they come."""
+
     def submit(self, members: Sequence[Member]) -> int:
-        self._queue.append((len(self._queue), members))
-        return self._queue[-1][0]
+        self._tickets += 1
+        self._queue.append((self._tickets, members))
+        return self._tickets
 
     def next_done(self) -> tuple[int, list[dict[str, Any]]]:
         ticket, members = self._queue.pop(0)
