@@ -14,8 +14,8 @@ from __future__ import annotations
 import dataclasses
 import functools
 import os
-from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -26,6 +26,7 @@ from graftcache.backbone_table import native_name
 from graftcache.backbones import get_backbone
 from graftcache.backbones.tiny_record import resolve_policy
 from graftcache.cameras import format_camera_map, match_cameras, renames
+from graftcache.codecs import without_none
 from graftcache.errors import FitError
 from graftcache.fit.controls import Control, check_pool_grid, get_control
 from graftcache.fit.data import split_episodes, suite_index_table
@@ -35,49 +36,28 @@ from graftcache.fit.stream import FeatureSource
 from graftcache.pooling import format_grid, parse_grid
 from graftcache.requests import FitRequest
 from graftcache.runtime import resolve_compute_dtype, resolve_device
+from graftcache.settings import Declared, declared
 from graftcache.store import FeatureCache, cache_root
 from graftcache.store.readthrough import reading_root
 
 __all__ = ["Cell", "Plan"]
 
 
-@dataclass(frozen=True)
-class Cell:
-    """What identifies one results row: every field, by name and value, is hashed into the row's run_id, with the
-    shape of cells (`format_version`: results.CELL_FORMAT); a change of its shape is a new results.FORMAT_VERSION,
-    whose results.upgrade says what becomes of older rows. A field added since CELL_FORMAT is hashed only where it
-    differs from what every cell of that format held (results.FORMAT_3_VALUES), so that a cell format 3 could
-    express keeps its run_id."""
+#: The FitRequest settings each cell holds, as their declarations say (graftcache/requests.py, `cell=`).
+CELL_SETTINGS: dict[str, Declared] = {name: d for name, d in declared(FitRequest).items() if d.setting.cell}
+#: The FitRequest settings the cells of one backbone pass share (`shared=True`), in declaration order.
+PASS_SETTINGS: tuple[str, ...] = tuple(name for name, d in declared(FitRequest).items() if d.setting.shared)
 
-    backbone: str
-    policy: str
-    cache_key: str
-    suite: str
-    seed: int
-    control: str
-    pool_grid: str            # the grid its features are pooled to, resolved ("8x8": the control's, else the
-                              # backbone's token grid), so that the run_id hashes what the row writes
-    objective: str            # "flow" | "align" | "align-flow" | "eval"
-    steps: int
-    lr: float
-    batch_size: int
-    buffer_mib: int
-    lora_rank: int
-    eval_fraction: float
-    eval_split_seed: int
-    eval_frames: int | None
-    num_denoise_steps: int | None
-    compute_dtype: str
-    camera_map: str | None = None  # canonical text, only when a policy camera is fed by another name
-    eval_split: str = "graftcache"  # which episodes are held out (graftcache.fit.data.SPLITS)
-    format_version: int = results.CELL_FORMAT
+
+class _CellMethods:
+    """What a Cell does (its fields: `Cell`)."""
 
     @property
     def run_id(self) -> str:
         known = results.FORMAT_3_VALUES
         return results.make_run_id({k: v for k, v in asdict(self).items() if not (k in known and known[k] == v)})
 
-    def row(self, req: FitRequest, measured: dict[str, Any]) -> dict[str, Any]:
+    def row(self, req: FitRequest, measured: Mapping[str, Any]) -> dict[str, Any]:
         """The results row: each SCHEMA column from what the cell measured, else the cell, else the request
         (so a new column that names a request field needs no code here)."""
         sources = (measured, asdict(self), asdict(req))
@@ -88,6 +68,33 @@ class Cell:
                 raise FitError(f"results column {column!r} is neither measured, nor a cell or FitRequest field")
             row[column] = source[column]
         return row
+
+
+#: What identifies one results row: every field, by name and value, is hashed into the row's run_id, with the shape
+#: of cells (`format_version`: results.CELL_FORMAT); a change of its shape is a new results.FORMAT_VERSION, whose
+#: results.upgrade says what becomes of older rows. A field added since CELL_FORMAT is hashed only where it differs
+#: from what every earlier cell held (results.ADDED_TO_CELLS), so that a cell format 3 could express keeps its
+#: run_id. Its fields: what a Plan resolves (the policy as rows name it, the cache read, seed, control, the grid the
+#: features are pooled to, resolved so that the run_id hashes what the row writes, the objective as run), then every
+#: FitRequest setting declared into cells (CELL_SETTINGS), then the camera map (canonical text, only when a policy
+#: camera is fed by another name) and the format.
+Cell = dataclasses.make_dataclass(
+    "Cell",
+    [("policy", str), ("cache_key", str), ("seed", int), ("control", str), ("pool_grid", str), ("objective", str),
+     *((name, d.hint) for name, d in CELL_SETTINGS.items() if d.setting.cell.since is None),
+     ("camera_map", str | None, dataclasses.field(default=None)),
+     *((name, d.hint, dataclasses.field(default=d.setting.cell.before))
+       for name, d in CELL_SETTINGS.items() if d.setting.cell.since is not None),
+     ("format_version", int, dataclasses.field(default=results.CELL_FORMAT))],
+    bases=(_CellMethods,), frozen=True, module=__name__)
+
+
+def _cell_value(req: FitRequest, name: str, objective: Objective, control: Control) -> Any:
+    """A cell's value of a declared setting: the request's where the cell uses it (graftcache.settings.Identity's
+    `when`), else its type's zero."""
+    d = CELL_SETTINGS[name]
+    used = {"always": True, "scheduled": objective.scheduled, "lora": control.lora}[d.setting.cell.when]
+    return getattr(req, name) if used else without_none(d.hint)()
 
 
 class Plan:
@@ -160,18 +167,12 @@ class Plan:
     # ---------------------------------------------------------------- cells
     def cell(self, control: Control, seed: int) -> Cell:
         """What identifies a results row (hashed into its run_id); computable without loading anything."""
-        req, objective = self.req, self.objective_of(control)
-        scheduled = objective.scheduled
+        objective = self.objective_of(control)
         return Cell(
-            backbone=req.backbone, policy=self.policy_id, cache_key=self.source(control).key, suite=req.suite,
-            seed=seed, control=control.name, pool_grid=format_grid(control.grid or self.token_grid),
-            objective=objective.name, steps=req.steps if scheduled else 0, lr=req.lr if scheduled else 0.0,
-            batch_size=req.batch_size if scheduled else 0, buffer_mib=req.buffer_mib if scheduled else 0,
-            lora_rank=req.lora_rank if control.lora else 0,
-            eval_fraction=req.eval_fraction, eval_split_seed=req.eval_split_seed, eval_split=req.eval_split,
-            eval_frames=req.eval_frames,
-            num_denoise_steps=req.num_denoise_steps, compute_dtype=req.compute_dtype,
+            policy=self.policy_id, cache_key=self.source(control).key, seed=seed, control=control.name,
+            pool_grid=format_grid(control.grid or self.token_grid), objective=objective.name,
             camera_map=format_camera_map(self.cameras) if renames(self.cameras) else None,
+            **{name: _cell_value(self.req, name, objective, control) for name in CELL_SETTINGS},
         )
 
     def cells(self) -> list[tuple[Control, int, Cell]]:
@@ -180,9 +181,9 @@ class Plan:
 
     def pass_key(self, control: Control) -> tuple | None:
         """What cells must share to train in one pass of the backbone (graftcache/fit/passes.py): the loaded
-        policy and its compute dtype, the shape of the tokens fed to it (grid and width), the training schedule
-        and the scoring's denoising, and the request's `cells_per_pass` (None: the default of the backbone on this
-        device, which the key already holds). None: the cell runs alone (LoRA, align,
+        policy on its device, the shape of the tokens fed to it (grid and width), and every setting declared shared
+        (PASS_SETTINGS: the backbone, compute dtype, training schedule, the scoring's denoising, `cells_per_pass`,
+        None there meaning the backbone's default on the key's device). None: the cell runs alone (LoRA, align,
         controls that train nothing). Read from the policy's config and the cache's layout: nothing is loaded."""
         if control.name not in self._pass_keys:
             key = None
@@ -192,8 +193,8 @@ class Plan:
                 grid = control.grid or self.token_grid
                 source = FeatureSource.of(self.source(control), list(self.cameras.values()), grid)
                 width = source.frame_shape(source.cameras[0])[1]
-                key = (req.backbone, str(self.policy_folder), str(self.device), req.compute_dtype, grid, width,
-                       req.steps, req.batch_size, req.num_denoise_steps, req.cells_per_pass)
+                key = (str(self.policy_folder), str(self.device), grid, width,
+                       *(getattr(req, name) for name in PASS_SETTINGS))
             self._pass_keys[control.name] = key
         return self._pass_keys[control.name]
 
