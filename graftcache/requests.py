@@ -18,6 +18,18 @@ records, and checked whenever a FitRequest is built. A choice is `choices=("auto
 `bool` field (default False: `--name`; default True: `--no-name`). A field the command sets itself takes
 `flag=None`; one the sweep's grid sets takes `recipe=False`.
 
+A FitRequest setting that changes the numbers says so in the same declaration: `cell=` puts it in each cell's
+identity (graftcache.fit.plan.Cell, hashed into the run_id; `SCHEDULED`: only cells whose objective takes steps),
+`shared=True` makes the cells of a backbone pass share it (the pass key), `column=True` gives rows a column of it.
+One added to cells after the results format its cells hash (graftcache.results.CELL_FORMAT) names the format that
+adds it and what every earlier cell held, e.g.
+
+    weight_decay: float = setting(0.0, rule=WEIGHT_DECAY, column=True,
+                                  cell=Identity("scheduled", since=5, before=0.0))
+
+so that earlier cells keep their run_ids, earlier rows read as holding 0.0, and results.FORMAT_VERSION becomes 5;
+what is left is its use (here: the optimiser graftcache.fit.loop.learner builds).
+
 Nothing here imports torch or the models, so building the CLI's parser stays cheap: choices are plain data, and
 help that lists what a heavy module registers is a function the CLI calls only to print help.
 """
