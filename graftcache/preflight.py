@@ -89,17 +89,11 @@ def _suite_episodes(recipe: Recipe, meta: DatasetMeta) -> dict[str, pl.DataFrame
 
 
 def _extract_request(recipe: Recipe, encoder: str, **kw: Any) -> ExtractRequest:
-    return _made(recipe, "extract", lambda: ExtractRequest(dataset=recipe.dataset, encoder=encoder,
-                                                          device=recipe.device, cache=recipe.cache,
-                                                          **{**recipe.extract, **kw}))
+    return _made(recipe, "extract", lambda: recipe.extract_request(encoder, **kw))
 
 
 def _fit_request(recipe: Recipe, backbone: str, policy: str, encoder: str, suite: str) -> FitRequest:
-    return _made(recipe, "fit", lambda: FitRequest(
-        backbone=backbone, encoder=encoder, suite=suite, policy=policy, dataset=recipe.dataset,
-        seeds=recipe.seeds, controls=recipe.controls, objective=recipe.objective, camera_map=recipe.camera_map,
-        device=recipe.device, results=recipe.results, cache=recipe.cache, progress=False,
-        command=f"graftcache sweep {recipe.path}", **recipe.fit))
+    return _made(recipe, "fit", lambda: recipe.fit_request(backbone, policy, encoder, suite))
 
 
 def _made[R](recipe: Recipe, section: str, build: Callable[[], R]) -> R:

@@ -30,7 +30,7 @@ from __future__ import annotations
 import tomllib
 import typing
 from collections.abc import Mapping
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, make_dataclass
 from pathlib import Path
 from typing import Any
 
@@ -40,7 +40,7 @@ from graftcache.codecs import matches, type_name
 from graftcache.errors import GraftcacheError
 from graftcache.fit.controls import get_control
 from graftcache.requests import ExecutorSettings, ExtractRequest, FitRequest, TinyTrainConfig
-from graftcache.settings import default_of, recipe_keys
+from graftcache.settings import declared, recipe_keys
 
 
 class RecipeError(GraftcacheError):
@@ -74,27 +74,14 @@ SECTIONS: dict[str, type] = {"extract": ExtractRequest, "fit": FitRequest, "trai
 SECTION_KEYS: dict[str, tuple[str, ...]] = {section: recipe_keys(cls) for section, cls in SECTIONS.items()}
 
 
-@dataclass(frozen=True)
-class Recipe:
-    """One sweep, as read from a TOML file."""
+#: The FitRequest settings a recipe sets once, at its top level, for every fit of the sweep: Recipe takes their types
+#: and defaults from their declarations (graftcache/requests.py); the extractions take dataset, device, cache too.
+TOP_LEVEL = ("dataset", "results", "seeds", "controls", "objective", "camera_map", "cache", "device")
+_REQUIRED = ("name", "dataset", "results", "suites", "backbones", "encoders", "seeds")
 
-    name: str
-    dataset: str
-    results: str
-    suites: tuple[str, ...]
-    backbones: tuple[BackboneEntry, ...]
-    encoders: tuple[EncoderEntry, ...]
-    seeds: tuple[int, ...]
-    controls: tuple[str, ...] = ()
-    objective: str = default_of(FitRequest, "objective")
-    camera_map: str | None = None
-    cache: str | None = None
-    device: str = default_of(FitRequest, "device")
-    extract: Mapping[str, Any] = field(default_factory=dict)     # ExtractRequest overrides
-    fit: Mapping[str, Any] = field(default_factory=dict)         # FitRequest overrides
-    train_tiny: Mapping[str, Any] = field(default_factory=dict)  # TinyTrainConfig overrides
-    executor: Mapping[str, Any] = field(default_factory=dict)    # ExecutorSettings overrides
-    path: str = ""
+
+class _RecipeMethods:
+    """What a Recipe does (its fields: `Recipe`)."""
 
     @property
     def executor_settings(self) -> ExecutorSettings:
@@ -113,9 +100,42 @@ class Recipe:
         per_seed = len(self.encoders) * (1 + len(self.controls) - native) + native
         return len(self.backbones) * len(self.suites) * len(self.seeds) * per_seed
 
+    def fit_request(self, backbone: str, policy: str, encoder: str, suite: str, **resolved: Any) -> FitRequest:
+        """The FitRequest of one (backbone, encoder, suite) of the grid: the top-level settings, the [fit] table,
+        and what the sweep resolved (`resolved`: cache keys, ...)."""
+        return FitRequest(backbone=backbone, policy=policy, encoder=encoder, suite=suite,
+                          **{k: getattr(self, k) for k in TOP_LEVEL}, progress=False,
+                          command=f"graftcache sweep {self.path}", **resolved, **self.fit)
+
+    def extract_request(self, encoder: str, **kw: Any) -> ExtractRequest:
+        """The ExtractRequest of one of the sweep's caches: the [extract] table, overridden by `kw`."""
+        return ExtractRequest(dataset=self.dataset, encoder=encoder, device=self.device, cache=self.cache,
+                              **{**self.extract, **kw})
+
+
+def _top_level(name: str) -> tuple:
+    """A Recipe field declared by the FitRequest field it sets: its type, and its default unless required."""
+    d = declared(FitRequest)[name]
+    hint = str if name in ("dataset",) else d.hint  # a sweep needs a dataset (FitRequest's may be None)
+    return (name, hint) if name in _REQUIRED else (name, hint, field(default=d.default))
+
+
+#: One sweep, as read from a TOML file: its name, grid (suites, backbones, encoders, and seeds, controls, objective
+#: among the TOP_LEVEL settings), and per-stage settings tables: request overrides.
+Recipe = make_dataclass(
+    "Recipe",
+    [("name", str), *(_top_level(k) for k in TOP_LEVEL if k in _REQUIRED),
+     ("suites", tuple[str, ...]), ("backbones", tuple[BackboneEntry, ...]), ("encoders", tuple[EncoderEntry, ...]),
+     *(_top_level(k) for k in TOP_LEVEL if k not in _REQUIRED),
+     ("extract", Mapping[str, Any], field(default_factory=dict)),     # ExtractRequest overrides
+     ("fit", Mapping[str, Any], field(default_factory=dict)),         # FitRequest overrides
+     ("train_tiny", Mapping[str, Any], field(default_factory=dict)),  # TinyTrainConfig overrides
+     ("executor", Mapping[str, Any], field(default_factory=dict)),    # ExecutorSettings overrides
+     ("path", str, field(default=""))],
+    bases=(_RecipeMethods,), frozen=True, module=__name__)
+
 
 _LISTS = {"backbones": BackboneEntry, "encoders": EncoderEntry}
-_REQUIRED = ("name", "dataset", "results", "suites", "backbones", "encoders", "seeds")
 
 
 def _typed(cls: type, values: Mapping[str, Any], where: str) -> dict[str, Any]:

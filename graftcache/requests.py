@@ -18,6 +18,18 @@ records, and checked whenever a FitRequest is built. A choice is `choices=("auto
 `bool` field (default False: `--name`; default True: `--no-name`). A field the command sets itself takes
 `flag=None`; one the sweep's grid sets takes `recipe=False`.
 
+A FitRequest setting that changes the numbers says so in the same declaration: `cell=` puts it in each cell's
+identity (graftcache.fit.plan.Cell, hashed into the run_id; `SCHEDULED`: only cells whose objective takes steps),
+`shared=True` makes the cells of a backbone pass share it (the pass key), `column=True` gives rows a column of it.
+One added to cells after the results format its cells hash (graftcache.results.CELL_FORMAT) names the format that
+adds it and what every earlier cell held, e.g.
+
+    weight_decay: float = setting(0.0, rule=WEIGHT_DECAY, column=True,
+                                  cell=Identity("scheduled", since=5, before=0.0))
+
+so that earlier cells keep their run_ids, earlier rows read as holding 0.0, and results.FORMAT_VERSION becomes 5;
+what is left is its use (here: the optimiser graftcache.fit.loop.learner builds).
+
 Nothing here imports torch or the models, so building the CLI's parser stays cheap: choices are plain data, and
 help that lists what a heavy module registers is a function the CLI calls only to print help.
 """
@@ -49,7 +61,7 @@ from graftcache.checks import (
 from graftcache.dtypes import COMPUTE_DTYPES, STORED_DTYPES
 from graftcache.lazy import import_string
 from graftcache.pooling import UNPOOLED, valid_grid_names
-from graftcache.settings import Checked, Twin, setting
+from graftcache.settings import Checked, Identity, Twin, setting
 
 #: A camera map's text (graftcache/cameras.py); the CLI's parser names what is wrong with one in more detail.
 CAMERA_MAP: Rule = (valid_camera_map, f"must be {SYNTAX}, each policy camera once, each from a camera of its own")
@@ -58,10 +70,10 @@ CACHE_HELP = "cache root: a folder or an s3:// gs:// az:// URL (default: $GRAFTC
 PROGRESS_HELP = "no progress bars or lines"
 
 
-def compute_dtype() -> Any:
+def compute_dtype(**fit: Any) -> Any:
     """The compute_dtype field of every request that runs a model: resolved per device
-    (runtime.resolve_compute_dtype) before anything is keyed or recorded."""
-    return setting("auto", choices=COMPUTE_DTYPES,
+    (runtime.resolve_compute_dtype) before anything is keyed or recorded (`fit`: what a fit's cells make of it)."""
+    return setting("auto", choices=COMPUTE_DTYPES, **fit,
                    help="model compute precision. auto: bf16 where the device computes it in hardware (CUDA with bf16, "
                    "CPUs with AVX512-BF16/AMX), else fp32. The resolved dtype is recorded in manifests, keys and rows")
 
@@ -144,6 +156,10 @@ RESULTS_FILE: Rule = (lambda v: bool(v.strip()) and not v.endswith(("/", os.sep)
                       "must name a file, e.g. results.parquet (not empty, not ending in /)")
 
 
+#: How FitRequest settings enter a cell's identity (graftcache.settings.Identity): for every cell, for cells whose
+#: objective takes steps, for the lora control's cells.
+ALWAYS, SCHEDULED, LORA = Identity("always"), Identity("scheduled"), Identity("lora")
+
 #: A LoRA rank past the language model's width adds nothing (every backbone's is at most 2048), and each adapter's
 #: matrices grow with it: past this the control only allocates.
 MAX_LORA_RANK = 4096
@@ -154,9 +170,10 @@ LORA_RANK: Rule = (lambda v: 0 < v <= MAX_LORA_RANK, f"must be in 1..{MAX_LORA_R
 class FitRequest(Checked):
     """Everything `graftcache fit` needs: one (backbone, encoder, suite) over seeds and controls."""
 
-    backbone: str = setting(recipe=False, choices=tuple(BACKBONES))
+    backbone: str = setting(recipe=False, choices=tuple(BACKBONES), cell=ALWAYS, shared=True)
     encoder: str = setting(recipe=False, help="encoder whose cache to graft (registry name)")
-    suite: str = setting(recipe=False, rule=SUITE, help=lambda: f"LIBERO suite: {', '.join(_suites()[:-1])}")
+    suite: str = setting(recipe=False, rule=SUITE, help=lambda: f"LIBERO suite: {', '.join(_suites()[:-1])}",
+                         cell=ALWAYS)
     policy: str = setting("tiny", recipe=False,
                           help="hub id (HF cache), local checkpoint folder, or 'tiny' (the sample-trained tiny "
                           "backbone)")
@@ -178,26 +195,29 @@ class FitRequest(Checked):
     objective: str = setting(
         "flow", choices=OBJECTIVES, recipe=False,
         help="flow: the policy's loss; align: closed-form ridge onto the native tokens (cheap screening)")
-    steps: int = setting(300, rule=POSITIVE)
-    lr: float = setting(1e-3, rule=LEARNING_RATE, help="AdamW's learning rate, in (0, 1]")
-    batch_size: int = setting(16, rule=POSITIVE)
-    buffer_mib: int = setting(
-        2048, rule=POSITIVE,
+    steps: int = setting(300, rule=POSITIVE, cell=SCHEDULED, shared=True, column=True)
+    lr: float = setting(1e-3, rule=LEARNING_RATE, help="AdamW's learning rate, in (0, 1]", cell=SCHEDULED, column=True)
+    batch_size: int = setting(16, rule=POSITIVE, cell=SCHEDULED, shared=True, column=True)
+    buffer_mib: int = setting(  # a column: 0 where the cell trains nothing or by align
+        2048, rule=POSITIVE, cell=SCHEDULED, column=True,
         help="MiB of training features held in the shuffle buffer: with --num-workers x 2 prefetched cache blocks, "
         "what bounds the fit's memory whatever the suite's size (more mixes episodes better); reading in this "
         "process (--num-workers 0), up to as much again of read blocks is kept for the next cells")
-    eval_fraction: float = setting(0.2, rule=FRACTION, help="held-out share of each task's episodes")
-    eval_split_seed: int = setting(0, rule=SEED)
-    eval_split: str = setting(
-        EVAL_SPLITS[0], choices=EVAL_SPLITS, flag="--split",
+    eval_fraction: float = setting(0.2, rule=FRACTION, help="held-out share of each task's episodes", cell=ALWAYS)
+    eval_split_seed: int = setting(0, rule=SEED, cell=ALWAYS, column=True)
+    eval_split: str = setting(  # added to cells by results format 4 (issue 31); every earlier cell: graftcache's
+        EVAL_SPLITS[0], choices=EVAL_SPLITS, flag="--split", cell=Identity(since=4, before=EVAL_SPLITS[0]),
+        column=True,
         help="which --eval-fraction of each task's episodes is held out: graftcache (drawn with --eval-split-seed) or "
         "lerobot (the last ceil(n * fraction), as `lerobot-train --dataset.eval_split` holds out, to compare with "
         "lerobot's validation); rows record it (eval_split)")
-    eval_frames: int | None = setting(None, rule=POSITIVE, help="cap on scored held-out frames (evenly spaced)")
+    eval_frames: int | None = setting(None, rule=POSITIVE, help="cap on scored held-out frames (evenly spaced)",
+                                      cell=ALWAYS)
     eval_batch_size: int = setting(64, rule=POSITIVE, help="held-out frames denoised at once (memory, not the "
-                                   "scores); rows record eval_seconds_per_frame")
-    num_denoise_steps: int | None = setting(None, rule=POSITIVE)
-    lora_rank: int = setting(8, rule=LORA_RANK, help=f"rank of the lora control's adapters (1..{MAX_LORA_RANK})")
+                                   "scores); rows record eval_seconds_per_frame", column=True)
+    num_denoise_steps: int | None = setting(None, rule=POSITIVE, cell=ALWAYS, shared=True)
+    lora_rank: int = setting(8, rule=LORA_RANK, help=f"rank of the lora control's adapters (1..{MAX_LORA_RANK})",
+                             cell=LORA)
     activation_checkpointing: str = setting(
         "auto", choices=CHECKPOINTING_MODES,
         help="recompute the frozen LM's and action expert's activations during backward (same gradients, less "
@@ -207,13 +227,13 @@ class FitRequest(Checked):
     num_workers: int = setting(  # the numbers do not depend on it
         2, rule=WORKERS,
         help="processes reading and pooling cached features ahead of the model (0: in this process; at most 1024)")
-    cells_per_pass: int | None = setting(
-        None, rule=POSITIVE, metavar="N",
+    cells_per_pass: int | None = setting(  # an execution setting: in no cell, hence in no run_id
+        None, rule=POSITIVE, metavar="N", shared=True,
         help="cells (seeds, image controls, encoders of one grid and width) trained together in one forward and "
         "backward of the frozen backbone, each with its own projector, loss, optimiser and random streams; rows equal "
         "one-cell-at-a-time rows up to float rounding and keep their run_ids; lora, align and native cells run alone "
         "(default: per backbone and device, its spec's cells_per_pass: 1 on CPU)")
-    compute_dtype: str = compute_dtype()
+    compute_dtype: str = compute_dtype(cell=ALWAYS, shared=True, column=True)  # resolved before any cell is named
     results: str = setting("results.parquet", rule=RESULTS_FILE, recipe=False)
     out: str | None = setting(None, help="run folder for projectors (default: runs/ beside --results, or, where that "
                               "cannot be written, runs/ in the local cache folder, as the log says)")
@@ -225,7 +245,8 @@ class FitRequest(Checked):
     accept_numerics_drift: bool = setting(
         False, help="fit even when this environment computes a cache's features differently from the one that made "
         "it (its numerics fingerprint); each row records the measured drift")
-    command: str = setting(default_factory=lambda: " ".join(["graftcache", *sys.argv[1:]]), flag=None, recipe=False)
+    command: str = setting(default_factory=lambda: " ".join(["graftcache", *sys.argv[1:]]), flag=None, recipe=False,
+                           column=True)  # the command line that produced the row
 
 
 #: Ray's num_gpus: a share of one GPU (several tasks on one device) or whole GPUs.

@@ -38,26 +38,36 @@ from typing import Any
 import polars as pl
 
 import graftcache
+from graftcache.codecs import without_none
 from graftcache.errors import GraftcacheError, ResultsError
 from graftcache.file_lease import FileLease
 from graftcache.hashing import sha256_json
+from graftcache.requests import FitRequest
+from graftcache.settings import declared
 from graftcache.store.lease import lease_seconds
 
 #: A writer waiting this long for a results file's lease says what it waits for and on whom (an append holds it ~20
 #: ms; a dead, empty or other machine's lease file is waited on until it is judged stale: graftcache.file_lease).
 WAIT_TOLD_S = 1.0
 
+#: The shape of the cells run_ids hash (graftcache.fit.plan.Cell, whose `format_version` field holds it): rows of
+#: formats CELL_FORMAT..FORMAT_VERSION name the same cell by the same run_id, so a rerun skips what any of them holds.
+CELL_FORMAT = 3
+#: Each FitRequest setting added to cells since CELL_FORMAT (its declaration's graftcache.settings.Identity `since`)
+#: -> (the results format that added it, what every cell before it held). Such a setting is hashed only off that
+#: value (graftcache.fit.plan.Cell.run_id), so earlier cells keep their run_ids, and `upgrade` fills its column in
+#: earlier rows with it: `eval_split` (format 4, issue 31), every earlier cell split the graftcache way.
+ADDED_TO_CELLS: dict[str, tuple[int, Any]] = {
+    name: (d.setting.cell.since, d.setting.cell.before) for name, d in declared(FitRequest).items()
+    if d.setting.cell is not None and d.setting.cell.since is not None}
+#: What cells of format 3 held in each field added since (ADDED_TO_CELLS).
+FORMAT_3_VALUES: dict[str, Any] = {name: before for name, (_, before) in ADDED_TO_CELLS.items()}
 #: The format of results rows. Files of an older format go through `upgrade`, the one place that knows them. Format 3
 #: (issue 23, one word per idea) renamed no column but changed what cells hold (`pool_grid` is the resolved grid,
 #: never "native"), hence every run_id. Format 4 (issue 31) added columns and one cell field, `eval_split`, hashed
-#: only off its default (graftcache.fit.run.Cell.run_id), so its cells hash as format 3's: format 3 rows are upgraded.
-FORMAT_VERSION = 4
-#: The shape of the cells run_ids hash (graftcache.fit.run.Cell, whose `format_version` field holds it): rows of
-#: formats CELL_FORMAT..FORMAT_VERSION name the same cell by the same run_id, so a rerun skips what any of them holds.
-CELL_FORMAT = 3
-#: What a format 3 row held, without a column for it, in a column format 4 added (every other added column is
-#: null there: format 3 did not measure it): every format 3 cell was split the graftcache way.
-FORMAT_3_VALUES: dict[str, Any] = {"eval_split": "graftcache"}
+#: only off its default, so its cells hash as format 3's: format 3 rows are upgraded. A setting declared into cells
+#: by a later format (ADDED_TO_CELLS) makes that format this one.
+FORMAT_VERSION = max(4, *(since for since, _ in ADDED_TO_CELLS.values()))
 #: What a row without a column of format 4 (of format 3, or of format 4 written before issue 32 split random_init)
 #: held in it, where its other columns say so: random_init is the union of the encoder's and the backbone's, so a
 #: row whose random_init is false had neither; a true one leaves both unknown (null).
@@ -65,6 +75,9 @@ DERIVED: dict[str, pl.Expr] = {
     "encoder_random_init": pl.when(~pl.col("random_init")).then(False),
     "backbone_random_init": pl.when(~pl.col("random_init")).then(False),
 }
+
+#: A setting's column type, by its field's type.
+_POLARS: dict[type, pl.DataType] = {int: pl.Int64, float: pl.Float64, str: pl.String, bool: pl.Boolean}
 
 SCHEMA: dict[str, pl.DataType] = {
     "run_id": pl.String,
@@ -81,10 +94,10 @@ SCHEMA: dict[str, pl.DataType] = {
     "control": pl.String,             # "none" for the plain graft
     "pool_grid": pl.String,           # e.g. "8x8"
     "objective": pl.String,           # "flow" | "align" | "align-flow" | "eval" (native control)
-    "steps": pl.Int64,
-    "lr": pl.Float64,
-    "batch_size": pl.Int64,
-    "buffer_mib": pl.Int64,           # shuffle buffer of a flow fit, MiB of features (0: trains nothing / align)
+    # then every FitRequest setting declared a column (graftcache/requests.py: `column=True`), in declaration
+    # order, typed from its field: steps, lr, batch_size, buffer_mib, eval_split_seed, eval_split, eval_batch_size,
+    # compute_dtype (resolved: "bf16" | "fp32", never "auto"), command (the command line that produced the row)
+    **{name: _POLARS[without_none(d.hint)] for name, d in declared(FitRequest).items() if d.setting.column},
     "train_loss_final": pl.Float64,
     "eval_mse": pl.Float64,           # full chunk, normalised action units
     "eval_mse_first": pl.Float64,     # first action of the chunk, normalised units
@@ -96,9 +109,6 @@ SCHEMA: dict[str, pl.DataType] = {
                                       # (null for an episode without a critical step)
     "n_eval_frames": pl.Int64,
     "n_eval_episodes": pl.Int64,
-    "eval_split_seed": pl.Int64,
-    "eval_split": pl.String,          # which episodes of each task are held out (graftcache.fit.data.SPLITS):
-                                      # "graftcache" (seeded draw) | "lerobot" (the last ceil(n * eval_fraction))
     "eval_mse_arm": pl.Float64,       # eval_mse over the first action_dim - 1 dims (LIBERO: the 6-d end-effector
                                       # delta), normalised units; null: 1-d actions, or a row of format 3
     "eval_mse_gripper": pl.Float64,   # eval_mse over the last action dim (LIBERO: the gripper), normalised units;
@@ -106,7 +116,6 @@ SCHEMA: dict[str, pl.DataType] = {
     "wall_s": pl.Float64,             # a cell trained in a pass of several: its share (the pass's wall time / cells)
     "cells_per_pass": pl.Int64,       # cells trained in the backbone pass that produced the row (1: alone)
     "device": pl.String,
-    "compute_dtype": pl.String,       # resolved model compute dtype ("bf16" | "fp32"), never "auto"
     "random_init": pl.Boolean,        # any random-init weights: encoder_random_init or backbone_random_init
     "encoder_random_init": pl.Boolean,  # the cache's encoder weights were random-init (its manifest's random_init;
                                       # a native tower's cache: the policy's tower, so a tiny policy's says True)
@@ -119,9 +128,7 @@ SCHEMA: dict[str, pl.DataType] = {
     "camera_map": pl.String,          # which cache camera fed each policy camera, e.g. "image=agentview,image2=
                                       # eye_in_hand" (graftcache/cameras.py); also when every name matched
     "graftcache_version": pl.String,
-    "command": pl.String,             # the command line that produced the row
     "activation_checkpointing": pl.String,  # "on" | "off": what `--activation-checkpointing` (auto) resolved to
-    "eval_batch_size": pl.Int64,      # held-out frames denoised at once (the scores do not depend on it)
     "eval_seconds_per_frame": pl.Float64,  # scoring's wall time (reading, prefix, denoising) / n_eval_frames
 }
 
@@ -256,7 +263,7 @@ def read(path: str | Path) -> pl.DataFrame:
 def upgrade(rows: pl.DataFrame, path: Path) -> pl.DataFrame:
     """The one upgrade path for results files: rows of this format as they are; rows of format 3 (their run_ids
     hash cells as this format's do: CELL_FORMAT), and rows of format 4 written before it gained a column, with the
-    columns they lack, each holding FORMAT_3_VALUES' value, what DERIVED derives from the row, or null; rows of an
+    columns they lack, each holding ADDED_TO_CELLS' value, what DERIVED derives from the row, or null; rows of an
     older format (format 1 had no format_version column; format 2 hashed `pool_grid="native"` and the format
     version 2 into its run_ids) are refused in one line with the commands
     that rebuild them, since their run_ids hash cells of another shape: a rerun could not skip their cells and
@@ -265,7 +272,7 @@ def upgrade(rows: pl.DataFrame, path: Path) -> pl.DataFrame:
     current = "format_version" in rows.columns and rows["format_version"].eq(FORMAT_VERSION).all()
     if current and set(SCHEMA) <= set(rows.columns):
         return rows
-    if "format_version" in rows.columns and rows["format_version"].is_in([CELL_FORMAT, FORMAT_VERSION]).all():
+    if "format_version" in rows.columns and rows["format_version"].is_in(range(CELL_FORMAT, FORMAT_VERSION + 1)).all():
         return _from_format_3(rows)
     lacking = [c for c in ("run_id", *REPORT_COLUMNS) if c not in rows.columns]
     if lacking:
@@ -287,14 +294,15 @@ def upgrade(rows: pl.DataFrame, path: Path) -> pl.DataFrame:
 
 
 def _from_format_3(rows: pl.DataFrame) -> pl.DataFrame:
-    """Rows of formats 3 and 4 as format 4: the columns they lack added, null but where FORMAT_3_VALUES knows what
-    format 3 rows held (also filled on format 3 rows of a table that has the column) or DERIVED derives it."""
-    was_3 = pl.col("format_version") == 3  # the row format FORMAT_3_VALUES speaks of (not the cells' CELL_FORMAT)
+    """Rows of formats CELL_FORMAT..FORMAT_VERSION as this format: the columns they lack added, null but where
+    ADDED_TO_CELLS knows what rows of a format before a cell field's held (also filled on such rows of a table that
+    has the column) or DERIVED derives it."""
     lacking = [c for c in SCHEMA if c not in rows.columns]
     added = rows.with_columns(pl.lit(None, dtype=SCHEMA[c]).alias(c) for c in lacking)
+    before = pl.col("format_version")  # the row's format (not the cells' CELL_FORMAT)
     return added.with_columns(
-        *(pl.when(was_3).then(pl.col(c).fill_null(pl.lit(v, dtype=SCHEMA[c]))).otherwise(pl.col(c)).alias(c)
-          for c, v in FORMAT_3_VALUES.items()),
+        *(pl.when(before < since).then(pl.col(c).fill_null(pl.lit(v, dtype=SCHEMA[c]))).otherwise(pl.col(c)).alias(c)
+          for c, (since, v) in ADDED_TO_CELLS.items()),
         *(how.cast(SCHEMA[c]).alias(c) for c, how in DERIVED.items() if c in lacking),
         format_version=pl.lit(FORMAT_VERSION, dtype=pl.Int64),
     )

@@ -47,6 +47,26 @@ class Setting:
     positional: bool = False
     recipe: bool = True          # False: a sweep sets it from its grid, never a recipe's settings table
     twin: Twin | None = None     # a second flag for the same field, exclusive with the first
+    # What a fit's results make of it (FitRequest; graftcache.fit.plan.Cell, graftcache.results.SCHEMA):
+    cell: Identity | None = None  # part of each cell's identity, hence of its run_id
+    shared: bool = False          # the cells of one backbone pass share it (graftcache.fit.plan.Plan.pass_key)
+    column: bool = False          # a results column of its name, typed from the field's type
+
+
+@dataclass(frozen=True)
+class Identity:
+    """How a setting enters the identity of each cell (graftcache.fit.plan.Cell, hashed into its run_id).
+
+    `when` says for which cells the request's value counts; the others hold the type's zero (0, 0.0), so that
+    cells that do not use the setting do not differ by it: "always", "scheduled" (cells whose objective takes
+    steps: graftcache.fit.objectives.Objective.scheduled) or "lora" (the lora control's cells). A setting added to
+    cells after results.CELL_FORMAT names the results format that added it (`since`) and the value every earlier
+    cell held (`before`): it is hashed only where it differs from that, so every earlier cell keeps its run_id, and
+    rows of earlier formats read as holding it (graftcache.results.upgrade)."""
+
+    when: str = "always"
+    since: int | None = None
+    before: Any = None
 
 
 @dataclass(frozen=True)

@@ -29,7 +29,7 @@ from graftcache.fit.objectives import reads_native
 from graftcache.pooling import UNPOOLED, format_grid, grid_names
 from graftcache.progress import progress, write
 from graftcache.recipe import EncoderEntry, Recipe
-from graftcache.requests import DEFAULT_TINY_TRAIN, ExecutorSettings, ExtractRequest, FitRequest, TinyTrainConfig
+from graftcache.requests import DEFAULT_TINY_TRAIN, ExecutorSettings, ExtractRequest, TinyTrainConfig
 from graftcache.settings import write_flags
 
 
@@ -88,8 +88,7 @@ def check_cameras(recipe: Recipe, state: SweepState) -> None:
 
 def _extract(recipe: Recipe, executor: Executor, encoder: str, grids: tuple[str, ...], log: Callable[[str], None],
              **kw: Any) -> str:
-    req = ExtractRequest(dataset=recipe.dataset, encoder=encoder, device=recipe.device, cache=recipe.cache,
-                         **_extract_settings(recipe, grids), **kw)
+    req = recipe.extract_request(encoder, grids=grids, **kw)
     return executor.extract(req, log).key
 
 
@@ -142,14 +141,9 @@ def fit_requests(recipe: Recipe, state: SweepState) -> Iterator[tuple[str, Any]]
     for backbone in recipe.backbones:
         for enc in recipe.encoders:
             for suite in recipe.suites:
-                yield f"{backbone.name}/{enc.label}/{suite}", FitRequest(
-                    backbone=backbone.name, encoder=enc.name, suite=suite, policy=state.policies[backbone.name],
-                    dataset=recipe.dataset, cache_key=state.encoder_caches[enc],
-                    native_cache_key=state.native_caches.get(backbone.name), camera_map=recipe.camera_map,
-                    seeds=recipe.seeds,
-                    controls=recipe.controls, objective=recipe.objective, device=recipe.device,
-                    results=recipe.results, cache=recipe.cache, progress=False,
-                    command=f"graftcache sweep {recipe.path}", **recipe.fit)
+                yield f"{backbone.name}/{enc.label}/{suite}", recipe.fit_request(
+                    backbone.name, state.policies[backbone.name], enc.name, suite,
+                    cache_key=state.encoder_caches[enc], native_cache_key=state.native_caches.get(backbone.name))
 
 
 def check_sweep(recipe: Recipe) -> list[str]:

@@ -27,7 +27,7 @@ from graftcache.encoders import fingerprint as fp
 from graftcache.encoders import registry
 from graftcache.errors import NumericsError
 from graftcache.extract import extract
-from graftcache.fit import run as run_module
+from graftcache.fit import materials as run_module  # where a request's cells probe their caches
 from graftcache.fit.run import Fitter
 from graftcache.store import FeatureCache
 

@@ -55,6 +55,7 @@ RECIPE = """
     batch_size = 4
     eval_frames = 4
     num_denoise_steps = 2
+    {fit_extra}
     [train_tiny]
     steps = 2
     batch_size = 4
@@ -70,11 +71,13 @@ class LocalSweep:
     dataset: Path
     rows: pl.DataFrame
 
-    def recipe(self, name: str) -> Recipe:
+    def recipe(self, name: str, cells_per_pass: int | None = None) -> Recipe:
         """The recipe, writing its results under `name`/; its cache and tiny policy are shared."""
         path = self.folder / f"{name}.toml"
+        extra = "" if cells_per_pass is None else f"cells_per_pass = {cells_per_pass}"
         path.write_text(textwrap.dedent(RECIPE).format(dataset=self.dataset, cache=self.folder / "cache",
-                                                       results=self.folder / name / "results.parquet", steps=STEPS))
+                                                       results=self.folder / name / "results.parquet", steps=STEPS,
+                                                       fit_extra=extra))
         return load_recipe(path)
 
 
@@ -142,7 +145,7 @@ def test_ray_task_options_refuse_what_ray_cannot_place() -> None:
         task_options(ExecutorSettings(executor="ray", gpus_per_task=0), "cuda")
 
 
-@pytest.mark.parametrize("module, name", [("graftcache.executors.ray_fit", "fit_cell"),
+@pytest.mark.parametrize("module, name", [("graftcache.executors.ray_fit", "fit_cells"),
                                           ("graftcache.executors.ray_extract", "extract_shard")])
 def test_ray_tasks_ship_their_function_by_reference(module: str, name: str, monkeypatch: pytest.MonkeyPatch) -> None:
     """A task's function travels as "module.name", so a worker keeps its own module state (loaded backbones), and
@@ -181,6 +184,47 @@ def test_ray_sweep_resumes_and_writes_the_local_rows(ray_cluster: str, local_swe
     _assert_same_rows(recipe, local_sweep.rows)
     runs = Path(recipe.results).parent / "runs"  # projectors of the cells the tasks fitted, none of the skipped one
     assert sorted(p.name for p in runs.iterdir()) == sorted(local_sweep.rows["run_id"][1:])
+
+
+@pytest.mark.slow
+def test_a_fused_pass_on_ray_writes_the_local_executors_rows(ray_cluster: str, local_sweep: LocalSweep) -> None:
+    """--cells-per-pass reaches the cluster: a Ray task is a pass of 2 cells, and its rows are the local executor's
+    rows of the same passes."""
+    local = local_sweep.recipe("local-fused", cells_per_pass=2)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("OMP_NUM_THREADS", "1")
+        run_sweep(local, log=lambda _: None)
+    fused = results.read(local.results).sort("run_id")
+    assert fused["cells_per_pass"].to_list() == [2] * 4
+    recipe = local_sweep.recipe("ray-fused", cells_per_pass=2)
+    lines: list[str] = []
+    run_sweep(recipe, log=lines.append, settings=ExecutorSettings(executor="ray"))
+    assert sum("its share of a pass of 2" in line for line in lines) == 4
+    _assert_same_rows(recipe, fused)
+
+
+@pytest.mark.slow
+def test_two_ray_sweeps_of_one_recipe_compute_each_cell_once(ray_cluster: str, local_sweep: LocalSweep) -> None:
+    """Two drivers of one recipe at once claim cells as the local executor does: each cell is computed by one."""
+    recipe = local_sweep.recipe("two-drivers")
+    logs: list[list[str]] = [[], []]
+    errors: list[BaseException] = []
+
+    def sweep(lines: list[str]) -> None:
+        try:
+            run_sweep(recipe, log=lines.append, settings=ExecutorSettings(executor="ray"))
+        except BaseException as e:  # noqa: BLE001 - re-raised in the test's thread
+            errors.append(e)
+
+    drivers = [threading.Thread(target=sweep, args=(lines,)) for lines in logs]
+    for driver in drivers:
+        driver.start()
+    for driver in drivers:
+        driver.join()
+    assert not errors, errors
+    computed = [line for lines in logs for line in lines if "s on Ray" in line]
+    assert len(computed) == 4, computed
+    _assert_same_rows(recipe, local_sweep.rows)
 
 
 def _running_cells(marker: str) -> list[int]:

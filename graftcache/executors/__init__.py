@@ -2,8 +2,8 @@
 
 - local  this process, one cache or cell after the other (the default; every executor must write what it writes)
 - ray    Ray tasks on a cluster, started here or joined at `--address`: an extraction becomes one task per shard
-         of the cache's blocks (graftcache/executors/ray_extract.py), a sweep's fitting one task per missing
-         cell (graftcache/executors/ray_fit.py)
+         of the cache's blocks (graftcache/executors/ray_extract.py), a sweep's fitting one task per backbone
+         pass of missing cells, under the same claims as the local executor (graftcache/executors/ray_fit.py)
 
 Entries are import strings (graftcache.lazy), so Ray is imported only when the ray executor is chosen.
 Every executor does the same two jobs on the same requests; only where they run differs, so the caches,

@@ -18,13 +18,10 @@ class LocalExecutor:
         return extract(req, log=log)
 
     def fit(self, requests: Sequence[tuple[str, FitRequest]], log: Log, bar: Any) -> None:
-        """One Fitter per request, all sharing one BackbonePool and one set of numerics verdicts (each backbone
-        loaded and each cache's numerics probe recomputed once per run), their cells run together so that cells
-        of different requests (encoders of one grid and width, suites) can share backbone passes
-        (graftcache/fit/passes.py); with one cell per pass, request after request as listed."""
-        from graftcache.backbones.pool import BackbonePool
-        from graftcache.fit.passes import run_passes
-        from graftcache.fit.run import Fitter
+        """One Plan per request, their cells run together by one LocalRunner (each backbone loaded and each cache's
+        numerics probe recomputed once per run), so that cells of different requests (encoders of one grid and
+        width, suites) can share backbone passes (graftcache/fit/passes.py); with one cell per pass, request after
+        request as listed."""
+        from graftcache.fit.run import fit_all
 
-        backbones, numerics = BackbonePool(log), {}
-        run_passes([Fitter(req, log=log, backbones=backbones, numerics=numerics) for _, req in requests], bar.update)
+        fit_all([req for _, req in requests], log, bar.update)

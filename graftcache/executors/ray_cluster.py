@@ -97,24 +97,29 @@ def worker_compute_dtype(name: str, device: str, options: Mapping[str, Any]) -> 
     return resolved
 
 
+def result(ref: ray.ObjectRef, tag: str) -> Any:
+    """What a finished task returned. A task that raised a GraftcacheError (or an OSError such as a full disk)
+    raises it here as itself, one line, not Ray's remote traceback; a task lost more often than it may be retried
+    is an ExecutorError naming `tag`."""
+    try:
+        return ray.get(ref)
+    except ray.exceptions.RayTaskError as e:
+        if isinstance(e.cause, (GraftcacheError, OSError)):
+            raise e.cause from None
+        raise
+    except ray.exceptions.RayError as e:
+        first = (str(e).strip().splitlines() or [type(e).__name__])[0]
+        raise ExecutorError(f"{tag}: {type(e).__name__}: {first}") from None
+
+
 def finished[R](tasks: Mapping[ray.ObjectRef, R]) -> Iterator[tuple[R, Any]]:
-    """(tag, result) of each task as it finishes. A task that raised a GraftcacheError (or an OSError such as a
-    full disk) raises it here as itself, one line, not Ray's remote traceback; a task lost more often than it
-    may be retried is an ExecutorError. Either way, and when the caller stops early, the rest are cancelled."""
+    """(tag, result) of each task as it finishes (`result`: a task's error raised as the command's). Either way,
+    and when the caller stops early, the rest are cancelled."""
     pending = list(tasks)
     try:
         while pending:
             (ready,), pending = ray.wait(pending, num_returns=1)
-            try:
-                value = ray.get(ready)
-            except ray.exceptions.RayTaskError as e:
-                if isinstance(e.cause, (GraftcacheError, OSError)):
-                    raise e.cause from None
-                raise
-            except ray.exceptions.RayError as e:
-                first = (str(e).strip().splitlines() or [type(e).__name__])[0]
-                raise ExecutorError(f"{tasks[ready]}: {type(e).__name__}: {first}") from None
-            yield tasks[ready], value
+            yield tasks[ready], result(ready, str(tasks[ready]))
     finally:
         for ref in pending:
             ray.cancel(ref, force=True)

@@ -1,63 +1,82 @@
-"""The ray executor's fitting: one Ray task per missing cell, the driver the results file's only writer.
+"""The ray executor's fitting: a Ray task per backbone pass (1..N cells), under the same claims as the local executor.
 
-The driver lists each request's cells (graftcache.fit.run.Fitter.cells: identities, nothing loaded), drops
-those whose run_id the results file has (and repeats: the native controls' cells are the same for every
-encoder), and submits one task per cell left. A task rebuilds the Fitter from its frozen, picklable
-FitRequest, fits exactly that cell, saves its projector in the shared run folder and returns its row; the
-driver appends each row as its task finishes. So a driver killed mid-sweep resumes from the rows it wrote,
-the results file never has two writers, and a task whose worker died is rerun by Ray (max_retries) while
-finished cells, whose rows the driver already holds, are never redone.
+The driver plans every request (graftcache.fit.plan.Plan: identities, pass keys, nothing loaded) and runs the one
+claim-and-run loop the local executor runs (graftcache.fit.passes.run_passes), with passes going to Ray tasks
+(`RayRunner`) instead of this process: it claims a pass's cells (graftcache.results.cell_claim), submits the pass
+as one task, and appends the task's rows once it finishes, then gives the claims back. So `--cells-per-pass` reaches
+the cluster (a fused pass is one task), two drivers (or a driver and a local fit) writing one results file share
+its cells instead of both computing each, a driver killed mid-sweep resumes from the rows it wrote, and a task whose
+worker died is rerun by Ray (max_retries) while finished cells, whose rows are written, are never redone.
+
+A task rebuilds each request's Plan from its frozen, picklable FitRequest and runs the pass as the local executor
+does (graftcache.fit.run.run_pass): projectors are saved in the shared run folders, rows returned to the driver.
 """
 
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import ray
 
-from graftcache import results
 from graftcache.backbones.pool import BackbonePool
 from graftcache.encoders.fingerprint import NumericsCheck
-from graftcache.errors import ExecutorError, ResultsError
+from graftcache.errors import ExecutorError
 from graftcache.executors import Log
 from graftcache.executors.ray_cluster import (
     connect,
-    finished,
     local_path,
+    result,
     shared_root,
     slots,
     task_options,
     worker_compute_dtype,
 )
 from graftcache.fit.controls import get_control
-from graftcache.fit.run import Fitter
+from graftcache.fit.materials import Materials
+from graftcache.fit.passes import Member, run_passes
+from graftcache.fit.plan import Plan
+from graftcache.fit.run import run_pass
 from graftcache.requests import ExecutorSettings, FitRequest
 from graftcache.runtime import set_main_threads
 
-#: A worker process's backbones (loaded on first use), numerics verdicts (cache key -> NumericsCheck) and its last
-#: request's Fitter: the worker's next cell reuses the loaded backbone, the checked caches and, of the same request,
-#: the feature tables, as the local executor's next cell does.
+#: A worker process's backbones (loaded on first use), numerics verdicts (cache key -> NumericsCheck), and the plans
+#: and materials of its last requests: the worker's next pass reuses the loaded backbone, the checked caches and,
+#: of the same requests, the feature tables, as the local executor's next pass does.
 _POOL = BackbonePool()
 _NUMERICS: dict[str, NumericsCheck] = {}
-_FITTER: dict[FitRequest, Fitter] = {}
+_KEPT: dict[FitRequest, Materials] = {}
+#: Requests whose plans and tables a worker keeps (a pass may hold cells of several: encoders of one grid, suites).
+KEEP = 8
+
+#: One cell of a pass as a task receives it: its request, its control's name and its seed.
+TaskCell = tuple[FitRequest, str, int]
 
 
-def fit_cell(req: FitRequest, control: str, seed: int) -> dict[str, Any]:
-    """The row of one cell, its projector saved under the request's run folder (run as `fit_cell_task`)."""
+def _materials(req: FitRequest) -> Materials:
+    if req not in _KEPT:
+        while len(_KEPT) >= KEEP:
+            _KEPT.pop(next(iter(_KEPT))).close()
+        _KEPT[req] = Materials(Plan(req, log=print), _POOL, _NUMERICS)
+    return _KEPT[req]
+
+
+def fit_cells(cells: Sequence[TaskCell]) -> list[dict[str, Any]]:
+    """The rows of one pass of cells, their projectors saved in their run folders (run as `fit_cells_task`)."""
     set_main_threads()  # the CPUs Ray granted this task (it sets OMP_NUM_THREADS from num_cpus)
-    if req not in _FITTER:
-        _FITTER.clear()
-        _FITTER[req] = Fitter(req, backbones=_POOL, numerics=_NUMERICS)
-    return _FITTER[req].run_cell(get_control(control), seed)
+    members = []
+    for req, control, seed in cells:
+        plan = _materials(req).plan
+        members.append(Member(plan, get_control(control), seed, plan.cell(get_control(control), seed)))
+    return run_pass(members, lambda plan: _materials(plan.req))
 
 
-#: The Ray task of `fit_cell`. The plain function stays the module's attribute so that cloudpickle ships it by
-#: reference: the worker imports this module and keeps its own `_POOL`, `_NUMERICS` and `_FITTER`. Decorating
-#: `fit_cell` itself would ship it by value, with copies of those globals (the driver's, holding its `print`).
-fit_cell_task = ray.remote(fit_cell)
+#: The Ray task of `fit_cells`. The plain function stays the module's attribute so that cloudpickle ships it by
+#: reference: the worker imports this module and keeps its own `_POOL`, `_NUMERICS` and `_KEPT`. Decorating
+#: `fit_cells` itself would ship it by value, with copies of those globals (the driver's, holding its `print`).
+fit_cells_task = ray.remote(fit_cells)
 
 
 def shared_request(req: FitRequest, compute_dtype: str) -> FitRequest:
@@ -68,14 +87,58 @@ def shared_request(req: FitRequest, compute_dtype: str) -> FitRequest:
                                cache=shared_root(req.cache), compute_dtype=compute_dtype)
 
 
+class RayRunner:
+    """Passes as Ray tasks (graftcache.fit.passes.Runner), as many in flight as the cluster runs at once."""
+
+    def __init__(self, options: Mapping[str, dict[str, Any]], labels: Mapping[FitRequest, str], log: Log,
+                 bar: Any) -> None:
+        self.options, self.labels, self.log, self.bar = options, labels, log, bar
+        self.slots = max(1, min(slots(o) for o in options.values()))
+        self._running: dict[ray.ObjectRef, tuple[int, Sequence[Member]]] = {}
+        self._tickets = 0
+
+    def planned(self, members: Sequence[Member]) -> None:
+        self.log(f"ray: {len(members)} cell task(s) to run; the other cells are in the results file already")
+
+    def submit(self, members: Sequence[Member]) -> int:
+        self._tickets += 1
+        device = members[0].plan.req.device
+        cells = [(m.plan.req, m.control.name, m.seed) for m in members]
+        self._running[fit_cells_task.options(**self.options[device]).remote(cells)] = (self._tickets, members)
+        return self._tickets
+
+    def next_done(self) -> tuple[int, list[dict[str, Any]]]:
+        (ready,), _ = ray.wait(list(self._running), num_returns=1)
+        ticket, members = self._running.pop(ready)
+        first = members[0]
+        rows = result(ready, f"{self.labels[first.plan.req]} seed {first.seed} control {first.control.name}")
+        for m, row in zip(members, rows, strict=True):
+            label = self.labels[m.plan.req]
+            if row["run_id"] != m.cell.run_id:
+                raise ExecutorError(f"{label} seed {m.seed} control {m.control.name}: the worker's cell is "
+                                    f"{row['run_id']}, the driver's {m.cell.run_id}: do the nodes see the same "
+                                    "policy and caches?")
+            self.bar.set_postfix_str(label)
+            shared = f", its share of a pass of {len(members)}" if len(members) > 1 else ""
+            self.log(f"{label} seed {m.seed} control {m.control.name}: eval_mse {row['eval_mse']:.4f} "
+                     f"({row['wall_s']:.1f}s on Ray{shared})")
+        return ticket, rows
+
+    def finished(self, plan: Plan) -> None:
+        """Nothing is kept here: the workers keep their own tables."""
+
+    def cancel(self) -> None:
+        for ref in self._running:
+            ray.cancel(ref, force=True)
+        self._running.clear()
+
+
 def fit(requests: Sequence[tuple[str, FitRequest]], settings: ExecutorSettings, log: Log, bar: Any) -> None:
-    """Submit every missing cell of `requests`, append each row as its task finishes."""
+    """Every missing cell of `requests`, a pass per task, each pass's rows appended as its task finishes."""
     connect(settings, log)
-    cells: dict[str, tuple[str, FitRequest, str, int]] = {}  # run_id -> (label, request, control, seed)
-    folders: dict[str, Path] = {}  # run_id -> its run folder (where a row the results file cannot take is kept)
-    done: dict[str, set[str]] = {}  # results file -> its run_ids
     options: dict[str, dict[str, Any]] = {}  # device -> task options
     dtypes: dict[tuple[str, str], str] = {}  # (compute dtype, device) -> as the workers resolve it
+    plans, labels = [], {}
     for label, req in requests:
         if req.device not in options:
             options[req.device] = task_options(settings, req.device)
@@ -84,32 +147,8 @@ def fit(requests: Sequence[tuple[str, FitRequest]], settings: ExecutorSettings, 
             dtypes[req.compute_dtype, req.device] = worker_compute_dtype(req.compute_dtype, req.device,
                                                                          options[req.device])
         req = shared_request(req, dtypes[req.compute_dtype, req.device])
-        seen = done.setdefault(req.results, results.done_run_ids(req.results))
-        # listing cells reads the caches' index only; a Cell holds no device (the dtype is resolved)
-        lister = Fitter(dataclasses.replace(req, device="cpu"), log=log)
-        for control, seed, cell in lister.cells():
-            if cell.run_id not in seen and cell.run_id not in cells:
-                cells[cell.run_id] = (label, req, control.name, seed)
-                folders[cell.run_id] = lister.run_folder(cell)
-    bar.update(sum(len(r.seeds) * (1 + len(r.controls)) for _, r in requests) - len(cells))
-    log(f"ray: {len(cells)} cell task(s) to run; the other cells are in the results file already")
-    if any(r.cells_per_pass not in (None, 1) for _, r in requests):
-        log("ray: one cell per task, so --cells-per-pass applies to the local executor only (rows record "
-            "cells_per_pass 1)")
-    tasks = {fit_cell_task.options(**options[req.device]).remote(req, control, seed): run_id
-             for run_id, (_, req, control, seed) in cells.items()}
-    refused: list[str] = []  # rows their results file could not take, each kept in its run folder
-    for run_id, row in finished(tasks):
-        label, req, control, seed = cells[run_id]
-        if row["run_id"] != run_id:
-            raise ExecutorError(f"{label} seed {seed} control {control}: the worker's cell is {row['run_id']}, "
-                                f"the driver's {run_id}: do the nodes see the same policy and caches?")
-        try:
-            results.append_or_keep(req.results, [(row, folders[run_id])])
-        except ResultsError as e:  # the row is kept in its run folder: the rows of the tasks still running too
-            refused.append(str(e))
-        bar.set_postfix_str(label)
-        bar.update(1)
-        log(f"{label} seed {seed} control {control}: eval_mse {row['eval_mse']:.4f} ({row['wall_s']:.1f}s on Ray)")
-    if refused:
-        raise ResultsError("; ".join(refused))
+        # planning reads the caches' index and the policy's config only: the driver needs no GPU
+        plan = Plan(req, log=log, check_device=False)
+        plans.append(plan)
+        labels[plan.req] = label
+    run_passes(plans, RayRunner(options, labels, log, bar), bar.update)

@@ -24,7 +24,7 @@ from graftcache.fit.run import Cell
 from graftcache.store import cache_root
 from graftcache.store.readthrough import reading_root
 
-POLICY_PREFIX = "tiny:"  # how rows name a policy trained by train-tiny (graftcache.fit.run.Fitter.policy_id)
+POLICY_PREFIX = "tiny:"  # how rows name a policy trained by train-tiny (graftcache.fit.plan.Plan.policy_id)
 
 
 def find_row(path: str | Path, run_id: str) -> dict[str, Any]:
@@ -74,7 +74,7 @@ def base_policy(row: dict[str, Any], cache: str | None) -> str:
 
 
 def run_folder(row: dict[str, Any], results_path: str | Path, cache: str | None, runs: str | None) -> Path:
-    """Where the cell's fit kept its projector (graftcache.fit.run.Fitter.runs: --out, beside the results file, or
+    """Where the cell's fit kept its projector (graftcache.fit.plan.Plan.runs: --out, beside the results file, or
     the local cache folder)."""
     places = [Path(runs)] if runs else [Path(results_path).absolute().parent / "runs", cache_root(cache) / "runs"]
     for place in places:

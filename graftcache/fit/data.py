@@ -55,7 +55,7 @@ def _last(episodes: list[int], fraction: float, _: np.random.Generator) -> list[
 
 #: How each split rule picks a task's held-out episodes from its sorted episodes (graftcache.requests.EVAL_SPLITS
 #: names them for the CLI; tests/test_settings.py keeps the two equal). "graftcache" is the default, and cells split
-#: by it keep the run_ids they had before the rule was a setting (graftcache.fit.run.Cell.run_id).
+#: by it keep the run_ids they had before the rule was a setting (graftcache.fit.plan.Cell.run_id).
 SPLITS: dict[str, Callable[[list[int], float, np.random.Generator], list[int]]] = {
     "graftcache": _drawn,
     "lerobot": _last,

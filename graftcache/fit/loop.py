@@ -150,7 +150,7 @@ def optimise_together(adapter, learners: Sequence[Learner], *, steps: int, batch
         noise, time = torch.cat(noises), torch.cat(times).to(device)
         with route(sizes), autocast(device, dtype):
             loss = adapter.loss(batch, noise=noise, time=time)
-        if loss.dim() == 0 and len(learners) > 1:  # Fitter.pass_key keeps such backbones' cells alone
+        if loss.dim() == 0 and len(learners) > 1:  # Plan.pass_key keeps such backbones' cells alone
             raise FitError(f"{adapter.name}: its loss is one mean over the whole batch, so its cells cannot share a "
                            "backbone pass")
         losses = [loss] if loss.dim() == 0 else [part.mean() for part in loss.split(sizes)]

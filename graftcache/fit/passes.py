@@ -7,7 +7,7 @@ concatenated batch (graftcache.graft.FusedProjector), and each cell keeps its ow
 clipping and random streams (graftcache.fit.loop.optimise_together), so its row equals the row it gets alone
 up to float rounding of the larger batch. Held-out scoring is shared the same way.
 
-Which cells run alone (`graftcache.fit.run.Fitter.pass_key` is None for them): the `lora` control (LoRA adapts the
+Which cells run alone (`graftcache.fit.plan.Plan.pass_key` is None for them): the `lora` control (LoRA adapts the
 backbone every row of a pass goes through), the `align` objective (a closed-form ridge: no backbone pass to share),
 controls that train nothing (`native`: scored as loaded) and backbones whose loss is one mean over the batch
 (pi0-FAST's cross-entropy: `graftcache.backbones.base.BackboneAdapter.per_sample_loss`). The `cells_per_pass` a
@@ -49,7 +49,7 @@ from graftcache.backbones import get_backbone
 from graftcache.errors import ResultsError
 from graftcache.file_lease import FileLease
 from graftcache.fit.controls import Control
-from graftcache.requests import FitRequest
+from graftcache.fit.plan import Cell, Plan
 from graftcache.runtime import set_main_threads
 
 
@@ -60,54 +60,58 @@ def default_cells_per_pass(backbone: str, device: torch.device) -> int:
     return get_backbone(backbone).spec.cells_per_pass.get(device.type, 1)
 
 
-class Identified(Protocol):
-    """A cell as a pass needs it (graftcache.fit.run.Cell)."""
-
-    @property
-    def run_id(self) -> str: ...
-
-
-class Host(Protocol):
-    """What runs the cells of one request (graftcache.fit.run.Fitter, which imports this module)."""
-
-    req: FitRequest
-    log: Callable[[str], None]
-
-    def cells(self) -> list[tuple[Control, int, Identified]]: ...
-    def skipped(self, cells: Sequence[tuple[Control, int]]) -> None: ...
-    def pass_key(self, control: Control) -> tuple | None: ...
-    def run_pass(self, members: Sequence[Member]) -> list[dict[str, Any]]: ...
-    def run_folder(self, cell: Identified) -> Any: ...
-    def close(self) -> None: ...
-
-
 @dataclass(frozen=True)
 class Member:
-    """One missing cell of a Fitter, as a pass holds it."""
+    """One missing cell of a planned request, as a pass holds it."""
 
-    fitter: Host
+    plan: Plan
     control: Control
     seed: int
-    cell: Identified
+    cell: Cell
 
     @property
     def at(self) -> tuple[str, str]:
         """(results file, run_id): the row's place, the same for a cell two requests share."""
-        return self.fitter.req.results, self.cell.run_id
+        return self.plan.req.results, self.cell.run_id
 
 
 def plan_passes(members: Sequence[Member]) -> list[list[Member]]:
-    """`members` cut into passes: those of one pass key in runs of their request's `cells_per_pass`, each cell
-    with no key alone; passes in the order of their first cell (so with 1 cell per pass, the members' order)."""
+    """`members` cut into passes: those of one pass key in runs of their request's `cells_per_pass` (by default the
+    backbone's spec on its device), each cell with no key alone; passes in the order of their first cell
+    (so with 1 cell per pass, the members' order)."""
     groups: dict[Any, list[int]] = {}
     for i, m in enumerate(members):
-        key = m.fitter.pass_key(m.control)
+        key = m.plan.pass_key(m.control)
         groups.setdefault(("alone", i) if key is None else key, []).append(i)
     passes = []
     for at in groups.values():
-        n = members[at[0]].fitter.req.cells_per_pass if len(at) > 1 else 1
+        plan = members[at[0]].plan
+        n = (plan.req.cells_per_pass or default_cells_per_pass(plan.req.backbone, plan.device)) if len(at) > 1 else 1
         passes += [at[i:i + n] for i in range(0, len(at), n)]
     return [[members[i] for i in p] for p in sorted(passes)]
+
+
+class Runner(Protocol):
+    """Where passes run: this process (graftcache.fit.run.LocalRunner) or Ray tasks
+    (graftcache.executors.ray_fit.RayRunner). `run_passes` claims a pass's cells before it submits the pass and
+    writes its rows, so every runner computes a cell only under its claim."""
+
+    slots: int  # passes in flight at once
+
+    def planned(self, members: Sequence[Member]) -> None:
+        """The cells left to run once finished ones are skipped (before any is claimed)."""
+
+    def submit(self, members: Sequence[Member]) -> int:
+        """Start a pass; returns its ticket."""
+
+    def next_done(self) -> tuple[int, list[dict[str, Any]]]:
+        """(ticket, rows in member order) of a submitted pass, as one finishes."""
+
+    def finished(self, plan: Plan) -> None:
+        """`plan` has no cell left to run here: what was kept for its cells may go."""
+
+    def cancel(self) -> None:
+        """Stop the passes still running (the loop stops early: an error, Ctrl-C)."""
 
 
 def _take(claim: FileLease) -> bool:
@@ -132,7 +136,7 @@ def _write(members: Sequence[Member], rows: Sequence[dict[str, Any]]) -> list[di
     take are all kept in their cells' run folders (results.append_or_keep), then one ResultsError names them."""
     files: dict[str, list[tuple[dict[str, Any], Any]]] = {}
     for m, row in zip(members, rows, strict=True):
-        files.setdefault(m.at[0], []).append((row, m.fitter.run_folder(m.cell)))
+        files.setdefault(m.at[0], []).append((row, m.plan.run_folder(m.cell)))
     refused = []
     for path, pairs in files.items():
         try:
@@ -144,42 +148,69 @@ def _write(members: Sequence[Member], rows: Sequence[dict[str, Any]]) -> list[di
     return list(rows)
 
 
-def run_passes(fitters: Sequence[Host], visited: Callable[[int], None] = lambda n: None) -> list[dict[str, Any]]:
-    """Every missing cell of `fitters` (which share one BackbonePool), pass by pass, each row appended to its
-    results file as its pass finishes; returns the rows written. `visited(n)`: n more cells were run or skipped.
-
-    Other processes (fits, sweeps, here or on other machines) may write the same results files: a cell is
-    computed only under its claim (results.cell_claim), so a cell another process is computing is left for
-    later (its pass runs without it), then skipped once its row is in the file (or computed here if that
-    process died)."""
-    set_main_threads()
+def missing_cells(plans: Sequence[Plan], visited: Callable[[int], None] = lambda n: None) -> list[Member]:
+    """The cells of `plans` whose rows their results files lack, each once (a cell two requests share, such as the
+    native controls of every encoder, is the first request's); the others are said skipped and `visited`."""
     members: list[Member] = []
     seen: set[tuple[str, str]] = set()
     shared: Counter[str] = Counter()  # control -> cells of an earlier request too
-    done = {path: results.done_run_ids(path) for path in {f.req.results for f in fitters}}
-    for fitter in fitters:
+    done = {path: results.done_run_ids(path) for path in {p.req.results for p in plans}}
+    for plan in plans:
         finished = []
-        for control, seed, cell in fitter.cells():
-            m = Member(fitter, control, seed, cell)
+        for control, seed, cell in plan.cells():
+            m = Member(plan, control, seed, cell)
             if m.at in seen:  # a cell two requests share (the native controls of every encoder) runs once
                 shared[control.name] += 1
                 visited(1)
                 continue
             seen.add(m.at)
-            if cell.run_id in done[fitter.req.results]:
+            if cell.run_id in done[plan.req.results]:
                 finished.append((control, seed))
                 visited(1)
             else:
                 members.append(m)
         if finished:
-            fitter.skipped(finished)
+            plan.skipped(finished)
     if shared:
         which = ", ".join(f"{control} {n}" for control, n in shared.items())
-        fitters[0].log(f"{shared.total()} cells are cells of earlier requests too ({which}): each computed once")
+        plans[0].log(f"{shared.total()} cells are cells of earlier requests too ({which}): each computed once")
+    return members
+
+
+def run_passes(plans: Sequence[Plan], runner: Runner,
+               visited: Callable[[int], None] = lambda n: None) -> list[dict[str, Any]]:
+    """Every missing cell of `plans`, pass by pass on `runner`, each row appended to its results file as its pass
+    finishes; returns the rows written. `visited(n)`: n more cells were run or skipped.
+
+    Other processes (fits, sweeps, here or on other machines, under any executor) may write the same results files:
+    a cell is computed only under its claim (results.cell_claim), taken before its pass is submitted and given back
+    once its row is written, so a cell another process is computing is left for later (its pass runs without it),
+    then skipped once its row is in the file (or computed here if that process died)."""
+    set_main_threads()
+    members = missing_cells(plans, visited)
+    runner.planned(members)
     claims = {m.at: results.cell_claim(*m.at) for m in members}
-    left = Counter(id(m.fitter) for m in members)
+    left = Counter(id(m.plan) for m in members)
     rows: list[dict[str, Any]] = []
     told: set[tuple[str, str]] = set()
+    running: dict[int, list[Member]] = {}  # ticket -> the pass's members, their claims held
+
+    def done(ms: Sequence[Member]) -> None:
+        visited(len(ms))
+        for m in ms:
+            left[id(m.plan)] -= 1
+            if not left[id(m.plan)]:
+                runner.finished(m.plan)  # its kept blocks and tables go before the next requests' are read
+
+    def collect() -> None:
+        ticket, got = runner.next_done()
+        ms = running.pop(ticket)
+        try:
+            rows.extend(_write(ms, got))
+        finally:
+            release_all([claims[m.at] for m in ms])
+        done(ms)
+
     try:
         while members:
             busy = []
@@ -191,29 +222,35 @@ def run_passes(fitters: Sequence[Host], visited: Callable[[int], None] = lambda 
                             got.append(m)
                             continue
                         if m.at not in told:
-                            m.fitter.log(f"cell {m.cell.run_id} (seed {m.seed} control {m.control.name}) is being "
-                                         f"computed by {claims[m.at].holder()}: waiting for its row")
+                            m.plan.log(f"cell {m.cell.run_id} (seed {m.seed} control {m.control.name}) is being "
+                                       f"computed by {claims[m.at].holder()}: waiting for its row")
                             told.add(m.at)
                         busy.append(m)
                     fresh = []
                     for m in got:  # another process may have written its row since
                         if m.cell.run_id in results.done_run_ids(m.at[0]):
-                            m.fitter.skipped([(m.control, m.seed)])
+                            m.plan.skipped([(m.control, m.seed)])
                         else:
                             fresh.append(m)
                     if fresh:
-                        rows += _write(fresh, fresh[0].fitter.run_pass(fresh))
-                finally:
+                        running[runner.submit(fresh)] = fresh
+                except BaseException:
                     release_all([claims[m.at] for m in got])
-                visited(len(got))
-                for m in got:
-                    left[id(m.fitter)] -= 1
-                    if not left[id(m.fitter)]:
-                        m.fitter.close()  # its kept blocks and tables go before the next requests' are read
+                    raise
+                stale = [m for m in got if m not in fresh]
+                release_all([claims[m.at] for m in stale])
+                done(stale)
+                while len(running) >= runner.slots:
+                    collect()
+            while running:
+                collect()
             if busy:
                 time.sleep(1.0)
             members = busy
     finally:
+        if running:
+            runner.cancel()
+            release_all([claims[m.at] for ms in running.values() for m in ms])
         for path in {path for path, _ in claims}:
             results.drop_claims_folder(path)
     return rows

@@ -1,0 +1,232 @@
+"""Planning a fit: what one FitRequest's cells are, without loading anything.
+
+A `Plan` resolves the request (device, compute dtype, cells per pass, objective, controls), finds the caches it reads
+and the policy folder, pairs the cameras and splits the episodes; from these it names every cell
+(`graftcache.fit.plan.Cell`: its run_id), says which cells may share a backbone pass (`Plan.pass_key`) and where a
+cell's run folder is. It reads manifests, indexes and the policy's config only: a finished grid is skipped from a
+Plan alone, and the ray executor's driver plans what its workers run (graftcache/executors/ray_fit.py).
+
+What a cell then reads is graftcache.fit.materials.Materials; how a pass of cells runs, graftcache.fit.run.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import os
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from graftcache import results
+from graftcache.backbone_table import native_name
+from graftcache.backbones import get_backbone
+from graftcache.backbones.tiny_record import resolve_policy
+from graftcache.cameras import format_camera_map, match_cameras, renames
+from graftcache.codecs import without_none
+from graftcache.errors import FitError
+from graftcache.fit.controls import Control, check_pool_grid, get_control
+from graftcache.fit.data import split_episodes, suite_index_table
+from graftcache.fit.lookup import find_cache
+from graftcache.fit.objectives import EVAL_ONLY, OBJECTIVES, Objective
+from graftcache.fit.stream import FeatureSource
+from graftcache.pooling import format_grid, parse_grid
+from graftcache.requests import FitRequest
+from graftcache.runtime import resolve_compute_dtype, resolve_device
+from graftcache.settings import Declared, declared
+from graftcache.store import FeatureCache, cache_root
+from graftcache.store.readthrough import reading_root
+
+__all__ = ["Cell", "Plan"]
+
+
+#: The FitRequest settings each cell holds, as their declarations say (graftcache/requests.py, `cell=`).
+CELL_SETTINGS: dict[str, Declared] = {name: d for name, d in declared(FitRequest).items() if d.setting.cell}
+#: The FitRequest settings the cells of one backbone pass share (`shared=True`), in declaration order.
+PASS_SETTINGS: tuple[str, ...] = tuple(name for name, d in declared(FitRequest).items() if d.setting.shared)
+
+
+class _CellMethods:
+    """What a Cell does (its fields: `Cell`)."""
+
+    @property
+    def run_id(self) -> str:
+        known = results.FORMAT_3_VALUES
+        return results.make_run_id({k: v for k, v in asdict(self).items() if not (k in known and known[k] == v)})
+
+    def row(self, req: FitRequest, measured: Mapping[str, Any]) -> dict[str, Any]:
+        """The results row: each SCHEMA column from what the cell measured, else the cell, else the request
+        (so a new column that names a request field needs no code here)."""
+        sources = (measured, asdict(self), asdict(req))
+        row = {}
+        for column in results.SCHEMA:
+            source = next((s for s in sources if column in s), None)
+            if source is None:
+                raise FitError(f"results column {column!r} is neither measured, nor a cell or FitRequest field")
+            row[column] = source[column]
+        return row
+
+
+#: What identifies one results row: every field, by name and value, is hashed into the row's run_id, with the shape
+#: of cells (`format_version`: results.CELL_FORMAT); a change of its shape is a new results.FORMAT_VERSION, whose
+#: results.upgrade says what becomes of older rows. A field added since CELL_FORMAT is hashed only where it differs
+#: from what every earlier cell held (results.ADDED_TO_CELLS), so that a cell format 3 could express keeps its
+#: run_id. Its fields: what a Plan resolves (the policy as rows name it, the cache read, seed, control, the grid the
+#: features are pooled to, resolved so that the run_id hashes what the row writes, the objective as run), then every
+#: FitRequest setting declared into cells (CELL_SETTINGS), then the camera map (canonical text, only when a policy
+#: camera is fed by another name) and the format.
+Cell = dataclasses.make_dataclass(
+    "Cell",
+    [("policy", str), ("cache_key", str), ("seed", int), ("control", str), ("pool_grid", str), ("objective", str),
+     *((name, d.hint) for name, d in CELL_SETTINGS.items() if d.setting.cell.since is None),
+     ("camera_map", str | None, dataclasses.field(default=None)),
+     *((name, d.hint, dataclasses.field(default=d.setting.cell.before))
+       for name, d in CELL_SETTINGS.items() if d.setting.cell.since is not None),
+     ("format_version", int, dataclasses.field(default=results.CELL_FORMAT))],
+    bases=(_CellMethods,), frozen=True, module=__name__)
+
+
+def _cell_value(req: FitRequest, name: str, objective: Objective, control: Control) -> Any:
+    """A cell's value of a declared setting: the request's where the cell uses it (graftcache.settings.Identity's
+    `when`), else its type's zero."""
+    d = CELL_SETTINGS[name]
+    used = {"always": True, "scheduled": objective.scheduled, "lora": control.lora}[d.setting.cell.when]
+    return getattr(req, name) if used else without_none(d.hint)()
+
+
+class Plan:
+    """The cells of one FitRequest, named and grouped without loading anything."""
+
+    def __init__(self, req: FitRequest, log: Callable[[str], None] = print, *, check_device: bool = True) -> None:
+        """`check_device` False: plan for a device this machine need not have (the ray executor's driver plans
+        for its workers' GPUs; the compute dtype must then be resolved already)."""
+        self.device = resolve_device(req.device) if check_device else torch.device(req.device)
+        self.req = req = dataclasses.replace(req, compute_dtype=resolve_compute_dtype(req.compute_dtype, self.device))
+        self.objective = OBJECTIVES[req.objective]
+        self.log = log
+        self.root = reading_root(req.cache)  # only read: stage 2 never writes into a cache root
+        self.controls = [get_control(c) for c in dict.fromkeys(("none", *req.controls))]
+        self.cache = find_cache(self.root, req.encoder, dataset=req.dataset, key=req.cache_key)
+        needs_native = self.objective.needs_native or any(c.native_cache for c in self.controls)
+        self.native_cache = (find_cache(self.root, native_name(req.backbone), dataset=req.dataset,
+                                        key=req.native_cache_key, same_dataset_as=self.cache, for_what="native "
+                                        "controls and the align objective") if needs_native else None)
+        if self.native_cache is not None:
+            strides = {c.manifest.frame_stride for c in (self.cache, self.native_cache)}
+            if len(strides) > 1:
+                raise FitError(f"caches {self.cache.key} and {self.native_cache.key} hold different frames (frame "
+                               f"strides {sorted(strides)}); extract both with the same --frame-stride")
+        for control in self.controls:  # a pool control far finer than the stored grid: refused before any load
+            source = self.source(control)
+            note = check_pool_grid(control, [parse_grid(g) for g in source.manifest.grids], f"cache {source.key}")
+            if note:
+                log(note)
+        self.policy_folder = resolve_policy(req.backbone, req.policy, self.cache.manifest.dataset_identity,
+                                            cache_root(req.cache), self.cache.manifest.dataset.source)
+        self.cameras = self._match_cameras()
+        self.index = suite_index_table(self.cache, req.suite)
+        self.split = split_episodes(self.index, eval_fraction=req.eval_fraction, seed=req.eval_split_seed,
+                                    rule=req.eval_split)
+        self._pass_keys: dict[str, tuple | None] = {}  # control name -> its pass key
+
+    def _match_cameras(self) -> dict[str, str]:
+        """Policy camera -> the cache camera feeding it (graftcache/cameras.py: by name unless `camera_map` says
+        otherwise), read from the policy's config and checked against every cache the fit reads."""
+        policy = get_backbone(self.req.backbone).read_cameras(self.policy_folder)
+        mapping: dict[str, str] = {}
+        for cache in (self.cache, self.native_cache):
+            if cache is not None:
+                mapping = match_cameras(policy, cache.manifest.cameras, self.req.camera_map,
+                                        policy_name=str(self.policy_folder), cache_name=f"cache {cache.key}")
+        if renames(mapping):
+            self.log(f"cameras mapped as asked (policy=cache): {format_camera_map(mapping)}")
+        return mapping
+
+    # ---------------------------------------------------------------- what a cell reads and how it is fitted
+    def source(self, control: Control) -> FeatureCache:
+        """The cache a control reads: the native tower's for the native controls, else the encoder's."""
+        return self.native_cache if control.native_cache else self.cache
+
+    def objective_of(self, control: Control) -> Objective:
+        """How a control's cells are fitted: the request's objective, or nothing for controls that train nothing."""
+        return self.objective if control.train else EVAL_ONLY
+
+    @functools.cached_property
+    def token_grid(self) -> tuple[int, int]:
+        """The backbone's per-camera token grid, read from the policy's config (nothing is loaded)."""
+        return get_backbone(self.req.backbone).read_token_grid(self.policy_folder)
+
+    @property
+    def policy_id(self) -> str:
+        """How rows name the policy: as given, or `tiny:<folder>` for the tiny policy trained on this dataset."""
+        return self.req.policy if self.req.policy != "tiny" else f"tiny:{Path(self.policy_folder).name}"
+
+    # ---------------------------------------------------------------- cells
+    def cell(self, control: Control, seed: int) -> Cell:
+        """What identifies a results row (hashed into its run_id); computable without loading anything."""
+        objective = self.objective_of(control)
+        return Cell(
+            policy=self.policy_id, cache_key=self.source(control).key, seed=seed, control=control.name,
+            pool_grid=format_grid(control.grid or self.token_grid), objective=objective.name,
+            camera_map=format_camera_map(self.cameras) if renames(self.cameras) else None,
+            **{name: _cell_value(self.req, name, objective, control) for name in CELL_SETTINGS},
+        )
+
+    def cells(self) -> list[tuple[Control, int, Cell]]:
+        """Every (control, seed) of the request with its Cell, in the order a fit visits them."""
+        return [(control, seed, self.cell(control, seed)) for seed in self.req.seeds for control in self.controls]
+
+    def pass_key(self, control: Control) -> tuple | None:
+        """What cells must share to train in one pass of the backbone (graftcache/fit/passes.py): the loaded
+        policy on its device, the shape of the tokens fed to it (grid and width), and every setting declared shared
+        (PASS_SETTINGS: the backbone, compute dtype, training schedule, the scoring's denoising, `cells_per_pass`,
+        None there meaning the backbone's default on the key's device). None: the cell runs alone (LoRA, align,
+        controls that train nothing). Read from the policy's config and the cache's layout: nothing is loaded."""
+        if control.name not in self._pass_keys:
+            key = None
+            adapter = get_backbone(self.req.backbone)
+            if control.fuses and self.objective_of(control).fuses and adapter.per_sample_loss:
+                req = self.req
+                grid = control.grid or self.token_grid
+                source = FeatureSource.of(self.source(control), list(self.cameras.values()), grid)
+                width = source.frame_shape(source.cameras[0])[1]
+                key = (str(self.policy_folder), str(self.device), grid, width,
+                       *(getattr(req, name) for name in PASS_SETTINGS))
+            self._pass_keys[control.name] = key
+        return self._pass_keys[control.name]
+
+    def skipped(self, cells: Sequence[tuple[Control, int]]) -> None:
+        """Say in one line which of this request's cells are skipped, their rows being in the results file already:
+        by control (with the tower a native control reads), the seeds of each."""
+        seeds: dict[str, list[str]] = {}
+        for control, seed in cells:
+            source = self.source(control).manifest.encoder_name
+            name = control.name if source == self.req.encoder else f"{control.name} ({source})"
+            seeds.setdefault(name, []).append(str(seed))
+        which = "; ".join(f"{name}: seed{'s' * (len(s) > 1)} {', '.join(s)}" for name, s in seeds.items())
+        self.log(f"skip {self.req.backbone}/{self.req.encoder}/{self.req.suite}: {len(cells)} "
+                 f"cell{'s' * (len(cells) > 1)} already in {self.req.results} (control {which})")
+
+    # ---------------------------------------------------------------- where a cell's files go
+    def run_folder(self, cell: Cell) -> Path:
+        """Where a cell's projector (and a row its results file could not take) is kept."""
+        return self.runs / cell.run_id
+
+    @functools.cached_property
+    def runs(self) -> Path:
+        """The folder of the run folders: --out, else runs/ beside the results file; where that cannot be written
+        (a read-only results folder), runs/ in the local cache folder (store.cache_root), said in the log: the
+        projector save would fail first and lose the cell's work, its row then being kept there too."""
+        if self.req.out:
+            return Path(self.req.out)
+        beside = Path(self.req.results).absolute().parent / "runs"
+        existing = next(p for p in (beside, *beside.parents) if p.exists())  # what creating it writes into
+        if os.access(existing, os.W_OK | os.X_OK):  # False on a read-only mount, also for root
+            return beside
+        runs = cache_root(self.req.cache) / "runs"
+        self.log(f"cannot write run folders beside {self.req.results} ({existing} is not writable): projectors, and "
+                 f"rows the results file cannot take, are kept in {runs} (--out names another folder)")
+        return runs
