@@ -17,7 +17,8 @@ limit_worker_threads()  # under pytest-xdist (`make test`), before anything impo
 
 import pytest  # noqa: E402
 
-pytest_plugins = ("fixtures.datasets", "fixtures.torch_threads", "fixtures.ray_cluster", "fixtures.s3")
+pytest_plugins = ("fixtures.datasets", "fixtures.torch_threads", "fixtures.ray_cluster", "fixtures.s3",
+                  "fixtures.tiny_zoo")
 
 
 def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
