@@ -23,7 +23,7 @@ GROUPS = {"test_export": "tiny_policies", "test_zoo_backbones_cli": "tiny_polici
 
 #: the longest modules (CI's --durations on 2 cores, seconds: demo ~460, tiny policies ~500, fit ~210, concurrent
 #: writers ~150, released geometry ~140, gpu check ~125, remote store ~100, ray ~75), started first in this order;
-#: every other module follows in collection order
+#: then the other modules holding a test marked slow, then the rest, each in collection order
 LONGEST = ("test_demo", "test_export", "test_zoo_backbones_cli", "test_fit", "test_results_concurrent_writers",
            "test_released_geometry_checkpoints", "test_gpu_check", "test_store_remote",
            "test_ray", "test_extract", "test_encoders_registry", "test_bad_input_errors", "test_stream_memory",
@@ -44,7 +44,8 @@ def _module(item: pytest.Item) -> str:
 def schedule(items: list[pytest.Item]) -> None:
     """Mark each item with its module's xdist group and move the longest modules to the front (stable, so each
     module's items keep pytest's order, which groups their fixtures)."""
+    slow = {_module(item) for item in items if item.get_closest_marker("slow")}
     for item in items:
         item.add_marker(pytest.mark.xdist_group(GROUPS.get(_module(item), _module(item))))
     rank = {name: i for i, name in enumerate(LONGEST)}
-    items.sort(key=lambda item: rank.get(_module(item), len(LONGEST)))
+    items.sort(key=lambda item: rank.get(_module(item), len(LONGEST) + (_module(item) not in slow)))
