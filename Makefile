@@ -19,8 +19,9 @@ demo: setup
 lint: setup
 	.venv/bin/ruff check .
 
+# one pytest-xdist worker per core, each test module on one worker, the longest first (tests/helpers/parallel.py)
 test: setup-libero lint
-	.venv/bin/python -m pytest -q
+	.venv/bin/python -m pytest -q -n auto --dist loadgroup --durations=30
 
 test-fast: setup
 	.venv/bin/python -m pytest -q -m "not slow"

@@ -9,13 +9,30 @@ from __future__ import annotations
 import os
 
 from helpers.env import OFFLINE, isolated_homes
+from helpers.parallel import limit_worker_threads, schedule
 
 os.environ.update(OFFLINE)  # before anything imports huggingface_hub
 os.environ.setdefault("TOKENIZERS_PARALLELISM", "false")
+limit_worker_threads()  # under pytest-xdist (`make test`), before anything imports torch
 
 import pytest  # noqa: E402
 
-pytest_plugins = ("fixtures.datasets", "fixtures.torch_threads", "fixtures.ray_cluster", "fixtures.s3")
+pytest_plugins = ("fixtures.datasets", "fixtures.torch_threads", "fixtures.ray_cluster", "fixtures.s3",
+                  "fixtures.tiny_zoo")
+
+
+def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
+    """`-n auto`: one worker per core this process may run on (xdist's own guess counts physical cores, 1 on CI's
+    two hyperthreads), at most 2: the tests' shared fixtures (Ray's 2 CPUs, the timing-sensitive lease tests) are
+    sized for a 2-core machine."""
+    return max(1, min(2, len(os.sched_getaffinity(0))))
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Under xdist: each module runs on one worker (its module- and session-scoped fixtures built once), the
+    longest modules first (tests/helpers/parallel.py)."""
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        schedule(items)
 
 
 @pytest.fixture(autouse=True)

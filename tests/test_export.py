@@ -15,6 +15,7 @@ import numpy as np
 import polars as pl
 import pytest
 import torch
+from fixtures.tiny_zoo import CONTROLS, SAMPLE, SUITE, TinyZoo
 from helpers.probes import run_cli
 from safetensors.torch import load_file
 
@@ -29,43 +30,13 @@ from graftcache.pooling import parse_grid
 from graftcache.scoring import frame_noise
 from graftcache.store import FeatureCache
 
-SAMPLE = Path(__file__).resolve().parents[1] / "data" / "libero_sample"
-ENCODER = "timm:vit_tiny_patch16_224"
-SUBSET = ["--dataset", str(SAMPLE), "--episodes", "0-3", "--frame-stride", "8", "--num-workers", "0",
-          "--batch-size", "16", "--no-progress"]
-SUITE = "libero_spatial"
+#: the fit each backbone's plain cell is exported from (tests/fixtures/tiny_zoo.py, built once per session): the
+#: zoo backbones' every-control fit of tests/test_zoo_backbones_cli.py, smolvla's of the controls test below, and
+#: pi0.5's plain graft alone
+EXPORTED_CONTROLS = ("native", "zero-image", "lora", "shuffled-image")
+FITS = {"smolvla": EXPORTED_CONTROLS, "pi05": ()}
 #: features are stored fp16: one step of fp16 relative to the chunk's scale
 TOLERANCE = 2e-3
-
-
-@pytest.fixture(scope="module")
-def candidate(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """One cache root holding a random-init candidate encoder's features of the sample subset (shared by the
-    backbones: a cache serves every backbone)."""
-    root = tmp_path_factory.mktemp("export-cache")
-    from graftcache.cli import main
-
-    assert main(["extract", "--encoder", ENCODER, "--random-init", *SUBSET, "--cache", str(root)]) == 0
-    return root
-
-
-def fit_cells(name: str, root: Path, tmp_path: Path, capsys, controls: str) -> tuple[Path, pl.DataFrame]:
-    """A tiny `name` policy (one train-tiny step) and its fitted cells: the plain graft and `controls`."""
-    policy, table = tmp_path / "policy", tmp_path / "results.parquet"
-    done = run_cli(["train-tiny", "--backbone", name, "--dataset", str(SAMPLE), "--steps", "1", "--out", str(policy),
-                    "--cache", str(root)], capsys)
-    assert done.code == 0, done.err[-2000:]
-    if "native" in controls:
-        native = run_cli(["extract", "--encoder", f"{name}-native", "--policy", str(policy), *SUBSET,
-                          "--cache", str(root)], capsys)
-        assert native.code == 0, native.err[-2000:]
-    fit = run_cli(["fit", "--backbone", name, "--policy", str(policy), "--encoder", ENCODER, "--dataset",
-                   str(SAMPLE), "--suite", SUITE, "--seeds", "1", *(["--controls", controls] if controls else []),
-                   "--steps", "2",
-                   "--batch-size", "4", "--eval-fraction", "0.5", "--eval-frames", "4", "--num-denoise-steps", "2",
-                   "--cache", str(root), "--results", str(table), "--no-progress"], capsys)
-    assert fit.code == 0, fit.err[-2000:]
-    return table, results.read(table)
 
 
 def offline_chunk(row: dict, root: Path, policy: Path, run_folder: Path) -> tuple[torch.Tensor, dict, int]:
@@ -120,34 +91,35 @@ def exported_chunk(folder: Path, observation: dict, row_id: int) -> torch.Tensor
     return policy.predict_action_chunk(pre(observation), noise=noise).float()
 
 
-def check_export(row: dict, root: Path, table: Path, tmp_path: Path, capsys) -> None:
+def check_export(row: dict, root: Path, table: Path, policy: Path, tmp_path: Path, capsys) -> None:
     out = tmp_path / f"export-{row['control']}"
     done = run_cli(["export", row["run_id"], "--results", str(table), "--out", str(out), "--cache", str(root)], capsys)
     assert done.code == 0, done.err[-2000:]
     config = json.loads((out / "config.json").read_text())
     assert (config["type"], config["run_id"], config["control"]) == ("graftcache", row["run_id"], row["control"])
-    offline, observation, row_id = offline_chunk(row, root, tmp_path / "policy", table.parent / "runs" / row["run_id"])
+    offline, observation, row_id = offline_chunk(row, root, policy, table.parent / "runs" / row["run_id"])
     exported = exported_chunk(out, observation, row_id)
     assert exported.shape == offline.shape
     scale = float(offline.abs().max())
     torch.testing.assert_close(exported, offline, rtol=0, atol=TOLERANCE * max(1.0, scale))
 
 
-@pytest.mark.slow  # ~1-2 min per backbone on 2 cores: one train-tiny step, a 2-step fit, an export
+@pytest.mark.slow  # an export; the tiny policy and its fit (1-2 min per backbone on 2 cores) are shared: tiny_zoo
 @pytest.mark.parametrize("name", sorted(BACKBONES))
-def test_export_returns_the_scored_chunk(name: str, candidate: Path, tmp_path: Path, capsys) -> None:
-    table, rows = fit_cells(name, candidate, tmp_path, capsys, "")
-    check_export(rows.filter(pl.col("control") == "none").row(0, named=True), candidate, table, tmp_path, capsys)
+def test_export_returns_the_scored_chunk(name: str, tiny_zoo: TinyZoo, tmp_path: Path, capsys) -> None:
+    done = tiny_zoo.fitted(name, FITS.get(name, CONTROLS), capsys)
+    row = results.read(done.table).filter(pl.col("control") == "none").row(0, named=True)
+    check_export(row, done.cache, done.table, done.policy, tmp_path, capsys)
 
 
 @pytest.mark.slow
-def test_export_controls_and_refusals(candidate: Path, tmp_path: Path, capsys) -> None:
+def test_export_controls_and_refusals(tiny_zoo: TinyZoo, tmp_path: Path, capsys) -> None:
     """native, zero-image and lora cells export as what they scored; shuffled-image is refused in one line."""
-    table, rows = fit_cells("smolvla", candidate, tmp_path, capsys, "native,zero-image,lora,shuffled-image")
-    by_control = {r["control"]: r for r in rows.iter_rows(named=True)}
+    done = tiny_zoo.fitted("smolvla", EXPORTED_CONTROLS, capsys)
+    by_control = {r["control"]: r for r in results.read(done.table).iter_rows(named=True)}
     for control in ("native", "zero-image", "lora"):
-        check_export(by_control[control], candidate, table, tmp_path, capsys)
-    refused = run_cli(["export", by_control["shuffled-image"]["run_id"], "--results", str(table), "--out",
-                       str(tmp_path / "shuffled"), "--cache", str(candidate)], capsys)
+        check_export(by_control[control], done.cache, done.table, done.policy, tmp_path, capsys)
+    refused = run_cli(["export", by_control["shuffled-image"]["run_id"], "--results", str(done.table), "--out",
+                       str(tmp_path / "shuffled"), "--cache", str(done.cache)], capsys)
     assert refused.code == 2 and "shuffled-image has no closed-loop meaning" in refused.err
     assert len(refused.err.strip().splitlines()) == 1 and not (tmp_path / "shuffled").exists()

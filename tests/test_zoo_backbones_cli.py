@@ -7,20 +7,14 @@ from __future__ import annotations
 
 import json
 import math
-from pathlib import Path
 
 import pytest
-from helpers.probes import run_cli
+from fixtures.tiny_zoo import CONTROLS, TinyZoo
 
 from graftcache import results
 from graftcache.backbones import get_backbone
 from graftcache.store import FeatureCache
 
-SAMPLE = Path(__file__).resolve().parents[1] / "data" / "libero_sample"
-ENCODER = "timm:vit_tiny_patch16_224"
-CONTROLS = ("native", "native-graft", "zero-image", "shuffled-image", "pool-2x2", "lora")
-SUBSET = ["--dataset", str(SAMPLE), "--episodes", "0-3", "--frame-stride", "8", "--num-workers", "0",
-          "--batch-size", "16", "--no-progress"]
 #: backbone -> (native token grid, the tower's own grid before its connector, post-connector tokens per camera, LM
 #: width) of its tiny configuration (the Qwen ViTs of EO-1, GR00T, Wall-X and VLA-JEPA, and EVO1's InternViT: 8x8
 #: patches, merged 2x2 by their connectors)
@@ -31,30 +25,19 @@ TINY = {"xvla": ((4, 4), (4, 4), 17, 64), "pi0": ((4, 4), (4, 4), 16, 128), "pi0
 
 @pytest.mark.slow  # ~1-2 min per backbone on 2 cores: 1 native step, two small extractions, 7 tiny fits
 @pytest.mark.parametrize("name", sorted(TINY))
-def test_train_tiny_extract_native_and_fit_every_control(name: str, tmp_path: Path, capsys) -> None:
+def test_train_tiny_extract_native_and_fit_every_control(name: str, tiny_zoo: TinyZoo, capsys) -> None:
+    """The commands run once per session in tests/fixtures/tiny_zoo.py (tests/test_export.py exports their cells)."""
     grid, tower_grid, tokens, width = TINY[name]
-    policy, cache, table = tmp_path / "policy", tmp_path / "cache", tmp_path / "results.parquet"
-    done = run_cli(["train-tiny", "--backbone", name, "--dataset", str(SAMPLE), "--steps", "1", "--out", str(policy),
-                    "--cache", str(cache)], capsys)
-    assert done.code == 0, done.err[-2000:]
+    done = tiny_zoo.fitted(name, CONTROLS, capsys)
+    policy, cache, table = done.policy, done.cache, done.table
     record = json.loads((policy / "graftcache_pretrain.json").read_text())
     assert record["backbone"] == name and record["cameras"] == ["image", "image2"]
     assert get_backbone(name).read_token_grid(policy) == grid
 
-    native = run_cli(["extract", "--encoder", f"{name}-native", "--policy", str(policy), *SUBSET,
-                      "--cache", str(cache)], capsys)
-    assert native.code == 0, native.err[-2000:]
+    native = done.native
     manifest = FeatureCache(cache / native.out.split()[-1]).manifest
     assert tuple(manifest.encoder["grid"]) == tower_grid and manifest.extras["connector"] == [tokens, width]
-    candidate = run_cli(["extract", "--encoder", ENCODER, "--random-init", *SUBSET, "--cache", str(cache)], capsys)
-    assert candidate.code == 0, candidate.err[-2000:]
 
-    fit = run_cli(["fit", "--backbone", name, "--policy", str(policy), "--encoder", ENCODER, "--dataset",
-                   str(SAMPLE), "--suite", "libero_spatial", "--seeds", "1", "--controls", ",".join(CONTROLS),
-                   "--steps", "2", "--batch-size", "4", "--eval-fraction", "0.5", "--eval-frames", "4",
-                   "--num-denoise-steps", "2", "--cache", str(cache), "--results", str(table), "--no-progress"],
-                  capsys)
-    assert fit.code == 0, fit.err[-2000:]
     rows = results.read(table)
     assert sorted(rows["control"]) == sorted(("none", *CONTROLS)) and set(rows["backbone"]) == {name}
     assert all(math.isfinite(v) and v > 0 for v in rows["eval_mse"])

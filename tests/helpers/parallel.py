@@ -1,0 +1,51 @@
+"""How `make test` runs the suite on two workers (pytest-xdist, `-n auto --dist loadgroup`).
+
+Each worker is its own pytest session: session fixtures, temp dirs and isolated homes (helpers/env.py) are per
+worker, so workers never share a cache root, a moto server (each picks a free port) or a Ray instance. What must be
+arranged:
+
+- threads: the library gives a model process every core it was granted (graftcache.runtime.granted_cpus reads
+  OMP_NUM_THREADS); two workers each taking both cores spin against each other, so each worker (and every process
+  it starts, which inherits the variable) is granted its share of the cores;
+- grouping: a module runs on one worker, so its module-scoped fixtures (a trained tiny policy, an extracted cache,
+  a Ray instance) are built once; modules that share session fixtures form one group;
+- order: the longest groups start first, so the run does not end on one worker still busy with a long module.
+"""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+
+#: modules whose session fixtures are shared: they run on one worker, which builds them once
+GROUPS = {"test_export": "tiny_policies", "test_zoo_backbones_cli": "tiny_policies"}
+
+#: the longest modules (CI's --durations on 2 cores, seconds: demo ~460, tiny policies ~500, fit ~210, concurrent
+#: writers ~150, released geometry ~140, gpu check ~125, remote store ~100, ray ~75), started first in this order;
+#: then the other modules holding a test marked slow, then the rest, each in collection order
+LONGEST = ("test_demo", "test_export", "test_zoo_backbones_cli", "test_fit", "test_results_concurrent_writers",
+           "test_released_geometry_checkpoints", "test_gpu_check", "test_store_remote",
+           "test_ray", "test_extract", "test_encoders_registry", "test_bad_input_errors", "test_stream_memory",
+           "test_extract_shards")
+
+
+def limit_worker_threads() -> None:
+    """Under xdist, grant each worker its share of the cores (OMP_NUM_THREADS) unless the caller set it."""
+    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+    if workers > 1:
+        os.environ.setdefault("OMP_NUM_THREADS", str(max(1, len(os.sched_getaffinity(0)) // workers)))
+
+
+def _module(item: pytest.Item) -> str:
+    return item.path.stem
+
+
+def schedule(items: list[pytest.Item]) -> None:
+    """Mark each item with its module's xdist group and move the longest modules to the front (stable, so each
+    module's items keep pytest's order, which groups their fixtures)."""
+    slow = {_module(item) for item in items if item.get_closest_marker("slow")}
+    for item in items:
+        item.add_marker(pytest.mark.xdist_group(GROUPS.get(_module(item), _module(item))))
+    rank = {name: i for i, name in enumerate(LONGEST)}
+    items.sort(key=lambda item: rank.get(_module(item), len(LONGEST) + (_module(item) not in slow)))
