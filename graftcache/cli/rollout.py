@@ -4,6 +4,7 @@ simulator, one rollouts row per episode (graftcache.rollout)."""
 from __future__ import annotations
 
 import argparse
+from collections.abc import Callable
 from functools import partial
 from pathlib import Path
 
@@ -15,14 +16,19 @@ from graftcache.codecs import int_list
 TASKS = IntList("task", 89, 90)
 
 
-def _positive(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"{text!r}: must be 1 or more")
-    return value
+def _at_least(low: int) -> Callable[[str], int]:
+    """A flag's parser of integers >= `low` (argparse's one-line usage error otherwise)."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+        if value < low:
+            raise argparse.ArgumentTypeError(f"{text!r}: must be {low} or more")
+        return value
+
+    return parse
 
 
 def _names(text: str) -> tuple[str, ...]:
@@ -43,19 +49,19 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("results", help="results Parquet file (written by fit/sweep/demo)")
     p.add_argument("--run-ids", type=_names, default=None, metavar="ID,...",
                    help="roll out exactly these rows (any control but shuffled-image) instead of the top cells")
-    p.add_argument("--top", type=_positive, default=3, metavar="K",
+    p.add_argument("--top", type=_at_least(1), default=3, metavar="K",
                    help="encoders per (backbone, suite), best first by --score (default: 3)")
     p.add_argument("--score", choices=SCORE_NAMES, default="mse", help="the report's ranking score (default: mse)")
     p.add_argument("--suites", type=_names, default=None, metavar="SUITE,...",
                    help="only cells fit on these suites (each cell runs in the suite it was fit on)")
     p.add_argument("--tasks", type=partial(int_list, rule=TASKS), default=None, metavar="0,1,...",
                    help="tasks of each suite (default: all of them)")
-    p.add_argument("--episodes-per-task", type=_positive, default=1, metavar="N",
+    p.add_argument("--episodes-per-task", type=_at_least(1), default=1, metavar="N",
                    help="episodes per task, episode k from the task's init state k (default: 1)")
-    p.add_argument("--max-steps", type=_positive, default=None, metavar="M",
+    p.add_argument("--max-steps", type=_at_least(1), default=None, metavar="M",
                    help="step limit of an episode (default: lerobot's for the suite: 280 spatial/object, 300 goal, "
                    "520 libero_10)")
-    p.add_argument("--seed", type=int, default=1000,
+    p.add_argument("--seed", type=_at_least(0), default=1000,
                    help="episode k of every task and cell is seeded SEED + k, so cells are compared on the same "
                    "episodes (default: 1000, lerobot-eval's default --seed)")
     p.add_argument("--rollouts", default=None, metavar="PATH",
