@@ -41,3 +41,8 @@ class ResultsError(GraftcacheError):
 
 class ExportError(GraftcacheError):
     """A cell that cannot be exported as a policy, or an export folder that cannot be run here."""
+
+
+class RolloutError(GraftcacheError):
+    """A cell that cannot be rolled out in the simulator (none installed, cameras it cannot feed, a shuffled-image
+    control), or a rollouts file that cannot be read or written."""

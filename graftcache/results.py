@@ -219,7 +219,7 @@ def target(path: str | Path) -> Path:
     return Path(os.path.realpath(path)) if path.is_symlink() else path
 
 
-def _load(path: Path) -> pl.DataFrame:
+def load_table(path: Path) -> pl.DataFrame:
     """The Parquet table at `path`, read through one open descriptor: polars opening the path again (footer,
     then row groups) could read two files when a writer replaces it in between. A stale NFS handle (the file
     replaced on the server as we read it) is read again."""
@@ -235,7 +235,7 @@ def _load(path: Path) -> pl.DataFrame:
     return pl.read_parquet(io.BytesIO(data))
 
 
-def _reason(e: BaseException, path: Path) -> str:
+def failure_reason(e: BaseException, path: Path) -> str:
     """An OSError or polars error as a few words (polars' OSErrors carry no errno, only their text)."""
     if isinstance(e, OSError) and e.strerror:
         return e.strerror
@@ -250,13 +250,13 @@ def read(path: str | Path) -> pl.DataFrame:
     if not path.exists():
         return empty()
     try:
-        return validate(upgrade(_load(path), path))
+        return validate(upgrade(load_table(path), path))
     except ResultsError:
         raise
     except GraftcacheError as e:
         raise ResultsError(f"{path}: {e}") from None
     except (pl.exceptions.PolarsError, OSError) as e:
-        raise ResultsError(f"{path}: not a Parquet results table ({_reason(e, path)}); "
+        raise ResultsError(f"{path}: not a Parquet results table ({failure_reason(e, path)}); "
                            "pass another --results") from None
 
 
@@ -319,9 +319,9 @@ def read_for_report(path: str | Path) -> pl.DataFrame:
     if not path.is_file():
         raise GraftcacheError(f"{path}: no results file (run `graftcache sweep` or `graftcache demo` first)")
     try:
-        rows = _load(path)
+        rows = load_table(path)
     except (pl.exceptions.PolarsError, OSError) as e:
-        raise ResultsError(f"{path}: not a Parquet results table ({_reason(e, path)})") from None
+        raise ResultsError(f"{path}: not a Parquet results table ({failure_reason(e, path)})") from None
     try:
         table = conform(rows)
     except GraftcacheError as e:
@@ -399,9 +399,17 @@ def append(path: str | Path, rows: Iterable[Mapping[str, Any]] | pl.DataFrame,
     file being written is a ResultsError naming it; the file is then unchanged. A wait for the lease longer than
     WAIT_TOLD_S is said once through `log`, naming the lock and its holder.
     """
-    path = target(path)
     new = validate(rows if isinstance(rows, pl.DataFrame) else from_rows(rows))
-    new = new.unique(subset="run_id", keep="last", maintain_order=True)
+    return append_table(path, new, read, key="run_id", log=log)
+
+
+def append_table(path: str | Path, new: pl.DataFrame, read_table: Callable[[Path], pl.DataFrame], *, key: str,
+                 log: Callable[[str], None] = _to_stderr, what: str = "results file") -> pl.DataFrame:
+    """`append`'s lease -> read -> merge -> publish loop for any table kept this way (the rollouts file too,
+    graftcache.rollout.table): `new` (validated) replaces the rows of `read_table(path)` that share its `key`
+    values, of rows of one key in `new` the last is kept, and a failure is a ResultsError naming the `what`."""
+    path = target(path)
+    new = new.unique(subset=key, keep="last", maintain_order=True)
     _refuse_directory(path)
     lock = lock_path(path)
     if lock.is_dir():
@@ -414,14 +422,14 @@ def append(path: str | Path, rows: Iterable[Mapping[str, Any]] | pl.DataFrame,
                 f"waiting for {lock} (the lock of {path}), held by {holder}; a holder that is dead, or silent for "
                 f"{lease_seconds():g} s, is taken over"), patience=WAIT_TOLD_S)
             try:
-                old = read(path)
-                table = pl.concat([old.filter(~pl.col("run_id").is_in(new["run_id"].implode())), new])
+                old = read_table(path)
+                table = pl.concat([old.filter(~pl.col(key).is_in(new[key].implode())), new])
                 if _publish(path, table, lease):
                     return table
             finally:
                 lease.release()
         except (OSError, pl.exceptions.PolarsError) as e:
-            raise ResultsError(f"{path}: cannot write the results file ({_reason(e, path)})") from None
+            raise ResultsError(f"{path}: cannot write the {what} ({failure_reason(e, path)})") from None
         time.sleep(0.1)  # presumed dead and taken over while writing: read the successor's table and retry
 
 

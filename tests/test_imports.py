@@ -16,7 +16,7 @@ import graftcache
 PACKAGE = Path(graftcache.__file__).parent
 #: Stage 1 (dataset -> features in the cache) and stage 2 (cache -> fits -> reports), by module prefix.
 STAGE_1 = ("datasets", "encoders", "store", "extract", "pooling")
-STAGE_2 = ("backbones", "fit", "pretrain", "analysis", "report", "sweep", "recipe")
+STAGE_2 = ("backbones", "fit", "pretrain", "analysis", "report", "sweep", "recipe", "export", "rollout")
 
 
 def _modules() -> dict[str, tuple[Path, bool]]:

@@ -22,7 +22,8 @@ from graftcache import __version__
 #: one line naming the file, like any other bad input.
 ENVIRONMENT_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EACCES, errno.EPERM, errno.EROFS})
 
-COMMANDS = ("extract", "caches", "transfer", "train_tiny", "fit", "sweep", "report", "demo", "merge_rows", "export")
+COMMANDS = ("extract", "caches", "transfer", "train_tiny", "fit", "sweep", "report", "demo", "merge_rows", "export",
+            "rollout")
 
 
 def build_parser() -> argparse.ArgumentParser:

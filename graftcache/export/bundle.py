@@ -89,7 +89,7 @@ def export_run(run_id: str, results_path: str | Path, out: str | Path, *, cache:
     """Write the export of cell `run_id` of `results_path` to `out`; returns `out`."""
     from graftcache.backbones import get_backbone
     from graftcache.export.configuration_graftcache import GraftcacheConfig
-    from graftcache.export.features import MANIFEST_FILE, load_cell_features
+    from graftcache.export.features import MANIFEST_FILE
     from graftcache.export.modeling_graftcache import PROJECTOR_FILE, GraftcachePolicy
     from graftcache.export.processors import export_pipelines
 
@@ -128,8 +128,7 @@ def export_run(run_id: str, results_path: str | Path, out: str | Path, *, cache:
         pipeline.save_pretrained(partial)
     check_processors(partial)
     del base
-    load_cell_features(partial, json.loads((partial / "config.json").read_text()), "cpu")  # refuses numerics drift
-    GraftcachePolicy(config, partial)  # refuses a projector that does not fit, here
+    GraftcachePolicy(config, partial)  # refuses numerics drift and a projector that does not fit, here
     shutil.rmtree(out, ignore_errors=True)
     partial.rename(out)
     log(f"exported {row['backbone']}/{row['encoder']}/{row['suite']} seed {row['seed']} control {control.name} "

@@ -20,11 +20,13 @@ from graftcache.encoders.fingerprint import compare, encoder_of, fingerprint
 from graftcache.errors import ExportError
 from graftcache.fit.controls import get_control
 from graftcache.fit.controls import zero as zero_features
+from graftcache.graft import feature_key
 from graftcache.pooling import format_grid, parse_grid, pool_grid
 from graftcache.runtime import autocast, resolve_dtype
 from graftcache.store import Manifest
 
 MANIFEST_FILE = "manifest.json"
+IMAGE_PREFIX = "observation.images."
 
 
 def to_uint8(images: torch.Tensor) -> torch.Tensor:
@@ -61,9 +63,29 @@ class CellFeatures:
             out = out.float()
         return torch.zeros_like(out) if self.zero else out
 
+    def observe(self, batch: dict, cameras: dict[str, str], where: str) -> dict:
+        """`batch` with its camera frames replaced by the cell's features, for every policy camera from the camera
+        the cell mapped to it (`cameras`), as graftcache.fit.loop.raw_batch holds them; the frames leave the batch,
+        as offline scoring never had them. A missing camera is an ExportError naming `where` (the export)."""
+        check_cameras(batch, cameras, where)
+        observation = dict(batch)
+        frames = {k: observation.pop(k) for k in list(observation) if k.startswith(IMAGE_PREFIX)}
+        for policy_camera, camera in cameras.items():
+            images = frames[IMAGE_PREFIX + camera].to(self.encoder.device)
+            observation[feature_key(policy_camera)] = self(images if images.ndim == 4 else images[None])
+        return observation
+
     def describe(self) -> str:
         what = self.extra or f"grid {format_grid(self.stored)} pooled to {format_grid(self.pool)}"
         return f"{self.encoder.spec.name}: {what}" + (" (zeroed: zero-image)" if self.zero else "")
+
+
+def check_cameras(observation: dict, cameras: dict[str, str], where: str) -> None:
+    """Refuse, in one line naming `where` (the export), an observation without a frame of a camera the cell reads."""
+    for policy_camera, camera in cameras.items():
+        if IMAGE_PREFIX + camera not in observation:
+            raise ExportError(f"{where}: the observation has no {IMAGE_PREFIX}{camera} (it feeds policy camera "
+                              f"{policy_camera}); pass lerobot-eval a --rename_map that provides it")
 
 
 def read_manifest(folder: Path) -> Manifest:

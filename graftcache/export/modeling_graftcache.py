@@ -2,13 +2,16 @@
 cell's encoder computes from the camera frames (graftcache.export.features), acting on chunks as the base does.
 
 lerobot builds it with `from_pretrained` (its factory, `lerobot-eval --policy.path`); it never reads a weights file of
-its own: the base policy loads through its graftcache adapter (the same loading a fit does). The features reach it
-from the export's preprocessor (graftcache.export.processors); the base policy's own preprocessing runs here, through
-the adapter's `prepare`, as offline scoring runs it.
+its own: the base policy loads through its graftcache adapter (the same loading a fit does), and the cell's encoder is
+rebuilt from the export's manifest, its numerics fingerprint recomputed (graftcache.export.features). The frames reach
+it from the export's preprocessor (graftcache.export.processors) and become the cell's features only when a chunk is
+predicted, not for every action popped from the queue; the base policy's own preprocessing runs here, through the
+adapter's `prepare`, as offline scoring runs it.
 """
 
 from __future__ import annotations
 
+import json
 from collections import deque
 from pathlib import Path
 from typing import Any
@@ -21,7 +24,7 @@ from torch import Tensor
 from graftcache.backbones import get_backbone
 from graftcache.errors import ExportError
 from graftcache.export.configuration_graftcache import GraftcacheConfig
-from graftcache.export.features import read_manifest
+from graftcache.export.features import load_cell_features, read_manifest
 from graftcache.fit.controls import get_control
 from graftcache.runtime import autocast, resolve_dtype
 
@@ -52,6 +55,7 @@ class GraftcachePolicy(PreTrainedPolicy):
             self._load_trained(adapter, folder / PROJECTOR_FILE)
         adapter.policy.eval()
         self.adapter = adapter
+        self.features = load_cell_features(folder, json.loads((folder / "config.json").read_text()), device)
         self.dtype = resolve_dtype(config.compute_dtype)
         self._queue: deque[Tensor] = deque()
 
@@ -92,9 +96,10 @@ class GraftcachePolicy(PreTrainedPolicy):
 
     @torch.no_grad()
     def predict_action_chunk(self, batch: dict[str, Tensor], noise: Tensor | None = None, **kwargs: Any) -> Tensor:
-        """Normalised action chunk [B, chunk, action_dim] of a batch from the export's preprocessor (features, raw
-        state, task strings); `noise` [B, chunk, max_action_dim] fixes the flow's start, as offline scoring fixes it
-        per frame."""
+        """Normalised action chunk [B, chunk, action_dim] of a batch from the export's preprocessor (camera frames,
+        raw state, task strings), the frames turned into the cell's features here; `noise` [B, chunk, max_action_dim]
+        fixes the flow's start, as offline scoring fixes it per frame."""
+        batch = self.features.observe(batch, self.config.cameras, str(self.folder))
         task = batch["task"]
         prepared = self.adapter.prepare({**batch, "task": [task] if isinstance(task, str) else list(task)})
         with autocast(self.adapter.device, self.dtype):

@@ -1,10 +1,11 @@
 """An export's saved pipelines, as offline scoring prepares a batch and reads its chunk.
 
-Preprocessor: rename -> the cell's features -> device (lerobot-eval overrides the first and last). The frames become
-the cell's features under `observation.vis_feats.<policy camera>` (graftcache.export.features), as
-graftcache.fit.loop.raw_batch holds them; the base policy's own preprocessing then runs inside the policy, through
-its adapter's `prepare` (graftcache.export.modeling_graftcache), which grafted EO-1 and GR00T need to build their
-prompts around cached features.
+Preprocessor: rename -> the cell's cameras checked -> device (lerobot-eval overrides the first and last). The frames
+stay frames here: lerobot runs the preprocessor at every step, also while the policy still has queued actions, so
+the policy turns them into the cell's features (graftcache.export.features.CellFeatures.observe) only when it
+predicts a chunk (graftcache.export.modeling_graftcache); the encoder ran at every step before, which was most of a
+simulated step's time. The base policy's own preprocessing then runs inside the policy too, through its adapter's
+`prepare`, which grafted EO-1 and GR00T need to build their prompts around cached features.
 
 Postprocessor: the base policy's own. Its saved processors often need more than their JSON to load: tiny
 checkpoints' tokenizers are local folders handed over as objects (graftcache.backbones.*._processor_overrides), which
@@ -20,7 +21,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import torch
 from lerobot.processor import DeviceProcessorStep, ProcessorStep, ProcessorStepRegistry, RenameObservationsProcessorStep
 from lerobot.processor.converters import (
     batch_to_transition,
@@ -30,44 +30,29 @@ from lerobot.processor.converters import (
 )
 from lerobot.processor.pipeline import PolicyProcessorPipeline, TransitionKey
 
-from graftcache.errors import ExportError
-from graftcache.export.features import CellFeatures, load_cell_features
-from graftcache.graft import feature_key
+from graftcache.export.features import check_cameras
 
 STEP = "graftcache_base_postprocessor"
 FEATURES_STEP = "graftcache_cell_features"
-IMAGE_PREFIX = "observation.images."
 
 
 @ProcessorStepRegistry.register(FEATURES_STEP)
 @dataclass
 class CellFeaturesStep(ProcessorStep):
-    """Camera frames -> the cell's features, for every policy camera from the camera the cell mapped to it (the
-    frames themselves leave the batch, as offline scoring never had them). `folder`: the export."""
+    """Checks that the observation holds a frame for every camera the cell reads (one line naming the camera and
+    `--rename_map` otherwise), before any step runs; the frames pass on to the policy, which computes the features.
+    `folder`: the export; `device`: kept so that the preprocessors saved by earlier exports load."""
 
     folder: str = ""
     device: str = "cpu"
 
     @functools.cached_property
-    def config(self) -> dict[str, Any]:
-        return json.loads((Path(self.folder) / "config.json").read_text())
-
-    @functools.cached_property
-    def features(self) -> CellFeatures:
-        return load_cell_features(Path(self.folder), self.config, self.device)
+    def cameras(self) -> dict[str, str]:
+        return json.loads((Path(self.folder) / "config.json").read_text())["cameras"]
 
     def __call__(self, transition: Any) -> Any:
-        observation = dict(transition[TransitionKey.OBSERVATION])
-        frames = {k: observation.pop(k) for k in list(observation) if k.startswith(IMAGE_PREFIX)}
-        for policy_camera, camera in self.config["cameras"].items():
-            key = IMAGE_PREFIX + camera
-            if key not in frames:
-                raise ExportError(f"{self.folder}: the observation has no {key} (it feeds policy camera "
-                                  f"{policy_camera}); pass lerobot-eval a --rename_map that provides it")
-            images = frames[key].to(self.features.encoder.device)
-            with torch.no_grad():
-                observation[feature_key(policy_camera)] = self.features(images if images.ndim == 4 else images[None])
-        return {**transition, TransitionKey.OBSERVATION: observation}
+        check_cameras(transition[TransitionKey.OBSERVATION], self.cameras, self.folder)
+        return transition
 
     def transform_features(self, features: dict) -> dict:
         return features
@@ -112,8 +97,8 @@ class BasePostprocessorStep(ProcessorStep):
 
 def export_pipelines(folder: str, backbone: str, source: str, device: str = "cpu") -> tuple[
         PolicyProcessorPipeline, PolicyProcessorPipeline]:
-    """The (pre, post) pipelines the export at `folder` saves: rename -> the cell's features -> device; the base's
-    postprocessor."""
+    """The (pre, post) pipelines the export at `folder` saves: rename -> the cell's cameras checked -> device; the
+    base's postprocessor."""
     pre = PolicyProcessorPipeline(
         steps=[RenameObservationsProcessorStep(rename_map={}), CellFeaturesStep(folder, device),
                DeviceProcessorStep(device=device)],

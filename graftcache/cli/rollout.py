@@ -1,0 +1,91 @@
+"""`graftcache rollout RESULTS`: the top cells of a results file (or exact run_ids) exported and run in the LIBERO
+simulator, one rollouts row per episode (graftcache.rollout)."""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Callable
+from functools import partial
+from pathlib import Path
+
+from graftcache.checks import IntList
+from graftcache.cli.report import SCORE_NAMES
+from graftcache.codecs import int_list
+
+#: LIBERO suites hold 10 tasks (libero_90: 90)
+TASKS = IntList("task", 89, 90)
+
+
+def _at_least(low: int) -> Callable[[str], int]:
+    """A flag's parser of integers >= `low` (argparse's one-line usage error otherwise)."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+        if value < low:
+            raise argparse.ArgumentTypeError(f"{text!r}: must be {low} or more")
+        return value
+
+    return parse
+
+
+def _names(text: str) -> tuple[str, ...]:
+    names = tuple(dict.fromkeys(n.strip() for n in text.split(",") if n.strip()))
+    if not names:
+        raise argparse.ArgumentTypeError(f"{text!r} names nothing")
+    return names
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("rollout", help="run the best cells of a results file in the LIBERO simulator (closed loop)",
+                       description="Export the K best encoders of every (backbone, suite) of RESULTS, ranked by "
+                       "the report's score (every seed's row), with their zero-image rows and the backbone's native "
+                       "rows, or exactly --run-ids, and run each in LIBERO through lerobot's own evaluation loop "
+                       "(the suite's official init states, every cell on the same seeds). One row per episode goes "
+                       "to the rollouts file; a rerun runs only the episodes it lacks. Needs the simulator: "
+                       "`make setup-libero`.")
+    p.add_argument("results", help="results Parquet file (written by fit/sweep/demo)")
+    p.add_argument("--run-ids", type=_names, default=None, metavar="ID,...",
+                   help="roll out exactly these rows (any control but shuffled-image) instead of the top cells")
+    p.add_argument("--top", type=_at_least(1), default=3, metavar="K",
+                   help="encoders per (backbone, suite), best first by --score (default: 3)")
+    p.add_argument("--score", choices=SCORE_NAMES, default="mse", help="the report's ranking score (default: mse)")
+    p.add_argument("--suites", type=_names, default=None, metavar="SUITE,...",
+                   help="only cells fit on these suites (each cell runs in the suite it was fit on)")
+    p.add_argument("--tasks", type=partial(int_list, rule=TASKS), default=None, metavar="0,1,...",
+                   help="tasks of each suite (default: all of them)")
+    p.add_argument("--episodes-per-task", type=_at_least(1), default=1, metavar="N",
+                   help="episodes per task, episode k from the task's init state k (default: 1)")
+    p.add_argument("--max-steps", type=_at_least(1), default=None, metavar="M",
+                   help="step limit of an episode (default: lerobot's for the suite: 280 spatial/object, 300 goal, "
+                   "520 libero_10)")
+    p.add_argument("--seed", type=_at_least(0), default=1000,
+                   help="episode k of every task and cell is seeded SEED + k, so cells are compared on the same "
+                   "episodes (default: 1000, lerobot-eval's default --seed)")
+    p.add_argument("--rollouts", default=None, metavar="PATH",
+                   help="rollouts Parquet file to append to (default: rollouts.parquet beside RESULTS); exports go "
+                   "to exports/RUN_ID beside it")
+    p.add_argument("--cache", default=None, help="cache root the fits read (default: $GRAFTCACHE_HOME or "
+                   "~/.cache/graftcache)")
+    p.add_argument("--runs", default=None, help="folder of run folders, when the fits wrote them elsewhere (--out)")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from graftcache.rollout.libero import LiberoSimulator
+    from graftcache.rollout.run import EXPORTS_FOLDER, RolloutRequest, default_rollouts, roll_out
+
+    rollouts = Path(args.rollouts) if args.rollouts else default_rollouts(args.results)
+    req = RolloutRequest(results=Path(args.results), rollouts=rollouts, run_ids=args.run_ids, top=args.top,
+                         suites=args.suites, score=args.score, tasks=args.tasks,
+                         episodes_per_task=args.episodes_per_task, max_steps=args.max_steps, seed=args.seed,
+                         command=args.command_line)
+    sim = LiberoSimulator(req.results, rollouts.absolute().parent / EXPORTS_FOLDER, cache=args.cache, runs=args.runs,
+                          max_steps=args.max_steps)
+    try:
+        roll_out(req, sim)
+    finally:
+        sim.close()
+    return 0

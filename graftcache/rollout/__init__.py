@@ -1,0 +1,8 @@
+"""Closed-loop checks (`graftcache rollout`): fitted cells exported (graftcache.export) and run in the LIBERO
+simulator through lerobot's own evaluation code, one Parquet row per episode.
+
+select.py (which rows: the report's top encoders plus controls, or exact run_ids; what the simulator can feed),
+episodes.py (planned episodes, outcomes, the Simulator seam), libero.py (the simulator: lerobot's LIBERO env and
+rollout loop, in this process), table.py (the rollouts file's schema and append-safe IO), run.py (plan, skip what the
+file holds, run under claims, write each episode).
+"""

@@ -1,0 +1,57 @@
+"""What a rollout plans and what an episode returns, as plain data, and the seam between the rollout's bookkeeping
+(graftcache.rollout.run) and whatever runs the episodes (graftcache.rollout.libero.LiberoSimulator, or a test's
+fake): a `Simulator` says what a suite is and runs a cell's episodes."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import asdict, dataclass
+from typing import Any, Protocol
+
+from graftcache.rollout.table import episode_id
+
+
+@dataclass(frozen=True)
+class Episode:
+    """One planned episode: episode k of a task runs from the task's init state k (mod their number) with the
+    environment seeded `seed`, the start seed + k, as lerobot-eval runs its episode k with --eval.batch_size=1."""
+
+    run_id: str
+    suite: str
+    task_index: int
+    episode: int
+    seed: int
+    max_steps: int
+
+    @property
+    def id(self) -> str:
+        return episode_id(asdict(self))
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """What running an Episode gave."""
+
+    success: bool
+    steps: int
+    seconds: float
+    init_state: int
+    video: str | None = None
+
+
+@dataclass(frozen=True)
+class Suite:
+    """What the simulator says of a suite: how many tasks it has and lerobot's episode length for it."""
+
+    n_tasks: int
+    max_steps: int
+
+
+class Simulator(Protocol):
+    """Runs a results row's cell in closed loop. `suite` is asked before anything runs (to plan); `run` gets the
+    cell's row and its missing episodes and yields one Outcome per episode, in order, as each finishes (the rollout
+    writes each row as it comes, so a killed run keeps the episodes it finished)."""
+
+    def suite(self, name: str) -> Suite: ...
+
+    def run(self, row: Mapping[str, Any], episodes: Sequence[Episode]) -> Iterator[Outcome]: ...

@@ -1,0 +1,145 @@
+"""The LIBERO simulator through lerobot's own evaluation code, in this process: each cell is exported
+(graftcache.export), loaded as lerobot-eval loads a policy (make_policy, make_pre_post_processors with the overrides
+lerobot-eval applies, the env's own processors), and each episode is one call of lerobot-eval's `rollout` on a
+one-env vector env of lerobot's LIBERO config at the datasets' 256x256 resolution, scored as `eval_policy` scores
+it (success: any step's check_success up to the first done; steps: up to it).
+
+What differs from a `lerobot-eval` process, and why: the env of a (suite, task) is built once and serves every cell
+(one process serves many cells); so that episode k still starts from init state k whatever ran before, the env's
+init-state counter is set to k before its reset (lerobot-eval gets there by counting its resets from 0), and the
+global RNGs are seeded from the episode's seed before it (lerobot-eval seeds them once per process), so that an
+episode run again after a kill is the same episode.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+import time
+from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+from graftcache.errors import RolloutError
+from graftcache.rollout.episodes import Episode, Outcome, Suite
+
+#: the observation size of LIBERO's datasets (lerobot's env defaults to 360)
+OBSERVATION_SIZE = 256
+INSTALL = "run `make setup-libero` (scripts/setup.sh libero) to install it"
+
+
+def require_simulator() -> None:
+    """Refuse, in one line naming how to install it, an environment without lerobot's LIBERO env."""
+    for module in ("libero", "robosuite", "mujoco"):
+        if importlib.util.find_spec(module) is None:
+            raise RolloutError(f"the LIBERO simulator is not installed (no Python module {module}); {INSTALL}")
+    try:
+        import lerobot.envs.libero  # noqa: F401  (imports hf-libero, which prompts on stdin without its config)
+    except EOFError:
+        raise RolloutError("hf-libero asked for its config on stdin ($LIBERO_CONFIG_PATH/config.yaml, default "
+                           f"~/.libero, is missing); {INSTALL}, which writes it") from None
+    except ImportError as e:
+        raise RolloutError(f"the LIBERO simulator cannot be imported ({e}); {INSTALL}") from None
+
+
+@contextmanager
+def quiet_inner_bars() -> Iterator[None]:
+    """lerobot's rollout draws a bar of its own per episode; off a terminal (a log) it would write a redraw per step,
+    so it is disabled there and the rollout's own sparse lines remain (graftcache.progress)."""
+    from lerobot.scripts import lerobot_eval
+    from tqdm import trange
+
+    if sys.stderr.isatty():
+        yield
+        return
+    lerobot_eval.trange = lambda *args, **kwargs: trange(*args, **{**kwargs, "disable": True})  # it passes its own
+    try:
+        yield
+    finally:
+        lerobot_eval.trange = trange
+
+
+class LiberoSimulator:
+    """graftcache.rollout.episodes.Simulator over lerobot's LIBERO env. `exports`: where cells are exported (one
+    folder per run_id, reused when it holds the run's export); `results`, `cache`, `runs`: as `graftcache export`
+    takes them. `max_steps`: the step limit, None for lerobot's episode length of each suite."""
+
+    def __init__(self, results: str | Path, exports: Path, *, cache: str | None, runs: str | None,
+                 max_steps: int | None, log=print) -> None:
+        require_simulator()
+        self.results, self.exports, self.cache, self.runs = results, exports, cache, runs
+        self.max_steps, self.log = max_steps, log
+        self._envs: dict[tuple[str, int], Any] = {}
+
+    def suite(self, name: str) -> Suite:
+        from lerobot.envs.libero import TASK_SUITE_MAX_STEPS, _get_suite
+
+        return Suite(n_tasks=len(_get_suite(name).tasks), max_steps=self.max_steps or TASK_SUITE_MAX_STEPS[name])
+
+    def export(self, row: Mapping[str, Any]) -> Path:
+        """The cell's export folder, written on first use (graftcache export writes it whole or not at all)."""
+        import json
+
+        from graftcache.export.bundle import export_run
+
+        folder = self.exports / row["run_id"]
+        config = folder / "config.json"
+        if config.is_file() and json.loads(config.read_text()).get("run_id") == row["run_id"]:
+            return folder
+        return export_run(row["run_id"], self.results, folder, cache=self.cache, runs=self.runs, log=self.log)
+
+    def env_config(self, suite: str, task: int) -> Any:
+        from lerobot.envs.factory import make_env_config
+
+        return make_env_config("libero", task=suite, task_ids=[task], episode_length=self.max_steps,
+                               observation_height=OBSERVATION_SIZE, observation_width=OBSERVATION_SIZE)
+
+    def env(self, suite: str, task: int) -> Any:
+        """The one-env vector env of (suite, task), built once per process."""
+        if (suite, task) not in self._envs:
+            self._envs[suite, task] = self.env_config(suite, task).create_envs(n_envs=1)[suite][task]
+        return self._envs[suite, task]
+
+    def run(self, row: Mapping[str, Any], episodes: Sequence[Episode]) -> Iterator[Outcome]:
+        import torch
+        from lerobot.configs.policies import PreTrainedConfig
+        from lerobot.envs.factory import make_env_pre_post_processors
+        from lerobot.policies.factory import make_policy, make_pre_post_processors
+        from lerobot.scripts.lerobot_eval import rollout
+        from lerobot.utils.random_utils import set_seed
+
+        import graftcache.export.configuration_graftcache  # noqa: F401  (registers the policy type, as the plugin does)
+        import graftcache.export.processors  # noqa: F401  (registers the export's processor steps)
+
+        folder = self.export(row)
+        config = PreTrainedConfig.from_pretrained(folder)
+        config.pretrained_path = str(folder)
+        first = episodes[0]
+        env_config = self.env_config(first.suite, first.task_index)
+        policy = make_policy(config, env_cfg=env_config, rename_map={})
+        policy.eval()
+        pre, post = make_pre_post_processors(
+            policy_cfg=config, pretrained_path=str(folder),
+            preprocessor_overrides={"device_processor": {"device": str(policy.config.device)},
+                                    "rename_observations_processor": {"rename_map": {}}})
+        env_pre, env_post = make_env_pre_post_processors(env_cfg=env_config, policy_cfg=config)
+        with quiet_inner_bars(), torch.no_grad():
+            for episode in episodes:
+                env = self.env(episode.suite, episode.task_index)
+                libero_env = env.envs[0].unwrapped
+                n_states = len(libero_env._init_states)  # the task's official init states, as the env loaded them
+                libero_env.init_state_id = episode.episode  # lerobot-eval's k-th reset of a fresh env
+                set_seed(episode.seed)
+                start = time.perf_counter()
+                data = rollout(env=env, policy=policy, env_preprocessor=env_pre, env_postprocessor=env_post,
+                               preprocessor=pre, postprocessor=post, seeds=[episode.seed])
+                seconds = time.perf_counter() - start
+                done = int(torch.argmax(data["done"][0].to(int)))  # eval_policy's first done step
+                yield Outcome(success=bool(data["success"][0, : done + 1].any()), steps=done + 1, seconds=seconds,
+                              init_state=episode.episode % n_states)
+
+    def close(self) -> None:
+        for env in self._envs.values():
+            env.close()
+        self._envs.clear()

@@ -1,0 +1,137 @@
+"""`graftcache rollout`: the selected cells' episodes planned, those already in the rollouts file skipped, the rest
+run cell by cell under the cell's claim and written one row per episode as each finishes.
+
+Resuming is by episode: a rerun of the same command plans the same episodes (graftcache.rollout.episodes.Episode,
+identified by graftcache.rollout.table.EPISODE_KEY), finds them in the file and runs none, saying so; a run killed
+mid-way (kill -9 included) has written every episode it finished, and its rerun runs the others. Two processes
+sharing a rollouts file take each cell under its claim (graftcache.results.cell_claim, beside the file), and look
+again at what the file holds once they have it, so no episode is run twice.
+"""
+
+from __future__ import annotations
+
+import importlib.metadata
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import polars as pl
+
+import graftcache
+from graftcache import results
+from graftcache.errors import RolloutError
+from graftcache.progress import progress
+from graftcache.progress import write as progress_write
+from graftcache.rollout import table
+from graftcache.rollout.episodes import Episode, Outcome, Simulator
+from graftcache.rollout.select import select_rows
+
+ROLLOUTS_FILE = "rollouts.parquet"  # the default: beside the results file
+EXPORTS_FOLDER = "exports"          # beside the rollouts file: one export folder per run_id
+
+
+@dataclass(frozen=True)
+class RolloutRequest:
+    """What `graftcache rollout` was asked: which rows (run_ids, else the `top` encoders by `score` plus controls,
+    within `suites`), which tasks (None: all of the suite's), how many episodes each, the step limit (None:
+    lerobot's episode length of the suite) and the start seed shared by every cell (episodes are paired)."""
+
+    results: Path
+    rollouts: Path
+    run_ids: tuple[str, ...] | None = None
+    top: int = 3
+    suites: tuple[str, ...] | None = None
+    score: str = "mse"
+    tasks: tuple[int, ...] | None = None
+    episodes_per_task: int = 1
+    max_steps: int | None = None
+    seed: int = 1000
+    command: str = ""
+
+
+def default_rollouts(results_path: str | Path) -> Path:
+    return Path(results_path).absolute().parent / ROLLOUTS_FILE
+
+
+def plan(rows: pl.DataFrame, req: RolloutRequest, simulator: Simulator) -> list[Episode]:
+    """Every episode of the request, cell by cell: per row, its suite's tasks x episodes_per_task."""
+    episodes = []
+    for row in rows.iter_rows(named=True):
+        suite = simulator.suite(row["suite"])
+        tasks = req.tasks if req.tasks is not None else tuple(range(suite.n_tasks))
+        beyond = [t for t in tasks if t >= suite.n_tasks]
+        if beyond:
+            raise RolloutError(f"run {row['run_id']}: suite {row['suite']} has tasks 0-{suite.n_tasks - 1}, not "
+                               f"task {beyond[0]}")
+        episodes += [Episode(row["run_id"], row["suite"], t, k, req.seed + k, suite.max_steps)
+                     for t in tasks for k in range(req.episodes_per_task)]
+    return episodes
+
+
+def row_of(episode: Episode, outcome: Outcome, command: str) -> dict[str, Any]:
+    """The rollouts row of a finished episode (graftcache.rollout.table.SCHEMA)."""
+    return {"episode_id": episode.id, "format_version": table.FORMAT_VERSION, "run_id": episode.run_id,
+            "suite": episode.suite, "task_index": episode.task_index, "episode": episode.episode,
+            "seed": episode.seed, "init_state": outcome.init_state, "max_steps": episode.max_steps,
+            "success": outcome.success, "steps": outcome.steps, "seconds": outcome.seconds, "video": outcome.video,
+            "lerobot_version": importlib.metadata.version("lerobot"), "graftcache_version": graftcache.__version__,
+            "command": command}
+
+
+def describe(row: Mapping[str, Any]) -> str:
+    return f"{row['backbone']}/{row['encoder']}/{row['suite']} seed {row['seed']} control {row['control']}"
+
+
+def roll_out(req: RolloutRequest, sim: Simulator, log: Callable[[str], None] = progress_write) -> pl.DataFrame:
+    """Run the request's missing episodes with `sim` and return the rollouts file's rows of the request's
+    episodes."""
+    rows = select_rows(results.read(req.results), run_ids=req.run_ids, top=req.top, suites=req.suites,
+                       score=req.score)
+    episodes = plan(rows, req, sim)
+    done = set(table.read(req.rollouts)["episode_id"].to_list())
+    missing = [e for e in episodes if e.id not in done]
+    cells = rows.height
+    if not missing:
+        log(f"all {len(episodes)} episodes of {cells} cell(s) are already in {req.rollouts}: nothing to run")
+        return _of(req, episodes)
+    if len(missing) < len(episodes):
+        log(f"{len(episodes) - len(missing)} of {len(episodes)} episodes already in {req.rollouts}; running the "
+            f"other {len(missing)}")
+    log(f"rolling out {cells} cell(s), {len(missing)} episode(s) into {req.rollouts}")
+    by_run = {r["run_id"]: r for r in rows.iter_rows(named=True)}
+    with progress(total=len(missing), desc="rollout", unit="episode") as bar:
+        for run_id in dict.fromkeys(e.run_id for e in missing):
+            _run_cell(req, sim, by_run[run_id], [e for e in missing if e.run_id == run_id], bar, log)
+    results.drop_claims_folder(req.rollouts)
+    return _of(req, episodes)
+
+
+def _run_cell(req: RolloutRequest, sim: Simulator, row: Mapping[str, Any], episodes: Sequence[Episode], bar,
+              log: Callable[[str], None]) -> None:
+    """The cell's episodes that are still missing once its claim is held, each row written as it finishes."""
+    claim = results.cell_claim(req.rollouts, row["run_id"])
+    claim.acquire(on_wait=lambda holder: log(f"waiting for run {row['run_id']}, being rolled out by {holder}"),
+                  patience=results.WAIT_TOLD_S)
+    try:
+        done = set(table.read(req.rollouts)["episode_id"].to_list())
+        todo = [e for e in episodes if e.id not in done]
+        bar.update(len(episodes) - len(todo))  # written by another process while this one waited for the claim
+        if not todo:
+            return
+        wins = steps = 0
+        seconds = 0.0
+        for n, (episode, outcome) in enumerate(zip(todo, sim.run(row, todo), strict=True), 1):
+            table.append(req.rollouts, [row_of(episode, outcome, req.command)])
+            wins, steps, seconds = wins + outcome.success, steps + outcome.steps, seconds + outcome.seconds
+            bar.set_postfix_str(f"run {row['run_id']}: {wins}/{n} succeeded")
+            bar.update(1)
+        log(f"rolled out {describe(row)} (run {row['run_id']}): {wins}/{len(todo)} succeeded, {len(todo)} "
+            f"episode(s) in {seconds:.0f} s ({seconds / max(steps, 1):.2f} s a step)")
+    finally:
+        claim.release()
+
+
+def _of(req: RolloutRequest, episodes: Sequence[Episode]) -> pl.DataFrame:
+    ids = [e.id for e in episodes]
+    return table.read(req.rollouts).filter(pl.col("episode_id").is_in(ids))
