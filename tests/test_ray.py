@@ -55,7 +55,6 @@ RECIPE = """
     batch_size = 4
     eval_frames = 4
     num_denoise_steps = 2
-    {fit_extra}
     [train_tiny]
     steps = 2
     batch_size = 4
@@ -74,10 +73,11 @@ class LocalSweep:
     def recipe(self, name: str, cells_per_pass: int | None = None) -> Recipe:
         """The recipe, writing its results under `name`/; its cache and tiny policy are shared."""
         path = self.folder / f"{name}.toml"
-        extra = "" if cells_per_pass is None else f"cells_per_pass = {cells_per_pass}"
-        path.write_text(textwrap.dedent(RECIPE).format(dataset=self.dataset, cache=self.folder / "cache",
-                                                       results=self.folder / name / "results.parquet", steps=STEPS,
-                                                       fit_extra=extra))
+        text = textwrap.dedent(RECIPE).format(dataset=self.dataset, cache=self.folder / "cache",
+                                              results=self.folder / name / "results.parquet", steps=STEPS)
+        if cells_per_pass is not None:  # into the [fit] table
+            text = text.replace("[train_tiny]", f"cells_per_pass = {cells_per_pass}\n[train_tiny]")
+        path.write_text(text)
         return load_recipe(path)
 
 
