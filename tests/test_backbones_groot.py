@@ -198,12 +198,8 @@ def test_released_geometry_on_the_meta_device() -> None:
     lerobot's own processor steps at Qwen3-VL-2B's pixel bounds."""
     from lerobot.policies.groot.processor_groot import make_groot_pre_post_processors
 
-    from graftcache.backbones.groot.tiny import (
-        GROOT_DIR,
-        construct,
-        groot_released_config,
-        released_base_config,
-    )
+    from graftcache.backbones.groot.construct import construct, groot_released_config, released_base_config
+    from graftcache.backbones.groot.tiny import GROOT_DIR
     from graftcache.backbones.lean import construct as on_meta
     from graftcache.backbones.tiny_assets import QWEN3_VL_PIXELS
 

@@ -40,11 +40,10 @@ from graftcache.backbones.base import BackboneAdapter
 from graftcache.backbones.batches import ACTION, STATE
 from graftcache.backbones.checkpoint import cached_repo
 from graftcache.backbones.draws import given_noise, shadowed
+from graftcache.backbones.groot.construct import base_config, construct
 from graftcache.backbones.groot.tiny import (
     GROOT_DIR,
     TINY_TARGET,
-    base_config,
-    construct,
     tiny_base_for,
     tiny_image_geometry,
     vlm_step_name,

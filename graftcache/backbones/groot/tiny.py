@@ -1,4 +1,5 @@
-"""Tiny and released GR00T N1.7 configurations (lerobot 0.6 `GrootConfig` + `GR00TN17`), buildable offline.
+"""Tiny GR00T N1.7 configuration (lerobot 0.6 `GrootConfig` + `GR00TN17`), buildable offline; the construction it
+shares with the released policy is graftcache/backbones/groot/construct.py.
 
 A lerobot GR00T checkpoint keeps only `GrootConfig`; its model is rebuilt by `GR00TN17.from_pretrained(
 base_model_path)`, which downloads the base checkpoint (its `GR00TN17Config` and weights). The backbone inside
@@ -6,9 +7,8 @@ comes from `Qwen3Backbone._from_backbone_config(model_name)`: lerobot's hard-cod
 nvidia/Cosmos-Reason2-2B's Qwen3-VL config for that name, `AutoConfig.from_pretrained(model_name)` for any other;
 the processor step loads the tokenizer, image and video processors from the same `model_name`. So:
 
-- `construct` builds the policy with `GR00TN17.from_pretrained` shadowed to build from a `GR00TN17Config` without
-  any weights (graftcache fills them from the checkpoint, lean): the base config is read from the base
-  checkpoint's config.json (a folder, or the local HF cache), or is the tiny one below;
+- `graftcache.backbones.groot.construct.construct` builds the policy from a `GR00TN17Config` without any weights,
+  here the tiny one below;
 - the tiny Cosmos-Reason2 stand-in is graftcache/resources/tiny/groot/ (generated once by
   `python -m graftcache.backbones.groot.tiny`, like tiny_assets.py's folders): the tiny Qwen3-VL config.json,
   a byte-level BPE tokenizer with Qwen's chat tokens and a Qwen3-VL style chat template (no default system
@@ -29,18 +29,11 @@ the processor step loads the tokenizer, image and video processors from the same
 
 from __future__ import annotations
 
-import contextlib
 import functools
-import json
-from collections.abc import Iterator
-from pathlib import Path
-from typing import Any
 
-from graftcache.backbones.checkpoint import cached_repo
-from graftcache.backbones.patching import patched
+from graftcache.backbones.groot.construct import construct
 from graftcache.backbones.tiny import TinySpec, action_features, require_stats, seeded_policy, visual_features
 from graftcache.backbones.tiny_assets import TINY_ROOT, write_qwen3_vl
-from graftcache.errors import BackboneError
 
 GROOT_DIR = TINY_ROOT / "groot"
 TINY_TARGET = 128            # GR00T's VLM step resizes every frame to this (released: 256)
@@ -68,50 +61,6 @@ def tiny_base_config():
     return GR00TN17Config(model_name=str(GROOT_DIR), **TINY_GROOT)
 
 
-def base_config(path: str):
-    """The GR00TN17Config of a base checkpoint (`GrootConfig.base_model_path`): a folder, or a hub id from the
-    local HF cache (what lerobot's `GR00TN17.from_pretrained` would download)."""
-    from lerobot.policies.groot.groot_n1_7 import GR00TN17Config
-
-    folder = Path(path) if Path(path).is_dir() else cached_repo(path, "GR00T's base model config")
-    try:
-        return GR00TN17Config(**json.loads((folder / "config.json").read_text()))
-    except (OSError, ValueError) as exc:
-        raise BackboneError(f"{folder / 'config.json'}: not a GR00T N1.7 base config ({exc})") from None
-
-
-@contextlib.contextmanager
-def base_model(base) -> Iterator[None]:
-    """`GR00TN17.from_pretrained` builds from `base` (a GR00TN17Config) with no weights while the block runs, with
-    the overrides and trainable flags lerobot's GrootPolicy passes (transformers would set the overrides on the
-    loaded config); the backbone is built from its config (`load_backbone_weights=False`, as lerobot does)."""
-    from lerobot.policies.groot.groot_n1_7 import GR00TN17
-
-    def build(cls, pretrained_model_name_or_path: str, **kwargs: Any):
-        flags = {k: kwargs.pop(k) for k in ("tune_visual", "tune_llm", "tune_projector", "tune_diffusion_model",
-                                            "tune_vlln")}
-        loading = kwargs.pop("transformers_loading_kwargs", None)
-        config = base.__class__(**{**base.to_dict(), **kwargs})
-        model = cls(config, transformers_loading_kwargs=loading, load_backbone_weights=False)
-        model.backbone.set_trainable_parameters(tune_visual=flags["tune_visual"], tune_llm=flags["tune_llm"],
-                                                tune_top_llm_layers=config.tune_top_llm_layers)
-        model.action_head.set_trainable_parameters(tune_projector=flags["tune_projector"],
-                                                   tune_diffusion_model=flags["tune_diffusion_model"],
-                                                   tune_vlln=flags["tune_vlln"])
-        return model
-
-    with patched(GR00TN17, from_pretrained=classmethod(build)):
-        yield
-
-
-def construct(config, base):
-    """GrootPolicy(config) on the base model config `base`, no weights read."""
-    from lerobot.policies.groot.modeling_groot import GrootPolicy
-
-    with base_model(base):
-        return GrootPolicy(config)
-
-
 def groot_tiny_config(spec: TinySpec, device: str, image_size: int = TINY_TARGET):
     """Tiny GrootConfig at the dataset's `image_size` (GR00T's VLM step resizes frames to TINY_TARGET)."""
     from lerobot.policies.groot.configuration_groot import GrootConfig
@@ -129,24 +78,6 @@ def tiny_base_for(config):
     base.max_state_dim, base.max_action_dim = config.max_state_dim, config.max_action_dim
     base.action_horizon = config.chunk_size
     return base
-
-
-def groot_released_config(cameras: tuple[str, ...], image_size: int, state_dim: int, action_dim: int, device: str):
-    """nvidia/GR00T-N1.7-3B fine-tuned on a dataset, as lerobot configures it (its defaults: chunk 40, state and
-    action padded to 132, the new_embodiment tag)."""
-    from lerobot.policies.groot.configuration_groot import GrootConfig
-
-    spec = TinySpec(cameras=cameras, state_dim=state_dim, action_dim=action_dim)
-    return GrootConfig(device=device, input_features=visual_features(spec, image_size),
-                       output_features=action_features(spec))
-
-
-def released_base_config():
-    """nvidia/GR00T-N1.7-3B's GR00TN17Config as lerobot mirrors it (GR00T_N1_7_DEFAULTS; backbone
-    nvidia/Cosmos-Reason2-2B, whose Qwen3-VL config lerobot hard-codes)."""
-    from lerobot.policies.groot.groot_n1_7 import GR00TN17Config
-
-    return GR00TN17Config()
 
 
 @functools.cache
