@@ -39,7 +39,9 @@ fi
 # Wheels are kept in a wheelhouse outside the checkout, so a fresh clone (CI's) on a machine that set up
 # graftcache before installs from disk instead of downloading torch's CUDA build (~4 GB) again.
 wheelhouse=${GRAFTCACHE_WHEELHOUSE:-${XDG_CACHE_HOME:-$HOME/.cache}/graftcache/wheelhouse}
-from_wheelhouse() { .venv/bin/pip install -q --disable-pip-version-check --no-index --find-links "$wheelhouse" "$@"; }
+# --no-compile: pip would byte-compile every installed module (torch's, transformers' ~5000 files: ~35 s of a CPU of
+# set-up, measured); Python compiles the few hundred a run imports on first import instead.
+from_wheelhouse() { .venv/bin/pip install -q --disable-pip-version-check --no-compile --no-index --find-links "$wheelhouse" "$@"; }
 
 stamp=.venv/.graftcache-installed
 if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ] || [ plugins/lerobot_policy_graftcache/pyproject.toml -nt "$stamp" ]; then

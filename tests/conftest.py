@@ -22,9 +22,9 @@ pytest_plugins = ("fixtures.datasets", "fixtures.torch_threads", "fixtures.ray_c
 
 
 def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
-    """`-n auto`: one worker per core this process may run on (xdist's own guess counts physical cores, 1 on CI's
-    two hyperthreads), at most 2: the tests' shared fixtures (Ray's 2 CPUs, the timing-sensitive lease tests) are
-    sized for a 2-core machine."""
+    """`-n auto`: one worker per core this process may run on (xdist's own guess counts physical cores, which can
+    be 1 on two hyperthreads), at most 2: CI's cores, and the only count the suite has been run under (each worker
+    holds torch and its own Ray instance; pi0.5 at real size takes ~10 GB in one of them)."""
     return max(1, min(2, len(os.sched_getaffinity(0))))
 
 
