@@ -176,7 +176,7 @@ ENCODER = "timm:vit_tiny_patch16_224"
 OBJECT_EPISODES = "18-21"
 
 
-@pytest.mark.slow  # train-tiny, extract, fit, two 10-step episodes in one process: 19 min at load 13-19 on 2 cores
+@pytest.mark.slow  # train-tiny, extract, fit, two 10-step episodes, one process: 59 s on 2 idle cores
 def test_rollout_smoke_in_the_simulator(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     """tiny policy -> extract -> fit two cells -> rollout of both in LIBERO (one process) -> the same command adds
     nothing -> report --rollouts with undefined agreement figures (every cell fails)."""
