@@ -363,7 +363,7 @@ def _to_stderr(line: str) -> None:
     print(f"graftcache: {line}", file=sys.stderr)
 
 
-def _fsync(path: Path) -> None:
+def fsync(path: Path) -> None:
     fd = os.open(path, os.O_RDONLY)
     try:
         os.fsync(fd)
@@ -377,14 +377,14 @@ def _publish(path: Path, table: pl.DataFrame, lease: FileLease) -> bool:
     tmp = path.with_name(f".{path.name}.{socket.gethostname()}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp")
     try:
         table.write_parquet(tmp)
-        _fsync(tmp)
+        fsync(tmp)
         if not lease.holds():
             return False
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
     try:  # the rename itself survives a crash once its folder is synced
-        _fsync(path.parent)
+        fsync(path.parent)
     except OSError:
         pass  # a file system that cannot sync folders: the rename is still atomic
     return True

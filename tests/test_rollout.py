@@ -16,6 +16,7 @@ from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import polars as pl
 import pytest
 from helpers.tables import full_table, write_results
@@ -89,11 +90,13 @@ def test_cameras_the_simulator_cannot_feed_are_refused_in_one_line() -> None:
 
 class Scripted:
     """A Simulator whose episode k succeeds when its seed is even, in k + 3 steps; it counts the episodes it ran.
-    `stop_after`: raise after that many episodes (a run killed mid-way)."""
+    `stop_after`: raise after that many episodes (a run killed mid-way). `videos`: record steps + 1 frames of 16x16
+    at 10 fps, as the LIBERO simulator's render callback would."""
 
-    def __init__(self, stop_after: int | None = None) -> None:
+    def __init__(self, stop_after: int | None = None, videos: bool = False) -> None:
         self.ran: list[Episode] = []
         self.stop_after = stop_after
+        self.videos = videos
 
     def suite(self, name: str) -> Suite:
         return Suite(n_tasks=10, max_steps=280)
@@ -103,7 +106,10 @@ class Scripted:
             if self.stop_after is not None and len(self.ran) == self.stop_after:
                 raise KeyboardInterrupt
             self.ran.append(e)
-            yield Outcome(success=e.seed % 2 == 0, steps=e.episode + 3, seconds=0.5, init_state=e.episode)
+            steps = e.episode + 3
+            frames = np.full((steps + 1, 16, 16, 3), 40 * e.episode, np.uint8) if self.videos else None
+            yield Outcome(success=e.seed % 2 == 0, steps=steps, seconds=0.5, init_state=e.episode, frames=frames,
+                          fps=10 if self.videos else None)
 
 
 def _request(tmp_path: Path, **over: Any) -> RolloutRequest:
@@ -153,6 +159,29 @@ def test_a_run_stopped_mid_way_resumes_to_the_same_rows(tmp_path: Path) -> None:
     assert not results.claims_folder(cut.rollouts).exists()  # claims released, their folder gone
 
 
+def _decoded(path: Path) -> tuple[int, float]:
+    """An mp4's decoded frame count and frame rate."""
+    import av
+
+    with av.open(str(path)) as container:
+        return sum(1 for _ in container.decode(video=0)), float(container.streams.video[0].average_rate)
+
+
+def test_videos_are_written_whole_beside_the_rollouts_file_before_their_rows(tmp_path: Path) -> None:
+    req = _request(tmp_path, tasks=(3,))
+    run = select_rows(results.read(req.results), top=1, suites=["libero_object"])["run_id"][0]
+    stale = tmp_path / "videos" / run / "libero_object_task3_ep1_seed8_max280.mp4"
+    stale.parent.mkdir(parents=True)
+    stale.write_bytes(b"a video a killed run wrote before its row")  # its row is missing: rerun, overwritten
+    rows = roll_out(req, Scripted(videos=True), log=lambda _: None)
+    row = rows.filter(pl.col("run_id") == run, pl.col("episode") == 1).row(0, named=True)
+    assert row["video"] == f"videos/{run}/libero_object_task3_ep1_seed8_max280.mp4"
+    for r in rows.iter_rows(named=True):
+        assert _decoded(tmp_path / r["video"]) == (r["steps"] + 1, 10.0)
+    assert sorted(p.name for p in stale.parent.iterdir()) == ["libero_object_task3_ep0_seed7_max280.mp4",
+                                                              "libero_object_task3_ep1_seed8_max280.mp4"]  # no temps
+
+
 def test_a_task_the_suite_lacks_names_the_run_and_suite(tmp_path: Path) -> None:
     with pytest.raises(RolloutError, match=r"^run \w{16}: suite libero_object has tasks 0-9, not task 12$"):
         roll_out(_request(tmp_path, tasks=(0, 12)), Scripted(), log=lambda _: None)
@@ -176,11 +205,12 @@ ENCODER = "timm:vit_tiny_patch16_224"
 OBJECT_EPISODES = "18-21"
 
 
-@pytest.mark.slow  # train-tiny, extract, fit, two 10-step episodes, one process: 59 s on 2 idle cores
+@pytest.mark.slow  # train-tiny, extract, fit, two 10-step episodes and their videos, one process: 59 s on 2 idle cores
 def test_rollout_smoke_in_the_simulator(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
-    """tiny policy -> extract -> fit two cells -> rollout of both in LIBERO (one process) -> the same command adds
-    nothing -> report --rollouts with undefined agreement figures (every cell fails)."""
+    """tiny policy -> extract -> fit two cells -> rollout of both in LIBERO (one process) with videos -> the same
+    command adds nothing -> report --rollouts with undefined agreement figures (every cell fails)."""
     from helpers.probes import run_cli
+    from lerobot.envs.libero import LiberoEnv
 
     root, policy, results_path = tmp_path / "cache", tmp_path / "policy", tmp_path / "results.parquet"
     steps = [
@@ -199,7 +229,7 @@ def test_rollout_smoke_in_the_simulator(tmp_path: Path, capsys: pytest.CaptureFi
     assert fitted["control"].to_list() == ["none", "zero-image"]
     a, b = fitted["run_id"].to_list()
     rollout = ["rollout", results_path, "--run-ids", f"{a},{b}", "--suites", "libero_object", "--tasks", "0",
-               "--episodes-per-task", "1", "--max-steps", "10", "--cache", root]
+               "--episodes-per-task", "1", "--max-steps", "10", "--videos", "--cache", root]
     first = run_cli(rollout, capsys)
     assert first.code == 0, first.err[-3000:]
     rollouts_path = tmp_path / "rollouts.parquet"
@@ -209,7 +239,10 @@ def test_rollout_smoke_in_the_simulator(tmp_path: Path, capsys: pytest.CaptureFi
         assert (r["suite"], r["task_index"], r["episode"], r["seed"], r["init_state"]) == ("libero_object", 0, 0,
                                                                                           1000, 0)
         assert r["max_steps"] == 10 and (r["steps"] == 10 or r["success"]) and r["seconds"] > 0
-        assert r["lerobot_version"] == importlib.metadata.version("lerobot") and r["video"] is None
+        assert r["lerobot_version"] == importlib.metadata.version("lerobot")
+        # lerobot's rollout renders after the reset and after each step, at the env's render_fps
+        assert r["video"] == f"videos/{r['run_id']}/libero_object_task0_ep0_seed1000_max10.mp4"
+        assert _decoded(tmp_path / r["video"]) == (r["steps"] + 1, LiberoEnv.metadata["render_fps"])
     assert all((tmp_path / "exports" / run / "config.json").is_file() for run in (a, b))
 
     again = run_cli(rollout, capsys)

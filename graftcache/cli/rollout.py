@@ -67,6 +67,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--rollouts", default=None, metavar="PATH",
                    help="rollouts Parquet file to append to (default: rollouts.parquet beside RESULTS); exports go "
                    "to exports/RUN_ID beside it")
+    p.add_argument("--videos", action="store_true",
+                   help="also write each episode's frames as an mp4, as lerobot-eval writes its videos, to "
+                   "videos/RUN_ID/ beside the rollouts file; its row's video column holds the path relative to the "
+                   "file (default: no videos; episodes already in the file are not rerun for one)")
     p.add_argument("--cache", default=None, help="cache root the fits read (default: $GRAFTCACHE_HOME or "
                    "~/.cache/graftcache)")
     p.add_argument("--runs", default=None, help="folder of run folders, when the fits wrote them elsewhere (--out)")
@@ -83,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
                          episodes_per_task=args.episodes_per_task, max_steps=args.max_steps, seed=args.seed,
                          command=args.command_line)
     sim = LiberoSimulator(req.results, rollouts.absolute().parent / EXPORTS_FOLDER, cache=args.cache, runs=args.runs,
-                          max_steps=args.max_steps)
+                          max_steps=args.max_steps, videos=args.videos)
     try:
         roll_out(req, sim)
     finally:

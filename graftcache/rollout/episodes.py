@@ -5,7 +5,7 @@ fake): a `Simulator` says what a suite is and runs a cell's episodes."""
 from __future__ import annotations
 
 from collections.abc import Iterator, Mapping, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from typing import Any, Protocol
 
 from graftcache.rollout.table import episode_id
@@ -30,13 +30,16 @@ class Episode:
 
 @dataclass(frozen=True)
 class Outcome:
-    """What running an Episode gave."""
+    """What running an Episode gave. `frames`: when the simulator records them, every frame lerobot's rollout
+    rendered for the episode, (steps + 1, H, W, 3) uint8 (one after the reset, one after each step), shown at `fps`
+    frames a second; None: nothing recorded."""
 
     success: bool
     steps: int
     seconds: float
     init_state: int
-    video: str | None = None
+    frames: Any = field(default=None, compare=False, repr=False)
+    fps: float | None = None
 
 
 @dataclass(frozen=True)
@@ -50,7 +53,8 @@ class Suite:
 class Simulator(Protocol):
     """Runs a results row's cell in closed loop. `suite` is asked before anything runs (to plan); `run` gets the
     cell's row and its missing episodes and yields one Outcome per episode, in order, as each finishes (the rollout
-    writes each row as it comes, so a killed run keeps the episodes it finished)."""
+    writes each row as it comes, so a killed run keeps the episodes it finished), with its frames when the simulator
+    was built to record them (the rollout writes them as the episode's video)."""
 
     def suite(self, name: str) -> Suite: ...
 

@@ -2,13 +2,17 @@
 (graftcache.export), loaded as lerobot-eval loads a policy (make_policy, make_pre_post_processors with the overrides
 lerobot-eval applies, the env's own processors), and each episode is one call of lerobot-eval's `rollout` on a
 one-env vector env of lerobot's LIBERO config at the datasets' 256x256 resolution, scored as `eval_policy` scores
-it (success: any step's check_success up to the first done; steps: up to it).
+it (success: any step's check_success up to the first done; steps: up to it). With `videos`, each episode's frames
+are those lerobot-eval's render callback takes (the env's render(): agentview as lerobot shows it, after the reset and
+after every step), returned with the env's render_fps for the rollout to write as lerobot-eval writes its videos.
 
 What differs from a `lerobot-eval` process, and why: the env of a (suite, task) is built once and serves every cell
 (one process serves many cells); so that episode k still starts from init state k whatever ran before, the env's
 init-state counter is set to k before its reset (lerobot-eval gets there by counting its resets from 0), and the
 global RNGs are seeded from the episode's seed before it (lerobot-eval seeds them once per process), so that an
-episode run again after a kill is the same episode.
+episode run again after a kill is the same episode. An episode's video holds every frame its rollout rendered
+(steps + 1: after the reset and after each step); lerobot-eval's keeps the first `steps` (frames[: done_index + 1]),
+dropping the one after the last step, so a graftcache video ends on the state its success was scored on.
 """
 
 from __future__ import annotations
@@ -18,8 +22,11 @@ import sys
 import time
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
+from functools import partial
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from graftcache.errors import RolloutError
 from graftcache.rollout.episodes import Episode, Outcome, Suite
@@ -60,16 +67,25 @@ def quiet_inner_bars() -> Iterator[None]:
         lerobot_eval.trange = trange
 
 
+def record_frame(frames: list[np.ndarray], env: Any) -> None:
+    """lerobot's rollout's render callback: keep the frame lerobot-eval's (eval_policy's render_frame) would keep
+    of a one-env vector env."""
+    import gymnasium as gym
+
+    frames.append(env.envs[0].render() if isinstance(env, gym.vector.SyncVectorEnv) else env.call("render")[0])
+
+
 class LiberoSimulator:
     """graftcache.rollout.episodes.Simulator over lerobot's LIBERO env. `exports`: where cells are exported (one
     folder per run_id, reused when it holds the run's export); `results`, `cache`, `runs`: as `graftcache export`
-    takes them. `max_steps`: the step limit, None for lerobot's episode length of each suite."""
+    takes them. `max_steps`: the step limit, None for lerobot's episode length of each suite. `videos`: record each
+    episode's frames (Outcome.frames)."""
 
     def __init__(self, results: str | Path, exports: Path, *, cache: str | None, runs: str | None,
-                 max_steps: int | None, log=print) -> None:
+                 max_steps: int | None, videos: bool = False, log=print) -> None:
         require_simulator()
         self.results, self.exports, self.cache, self.runs = results, exports, cache, runs
-        self.max_steps, self.log = max_steps, log
+        self.max_steps, self.videos, self.log = max_steps, videos, log
         self._envs: dict[tuple[str, int], Any] = {}
 
     def suite(self, name: str) -> Suite:
@@ -131,13 +147,17 @@ class LiberoSimulator:
                 n_states = len(libero_env._init_states)  # the task's official init states, as the env loaded them
                 libero_env.init_state_id = episode.episode  # lerobot-eval's k-th reset of a fresh env
                 set_seed(episode.seed)
+                frames: list[np.ndarray] = []
                 start = time.perf_counter()
                 data = rollout(env=env, policy=policy, env_preprocessor=env_pre, env_postprocessor=env_post,
-                               preprocessor=pre, postprocessor=post, seeds=[episode.seed])
+                               preprocessor=pre, postprocessor=post, seeds=[episode.seed],
+                               render_callback=partial(record_frame, frames) if self.videos else None)
                 seconds = time.perf_counter() - start
                 done = int(torch.argmax(data["done"][0].to(int)))  # eval_policy's first done step
                 yield Outcome(success=bool(data["success"][0, : done + 1].any()), steps=done + 1, seconds=seconds,
-                              init_state=episode.episode % n_states)
+                              init_state=episode.episode % n_states,
+                              frames=np.stack(frames[: done + 2]) if self.videos else None,  # all of them
+                              fps=env.unwrapped.metadata["render_fps"] if self.videos else None)
 
     def close(self) -> None:
         for env in self._envs.values():

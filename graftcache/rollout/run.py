@@ -6,11 +6,18 @@ identified by graftcache.rollout.table.EPISODE_KEY), finds them in the file and 
 mid-way (kill -9 included) has written every episode it finished, and its rerun runs the others. Two processes
 sharing a rollouts file take each cell under its claim (graftcache.results.cell_claim, beside the file), and look
 again at what the file holds once they have it, so no episode is run twice.
+
+Videos (a simulator built to record frames): each episode's video is written whole (a temporary name, synced, then
+renamed) under videos/ beside the rollouts file before its row is appended, and the row names it relative to the
+file; so a row never names a partial video, and an episode rerun because its row is missing overwrites its video.
 """
 
 from __future__ import annotations
 
 import importlib.metadata
+import os
+import socket
+import uuid
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -29,6 +36,7 @@ from graftcache.rollout.select import select_rows
 
 ROLLOUTS_FILE = "rollouts.parquet"  # the default: beside the results file
 EXPORTS_FOLDER = "exports"          # beside the rollouts file: one export folder per run_id
+VIDEOS_FOLDER = "videos"            # beside the rollouts file: videos/RUN_ID/<episode>.mp4 (video_of)
 
 
 @dataclass(frozen=True)
@@ -69,12 +77,41 @@ def plan(rows: pl.DataFrame, req: RolloutRequest, simulator: Simulator) -> list[
     return episodes
 
 
-def row_of(episode: Episode, outcome: Outcome, command: str) -> dict[str, Any]:
-    """The rollouts row of a finished episode (graftcache.rollout.table.SCHEMA)."""
+def video_of(episode: Episode) -> str:
+    """The episode's video, relative to the rollouts file: named by every field of its episode_id, so episodes of
+    other seeds or step limits never share one."""
+    return (f"{VIDEOS_FOLDER}/{episode.run_id}/{episode.suite}_task{episode.task_index}_ep{episode.episode}"
+            f"_seed{episode.seed}_max{episode.max_steps}.mp4")
+
+
+def write_video(path: Path, outcome: Outcome) -> None:
+    """The outcome's frames as lerobot-eval writes its videos (lerobot.utils.io_utils.write_video: H.264, yuv420p,
+    at the env's render fps), to a temporary name beside `path`, synced and renamed over it: `path` is whole or
+    absent (an older one is replaced). The temporary file never outlives the call (kill -9 aside)."""
+    from lerobot.utils.io_utils import write_video as lerobot_write_video
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    # ends in .mp4: the container is chosen by the name
+    tmp = path.with_name(f".{path.stem}.{socket.gethostname()}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp.mp4")
+    try:
+        lerobot_write_video(tmp, list(outcome.frames), outcome.fps)
+        results.fsync(tmp)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    try:  # the rename survives a crash once its folder is synced, as the row's append does for the rollouts file
+        results.fsync(path.parent)
+    except OSError:
+        pass
+
+
+def row_of(episode: Episode, outcome: Outcome, command: str, video: str | None = None) -> dict[str, Any]:
+    """The rollouts row of a finished episode (graftcache.rollout.table.SCHEMA); `video`: its path, relative to the
+    rollouts file."""
     return {"episode_id": episode.id, "format_version": table.FORMAT_VERSION, "run_id": episode.run_id,
             "suite": episode.suite, "task_index": episode.task_index, "episode": episode.episode,
             "seed": episode.seed, "init_state": outcome.init_state, "max_steps": episode.max_steps,
-            "success": outcome.success, "steps": outcome.steps, "seconds": outcome.seconds, "video": outcome.video,
+            "success": outcome.success, "steps": outcome.steps, "seconds": outcome.seconds, "video": video,
             "lerobot_version": importlib.metadata.version("lerobot"), "graftcache_version": graftcache.__version__,
             "command": command}
 
@@ -119,15 +156,21 @@ def _run_cell(req: RolloutRequest, sim: Simulator, row: Mapping[str, Any], episo
         bar.update(len(episodes) - len(todo))  # written by another process while this one waited for the claim
         if not todo:
             return
-        wins = steps = 0
+        wins = steps = videos = 0
         seconds = 0.0
         for n, (episode, outcome) in enumerate(zip(todo, sim.run(row, todo), strict=True), 1):
-            table.append(req.rollouts, [row_of(episode, outcome, req.command)])
+            video = None
+            if outcome.frames is not None:
+                video = video_of(episode)
+                write_video(req.rollouts.parent / video, outcome)  # before its row, which names it
+                videos += 1
+            table.append(req.rollouts, [row_of(episode, outcome, req.command, video)])
             wins, steps, seconds = wins + outcome.success, steps + outcome.steps, seconds + outcome.seconds
             bar.set_postfix_str(f"run {row['run_id']}: {wins}/{n} succeeded")
             bar.update(1)
+        kept = f"; {videos} video(s) in {req.rollouts.parent / VIDEOS_FOLDER / row['run_id']}" if videos else ""
         log(f"rolled out {describe(row)} (run {row['run_id']}): {wins}/{len(todo)} succeeded, {len(todo)} "
-            f"episode(s) in {seconds:.0f} s ({seconds / max(steps, 1):.2f} s a step)")
+            f"episode(s) in {seconds:.0f} s ({seconds / max(steps, 1):.2f} s a step){kept}")
     finally:
         claim.release()
 

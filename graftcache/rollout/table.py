@@ -39,7 +39,7 @@ SCHEMA: dict[str, pl.DataType] = {
     "success": pl.Boolean,            # any step's check_success(), as lerobot-eval counts it
     "steps": pl.Int64,                # steps run: up to the first success, else max_steps
     "seconds": pl.Float64,            # wall time of the episode (reset, settling, every step), seconds
-    "video": pl.String,               # path of the episode's video, null: none recorded
+    "video": pl.String,               # the episode's mp4, relative to the rollouts file; null: none recorded
     "lerobot_version": pl.String,
     "graftcache_version": pl.String,
     "command": pl.String,             # the command line that ran it
