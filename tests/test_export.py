@@ -4,7 +4,9 @@ the action chunk that offline scoring computes for that frame from the cache, un
 
 The offline side is computed here the way graftcache.fit.loop.evaluate_together computes it (cached features read
 at the pool grid, raw_batch, the adapter's prepare and predict, the frame's fixed noise); the export side starts from
-the frame's decoded pixels and runs the cell's encoder, storage rounding and pooling itself."""
+the frame's decoded pixels and runs the cell's encoder, storage rounding and pooling itself. The action lerobot-eval
+executes (`select_action`, then the postprocessor lerobot's factory loads from the export) is the chunk's first, in raw
+units at the dataset's action width, as offline scoring unnormalises it."""
 
 from __future__ import annotations
 
@@ -35,13 +37,15 @@ from graftcache.store import FeatureCache
 #: pi0.5's plain graft alone
 EXPORTED_CONTROLS = ("native", "zero-image", "lora", "shuffled-image")
 FITS = {"smolvla": EXPORTED_CONTROLS, "pi05": ()}
-#: features are stored fp16: one step of fp16 relative to the chunk's scale
+#: features are stored fp16: one step of fp16 relative to the chunk's scale (also in raw units: the sample's action
+#: stats stretch no dim, std and half ranges are all <= 1)
 TOLERANCE = 2e-3
 
 
-def offline_chunk(row: dict, root: Path, policy: Path, run_folder: Path) -> tuple[torch.Tensor, dict, int]:
-    """(the normalised chunk offline scoring computes for a late frame of the suite, that frame's
-    observation as lerobot hands it to a policy, its cache row)."""
+def offline_chunk(row: dict, root: Path, policy: Path, run_folder: Path) -> tuple[torch.Tensor, torch.Tensor, dict,
+                                                                                   int]:
+    """(the normalised chunk offline scoring computes for a late frame of the suite, that chunk in raw units as
+    scoring unnormalises it, that frame's observation as lerobot hands it to a policy, its cache row)."""
     cache = FeatureCache(root / row["cache_key"])
     control = get_control(row["control"])
     adapter = get_backbone(row["backbone"]).load(policy)
@@ -71,11 +75,13 @@ def offline_chunk(row: dict, root: Path, policy: Path, run_folder: Path) -> tupl
                    for c in cams.values()}
     observation["observation.state"] = low.state[pos]
     observation["task"] = [low.tasks[int(low.task_index[pos[0]])]]
-    return chunk, observation, int(low.rows[pos[0]])
+    return chunk, adapter.unnormalize(chunk).float(), observation, int(low.rows[pos[0]])
 
 
-def exported_chunk(folder: Path, observation: dict, row_id: int) -> torch.Tensor:
-    """The export loaded as lerobot-eval loads a policy (its factory, the plugin's registered type), fed the frame."""
+def exported_chunk(folder: Path, observation: dict, row_id: int) -> tuple[torch.Tensor, torch.Tensor, int]:
+    """The export loaded as lerobot-eval loads a policy and its processors (its factory, the plugin's registered type,
+    the overrides graftcache.rollout.libero passes as lerobot-eval does), fed the frame: (its normalised chunk, the
+    raw action lerobot-eval executes, `select_action` through the postprocessor, the dataset's action width)."""
     import lerobot_policy_graftcache  # noqa: F401  (what lerobot's plugin hook imports)
     from lerobot.configs.policies import PreTrainedConfig
     from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
@@ -84,11 +90,17 @@ def exported_chunk(folder: Path, observation: dict, row_id: int) -> torch.Tensor
     cfg = PreTrainedConfig.from_pretrained(folder)
     cfg.pretrained_path = str(folder)
     assert cfg.type == "graftcache"
-    policy = make_policy(cfg, ds_meta=LeRobotDatasetMetadata("libero_sample", root=SAMPLE))
-    pre, _ = make_pre_post_processors(cfg, pretrained_path=str(folder))
+    meta = LeRobotDatasetMetadata("libero_sample", root=SAMPLE)
+    policy = make_policy(cfg, ds_meta=meta)
+    overrides = {"device_processor": {"device": str(policy.config.device)},
+                 "rename_observations_processor": {"rename_map": {}}}
+    pre, post = make_pre_post_processors(cfg, pretrained_path=str(folder), preprocessor_overrides=overrides)
     adapter = policy.adapter
     noise = frame_noise(np.array([row_id]), adapter.chunk_size, adapter.max_action_dim)
-    return policy.predict_action_chunk(pre(observation), noise=noise).float()
+    chunk = policy.predict_action_chunk(pre(observation), noise=noise).float()
+    policy.reset()
+    action = post(policy.select_action(pre(observation), noise=noise)).float()
+    return chunk, action, int(meta.features["action"]["shape"][0])
 
 
 def check_export(row: dict, root: Path, table: Path, policy: Path, tmp_path: Path, capsys) -> None:
@@ -97,11 +109,13 @@ def check_export(row: dict, root: Path, table: Path, policy: Path, tmp_path: Pat
     assert done.code == 0, done.err[-2000:]
     config = json.loads((out / "config.json").read_text())
     assert (config["type"], config["run_id"], config["control"]) == ("graftcache", row["run_id"], row["control"])
-    offline, observation, row_id = offline_chunk(row, root, policy, table.parent / "runs" / row["run_id"])
-    exported = exported_chunk(out, observation, row_id)
+    offline, raw, observation, row_id = offline_chunk(row, root, policy, table.parent / "runs" / row["run_id"])
+    exported, action, action_dim = exported_chunk(out, observation, row_id)
     assert exported.shape == offline.shape
     scale = float(offline.abs().max())
     torch.testing.assert_close(exported, offline, rtol=0, atol=TOLERANCE * max(1.0, scale))
+    assert action.shape == (1, action_dim) == raw[:, 0].shape
+    torch.testing.assert_close(action, raw[:, 0], rtol=0, atol=TOLERANCE * max(1.0, scale))
 
 
 @pytest.mark.slow  # an export; the tiny policy and its fit (1-2 min per backbone on 2 cores) are shared: tiny_zoo

@@ -176,18 +176,33 @@ class BackboneAdapter(GraftSurgery, PromptBatches, Objective, ActivationCheckpoi
         return cls(policy, *processors, source=str(source), random_init=random_init, tiny_marker=marker)
 
     @classmethod
+    def saved_config(cls, source: str | Path, device: str = "cpu"):
+        """A checkpoint's policy config as `load` configures it (`_configure`, the device), without building the
+        policy (graftcache.export.processors)."""
+        folder = resolve_source(source)
+        config = cls._read_config(folder)
+        config.device = device
+        cls._configure(folder, config, read_marker(folder))
+        return config
+
+    @classmethod
     def saved_processors(cls, source: str | Path, device: str = "cpu") -> tuple[Any, Any]:
         """A checkpoint's own saved (pre, post) processors, loaded as `load` loads them (its overrides: local
         tokenizers of tiny checkpoints, the device), without building the policy (graftcache.export.processors)."""
         folder = resolve_source(source)
-        config, marker = cls._read_config(folder), read_marker(folder)
-        config.device = device
-        cls._configure(folder, config, marker)
-        processors = load_processors(folder, *cls._processor_overrides(config, marker, device))
+        config = cls.saved_config(folder, device)
+        processors = load_processors(folder, *cls._processor_overrides(config, read_marker(folder), device))
         if processors is None:
             raise BackboneError(f"{folder}: no {PREPROCESSOR_FILE}; a policy without saved processors cannot be run "
                                 "outside graftcache")
         return processors
+
+    @classmethod
+    def postprocessor_input(cls, config, actions: torch.Tensor) -> torch.Tensor:
+        """Normalised actions [..., action_dim] (what `predict` returns and an export's policy emits) as the policy's
+        own postprocessor takes them, at the width the policy's `select_action` emits: as they are for most policies.
+        `unnormalize` and an export's postprocessor (graftcache.export.processors) both pass actions through here."""
+        return actions
 
     @classmethod
     def _read_config(cls, folder: Path):

@@ -53,8 +53,9 @@ class Objective(ABC):
             self.policy.train(was_training)
 
     def unnormalize(self, actions: torch.Tensor) -> torch.Tensor:
-        """Normalised action chunk -> raw action units, through lerobot's postprocessor."""
-        return self.postprocessor(actions)
+        """Normalised action chunk [..., action_dim] -> raw action units [..., action_dim], through lerobot's
+        postprocessor (fed at the width it takes: `postprocessor_input`)."""
+        return self.postprocessor(self.postprocessor_input(self.config, actions))
 
 
 class FlowObjective(Objective):

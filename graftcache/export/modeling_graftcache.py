@@ -106,9 +106,11 @@ class GraftcachePolicy(PreTrainedPolicy):
             return self.adapter.predict(prepared, noise=noise, num_steps=self.config.num_denoise_steps).float()
 
     @torch.no_grad()
-    def select_action(self, batch: dict[str, Tensor], **kwargs: Any) -> Tensor:
-        """The next action: a chunk is predicted when the queue is empty and its first `n_action_steps` run."""
+    def select_action(self, batch: dict[str, Tensor], noise: Tensor | None = None, **kwargs: Any) -> Tensor:
+        """The next normalised action [B, action_dim] (the export's postprocessor takes it at this width, whatever
+        width the base policy's own emits): a chunk is predicted when the queue is empty (from `noise`, as
+        `predict_action_chunk`) and its first `n_action_steps` run."""
         if not self._queue:
-            chunk = self.predict_action_chunk(batch)[:, : self.config.n_action_steps]
+            chunk = self.predict_action_chunk(batch, noise=noise)[:, : self.config.n_action_steps]
             self._queue.extend(chunk.transpose(0, 1))
         return self._queue.popleft()

@@ -10,7 +10,10 @@ simulated step's time. The base policy's own preprocessing then runs inside the 
 Postprocessor: the base policy's own. Its saved processors often need more than their JSON to load: tiny
 checkpoints' tokenizers are local folders handed over as objects (graftcache.backbones.*._processor_overrides), which
 lerobot cannot serialise, so the export saves one registered step naming the base policy, which loads them through
-the backbone adapter and runs their steps.
+the backbone adapter and runs their steps. The policy emits the normalised actions offline scoring computes, at the
+dataset's action width; a base policy whose own `select_action` emits another width has its postprocessor expect that
+one (EVO1: padded to `max_action_dim`, unnormalised there and cut back), so the step hands the actions over as the
+adapter's `postprocessor_input` says, as offline scoring's `unnormalize` does.
 """
 
 from __future__ import annotations
@@ -64,20 +67,32 @@ class CellFeaturesStep(ProcessorStep):
 @ProcessorStepRegistry.register(STEP)
 @dataclass
 class BasePostprocessorStep(ProcessorStep):
-    """Runs the saved postprocessor of the base policy of `backbone` at `source`."""
+    """Runs the saved postprocessor of the base policy of `backbone` at `source` on the export's actions, handed
+    over at the width it takes (the adapter's `postprocessor_input`)."""
 
     backbone: str = ""
     source: str = ""
     device: str = "cpu"
 
     @functools.cached_property
-    def steps(self) -> list[ProcessorStep]:
+    def adapter(self) -> type:
         from graftcache.backbones import get_backbone
 
-        _, post = get_backbone(self.backbone).saved_processors(self.source, self.device)
+        return get_backbone(self.backbone)
+
+    @functools.cached_property
+    def config(self) -> Any:
+        return self.adapter.saved_config(self.source, self.device)
+
+    @functools.cached_property
+    def steps(self) -> list[ProcessorStep]:
+        _, post = self.adapter.saved_processors(self.source, self.device)
         return list(post.steps)
 
     def __call__(self, transition: Any) -> Any:
+        action = transition.get(TransitionKey.ACTION)
+        if action is not None:
+            transition = {**transition, TransitionKey.ACTION: self.adapter.postprocessor_input(self.config, action)}
         for step in self.steps:
             transition = step(transition)
         return transition

@@ -274,8 +274,11 @@ class Evo1Adapter(FlowObjective, BackboneAdapter):
                 seq = seq + dt * velocity
         return (seq * mask).float()[:, :, : self.action_dim]
 
-    def unnormalize(self, actions: torch.Tensor) -> torch.Tensor:
-        """lerobot's EVO1 postprocessor unnormalises at the padded width, then cuts to the real dims: the real
-        dims are padded with zeros for it (the padding never reaches the output)."""
-        pad = self.max_action_dim - actions.shape[-1]
-        return super().unnormalize(torch.nn.functional.pad(actions, (0, pad)) if pad > 0 else actions)
+    @classmethod
+    def postprocessor_input(cls, config, actions: torch.Tensor) -> torch.Tensor:
+        """EVO1's `select_action` emits actions at the padded `max_action_dim`, and its postprocessor unnormalises
+        at that width (its stats padded to it) before cutting to the real dims: the real dims are padded with zeros
+        for it (the padding never reaches the output). Offline scoring's `unnormalize` and an export's
+        postprocessor both feed it this way."""
+        pad = config.max_action_dim - actions.shape[-1]
+        return torch.nn.functional.pad(actions, (0, pad)) if pad > 0 else actions
