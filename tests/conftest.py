@@ -21,6 +21,7 @@ pytest_plugins = ("fixtures.datasets", "fixtures.torch_threads", "fixtures.ray_c
                   "fixtures.tiny_zoo")
 
 
+@pytest.hookimpl(optionalhook=True)  # the suite also runs without pytest-xdist (`-p no:xdist`, a bare venv)
 def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
     """`-n auto`: one worker per core this process may run on (xdist's own guess counts physical cores, which can
     be 1 on two hyperthreads), at most 2: CI's cores, and the only count the suite has been run under (each worker
