@@ -222,8 +222,9 @@ def test_table_with_every_column_but_the_optional_ones_reports(tmp_path):
     older = full_table().drop("eval_mse_episodes", "n_eval_episodes", "command")
     path = write_results(tmp_path / "old.parquet", older)
     assert report.report_command(path, tmp_path / "out") == 0
-    assert ("- Columns without values (absent or all null): eval_mse_episodes, eval_ci_mse, eval_ci_mse_episodes, "
-            "n_eval_episodes, command.\n") in (
+    # in results.SCHEMA's order, where the declared setting columns (command among them) follow objective
+    assert ("- Columns without values (absent or all null): command, eval_mse_episodes, eval_ci_mse, "
+            "eval_ci_mse_episodes, n_eval_episodes.\n") in (
         tmp_path / "out" / "report.md"
     ).read_text()
 
