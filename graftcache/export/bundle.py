@@ -17,7 +17,7 @@ from typing import Any
 
 from graftcache import results
 from graftcache.cameras import parse_camera_map, renames
-from graftcache.errors import ExportError
+from graftcache.errors import ExportError, GraftcacheError
 from graftcache.fit.controls import get_control
 from graftcache.fit.lookup import find_cache
 from graftcache.fit.run import Cell
@@ -36,28 +36,50 @@ def find_row(path: str | Path, run_id: str) -> dict[str, Any]:
     return rows.row(0, named=True)
 
 
-def cell_of(row: dict[str, Any]) -> Cell:
-    """The row's Cell, its fields not in the row (LoRA rank, denoising steps, split settings) read back from the
-    fit command line the row records (sweeps record theirs so that it parses back to the request), and checked:
-    it must hash to the row's run_id."""
-    from graftcache.cli import build_parser
-    from graftcache.cli.common import request_from
-    from graftcache.requests import FitRequest
-
-    try:
-        req = request_from(FitRequest, build_parser().parse_args(shlex.split(row["command"])[1:]))
-    except (SystemExit, ValueError, TypeError):
-        raise ExportError(f"run {row['run_id']}: its recorded command does not parse back to a fit request: "
-                          f"{row['command']}") from None
+def cell_of(row: dict[str, Any], folder: Path | None) -> Cell:
+    """The row's Cell, checked to hash to the row's run_id. A cell that trained keeps it beside its projector
+    (`folder`/projector.json, written by its fit, whichever command ran it); one that trained nothing has no run
+    folder, and its fields not in the row (denoising steps, split settings) are read back from the command the row
+    records: a fit command line, or a sweep's, whose recipe gives the request of the row's (backbone, encoder,
+    suite)."""
+    if folder is not None:
+        recorded = json.loads((folder / "projector.json").read_text()).get("cell")
+        if recorded is not None:
+            return _checked(row, Cell(**recorded), "its run folder's projector.json")
+    req = _request_of(row)
     control = get_control(row["control"])
     fields = {f.name for f in dataclasses.fields(Cell)} - {"lora_rank", "format_version"}
     cell = Cell(**{n: (row[n] if n in row else getattr(req, n)) for n in fields},
                 lora_rank=req.lora_rank if control.lora else 0)  # format_version: the cells' (results.CELL_FORMAT)
     if cell.camera_map is not None and not renames(parse_camera_map(cell.camera_map)):
         cell = dataclasses.replace(cell, camera_map=None)  # rows spell out a name-matched mapping; cells omit it
+    return _checked(row, cell, "its recorded command")
+
+
+def _request_of(row: dict[str, Any]) -> Any:
+    """The FitRequest behind the row's recorded command: `graftcache fit ...` parsed back, or `graftcache sweep
+    RECIPE`'s request for the row's backbone, encoder and suite."""
+    from graftcache.cli import build_parser
+    from graftcache.cli.common import request_from
+    from graftcache.recipe import load_recipe
+    from graftcache.requests import FitRequest
+
+    argv = shlex.split(row["command"] or "")
+    try:
+        if argv[1:2] == ["sweep"]:
+            recipe = load_recipe(argv[2])
+            return recipe.fit_request(row["backbone"], row["policy"], row["encoder"], row["suite"])
+        return request_from(FitRequest, build_parser().parse_args(argv[1:]))
+    except (SystemExit, ValueError, TypeError, IndexError, GraftcacheError) as e:
+        why = f" ({str(e).splitlines()[0]})" if isinstance(e, GraftcacheError) else ""
+        raise ExportError(f"run {row['run_id']}: its recorded command does not parse back to a fit request{why}: "
+                          f"{row['command']}") from None
+
+
+def _checked(row: dict[str, Any], cell: Cell, source: str) -> Cell:
     if cell.run_id != row["run_id"]:
-        raise ExportError(f"run {row['run_id']}: its recorded command gives another cell ({cell.run_id}); the row "
-                          "cannot be exported faithfully")
+        raise ExportError(f"run {row['run_id']}: {source} gives another cell ({cell.run_id}); the row cannot be "
+                          "exported faithfully")
     return cell
 
 
@@ -94,8 +116,9 @@ def export_run(run_id: str, results_path: str | Path, out: str | Path, *, cache:
     from graftcache.export.processors import export_pipelines
 
     row = find_row(results_path, run_id)
-    cell = cell_of(row)
     control = get_control(row["control"])
+    folder = run_folder(row, results_path, cache, runs) if control.train else None
+    cell = cell_of(row, folder)
     if not control.closed_loop:
         raise ExportError(f"run {run_id}: control {control.name} has no closed-loop meaning (it feeds features of "
                           f"other frames); export another control")
@@ -123,7 +146,7 @@ def export_run(run_id: str, results_path: str | Path, out: str | Path, *, cache:
     (partial / MANIFEST_FILE).write_text(json.dumps({"key": feature_cache.key,
                                                       "manifest": feature_cache.manifest.to_dict()}, default=str))
     if control.train:
-        shutil.copyfile(run_folder(row, results_path, cache, runs) / "projector.safetensors", partial / PROJECTOR_FILE)
+        shutil.copyfile(folder / "projector.safetensors", partial / PROJECTOR_FILE)
     for pipeline in export_pipelines(str(out.absolute()), row["backbone"], policy):
         pipeline.save_pretrained(partial)
     check_processors(partial)
