@@ -20,7 +20,7 @@ from graftcache.cameras import parse_camera_map, renames
 from graftcache.errors import ExportError, GraftcacheError
 from graftcache.fit.controls import get_control
 from graftcache.fit.lookup import find_cache
-from graftcache.fit.run import Cell
+from graftcache.fit.run import PROJECTOR_SIDECAR, PROJECTOR_WEIGHTS, Cell, saved_cell
 from graftcache.store import cache_root
 from graftcache.store.readthrough import reading_root
 
@@ -42,10 +42,9 @@ def cell_of(row: dict[str, Any], folder: Path | None) -> Cell:
     folder, and its fields not in the row (denoising steps, split settings) are read back from the command the row
     records: a fit command line, or a sweep's, whose recipe gives the request of the row's (backbone, encoder,
     suite)."""
-    if folder is not None:
-        recorded = json.loads((folder / "projector.json").read_text()).get("cell")
-        if recorded is not None:
-            return _checked(row, Cell(**recorded), "its run folder's projector.json")
+    recorded = saved_cell(folder) if folder is not None else None
+    if recorded is not None:
+        return _checked(row, recorded, f"its run folder's {PROJECTOR_SIDECAR}")
     req = _request_of(row)
     control = get_control(row["control"])
     fields = {f.name for f in dataclasses.fields(Cell)} - {"lora_rank", "format_version"}
@@ -100,9 +99,9 @@ def run_folder(row: dict[str, Any], results_path: str | Path, cache: str | None,
     the local cache folder)."""
     places = [Path(runs)] if runs else [Path(results_path).absolute().parent / "runs", cache_root(cache) / "runs"]
     for place in places:
-        if (place / row["run_id"] / "projector.safetensors").is_file():
+        if (place / row["run_id"] / PROJECTOR_WEIGHTS).is_file():
             return place / row["run_id"]
-    raise ExportError(f"run {row['run_id']}: no projector.safetensors in {' or '.join(str(p) for p in places)} "
+    raise ExportError(f"run {row['run_id']}: no {PROJECTOR_WEIGHTS} in {' or '.join(str(p) for p in places)} "
                       f"(pass --runs, the folder its fit's --out named)")
 
 
@@ -146,7 +145,7 @@ def export_run(run_id: str, results_path: str | Path, out: str | Path, *, cache:
     (partial / MANIFEST_FILE).write_text(json.dumps({"key": feature_cache.key,
                                                       "manifest": feature_cache.manifest.to_dict()}, default=str))
     if control.train:
-        shutil.copyfile(folder / "projector.safetensors", partial / PROJECTOR_FILE)
+        shutil.copyfile(folder / PROJECTOR_WEIGHTS, partial / PROJECTOR_FILE)
     for pipeline in export_pipelines(str(out.absolute()), row["backbone"], policy):
         pipeline.save_pretrained(partial)
     check_processors(partial)

@@ -50,6 +50,9 @@ from graftcache.store.readthrough import ReadThroughRoot
 
 __all__ = ["Cell", "FitRequest", "Fitter", "LocalRunner", "run_pass"]
 
+PROJECTOR_WEIGHTS = "projector.safetensors"  # in a cell's run folder: its trained parameters
+PROJECTOR_SIDECAR = "projector.json"         # beside them: its cell, split and freeze report (save_projector)
+
 
 def run_pass(members: Sequence[Member], materials: MaterialsOf) -> list[dict[str, Any]]:
     """Fit and score the cells of one pass (one cell, or several of one pass key: `plan_passes`) and return their
@@ -174,11 +177,17 @@ def save_projector(folder: Path, adapter: BackboneAdapter, cell: Cell, split: Sp
                    trainable: Mapping[str, torch.Tensor]) -> None:
     """A cell's trained parameters, named as in the policy, with a JSON sidecar (its cell, split, freeze report)."""
     folder.mkdir(parents=True, exist_ok=True)
-    save_file({n: p.detach().cpu().contiguous() for n, p in trainable.items()}, str(folder / "projector.safetensors"))
-    follow_umask(folder / "projector.safetensors")
+    save_file({n: p.detach().cpu().contiguous() for n, p in trainable.items()}, str(folder / PROJECTOR_WEIGHTS))
+    follow_umask(folder / PROJECTOR_WEIGHTS)
     sidecar = {"run_id": cell.run_id, "cell": asdict(cell), "split": asdict(split),
                "freeze": str(adapter.freeze_report()), "graftcache_version": graftcache.__version__}
-    (folder / "projector.json").write_text(json.dumps(sidecar, indent=2, default=str))
+    (folder / PROJECTOR_SIDECAR).write_text(json.dumps(sidecar, indent=2, default=str))
+
+
+def saved_cell(folder: Path) -> Cell | None:
+    """The Cell save_projector recorded in `folder`'s sidecar (None: a sidecar without one)."""
+    recorded = json.loads((folder / PROJECTOR_SIDECAR).read_text()).get("cell")
+    return None if recorded is None else Cell(**recorded)
 
 
 class LocalRunner:
