@@ -1,7 +1,7 @@
 """Tiny SmolVLA / pi0.5 / pi0 / pi0-FAST adapters: geometry, batches, graft surgery, objectives, native tower.
 
 pi0-FAST has no flow model: the flow-loss and denoising tests run on the others (FLOW), its own objective is
-tested in tests/test_backbones_pi0.py."""
+tested in tests/backbones/test_pi0.py."""
 
 from __future__ import annotations
 

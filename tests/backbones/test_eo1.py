@@ -2,7 +2,7 @@
 2x2 order), the loss and the sampler against lerobot's `forward` / `predict_action_chunk` under the same random
 draws, the graft slots (the image-pad positions of the Qwen sequence), and the released geometry on the meta
 device (3.8B parameters are never materialised). The native control, LoRA and reset, save/load by hub id and the
-missing base: tests/test_backbones_zoo_common.py."""
+missing base: tests/backbones/test_zoo_common.py."""
 
 from __future__ import annotations
 

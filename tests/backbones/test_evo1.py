@@ -2,7 +2,7 @@
 shuffle, projector), the loss and the sampler against lerobot's `forward` / `predict_action_chunk` under the same
 random draws, the graft slots (the `<IMG_CONTEXT>` positions of the InternVL prompt), pooled grids, and the
 released geometry on the meta device (nothing of the ~0.8B parameters is materialised). The native control, LoRA
-and reset, save/load by hub id and the missing base: tests/test_backbones_zoo_common.py."""
+and reset, save/load by hub id and the missing base: tests/backbones/test_zoo_common.py."""
 
 from __future__ import annotations
 

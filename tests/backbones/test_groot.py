@@ -2,7 +2,7 @@
 2x2 order), the loss and the sampler against lerobot's `forward` / `predict_action_chunk` under the same random
 draws, the graft slots (the image-pad positions of the Qwen3-VL sequence, no deepstack features), the native
 control without deepstack, the missing base model, and the released geometry on the meta device (3.1B parameters
-are never materialised). LoRA and reset, save/load by hub id: tests/test_backbones_zoo_common.py."""
+are never materialised). LoRA and reset, save/load by hub id: tests/backbones/test_zoo_common.py."""
 
 from __future__ import annotations
 

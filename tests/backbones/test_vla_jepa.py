@@ -2,7 +2,7 @@
 2x2 order), the action loss and the sampler against lerobot's `forward` / `predict_action_chunk` under the same
 random draws, the graft slots (the image-pad positions of the Qwen3-VL prompt, no deepstack), the native control
 without deepstack, and the released geometry on the meta device (2.3B parameters are never materialised). LoRA
-and reset, save/load by hub id and the missing base: tests/test_backbones_zoo_common.py."""
+and reset, save/load by hub id and the missing base: tests/backbones/test_zoo_common.py."""
 
 from __future__ import annotations
 
@@ -203,7 +203,7 @@ def test_resize_images_to_sets_the_grid_the_native_tower_and_the_grafted_prompt(
 
 def test_activation_checkpointing_keeps_the_projector_gradients_and_lowers_the_peak() -> None:
     """Qwen's decoder layers and the DiT blocks recompute during backward: the same gradients, less memory held
-    by Qwen's forward and backward (measured as tensors alive at once, as tests/test_checkpointing.py measures the
+    by Qwen's forward and backward (measured as tensors alive at once, as tests/backbones/test_recompute.py measures the
     other backbones; the tiny step's own peak is the processor's pass over the prompt's blank frames, before Qwen
     runs: 31.5 MB either way at this batch, so Qwen is measured on its own, from the grafted prompt)."""
     adapter = grafted("vla_jepa")

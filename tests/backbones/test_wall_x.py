@@ -3,7 +3,7 @@ processor), the native tower against the policy's own image path, the loss and t
 `forward` / `predict_action_chunk` under the same random draws (flow loss only: no token labels in flow mode), the
 graft slots (the image-pad positions), and the released geometry on the meta device (4.2B
 parameters are never materialised). The native control, LoRA and reset, save/load by hub id and the missing base:
-tests/test_backbones_zoo_common.py."""
+tests/backbones/test_zoo_common.py."""
 
 from __future__ import annotations
 

@@ -26,7 +26,7 @@ TINY = {"xvla": ((4, 4), (4, 4), 17, 64), "pi0": ((4, 4), (4, 4), 16, 128), "pi0
 @pytest.mark.slow  # ~1-2 min per backbone on 2 cores: 1 native step, two small extractions, 7 tiny fits
 @pytest.mark.parametrize("name", sorted(TINY))
 def test_train_tiny_extract_native_and_fit_every_control(name: str, tiny_zoo: TinyZoo, capsys) -> None:
-    """The commands run once per session in tests/fixtures/tiny_zoo.py (tests/test_export.py exports their cells)."""
+    """The commands run once per session in tests/fixtures/tiny_zoo.py (tests/export/test_export.py exports their cells)."""
     grid, tower_grid, tokens, width = TINY[name]
     done = tiny_zoo.fitted(name, CONTROLS, capsys)
     policy, cache, table = done.policy, done.cache, done.table

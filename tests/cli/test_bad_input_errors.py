@@ -340,7 +340,7 @@ def test_ls_lists_healthy_caches_and_flags_a_broken_one(world: Inputs, tmp_path:
     assert world.clean_key in done.out and "resnet18-broken" in done.out + done.err
 
 
-# fit on a read-only cache root: tests/test_store_remote.py runs ls/info/verify/fit as uid nobody on a root it
+# fit on a read-only cache root: tests/store/test_store_remote.py runs ls/info/verify/fit as uid nobody on a root it
 # cannot write and asserts they succeed and leave it unchanged.
 
 

@@ -31,7 +31,7 @@ print(json.dumps({"codes": codes, "out": out.getvalue(), "heavy": [m for m in sy
 
 def test_help_and_ls_import_no_model_library(tmp_path: Path) -> None:
     cache = synthetic_cache(tmp_path / "root", [3, 2])
-    path = os.pathsep.join([str(Path(__file__).resolve().parents[1]), os.environ.get("PYTHONPATH", "")])
+    path = os.pathsep.join([str(Path(__file__).resolve().parents[2]), os.environ.get("PYTHONPATH", "")])
     child = subprocess.run([sys.executable, "-c", CHILD, str(tmp_path / "root"), *HEAVY], capture_output=True,
                            text=True, env={**os.environ, "PYTHONPATH": path}, timeout=120, check=True)
     got = json.loads(child.stdout)

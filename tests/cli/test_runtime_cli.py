@@ -18,7 +18,7 @@ from graftcache.errors import GraftcacheError
 from graftcache.pretrain import TinyTrainConfig, warmup_cosine
 from graftcache.progress import LogProgress, progress
 
-SAMPLE = Path(__file__).resolve().parents[1] / "data" / "libero_sample"
+SAMPLE = Path(__file__).resolve().parents[2] / "data" / "libero_sample"
 
 
 @pytest.mark.parametrize(("avx512_bf16", "amx", "want"), [(False, False, "fp32"), (True, False, "bf16"),

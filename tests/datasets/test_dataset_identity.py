@@ -25,7 +25,7 @@ from graftcache.datasets import identity, open_dataset
 from graftcache.errors import CacheError, DatasetError
 from graftcache.store import cache_key, compare_identity
 
-SAMPLE = Path(__file__).resolve().parents[1] / "data" / "libero_sample"
+SAMPLE = Path(__file__).resolve().parents[2] / "data" / "libero_sample"
 DATA = "data/chunk-000/file-000.parquet"
 VIDEO = "videos/observation.images.image/chunk-000/file-000.mp4"
 INFO = "meta/info.json"

@@ -25,7 +25,7 @@ from graftcache.datasets import open_dataset, suite_of
 from graftcache.datasets.suites import suite_tasks
 from graftcache.errors import GraftcacheError
 
-SAMPLE = Path(__file__).resolve().parents[1] / "data" / "libero_sample"
+SAMPLE = Path(__file__).resolve().parents[2] / "data" / "libero_sample"
 CAMERAS = ("observation.images.image", "observation.images.image2")
 
 

@@ -33,7 +33,7 @@ from graftcache.scoring import frame_noise
 from graftcache.store import FeatureCache
 
 #: the fit each backbone's plain cell is exported from (tests/fixtures/tiny_zoo.py, built once per session): the
-#: zoo backbones' every-control fit of tests/test_zoo_backbones_cli.py, smolvla's of the controls test below, and
+#: zoo backbones' every-control fit of tests/backbones/test_zoo_backbones_cli.py, smolvla's of the controls test below, and
 #: pi0.5's plain graft alone
 EXPORTED_CONTROLS = ("native", "zero-image", "lora", "shuffled-image")
 FITS = {"smolvla": EXPORTED_CONTROLS, "pi05": ()}

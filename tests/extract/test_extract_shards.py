@@ -27,7 +27,7 @@ from graftcache.extract import extract, shard_blocks
 from graftcache.recipe import SECTION_KEYS
 from graftcache.store import FeatureCache
 
-SAMPLE = Path(__file__).resolve().parents[1] / "data" / "libero_sample"
+SAMPLE = Path(__file__).resolve().parents[2] / "data" / "libero_sample"
 ENCODER = "timm:test_vit"  # timm's own test ViT: a real ViT architecture at 160 px, the cheapest to run
 GRAFTCACHE = Path(sys.executable).with_name("graftcache")
 #: Episodes 0-1 of the sample (101 frames) in blocks of 8: 13 blocks, both cameras.

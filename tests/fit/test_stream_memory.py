@@ -27,7 +27,7 @@ from graftcache import results
 
 pytestmark = pytest.mark.slow  # ~1.5 min: two fits in fresh processes (torch + lerobot imports), two caches
 
-SAMPLE = Path(__file__).resolve().parents[1] / "data" / "libero_sample"
+SAMPLE = Path(__file__).resolve().parents[2] / "data" / "libero_sample"
 SUITE, GRID, WIDTH, K = "libero_spatial", (4, 4), 2048, 8
 
 

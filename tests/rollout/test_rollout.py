@@ -199,7 +199,7 @@ def test_a_missing_simulator_is_one_line_naming_the_set_up(monkeypatch: pytest.M
                                   "setup-libero` (scripts/setup.sh libero) to install it")
 
 
-SAMPLE = Path(__file__).resolve().parents[1] / "data" / "libero_sample"
+SAMPLE = Path(__file__).resolve().parents[2] / "data" / "libero_sample"
 ENCODER = "timm:vit_tiny_patch16_224"
 #: the sample's first libero_object task (episodes 18-23: "pick up the alphabet soup and place it in the basket")
 OBJECT_EPISODES = "18-21"
