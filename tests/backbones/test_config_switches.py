@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from helpers.backbones import ENC_DIM, fixed_noise_time, raw_features, tiny
+from helpers.backbones import ENC_DIM, backbones_where, fixed_noise_time, raw_features, tiny
 from torch import nn
 
 from graftcache.backbones import get_backbone
@@ -98,16 +98,17 @@ def test_groot_computes_in_the_callers_dtype_whatever_use_bf16_says(tmp_path: Pa
     assert not torch.equal(losses[False][0], losses[False][1])  # bf16 computes something else: it did run
 
 
-@pytest.mark.parametrize("name", ["smolvla", "pi05", "pi0", "pi0_fast", "xvla", "wall_x", "vla_jepa"])
+@pytest.mark.parametrize("name", backbones_where(lambda spec: spec.activation_checkpointing))
 def test_checkpointing_off_turns_off_the_policy_s_own_too(name: str) -> None:
     """`set_activation_checkpointing(False)` makes the model agree with the flag rows record, whatever turned the
     model's own checkpointing on (lerobot's switch, a second `on`), and on, off, on, off leaves no layer wrapped."""
     adapter: BackboneAdapter = tiny(name)
-    if name in ("pi05", "pi0", "pi0_fast"):
+    own_switch = hasattr(adapter.policy.model, "gradient_checkpointing_enable")  # the PaliGemma policies'
+    if own_switch:
         adapter.policy.model.gradient_checkpointing_enable()  # lerobot's own, behind graftcache's back
     torch.manual_seed(0)
     adapter.graft(GraftProjector(ENC_DIM, adapter.lm_width))
-    if name in ("pi05", "pi0", "pi0_fast"):
+    if own_switch:
         assert _checkpointing(adapter.policy)
         adapter.set_activation_checkpointing(False)
         assert _checkpointing(adapter.policy) == []

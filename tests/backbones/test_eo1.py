@@ -31,7 +31,7 @@ SIZE = 128  # the tiny policy's frames (train-tiny's size): smart_resize -> 112 
 def test_tiny_geometry() -> None:
     adapter = tiny("eo1")
     merger = 32 + (128 * 128 + 128) + (128 * 64 + 64)  # RMSNorm(32), Linear(4 x 32 -> 128), Linear(128 -> 64)
-    assert_tiny_zoo_geometry(adapter, 8, merger)
+    assert_tiny_zoo_geometry(adapter, 8, merger, 245_800)
     tokenizer = adapter._qwen_processor._processor.tokenizer  # EO-1's 7 tokens added to the tiny vocabulary
     assert len(tokenizer) <= adapter.policy.model.vlm_backbone.config.text_config.vocab_size
 

@@ -46,7 +46,7 @@ def test_tiny_geometry() -> None:
     adapter = tiny("evo1")
     assert len(adapter._vision_owner.language_model.layers) == 2  # the tiny LM's 3 layers cut as lerobot cuts
     projector = 2 * 128 + (128 * 64 + 64) + (64 * 64 + 64)  # LayerNorm(4 x 32), Linear(128, 64), Linear(64, 64)
-    assert "other" not in assert_tiny_zoo_geometry(adapter, 8, projector)
+    assert "other" not in assert_tiny_zoo_geometry(adapter, 8, projector, 354_800)
     noise = adapter._uniform(adapter.sample_noise(1000, torch.Generator().manual_seed(0)))  # EVO1's start noise
     quartiles = torch.quantile(noise.flatten(), torch.tensor([0.25, 0.5, 0.75]))
     assert noise.abs().max() <= 1 and torch.allclose(quartiles, torch.tensor([-0.5, 0.0, 0.5]), atol=0.01)

@@ -58,7 +58,7 @@ def test_tiny_geometry() -> None:
     assert GR00TN17.__dict__["from_pretrained"] is own  # lerobot's loader is back after construction
     assert adapter.num_steps == 4 and len(_qwen(adapter).language_model.layers) == 2  # cut at select_layer
     merger = 2 * 32 + (128 * 128 + 128) + (128 * 64 + 64)  # LayerNorm(32), Linear(4 x 32 -> 128), Linear(128 -> 64)
-    assert_tiny_zoo_geometry(adapter, 8, merger)
+    assert_tiny_zoo_geometry(adapter, 8, merger, 810_496)
     tokenizer = adapter._vlm_step.proc.tokenizer
     assert len(tokenizer) <= _qwen(adapter).config.text_config.vocab_size
 

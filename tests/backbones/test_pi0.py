@@ -10,7 +10,7 @@ import json
 import numpy as np
 import pytest
 import torch
-from helpers.backbones import ENC_DIM, fixed_noise_time, grafted, raw_features, raw_images, tiny
+from helpers.backbones import ENC_DIM, checkpointing_peaks, fixed_noise_time, grafted, raw_features, raw_images, tiny
 from scipy.fft import dct, idct
 
 from graftcache.backbones import load_backbone
@@ -190,3 +190,9 @@ def test_released_geometry_on_the_meta_device(name: str, slots: tuple[str, ...],
     embed = policy.model.embed_prefix if name == "pi0" else policy.model.embed_prefix_fast
     embs = embed(meta, [m.to("meta") for m in masks], tokens, token_mask)[0]
     assert tuple(embs.shape) == (2, 256 * len(slots) + 12, 2048)  # 256 tokens x 2048 per slot, then the prompt
+
+
+@pytest.mark.parametrize("name", ["pi0", "pi0_fast"])
+def test_activation_checkpointing_lowers_the_peak(name: str) -> None:
+    plain, checkpointed = checkpointing_peaks(grafted(name))
+    assert checkpointed < 0.85 * plain, (checkpointed, plain)

@@ -2,10 +2,15 @@
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import pytest
 import torch
-from helpers.backbones import raw_images, tiny
+from helpers.backbones import checkpointing_peaks, grafted, raw_images, tiny
+from helpers.policies import assert_same_policy, lerobot_from_pretrained, tensors
 
+from graftcache.backbones import load_backbone
 from graftcache.backbones.batches import TOKEN_MASK, TOKENS
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")  # tests/fixtures/torch_threads.py
@@ -55,3 +60,20 @@ def test_training_and_kv_cache_paths_give_the_same_velocity() -> None:
     assert cached == after > 0  # denoising read the prefix cache without appending to it
     torch.testing.assert_close(v_infer, v_train, atol=2e-5, rtol=1e-4)
     assert (v_later - v_train).abs().max() > 1e-3  # the time condition reaches the expert
+
+
+def test_activation_checkpointing_lowers_the_peak() -> None:
+    plain, checkpointed = checkpointing_peaks(grafted("pi05"))
+    assert checkpointed < 0.85 * plain, (checkpointed, plain)  # measured: 51% of the plain step's peak
+
+
+def test_lean_load_casts_as_lerobot_does_when_the_config_asks_for_bfloat16(tmp_path: Path) -> None:
+    """pi0.5's config asking for bf16 (LM cast, vision path and norms fp32): each tensor is cast on the way in, as
+    load_state_dict's copy casts, and the result is lerobot's from_pretrained bit for bit."""
+    folder = tiny("pi05", seed=2).save(tmp_path / "ckpt")
+    config = json.loads((folder / "config.json").read_text())
+    (folder / "config.json").write_text(json.dumps({**config, "dtype": "bfloat16"}))
+    reference = lerobot_from_pretrained("pi05", folder)
+    lean = load_backbone("pi05", folder).policy
+    assert_same_policy(lean, reference)
+    assert {t.dtype for t in tensors(lean).values()} >= {torch.bfloat16, torch.float32}

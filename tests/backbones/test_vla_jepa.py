@@ -56,7 +56,7 @@ def test_tiny_geometry() -> None:
     adapter = tiny("vla_jepa")
     assert not adapter.config.enable_world_model and adapter.policy.model.video_predictor is None
     merger = 2 * 32 + (128 * 128 + 128) + (128 * 64 + 64)  # LayerNorm(32), Linear(4 x 32 -> 128), Linear(128 -> 64)
-    report = assert_tiny_zoo_geometry(adapter, 7, merger)
+    report = assert_tiny_zoo_geometry(adapter, 7, merger, 295_927)
     assert report["deepstack mergers"] == 2 * 128 + (128 * 128 + 128) + (128 * 64 + 64)  # one, LayerNorm after 2x2
     tokenizer = adapter.policy.model.qwen.processor.tokenizer  # 40 action tokens + the embodied one added
     assert len(tokenizer) <= adapter._qwen.config.text_config.vocab_size

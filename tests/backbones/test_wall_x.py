@@ -41,7 +41,7 @@ def test_tiny_geometry() -> None:
     adapter = tiny("wall_x")
     assert adapter.num_steps == 10  # `predict`'s default: lerobot's policy passes no other
     merger = 32 + (128 * 128 + 128) + (128 * 64 + 64)  # RMSNorm(32), Linear(4 x 32 -> 128), Linear(128 -> 64)
-    assert_tiny_zoo_geometry(adapter, 20, merger)
+    assert_tiny_zoo_geometry(adapter, 20, merger, 250_784)
     experts = 2 * 3 * 64 * (128 + 64)  # two layers, each with Wall-X's VLM expert (64 -> 128) and action expert
     assert sum(p.numel() for n, p in adapter.policy.model.model.named_parameters() if ".moe." in n) == experts
     tokenizer = adapter.policy.model.processor.tokenizer  # merge_tokenizer.py's two tokens, left padding

@@ -13,6 +13,7 @@ import torch
 from helpers.backbones import (
     ENC_DIM,
     assert_native_control_reproduces,
+    checkpointing_peaks,
     fixed_noise_time,
     grafted,
     raw_features,
@@ -180,3 +181,8 @@ def test_released_geometry_on_the_meta_device() -> None:
     images, masks = policy._prepare_images(pixels)  # both real views, no empty slot in this recipe
     assert tuple(images.shape) == (2, 2, 3, 256, 256) and tuple(masks.shape) == (2, 2)
     assert config.num_image_views == 2 and math.prod(adapter.token_grid) == 64
+
+
+def test_activation_checkpointing_lowers_the_peak() -> None:
+    plain, checkpointed = checkpointing_peaks(grafted("xvla"))
+    assert checkpointed < 0.85 * plain, (checkpointed, plain)

@@ -1,4 +1,4 @@
-"""The zoo backbones end to end on the bundled LIBERO sample, in this process: `train-tiny`, `extract --encoder
+"""Every registered backbone end to end on the bundled LIBERO sample, in this process: `train-tiny`, `extract --encoder
 <name>-native` (and a candidate encoder), then `fit` with every control. Few steps and a strided subset of
 four episodes keep it cheap; what is checked is that each command runs the backbone's real code paths and
 writes what the next one reads."""
@@ -9,26 +9,24 @@ import json
 import math
 
 import pytest
+import torch
 from fixtures.tiny_zoo import CONTROLS, TinyZoo
 
 from graftcache import results
+from graftcache.backbone_table import BACKBONES
 from graftcache.backbones import get_backbone
 from graftcache.store import FeatureCache
 
-#: backbone -> (native token grid, the tower's own grid before its connector, post-connector tokens per camera, LM
-#: width) of its tiny configuration (the Qwen ViTs of EO-1, GR00T, Wall-X and VLA-JEPA, and EVO1's InternViT: 8x8
-#: patches, merged 2x2 by their connectors)
-TINY = {"xvla": ((4, 4), (4, 4), 17, 64), "pi0": ((4, 4), (4, 4), 16, 128), "pi0_fast": ((4, 4), (4, 4), 16, 128),
-        "eo1": ((4, 4), (8, 8), 16, 64), "evo1": ((4, 4), (8, 8), 16, 64), "groot": ((4, 4), (8, 8), 16, 64),
-        "wall_x": ((4, 4), (8, 8), 16, 64), "vla_jepa": ((4, 4), (8, 8), 16, 64)}
-
 
 @pytest.mark.slow  # ~1-2 min per backbone on 2 cores: 1 native step, two small extractions, 7 tiny fits
-@pytest.mark.parametrize("name", sorted(TINY))
+@pytest.mark.parametrize("name", sorted(BACKBONES))
 def test_train_tiny_extract_native_and_fit_every_control(name: str, tiny_zoo: TinyZoo, capsys) -> None:
-    """The commands run once per session in tests/fixtures/tiny_zoo.py (tests/export/test_export.py exports their cells)."""
-    grid, tower_grid, tokens, width = TINY[name]
+    """The commands run once per session in tests/fixtures/tiny_zoo.py (tests/export/test_export.py exports their
+    cells). The native extraction stores what the trained policy's own tower and connector give (its grid before
+    the connector, its tokens after), measured here on the policy loaded independently."""
     done = tiny_zoo.fitted(name, CONTROLS, capsys)
+    adapter = get_backbone(name).load(done.policy)
+    grid = adapter.token_grid
     policy, cache, table = done.policy, done.cache, done.table
     record = json.loads((policy / "graftcache_pretrain.json").read_text())
     assert record["backbone"] == name and record["cameras"] == ["image", "image2"]
@@ -36,7 +34,10 @@ def test_train_tiny_extract_native_and_fit_every_control(name: str, tiny_zoo: Ti
 
     native = done.native
     manifest = FeatureCache(cache / native.out.split()[-1]).manifest
-    assert tuple(manifest.encoder["grid"]) == tower_grid and manifest.extras["connector"] == [tokens, width]
+    images = torch.rand(1, 3, manifest.encoder["image_size"], manifest.encoder["image_size"])
+    assert list(manifest.encoder["grid"]) == list(adapter.native_patch_grid(images).shape[1:3])
+    assert manifest.extras["connector"] == list(adapter.native_tokens(images).shape[1:])
+    assert manifest.extras["connector"][-1] == adapter.lm_width
 
     rows = results.read(table)
     assert sorted(rows["control"]) == sorted(("none", *CONTROLS)) and set(rows["backbone"]) == {name}

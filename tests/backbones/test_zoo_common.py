@@ -1,7 +1,8 @@
-"""The checks every zoo adapter (EO-1, GR00T, Wall-X, VLA-JEPA, EVO1) passes the same way, one test each,
-parametrised over the backbones: a saved tiny loads by hub id, a missing base repo is a one-line error, LoRA adapts
-the language model only and reset restores the policy bit for bit, the loss masks padded steps per sample, and the
-native control reproduces the ungrafted policy. What differs between the backbones is a row of `ZOO`."""
+"""Checks the Qwen/InternVL backbones (EO-1, GR00T, Wall-X, VLA-JEPA, EVO1) pass the same way, with per-backbone
+facts as a row of `ZOO`: a missing base repo is a one-line error, LoRA sits where each LM's decoder layers are and
+reset takes it and the graft's shadows away, the loss masks padded steps per sample, and the native control
+reproduces the ungrafted policy. Loading by hub id, lean load, LoRA inside the language model and reset for every
+backbone: tests/backbones/test_contract.py."""
 
 from __future__ import annotations
 
@@ -12,7 +13,6 @@ import pytest
 import torch
 from helpers.backbones import (
     ENC_DIM,
-    TINY_PARAMS,
     TINY_SIZE,
     assert_native_control_reproduces,
     fixed_noise_time,
@@ -20,7 +20,6 @@ from helpers.backbones import (
     tiny,
 )
 
-from devtools.released import hub_cache, publish
 from graftcache.backbones import load_backbone
 from graftcache.backbones.checkpoint import state_dict_sha256
 from graftcache.errors import BackboneError
@@ -38,17 +37,22 @@ class Zoo:
     base_error: str = ""                 # the one-line error naming it
     lora_also: str = ""                  # a part some LoRA parameter must sit in
     shadows: tuple[str, ...] = ()        # instance attributes the graft shadows on the policy and reset removes
+    masked_mean: bool = False            # the loss is the mean of `_flow_losses` over real steps and dims
+    native_control: bool = False         # the generic native control (deepstack backbones test theirs in their file)
 
 
 ZOO = {
     "eo1": Zoo("model.vlm_backbone.model.language_model.layers.", ("action head", "patch embedding"),
                "vlm_base", "Qwen/Qwen2.5-VL-3B-Instruct",
-               "EO-1's Qwen2.5-VL processor 'Qwen/Qwen2.5-VL-3B-Instruct' is neither"),
-    "groot": Zoo("_groot_model.backbone.model.model.language_model.layers.", ("action head", "patch embedding")),
+               "EO-1's Qwen2.5-VL processor 'Qwen/Qwen2.5-VL-3B-Instruct' is neither", masked_mean=True,
+               native_control=True),
+    "groot": Zoo("_groot_model.backbone.model.model.language_model.layers.", ("action head", "patch embedding"),
+                 masked_mean=True),
     "wall_x": Zoo("model.model.layers.", ("action head", "patch embedding"),
                   "pretrained_name_or_path", "x-square-robot/wall-oss-flow",
                   "Wall-X's base config and processor 'x-square-robot/wall-oss-flow' is neither",
-                  lora_also=".moe.experts.1."),  # the action expert's MLP is adapted too
+                  lora_also=".moe.experts.1.",  # the action expert's MLP is adapted too
+                  masked_mean=True, native_control=True),
     "vla_jepa": Zoo("model.qwen.model.model.language_model.layers.", ("action head", "deepstack mergers"),
                     "qwen_model_name", "Qwen/Qwen3-VL-2B-Instruct",
                     "VLA-JEPA's Qwen3-VL config and processor 'Qwen/Qwen3-VL-2B-Instruct' is neither a local folder "
@@ -56,29 +60,8 @@ ZOO = {
     "evo1": Zoo("model.embedder.model.language_model.layers.", ("action head",),
                 "vlm_model_name", "OpenGVLab/InternVL3-1B-hf",
                 "InternVL config and tokenizer 'OpenGVLab/InternVL3-1B-hf' is neither",
-                shadows=("_compute_fused_tokens",)),
+                shadows=("_compute_fused_tokens",), native_control=True),
 }
-
-
-@pytest.mark.parametrize("name", list(ZOO))
-def test_saved_tiny_loads_by_hub_id(name: str, tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """Saved as lerobot saves a policy, placed in a hub cache snapshot, loaded offline by `org/name` (the model
-    built from the shipped tiny folder's config, the weights read lean; a tied LM head counted once)."""
-    adapter = tiny(name)
-    adapter.save(tmp_path / "stage")
-    cache, hub_id = tmp_path / "hub", f"graftcache-tests/{name}-tiny"
-    with hub_cache(cache):
-        monkeypatch.setenv("HF_HUB_CACHE", str(cache))
-        publish(tmp_path / "stage", hub_id, cache)
-        loaded = load_backbone(name, hub_id)
-        assert type(adapter).read_token_grid(hub_id) == (4, 4)
-        assert type(adapter).read_cameras(hub_id) == ("image", "image2")
-    assert type(loaded) is type(adapter)
-    assert loaded.policy_sha256 == adapter.policy_sha256 and loaded.random_init
-    assert loaded.n_params == adapter.n_params == TINY_PARAMS[name]
-    raw = raw_images(adapter, 2, size=TINY_SIZE)
-    noise, _ = fixed_noise_time(adapter, 2)
-    torch.testing.assert_close(loaded.predict(loaded.prepare(raw), noise), adapter.predict(adapter.prepare(raw), noise))
 
 
 @pytest.mark.parametrize("name", [n for n, zoo in ZOO.items() if zoo.base_key])
@@ -117,7 +100,7 @@ def test_lora_adapts_the_language_model_and_reset_restores_the_policy(name: str)
     torch.testing.assert_close(adapter.native_tokens(images), before)  # the tower is back
 
 
-@pytest.mark.parametrize("name", ["eo1", "groot", "wall_x"])
+@pytest.mark.parametrize("name", [n for n, zoo in ZOO.items() if zoo.masked_mean])
 def test_loss_masks_padded_steps_and_padded_dims_per_sample(name: str) -> None:
     """The per-sample loss is the mean error over the sample's real steps and the dataset's 7 action dims (the
     first sample's last 3 steps are padding: helpers.backbones.raw_lowdim)."""
@@ -131,7 +114,7 @@ def test_loss_masks_padded_steps_and_padded_dims_per_sample(name: str) -> None:
     torch.testing.assert_close(loss, torch.stack([error[0, :-3].mean(), error[1].mean(), error[2].mean()]))
 
 
-@pytest.mark.parametrize("name", ["eo1", "wall_x", "evo1"])
+@pytest.mark.parametrize("name", [n for n, zoo in ZOO.items() if zoo.native_control])
 def test_native_control_reproduces_the_ungrafted_policy(name: str) -> None:
     """(GR00T and VLA-JEPA have deepstack features a graft drops: their files test the control without them.)"""
     assert_native_control_reproduces(tiny(name), tiny(name), 3, size=TINY_SIZE)

@@ -1,7 +1,7 @@
 """A dataset's identity covers its data, not only its metadata files (issue 15).
 
 One changed byte in a video, a data parquet or a metadata file changes the cache key; touching a file
-does not; the hashes are remembered so a rerun on the bundled sample takes well under a second; hub
+does not; the hashes are remembered so a rerun on the bundled sample hashes nothing; hub
 hashes stand in for hashing; a cache whose recorded dataset differs from the dataset it is used with is
 refused naming the first differing file; the NaN-edited copy of the sample gets its own cache.
 """
@@ -47,9 +47,13 @@ def sample(tmp_path: Path) -> Path:
     return root
 
 
-def _identity_of(root: Path) -> dict:
+def _identity_of(root: Path | str, stats: identity.HashStats | None = None) -> dict:
+    """A dataset's identity as a cache records it; `stats`, when given, says what computing it did."""
     meta = open_dataset(root).meta
-    return {"codebase_version": meta.codebase_version, **meta.content_identity}
+    if stats is None:
+        return {"codebase_version": meta.codebase_version, **meta.content_identity}
+    return {"codebase_version": meta.codebase_version,
+            **identity.content_identity(meta.root, meta.identity_files, stats=stats)}
 
 
 def _key(dataset_identity: dict) -> str:
@@ -122,26 +126,19 @@ def test_touching_a_file_changes_nothing(sample: Path, memo: Path) -> None:
 
 
 def test_a_rerun_reuses_the_remembered_hashes(sample: Path, memo: Path) -> None:
-    t0 = time.perf_counter()
-    first = _identity_of(sample)
-    first_s = time.perf_counter() - t0
-    assert identity.last_stats.hashed_files == 6 and identity.last_stats.hashed_bytes > 14e6
-    t0 = time.perf_counter()
-    again = _identity_of(sample)  # a new DatasetMeta: only the sidecar can make this cheap
-    rerun_s = time.perf_counter() - t0
-    stats = identity.last_stats
-    assert again == first and stats.hashed_files == 0 and stats.from_memo == 6
-    assert rerun_s < 2.0, rerun_s
-    print(f"bundled sample identity: first run {first_s:.3f}s, rerun {rerun_s:.3f}s "
-          f"({stats.bytes_total / 1e6:.1f} MB)")
+    first_stats, stats = identity.HashStats(), identity.HashStats()
+    first = _identity_of(sample, first_stats)
+    assert first_stats.hashed_files == 6 and first_stats.hashed_bytes > 14e6
+    again = _identity_of(sample, stats)  # a new DatasetMeta: only the sidecar can make this cheap
+    assert again == first and stats.hashed_files == 0 and stats.hashed_bytes == 0 and stats.from_memo == 6
 
 
 def test_an_unwritable_sidecar_only_costs_time(sample: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     blocker = tmp_path / "not-a-folder"
     blocker.write_text("x")
     monkeypatch.setenv(identity.MEMO_ENV, str(blocker / "memo"))
-    first = _identity_of(sample)
-    assert _identity_of(sample) == first and identity.last_stats.hashed_files == 6
+    first, stats = _identity_of(sample), identity.HashStats()
+    assert _identity_of(sample, stats) == first and stats.hashed_files == 6
 
 
 def test_a_shared_home_not_writable_falls_back_to_the_user_cache(sample: Path, tmp_path: Path,
@@ -154,7 +151,8 @@ def test_a_shared_home_not_writable_falls_back_to_the_user_cache(sample: Path, t
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
     first = _identity_of(sample)
     assert len(list((tmp_path / "xdg" / "graftcache" / identity.MEMO_DIR).glob("*.json"))) == 1
-    assert _identity_of(sample) == first and identity.last_stats.hashed_files == 0
+    stats = identity.HashStats()
+    assert _identity_of(sample, stats) == first and stats.hashed_files == 0
 
 
 def test_a_missing_data_file_is_named(sample: Path, memo: Path) -> None:
@@ -183,8 +181,8 @@ def test_hub_snapshot_blob_names_stand_in_for_hashing(sample: Path, memo: Path, 
     (repo / "refs").mkdir()
     (repo / "refs" / "main").write_text(rev)
     monkeypatch.setenv("HF_HUB_CACHE", str(hub))
-    assert _identity_of("org/sample") == plain  # same identity as a plain copy: caches are shared
-    stats = identity.last_stats
+    stats = identity.HashStats()
+    assert _identity_of("org/sample", stats) == plain  # same identity as a plain copy: caches are shared
     assert stats.from_hub == 5 and stats.hashed_files == 1  # only info.json was read
 
 
@@ -195,7 +193,8 @@ def test_local_dir_download_metadata_stands_in_while_fresh(sample: Path, memo: P
     meta_file.parent.mkdir(parents=True)
     meta_file.write_text(f"{'a' * 40}\n{sha}\n{time.time() + 5:.3f}\n")
     shutil.rmtree(memo)
-    assert _identity_of(sample) == plain and identity.last_stats.from_hub == 1
+    stats = identity.HashStats()
+    assert _identity_of(sample, stats) == plain and stats.from_hub == 1
     # edited after the download: huggingface_hub's freshness rule no longer holds, so it is hashed
     _flip_byte(sample / DATA, 1000)
     later = time.time() + 60

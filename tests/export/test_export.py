@@ -32,11 +32,6 @@ from graftcache.pooling import parse_grid
 from graftcache.scoring import frame_noise
 from graftcache.store import FeatureCache
 
-#: the fit each backbone's plain cell is exported from (tests/fixtures/tiny_zoo.py, built once per session): the
-#: zoo backbones' every-control fit of tests/backbones/test_zoo_backbones_cli.py, smolvla's of the controls test below, and
-#: pi0.5's plain graft alone
-EXPORTED_CONTROLS = ("native", "zero-image", "lora", "shuffled-image")
-FITS = {"smolvla": EXPORTED_CONTROLS, "pi05": ()}
 #: features are stored fp16: one step of fp16 relative to the chunk's scale (also in raw units: the sample's action
 #: stats stretch no dim, std and half ranges are all <= 1)
 TOLERANCE = 2e-3
@@ -121,7 +116,7 @@ def check_export(row: dict, root: Path, table: Path, policy: Path, tmp_path: Pat
 @pytest.mark.slow  # an export; the tiny policy and its fit (1-2 min per backbone on 2 cores) are shared: tiny_zoo
 @pytest.mark.parametrize("name", sorted(BACKBONES))
 def test_export_returns_the_scored_chunk(name: str, tiny_zoo: TinyZoo, tmp_path: Path, capsys) -> None:
-    done = tiny_zoo.fitted(name, FITS.get(name, CONTROLS), capsys)
+    done = tiny_zoo.fitted(name, CONTROLS, capsys)  # the every-control fit of tests/backbones/test_zoo_backbones_cli.py
     row = results.read(done.table).filter(pl.col("control") == "none").row(0, named=True)
     check_export(row, done.cache, done.table, done.policy, tmp_path, capsys)
 
@@ -129,7 +124,7 @@ def test_export_returns_the_scored_chunk(name: str, tiny_zoo: TinyZoo, tmp_path:
 @pytest.mark.slow
 def test_export_controls_and_refusals(tiny_zoo: TinyZoo, tmp_path: Path, capsys) -> None:
     """native, zero-image and lora cells export as what they scored; shuffled-image is refused in one line."""
-    done = tiny_zoo.fitted("smolvla", EXPORTED_CONTROLS, capsys)
+    done = tiny_zoo.fitted("smolvla", CONTROLS, capsys)
     by_control = {r["control"]: r for r in results.read(done.table).iter_rows(named=True)}
     for control in ("native", "zero-image", "lora"):
         check_export(by_control[control], done.cache, done.table, done.policy, tmp_path, capsys)

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import multiprocessing as mp
-import time
 from pathlib import Path
 
 import numpy as np
@@ -153,9 +152,8 @@ def test_lock_excludes_second_writer(tmp_path: Path) -> None:
     finally:
         release.set()
         proc.join(10)
-    t0 = time.time()
-    with exclusive(tmp_path / "k.lock", wait=False):
-        assert time.time() - t0 < 5
+    with exclusive(tmp_path / "k.lock", wait=False):  # free again: taken without waiting (wait=False raises if held)
+        pass
 
 
 def test_a_manifest_is_read_typed_and_a_wrong_field_is_refused_by_name() -> None:
