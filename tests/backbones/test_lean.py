@@ -18,6 +18,7 @@ from graftcache.graft import GraftProjector
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")  # tests/fixtures/torch_threads.py
 
+
 def test_a_mis_shaped_or_cut_short_checkpoint_is_refused_by_name(tmp_path: Path) -> None:
     from safetensors.torch import load_file, save_file
 
