@@ -17,7 +17,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-#: The files every backbone folder holds (tests/test_backbone_registry.py fails on a registered folder lacking one).
+#: The files every backbone folder holds (tests/backbones/test_backbone_registry.py fails on a registered folder
+#: lacking one).
 PIECES = ("adapter", "tiny")
 FOLDER = Path(__file__).resolve().parent / "backbones"
 

@@ -65,7 +65,7 @@ def memo_dirs() -> list[Path]:
 # ---------------------------------------------------------------------------------------------- computing
 @dataclass
 class HashStats:
-    """What the last `content_identity` call did (for timing and tests)."""
+    """What one `content_identity` call did (filled in for a caller that passes one: timing, tests)."""
 
     files: int = 0         # files in the identity
     bytes_total: int = 0   # their total size
@@ -75,37 +75,34 @@ class HashStats:
     from_hub: int = 0      # taken from the hub's own record (blob name or download metadata)
 
 
-#: Stats of the most recent `content_identity` call in this process.
-last_stats = HashStats()
-
-
-def content_identity(root: Path, files: Iterable[Path], *, progress: bool = True) -> dict[str, Any]:
-    """{"files": {relative path: {"size", "sha256"}}} for `files` (under `root`), in the given order.
+def content_identity(root: Path, files: Iterable[Path], *, progress: bool = True,
+                     stats: HashStats | None = None) -> dict[str, Any]:
+    """{"files": {relative path: {"size", "sha256"}}} for `files` (under `root`), in the given order; `stats`, when
+    given, is filled in with what this call did (how many files were hashed, taken from the memo or the hub).
 
     Raises DatasetError naming the first file that is missing or unreadable.
     """
-    global last_stats
     root = Path(root)
     paths = list(dict.fromkeys(Path(p) for p in files))
-    stats: dict[Path, os.stat_result] = {}
+    stat: dict[Path, os.stat_result] = {}
     for p in paths:
         try:
-            stats[p] = p.stat()
+            stat[p] = p.stat()
         except FileNotFoundError:
             raise DatasetError(f"{p}: missing (every data and video file is part of the dataset identity)") from None
         except OSError as e:
             raise DatasetError(f"{p}: cannot stat ({e.strerror})") from None
     memo = _Memo(root)
-    run = HashStats(files=len(paths), bytes_total=sum(s.st_size for s in stats.values()))
+    run = HashStats(files=len(paths), bytes_total=sum(s.st_size for s in stat.values()))
     digests: dict[Path, str] = {}
     todo: list[Path] = []
     for p in paths:
         real = os.path.realpath(p)
-        known = _hub_sha256(root, p, real, stats[p])
+        known = _hub_sha256(root, p, real, stat[p])
         if known is not None:
             run.from_hub += 1
         else:
-            known = memo.get(real, stats[p])
+            known = memo.get(real, stat[p])
             if known is not None:
                 run.from_memo += 1
         if known is None:
@@ -113,14 +110,15 @@ def content_identity(root: Path, files: Iterable[Path], *, progress: bool = True
         else:
             digests[p] = known
     if todo:
-        for p, digest in zip(todo, _hash_all(todo, sum(stats[p].st_size for p in todo), progress)):
+        for p, digest in zip(todo, _hash_all(todo, sum(stat[p].st_size for p in todo), progress)):
             digests[p] = digest
-            memo.put(os.path.realpath(p), stats[p], digest)
+            memo.put(os.path.realpath(p), stat[p], digest)
         run.hashed_files = len(todo)
-        run.hashed_bytes = sum(stats[p].st_size for p in todo)
+        run.hashed_bytes = sum(stat[p].st_size for p in todo)
         memo.save()
-    last_stats = run
-    return {"files": {_relative(p, root): {"size": stats[p].st_size, "sha256": digests[p]} for p in paths}}
+    if stats is not None:
+        vars(stats).update(vars(run))
+    return {"files": {_relative(p, root): {"size": stat[p].st_size, "sha256": digests[p]} for p in paths}}
 
 
 def _relative(path: Path, root: Path) -> str:

@@ -2,19 +2,21 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import pytest
 import torch
 
-from graftcache.backbones import TinySpec, load_backbone
+from graftcache.backbones import BACKBONES, TinySpec, get_backbone, load_backbone
 from graftcache.backbones.base import BackboneAdapter
+from graftcache.backbones.spec import BackboneSpec
 from graftcache.errors import BackboneError
 from graftcache.fit.controls import PassThroughProjector
 from graftcache.graft import GraftProjector, feature_key
+from helpers.memory import peak_tensor_bytes
 
 SPEC = TinySpec()
 ENC_DIM = 48
-#: Parameters of each zoo adapter's tiny policy as loaded (shared tensors once).
-TINY_PARAMS = {"eo1": 245_800, "groot": 810_496, "wall_x": 250_784, "vla_jepa": 295_927, "evo1": 354_800}
 #: The tiny zoo policies' frames (train-tiny's size): each processor makes a 4x4 token grid of them.
 TINY_SIZE = 128
 TASKS = (
@@ -22,6 +24,12 @@ TASKS = (
     "open the middle drawer of the cabinet",
     "put the bowl on the stove",
 )
+
+
+def backbones_where(predicate: Callable[[BackboneSpec], bool]) -> list[str]:
+    """The registered backbones whose spec satisfies `predicate`, sorted (for tests about some backbones: they are
+    selected by what their spec declares, never by name; imports the adapters, hence lerobot)."""
+    return [name for name in sorted(BACKBONES) if predicate(get_backbone(name).spec)]
 
 
 def lowdim_stats(state_dim: int = SPEC.state_dim, action_dim: int = SPEC.action_dim) -> dict:
@@ -98,9 +106,10 @@ def assert_native_control_reproduces(native: BackboneAdapter, control: BackboneA
         torch.testing.assert_close(control.predict(control.prepare(cached), noise), pixel_chunk)
 
 
-def assert_tiny_zoo_geometry(adapter: BackboneAdapter, max_action_dim: int, connector: int) -> dict[str, int]:
+def assert_tiny_zoo_geometry(adapter: BackboneAdapter, max_action_dim: int, connector: int,
+                             params: int) -> dict[str, int]:
     """What every tiny zoo policy (EO-1, GR00T, Wall-X, VLA-JEPA, EVO1) shares: a 4x4 token grid of 64-wide tokens
-    from an 8x8 grid of 32-wide patches, two cameras, 10-step chunks, its parameter count (TINY_PARAMS) in the
+    from an 8x8 grid of 32-wide patches, two cameras, 10-step chunks, its parameter count (`params`) in the
     freeze report, and a `connector` of the given size. Returns the report's {module: parameters}."""
     assert adapter.token_grid == (4, 4) and adapter.lm_width == 64 and adapter.embed_scale == 1.0
     assert adapter.cameras == ("image", "image2") and adapter.max_action_dim == max_action_dim
@@ -108,7 +117,6 @@ def assert_tiny_zoo_geometry(adapter: BackboneAdapter, max_action_dim: int, conn
     images = torch.rand(2, 3, TINY_SIZE, TINY_SIZE)
     assert adapter.native_patch_grid(images).shape == (2, 8, 8, 32)
     assert adapter.native_tokens(images).shape == (2, 16, 64)
-    params = TINY_PARAMS[adapter.name]
     assert adapter.n_params == params
     report = {r.module: r.params for r in adapter.freeze_report().rows}
     assert sum(report.values()) == params and report["connector"] == connector
@@ -162,3 +170,30 @@ def assert_projector_trained(adapter: BackboneAdapter, loss: torch.Tensor) -> No
     """The loss back-propagates into every projector parameter (a nonzero gradient each)."""
     loss.mean().backward()
     assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in adapter.projector.parameters())
+
+
+def checkpointing_peaks(adapter: BackboneAdapter, batch: int = 8) -> tuple[int, int]:
+    """(plain, checkpointed) peak tensor bytes of one training step of a grafted adapter, after checking that
+    activation checkpointing changes no gradient and that switching it off again restores the plain step."""
+    adapter.policy.train()
+    prepared = adapter.prepare(raw_features(adapter, batch))
+    noise, time = fixed_noise_time(adapter, batch)
+    params = [p for p in adapter.policy.parameters() if p.requires_grad]
+
+    def step() -> None:
+        torch.manual_seed(0)  # X-VLA trains with dropout: every step draws the same masks
+        adapter.loss(prepared, noise=noise, time=time).mean().backward()
+
+    grads, peaks = {}, {}
+    for on in (False, True, False):  # off again: the switch restores the plain step
+        adapter.set_activation_checkpointing(on)
+        assert adapter.activation_checkpointing is on
+        for p in params:
+            p.grad = None
+        peaks.setdefault(on, []).append(peak_tensor_bytes(step))
+        grads.setdefault(on, []).append([p.grad.clone() for p in params])
+    assert params and all(g is not None for g in grads[True][0])
+    for plain, checkpointed in zip(grads[False][0], grads[True][0], strict=True):
+        torch.testing.assert_close(checkpointed, plain, rtol=0, atol=1e-6)
+    assert peaks[False][1] == pytest.approx(peaks[False][0], rel=0.03)  # pi0-FAST's second plain step: +2%
+    return peaks[False][0], peaks[True][0]

@@ -15,19 +15,22 @@ arranged:
 from __future__ import annotations
 
 import os
+from pathlib import Path
 
 import pytest
 
-#: modules whose session fixtures are shared: they run on one worker, which builds them once
-GROUPS = {"test_export": "tiny_policies", "test_zoo_backbones_cli": "tiny_policies"}
+TESTS = Path(__file__).resolve().parents[1]
+
+#: modules (paths under tests/) whose session fixtures are shared: they run on one worker, which builds them once
+GROUPS = {"export/test_export": "tiny_policies", "backbones/test_zoo_backbones_cli": "tiny_policies"}
 
 #: the longest modules (CI's --durations on 2 cores, seconds: demo ~460, tiny policies ~500, fit ~210, concurrent
 #: writers ~150, released geometry ~140, gpu check ~125, remote store ~100, ray ~75), started first in this order;
 #: then the other modules holding a test marked slow, then the rest, each in collection order
-LONGEST = ("test_demo", "test_export", "test_zoo_backbones_cli", "test_fit", "test_results_concurrent_writers",
-           "test_released_geometry_checkpoints", "test_gpu_check", "test_store_remote",
-           "test_ray", "test_extract", "test_encoders_registry", "test_bad_input_errors", "test_stream_memory",
-           "test_extract_shards")
+LONGEST = ("test_demo", "export/test_export", "backbones/test_zoo_backbones_cli", "fit/test_fit",
+           "test_results_concurrent_writers", "backbones/test_released_geometry_checkpoints", "test_gpu_check",
+           "store/test_store_remote", "executors/test_ray", "extract/test_extract", "encoders/test_encoders_registry",
+           "cli/test_bad_input_errors", "fit/test_stream_memory", "extract/test_extract_shards")
 
 
 def limit_worker_threads() -> None:
@@ -38,7 +41,8 @@ def limit_worker_threads() -> None:
 
 
 def _module(item: pytest.Item) -> str:
-    return item.path.stem
+    """A test module's path under tests/, without ".py" (e.g. "fit/test_fit"), as GROUPS and LONGEST name it."""
+    return item.path.resolve().relative_to(TESTS).with_suffix("").as_posix()
 
 
 def schedule(items: list[pytest.Item]) -> None:

@@ -26,7 +26,7 @@ EVO1's head draws its own flow time (Beta(2, 2) clamped to [0.02, 0.98]) and noi
 MLP) with the given draws: graftcache's `time` is the noise level (1 at pure noise, as for pi0), EVO1's t is
 1 - time; graftcache's noise is standard normal for every backbone (training draws and the scorer's fixed
 per-frame draws), mapped here onto EVO1's uniform through the normal CDF (`_uniform`).
-tests/test_backbones_evo1.py checks both against lerobot's `forward` and `predict_action_chunk` under the same
+tests/backbones/test_evo1.py checks both against lerobot's `forward` and `predict_action_chunk` under the same
 random draws.
 """
 

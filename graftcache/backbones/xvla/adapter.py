@@ -19,7 +19,7 @@ X-VLA's objective is not lerobot's velocity flow: it predicts the clean chunk fr
 and scores it with the action space's own loss (`action_space.compute_loss`: MSE on the real dims for the
 "auto" space). `loss` and `predict` therefore call the model's own parts (`forward_vlm`, `action_space`,
 `transformer`) with the given noise and time instead of the policy's `forward`/`generate_actions`, which draw
-their own (tests/test_backbones_xvla.py checks both against lerobot's under the same RNG draws).
+their own (tests/backbones/test_xvla.py checks both against lerobot's under the same RNG draws).
 """
 
 from __future__ import annotations

@@ -1,0 +1,134 @@
+"""The closed loop tests the cell that was scored: for every backbone of the registry, `graftcache export` of a
+fitted cell, loaded through lerobot's own factory (make_policy, make_pre_post_processors), returns on a dataset frame
+the action chunk that offline scoring computes for that frame from the cache, under the same noise.
+
+The offline side is computed here the way graftcache.fit.loop.evaluate_together computes it (cached features read
+at the pool grid, raw_batch, the adapter's prepare and predict, the frame's fixed noise); the export side starts from
+the frame's decoded pixels and runs the cell's encoder, storage rounding and pooling itself. The action lerobot-eval
+executes (`select_action`, then the postprocessor lerobot's factory loads from the export) is the chunk's first, in raw
+units at the dataset's action width, as offline scoring unnormalises it."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import polars as pl
+import pytest
+import torch
+from fixtures.tiny_zoo import CONTROLS, SAMPLE, SUITE, TinyZoo
+from helpers.probes import run_cli
+from safetensors.torch import load_file
+
+from graftcache import results
+from graftcache.backbone_table import BACKBONES
+from graftcache.backbones import get_backbone
+from graftcache.datasets import open_dataset
+from graftcache.fit.controls import get_control
+from graftcache.fit.data import load_lowdim, read_grid
+from graftcache.fit.loop import raw_batch
+from graftcache.pooling import parse_grid
+from graftcache.scoring import frame_noise
+from graftcache.store import FeatureCache
+
+#: features are stored fp16: one step of fp16 relative to the chunk's scale (also in raw units: the sample's action
+#: stats stretch no dim, std and half ranges are all <= 1)
+TOLERANCE = 2e-3
+
+
+def offline_chunk(row: dict, root: Path, policy: Path, run_folder: Path) -> tuple[torch.Tensor, torch.Tensor, dict,
+                                                                                   int]:
+    """(the normalised chunk offline scoring computes for a late frame of the suite, that chunk in raw units as
+    scoring unnormalises it, that frame's observation as lerobot hands it to a policy, its cache row)."""
+    cache = FeatureCache(root / row["cache_key"])
+    control = get_control(row["control"])
+    adapter = get_backbone(row["backbone"]).load(policy)
+    low = load_lowdim(cache, SUITE, chunk=adapter.chunk_size)
+    pos = np.array([len(low) - 1])  # a late frame: its chunk runs into the episode's padding
+    grid = parse_grid(row["pool_grid"])
+    cams = dict(pair.split("=") for pair in row["camera_map"].split(","))
+    if control.extra:
+        feats = {c: cache.read_features(c, control.extra, low.rows[pos]) for c in cams.values()}
+    else:
+        feats = {c: read_grid(cache, c, grid, low.rows[pos]) for c in cams.values()}
+    width = next(iter(feats.values())).shape[-1]
+    adapter.graft(control.projector(width, adapter.lm_width))
+    if control.lora:
+        adapter.add_lora(rank=8)
+    if control.train:
+        params = dict(adapter.policy.named_parameters())
+        with torch.no_grad():
+            for n, t in load_file(str(run_folder / "projector.safetensors")).items():
+                params[n].copy_(t)
+    batch = adapter.prepare(raw_batch(low, pos, control.transform(feats), cams))
+    noise = frame_noise(low.rows[pos], adapter.chunk_size, adapter.max_action_dim)
+    chunk = adapter.predict(batch, noise=noise, num_steps=2).float()
+    episode, frame = int(low.episode_index[pos[0]]), int(low.frame_index[pos[0]])
+    video = open_dataset(SAMPLE).decode_episode(episode, list(cams.values()))
+    observation = {f"observation.images.{c}": torch.from_numpy(video[c][frame]).permute(2, 0, 1)[None].float() / 255
+                   for c in cams.values()}
+    observation["observation.state"] = low.state[pos]
+    observation["task"] = [low.tasks[int(low.task_index[pos[0]])]]
+    return chunk, adapter.unnormalize(chunk).float(), observation, int(low.rows[pos[0]])
+
+
+def exported_chunk(folder: Path, observation: dict, row_id: int) -> tuple[torch.Tensor, torch.Tensor, int]:
+    """The export loaded as lerobot-eval loads a policy and its processors (its factory, the plugin's registered type,
+    the overrides graftcache.rollout.libero passes as lerobot-eval does), fed the frame: (its normalised chunk, the
+    raw action lerobot-eval executes, `select_action` through the postprocessor, the dataset's action width)."""
+    import lerobot_policy_graftcache  # noqa: F401  (what lerobot's plugin hook imports)
+    from lerobot.configs.policies import PreTrainedConfig
+    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
+    from lerobot.policies.factory import make_policy, make_pre_post_processors
+
+    cfg = PreTrainedConfig.from_pretrained(folder)
+    cfg.pretrained_path = str(folder)
+    assert cfg.type == "graftcache"
+    meta = LeRobotDatasetMetadata("libero_sample", root=SAMPLE)
+    policy = make_policy(cfg, ds_meta=meta)
+    overrides = {"device_processor": {"device": str(policy.config.device)},
+                 "rename_observations_processor": {"rename_map": {}}}
+    pre, post = make_pre_post_processors(cfg, pretrained_path=str(folder), preprocessor_overrides=overrides)
+    adapter = policy.adapter
+    noise = frame_noise(np.array([row_id]), adapter.chunk_size, adapter.max_action_dim)
+    chunk = policy.predict_action_chunk(pre(observation), noise=noise).float()
+    policy.reset()
+    action = post(policy.select_action(pre(observation), noise=noise)).float()
+    return chunk, action, int(meta.features["action"]["shape"][0])
+
+
+def check_export(row: dict, root: Path, table: Path, policy: Path, tmp_path: Path, capsys) -> None:
+    out = tmp_path / f"export-{row['control']}"
+    done = run_cli(["export", row["run_id"], "--results", str(table), "--out", str(out), "--cache", str(root)], capsys)
+    assert done.code == 0, done.err[-2000:]
+    config = json.loads((out / "config.json").read_text())
+    assert (config["type"], config["run_id"], config["control"]) == ("graftcache", row["run_id"], row["control"])
+    offline, raw, observation, row_id = offline_chunk(row, root, policy, table.parent / "runs" / row["run_id"])
+    exported, action, action_dim = exported_chunk(out, observation, row_id)
+    assert exported.shape == offline.shape
+    scale = float(offline.abs().max())
+    torch.testing.assert_close(exported, offline, rtol=0, atol=TOLERANCE * max(1.0, scale))
+    assert action.shape == (1, action_dim) == raw[:, 0].shape
+    torch.testing.assert_close(action, raw[:, 0], rtol=0, atol=TOLERANCE * max(1.0, scale))
+
+
+@pytest.mark.slow  # an export; the tiny policy and its fit (1-2 min per backbone on 2 cores) are shared: tiny_zoo
+@pytest.mark.parametrize("name", sorted(BACKBONES))
+def test_export_returns_the_scored_chunk(name: str, tiny_zoo: TinyZoo, tmp_path: Path, capsys) -> None:
+    done = tiny_zoo.fitted(name, CONTROLS, capsys)  # the every-control fit of tests/backbones/test_zoo_backbones_cli.py
+    row = results.read(done.table).filter(pl.col("control") == "none").row(0, named=True)
+    check_export(row, done.cache, done.table, done.policy, tmp_path, capsys)
+
+
+@pytest.mark.slow
+def test_export_controls_and_refusals(tiny_zoo: TinyZoo, tmp_path: Path, capsys) -> None:
+    """native, zero-image and lora cells export as what they scored; shuffled-image is refused in one line."""
+    done = tiny_zoo.fitted("smolvla", CONTROLS, capsys)
+    by_control = {r["control"]: r for r in results.read(done.table).iter_rows(named=True)}
+    for control in ("native", "zero-image", "lora"):
+        check_export(by_control[control], done.cache, done.table, done.policy, tmp_path, capsys)
+    refused = run_cli(["export", by_control["shuffled-image"]["run_id"], "--results", str(done.table), "--out",
+                       str(tmp_path / "shuffled"), "--cache", str(done.cache)], capsys)
+    assert refused.code == 2 and "shuffled-image has no closed-loop meaning" in refused.err
+    assert len(refused.err.strip().splitlines()) == 1 and not (tmp_path / "shuffled").exists()

@@ -1,0 +1,261 @@
+"""`graftcache rollout` (issue 31, item 3): which rows it runs, how it resumes, and (slow) the CI smoke in the real
+LIBERO simulator.
+
+The selection and resume tests run without the simulator: a fake (`Scripted`) stands behind the Simulator seam
+(graftcache.rollout.episodes.Simulator) and scripts each episode's outcome from its seed. The hand-built results
+table is tests/helpers/tables.py's: on smolvla/libero_spatial siglip (mean 1.1) < dinov2-s (2.1) < resnet18 (3.1),
+with zero-image rows of siglip and resnet18, shuffled-image of siglip, native 1.0 and native-graft; on
+pi05/libero_spatial dinov2-s (1.4) < siglip (1.5) < resnet18, and a native row.
+"""
+
+from __future__ import annotations
+
+import importlib.metadata
+import importlib.util
+from collections.abc import Iterator, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import polars as pl
+import pytest
+from helpers.tables import full_table, write_results
+
+from graftcache import results
+from graftcache.errors import RolloutError
+from graftcache.rollout import table
+from graftcache.rollout.episodes import Episode, Outcome, Suite
+from graftcache.rollout.run import RolloutRequest, roll_out
+from graftcache.rollout.select import select_rows
+
+
+def _keys(rows: pl.DataFrame) -> list[tuple]:
+    return rows.select("backbone", "suite", "control", "encoder", "seed").rows()
+
+
+def test_top_k_takes_the_reports_best_encoders_every_seed_with_their_controls() -> None:
+    chosen = select_rows(full_table(), top=2, suites=["libero_spatial"])
+    smolvla = [k for k in _keys(chosen) if k[0] == "smolvla"]
+    assert smolvla == [("smolvla", "libero_spatial", "native", "smolvla-native", 0),
+                       *[("smolvla", "libero_spatial", "none", e, s) for e in ("dinov2-s", "siglip") for s in range(3)],
+                       *[("smolvla", "libero_spatial", "zero-image", "siglip", s) for s in range(3)]]
+    # pi05: dinov2-s and siglip are its best two (resnet18 is not), and it has no zero-image rows
+    pi05 = [k for k in _keys(chosen) if k[0] == "pi05"]
+    assert pi05 == [("pi05", "libero_spatial", "native", "pi05-native", 0),
+                    *[("pi05", "libero_spatial", "none", e, s) for e in ("dinov2-s", "siglip") for s in range(3)]]
+    assert "shuffled-image" not in chosen["control"].to_list()  # siglip's shuffled-image rows are never picked
+    assert "native-graft" not in chosen["control"].to_list()
+
+
+def test_top_1_per_suite_and_backbone() -> None:
+    chosen = select_rows(full_table(), top=1)
+    plain = chosen.filter(pl.col("control") == "none").select("backbone", "suite", "encoder").unique().sort(
+        "backbone", "suite").rows()
+    # libero_10 smolvla: siglip and dinov2-s tie at mean 2.0, the report's order (rank, then name) puts dinov2-s first
+    assert plain == [("pi05", "libero_10", "dinov2-s"), ("pi05", "libero_goal", "dinov2-s"),
+                     ("pi05", "libero_object", "dinov2-s"), ("pi05", "libero_spatial", "dinov2-s"),
+                     ("smolvla", "libero_10", "dinov2-s"), ("smolvla", "libero_goal", "siglip"),
+                     ("smolvla", "libero_object", "siglip"), ("smolvla", "libero_spatial", "siglip")]
+
+
+def test_run_ids_are_taken_exactly_and_refusals_name_the_run() -> None:
+    results = full_table()
+    ids = {(r["backbone"], r["suite"], r["encoder"], r["control"], r["seed"]): r["run_id"]
+           for r in results.iter_rows(named=True)}
+    a, b = ids["smolvla", "libero_spatial", "resnet18", "none", 2], ids["pi05", "libero_object", "siglip", "none", 0]
+    assert set(select_rows(results, run_ids=[a, b])["run_id"].to_list()) == {a, b}
+    assert select_rows(results, run_ids=[a]).height == 1  # no controls added to exact run_ids
+    shuffled = ids["smolvla", "libero_spatial", "siglip", "shuffled-image", 0]
+    with pytest.raises(RolloutError) as refused:
+        select_rows(results, run_ids=[a, shuffled])
+    assert str(refused.value) == (f"run {shuffled} (smolvla/siglip/libero_spatial, control shuffled-image): control "
+                                  "shuffled-image has no closed-loop meaning (it feeds features of other frames); "
+                                  "roll out another control")
+    with pytest.raises(RolloutError, match="^run 0123456789abcdef: no such row in the results file$"):
+        select_rows(results, run_ids=["0123456789abcdef"])
+    with pytest.raises(RolloutError, match=f"^run {b}: fit on libero_object, not among --suites libero_spatial$"):
+        select_rows(results, run_ids=[b], suites=["libero_spatial"])
+
+
+def test_cameras_the_simulator_cannot_feed_are_refused_in_one_line() -> None:
+    results = full_table().with_columns(camera_map=pl.lit("image=agentview,image2=eye_in_hand"))
+    with pytest.raises(RolloutError) as refused:
+        select_rows(results, top=1, suites=["libero_object"])
+    line = str(refused.value)
+    assert "\n" not in line and line.startswith("run ") and "/libero_object, control " in line
+    assert line.endswith("its cache cameras agentview, eye_in_hand are not cameras the LIBERO simulator feeds "
+                         "(image (agentview), image2 (wrist (eye in hand))); extract and fit it from a dataset whose "
+                         "cameras are named image/image2")
+
+
+class Scripted:
+    """A Simulator whose episode k succeeds when its seed is even, in k + 3 steps; it counts the episodes it ran.
+    `stop_after`: raise after that many episodes (a run killed mid-way). `videos`: record steps + 1 frames of 16x16
+    at 10 fps, as the LIBERO simulator's render callback would."""
+
+    def __init__(self, stop_after: int | None = None, videos: bool = False) -> None:
+        self.ran: list[Episode] = []
+        self.stop_after = stop_after
+        self.videos = videos
+
+    def suite(self, name: str) -> Suite:
+        return Suite(n_tasks=10, max_steps=280)
+
+    def run(self, row: Mapping[str, Any], episodes: Sequence[Episode]) -> Iterator[Outcome]:
+        for e in episodes:
+            if self.stop_after is not None and len(self.ran) == self.stop_after:
+                raise KeyboardInterrupt
+            self.ran.append(e)
+            steps = e.episode + 3
+            frames = np.full((steps + 1, 16, 16, 3), 40 * e.episode, np.uint8) if self.videos else None
+            yield Outcome(success=e.seed % 2 == 0, steps=steps, seconds=0.5, init_state=e.episode, frames=frames,
+                          fps=10 if self.videos else None)
+
+
+def _request(tmp_path: Path, **over: Any) -> RolloutRequest:
+    results = write_results(tmp_path / "results.parquet")
+    fields = {"results": results, "rollouts": tmp_path / "rollouts.parquet", "top": 1, "suites": ("libero_object",),
+              "tasks": (0, 3), "episodes_per_task": 2, "seed": 7, "command": "graftcache rollout results.parquet"}
+    return RolloutRequest(**{**fields, **over})
+
+
+def test_rows_are_typed_and_a_rerun_adds_nothing_and_says_so(tmp_path: Path) -> None:
+    req = _request(tmp_path)
+    lines: list[str] = []
+    sim = Scripted()
+    rows = roll_out(req, sim, log=lines.append)
+    # top 1 on libero_object: smolvla siglip and pi05 dinov2-s, 3 seeds each (no controls there): 6 cells x 2 tasks
+    # x 2 episodes
+    assert rows.height == len(sim.ran) == 24 and rows.schema == pl.Schema(table.SCHEMA)
+    first = rows.filter(pl.col("task_index") == 3, pl.col("episode") == 1).row(0, named=True)
+    assert (first["suite"], first["seed"], first["init_state"], first["max_steps"]) == ("libero_object", 8, 1, 280)
+    assert (first["success"], first["steps"], first["seconds"], first["video"]) == (True, 4, 0.5, None)
+    assert first["lerobot_version"] == importlib.metadata.version("lerobot")
+    assert first["command"] == "graftcache rollout results.parquet" and first["format_version"] == 1
+    assert rows.group_by("run_id").len()["len"].to_list() == [4] * 6  # every cell on the same 4 episodes
+    assert lines[0] == f"rolling out 6 cell(s), 24 episode(s) into {req.rollouts}"
+    lines.clear()
+    again = roll_out(req, Scripted(), log=lines.append)
+    assert lines == [f"all 24 episodes of 6 cell(s) are already in {req.rollouts}: nothing to run"]
+    assert again.sort("episode_id").equals(rows.sort("episode_id"))
+    assert table.read(req.rollouts).height == 24
+    more = roll_out(_request(tmp_path, episodes_per_task=3), Scripted(), log=lines.append)
+    assert more.height == 36 and f"24 of 36 episodes already in {req.rollouts}; running the other 12" in lines
+
+
+def test_a_run_stopped_mid_way_resumes_to_the_same_rows(tmp_path: Path) -> None:
+    for name in ("whole", "cut"):
+        (tmp_path / name).mkdir()
+    expected = roll_out(_request(tmp_path / "whole"), Scripted(), log=lambda _: None)
+    cut = _request(tmp_path / "cut")
+    with pytest.raises(KeyboardInterrupt):
+        roll_out(cut, Scripted(stop_after=9), log=lambda _: None)
+    assert table.read(cut.rollouts).height == 9  # each finished episode was written as it finished
+    sim = Scripted()
+    resumed = roll_out(cut, sim, log=lambda _: None)
+    assert len(sim.ran) == 15
+    drop = ["command"]
+    assert resumed.drop(drop).sort("episode_id").equals(expected.drop(drop).sort("episode_id"))
+    assert not results.claims_folder(cut.rollouts).exists()  # claims released, their folder gone
+
+
+def _decoded(path: Path) -> tuple[int, float]:
+    """An mp4's decoded frame count and frame rate."""
+    import av
+
+    with av.open(str(path)) as container:
+        return sum(1 for _ in container.decode(video=0)), float(container.streams.video[0].average_rate)
+
+
+def test_videos_are_written_whole_beside_the_rollouts_file_before_their_rows(tmp_path: Path) -> None:
+    req = _request(tmp_path, tasks=(3,))
+    run = select_rows(results.read(req.results), top=1, suites=["libero_object"])["run_id"][0]
+    stale = tmp_path / "videos" / run / "libero_object_task3_ep1_seed8_max280.mp4"
+    stale.parent.mkdir(parents=True)
+    stale.write_bytes(b"a video a killed run wrote before its row")  # its row is missing: rerun, overwritten
+    rows = roll_out(req, Scripted(videos=True), log=lambda _: None)
+    row = rows.filter(pl.col("run_id") == run, pl.col("episode") == 1).row(0, named=True)
+    assert row["video"] == f"videos/{run}/libero_object_task3_ep1_seed8_max280.mp4"
+    for r in rows.iter_rows(named=True):
+        assert _decoded(tmp_path / r["video"]) == (r["steps"] + 1, 10.0)
+    assert sorted(p.name for p in stale.parent.iterdir()) == ["libero_object_task3_ep0_seed7_max280.mp4",
+                                                              "libero_object_task3_ep1_seed8_max280.mp4"]  # no temps
+
+
+def test_a_task_the_suite_lacks_names_the_run_and_suite(tmp_path: Path) -> None:
+    with pytest.raises(RolloutError, match=r"^run \w{16}: suite libero_object has tasks 0-9, not task 12$"):
+        roll_out(_request(tmp_path, tasks=(0, 12)), Scripted(), log=lambda _: None)
+    assert not (tmp_path / "rollouts.parquet").exists()
+
+
+def test_a_missing_simulator_is_one_line_naming_the_set_up(monkeypatch: pytest.MonkeyPatch) -> None:
+    from graftcache.rollout import libero
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "libero" else real(name, *a))
+    with pytest.raises(RolloutError) as refused:
+        libero.require_simulator()
+    assert str(refused.value) == ("the LIBERO simulator is not installed (no Python module libero); run `make "
+                                  "setup-libero` (scripts/setup.sh libero) to install it")
+
+
+SAMPLE = Path(__file__).resolve().parents[2] / "data" / "libero_sample"
+ENCODER = "timm:vit_tiny_patch16_224"
+#: the sample's first libero_object task (episodes 18-23: "pick up the alphabet soup and place it in the basket")
+OBJECT_EPISODES = "18-21"
+
+
+@pytest.mark.slow  # train-tiny, extract, fit, two 10-step episodes and their videos, one process: 59 s on 2 idle cores
+def test_rollout_smoke_in_the_simulator(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """tiny policy -> extract -> fit two cells -> rollout of both in LIBERO (one process) with videos -> the same
+    command adds nothing -> report --rollouts with undefined agreement figures (every cell fails)."""
+    from helpers.probes import run_cli
+    from lerobot.envs.libero import LiberoEnv
+
+    root, policy, results_path = tmp_path / "cache", tmp_path / "policy", tmp_path / "results.parquet"
+    steps = [
+        ["train-tiny", "--backbone", "smolvla", "--dataset", SAMPLE, "--steps", "1", "--out", policy, "--cache", root],
+        ["extract", "--encoder", ENCODER, "--random-init", "--dataset", SAMPLE, "--episodes", OBJECT_EPISODES,
+         "--frame-stride", "8", "--num-workers", "0", "--batch-size", "16", "--no-progress", "--cache", root],
+        ["fit", "--backbone", "smolvla", "--policy", policy, "--encoder", ENCODER, "--dataset", SAMPLE, "--suite",
+         "libero_object", "--seeds", "1", "--controls", "zero-image", "--steps", "2", "--batch-size", "4",
+         "--eval-fraction", "0.5", "--eval-frames", "4", "--num-denoise-steps", "2", "--cache", root, "--results",
+         results_path, "--no-progress"],
+    ]
+    for argv in steps:
+        done = run_cli(argv, capsys)
+        assert done.code == 0, done.err[-2000:]
+    fitted = pl.read_parquet(results_path).sort("control")
+    assert fitted["control"].to_list() == ["none", "zero-image"]
+    a, b = fitted["run_id"].to_list()
+    rollout = ["rollout", results_path, "--run-ids", f"{a},{b}", "--suites", "libero_object", "--tasks", "0",
+               "--episodes-per-task", "1", "--max-steps", "10", "--videos", "--cache", root]
+    first = run_cli(rollout, capsys)
+    assert first.code == 0, first.err[-3000:]
+    rollouts_path = tmp_path / "rollouts.parquet"
+    rows = table.read(rollouts_path).sort("run_id")
+    assert rows["run_id"].to_list() == sorted([a, b])
+    for r in rows.iter_rows(named=True):
+        assert (r["suite"], r["task_index"], r["episode"], r["seed"], r["init_state"]) == ("libero_object", 0, 0,
+                                                                                          1000, 0)
+        assert r["max_steps"] == 10 and (r["steps"] == 10 or r["success"]) and r["seconds"] > 0
+        assert r["lerobot_version"] == importlib.metadata.version("lerobot")
+        # lerobot's rollout renders after the reset and after each step, at the env's render_fps
+        assert r["video"] == f"videos/{r['run_id']}/libero_object_task0_ep0_seed1000_max10.mp4"
+        assert _decoded(tmp_path / r["video"]) == (r["steps"] + 1, LiberoEnv.metadata["render_fps"])
+    assert all((tmp_path / "exports" / run / "config.json").is_file() for run in (a, b))
+
+    again = run_cli(rollout, capsys)
+    assert again.code == 0, again.err[-2000:]
+    assert f"all 2 episodes of 2 cell(s) are already in {rollouts_path}: nothing to run" in again.out
+    assert table.read(rollouts_path).sort("run_id").equals(rows)
+
+    out = tmp_path / "report"
+    shown = run_cli(["report", results_path, "--out", out, "--rollouts", rollouts_path], capsys)
+    assert shown.code == 0, shown.err[-2000:]
+    assert "## Offline scores vs closed-loop success" in (out / "report.md").read_text()
+    csv = pl.read_csv(out / "closed_loop.csv")
+    mse = csv.filter(pl.col("score") == "eval_mse").row(0, named=True)
+    assert (mse["backbone"], mse["suite"], mse["cells"]) == ("smolvla", "libero_object", 2)
+    assert csv.height == 4 and csv.select("spearman", "kendall_tau_b", "mmrv").null_count().row(0) == (4, 4, 4)
+    assert "smolvla,libero_object,eval_mse,2,,," in (out / "closed_loop.csv").read_text()  # empty, never a number
