@@ -27,7 +27,7 @@ import torch
 from common import DEFAULT_DATASET, machine, median_seconds, warm_page_cache
 
 from graftcache.backbones import load_backbone
-from graftcache.backbones.pool import BackbonePool
+from graftcache.backbones.loaded import LoadedBackbones
 from graftcache.extract import ExtractRequest, extract
 from graftcache.fit.data import load_lowdim
 from graftcache.fit.loop import Learner, optimise_together, raw_batch
@@ -163,7 +163,7 @@ def main() -> None:
         for name in filter(None, a.backbones.split(",")):
             folder = root / f"policy_{name}"
             load_backbone(name, "tiny", dataset_stats=dataset_stats(cache.index())).save(folder)
-            pool, numerics = BackbonePool(_quiet), {}
+            loaded, numerics = LoadedBackbones(_quiet), {}
 
             def request(n: int, out: str, seeds: tuple[int, ...] = tuple(range(CELLS)), name: str = name,
                         folder: Path = folder) -> FitRequest:
@@ -174,17 +174,17 @@ def main() -> None:
                                   device=str(device),
                                   progress=False, command="bench_fuse")
 
-            Fitter(request(1, "warm.parquet", seeds=(99,)), log=_quiet, backbones=pool, numerics=numerics).run()
+            Fitter(request(1, "warm.parquet", seeds=(99,)), log=_quiet, backbones=loaded, numerics=numerics).run()
             times: dict[int, list[float]] = {n: [] for n in counts}
             for rep in range(a.rounds):  # interleaved, so a change in the machine's load reaches every N alike
                 for n in counts:
                     t0 = time.perf_counter()
-                    rows = Fitter(request(n, f"{name}-{n}-{rep}.parquet"), log=_quiet, backbones=pool,
+                    rows = Fitter(request(n, f"{name}-{n}-{rep}.parquet"), log=_quiet, backbones=loaded,
                                   numerics=numerics).run()
                     times[n].append((time.perf_counter() - t0) / len(rows))
                     assert {r["cells_per_pass"] for r in rows} == {n}
             per_cell = {n: float(np.median(t)) for n, t in times.items()}
-            adapter = pool.get(name, folder, str(device))
+            adapter = loaded.get(name, folder, str(device))
             cams = {c: c for c in adapter.cameras}
             low = load_lowdim(cache, SUITE, chunk=adapter.chunk_size)
             grid = adapter.token_grid

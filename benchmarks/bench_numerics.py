@@ -25,7 +25,7 @@ import torch
 from common import machine, median_seconds
 
 from graftcache.backbones import TinySpec, load_backbone
-from graftcache.backbones.native import native_name
+from graftcache.backbones.tower_encoder import native_name
 from graftcache.encoders import load_encoder
 from graftcache.encoders.fingerprint import check_numerics, fingerprint, library_versions
 from graftcache.runtime import set_main_threads

@@ -20,7 +20,7 @@ LoRA, trained or not) it measures:
 Then, over the recipe's cells (backbones x suites x seeds x encoders x controls; native-cache controls once per
 backbone, suite and seed, as `sweep` runs them) and lerobot/libero's held-out frames per suite
 (devtools.libero_counts.LIBERO_COUNTS x eval_fraction, capped by the recipe's eval_frames):
-- cached protocol = loads (one per backbone, as a sweep's BackbonePool) + training + evaluation; stage 1
+- cached protocol = loads (one per backbone, as a sweep's LoadedBackbones) + training + evaluation; stage 1
   (decoding and encoding every frame once per encoder) is printed beside it, not in the sum;
 - online protocol = loads + the same steps and scoring with every batch's frames decoded (the project's own
   decoder, graftcache.datasets, at its sequential rate on `--dataset`: a lower bound for random access) and

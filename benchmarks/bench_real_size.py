@@ -17,7 +17,7 @@ peak CUDA memory of:
 - cached step: the grafted policy's flow step on features already in memory (the native tower's grid at
   the LM's token grid: SmolVLA 64 x 768, pi0.5 256 x 1152, fp16 like a cache), AdamW on the projector;
 - predict: the denoised chunk (the policy's default steps), from pixels and from cached features;
-and the ratios cached / online. Also the load (graftcache.backbones.lean) and graft (weights hash) peaks;
+and the ratios cached / online. Also the load (graftcache.backbones.lean_load) and graft (weights hash) peaks;
 `--only load` measures just load, graft and reset, with the peak RSS against the checkpoint's bytes. A full
 pi0.5 step takes ~10 minutes on a CPU: pi0.5 runs on CPU only with
 --cpu-pi05. Needs only graftcache on PYTHONPATH beside lerobot 0.6.1 and its pins (lerobot 0.6.1's pi0.5
@@ -251,11 +251,11 @@ def bench_backbone(name: str, a: argparse.Namespace, device: torch.device, dtype
     log({"backbone": name, "batch": None, "phase": "graft", "seconds": time.perf_counter() - t0,
          **memory.peaks()})
     tokens = adapter.token_grid[0] * adapter.token_grid[1]
-    pool = torch.randn(64, tokens, width, generator=g).half()  # a cache's rows, in memory
+    rows_memory = torch.randn(64, tokens, width, generator=g).half()  # a cache's rows, in memory
 
     def cached(rows: np.ndarray) -> dict:
-        picks = torch.from_numpy(rows % len(pool))
-        return {**{feature_key(key): pool[picks].float() for key in cams}, **frames.lowdim(rows)}
+        picks = torch.from_numpy(rows % len(rows_memory))
+        return {**{feature_key(key): rows_memory[picks].float() for key in cams}, **frames.lowdim(rows)}
 
     adapter.policy.train()
     for b in a.batches:
@@ -264,7 +264,7 @@ def bench_backbone(name: str, a: argparse.Namespace, device: torch.device, dtype
         log({"backbone": name, "batch": b, "phase": "cached predict",
              **measure(predict(adapter, cached, frames, b, dtype, g), a.repeats, memory)})
     del adapter
-    pool = None  # frees the rows (`cached`, done with, reads the same variable)
+    rows_memory = None  # frees the rows (`cached`, done with, reads the same variable)
     gc.collect()  # the graft's instance override makes policy and adapter a cycle
     if device.type == "cuda":
         torch.cuda.empty_cache()

@@ -86,8 +86,8 @@ def main() -> None:
         print(f"one append (1 row): {append * 1e3:.1f} ms median of {args.repeats}; of which read {read * 1e3:.1f} ms, "
               f"write + fsync + rename {write * 1e3:.1f} ms, lease take + give back {take * 1e3:.2f} ms")
         n = args.repeats
-        with mp.get_context("spawn").Pool(args.writers) as pool:
-            spans = pool.map(_writer, [(str(path), w, n) for w in range(1, args.writers + 1)])
+        with mp.get_context("spawn").Pool(args.writers) as workers:
+            spans = workers.map(_writer, [(str(path), w, n) for w in range(1, args.writers + 1)])
         wall = max(end for _, end in spans) - min(start for start, _ in spans)
         rows = results.read(path).height
         expected = args.rows + 1 + args.repeats + args.writers * n  # + median_seconds' warm-up append

@@ -72,8 +72,8 @@ def frames_per_s(root: Root, key: str, cameras: list[str], suite: str, repeats: 
 
 
 def plain_copy(src: Root, dst: Root, rels: list[str]) -> None:
-    with ThreadPoolExecutor(COPY_THREADS) as pool:
-        list(pool.map(lambda rel: dst.put(rel, src.get(rel)), rels))
+    with ThreadPoolExecutor(COPY_THREADS) as threads:
+        list(threads.map(lambda rel: dst.put(rel, src.get(rel)), rels))
 
 
 def timed(fn) -> float:

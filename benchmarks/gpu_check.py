@@ -12,7 +12,7 @@ check runs.
 1. correctness, every backbone of graftcache.backbone_table.BACKBONES at tiny size: graft; two cells in one pass
    (graftcache.graft.FusedProjector) for a few AdamW steps land on the projectors each cell reaches alone;
    activation checkpointing on gives the projector gradients it gives off; predict in the compute dtype is
-   finite; a tiny policy saved to disk and lean-loaded onto the device (graftcache.backbones.lean) predicts what
+   finite; a tiny policy saved to disk and lean-loaded onto the device (graftcache.backbones.lean_load) predicts what
    the in-memory one predicts. Equality checks run in fp32 with TF32 off (what they test is the plumbing, not
    bf16 rounding); the compute-dtype step and predict are checked for finiteness.
 2. pi0.5 at the released geometry, random-init and built on the device (devtools.released.on_device: meta ->
@@ -318,7 +318,7 @@ def fused_vs_solo(adapter, feats: torch.Tensor, steps: int, batch: int) -> dict:
 
 def checkpointing_gradients(adapter, feats: torch.Tensor, batch: int) -> dict:
     """The projector's gradients of one loss with activation checkpointing on against off."""
-    if not adapter.can_checkpoint:
+    if not adapter.supports_activation_checkpointing:
         return {"checkpointing_ok": True, "checkpointing": "not supported by this backbone"}
     (projector,), route = graft_cells(adapter, 1, feats.shape[-1])
     raw = draw_from(adapter, feats, batch)(torch.Generator().manual_seed(0))
@@ -472,7 +472,7 @@ def scaling(report: Report, stage: str, adapter, batches: list[int], dtype: torc
             out.update(batch=batches[0], step_flops=flops, flops_per_sample=flops / batches[0])
     per_sample = report.data["stages"][stage]["flops"].get("flops_per_sample")
     for checkpointing in (False, True):
-        if checkpointing and not adapter.can_checkpoint:
+        if checkpointing and not adapter.supports_activation_checkpointing:
             continue
         ckpt = "on" if checkpointing else "off"
         with report.check(stage, f"estimate_ckpt_{ckpt}", need_s=15) as out:
@@ -511,7 +511,7 @@ def cells_per_pass(report: Report, stage: str, adapter, batch: int, counts: list
                 out.update(status="skipped", reason="one loss a batch: cells run alone")
                 continue
             result = time_step(adapter, feats, batch, dtype, n, repeats, False)
-            if "oom" in result and adapter.can_checkpoint:
+            if "oom" in result and adapter.supports_activation_checkpointing:
                 result = time_step(adapter, feats, batch, dtype, n, repeats, True)
             out.update(result)
             if "step_s" in result:

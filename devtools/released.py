@@ -421,7 +421,7 @@ def built_on(adapter_cls, config, device: torch.device, stats: dict, *, source: 
     """The adapter of a random-init policy of `config` built on `device`: lerobot's constructor (at a tiny
     `marker`'s sizes where given) with its parameters on the meta device, `materialise`, and the policy's own
     processors over `stats`."""
-    from graftcache.backbones.lean import construct
+    from graftcache.backbones.lean_load import construct
 
     config.device = str(device)
     policy = construct(lambda: adapter_cls._construct(config, marker), config)

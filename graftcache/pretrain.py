@@ -25,8 +25,8 @@ import polars as pl
 import torch
 
 from graftcache.backbones import TinySpec, get_backbone
-from graftcache.backbones.native import policy_pixels
 from graftcache.backbones.tiny_record import policy_dir, read_record, write_record
+from graftcache.backbones.tower_encoder import policy_pixels
 from graftcache.datasets import DatasetMeta, open_dataset
 from graftcache.errors import BackboneError, DatasetError
 from graftcache.file_lease import FileLease

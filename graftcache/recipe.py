@@ -8,7 +8,7 @@ Recipe keys (unknown keys are errors, so a typo never silently falls back to a d
                    (graftcache/cameras.py); passed to every fit and native-tower extract
     [[backbones]]  name, policy ("tiny" = trained on `dataset` by train-tiny, else hub id or folder); each name once
     [[encoders]]   name, weights, random_init, seed
-    [extract]      fields of ExtractRequest  } except those the grid sets (`recipe=False`): e.g. batch_size,
+    [extract]      fields of ExtractRequest  } except those the recipe product sets (`recipe=False`): e.g. batch_size,
     [fit]          fields of FitRequest      } storage_dtype, frame_stride, grids; steps, lr, eval_frames, lora_rank;
     [train_tiny]   fields of TinyTrainConfig } steps, seed (backbones with policy = "tiny")
     [executor]     fields of ExecutorSettings: where extractions and cells run (executor = "ray", address,
@@ -69,7 +69,7 @@ class BackboneEntry:
 SECTIONS: dict[str, type] = {"extract": ExtractRequest, "fit": FitRequest, "train_tiny": TinyTrainConfig,
                              "executor": ExecutorSettings}
 #: Settings a recipe's [extract] / [fit] / [train_tiny] / [executor] tables may set: every field of the request
-#: but those the sweep sets from its grid (dataset, encoder, backbone, seeds, ...; nor `shard`: a sweep needs whole
+#: but those the sweep sets from its product (dataset, encoder, backbone, seeds, ...; nor `shard`: a sweep needs whole
 #: caches), as each field declares (graftcache/requests.py, `recipe=False`).
 SECTION_KEYS: dict[str, tuple[str, ...]] = {section: recipe_keys(cls) for section, cls in SECTIONS.items()}
 
@@ -101,8 +101,8 @@ class _RecipeMethods:
         return len(self.backbones) * len(self.suites) * len(self.seeds) * per_seed
 
     def fit_request(self, backbone: str, policy: str, encoder: str, suite: str, **resolved: Any) -> FitRequest:
-        """The FitRequest of one (backbone, encoder, suite) of the grid: the top-level settings, the [fit] table,
-        and what the sweep resolved (`resolved`: cache keys, ...)."""
+        """The FitRequest of one (backbone, encoder, suite) of the recipe product: the top-level settings, the [fit]
+        table, and what the sweep resolved (`resolved`: cache keys, ...)."""
         return FitRequest(backbone=backbone, policy=policy, encoder=encoder, suite=suite,
                           **{k: getattr(self, k) for k in TOP_LEVEL}, progress=False,
                           command=f"graftcache sweep {self.path}", **resolved, **self.fit)
@@ -120,8 +120,8 @@ def _top_level(name: str) -> tuple:
     return (name, hint) if name in _REQUIRED else (name, hint, field(default=d.default))
 
 
-#: One sweep, as read from a TOML file: its name, grid (suites, backbones, encoders, and seeds, controls, objective
-#: among the TOP_LEVEL settings), and per-stage settings tables: request overrides.
+#: One sweep, as read from a TOML file: its name, product axes (suites, backbones, encoders, and seeds, controls,
+#: objective among the TOP_LEVEL settings), and per-stage settings tables: request overrides.
 Recipe = make_dataclass(
     "Recipe",
     [("name", str), *(_top_level(k) for k in TOP_LEVEL if k in _REQUIRED),
@@ -219,12 +219,12 @@ def load_recipe(path: str | Path) -> Recipe:
             raise RecipeError(f"{path}: camera_map: {e}") from None
     if not recipe.seeds or not recipe.suites or not recipe.encoders or not recipe.backbones:
         raise RecipeError(f"{path}: suites, seeds, encoders and backbones must each list at least one entry")
-    _check_grid(recipe, path)
+    _check_axes(recipe, path)
     return recipe
 
 
-def _check_grid(recipe: Recipe, path: Path) -> None:
-    """The grid's axes by the rules of the requests they become (seeds, suites, controls, objective: FitRequest's;
+def _check_axes(recipe: Recipe, path: Path) -> None:
+    """The product axes by the rules of the requests they become (seeds, suites, controls, objective: FitRequest's;
     an encoder's seed: ExtractRequest's), and no entry twice: a repeated seed, suite, encoder or backbone
     would visit its cells twice (each written once), so the counts the sweep reports would be wrong.
 

@@ -148,8 +148,8 @@ POOL_PREFIX = "pool-"
 #: Which episodes of each task a fit holds out (graftcache.fit.data.SPLITS implements each; tests/test_settings.py
 #: keeps the two equal): graftcache's seeded draw (the default), or lerobot's last ceil(n * eval_fraction).
 EVAL_SPLITS = ("graftcache", "lerobot")
-#: Activation checkpointing of the frozen LM and expert (graftcache/backbones/recompute.py): `auto` turns it on
-#: when a training step would not fit the device's memory without it (graftcache/fit/step_memory.py).
+#: Activation checkpointing of the frozen LM and expert (graftcache/backbones/activation_checkpointing.py): `auto`
+#: turns it on when a training step would not fit the device's memory without it (graftcache/fit/step_memory.py).
 CHECKPOINTING_MODES = ("auto", "on", "off")
 #: A results path names a file: "" would be the current folder, and "rdir/" used to write a file named rdir.
 RESULTS_FILE: Rule = (lambda v: bool(v.strip()) and not v.endswith(("/", os.sep)),

@@ -1,7 +1,7 @@
-"""The results table: one row per (cell, seed, control), declared once and validated on every write.
+"""The results table: one row per cell, declared once and validated on every write.
 
-A *cell* is (backbone, policy, encoder cache, suite, objective, hyper-parameters); `run_id` hashes the
-cell together with seed and control so a rerun can skip rows it already has.
+A *cell* is (backbone, policy, encoder cache, suite, seed, control, objective, hyper-parameters): one fit, one
+row; `run_id` hashes it (graftcache.fit.plan.Cell) so a rerun can skip rows it already has.
 
 Any number of processes, on one machine or many sharing a file system, append to one results file. The file
 stays one Parquet file (what `--results` names, what `report` and polars read), replaced whole on each append:

@@ -167,7 +167,7 @@ def check_sweep(recipe: Recipe) -> list[str]:
 def run_sweep(recipe: Recipe, log: Callable[[str], None] = write,
               settings: ExecutorSettings | None = None) -> SweepState:
     """Policies, then caches, then every missing cell, on the executor `settings` name (default: the recipe's
-    [executor] table); one progress bar over the grid's cells."""
+    [executor] table); one progress bar over the recipe's cells."""
     check_sweep(recipe)  # what a later step would refuse, refused before the first (what --dry-run runs)
     settings = settings or recipe.executor_settings
     executor = get_executor(settings)

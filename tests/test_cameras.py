@@ -218,6 +218,6 @@ def test_recipe_camera_map_is_checked_as_it_is_read(world: World, tmp_path: Path
     with pytest.raises(RecipeError, match=r"recipe.toml: camera_map: .*'agentview' would feed policy cameras"):
         load_recipe(_recipe(world, tmp_path, "image=agentview,image2=agentview"))
     path = _recipe(world, tmp_path, None)
-    path.write_text(path.read_text() + f'camera_map = "{MAP}"\n')  # in [fit]: the grid sets it, not a table
+    path.write_text(path.read_text() + f'camera_map = "{MAP}"\n')  # in [fit]: the recipe product sets it, not a table
     with pytest.raises(RecipeError, match=r"\[fit\]: unknown key\(s\) camera_map"):
         load_recipe(path)

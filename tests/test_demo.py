@@ -53,7 +53,7 @@ def test_demo_runs_offline_reuses_everything_and_feeds_the_notebook(tmp_path: Pa
     again = _demo(home, tmp_path)
     log = again.stdout + again.stderr
     assert "wrote " not in log and "training tiny" not in log
-    assert "loading backbone" not in log  # a finished grid loads no policy at all
+    assert "loading backbone" not in log  # a finished sweep loads no policy at all
     assert first.stdout.count("loading backbone") == 2  # one load per backbone for all 120 cells
     assert log.count("skip ") == 12  # one line per request: backbone x encoder x suite
     assert {c.key for c in list_caches(home)} == caches

@@ -181,3 +181,84 @@ See `graftcache.results.append_rows` and `graftcache/fit/nowhere.py`, `store.com
         "graftcache.encoders.Encoder has no member extra_outputs",
         "graftcache.encoders.EncoderSpec has no member wheel",
     ]
+
+
+# ------------------------------------------------------------------------------------------------- the glossary
+#: where the code lives whose names the glossary governs
+CODE_DIRS = ("graftcache", "devtools", "benchmarks", "tests")
+
+
+def glossary(text: str) -> dict[str, tuple[list[str], list[str]]]:
+    """word -> (dotted names in its code column, retired names), from the `## Glossary` table; a retired module
+    is written `module NAME`."""
+    section = text.split("## Glossary", 1)[1].split("\n## ", 1)[0]
+    rows = {}
+    for line in section.splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")] if line.startswith("|") else []
+        if len(cells) == 4 and cells[0] not in ("word", "---"):
+            cited = re.findall(r"`(graftcache\.[\w.]+)`", cells[2])
+            rows[cells[0]] = (cited, re.findall(r"module `?(\w+)`?|`(\w+)`", cells[3]))
+    return {word: (cited, [f"module {m}" if m else name for m, name in retired])
+            for word, (cited, retired) in rows.items()}
+
+
+def names_in(source: str, module: str) -> set[str]:
+    """Every name a Python file defines or uses: its module path's parts, classes, functions, arguments, names,
+    attributes, import paths and aliases, keyword arguments, and the parts of "graftcache.x:y" import strings."""
+    names = {f"module {part}" for part in module.split(".")}
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+            names.add(node.name)
+        elif isinstance(node, ast.arg):
+            names.add(node.arg)
+        elif isinstance(node, ast.Name):
+            names.add(node.id)
+        elif isinstance(node, ast.Attribute):
+            names.add(node.attr)
+        elif isinstance(node, ast.keyword) and node.arg:
+            names.add(node.arg)
+        elif isinstance(node, ast.alias):
+            names |= {node.asname or "", *(f"module {p}" for p in node.name.split("."))}
+            names.add(node.name.rsplit(".", 1)[-1])
+        elif isinstance(node, ast.ImportFrom) and node.module:
+            names |= {f"module {p}" for p in node.module.split(".")}
+        elif isinstance(node, ast.Constant) and isinstance(node.value, str):
+            for path in re.findall(r"graftcache(?:\.\w+)+(?::\w+)?", node.value):
+                dotted, _, attr = path.partition(":")
+                names |= {f"module {p}" for p in dotted.split(".")[1:]} | {attr}
+    return names - {""}
+
+
+def retired_in_code(retired: set[str]) -> list[str]:
+    """'path: name' for every retired name the code still uses."""
+    out = []
+    for folder in CODE_DIRS:
+        for path in sorted((ROOT / folder).rglob("*.py")):
+            if path == Path(__file__).resolve():
+                continue  # this file's own sample of retired names (the test below)
+            module = ".".join(path.relative_to(ROOT).with_suffix("").parts)
+            out += [f"{path.relative_to(ROOT)}: {n}" for n in sorted(names_in(path.read_text(), module) & retired)]
+    return out
+
+
+def test_the_glossary_names_code_that_exists_and_no_retired_name_is_used() -> None:
+    rows = glossary((ROOT / "docs/ARCHITECTURE.md").read_text(encoding="utf-8"))
+    assert {"native", "cell", "grid", "run", "pool", "checkpoint", "shard", "construct"} <= set(rows)
+    assert all(cited for cited, _ in rows.values())  # every word points at the code that carries it
+    for cited, _ in rows.values():
+        for dotted in cited:
+            _resolve(dotted)
+    retired = {name for _, names in rows.values() for name in names}
+    assert {"BackbonePool", "NativeEncoder", "module recompute", "module lean", "module draws"} <= retired
+    assert retired_in_code(retired) == []
+
+
+def test_a_retired_name_is_found_wherever_the_code_uses_it() -> None:
+    source = ('from graftcache.backbones.pool import BackbonePool\n'
+              'def f(can_checkpoint): return x.checkpoint_patches, g(_check_grid=1)\n'
+              'BUILD = "graftcache.backbones.native:build_native"\n')
+    found = names_in(source, "graftcache.backbones.recompute")
+    assert {"module pool", "BackbonePool", "can_checkpoint", "checkpoint_patches", "_check_grid", "module native",
+            "build_native", "module recompute"} <= found
+    assert "module lean" not in found and "pool_grid" not in names_in("pool_grid(x)", "graftcache.pooling") - {
+        "pool_grid"}

@@ -33,6 +33,7 @@ import torch
 from torch import nn
 
 from graftcache.backbone_table import backbone_module
+from graftcache.backbones.activation_checkpointing import ActivationCheckpointing
 from graftcache.backbones.batches import ACTION, STATE, PromptBatches
 from graftcache.backbones.checkpoint import (
     PREPROCESSOR_FILE,
@@ -44,9 +45,8 @@ from graftcache.backbones.checkpoint import (
     state_dict_sha256,
     weights_file,
 )
-from graftcache.backbones.lean import construct, load_checkpoint, read_header
+from graftcache.backbones.lean_load import construct, load_checkpoint, read_header
 from graftcache.backbones.objectives import Objective
-from graftcache.backbones.recompute import ActivationCheckpointing
 from graftcache.backbones.spec import BackboneSpec
 from graftcache.backbones.surgery import GraftSurgery
 from graftcache.backbones.tiny import TinySpec, read_marker, write_marker
@@ -118,8 +118,8 @@ class BackboneAdapter(GraftSurgery, PromptBatches, Objective, ActivationCheckpoi
         return self.spec.module_paths
 
     @property
-    def can_checkpoint(self) -> bool:
-        """Whether this backbone has a way to checkpoint (what `auto` may fall back on)."""
+    def supports_activation_checkpointing(self) -> bool:
+        """Whether this backbone has a way to recompute activations (what `auto` may fall back on)."""
         return self.spec.activation_checkpointing
 
     def __init__(self, policy: nn.Module, preprocessor, postprocessor, *, source: str,
@@ -243,7 +243,7 @@ class BackboneAdapter(GraftSurgery, PromptBatches, Objective, ActivationCheckpoi
     @classmethod
     def _checkpoint_keys(cls, policy: nn.Module, file_keys: Iterable[str]) -> dict[str, str]:
         """{policy state-dict key: checkpoint key}: each key as it is unless the policy's from_pretrained renames keys
-        (pi0.5: graftcache.backbones.lean.openpi_keys)."""
+        (pi0.5: graftcache.backbones.lean_load.openpi_keys)."""
         return {k: k for k in file_keys}
 
     @classmethod

@@ -1,6 +1,6 @@
 """Finding policy checkpoints (local folders or the Hugging Face cache, offline), their processors and files.
 
-The weights themselves are read by graftcache.backbones.lean, which also refuses a checkpoint that lacks a
+The weights themselves are read by graftcache.backbones.lean_load, which also refuses a checkpoint that lacks a
 tensor of the policy or shapes one differently.
 """
 

@@ -3,8 +3,8 @@ change, undone by restoring the original object itself.
 
 Adapters run lerobot's own code and change as little of it as they can, but some changes are needed: a method shadowed
 on a policy's module while grafted (EO-1's Qwen `get_image_features`), a module global answered with the caller's
-draws for one call (graftcache.backbones.draws.given_noise), a module-level function rebound while a tiny policy is
-constructed (graftcache.backbones.paligemma.pi05_tiny_sizes), a class attribute (GR00T's `from_pretrained`), a config
+draws for one call (graftcache.backbones.given_draws.given_noise), a module-level function rebound while a tiny policy
+is constructed (graftcache.backbones.paligemma.pi05_tiny_sizes), a class attribute (GR00T's `from_pretrained`), a config
 field for one call (SmolVLA's `num_steps`). Each is a `Patches.set`, which records the owner, the attribute and what
 stood there before; `Patches.undo` puts back that very object (or removes the attribute where the owner had none of
 its own, so the class's method shows through again), last change first.

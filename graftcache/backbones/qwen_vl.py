@@ -19,7 +19,7 @@ from graftcache.errors import BackboneError
 from graftcache.graft import feature_key
 
 
-class NativeVision:
+class TowerReads:
     """Mixin for an adapter whose `_vision(images)` runs its policy's own processor and ViT once and returns both
     native reads, (pre-merger patch grid [B, gh, gw, C] in raster order, post-merger tokens [B, T, D]): a method
     pair, so a mixin rather than a function (placed before BackboneAdapter, whose defaults it overrides)."""

@@ -3,7 +3,7 @@
 The backbone's vision tower is replaced by `PassThroughTower` (so lerobot's own `embed_image` runs
 unchanged and simply receives cached features) and its connector by the projector; everything but the
 projector is frozen. A `Graft` records all of it and `reset` undoes it, so one loaded policy serves every cell
-of a run, without a copy of its weights.
+of one command, without a copy of its weights.
 """
 
 from __future__ import annotations
@@ -207,7 +207,7 @@ class GraftSurgery:
         so that `reset` undoes it: none by default."""
 
     def reset(self) -> None:
-        """Back to the policy as loaded (`Graft.undo`), so one loaded policy serves every cell of a run (a
+        """Back to the policy as loaded (`Graft.undo`), so one loaded policy serves every cell of one command (a
         released pi0.5 is 3.3B parameters: reloading it per cell costs more than a fit). Keeps no copy of
         any weight."""
         graft, self._graft = self._graft, None

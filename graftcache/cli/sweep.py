@@ -1,4 +1,4 @@
-"""`graftcache sweep RECIPE`: a grid from a TOML recipe (cli/paper.toml, cli/demo.toml)."""
+"""`graftcache sweep RECIPE`: the cells of a TOML recipe (cli/paper.toml, cli/demo.toml)."""
 
 from __future__ import annotations
 
@@ -10,14 +10,14 @@ from graftcache.requests import ExecutorSettings, FitRequest
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("sweep", help="run a grid of extracts and fits from a TOML recipe (resumable)",
-                       description="Extract every missing cache, then fit every missing cell of the grid a recipe "
+    p = sub.add_parser("sweep", help="run the extracts and fits of a TOML recipe (resumable)",
+                       description="Extract every missing cache, then fit every missing cell a recipe "
                        "describes (encoders x suites x backbones x seeds + controls). Rows already in the results "
                        "file are skipped, so an interrupted sweep continues where it stopped.")
     p.add_argument("recipe", help="TOML recipe, e.g. cli/paper.toml")
     p.add_argument("--dry-run", action="store_true",
                    help="run every check the sweep runs before its first step (recipe, dataset, suites' "
-                   "splits, encoders, memory) and print the grid; train, extract and fit nothing")
+                   "splits, encoders, memory) and print the plan; train, extract and fit nothing")
     add_flags(p, ExecutorSettings, overrides=True)  # over the recipe's [executor] table (else the defaults shown)
     add_flag(p, FitRequest, "cells_per_pass", overrides=True)  # over the recipe's [fit] table
     p.set_defaults(func=run)

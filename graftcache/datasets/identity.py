@@ -150,8 +150,8 @@ def _hash_all(paths: Sequence[Path], total: int, progress: bool) -> list[str]:
     try:
         if len(paths) == 1 or HASH_THREADS == 1:
             return [one(p) for p in paths]
-        with ThreadPoolExecutor(max_workers=HASH_THREADS) as pool:
-            return list(pool.map(one, paths))
+        with ThreadPoolExecutor(max_workers=HASH_THREADS) as threads:
+            return list(threads.map(one, paths))
     finally:
         if bar is not None:
             bar.close()

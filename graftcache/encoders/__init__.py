@@ -1,7 +1,7 @@
 """Vision encoders as registry entries: name -> EncoderSpec -> Encoder (preprocess + patch grid).
 
 Importing this package registers the built-in entries (catalog.py: named encoders, the backbones' native
-towers, built lazily by graftcache.backbones.native) and the `timm:` / `hf:` families; other packages add
+towers, built lazily by graftcache.backbones.tower_encoder) and the `timm:` / `hf:` families; other packages add
 theirs with `register_encoder(spec, builder)`.
 """
 

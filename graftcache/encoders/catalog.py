@@ -92,7 +92,7 @@ def _native(backbone: str) -> None:
                        interpolation="bilinear", grid=(0, 0), width=0, prefix_tokens=0,
                        pretrained_source="policy", tokens="policy vision tower last_hidden_state (pre-connector); "
                        "extra 'connector': post-connector tokens before the LM's embed scale")
-    register_encoder(spec, "graftcache.backbones.native:build_native")
+    register_encoder(spec, "graftcache.backbones.tower_encoder:build_tower_encoder")
 
 
 for _backbone in BACKBONES:

@@ -1,7 +1,7 @@
 """Name -> (EncoderSpec, builder), plus parametric families (`timm:<name>`, `hf:<id or folder>`)
 resolved when looked up, so no lookup code ever branches on a name. A builder may be an import string
 ("module:function", imported when that encoder is built): the native towers are declared here in stage 1
-but built by graftcache.backbones.native, which stage 1 never imports.
+but built by graftcache.backbones.tower_encoder, which stage 1 never imports.
 """
 
 from __future__ import annotations

@@ -19,7 +19,7 @@ class LocalExecutor:
 
     def fit(self, requests: Sequence[tuple[str, FitRequest]], log: Log, bar: Any) -> None:
         """One Plan per request, their cells run together by one LocalRunner (each backbone loaded and each cache's
-        numerics probe recomputed once per run), so that cells of different requests (encoders of one grid and
+        numerics probe recomputed once per command), so that cells of different requests (encoders of one token grid and
         width, suites) can share backbone passes (graftcache/fit/passes.py); with one cell per pass, request after
         request as listed."""
         from graftcache.fit.run import fit_all

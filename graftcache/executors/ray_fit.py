@@ -21,7 +21,7 @@ from typing import Any
 
 import ray
 
-from graftcache.backbones.pool import BackbonePool
+from graftcache.backbones.loaded import LoadedBackbones
 from graftcache.encoders.fingerprint import NumericsCheck
 from graftcache.errors import ExecutorError
 from graftcache.executors import Log
@@ -45,7 +45,7 @@ from graftcache.runtime import set_main_threads
 #: A worker process's backbones (loaded on first use), numerics verdicts (cache key -> NumericsCheck), and the plans
 #: and materials of its last requests: the worker's next pass reuses the loaded backbone, the checked caches and,
 #: of the same requests, the feature tables, as the local executor's next pass does.
-_POOL = BackbonePool()
+_POOL = LoadedBackbones()
 _NUMERICS: dict[str, NumericsCheck] = {}
 _KEPT: dict[FitRequest, Materials] = {}
 #: Requests whose plans and tables a worker keeps (a pass may hold cells of several: encoders of one grid, suites).

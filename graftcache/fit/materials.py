@@ -1,7 +1,7 @@
 """What the cells of one planned request read: the loaded backbone, the caches' numerics verdicts, and per control
 the splits' low-dim rows and the feature streams (`Reading`), kept for the request's next cells.
 
-A `Materials` belongs to one process (a fit, a sweep's local executor, a Ray worker): the backbones (a BackbonePool)
+A `Materials` belongs to one process (a fit, a sweep's local executor, a Ray worker): the backbones (a LoadedBackbones)
 and the numerics verdicts may be shared by every request that process runs, so each policy is loaded and each cache's
 numerics probe recomputed once per process. Features are never held: each cell streams them (graftcache.fit.stream).
 """
@@ -15,7 +15,7 @@ import numpy as np
 import polars as pl
 
 from graftcache.backbones.base import BackboneAdapter
-from graftcache.backbones.pool import BackbonePool
+from graftcache.backbones.loaded import LoadedBackbones
 from graftcache.encoders.fingerprint import NumericsCheck, check_numerics
 from graftcache.fit.buffer import MIB
 from graftcache.fit.controls import Control
@@ -53,10 +53,10 @@ class Reading:
 class Materials:
     """The loaded things a planned request's cells read, loaded on first use and kept for its next cells."""
 
-    def __init__(self, plan: Plan, backbones: BackbonePool | None = None,
+    def __init__(self, plan: Plan, backbones: LoadedBackbones | None = None,
                  numerics: dict[str, NumericsCheck] | None = None) -> None:
         self.plan = plan
-        self.backbones = backbones or BackbonePool(plan.log)
+        self.backbones = backbones or LoadedBackbones(plan.log)
         self.dtype = resolve_dtype(plan.req.compute_dtype)
         self._numerics = {} if numerics is None else numerics  # cache key -> verdict, before the first cell runs
         self._enforced: set[str] = set()  # verdicts this request has acted on (refused, warned)
@@ -67,7 +67,7 @@ class Materials:
         self.reader = CacheReader()  # every source's: each block is checked once per fit, in whichever process
 
     def check_numerics(self) -> None:
-        """Recompute every cache's numerics probe here, once, before the first cell that runs (a finished grid
+        """Recompute every cache's numerics probe here, once, before the first cell that runs (a finished sweep
         loads nothing). Drift is refused unless `accept_numerics_drift`; an unchecked cache is a warning."""
         plan = self.plan
         for cache in (plan.cache, plan.native_cache):

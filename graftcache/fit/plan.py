@@ -3,7 +3,7 @@
 A `Plan` resolves the request (device, compute dtype, cells per pass, objective, controls), finds the caches it reads
 and the policy folder, pairs the cameras and splits the episodes; from these it names every cell
 (`graftcache.fit.plan.Cell`: its run_id), says which cells may share a backbone pass (`Plan.pass_key`) and where a
-cell's run folder is. It reads manifests, indexes and the policy's config only: a finished grid is skipped from a
+cell's run folder is. It reads manifests, indexes and the policy's config only: a finished sweep is skipped from a
 Plan alone, and the ray executor's driver plans what its workers run (graftcache/executors/ray_fit.py).
 
 What a cell then reads is graftcache.fit.materials.Materials; how a pass of cells runs, graftcache.fit.run.

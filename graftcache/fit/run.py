@@ -32,7 +32,7 @@ import graftcache
 from graftcache import results
 from graftcache.backbones.base import BackboneAdapter
 from graftcache.backbones.checkpoint import follow_umask
-from graftcache.backbones.pool import BackbonePool
+from graftcache.backbones.loaded import LoadedBackbones
 from graftcache.cameras import format_camera_map
 from graftcache.encoders.fingerprint import NumericsCheck
 from graftcache.fit.data import Split
@@ -196,7 +196,7 @@ class LocalRunner:
 
     slots = 1
 
-    def __init__(self, backbones: BackbonePool, numerics: dict[str, NumericsCheck] | None = None) -> None:
+    def __init__(self, backbones: LoadedBackbones, numerics: dict[str, NumericsCheck] | None = None) -> None:
         self.backbones = backbones
         self.numerics = {} if numerics is None else numerics
         self._materials: dict[int, Materials] = {}  # id(plan) -> its materials
@@ -234,7 +234,7 @@ def fit_all(requests: Sequence[FitRequest], log: Callable[[str], None] = print,
     """Every missing cell of `requests` in this process, cells of different requests (encoders of one grid and
     width, suites) sharing backbone passes, each policy loaded and each cache's numerics checked once."""
     plans = [Plan(req, log) for req in requests]
-    return run_passes(plans, LocalRunner(BackbonePool(log)), visited)
+    return run_passes(plans, LocalRunner(LoadedBackbones(log)), visited)
 
 
 class Fitter:
@@ -242,11 +242,11 @@ class Fitter:
     rows it wrote."""
 
     def __init__(self, req: FitRequest, log: Callable[[str], None] = print,
-                 backbones: BackbonePool | None = None, numerics: dict[str, NumericsCheck] | None = None) -> None:
+                 backbones: LoadedBackbones | None = None, numerics: dict[str, NumericsCheck] | None = None) -> None:
         """`backbones` and `numerics` (cache key -> verdict) may be shared by the Fitters of one process, so each
         policy is loaded and each cache's numerics probe recomputed once per process."""
         self.plan = Plan(req, log)
-        self.runner = LocalRunner(backbones or BackbonePool(log), numerics)
+        self.runner = LocalRunner(backbones or LoadedBackbones(log), numerics)
 
     @property
     def req(self) -> FitRequest:

@@ -50,7 +50,7 @@ def check_step_memory(adapter, low: LowDim, cams: Mapping[str, str], source: Fea
     try:
         _require_step(adapter, low, cams, source, shapes, batch_size, buffer_mib, dtype, others, route)
     except BudgetError:
-        if checkpointing != "auto" or not adapter.can_checkpoint:
+        if checkpointing != "auto" or not adapter.supports_activation_checkpointing:
             raise
         adapter.set_activation_checkpointing(True)
         _require_step(adapter, low, cams, source, shapes, batch_size, buffer_mib, dtype, others, route)

@@ -4,9 +4,9 @@ Layout choices (why):
 - Feature arrays are [frames, tokens, C]. The unit of work is a *block* of `block_frames`
   consecutive frames, and each block is exactly one Zarr shard. A block is written in a single
   call, so zarr writes each shard file once (atomically: LocalStore writes a temp file and renames
-  it), and a run killed mid-block leaves no half-written shard that looks finished.
-- Inside a shard, inner zarr chunks hold ~4 MiB of uncompressed features, so random access to a few
-  frames (stage 2 batches, `verify`) decompresses little, while a shard of 256 frames keeps the
+  it), and a run killed mid-block leaves no half-written block file that looks finished.
+- Inside a block file, inner zarr chunks hold ~4 MiB of uncompressed features, so random access to a few
+  frames (stage 2 batches, `verify`) decompresses little, while a block of 256 frames keeps the
   file count of a 273k-frame LIBERO cache in the low thousands.
 - Blosc-zstd with byte shuffle on 2-byte floats: fast to decode, and shuffling the high bytes
   together is what lets fp16 activations compress at all.
@@ -17,7 +17,7 @@ Layout choices (why):
   single atomic put on a local disk and on an object store alike (graftcache.store.roots).
 - Stage 2 checks every block it reads against its checksum, once per block per reader (`BlockChecks`, owned by
   the handle, shared by a fit's handles and handed to its worker processes, graftcache.fit.stream), reading whole
-  blocks for that: a corrupt shard is a one-line CacheError naming cache, array and block.
+  blocks for that: a corrupt block file is a one-line CacheError naming cache, array and block.
 """
 
 from __future__ import annotations
@@ -382,9 +382,9 @@ class FeatureCache:
         """`arr[rows]` read one block at a time, each block checked against its checksum the first time this
         handle's reader reads it (whole, which is what the checksum covers); later reads take the rows' span only.
 
-        zarr's orthogonal selection on sharded arrays costs ~50 ms per shard in zarr chunk bookkeeping (4.6 s
-        for 1k rows here); slicing inside each shard and indexing in numpy reads the same bytes and holds at
-        most one shard beyond the result in memory.
+        zarr's orthogonal selection on sharded arrays costs ~50 ms per block file in zarr chunk bookkeeping (4.6 s
+        for 1k rows here); slicing inside each block file and indexing in numpy reads the same bytes and holds at
+        most one block beyond the result in memory.
         """
         arr = self.group[name]
         out = np.empty((len(rows), *arr.shape[1:]), dtype=arr.dtype)
@@ -412,7 +412,7 @@ class FeatureCache:
         hint = f"run `graftcache verify {self.key}` to list every bad block, then extract or pull it again"
         try:
             values = arr[start:stop]
-        except Exception as e:  # a damaged shard fails to decode
+        except Exception as e:  # a damaged block file fails to decode
             raise CacheError(f"{where} is unreadable ({type(e).__name__}); {hint}") from None
         if _sha256(values) != self.attrs["checksums"][name][block]:
             raise CacheError(f"{where} does not match its stored checksum; {hint}")
@@ -464,7 +464,7 @@ class FeatureCache:
 
     def damage(self, checksums: Mapping[str, list[str]]) -> list[tuple[str, str]]:
         """(object, problem) for every static array and feature block that does not read back as the layout's
-        static checksums and `checksums` (the feature blocks') say; the object (a shard, or a static array's
+        static checksums and `checksums` (the feature blocks') say; the object (a block file, or a static array's
         folder ending in '/') is what to fetch again."""
         problems = []
         for name, expected in self.layout["static_checksums"].items():
@@ -479,16 +479,17 @@ class FeatureCache:
             arr = self.group[name]
             for block, expected in enumerate(sums):
                 start, stop = self.block_range(block)
-                shard = f"{name}/{arr.metadata.encode_chunk_key((block,) + (0,) * (arr.ndim - 1))}"
+                block_file = f"{name}/{arr.metadata.encode_chunk_key((block,) + (0,) * (arr.ndim - 1))}"
                 try:
                     got = _sha256(arr[start:stop])
-                except Exception as e:  # a corrupt shard fails to decode
-                    problems.append((shard, f"{self.key}: {name} frames {start}-{stop - 1} unreadable (block {block}, "
-                                            f"{shard}; {type(e).__name__}: {' '.join(str(e).split())})"))
+                except Exception as e:  # a corrupt block file fails to decode
+                    problems.append((block_file, f"{self.key}: {name} frames {start}-{stop - 1} unreadable "
+                                                 f"(block {block}, {block_file}; {type(e).__name__}: "
+                                                 f"{' '.join(str(e).split())})"))
                     continue
                 if got != expected:
-                    problems.append((shard, f"{self.key}: {name} frames {start}-{stop - 1} checksum mismatch "
-                                            f"(block {block}, {shard})"))
+                    problems.append((block_file, f"{self.key}: {name} frames {start}-{stop - 1} checksum mismatch "
+                                            f"(block {block}, {block_file})"))
         return problems
 
     def size_bytes(self) -> int:

@@ -1,14 +1,14 @@
 """Reading a remote cache through a local copy of the objects a fit touches.
 
 `fit --cache s3://...` must not download the whole store. A cache's small objects (every zarr.json, the
-index, low-dim and action-stream arrays) are copied on open; feature shards, one per block and array, are
+index, low-dim and action-stream arrays) are copied on open; feature block files, one per block and array, are
 copied the first time a read needs them. Zarr then reads the local copies, and the block checksums are
 checked on those bytes as for any cache (graftcache.store.cache), so a damaged remote or local copy is
-refused by name. Whole shards are the unit because a block's checksum covers the whole block.
+refused by name. Whole block files are the unit because a block's checksum covers the whole block.
 
 The copies live under `<local cache root>/remote/<sha of the root URL>/<key>/`, shared by later runs;
 `fetched_bytes` counts the bytes this process added to the local copies. Reader processes of one fit fetch
-independently, so two may download the same shard at once; the first copy in stays (put-if-absent) and only it
+independently, so two may download the same block file at once; the first copy in stays (put-if-absent) and only it
 is counted, so the counts of a fit's processes add up to what its copies hold.
 """
 
@@ -27,7 +27,7 @@ from graftcache.errors import CacheError
 from graftcache.store.roots import LocalRoot, ObjectRoot, Root, cache_root, open_root
 
 MIRROR_DIR = "remote"
-FETCH_THREADS = 8  # object-store latency, not bandwidth, bounds one-at-a-time reads of small shards
+FETCH_THREADS = 8  # object-store latency, not bandwidth, bounds one-at-a-time reads of small block files
 FEATURES = "features/"
 
 
@@ -58,8 +58,8 @@ class ReadThroughRoot(Root):
     def fetch(self, key: str, rels: list[str]) -> None:
         missing = [f"{key}/{r}" for r in rels
                    if f"{key}/{r}" in self._objects(key) and self.local.get_size(f"{key}/{r}") is None]
-        with ThreadPoolExecutor(FETCH_THREADS) as pool:
-            for size in pool.map(self._copy, missing):
+        with ThreadPoolExecutor(FETCH_THREADS) as threads:
+            for size in threads.map(self._copy, missing):
                 self.fetched_bytes += size
 
     def _copy(self, rel: str) -> int:

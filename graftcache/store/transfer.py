@@ -72,8 +72,8 @@ def copy_cache(src_root: Root, dst_root: Root, key: str, log: Callable[[str], No
             dst_root.put(rel, data)
             return len(data)
 
-        with ThreadPoolExecutor(COPY_THREADS) as pool:
-            copied = sum(pool.map(copy, todo))
+        with ThreadPoolExecutor(COPY_THREADS) as threads:
+            copied = sum(threads.map(copy, todo))
         damage = FeatureCache.in_root(dst_root, key).damage(src.attrs["checksums"])
         if damage:
             _drop(dst_root, key, damage)
@@ -88,7 +88,7 @@ def copy_cache(src_root: Root, dst_root: Root, key: str, log: Callable[[str], No
 
 
 def _drop(root: Root, key: str, damage: list[tuple[str, str]]) -> None:
-    """Delete damaged shards and static-array folders, so the next copy fetches them again."""
+    """Delete damaged block files and static-array folders, so the next copy fetches them again."""
     for obj, _ in damage:
         if obj.endswith("/"):
             root.delete_prefix(f"{key}/{obj}")

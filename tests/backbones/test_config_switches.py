@@ -44,7 +44,8 @@ def _checkpointing(policy: nn.Module) -> list[str]:
 
 
 def _wrapped(policy: nn.Module) -> list[int]:
-    """ids of graftcache's checkpointing wrappers (graftcache.backbones.recompute.checkpointed) on the policy."""
+    """ids of graftcache's activation checkpointing wrappers
+    (graftcache.backbones.activation_checkpointing.checkpointed) on the policy."""
     return [id(value) for m in policy.modules() for value in vars(m).values()
             if getattr(value, "__qualname__", "") == "checkpointed.<locals>.run"]
 

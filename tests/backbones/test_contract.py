@@ -30,7 +30,7 @@ import torch
 from helpers.backbones import (
     ENC_DIM,
     TINY_SIZE,
-    checkpointing_peaks,
+    activation_checkpointing_peaks,
     fixed_noise_time,
     grafted,
     lowdim_stats,
@@ -46,10 +46,10 @@ from devtools.released import hub_cache, publish
 from graftcache.backbone_table import BACKBONES, native_name
 from graftcache.backbones import get_backbone, load_backbone
 from graftcache.backbones.checkpoint import state_dict_sha256
-from graftcache.backbones.lean import construct
-from graftcache.backbones.native import policy_pixels
+from graftcache.backbones.lean_load import construct
 from graftcache.backbones.patching import observe
 from graftcache.backbones.tiny import TINY_MARKER, read_marker
+from graftcache.backbones.tower_encoder import policy_pixels
 from graftcache.encoders import get_spec, load_encoder
 from graftcache.errors import BackboneError, EncoderError
 from graftcache.extract import ExtractRequest, extract
@@ -104,8 +104,8 @@ def test_saved_tiny_loads_back_by_folder_and_by_hub_id(name: str, tmp_path: Path
 
 @pytest.mark.parametrize("name", NAMES)
 def test_lean_load_equals_lerobots_from_pretrained_bit_for_bit(name: str, tmp_path: Path) -> None:
-    """A policy built on the meta device and filled from its checkpoint (graftcache.backbones.lean) is what the policy
-    class's own from_pretrained returns: every tensor, tie, flag and module class; nothing was randomly
+    """A policy built on the meta device and filled from its checkpoint (graftcache.backbones.lean_load) is what the
+    policy class's own from_pretrained returns: every tensor, tie, flag and module class; nothing was randomly
     initialised on the way beyond what the constructor draws itself (no initialiser runs on the meta device)."""
     folder = tiny(name, seed=2).save(tmp_path / "ckpt")
     reference = lerobot_from_pretrained(name, folder)
@@ -260,7 +260,7 @@ def test_reset_gives_back_every_lerobot_object_and_the_loaded_weights(name: str)
             optimiser.step()
             optimiser.zero_grad()
         adapter.predict(batch)
-        if adapter.can_checkpoint:
+        if adapter.supports_activation_checkpointing:
             adapter.set_activation_checkpointing(True)
             adapter.loss(batch).mean().backward()
             adapter.set_activation_checkpointing(False)
@@ -313,7 +313,7 @@ def _reachable_tensor_bytes(root: object) -> int:
 @pytest.mark.parametrize("name", NAMES)
 def test_reset_after_training_is_bit_identical_to_a_fresh_load_and_keeps_no_copy(name: str, lora: bool,
                                                                                    tmp_path: Path) -> None:
-    """Two cells on one backbone, as the pool hands it out (graft, LoRA on the language model, fit steps, reset):
+    """Two cells on one backbone, as LoadedBackbones hands it out (graft, LoRA on the language model, fit steps, reset):
     after each, the policy is a fresh load's bit for bit, its modules and requires_grad flags are back, and
     nothing the size of the model was held beside it."""
     folder = tiny(name, seed=1).save(tmp_path / "ckpt")
@@ -387,12 +387,12 @@ def test_a_fused_pass_equals_each_projector_alone(name: str) -> None:
 # ------------------------------------------------------------------------------- activation checkpointing
 @pytest.mark.parametrize("name", NAMES)
 def test_activation_checkpointing_keeps_the_gradients_and_never_raises_the_peak(name: str) -> None:
-    """The frozen LM and expert recompute activations in backward (graftcache/backbones/recompute.py): the
-    projector's gradients do not change, switching off restores the plain step, and a checkpointed step holds no
+    """The frozen LM and expert recompute activations in backward (graftcache/backbones/activation_checkpointing.py):
+    the projector's gradients do not change, switching off restores the plain step, and a checkpointed step holds no
     more memory (measured as tensors alive at once). How much lower is each backbone's own (its file: the tiny
     step's peak may be set before its LM runs, as in VLA-JEPA and Wall-X)."""
     adapter = grafted(name)
     if not adapter.spec.activation_checkpointing:
         pytest.skip(f"{name}: no activation checkpointing (spec)")
-    plain, checkpointed = checkpointing_peaks(adapter)
+    plain, checkpointed = activation_checkpointing_peaks(adapter)
     assert checkpointed <= plain, (checkpointed, plain)

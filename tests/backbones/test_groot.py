@@ -200,7 +200,7 @@ def test_released_geometry_on_the_meta_device() -> None:
 
     from graftcache.backbones.groot.construct import construct, groot_released_config, released_base_config
     from graftcache.backbones.groot.tiny import GROOT_DIR
-    from graftcache.backbones.lean import construct as on_meta
+    from graftcache.backbones.lean_load import construct as on_meta
     from graftcache.backbones.tiny_assets import QWEN3_VL_PIXELS
 
     config = groot_released_config(("image", "image2"), 256, 8, 7, "cpu")

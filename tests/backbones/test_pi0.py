@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import pytest
 import torch
-from helpers.backbones import ENC_DIM, checkpointing_peaks, grafted
+from helpers.backbones import ENC_DIM, activation_checkpointing_peaks, grafted
 
 from graftcache.graft import GraftProjector, feature_key
 
@@ -109,5 +109,5 @@ def test_released_geometry_on_the_meta_device(name: str, slots: tuple[str, ...],
 
 @pytest.mark.parametrize("name", ["pi0", "pi0_fast"])
 def test_activation_checkpointing_lowers_the_peak(name: str) -> None:
-    plain, checkpointed = checkpointing_peaks(grafted(name))
+    plain, checkpointed = activation_checkpointing_peaks(grafted(name))
     assert checkpointed < 0.85 * plain, (checkpointed, plain)

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from helpers.backbones import checkpointing_peaks, grafted, raw_images, tiny
+from helpers.backbones import activation_checkpointing_peaks, grafted, raw_images, tiny
 from helpers.policies import assert_same_policy, lerobot_from_pretrained, tensors
 
 from graftcache.backbones import load_backbone
@@ -63,7 +63,7 @@ def test_training_and_kv_cache_paths_give_the_same_velocity() -> None:
 
 
 def test_activation_checkpointing_lowers_the_peak() -> None:
-    plain, checkpointed = checkpointing_peaks(grafted("pi05"))
+    plain, checkpointed = activation_checkpointing_peaks(grafted("pi05"))
     assert checkpointed < 0.85 * plain, (checkpointed, plain)  # measured: 51% of the plain step's peak
 
 

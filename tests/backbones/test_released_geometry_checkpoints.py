@@ -4,7 +4,7 @@ as lerobot 0.6 saves a released policy into a Hugging Face cache snapshot, loade
 token counts, widths, scaling, pi0.5's hard-coded heads and vocabulary.
 
 SmolVLA (450M) runs a flow step and a prediction here. pi0.5 is 9.4 GB even in bf16 and a flow step
-takes ~10 minutes on a CPU, so here it is loaded (graftcache.backbones.lean: ~10 GB of memory) and only
+takes ~10 minutes on a CPU, so here it is loaded (graftcache.backbones.lean_load: ~10 GB of memory) and only
 its prefix embedding is run (the LM is not); the full step and predict are benchmarks/bench_real_size.py's,
 on a GPU.
 """
@@ -32,7 +32,7 @@ from devtools.released import (
 from graftcache.backbones import load_backbone
 from graftcache.backbones.batches import TOKEN_MASK, TOKENS
 from graftcache.backbones.checkpoint import state_dict_sha256
-from graftcache.backbones.pool import BackbonePool
+from graftcache.backbones.loaded import LoadedBackbones
 from graftcache.backbones.tiny_record import resolve_policy
 from graftcache.graft import GraftProjector, feature_key
 
@@ -82,10 +82,10 @@ def _assert_released_layout(snapshot: Path, repo_id: str) -> None:
 @pytest.mark.slow
 def test_smolvla_released_layout_loads_by_hub_id_and_grafts_at_real_geometry(real_hub: Path) -> None:
     _assert_released_layout(build_smolvla(SMOLVLA, cache=real_hub), SMOLVLA)
-    # the CLI's path: `--policy org/name` passes through resolve_policy to the backbone pool (load_backbone)
+    # the CLI's path: `--policy org/name` passes through resolve_policy to the loaded backbones (load_backbone)
     source = resolve_policy("smolvla", SMOLVLA, identity={}, root=real_hub)
     assert source == SMOLVLA
-    adapter = BackbonePool().get("smolvla", source, "cpu")
+    adapter = LoadedBackbones().get("smolvla", source, "cpu")
     assert adapter.random_init and adapter.source == SMOLVLA  # recorded as random weights, not a release
 
     vlm = adapter.policy.model.vlm_with_expert.get_vlm_model().config

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import pytest
 import torch
-from helpers.backbones import checkpointing_peaks, fixed_noise_time, grafted, raw_features
+from helpers.backbones import activation_checkpointing_peaks, fixed_noise_time, grafted, raw_features
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")  # tests/fixtures/torch_threads.py
 
@@ -43,5 +43,5 @@ def test_padded_action_targets_do_not_change_the_smolvla_loss() -> None:
 
 
 def test_activation_checkpointing_lowers_the_peak() -> None:
-    plain, checkpointed = checkpointing_peaks(grafted("smolvla"))
+    plain, checkpointed = activation_checkpointing_peaks(grafted("smolvla"))
     assert checkpointed < 0.85 * plain, (checkpointed, plain)  # measured: 80% of the plain step's peak

@@ -28,7 +28,7 @@ from helpers.backbones import (
 )
 from helpers.memory import peak_tensor_bytes
 
-from graftcache.backbones import lean
+from graftcache.backbones import lean_load
 from graftcache.backbones.qwen_vl import merged_grid
 from graftcache.backbones.vla_jepa.adapter import VLAJEPAAdapter
 from graftcache.errors import BackboneError
@@ -203,7 +203,7 @@ def test_resize_images_to_sets_the_grid_the_native_tower_and_the_grafted_prompt(
 
 def test_activation_checkpointing_keeps_the_projector_gradients_and_lowers_the_peak() -> None:
     """Qwen's decoder layers and the DiT blocks recompute during backward: the same gradients, less memory held
-    by Qwen's forward and backward (measured as tensors alive at once, as tests/backbones/test_recompute.py measures the
+    by Qwen's forward and backward (measured as tensors alive at once, as tests/backbones/test_contract.py measures the
     other backbones; the tiny step's own peak is the processor's pass over the prompt's blank frames, before Qwen
     runs: 31.5 MB either way at this batch, so Qwen is measured on its own, from the grafted prompt)."""
     adapter = grafted("vla_jepa")
@@ -221,7 +221,7 @@ def test_activation_checkpointing_keeps_the_projector_gradients_and_lowers_the_p
         adapter.loss(batch, noise=noise, time=time).mean().backward()
         grads[on] = [p.grad.clone() for p in adapter.projector.parameters()]
         peaks[on] = peak_tensor_bytes(lambda: model._qwen_last_decoder_hidden(prompt).float().sum().backward())
-    assert adapter.can_checkpoint and adapter._qwen.language_model.config.use_cache
+    assert adapter.supports_activation_checkpointing and adapter._qwen.language_model.config.use_cache
     for plain, checkpointed in zip(grads[False], grads[True], strict=True):
         torch.testing.assert_close(checkpointed, plain, rtol=0, atol=1e-6)
     assert peaks[True] < 0.6 * peaks[False], peaks  # measured: 7.6 of 16.2 MB
@@ -242,7 +242,7 @@ def test_released_geometry_on_the_meta_device(tmp_path) -> None:
     )
 
     config = vla_jepa_released_config(("image", "image2"), 256, 8, 7, "cpu")
-    policy = lean.construct(lambda: construct(config, QWEN3_VL_DIR, Qwen3VLConfig(**QWEN3_VL_2B)), config)
+    policy = lean_load.construct(lambda: construct(config, QWEN3_VL_DIR, Qwen3VLConfig(**QWEN3_VL_2B)), config)
     policy.model.qwen.model.tie_weights()
     adapter = VLAJEPAAdapter(policy, None, None, source="meta", random_init=True)
     qwen = adapter._qwen

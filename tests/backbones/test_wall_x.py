@@ -25,7 +25,7 @@ from helpers.backbones import (
     tiny,
 )
 
-from graftcache.backbones.draws import given_noise
+from graftcache.backbones.given_draws import given_noise
 from graftcache.backbones.wall_x.adapter import WallXAdapter
 from graftcache.errors import BackboneError
 from graftcache.graft import FusedProjector, GraftProjector, feature_key
@@ -190,7 +190,7 @@ def test_released_geometry_on_the_meta_device(tmp_path) -> None:
     merger into the 2048-wide, 36-layer LM) plus the 2048 -> 2048 action expert in every layer, 9x9 = 81 tokens per
     camera, ~4.2B parameters with the vocabulary from_pretrained resizes to (counted from shapes, nothing
     allocated). The prompt's image pads come from the policy's own `preprocess_inputs`."""
-    from graftcache.backbones.lean import construct as lean_construct
+    from graftcache.backbones.lean_load import construct as lean_construct
     from graftcache.backbones.wall_x.tiny import WALL_OSS_VOCAB, construct, wallx_released_config
 
     base = _released_base(tmp_path / "wall-oss-flow")

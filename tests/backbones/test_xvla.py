@@ -12,8 +12,8 @@ import pytest
 import torch
 from helpers.backbones import (
     ENC_DIM,
+    activation_checkpointing_peaks,
     assert_native_control_reproduces,
-    checkpointing_peaks,
     fixed_noise_time,
     grafted,
     raw_features,
@@ -184,5 +184,5 @@ def test_released_geometry_on_the_meta_device() -> None:
 
 
 def test_activation_checkpointing_lowers_the_peak() -> None:
-    plain, checkpointed = checkpointing_peaks(grafted("xvla"))
+    plain, checkpointed = activation_checkpointing_peaks(grafted("xvla"))
     assert checkpointed < 0.85 * plain, (checkpointed, plain)

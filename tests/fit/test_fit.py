@@ -335,13 +335,13 @@ def test_a_pool_control_far_finer_than_the_stored_grid_is_refused() -> None:
 
 
 def test_one_backbone_load_serves_every_cell_and_finished_cells_load_nothing(world: World, tmp_path: Path) -> None:
-    from graftcache.backbones.pool import BackbonePool
+    from graftcache.backbones.loaded import LoadedBackbones
 
-    pool = BackbonePool()
+    loaded = LoadedBackbones()
     req = world.request(seeds=(0, 1), controls=("zero-image", "lora", "native"), results=str(tmp_path / "r.parquet"))
-    rows = Fitter(req, log=_quiet, backbones=pool).run()
-    assert len(rows) == 8 and pool.loads == 1  # 8 cells, one load
-    rerun = BackbonePool()
+    rows = Fitter(req, log=_quiet, backbones=loaded).run()
+    assert len(rows) == 8 and loaded.loads == 1  # 8 cells, one load
+    rerun = LoadedBackbones()
     lines: list[str] = []
     assert Fitter(req, log=lines.append, backbones=rerun).run() == []
     (skip,) = [line for line in lines if line.startswith("skip ")]

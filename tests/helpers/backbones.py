@@ -172,7 +172,7 @@ def assert_projector_trained(adapter: BackboneAdapter, loss: torch.Tensor) -> No
     assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in adapter.projector.parameters())
 
 
-def checkpointing_peaks(adapter: BackboneAdapter, batch: int = 8) -> tuple[int, int]:
+def activation_checkpointing_peaks(adapter: BackboneAdapter, batch: int = 8) -> tuple[int, int]:
     """(plain, checkpointed) peak tensor bytes of one training step of a grafted adapter, after checking that
     activation checkpointing changes no gradient and that switching it off again restores the plain step."""
     adapter.policy.train()

@@ -38,12 +38,12 @@ from transformers.modeling_outputs import BaseModelOutputWithPooling
 from graftcache.backbones.base import BackboneAdapter
 from graftcache.backbones.batches import ACTION, STATE
 from graftcache.backbones.checkpoint import cached_repo
-from graftcache.backbones.draws import shadowed
 from graftcache.backbones.eo1.tiny import construct
+from graftcache.backbones.given_draws import shadowed
 from graftcache.backbones.objectives import FlowObjective
 from graftcache.backbones.patching import patched
 from graftcache.backbones.qwen_vl import (
-    NativeVision,
+    TowerReads,
     cached_token_count,
     check_slots,
     image_token_counts,
@@ -86,7 +86,7 @@ def processor_kwargs_quiet() -> Iterator[None]:
         logger.setLevel(level)
 
 
-class EO1Adapter(NativeVision, FlowObjective, BackboneAdapter):
+class EO1Adapter(TowerReads, FlowObjective, BackboneAdapter):
     name = "eo1"
     spec = BackboneSpec(
         image_method="_get_model_inputs",

@@ -39,7 +39,7 @@ from torch import nn
 from graftcache.backbones.base import BackboneAdapter
 from graftcache.backbones.batches import ACTION, STATE
 from graftcache.backbones.checkpoint import cached_repo
-from graftcache.backbones.draws import given_noise, shadowed
+from graftcache.backbones.given_draws import given_noise, shadowed
 from graftcache.backbones.groot.construct import base_config, construct
 from graftcache.backbones.groot.tiny import (
     GROOT_DIR,
@@ -51,7 +51,7 @@ from graftcache.backbones.groot.tiny import (
 from graftcache.backbones.objectives import FlowObjective
 from graftcache.backbones.patching import patched
 from graftcache.backbones.qwen_vl import (
-    NativeVision,
+    TowerReads,
     cached_token_count,
     check_slots,
     image_token_counts,
@@ -71,7 +71,7 @@ VLM_STEP, PACK_STEP = "GrootN17VLMEncodeStep", "GrootN17PackInputsStep"
 PADDED_ACTION = "groot_padded_action"
 
 
-class GrootAdapter(NativeVision, FlowObjective, BackboneAdapter):
+class GrootAdapter(TowerReads, FlowObjective, BackboneAdapter):
     name = "groot"
     spec = BackboneSpec(
         image_method="_filter_groot_inputs",

@@ -22,7 +22,7 @@ from torch import nn
 from graftcache.backbones.base import BackboneAdapter
 from graftcache.backbones.batches import TOKEN_MASK, TOKENS
 from graftcache.backbones.checkpoint import cached_repo
-from graftcache.backbones.lean import openpi_keys
+from graftcache.backbones.lean_load import openpi_keys
 from graftcache.backbones.objectives import FlowObjective
 from graftcache.backbones.paligemma import paligemma_tiny_tokenizer, pi05_processors, pi05_tiny_sizes
 from graftcache.backbones.spec import BackboneSpec
@@ -116,7 +116,7 @@ class PI05Adapter(FlowObjective, PaliGemmaAdapter):
     def _predict_chunk(self, batch: Mapping[str, Any], noise: torch.Tensor, num_steps: int) -> torch.Tensor:
         return self.policy.predict_action_chunk(dict(batch), noise=noise, num_steps=num_steps)
 
-    def _switch_checkpointing(self, on: bool) -> None:
+    def _switch_activation_checkpointing(self, on: bool) -> None:
         """lerobot's own switch (every LM and expert layer, in training mode)."""
         if on:
             self.policy.model.gradient_checkpointing_enable()

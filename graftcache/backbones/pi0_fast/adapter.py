@@ -129,7 +129,7 @@ class PI0FastAdapter(TokenObjective, PaliGemmaAdapter):
         with _greedy_chunks(self.config, self.chunk_size):
             return self.policy.predict_action_chunk(dict(batch)).to(self.device)
 
-    def _switch_checkpointing(self, on: bool) -> None:
+    def _switch_activation_checkpointing(self, on: bool) -> None:
         """lerobot's switch minus the vision tower's (after a graft a pass-through, without transformers' method):
         transformers' own checkpointing of every language-model layer, non-reentrant."""
         model = self.policy.model

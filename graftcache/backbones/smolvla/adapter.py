@@ -17,17 +17,17 @@ from typing import Any
 import torch
 from torch import nn
 
+from graftcache.backbones.activation_checkpointing import WrappedActivationCheckpointing
 from graftcache.backbones.base import BackboneAdapter
 from graftcache.backbones.batches import TOKEN_MASK, TOKENS
 from graftcache.backbones.checkpoint import cached_repo
 from graftcache.backbones.objectives import FlowObjective
 from graftcache.backbones.patching import patched
-from graftcache.backbones.recompute import WrappedCheckpointing
 from graftcache.backbones.spec import BackboneSpec
 from graftcache.backbones.tiny_assets import SMOLVLM_DIR
 
 
-class SmolVLAAdapter(WrappedCheckpointing, FlowObjective, BackboneAdapter):
+class SmolVLAAdapter(WrappedActivationCheckpointing, FlowObjective, BackboneAdapter):
     name = "smolvla"
     spec = BackboneSpec(
         image_method="prepare_images",
@@ -109,7 +109,7 @@ class SmolVLAAdapter(WrappedCheckpointing, FlowObjective, BackboneAdapter):
         with _num_steps(self.config, num_steps):
             return self.policy.predict_action_chunk(dict(batch), noise=noise)
 
-    def _checkpoint_slots(self) -> Iterator[tuple[nn.Module, str]]:
+    def _activation_checkpointing_slots(self) -> Iterator[tuple[nn.Module, str]]:
         """The attention of every layer (one function of the joint model) and each LM and expert layer's MLP."""
         joint = self.policy.model.vlm_with_expert
         yield joint, "eager_attention_forward"

@@ -44,10 +44,11 @@ from typing import Any
 import torch
 from torch import nn
 
+from graftcache.backbones.activation_checkpointing import WrappedActivationCheckpointing
 from graftcache.backbones.base import BackboneAdapter
 from graftcache.backbones.batches import ACTION
 from graftcache.backbones.checkpoint import cached_repo
-from graftcache.backbones.draws import given_noise, shadowed
+from graftcache.backbones.given_draws import given_noise, shadowed
 from graftcache.backbones.objectives import FlowObjective
 from graftcache.backbones.patching import patched
 from graftcache.backbones.qwen_vl import (
@@ -59,7 +60,6 @@ from graftcache.backbones.qwen_vl import (
     raster_patches,
     tied_head_keys,
 )
-from graftcache.backbones.recompute import WrappedCheckpointing
 from graftcache.backbones.spec import BackboneSpec
 from graftcache.backbones.vla_jepa.tiny import QWEN3_VL_DIR, construct
 from graftcache.errors import BackboneError
@@ -91,7 +91,7 @@ def given_draws(head: nn.Module, noise: torch.Tensor, time: torch.Tensor | None 
         yield
 
 
-class VLAJEPAAdapter(WrappedCheckpointing, FlowObjective, BackboneAdapter):
+class VLAJEPAAdapter(WrappedActivationCheckpointing, FlowObjective, BackboneAdapter):
     name = "vla_jepa"
     spec = BackboneSpec(
         image_method="_prepare_model_inputs",
@@ -290,15 +290,15 @@ class VLAJEPAAdapter(WrappedCheckpointing, FlowObjective, BackboneAdapter):
                 given_draws(head, noise):
             return self.policy.predict_action_chunk(dict(batch))
 
-    def _switch_checkpointing(self, on: bool) -> None:
+    def _switch_activation_checkpointing(self, on: bool) -> None:
         """The wrapped layers, and Qwen's KV cache off meanwhile (as transformers turns it off under its own
         checkpointing): a recomputed layer would append its keys and values to the cache a second time. The
         policy's single forward never reads that cache."""
-        super()._switch_checkpointing(on)  # off: every change undone, the cache's switch too
-        if on and not any(change.attribute == "use_cache" for change in self.checkpoint_patches.changes):
-            self.checkpoint_patches.set(self._qwen.language_model.config, "use_cache", False)
+        super()._switch_activation_checkpointing(on)  # off: every change undone, the cache's switch too
+        if on and not any(change.attribute == "use_cache" for change in self.activation_checkpointing_patches.changes):
+            self.activation_checkpointing_patches.set(self._qwen.language_model.config, "use_cache", False)
 
-    def _checkpoint_slots(self) -> Iterator[tuple[nn.Module, str]]:
+    def _activation_checkpointing_slots(self) -> Iterator[tuple[nn.Module, str]]:
         """Every decoder layer of the Qwen3 LM and every block of the DiT action head."""
         for layer in self._qwen.language_model.layers:
             yield layer, "forward"

@@ -21,7 +21,7 @@ only `<|action|>` tokens, which `preprocesser_call` masks out of the labels, so 
 cross-entropy term is never computed: the loss is `flow_loss_weight` x the flow MSE. Wall-X draws its time and
 noise inside `ActionHead.forward` / `predict` (`sample_time`, `torch.randn_like`, `torch.randn`); `loss` and
 `predict` run lerobot's own code with the sampler shadowed and those two calls answered with the given draws
-(`graftcache.backbones.draws.given_noise`). Wall-X's time runs the other way from graftcache's noise level (its
+(`graftcache.backbones.given_draws.given_noise`). Wall-X's time runs the other way from graftcache's noise level (its
 x_t = (1 - t) noise + t action, pi0's x_t = t noise + (1 - t) action) and its draw (1 - Beta(1.5, 1)) x 0.999 is
 exactly 1 - graftcache's: the given time is passed on as 1 - time.
 """
@@ -39,21 +39,21 @@ import torch
 from torch import nn
 from transformers.modeling_outputs import BaseModelOutputWithPooling
 
+from graftcache.backbones.activation_checkpointing import WrappedActivationCheckpointing
 from graftcache.backbones.base import BackboneAdapter
 from graftcache.backbones.batches import STATE
 from graftcache.backbones.checkpoint import cached_repo
-from graftcache.backbones.draws import given_noise, shadowed
+from graftcache.backbones.given_draws import given_noise, shadowed
 from graftcache.backbones.objectives import FlowObjective
 from graftcache.backbones.patching import patched
 from graftcache.backbones.qwen_vl import (
-    NativeVision,
+    TowerReads,
     merged_grid,
     projected_rows,
     prompt_grid,
     tied_head_keys,
     vit_outputs,
 )
-from graftcache.backbones.recompute import WrappedCheckpointing
 from graftcache.backbones.spec import BackboneSpec
 from graftcache.backbones.wall_x.tiny import WALLX_DIR, construct, load_processor
 from graftcache.errors import BackboneError
@@ -81,7 +81,7 @@ def pixel_bounds(image_processor, pixels: int) -> Iterator[None]:
         yield
 
 
-class WallXAdapter(NativeVision, WrappedCheckpointing, FlowObjective, BackboneAdapter):
+class WallXAdapter(TowerReads, WrappedActivationCheckpointing, FlowObjective, BackboneAdapter):
     name = "wall_x"
     spec = BackboneSpec(
         image_method="preprocess_inputs",
@@ -249,7 +249,7 @@ class WallXAdapter(NativeVision, WrappedCheckpointing, FlowObjective, BackboneAd
         with shadowed(model, predict=predict), given_noise(modeling_wall_x, noise, self.name, draws=("randn",)):
             return self.policy.predict_action_chunk(dict(batch))
 
-    def _checkpoint_slots(self) -> Iterator[tuple[nn.Module, str]]:
+    def _activation_checkpointing_slots(self) -> Iterator[tuple[nn.Module, str]]:
         """Every decoder layer of the MoE language model (attention and both experts)."""
         for layer in self.policy.model.model.layers:
             yield layer, "forward"

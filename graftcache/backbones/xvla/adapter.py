@@ -31,9 +31,9 @@ import torch
 from torch import nn
 from transformers.modeling_outputs import BaseModelOutputWithPooling
 
+from graftcache.backbones.activation_checkpointing import WrappedActivationCheckpointing
 from graftcache.backbones.base import BackboneAdapter, is_empty_camera
 from graftcache.backbones.batches import ACTION_PAD
-from graftcache.backbones.recompute import WrappedCheckpointing
 from graftcache.backbones.spec import BackboneSpec
 from graftcache.backbones.tiny_assets import PALIGEMMA_DIR
 from graftcache.errors import BackboneError
@@ -47,7 +47,7 @@ def conv_grid(size: tuple[int, int], vision) -> tuple[int, int]:
     return h, w
 
 
-class XVLAAdapter(WrappedCheckpointing, BackboneAdapter):
+class XVLAAdapter(WrappedActivationCheckpointing, BackboneAdapter):
     name = "xvla"
     spec = BackboneSpec(
         image_method="_prepare_images",
@@ -233,7 +233,7 @@ class XVLAAdapter(WrappedCheckpointing, BackboneAdapter):
             action = self._denoise(inputs, enc, x1 * t.view(-1, 1, 1) + action * (1 - t).view(-1, 1, 1), t)
         return self.policy.model.action_space.postprocess(action)
 
-    def _checkpoint_slots(self) -> Iterator[tuple[nn.Module, str]]:
+    def _activation_checkpointing_slots(self) -> Iterator[tuple[nn.Module, str]]:
         """Every layer of the BART encoder (the LM) and every block of the action transformer."""
         for layer in self._vision_owner.language_model.encoder.layers:
             yield layer, "forward"

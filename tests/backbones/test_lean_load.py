@@ -12,7 +12,7 @@ import torch
 from helpers.backbones import ENC_DIM, tiny
 
 from graftcache.backbones import load_backbone
-from graftcache.backbones.lean import read_into
+from graftcache.backbones.lean_load import read_into
 from graftcache.errors import BackboneError
 from graftcache.graft import GraftProjector
 

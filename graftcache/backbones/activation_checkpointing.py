@@ -43,48 +43,49 @@ def checkpointed(fn: Callable, owner: nn.Module) -> Callable:
 class ActivationCheckpointing:
     """The checkpointing half of a BackboneAdapter (mixed into it): one switch, off after load."""
 
-    _checkpointing: bool = False
+    _activation_checkpointing_on: bool = False
 
     @property
     def activation_checkpointing(self) -> bool:
         """Whether the frozen LM and expert recompute their activations during backward."""
-        return self._checkpointing
+        return self._activation_checkpointing_on
 
     def set_activation_checkpointing(self, on: bool) -> None:
         """Turn checkpointing on or off in the model itself, whatever state it is in (lerobot's own switch may have
         turned it on), so that the flag rows record is what runs; the numbers do not change, only the memory a
         training step holds and the FLOPs it spends."""
-        if on or self.can_checkpoint:
-            self._switch_checkpointing(on)
-        self._checkpointing = on
+        if on or self.supports_activation_checkpointing:
+            self._switch_activation_checkpointing(on)
+        self._activation_checkpointing_on = on
 
-    def _switch_checkpointing(self, on: bool) -> None:
+    def _switch_activation_checkpointing(self, on: bool) -> None:
         """The backbone's own way of turning checkpointing of its LM and expert on or off, from whatever state (none
         by default: `auto` then keeps it off, `on` is refused in one line)."""
         raise BackboneError(f"{self.name}: no activation checkpointing for this backbone; use "
                             "--activation-checkpointing off")
 
     @property
-    def checkpoint_patches(self) -> Patches:
+    def activation_checkpointing_patches(self) -> Patches:
         """What turning checkpointing on changed in the policy (graftcache.backbones.patching), undone to turn it
         off."""
-        return self.__dict__.setdefault("_checkpoint_patches", Patches())
+        return self.__dict__.setdefault("_activation_checkpointing_patches", Patches())
 
 
-class WrappedCheckpointing(ActivationCheckpointing):
-    """Checkpointing by wrapping callables given as (owner module, attribute) pairs: an instance attribute
-    shadows the class's method while on (recorded in `checkpoint_patches`), and is undone to turn it off."""
+class WrappedActivationCheckpointing(ActivationCheckpointing):
+    """Activation checkpointing by wrapping callables given as (owner module, attribute) pairs: an instance
+    attribute shadows the class's method while on (recorded in `activation_checkpointing_patches`), undone to turn it
+    off."""
 
     @abstractmethod
-    def _checkpoint_slots(self) -> Iterator[tuple[nn.Module, str]]:
+    def _activation_checkpointing_slots(self) -> Iterator[tuple[nn.Module, str]]:
         """(module, attribute) of every callable to checkpoint, e.g. (layer.mlp, "forward")."""
 
-    def _switch_checkpointing(self, on: bool) -> None:
-        patches = self.checkpoint_patches
+    def _switch_activation_checkpointing(self, on: bool) -> None:
+        patches = self.activation_checkpointing_patches
         if not on:
             patches.undo()
             return
         if patches.changes:
             return  # wrapped once, however often it is turned on
-        for owner, attribute in self._checkpoint_slots():
+        for owner, attribute in self._activation_checkpointing_slots():
             patches.set(owner, attribute, checkpointed(getattr(owner, attribute), owner))

@@ -10,7 +10,7 @@ the tower is re-implemented.
 The spec is policy-specific (a released SmolVLA tower is SigLIP at 512 px with a 32x32x768 grid, a
 tiny one is far smaller), so the builder returns an encoder whose spec is measured on the loaded
 policy; the manifest records that spec and the policy's weights hash. The catalog (stage 1) names
-`build_native` by import string, so this module is imported only when a native tower is built.
+`build_tower_encoder` by import string, so this module is imported only when a native tower is built.
 """
 
 from __future__ import annotations
@@ -40,7 +40,7 @@ def policy_pixels(frames_u8: torch.Tensor, size: int) -> torch.Tensor:
     return x.round().clamp(0, 255).to(torch.uint8)
 
 
-class NativeEncoder(Encoder):
+class TowerEncoder(Encoder):
     """A policy's vision tower: [0, 1] pixels -> pre-connector grid, plus post-connector tokens."""
 
     def __init__(self, spec: EncoderSpec, adapter, info: dict) -> None:
@@ -66,7 +66,7 @@ class NativeEncoder(Encoder):
         return self.forward_grid(x), {"connector": tokens.float()}
 
 
-def build_native(spec: EncoderSpec, req: LoadRequest) -> NativeEncoder:
+def build_tower_encoder(spec: EncoderSpec, req: LoadRequest) -> TowerEncoder:
     """Load the policy named by `--policy` and measure its tower's grid and connector shapes. The pixel
     size is the one a tiny checkpoint trained by train-tiny records, else the catalog's (released policies
     take the dataset's frames as they are)."""
@@ -86,6 +86,6 @@ def build_native(spec: EncoderSpec, req: LoadRequest) -> NativeEncoder:
                        width=grid.shape[3], pretrained_source=f"policy:{req.policy}")
     info = weights_info("policy", str(req.policy), adapter.policy_sha256)
     info["random_init"] = adapter.random_init  # tiny checkpoints: not released weights
-    encoder = NativeEncoder(measured, adapter, info)
+    encoder = TowerEncoder(measured, adapter, info)
     encoder.extra_shapes = {"connector": (tokens.shape[1], tokens.shape[2])}
     return encoder

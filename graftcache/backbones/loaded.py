@@ -1,8 +1,8 @@
-"""Loaded backbones shared by every cell of a run (fit, sweep, demo).
+"""Loaded backbones shared by every cell of one command (fit, sweep, demo).
 
 A backbone is loaded once per (name, policy, device) and handed out reset to its frozen state as loaded
-(`BackboneAdapter.reset`: the graft's surgery undone; no weight is written, so none is copied), so a grid
-of cells costs one load per backbone, and cells that are already done load nothing at all. What each load was
+(`BackboneAdapter.reset`: the graft's surgery undone; no weight is written, so none is copied), so a sweep's
+cells cost one load per backbone, and cells that are already done load nothing at all. What each load was
 grafted as is logged once per kind of graft (`describe`), not once per cell.
 """
 
@@ -19,7 +19,7 @@ if TYPE_CHECKING:
     from graftcache.backbones.surgery import FreezeReport
 
 
-class BackbonePool:
+class LoadedBackbones:
     def __init__(self, log: Callable[[str], None] = print) -> None:
         self._loaded: dict[tuple[str, str, str], BackboneAdapter] = {}
         self._said: dict[int, list[FreezeReport]] = {}  # id of a loaded adapter -> the freeze reports logged of it
@@ -38,7 +38,7 @@ class BackbonePool:
     def describe(self, adapter: BackboneAdapter, cells: str) -> None:
         """Log which modules of the grafted `adapter` train, for `cells` (who grafted it): the whole table the first
         time a loaded policy is grafted, then only a table not logged of it yet, as what differs from the first
-        (a grid of cells logs each kind of graft once, not a table per cell)."""
+        (a sweep's cells log each kind of graft once, not a table per cell)."""
         report = adapter.freeze_report()
         said = self._said.setdefault(id(adapter), [])
         if not said:
@@ -51,5 +51,5 @@ class BackbonePool:
 
     @property
     def loads(self) -> int:
-        """How many backbones this pool has loaded (each (name, policy, device) once)."""
+        """How many backbones these have loaded (each (name, policy, device) once)."""
         return len(self._loaded)
