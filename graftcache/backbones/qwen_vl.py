@@ -107,6 +107,20 @@ def projected_images(tower: nn.Module, connector: nn.Module, features: torch.Ten
     return torch.split(tokens, image_token_counts(grid_thw, merge))
 
 
+def qwen3_vl_image_features(tower: nn.Module, connector: nn.Module, qwen: nn.Module, features: torch.Tensor,
+                            grid_thw: torch.Tensor, cameras: int, deepstack: list | None):
+    """What a grafted Qwen3-VL `get_image_features` returns (GR00T, VLA-JEPA): the cached features [images x tokens,
+    C] through the pass-through and the projector, split per image as Qwen splits them (`projected_images`), and
+    `deepstack` for the deepstack features: the policy's own "none" (a grafted encoder has no inner ViT blocks for
+    the deepstack mergers to read). The projector sees them a sample a row, [B, cameras x tokens, C], so a fused
+    projector (graftcache.graft.FusedProjector) routes rows."""
+    from transformers.models.qwen3_vl.modeling_qwen3_vl import BaseModelOutputWithDeepstackFeatures
+
+    tokens = projected_images(tower, connector, features, grid_thw, qwen.visual.spatial_merge_size, cameras)
+    return BaseModelOutputWithDeepstackFeatures(last_hidden_state=features, pooler_output=tokens,
+                                                deepstack_features=deepstack)
+
+
 def cached_token_count(name: str, batch: Mapping[str, Any], camera_keys: Sequence[str]) -> int:
     """The cached tokens per camera of a grafted batch, refused in one line when a camera's features, the state
     or the task is missing or the cameras disagree."""

@@ -56,8 +56,8 @@ from graftcache.backbones.qwen_vl import (
     check_slots,
     image_token_counts,
     merged_grid,
-    projected_images,
     prompt_grid,
+    qwen3_vl_image_features,
     raster_patches,
 )
 from graftcache.backbones.spec import BackboneSpec
@@ -189,18 +189,12 @@ class GrootAdapter(TowerReads, FlowObjective, BackboneAdapter):
         return self._step(self.preprocessor, PACK_STEP)._ordered_image_keys({k: None for k in self.camera_keys})
 
     def _image_features(self, own, qwen: nn.Module, pixel_values: torch.Tensor, image_grid_thw=None, **kwargs):
-        """Qwen's `get_image_features`, or grafted: the cached features [images x tokens, C] through the
-        pass-through and the projector, split per image as Qwen splits them, and no deepstack features. The
-        projector sees them a sample a row, [B, cameras x tokens, C]: a fused projector
-        (graftcache.graft.FusedProjector) routes rows."""
-        from transformers.models.qwen3_vl.modeling_qwen3_vl import BaseModelOutputWithDeepstackFeatures
-
+        """Qwen's `get_image_features`, or grafted: the cached features of every view (one image each) through the
+        pass-through and the projector, and no deepstack features (GR00T's "none" is None)."""
         if not self.grafted:
             return own(qwen, pixel_values, image_grid_thw, **kwargs)
-        tokens = projected_images(*self._tower_and_connector(), pixel_values, image_grid_thw,
-                                  qwen.visual.spatial_merge_size, len(self._view_keys))  # every view, one image each
-        return BaseModelOutputWithDeepstackFeatures(last_hidden_state=pixel_values, pooler_output=tokens,
-                                                    deepstack_features=None)
+        return qwen3_vl_image_features(*self._tower_and_connector(), qwen, pixel_values, image_grid_thw,
+                                       len(self._view_keys), deepstack=None)
 
     def _vision(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """[B, 3, H, W] in [0, 1] through GR00T's own frame transform, Qwen3-VL's processor and ViT: (pre-merger

@@ -55,8 +55,8 @@ from graftcache.backbones.qwen_vl import (
     check_slots,
     image_token_counts,
     merged_grid,
-    projected_images,
     prompt_grid,
+    qwen3_vl_image_features,
     raster_patches,
     tied_head_keys,
 )
@@ -178,18 +178,12 @@ class VLAJEPAAdapter(WrappedActivationCheckpointing, FlowObjective, BackboneAdap
 
     # ------------------------------------------------------------------------------ images
     def _image_features(self, own, qwen: nn.Module, pixel_values: torch.Tensor, image_grid_thw=None, **kwargs):
-        """Qwen's `get_image_features`, or grafted: the cached features [images x tokens, C] through the
-        pass-through and the projector, split per image as Qwen splits them, and no deepstack features. The
-        projector sees them a sample a row, [B, cameras x tokens, C]: a fused projector
-        (graftcache.graft.FusedProjector) routes rows."""
-        from transformers.models.qwen3_vl.modeling_qwen3_vl import BaseModelOutputWithDeepstackFeatures
-
+        """Qwen's `get_image_features`, or grafted: the cached features of every camera through the pass-through and
+        the projector, and no deepstack features (VLA-JEPA's "none" is an empty list)."""
         if not self.grafted:
             return own(qwen, pixel_values, image_grid_thw, **kwargs)
-        tokens = projected_images(*self._tower_and_connector(), pixel_values, image_grid_thw,
-                                  qwen.visual.spatial_merge_size, len(self.config.image_features))
-        return BaseModelOutputWithDeepstackFeatures(last_hidden_state=pixel_values, pooler_output=tokens,
-                                                    deepstack_features=[])
+        return qwen3_vl_image_features(*self._tower_and_connector(), qwen, pixel_values, image_grid_thw,
+                                       len(self.config.image_features), deepstack=[])
 
     def _vision(self, images: torch.Tensor):
         """[B, 3, H, W] in [0, 1] through the policy's own inference path - `predict_action`'s resize to
