@@ -19,7 +19,8 @@ demo: setup
 lint: setup
 	.venv/bin/ruff check .
 
-# one pytest-xdist worker per core, each test module on one worker, the longest first (tests/helpers/parallel.py)
+# pytest-xdist, one worker more than the cores (at most 3), each test module on one worker, the longest first
+# (tests/helpers/parallel.py)
 test: setup-libero lint
 	.venv/bin/python -m pytest -q -n auto --dist loadgroup --durations=30
 
