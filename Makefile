@@ -19,8 +19,7 @@ demo: setup
 lint: setup
 	.venv/bin/ruff check .
 
-# pytest-xdist, one worker more than the cores (at most 3), each test module on one worker, the longest first
-# (tests/helpers/parallel.py)
+# one pytest-xdist worker per core, each test module on one worker, the longest first (tests/helpers/parallel.py)
 test: setup-libero lint
 	.venv/bin/python -m pytest -q -n auto --dist loadgroup --durations=30
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 import os
 
 from helpers.env import OFFLINE, isolated_homes
-from helpers.parallel import limit_worker_threads, schedule, workers
+from helpers.parallel import limit_worker_threads, schedule
 
 os.environ.update(OFFLINE)  # before anything imports huggingface_hub
 os.environ.setdefault("TOKENIZERS_PARALLELISM", "false")
@@ -23,9 +23,10 @@ pytest_plugins = ("fixtures.datasets", "fixtures.torch_threads", "fixtures.ray_c
 
 @pytest.hookimpl(optionalhook=True)  # the suite also runs without pytest-xdist (`-p no:xdist`, a bare venv)
 def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
-    """`-n auto`: from the cores this process may run on (xdist's own guess counts physical cores, which can be 1 on
-    two hyperthreads), `helpers.parallel.workers`: one more than the cores, at most 3."""
-    return workers(len(os.sched_getaffinity(0)))
+    """`-n auto`: one worker per core this process may run on (xdist's own guess counts physical cores, which can
+    be 1 on two hyperthreads), at most 2: CI's cores, and the only count the suite has been run under (each worker
+    holds torch and its own Ray instance; pi0.5 at real size takes ~10 GB in one of them)."""
+    return max(1, min(2, len(os.sched_getaffinity(0))))
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:

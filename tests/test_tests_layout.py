@@ -8,7 +8,7 @@ from __future__ import annotations
 from collections import Counter
 from pathlib import Path
 
-from helpers.parallel import GROUPS, LONGEST, TESTS, wait_for_memory, workers
+from helpers.parallel import GROUPS, LONGEST, TESTS
 
 from graftcache.backbone_table import BACKBONES
 
@@ -39,9 +39,3 @@ def test_every_registered_backbone_has_a_test_file_of_its_own() -> None:
 def test_the_scheduler_names_modules_that_exist() -> None:
     named = set(GROUPS) | set(LONGEST)
     assert sorted(m for m in named if not (TESTS / f"{m}.py").is_file()) == []
-
-
-def test_one_worker_more_than_the_cores_at_most_three_and_the_memory_wait_ends() -> None:
-    assert [workers(c) for c in (1, 2, 4, 64)] == [2, 3, 3, 3]
-    assert wait_for_memory(0) < 1.0  # enough at once
-    assert 0.1 <= wait_for_memory(1e9, timeout_s=0.1) < 5  # never enough: gives up at the timeout and goes on
