@@ -194,8 +194,8 @@ def test_read_grid_pools_the_stored_unpooled_grid(extracted, unpooled_only: Feat
 
 @pytest.fixture(scope="module")
 def long_dataset(tmp_path_factory: pytest.TempPathFactory) -> Written:
-    """Three 40-frame episodes: enough blocks to interrupt extraction half way."""
-    return build_lerobot(tmp_path_factory, "long", video=True, lengths=(40, 40, 40))
+    """Three 24-frame episodes, 18 blocks of 4: enough to interrupt extraction after 3 and before the last."""
+    return build_lerobot(tmp_path_factory, "long", video=True, lengths=(24, 24, 24))
 
 
 def _cli_extract(dataset: Path, cache: Path) -> list[str]:
