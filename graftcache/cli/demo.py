@@ -8,8 +8,9 @@ import argparse
 def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("demo", help="the whole diagnostic offline on the bundled LIBERO sample, then the report",
                        description="Train the tiny backbones (train-tiny) if they are not cached, extract the demo "
-                       "encoders (two with real ImageNet weights beside random-init ViT families), fit the demo grid "
-                       "with controls, and write the report. Rerunning reuses every cache and finished cell.")
+                       "encoders (two with real ImageNet weights beside random-init ViT families), fit the demo "
+                       "recipe's cells with controls, and write the report. Rerunning reuses every cache and finished "
+                       "cell.")
     p.add_argument("--recipe", default=None, help="recipe to run (default: cli/demo.toml of this checkout)")
     p.add_argument("--out", default=None, help="report folder (default: <results folder>/report)")
     p.set_defaults(func=run)

@@ -4,11 +4,8 @@ copied index / low-dim columns, resume after SIGKILL (byte-identical), bad input
 from __future__ import annotations
 
 import json
-import os
 import signal
-import subprocess
 import sys
-import time
 from functools import partial
 from pathlib import Path
 
@@ -18,12 +15,12 @@ import timm
 import torch
 import torch.nn.functional as F
 from helpers.datasets import LENGTHS, TASKS, Written, build_lerobot
+from helpers.probes import hang_after_blocks, kill_after_blocks, start_process
 from helpers.requests import extract_request
 from PIL import Image
 
 from graftcache.cli import main
 from graftcache.encoders.fingerprint import TOLERANCE
-from graftcache.errors import GraftcacheError
 from graftcache.extract import ExtractRequest, extract
 from graftcache.runtime import CPU_BF16_ENV
 from graftcache.store import FeatureCache, list_caches
@@ -198,42 +195,28 @@ def long_dataset(tmp_path_factory: pytest.TempPathFactory) -> Written:
     return build_lerobot(tmp_path_factory, "long", video=True, lengths=(24, 24, 24))
 
 
-def _cli_extract(dataset: Path, cache: Path) -> list[str]:
-    return [str(GRAFTCACHE), "extract", "--encoder", "resnet18", "--random-init", "--dataset", str(dataset),
-            "--grids", "2x2", "--block-frames", "4", "--batch-size", "4", "--num-workers", "1", "--cache", str(cache),
+def _extract_args(dataset: Path, cache: Path, workers: int) -> list[str]:
+    return ["extract", "--encoder", "resnet18", "--random-init", "--dataset", str(dataset), "--grids", "2x2",
+            "--block-frames", "4", "--batch-size", "4", "--num-workers", str(workers), "--cache", str(cache),
             "--no-progress"]
 
 
 @pytest.mark.slow
-def test_sigkill_then_rerun_is_byte_identical_to_an_uninterrupted_run(long_dataset: Written, tmp_path: Path) -> None:
-    env = {**os.environ, "HF_HUB_OFFLINE": "1"}
+def test_sigkill_then_rerun_is_byte_identical_to_an_uninterrupted_run(long_dataset: Written, tmp_path: Path,
+                                                                      capsys: pytest.CaptureFixture) -> None:
+    """The process (and its decode worker) is killed after 3 of 18 blocks; the rerun, in this process and with
+    in-process decoding, resumes and ends byte-identical to an uninterrupted run."""
     killed_root, clean_root = tmp_path / "killed", tmp_path / "clean"
-    proc = subprocess.Popen(_cli_extract(long_dataset.root, killed_root), env=env, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE)
-    deadline = time.monotonic() + 300
-    done: set[int] = set()
-    while time.monotonic() < deadline and proc.poll() is None:
-        caches = list(killed_root.glob("resnet18-*/zarr.json")) if killed_root.exists() else []
-        if caches:
-            try:
-                done = FeatureCache(caches[0].parent).blocks_done()
-            except GraftcacheError:
-                done = set()  # still initialising
-        if len(done) >= 3:
-            proc.send_signal(signal.SIGKILL)
-            break
-        time.sleep(0.02)
-    proc.wait()
-    assert proc.returncode == -signal.SIGKILL, "extraction finished before it could be interrupted"
+    proc = start_process(_extract_args(long_dataset.root, killed_root, workers=1), prelude=hang_after_blocks(3))
+    assert kill_after_blocks(proc, killed_root, 3).code == -signal.SIGKILL
     (cache,) = list_caches(killed_root)
-    assert not cache.complete and 3 <= len(cache.blocks_done()) < cache.layout["n_blocks"]
+    assert not cache.complete and len(cache.blocks_done()) == 3 < cache.layout["n_blocks"]
     assert main(["verify", cache.key, "--cache", str(killed_root)]) == 1  # incomplete is a failing verdict
 
-    resumed = subprocess.run(_cli_extract(long_dataset.root, killed_root), env=env, capture_output=True, text=True)
-    assert resumed.returncode == 0, resumed.stderr
-    assert "resuming" in resumed.stdout
-    clean = subprocess.run(_cli_extract(long_dataset.root, clean_root), env=env, capture_output=True, text=True)
-    assert clean.returncode == 0, clean.stderr
+    capsys.readouterr()
+    assert main(_extract_args(long_dataset.root, killed_root, workers=0)) == 0
+    assert "resuming" in capsys.readouterr().out
+    assert main(_extract_args(long_dataset.root, clean_root, workers=0)) == 0
     a, b = FeatureCache(killed_root / cache.key), FeatureCache(clean_root / cache.key)
     assert a.complete and b.complete
     for cam in ("image", "image2"):

@@ -11,13 +11,13 @@ import os
 import signal
 import subprocess
 import sys
-import time
 from collections.abc import Iterator
 from functools import partial
 from pathlib import Path
 
 import pytest
 from helpers.caches import assert_same_cache, folder_files
+from helpers.probes import hang_after_blocks, kill_after_blocks, start_process
 from helpers.requests import extract_request
 
 from graftcache.cli import main
@@ -94,23 +94,18 @@ def test_two_concurrent_shard_processes_equal_one_process(single: Path, tmp_path
         f"{single.name}.shard-0-of-2.lock", f"{single.name}.shard-1-of-2.lock"]  # beside the cache, never in it
 
 
+KEPT = 2  # blocks shard 0 writes before its writer hangs and the test kills it
+
+
 @pytest.mark.slow
 def test_a_killed_shard_reruns_and_the_last_shard_completes(single: Path, tmp_path: Path) -> None:
     n_blocks = FeatureCache(single).layout["n_blocks"]
     first = set(shard_blocks(n_blocks, 0, 2))
-    proc = subprocess.Popen(_cli(tmp_path, "0/2"), env=_env(),
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    deadline, done = time.monotonic() + 300, set()
-    while time.monotonic() < deadline and proc.poll() is None and not done:
-        markers = (tmp_path / single.name / "_progress").glob("block-*.json")
-        done = {int(p.stem.split("-")[1]) for p in markers}
-        time.sleep(0.01)
-    proc.send_signal(signal.SIGKILL)
-    proc.wait()
-    assert proc.returncode == -signal.SIGKILL, "the shard finished before it could be interrupted"
+    proc = start_process(_cli(tmp_path, "0/2")[1:], env={"OMP_NUM_THREADS": "1"}, prelude=hang_after_blocks(KEPT))
+    assert kill_after_blocks(proc, tmp_path, KEPT).code == -signal.SIGKILL
     killed = FeatureCache(tmp_path / single.name)
     written = killed.blocks_done()
-    assert not killed.complete and written and written < first  # part of shard 0 only
+    assert not killed.complete and len(written) == KEPT and written < first  # part of shard 0 only
     # what a write killed half-way leaves (zarr's temporary file): the cache that completes must not hold it
     leftover = tmp_path / single.name / "features/image/2x2/c/0/0/0.0123456789abcdef.partial"
     leftover.parent.mkdir(parents=True, exist_ok=True)

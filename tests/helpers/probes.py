@@ -11,8 +11,10 @@ the folders a command may write changed.
 from __future__ import annotations
 
 import os
+import signal
 import subprocess
 import sys
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -20,6 +22,7 @@ from pathlib import Path
 import pytest
 
 from graftcache.cli import main
+from graftcache.store.cache import PROGRESS_DIR
 
 
 @dataclass(frozen=True)
@@ -56,6 +59,34 @@ def start_process(argv: Sequence[str], env: dict[str, str] | None = None, prelud
         ["-c", f"{prelude}\nimport sys\nfrom graftcache.cli import main\nsys.exit(main())"]
     return subprocess.Popen([sys.executable, *code, *map(str, argv)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True, env={**os.environ, "PYTHONPATH": path, **(env or {})})
+
+
+def hang_after_blocks(kept: int) -> str:
+    """A `start_process` prelude: the extraction writes its first `kept` blocks, then its writer waits forever before
+    the next one, so a SIGKILL sent once `kept` block markers exist lands at a known point (no race with a fast
+    writer on a loaded machine)."""
+    return f"""
+import threading, graftcache.store.cache as c
+write, calls = c.FeatureCache.write_block, []
+def write_then_hang(self, block, data):
+    calls.append(block)
+    if len(calls) > {kept}:
+        threading.Event().wait()
+    write(self, block, data)
+c.FeatureCache.write_block = write_then_hang
+"""
+
+
+def kill_after_blocks(proc: subprocess.Popen, root: Path, kept: int, timeout: float = 300) -> Outcome:
+    """SIGKILL `proc` (started with `hang_after_blocks(kept)`) once the cache under the cache root `root` holds
+    `kept` block markers; its outcome."""
+    deadline = time.monotonic() + timeout
+    while len(list(root.glob(f"*/{PROGRESS_DIR}/block-*.json"))) < kept:
+        assert proc.poll() is None, f"ended before writing {kept} blocks: {finish(proc).err[-3000:]}"
+        assert time.monotonic() < deadline, f"no {kept} blocks written within {timeout} s"
+        time.sleep(0.02)
+    proc.send_signal(signal.SIGKILL)
+    return finish(proc)
 
 
 def children(pid: int) -> list[int]:
