@@ -167,8 +167,15 @@ def test_an_error_raised_in_a_task_is_the_commands_one_line(ray_cluster: str, tm
     code = main(["extract", "--encoder", "timm:vit_tiny_patch16_224", "--random-init",
                  "--dataset", str(tmp_path / "ds"), "--cache", str(tmp_path / "cache"), "--executor", "ray",
                  "--no-progress"])
-    err = capsys.readouterr().err.strip().splitlines()
+    out, err = capsys.readouterr()
+    err = err.strip().splitlines()
     assert code == 2
+    import ray
+
+    # by default as many shards as the cluster runs tasks at once: one per CPU, 1 CPU per task
+    cpus = int(ray.cluster_resources()["CPU"])
+    said = f"ray: extract timm:vit_tiny_patch16_224 as {cpus} shard task(s), 0 GPU and 1 CPU each"
+    assert said in out + "\n".join(err)
     assert err[-1].startswith(f"graftcache extract: error: {tmp_path / 'ds'}") and "Traceback" not in "\n".join(err)
 
 
@@ -284,9 +291,8 @@ def test_ray_extract_in_shard_tasks_writes_the_local_bytes(ray_cluster: str, v3_
     monkeypatch.setenv("OMP_NUM_THREADS", "1")  # one torch thread, as in a Ray task given 1 CPU: the same float sums
     local = extract(dataclasses.replace(req, cache=str(tmp_path / "local")), log=lambda _: None)
     lines: list[str] = []
-    got = get_executor(ExecutorSettings(executor="ray")).extract(dataclasses.replace(req, cache=str(tmp_path / "ray")),
-                                                                 lines.append)
-    # by default as many shards as the cluster runs tasks at once: its 2 CPUs, 1 per task
+    got = get_executor(ExecutorSettings(executor="ray", shards=2)).extract(
+        dataclasses.replace(req, cache=str(tmp_path / "ray")), lines.append)
     assert "ray: extract timm:vit_tiny_patch16_224 as 2 shard task(s), 0 GPU and 1 CPU each" in lines
     assert (got.key, got.complete, got.reused, got.frames_encoded) == (local.key, True, False, local.n_frames)
     assert_same_cache(folder_files(Path(got.path)), folder_files(Path(local.path)))
