@@ -41,6 +41,7 @@ from helpers.probes import (
     finish,
     run_cli,
     start_process,
+    wait_for,
 )
 from helpers.requests import extract_request
 from safetensors.torch import save_file
@@ -500,14 +501,6 @@ s.FrameQueue.take = lambda self, k: (time.sleep(0.3), take(self, k))[1]
 GONE_WITHIN_S = 5.0  # SIGTERM -> every worker process gone (2 shared cores under load)
 
 
-def _wait_for(ready: Callable[[], bool], proc: subprocess.Popen, what: str, timeout: float = 300) -> None:
-    deadline = time.monotonic() + timeout
-    while not ready():
-        assert proc.poll() is None, f"ended before {what}: {finish(proc).err[-3000:]}"
-        assert time.monotonic() < deadline, f"no {what} within {timeout} s"
-        time.sleep(0.02)
-
-
 def _terminate(proc: subprocess.Popen) -> tuple[Outcome, list[int]]:
     """SIGTERM now; the outcome, and the worker processes still running GONE_WITHIN_S later."""
     workers = children(proc.pid)
@@ -566,7 +559,7 @@ def test_sigterm_during_extract_stops_workers_keeps_blocks_and_the_rerun_resumes
         log = writes.read_text().split() if writes.exists() else []
         return log.count("end") >= 1 and log[-2:-1] == ["start"] and bool(children(proc.pid))
 
-    _wait_for(writing, proc, "a finished block, the next one being written, with workers running")
+    wait_for(writing, proc, "a finished block, the next one being written, with workers running")
     stopped, left = _terminate(proc)
     assert_one_line_error(stopped, ("extract", "SIGTERM", "run the same command again to resume"), code=143)
     assert len(stopped.err.splitlines()) == 1, stopped.err  # nothing printed after it either
@@ -591,7 +584,7 @@ def test_sigterm_during_fit_stops_workers_keeps_rows_and_the_rerun_resumes(
     args = (FIT.replace("--seed 0", "--seeds 2") + " --num-workers 2 --cache {cache}").format(**world.paths, out=out)
     before = Snapshot.of(world.base)
     proc = start_process(args.split(), prelude=SLOW_FIT)
-    _wait_for(lambda: out.exists() and bool(children(proc.pid)), proc, "a written row with workers running")
+    wait_for(lambda: out.exists() and bool(children(proc.pid)), proc, "a written row with workers running")
     stopped, left = _terminate(proc)
     assert_one_line_error(stopped, ("fit", "SIGTERM", "run the same command again to resume"), code=143)
     assert not left, f"worker processes {left} outlived the command by {GONE_WITHIN_S} s"

@@ -15,7 +15,7 @@ import signal
 import subprocess
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -77,14 +77,19 @@ c.FeatureCache.write_block = write_then_hang
 """
 
 
-def kill_after_blocks(proc: subprocess.Popen, root: Path, kept: int, timeout: float = 300) -> Outcome:
+def wait_for(ready: Callable[[], bool], proc: subprocess.Popen, what: str, timeout: float = 300) -> None:
+    """Poll `ready` until it holds; fails, naming `what`, if `proc` ends first or `timeout` seconds pass."""
+    deadline = time.monotonic() + timeout
+    while not ready():
+        assert proc.poll() is None, f"ended before {what}: {finish(proc).err[-3000:]}"
+        assert time.monotonic() < deadline, f"no {what} within {timeout} s"
+        time.sleep(0.02)
+
+
+def kill_after_blocks(proc: subprocess.Popen, root: Path, kept: int) -> Outcome:
     """SIGKILL `proc` (started with `hang_after_blocks(kept)`) once the cache under the cache root `root` holds
     `kept` block markers; its outcome."""
-    deadline = time.monotonic() + timeout
-    while len(list(root.glob(f"*/{PROGRESS_DIR}/block-*.json"))) < kept:
-        assert proc.poll() is None, f"ended before writing {kept} blocks: {finish(proc).err[-3000:]}"
-        assert time.monotonic() < deadline, f"no {kept} blocks written within {timeout} s"
-        time.sleep(0.02)
+    wait_for(lambda: len(list(root.glob(f"*/{PROGRESS_DIR}/block-*.json"))) >= kept, proc, f"{kept} written blocks")
     proc.send_signal(signal.SIGKILL)
     return finish(proc)
 
