@@ -56,11 +56,13 @@ class ClosedLoop:
 
 def wilson(successes: int, n: int, z: float = Z95) -> tuple[float, float]:
     """Wilson score interval of a success rate: unlike the normal interval it stays inside [0, 1] and is not a
-    point at 0 or n successes, which is where tiny policies' rates sit."""
+    point at 0 or n successes, which is where tiny policies' rates sit. The bounds hold the rate itself: at 0 or n
+    successes the formula's bound is the rate exactly, which floats miss by an ulp (0 of 10 gave a low bound of
+    2.8e-17, above the rate: a negative error bar, which matplotlib refuses)."""
     p = successes / n
     centre = (p + z * z / (2 * n)) / (1 + z * z / n)
     half = z / (1 + z * z / n) * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n))
-    return max(0.0, centre - half), min(1.0, centre + half)
+    return max(0.0, min(p, centre - half)), min(1.0, max(p, centre + half))
 
 
 def spearman(x: Sequence[float], y: Sequence[float]) -> float | None:

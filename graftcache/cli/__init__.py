@@ -42,7 +42,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Run one command. `argv` None: this is the process's own entry point (the console script,
     `python -m graftcache`), which also keeps signals to one line during interpreter teardown."""
     os.environ.setdefault("TOKENIZERS_PARALLELISM", "false")
-    from graftcache.cli.signals import describe, exit_code, settle_io, stoppable
+    from graftcache.cli.signals import STOP, describe, exit_code, settle_io, stoppable
 
     command, started = "", False
     with stoppable(whole_process=argv is None) as stops:
@@ -53,6 +53,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             stops.command_started()
             return _run(args)
         except KeyboardInterrupt as stop:
+            STOP.take()
             settle_io()  # nothing the command started may print after its last line
             then = ("; run the same command again to resume" if started
                     else " while starting; nothing was done")

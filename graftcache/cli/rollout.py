@@ -78,6 +78,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from graftcache import results
+    from graftcache.rollout import table
     from graftcache.rollout.libero import LiberoSimulator
     from graftcache.rollout.run import EXPORTS_FOLDER, RolloutRequest, default_rollouts, roll_out
 
@@ -86,6 +88,8 @@ def run(args: argparse.Namespace) -> int:
                          suites=args.suites, score=args.score, tasks=args.tasks,
                          episodes_per_task=args.episodes_per_task, max_steps=args.max_steps, seed=args.seed,
                          command=args.command_line)
+    results.read_for_report(req.results)  # both files checked before the simulator's minutes of imports
+    table.read(req.rollouts)
     sim = LiberoSimulator(req.results, rollouts.absolute().parent / EXPORTS_FOLDER, cache=args.cache, runs=args.runs,
                           max_steps=args.max_steps, videos=args.videos)
     try:

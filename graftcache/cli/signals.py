@@ -9,6 +9,11 @@ SIGTERM, so none outlives the command; forked workers get the default SIGTERM ac
 they die at once instead of running this handler. While a whole process is still starting (importing torch) or
 already tearing down, there is nothing to keep: a signal is one line and an immediate exit (`_exit_at_once`).
 
+A stop must not be lost either: libraries the command runs swallow it now and then (hf-libero builds a scene inside
+bare `except: continue` loops, so a SIGTERM landing there was dropped and the rollout finished with exit 0). So the
+stop, once raised, is raised again every REDELIVER_S_UNHANDLED until the command has taken it (`_Stop`): a swallowed
+one is raised again in ordinary code, and one taken is never raised twice.
+
 Zarr runs every store read and write as a coroutine on an event loop thread of its own, which it stops and closes
 at exit. A signal that cuts the main thread off from one it is waiting for leaves it running there; closed under
 it, the loop drops it and Python prints "coroutine '_runner' was never awaited" after the command's last line.
@@ -17,6 +22,7 @@ So before that line, the stopped command lets the IO it started finish (`settle_
 
 from __future__ import annotations
 
+import _thread
 import multiprocessing
 import os
 import signal
@@ -33,6 +39,7 @@ STOPPED = {signal.SIGINT: "interrupted", signal.SIGTERM: "terminated (SIGTERM)"}
 WORKER_GRACE_S = 2.0  # how long stopped workers get to exit before SIGKILL
 REDELIVER_S = 0.01  # a signal lost in a finaliser is sent again this much later (`_redeliver`)
 SETTLE_S = 10.0  # how long a stopped command waits for the store IO it started (`settle_io`)
+REDELIVER_S_UNHANDLED = 0.5  # a stop the command has not taken by then is raised again (`_Stop`)
 
 
 class Terminated(KeyboardInterrupt):
@@ -84,16 +91,54 @@ def settle_io() -> None:
         asyncio.run_coroutine_threadsafe(drain(), loop).result(SETTLE_S + 2.0)
 
 
-def _on_term(signum: int, frame: FrameType | None) -> None:
-    # torch's SIGCHLD handler would report the workers stopped below as a crash ("worker killed by signal")
-    signal.signal(signal.SIGCHLD, signal.SIG_DFL)
-    stop_workers()
-    raise Terminated()
+class _Stop:
+    """The stop of the running command: raised once a signal comes, raised again (the signal re-sent to this process
+    every REDELIVER_S_UNHANDLED) until `taken`, then ignored: the command is already stopping."""
+
+    def __init__(self) -> None:
+        self.signum: int | None = None
+        self.taken = False
+        self.lock = threading.Lock()
+
+    def reset(self) -> None:
+        with self.lock:
+            self.signum, self.taken = None, False
+
+    def raise_stop(self, signum: int, frame: FrameType | None) -> None:
+        """The handler of SIGINT and SIGTERM while the command runs."""
+        if self.taken:
+            return
+        if signum == signal.SIGTERM:
+            # torch's SIGCHLD handler would report the workers stopped below as a crash ("worker killed by signal")
+            signal.signal(signal.SIGCHLD, signal.SIG_DFL)
+            stop_workers()
+        if self.signum is None:
+            self.signum = signum
+            threading.Thread(target=self._resend, daemon=True, name="graftcache-stop").start()
+        raise Terminated() if signum == signal.SIGTERM else KeyboardInterrupt()
+
+    def _resend(self) -> None:
+        """Trip the signal's Python handler again, not the signal itself: a real signal every half second cut the
+        file reads of MuJoCo's scene compiler (EINTR), which started over each time and never finished."""
+        while True:
+            threading.Event().wait(REDELIVER_S_UNHANDLED)
+            with self.lock:
+                if self.taken or self.signum is None:
+                    return
+                _thread.interrupt_main(self.signum)
+
+    def take(self) -> None:
+        """The command has the stop (main's handler of KeyboardInterrupt): no more of it is raised."""
+        with self.lock:
+            self.taken = True
+
+
+STOP = _Stop()
 
 
 def _reset_in_child() -> None:
-    """A forked worker inherits `_on_term`; it must die of SIGTERM at once, as a worker without it would."""
-    if signal.getsignal(signal.SIGTERM) is _on_term:
+    """A forked worker inherits `STOP.raise_stop`; it must die of SIGTERM at once, as a worker without it would."""
+    if signal.getsignal(signal.SIGTERM) == STOP.raise_stop:
         signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
@@ -113,11 +158,13 @@ def _redeliver(unraisable: Any) -> None:
     """sys.unraisablehook: a KeyboardInterrupt raised inside a finaliser or a weakref callback (as an import or
     the garbage collector runs them) would be printed as "Exception ignored" and lost; the signal is sent again
     a moment later (from a thread: sent from here, it would be raised inside this hook), so it is raised in
-    ordinary code."""
+    ordinary code. Once a stop has come, any other one is debris of what the stop cut short (a simulator's render
+    context whose __init__ it interrupted fails in its __del__, robosuite's MjRenderContext on a stopped rollout):
+    not printed, since the command's one line must stay its last."""
     if isinstance(unraisable.exc_value, KeyboardInterrupt):
         signum = getattr(unraisable.exc_value, "signum", signal.SIGINT)
         threading.Timer(REDELIVER_S, os.kill, (os.getpid(), signum)).start()
-    else:
+    elif STOP.signum is None:
         sys.__unraisablehook__(unraisable)
 
 
@@ -129,8 +176,9 @@ class Stops:
 
     def command_started(self) -> None:
         if self.installs:
-            signal.signal(signal.SIGINT, signal.default_int_handler)
-            signal.signal(signal.SIGTERM, _on_term)
+            STOP.reset()
+            signal.signal(signal.SIGINT, STOP.raise_stop)
+            signal.signal(signal.SIGTERM, STOP.raise_stop)
 
 
 _FORK_HOOK: list[bool] = []
@@ -166,6 +214,7 @@ def stoppable(*, whole_process: bool) -> Iterator[Stops]:
             signal.signal(signal.SIGINT, exiting)
             signal.signal(signal.SIGTERM, exiting)
         else:
+            STOP.take()  # main called in-process: nothing of its stop may reach the caller
             for s, handler in saved.items():
                 signal.signal(s, handler if handler is not None else signal.SIG_DFL)
             sys.unraisablehook = hook

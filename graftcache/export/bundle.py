@@ -1,16 +1,23 @@
 """`graftcache export`: a results row's cell -> a folder lerobot loads as a policy of type `graftcache`.
 
-The folder is written beside its destination and renamed into place only once the policy it describes has been built
-from it (the numerics fingerprint recomputed, the projector loaded into the grafted base), so a folder at `out` is
-always a complete export.
+The folder is written beside its destination, in a folder of its own process's (so two exports of one cell at once
+never write into one folder), and renamed into place only once the policy it describes has been built from it (the
+numerics fingerprint recomputed, the projector loaded into the grafted base), so a folder at `out` is always a
+complete export; the first of two concurrent exports to finish places its folder, the other finds it there. `out`
+must be absent or empty: a folder holding anything else is refused, never emptied. An export records no path of its
+own (its preprocessor carries the cell's cameras, graftcache.export.processors), so it runs wherever it is moved or
+copied; it names the base policy and the cache manifest of the encoder it needs.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import errno
 import json
+import os
 import shlex
 import shutil
+import tempfile
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -106,10 +113,11 @@ def run_folder(row: dict[str, Any], results_path: str | Path, cache: str | None,
 
 
 def export_run(run_id: str, results_path: str | Path, out: str | Path, *, cache: str | None = None,
-               runs: str | None = None, log: Callable[[str], None] = print) -> Path:
-    """Write the export of cell `run_id` of `results_path` to `out`; returns `out`."""
+               runs: str | None = None, reuse: bool = False, log: Callable[[str], None] = print) -> Path:
+    """Write the export of cell `run_id` of `results_path` to `out`; returns `out`. `reuse`: a complete export of
+    the run already at `out` (another process's, say) is returned as it is instead of refused."""
     from graftcache.backbones import get_backbone
-    from graftcache.export.configuration_graftcache import GraftcacheConfig
+    from graftcache.export.configuration_graftcache import EXPORT_FORMAT, GraftcacheConfig
     from graftcache.export.features import MANIFEST_FILE
     from graftcache.export.modeling_graftcache import PROJECTOR_FILE, GraftcachePolicy
     from graftcache.export.processors import export_pipelines
@@ -121,9 +129,12 @@ def export_run(run_id: str, results_path: str | Path, out: str | Path, *, cache:
     if not control.closed_loop:
         raise ExportError(f"run {run_id}: control {control.name} has no closed-loop meaning (it feeds features of "
                           f"other frames); export another control")
-    out = Path(out)
-    if (out / "config.json").is_file():
-        raise ExportError(f"{out}: already holds an export; remove it or choose another --out")
+    out = Path(out).absolute()
+    if export_of(out) == run_id:
+        if reuse:
+            return out
+        raise ExportError(f"{out}: already holds the export of run {run_id}; remove it or choose another --out")
+    check_destination(out)
     policy = base_policy(row, cache)
     feature_cache = find_cache(reading_root(cache), row["encoder"], key=row["cache_key"])
     adapter_cls = get_backbone(row["backbone"])
@@ -136,26 +147,88 @@ def export_run(run_id: str, results_path: str | Path, out: str | Path, *, cache:
         encoder=row["encoder"], control=control.name, pool_grid=row["pool_grid"], cameras=cameras,
         lora_rank=cell.lora_rank, num_denoise_steps=cell.num_denoise_steps,
         compute_dtype=row["compute_dtype"], n_action_steps=int(getattr(base.config, "n_action_steps", 1)),
+        export_format=EXPORT_FORMAT,
         input_features={**image_features, "observation.state": base.config.input_features["observation.state"]},
         output_features=dict(base.config.output_features), device="cpu")
-    partial = out.with_name(out.name + ".partial")
-    shutil.rmtree(partial, ignore_errors=True)
-    partial.mkdir(parents=True)
-    config._save_pretrained(partial)
-    (partial / MANIFEST_FILE).write_text(json.dumps({"key": feature_cache.key,
-                                                      "manifest": feature_cache.manifest.to_dict()}, default=str))
-    if control.train:
-        shutil.copyfile(folder / PROJECTOR_WEIGHTS, partial / PROJECTOR_FILE)
-    for pipeline in export_pipelines(str(out.absolute()), row["backbone"], policy):
-        pipeline.save_pretrained(partial)
-    check_processors(partial)
     del base
-    GraftcachePolicy(config, partial)  # refuses numerics drift and a projector that does not fit, here
-    shutil.rmtree(out, ignore_errors=True)
-    partial.rename(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    partial = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
+    try:
+        config._save_pretrained(partial)
+        (partial / MANIFEST_FILE).write_text(json.dumps({"key": feature_cache.key,
+                                                          "manifest": feature_cache.manifest.to_dict()}, default=str))
+        if control.train:
+            shutil.copyfile(folder / PROJECTOR_WEIGHTS, partial / PROJECTOR_FILE)
+        for pipeline in export_pipelines(run_id, cameras, row["backbone"], policy):
+            pipeline.save_pretrained(partial)
+        check_processors(partial)
+        GraftcachePolicy(config, partial)  # refuses numerics drift and a projector that does not fit, here
+        placed = place(partial, out, run_id)
+    finally:
+        shutil.rmtree(partial, ignore_errors=True)
     log(f"exported {row['backbone']}/{row['encoder']}/{row['suite']} seed {row['seed']} control {control.name} "
-        f"(run {run_id}) to {out}")
+        f"(run {run_id}) to {out}" + ("" if placed else " (another process placed the same export there first)"))
     return out
+
+
+def required_files(folder: Path) -> list[str]:
+    """The files a complete export holds (the projector only where its control trains one)."""
+    from graftcache.backbones.checkpoint import POSTPROCESSOR_FILE, PREPROCESSOR_FILE
+    from graftcache.export.features import MANIFEST_FILE
+    from graftcache.export.modeling_graftcache import PROJECTOR_FILE
+
+    config = json.loads((folder / "config.json").read_text())
+    trains = get_control(config.get("control", "none")).train
+    return ["config.json", MANIFEST_FILE, PREPROCESSOR_FILE, POSTPROCESSOR_FILE, *([PROJECTOR_FILE] if trains else [])]
+
+
+def export_of(folder: Path) -> str | None:
+    """The run_id of the complete export at `folder`, None where there is none (nothing there, another kind of
+    folder, an export of another format, or one missing one of its files, which only an older graftcache or a hand
+    could leave)."""
+    from graftcache.export.configuration_graftcache import EXPORT_FORMAT
+
+    try:
+        config = json.loads((folder / "config.json").read_text())
+        complete = (config.get("type") == "graftcache" and config.get("export_format") == EXPORT_FORMAT
+                    and all((folder / f).is_file() for f in required_files(folder)))
+    except (OSError, ValueError, GraftcacheError):
+        return None
+    return config.get("run_id") if complete else None
+
+
+def check_destination(out: Path) -> None:
+    """Refuse, in one line and before any work, an `out` that is not a folder to write: a file, or a folder that
+    holds anything (an export's files included: never emptied for the user)."""
+    if out.exists() and not out.is_dir():
+        raise ExportError(f"{out}: is a file, not a folder; choose another --out")
+    held = sorted(p.name for p in out.iterdir()) if out.is_dir() else []
+    if held:
+        what = "an incomplete or other export" if "config.json" in held else "files that are not an export"
+        shown = ", ".join(held[:3]) + (f" and {len(held) - 3} more" if len(held) > 3 else "")
+        raise ExportError(f"{out}: holds {what} ({shown}); nothing was written: remove it or choose another --out")
+
+
+def place(partial: Path, out: Path, run_id: str) -> bool:
+    """Rename the finished `partial` to `out`; False where another process placed the same run's export there
+    first. Anything else found there by then is refused as check_destination refuses it. An empty folder at `out`
+    (`--out .`, say) stays the folder it is (renamed over, it would leave a shell inside it in a deleted folder):
+    the files move into it, config.json last, so export_of finds it complete or not at all."""
+    if out.is_dir() and not any(out.iterdir()):
+        for file in sorted(partial.iterdir(), key=lambda f: f.name == "config.json"):
+            os.replace(file, out / file.name)
+        return True
+    try:
+        os.rename(partial, out)
+        return True
+    except OSError as e:
+        if e.errno not in (errno.ENOTEMPTY, errno.EEXIST, errno.ENOTDIR):
+            raise
+    if export_of(out) == run_id:
+        return False
+    check_destination(out)  # refuses what is there now; emptied meanwhile, it takes the export
+    os.rename(partial, out)
+    return True
 
 
 #: Steps lerobot-eval overrides in every preprocessor it loads (lerobot/scripts/lerobot_eval.py): a saved

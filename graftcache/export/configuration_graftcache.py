@@ -9,6 +9,9 @@ from lerobot.configs.policies import PreTrainedConfig
 from lerobot.optim.optimizers import AdamWConfig
 
 POLICY_TYPE = "graftcache"
+#: The export folder's format: 2 carries the cell's cameras in its preprocessor (relocatable); 1, which config.json
+#: files without the field are, named the export's absolute path there instead.
+EXPORT_FORMAT = 2
 
 
 @PreTrainedConfig.register_subclass(POLICY_TYPE)
@@ -29,6 +32,7 @@ class GraftcacheConfig(PreTrainedConfig):
     compute_dtype: str = "fp32"       # the cell's, as its row records it
     n_action_steps: int = 1           # actions executed per predicted chunk (the base policy's own setting)
     accept_numerics_drift: bool = False
+    export_format: int = 1            # EXPORT_FORMAT for every export written now; absent (1) in older ones
 
     @property
     def observation_delta_indices(self) -> None:

@@ -23,7 +23,7 @@ from torch import Tensor
 
 from graftcache.backbones import get_backbone
 from graftcache.errors import ExportError
-from graftcache.export.configuration_graftcache import GraftcacheConfig
+from graftcache.export.configuration_graftcache import EXPORT_FORMAT, GraftcacheConfig
 from graftcache.export.features import load_cell_features, read_manifest
 from graftcache.fit.controls import get_control
 from graftcache.runtime import autocast, resolve_dtype
@@ -42,6 +42,9 @@ class GraftcachePolicy(PreTrainedPolicy):
         folder = Path(folder or config.pretrained_path or "")
         if not (folder / "config.json").is_file():
             raise ExportError(f"{folder}: not a graftcache export folder (no config.json)")
+        if config.export_format != EXPORT_FORMAT:
+            raise ExportError(f"{folder}: an export of format {config.export_format}, written by another graftcache "
+                              f"(this one reads {EXPORT_FORMAT}); export run {config.run_id} again")
         self.folder = folder
         device = str(config.device or "cpu")
         manifest = read_manifest(folder)

@@ -19,9 +19,7 @@ adapter's `postprocessor_input` says, as offline scoring's `unnormalize` does.
 from __future__ import annotations
 
 import functools
-import json
-from dataclasses import dataclass
-from pathlib import Path
+from dataclasses import dataclass, field
 from typing import Any
 
 from lerobot.processor import DeviceProcessorStep, ProcessorStep, ProcessorStepRegistry, RenameObservationsProcessorStep
@@ -42,26 +40,24 @@ FEATURES_STEP = "graftcache_cell_features"
 @ProcessorStepRegistry.register(FEATURES_STEP)
 @dataclass
 class CellFeaturesStep(ProcessorStep):
-    """Checks that the observation holds a frame for every camera the cell reads (one line naming the camera and
-    `--rename_map` otherwise), before any step runs; the frames pass on to the policy, which computes the features.
-    `folder`: the export; `device`: kept so that the preprocessors saved by earlier exports load."""
+    """Checks that the observation holds a frame for every camera the cell reads (one line naming the export's run,
+    the camera and `--rename_map` otherwise), before any step runs; the frames pass on to the policy, which computes
+    the features. It carries the cell's cameras (policy camera -> the cache's camera) itself, not the path of the
+    export, so a moved or copied export checks what it runs. `device`: kept for lerobot's device overrides."""
 
-    folder: str = ""
+    run_id: str = ""
+    cameras: dict[str, str] = field(default_factory=dict)
     device: str = "cpu"
 
-    @functools.cached_property
-    def cameras(self) -> dict[str, str]:
-        return json.loads((Path(self.folder) / "config.json").read_text())["cameras"]
-
     def __call__(self, transition: Any) -> Any:
-        check_cameras(transition[TransitionKey.OBSERVATION], self.cameras, self.folder)
+        check_cameras(transition[TransitionKey.OBSERVATION], self.cameras, f"the export of run {self.run_id}")
         return transition
 
     def transform_features(self, features: dict) -> dict:
         return features
 
     def get_config(self) -> dict[str, Any]:
-        return {"folder": self.folder, "device": self.device}
+        return {"run_id": self.run_id, "cameras": dict(self.cameras), "device": self.device}
 
 
 @ProcessorStepRegistry.register(STEP)
@@ -110,12 +106,12 @@ class BasePostprocessorStep(ProcessorStep):
             step.reset()
 
 
-def export_pipelines(folder: str, backbone: str, source: str, device: str = "cpu") -> tuple[
+def export_pipelines(run_id: str, cameras: dict[str, str], backbone: str, source: str, device: str = "cpu") -> tuple[
         PolicyProcessorPipeline, PolicyProcessorPipeline]:
-    """The (pre, post) pipelines the export at `folder` saves: rename -> the cell's cameras checked -> device; the
-    base's postprocessor."""
+    """The (pre, post) pipelines the export of run `run_id` saves: rename -> the cell's `cameras` checked -> device;
+    the base's postprocessor."""
     pre = PolicyProcessorPipeline(
-        steps=[RenameObservationsProcessorStep(rename_map={}), CellFeaturesStep(folder, device),
+        steps=[RenameObservationsProcessorStep(rename_map={}), CellFeaturesStep(run_id, cameras, device),
                DeviceProcessorStep(device=device)],
         name="policy_preprocessor", to_transition=batch_to_transition, to_output=transition_to_batch)
     post = PolicyProcessorPipeline(

@@ -94,16 +94,13 @@ class LiberoSimulator:
         return Suite(n_tasks=len(_get_suite(name).tasks), max_steps=self.max_steps or TASK_SUITE_MAX_STEPS[name])
 
     def export(self, row: Mapping[str, Any]) -> Path:
-        """The cell's export folder, written on first use (graftcache export writes it whole or not at all)."""
-        import json
-
+        """The cell's export folder, written on first use (graftcache export writes it whole or not at all, and a
+        rollout running beside this one may write it first). A folder there that is not the run's complete export is
+        refused, as `graftcache export` refuses it: exports/ may hold what a person put there."""
         from graftcache.export.bundle import export_run
 
-        folder = self.exports / row["run_id"]
-        config = folder / "config.json"
-        if config.is_file() and json.loads(config.read_text()).get("run_id") == row["run_id"]:
-            return folder
-        return export_run(row["run_id"], self.results, folder, cache=self.cache, runs=self.runs, log=self.log)
+        return export_run(row["run_id"], self.results, self.exports / row["run_id"], cache=self.cache, runs=self.runs,
+                          reuse=True, log=self.log)
 
     def env_config(self, suite: str, task: int) -> Any:
         from lerobot.envs.factory import make_env_config

@@ -37,6 +37,10 @@ from graftcache.rollout.select import select_rows
 ROLLOUTS_FILE = "rollouts.parquet"  # the default: beside the results file
 EXPORTS_FOLDER = "exports"          # beside the rollouts file: one export folder per run_id
 VIDEOS_FOLDER = "videos"            # beside the rollouts file: videos/RUN_ID/<episode>.mp4 (video_of)
+MAX_SEED = 2**32 - 1                # numpy's and gymnasium's seeds are unsigned 32-bit integers
+#: LIBERO has 50 official init states per task (episode k starts from state k mod 50): 1,000 episodes a task is
+#: 20 passes over them, past any study's need, and keeps a plan that hashes every episode small
+MAX_EPISODES_PER_TASK = 1000
 
 
 @dataclass(frozen=True)
@@ -56,6 +60,16 @@ class RolloutRequest:
     max_steps: int | None = None
     seed: int = 1000
     command: str = ""
+
+    def __post_init__(self) -> None:
+        """Refuse, in one line, counts past what an episode's seed and the plan can hold: episode k is seeded
+        seed + k, which numpy's and the simulator's seeding take as an unsigned 32-bit integer."""
+        if not 1 <= self.episodes_per_task <= MAX_EPISODES_PER_TASK:
+            raise RolloutError(f"--episodes-per-task {self.episodes_per_task}: must be 1 to {MAX_EPISODES_PER_TASK}")
+        last = self.seed + self.episodes_per_task - 1
+        if self.seed < 0 or last > MAX_SEED:
+            raise RolloutError(f"--seed {self.seed}: episodes are seeded {self.seed} to {last}, which must lie in 0 to "
+                               f"{MAX_SEED} (an unsigned 32-bit seed)")
 
 
 def default_rollouts(results_path: str | Path) -> Path:
@@ -123,7 +137,7 @@ def describe(row: Mapping[str, Any]) -> str:
 def roll_out(req: RolloutRequest, sim: Simulator, log: Callable[[str], None] = progress_write) -> pl.DataFrame:
     """Run the request's missing episodes with `sim` and return the rollouts file's rows of the request's
     episodes."""
-    rows = select_rows(results.read(req.results), run_ids=req.run_ids, top=req.top, suites=req.suites,
+    rows = select_rows(results.read_for_report(req.results), run_ids=req.run_ids, top=req.top, suites=req.suites,
                        score=req.score)
     episodes = plan(rows, req, sim)
     done = set(table.read(req.rollouts)["episode_id"].to_list())
@@ -137,10 +151,12 @@ def roll_out(req: RolloutRequest, sim: Simulator, log: Callable[[str], None] = p
             f"other {len(missing)}")
     log(f"rolling out {cells} cell(s), {len(missing)} episode(s) into {req.rollouts}")
     by_run = {r["run_id"]: r for r in rows.iter_rows(named=True)}
-    with progress(total=len(missing), desc="rollout", unit="episode") as bar:
-        for run_id in dict.fromkeys(e.run_id for e in missing):
-            _run_cell(req, sim, by_run[run_id], [e for e in missing if e.run_id == run_id], bar, log)
-    results.drop_claims_folder(req.rollouts)
+    try:
+        with progress(total=len(missing), desc="rollout", unit="episode") as bar:
+            for run_id in dict.fromkeys(e.run_id for e in missing):
+                _run_cell(req, sim, by_run[run_id], [e for e in missing if e.run_id == run_id], bar, log)
+    finally:  # stopped or failed too: no empty claims folder is left beside the file
+        results.drop_claims_folder(req.rollouts)
     return _of(req, episodes)
 
 

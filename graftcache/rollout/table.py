@@ -75,6 +75,9 @@ def read(path: str | Path) -> pl.DataFrame:
     except (pl.exceptions.PolarsError, OSError) as e:
         raise RolloutError(f"{path}: not a Parquet rollouts table ({results.failure_reason(e, path)}); pass another "
                            "--rollouts") from None
+    if "episode_id" not in table.columns:
+        what = "a results table" if "eval_mse" in table.columns else "no rollouts table"
+        raise RolloutError(f"{path}: {what}, not rollouts rows (no episode_id column); pass another --rollouts")
     if "format_version" in table.columns and (table["format_version"] > FORMAT_VERSION).any():
         raise RolloutError(f"{path}: rollouts rows of format {table['format_version'].max()}, newer than this "
                            f"graftcache's ({FORMAT_VERSION}): pass another --rollouts")

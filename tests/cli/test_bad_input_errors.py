@@ -538,6 +538,26 @@ def test_a_ctrl_c_lost_in_a_finaliser_is_raised_again() -> None:
             time.sleep(0.002)
 
 
+def test_a_sigterm_swallowed_by_a_bare_except_is_raised_again() -> None:
+    """hf-libero builds a scene inside `except: continue` loops: a SIGTERM landing there was dropped and the rollout
+    ran to the end, exit 0. The stop is raised again until the command takes it, and never after."""
+    from graftcache.cli.signals import REDELIVER_S_UNHANDLED, STOP, Terminated
+
+    swallowed = 0
+    with stoppable(whole_process=False) as stops, pytest.raises(Terminated):
+        stops.command_started()
+        try:
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(1)
+        except:  # noqa: E722  (what the library does)
+            swallowed += 1
+        deadline = time.monotonic() + 20 * REDELIVER_S_UNHANDLED
+        while time.monotonic() < deadline:
+            time.sleep(0.01)
+    assert swallowed == 1 and STOP.taken
+    time.sleep(3 * REDELIVER_S_UNHANDLED)  # taken: nothing more arrives (it would fail this test with a Terminated)
+
+
 def test_a_store_call_cut_off_by_sigterm_finishes_before_the_last_line(tmp_path: Path) -> None:
     proc = start_process(["merge-rows", tmp_path / "a.parquet", "--results", tmp_path / "r.parquet"],
                          prelude=CUT_OFF_IO)

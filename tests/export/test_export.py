@@ -11,6 +11,7 @@ units at the dataset's action width, as offline scoring unnormalises it."""
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -18,23 +19,23 @@ import polars as pl
 import pytest
 import torch
 from fixtures.tiny_zoo import CONTROLS, SAMPLE, SUITE, TinyZoo
-from helpers.probes import run_cli
+from helpers.probes import run_cli, start_process
 from safetensors.torch import load_file
 
 from graftcache import results
 from graftcache.backbone_table import BACKBONES
 from graftcache.backbones import get_backbone
 from graftcache.datasets import open_dataset
+from graftcache.encoders.fingerprint import TOLERANCE
+from graftcache.errors import ExportError
+from graftcache.export.bundle import export_of
 from graftcache.fit.controls import get_control
 from graftcache.fit.data import load_lowdim, read_grid
 from graftcache.fit.loop import raw_batch
 from graftcache.pooling import parse_grid
+from graftcache.runtime import autocast, resolve_compute_dtype, resolve_dtype
 from graftcache.scoring import frame_noise
 from graftcache.store import FeatureCache
-
-#: features are stored fp16: one step of fp16 relative to the chunk's scale (also in raw units: the sample's action
-#: stats stretch no dim, std and half ranges are all <= 1)
-TOLERANCE = 2e-3
 
 
 def offline_chunk(row: dict, root: Path, policy: Path, run_folder: Path) -> tuple[torch.Tensor, torch.Tensor, dict,
@@ -63,7 +64,8 @@ def offline_chunk(row: dict, root: Path, policy: Path, run_folder: Path) -> tupl
                 params[n].copy_(t)
     batch = adapter.prepare(raw_batch(low, pos, control.transform(feats), cams))
     noise = frame_noise(low.rows[pos], adapter.chunk_size, adapter.max_action_dim)
-    chunk = adapter.predict(batch, noise=noise, num_steps=2).float()
+    with autocast(adapter.device, resolve_dtype(row["compute_dtype"])):  # as evaluate_together runs it
+        chunk = adapter.predict(batch, noise=noise, num_steps=2).float()
     episode, frame = int(low.episode_index[pos[0]]), int(low.frame_index[pos[0]])
     video = open_dataset(SAMPLE).decode_episode(episode, list(cams.values()))
     observation = {f"observation.images.{c}": torch.from_numpy(video[c][frame]).permute(2, 0, 1)[None].float() / 255
@@ -107,24 +109,32 @@ def check_export(row: dict, root: Path, table: Path, policy: Path, tmp_path: Pat
     offline, raw, observation, row_id = offline_chunk(row, root, policy, table.parent / "runs" / row["run_id"])
     exported, action, action_dim = exported_chunk(out, observation, row_id)
     assert exported.shape == offline.shape
-    scale = float(offline.abs().max())
-    torch.testing.assert_close(exported, offline, rtol=0, atol=TOLERANCE * max(1.0, scale))
+    # both sides compute in the row's dtype; what they do not share is the encoder's run (the cache's batches, the
+    # export's one frame) before the features' storage rounding: the numerics check's bound for that dtype, relative
+    # to the chunk's scale (also in raw units: the sample's action stats stretch no dim). Measured: 0 in both.
+    atol = TOLERANCE[row["compute_dtype"]] * max(1.0, float(offline.abs().max()))
+    torch.testing.assert_close(exported, offline, rtol=0, atol=atol)
     assert action.shape == (1, action_dim) == raw[:, 0].shape
-    torch.testing.assert_close(action, raw[:, 0], rtol=0, atol=TOLERANCE * max(1.0, scale))
+    torch.testing.assert_close(action, raw[:, 0], rtol=0, atol=atol)
 
 
 @pytest.mark.slow  # an export; the tiny policy and its fit (1-2 min per backbone on 2 cores) are shared: tiny_zoo
 @pytest.mark.parametrize("name", sorted(BACKBONES))
-def test_export_returns_the_scored_chunk(name: str, tiny_zoo: TinyZoo, tmp_path: Path, capsys) -> None:
-    done = tiny_zoo.fitted(name, CONTROLS, capsys)  # the every-control fit of tests/backbones/test_zoo_backbones_cli.py
+def test_export_returns_the_scored_chunk(name: str, auto_resolution: str, tiny_zoo: TinyZoo, tmp_path: Path,
+                                         capsys) -> None:
+    """In the resolution of `auto` this machine has, the plain cell of the every-control fit of
+    tests/backbones/test_zoo_backbones_cli.py; in the other, a fit of the plain cell alone."""
+    own = auto_resolution == resolve_compute_dtype("auto", "cpu")
+    done = tiny_zoo.fitted(name, CONTROLS if own else (), capsys, auto=auto_resolution)
     row = results.read(done.table).filter(pl.col("control") == "none").row(0, named=True)
+    assert row["compute_dtype"] == auto_resolution
     check_export(row, done.cache, done.table, done.policy, tmp_path, capsys)
 
 
 @pytest.mark.slow
-def test_export_controls_and_refusals(tiny_zoo: TinyZoo, tmp_path: Path, capsys) -> None:
+def test_export_controls_and_refusals(auto_resolution: str, tiny_zoo: TinyZoo, tmp_path: Path, capsys) -> None:
     """native, zero-image and lora cells export as what they scored; shuffled-image is refused in one line."""
-    done = tiny_zoo.fitted("smolvla", CONTROLS, capsys)
+    done = tiny_zoo.fitted("smolvla", CONTROLS, capsys, auto=auto_resolution)
     by_control = {r["control"]: r for r in results.read(done.table).iter_rows(named=True)}
     for control in ("native", "zero-image", "lora"):
         check_export(by_control[control], done.cache, done.table, done.policy, tmp_path, capsys)
@@ -132,3 +142,78 @@ def test_export_controls_and_refusals(tiny_zoo: TinyZoo, tmp_path: Path, capsys)
                        str(tmp_path / "shuffled"), "--cache", str(done.cache)], capsys)
     assert refused.code == 2 and "shuffled-image has no closed-loop meaning" in refused.err
     assert len(refused.err.strip().splitlines()) == 1 and not (tmp_path / "shuffled").exists()
+
+
+def _chunk(folder: Path, observation: dict, row_id: int) -> torch.Tensor:
+    return exported_chunk(folder, observation, row_id)[0]
+
+
+@pytest.mark.slow
+def test_an_export_runs_wherever_it_is_moved_or_copied(tiny_zoo: TinyZoo, tmp_path: Path, capsys,
+                                                        monkeypatch: pytest.MonkeyPatch) -> None:
+    """An export records no path of its own: moved, copied, or with another export written where it was, it acts as
+    it did (through lerobot's factory here; lerobot-eval's loading in tests/rollout's smoke). An export of the
+    format before this one (its preprocessor read the cameras from its folder's absolute path) is refused in one
+    line."""
+    done = tiny_zoo.fitted("smolvla", CONTROLS, capsys)
+    by_control = {r["control"]: r for r in results.read(done.table).iter_rows(named=True)}
+    row = by_control["none"]
+    export = ["--results", str(done.table), "--cache", str(done.cache)]
+    first = tmp_path / "first"
+    assert run_cli(["export", row["run_id"], *export, "--out", str(first)], capsys).code == 0
+    offline, _, observation, row_id = offline_chunk(row, done.cache, done.policy,
+                                                    done.table.parent / "runs" / row["run_id"])
+    want = _chunk(first, observation, row_id)
+    torch.testing.assert_close(want, offline, rtol=0, atol=0)
+    copied, moved = tmp_path / "elsewhere" / "copied", tmp_path / "moved"
+    shutil.copytree(first, copied)
+    first.rename(moved)
+    other = by_control["zero-image"]  # an export of another cell (other cameras' features) where the first was
+    assert run_cli(["export", other["run_id"], *export, "--out", str(first)], capsys).code == 0
+    for folder in (copied, moved):
+        torch.testing.assert_close(_chunk(folder, observation, row_id), want, rtol=0, atol=0)
+    saved = json.loads((moved / "policy_preprocessor.json").read_text())
+    assert str(tmp_path) not in json.dumps(saved)  # nothing in it names a place
+
+    config = json.loads((copied / "config.json").read_text())
+    del config["export_format"]  # as exports before format 2 were written
+    (copied / "config.json").write_text(json.dumps(config))
+    with pytest.raises(ExportError, match=rf"^{copied}: an export of format 1, written by another graftcache \(this "
+                                          rf"one reads 2\); export run {row['run_id']} again$"):
+        _chunk(copied, observation, row_id)
+
+
+@pytest.mark.slow
+def test_export_never_writes_over_what_is_there(tiny_zoo: TinyZoo, tmp_path: Path, capsys,
+                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    """A folder of the user's files is refused and left as it was (it was emptied before); `--out .` names the
+    current folder (a ValueError traceback before) and takes it when it is empty; an export is refused over itself;
+    two exports of one cell into one folder at once leave one complete export and no partial folder (they shared
+    one partial folder before, and left config.json without its projector)."""
+    done = tiny_zoo.fitted("smolvla", CONTROLS, capsys)
+    row = results.read(done.table).filter(pl.col("control") == "none").row(0, named=True)
+    export = ["export", row["run_id"], "--results", str(done.table), "--cache", str(done.cache)]
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("precious")
+    refused = run_cli([*export, "--out", str(mine)], capsys)
+    assert refused.code == 2 and refused.err.strip() == (
+        f"graftcache export: error: {mine}: holds files that are not an export (notes.txt); nothing was written: "
+        "remove it or choose another --out")
+    assert [p.name for p in tmp_path.iterdir()] == ["mine"] and (mine / "notes.txt").read_text() == "precious"
+    monkeypatch.chdir(mine)
+    assert run_cli([*export, "--out", "."], capsys).err.startswith(f"graftcache export: error: {mine}: holds files")
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    monkeypatch.chdir(empty)
+    assert run_cli([*export, "--out", "."], capsys).code == 0 and export_of(empty) == row["run_id"]
+    assert Path.cwd() == empty and Path(".").resolve().exists()  # the folder itself, not one renamed over it
+    again = run_cli([*export, "--out", str(empty)], capsys)
+    assert again.code == 2 and f"{empty}: already holds the export of run {row['run_id']}" in again.err
+
+    both = tmp_path / "both" / "export"
+    procs = [start_process([*export, "--out", both]) for _ in range(2)]
+    outs = [p.communicate(timeout=300) for p in procs]
+    assert [p.returncode for p in procs] == [0, 0], [err[-2000:] for _, err in outs]
+    assert export_of(both) == row["run_id"]
+    assert [p.name for p in both.parent.iterdir()] == ["export"]  # no partial folder left

@@ -14,6 +14,7 @@ import pytest
 import timm
 import torch
 import torch.nn.functional as F
+from fixtures.resolutions import RESOLUTIONS
 from helpers.datasets import LENGTHS, TASKS, Written, build_lerobot
 from helpers.probes import hang_after_blocks, kill_after_blocks, start_process
 from helpers.requests import extract_request
@@ -69,14 +70,14 @@ def _reference_features(frames: np.ndarray, model: torch.nn.Module, grid: tuple[
     return F.adaptive_avg_pool2d(fmap, grid).flatten(2).transpose(1, 2).numpy()
 
 
-@pytest.fixture(scope="module", params=["0", "1"], ids=["auto=fp32", "auto=bf16"])
+@pytest.fixture(scope="module", params=sorted(RESOLUTIONS), ids=[f"auto={r}" for r in sorted(RESOLUTIONS)])
 def extracted_auto(request: pytest.FixtureRequest, v3_image: Written, tmp_path_factory: pytest.TempPathFactory):
-    """The same extraction under both resolutions of `--compute-dtype auto`: a CPU without bf16 in hardware (fp32) and
-    one with it (bf16), whichever this machine is ($GRAFTCACHE_CPU_BF16 stands in for the other family)."""
+    """The same extraction under both resolutions of `--compute-dtype auto` (fixtures/resolutions.py; module-scoped
+    here, so the extraction runs once per resolution)."""
     with pytest.MonkeyPatch.context() as mp:
-        mp.setenv(CPU_BF16_ENV, request.param)
+        mp.setenv(CPU_BF16_ENV, RESOLUTIONS[request.param])
         req = _req(v3_image.root, tmp_path_factory.mktemp("cache"))
-        return {"0": "fp32", "1": "bf16"}[request.param], extract(req, log=_quiet)
+        return request.param, extract(req, log=_quiet)
 
 
 def test_features_equal_an_independent_computation(extracted_auto, v3_image: Written) -> None:

@@ -199,6 +199,53 @@ def test_a_missing_simulator_is_one_line_naming_the_set_up(monkeypatch: pytest.M
                                   "setup-libero` (scripts/setup.sh libero) to install it")
 
 
+def test_a_failed_run_leaves_no_claims_folder(tmp_path: Path) -> None:
+    class Broken(Scripted):
+        def run(self, row: Mapping[str, Any], episodes: Sequence[Episode]) -> Iterator[Outcome]:
+            yield from super().run(row, episodes[:1])
+            raise RuntimeError("the simulator broke")
+
+    req = _request(tmp_path)
+    with pytest.raises(RuntimeError, match="the simulator broke"):
+        roll_out(req, Broken(), log=lambda _: None)
+    assert table.read(req.rollouts).height == 1  # the episode it finished
+    assert not results.claims_folder(req.rollouts).exists()
+
+
+def test_seeds_and_episode_counts_past_what_a_seed_holds_are_refused_before_planning(tmp_path: Path) -> None:
+    """Episode k is seeded seed + k, an unsigned 32-bit seed for numpy and the simulator (2**40 reached set_seed's
+    ValueError traceback); 10**9 episodes a task were planned and hashed one by one."""
+    assert _request(tmp_path, seed=2**32 - 2, episodes_per_task=2).seed == 2**32 - 2  # seeds 2**32 - 2, 2**32 - 1
+    with pytest.raises(RolloutError, match=r"^--seed 4294967294: episodes are seeded 4294967294 to 4294967296, which "
+                                           r"must lie in 0 to 4294967295 \(an unsigned 32-bit seed\)$"):
+        _request(tmp_path, seed=2**32 - 2, episodes_per_task=3)
+    with pytest.raises(RolloutError, match=r"^--episodes-per-task 1000000000: must be 1 to 1000$"):
+        _request(tmp_path, episodes_per_task=10**9)
+
+
+def test_the_files_are_checked_before_the_simulator_is_imported(tmp_path: Path, capsys: pytest.CaptureFixture,
+                                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    """A missing results file, or a results file given as --rollouts, is one line at once (the simulator's imports
+    took minutes before the first said "no plain-graft row", the second "rollouts rows of format 4")."""
+    from helpers.probes import run_cli
+
+    from graftcache.rollout import libero
+
+    def no_simulator(*args: Any, **kwargs: Any) -> None:
+        raise AssertionError("the simulator was started")
+
+    monkeypatch.setattr(libero, "LiberoSimulator", no_simulator)
+    missing = run_cli(["rollout", tmp_path / "nope.parquet"], capsys)
+    assert missing.code == 2 and missing.err.strip() == (
+        f"graftcache rollout: error: {tmp_path / 'nope.parquet'}: no results file (run `graftcache sweep` or "
+        "`graftcache demo` first)")
+    results_path = write_results(tmp_path / "results.parquet")
+    swapped = run_cli(["rollout", results_path, "--rollouts", results_path], capsys)
+    assert swapped.code == 2 and swapped.err.strip() == (
+        f"graftcache rollout: error: {results_path}: a results table, not rollouts rows (no episode_id column); pass "
+        "another --rollouts")
+
+
 SAMPLE = Path(__file__).resolve().parents[2] / "data" / "libero_sample"
 ENCODER = "timm:vit_tiny_patch16_224"
 #: the sample's first libero_object task (episodes 18-23: "pick up the alphabet soup and place it in the basket")
