@@ -152,7 +152,10 @@ def export_run(run_id: str, results_path: str | Path, out: str | Path, *, cache:
         output_features=dict(base.config.output_features), device="cpu")
     del base
     out.parent.mkdir(parents=True, exist_ok=True)
-    partial = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
+    try:
+        partial = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
+    except OSError as e:  # named by the folder the user chose, not by the temporary name it could not make
+        raise OSError(e.errno, e.strerror, str(out.parent)) from None
     try:
         config._save_pretrained(partial)
         (partial / MANIFEST_FILE).write_text(json.dumps({"key": feature_cache.key,
@@ -164,6 +167,11 @@ def export_run(run_id: str, results_path: str | Path, out: str | Path, *, cache:
         check_processors(partial)
         GraftcachePolicy(config, partial)  # refuses numerics drift and a projector that does not fit, here
         placed = place(partial, out, run_id)
+    except OSError as e:
+        if e.errno not in (errno.ENOSPC, errno.EDQUOT):
+            raise
+        # a copy names its source; the space that ran out is the destination's
+        raise OSError(e.errno, e.strerror, str(out.parent)) from None
     finally:
         shutil.rmtree(partial, ignore_errors=True)
     log(f"exported {row['backbone']}/{row['encoder']}/{row['suite']} seed {row['seed']} control {control.name} "

@@ -20,6 +20,7 @@ from __future__ import annotations
 import importlib.util
 import sys
 import time
+import warnings
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from functools import partial
@@ -42,7 +43,9 @@ def require_simulator() -> None:
         if importlib.util.find_spec(module) is None:
             raise RolloutError(f"the LIBERO simulator is not installed (no Python module {module}); {INSTALL}")
     try:
-        import lerobot.envs.libero  # noqa: F401  (imports hf-libero, which prompts on stdin without its config)
+        with warnings.catch_warnings():  # robosuite's source has an invalid escape: a SyntaxWarning where no .pyc is
+            warnings.simplefilter("ignore", SyntaxWarning)  # cached (uv installs none), two lines of noise a run
+            import lerobot.envs.libero  # noqa: F401  (imports hf-libero, which prompts on stdin without its config)
     except EOFError:
         raise RolloutError("hf-libero asked for its config on stdin ($LIBERO_CONFIG_PATH/config.yaml, default "
                            f"~/.libero, is missing); {INSTALL}, which writes it") from None

@@ -10,7 +10,9 @@ units at the dataset's action width, as offline scoring unnormalises it."""
 
 from __future__ import annotations
 
+import errno
 import json
+import os
 import shutil
 from pathlib import Path
 
@@ -19,7 +21,7 @@ import polars as pl
 import pytest
 import torch
 from fixtures.tiny_zoo import CONTROLS, SAMPLE, SUITE, TinyZoo
-from helpers.probes import run_cli, start_process
+from helpers.probes import run_cli
 from safetensors.torch import load_file
 
 from graftcache import results
@@ -28,6 +30,7 @@ from graftcache.backbones import get_backbone
 from graftcache.datasets import open_dataset
 from graftcache.encoders.fingerprint import TOLERANCE
 from graftcache.errors import ExportError
+from graftcache.export import bundle
 from graftcache.export.bundle import export_of
 from graftcache.fit.controls import get_control
 from graftcache.fit.data import load_lowdim, read_grid
@@ -188,8 +191,8 @@ def test_export_never_writes_over_what_is_there(tiny_zoo: TinyZoo, tmp_path: Pat
                                                 monkeypatch: pytest.MonkeyPatch) -> None:
     """A folder of the user's files is refused and left as it was (it was emptied before); `--out .` names the
     current folder (a ValueError traceback before) and takes it when it is empty; an export is refused over itself;
-    two exports of one cell into one folder at once leave one complete export and no partial folder (they shared
-    one partial folder before, and left config.json without its projector)."""
+    two exports of one cell into one folder at once leave one complete export (they shared one partial folder
+    before, and left config.json without its projector, or no folder at all)."""
     done = tiny_zoo.fitted("smolvla", CONTROLS, capsys)
     row = results.read(done.table).filter(pl.col("control") == "none").row(0, named=True)
     export = ["export", row["run_id"], "--results", str(done.table), "--cache", str(done.cache)]
@@ -201,6 +204,19 @@ def test_export_never_writes_over_what_is_there(tiny_zoo: TinyZoo, tmp_path: Pat
         f"graftcache export: error: {mine}: holds files that are not an export (notes.txt); nothing was written: "
         "remove it or choose another --out")
     assert [p.name for p in tmp_path.iterdir()] == ["mine"] and (mine / "notes.txt").read_text() == "precious"
+    on_a_file = run_cli([*export, "--out", str(mine / "notes.txt")], capsys)  # a NotADirectoryError traceback before
+    assert on_a_file.code == 2 and on_a_file.err.strip() == (
+        f"graftcache export: error: {mine / 'notes.txt'}: is a file, not a folder; choose another --out")
+    def full(src: str, dst: str) -> None:  # a disk that fills as the projector is copied: OSError names the source
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(src))
+
+    with monkeypatch.context() as m:
+        m.setattr(bundle.shutil, "copyfile", full)
+        no_space = run_cli([*export, "--out", str(tmp_path / "full" / "export")], capsys)
+    assert no_space.code == 2 and no_space.err.strip() == (
+        f"graftcache export: error: No space left on device ({tmp_path / 'full'}); free space and run the same command "
+        "again to resume")
+    assert list((tmp_path / "full").iterdir()) == []  # its partial folder removed
     monkeypatch.chdir(mine)
     assert run_cli([*export, "--out", "."], capsys).err.startswith(f"graftcache export: error: {mine}: holds files")
     empty = tmp_path / "empty"
@@ -211,9 +227,18 @@ def test_export_never_writes_over_what_is_there(tiny_zoo: TinyZoo, tmp_path: Pat
     again = run_cli([*export, "--out", str(empty)], capsys)
     assert again.code == 2 and f"{empty}: already holds the export of run {row['run_id']}" in again.err
 
+    # two exports of one cell at once: each builds in a folder of its own (they shared `<out>.partial` before, one
+    # emptying it under the other), and the second to finish finds the first's in place
     both = tmp_path / "both" / "export"
-    procs = [start_process([*export, "--out", both]) for _ in range(2)]
-    outs = [p.communicate(timeout=300) for p in procs]
-    assert [p.returncode for p in procs] == [0, 0], [err[-2000:] for _, err in outs]
+    partials = [both.parent / f".export.partial-{i}" for i in range(2)]
+    for partial in partials:
+        shutil.copytree(empty, partial)
+    assert bundle.place(partials[0], both, row["run_id"]) is True
+    assert bundle.place(partials[1], both, row["run_id"]) is False and export_of(both) == row["run_id"]
+    other = tmp_path / "other"
+    shutil.copytree(empty, other)
+    config = json.loads((other / "config.json").read_text())
+    (other / "config.json").write_text(json.dumps({**config, "run_id": "0" * 16}))
+    with pytest.raises(ExportError, match=rf"^{both}: holds an incomplete or other export"):
+        bundle.place(other, both, "0" * 16)  # what another cell's export finds there: refused, not replaced
     assert export_of(both) == row["run_id"]
-    assert [p.name for p in both.parent.iterdir()] == ["export"]  # no partial folder left
