@@ -558,6 +558,28 @@ def test_a_sigterm_swallowed_by_a_bare_except_is_raised_again() -> None:
     time.sleep(3 * REDELIVER_S_UNHANDLED)  # taken: nothing more arrives (it would fail this test with a Terminated)
 
 
+def test_finalisers_failing_after_a_stop_print_nothing(capsys: pytest.CaptureFixture) -> None:
+    """A stop that lands inside a constructor (robosuite's MjRenderContext.__init__ on a stopped rollout) leaves an
+    object whose __del__ fails: "Exception ignored ... Traceback" after the command's one line, before. Without a
+    stop, such a failure is printed as Python prints it."""
+    from graftcache.cli.signals import STOP, Terminated
+
+    class HalfBuilt:
+        def __del__(self) -> None:
+            raise AttributeError("'HalfBuilt' object has no attribute 'con'")
+
+    with stoppable(whole_process=False) as stops:
+        stops.command_started()
+        HalfBuilt()
+        assert "Exception ignored" in capsys.readouterr().err
+        with pytest.raises(Terminated):
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(1)
+        STOP.take()
+        HalfBuilt()
+        assert capsys.readouterr().err == ""
+
+
 def test_a_store_call_cut_off_by_sigterm_finishes_before_the_last_line(tmp_path: Path) -> None:
     proc = start_process(["merge-rows", tmp_path / "a.parquet", "--results", tmp_path / "r.parquet"],
                          prelude=CUT_OFF_IO)
