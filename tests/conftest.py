@@ -18,7 +18,7 @@ limit_worker_threads()  # under pytest-xdist (`make test`), before anything impo
 import pytest  # noqa: E402
 
 pytest_plugins = ("fixtures.datasets", "fixtures.torch_threads", "fixtures.ray_cluster", "fixtures.s3",
-                  "fixtures.tiny_zoo", "fixtures.resolutions")
+                  "fixtures.resolutions", "fixtures.tiny_zoo")  # resolutions first: tiny_zoo imports it
 
 
 @pytest.hookimpl(optionalhook=True)  # the suite also runs without pytest-xdist (`-p no:xdist`, a bare venv)
