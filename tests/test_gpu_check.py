@@ -22,7 +22,9 @@ def _gpu_check(monkeypatch: pytest.MonkeyPatch):
     return gpu_check
 
 
-@pytest.fixture(scope="module")
+# session, not module: a worker that ran another module's test between this module's two built it twice (66 s more,
+# seen in one clean-clone run)
+@pytest.fixture(scope="session")
 def report(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict, Path]:
     with pytest.MonkeyPatch.context() as mp:
         gpu_check = _gpu_check(mp)
