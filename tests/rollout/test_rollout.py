@@ -255,7 +255,8 @@ OBJECT_EPISODES = "18-21"
 @pytest.mark.slow  # train-tiny, extract, fit, two 10-step episodes and their videos, one process: 59 s on 2 idle cores
 def test_rollout_smoke_in_the_simulator(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     """tiny policy -> extract -> fit two cells -> rollout of both in LIBERO (one process) with videos -> the same
-    command adds nothing -> report --rollouts with undefined agreement figures (every cell fails)."""
+    command adds nothing -> a moved export runs there too -> report --rollouts with undefined agreement figures
+    (every cell fails)."""
     from helpers.probes import run_cli
     from lerobot.envs.libero import LiberoEnv
 
@@ -291,6 +292,23 @@ def test_rollout_smoke_in_the_simulator(tmp_path: Path, capsys: pytest.CaptureFi
         assert r["video"] == f"videos/{r['run_id']}/libero_object_task0_ep0_seed1000_max10.mp4"
         assert _decoded(tmp_path / r["video"]) == (r["steps"] + 1, LiberoEnv.metadata["render_fps"])
     assert all((tmp_path / "exports" / run / "config.json").is_file() for run in (a, b))
+
+    # a moved export runs through lerobot-eval's loading and rollout as it ran in place (it named its own absolute
+    # path in its preprocessor before, and failed on its first observation)
+    from graftcache.rollout.libero import LiberoSimulator
+
+    moved = tmp_path / "moved" / "exports"
+    moved.parent.mkdir()
+    (tmp_path / "exports").rename(moved)
+    sim = LiberoSimulator(results_path, moved, cache=str(root), runs=None, max_steps=10)
+    try:
+        cell = results.read(results_path).filter(pl.col("run_id") == a).row(0, named=True)
+        (outcome,) = sim.run(cell, [Episode(a, "libero_object", 0, 0, 1000, 10)])
+    finally:
+        sim.close()
+    ran = rows.filter(pl.col("run_id") == a).row(0, named=True)
+    assert (outcome.success, outcome.steps, outcome.init_state) == (ran["success"], ran["steps"], 0)
+    assert sorted(p.name for p in moved.iterdir()) == sorted([a, b])  # used where it is, not exported again
 
     again = run_cli(rollout, capsys)
     assert again.code == 0, again.err[-2000:]
