@@ -22,9 +22,7 @@ def _gpu_check(monkeypatch: pytest.MonkeyPatch):
     return gpu_check
 
 
-# session, not module: a worker that ran another module's test between this module's two built it twice (66 s more,
-# seen in one clean-clone run)
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="module")
 def report(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict, Path]:
     with pytest.MonkeyPatch.context() as mp:
         gpu_check = _gpu_check(mp)
