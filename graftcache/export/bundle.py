@@ -179,13 +179,13 @@ def export_run(run_id: str, results_path: str | Path, out: str | Path, *, cache:
     return out
 
 
-def required_files(folder: Path) -> list[str]:
-    """The files a complete export holds (the projector only where its control trains one)."""
+def required_files(config: dict[str, Any]) -> list[str]:
+    """The files a complete export of `config` (its config.json, read) holds (the projector only where its control
+    trains one)."""
     from graftcache.backbones.checkpoint import POSTPROCESSOR_FILE, PREPROCESSOR_FILE
     from graftcache.export.features import MANIFEST_FILE
     from graftcache.export.modeling_graftcache import PROJECTOR_FILE
 
-    config = json.loads((folder / "config.json").read_text())
     trains = get_control(config.get("control", "none")).train
     return ["config.json", MANIFEST_FILE, PREPROCESSOR_FILE, POSTPROCESSOR_FILE, *([PROJECTOR_FILE] if trains else [])]
 
@@ -199,7 +199,7 @@ def export_of(folder: Path) -> str | None:
     try:
         config = json.loads((folder / "config.json").read_text())
         complete = (config.get("type") == "graftcache" and config.get("export_format") == EXPORT_FORMAT
-                    and all((folder / f).is_file() for f in required_files(folder)))
+                    and all((folder / f).is_file() for f in required_files(config)))
     except (OSError, ValueError, GraftcacheError):
         return None
     return config.get("run_id") if complete else None
