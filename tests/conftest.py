@@ -9,7 +9,7 @@ from __future__ import annotations
 import os
 
 from helpers.env import OFFLINE, isolated_homes
-from helpers.parallel import limit_worker_threads, schedule
+from helpers.parallel import check_groups, limit_worker_threads, schedule
 
 os.environ.update(OFFLINE)  # before anything imports huggingface_hub
 os.environ.setdefault("TOKENIZERS_PARALLELISM", "false")
@@ -29,11 +29,17 @@ def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
     return max(1, min(2, len(os.sched_getaffinity(0))))
 
 
+@pytest.hookimpl(tryfirst=True)  # before xdist's own hook, which reads the groups into the nodeids it schedules by
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     """Under xdist: each module runs on one worker (its module- and session-scoped fixtures built once), the
     longest modules first (tests/helpers/parallel.py)."""
     if os.environ.get("PYTEST_XDIST_WORKER"):
         schedule(items)
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_node_collection_finished(node: object, ids: list[str]) -> None:
+    check_groups(node.config, ids)
 
 
 @pytest.fixture(autouse=True)

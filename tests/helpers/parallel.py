@@ -10,6 +10,11 @@ arranged:
 - grouping: a module runs on one worker, so its module-scoped fixtures (a trained tiny policy, an extracted cache,
   a Ray instance) are built once; modules that share session fixtures form one group;
 - order: the longest groups start first, so the run does not end on one worker still busy with a long module.
+
+xdist carries a test's group to its scheduler as a suffix of the test's id ("...::test_x@group"), which pytest 9.2
+no longer lets it write (pytest-xdist#1386): the groups were then silently ignored, every module was split across
+the workers and its module fixtures built on each (a fit of every tiny backbone twice). pyproject.toml keeps pytest
+below 9.2, and `check_groups` stops a run whose ids lost their groups.
 """
 
 from __future__ import annotations
@@ -38,6 +43,16 @@ def limit_worker_threads() -> None:
     workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
     if workers > 1:
         os.environ.setdefault("OMP_NUM_THREADS", str(max(1, len(os.sched_getaffinity(0)) // workers)))
+
+
+def check_groups(config: pytest.Config, ids: list[str]) -> None:
+    """On xdist's controller under `--dist loadgroup`, as a worker reports the ids it collected: stop the run when
+    they lack the groups `schedule` gave them (a pytest xdist cannot write them into)."""
+    lost = [nodeid for nodeid in ids if "@" not in nodeid.rpartition("]")[2]]
+    if config.getvalue("dist") == "loadgroup" and lost:
+        pytest.exit(f"pytest-xdist's loadgroup dropped the group of {len(lost)} test(s), e.g. {lost[0]} (pytest "
+                    f"{pytest.__version__}; pytest-xdist#1386): install the pytest pyproject.toml names "
+                    "(scripts/setup.sh)", returncode=pytest.ExitCode.USAGE_ERROR)
 
 
 def _module(item: pytest.Item) -> str:
