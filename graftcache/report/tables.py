@@ -156,21 +156,6 @@ def ladder_block(a: A.Analysis) -> Table:
     ))
 
 
-def _rate(r: Row) -> str:
-    return f"{r['success_rate']:.0%} [{r['ci_low']:.0%}, {r['ci_high']:.0%}]"
-
-
-SUCCESS_COLUMNS: tuple[Column, ...] = (
-    BACKBONE, ("suite", _col("suite")), ("encoder", _col("encoder")), ("control", _col("control")),
-    ("seed", _col("seed")), ("run_id", _col("run_id", _code)), ("episodes", _col("episodes")),
-    ("success (95% Wilson)", _rate), *((s, _col(s, num)) for s in A.CLOSED_LOOP_SCORES),
-)
-AGREEMENT_COLUMNS: tuple[Column, ...] = (
-    BACKBONE, ("suite", _col("suite")), ("score", _col("score", _code)), ("cells", _col("cells")),
-    ("Spearman ρ", _col("spearman", lambda x: num(x, "+.2f"))),
-    ("Kendall τb", _col("kendall_tau_b", lambda x: num(x, "+.2f"))),
-    ("MMRV", _col("mmrv", lambda x: num(x, ".3f"))), NOTE,
-)
 SCORE_COLUMNS: tuple[Column, ...] = (
     BACKBONE, ("suite", _col("suite")), ("top-1 by MSE", _col("mse_top1")), ("top-1 by CI-MSE", _col("ci_mse_top1")),
     ("same top-1", _col("same_top1", _yes)), ("encoders", _col("n_common")),
