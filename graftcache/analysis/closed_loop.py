@@ -137,9 +137,10 @@ def rollout_cells(results: pl.DataFrame, rollouts: pl.DataFrame) -> pl.DataFrame
 
 
 def _episode_values(rollouts: pl.DataFrame, measure: str) -> dict[str, np.ndarray]:
-    """run_id -> the measure over that cell's episodes that record it (true/false as 1/0)."""
+    """run_id -> the measure over that cell's episodes that record it (true/false as 1/0), sorted: a replicate
+    depends on the values, never on the order of the file's rows."""
     frame = rollouts.select("run_id", pl.col(measure).cast(pl.Float64)).drop_nulls()
-    return {run: group[measure].to_numpy() for (run,), group in frame.group_by("run_id")}
+    return {run: np.sort(group[measure].to_numpy()) for (run,), group in frame.group_by("run_id")}
 
 
 def _level(measure: str, value: float) -> str:

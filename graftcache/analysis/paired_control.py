@@ -58,7 +58,7 @@ def _compare(episodes: pl.DataFrame, measure: str, seed: int, what: tuple[str, .
     recorded = episodes.filter(value.is_not_null()).with_columns(value=value)
     zero = recorded.filter(pl.col("control") == ZERO_IMAGE).group_by(KEY).agg(zero=pl.col("value").mean())
     native = recorded.filter(pl.col("control") == NATIVE_CONTROL)
-    per_key = native.group_by(KEY).agg(native=pl.col("value").mean()).join(zero, on=KEY, how="inner")
+    per_key = native.group_by(KEY).agg(native=pl.col("value").mean()).join(zero, on=KEY, how="inner").sort(KEY)
     if not len(per_key):
         return {}
     sign = 1.0 if HIGHER_IS_BETTER[measure] else -1.0

@@ -63,9 +63,12 @@ def control_line(row: dict | None) -> str:
 
 
 def _mark(r: dict, colors: dict[str, str]) -> dict:
-    marker, color, size, _ = CONTROL_MARKS.get(r["control"], (
-        "o" if r["control"] == A.PLAIN else OTHER_CONTROL_MARKER, colors[r["encoder"]], 6, ""))
-    return {"marker": marker, "color": color, "ms": size}
+    """A cell's marker: its control's, or for grafts (plain circles, other controls triangles) its encoder's
+    colour."""
+    if r["control"] in CONTROL_MARKS:
+        marker, color, size, _ = CONTROL_MARKS[r["control"]]
+        return {"marker": marker, "color": color, "ms": size}
+    return {"marker": "o" if r["control"] == A.PLAIN else OTHER_CONTROL_MARKER, "color": colors[r["encoder"]], "ms": 6}
 
 
 def _panel(ax: Axes, cells: pl.DataFrame, score: str, measure: str, colors: dict[str, str]) -> None:
