@@ -58,8 +58,9 @@ def control_line(row: dict | None) -> str:
     """The native tower minus zero-image on the same episodes, as a panel prints it."""
     if row is None or row["difference"] is None:
         return "" if row is None else f"native − zero-image: {row['note']}"
+    unit = " m" if row["measure"].endswith("_m") else ""
     span = "" if row["ci_low"] is None else f" [{row['ci_low']:+.3g}, {row['ci_high']:+.3g}]"
-    return f"native − zero-image: {row['difference']:+.3g}{span} over {row['pairs']} paired episodes"
+    return f"native − zero-image: {row['difference']:+.3g}{unit}{span} over {row['pairs']} paired episodes"
 
 
 def _mark(r: dict, colors: dict[str, str]) -> dict:
