@@ -6,6 +6,13 @@ closed-loop demo), and that is where its noise is; the cells themselves are the 
 scored offline, so they are not resampled. A replicate redraws every cell's episodes with replacement (as many
 as it has), recomputes every cell's mean, and then rho, tau-b and MMRV over the cells.
 
+What the 95% percentile interval says: how far the figure would move over reruns with as many episodes per cell,
+if each cell's true value were its observed mean. Redrawing episodes adds their noise on top of the noise already
+in each observed mean, and noise blurs an order more often than it sharpens one, so the replicates lean towards
+weaker agreement (rho, tau-b lower, MMRV higher): where the cells are ordered almost perfectly the interval can lie
+just below rho (above MMRV) instead of around it. That is the figure's fragility under episode noise, not an
+error; more episodes per cell narrow it and bring it back around the point.
+
 Why N_BOOT = 1000, declared once: the 95% percentile interval reads the 25th and 975th of the sorted replicates,
 whose Monte Carlo error at 1000 replicates is about 0.01-0.02 on a correlation, well below the width that a few
 episodes per cell give (tenths); 1000 is the usual count for percentile intervals (Efron and Tibshirani 1993,

@@ -38,14 +38,19 @@ UNDEFINED = (
     "A figure shown as — (empty in closed_loop.csv) is undefined, never 0: with fewer than 2 cells, where every cell "
     "has the same value of the measure (e.g. every episode failed: no order to agree with), or where no episode "
     "records a graded measure; ρ and τb also where every cell has the same score. The note says which. Intervals "
-    "are taken over the replicates in which the cells do not all tie (`replicates`)."
+    "are taken over the replicates in which the cells do not all tie (`replicates` in closed_loop.csv)."
+)
+INTERVALS = (
+    "Each interval says how far a rerun with as many episodes per cell would move the figure if each cell's true "
+    "value were its observed mean. Episode noise blurs an order more often than it sharpens one, so near a perfect "
+    "order the interval can sit just below ρ and τb (above MMRV) rather than around them; more episodes per cell "
+    "narrow it."
 )
 PAIRING = (
-    "Native tower vs zero-image on the same episodes: per episode key (suite, task, episode, seed, step limit, "
-    "perturbation) run by both, the mean over the native cells minus the mean over the zero-image cells (every "
-    "encoder and seed); the mean of these paired differences over the keys, with a 95% bootstrap interval over the "
-    "keys. The native tower is better when the whole interval lies on its better side; the seed count says on how "
-    "many native seeds alone it is."
+    "Per episode key (suite, task, episode, seed, step limit, perturbation) run by both sides: the mean over the "
+    "native cells minus the mean over the zero-image cells (every encoder and seed); then the mean of these paired "
+    "differences over the keys, with a 95% bootstrap interval over the keys. The native tower is better when the "
+    "whole interval lies on its better side; the seed count says on how many native seeds alone it is."
 )
 
 
@@ -166,7 +171,7 @@ def closed_loop_section(a: A.Analysis, out: Path) -> list[Block]:
     if sentence := ungraded_sentence(loop):
         blocks.append(Paragraph(sentence))
     blocks += [Heading(f"`{HEADLINE_SCORE}` against the closest approach to the target (`{HEADLINE_MEASURE}`)", 3),
-               Bullets(tuple(headline_sentences(loop)))]
+               Bullets(tuple(headline_sentences(loop))), Paragraph(INTERVALS)]
     control = loop.control.filter(pl.col("measure").is_in(measures),
                                   (pl.col("native_cells") > 0) | (pl.col("zero_image_cells") > 0))
     blocks += [Heading("Native tower vs zero-image on the same episodes", 3), Paragraph(PAIRING)]
