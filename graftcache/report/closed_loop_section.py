@@ -12,7 +12,7 @@ import polars as pl
 from graftcache import analysis as A
 from graftcache.report.document import Block, Bullets, Heading, Paragraph
 from graftcache.report.figures import figure_blocks
-from graftcache.report.tables import BACKBONE, NOTE, Column, Row, _col, in_backbone_order, num, table_block
+from graftcache.report.tables import BACKBONE, NOTE, Column, Row, col, in_backbone_order, num, table_block
 
 #: The headline pair: the offline score and the graded measure the report prints first
 HEADLINE_SCORE, HEADLINE_MEASURE = "eval_mse", "min_target_distance_m"
@@ -128,19 +128,19 @@ def control_sentence(r: Row) -> str:
 
 
 AGREEMENT_COLUMNS: tuple[Column, ...] = (
-    BACKBONE, ("suite", _col("suite")), ("measure", _col("measure")), ("score", lambda r: f"`{r['score']}`"),
-    ("cells", _col("cells")),
+    BACKBONE, ("suite", col("suite")), ("measure", col("measure")), ("score", lambda r: f"`{r['score']}`"),
+    ("cells", col("cells")),
     ("Spearman ρ [95%]", lambda r: _with_interval(r, "spearman", "+.2f")),
     ("Kendall τb [95%]", lambda r: _with_interval(r, "kendall_tau_b", "+.2f")),
     ("MMRV [95%]", lambda r: _with_interval(r, "mmrv", ".3g", _unit(r["measure"]))), NOTE,
 )
 LOOP_CONTROL_COLUMNS: tuple[Column, ...] = (
-    BACKBONE, ("suite", _col("suite")), ("measure", _col("measure")), ("native cells", _col("native_cells")),
-    ("zero-image cells", _col("zero_image_cells")), ("paired episodes", _col("pairs")),
-    ("native", _col("native", num)), ("zero-image", _col("zero_image", num)),
+    BACKBONE, ("suite", col("suite")), ("measure", col("measure")), ("native cells", col("native_cells")),
+    ("zero-image cells", col("zero_image_cells")), ("paired episodes", col("pairs")),
+    ("native", col("native", num)), ("zero-image", col("zero_image", num)),
     ("native − zero-image [95%]", lambda r: "—" if r["difference"] is None else f"{r['difference']:+.3g}" + (
         "" if r["ci_low"] is None else f" [{r['ci_low']:+.3g}, {r['ci_high']:+.3g}]")),
-    ("better", _col("better")),
+    ("better", col("better")),
     ("native seeds better", lambda r: "—" if r["difference"] is None else
      f"{r['native_seeds_better']} of {r['native_seeds']}"), NOTE,
 )
@@ -150,12 +150,12 @@ def cell_columns(measures: list[str]) -> tuple[Column, ...]:
     """The cells table: identity, episodes, success with its interval, the recorded graded means, the scores."""
     graded = [m for m in measures if m != "success"]
     return (
-        BACKBONE, ("suite", _col("suite")), ("encoder", _col("encoder")), ("control", _col("control")),
-        ("seed", _col("seed")), ("run_id", _col("run_id", lambda x: f"`{x}`")), ("episodes", _col("episodes")),
+        BACKBONE, ("suite", col("suite")), ("encoder", col("encoder")), ("control", col("control")),
+        ("seed", col("seed")), ("run_id", col("run_id", lambda x: f"`{x}`")), ("episodes", col("episodes")),
         ("success (95% Wilson)", _rate),
-        *((("graded episodes", _col("graded_episodes")),) if graded else ()),
-        *((f"{MEASURE_LABELS[m]}{' (m)' if m in UNITS else ''}", _col(A.MEASURE_COLUMNS[m], num)) for m in graded),
-        *((s, _col(s, num)) for s in A.CLOSED_LOOP_SCORES),
+        *((("graded episodes", col("graded_episodes")),) if graded else ()),
+        *((f"{MEASURE_LABELS[m]}{' (m)' if m in UNITS else ''}", col(A.MEASURE_COLUMNS[m], num)) for m in graded),
+        *((s, col(s, num)) for s in A.CLOSED_LOOP_SCORES),
     )
 
 
