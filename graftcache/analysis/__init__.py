@@ -34,8 +34,11 @@ Statistics (stated once here, cited by the report):
 - seed stability repeats every judged comparison on each seed alone (with 4 seeds or more: on each half of the
   seeds) and says whether it gives the same verdict and target top tier (graftcache.analysis.stability).
 
-Given rollouts (graftcache.analysis.rollouts), the offline scores are set against closed-loop success per cell
-(graftcache.analysis.closed_loop: Wilson intervals; Spearman, Kendall tau-b and MMRV over run_ids).
+Given rollouts (graftcache.analysis.rollouts), the offline scores are set against each closed-loop measure
+(success and, where the rollouts record them, the graded measures of progress) per cell
+(graftcache.analysis.closed_loop: Wilson intervals; Spearman, Kendall tau-b and MMRV over run_ids, each with a 95%
+bootstrap interval over each cell's episodes, graftcache.analysis.closed_loop_boot), and the native tower is set
+against zero-image on the same episodes (graftcache.analysis.paired_control).
 
 Missing cells are never dropped: they appear as rows with null statistics and a `status`/`note`, and a
 verdict that cannot be reached is "insufficient data". Non-finite eval_mse (a diverged fit) counts as invalid.
@@ -59,12 +62,15 @@ from graftcache.analysis.closed_loop import (
     AGREEMENT_SCHEMA,
     CELL_SCHEMA,
     CLOSED_LOOP_SCORES,
+    MEASURE_COLUMNS,
+    STATISTICS,
     ClosedLoop,
     closed_loop,
     mmrv,
     spearman,
     wilson,
 )
+from graftcache.analysis.closed_loop_boot import N_BOOT
 from graftcache.analysis.controls import CONTROLS_SCHEMA, controls_distance, wrapper_non_neutrality
 from graftcache.analysis.findings import (
     BEATS,
@@ -76,7 +82,20 @@ from graftcache.analysis.findings import (
 )
 from graftcache.analysis.headline import HEADLINE_SCHEMA, ladder_headline
 from graftcache.analysis.ladder import PARAMS_COLUMN, Ladder, backbone_ladder, format_params
-from graftcache.analysis.rollouts import ROLLOUT_COLUMNS, read_rollouts
+from graftcache.analysis.paired_control import (
+    CONTROL_SCHEMA,
+    NATIVE_BETTER,
+    ZERO_IMAGE_BETTER,
+    paired_control,
+)
+from graftcache.analysis.rollouts import (
+    GRADED_MEASURES,
+    HIGHER_IS_BETTER,
+    MEASURES,
+    PAIR_KEY,
+    ROLLOUT_COLUMNS,
+    read_rollouts,
+)
 from graftcache.analysis.scores import (
     DISAGREEMENT_SCHEMA,
     SCORE_LABELS,
@@ -126,8 +145,10 @@ from graftcache.errors import GraftcacheError
 from graftcache.results import conform
 
 __all__ = [
-    "AGREEMENT_SCHEMA", "CELL_SCHEMA", "CLOSED_LOOP_SCORES", "ROLLOUT_COLUMNS", "ClosedLoop", "closed_loop", "mmrv",
-    "read_rollouts", "spearman", "wilson",
+    "AGREEMENT_SCHEMA", "CELL_SCHEMA", "CLOSED_LOOP_SCORES", "CONTROL_SCHEMA", "GRADED_MEASURES", "HIGHER_IS_BETTER",
+    "MEASURES", "MEASURE_COLUMNS", "N_BOOT", "NATIVE_BETTER", "PAIR_KEY", "ROLLOUT_COLUMNS",
+    "STATISTICS", "ZERO_IMAGE_BETTER", "ClosedLoop", "closed_loop", "mmrv", "paired_control", "read_rollouts",
+    "spearman", "wilson",
     "BEATS", "BEATS_BOTH", "NOT_SEPARATED", "SEPARATED", "beats_image_controls", "native_vs_zero_image",
     "BACKBONE_LABELS", "BASIS_MISSING", "CELL", "CONTROLS_SCHEMA", "COUNT_COLUMNS", "DISAGREEMENT_SCHEMA",
     "DOES_NOT_TRANSFER", "EPISODE_COLUMN", "GROUP", "HALVES_FROM", "HEADLINE_SCHEMA", "INSUFFICIENT",
@@ -166,7 +187,7 @@ class Analysis:
     beats_controls: pl.DataFrame  # per (backbone, suite, encoder): plain graft vs both image controls, every seed
     missing: pl.DataFrame
     scores: pl.DataFrame  # where the MSE and CI-MSE rankings disagree (empty without CI-MSE)
-    closed_loop: ClosedLoop | None = None  # offline scores vs rollouts' success (None: no rollouts given)
+    closed_loop: ClosedLoop | None = None  # offline scores vs rollouts' measures (None: no rollouts given)
 
     @property
     def small(self) -> str | None:
@@ -202,8 +223,9 @@ class Analysis:
 def analyze(results: pl.DataFrame, *, score: str = "mse", boot: BootSettings = BootSettings(),
             rollouts: pl.DataFrame | None = None) -> Analysis:
     """All questions at once, on the table conformed to SCHEMA (results.conform: absent columns null), ranked
-    by `score` (a SCORES name); with `rollouts` (read_rollouts: run_id, success per episode), closed-loop success
-    against every offline score too.
+    by `score` (a SCORES name); with `rollouts` (read_rollouts: run_id, success, the graded measures and the
+    episode key per episode), every closed-loop measure against every offline score too, bootstrapped with
+    `boot.seed`.
 
     Raises GraftcacheError when rows share (backbone, suite, encoder, control, seed) - the table mixes
     recipes (objective, lr, ...) and must be filtered to one before ranking - and when the backbones cannot be
@@ -220,7 +242,8 @@ def analyze(results: pl.DataFrame, *, score: str = "mse", boot: BootSettings = B
             "filter the table to one recipe"
         )
     disagreement = score_disagreement(results)
-    against = None if rollouts is None else closed_loop(results, rollouts)  # every score, before `scored`
+    # every score, before `scored`
+    against = None if rollouts is None else closed_loop(results, rollouts, seed=boot.seed)
     results = scored(results, score)
     ladder = backbone_ladder(results)
     verdicts = transfer_verdicts(results, ladder=ladder, boot=boot)

@@ -1,19 +1,23 @@
-"""Offline scores against closed-loop success: does a lower offline score go with a higher success rate?
+"""Offline scores against closed-loop behaviour: does a lower offline score go with a better closed loop?
 
 A *cell* here is one results row with rollouts, i.e. one run_id (one seed of one encoder or control): its success
-rate over its episodes, with a 95% Wilson score interval. Per (backbone, suite) and offline score
-(CLOSED_LOOP_SCORES), the agreement between the score and the success rate over the cells: Spearman's rho,
-Kendall's tau-b and SIMPLER's mean maximum rank violation (MMRV; Li et al. 2024, arXiv 2405.05941).
+rate over its episodes, with a 95% Wilson score interval, and the mean of each graded measure of progress over its
+episodes that record it (graftcache.analysis.rollouts.GRADED_MEASURES; `grasped` as a rate). Per (backbone,
+suite), offline score (CLOSED_LOOP_SCORES) and closed-loop measure (MEASURES): the agreement between the score and
+the measure over the cells: Spearman's rho, Kendall's tau-b and SIMPLER's mean maximum rank violation (MMRV; Li et
+al. 2024, arXiv 2405.05941), each with a 95% bootstrap interval over episodes (graftcache.analysis.closed_loop_boot).
 
 Agreement is computed over run_ids, not over seed means: a run_id is one trained projector, the very policy that
-was scored offline and rolled out, so its score and its success rate are one paired measurement. Averaging seeds
-first would pair a mean score with a mean success and hide the seed noise an offline score must see through.
+was scored offline and rolled out, so its score and its closed-loop value are one paired measurement. Averaging
+seeds first would pair a mean score with a mean success and hide the seed noise an offline score must see through.
 
-Signs: the proxy is -score (lower is better), so rho and tau-b are positive where lower scores go with higher
-success, and MMRV, an error in success-rate units, is 0 where no pair is ordered against success. They are
-undefined (null, and a `note` says why) with fewer than 2 cells and where every cell has the same success rate
-(e.g. all 0: there is no order to agree with); rho and tau-b also where every cell has the same score. A
-non-finite or null score leaves its cell out of that score's agreement.
+Signs: every measure is oriented so that higher is better (HIGHER_IS_BETTER: distances are negated) and the proxy
+is -score (lower is better), so rho and tau-b are positive where lower scores go with a better closed loop, for
+every measure alike; MMRV, an error in the measure's own units (a rate, metres, a fraction), is 0 where no pair is
+ordered against it. They are undefined (null, and a `note` says why) with fewer than 2 cells, where every cell has
+the same value of the measure (e.g. success 0 everywhere: there is no order to agree with) and where no episode
+records a graded measure (format-1 rollouts); rho and tau-b also where every cell has the same score. A
+non-finite or null score leaves its cell out of that score's agreement, a null measure out of that measure's.
 """
 
 from __future__ import annotations
@@ -26,32 +30,61 @@ from statistics import NormalDist
 import numpy as np
 import polars as pl
 
+from graftcache.analysis.closed_loop_boot import (
+    N_BOOT,
+    generator,
+    interval,
+    mmrv_rows,
+    resampled_means,
+    spearman_rows,
+    tau_b_rows,
+)
+from graftcache.analysis.paired_control import paired_control
+from graftcache.analysis.rollouts import GRADED_MEASURES, HIGHER_IS_BETTER, MEASURES
 from graftcache.analysis.stats import tau_b
 from graftcache.analysis.table import GROUP
 
-#: The offline scores set against success, each a results column (lower is better)
+#: The offline scores set against the closed loop, each a results column (lower is better)
 CLOSED_LOOP_SCORES = ("eval_mse", "eval_ci_mse", "eval_mse_arm", "eval_mse_gripper")
 #: The two-sided 95% normal quantile of the Wilson interval
 Z95 = NormalDist().inv_cdf(0.975)
+#: Each measure's per-cell column: a rate for the true/false ones, a mean for the others
+MEASURE_COLUMNS = {m: {"success": "success_rate", "grasped": "grasped_rate"}.get(m, m) for m in MEASURES}
+#: Below this share of defined replicates an interval's note says over how many it was taken (the count is always
+#: in `replicates`): an interval over a minority of replicates describes only the draws where the cells differ
+FEW_REPLICATES = 0.95
+#: The figures of each agreement row, each with its interval columns `<name>_low` and `<name>_high`
+STATISTICS = ("spearman", "kendall_tau_b", "mmrv")
 
 CELL_SCHEMA = {
     "backbone": pl.String, "suite": pl.String, "encoder": pl.String, "control": pl.String, "seed": pl.Int64,
     "run_id": pl.String, "episodes": pl.Int64, "successes": pl.Int64, "success_rate": pl.Float64,
-    "ci_low": pl.Float64, "ci_high": pl.Float64, **dict.fromkeys(CLOSED_LOOP_SCORES, pl.Float64),
+    "ci_low": pl.Float64, "ci_high": pl.Float64, "graded_episodes": pl.Int64,
+    **{MEASURE_COLUMNS[m]: pl.Float64 for m in GRADED_MEASURES}, **dict.fromkeys(CLOSED_LOOP_SCORES, pl.Float64),
 }
 AGREEMENT_SCHEMA = {
-    "backbone": pl.String, "suite": pl.String, "score": pl.String, "cells": pl.Int64, "spearman": pl.Float64,
-    "kendall_tau_b": pl.Float64, "mmrv": pl.Float64, "note": pl.String,
+    "backbone": pl.String, "suite": pl.String, "score": pl.String, "measure": pl.String, "cells": pl.Int64,
+    **{f"{s}{part}": pl.Float64 for s in STATISTICS for part in ("", "_low", "_high")},
+    "replicates": pl.Int64, "note": pl.String,
 }
 
 
 @dataclass(frozen=True)
 class ClosedLoop:
-    """What the report shows of rollouts: one row per cell (CELL_SCHEMA), one per (backbone, suite, score)
-    (AGREEMENT_SCHEMA)."""
+    """What the report shows of rollouts: one row per cell (CELL_SCHEMA), one per (backbone, suite, score,
+    measure) (AGREEMENT_SCHEMA), one per (backbone, suite, measure) of the native tower against zero-image on the
+    same episodes (graftcache.analysis.paired_control.CONTROL_SCHEMA), and the episodes themselves
+    (graftcache.analysis.rollouts.read_rollouts)."""
 
     cells: pl.DataFrame
     agreement: pl.DataFrame
+    control: pl.DataFrame
+    rollouts: pl.DataFrame
+
+    @property
+    def ungraded(self) -> int:
+        """Episodes that record no graded measure (format-1 rows, or a table without the columns)."""
+        return int(self.rollouts.select(pl.all_horizontal(pl.col(GRADED_MEASURES).is_null()).sum()).item())
 
 
 def wilson(successes: int, n: int, z: float = Z95) -> tuple[float, float]:
@@ -78,16 +111,22 @@ def spearman(x: Sequence[float], y: Sequence[float]) -> float | None:
 
 def mmrv(score: Sequence[float], success: Sequence[float]) -> float:
     """MMRV = (1/N) sum_i max_j |R_i - R_j| [(S_i < S_j) != (R_i < R_j)], with the proxy S = -score and R the
-    success rates: each cell's worst ordering error, weighted by the success it misjudges, averaged."""
+    closed-loop values (higher is better): each cell's worst ordering error, weighted by what it misjudges,
+    averaged."""
     s, r = -np.asarray(score, dtype=np.float64), np.asarray(success, dtype=np.float64)
     violated = (s[:, None] < s[None, :]) != (r[:, None] < r[None, :])
     return float((np.abs(r[:, None] - r[None, :]) * violated).max(axis=1).mean())
 
 
-def success_cells(results: pl.DataFrame, rollouts: pl.DataFrame) -> pl.DataFrame:
-    """Per results row with rollouts (rollouts: run_id, success per episode), its success rate and Wilson
-    interval beside its offline scores, in (backbone, suite, encoder, control, seed) order."""
-    per_run = rollouts.group_by("run_id").agg(episodes=pl.len(), successes=pl.col("success").sum())
+def rollout_cells(results: pl.DataFrame, rollouts: pl.DataFrame) -> pl.DataFrame:
+    """Per results row with rollouts (graftcache.analysis.rollouts.read_rollouts), its success rate and Wilson
+    interval, and each graded measure's mean over its episodes that record it, beside its offline scores, in
+    (backbone, suite, encoder, control, seed) order."""
+    per_run = rollouts.group_by("run_id").agg(
+        episodes=pl.len(), successes=pl.col("success").sum(),
+        graded_episodes=(~pl.all_horizontal(pl.col(GRADED_MEASURES).is_null())).sum(),
+        **{MEASURE_COLUMNS[m]: pl.col(m).cast(pl.Float64).mean() for m in GRADED_MEASURES},
+    )
     cells = results.join(per_run, on="run_id", how="inner").sort("backbone", "suite", "encoder", "control", "seed")
     bounds = [wilson(k, n) for k, n in cells.select("successes", "episodes").iter_rows()]
     return cells.with_columns(
@@ -97,38 +136,84 @@ def success_cells(results: pl.DataFrame, rollouts: pl.DataFrame) -> pl.DataFrame
     ).select([pl.col(c).cast(t) for c, t in CELL_SCHEMA.items()])
 
 
-def _why_undefined(score: str, values: np.ndarray, rates: np.ndarray) -> str | None:
+def _episode_values(rollouts: pl.DataFrame, measure: str) -> dict[str, np.ndarray]:
+    """run_id -> the measure over that cell's episodes that record it (true/false as 1/0), sorted: a replicate
+    depends on the values, never on the order of the file's rows."""
+    frame = rollouts.select("run_id", pl.col(measure).cast(pl.Float64)).drop_nulls()
+    return {run: np.sort(group[measure].to_numpy()) for (run,), group in frame.group_by("run_id")}
+
+
+def _level(measure: str, value: float) -> str:
+    """One cell's value of a measure, as the note on a tie says it."""
+    if measure == "success":
+        return f"success rate is {value:.0%}"
+    return f"grasped rate is {value:.0%}" if measure == "grasped" else f"{measure} is {value:.4g}"
+
+
+def _why_undefined(score: str, measure: str, recorded: int, scores: np.ndarray, values: np.ndarray) -> str | None:
     """Why no agreement figure can be given over these cells, or None."""
-    if len(values) == 0:
+    if not recorded:
+        return (f"graded measures unavailable: no rollout of these cells records {measure} (format-1 rows, or a "
+                "table without it)")
+    if len(scores) == 0:
         return f"no cell with rollouts has a finite {score}"
-    if len(values) == 1:
+    if len(scores) == 1:
         return "1 cell: agreement needs 2 or more"
-    if np.ptp(rates) == 0:
-        return f"every cell's success rate is {rates[0]:.0%}: no order to agree with"
+    if np.ptp(values) == 0:
+        return f"every cell's {_level(measure, values[0])}: no order to agree with"
     return None
 
 
-def agreement(cells: pl.DataFrame) -> pl.DataFrame:
-    """Per (backbone, suite) and CLOSED_LOOP_SCORES score: how many cells have it, and rho, tau-b (both of -score
-    against success) and MMRV over them, null where undefined (see the module docstring), `note` saying why."""
+def _agree(scores: np.ndarray, good: np.ndarray, replicates: np.ndarray) -> dict[str, float | int | None]:
+    """rho, tau-b and MMRV of -scores against `good` (higher is better), each with its percentile interval over
+    the replicates in which the cells do not all tie (a tie everywhere has no order, as for the point figure)."""
+    rho, tau, worst = spearman(-scores, good), tau_b(-scores, good), mmrv(scores, good)
+    kept = replicates[np.ptp(replicates, axis=1) > 0]
+    out: dict[str, float | int | None] = {"replicates": len(kept)}
+    for name, point, draws in (("spearman", rho, spearman_rows), ("kendall_tau_b", tau, tau_b_rows),
+                               ("mmrv", worst, None)):
+        if point is None:
+            out |= {name: None, f"{name}_low": None, f"{name}_high": None}
+            continue
+        stats = mmrv_rows(scores, kept) if draws is None else draws(-scores, kept)
+        out[name], (out[f"{name}_low"], out[f"{name}_high"]) = point, interval(stats)
+    return out
+
+
+def agreement(cells: pl.DataFrame, rollouts: pl.DataFrame, *, seed: int = 0) -> pl.DataFrame:
+    """Per (backbone, suite), MEASURES measure and CLOSED_LOOP_SCORES score: how many cells have both, and rho,
+    tau-b (both of -score against the measure oriented better-is-higher) and MMRV over them, each with its 95%
+    bootstrap interval over episodes (N_BOOT replicates, generators seeded by `seed`, the run_id and the measure);
+    null where undefined (see the module docstring), `note` saying why."""
     records = []
+    empty = dict.fromkeys(c for c in AGREEMENT_SCHEMA if c not in ("backbone", "suite", "score", "measure",
+                                                                   "cells", "note"))
+    episodes = {m: _episode_values(rollouts, m) for m in MEASURES}
     for (backbone, suite), group in cells.group_by(GROUP, maintain_order=True):
-        for score in CLOSED_LOOP_SCORES:
-            valid = group.filter(pl.col(score).is_finite())
-            values, rates = valid[score].to_numpy(), valid["success_rate"].to_numpy()
-            note = _why_undefined(score, values, rates)
-            rho = tau = worst = None
-            if note is None:
-                rho, tau, worst = spearman(-values, rates), tau_b(-values, rates), mmrv(values, rates)
-                if rho is None:
+        for measure in MEASURES:
+            sign, column = (1.0 if HIGHER_IS_BETTER[measure] else -1.0), MEASURE_COLUMNS[measure]
+            have = group.filter(pl.col(column).is_not_null())
+            draws = [sign * resampled_means(episodes[measure][r], generator(seed, "closed-loop", r, measure))
+                     for r in have["run_id"]]
+            replicates = np.stack(draws, axis=1) if draws else np.empty((N_BOOT, 0))
+            for score in CLOSED_LOOP_SCORES:
+                valid = have[score].is_finite().fill_null(False).to_numpy()
+                scores, values = have[score].to_numpy()[valid], have[column].to_numpy()[valid]
+                note = _why_undefined(score, measure, len(have), scores, values)
+                figures = empty if note else _agree(scores, sign * values, replicates[:, valid])
+                if not note and figures["spearman"] is None:
                     note = f"every cell has the same {score}: rho and tau-b undefined"
-            records.append({"backbone": backbone, "suite": suite, "score": score, "cells": len(values),
-                            "spearman": rho, "kendall_tau_b": tau, "mmrv": worst, "note": note})
+                if not note and figures["replicates"] < FEW_REPLICATES * N_BOOT:
+                    note = (f"intervals over only {figures['replicates']} of {N_BOOT} replicates (in the others "
+                            f"every cell had one {measure}: no order)")
+                records.append({"backbone": backbone, "suite": suite, "score": score, "measure": measure,
+                                "cells": len(scores), **figures, "note": note})
     return pl.DataFrame(records, schema=AGREEMENT_SCHEMA)
 
 
-def closed_loop(results: pl.DataFrame, rollouts: pl.DataFrame) -> ClosedLoop:
-    """Cells and agreement from a conformed results table (every SCHEMA column, scores unreplaced) and rollouts
-    (graftcache.analysis.rollouts.read_rollouts)."""
-    cells = success_cells(results, rollouts)
-    return ClosedLoop(cells, agreement(cells))
+def closed_loop(results: pl.DataFrame, rollouts: pl.DataFrame, *, seed: int = 0) -> ClosedLoop:
+    """Cells, agreement and the paired control from a conformed results table (every SCHEMA column, scores
+    unreplaced) and rollouts (graftcache.analysis.rollouts.read_rollouts); `seed` seeds every bootstrap."""
+    cells = rollout_cells(results, rollouts)
+    return ClosedLoop(cells, agreement(cells, rollouts, seed=seed), paired_control(cells, rollouts, seed=seed),
+                      rollouts)

@@ -1,9 +1,16 @@
 """What the report reads of a rollouts file: each episode's `run_id` (the results row whose policy ran it) and
-`success`. Every other column (suite, task_index, episode, seed, steps, seconds, ...) is provenance the report
-does not need, so episodes a user ran with other tools join as well as those `graftcache rollout` writes.
+`success`, and where the file has them, the graded measures of closed-loop progress and the episode's key.
+
+Only `run_id` and `success` are required, so episodes a user ran with other tools join as well as those
+`graftcache rollout` writes. The graded columns (GRADED_MEASURES; format-2 rollouts rows, graftcache.rollout.table)
+and the key that pairs one episode across cells (PAIR_KEY) are read when present and null when absent: a format-1
+file, or a user's table without them, still reads, and the report says that its graded measures are unavailable
+rather than leaving those rollouts out. The column names and types are the rollouts contract's (issue 43), written
+out here rather than imported: analysis reads files, it does not depend on the code that writes them.
 
 An episode whose run_id is not in the results table is refused (one line naming the file and such a run_id), never
-dropped: rollouts of another results file would otherwise leave the report silently about fewer cells.
+dropped: rollouts of another results file would otherwise leave the report silently about fewer cells. So is a
+column of the wrong type, and a non-finite graded value (a distance of NaN is a bug upstream, not a measurement).
 """
 
 from __future__ import annotations
@@ -15,29 +22,68 @@ import polars as pl
 from graftcache.errors import GraftcacheError
 
 ROLLOUT_COLUMNS = ("run_id", "success")
+#: The graded measures of progress, per episode, from the simulator's state (null where a row lacks them).
+GRADED_MEASURES: dict[str, pl.DataType] = {
+    "min_target_distance_m": pl.Float64,    # closest approach of the end effector to the task's target
+    "final_target_distance_m": pl.Float64,  # that distance at the episode's last state
+    "target_lift_m": pl.Float64,            # the target's highest height above its settled height
+    "grasped": pl.Boolean,                  # target held between both fingers for >= 5 consecutive steps
+    "goal_fraction": pl.Float64,            # share of the task's BDDL goal predicates true at the end
+}
+#: Every closed-loop measure and whether higher is better; the report orients each agreement figure by it.
+HIGHER_IS_BETTER: dict[str, bool] = {
+    "success": True, "min_target_distance_m": False, "final_target_distance_m": False, "target_lift_m": True,
+    "grasped": True, "goal_fraction": True,
+}
+MEASURES = tuple(HIGHER_IS_BETTER)
+#: What decides an episode apart from the policy: the same key in two cells is the same scene, seed and limit.
+PAIR_KEY: dict[str, pl.DataType] = {
+    "suite": pl.String, "task_index": pl.Int64, "episode": pl.Int64, "seed": pl.Int64, "max_steps": pl.Int64,
+    "perturbation_m": pl.Float64,
+}
 
 
-def _success(column: pl.Series, path: Path) -> pl.Series:
-    """`success` as booleans: booleans as they are, integers only when every one is 0 or 1."""
-    if column.dtype == pl.Boolean:
-        return column
-    if column.dtype.is_integer() and column.is_in([0, 1]).all():
+def _boolean(column: pl.Series, path: Path) -> pl.Series:
+    """A true/false column as booleans: booleans as they are, integers only when every one is 0 or 1."""
+    values = column.drop_nulls()
+    if column.dtype in (pl.Boolean, pl.Null):
         return column.cast(pl.Boolean)
-    odd = column.filter(~column.is_in([0, 1])) if column.dtype.is_numeric() else column
-    raise GraftcacheError(f"{path}: column success holds {column.dtype} values such as {odd[0]!r}, not true/false")
+    if column.dtype.is_integer() and values.is_in([0, 1]).all():
+        return column.cast(pl.Boolean)
+    odd = values.filter(~values.is_in([0, 1])) if column.dtype.is_numeric() else values
+    raise GraftcacheError(f"{path}: column {column.name} holds {column.dtype} values such as {odd[0]!r}, not "
+                          "true/false")
 
 
-def read_rollouts(path: str | Path, results: pl.DataFrame) -> pl.DataFrame:
-    """The rollouts Parquet file at `path` as (run_id, success) per episode, checked against `results`' run_ids;
-    anything unusable is a GraftcacheError naming the file."""
-    path = Path(path)
+def _typed(column: pl.Series, dtype: pl.DataType, path: Path) -> pl.Series:
+    """`column` as `dtype`, refusing a value that would change (text for a number, 1.5 for an integer)."""
+    if dtype == pl.Boolean:
+        return _boolean(column, path)
+    if column.dtype == pl.Null or column.dtype == dtype:
+        return column.cast(dtype)
+    fits = (dtype == pl.String and column.dtype in (pl.String, pl.Categorical, pl.Enum)) or (
+        dtype == pl.Float64 and column.dtype.is_numeric()) or (dtype == pl.Int64 and column.dtype.is_integer())
+    if not fits:
+        raise GraftcacheError(f"{path}: column {column.name} holds {column.dtype} values, not {dtype}")
+    return column.cast(dtype)
+
+
+def _read(path: Path) -> pl.DataFrame:
     if not path.is_file():
         raise GraftcacheError(f"{path}: no rollouts file")
     try:
-        table = pl.read_parquet(path)
+        return pl.read_parquet(path)
     except (pl.exceptions.PolarsError, OSError) as e:
         reason = (str(e).strip().splitlines() or [type(e).__name__])[0]
         raise GraftcacheError(f"{path}: not a Parquet rollouts table ({reason})") from None
+
+
+def read_rollouts(path: str | Path, results: pl.DataFrame) -> pl.DataFrame:
+    """The rollouts Parquet file at `path` as one row per episode: run_id, success, GRADED_MEASURES and PAIR_KEY
+    (each null where the file lacks it), checked against `results`' run_ids; anything unusable is a
+    GraftcacheError naming the file."""
+    path = Path(path)
+    table = _read(path)
     missing = [c for c in ROLLOUT_COLUMNS if c not in table.columns]
     if missing:
         raise GraftcacheError(f"{path}: rollouts table lacks column(s) {', '.join(missing)} (the report needs "
@@ -47,7 +93,14 @@ def read_rollouts(path: str | Path, results: pl.DataFrame) -> pl.DataFrame:
     nulls = [c for c in ROLLOUT_COLUMNS if table[c].null_count()]
     if nulls:
         raise GraftcacheError(f"{path}: null values in column(s) {', '.join(nulls)}")
-    rollouts = pl.DataFrame([table["run_id"].cast(pl.String), _success(table["success"], path)])
+    optional = {**GRADED_MEASURES, **PAIR_KEY}
+    columns = [table["run_id"].cast(pl.String), _boolean(table["success"], path)]
+    columns += [_typed(table[c], t, path) if c in table.columns else pl.Series(c, [None] * len(table), dtype=t)
+                for c, t in optional.items()]
+    rollouts = pl.DataFrame(columns)
+    odd = [c for c, t in GRADED_MEASURES.items() if t == pl.Float64 and (~rollouts[c].is_finite()).any()]
+    if odd:
+        raise GraftcacheError(f"{path}: non-finite values in column(s) {', '.join(odd)} (null: not measured)")
     unknown = rollouts.filter(~pl.col("run_id").is_in(results["run_id"].implode()))["run_id"].unique(
         maintain_order=True)
     if len(unknown):

@@ -16,7 +16,12 @@ import polars as pl
 
 from graftcache import analysis as A
 from graftcache import results as R
-from graftcache.report.closed_loop_csv import CLOSED_LOOP_CSV, CLOSED_LOOP_CSV_COLUMNS, closed_loop_table
+from graftcache.report.closed_loop_csv import (
+    CLOSED_LOOP_CSV,
+    CLOSED_LOOP_CSV_COLUMNS,
+    CLOSED_LOOP_CSV_SCHEMA,
+    closed_loop_table,
+)
 from graftcache.report.document import Block, Heading, Image
 from graftcache.report.figures import (
     FIGURES,
@@ -41,7 +46,7 @@ from graftcache.report.sentences import (
 from graftcache.report.transfer_csv import TRANSFER_CSV, TRANSFER_CSV_COLUMNS, transfer_table
 
 __all__ = [
-    "CLOSED_LOOP_CSV", "CLOSED_LOOP_CSV_COLUMNS", "closed_loop_table", "figure_closed_loop",
+    "CLOSED_LOOP_CSV", "CLOSED_LOOP_CSV_COLUMNS", "CLOSED_LOOP_CSV_SCHEMA", "closed_loop_table", "figure_closed_loop",
     "FIGURES", "PROXY_NOTE", "TITLE", "TRANSFER_CSV", "TRANSFER_CSV_COLUMNS", "ReportPaths", "bootstrap_sentence",
     "figure_controls", "figure_mse", "figure_rank_bump", "figure_rank_transfer", "headline_sentences",
     "beats_controls_sentences", "reads_images_sentences", "random_init_warning", "render_html", "render_markdown",

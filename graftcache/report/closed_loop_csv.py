@@ -1,11 +1,16 @@
-"""closed_loop.csv: how well each offline score agrees with closed-loop success, one row per (backbone, suite,
-score), for tools and spreadsheets; written by `graftcache report --rollouts`.
+"""closed_loop.csv: how well each offline score agrees with each closed-loop measure, one row per (backbone, suite,
+score, measure), for tools and spreadsheets; written by `graftcache report --rollouts`.
 
-Columns (CLOSED_LOOP_CSV_COLUMNS): `backbone`, `suite`; `score`, a results column (graftcache.analysis
-.CLOSED_LOOP_SCORES); `cells`, the run_ids with rollouts and a finite score; `spearman` and `kendall_tau_b` of
--score against the success rate (positive: lower scores go with more success), `mmrv` (SIMPLER's mean maximum rank
-violation, in success-rate units). A figure that is undefined (fewer than 2 cells, every cell with the same
-success rate; rho and tau-b also with one score for all) is empty, never a number: the report says why.
+Columns (CLOSED_LOOP_CSV_COLUMNS, typed by CLOSED_LOOP_CSV_SCHEMA): `backbone`, `suite`; `score`, a results column
+(graftcache.analysis.CLOSED_LOOP_SCORES); `measure`, a closed-loop measure (graftcache.analysis.MEASURES: `success`
+and the graded ones); `cells`, the run_ids with rollouts, a finite score and the measure recorded; `spearman` and
+`kendall_tau_b` of -score against the measure oriented so that higher is better (positive: lower scores go with a
+better closed loop, for every measure), `mmrv` (SIMPLER's mean maximum rank violation, in the measure's units: a
+rate, metres or a fraction); each with `_low` and `_high`, its 95% percentile interval from the bootstrap over
+each cell's episodes; `replicates`, how many of the bootstrap's graftcache.analysis.N_BOOT replicates the
+intervals were taken over (those in which the cells did not all tie). A figure that is undefined (fewer than 2
+cells, every cell with the same value of the measure, a graded measure that no episode records; rho and tau-b
+also with one score for all) is empty, never a number: the report says why.
 """
 
 from __future__ import annotations
@@ -15,9 +20,12 @@ import polars as pl
 from graftcache import analysis as A
 
 CLOSED_LOOP_CSV = "closed_loop.csv"
-CLOSED_LOOP_CSV_COLUMNS = ("backbone", "suite", "score", "cells", "spearman", "kendall_tau_b", "mmrv")
+CLOSED_LOOP_CSV_SCHEMA: dict[str, pl.DataType] = {
+    c: t for c, t in A.AGREEMENT_SCHEMA.items() if c != "note"
+}
+CLOSED_LOOP_CSV_COLUMNS = tuple(CLOSED_LOOP_CSV_SCHEMA)
 
 
 def closed_loop_table(a: A.Analysis) -> pl.DataFrame:
     """The rows closed_loop.csv holds (CLOSED_LOOP_CSV_COLUMNS), from an Analysis given rollouts."""
-    return a.closed_loop.agreement.select(CLOSED_LOOP_CSV_COLUMNS)
+    return a.closed_loop.agreement.select([pl.col(c).cast(t) for c, t in CLOSED_LOOP_CSV_SCHEMA.items()])

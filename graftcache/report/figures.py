@@ -5,33 +5,24 @@ the notebook display the very same Figure objects.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
 import polars as pl
 from matplotlib.axes import Axes
-from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 
 from graftcache import analysis as A
+from graftcache.report.canvas import grid, new_figure, value_limits
+from graftcache.report.closed_loop_figure import CLOSED_LOOP_CAPTION, figure_closed_loop
+from graftcache.report.document import Block, Image
 
 TIER_COLOR, OTHER_COLOR = "#1f77b4", "#a0a0a0"
 SMALL_WINNER_COLOR, LARGE_WINNER_COLOR, BOTH_WINNER_COLOR = "#d62728", "#9467bd", "#000000"
 CONTROL_COLORS = {A.ZERO_IMAGE: "#444444", A.SHUFFLED_IMAGE: "#ff7f0e"}
-VALUE_MARGIN = 0.12  # share of the data's range added on each side of an MSE axis
 LABEL_INCH_PER_CHAR = 0.06  # width of one 7-pt tick-label character, to size panels around encoder names
-
-
-def _new_figure(width: float, height: float) -> Figure:
-    fig = Figure(figsize=(width, height), layout="constrained")
-    FigureCanvasAgg(fig)
-    return fig
-
-
-def _grid(n: int, max_cols: int = 4) -> tuple[int, int]:
-    cols = min(n, max_cols)
-    return -(-n // cols), cols
 
 
 def _plain_values(a: A.Analysis, backbone: str, suite: str, encoder: str) -> list[float]:
@@ -44,14 +35,6 @@ def _plain_values(a: A.Analysis, backbone: str, suite: str, encoder: str) -> lis
     return [v for v in rows["eval_mse"].to_list() if v is not None and np.isfinite(v)]
 
 
-def value_limits(values: Sequence[float]) -> tuple[float, float]:
-    """Axis limits from the data plus VALUE_MARGIN, not from zero: encoders a few percent apart must look
-    apart. Non-negative data (MSEs) never get a negative lower limit."""
-    lo, hi = min(values), max(values)
-    pad = VALUE_MARGIN * ((hi - lo) or abs(hi) or 1.0)
-    return max(lo - pad, min(lo, 0.0)), hi + pad
-
-
 def figure_mse(a: A.Analysis) -> Figure | None:
     """Mean eval MSE per encoder with its min-max range over seeds, each seed as a dot, the top tier in
     colour; one panel per (backbone, suite), its MSE axis fitted to the panel's data. Missing cells are
@@ -60,7 +43,7 @@ def figure_mse(a: A.Analysis) -> Figure | None:
     if not panels:
         return None
     n_enc = a.band.group_by(A.GROUP).len()["len"].max()
-    fig = _new_figure(4.4 * len(a.suites), (0.45 * n_enc + 1.3) * len(a.backbones))
+    fig = new_figure(4.4 * len(a.suites), (0.45 * n_enc + 1.3) * len(a.backbones))
     axes = fig.subplots(len(a.backbones), len(a.suites), squeeze=False)
     for (backbone, suite), ax in zip(panels, axes.flat):
         cells = a.band.filter(pl.col("backbone") == backbone, pl.col("suite") == suite).sort(
@@ -122,11 +105,11 @@ def figure_rank_transfer(a: A.Analysis) -> Figure | None:
     backbones (more: figure_rank_bump)."""
     if len(a.ladder.backbones) != 2 or not len(a.verdicts):
         return None
-    rows, cols = _grid(len(a.suites))
+    rows, cols = grid(len(a.suites))
     longest = max(len(e) for e in a.band["encoder"]) + 6
     n_enc = a.band.group_by(A.GROUP).len()["len"].max()
     panel_width = max(1.8 + 2 * LABEL_INCH_PER_CHAR * longest, 3.2)  # names on both sides; room for titles
-    fig = _new_figure(panel_width * cols, (0.35 * n_enc + 1.9) * rows)
+    fig = new_figure(panel_width * cols, (0.35 * n_enc + 1.9) * rows)
     axes = fig.subplots(rows, cols, squeeze=False)
     tau = dict(a.tau.select("suite", "tau_b").iter_rows())
     small, large = A.backbone_label(a.small), A.backbone_label(a.large)
@@ -192,11 +175,11 @@ def figure_rank_bump(a: A.Analysis) -> Figure | None:
     ladder = a.ladder.backbones
     if len(ladder) < 3 or not len(a.band):
         return None
-    rows, cols = _grid(len(a.suites), max_cols=2)
+    rows, cols = grid(len(a.suites), max_cols=2)
     encoders = sorted(set(a.band["encoder"]))
     colors = {e: f"C{i % 10}" for i, e in enumerate(encoders)}
     n_enc = a.band.group_by(A.GROUP).len()["len"].max()
-    fig = _new_figure((1.1 * len(ladder) + 1.6) * cols, (0.35 * n_enc + 2.0) * rows)
+    fig = new_figure((1.1 * len(ladder) + 1.6) * cols, (0.35 * n_enc + 2.0) * rows)
     axes = fig.subplots(rows, cols, squeeze=False)
     for ax, suite in zip(axes.flat, a.suites):
         cells = a.band.filter(pl.col("suite") == suite).drop_nulls("rank")
@@ -236,7 +219,7 @@ def figure_controls(a: A.Analysis) -> Figure | None:
     backbones = [b for b in a.backbones if b in set(c["backbone"])]
     suites = sorted(set(c["suite"]))
     n_enc = c.group_by(A.GROUP).agg(pl.col("encoder").n_unique())["encoder"].max()
-    fig = _new_figure(4.2 * len(suites), (0.4 * n_enc + 1.4) * len(backbones))
+    fig = new_figure(4.2 * len(suites), (0.4 * n_enc + 1.4) * len(backbones))
     axes = fig.subplots(len(backbones), len(suites), squeeze=False)
     controls = sorted(set(c["control"]))
     colors = {k: CONTROL_COLORS.get(k, f"C{i + 2}") for i, k in enumerate(controls)}
@@ -269,59 +252,15 @@ def figure_controls(a: A.Analysis) -> Figure | None:
     return fig
 
 
-def _agreement_title(row: dict | None) -> str:
-    """A panel's agreement figures, or why there are none."""
-    if row is None:
-        return ""
-    if row["mmrv"] is None:
-        return f"undefined: {row['note']}"
-    rho, tau = (_signed(row[k]) for k in ("spearman", "kendall_tau_b"))
-    return f"ρ = {rho}, τb = {tau}, MMRV = {row['mmrv']:.2f}"
-
-
-def _signed(x: float | None) -> str:
-    return "—" if x is None else f"{x:+.2f}"
-
-
-def figure_closed_loop(a: A.Analysis) -> Figure | None:
-    """Per (backbone, suite) with rollouts: each cell (run_id) as a dot at its offline score (the report's
-    `--score`) and success rate, with the rate's 95% Wilson interval, coloured by encoder; the panel's title gives
-    rho, tau-b and MMRV of that score, or why they are undefined. None without rollouts."""
-    if a.closed_loop is None or not len(a.closed_loop.cells):
-        return None
-    column = A.SCORES[a.score][0]
-    cells = a.closed_loop.cells
-    panels = cells.select(A.GROUP).unique(maintain_order=True).rows()
-    rows, cols = _grid(len(panels), max_cols=3)
-    fig = _new_figure(3.8 * cols, 3.2 * rows + 0.6)
-    axes = fig.subplots(rows, cols, squeeze=False)
-    encoders = sorted(set(cells["encoder"]))
-    colors = {e: f"C{i % 10}" for i, e in enumerate(encoders)}
-    agree = {(r["backbone"], r["suite"]): r for r in a.closed_loop.agreement.filter(pl.col("score") == column)
-             .iter_rows(named=True)}
-    for ax, (backbone, suite) in zip(axes.flat, panels):
-        panel = cells.filter(pl.col("backbone") == backbone, pl.col("suite") == suite, pl.col(column).is_finite())
-        for r in panel.iter_rows(named=True):
-            spread = [[r["success_rate"] - r["ci_low"]], [r["ci_high"] - r["success_rate"]]]
-            ax.errorbar(r[column], r["success_rate"], yerr=spread, fmt="o", color=colors[r["encoder"]], ms=5,
-                        capsize=3, lw=1.2, alpha=0.8, zorder=3)  # see-through: cells of one score and rate overlap
-        if len(panel):
-            ax.set_xlim(*value_limits(panel[column].to_list()))
-        else:
-            ax.text(0.5, 0.5, f"no cell has {column}", transform=ax.transAxes, ha="center", color="0.4")
-        ax.set_ylim(-0.05, 1.05)
-        ax.grid(color="0.9", zorder=0)
-        ax.set_xlabel(f"{column} (lower is better; axis not from 0)", fontsize=8)
-        ax.set_ylabel("success rate (95% Wilson)", fontsize=8)
-        ax.tick_params(labelsize=7)
-        ax.set_title(f"{A.backbone_label(backbone)} · {suite}\n{_agreement_title(agree.get((backbone, suite)))}",
-                     fontsize=8)
-    for ax in list(axes.flat)[len(panels):]:
-        ax.set_visible(False)
-    fig.legend(handles=[Line2D([], [], ls="", marker="o", color=colors[e], label=e) for e in encoders],
-               loc="outside lower center", ncols=min(len(encoders), 4), fontsize=8,
-               title="one dot per cell (run_id)", title_fontsize=7)
-    return fig
+def figure_blocks(a: A.Analysis, out: Path, name: str) -> list[Block]:
+    """Draw the FIGURES figure `name` into `out` and return its Image block (none when there is nothing to
+    draw)."""
+    draw, caption = FIGURES[name]
+    fig = draw(a)
+    if fig is None:
+        return []
+    fig.savefig(out / name, dpi=110)
+    return [Image(name, caption)]
 
 
 FIGURES: dict[str, tuple[Callable[[A.Analysis], Figure | None], str]] = {
@@ -340,9 +279,5 @@ FIGURES: dict[str, tuple[Callable[[A.Analysis], Figure | None], str]] = {
          "top tier."),
     ),
     "controls.png": (figure_controls, "Distance of each encoder from its controls (> 0: the encoder helps)."),
-    "closed_loop.png": (
-        figure_closed_loop,
-        "Closed-loop success rate (95% Wilson interval) against the offline score, one dot per cell (run_id); "
-        "each panel's title gives Spearman ρ, Kendall τb and MMRV of that score against success.",
-    ),
+    "closed_loop.png": (figure_closed_loop, CLOSED_LOOP_CAPTION),
 }

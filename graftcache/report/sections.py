@@ -11,8 +11,9 @@ import polars as pl
 from graftcache import analysis as A
 from graftcache import results as R
 from graftcache.critical import WINDOW
-from graftcache.report.document import Alert, Block, Bullets, Heading, Image, Paragraph
-from graftcache.report.figures import FIGURES
+from graftcache.report.closed_loop_section import closed_loop_section
+from graftcache.report.document import Alert, Block, Bullets, Heading, Paragraph
+from graftcache.report.figures import figure_blocks
 from graftcache.report.findings import findings_blocks
 from graftcache.report.sentences import (
     PROXY_NOTE,
@@ -27,14 +28,12 @@ from graftcache.report.sentences import (
     verdict_sentences,
 )
 from graftcache.report.tables import (
-    AGREEMENT_COLUMNS,
     CONTROL_COLUMNS,
     MISSING_COLUMNS,
     MSE_COLUMNS,
     PROVENANCE_COLUMNS,
     SCORE_COLUMNS,
     SEED_COLUMNS,
-    SUCCESS_COLUMNS,
     WRAPPER_COLUMNS,
     in_backbone_order,
     ladder_block,
@@ -76,15 +75,6 @@ def header(a: A.Analysis, source: str) -> list[Block]:
     return [Bullets(facts), Paragraph(PROXY_NOTE)]
 
 
-def _figure(a: A.Analysis, out: Path, name: str) -> list[Block]:
-    draw, caption = FIGURES[name]
-    fig = draw(a)
-    if fig is None:
-        return []
-    fig.savefig(out / name, dpi=110)
-    return [Image(name, caption)]
-
-
 def _transfer_section(a: A.Analysis, out: Path) -> list[Block]:
     head = Heading("Does the ranking transfer?")
     if a.transfer_gap:
@@ -92,7 +82,7 @@ def _transfer_section(a: A.Analysis, out: Path) -> list[Block]:
     if len(a.ladder.backbones) == 2:  # the paper's framing: one small and one large backbone
         return [
             head, Paragraph(transfer_summary(a)), Bullets(tuple(verdict_sentences(a))), *_stability(a),
-            table_block(a.verdicts, transfer_columns(a)), *_figure(a, out, "rank_transfer.png"),
+            table_block(a.verdicts, transfer_columns(a)), *figure_blocks(a, out, "rank_transfer.png"),
         ]
     about = ("Backbones stand on a ladder by parameter count; each rung is a backbone and the next larger one. "
              "Every pair is judged in both directions below.")
@@ -101,7 +91,7 @@ def _transfer_section(a: A.Analysis, out: Path) -> list[Block]:
         taus += [Paragraph(f"Kendall τb between the backbones' mean MSEs, {suite}:"), tau_matrix_block(a, suite)]
     return [
         head, Paragraph(about), ladder_block(a), Bullets(tuple(headline_sentences(a))),
-        *_figure(a, out, "rank_bump.png"),
+        *figure_blocks(a, out, "rank_bump.png"),
         Paragraph(transfer_summary(a)), Bullets(tuple(verdict_sentences(a))), *_stability(a),
         table_block(a.verdicts, transfer_columns(a)), *taus,
     ]
@@ -128,7 +118,7 @@ def _mse_section(a: A.Analysis, out: Path) -> list[Block]:
     head = Heading("Offline action MSE per backbone and suite")
     if not len(a.band):
         return [head, Paragraph("No plain-graft rows (control `none`) in the table.")]
-    return [head, *_figure(a, out, "mse.png"), table_block(in_backbone_order(a, a.band), MSE_COLUMNS)]
+    return [head, *figure_blocks(a, out, "mse.png"), table_block(in_backbone_order(a, a.band), MSE_COLUMNS)]
 
 
 def _seed_section(a: A.Analysis, _: Path) -> list[Block]:
@@ -174,36 +164,10 @@ def _controls_section(a: A.Analysis, out: Path) -> list[Block]:
         lines = tuple(f"{A.backbone_label(b)} · {s} · {e}: the image features add nothing measurable"
                       for b, s, e in noisy)
         blocks.append(Alert("encoders within noise of zero-image", lines))
-    blocks += [*_figure(a, out, "controls.png"), table_block(have, CONTROL_COLUMNS)]
+    blocks += [*figure_blocks(a, out, "controls.png"), table_block(have, CONTROL_COLUMNS)]
     if lacking := len(a.controls) - len(have):
         blocks.append(Paragraph(f"{lacking} (encoder, control) pairs have no control rows (not shown)."))
     return blocks
-
-
-def _closed_loop_section(a: A.Analysis, out: Path) -> list[Block]:
-    """Offline scores against rollouts' success (only with `report --rollouts`)."""
-    if a.closed_loop is None:
-        return []
-    head = Heading("Offline scores vs closed-loop success")
-    cells, agreement = a.closed_loop.cells, a.closed_loop.agreement
-    if not len(cells):
-        return [head, Paragraph("No results row has rollouts.")]
-    about = (
-        "A cell is one results row (one run_id: one seed of an encoder or control) that was rolled out; its success "
-        "rate is over its episodes, with a 95% Wilson score interval. Agreement is computed over run_ids, not "
-        "over seed means: a run_id is the very policy that was scored offline and rolled out, so its score and "
-        "success rate are one paired measurement. Per backbone, suite and offline score (lower is better): "
-        "Spearman ρ and Kendall τb of −score against success (positive: lower scores go with more success), and "
-        "MMRV (SIMPLER, arXiv 2405.05941: with proxy S = −score and success R, (1/N) Σ_i max_j |R_i − R_j| "
-        "[(S_i < S_j) ≠ (R_i < R_j)], 0 when no pair is misordered). `eval_mse_arm` is the error on the first "
-        "action_dim − 1 dimensions (LIBERO's end effector), `eval_mse_gripper` on the last."
-    )
-    undefined = ("A figure shown as — (empty in closed_loop.csv) is undefined, never 0: with fewer than 2 cells, or "
-                 "where every cell has the same success rate (e.g. every episode failed: no order to agree with); ρ "
-                 "and τb also where every cell has the same score. The note says which.")
-    return [head, Paragraph(about), *_figure(a, out, "closed_loop.png"), Paragraph(undefined),
-            table_block(in_backbone_order(a, agreement), AGREEMENT_COLUMNS),
-            table_block(in_backbone_order(a, cells), SUCCESS_COLUMNS)]
 
 
 def _missing_section(a: A.Analysis, _: Path) -> list[Block]:
@@ -258,5 +222,5 @@ def provenance_section(a: A.Analysis, commands: Mapping[str, str] | None) -> lis
 
 SECTIONS: tuple[Callable[[A.Analysis, Path], list[Block]], ...] = (
     _transfer_section, _mse_section, _score_section, _seed_section, _wrapper_section, _controls_section,
-    _closed_loop_section, _missing_section, _methods_section,
+    closed_loop_section, _missing_section, _methods_section,
 )

@@ -40,7 +40,7 @@ Row = Mapping[str, object]
 Column = tuple[str, Callable[[Row], str]]
 
 
-def _col(name: str, fmt: Callable[[object], str] = str) -> Callable[[Row], str]:
+def col(name: str, fmt: Callable[[object], str] = str) -> Callable[[Row], str]:
     """Read one column of a row dict and format it; null -> '—' unless the formatter handles it."""
     return lambda r: "—" if r[name] is None and fmt is str else fmt(r[name])
 
@@ -51,31 +51,31 @@ def table_block(frame: pl.DataFrame, columns: tuple[Column, ...]) -> Table:
     return Table(tuple(h for h, _ in columns), rows)
 
 
-BACKBONE: Column = ("backbone", _col("backbone", A.backbone_label))
+BACKBONE: Column = ("backbone", col("backbone", A.backbone_label))
 NOTE: Column = ("note", lambda r: r["note"] or "")
 DIRECTION: Column = ("direction", lambda r: direction(r["source"], r["target"]))
 TARGET_TIER: Column = ("target top tier", lambda r: ", ".join(r["target_band"] or []) or "—")
 
 MSE_COLUMNS: tuple[Column, ...] = (
-    BACKBONE, ("suite", _col("suite")), ("encoder", _col("encoder")), ("rank", _col("rank")),
+    BACKBONE, ("suite", col("suite")), ("encoder", col("encoder")), ("rank", col("rank")),
     ("mean ± std", lambda r: "—" if r["mean"] is None else f"{r['mean']:.4g} ± {num(r['std'])}"),
-    ("n", _col("n")), ("min", _col("min", num)), ("max", _col("max", num)),
-    ("top tier", _col("in_band", _yes)), ("P(worse than best)", _col("p_worse", lambda x: num(x, ".3f"))),
-    ("basis", _col("basis")),
+    ("n", col("n")), ("min", col("min", num)), ("max", col("max", num)),
+    ("top tier", col("in_band", _yes)), ("P(worse than best)", col("p_worse", lambda x: num(x, ".3f"))),
+    ("basis", col("basis")),
 )
 WRAPPER_COLUMNS: tuple[Column, ...] = (
-    BACKBONE, ("suite", _col("suite")), ("native tower", _col("native_encoder")),
+    BACKBONE, ("suite", col("suite")), ("native tower", col("native_encoder")),
     ("native MSE (n)", lambda r: f"{num(r['native_mse'])} ({r['native_n']})"),
     ("native-graft MSE (n)", lambda r: f"{num(r['native_graft_mse'])} ({r['native_graft_n']})"),
-    ("non-neutrality", _col("non_neutrality", pct)),
-    ("seed spread", _col("non_neutrality_seed_std", pct)), NOTE,
+    ("non-neutrality", col("non_neutrality", pct)),
+    ("seed spread", col("non_neutrality_seed_std", pct)), NOTE,
 )
 CONTROL_COLUMNS: tuple[Column, ...] = (
-    BACKBONE, ("suite", _col("suite")), ("encoder", _col("encoder")), ("control", _col("control")),
+    BACKBONE, ("suite", col("suite")), ("encoder", col("encoder")), ("control", col("control")),
     ("encoder MSE (n)", lambda r: f"{num(r['enc_mse'])} ({r['enc_n']})"),
     ("control MSE (n)", lambda r: f"{num(r['control_mse'])} ({r['control_n']})"),
-    ("distance", _col("distance", pct)), ("P(encoder better)", _col("p_better", lambda x: num(x, ".3f"))),
-    ("within noise", _col("within_noise", _yes)), NOTE,
+    ("distance", col("distance", pct)), ("P(encoder better)", col("p_better", lambda x: num(x, ".3f"))),
+    ("within noise", col("within_noise", _yes)), NOTE,
 )
 #: an encoder's weights as its rows record them (encoder_random_init; null: not recorded, or rows disagree)
 WEIGHTS = {True: "random-init", False: "real", None: "unknown"}
@@ -87,22 +87,22 @@ def _extreme(which: str, name: str) -> Callable[[Row], str]:
 
 
 BEATS_COLUMNS: tuple[Column, ...] = (
-    BACKBONE, ("suite", _col("suite")), ("encoder", _col("encoder")),
+    BACKBONE, ("suite", col("suite")), ("encoder", col("encoder")),
     ("weights", lambda r: WEIGHTS[r["encoder_random_init"]]),
     ("plain-graft worst seed (n)", _extreme("max", "plain")), ("zero-image best seed (n)", _extreme("min", "zero")),
-    ("shuffled-image best seed (n)", _extreme("min", "shuffled")), ("verdict", _col("verdict")), NOTE,
+    ("shuffled-image best seed (n)", _extreme("min", "shuffled")), ("verdict", col("verdict")), NOTE,
 )
 MISSING_COLUMNS: tuple[Column, ...] = (
-    BACKBONE, ("suite", _col("suite")), ("encoder", _col("encoder")), ("problem", _col("problem")),
+    BACKBONE, ("suite", col("suite")), ("encoder", col("encoder")), ("problem", col("problem")),
 )
 PROVENANCE_COLUMNS: tuple[Column, ...] = (
-    ("backbone", _col("backbone")), ("suite", _col("suite")), ("encoder", _col("encoder")),
-    ("control", _col("control")), ("seed", _col("seed")), ("eval_mse", _col("eval_mse", num)),
-    ("cache key", _col("cache_key", _code)), ("command", _col("command", _code)),
+    ("backbone", col("backbone")), ("suite", col("suite")), ("encoder", col("encoder")),
+    ("control", col("control")), ("seed", col("seed")), ("eval_mse", col("eval_mse", num)),
+    ("cache key", col("cache_key", _code)), ("command", col("command", _code)),
 )
 SEED_COLUMNS: tuple[Column, ...] = (
-    ("suite", _col("suite")), ("seed", _col("seed")), DIRECTION, ("source top-1", _col("source_winner")),
-    TARGET_TIER, ("verdict", _col("verdict")), ("basis", _col("basis")), NOTE,
+    ("suite", col("suite")), ("seed", col("seed")), DIRECTION, ("source top-1", col("source_winner")),
+    TARGET_TIER, ("verdict", col("verdict")), ("basis", col("basis")), NOTE,
 )
 
 
@@ -134,10 +134,10 @@ def transfer_columns(a: A.Analysis) -> tuple[Column, ...]:
         return counted + (f" ({unjudged} {A.INSUFFICIENT})" if unjudged else "")
 
     return (
-        ("suite", _col("suite")), DIRECTION, ("source winner", _col("source_winner")), TARGET_TIER,
-        ("shared encoders", _col("n_common")), ("seed-level cells transferring", seed_level),
+        ("suite", col("suite")), DIRECTION, ("source winner", col("source_winner")), TARGET_TIER,
+        ("shared encoders", col("n_common")), ("seed-level cells transferring", seed_level),
         ("Kendall τb", lambda r: num(tau.get(_pair_key(a, r)), ".2f")),
-        ("seed pairings disagreeing on top-1", disagreeing), ("verdict", _col("verdict")), NOTE,
+        ("seed pairings disagreeing on top-1", disagreeing), ("verdict", col("verdict")), NOTE,
     )
 
 
@@ -156,24 +156,9 @@ def ladder_block(a: A.Analysis) -> Table:
     ))
 
 
-def _rate(r: Row) -> str:
-    return f"{r['success_rate']:.0%} [{r['ci_low']:.0%}, {r['ci_high']:.0%}]"
-
-
-SUCCESS_COLUMNS: tuple[Column, ...] = (
-    BACKBONE, ("suite", _col("suite")), ("encoder", _col("encoder")), ("control", _col("control")),
-    ("seed", _col("seed")), ("run_id", _col("run_id", _code)), ("episodes", _col("episodes")),
-    ("success (95% Wilson)", _rate), *((s, _col(s, num)) for s in A.CLOSED_LOOP_SCORES),
-)
-AGREEMENT_COLUMNS: tuple[Column, ...] = (
-    BACKBONE, ("suite", _col("suite")), ("score", _col("score", _code)), ("cells", _col("cells")),
-    ("Spearman ρ", _col("spearman", lambda x: num(x, "+.2f"))),
-    ("Kendall τb", _col("kendall_tau_b", lambda x: num(x, "+.2f"))),
-    ("MMRV", _col("mmrv", lambda x: num(x, ".3f"))), NOTE,
-)
 SCORE_COLUMNS: tuple[Column, ...] = (
-    BACKBONE, ("suite", _col("suite")), ("top-1 by MSE", _col("mse_top1")), ("top-1 by CI-MSE", _col("ci_mse_top1")),
-    ("same top-1", _col("same_top1", _yes)), ("encoders", _col("n_common")),
-    ("Kendall τb (MSE vs CI-MSE)", _col("tau_b", lambda x: num(x, ".2f"))),
+    BACKBONE, ("suite", col("suite")), ("top-1 by MSE", col("mse_top1")), ("top-1 by CI-MSE", col("ci_mse_top1")),
+    ("same top-1", col("same_top1", _yes)), ("encoders", col("n_common")),
+    ("Kendall τb (MSE vs CI-MSE)", col("tau_b", lambda x: num(x, ".2f"))),
     ("rank changes (MSE -> CI-MSE)", lambda r: "; ".join(r["moved"] or []) or "none"),
 )

@@ -138,7 +138,8 @@ def test_cells_and_agreement_on_the_hand_built_tables(files: tuple[Path, Path]) 
     assert four.select("episodes", "successes", "success_rate").row(0) == (5, 4, 0.8)
     assert four.select("ci_low", "ci_high").row(0) == pytest.approx(_wilson_by_quadratic(4, 5))
 
-    got = {(r["suite"], r["score"]): r for r in loop.agreement.iter_rows(named=True)}
+    got = {(r["suite"], r["score"]): r for r in loop.agreement.filter(pl.col("measure") == "success").iter_rows(
+        named=True)}
     want = {"eval_mse": (4, math.sqrt(0.4), 3 / math.sqrt(30), 0.1),
             "eval_ci_mse": (4, math.sqrt(0.9), 5 / math.sqrt(30), 0.0),
             "eval_mse_gripper": (4, None, None, 0.2), "eval_mse_arm": (0, None, None, None)}
@@ -161,22 +162,35 @@ def test_report_rollouts_end_to_end(files: tuple[Path, Path], tmp_path: Path, ca
     out = tmp_path / "out"
     assert main(["report", str(files[0]), "--out", str(out), "--rollouts", str(files[1])]) == 0
     assert str(out / "closed_loop.csv") in capsys.readouterr().out
-    csv = pl.read_csv(out / "closed_loop.csv")
+    csv = pl.read_csv(out / "closed_loop.csv", schema=report.CLOSED_LOOP_CSV_SCHEMA)
     assert tuple(csv.columns) == report.CLOSED_LOOP_CSV_COLUMNS == (
-        "backbone", "suite", "score", "cells", "spearman", "kendall_tau_b", "mmrv")
-    spatial = csv.filter(pl.col("suite") == "libero_spatial", pl.col("score") == "eval_mse").row(0, named=True)
+        "backbone", "suite", "score", "measure", "cells", "spearman", "spearman_low", "spearman_high",
+        "kendall_tau_b", "kendall_tau_b_low", "kendall_tau_b_high", "mmrv", "mmrv_low", "mmrv_high", "replicates")
+    success = csv.filter(pl.col("measure") == "success")
+    spatial = success.filter(pl.col("suite") == "libero_spatial", pl.col("score") == "eval_mse").row(0, named=True)
     assert (spatial["cells"], spatial["spearman"], spatial["kendall_tau_b"], spatial["mmrv"]) == pytest.approx(
         (4, math.sqrt(0.4), 3 / math.sqrt(30), 0.1))
-    failed = csv.filter(pl.col("suite") == "libero_object")
+    for name in ("spearman", "kendall_tau_b", "mmrv"):  # an interval around each figure, from the episodes
+        assert spatial[f"{name}_low"] <= spatial[name] <= spatial[f"{name}_high"], name
+        assert spatial[f"{name}_low"] < spatial[f"{name}_high"], name
+    failed = success.filter(pl.col("suite") == "libero_object")
     assert failed.height == 4 and failed.select("spearman", "kendall_tau_b", "mmrv").null_count().row(0) == (4, 4, 4)
-    assert "libero_object,eval_mse,3,,," in (out / "closed_loop.csv").read_text()  # empty, never a number
+    assert "libero_object,eval_mse,success,3" + "," * 10 + "\n" in (out / "closed_loop.csv").read_text()  # not 0
+    graded = csv.filter(pl.col("measure") != "success")  # these rollouts have no graded columns: kept, undefined
+    assert graded.height == 2 * 4 * 5 and graded["cells"].to_list() == [0] * 40
+    assert graded.select("spearman", "kendall_tau_b", "mmrv").null_count().row(0) == (40, 40, 40)
     md = (out / "report.md").read_text()
     assert "## Offline scores vs closed-loop success" in md
     assert "Agreement is computed over run_ids, not over seed means" in md
-    assert ("| SmolVLA | libero_object | `eval_mse` | 3 | — | — | — | every cell's success rate is 0%: no order to "
-            "agree with |") in md
+    assert ("| SmolVLA | libero_object | success | `eval_mse` | 3 | — | — | — | every cell's success rate is 0%: no "
+            "order to agree with |") in md
     assert "undefined, never 0" in md
     assert "80% [38%, 96%]" in md  # 4 of 5 with its Wilson interval
+    assert ("The graded measures are unavailable for these rollouts: none of the 35 episodes records them "
+            "(format-1 rollouts rows, or a table without the graded columns)") in md
+    assert ("SmolVLA · libero_spatial: undefined over 0 cells (graded measures unavailable: no rollout of these "
+            "cells records min_target_distance_m (format-1 rows, or a table without it)).") in md
+    assert "| closest approach" not in md  # no graded column in the cells table when no cell has one
     assert (out / "closed_loop.png").is_file()
     assert main(["report", str(files[0]), "--out", str(out)]) == 0  # without rollouts: no stale closed-loop files
     assert not (out / "closed_loop.csv").exists() and not (out / "closed_loop.png").exists()

@@ -319,8 +319,8 @@ def test_rollout_smoke_in_the_simulator(tmp_path: Path, capsys: pytest.CaptureFi
     shown = run_cli(["report", results_path, "--out", out, "--rollouts", rollouts_path], capsys)
     assert shown.code == 0, shown.err[-2000:]
     assert "## Offline scores vs closed-loop success" in (out / "report.md").read_text()
-    csv = pl.read_csv(out / "closed_loop.csv")
+    csv = pl.read_csv(out / "closed_loop.csv").filter(pl.col("measure") == "success")
     mse = csv.filter(pl.col("score") == "eval_mse").row(0, named=True)
     assert (mse["backbone"], mse["suite"], mse["cells"]) == ("smolvla", "libero_object", 2)
     assert csv.height == 4 and csv.select("spearman", "kendall_tau_b", "mmrv").null_count().row(0) == (4, 4, 4)
-    assert "smolvla,libero_object,eval_mse,2,,," in (out / "closed_loop.csv").read_text()  # empty, never a number
+    assert "smolvla,libero_object,eval_mse,success,2" + "," * 10 + "\n" in (out / "closed_loop.csv").read_text()

@@ -1,0 +1,252 @@
+"""Issue 43, item 4: the graded closed-loop measures in the analysis, on hand-built cells and episodes.
+
+smolvla / libero_object, six cells and four episodes each (EPISODES below; one value per episode):
+
+    cell              eval_mse  closest approach (m)          lift (m)              grasped        goal
+    siglip seed 0     1.0       .05 .07 .06 .06  (mean .06)   .10 .00 .08 .06       1 0 1 1        1 .5 .5 0
+    siglip seed 1     1.2       .09 .11 .10 .14  (.11)        .00 .02 .00 .02       0 0 0 1        0 0 .5 .5
+    dinov2-s seed 0   1.1       .11 .13 .12 .12  (.12)        .04 .00 .00 .00       0 1 0 0        .5 0 0 0
+    dinov2-s seed 1   1.5       .20 .18 .22 .20  (.20)        .00 .00 .00 .00       0 0 0 0        0 0 0 0
+    resnet18 seed 0   1.3       .12 .16 .14 .14  (.14)        .00 .01 .00 .00       0 0 0 0        0 0 0 .5
+    zero-image        2.0       .30 .32 .31 .31  (.31)        .00 .00 .00 .00       0 0 0 0        0 0 0 0
+
+Every agreement figure is recomputed here with scipy (Spearman, Kendall's tau-b) and a double loop (MMRV) on the
+cell means, with every measure oriented so that higher is better; the intervals against replicates drawn by hand
+with the same generators and scored by scipy.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import polars as pl
+import pytest
+from helpers.tables import row, table
+from scipy import stats
+
+from graftcache import analysis as A
+from graftcache.analysis.closed_loop_boot import generator, mmrv_rows, spearman_rows, tau_b_rows
+from graftcache.errors import GraftcacheError
+
+CELLS = [("siglip", 0, "none", 1.0), ("siglip", 1, "none", 1.2), ("dinov2-s", 0, "none", 1.1),
+         ("dinov2-s", 1, "none", 1.5), ("resnet18", 0, "none", 1.3), ("siglip", 0, "zero-image", 2.0)]
+EPISODES = {
+    "min_target_distance_m": [[.05, .07, .06, .06], [.09, .11, .10, .14], [.11, .13, .12, .12], [.20, .18, .22, .20],
+                              [.12, .16, .14, .14], [.30, .32, .31, .31]],
+    "target_lift_m": [[.10, 0, .08, .06], [0, .02, 0, .02], [.04, 0, 0, 0], [0] * 4, [0, .01, 0, 0], [0] * 4],
+    "grasped": [[1, 0, 1, 1], [0, 0, 0, 1], [0, 1, 0, 0], [0] * 4, [0] * 4, [0] * 4],
+    "goal_fraction": [[1, .5, .5, 0], [0, 0, .5, .5], [.5, 0, 0, 0], [0] * 4, [0, 0, 0, .5], [0] * 4],
+}
+SUCCESS = [[1, 0, 0, 0], [0] * 4, [0, 1, 0, 0], [0] * 4, [0] * 4, [0] * 4]
+
+
+def _results() -> pl.DataFrame:
+    rows = [row("smolvla", "libero_object", e, s, mse, control=c) for e, s, c, mse in CELLS]
+    return A.analyze(table(rows)).results
+
+
+def _episodes(results: pl.DataFrame) -> pl.DataFrame:
+    """Format-2 rows (graded columns and the whole key) for CELLS, in its order; final distance = closest + 0.1."""
+    ids = results.sort("backbone", "suite", "encoder", "control", "seed")
+    by_cell = {(r["encoder"], r["seed"], r["control"]): r["run_id"] for r in ids.iter_rows(named=True)}
+    out = []
+    for i, (encoder, seed, control, _) in enumerate(CELLS):
+        for k in range(4):
+            out.append({"run_id": by_cell[encoder, seed, control], "suite": "libero_object", "task_index": 0,
+                        "episode": k, "seed": 1000 + k, "max_steps": 60, "perturbation_m": 0.03,
+                        "success": bool(SUCCESS[i][k]), **_graded(i, k), "target": "alphabet_soup_1", "steps": 60})
+    return pl.DataFrame(out)
+
+
+def _graded(i: int, k: int) -> dict:
+    """Episode k of CELLS[i]'s graded values."""
+    near = EPISODES["min_target_distance_m"][i][k]
+    return {"min_target_distance_m": near, "final_target_distance_m": near + 0.1,
+            "target_lift_m": float(EPISODES["target_lift_m"][i][k]), "grasped": bool(EPISODES["grasped"][i][k]),
+            "goal_fraction": float(EPISODES["goal_fraction"][i][k])}
+
+
+@pytest.fixture
+def loop(tmp_path: Path) -> A.ClosedLoop:
+    results = _results()
+    _episodes(results).write_parquet(tmp_path / "rollouts.parquet")
+    return A.closed_loop(results, A.read_rollouts(tmp_path / "rollouts.parquet", results))
+
+
+def _means(measure: str) -> np.ndarray:
+    if measure == "final_target_distance_m":
+        values = [[v + 0.1 for v in cell] for cell in EPISODES["min_target_distance_m"]]
+    else:
+        values = SUCCESS if measure == "success" else EPISODES[measure]
+    return np.array([np.mean(v) for v in values], dtype=np.float64)
+
+
+def _mmrv_by_loops(score: np.ndarray, good: np.ndarray) -> float:
+    """SIMPLER's MMRV written out: each cell's worst misordering, weighted by the gap in the measure."""
+    worst = []
+    for i in range(len(score)):
+        worst.append(max(abs(good[i] - good[j]) * ((-score[i] < -score[j]) != (good[i] < good[j]))
+                         for j in range(len(score))))
+    return sum(worst) / len(worst)
+
+
+def test_a_format_2_table_reads_its_graded_columns_and_key_typed(loop: A.ClosedLoop) -> None:
+    r = loop.rollouts
+    assert set(A.GRADED_MEASURES) | set(A.PAIR_KEY) | {"run_id", "success"} == set(r.columns)
+    assert r.schema["grasped"] == pl.Boolean and r.schema["episode"] == pl.Int64
+    assert r["min_target_distance_m"].to_list()[:4] == EPISODES["min_target_distance_m"][0]
+    assert loop.ungraded == 0
+
+
+def test_cells_hold_each_measure_s_mean_over_its_episodes(loop: A.ClosedLoop) -> None:
+    cells = loop.cells.sort("eval_mse")  # CELLS by score: 1.0, 1.1, 1.2, 1.3, 1.5, 2.0
+    order = np.argsort([mse for *_, mse in CELLS])
+    for measure in A.MEASURES:
+        assert cells[A.MEASURE_COLUMNS[measure]].to_numpy() == pytest.approx(_means(measure)[order]), measure
+    assert cells["graded_episodes"].to_list() == [4] * 6
+
+
+@pytest.mark.parametrize("measure", A.MEASURES)
+def test_agreement_is_scipy_s_on_the_cell_means_oriented_better_is_higher(loop: A.ClosedLoop, measure: str) -> None:
+    score = np.array([mse for *_, mse in CELLS])
+    good = _means(measure) * (1 if A.HIGHER_IS_BETTER[measure] else -1)
+    r = loop.agreement.filter(pl.col("score") == "eval_mse", pl.col("measure") == measure).row(0, named=True)
+    assert r["cells"] == 6
+    if measure == "success":  # 2 successes in 24 episodes: a replicate misses both with P = (3/4)^8 = 0.10
+        assert 850 < r["replicates"] < 950
+        assert r["note"] == (f"intervals over only {r['replicates']} of 1000 replicates (in the others every cell "
+                             "had one success: no order)")
+    else:  # every cell ties in a replicate only by drawing all zeros in every cell with a positive value: rare
+        assert r["replicates"] >= 990 and r["note"] is None
+    assert r["spearman"] == pytest.approx(stats.spearmanr(-score, good).statistic)
+    assert r["kendall_tau_b"] == pytest.approx(stats.kendalltau(-score, good, variant="b").statistic)
+    assert r["mmrv"] == pytest.approx(_mmrv_by_loops(score, good))
+    if measure == "min_target_distance_m":  # closest approach follows eval_mse except siglip 1 / dinov2-s 0
+        assert r["spearman"] == pytest.approx(1 - 6 * 2 / (6 * 35)) and r["kendall_tau_b"] == pytest.approx(13 / 15)
+
+
+def test_the_intervals_are_percentiles_of_scipy_s_figures_over_episode_replicates(loop: A.ClosedLoop) -> None:
+    """Replicates drawn here the documented way: each cell's episodes redrawn with replacement from a generator
+    seeded by (seed 0, run_id, measure); each replicate's figures from scipy."""
+    measure, score = "min_target_distance_m", np.array([mse for *_, mse in CELLS])
+    cells = loop.cells.sort("eval_mse")
+    order = np.argsort(score)
+    draws = []
+    for run_id, i in zip(cells["run_id"], order):
+        values = np.sort(EPISODES[measure][i])  # a cell's episodes are drawn from in sorted order
+        rng = generator(0, "closed-loop", run_id, measure)
+        draws.append(-values[rng.integers(0, 4, size=(A.N_BOOT, 4))].mean(axis=1))
+    reps, s = np.stack(draws, axis=1), score[order]
+    rho = [stats.spearmanr(-s, rep).statistic for rep in reps]
+    tau = [stats.kendalltau(-s, rep, variant="b").statistic for rep in reps]
+    worst = [_mmrv_by_loops(s, rep) for rep in reps[:200]]
+    r = loop.agreement.filter(pl.col("score") == "eval_mse", pl.col("measure") == measure).row(0, named=True)
+    assert r["replicates"] == A.N_BOOT == 1000
+    assert (r["spearman_low"], r["spearman_high"]) == pytest.approx(tuple(np.percentile(rho, [2.5, 97.5])))
+    assert (r["kendall_tau_b_low"], r["kendall_tau_b_high"]) == pytest.approx(tuple(np.percentile(tau, [2.5, 97.5])))
+    assert mmrv_rows(s, reps[:200]) == pytest.approx(worst)
+    assert (r["mmrv_low"], r["mmrv_high"]) == pytest.approx(tuple(np.percentile(mmrv_rows(s, reps), [2.5, 97.5])))
+
+
+def test_the_vectorised_statistics_are_scipy_s_row_by_row_ties_included() -> None:
+    rng = np.random.default_rng(3)
+    x = rng.integers(0, 4, size=7).astype(np.float64)  # ties on both sides
+    rows = rng.integers(0, 3, size=(50, 7)).astype(np.float64)
+    rows = rows[np.ptp(rows, axis=1) > 0]
+    assert spearman_rows(x, rows) == pytest.approx([stats.spearmanr(x, r).statistic for r in rows])
+    assert tau_b_rows(x, rows) == pytest.approx([stats.kendalltau(x, r, variant="b").statistic for r in rows])
+    assert mmrv_rows(x, rows) == pytest.approx([A.mmrv(x, r) for r in rows])
+
+
+def _spread_cells(tmp_path: Path, n: int) -> dict:
+    """Six cells whose closest approaches have the same means at any episode count (mean +- an even spread of 4
+    cm): only the episode count changes between calls."""
+    mus = [0.10, 0.15, 0.12, 0.19, 0.14, 0.21]
+    rows = [row("smolvla", "libero_object", f"e{i}", 0, 1.0 + 0.1 * i) for i in range(6)]
+    results = A.analyze(table(rows)).results
+    offsets = np.linspace(-0.04, 0.04, n)
+    pl.DataFrame([{"run_id": r["run_id"], "success": False, "min_target_distance_m": float(mu + o)}
+                  for r, mu in zip(rows, mus) for o in offsets]).write_parquet(tmp_path / f"{n}.parquet")
+    loop = A.closed_loop(results, A.read_rollouts(tmp_path / f"{n}.parquet", results))
+    return loop.agreement.filter(pl.col("score") == "eval_mse", pl.col("measure") == "min_target_distance_m").row(
+        0, named=True)
+
+
+def test_an_interval_holds_its_figure_and_narrows_with_more_episodes(tmp_path: Path) -> None:
+    few, many = _spread_cells(tmp_path, 4), _spread_cells(tmp_path, 40)
+    assert few["spearman"] == many["spearman"] == pytest.approx(1 - 6 * 10 / (6 * 35))  # ranks 1 3 2 5 4 6
+    for name in A.STATISTICS:
+        for r in (few, many):
+            assert r[f"{name}_low"] <= r[name] <= r[f"{name}_high"], name
+        assert many[f"{name}_high"] - many[f"{name}_low"] < few[f"{name}_high"] - few[f"{name}_low"], name
+    assert few["spearman_high"] - few["spearman_low"] > 0.3  # 4 episodes of +-4 cm reorder cells 2-3 cm apart
+
+
+def test_degenerate_agreement_is_null_with_its_reason(tmp_path: Path) -> None:
+    results = _results()
+    episodes = _episodes(results).with_columns(
+        min_target_distance_m=pl.lit(0.1), grasped=pl.lit(None, dtype=pl.Boolean))
+    one = results.filter(pl.col("encoder") == "resnet18")["run_id"][0]
+    episodes = episodes.with_columns(goal_fraction=pl.when(pl.col("run_id") == one).then(0.5).otherwise(None))
+    episodes.write_parquet(tmp_path / "r.parquet")
+    loop = A.closed_loop(results, A.read_rollouts(tmp_path / "r.parquet", results))
+    got = {r["measure"]: r for r in loop.agreement.filter(pl.col("score") == "eval_mse").iter_rows(named=True)}
+    notes = {m: got[m]["note"] for m in ("min_target_distance_m", "grasped", "goal_fraction")}
+    assert notes == {
+        "min_target_distance_m": "every cell's min_target_distance_m is 0.1: no order to agree with",
+        "grasped": "graded measures unavailable: no rollout of these cells records grasped (format-1 rows, or a "
+                   "table without it)",
+        "goal_fraction": "1 cell: agreement needs 2 or more",
+    }
+    for m in notes:
+        assert [got[m][c] for c in AGREEMENT_FIGURES] == [None] * len(AGREEMENT_FIGURES), m
+    assert got["target_lift_m"]["note"] is None and got["target_lift_m"]["spearman_low"] is not None
+
+
+AGREEMENT_FIGURES = [f"{s}{part}" for s in A.STATISTICS for part in ("", "_low", "_high")]
+
+
+def test_a_format_1_file_reads_with_graded_measures_null(tmp_path: Path) -> None:
+    """A format-1 rollouts file (graftcache.rollout.table format 1: no graded columns, no perturbation_m)."""
+    results = _results()
+    format_1 = _episodes(results).select(
+        pl.lit("0123456789abcdef").alias("episode_id"), pl.lit(1).alias("format_version"), "run_id", "suite",
+        "task_index", "episode", "seed", pl.col("episode").alias("init_state"), "max_steps", "success", "steps",
+        pl.lit(1.5).alias("seconds"), pl.lit(None, dtype=pl.String).alias("video"))
+    format_1.write_parquet(tmp_path / "old.parquet")
+    read = A.read_rollouts(tmp_path / "old.parquet", results)
+    assert read.select(*A.GRADED_MEASURES, "perturbation_m").null_count().row(0) == (24,) * 6
+    assert read["episode"].to_list() == format_1["episode"].to_list()
+    loop = A.closed_loop(results, read)
+    assert loop.ungraded == 24 and loop.cells["graded_episodes"].to_list() == [0] * 6
+    graded = loop.agreement.filter(pl.col("measure") != "success")
+    assert graded.height == 5 * 4 and graded["spearman"].null_count() == 20
+    assert set(graded["note"]) == {f"graded measures unavailable: no rollout of these cells records {m} (format-1 "
+                                   "rows, or a table without it)" for m in A.GRADED_MEASURES}
+    success = loop.agreement.filter(pl.col("measure") == "success", pl.col("score") == "eval_mse").row(0, named=True)
+    score = np.array([mse for *_, mse in CELLS])
+    assert success["spearman"] == pytest.approx(stats.spearmanr(-score, _means("success")).statistic)
+
+
+def test_odd_graded_columns_are_refused_in_one_line_naming_the_file(tmp_path: Path) -> None:
+    results = _results()
+    episodes = _episodes(results)
+    cases = {
+        "text": (episodes.with_columns(pl.col("min_target_distance_m").cast(pl.String)),
+                 "column min_target_distance_m holds String values, not Float64"),
+        "nan": (episodes.with_columns(target_lift_m=pl.lit(math.nan)),
+                "non-finite values in column(s) target_lift_m (null: not measured)"),
+        "counts": (episodes.with_columns(pl.lit(2).alias("grasped")),
+                   "column grasped holds Int32 values such as 2, not true/false"),
+        "episode": (episodes.with_columns(pl.col("episode").cast(pl.Float64)),
+                    "column episode holds Float64 values, not Int64"),
+    }
+    for name, (frame, line) in cases.items():
+        frame.write_parquet(tmp_path / f"{name}.parquet")
+        with pytest.raises(GraftcacheError) as refused:
+            A.read_rollouts(tmp_path / f"{name}.parquet", results)
+        assert str(refused.value) == f"{tmp_path / name}.parquet: {line}", name
+    episodes.with_columns(pl.col("grasped").cast(pl.Int8)).write_parquet(tmp_path / "ones.parquet")
+    assert A.read_rollouts(tmp_path / "ones.parquet", results)["grasped"].to_list() == episodes["grasped"].to_list()

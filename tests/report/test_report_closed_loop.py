@@ -1,0 +1,126 @@
+"""The report's closed-loop section, figure and closed_loop.csv with graded rollouts (issue 43, item 4).
+
+smolvla on two suites, each with a native tower (2 seeds), two plain grafts (2 seeds each) and a zero-image row
+(1 seed), 3 episodes per cell on the same keys; the closest approach grows with eval_mse except that siglip seed 1
+and dinov2-s seed 0 swap on libero_spatial (GRAFTS below); every native episode comes 0.2 m closer than zero-image's.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import polars as pl
+import pytest
+from helpers.tables import row, table
+
+from graftcache import analysis as A
+from graftcache import report
+from graftcache.report.closed_loop_figure import figure_closed_loop
+
+# (encoder, seed, control) -> (eval_mse, mean closest approach per suite)
+GRAFTS = {
+    ("smolvla-native", 0, "native"): (0.80, {"libero_object": 0.06, "libero_spatial": 0.07}),
+    ("smolvla-native", 1, "native"): (0.82, {"libero_object": 0.08, "libero_spatial": 0.08}),
+    ("siglip", 0, "none"): (0.90, {"libero_object": 0.10, "libero_spatial": 0.10}),
+    ("siglip", 1, "none"): (0.95, {"libero_object": 0.12, "libero_spatial": 0.16}),
+    ("dinov2-s", 0, "none"): (1.00, {"libero_object": 0.15, "libero_spatial": 0.13}),
+    ("dinov2-s", 1, "none"): (1.10, {"libero_object": 0.18, "libero_spatial": 0.19}),
+    ("siglip", 0, "zero-image"): (1.40, {"libero_object": 0.27, "libero_spatial": 0.27}),
+}
+OFFSETS = (-0.01, 0.0, 0.01)  # the three episodes around each cell's mean
+
+
+def _files(tmp_path: Path, graded_for: int = 3) -> tuple[Path, Path]:
+    """results and rollouts; only the first `graded_for` episodes of each cell carry graded columns."""
+    rows = [row("smolvla", suite, e, s, mse, control=c) for suite in ("libero_object", "libero_spatial")
+            for (e, s, c), (mse, _) in GRAFTS.items()]
+    episodes = []
+    for r in rows:
+        near = GRAFTS[r["encoder"], r["seed"], r["control"]][1][r["suite"]]
+        for k, offset in enumerate(OFFSETS):
+            graded = k < graded_for
+            episodes.append({"run_id": r["run_id"], "suite": r["suite"], "task_index": 0, "episode": k,
+                             "seed": 1000 + k, "max_steps": 60, "perturbation_m": 0.03 if graded else None,
+                             "success": r["control"] == "native" and k == 0,
+                             "min_target_distance_m": near + offset if graded else None,
+                             "grasped": (near < 0.1) if graded else None})
+    table(rows).write_parquet(tmp_path / "results.parquet")
+    pl.DataFrame(episodes).write_parquet(tmp_path / "rollouts.parquet")
+    return tmp_path / "results.parquet", tmp_path / "rollouts.parquet"
+
+
+@pytest.fixture
+def written(tmp_path: Path) -> tuple[report.ReportPaths, A.Analysis]:
+    results, rollouts = _files(tmp_path)
+    paths = report.write_report(results, tmp_path / "out", rollouts=rollouts)
+    frame = A.analyze(pl.read_parquet(results), rollouts=A.read_rollouts(rollouts, pl.read_parquet(results)))
+    return paths, frame
+
+
+def test_the_section_prints_the_headline_agreement_with_its_intervals(written: tuple) -> None:
+    paths, a = written
+    md = paths.markdown.read_text()
+    head = a.closed_loop.agreement.filter(pl.col("score") == "eval_mse", pl.col("measure") == "min_target_distance_m",
+                                          pl.col("suite") == "libero_spatial").row(0, named=True)
+    assert head["spearman"] == pytest.approx(1 - 6 * 2 / (7 * 48))  # one adjacent swap among 7 cells
+    line = (f"SmolVLA · libero_spatial: Spearman ρ = {head['spearman']:+.2f} [{head['spearman_low']:+.2f}, "
+            f"{head['spearman_high']:+.2f}], Kendall τb = {head['kendall_tau_b']:+.2f} "
+            f"[{head['kendall_tau_b_low']:+.2f}, {head['kendall_tau_b_high']:+.2f}], MMRV = {head['mmrv']:.3g} m "
+            f"[{head['mmrv_low']:.3g}, {head['mmrv_high']:.3g}] over 7 cells (3 episodes each).")
+    assert line in md
+    assert md.index("### `eval_mse` against the closest approach") < md.index("### Every score against every measure")
+    assert "The graded measures are unavailable" not in md
+
+
+def test_the_section_prints_the_paired_control_line(written: tuple) -> None:
+    paths, a = written
+    md = paths.markdown.read_text()
+    # native means .07 and .08 (libero_spatial) against zero-image .27 on each of the 3 keys: -0.195 m
+    assert ("SmolVLA · libero_spatial · closest approach: native tower 0.075 m vs zero-image 0.27 m on 3 paired "
+            "episodes (2 native, 1 zero-image cells): native − zero-image = -0.195 m [-0.195, -0.195]: the native "
+            "tower is better (lower is better); the native tower is better on 2 of 2 native seeds.") in md
+    assert "| SmolVLA | libero_object | grasped | 2 | 1 | 3 |" in md  # every recorded measure in the table
+
+
+def test_closed_loop_csv_holds_the_agreement_typed(written: tuple) -> None:
+    paths, a = written
+    csv = pl.read_csv(paths.closed_loop, schema=report.CLOSED_LOOP_CSV_SCHEMA)
+    want = a.closed_loop.agreement.select(report.CLOSED_LOOP_CSV_COLUMNS)
+    assert csv.height == 2 * 4 * 6 and csv.equals(want)
+    near = csv.filter(pl.col("measure") == "min_target_distance_m", pl.col("score") == "eval_mse")
+    assert near["cells"].to_list() == [7, 7] and near["replicates"].to_list() == [1000, 1000]
+
+
+def test_the_figure_draws_both_measures_per_suite_with_controls_marked(written: tuple) -> None:
+    paths, a = written
+    assert (paths.markdown.parent / "closed_loop.png").stat().st_size > 0
+    fig = figure_closed_loop(a)
+    axes = [ax for ax in fig.axes if ax.get_visible()]
+    assert len(axes) == 4  # (closest approach, success) x 2 suites
+    near, success = axes[2], axes[3]  # libero_spatial
+    low, high = near.get_ylim()
+    assert low > high  # distance axis inverted: up is closer
+    assert high < 0.05 and low > 0.28  # fitted to the cells (0.07 .. 0.27), not from 0
+    head = a.closed_loop.agreement.filter(pl.col("score") == "eval_mse", pl.col("measure") == "min_target_distance_m",
+                                          pl.col("suite") == "libero_spatial").row(0, named=True)
+    assert f"ρ {head['spearman']:+.2f} [{head['spearman_low']:+.2f}, {head['spearman_high']:+.2f}]" in near.get_title()
+    markers = {line.get_marker() for line in near.get_lines()}
+    assert {"*", "X", "o"} <= markers  # native, zero-image, grafts
+    star = [line for line in near.get_lines() if line.get_marker() == "*"]
+    assert sorted(float(line.get_ydata()[0]) for line in star) == pytest.approx([0.07, 0.08])
+    assert any("native − zero-image: -0.195 m [-0.195, -0.195] over 3 paired episodes" in t.get_text()
+               for t in near.texts)
+    assert success.get_ylim() == pytest.approx((-0.05, 1.05))
+
+
+def test_a_partly_graded_file_says_how_many_episodes_lack_the_graded_measures(tmp_path: Path) -> None:
+    results, rollouts = _files(tmp_path, graded_for=2)
+    paths = report.write_report(results, tmp_path / "out", rollouts=rollouts)
+    md = paths.markdown.read_text()
+    assert ("The graded measures are unavailable for 14 of 42 episodes (format-1 rollouts rows, or a table without "
+            "the graded columns)") in md
+    a = A.analyze(pl.read_parquet(results), rollouts=A.read_rollouts(rollouts, pl.read_parquet(results)))
+    cells = a.closed_loop.cells.filter(pl.col("control") == "zero-image")
+    assert cells["graded_episodes"].to_list() == [2, 2] and cells["episodes"].to_list() == [3, 3]
+    assert cells["min_target_distance_m"].to_list() == pytest.approx([np.mean([0.26, 0.27])] * 2)
