@@ -329,11 +329,20 @@ ENCODER = "timm:vit_tiny_patch16_224"
 OBJECT_EPISODES = "18-21"
 
 
-@pytest.mark.slow  # train-tiny, extract, fit, two 10-step episodes and their videos, one process: 59 s on 2 idle cores
+# train-tiny, extract, fit, four 10-step episodes (one perturbed), videos, one process: 155 s on 2 cores shared with
+# 3 other jobs (load 4.7); 59 s on 2 idle cores before the graded columns and the perturbed episode
+@pytest.mark.slow
 def test_rollout_smoke_in_the_simulator(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
-    """tiny policy -> extract -> fit two cells -> rollout of both in LIBERO (one process) with videos -> the same
-    command adds nothing -> a moved export runs there too -> report --rollouts with undefined agreement figures
-    (every cell fails)."""
+    """tiny policy -> extract -> fit two cells -> rollout of both in LIBERO (one process) with videos and graded
+    progress -> the same command adds nothing -> a moved export runs there too, the same episode measuring the same,
+    and a perturbed one (--perturb-cm 3) slides the target by its seeded draw -> report --rollouts with undefined
+    agreement figures (every cell fails).
+
+    Graded columns, against what is known of the scene: init state 0 of libero_object task 0 puts the end effector
+    0.316 m from the alphabet soup after lerobot's reset (robosuite's observations: eef (-0.153, -0.006, 0.248),
+    soup (-0.119, -0.240, 0.038)); 10 steps of OSC deltas move it at most ~1.5 cm each (the sample's saturated
+    reach closes 0.21 m in 20 steps), so the closest approach lies between 0.15 m and that start, and nothing is
+    grasped, lifted or placed."""
     from helpers.probes import run_cli
     from lerobot.envs.libero import LiberoEnv
 
@@ -368,11 +377,17 @@ def test_rollout_smoke_in_the_simulator(tmp_path: Path, capsys: pytest.CaptureFi
         # lerobot's rollout renders after the reset and after each step, at the env's render_fps
         assert r["video"] == f"videos/{r['run_id']}/libero_object_task0_ep0_seed1000_max10.mp4"
         assert _decoded(tmp_path / r["video"]) == (r["steps"] + 1, LiberoEnv.metadata["render_fps"])
+        assert (r["target"], r["perturbation_m"], r["target_offset_x_m"], r["target_offset_y_m"]) == (
+            "alphabet_soup_1", 0.0, 0.0, 0.0)
+        assert 0.15 < r["min_target_distance_m"] <= 0.3165 and r["final_target_distance_m"] >= r[
+            "min_target_distance_m"]
+        assert r["target_lift_m"] < 0.005 and (r["grasped"], r["goal_fraction"]) == (False, 0.0)
     assert all((tmp_path / "exports" / run / "config.json").is_file() for run in (a, b))
 
     # a moved export runs through lerobot-eval's loading and rollout as it ran in place (it named its own absolute
     # path in its preprocessor before, and failed on its first observation)
     from graftcache.rollout.libero import LiberoSimulator
+    from graftcache.rollout.perturb import offsets, rng_of
 
     moved = tmp_path / "moved" / "exports"
     moved.parent.mkdir()
@@ -380,11 +395,19 @@ def test_rollout_smoke_in_the_simulator(tmp_path: Path, capsys: pytest.CaptureFi
     sim = LiberoSimulator(results_path, moved, cache=str(root), runs=None, max_steps=10)
     try:
         cell = results.read(results_path).filter(pl.col("run_id") == a).row(0, named=True)
-        (outcome,) = sim.run(cell, [Episode(a, "libero_object", 0, 0, 1000, 10)])
+        outcome, slid = sim.run(cell, [Episode(a, "libero_object", 0, 0, 1000, 10),
+                                       Episode(a, "libero_object", 0, 0, 1000, 10, perturbation_m=0.03)])
     finally:
         sim.close()
     ran = rows.filter(pl.col("run_id") == a).row(0, named=True)
     assert (outcome.success, outcome.steps, outcome.init_state) == (ran["success"], ran["steps"], 0)
+    assert outcome.graded == Graded(**{k: pytest.approx(ran[k], abs=1e-6) if isinstance(ran[k], float) else ran[k]
+                                       for k in ("target", "min_target_distance_m", "final_target_distance_m",
+                                                 "target_lift_m", "grasped", "goal_fraction")})
+    # the perturbed episode: the first of its seeded draws that settled (seed 1000, task 0: (+0.13, +0.62) cm)
+    assert outcome.target_offset_m == (0.0, 0.0) and slid.target_offset_m in [
+        tuple(d) for d in offsets(rng_of(1000, 0), 0.03)]
+    assert slid.graded.min_target_distance_m != outcome.graded.min_target_distance_m
     assert sorted(p.name for p in moved.iterdir()) == sorted([a, b])  # used where it is, not exported again
 
     again = run_cli(rollout, capsys)
