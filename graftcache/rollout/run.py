@@ -43,8 +43,8 @@ MAX_SEED = 2**32 - 1                # numpy's and gymnasium's seeds are unsigned
 #: LIBERO has 50 official init states per task (episode k starts from state k mod 50): 1,000 episodes a task is
 #: 20 passes over them, past any study's need, and keeps a plan that hashes every episode small
 MAX_EPISODES_PER_TASK = 1000
-#: --perturb-cm's largest offset: the sample slides its targets up to 3 cm; past 10 cm a target leaves the region its
-#: task places it in, or lands on a neighbour and is redrawn until the draws run out
+#: --perturb-cm's largest offset, a bound on what is asked rather than a measured limit: the sample slides its targets
+#: up to 3 cm, and an offset that puts the target on a neighbour is refused by the settling check anyway
 MAX_PERTURB_CM = 10.0
 
 
