@@ -4,6 +4,7 @@ simulator, one rollouts row per episode (graftcache.rollout)."""
 from __future__ import annotations
 
 import argparse
+import math
 from collections.abc import Callable
 from functools import partial
 from pathlib import Path
@@ -29,6 +30,17 @@ def _at_least(low: int) -> Callable[[str], int]:
         return value
 
     return parse
+
+
+def _centimetres(text: str) -> float:
+    """--perturb-cm's parser: a finite number >= 0 (its upper bound is RolloutRequest's)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not math.isfinite(value) or value < 0:
+        raise argparse.ArgumentTypeError(f"{text!r}: must be a finite number of centimetres, 0 or more")
+    return value
 
 
 def _names(text: str) -> tuple[str, ...]:
@@ -64,6 +76,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=_at_least(0), default=1000,
                    help="episode k of every task and cell is seeded SEED + k, so cells are compared on the same "
                    "episodes (default: 1000, lerobot-eval's default --seed)")
+    p.add_argument("--perturb-cm", type=_centimetres, default=0.0, metavar="X",
+                   help="slide each episode's target object by a planar offset uniform in [-X, X] cm per axis after "
+                   "the reset to its init state, redrawn when it does not settle where it was put (after 8 draws: "
+                   "none), drawn from the episode's seed and task so every cell gets the same scenes, as the bundled "
+                   "sample's demonstrations were rendered (X = 3); recorded in each row (default: 0, lerobot-eval's "
+                   "official init states)")
     p.add_argument("--rollouts", default=None, metavar="PATH",
                    help="rollouts Parquet file to append to (default: rollouts.parquet beside RESULTS); exports go "
                    "to exports/RUN_ID beside it")
@@ -87,7 +105,7 @@ def run(args: argparse.Namespace) -> int:
     req = RolloutRequest(results=Path(args.results), rollouts=rollouts, run_ids=args.run_ids, top=args.top,
                          suites=args.suites, score=args.score, tasks=args.tasks,
                          episodes_per_task=args.episodes_per_task, max_steps=args.max_steps, seed=args.seed,
-                         command=args.command_line)
+                         perturb_cm=args.perturb_cm, command=args.command_line)
     results.read_for_report(req.results)  # both files checked before the simulator's minutes of imports
     table.read(req.rollouts)
     sim = LiberoSimulator(req.results, rollouts.absolute().parent / EXPORTS_FOLDER, cache=args.cache, runs=args.runs,

@@ -8,13 +8,16 @@ from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from typing import Any, Protocol
 
+from graftcache.rollout.graded import Graded
 from graftcache.rollout.table import episode_id
 
 
 @dataclass(frozen=True)
 class Episode:
     """One planned episode: episode k of a task runs from the task's init state k (mod their number) with the
-    environment seeded `seed`, the start seed + k, as lerobot-eval runs its episode k with --eval.batch_size=1."""
+    environment seeded `seed`, the start seed + k, as lerobot-eval runs its episode k with --eval.batch_size=1.
+    `perturbation_m`: the target slid by up to that much per planar axis before the first step
+    (graftcache.rollout.perturb, drawn from the seed); 0: the official init state as it is."""
 
     run_id: str
     suite: str
@@ -22,6 +25,7 @@ class Episode:
     episode: int
     seed: int
     max_steps: int
+    perturbation_m: float = 0.0
 
     @property
     def id(self) -> str:
@@ -32,7 +36,9 @@ class Episode:
 class Outcome:
     """What running an Episode gave. `frames`: when the simulator records them, every frame lerobot's rollout
     rendered for the episode, (steps + 1, H, W, 3) uint8 (one after the reset, one after each step), shown at `fps`
-    frames a second; None: nothing recorded."""
+    frames a second; None: nothing recorded. `graded`: the episode's graded progress from the simulator's state
+    (graftcache.rollout.graded); `target_offset_m`: the planar (x, y) offset applied to the target, (0, 0) when
+    none; None for either: not measured."""
 
     success: bool
     steps: int
@@ -40,6 +46,8 @@ class Outcome:
     init_state: int
     frames: Any = field(default=None, compare=False, repr=False)
     fps: float | None = None
+    graded: Graded | None = None
+    target_offset_m: tuple[float, float] | None = None
 
 
 @dataclass(frozen=True)

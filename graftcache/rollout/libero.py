@@ -13,6 +13,11 @@ global RNGs are seeded from the episode's seed before it (lerobot-eval seeds the
 episode run again after a kill is the same episode. An episode's video holds every frame its rollout rendered
 (steps + 1: after the reset and after each step); lerobot-eval's keeps the first `steps` (frames[: done_index + 1]),
 dropping the one after the last step, so a graftcache video ends on the state its success was scored on.
+
+Graded progress (graftcache.rollout.graded): the same render callback reads the simulator's state after the reset and
+after every step, and the episode's states are measured when it ends. A perturbed episode
+(graftcache.rollout.perturb): the env is wrapped (PerturbedReset) so that lerobot-eval's reset to the init state is
+followed by the target's seeded offset and settling, before the rollout's first policy step.
 """
 
 from __future__ import annotations
@@ -31,6 +36,7 @@ import numpy as np
 
 from graftcache.errors import RolloutError
 from graftcache.rollout.episodes import Episode, Outcome, Suite
+from graftcache.rollout.graded import State, measure, read_state, target_of
 
 #: the observation size of LIBERO's datasets (lerobot's env defaults to 360)
 OBSERVATION_SIZE = 256
@@ -78,6 +84,21 @@ def record_frame(frames: list[np.ndarray], env: Any) -> None:
     frames.append(env.envs[0].render() if isinstance(env, gym.vector.SyncVectorEnv) else env.call("render")[0])
 
 
+def problem_of(env: Any) -> Any:
+    """LIBERO's problem env (the robosuite env built from the task's BDDL) inside lerobot's one-env vector env:
+    LiberoEnv -> hf-libero's OffScreenRenderEnv -> its env."""
+    return env.envs[0].unwrapped._env.env
+
+
+def observe(states: list[State], frames: list[np.ndarray] | None, env: Any) -> None:
+    """lerobot's rollout's render callback (after the reset and after every step): the simulator's state for the
+    graded measures, and the frame when recording."""
+    if frames is not None:
+        record_frame(frames, env)
+    sim = problem_of(env)
+    states.append(read_state(sim, target_of(sim)))
+
+
 class LiberoSimulator:
     """graftcache.rollout.episodes.Simulator over lerobot's LIBERO env. `exports`: where cells are exported (one
     folder per run_id, reused when it holds the run's export); `results`, `cache`, `runs`: as `graftcache export`
@@ -112,9 +133,14 @@ class LiberoSimulator:
                                observation_height=OBSERVATION_SIZE, observation_width=OBSERVATION_SIZE)
 
     def env(self, suite: str, task: int) -> Any:
-        """The one-env vector env of (suite, task), built once per process."""
+        """The one-env vector env of (suite, task), built once per process, its env wrapped to perturb the scene of
+        a perturbed episode (graftcache.rollout.perturb.PerturbedReset)."""
+        from graftcache.rollout.perturb import PerturbedReset
+
         if (suite, task) not in self._envs:
-            self._envs[suite, task] = self.env_config(suite, task).create_envs(n_envs=1)[suite][task]
+            vector = self.env_config(suite, task).create_envs(n_envs=1)[suite][task]
+            vector.envs[0] = PerturbedReset(vector.envs[0])
+            self._envs[suite, task] = vector
         return self._envs[suite, task]
 
     def run(self, row: Mapping[str, Any], episodes: Sequence[Episode]) -> Iterator[Outcome]:
@@ -143,21 +169,26 @@ class LiberoSimulator:
         with quiet_inner_bars(), torch.no_grad():
             for episode in episodes:
                 env = self.env(episode.suite, episode.task_index)
-                libero_env = env.envs[0].unwrapped
+                scene, libero_env = env.envs[0], env.envs[0].unwrapped
                 n_states = len(libero_env._init_states)  # the task's official init states, as the env loaded them
                 libero_env.init_state_id = episode.episode  # lerobot-eval's k-th reset of a fresh env
+                scene.scene = ((libero_env._init_states[episode.episode % n_states], episode.perturbation_m,
+                                episode.seed, episode.task_index) if episode.perturbation_m else None)
                 set_seed(episode.seed)
-                frames: list[np.ndarray] = []
+                frames: list[np.ndarray] | None = [] if self.videos else None
+                states: list[State] = []
                 start = time.perf_counter()
                 data = rollout(env=env, policy=policy, env_preprocessor=env_pre, env_postprocessor=env_post,
                                preprocessor=pre, postprocessor=post, seeds=[episode.seed],
-                               render_callback=partial(record_frame, frames) if self.videos else None)
+                               render_callback=partial(observe, states, frames))
                 seconds = time.perf_counter() - start
                 done = int(torch.argmax(data["done"][0].to(int)))  # eval_policy's first done step
                 yield Outcome(success=bool(data["success"][0, : done + 1].any()), steps=done + 1, seconds=seconds,
                               init_state=episode.episode % n_states,
-                              frames=np.stack(frames[: done + 2]) if self.videos else None,  # all of them
-                              fps=env.unwrapped.metadata["render_fps"] if self.videos else None)
+                              frames=np.stack(frames[: done + 2]) if frames is not None else None,  # all of them
+                              fps=env.unwrapped.metadata["render_fps"] if self.videos else None,
+                              graded=measure(target_of(problem_of(env)), states[: done + 2]),
+                              target_offset_m=(float(scene.offset[0]), float(scene.offset[1])))
 
     def close(self) -> None:
         for env in self._envs.values():

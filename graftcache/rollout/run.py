@@ -19,7 +19,7 @@ import os
 import socket
 import uuid
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any
 
@@ -32,22 +32,29 @@ from graftcache.progress import progress
 from graftcache.progress import write as progress_write
 from graftcache.rollout import table
 from graftcache.rollout.episodes import Episode, Outcome, Simulator
+from graftcache.rollout.graded import Graded
 from graftcache.rollout.select import select_rows
 
 ROLLOUTS_FILE = "rollouts.parquet"  # the default: beside the results file
 EXPORTS_FOLDER = "exports"          # beside the rollouts file: one export folder per run_id
 VIDEOS_FOLDER = "videos"            # beside the rollouts file: videos/RUN_ID/<episode>.mp4 (video_of)
+GRADED_FIELDS = tuple(f.name for f in fields(Graded))  # the row's columns of an Outcome's `graded`
 MAX_SEED = 2**32 - 1                # numpy's and gymnasium's seeds are unsigned 32-bit integers
 #: LIBERO has 50 official init states per task (episode k starts from state k mod 50): 1,000 episodes a task is
 #: 20 passes over them, past any study's need, and keeps a plan that hashes every episode small
 MAX_EPISODES_PER_TASK = 1000
+#: --perturb-cm's largest offset, a bound on what is asked rather than a measured limit: the sample slides its targets
+#: up to 3 cm, and an offset that puts the target on a neighbour is refused by the settling check anyway
+MAX_PERTURB_CM = 10.0
 
 
 @dataclass(frozen=True)
 class RolloutRequest:
     """What `graftcache rollout` was asked: which rows (run_ids, else the `top` encoders by `score` plus controls,
     within `suites`), which tasks (None: all of the suite's), how many episodes each, the step limit (None:
-    lerobot's episode length of the suite) and the start seed shared by every cell (episodes are paired)."""
+    lerobot's episode length of the suite), the start seed shared by every cell (episodes are paired), and the
+    target's perturbation (up to `perturb_cm` per planar axis, drawn from each episode's seed; 0: the official init
+    states)."""
 
     results: Path
     rollouts: Path
@@ -59,6 +66,7 @@ class RolloutRequest:
     episodes_per_task: int = 1
     max_steps: int | None = None
     seed: int = 1000
+    perturb_cm: float = 0.0
     command: str = ""
 
     def __post_init__(self) -> None:
@@ -70,6 +78,8 @@ class RolloutRequest:
         if self.seed < 0 or last > MAX_SEED:
             raise RolloutError(f"--seed {self.seed}: episodes are seeded {self.seed} to {last}, which must lie in 0 to "
                                f"{MAX_SEED} (an unsigned 32-bit seed)")
+        if not 0 <= self.perturb_cm <= MAX_PERTURB_CM:  # NaN fails it too
+            raise RolloutError(f"--perturb-cm {self.perturb_cm}: must be 0 to {MAX_PERTURB_CM:g} (cm)")
 
 
 def default_rollouts(results_path: str | Path) -> Path:
@@ -86,16 +96,17 @@ def plan(rows: pl.DataFrame, req: RolloutRequest, simulator: Simulator) -> list[
         if beyond:
             raise RolloutError(f"run {row['run_id']}: suite {row['suite']} has tasks 0-{suite.n_tasks - 1}, not "
                                f"task {beyond[0]}")
-        episodes += [Episode(row["run_id"], row["suite"], t, k, req.seed + k, suite.max_steps)
+        episodes += [Episode(row["run_id"], row["suite"], t, k, req.seed + k, suite.max_steps, req.perturb_cm / 100)
                      for t in tasks for k in range(req.episodes_per_task)]
     return episodes
 
 
 def video_of(episode: Episode) -> str:
     """The episode's video, relative to the rollouts file: named by every field of its episode_id, so episodes of
-    other seeds or step limits never share one."""
+    other seeds, step limits or perturbations never share one."""
+    perturbed = f"_perturb{episode.perturbation_m:g}m" if episode.perturbation_m else ""
     return (f"{VIDEOS_FOLDER}/{episode.run_id}/{episode.suite}_task{episode.task_index}_ep{episode.episode}"
-            f"_seed{episode.seed}_max{episode.max_steps}.mp4")
+            f"_seed{episode.seed}_max{episode.max_steps}{perturbed}.mp4")
 
 
 def write_video(path: Path, outcome: Outcome) -> None:
@@ -121,13 +132,16 @@ def write_video(path: Path, outcome: Outcome) -> None:
 
 def row_of(episode: Episode, outcome: Outcome, command: str, video: str | None = None) -> dict[str, Any]:
     """The rollouts row of a finished episode (graftcache.rollout.table.SCHEMA); `video`: its path, relative to the
-    rollouts file."""
+    rollouts file. What the simulator did not measure (an Outcome without `graded` or `target_offset_m`) is null."""
+    graded = asdict(outcome.graded) if outcome.graded is not None else dict.fromkeys(GRADED_FIELDS)
+    offset_x, offset_y = outcome.target_offset_m if outcome.target_offset_m is not None else (None, None)
     return {"episode_id": episode.id, "format_version": table.FORMAT_VERSION, "run_id": episode.run_id,
             "suite": episode.suite, "task_index": episode.task_index, "episode": episode.episode,
             "seed": episode.seed, "init_state": outcome.init_state, "max_steps": episode.max_steps,
             "success": outcome.success, "steps": outcome.steps, "seconds": outcome.seconds, "video": video,
-            "lerobot_version": importlib.metadata.version("lerobot"), "graftcache_version": graftcache.__version__,
-            "command": command}
+            "perturbation_m": episode.perturbation_m, "target_offset_x_m": offset_x, "target_offset_y_m": offset_y,
+            **graded, "lerobot_version": importlib.metadata.version("lerobot"),
+            "graftcache_version": graftcache.__version__, "command": command}
 
 
 def describe(row: Mapping[str, Any]) -> str:
@@ -149,7 +163,8 @@ def roll_out(req: RolloutRequest, sim: Simulator, log: Callable[[str], None] = p
     if len(missing) < len(episodes):
         log(f"{len(episodes) - len(missing)} of {len(episodes)} episodes already in {req.rollouts}; running the "
             f"other {len(missing)}")
-    log(f"rolling out {cells} cell(s), {len(missing)} episode(s) into {req.rollouts}")
+    slid = f", targets slid up to {req.perturb_cm:g} cm" if req.perturb_cm else ""
+    log(f"rolling out {cells} cell(s), {len(missing)} episode(s) into {req.rollouts}{slid}")
     by_run = {r["run_id"]: r for r in rows.iter_rows(named=True)}
     try:
         with progress(total=len(missing), desc="rollout", unit="episode") as bar:

@@ -4,9 +4,11 @@ It is kept the way results files are (graftcache.results.append_table: appends u
 file renamed over it, readers through one descriptor), so several `graftcache rollout` processes may share one file
 and a killed one leaves whole rows only. An episode is identified by `episode_id`, the hash of what decides it
 (EPISODE_KEY): a rerun of the same command finds its episodes there and adds none; a rerun with another seed,
-step limit or task adds its own.
+step limit, task or perturbation adds its own.
 
-The report reads only `run_id` and `success` (graftcache.analysis.rollouts); every other column is provenance.
+Format 2 added the graded progress of each episode (graftcache.rollout.graded: the definitions, after SIMPLER, arXiv
+2405.05941) and the target's perturbation (graftcache.rollout.perturb); a format-1 file is read with those columns
+null (GRADED_COLUMNS), its episode_ids unchanged (an episode without a perturbation hashes as format 1 hashed it).
 """
 
 from __future__ import annotations
@@ -22,8 +24,8 @@ from graftcache.errors import GraftcacheError, RolloutError
 from graftcache.hashing import sha256_json
 
 #: The format of rollouts rows (independent of the results' format); a newer one is refused by `read`.
-FORMAT_VERSION = 1
-#: The fields that decide an episode, hashed into its `episode_id`.
+FORMAT_VERSION = 2
+#: The fields that decide an episode, hashed into its `episode_id`, with `perturbation_m` when it is not 0.
 EPISODE_KEY = ("run_id", "suite", "task_index", "episode", "seed", "max_steps")
 
 SCHEMA: dict[str, pl.DataType] = {
@@ -40,15 +42,35 @@ SCHEMA: dict[str, pl.DataType] = {
     "steps": pl.Int64,                # steps run: up to the first success, else max_steps
     "seconds": pl.Float64,            # wall time of the episode (reset, settling, every step), seconds
     "video": pl.String,               # the episode's mp4, relative to the rollouts file; null: none recorded
+    # format 2 (null in format-1 rows; graftcache.rollout.graded.Graded defines each, after SIMPLER)
+    "target": pl.String,              # the task's first object of interest (its BDDL's obj_of_interest[0])
+    "perturbation_m": pl.Float64,     # the largest planar target offset asked per axis (--perturb-cm / 100); 0.0:
+                                      # lerobot-eval's official init states
+    "target_offset_x_m": pl.Float64,  # the planar offset applied to the target (0, 0 when none, or when no draw
+    "target_offset_y_m": pl.Float64,  # settled: graftcache.rollout.perturb)
+    "min_target_distance_m": pl.Float64,    # min over every state (after the reset, after each step) of |eef - target|
+    "final_target_distance_m": pl.Float64,  # |eef - target| at the episode's last state
+    "target_lift_m": pl.Float64,      # the target's highest height above its settled height after the reset (>= 0)
+    "grasped": pl.Boolean,            # both gripper fingers touching the target for >= 5 consecutive states
+    "goal_fraction": pl.Float64,      # share of the task's BDDL goal predicates true at the last state
     "lerobot_version": pl.String,
     "graftcache_version": pl.String,
     "command": pl.String,             # the command line that ran it
 }
 
 
+#: The columns format 2 added: a format-1 row reads with them null.
+GRADED_COLUMNS = ("target", "perturbation_m", "target_offset_x_m", "target_offset_y_m", "min_target_distance_m",
+                  "final_target_distance_m", "target_lift_m", "grasped", "goal_fraction")
+
+
 def episode_id(fields: Mapping[str, Any]) -> str:
-    """The id of the episode decided by `fields` (EPISODE_KEY's values)."""
-    return sha256_json({k: fields[k] for k in EPISODE_KEY})[:16]
+    """The id of the episode decided by `fields` (EPISODE_KEY's values, and `perturbation_m`): a perturbed episode is
+    another episode, while one on the official init states keeps the id format 1 gave it."""
+    key = {k: fields[k] for k in EPISODE_KEY}
+    if fields.get("perturbation_m"):
+        key["perturbation_m"] = fields["perturbation_m"]
+    return sha256_json(key)[:16]
 
 
 def empty() -> pl.DataFrame:
@@ -81,6 +103,9 @@ def read(path: str | Path) -> pl.DataFrame:
     if "format_version" in table.columns and (table["format_version"] > FORMAT_VERSION).any():
         raise RolloutError(f"{path}: rollouts rows of format {table['format_version'].max()}, newer than this "
                            f"graftcache's ({FORMAT_VERSION}): pass another --rollouts")
+    old = [c for c in GRADED_COLUMNS if c not in table.columns]
+    if old and "format_version" in table.columns and (table["format_version"] < 2).all():
+        table = table.with_columns(pl.lit(None, SCHEMA[c]).alias(c) for c in old)  # format 1: not measured
     try:
         return validate(table)
     except GraftcacheError as e:

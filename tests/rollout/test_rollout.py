@@ -10,8 +10,10 @@ pi05/libero_spatial dinov2-s (1.4) < siglip (1.5) < resnet18, and a native row.
 
 from __future__ import annotations
 
+import hashlib
 import importlib.metadata
 import importlib.util
+import json
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -25,6 +27,7 @@ from graftcache import results
 from graftcache.errors import RolloutError
 from graftcache.rollout import table
 from graftcache.rollout.episodes import Episode, Outcome, Suite
+from graftcache.rollout.graded import Graded
 from graftcache.rollout.run import RolloutRequest, roll_out
 from graftcache.rollout.select import select_rows
 
@@ -89,7 +92,8 @@ def test_cameras_the_simulator_cannot_feed_are_refused_in_one_line() -> None:
 
 
 class Scripted:
-    """A Simulator whose episode k succeeds when its seed is even, in k + 3 steps; it counts the episodes it ran.
+    """A Simulator whose episode k succeeds when its seed is even, in k + 3 steps, came within 0.1 * (k + 1) m of its
+    target and, when perturbed by up to P m, slid it by (P / 2, -P / 4); it counts the episodes it ran.
     `stop_after`: raise after that many episodes (a run killed mid-way). `videos`: record steps + 1 frames of 16x16
     at 10 fps, as the LIBERO simulator's render callback would."""
 
@@ -108,8 +112,11 @@ class Scripted:
             self.ran.append(e)
             steps = e.episode + 3
             frames = np.full((steps + 1, 16, 16, 3), 40 * e.episode, np.uint8) if self.videos else None
+            graded = Graded(target="alphabet_soup_1", min_target_distance_m=0.1 * (e.episode + 1),
+                            final_target_distance_m=0.3, target_lift_m=0.0, grasped=e.episode == 1, goal_fraction=0.0)
             yield Outcome(success=e.seed % 2 == 0, steps=steps, seconds=0.5, init_state=e.episode, frames=frames,
-                          fps=10 if self.videos else None)
+                          fps=10 if self.videos else None, graded=graded,
+                          target_offset_m=(e.perturbation_m / 2, -e.perturbation_m / 4))
 
 
 def _request(tmp_path: Path, **over: Any) -> RolloutRequest:
@@ -131,7 +138,11 @@ def test_rows_are_typed_and_a_rerun_adds_nothing_and_says_so(tmp_path: Path) -> 
     assert (first["suite"], first["seed"], first["init_state"], first["max_steps"]) == ("libero_object", 8, 1, 280)
     assert (first["success"], first["steps"], first["seconds"], first["video"]) == (True, 4, 0.5, None)
     assert first["lerobot_version"] == importlib.metadata.version("lerobot")
-    assert first["command"] == "graftcache rollout results.parquet" and first["format_version"] == 1
+    assert first["command"] == "graftcache rollout results.parquet" and first["format_version"] == 2
+    assert (first["target"], first["perturbation_m"], first["target_offset_x_m"], first["target_offset_y_m"]) == (
+        "alphabet_soup_1", 0.0, 0.0, 0.0)  # official init states
+    assert (first["min_target_distance_m"], first["final_target_distance_m"], first["target_lift_m"],
+            first["grasped"], first["goal_fraction"]) == (0.2, 0.3, 0.0, True, 0.0)
     assert rows.group_by("run_id").len()["len"].to_list() == [4] * 6  # every cell on the same 4 episodes
     assert lines[0] == f"rolling out 6 cell(s), 24 episode(s) into {req.rollouts}"
     lines.clear()
@@ -223,6 +234,72 @@ def test_seeds_and_episode_counts_past_what_a_seed_holds_are_refused_before_plan
         _request(tmp_path, episodes_per_task=10**9)
 
 
+def test_perturbed_episodes_are_other_episodes_recorded_in_their_rows(tmp_path: Path) -> None:
+    """--perturb-cm 3: the same cells and seeds again, as new episodes (ids of their own, videos of their own), each
+    row recording the largest offset asked and the one applied; the official-init rows keep their format-1 ids."""
+    official = roll_out(_request(tmp_path, tasks=(0,)), Scripted(), log=lambda _: None)
+    lines: list[str] = []
+    perturbed = roll_out(_request(tmp_path, tasks=(0,), perturb_cm=3.0), Scripted(videos=True), log=lines.append)
+    assert lines[0] == f"rolling out 6 cell(s), 12 episode(s) into {tmp_path / 'rollouts.parquet'}, targets slid up " \
+                       "to 3 cm"
+    assert perturbed.height == official.height == 12 and table.read(tmp_path / "rollouts.parquet").height == 24
+    assert set(perturbed["perturbation_m"].to_list()) == {0.03} and set(official["perturbation_m"]) == {0.0}
+    assert set(zip(perturbed["target_offset_x_m"], perturbed["target_offset_y_m"], strict=True)) == {(0.015, -0.0075)}
+    row = official.row(0, named=True)
+    key = {k: row[k] for k in ("run_id", "suite", "task_index", "episode", "seed", "max_steps")}
+    assert row["episode_id"] == hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16]
+    twin = perturbed.filter(pl.col("run_id") == row["run_id"], pl.col("episode") == row["episode"]).row(0, named=True)
+    assert twin["episode_id"] == hashlib.sha256(json.dumps({**key, "perturbation_m": 0.03},
+                                                           sort_keys=True).encode()).hexdigest()[:16]
+    assert twin["video"] == f"videos/{row['run_id']}/libero_object_task0_ep{row['episode']}_seed{row['seed']}_max280" \
+                            "_perturb0.03m.mp4"
+
+
+def test_perturbations_past_10_cm_or_below_0_are_refused_in_one_line(tmp_path: Path,
+                                                                     capsys: pytest.CaptureFixture) -> None:
+    from helpers.probes import run_cli
+
+    assert _request(tmp_path, perturb_cm=10.0).perturb_cm == 10.0
+    for bad in (10.5, -0.5, float("nan")):
+        with pytest.raises(RolloutError, match=rf"^--perturb-cm {bad}: must be 0 to 10 \(cm\)$"):
+            _request(tmp_path, perturb_cm=bad)
+    results_path = write_results(tmp_path / "results.parquet")
+    for flag, said in (("-1", "'-1': must be a finite number of centimetres, 0 or more"),
+                       ("inf", "'inf': must be a finite number of centimetres, 0 or more"),
+                       ("3cm", "'3cm' is not a number")):
+        refused = run_cli(["rollout", results_path, "--perturb-cm", flag], capsys)
+        assert refused.code == 2 and refused.err.strip().endswith(f"argument --perturb-cm: {said}")
+    past = run_cli(["rollout", results_path, "--perturb-cm", "12"], capsys)
+    assert past.code == 2 and past.err.strip() == "graftcache rollout: error: --perturb-cm 12.0: must be 0 to 10 (cm)"
+
+
+def test_a_format_1_rollouts_file_reads_with_its_graded_columns_null(tmp_path: Path) -> None:
+    """Rows written before graded progress (format 1: no target, perturbation or measures) read with those columns
+    null and their ids unchanged, and a format-2 row appends beside them; a format-1 file missing another column is
+    still refused."""
+    path = tmp_path / "rollouts.parquet"
+    old = {"episode_id": "0123456789abcdef", "format_version": 1, "run_id": "fedcba9876543210",
+           "suite": "libero_object", "task_index": 0, "episode": 0, "seed": 1000, "init_state": 0, "max_steps": 60,
+           "success": False, "steps": 60, "seconds": 120.5, "video": None, "lerobot_version": "0.6.1",
+           "graftcache_version": "0.1.0", "command": "graftcache rollout results.parquet"}
+    pl.DataFrame([old], schema_overrides={"video": pl.String}).write_parquet(path)
+    rows = table.read(path)
+    assert rows.schema == pl.Schema(table.SCHEMA) and rows.height == 1
+    assert rows.select(table.GRADED_COLUMNS).row(0) == (None,) * 9
+    assert {k: v for k, v in rows.row(0, named=True).items() if k in old} == old
+    new = {**old, "episode_id": "1111111111111111", "format_version": 2, "target": "alphabet_soup_1",
+           "perturbation_m": 0.0, "target_offset_x_m": 0.0, "target_offset_y_m": 0.0, "min_target_distance_m": 0.04,
+           "final_target_distance_m": 0.2, "target_lift_m": 0.0, "grasped": False, "goal_fraction": 0.0}
+    table.append(path, [new])
+    both = table.read(path).sort("format_version")
+    assert both["min_target_distance_m"].to_list() == [None, 0.04] and both["target"].to_list() == [
+        None, "alphabet_soup_1"]
+    pl.DataFrame([old]).drop("seconds").write_parquet(path)
+    with pytest.raises(RolloutError, match=r"^.*rollouts\.parquet: rollouts rows do not match the schema: missing "
+                                           r"\['seconds'\], unexpected \[\]; pass another --rollouts$"):
+        table.read(path)
+
+
 def test_the_files_are_checked_before_the_simulator_is_imported(tmp_path: Path, capsys: pytest.CaptureFixture,
                                                                  monkeypatch: pytest.MonkeyPatch) -> None:
     """A missing results file, or a results file given as --rollouts, is one line at once (the simulator's imports
@@ -252,11 +329,20 @@ ENCODER = "timm:vit_tiny_patch16_224"
 OBJECT_EPISODES = "18-21"
 
 
-@pytest.mark.slow  # train-tiny, extract, fit, two 10-step episodes and their videos, one process: 59 s on 2 idle cores
+# train-tiny, extract, fit, four 10-step episodes (one perturbed), videos, one process: 155 s on 2 cores shared with
+# 3 other jobs (load 4.7); 59 s on 2 idle cores before the graded columns and the perturbed episode
+@pytest.mark.slow
 def test_rollout_smoke_in_the_simulator(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
-    """tiny policy -> extract -> fit two cells -> rollout of both in LIBERO (one process) with videos -> the same
-    command adds nothing -> a moved export runs there too -> report --rollouts with undefined agreement figures
-    (every cell fails)."""
+    """tiny policy -> extract -> fit two cells -> rollout of both in LIBERO (one process) with videos and graded
+    progress -> the same command adds nothing -> a moved export runs there too, the same episode measuring the same,
+    and a perturbed one (--perturb-cm 3) slides the target by its seeded draw -> report --rollouts with undefined
+    agreement figures (every cell fails).
+
+    Graded columns, against what is known of the scene: init state 0 of libero_object task 0 puts the end effector
+    0.316 m from the alphabet soup after lerobot's reset (robosuite's observations: eef (-0.153, -0.006, 0.248),
+    soup (-0.119, -0.240, 0.038)); 10 steps of OSC deltas move it at most ~1.5 cm each (the sample's saturated
+    reach closes 0.21 m in 20 steps), so the closest approach lies between 0.15 m and that start, and nothing is
+    grasped, lifted or placed."""
     from helpers.probes import run_cli
     from lerobot.envs.libero import LiberoEnv
 
@@ -291,11 +377,17 @@ def test_rollout_smoke_in_the_simulator(tmp_path: Path, capsys: pytest.CaptureFi
         # lerobot's rollout renders after the reset and after each step, at the env's render_fps
         assert r["video"] == f"videos/{r['run_id']}/libero_object_task0_ep0_seed1000_max10.mp4"
         assert _decoded(tmp_path / r["video"]) == (r["steps"] + 1, LiberoEnv.metadata["render_fps"])
+        assert (r["target"], r["perturbation_m"], r["target_offset_x_m"], r["target_offset_y_m"]) == (
+            "alphabet_soup_1", 0.0, 0.0, 0.0)
+        assert 0.15 < r["min_target_distance_m"] <= 0.3165 and r["final_target_distance_m"] >= r[
+            "min_target_distance_m"]
+        assert r["target_lift_m"] < 0.005 and (r["grasped"], r["goal_fraction"]) == (False, 0.0)
     assert all((tmp_path / "exports" / run / "config.json").is_file() for run in (a, b))
 
     # a moved export runs through lerobot-eval's loading and rollout as it ran in place (it named its own absolute
     # path in its preprocessor before, and failed on its first observation)
     from graftcache.rollout.libero import LiberoSimulator
+    from graftcache.rollout.perturb import offsets, rng_of
 
     moved = tmp_path / "moved" / "exports"
     moved.parent.mkdir()
@@ -303,11 +395,19 @@ def test_rollout_smoke_in_the_simulator(tmp_path: Path, capsys: pytest.CaptureFi
     sim = LiberoSimulator(results_path, moved, cache=str(root), runs=None, max_steps=10)
     try:
         cell = results.read(results_path).filter(pl.col("run_id") == a).row(0, named=True)
-        (outcome,) = sim.run(cell, [Episode(a, "libero_object", 0, 0, 1000, 10)])
+        outcome, slid = sim.run(cell, [Episode(a, "libero_object", 0, 0, 1000, 10),
+                                       Episode(a, "libero_object", 0, 0, 1000, 10, perturbation_m=0.03)])
     finally:
         sim.close()
     ran = rows.filter(pl.col("run_id") == a).row(0, named=True)
     assert (outcome.success, outcome.steps, outcome.init_state) == (ran["success"], ran["steps"], 0)
+    assert outcome.graded == Graded(**{k: pytest.approx(ran[k], abs=1e-6) if isinstance(ran[k], float) else ran[k]
+                                       for k in ("target", "min_target_distance_m", "final_target_distance_m",
+                                                 "target_lift_m", "grasped", "goal_fraction")})
+    # the perturbed episode: the first of its seeded draws that settled (seed 1000, task 0: (+0.13, +0.62) cm)
+    assert outcome.target_offset_m == (0.0, 0.0) and slid.target_offset_m in [
+        tuple(d) for d in offsets(rng_of(1000, 0), 0.03)]
+    assert slid.graded.min_target_distance_m != outcome.graded.min_target_distance_m
     assert sorted(p.name for p in moved.iterdir()) == sorted([a, b])  # used where it is, not exported again
 
     again = run_cli(rollout, capsys)
