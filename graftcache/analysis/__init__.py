@@ -96,7 +96,6 @@ from graftcache.analysis.summaries import (
     seed_summary,
 )
 from graftcache.analysis.table import (
-    BACKBONE_LABELS,
     CELL,
     EPISODE_COLUMN,
     GROUP,
@@ -129,7 +128,7 @@ __all__ = [
     "AGREEMENT_SCHEMA", "CELL_SCHEMA", "CLOSED_LOOP_SCORES", "ROLLOUT_COLUMNS", "ClosedLoop", "closed_loop", "mmrv",
     "read_rollouts", "spearman", "wilson",
     "BEATS", "BEATS_BOTH", "NOT_SEPARATED", "SEPARATED", "beats_image_controls", "native_vs_zero_image",
-    "BACKBONE_LABELS", "BASIS_MISSING", "CELL", "CONTROLS_SCHEMA", "COUNT_COLUMNS", "DISAGREEMENT_SCHEMA",
+    "BASIS_MISSING", "CELL", "CONTROLS_SCHEMA", "COUNT_COLUMNS", "DISAGREEMENT_SCHEMA",
     "DOES_NOT_TRANSFER", "EPISODE_COLUMN", "GROUP", "HALVES_FROM", "HEADLINE_SCHEMA", "INSUFFICIENT",
     "NATIVE_CONTROL", "NATIVE_GRAFT_CONTROL",
     "NEAR_TIE", "NOT_ENCODER_CONTROLS", "PAIRING_SCHEMA", "PARAMS_COLUMN", "PLAIN", "RECIPE_COLUMNS",
