@@ -1,6 +1,6 @@
 """What never varies per backbone, declared once as data on its adapter (`BackboneAdapter.spec`), as timm declares a
-model's pretrained configuration: how reports write its name, its released size, which lerobot policy type it loads,
-which policy method makes the images, where the tower and connector sit, where the
+model's pretrained configuration: how reports write its name, its released size, which lerobot policy type it loads
+and which lerobot extra installs it, which policy method makes the images, where the tower and connector sit, where the
 LM width is read, how lerobot scales image tokens, which way its flow time runs, how its loss is reduced, whether its
 LM and expert can recompute activations, and how many cells share a pass by default. What differs in behaviour, not
 data, is a hook on the adapter, each declared once with one signature (`sample_time`, `_grid_of_config`,
@@ -52,3 +52,6 @@ class BackboneSpec:
     #: recorded `backbone_params`: the analysis orders such a table's backbones by it and says so in the report
     #: (graftcache/analysis/ladder.py). Only the order matters; None: such a table needs the column.
     released_params: int | None = None
+    #: The lerobot extra that installs its policy's dependencies (pyproject.toml's lerobot requirement and README's
+    #: set-up name each: tests/test_docs.py); None: they are spelled out in pyproject.toml instead (GR00T).
+    lerobot_extra: str | None = None

@@ -63,6 +63,7 @@ class Evo1Adapter(FlowObjective, BackboneAdapter):
     name = "evo1"
     spec = BackboneSpec(
         label="EVO1",
+        lerobot_extra="evo1",
         image_method="_collect_image_batches",
         vision_slots=("vision_tower", "multi_modal_projector"),
         lm_width="_vision_owner.config.text_config.hidden_size",

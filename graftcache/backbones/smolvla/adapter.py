@@ -31,6 +31,7 @@ class SmolVLAAdapter(WrappedActivationCheckpointing, FlowObjective, BackboneAdap
     name = "smolvla"
     spec = BackboneSpec(
         label="SmolVLA",
+        lerobot_extra="smolvla",
         released_params=450_000_000,
         image_method="prepare_images",
         vision_slots=("vision_model", "connector"),

@@ -95,6 +95,7 @@ class VLAJEPAAdapter(WrappedActivationCheckpointing, FlowObjective, BackboneAdap
     name = "vla_jepa"
     spec = BackboneSpec(
         label="VLA-JEPA",
+        lerobot_extra="vla-jepa",
         image_method="_prepare_model_inputs",
         vision_slots=("blocks", "merger"),
         lm_width="_qwen.config.text_config.hidden_size",

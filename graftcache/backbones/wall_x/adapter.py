@@ -85,6 +85,7 @@ class WallXAdapter(TowerReads, WrappedActivationCheckpointing, FlowObjective, Ba
     name = "wall_x"
     spec = BackboneSpec(
         label="Wall-X",
+        lerobot_extra="wallx",
         image_method="preprocess_inputs",
         vision_slots=("blocks", "merger"),
         lm_width="policy.model.config.text_config.hidden_size",
