@@ -41,16 +41,6 @@ def _discover() -> dict[str, str]:
 #: Registered backbone name -> its adapter module: every folder of graftcache/backbones/ that holds an adapter.py.
 BACKBONES: dict[str, str] = _discover()
 
-#: Approximate parameter counts of the released policies (lerobot's docs), for results tables written before rows
-#: recorded `backbone_params`: the analysis orders such a table's backbones by these, and says so in the report
-#: (graftcache/analysis/ladder.py). Only their order matters; a backbone missing here needs the column.
-RELEASED_PARAMS: dict[str, int] = {
-    "smolvla": 450_000_000,
-    "pi05": 3_300_000_000,
-    "pi0": 3_300_000_000,
-    "pi0_fast": 2_900_000_000,
-}
-
 #: A backbone's own vision tower is the encoder `<backbone>-native` (stage 1 caches it like any encoder).
 NATIVE_SUFFIX = "-native"
 

@@ -259,3 +259,47 @@ def test_a_retired_name_is_found_wherever_the_code_uses_it() -> None:
             "build_native", "module recompute"} <= found
     assert "module lean" not in found  # module names match whole, not as prefixes
     assert not names_in("pool_grid(x)", "graftcache.pooling") & {"module pool", "BackbonePool"}
+
+
+# ------------------------------------------------------------------------------------------------ the backbone lists
+def _specs() -> dict:
+    from graftcache.backbone_table import BACKBONES
+    from graftcache.backbones import get_backbone
+
+    return {name: get_backbone(name).spec for name in BACKBONES}
+
+
+def _lerobot_extras() -> set[str]:
+    """The extras of pyproject.toml's lerobot requirement (`lerobot[smolvla,pi,...]`)."""
+    import tomllib
+
+    deps = tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))["project"]["dependencies"]
+    (lerobot,) = [d for d in deps if re.match(r"lerobot\[", d)]
+    return set(lerobot.split("[", 1)[1].split("]", 1)[0].split(","))
+
+
+def test_the_readme_names_every_backbone_and_the_extra_that_installs_it() -> None:
+    """README.md's list of backbones and of lerobot extras are the registry's: each spec's label and extra."""
+    readme = (ROOT / "README.md").read_text(encoding="utf-8")
+    specs = _specs()
+    assert [n for n, s in specs.items() if s.label not in readme] == [], "README.md lacks their BackboneSpec.label"
+    assert [n for n, s in specs.items() if s.lerobot_extra and f"`{s.lerobot_extra}`" not in readme] == [], \
+        "README.md's set-up does not name their BackboneSpec.lerobot_extra"
+
+
+def test_pyproject_installs_every_backbone_s_lerobot_extra() -> None:
+    extras = _lerobot_extras()
+    assert "smolvla" in extras and "dataset" in extras
+    assert [f"{n}: lerobot[{s.lerobot_extra}]" for n, s in _specs().items()
+            if s.lerobot_extra and s.lerobot_extra not in extras] == []
+
+
+def test_the_module_map_describes_only_registered_backbones() -> None:
+    """The module map's backbones entry names backbone folders (`smolvla/`, `groot/construct.py`): each is one."""
+    from graftcache.backbone_table import BACKBONES
+
+    text = (ROOT / "docs/ARCHITECTURE.md").read_text(encoding="utf-8")
+    entry = text.split("    graftcache/backbones/", 1)[1].split("\n    graftcache/", 1)[0]
+    named = set(re.findall(r"(?<![\w/.<])(\w+)/(?=[\s,)]|\w+\.py)", entry)) - {"graftcache"}
+    assert len(named) >= 5
+    assert sorted(named - set(BACKBONES)) == []

@@ -7,12 +7,13 @@ import pytest
 import torch
 from helpers.backbones import fixed_noise_time, grafted, raw_features
 
-#: backbone -> (the LM that reads the prefix, the action expert), as attribute paths from the policy
-PARTS = {
-    "smolvla": ("model.vlm_with_expert.vlm.model.text_model", "model.vlm_with_expert.lm_expert"),
-    "pi05": ("model.paligemma_with_expert.paligemma.model.language_model",
-             "model.paligemma_with_expert.gemma_expert.model"),
-}
+#: The parts counted (the LM that reads the prefix, the action expert): groups of the spec's `module_paths`.
+PARTS = {"lm": "language model", "expert": "action expert"}
+
+
+def _first_query(module: torch.nn.Module) -> torch.nn.Module:
+    """The query projection of a decoder's first layer (the decoder itself or a model wrapping it)."""
+    return next(m for n, m in module.named_modules() if n.endswith("layers.0.self_attn.q_proj"))
 
 
 @pytest.mark.parametrize("name", ["smolvla", "pi05"])
@@ -21,11 +22,11 @@ def test_the_prefix_runs_once_per_batch_whatever_the_denoising_steps(name: str, 
     adapter = grafted(name)
     batch = adapter.prepare(raw_features(adapter, 3))
     noise, _ = fixed_noise_time(adapter, 3)
-    calls = {"lm": 0, "expert": 0}
+    calls = dict.fromkeys(PARTS, 0)
     hooks = []
-    for part, path in zip(calls, PARTS[name]):
-        module = adapter.policy.get_submodule(path)
-        layer = module.layers[0].self_attn.q_proj
+    groups = adapter._module_groups()
+    for part, group in PARTS.items():
+        layer = _first_query(groups[group])
 
         def count(*_, part=part) -> None:
             calls[part] += 1

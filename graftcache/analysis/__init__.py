@@ -115,7 +115,6 @@ from graftcache.analysis.summaries import (
     seed_summary,
 )
 from graftcache.analysis.table import (
-    BACKBONE_LABELS,
     CELL,
     EPISODE_COLUMN,
     GROUP,
@@ -150,7 +149,7 @@ __all__ = [
     "STATISTICS", "ZERO_IMAGE_BETTER", "ClosedLoop", "closed_loop", "mmrv", "paired_control", "read_rollouts",
     "spearman", "wilson",
     "BEATS", "BEATS_BOTH", "NOT_SEPARATED", "SEPARATED", "beats_image_controls", "native_vs_zero_image",
-    "BACKBONE_LABELS", "BASIS_MISSING", "CELL", "CONTROLS_SCHEMA", "COUNT_COLUMNS", "DISAGREEMENT_SCHEMA",
+    "BASIS_MISSING", "CELL", "CONTROLS_SCHEMA", "COUNT_COLUMNS", "DISAGREEMENT_SCHEMA",
     "DOES_NOT_TRANSFER", "EPISODE_COLUMN", "GROUP", "HALVES_FROM", "HEADLINE_SCHEMA", "INSUFFICIENT",
     "NATIVE_CONTROL", "NATIVE_GRAFT_CONTROL",
     "NEAR_TIE", "NOT_ENCODER_CONTROLS", "PAIRING_SCHEMA", "PARAMS_COLUMN", "PLAIN", "RECIPE_COLUMNS",

@@ -4,7 +4,7 @@ ladder every transfer question walks (smallest first).
 Each results row records the parameter count of the policy it grafted into (`backbone_params`, counted from
 the loaded policy by `graftcache fit`), so tiny and released policies of one backbone sit where their real
 sizes put them and a new backbone needs no entry anywhere. A table written before the column (or typed in
-from a paper) falls back to the released sizes in graftcache.backbone_table.RELEASED_PARAMS, and every such
+from a paper) falls back to the released size on the backbone's spec (`released_params`), and every such
 fallback is a note the report prints; a backbone with neither is an error naming it, never a guess.
 """
 
@@ -16,7 +16,6 @@ from itertools import pairwise
 import polars as pl
 
 from graftcache.analysis.table import backbone_label, check, plain_backbones
-from graftcache.backbone_table import RELEASED_PARAMS
 from graftcache.errors import GraftcacheError
 
 PARAMS_COLUMN = "backbone_params"
@@ -71,10 +70,13 @@ def _count(results: pl.DataFrame, backbone: str) -> tuple[int, str | None]:
         note = (f"{backbone}: {lacking} row(s) without {PARAMS_COLUMN} take the {format_params(recorded[0])} its "
                 "other rows record") if lacking else None
         return recorded[0], note
-    if backbone in RELEASED_PARAMS:
-        n = RELEASED_PARAMS[backbone]
+    from graftcache.backbones import registered_spec  # imports the backbone's adapter (torch): old tables only
+
+    spec = registered_spec(backbone)
+    if spec is not None and spec.released_params is not None:
+        n = spec.released_params
         return n, (f"{backbone}: no row records {PARAMS_COLUMN} (a table from before the column); ordered by the "
-                   f"released size, {format_params(n)} (graftcache.backbone_table.RELEASED_PARAMS)")
+                   f"released size, {format_params(n)} (its BackboneSpec's released_params)")
     raise GraftcacheError(f"backbone {backbone}: no row records {PARAMS_COLUMN} and graftcache knows no released size "
                           f"for it; add a {PARAMS_COLUMN} column (the policy's parameter count) to order the backbones")
 

@@ -3,6 +3,8 @@ rows of one control with diverged fits marked invalid."""
 
 from __future__ import annotations
 
+import functools
+
 import polars as pl
 
 from graftcache.errors import GraftcacheError
@@ -14,8 +16,6 @@ ZERO_IMAGE = "zero-image"
 SHUFFLED_IMAGE = "shuffled-image"
 NOT_ENCODER_CONTROLS = (PLAIN, NATIVE_CONTROL, NATIVE_GRAFT_CONTROL)
 
-BACKBONE_LABELS = {"smolvla": "SmolVLA", "pi05": "pi0.5"}
-
 EPISODE_COLUMN = "eval_mse_episodes"
 
 CELL = ["backbone", "suite", "encoder"]
@@ -23,9 +23,13 @@ GROUP = ["backbone", "suite"]
 RECIPE_COLUMNS = ("policy", "objective", "pool_grid", "steps", "lr", "batch_size", "eval_split_seed", "eval_split")
 
 
+@functools.cache
 def backbone_label(name: str) -> str:
-    """How the paper writes a backbone name ("pi05" -> "pi0.5"); unknown names pass through."""
-    return BACKBONE_LABELS.get(name, name)
+    """How the paper writes a backbone name, its spec's `label` ("pi05" -> "pi0.5"); unknown names pass through."""
+    from graftcache.backbones import registered_spec  # imports the backbone's adapter (torch) on first use
+
+    spec = registered_spec(name)
+    return name if spec is None else spec.label
 
 
 def check(results: pl.DataFrame) -> None:

@@ -17,6 +17,7 @@ from graftcache.errors import BackboneError
 
 if TYPE_CHECKING:
     from graftcache.backbones.base import BackboneAdapter
+    from graftcache.backbones.spec import BackboneSpec
 
 
 def get_backbone(name: str) -> type[BackboneAdapter]:
@@ -32,10 +33,17 @@ def get_backbone(name: str) -> type[BackboneAdapter]:
     return found[0]
 
 
+def registered_spec(name: str) -> BackboneSpec | None:
+    """The spec of backbone `name` (importing its adapter: torch, ~3 s once), or None for a name outside the registry
+    (a results table typed in from a paper may name any backbone). What tables of all backbones read: their labels
+    (graftcache.analysis.table.backbone_label), their released sizes (graftcache.analysis.ladder)."""
+    return get_backbone(name).spec if name in BACKBONES else None
+
+
 def load_backbone(name: str, source: str | Path, *, device: str = "cpu", dataset_stats: dict | None = None,
                   tiny: TinySpec | None = None) -> BackboneAdapter:
     """Load backbone `name` from `source` ("tiny", a hub id in the HF cache, or a checkpoint folder)."""
     return get_backbone(name).load(source, device=device, dataset_stats=dataset_stats, tiny=tiny)
 
 
-__all__ = ["BACKBONES", "TinySpec", "get_backbone", "load_backbone"]
+__all__ = ["BACKBONES", "TinySpec", "get_backbone", "load_backbone", "registered_spec"]

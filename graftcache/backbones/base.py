@@ -87,6 +87,26 @@ class BackboneAdapter(GraftSurgery, PromptBatches, Objective, ActivationCheckpoi
     name: ClassVar[str]
     spec: ClassVar[BackboneSpec]
 
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        """A class naming itself a backbone (`name` in its own body) is a registry entry, checked as it is defined
+        (as lerobot's PreTrainedPolicy checks `name` and `config_class`): it lives in its folder's adapter.py,
+        `graftcache.backbones.<name>.adapter` (graftcache.backbone_table), and declares its own BackboneSpec."""
+        super().__init_subclass__(**kwargs)
+        if "name" not in cls.__dict__:
+            return
+        where = backbone_module(cls.name)
+        if cls.__module__ != where:
+            raise BackboneError(f"{cls.__qualname__} (in {cls.__module__}) names itself backbone {cls.name!r}: a "
+                                f"backbone's adapter class is defined in {where} (its folder's adapter.py)")
+        if not isinstance(cls.__dict__.get("spec"), BackboneSpec):  # its own: an inherited one holds another's label
+            raise BackboneError(f"{where}.{cls.__qualname__} declares no `spec` of its own (a "
+                                "graftcache.backbones.spec.BackboneSpec)")
+
+    @classmethod
+    def lerobot_type(cls) -> str:
+        """The lerobot `config.type` this backbone wraps: its spec's `lerobot_type`, else its registry name."""
+        return cls.spec.lerobot_type or cls.name
+
     # ------------------------------------------------------------------------------ the spec, as attributes
     @property
     def image_method(self) -> str:
@@ -215,8 +235,9 @@ class BackboneAdapter(GraftSurgery, PromptBatches, Objective, ActivationCheckpoi
             config = PreTrainedConfig.from_pretrained(folder)
         except Exception as exc:  # draccus raises assorted types on a bad or foreign config
             raise BackboneError(f"{folder / 'config.json'}: not a lerobot policy config ({exc})") from None
-        if config.type != cls.name:
-            raise BackboneError(f"{folder / 'config.json'}: a {config.type!r} policy, not {cls.name!r}")
+        if config.type != cls.lerobot_type():
+            raise BackboneError(f"{folder / 'config.json'}: a {config.type!r} policy, not {cls.lerobot_type()!r} "
+                                f"(what backbone {cls.name!r} wraps)")
         return config
 
     @classmethod

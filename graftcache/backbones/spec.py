@@ -1,5 +1,6 @@
 """What never varies per backbone, declared once as data on its adapter (`BackboneAdapter.spec`), as timm declares a
-model's pretrained configuration: which policy method makes the images, where the tower and connector sit, where the
+model's pretrained configuration: how reports write its name, its released size, which lerobot policy type it loads
+and which lerobot extra installs it, which policy method makes the images, where the tower and connector sit, where the
 LM width is read, how lerobot scales image tokens, which way its flow time runs, how its loss is reduced, whether its
 LM and expert can recompute activations, and how many cells share a pass by default. What differs in behaviour, not
 data, is a hook on the adapter, each declared once with one signature (`sample_time`, `_grid_of_config`,
@@ -17,6 +18,8 @@ from typing import Literal
 class BackboneSpec:
     """One backbone's constants (see the module docstring)."""
 
+    #: How reports and the README write the backbone ("pi0.5" for pi05; graftcache.analysis.table.backbone_label).
+    label: str
     #: The policy method turning a batch into (images, masks) or the model's inputs; grafted, it reads cached features.
     image_method: str
     #: (tower attribute, connector attribute) of the adapter's `_vision_owner`: the graft's two slots.
@@ -42,3 +45,13 @@ class BackboneSpec:
     activation_checkpointing: bool = False
     #: Cells per backbone pass when a request does not say, by device type (graftcache.fit.passes); unlisted: 1.
     cells_per_pass: Mapping[str, int] = field(default_factory=dict)
+    #: lerobot's `config.type` of the policy it wraps, which a checkpoint's config.json must name; None: the
+    #: registry name (so two adapters, e.g. two graft points, can wrap one lerobot policy type).
+    lerobot_type: str | None = None
+    #: Approximate parameter count of the released policy (lerobot's docs), for results tables written before rows
+    #: recorded `backbone_params`: the analysis orders such a table's backbones by it and says so in the report
+    #: (graftcache/analysis/ladder.py). Only the order matters; None: such a table needs the column.
+    released_params: int | None = None
+    #: The lerobot extra that installs its policy's dependencies (pyproject.toml's lerobot requirement and README's
+    #: set-up name each: tests/test_docs.py); None: they are spelled out in pyproject.toml instead (GR00T).
+    lerobot_extra: str | None = None

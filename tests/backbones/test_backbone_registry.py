@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import inspect
+import types
 from importlib import import_module
 from pathlib import Path
 
@@ -15,6 +16,7 @@ from graftcache.backbones.activation_checkpointing import ActivationCheckpointin
 from graftcache.backbones.base import BackboneAdapter
 from graftcache.backbones.objectives import FlowObjective, Objective, TokenObjective
 from graftcache.backbones.spec import BackboneSpec
+from graftcache.errors import BackboneError
 
 
 def test_the_registry_lists_the_folders_holding_an_adapter() -> None:
@@ -48,3 +50,18 @@ def test_every_registered_backbone_declares_a_spec_its_hooks_agree_with(name: st
     assert issubclass(adapter, FlowObjective) or "_flow_losses" not in dir(adapter)  # no flow loss that only raises
     assert spec.steps_field is not None or adapter.num_steps is not Objective.num_steps
     assert all(n >= 1 for n in spec.cells_per_pass.values())
+
+
+def test_a_class_naming_itself_a_backbone_elsewhere_or_without_a_spec_of_its_own_is_refused() -> None:
+    """BackboneAdapter.__init_subclass__: the registry's rules hold as an adapter class is defined."""
+    smolvla = get_backbone("smolvla")
+
+    def define(qualname: str, module: str, **body) -> type:
+        return types.new_class(qualname, (smolvla,), exec_body=lambda ns: ns.update(__module__=module, **body))
+
+    with pytest.raises(BackboneError, match=r"is defined in graftcache\.backbones\.stray\.adapter"):
+        define("Stray", "tests.elsewhere", name="stray", spec=smolvla.spec)
+    with pytest.raises(BackboneError, match="declares no `spec` of its own"):
+        define("Inherits", backbone_module("smolvla"), name="smolvla")
+    assert define("Helper", "tests.elsewhere").spec is smolvla.spec  # no name of its own: not a registry entry
+    assert smolvla.lerobot_type() == "smolvla"  # the registry name unless its spec names another lerobot type

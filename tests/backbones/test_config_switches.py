@@ -15,7 +15,7 @@ import torch
 from helpers.backbones import ENC_DIM, backbones_where, fixed_noise_time, raw_features, tiny
 from torch import nn
 
-from graftcache.backbones import get_backbone
+from graftcache.backbones import BACKBONES, get_backbone
 from graftcache.backbones.base import BackboneAdapter
 from graftcache.graft import GraftProjector
 
@@ -50,15 +50,28 @@ def _wrapped(policy: nn.Module) -> list[int]:
             if getattr(value, "__qualname__", "") == "checkpointed.<locals>.run"]
 
 
-@pytest.mark.parametrize(("name", "switches"), [
-    ("smolvla", {"compile_model": True}),
-    ("pi05", {"compile_model": True, "gradient_checkpointing": True}),
-    ("pi0", {"compile_model": True, "gradient_checkpointing": True}),
-    ("pi0_fast", {"compile_model": True, "gradient_checkpointing": True}),
-    ("eo1", {"gradient_checkpointing": True}),
-])
+#: The switches that compile the policy or checkpoint its activations under lerobot's own names (EVO1's: below).
+COMPILE_AND_CHECKPOINTING = ("compile_model", "gradient_checkpointing")
+
+
+def _config_fields(name: str) -> set[str]:
+    """The fields of the lerobot config class of the policy backbone `name` wraps."""
+    import dataclasses
+
+    import lerobot.policies  # noqa: F401  (its __init__ registers every policy's config type)
+    from lerobot.configs.policies import PreTrainedConfig
+
+    return {f.name for f in dataclasses.fields(PreTrainedConfig.get_choice_class(get_backbone(name).lerobot_type()))}
+
+
+@pytest.mark.parametrize("name", sorted(BACKBONES))
 def test_compile_and_gradient_checkpointing_of_a_checkpoint_s_config_are_off_after_load(
-        name: str, switches: dict, tmp_path: Path) -> None:
+        name: str, tmp_path: Path) -> None:
+    """Every backbone whose lerobot config has the switches (SmolVLA: compile; the PaliGemma policies: both; EO-1:
+    checkpointing), each set on."""
+    switches = dict.fromkeys(sorted(_config_fields(name) & set(COMPILE_AND_CHECKPOINTING)), True)
+    if not switches:
+        pytest.skip(f"{name}'s lerobot config has neither {' nor '.join(COMPILE_AND_CHECKPOINTING)}")
     adapter = get_backbone(name).load(_saved_with(name, tmp_path / "policy", **switches))
     assert _compiled(adapter.policy) == []
     assert _checkpointing(adapter.policy) == []

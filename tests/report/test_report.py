@@ -204,7 +204,7 @@ def test_minimal_schema_file_reports_with_a_seed_level_bootstrap(tmp_path, capsy
     assert "Columns without values (absent or all null): run_id, format_version, backbone_params, policy," in md
     # a table from before backbone_params: ordered by the released sizes, and the report says so
     assert ("- Backbone order: smolvla: no row records backbone_params (a table from before the column); ordered "
-            "by the released size, 450M (graftcache.backbone_table.RELEASED_PARAMS).") in md
+            "by the released size, 450M (its BackboneSpec's released_params).") in md
     assert "| SmolVLA | s | a | 1 | 1.1 ± 0.1 | 3 |" in md and "| seeds |" in md
 
 

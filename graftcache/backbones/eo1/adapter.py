@@ -89,6 +89,8 @@ def processor_kwargs_quiet() -> Iterator[None]:
 class EO1Adapter(TowerReads, FlowObjective, BackboneAdapter):
     name = "eo1"
     spec = BackboneSpec(
+        label="EO-1",
+        lerobot_extra="eo1",
         image_method="_get_model_inputs",
         vision_slots=("blocks", "merger"),
         lm_width="policy.model.vlm_backbone.config.text_config.hidden_size",

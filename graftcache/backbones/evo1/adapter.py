@@ -62,6 +62,8 @@ def token_grid(image_size: int, vision, downsample_ratio: float) -> tuple[int, i
 class Evo1Adapter(FlowObjective, BackboneAdapter):
     name = "evo1"
     spec = BackboneSpec(
+        label="EVO1",
+        lerobot_extra="evo1",
         image_method="_collect_image_batches",
         vision_slots=("vision_tower", "multi_modal_projector"),
         lm_width="_vision_owner.config.text_config.hidden_size",

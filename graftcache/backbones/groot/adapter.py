@@ -74,6 +74,7 @@ PADDED_ACTION = "groot_padded_action"
 class GrootAdapter(TowerReads, FlowObjective, BackboneAdapter):
     name = "groot"
     spec = BackboneSpec(
+        label="GR00T N1.7",
         image_method="_filter_groot_inputs",
         vision_slots=("blocks", "merger"),
         lm_width="_groot.backbone.model.config.text_config.hidden_size",

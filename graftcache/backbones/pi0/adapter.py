@@ -30,6 +30,7 @@ class PI0Adapter(PI05Adapter):
     name = "pi0"
     spec = dataclasses.replace(
         PI05Adapter.spec,
+        label="pi0",
         module_paths={
             "language model": ("_vision_owner.language_model",),
             "action expert": ("policy.model.paligemma_with_expert.gemma_expert",),

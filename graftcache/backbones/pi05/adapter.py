@@ -74,6 +74,9 @@ class PaliGemmaAdapter(BackboneAdapter):
 class PI05Adapter(FlowObjective, PaliGemmaAdapter):
     name = "pi05"
     spec = BackboneSpec(
+        label="pi0.5",
+        lerobot_extra="pi",
+        released_params=3_300_000_000,
         image_method="_preprocess_images",
         vision_slots=("vision_tower", "multi_modal_projector"),
         lm_width="_vision_owner.config.text_config.hidden_size",

@@ -50,6 +50,9 @@ ACTION_TOKEN_MASK = "action.token_mask"
 class PI0FastAdapter(TokenObjective, PaliGemmaAdapter):
     name = "pi0_fast"
     spec = BackboneSpec(
+        label="pi0-FAST",
+        lerobot_extra="pi",
+        released_params=2_900_000_000,
         image_method="_preprocess_images",
         vision_slots=("vision_tower", "multi_modal_projector"),
         lm_width="_vision_owner.config.text_config.hidden_size",

@@ -30,6 +30,9 @@ from graftcache.backbones.tiny_assets import SMOLVLM_DIR
 class SmolVLAAdapter(WrappedActivationCheckpointing, FlowObjective, BackboneAdapter):
     name = "smolvla"
     spec = BackboneSpec(
+        label="SmolVLA",
+        lerobot_extra="smolvla",
+        released_params=450_000_000,
         image_method="prepare_images",
         vision_slots=("vision_model", "connector"),
         lm_width="_vision_owner.config.text_config.hidden_size",

@@ -94,6 +94,8 @@ def given_draws(head: nn.Module, noise: torch.Tensor, time: torch.Tensor | None 
 class VLAJEPAAdapter(WrappedActivationCheckpointing, FlowObjective, BackboneAdapter):
     name = "vla_jepa"
     spec = BackboneSpec(
+        label="VLA-JEPA",
+        lerobot_extra="vla-jepa",
         image_method="_prepare_model_inputs",
         vision_slots=("blocks", "merger"),
         lm_width="_qwen.config.text_config.hidden_size",

@@ -84,6 +84,8 @@ def pixel_bounds(image_processor, pixels: int) -> Iterator[None]:
 class WallXAdapter(TowerReads, WrappedActivationCheckpointing, FlowObjective, BackboneAdapter):
     name = "wall_x"
     spec = BackboneSpec(
+        label="Wall-X",
+        lerobot_extra="wallx",
         image_method="preprocess_inputs",
         vision_slots=("blocks", "merger"),
         lm_width="policy.model.config.text_config.hidden_size",

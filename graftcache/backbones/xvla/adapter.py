@@ -50,6 +50,8 @@ def conv_grid(size: tuple[int, int], vision) -> tuple[int, int]:
 class XVLAAdapter(WrappedActivationCheckpointing, BackboneAdapter):
     name = "xvla"
     spec = BackboneSpec(
+        label="X-VLA",
+        lerobot_extra="xvla",
         image_method="_prepare_images",
         vision_slots=("vision_tower", "multi_modal_projector"),
         lm_width="_vision_owner.config.vision_config.projection_dim",
