@@ -157,3 +157,59 @@ def test_kill_9_of_a_two_worker_rollout_leaves_whole_rows_no_worker_and_a_rerun_
     assert len(ran(tmp_path / "rerun")) == EPISODES - written.height
     assert rows.height == EPISODES and rows["episode_id"].n_unique() == EPISODES
     assert not results.claims_folder(req.rollouts).exists()
+
+
+SAMPLE = Path(__file__).resolve().parents[2] / "data" / "libero_sample"
+
+
+def _frames(path: Path) -> Any:
+    """An mp4's decoded frames, (n, H, W, 3) uint8."""
+    import av
+    import numpy as np
+
+    with av.open(str(path)) as container:
+        return np.stack([f.to_ndarray(format="rgb24") for f in container.decode(video=0)])
+
+
+@pytest.mark.slow  # train-tiny, extract, fit two cells, then 4 five-step episodes by 1 and by 2 workers
+def test_two_workers_give_the_rows_and_frames_of_one_in_the_simulator(tmp_path: Path,
+                                                                      capsys: pytest.CaptureFixture) -> None:
+    """2 cells x 2 episodes of 5 steps in LIBERO, `rollout --workers 1` then `--workers 2` into another file: the same
+    rows (seconds and command aside) and, since 5 failed steps say little, the same decoded frames of every episode:
+    the simulator's states after the reset and each step, which differ between the episodes (init states 0 and 1)."""
+    import numpy as np
+    from helpers.probes import run_cli
+
+    root, policy, results_path = tmp_path / "cache", tmp_path / "policy", tmp_path / "results.parquet"
+    encoder = "timm:vit_tiny_patch16_224"
+    for argv in (
+        ["train-tiny", "--backbone", "smolvla", "--dataset", SAMPLE, "--steps", "1", "--out", policy, "--cache", root],
+        ["extract", "--encoder", encoder, "--random-init", "--dataset", SAMPLE, "--episodes", "18-21",
+         "--frame-stride", "8", "--num-workers", "0", "--batch-size", "16", "--no-progress", "--cache", root],
+        ["fit", "--backbone", "smolvla", "--policy", policy, "--encoder", encoder, "--dataset", SAMPLE, "--suite",
+         "libero_object", "--seeds", "1", "--controls", "zero-image", "--steps", "2", "--batch-size", "4",
+         "--eval-fraction", "0.5", "--eval-frames", "4", "--num-denoise-steps", "2", "--cache", root, "--results",
+         results_path, "--no-progress"],
+    ):
+        done = run_cli(argv, capsys)
+        assert done.code == 0, done.err[-2000:]
+    cells = ",".join(pl.read_parquet(results_path)["run_id"].to_list())
+    rows = {}
+    for workers in (1, 2):
+        (tmp_path / str(workers)).mkdir()
+        rollouts = tmp_path / str(workers) / "rollouts.parquet"
+        done = run_cli(["rollout", results_path, "--run-ids", cells, "--suites", "libero_object", "--tasks", "0",
+                        "--episodes-per-task", "2", "--max-steps", "5", "--videos", "--cache", root, "--rollouts",
+                        rollouts, "--workers", workers], capsys)
+        assert done.code == 0, done.err[-3000:]
+        rows[workers] = table.read(rollouts).sort("episode_id")
+    one, two = rows[1], rows[2]
+    assert one.height == 4 and sorted(one["episode"].to_list()) == [0, 0, 1, 1]
+    assert two.drop(VARYING).equals(one.drop(VARYING))
+    assert (one["steps"] == 5).all() and not multiprocessing.active_children()
+    videos = {(r["run_id"], r["episode"]): r["video"] for r in one.iter_rows(named=True)}
+    for video in videos.values():
+        seen = _frames(tmp_path / "1" / video)
+        assert seen.shape == (6, 256, 256, 3) and np.array_equal(_frames(tmp_path / "2" / video), seen)
+    run = one["run_id"][0]
+    assert not np.array_equal(_frames(tmp_path / "1" / videos[run, 0]), _frames(tmp_path / "1" / videos[run, 1]))
