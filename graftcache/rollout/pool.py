@@ -130,10 +130,12 @@ def run_pool(req: RolloutRequest, rows: Mapping[str, Mapping[str, Any]], missing
                     raise RolloutError(_death(worker))
         _finish(pool)
     finally:  # stopped or failed too: no worker outlives the rollout, no claim is left behind
-        _stop(pool)
-        for cell in cells.values():
-            if cell.claim is not None:
-                cell.claim.release()
+        try:
+            _stop(pool)
+        finally:  # a stop raised again while the workers are reaped (graftcache.cli.signals._Stop) keeps no claim
+            for cell in cells.values():
+                if cell.claim is not None:
+                    cell.claim.release()
 
 
 class _Scheduler:
