@@ -62,8 +62,8 @@ def require_simulator() -> None:
 @contextmanager
 def quiet_inner_bars() -> Iterator[None]:
     """lerobot's rollout draws a bar of its own per episode; off a terminal (a log) it would write a redraw per step,
-    so it is disabled there and the rollout's own sparse lines remain (graftcache.progress); in a pool worker too
-    (graftcache.rollout.pool), where N of them would fight over the rollout's own bar."""
+    so it is disabled there and the rollout's own sparse lines remain (graftcache.progress); in a team worker too
+    (graftcache.rollout.workers), where N of them would fight over the rollout's own bar."""
     from lerobot.scripts import lerobot_eval
     from tqdm import trange
 
@@ -140,7 +140,7 @@ class LiberoSimulator:
 
     def loaded(self, row: Mapping[str, Any], suite: str, task: int) -> tuple[Any, ...]:
         """The cell's policy and its four processors, loaded as lerobot-eval loads them; the last cell's are kept, so
-        that a pool worker (graftcache.rollout.pool), handed a cell's episodes one call at a time, loads it once."""
+        that a team worker (graftcache.rollout.workers), handed a cell's episodes one call at a time, loads it once."""
         if self._cell is not None and self._cell[0] == row["run_id"]:
             return self._cell[1]
         from lerobot.configs.policies import PreTrainedConfig

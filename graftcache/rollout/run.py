@@ -28,6 +28,7 @@ import polars as pl
 import graftcache
 from graftcache import results
 from graftcache.errors import RolloutError
+from graftcache.lazy import import_string
 from graftcache.progress import progress
 from graftcache.progress import write as progress_write
 from graftcache.rollout import table
@@ -41,6 +42,8 @@ MAX_SEED = 2**32 - 1                # numpy's and gymnasium's seeds are unsigned
 #: LIBERO has 50 official init states per task (episode k starts from state k mod 50): 1,000 episodes a task is
 #: 20 passes over them, past any study's need, and keeps a plan that hashes every episode small
 MAX_EPISODES_PER_TASK = 1000
+#: what runs the missing episodes with --workers N > 1
+RUN_WORKERS = "graftcache.rollout.workers:run_workers"
 
 
 @dataclass(frozen=True)
@@ -149,7 +152,8 @@ def roll_out(req: RolloutRequest, sim: Simulator, log: Callable[[str], None] = p
              spawn: Callable[[], Simulator] | None = None) -> pl.DataFrame:
     """Run the request's missing episodes and return the rollouts file's rows of the request's episodes. `workers`
     1: every episode in this process, by `sim`; N > 1: N episodes at once in N worker processes, each running its
-    episodes with a simulator of its own, built by `spawn` (picklable; graftcache.rollout.pool), `sim` only planning."""
+    episodes with a simulator of its own, built by `spawn` (picklable; graftcache.rollout.workers), `sim` only
+    planning."""
     if workers > 1 and spawn is None:
         raise RolloutError(f"--workers {workers}: this simulator cannot be built in a worker process (no spawn)")
     rows = select_rows(results.read_for_report(req.results), run_ids=req.run_ids, top=req.top, suites=req.suites,
@@ -168,10 +172,8 @@ def roll_out(req: RolloutRequest, sim: Simulator, log: Callable[[str], None] = p
     by_run = {r["run_id"]: r for r in rows.iter_rows(named=True)}
     try:
         with progress(total=len(missing), desc="rollout", unit="episode") as bar:
-            if workers > 1:
-                from graftcache.rollout.pool import run_pool
-
-                run_pool(req, by_run, missing, spawn, workers, bar, log)
+            if workers > 1:  # by import string: graftcache.rollout.workers imports this module
+                import_string(RUN_WORKERS)(req, by_run, missing, spawn, workers, bar, log)
             else:
                 for run_id in dict.fromkeys(e.run_id for e in missing):
                     _run_cell(req, sim, by_run[run_id], [e for e in missing if e.run_id == run_id], bar, log)

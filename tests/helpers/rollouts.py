@@ -1,5 +1,5 @@
-"""A fake simulator for `graftcache rollout --workers N` (graftcache.rollout.pool): importable by name, so that a
-spawned worker process can build it (the pool pickles its factory by reference), and leaving traces on disk, since
+"""A fake simulator for `graftcache rollout --workers N` (graftcache.rollout.workers): importable by name, so that a
+spawned worker process can build it (the team pickles its factory by reference), and leaving traces on disk, since
 what a worker ran is not in the test's process."""
 
 from __future__ import annotations

@@ -1,8 +1,8 @@
-"""`graftcache rollout --workers N` (issue 43, item 3; graftcache.rollout.pool): the rows of one worker, the pool's
+"""`graftcache rollout --workers N` (issue 43, item 3; graftcache.rollout.workers): the rows of one worker, the team's
 failures as one line, kill -9 of the rollout or a worker followed by a rerun that runs exactly the missing episodes,
 and (slow) the same rows from 1 and 2 workers in the real LIBERO simulator.
 
-The fast tests run the real pool (spawned worker processes, pipes, claims, appends) over a fake simulator
+The fast tests run the real team (spawned worker processes, pipes, claims, appends) over a fake simulator
 (tests/helpers/rollouts.py: Paced), which the workers build by name and which leaves on disk what each ran. The
 request is test_rollout.py's: top 1 on libero_object of tests/helpers/tables.py, 6 cells x tasks 0, 3 x 2 episodes.
 """
@@ -48,7 +48,7 @@ def _first_run(req: RolloutRequest) -> str:
     return select_rows(results.read(req.results), top=1, suites=["libero_object"])["run_id"][0]
 
 
-def _pool(req: RolloutRequest, traces: Path, workers: int = 2, **paced: Any) -> pl.DataFrame:
+def _in_workers(req: RolloutRequest, traces: Path, workers: int = 2, **paced: Any) -> pl.DataFrame:
     spawn = partial(Paced, traces, **paced)
     return roll_out(req, Paced(traces / "planner"), log=lambda _: None, workers=workers, spawn=spawn)
 
@@ -79,7 +79,7 @@ def test_an_error_in_a_worker_is_one_line_naming_the_run_and_episode(tmp_path: P
     req = _request(tmp_path)
     run = _first_run(req)
     with pytest.raises(RolloutError) as failed:
-        _pool(req, tmp_path / "traces", fail=(run, 3, 1))
+        _in_workers(req, tmp_path / "traces", fail=(run, 3, 1))
     line = str(failed.value)
     assert "\n" not in line
     head, worker = line.rsplit(" (rollout worker ", 1)
@@ -99,14 +99,14 @@ def test_a_worker_killed_mid_episode_is_one_line_and_a_rerun_runs_exactly_the_re
     req = _request(tmp_path)
     run = _first_run(req)
     with pytest.raises(RolloutError) as failed:
-        _pool(req, tmp_path / "killed", die=(run, 3, 0))
+        _in_workers(req, tmp_path / "killed", die=(run, 3, 0))
     assert str(failed.value).split(" (pid ")[0] in ("rollout worker 0", "rollout worker 1")
     assert str(failed.value).split(") ", 1)[1] == (
         f"died (killed by signal 9) while running run {run}, libero_object task 3 episode 0 (seed 7); the episodes "
         "written are kept: rerun the command to run the others")
     written = table.read(req.rollouts)
     assert 0 < written.height < EPISODES
-    rows = _pool(req, tmp_path / "rerun")
+    rows = _in_workers(req, tmp_path / "rerun")
     assert len(ran(tmp_path / "rerun")) == EPISODES - written.height
     assert rows.height == EPISODES and rows["episode_id"].n_unique() == EPISODES
     assert not multiprocessing.active_children()
@@ -153,7 +153,7 @@ def test_kill_9_of_a_two_worker_rollout_leaves_whole_rows_no_worker_and_a_rerun_
         time.sleep(0.05)
     written = table.read(req.rollouts)  # whole rows only, each episode once
     assert 3 <= written.height < EPISODES and written["episode_id"].n_unique() == written.height
-    rows = _pool(req, tmp_path / "rerun")
+    rows = _in_workers(req, tmp_path / "rerun")
     assert len(ran(tmp_path / "rerun")) == EPISODES - written.height
     assert rows.height == EPISODES and rows["episode_id"].n_unique() == EPISODES
     assert not results.claims_folder(req.rollouts).exists()

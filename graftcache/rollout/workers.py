@@ -105,33 +105,33 @@ def one_line(e: BaseException) -> str:
     return first if isinstance(e, GraftcacheError) else f"{type(e).__name__}: {first}".rstrip(": ")
 
 
-def run_pool(req: RolloutRequest, rows: Mapping[str, Mapping[str, Any]], missing: Sequence[Episode],
+def run_workers(req: RolloutRequest, rows: Mapping[str, Mapping[str, Any]], missing: Sequence[Episode],
              spawn: Callable[[], Simulator], workers: int, bar: Any, log: Callable[[str], None]) -> None:
     """Run `missing` (episodes of the cells `rows` holds by run_id) in min(`workers`, episodes) worker processes,
     each building its simulator with `spawn`; `bar` advances by one per episode written or found written."""
     cells = {run_id: _Cell(rows[run_id], deque(e for e in missing if e.run_id == run_id))
              for run_id in dict.fromkeys(e.run_id for e in missing)}
-    pool: list[_Worker] = []
+    team: list[_Worker] = []
     try:
-        pool = _start(min(workers, len(missing)), spawn, req)
-        log(f"{len(pool)} worker processes, each with a simulator of its own")
+        team = _start(min(workers, len(missing)), spawn, req)
+        log(f"{len(team)} worker processes, each with a simulator of its own")
         scheduler = _Scheduler(req, cells, bar, log)
         while not all(c.closed for c in cells.values()):
-            for worker in pool:
+            for worker in team:
                 if worker.running is None:
                     scheduler.dispatch(worker)
             waiting = any(c.claim is None and not c.closed for c in cells.values())
-            ready = wait([w.conn for w in pool] + [w.process.sentinel for w in pool],
+            ready = wait([w.conn for w in team] + [w.process.sentinel for w in team],
                          timeout=CLAIM_POLL_S if waiting else None)
-            for worker in pool:
+            for worker in team:
                 if worker.conn in ready or worker.conn.poll():
                     scheduler.finished(worker, _receive(worker))
                 elif worker.process.sentinel in ready:
                     raise RolloutError(_death(worker))
-        _finish(pool)
+        _finish(team)
     finally:  # stopped or failed too: no worker outlives the rollout, no claim is left behind
         try:
-            _stop(pool)
+            _stop(team)
         finally:  # a stop raised again while the workers are reaped (graftcache.cli.signals._Stop) keeps no claim
             for cell in cells.values():
                 if cell.claim is not None:
@@ -235,7 +235,7 @@ def _start(n: int, spawn: Callable[[], Simulator], req: RolloutRequest) -> list[
     """n spawned workers, each with its end of a pipe. They start with SIGINT ignored (inherited across exec), so a
     Ctrl-C at the terminal, which reaches the whole process group, stops them through this process only."""
     context = multiprocessing.get_context("spawn")
-    pool = []
+    team = []
     with _sigint_ignored():
         for i in range(n):
             here, there = context.Pipe()
@@ -243,8 +243,8 @@ def _start(n: int, spawn: Callable[[], Simulator], req: RolloutRequest) -> list[
                                       name=f"graftcache-rollout-{i}", daemon=True)
             process.start()
             there.close()
-            pool.append(_Worker(i, process, here))
-    return pool
+            team.append(_Worker(i, process, here))
+    return team
 
 
 @contextmanager
@@ -259,19 +259,19 @@ def _sigint_ignored() -> Iterator[None]:
         signal.signal(signal.SIGINT, previous)
 
 
-def _finish(pool: Sequence[_Worker]) -> None:
+def _finish(team: Sequence[_Worker]) -> None:
     """Every episode written: tell the workers to close their simulators and wait for them (CLOSE_S at most)."""
-    for worker in pool:
+    for worker in team:
         with suppress(OSError):
             worker.conn.send(None)
     deadline = time.monotonic() + CLOSE_S
-    for worker in pool:
+    for worker in team:
         worker.process.join(max(0.0, deadline - time.monotonic()))
 
 
-def _stop(pool: Sequence[_Worker]) -> None:
+def _stop(team: Sequence[_Worker]) -> None:
     """SIGTERM to every live worker, SIGKILL to those still alive WORKER_GRACE_S later."""
-    alive = [w for w in pool if w.process.is_alive()]
+    alive = [w for w in team if w.process.is_alive()]
     for worker in alive:
         worker.process.terminate()
     deadline = time.monotonic() + WORKER_GRACE_S
@@ -280,7 +280,7 @@ def _stop(pool: Sequence[_Worker]) -> None:
         if worker.process.is_alive():
             worker.process.kill()
             worker.process.join()
-    for worker in pool:
+    for worker in team:
         worker.conn.close()
 
 
