@@ -89,6 +89,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="also write each episode's frames as an mp4, as lerobot-eval writes its videos, to "
                    "videos/RUN_ID/ beside the rollouts file; its row's video column holds the path relative to the "
                    "file (default: no videos; episodes already in the file are not rerun for one)")
+    p.add_argument("--workers", type=_at_least(1), default=1, metavar="N",
+                   help="episodes run at once, each in a worker process with a simulator of its own (default: 1, "
+                   "in this process); the rows are those of one worker. About one per core: each policy runs on one "
+                   "torch thread")
     p.add_argument("--cache", default=None, help="cache root the fits read (default: $GRAFTCACHE_HOME or "
                    "~/.cache/graftcache)")
     p.add_argument("--runs", default=None, help="folder of run folders, when the fits wrote them elsewhere (--out)")
@@ -108,10 +112,11 @@ def run(args: argparse.Namespace) -> int:
                          perturb_cm=args.perturb_cm, command=args.command_line)
     results.read_for_report(req.results)  # both files checked before the simulator's minutes of imports
     table.read(req.rollouts)
-    sim = LiberoSimulator(req.results, rollouts.absolute().parent / EXPORTS_FOLDER, cache=args.cache, runs=args.runs,
-                          max_steps=args.max_steps, videos=args.videos)
+    spawn = partial(LiberoSimulator, req.results, rollouts.absolute().parent / EXPORTS_FOLDER, cache=args.cache,
+                    runs=args.runs, max_steps=args.max_steps, videos=args.videos)
+    sim = spawn()  # with --workers N, it only plans: each worker builds its own
     try:
-        roll_out(req, sim)
+        roll_out(req, sim, workers=args.workers, spawn=spawn)
     finally:
         sim.close()
     return 0

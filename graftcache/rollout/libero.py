@@ -23,6 +23,7 @@ followed by the target's seeded offset and settling, before the rollout's first 
 from __future__ import annotations
 
 import importlib.util
+import multiprocessing
 import sys
 import time
 import warnings
@@ -41,6 +42,11 @@ from graftcache.rollout.graded import State, measure, read_state, target_of
 #: the observation size of LIBERO's datasets (lerobot's env defaults to 360)
 OBSERVATION_SIZE = 256
 INSTALL = "run `make setup-libero` (scripts/setup.sh libero) to install it"
+#: torch's intra-op threads while an episode's policy runs, whatever `rollout --workers` is: the rows of N workers are
+#: those of one (a thread count may change a reduction's order, hence an action, hence the episode), and N workers
+#: on N cores do not spin against each other. The cost is small: the env step, not the policy, takes most of an
+#: episode (benchmarks/bench_rollout.py measures both).
+POLICY_THREADS = 1
 
 
 def require_simulator() -> None:
@@ -62,11 +68,12 @@ def require_simulator() -> None:
 @contextmanager
 def quiet_inner_bars() -> Iterator[None]:
     """lerobot's rollout draws a bar of its own per episode; off a terminal (a log) it would write a redraw per step,
-    so it is disabled there and the rollout's own sparse lines remain (graftcache.progress)."""
+    so it is disabled there and the rollout's own sparse lines remain (graftcache.progress); in a team worker too
+    (graftcache.rollout.workers), where N of them would fight over the rollout's own bar."""
     from lerobot.scripts import lerobot_eval
     from tqdm import trange
 
-    if sys.stderr.isatty():
+    if sys.stderr.isatty() and multiprocessing.parent_process() is None:
         yield
         return
     lerobot_eval.trange = lambda *args, **kwargs: trange(*args, **{**kwargs, "disable": True})  # it passes its own
@@ -74,6 +81,19 @@ def quiet_inner_bars() -> Iterator[None]:
         yield
     finally:
         lerobot_eval.trange = trange
+
+
+@contextmanager
+def policy_threads() -> Iterator[None]:
+    """torch at POLICY_THREADS intra-op threads inside the block, the process's own count again after it."""
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(POLICY_THREADS)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
 
 
 def record_frame(frames: list[np.ndarray], env: Any) -> None:
@@ -111,6 +131,7 @@ class LiberoSimulator:
         self.results, self.exports, self.cache, self.runs = results, exports, cache, runs
         self.max_steps, self.videos, self.log = max_steps, videos, log
         self._envs: dict[tuple[str, int], Any] = {}
+        self._cell: tuple[str, tuple[Any, ...]] | None = None  # (run_id, its policy and processors): `loaded`
 
     def suite(self, name: str) -> Suite:
         from lerobot.envs.libero import TASK_SUITE_MAX_STEPS, _get_suite
@@ -143,22 +164,23 @@ class LiberoSimulator:
             self._envs[suite, task] = vector
         return self._envs[suite, task]
 
-    def run(self, row: Mapping[str, Any], episodes: Sequence[Episode]) -> Iterator[Outcome]:
-        import torch
+    def loaded(self, row: Mapping[str, Any], suite: str, task: int) -> tuple[Any, ...]:
+        """The cell's policy and its four processors, loaded as lerobot-eval loads them; the last cell's are kept, so
+        that a team worker (graftcache.rollout.workers), handed a cell's episodes one call at a time, loads it once."""
+        if self._cell is not None and self._cell[0] == row["run_id"]:
+            return self._cell[1]
         from lerobot.configs.policies import PreTrainedConfig
         from lerobot.envs.factory import make_env_pre_post_processors
         from lerobot.policies.factory import make_policy, make_pre_post_processors
-        from lerobot.scripts.lerobot_eval import rollout
-        from lerobot.utils.random_utils import set_seed
 
         import graftcache.export.configuration_graftcache  # noqa: F401  (registers the policy type, as the plugin does)
         import graftcache.export.processors  # noqa: F401  (registers the export's processor steps)
 
+        self._cell = None  # the previous cell's policy is freed before the next one loads
         folder = self.export(row)
         config = PreTrainedConfig.from_pretrained(folder)
         config.pretrained_path = str(folder)
-        first = episodes[0]
-        env_config = self.env_config(first.suite, first.task_index)
+        env_config = self.env_config(suite, task)
         policy = make_policy(config, env_cfg=env_config, rename_map={})
         policy.eval()
         pre, post = make_pre_post_processors(
@@ -166,31 +188,43 @@ class LiberoSimulator:
             preprocessor_overrides={"device_processor": {"device": str(policy.config.device)},
                                     "rename_observations_processor": {"rename_map": {}}})
         env_pre, env_post = make_env_pre_post_processors(env_cfg=env_config, policy_cfg=config)
-        with quiet_inner_bars(), torch.no_grad():
-            for episode in episodes:
-                env = self.env(episode.suite, episode.task_index)
-                scene, libero_env = env.envs[0], env.envs[0].unwrapped
-                n_states = len(libero_env._init_states)  # the task's official init states, as the env loaded them
-                libero_env.init_state_id = episode.episode  # lerobot-eval's k-th reset of a fresh env
-                scene.scene = ((libero_env._init_states[episode.episode % n_states], episode.perturbation_m,
-                                episode.seed, episode.task_index) if episode.perturbation_m else None)
-                set_seed(episode.seed)
-                frames: list[np.ndarray] | None = [] if self.videos else None
-                states: list[State] = []
-                start = time.perf_counter()
-                data = rollout(env=env, policy=policy, env_preprocessor=env_pre, env_postprocessor=env_post,
-                               preprocessor=pre, postprocessor=post, seeds=[episode.seed],
-                               render_callback=partial(observe, states, frames))
-                seconds = time.perf_counter() - start
-                done = int(torch.argmax(data["done"][0].to(int)))  # eval_policy's first done step
-                yield Outcome(success=bool(data["success"][0, : done + 1].any()), steps=done + 1, seconds=seconds,
-                              init_state=episode.episode % n_states,
-                              frames=np.stack(frames[: done + 2]) if frames is not None else None,  # all of them
-                              fps=env.unwrapped.metadata["render_fps"] if self.videos else None,
-                              graded=measure(target_of(problem_of(env)), states[: done + 2]),
-                              target_offset_m=(float(scene.offset[0]), float(scene.offset[1])))
+        self._cell = (row["run_id"], (policy, pre, post, env_pre, env_post))
+        return self._cell[1]
+
+    def run(self, row: Mapping[str, Any], episodes: Sequence[Episode]) -> Iterator[Outcome]:
+        import torch
+        from lerobot.scripts.lerobot_eval import rollout
+        from lerobot.utils.random_utils import set_seed
+
+        first = episodes[0]
+        with policy_threads():
+            policy, pre, post, env_pre, env_post = self.loaded(row, first.suite, first.task_index)
+            with quiet_inner_bars(), torch.no_grad():
+                for episode in episodes:
+                    env = self.env(episode.suite, episode.task_index)
+                    scene, libero_env = env.envs[0], env.envs[0].unwrapped
+                    n_states = len(libero_env._init_states)  # the task's official init states, as the env loaded them
+                    libero_env.init_state_id = episode.episode  # lerobot-eval's k-th reset of a fresh env
+                    scene.scene = ((libero_env._init_states[episode.episode % n_states], episode.perturbation_m,
+                                    episode.seed, episode.task_index) if episode.perturbation_m else None)
+                    set_seed(episode.seed)
+                    frames: list[np.ndarray] | None = [] if self.videos else None
+                    states: list[State] = []
+                    start = time.perf_counter()
+                    data = rollout(env=env, policy=policy, env_preprocessor=env_pre, env_postprocessor=env_post,
+                                   preprocessor=pre, postprocessor=post, seeds=[episode.seed],
+                                   render_callback=partial(observe, states, frames))
+                    seconds = time.perf_counter() - start
+                    done = int(torch.argmax(data["done"][0].to(int)))  # eval_policy's first done step
+                    yield Outcome(success=bool(data["success"][0, : done + 1].any()), steps=done + 1,
+                                  seconds=seconds, init_state=episode.episode % n_states,
+                                  frames=np.stack(frames[: done + 2]) if frames is not None else None,  # all of them
+                                  fps=env.unwrapped.metadata["render_fps"] if self.videos else None,
+                                  graded=measure(target_of(problem_of(env)), states[: done + 2]),
+                                  target_offset_m=(float(scene.offset[0]), float(scene.offset[1])))
 
     def close(self) -> None:
+        self._cell = None
         for env in self._envs.values():
             env.close()
         self._envs.clear()

@@ -28,6 +28,7 @@ import polars as pl
 import graftcache
 from graftcache import results
 from graftcache.errors import RolloutError
+from graftcache.lazy import import_string
 from graftcache.progress import progress
 from graftcache.progress import write as progress_write
 from graftcache.rollout import table
@@ -46,6 +47,8 @@ MAX_EPISODES_PER_TASK = 1000
 #: --perturb-cm's largest offset, a bound on what is asked rather than a measured limit: the sample slides its targets
 #: up to 3 cm, and an offset that puts the target on a neighbour is refused by the settling check anyway
 MAX_PERTURB_CM = 10.0
+#: what runs the missing episodes with --workers N > 1
+RUN_WORKERS = "graftcache.rollout.workers:run_workers"
 
 
 @dataclass(frozen=True)
@@ -144,13 +147,29 @@ def row_of(episode: Episode, outcome: Outcome, command: str, video: str | None =
             "graftcache_version": graftcache.__version__, "command": command}
 
 
+def record(rollouts: Path, command: str, episode: Episode, outcome: Outcome) -> str | None:
+    """Write a finished episode: its video (when it has frames) before its row, which names it; returns the video's
+    path relative to the rollouts file (None: no video)."""
+    video = None
+    if outcome.frames is not None:
+        video = video_of(episode)
+        write_video(rollouts.parent / video, outcome)
+    table.append(rollouts, [row_of(episode, outcome, command, video)])
+    return video
+
+
 def describe(row: Mapping[str, Any]) -> str:
     return f"{row['backbone']}/{row['encoder']}/{row['suite']} seed {row['seed']} control {row['control']}"
 
 
-def roll_out(req: RolloutRequest, sim: Simulator, log: Callable[[str], None] = progress_write) -> pl.DataFrame:
-    """Run the request's missing episodes with `sim` and return the rollouts file's rows of the request's
-    episodes."""
+def roll_out(req: RolloutRequest, sim: Simulator, log: Callable[[str], None] = progress_write, *, workers: int = 1,
+             spawn: Callable[[], Simulator] | None = None) -> pl.DataFrame:
+    """Run the request's missing episodes and return the rollouts file's rows of the request's episodes. `workers`
+    1: every episode in this process, by `sim`; N > 1: N episodes at once in N worker processes, each running its
+    episodes with a simulator of its own, built by `spawn` (picklable; graftcache.rollout.workers), `sim` only
+    planning."""
+    if workers > 1 and spawn is None:
+        raise RolloutError(f"--workers {workers}: this simulator cannot be built in a worker process (no spawn)")
     rows = select_rows(results.read_for_report(req.results), run_ids=req.run_ids, top=req.top, suites=req.suites,
                        score=req.score)
     episodes = plan(rows, req, sim)
@@ -168,8 +187,11 @@ def roll_out(req: RolloutRequest, sim: Simulator, log: Callable[[str], None] = p
     by_run = {r["run_id"]: r for r in rows.iter_rows(named=True)}
     try:
         with progress(total=len(missing), desc="rollout", unit="episode") as bar:
-            for run_id in dict.fromkeys(e.run_id for e in missing):
-                _run_cell(req, sim, by_run[run_id], [e for e in missing if e.run_id == run_id], bar, log)
+            if workers > 1:  # by import string: graftcache.rollout.workers imports this module
+                import_string(RUN_WORKERS)(req, by_run, missing, spawn, workers, bar, log)
+            else:
+                for run_id in dict.fromkeys(e.run_id for e in missing):
+                    _run_cell(req, sim, by_run[run_id], [e for e in missing if e.run_id == run_id], bar, log)
     finally:  # stopped or failed too: no empty claims folder is left beside the file
         results.drop_claims_folder(req.rollouts)
     return _of(req, episodes)
@@ -190,20 +212,21 @@ def _run_cell(req: RolloutRequest, sim: Simulator, row: Mapping[str, Any], episo
         wins = steps = videos = 0
         seconds = 0.0
         for n, (episode, outcome) in enumerate(zip(todo, sim.run(row, todo), strict=True), 1):
-            video = None
-            if outcome.frames is not None:
-                video = video_of(episode)
-                write_video(req.rollouts.parent / video, outcome)  # before its row, which names it
-                videos += 1
-            table.append(req.rollouts, [row_of(episode, outcome, req.command, video)])
+            videos += record(req.rollouts, req.command, episode, outcome) is not None
             wins, steps, seconds = wins + outcome.success, steps + outcome.steps, seconds + outcome.seconds
             bar.set_postfix_str(f"run {row['run_id']}: {wins}/{n} succeeded")
             bar.update(1)
-        kept = f"; {videos} video(s) in {req.rollouts.parent / VIDEOS_FOLDER / row['run_id']}" if videos else ""
-        log(f"rolled out {describe(row)} (run {row['run_id']}): {wins}/{len(todo)} succeeded, {len(todo)} "
-            f"episode(s) in {seconds:.0f} s ({seconds / max(steps, 1):.2f} s a step){kept}")
+        log(summary(req.rollouts, row, wins, len(todo), steps, seconds, videos))
     finally:
         claim.release()
+
+
+def summary(rollouts: Path, row: Mapping[str, Any], wins: int, episodes: int, steps: int, seconds: float,
+            videos: int) -> str:
+    """The line a cell's rolled-out episodes end with."""
+    kept = f"; {videos} video(s) in {rollouts.parent / VIDEOS_FOLDER / row['run_id']}" if videos else ""
+    return (f"rolled out {describe(row)} (run {row['run_id']}): {wins}/{episodes} succeeded, {episodes} episode(s) in "
+            f"{seconds:.0f} s ({seconds / max(steps, 1):.2f} s a step){kept}")
 
 
 def _of(req: RolloutRequest, episodes: Sequence[Episode]) -> pl.DataFrame:

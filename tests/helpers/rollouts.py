@@ -1,0 +1,55 @@
+"""A fake simulator for `graftcache rollout --workers N` (graftcache.rollout.workers): importable by name, so that a
+spawned worker process can build it (the team pickles its factory by reference), and leaving traces on disk, since
+what a worker ran is not in the test's process."""
+
+from __future__ import annotations
+
+import os
+import signal
+import time
+from collections.abc import Iterator, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from graftcache.rollout.episodes import Episode, Outcome, Suite
+
+#: (run_id, task_index, episode) of an episode
+Where = tuple[str, int, int]
+
+
+class Paced:
+    """A Simulator whose episode k succeeds when its seed is even, in k + 3 steps (test_rollout.py's Scripted), taking
+    `delay` seconds. Each process that builds one writes its pid to `traces`/pids/, and each episode it runs as a line
+    "pid run_id task episode" to `traces`/ran-<pid>.txt. `fail`: that episode raises; `die`: its process kills itself
+    with SIGKILL there (a worker killed mid-episode)."""
+
+    def __init__(self, traces: Path, delay: float = 0.0, fail: Where | None = None, die: Where | None = None) -> None:
+        self.traces, self.delay, self.fail, self.die = traces, delay, fail, die
+        (traces / "pids").mkdir(parents=True, exist_ok=True)
+        (traces / "pids" / str(os.getpid())).touch()
+
+    def suite(self, name: str) -> Suite:
+        return Suite(n_tasks=10, max_steps=280)
+
+    def run(self, row: Mapping[str, Any], episodes: Sequence[Episode]) -> Iterator[Outcome]:
+        for e in episodes:
+            at = (e.run_id, e.task_index, e.episode)
+            if at == self.die:
+                os.kill(os.getpid(), signal.SIGKILL)
+            if at == self.fail:
+                raise RuntimeError("the simulator broke\nat its second line")
+            time.sleep(self.delay)
+            with open(self.traces / f"ran-{os.getpid()}.txt", "a") as f:
+                f.write(f"{os.getpid()} {e.run_id} {e.task_index} {e.episode}\n")
+            yield Outcome(success=e.seed % 2 == 0, steps=e.episode + 3, seconds=self.delay, init_state=e.episode)
+
+
+def ran(traces: Path) -> list[tuple[int, str, int, int]]:
+    """Every episode the Paced simulators writing to `traces` ran: (pid, run_id, task, episode)."""
+    lines = [ln.split() for f in sorted(traces.glob("ran-*.txt")) for ln in f.read_text().splitlines()]
+    return [(int(pid), run, int(task), int(k)) for pid, run, task, k in lines]
+
+
+def pids(traces: Path) -> list[int]:
+    """The processes that built a Paced simulator writing to `traces`."""
+    return sorted(int(p.name) for p in (traces / "pids").iterdir()) if (traces / "pids").is_dir() else []

@@ -1,0 +1,215 @@
+"""`graftcache rollout --workers N` (issue 43, item 3; graftcache.rollout.workers): the rows of one worker, the team's
+failures as one line, kill -9 of the rollout or a worker followed by a rerun that runs exactly the missing episodes,
+and (slow) the same rows from 1 and 2 workers in the real LIBERO simulator.
+
+The fast tests run the real team (spawned worker processes, pipes, claims, appends) over a fake simulator
+(tests/helpers/rollouts.py: Paced), which the workers build by name and which leaves on disk what each ran. The
+request is test_rollout.py's: top 1 on libero_object of tests/helpers/tables.py, 6 cells x tasks 0, 3 x 2 episodes.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections import Counter
+from functools import partial
+from pathlib import Path
+from typing import Any
+
+import polars as pl
+import pytest
+from helpers.rollouts import Paced, pids, ran
+from helpers.tables import write_results
+
+from graftcache import results
+from graftcache.errors import RolloutError
+from graftcache.rollout import table
+from graftcache.rollout.run import RolloutRequest, roll_out
+from graftcache.rollout.select import select_rows
+
+EPISODES = 24  # 6 cells x 2 tasks x 2 episodes
+VARYING = ["seconds", "command"]  # what may differ between two runs of the same episodes
+
+
+def _request(tmp_path: Path, **over: Any) -> RolloutRequest:
+    path = tmp_path / "results.parquet"
+    if not path.exists():
+        write_results(path)
+    fields = {"results": path, "rollouts": tmp_path / "rollouts.parquet", "top": 1, "suites": ("libero_object",),
+              "tasks": (0, 3), "episodes_per_task": 2, "seed": 7, "command": "graftcache rollout results.parquet"}
+    return RolloutRequest(**{**fields, **over})
+
+
+def _first_run(req: RolloutRequest) -> str:
+    return select_rows(results.read(req.results), top=1, suites=["libero_object"])["run_id"][0]
+
+
+def _in_workers(req: RolloutRequest, traces: Path, workers: int = 2, **paced: Any) -> pl.DataFrame:
+    spawn = partial(Paced, traces, **paced)
+    return roll_out(req, Paced(traces / "planner"), log=lambda _: None, workers=workers, spawn=spawn)
+
+
+def test_two_workers_write_the_rows_of_one_each_keeping_to_its_cells(tmp_path: Path) -> None:
+    (tmp_path / "one").mkdir()
+    one = roll_out(_request(tmp_path / "one"), Paced(tmp_path / "one" / "traces"), log=lambda _: None)
+    (tmp_path / "two").mkdir()
+    lines: list[str] = []
+    req = _request(tmp_path / "two")
+    two = roll_out(req, Paced(tmp_path / "two" / "planner"), log=lines.append, workers=2,
+                   spawn=partial(Paced, tmp_path / "two" / "traces", delay=0.05))
+    assert one.height == two.height == EPISODES
+    assert two.drop(VARYING).sort("episode_id").equals(one.drop(VARYING).sort("episode_id"))
+    assert two["seconds"].to_list() == [0.05] * EPISODES  # the workers' outcomes, not the planner's
+    episodes = ran(tmp_path / "two" / "traces")
+    assert len(episodes) == EPISODES and len({p for p, *_ in episodes}) == 2  # both workers ran episodes, none twice
+    assert len(set(episodes)) == EPISODES
+    # a worker takes a cell no other serves while there is one: only the last cell may be shared
+    runners = Counter(run for run, _ in {(run, pid) for pid, run, *_ in episodes})
+    assert sum(n > 1 for n in runners.values()) <= 1 and len(runners) == 6
+    assert lines[1] == "2 worker processes, each with a simulator of its own"
+    assert sum(line.startswith("rolled out ") for line in lines) == 6  # one line per cell, as one worker says
+    assert not results.claims_folder(req.rollouts).exists() and not multiprocessing.active_children()
+
+
+def test_an_error_in_a_worker_is_one_line_naming_the_run_and_episode(tmp_path: Path) -> None:
+    req = _request(tmp_path)
+    run = _first_run(req)
+    with pytest.raises(RolloutError) as failed:
+        _in_workers(req, tmp_path / "traces", fail=(run, 3, 1))
+    line = str(failed.value)
+    assert "\n" not in line
+    head, worker = line.rsplit(" (rollout worker ", 1)
+    assert head == f"run {run}, libero_object task 3 episode 1 (seed 8): RuntimeError: the simulator broke"
+    pid = int(worker.split(", pid ")[1].rstrip(")"))
+    assert pid in pids(tmp_path / "traces") and pid != os.getpid()
+    assert not multiprocessing.active_children()  # the other worker was stopped
+    assert not results.claims_folder(req.rollouts).exists()
+    # whole rows of episodes the workers finished (the stopped one may have finished one it had no time to write)
+    rows = table.read(req.rollouts)
+    finished = {(run_id, task, k) for _, run_id, task, k in ran(tmp_path / "traces")}
+    assert 0 < rows.height < EPISODES and set(rows.select("run_id", "task_index", "episode").rows()) <= finished
+    assert (run, 3, 1) not in finished
+
+
+def test_a_worker_killed_mid_episode_is_one_line_and_a_rerun_runs_exactly_the_rest(tmp_path: Path) -> None:
+    req = _request(tmp_path)
+    run = _first_run(req)
+    with pytest.raises(RolloutError) as failed:
+        _in_workers(req, tmp_path / "killed", die=(run, 3, 0))
+    assert str(failed.value).split(" (pid ")[0] in ("rollout worker 0", "rollout worker 1")
+    assert str(failed.value).split(") ", 1)[1] == (
+        f"died (killed by signal 9) while running run {run}, libero_object task 3 episode 0 (seed 7); the episodes "
+        "written are kept: rerun the command to run the others")
+    written = table.read(req.rollouts)
+    assert 0 < written.height < EPISODES
+    rows = _in_workers(req, tmp_path / "rerun")
+    assert len(ran(tmp_path / "rerun")) == EPISODES - written.height
+    assert rows.height == EPISODES and rows["episode_id"].n_unique() == EPISODES
+    assert not multiprocessing.active_children()
+
+
+ROLLOUT = """
+import sys
+from functools import partial
+from pathlib import Path
+from helpers.rollouts import Paced
+from graftcache.rollout.run import RolloutRequest, roll_out
+here = Path(sys.argv[1])
+req = RolloutRequest(results=here / "results.parquet", rollouts=here / "rollouts.parquet", top=1,
+                     suites=("libero_object",), tasks=(0, 3), episodes_per_task=2, seed=7, command="killed")
+roll_out(req, Paced(here / "planner"), workers=2, spawn=partial(Paced, here / "traces", delay=0.4))
+"""
+
+
+def _gone(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    return False
+
+
+def test_kill_9_of_a_two_worker_rollout_leaves_whole_rows_no_worker_and_a_rerun_runs_the_rest(tmp_path: Path) -> None:
+    req = _request(tmp_path)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    rollout = subprocess.Popen([sys.executable, "-c", ROLLOUT, str(tmp_path)], env=env, stdout=subprocess.DEVNULL,
+                               stderr=subprocess.PIPE)
+    deadline = time.monotonic() + 120
+    while table.read(req.rollouts).height < 3:  # a few episodes in, both workers busy
+        assert rollout.poll() is None, rollout.stderr.read().decode()[-2000:]
+        assert time.monotonic() < deadline
+        time.sleep(0.05)
+    os.kill(rollout.pid, signal.SIGKILL)
+    rollout.wait()
+    workers = pids(tmp_path / "traces")
+    assert len(workers) == 2
+    deadline = time.monotonic() + 10
+    while not all(_gone(p) for p in workers):  # the kernel's SIGTERM to each (PR_SET_PDEATHSIG)
+        assert time.monotonic() < deadline, "a worker outlived its rollout"
+        time.sleep(0.05)
+    written = table.read(req.rollouts)  # whole rows only, each episode once
+    assert 3 <= written.height < EPISODES and written["episode_id"].n_unique() == written.height
+    rows = _in_workers(req, tmp_path / "rerun")
+    assert len(ran(tmp_path / "rerun")) == EPISODES - written.height
+    assert rows.height == EPISODES and rows["episode_id"].n_unique() == EPISODES
+    assert not results.claims_folder(req.rollouts).exists()
+
+
+SAMPLE = Path(__file__).resolve().parents[2] / "data" / "libero_sample"
+
+
+def _frames(path: Path) -> Any:
+    """An mp4's decoded frames, (n, H, W, 3) uint8."""
+    import av
+    import numpy as np
+
+    with av.open(str(path)) as container:
+        return np.stack([f.to_ndarray(format="rgb24") for f in container.decode(video=0)])
+
+
+@pytest.mark.slow  # train-tiny, extract, fit two cells, then 4 five-step episodes by 1 and by 2 workers
+def test_two_workers_give_the_rows_and_frames_of_one_in_the_simulator(tmp_path: Path,
+                                                                      capsys: pytest.CaptureFixture) -> None:
+    """2 cells x 2 episodes of 5 steps in LIBERO, `rollout --workers 1` then `--workers 2` into another file: the same
+    rows (seconds and command aside) and, since 5 failed steps say little, the same decoded frames of every episode:
+    the simulator's states after the reset and each step, which differ between the episodes (init states 0 and 1)."""
+    import numpy as np
+    from helpers.probes import run_cli
+
+    root, policy, results_path = tmp_path / "cache", tmp_path / "policy", tmp_path / "results.parquet"
+    encoder = "timm:vit_tiny_patch16_224"
+    for argv in (
+        ["train-tiny", "--backbone", "smolvla", "--dataset", SAMPLE, "--steps", "1", "--out", policy, "--cache", root],
+        ["extract", "--encoder", encoder, "--random-init", "--dataset", SAMPLE, "--episodes", "18-21",
+         "--frame-stride", "8", "--num-workers", "0", "--batch-size", "16", "--no-progress", "--cache", root],
+        ["fit", "--backbone", "smolvla", "--policy", policy, "--encoder", encoder, "--dataset", SAMPLE, "--suite",
+         "libero_object", "--seeds", "1", "--controls", "zero-image", "--steps", "2", "--batch-size", "4",
+         "--eval-fraction", "0.5", "--eval-frames", "4", "--num-denoise-steps", "2", "--cache", root, "--results",
+         results_path, "--no-progress"],
+    ):
+        done = run_cli(argv, capsys)
+        assert done.code == 0, done.err[-2000:]
+    cells = ",".join(pl.read_parquet(results_path)["run_id"].to_list())
+    rows = {}
+    for workers in (1, 2):
+        (tmp_path / str(workers)).mkdir()
+        rollouts = tmp_path / str(workers) / "rollouts.parquet"
+        done = run_cli(["rollout", results_path, "--run-ids", cells, "--suites", "libero_object", "--tasks", "0",
+                        "--episodes-per-task", "2", "--max-steps", "5", "--videos", "--cache", root, "--rollouts",
+                        rollouts, "--workers", workers], capsys)
+        assert done.code == 0, done.err[-3000:]
+        rows[workers] = table.read(rollouts).sort("episode_id")
+    one, two = rows[1], rows[2]
+    assert one.height == 4 and sorted(one["episode"].to_list()) == [0, 0, 1, 1]
+    assert two.drop(VARYING).equals(one.drop(VARYING))
+    assert (one["steps"] == 5).all() and not multiprocessing.active_children()
+    videos = {(r["run_id"], r["episode"]): r["video"] for r in one.iter_rows(named=True)}
+    for video in videos.values():
+        seen = _frames(tmp_path / "1" / video)
+        assert seen.shape == (6, 256, 256, 3) and np.array_equal(_frames(tmp_path / "2" / video), seen)
+    run = one["run_id"][0]
+    assert not np.array_equal(_frames(tmp_path / "1" / videos[run, 0]), _frames(tmp_path / "1" / videos[run, 1]))
