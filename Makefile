@@ -5,7 +5,7 @@ export HF_DATASETS_OFFLINE := 1
 export TRANSFORMERS_OFFLINE := 1
 
 # `make test` also sets up the LIBERO simulator (the closed-loop smoke test); `make demo` does not need it.
-.PHONY: setup setup-libero demo lint test test-fast bench
+.PHONY: setup setup-libero demo demo-closed-loop lint test test-fast bench
 
 setup:
 	bash scripts/setup.sh
@@ -15,6 +15,10 @@ setup-libero:
 
 demo: setup
 	.venv/bin/graftcache demo
+
+# the demo's cells in the LIBERO simulator, for the offline-vs-closed-loop figure (README, "Closed-loop checks")
+demo-closed-loop: setup-libero
+	.venv/bin/graftcache demo --closed-loop
 
 lint: setup
 	.venv/bin/ruff check .

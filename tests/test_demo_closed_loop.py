@@ -1,0 +1,42 @@
+"""`graftcache demo --closed-loop`'s choice of cells (graftcache/demo_closed_loop.py), on tests/helpers/tables.py's
+hand-built results with native repeats and pi05 zero-image rows added. The command itself (fits, then 30 minutes
+in the simulator) is measured by hand and quoted in the README, not run in CI; its pieces (rollout, graded progress,
+workers, report) are tested in tests/rollout and tests/report."""
+
+from __future__ import annotations
+
+import polars as pl
+import pytest
+from helpers.tables import control_rows, plain_rows, row, table
+
+from graftcache.demo_closed_loop import ClosedLoopPlan, closed_loop_run_ids
+from graftcache.errors import GraftcacheError
+
+PLAN = ClosedLoopPlan(figure=("smolvla", "libero_spatial"), paired_seeds=(0, 1))
+
+
+def _results() -> pl.DataFrame:
+    native_repeats = [row("smolvla", "libero_spatial", "smolvla-native", s, 1.0, control="native") for s in (1, 2)]
+    pi05_zero = [row("pi05", "libero_spatial", "dinov2-s", s, 4.0, control="zero-image") for s in (0, 1, 2)]
+    return table(plain_rows() + control_rows() + native_repeats + pi05_zero)
+
+
+def test_every_live_cell_of_the_figure_and_native_against_zero_image_elsewhere() -> None:
+    results = _results()
+    chosen = results.filter(pl.col("run_id").is_in(closed_loop_run_ids(results, PLAN)))
+    keys = set(chosen.select("backbone", "suite", "encoder", "control", "seed").rows())
+    figure = results.filter((pl.col("backbone") == "smolvla") & (pl.col("suite") == "libero_spatial"))
+    expected_figure = {k for k in figure.select("backbone", "suite", "encoder", "control", "seed").rows()
+                       if k[3] != "shuffled-image" and not (k[3] == "native" and k[4] > 0)}
+    # pi05/libero_spatial: its best encoder is dinov2-s (1.4 < siglip 1.5): its zero-image rows of seeds 0 and 1
+    expected_others = {("pi05", "libero_spatial", "pi05-native", "native", 0),
+                       ("pi05", "libero_spatial", "dinov2-s", "zero-image", 0),
+                       ("pi05", "libero_spatial", "dinov2-s", "zero-image", 1)}
+    assert keys == expected_figure | expected_others
+    assert len(expected_figure) == 3 * 3 + 2 * 3 + 3 + 1  # 3 encoders, 2 zero-image, native-graft x 3 seeds; native
+    assert chosen.height == len(keys)  # each once
+
+
+def test_a_figure_without_rows_is_refused() -> None:
+    with pytest.raises(GraftcacheError, match="no row of smolvla on libero_90"):
+        closed_loop_run_ids(_results(), ClosedLoopPlan(figure=("smolvla", "libero_90")))
