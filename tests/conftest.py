@@ -18,7 +18,8 @@ limit_worker_threads()  # under pytest-xdist (`make test`), before anything impo
 import pytest  # noqa: E402
 
 pytest_plugins = ("fixtures.datasets", "fixtures.torch_threads", "fixtures.ray_cluster", "fixtures.s3",
-                  "fixtures.resolutions", "fixtures.tiny_zoo")  # resolutions first: tiny_zoo imports it
+                  "fixtures.resolutions", "fixtures.tiny_zoo",  # resolutions first: tiny_zoo imports it
+                  "fixtures.simulator_cells")
 
 
 @pytest.hookimpl(optionalhook=True)  # the suite also runs without pytest-xdist (`-p no:xdist`, a bare venv)

@@ -27,7 +27,8 @@ import pytest
 TESTS = Path(__file__).resolve().parents[1]
 
 #: modules (paths under tests/) whose session fixtures are shared: they run on one worker, which builds them once
-GROUPS = {"export/test_export": "tiny_policies", "backbones/test_zoo_backbones_cli": "tiny_policies"}
+GROUPS = {"export/test_export": "tiny_policies", "backbones/test_zoo_backbones_cli": "tiny_policies",
+          "rollout/test_rollout": "simulator_cells", "rollout/test_rollout_workers": "simulator_cells"}
 
 #: the longest modules (CI's --durations on 2 cores, seconds: demo ~460, tiny policies ~500, fit ~210, concurrent
 #: writers ~150, released geometry ~140, gpu check ~125, remote store ~100, ray ~75), started first in this order;

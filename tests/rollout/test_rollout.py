@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 import polars as pl
 import pytest
+from fixtures.simulator_cells import Fitted
 from helpers.tables import full_table, write_results
 
 from graftcache import results
@@ -323,16 +324,11 @@ def test_the_files_are_checked_before_the_simulator_is_imported(tmp_path: Path, 
         "another --rollouts")
 
 
-SAMPLE = Path(__file__).resolve().parents[2] / "data" / "libero_sample"
-ENCODER = "timm:vit_tiny_patch16_224"
-#: the sample's first libero_object task (episodes 18-23: "pick up the alphabet soup and place it in the basket")
-OBJECT_EPISODES = "18-21"
-
-
 # train-tiny, extract, fit, four 10-step episodes (one perturbed), videos, one process: 155 s on 2 cores shared with
 # 3 other jobs (load 4.7); 59 s on 2 idle cores before the graded columns and the perturbed episode
 @pytest.mark.slow
-def test_rollout_smoke_in_the_simulator(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+def test_rollout_smoke_in_the_simulator(simulator_cells: Fitted, tmp_path: Path,
+                                       capsys: pytest.CaptureFixture) -> None:
     """tiny policy -> extract -> fit two cells -> rollout of both in LIBERO (one process) with videos and graded
     progress -> the same command adds nothing -> a moved export runs there too, the same episode measuring the same,
     and a perturbed one (--perturb-cm 3) slides the target by its seeded draw -> report --rollouts with undefined
@@ -346,27 +342,13 @@ def test_rollout_smoke_in_the_simulator(tmp_path: Path, capsys: pytest.CaptureFi
     from helpers.probes import run_cli
     from lerobot.envs.libero import LiberoEnv
 
-    root, policy, results_path = tmp_path / "cache", tmp_path / "policy", tmp_path / "results.parquet"
-    steps = [
-        ["train-tiny", "--backbone", "smolvla", "--dataset", SAMPLE, "--steps", "1", "--out", policy, "--cache", root],
-        ["extract", "--encoder", ENCODER, "--random-init", "--dataset", SAMPLE, "--episodes", OBJECT_EPISODES,
-         "--frame-stride", "8", "--num-workers", "0", "--batch-size", "16", "--no-progress", "--cache", root],
-        ["fit", "--backbone", "smolvla", "--policy", policy, "--encoder", ENCODER, "--dataset", SAMPLE, "--suite",
-         "libero_object", "--seeds", "1", "--controls", "zero-image", "--steps", "2", "--batch-size", "4",
-         "--eval-fraction", "0.5", "--eval-frames", "4", "--num-denoise-steps", "2", "--cache", root, "--results",
-         results_path, "--no-progress"],
-    ]
-    for argv in steps:
-        done = run_cli(argv, capsys)
-        assert done.code == 0, done.err[-2000:]
-    fitted = pl.read_parquet(results_path).sort("control")
-    assert fitted["control"].to_list() == ["none", "zero-image"]
-    a, b = fitted["run_id"].to_list()
+    root, results_path, rollouts_path = simulator_cells.root, simulator_cells.results, tmp_path / "rollouts.parquet"
+    a, b = sorted([simulator_cells.plain, simulator_cells.zero_image])
     rollout = ["rollout", results_path, "--run-ids", f"{a},{b}", "--suites", "libero_object", "--tasks", "0",
-               "--episodes-per-task", "1", "--max-steps", "10", "--videos", "--cache", root]
+               "--episodes-per-task", "1", "--max-steps", "10", "--videos", "--cache", root, "--rollouts",
+               rollouts_path]
     first = run_cli(rollout, capsys)
     assert first.code == 0, first.err[-3000:]
-    rollouts_path = tmp_path / "rollouts.parquet"
     rows = table.read(rollouts_path).sort("run_id")
     assert rows["run_id"].to_list() == sorted([a, b])
     for r in rows.iter_rows(named=True):

@@ -22,6 +22,7 @@ from typing import Any
 
 import polars as pl
 import pytest
+from fixtures.simulator_cells import Fitted
 from helpers.rollouts import Paced, pids, ran
 from helpers.tables import write_results
 
@@ -159,9 +160,6 @@ def test_kill_9_of_a_two_worker_rollout_leaves_whole_rows_no_worker_and_a_rerun_
     assert not results.claims_folder(req.rollouts).exists()
 
 
-SAMPLE = Path(__file__).resolve().parents[2] / "data" / "libero_sample"
-
-
 def _frames(path: Path) -> Any:
     """An mp4's decoded frames, (n, H, W, 3) uint8."""
     import av
@@ -171,8 +169,8 @@ def _frames(path: Path) -> Any:
         return np.stack([f.to_ndarray(format="rgb24") for f in container.decode(video=0)])
 
 
-@pytest.mark.slow  # train-tiny, extract, fit two cells, then 4 five-step episodes by 1 and by 2 workers
-def test_two_workers_give_the_rows_and_frames_of_one_in_the_simulator(tmp_path: Path,
+@pytest.mark.slow  # 4 five-step episodes by 1 and by 2 workers, of the session's fitted cells
+def test_two_workers_give_the_rows_and_frames_of_one_in_the_simulator(simulator_cells: Fitted, tmp_path: Path,
                                                                       capsys: pytest.CaptureFixture) -> None:
     """2 cells x 2 episodes of 5 steps in LIBERO, `rollout --workers 1` then `--workers 2` into another file: the same
     rows (seconds and command aside) and, since 5 failed steps say little, the same decoded frames of every episode:
@@ -180,20 +178,8 @@ def test_two_workers_give_the_rows_and_frames_of_one_in_the_simulator(tmp_path: 
     import numpy as np
     from helpers.probes import run_cli
 
-    root, policy, results_path = tmp_path / "cache", tmp_path / "policy", tmp_path / "results.parquet"
-    encoder = "timm:vit_tiny_patch16_224"
-    for argv in (
-        ["train-tiny", "--backbone", "smolvla", "--dataset", SAMPLE, "--steps", "1", "--out", policy, "--cache", root],
-        ["extract", "--encoder", encoder, "--random-init", "--dataset", SAMPLE, "--episodes", "18-21",
-         "--frame-stride", "8", "--num-workers", "0", "--batch-size", "16", "--no-progress", "--cache", root],
-        ["fit", "--backbone", "smolvla", "--policy", policy, "--encoder", encoder, "--dataset", SAMPLE, "--suite",
-         "libero_object", "--seeds", "1", "--controls", "zero-image", "--steps", "2", "--batch-size", "4",
-         "--eval-fraction", "0.5", "--eval-frames", "4", "--num-denoise-steps", "2", "--cache", root, "--results",
-         results_path, "--no-progress"],
-    ):
-        done = run_cli(argv, capsys)
-        assert done.code == 0, done.err[-2000:]
-    cells = ",".join(pl.read_parquet(results_path)["run_id"].to_list())
+    root, results_path = simulator_cells.root, simulator_cells.results
+    cells = f"{simulator_cells.plain},{simulator_cells.zero_image}"
     rows = {}
     for workers in (1, 2):
         (tmp_path / str(workers)).mkdir()
