@@ -9,7 +9,7 @@ from __future__ import annotations
 import os
 
 from helpers.env import OFFLINE, isolated_homes
-from helpers.parallel import check_groups, limit_worker_threads, schedule
+from helpers.parallel import check_groups, keep_order, limit_worker_threads, schedule
 
 os.environ.update(OFFLINE)  # before anything imports huggingface_hub
 os.environ.setdefault("TOKENIZERS_PARALLELISM", "false")
@@ -28,6 +28,10 @@ def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
     be 1 on two hyperthreads), at most 2: CI's cores, and the only count the suite has been run under (each worker
     holds torch and its own Ray instance; pi0.5 at real size takes ~10 GB in one of them)."""
     return max(1, min(2, len(os.sched_getaffinity(0))))
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    keep_order(config)
 
 
 @pytest.hookimpl(tryfirst=True)  # before xdist's own hook, which reads the groups into the nodeids it schedules by

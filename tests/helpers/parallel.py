@@ -14,7 +14,9 @@ arranged:
 xdist carries a test's group to its scheduler as a suffix of the test's id ("...::test_x@group"), which pytest 9.2
 no longer lets it write (pytest-xdist#1386): the groups were then silently ignored, every module was split across
 the workers and its module fixtures built on each (a fit of every tiny backbone twice). pyproject.toml keeps pytest
-below 9.2, and `check_groups` stops a run whose ids lost their groups.
+below 9.2, and `check_groups` stops a run whose ids lost their groups. With the groups in effect, xdist hands them out
+largest (most tests) first unless told otherwise, which started the demo's single 330-s test last and left one worker
+idle for minutes at the end: `keep_order` keeps the order `schedule` gives.
 """
 
 from __future__ import annotations
@@ -30,13 +32,14 @@ TESTS = Path(__file__).resolve().parents[1]
 GROUPS = {"export/test_export": "tiny_policies", "backbones/test_zoo_backbones_cli": "tiny_policies",
           "rollout/test_rollout": "simulator_cells", "rollout/test_rollout_workers": "simulator_cells"}
 
-#: the longest modules (CI's --durations on 2 cores, seconds: demo ~460, tiny policies ~500, fit ~210, concurrent
-#: writers ~150, released geometry ~140, gpu check ~125, remote store ~100, ray ~75), started first in this order;
-#: then the other modules holding a test marked slow, then the rest, each in collection order
-LONGEST = ("test_demo", "export/test_export", "backbones/test_zoo_backbones_cli", "fit/test_fit",
-           "test_results_concurrent_writers", "backbones/test_released_geometry_checkpoints", "test_gpu_check",
-           "store/test_store_remote", "executors/test_ray", "extract/test_extract", "encoders/test_encoders_registry",
-           "cli/test_bad_input_errors", "fit/test_stream_memory", "extract/test_extract_shards")
+#: the longest groups (a GROUPS group ranks as its module listed here), from a clean-clone run's junit times on 2 cores
+#: (2026-11-28, AMD EPYC with avx512_bf16, seconds: demo 332, simulator cells 226, tiny policies 162, remote store
+#: 148, fit 127, ray 125, concurrent writers 114, bad input 106, released geometry 102, encoders 74, gpu check 73),
+#: started first in this order; then the other modules holding a test marked slow, then the rest, in collection order
+LONGEST = ("test_demo", "rollout/test_rollout_workers", "export/test_export", "store/test_store_remote", "fit/test_fit",
+           "executors/test_ray", "test_results_concurrent_writers", "cli/test_bad_input_errors",
+           "backbones/test_released_geometry_checkpoints", "encoders/test_encoders_registry", "test_gpu_check",
+           "fit/test_stream_memory", "extract/test_extract", "extract/test_extract_shards")
 
 
 def limit_worker_threads() -> None:
@@ -44,6 +47,13 @@ def limit_worker_threads() -> None:
     workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
     if workers > 1:
         os.environ.setdefault("OMP_NUM_THREADS", str(max(1, len(os.sched_getaffinity(0)) // workers)))
+
+
+def keep_order(config: pytest.Config) -> None:
+    """On xdist's controller: hand the groups out in the order `schedule` sorted them (longest first), not by their
+    number of tests (xdist's `--loadscope-reorder` default)."""
+    if hasattr(config.option, "loadscopereorder"):
+        config.option.loadscopereorder = False
 
 
 def check_groups(config: pytest.Config, ids: list[str]) -> None:
