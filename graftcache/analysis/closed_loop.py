@@ -32,7 +32,6 @@ import polars as pl
 
 from graftcache.analysis.closed_loop_boot import (
     N_BOOT,
-    generator,
     interval,
     mmrv_rows,
     resampled_means,
@@ -41,7 +40,7 @@ from graftcache.analysis.closed_loop_boot import (
 )
 from graftcache.analysis.paired_control import paired_control
 from graftcache.analysis.rollouts import GRADED_MEASURES, HIGHER_IS_BETTER, MEASURES
-from graftcache.analysis.stats import tau_b
+from graftcache.analysis.stats import generator, tau_b
 from graftcache.analysis.table import GROUP
 
 #: The offline scores set against the closed loop, each a results column (lower is better)

@@ -18,13 +18,11 @@ whose Monte Carlo error at 1000 replicates is about 0.01-0.02 on a correlation, 
 episodes per cell give (tenths); 1000 is the usual count for percentile intervals (Efron and Tibshirani 1993,
 ch. 13), and a whole report's closed-loop bootstrap (every backbone, suite, score and measure) stays near a second.
 
-Every generator is seeded by (seed, what is resampled), never by iteration order, so intervals do not move
-when cells or rows are reordered.
+Every generator (graftcache.analysis.stats.generator, as the offline bootstrap's) is seeded by (seed, what is
+resampled), never by iteration order, so intervals do not move when cells or rows are reordered.
 """
 
 from __future__ import annotations
-
-import zlib
 
 import numpy as np
 
@@ -32,11 +30,6 @@ import numpy as np
 N_BOOT = 1000
 #: The two-sided percentile interval's coverage.
 LEVEL = 0.95
-
-
-def generator(seed: int, *key: str) -> np.random.Generator:
-    """A generator that depends only on the seed and what it resamples (e.g. a run_id and a measure)."""
-    return np.random.default_rng(np.random.SeedSequence([seed, zlib.crc32("\x1f".join(key).encode())]))
 
 
 def resampled_means(values: np.ndarray, rng: np.random.Generator, n_boot: int = N_BOOT) -> np.ndarray:

@@ -28,9 +28,10 @@ from __future__ import annotations
 
 import polars as pl
 
-from graftcache.analysis.closed_loop_boot import generator, interval, resampled_means
+from graftcache.analysis.closed_loop_boot import interval, resampled_means
 from graftcache.analysis.findings import NOT_SEPARATED
 from graftcache.analysis.rollouts import HIGHER_IS_BETTER, MEASURES, PAIR_KEY
+from graftcache.analysis.stats import generator
 from graftcache.analysis.table import GROUP, NATIVE_CONTROL, ZERO_IMAGE
 
 KEY = list(PAIR_KEY)

@@ -60,8 +60,9 @@ def cells_of(rows: pl.DataFrame) -> dict[tuple[str, ...], Cell]:
     return cells
 
 
-def _rng(seed: int, *key: str) -> np.random.Generator:
-    """A generator that depends only on the bootstrap seed and the cell, not on iteration order."""
+def generator(seed: int, *key: str) -> np.random.Generator:
+    """A generator that depends only on the bootstrap seed and what it resamples (a cell; a run_id and a measure),
+    not on iteration order."""
     return np.random.default_rng(np.random.SeedSequence([seed, zlib.crc32("\x1f".join(key).encode())]))
 
 
@@ -98,7 +99,7 @@ class Bootstrap:
 
     def means(self, key: tuple[str, ...], with_episodes: bool) -> np.ndarray:
         if (key, with_episodes) not in self._cache:
-            rng = _rng(self.settings.seed, self.tag, *key)
+            rng = generator(self.settings.seed, self.tag, *key)
             n_boot = self.settings.n_boot
             self._cache[key, with_episodes] = _boot_means(self.cells[key], rng, n_boot, with_episodes)
         return self._cache[key, with_episodes]

@@ -27,7 +27,8 @@ from helpers.tables import row, table
 from scipy import stats
 
 from graftcache import analysis as A
-from graftcache.analysis.closed_loop_boot import generator, mmrv_rows, spearman_rows, tau_b_rows
+from graftcache.analysis.closed_loop_boot import mmrv_rows, spearman_rows, tau_b_rows
+from graftcache.analysis.stats import generator
 from graftcache.errors import GraftcacheError
 
 CELLS = [("siglip", 0, "none", 1.0), ("siglip", 1, "none", 1.2), ("dinov2-s", 0, "none", 1.1),

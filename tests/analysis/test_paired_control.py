@@ -33,7 +33,7 @@ import pytest
 from helpers.tables import row, table
 
 from graftcache import analysis as A
-from graftcache.analysis.closed_loop_boot import generator
+from graftcache.analysis.stats import generator
 
 CELLS = [("smolvla-native", 0, "native"), ("smolvla-native", 1, "native"), ("siglip", 0, "zero-image"),
          ("dinov2-s", 0, "zero-image"), ("siglip", 0, "none")]
