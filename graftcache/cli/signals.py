@@ -33,19 +33,14 @@ from contextlib import contextmanager, suppress
 from types import FrameType
 from typing import Any
 
+from graftcache.processes import Terminated, stop
+
 #: Exit code for each signal that stops a command: 128 + the signal number, the shell convention.
 EXIT_CODES = {signal.SIGINT: 128 + signal.SIGINT, signal.SIGTERM: 128 + signal.SIGTERM}
 STOPPED = {signal.SIGINT: "interrupted", signal.SIGTERM: "terminated (SIGTERM)"}  # what the one line says
-WORKER_GRACE_S = 2.0  # how long stopped workers get to exit before SIGKILL
 REDELIVER_S = 0.01  # a signal lost in a finaliser is sent again this much later (`_redeliver`)
 SETTLE_S = 10.0  # how long a stopped command waits for the store IO it started (`settle_io`)
 REDELIVER_S_UNHANDLED = 0.5  # a stop the command has not taken by then is raised again (`_Stop`)
-
-
-class Terminated(KeyboardInterrupt):
-    """SIGTERM, raised in the main thread: a KeyboardInterrupt so every cleanup written for Ctrl-C runs."""
-
-    signum = signal.SIGTERM
 
 
 def exit_code(stop: KeyboardInterrupt) -> int:
@@ -57,15 +52,9 @@ def describe(stop: KeyboardInterrupt) -> str:
 
 
 def stop_workers() -> None:
-    """SIGTERM every live child process started through multiprocessing (DataLoader workers of any start method),
-    then SIGKILL those still alive after WORKER_GRACE_S: no worker outlives a stopped command."""
-    children = multiprocessing.active_children()
-    for child in children:
-        child.terminate()
-    for child in children:
-        child.join(WORKER_GRACE_S)
-        if child.is_alive():
-            child.kill()
+    """Every live child process started through multiprocessing (DataLoader workers of any start method) stopped
+    (graftcache.processes.stop): no worker outlives a stopped command."""
+    stop(multiprocessing.active_children())
 
 
 def settle_io() -> None:

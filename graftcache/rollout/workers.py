@@ -25,7 +25,7 @@ holds is read again) and given back once the cell's last episode is written: two
 Failures: a worker's error is sent here and raised as one RolloutError line naming the run and episode; a worker that
 dies (kill -9, out of memory) is one line naming the episode it was running. Either way the other workers are stopped
 and the claims given back; every row written is whole and a rerun runs the missing episodes. Ctrl-C or SIGTERM here
-stops every worker (SIGTERM, then SIGKILL after graftcache.cli.signals.WORKER_GRACE_S); the workers ignore the
+stops every worker (graftcache.processes.stop: SIGTERM, then SIGKILL); the workers ignore the
 terminal's SIGINT, so the stop is this process's one line. A kill -9 of this process: the kernel sends each worker
 SIGTERM (Linux PR_SET_PDEATHSIG; elsewhere the closed pipe ends it after its episode), this process's claims go stale
 with its pid, and a rerun runs the episodes that were not written.
@@ -53,9 +53,9 @@ from multiprocessing.process import BaseProcess
 from pathlib import Path
 from typing import Any
 
-from graftcache.cli.signals import WORKER_GRACE_S, Terminated
 from graftcache.errors import GraftcacheError, RolloutError
 from graftcache.file_lease import FileLease
+from graftcache.processes import WORKER_GRACE_S, Terminated, stop
 from graftcache.results import cell_claim
 from graftcache.rollout import table
 from graftcache.rollout.episodes import Episode, Simulator
@@ -270,16 +270,8 @@ def _finish(team: Sequence[_Worker]) -> None:
 
 
 def _stop(team: Sequence[_Worker]) -> None:
-    """SIGTERM to every live worker, SIGKILL to those still alive WORKER_GRACE_S later."""
-    alive = [w for w in team if w.process.is_alive()]
-    for worker in alive:
-        worker.process.terminate()
-    deadline = time.monotonic() + WORKER_GRACE_S
-    for worker in alive:
-        worker.process.join(max(0.0, deadline - time.monotonic()))
-        if worker.process.is_alive():
-            worker.process.kill()
-            worker.process.join()
+    """Every live worker stopped (graftcache.processes.stop), every pipe closed."""
+    stop([w.process for w in team])
     for worker in team:
         worker.conn.close()
 

@@ -1,0 +1,33 @@
+"""Stopping the worker processes a command started, wherever it started them (the console script's signal handling,
+graftcache.cli.signals; a rollout's team, graftcache.rollout.workers): SIGTERM to each, SIGKILL to any still alive
+WORKER_GRACE_S later, so no worker outlives its command. `Terminated` is SIGTERM raised as a KeyboardInterrupt, so
+that the cleanup written for Ctrl-C runs for it too, in the command and in its workers alike.
+"""
+
+from __future__ import annotations
+
+import signal
+import time
+from collections.abc import Sequence
+from multiprocessing.process import BaseProcess
+
+WORKER_GRACE_S = 2.0  # how long stopped workers get to exit before SIGKILL
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised in the main thread: a KeyboardInterrupt so every cleanup written for Ctrl-C runs."""
+
+    signum = signal.SIGTERM
+
+
+def stop(processes: Sequence[BaseProcess]) -> None:
+    """SIGTERM every live one of `processes`, then SIGKILL (and reap) those still alive WORKER_GRACE_S later."""
+    alive = [p for p in processes if p.is_alive()]
+    for process in alive:
+        process.terminate()
+    deadline = time.monotonic() + WORKER_GRACE_S
+    for process in alive:
+        process.join(max(0.0, deadline - time.monotonic()))
+        if process.is_alive():
+            process.kill()
+            process.join()
