@@ -21,6 +21,7 @@ import gymnasium as gym
 import numpy as np
 
 from graftcache.errors import RolloutError
+from graftcache.rollout.graded import target_of
 
 SETTLE_STEPS = 10           # no-op steps after the target is moved (the sample's and lerobot's settling)
 SETTLE_TOL_M = 0.005        # the target must settle within 5 mm of where it was put ...
@@ -101,7 +102,7 @@ class PerturbedReset(gym.Wrapper):
         if self.scene is not None:
             init_state, max_m, episode_seed, task = self.scene
             libero = self.env.unwrapped
-            target = libero._env.env.obj_of_interest[0]
-            raw, self.offset = perturb_target(libero._env, target, init_state, max_m, rng_of(episode_seed, task))
+            raw, self.offset = perturb_target(libero._env, target_of(libero._env.env), init_state, max_m,
+                                              rng_of(episode_seed, task))
             obs = libero._format_raw_obs(raw)
         return obs, info
