@@ -12,6 +12,11 @@ simulator's state (graftcache.rollout.progress): how close the end effector come
   against the top encoder's zero-image control of the paired seeds, the check that looking helps in closed loop;
 - the native tower once per (backbone, suite): it trains nothing, so its rows of other seeds are the same policy
   (same run inputs, same weights) and would be the same episodes counted again;
+- the paired cells on twice the episodes of the figure's: the figure's agreement rests on 29 cells, the paired check
+  on one native cell against two zero-image cells, so its power comes from paired episodes alone. Measured on the
+  first run of this demo (2026-11-28): tiny pi0.5 on libero_object, 4 episodes, native minus zero-image closest
+  approach -0.061 m [-0.166, +0.001], not separated; its 8 episodes, -0.050 [-0.106, -0.011]. The other three
+  (backbone, suite)s were separated on 4;
 - every episode on a perturbed scene: libero_object's official init states place the target identically, so a
   policy blind to its cameras could still reach it; the sample's own perturbation (data/render_sample.py, 3 cm) is
   what made its actions depend on the images.
@@ -57,6 +62,8 @@ class ClosedLoopPlan:
     paired_seeds: tuple[int, ...] = (0, 1)
     tasks: tuple[int, ...] = (0,)
     episodes_per_task: int = 4
+    #: the paired cells' episodes (episode k from init state k: their first `episodes_per_task` are the figure's)
+    paired_episodes_per_task: int = 8
     #: the sample's own planar target jitter, m per axis (data/render_sample.py --jitter)
     perturb_cm: float = 3.0
     #: the sample's demonstrations reach, descend, grasp and lift in 46-56 frames (render_manifest.json); by 40 steps
@@ -68,8 +75,17 @@ class ClosedLoopPlan:
 CLOSED_LOOP = ClosedLoopPlan()
 
 
-def closed_loop_run_ids(results: pl.DataFrame, plan: ClosedLoopPlan = CLOSED_LOOP) -> list[str]:
-    """The run_ids `demo --closed-loop` rolls out of `results` (see the module docstring): on the figure's
+@dataclass(frozen=True)
+class ClosedLoopCells:
+    """The run_ids `demo --closed-loop` rolls out: the figure's cells, on `episodes_per_task` episodes, and the
+    other (backbone, suite)s' paired cells, on `paired_episodes_per_task`."""
+
+    figure: tuple[str, ...]
+    paired: tuple[str, ...]
+
+
+def closed_loop_run_ids(results: pl.DataFrame, plan: ClosedLoopPlan = CLOSED_LOOP) -> ClosedLoopCells:
+    """The cells `demo --closed-loop` rolls out of `results` (see the module docstring): on the figure's
     (backbone, suite), every row with a closed-loop meaning (not shuffled-image: graftcache.fit.controls) but
     native's repeats; on the others, native and the top encoder's zero-image rows of `paired_seeds`. A figure's
     (backbone, suite) missing from `results` is an error: there would be no figure."""
@@ -82,10 +98,15 @@ def closed_loop_run_ids(results: pl.DataFrame, plan: ClosedLoopPlan = CLOSED_LOO
     paired = (select_rows(others, top=1).filter(pl.col("control").is_in([NATIVE_CONTROL, ZERO_IMAGE])
                                                & pl.col("seed").is_in(list(plan.paired_seeds)))
               if others.height else others)
-    chosen = pl.concat([select_rows(figure, run_ids=figure["run_id"].to_list()), paired], how="diagonal_relaxed")
+    return ClosedLoopCells(figure=_native_once(select_rows(figure, run_ids=figure["run_id"].to_list())),
+                           paired=_native_once(paired))
+
+
+def _native_once(chosen: pl.DataFrame) -> tuple[str, ...]:
+    """`chosen`'s run_ids with its native rows reduced to the lowest seed's of each (backbone, suite)."""
     native = chosen["control"] == NATIVE_CONTROL
     once = chosen.filter(native).sort("seed").unique(["backbone", "suite"], keep="first", maintain_order=True)
-    return [*chosen.filter(~native)["run_id"].to_list(), *once["run_id"].to_list()]
+    return (*chosen.filter(~native)["run_id"].to_list(), *once["run_id"].to_list())
 
 
 def run_closed_loop_demo(recipe_path: str | Path | None = None, out: str | Path | None = None,
@@ -103,17 +124,18 @@ def run_closed_loop_demo(recipe_path: str | Path | None = None, out: str | Path 
     results = cache_root(recipe.cache) / plan.results
     recipe = dataclasses.replace(recipe, seeds=plan.seeds, controls=plan.controls, results=str(results))
     state = run_sweep(recipe)
-    run_ids = closed_loop_run_ids(read_for_report(results), plan)
+    cells = closed_loop_run_ids(read_for_report(results), plan)
     rollouts = default_rollouts(results)
     command = f"graftcache demo --closed-loop --recipe {path}"
-    req = RolloutRequest(results=results, rollouts=rollouts, run_ids=tuple(run_ids), tasks=plan.tasks,
-                         episodes_per_task=plan.episodes_per_task, max_steps=plan.max_steps,
-                         perturb_cm=plan.perturb_cm, command=command)
     spawn = partial(LiberoSimulator, results, rollouts.parent / EXPORTS_FOLDER, cache=recipe.cache, runs=None,
                     max_steps=plan.max_steps)
     sim = spawn()  # plans; each worker builds its own
     try:
-        roll_out(req, sim, workers=plan.workers, spawn=spawn)
+        for run_ids, episodes in ((cells.figure, plan.episodes_per_task), (cells.paired, plan.paired_episodes_per_task)):
+            req = RolloutRequest(results=results, rollouts=rollouts, run_ids=run_ids, tasks=plan.tasks,
+                                 episodes_per_task=episodes, max_steps=plan.max_steps, perturb_cm=plan.perturb_cm,
+                                 command=command)
+            roll_out(req, sim, workers=plan.workers, spawn=spawn)
     finally:
         sim.close()
     report_dir = Path(out) if out else results.parent / "report"

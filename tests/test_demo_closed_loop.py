@@ -23,8 +23,10 @@ def _results() -> pl.DataFrame:
 
 def test_every_live_cell_of_the_figure_and_native_against_zero_image_elsewhere() -> None:
     results = _results()
-    chosen = results.filter(pl.col("run_id").is_in(closed_loop_run_ids(results, PLAN)))
+    cells = closed_loop_run_ids(results, PLAN)
+    chosen = results.filter(pl.col("run_id").is_in([*cells.figure, *cells.paired]))
     keys = set(chosen.select("backbone", "suite", "encoder", "control", "seed").rows())
+    paired = results.filter(pl.col("run_id").is_in(cells.paired))
     figure = results.filter((pl.col("backbone") == "smolvla") & (pl.col("suite") == "libero_spatial"))
     expected_figure = {k for k in figure.select("backbone", "suite", "encoder", "control", "seed").rows()
                        if k[3] != "shuffled-image" and not (k[3] == "native" and k[4] > 0)}
@@ -33,6 +35,8 @@ def test_every_live_cell_of_the_figure_and_native_against_zero_image_elsewhere()
                        ("pi05", "libero_spatial", "dinov2-s", "zero-image", 0),
                        ("pi05", "libero_spatial", "dinov2-s", "zero-image", 1)}
     assert keys == expected_figure | expected_others
+    assert set(paired.select("backbone", "suite", "encoder", "control", "seed").rows()) == expected_others
+    assert not set(cells.figure) & set(cells.paired)
     assert len(expected_figure) == 3 * 3 + 2 * 3 + 3 + 1  # 3 encoders, 2 zero-image, native-graft x 3 seeds; native
     assert chosen.height == len(keys)  # each once
 
