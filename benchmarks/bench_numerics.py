@@ -24,7 +24,7 @@ from types import SimpleNamespace
 import torch
 from common import machine, median_seconds
 
-from graftcache.backbones import TinySpec, load_backbone
+from graftcache.backbones import TinyBuild, load_backbone
 from graftcache.backbones.tower_encoder import native_name
 from graftcache.encoders import load_encoder
 from graftcache.encoders.fingerprint import check_numerics, fingerprint, library_versions
@@ -51,7 +51,7 @@ def tiny_dinov2_folder(root: Path) -> Path:
 
 def tiny_policy(root: Path, backbone: str) -> Path:
     """A tiny random-init policy checkpoint folder (with unit normalisation stats) for a native tower."""
-    spec = TinySpec()
+    spec = TinyBuild()
     stats = {key: {name: torch.full((dim,), value) for name, value in
                    (("mean", 0.0), ("std", 1.0), ("min", -1.0), ("max", 1.0), ("q01", -1.0), ("q99", 1.0))}
              for key, dim in (("observation.state", spec.state_dim), ("action", spec.action_dim))}

@@ -397,7 +397,8 @@ def test_every_dotted_name_in_a_docstring_or_comment_resolves() -> None:
 
 
 def test_an_unresolved_dotted_name_is_reported_with_its_line() -> None:
-    source = '"""Reads graftcache.results.SCHEMA.\n\nand graftcache.results.no_such."""\nx = 1  # graftcache.nowhere.y\n'
+    source = ('"""Reads graftcache.results.SCHEMA.\n\nand graftcache.results.no_such."""\n'
+              'x = 1  # graftcache.nowhere.y\n')
     cited = [("f.py:" + str(line), d) for line, text in prose_of(source) for d in DOTTED.findall(text)]
     assert unresolved(cited) == ["f.py:3: graftcache.results.no_such: no no_such",
                                  "f.py:4: graftcache.nowhere.y: no nowhere"]

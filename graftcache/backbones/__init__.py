@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from graftcache.backbone_table import BACKBONES
-from graftcache.backbones.tiny import TinySpec
+from graftcache.backbones.tiny import TinyBuild
 from graftcache.errors import BackboneError
 
 if TYPE_CHECKING:
@@ -41,9 +41,9 @@ def registered_spec(name: str) -> BackboneSpec | None:
 
 
 def load_backbone(name: str, source: str | Path, *, device: str = "cpu", dataset_stats: dict | None = None,
-                  tiny: TinySpec | None = None) -> BackboneAdapter:
+                  tiny: TinyBuild | None = None) -> BackboneAdapter:
     """Load backbone `name` from `source` ("tiny", a hub id in the HF cache, or a checkpoint folder)."""
     return get_backbone(name).load(source, device=device, dataset_stats=dataset_stats, tiny=tiny)
 
 
-__all__ = ["BACKBONES", "TinySpec", "get_backbone", "load_backbone", "registered_spec"]
+__all__ = ["BACKBONES", "TinyBuild", "get_backbone", "load_backbone", "registered_spec"]

@@ -44,8 +44,8 @@ def test_every_registered_backbone_declares_a_spec_its_hooks_agree_with(name: st
     adapter = get_backbone(name)
     spec = adapter.spec
     assert isinstance(spec, BackboneSpec)
-    assert spec.activation_checkpointing == (
-        adapter._switch_activation_checkpointing is not ActivationCheckpointing._switch_activation_checkpointing)
+    assert spec.can_recompute == (
+        adapter._switch_recompute is not ActivationCheckpointing._switch_recompute)
     assert (spec.flow_time is None) == issubclass(adapter, TokenObjective)
     assert issubclass(adapter, FlowObjective) or "_flow_losses" not in dir(adapter)  # no flow loss that only raises
     assert spec.steps_field is not None or adapter.num_steps is not Objective.num_steps

@@ -7,7 +7,7 @@ from collections.abc import Callable
 import pytest
 import torch
 
-from graftcache.backbones import BACKBONES, TinySpec, get_backbone, load_backbone
+from graftcache.backbones import BACKBONES, TinyBuild, get_backbone, load_backbone
 from graftcache.backbones.base import BackboneAdapter
 from graftcache.backbones.spec import BackboneSpec
 from graftcache.errors import BackboneError
@@ -15,7 +15,7 @@ from graftcache.fit.controls import PassThroughProjector
 from graftcache.graft import GraftProjector, feature_key
 from helpers.memory import peak_tensor_bytes
 
-SPEC = TinySpec()
+SPEC = TinyBuild()
 ENC_DIM = 48
 #: The tiny zoo policies' frames (train-tiny's size): each processor makes a 4x4 token grid of them.
 TINY_SIZE = 128
@@ -45,7 +45,7 @@ def lowdim_stats(state_dim: int = SPEC.state_dim, action_dim: int = SPEC.action_
 
 
 def tiny(name: str, seed: int = 0) -> BackboneAdapter:
-    return load_backbone(name, "tiny", dataset_stats=lowdim_stats(), tiny=TinySpec(seed=seed))
+    return load_backbone(name, "tiny", dataset_stats=lowdim_stats(), tiny=TinyBuild(seed=seed))
 
 
 def grafted(name: str, enc_dim: int = ENC_DIM, seed: int = 0) -> BackboneAdapter:
@@ -186,8 +186,8 @@ def activation_checkpointing_peaks(adapter: BackboneAdapter, batch: int = 8) -> 
 
     grads, peaks = {}, {}
     for on in (False, True, False):  # off again: the switch restores the plain step
-        adapter.set_activation_checkpointing(on)
-        assert adapter.activation_checkpointing is on
+        adapter.set_recompute(on)
+        assert adapter.recomputing is on
         for p in params:
             p.grad = None
         peaks.setdefault(on, []).append(peak_tensor_bytes(step))

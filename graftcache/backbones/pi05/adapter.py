@@ -90,7 +90,7 @@ class PI05Adapter(FlowObjective, PaliGemmaAdapter):
         token_steps=("Pi05PrepareStateTokenizerProcessorStep", "TokenizerProcessorStep"),
         prompt_uses_state=True,
         cells_per_pass={"cpu": 1, "cuda": 1},
-        activation_checkpointing=True,
+        can_recompute=True,
     )
 
     # ------------------------------------------------------------------------------ construction
@@ -119,7 +119,7 @@ class PI05Adapter(FlowObjective, PaliGemmaAdapter):
     def _predict_chunk(self, batch: Mapping[str, Any], noise: torch.Tensor, num_steps: int) -> torch.Tensor:
         return self.policy.predict_action_chunk(dict(batch), noise=noise, num_steps=num_steps)
 
-    def _switch_activation_checkpointing(self, on: bool) -> None:
+    def _switch_recompute(self, on: bool) -> None:
         """lerobot's own switch (every LM and expert layer, in training mode)."""
         if on:
             self.policy.model.gradient_checkpointing_enable()

@@ -64,7 +64,7 @@ class PI0FastAdapter(TokenObjective, PaliGemmaAdapter):
         prompt_uses_state=True,
         loss_per_sample=False,
         flow_time=None,
-        activation_checkpointing=True,
+        can_recompute=True,
     )
 
     # ------------------------------------------------------------------------------ construction
@@ -132,9 +132,9 @@ class PI0FastAdapter(TokenObjective, PaliGemmaAdapter):
         with _greedy_chunks(self.config, self.chunk_size):
             return self.policy.predict_action_chunk(dict(batch)).to(self.device)
 
-    def _switch_activation_checkpointing(self, on: bool) -> None:
+    def _switch_recompute(self, on: bool) -> None:
         """lerobot's switch minus the vision tower's (after a graft a pass-through, without transformers' method):
-        transformers' own checkpointing of every language-model layer, non-reentrant."""
+        transformers' own activation checkpointing of every language-model layer, non-reentrant."""
         model = self.policy.model
         language_model = model.paligemma_with_expert.paligemma.model.language_model
         model.gradient_checkpointing_enabled = on

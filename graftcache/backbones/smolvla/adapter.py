@@ -47,7 +47,7 @@ class SmolVLAAdapter(WrappedActivationCheckpointing, FlowObjective, BackboneAdap
         token_steps=("NewLineTaskProcessorStep", "TokenizerProcessorStep"),
         scaled_embeddings=True,
         cells_per_pass={"cpu": 1, "cuda": 4},
-        activation_checkpointing=True,
+        can_recompute=True,
     )
 
     # ------------------------------------------------------------------------------ construction
@@ -112,7 +112,7 @@ class SmolVLAAdapter(WrappedActivationCheckpointing, FlowObjective, BackboneAdap
         with _num_steps(self.config, num_steps):
             return self.policy.predict_action_chunk(dict(batch), noise=noise)
 
-    def _activation_checkpointing_slots(self) -> Iterator[tuple[nn.Module, str]]:
+    def _recompute_slots(self) -> Iterator[tuple[nn.Module, str]]:
         """The attention of every layer (one function of the joint model) and each LM and expert layer's MLP."""
         joint = self.policy.model.vlm_with_expert
         yield joint, "eager_attention_forward"

@@ -108,7 +108,7 @@ class VLAJEPAAdapter(WrappedActivationCheckpointing, FlowObjective, BackboneAdap
         steps_field="num_inference_timesteps",
         prompt_uses_state=True,
         flow_time="data",
-        activation_checkpointing=True,
+        can_recompute=True,
     )
 
     def _patch_graft(self, graft) -> None:
@@ -286,15 +286,15 @@ class VLAJEPAAdapter(WrappedActivationCheckpointing, FlowObjective, BackboneAdap
                 given_draws(head, noise):
             return self.policy.predict_action_chunk(dict(batch))
 
-    def _switch_activation_checkpointing(self, on: bool) -> None:
+    def _switch_recompute(self, on: bool) -> None:
         """The wrapped layers, and Qwen's KV cache off meanwhile (as transformers turns it off under its own
-        checkpointing): a recomputed layer would append its keys and values to the cache a second time. The
+        activation checkpointing): a recomputed layer would append its keys and values to the cache a second time. The
         policy's single forward never reads that cache."""
-        super()._switch_activation_checkpointing(on)  # off: every change undone, the cache's switch too
-        if on and not any(change.attribute == "use_cache" for change in self.activation_checkpointing_patches.changes):
-            self.activation_checkpointing_patches.set(self._qwen.language_model.config, "use_cache", False)
+        super()._switch_recompute(on)  # off: every change undone, the cache's switch too
+        if on and not any(change.attribute == "use_cache" for change in self.recompute_patches.changes):
+            self.recompute_patches.set(self._qwen.language_model.config, "use_cache", False)
 
-    def _activation_checkpointing_slots(self) -> Iterator[tuple[nn.Module, str]]:
+    def _recompute_slots(self) -> Iterator[tuple[nn.Module, str]]:
         """Every decoder layer of the Qwen3 LM and every block of the DiT action head."""
         for layer in self._qwen.language_model.layers:
             yield layer, "forward"

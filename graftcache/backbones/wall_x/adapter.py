@@ -97,7 +97,7 @@ class WallXAdapter(TowerReads, WrappedActivationCheckpointing, FlowObjective, Ba
         steps_field=None,
         prompt_uses_state=True,
         flow_time="data",
-        activation_checkpointing=True,
+        can_recompute=True,
     )
 
     def _patch_graft(self, graft) -> None:
@@ -251,7 +251,7 @@ class WallXAdapter(TowerReads, WrappedActivationCheckpointing, FlowObjective, Ba
         with shadowed(model, predict=predict), given_noise(modeling_wall_x, noise, self.name, draws=("randn",)):
             return self.policy.predict_action_chunk(dict(batch))
 
-    def _activation_checkpointing_slots(self) -> Iterator[tuple[nn.Module, str]]:
+    def _recompute_slots(self) -> Iterator[tuple[nn.Module, str]]:
         """Every decoder layer of the MoE language model (attention and both experts)."""
         for layer in self.policy.model.model.layers:
             yield layer, "forward"

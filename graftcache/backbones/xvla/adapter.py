@@ -61,7 +61,7 @@ class XVLAAdapter(WrappedActivationCheckpointing, BackboneAdapter):
         },
         steps_field="num_denoising_steps",
         token_steps=("TokenizerProcessorStep",),
-        activation_checkpointing=True,
+        can_recompute=True,
     )
 
     def _patch_graft(self, graft) -> None:
@@ -235,7 +235,7 @@ class XVLAAdapter(WrappedActivationCheckpointing, BackboneAdapter):
             action = self._denoise(inputs, enc, x1 * t.view(-1, 1, 1) + action * (1 - t).view(-1, 1, 1), t)
         return self.policy.model.action_space.postprocess(action)
 
-    def _activation_checkpointing_slots(self) -> Iterator[tuple[nn.Module, str]]:
+    def _recompute_slots(self) -> Iterator[tuple[nn.Module, str]]:
         """Every layer of the BART encoder (the LM) and every block of the action transformer."""
         for layer in self._vision_owner.language_model.encoder.layers:
             yield layer, "forward"
