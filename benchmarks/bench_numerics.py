@@ -24,7 +24,8 @@ from types import SimpleNamespace
 import torch
 from common import machine, median_seconds
 
-from graftcache.backbones import TinyBuild, load_backbone
+from graftcache.backbones import load_backbone
+from graftcache.backbones.tiny import TinyBuild
 from graftcache.backbones.tower_encoder import native_name
 from graftcache.encoders import load_encoder
 from graftcache.encoders.fingerprint import check_numerics, fingerprint, library_versions

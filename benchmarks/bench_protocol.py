@@ -52,7 +52,8 @@ from torch.utils.flop_counter import FlopCounterMode
 
 from devtools.libero_counts import LIBERO_COUNTS
 from devtools.released import BUILDERS, LIBERO, built_here, hub_cache, unit_stats
-from graftcache.backbones import TinyBuild, load_backbone
+from graftcache.backbones import load_backbone
+from graftcache.backbones.tiny import TinyBuild
 from graftcache.encoders import load_encoder
 from graftcache.encoders.registry import get_spec
 from graftcache.fit.controls import get_control

@@ -67,7 +67,8 @@ import bench_protocol as bp  # noqa: E402  (the GPU peaks, a sync, the protocol'
 
 from devtools.released import CONFIGS, LIBERO, Recipe, built_on, on_device, unit_stats  # noqa: E402
 from graftcache.backbone_table import BACKBONES  # noqa: E402
-from graftcache.backbones import TinyBuild, load_backbone  # noqa: E402
+from graftcache.backbones import load_backbone  # noqa: E402
+from graftcache.backbones.tiny import TinyBuild  # noqa: E402
 from graftcache.fit.loop import Learner, alone, flow_time, optimise_together  # noqa: E402
 from graftcache.fit.step_bytes import peak_step_bytes  # noqa: E402
 from graftcache.graft import FusedProjector, GraftProjector, feature_key  # noqa: E402

@@ -24,7 +24,8 @@ import numpy as np
 import polars as pl
 import torch
 
-from graftcache.backbones import TinyBuild, get_backbone
+from graftcache.backbones import get_backbone
+from graftcache.backbones.tiny import TinyBuild
 from graftcache.backbones.tiny_record import policy_dir, read_record, write_record
 from graftcache.backbones.tower_encoder import policy_pixels
 from graftcache.datasets import DatasetMeta, open_dataset

@@ -90,7 +90,8 @@ class BackboneAdapter(GraftSurgery, PromptBatches, Objective, ActivationCheckpoi
     def __init_subclass__(cls, **kwargs: Any) -> None:
         """A class naming itself a backbone (`name` in its own body) is a registry entry, checked as it is defined
         (as lerobot's PreTrainedPolicy checks `name` and `config_class`): it lives in its folder's adapter.py,
-        `graftcache.backbones.<name>.adapter` (graftcache.backbone_table), and declares its own BackboneSpec."""
+        `graftcache.backbones.<name>.adapter` (graftcache.backbone_table), and its `spec` is its folder's SPEC
+        (`graftcache.backbones.<name>.spec`, which reports read without importing the adapter)."""
         super().__init_subclass__(**kwargs)
         if "name" not in cls.__dict__:
             return
@@ -98,9 +99,11 @@ class BackboneAdapter(GraftSurgery, PromptBatches, Objective, ActivationCheckpoi
         if cls.__module__ != where:
             raise BackboneError(f"{cls.__qualname__} (in {cls.__module__}) names itself backbone {cls.name!r}: a "
                                 f"backbone's adapter class is defined in {where} (its folder's adapter.py)")
-        if not isinstance(cls.__dict__.get("spec"), BackboneSpec):  # its own: an inherited one holds another's label
-            raise BackboneError(f"{where}.{cls.__qualname__} declares no `spec` of its own (a "
-                                "graftcache.backbones.spec.BackboneSpec)")
+        # its own, the one reports read: an inherited spec holds another backbone's label
+        folder_spec = backbone_module(cls.name, "spec")
+        if cls.__dict__.get("spec") is not getattr(import_module(folder_spec), "SPEC", None):
+            raise BackboneError(f"{where}.{cls.__qualname__}: its `spec` is not {folder_spec}.SPEC (its folder's "
+                                "BackboneSpec); declare `spec = SPEC`")
 
     @classmethod
     def lerobot_type(cls) -> str:

@@ -7,9 +7,10 @@ from collections.abc import Callable
 import pytest
 import torch
 
-from graftcache.backbones import BACKBONES, TinyBuild, get_backbone, load_backbone
+from graftcache.backbones import BACKBONES, get_backbone, load_backbone
 from graftcache.backbones.base import BackboneAdapter
 from graftcache.backbones.spec import BackboneSpec
+from graftcache.backbones.tiny import TinyBuild
 from graftcache.errors import BackboneError
 from graftcache.fit.controls import PassThroughProjector
 from graftcache.graft import GraftProjector, feature_key

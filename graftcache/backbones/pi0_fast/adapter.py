@@ -39,8 +39,8 @@ from graftcache.backbones.objectives import TokenObjective
 from graftcache.backbones.paligemma import pi05_tiny_sizes
 from graftcache.backbones.patching import patched
 from graftcache.backbones.pi0_fast.fast import FAST_DIR, MODELING, fast_processors, load_fast, policy_tokenizers
+from graftcache.backbones.pi0_fast.spec import SPEC
 from graftcache.backbones.pi05.adapter import PaliGemmaAdapter
-from graftcache.backbones.spec import BackboneSpec
 from graftcache.backbones.tiny_assets import PALIGEMMA_DIR
 
 ACTION_TOKENS = "action.tokens"  # lerobot.utils.constants.ACTION_TOKENS / ACTION_TOKEN_MASK
@@ -49,23 +49,7 @@ ACTION_TOKEN_MASK = "action.token_mask"
 
 class PI0FastAdapter(TokenObjective, PaliGemmaAdapter):
     name = "pi0_fast"
-    spec = BackboneSpec(
-        label="pi0-FAST",
-        lerobot_extra="pi",
-        released_params=2_900_000_000,
-        image_method="_preprocess_images",
-        vision_slots=("vision_tower", "multi_modal_projector"),
-        lm_width="_vision_owner.config.text_config.hidden_size",
-        module_paths={"language model": ("_vision_owner.language_model",),
-                      "LM head": ("policy.model.paligemma_with_expert.paligemma.lm_head",)},
-        steps_field="max_decoding_steps",
-        token_steps=("Pi0FastPrepareStateAndLanguageTokenizerProcessorStep", "TokenizerProcessorStep",
-                     "ActionTokenizerProcessorStep"),
-        prompt_uses_state=True,
-        loss_per_sample=False,
-        flow_time=None,
-        can_recompute=True,
-    )
+    spec = SPEC
 
     # ------------------------------------------------------------------------------ construction
     @classmethod

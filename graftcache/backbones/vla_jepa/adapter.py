@@ -60,7 +60,7 @@ from graftcache.backbones.qwen_vl import (
     raster_patches,
     tied_head_keys,
 )
-from graftcache.backbones.spec import BackboneSpec
+from graftcache.backbones.vla_jepa.spec import SPEC
 from graftcache.backbones.vla_jepa.tiny import QWEN3_VL_DIR, construct
 from graftcache.errors import BackboneError
 from graftcache.graft import feature_key
@@ -93,23 +93,7 @@ def given_draws(head: nn.Module, noise: torch.Tensor, time: torch.Tensor | None 
 
 class VLAJEPAAdapter(WrappedActivationCheckpointing, FlowObjective, BackboneAdapter):
     name = "vla_jepa"
-    spec = BackboneSpec(
-        label="VLA-JEPA",
-        lerobot_extra="vla-jepa",
-        image_method="_prepare_model_inputs",
-        vision_slots=("blocks", "merger"),
-        lm_width="_qwen.config.text_config.hidden_size",
-        module_paths={
-            "patch embedding": ("_vision_owner.patch_embed", "_vision_owner.pos_embed"),
-            "deepstack mergers": ("_vision_owner.deepstack_merger_list",),
-            "language model": ("_qwen.language_model",),
-            "action head": ("policy.model.action_model",),
-        },
-        steps_field="num_inference_timesteps",
-        prompt_uses_state=True,
-        flow_time="data",
-        can_recompute=True,
-    )
+    spec = SPEC
 
     def _patch_graft(self, graft) -> None:
         """Grafted, Qwen's `get_image_features` projects the cached features and the prompt is built for them

@@ -34,8 +34,8 @@ from transformers.modeling_outputs import BaseModelOutputWithPooling
 from graftcache.backbones.activation_checkpointing import WrappedActivationCheckpointing
 from graftcache.backbones.base import BackboneAdapter, is_empty_camera
 from graftcache.backbones.batches import ACTION_PAD
-from graftcache.backbones.spec import BackboneSpec
 from graftcache.backbones.tiny_assets import PALIGEMMA_DIR
+from graftcache.backbones.xvla.spec import SPEC
 from graftcache.errors import BackboneError
 
 
@@ -49,20 +49,7 @@ def conv_grid(size: tuple[int, int], vision) -> tuple[int, int]:
 
 class XVLAAdapter(WrappedActivationCheckpointing, BackboneAdapter):
     name = "xvla"
-    spec = BackboneSpec(
-        label="X-VLA",
-        lerobot_extra="xvla",
-        image_method="_prepare_images",
-        vision_slots=("vision_tower", "multi_modal_projector"),
-        lm_width="_vision_owner.config.vision_config.projection_dim",
-        module_paths={
-            "language model": ("_vision_owner.language_model",),
-            "action transformer": ("policy.model.transformer",),
-        },
-        steps_field="num_denoising_steps",
-        token_steps=("TokenizerProcessorStep",),
-        can_recompute=True,
-    )
+    spec = SPEC
 
     def _patch_graft(self, graft) -> None:
         """Grafted, Florence-2's `get_image_features` projects the cached features (undone by reset)."""
