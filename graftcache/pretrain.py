@@ -1,7 +1,7 @@
 """`graftcache train-tiny`: train a tiny backbone (all parameters, its own vision tower, on pixels).
 
 The frozen-backbone diagnostic is only meaningful on a backbone whose image tokens matter. No
-released SmolVLA / pi0.5 weights can be fetched here, so `graftcache train-tiny` trains lerobot's
+released backbone weights can be fetched here, so `graftcache train-tiny` trains lerobot's
 own policy classes at tiny sizes on a LeRobot dataset (the bundled LIBERO sample by default) with
 the policy's own flow loss. This is the one place outside stage 1 that decodes video: it trains the
 backbone, not a graft. The result is a regular lerobot checkpoint folder (safetensors + processors
