@@ -196,8 +196,8 @@ def exact() -> Iterator[None]:
 
 
 # ---------------------------------------------------------------------------------------------- batches
-def spec_recipe(spec: TinyBuild) -> Recipe:
-    return replace(LIBERO, cameras=spec.cameras, state_dim=spec.state_dim, action_dim=spec.action_dim)
+def tiny_recipe(tiny: TinyBuild) -> Recipe:
+    return replace(LIBERO, cameras=tiny.cameras, state_dim=tiny.state_dim, action_dim=tiny.action_dim)
 
 
 def features(adapter, frames: int, width: int, seed: int = 0) -> torch.Tensor:
@@ -271,25 +271,25 @@ def max_rel(a: list[torch.Tensor], b: list[torch.Tensor]) -> float:
 
 
 # ---------------------------------------------------------------------------------------------- stage 1
-def tiny_stats(spec: TinyBuild) -> dict:
-    return unit_stats(spec_recipe(spec))
+def tiny_stats(tiny: TinyBuild) -> dict:
+    return unit_stats(tiny_recipe(tiny))
 
 
 def stage_tiny(report: Report, device: torch.device, dtype: torch.dtype, names: list[str]) -> None:
     """Correctness of every backbone at tiny size on the device."""
-    spec = TinyBuild()
+    tiny = TinyBuild()
     steps, batch = 3, 2
     for name in names:
         with report.check("1_tiny", name, need_s=15) as out:
             if out is None:
                 continue
-            adapter = load_backbone(name, "tiny", device=str(device), dataset_stats=tiny_stats(spec), tiny=spec)
+            adapter = load_backbone(name, "tiny", device=str(device), dataset_stats=tiny_stats(tiny), tiny=tiny)
             out["params"] = adapter.n_params
             feats = features(adapter, 16, TINY_ENC)
             with exact(), no_dropout(adapter.policy):
                 out.update(fused_vs_solo(adapter, feats, steps, batch))
                 out.update(checkpointing_gradients(adapter, feats, batch))
-                out.update(lean_roundtrip(name, adapter, spec, device))
+                out.update(lean_roundtrip(name, adapter, tiny, device))
             out.update(compute_dtype_step_and_predict(adapter, feats, batch, dtype))
             out["status"] = "ok" if all(v for k, v in out.items() if k.endswith("_ok")) else "failed"
             del adapter
@@ -357,7 +357,7 @@ def compute_dtype_step_and_predict(adapter, feats: torch.Tensor, batch: int, dty
     return {"compute_dtype_losses": losses, "predict_shape": list(chunk.shape), "compute_dtype_ok": finite}
 
 
-def lean_roundtrip(name: str, adapter, spec: TinyBuild, device: torch.device) -> dict:
+def lean_roundtrip(name: str, adapter, tiny: TinyBuild, device: torch.device) -> dict:
     """The tiny policy saved to disk and lean-loaded onto the device: the same weights (sha256) and chunk."""
     from graftcache.backbone_table import native_name
     from graftcache.encoders import load_encoder
@@ -394,9 +394,9 @@ def built(name: str, device: torch.device, tiny: bool, hub: Path):
     the tiny one (lerobot's constructor at the tiny marker's sizes)."""
     if not tiny:
         return on_device(name, device, cache=hub)
-    spec = TinyBuild()
-    base = load_backbone(name, "tiny", device="cpu", dataset_stats=tiny_stats(spec), tiny=spec)
-    return built_on(type(base), base.policy.config, device, tiny_stats(spec), source=f"tiny {name} on {device}",
+    tiny = TinyBuild()
+    base = load_backbone(name, "tiny", device="cpu", dataset_stats=tiny_stats(tiny), tiny=tiny)
+    return built_on(type(base), base.policy.config, device, tiny_stats(tiny), source=f"tiny {name} on {device}",
                     marker=base.tiny_marker)
 
 

@@ -16,7 +16,7 @@ from graftcache.fit.controls import PassThroughProjector
 from graftcache.graft import GraftProjector, feature_key
 from helpers.memory import peak_tensor_bytes
 
-SPEC = TinyBuild()
+TINY = TinyBuild()
 ENC_DIM = 48
 #: The tiny zoo policies' frames (train-tiny's size): each processor makes a 4x4 token grid of them.
 TINY_SIZE = 128
@@ -33,7 +33,7 @@ def backbones_where(predicate: Callable[[BackboneSpec], bool]) -> list[str]:
     return [name for name in sorted(BACKBONES) if predicate(get_backbone(name).spec)]
 
 
-def lowdim_stats(state_dim: int = SPEC.state_dim, action_dim: int = SPEC.action_dim) -> dict:
+def lowdim_stats(state_dim: int = TINY.state_dim, action_dim: int = TINY.action_dim) -> dict:
     """lerobot-format stats with every field the SmolVLA (MEAN_STD) and pi0.5 (QUANTILES) processors read."""
     def fields(n: int, scale: float) -> dict[str, torch.Tensor]:
         return {
