@@ -24,7 +24,8 @@ from types import SimpleNamespace
 import torch
 from common import machine, median_seconds
 
-from graftcache.backbones import TinySpec, load_backbone
+from graftcache.backbones import load_backbone
+from graftcache.backbones.tiny import TinyBuild
 from graftcache.backbones.tower_encoder import native_name
 from graftcache.encoders import load_encoder
 from graftcache.encoders.fingerprint import check_numerics, fingerprint, library_versions
@@ -51,12 +52,12 @@ def tiny_dinov2_folder(root: Path) -> Path:
 
 def tiny_policy(root: Path, backbone: str) -> Path:
     """A tiny random-init policy checkpoint folder (with unit normalisation stats) for a native tower."""
-    spec = TinySpec()
+    tiny = TinyBuild()
     stats = {key: {name: torch.full((dim,), value) for name, value in
                    (("mean", 0.0), ("std", 1.0), ("min", -1.0), ("max", 1.0), ("q01", -1.0), ("q99", 1.0))}
-             for key, dim in (("observation.state", spec.state_dim), ("action", spec.action_dim))}
+             for key, dim in (("observation.state", tiny.state_dim), ("action", tiny.action_dim))}
     folder = root / f"policy-{backbone}"
-    load_backbone(backbone, "tiny", dataset_stats=stats, tiny=spec).save(folder)
+    load_backbone(backbone, "tiny", dataset_stats=stats, tiny=tiny).save(folder)
     return folder
 
 

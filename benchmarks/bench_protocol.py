@@ -52,7 +52,8 @@ from torch.utils.flop_counter import FlopCounterMode
 
 from devtools.libero_counts import LIBERO_COUNTS
 from devtools.released import BUILDERS, LIBERO, built_here, hub_cache, unit_stats
-from graftcache.backbones import TinySpec, load_backbone
+from graftcache.backbones import load_backbone
+from graftcache.backbones.tiny import TinyBuild
 from graftcache.encoders import load_encoder
 from graftcache.encoders.registry import get_spec
 from graftcache.fit.controls import get_control
@@ -106,7 +107,7 @@ def recipe_settings(recipe: Recipe, batch_size: int | None) -> Settings:
     if recipe.objective != "flow":
         raise SystemExit(f"{recipe.path}: bench_protocol measures flow recipes, not objective {recipe.objective!r}")
     return Settings(fit.steps, batch_size or fit.batch_size, fit.eval_batch_size, fit.num_denoise_steps,
-                    fit.eval_fraction, fit.eval_frames, fit.lora_rank, fit.activation_checkpointing)
+                    fit.eval_fraction, fit.eval_frames, fit.lora_rank, fit.recompute)
 
 
 def held_out_frames(suite: str, settings: Settings) -> int:
@@ -122,7 +123,7 @@ def load(name: str, a: argparse.Namespace, device: torch.device, dtype_name: str
     t0 = time.perf_counter()
     if a.tiny:
         adapter = load_backbone(name, "tiny", device=str(device), dataset_stats=unit_stats(),
-                                tiny=TinySpec(cameras=LIBERO.cameras))
+                                tiny=TinyBuild(cameras=LIBERO.cameras))
         return adapter, time.perf_counter() - t0
     if name not in BUILDERS:
         raise SystemExit(f"no released-geometry builder for {name} (devtools.released knows "
@@ -199,7 +200,7 @@ def measure_kind(adapter, kind: Kind, settings: Settings, a: argparse.Namespace,
                 steps(1)
             return flops.get_total_flops()
 
-        adapter.set_activation_checkpointing(settings.checkpointing == "on")
+        adapter.set_recompute(settings.checkpointing == "on")
         if device.type == "cuda":
             torch.cuda.reset_peak_memory_stats(device)
         try:
@@ -214,15 +215,15 @@ def measure_kind(adapter, kind: Kind, settings: Settings, a: argparse.Namespace,
             opt.zero_grad(set_to_none=True)
             gc.collect()
             torch.cuda.empty_cache()
-            adapter.set_activation_checkpointing(True)
+            adapter.set_recompute(True)
             torch.cuda.reset_peak_memory_stats(device)
             out["step_flops"] = counted()
         t0 = time.perf_counter()
         steps(a.steps)
         out["step_s"] = (time.perf_counter() - t0) / a.steps
-        out["activation_checkpointing"] = "on" if adapter.activation_checkpointing else "off"
+        out["activation_checkpointing"] = "on" if adapter.recomputing else "off"
         out["peak_step_gb"] = torch.cuda.max_memory_allocated(device) / 1e9 if device.type == "cuda" else None
-    adapter.set_activation_checkpointing(False)
+    adapter.set_recompute(False)
     adapter.policy.eval()
     eb = min(settings.eval_batch_size, a.eval_frames)
 

@@ -67,7 +67,8 @@ import bench_protocol as bp  # noqa: E402  (the GPU peaks, a sync, the protocol'
 
 from devtools.released import CONFIGS, LIBERO, Recipe, built_on, on_device, unit_stats  # noqa: E402
 from graftcache.backbone_table import BACKBONES  # noqa: E402
-from graftcache.backbones import TinySpec, load_backbone  # noqa: E402
+from graftcache.backbones import load_backbone  # noqa: E402
+from graftcache.backbones.tiny import TinyBuild  # noqa: E402
 from graftcache.fit.loop import Learner, alone, flow_time, optimise_together  # noqa: E402
 from graftcache.fit.step_bytes import peak_step_bytes  # noqa: E402
 from graftcache.graft import FusedProjector, GraftProjector, feature_key  # noqa: E402
@@ -195,8 +196,8 @@ def exact() -> Iterator[None]:
 
 
 # ---------------------------------------------------------------------------------------------- batches
-def spec_recipe(spec: TinySpec) -> Recipe:
-    return replace(LIBERO, cameras=spec.cameras, state_dim=spec.state_dim, action_dim=spec.action_dim)
+def tiny_recipe(tiny: TinyBuild) -> Recipe:
+    return replace(LIBERO, cameras=tiny.cameras, state_dim=tiny.state_dim, action_dim=tiny.action_dim)
 
 
 def features(adapter, frames: int, width: int, seed: int = 0) -> torch.Tensor:
@@ -270,25 +271,25 @@ def max_rel(a: list[torch.Tensor], b: list[torch.Tensor]) -> float:
 
 
 # ---------------------------------------------------------------------------------------------- stage 1
-def tiny_stats(spec: TinySpec) -> dict:
-    return unit_stats(spec_recipe(spec))
+def tiny_stats(tiny: TinyBuild) -> dict:
+    return unit_stats(tiny_recipe(tiny))
 
 
 def stage_tiny(report: Report, device: torch.device, dtype: torch.dtype, names: list[str]) -> None:
     """Correctness of every backbone at tiny size on the device."""
-    spec = TinySpec()
+    tiny = TinyBuild()
     steps, batch = 3, 2
     for name in names:
         with report.check("1_tiny", name, need_s=15) as out:
             if out is None:
                 continue
-            adapter = load_backbone(name, "tiny", device=str(device), dataset_stats=tiny_stats(spec), tiny=spec)
+            adapter = load_backbone(name, "tiny", device=str(device), dataset_stats=tiny_stats(tiny), tiny=tiny)
             out["params"] = adapter.n_params
             feats = features(adapter, 16, TINY_ENC)
             with exact(), no_dropout(adapter.policy):
                 out.update(fused_vs_solo(adapter, feats, steps, batch))
                 out.update(checkpointing_gradients(adapter, feats, batch))
-                out.update(lean_roundtrip(name, adapter, spec, device))
+                out.update(lean_roundtrip(name, adapter, tiny, device))
             out.update(compute_dtype_step_and_predict(adapter, feats, batch, dtype))
             out["status"] = "ok" if all(v for k, v in out.items() if k.endswith("_ok")) else "failed"
             del adapter
@@ -297,7 +298,7 @@ def stage_tiny(report: Report, device: torch.device, dtype: torch.dtype, names: 
 
 def fused_vs_solo(adapter, feats: torch.Tensor, steps: int, batch: int) -> dict:
     """Two cells trained `steps` SGD steps in one pass against each alone: the projectors' weights after."""
-    if not adapter.per_sample_loss:
+    if not adapter.spec.loss_per_sample:
         return {"fused_ok": True, "fused": "not fusable (one loss a batch): cells run alone"}
     solo = []
     for i in range(2):
@@ -318,7 +319,7 @@ def fused_vs_solo(adapter, feats: torch.Tensor, steps: int, batch: int) -> dict:
 
 def checkpointing_gradients(adapter, feats: torch.Tensor, batch: int) -> dict:
     """The projector's gradients of one loss with activation checkpointing on against off."""
-    if not adapter.supports_activation_checkpointing:
+    if not adapter.spec.can_recompute:
         return {"checkpointing_ok": True, "checkpointing": "not supported by this backbone"}
     (projector,), route = graft_cells(adapter, 1, feats.shape[-1])
     raw = draw_from(adapter, feats, batch)(torch.Generator().manual_seed(0))
@@ -327,12 +328,12 @@ def checkpointing_gradients(adapter, feats: torch.Tensor, batch: int) -> dict:
     grads = {}
     adapter.policy.train()
     for on in (False, True):
-        adapter.set_activation_checkpointing(on)
+        adapter.set_recompute(on)
         projector.zero_grad(set_to_none=True)
         torch.manual_seed(0)  # the same dropout masks
         adapter.loss(adapter.prepare(raw), noise=noise, time=t).mean().backward()
         grads[on] = [p.grad.detach().clone() for p in projector.parameters()]
-    adapter.set_activation_checkpointing(False)
+    adapter.set_recompute(False)
     adapter.reset()
     rel = max_rel(grads[True], grads[False])
     return {"checkpointing_max_rel_diff": rel, "checkpointing_ok": rel < 1e-4}
@@ -340,7 +341,7 @@ def checkpointing_gradients(adapter, feats: torch.Tensor, batch: int) -> dict:
 
 def compute_dtype_step_and_predict(adapter, feats: torch.Tensor, batch: int, dtype: torch.dtype) -> dict:
     """A fused two-cell step and a predict in the compute dtype: finite, and the predicted chunk's shape."""
-    n = 2 if adapter.per_sample_loss else 1
+    n = 2 if adapter.spec.loss_per_sample else 1
     projectors, route = graft_cells(adapter, n, feats.shape[-1])
     cells = learners(adapter, projectors, feats, batch)
     optimise_together(adapter, cells, steps=2, batch_size=batch, dtype=dtype, route=route, show=False)
@@ -356,7 +357,7 @@ def compute_dtype_step_and_predict(adapter, feats: torch.Tensor, batch: int, dty
     return {"compute_dtype_losses": losses, "predict_shape": list(chunk.shape), "compute_dtype_ok": finite}
 
 
-def lean_roundtrip(name: str, adapter, spec: TinySpec, device: torch.device) -> dict:
+def lean_roundtrip(name: str, adapter, tiny: TinyBuild, device: torch.device) -> dict:
     """The tiny policy saved to disk and lean-loaded onto the device: the same weights (sha256) and chunk."""
     from graftcache.backbone_table import native_name
     from graftcache.encoders import load_encoder
@@ -393,16 +394,16 @@ def built(name: str, device: torch.device, tiny: bool, hub: Path):
     the tiny one (lerobot's constructor at the tiny marker's sizes)."""
     if not tiny:
         return on_device(name, device, cache=hub)
-    spec = TinySpec()
-    base = load_backbone(name, "tiny", device="cpu", dataset_stats=tiny_stats(spec), tiny=spec)
-    return built_on(type(base), base.policy.config, device, tiny_stats(spec), source=f"tiny {name} on {device}",
+    tiny = TinyBuild()
+    base = load_backbone(name, "tiny", device="cpu", dataset_stats=tiny_stats(tiny), tiny=tiny)
+    return built_on(type(base), base.policy.config, device, tiny_stats(tiny), source=f"tiny {name} on {device}",
                     marker=base.tiny_marker)
 
 
 def step_flops(adapter, feats: torch.Tensor, batch: int, dtype: torch.dtype) -> int:
     """FLOPs of one training step of one cell at `batch` (checkpointing off: model FLOPs, no recomputation)."""
     (projector,), route = graft_cells(adapter, 1, feats.shape[-1])
-    adapter.set_activation_checkpointing(False)
+    adapter.set_recompute(False)
     with FlopCounterMode(display=False) as counter:
         optimise_together(adapter, learners(adapter, [projector], feats, batch), steps=1, batch_size=batch,
                           dtype=dtype, route=route, show=False)
@@ -417,7 +418,7 @@ def time_step(adapter, feats: torch.Tensor, batch: int, dtype: torch.dtype, cell
     traceback no longer holds the step's activations)."""
     device = adapter.device
     projectors, route = graft_cells(adapter, cells, feats.shape[-1])
-    adapter.set_activation_checkpointing(checkpointing)
+    adapter.set_recompute(checkpointing)
     group = learners(adapter, projectors, feats, batch)
     bp.sync(device)
     base = torch.cuda.memory_allocated(device) if device.type == "cuda" else None
@@ -440,7 +441,7 @@ def time_step(adapter, feats: torch.Tensor, batch: int, dtype: torch.dtype, cell
         out["step_peak_gb"] = round(out["peak_gb"] - base / 1e9, 2)
     del group, projectors
     adapter.reset()
-    adapter.set_activation_checkpointing(False)
+    adapter.set_recompute(False)
     free(device)
     if oom is not None:
         return {**out, "oom": oom}
@@ -452,11 +453,11 @@ def step_estimate(adapter, feats: torch.Tensor, dtype: torch.dtype, checkpointin
     if adapter.device.type != "cuda":
         return {"status": "skipped", "reason": "the allocator's peak is a CUDA measurement"}
     graft_cells(adapter, 1, feats.shape[-1])
-    adapter.set_activation_checkpointing(checkpointing)
+    adapter.set_recompute(checkpointing)
     one, two = (peak_step_bytes(adapter, draw_from(adapter, feats, f)(torch.Generator().manual_seed(0)), f, dtype)
                 for f in (1, 2))
     adapter.reset()
-    adapter.set_activation_checkpointing(False)
+    adapter.set_recompute(False)
     free(adapter.device)
     return {"one_frame_gb": one / 1e9, "per_frame_gb": (two - one) / 1e9}
 
@@ -472,7 +473,7 @@ def scaling(report: Report, stage: str, adapter, batches: list[int], dtype: torc
             out.update(batch=batches[0], step_flops=flops, flops_per_sample=flops / batches[0])
     per_sample = report.data["stages"][stage]["flops"].get("flops_per_sample")
     for checkpointing in (False, True):
-        if checkpointing and not adapter.supports_activation_checkpointing:
+        if checkpointing and not adapter.spec.can_recompute:
             continue
         ckpt = "on" if checkpointing else "off"
         with report.check(stage, f"estimate_ckpt_{ckpt}", need_s=15) as out:
@@ -507,11 +508,11 @@ def cells_per_pass(report: Report, stage: str, adapter, batch: int, counts: list
         with report.check(stage, f"cells_per_pass_{n}", need_s=30) as out:
             if out is None:
                 continue
-            if n > 1 and not adapter.per_sample_loss:
+            if n > 1 and not adapter.spec.loss_per_sample:
                 out.update(status="skipped", reason="one loss a batch: cells run alone")
                 continue
             result = time_step(adapter, feats, batch, dtype, n, repeats, False)
-            if "oom" in result and adapter.supports_activation_checkpointing:
+            if "oom" in result and adapter.spec.can_recompute:
                 result = time_step(adapter, feats, batch, dtype, n, repeats, True)
             out.update(result)
             if "step_s" in result:
@@ -654,7 +655,7 @@ def protocol(report: Report, adapters: dict, device: torch.device, dtype: torch.
                     out.update({**kind.__dict__, **bp.measure_kind(adapter, kind, settings, a, dtype)})
                 by_kind[kind] = out
                 adapter.reset()
-                adapter.set_activation_checkpointing(False)
+                adapter.set_recompute(False)
                 free(device)  # each kind starts from the weights alone, as a sweep's cell does
             measured[entry.name][cell] = by_kind[kind]
         adapter.reset()

@@ -4,6 +4,9 @@ A backbone is a folder `graftcache/backbones/<name>/` holding (the registry's re
 
 - `adapter.py`: the one `graftcache.backbones.base.BackboneAdapter` subclass defined there whose `name` is <name>
   (graftcache.backbones.get_backbone finds it, as lerobot's policy factory finds a policy's classes by name);
+- `spec.py`: `SPEC`, its `graftcache.backbones.spec.BackboneSpec`, the adapter's `spec`: data that imports neither
+  torch nor lerobot, so a report reads labels and released sizes without importing any adapter
+  (graftcache.backbones.registered_spec);
 - `tiny.py`: `build_tiny(spec, stats, device)`, its tiny configuration (graftcache.backbones.base.BackboneAdapter.load
   of "tiny" calls it).
 
@@ -19,7 +22,7 @@ from pathlib import Path
 
 #: The files every backbone folder holds (tests/backbones/test_backbone_registry.py fails on a registered folder
 #: lacking one).
-PIECES = ("adapter", "tiny")
+PIECES = ("adapter", "spec", "tiny")
 FOLDER = Path(__file__).resolve().parent / "backbones"
 
 
@@ -33,13 +36,13 @@ def missing_pieces(folder: Path) -> list[str]:
     return [piece for piece in PIECES if not (folder / f"{piece}.py").is_file()]
 
 
-def _discover() -> dict[str, str]:
-    return {folder.name: backbone_module(folder.name) for folder in sorted(FOLDER.iterdir())
-            if (folder / "adapter.py").is_file()}
+def discover(folder: Path) -> dict[str, str]:
+    """Backbone name -> adapter module for every subfolder of `folder` that holds an adapter.py."""
+    return {sub.name: backbone_module(sub.name) for sub in sorted(folder.iterdir()) if (sub / "adapter.py").is_file()}
 
 
 #: Registered backbone name -> its adapter module: every folder of graftcache/backbones/ that holds an adapter.py.
-BACKBONES: dict[str, str] = _discover()
+BACKBONES: dict[str, str] = discover(FOLDER)
 
 #: A backbone's own vision tower is the encoder `<backbone>-native` (stage 1 caches it like any encoder).
 NATIVE_SUFFIX = "-native"

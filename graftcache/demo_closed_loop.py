@@ -2,7 +2,7 @@
 the policy look, for the report's first measured offline-vs-closed-loop figure.
 
 Success is 0% for everything trainable on the bundled sample, so the figure rests on graded progress read from the
-simulator's state (graftcache.rollout.progress): how close the end effector comes to the task's target. What runs
+simulator's state (graftcache.rollout.graded): how close the end effector comes to the task's target. What runs
 (CLOSED_LOOP, each number with its reason):
 
 - the demo recipe (cli/demo.toml) with more seeds and without the shuffled-image control, which has no closed-loop

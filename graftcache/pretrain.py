@@ -1,7 +1,7 @@
 """`graftcache train-tiny`: train a tiny backbone (all parameters, its own vision tower, on pixels).
 
 The frozen-backbone diagnostic is only meaningful on a backbone whose image tokens matter. No
-released SmolVLA / pi0.5 weights can be fetched here, so `graftcache train-tiny` trains lerobot's
+released backbone weights can be fetched here, so `graftcache train-tiny` trains lerobot's
 own policy classes at tiny sizes on a LeRobot dataset (the bundled LIBERO sample by default) with
 the policy's own flow loss. This is the one place outside stage 1 that decodes video: it trains the
 backbone, not a graft. The result is a regular lerobot checkpoint folder (safetensors + processors
@@ -24,7 +24,8 @@ import numpy as np
 import polars as pl
 import torch
 
-from graftcache.backbones import TinySpec, get_backbone
+from graftcache.backbones import get_backbone
+from graftcache.backbones.tiny import TinyBuild
 from graftcache.backbones.tiny_record import policy_dir, read_record, write_record
 from graftcache.backbones.tower_encoder import policy_pixels
 from graftcache.datasets import DatasetMeta, open_dataset
@@ -193,8 +194,8 @@ def _train(backbone: str, dataset: str, folder: Path, *, cfg: TinyTrainConfig, c
     t0 = time.perf_counter()
     source, frames, table = _decode_all(dataset, cameras, cfg.image_size, log)
     meta = source.meta
-    spec = TinySpec(cameras=cameras, state_dim=meta.state_dim, action_dim=meta.action_dim, seed=cfg.seed)
-    adapter = get_backbone(backbone).load("tiny", device=str(device), dataset_stats=dataset_stats(table), tiny=spec)
+    tiny = TinyBuild(cameras=cameras, state_dim=meta.state_dim, action_dim=meta.action_dim, seed=cfg.seed)
+    adapter = get_backbone(backbone).load("tiny", device=str(device), dataset_stats=dataset_stats(table), tiny=tiny)
     policy = adapter.policy
     _unfreeze_all(policy)
     n_params = sum(p.numel() for p in policy.parameters())
@@ -212,7 +213,7 @@ def _train(backbone: str, dataset: str, folder: Path, *, cfg: TinyTrainConfig, c
         """A batch of frames drawn with replacement (decoded frames are all in memory here); with `state_dropout`,
         a share of them read the mean state, so the policy must find where the arm is in its cameras."""
         pos = torch.randint(0, len(table), (cfg.batch_size,), generator=generator)
-        raw = {f"observation.images.{c}": frames[c][pos].float() / 255.0 for c in spec.cameras}
+        raw = {f"observation.images.{c}": frames[c][pos].float() / 255.0 for c in tiny.cameras}
         seen = state[pos]
         if cfg.state_dropout:  # no draw at 0: the batches of recipes from before the setting stay the same
             dropped = torch.rand(cfg.batch_size, generator=generator) < cfg.state_dropout

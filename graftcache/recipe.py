@@ -40,7 +40,7 @@ from graftcache.codecs import matches, type_name
 from graftcache.errors import GraftcacheError
 from graftcache.fit.controls import get_control
 from graftcache.requests import ExecutorSettings, ExtractRequest, FitRequest, TinyTrainConfig
-from graftcache.settings import declared, recipe_keys
+from graftcache.settings import declared, recipe_keys, renamed
 
 
 class RecipeError(GraftcacheError):
@@ -167,7 +167,7 @@ def _build(cls: type, data: Mapping[str, Any], where: str) -> Any:
 def _section(data: Mapping[str, Any], section: str, where: str) -> dict[str, Any]:
     """A settings table as request overrides; keys outside SECTION_KEYS[section] or of the wrong type,
     and values the request refuses, name the place."""
-    table = data.get(section, {})
+    table = renamed(SECTIONS[section], data.get(section, {}), f"{where} [{section}]")
     unknown = sorted(set(table) - set(SECTION_KEYS[section]))
     if unknown:
         raise RecipeError(f"{where} [{section}]: unknown key(s) {', '.join(unknown)}; known: "

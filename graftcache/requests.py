@@ -4,7 +4,7 @@ setting.
 Each field declares, with `setting(...)` (graftcache/settings.py), everything about it that is used outside
 Python: its default, help, flag, choices, range rule (graftcache/checks.py), how its flag's text is read and
 written (graftcache/codecs.py; by default from the field's type), and whether a sweep recipe's settings table
-may set it (`recipe=False`: the sweep sets it from its grid). From these the CLI builds its flags
+may set it (`recipe=False`: the sweep sets it from its product). From these the CLI builds its flags
 (graftcache.cli.common.add_flags), the recipe reader its schema (graftcache.recipe), the sweep the command lines
 it records (graftcache.sweep.command_line), and `Checked` the checks every construction runs.
 
@@ -16,7 +16,7 @@ is at once `graftcache fit --eval-batch-size N` (an int > 0; `--eval-batch-size 
 a key of a recipe's [fit] table (type and range checked there too), written into the command lines a sweep
 records, and checked whenever a FitRequest is built. A choice is `choices=("auto", "on", "off")`; a switch is a
 `bool` field (default False: `--name`; default True: `--no-name`). A field the command sets itself takes
-`flag=None`; one the sweep's grid sets takes `recipe=False`.
+`flag=None`; one the sweep's product sets takes `recipe=False`.
 
 A FitRequest setting that changes the numbers says so in the same declaration: `cell=` puts it in each cell's
 identity (graftcache.fit.plan.Cell, hashed into the run_id; `SCHEDULED`: only cells whose objective takes steps),
@@ -114,7 +114,7 @@ class ExtractRequest(Checked):
     device: str = setting("cpu", recipe=False, help="cpu, cuda or cuda:N")
     batch_size: int = setting(32, rule=POSITIVE)
     num_workers: int = setting(2, rule=WORKERS, help="decode worker processes (0: decode in-process; at most 1024)")
-    block_frames: int = setting(256, rule=POSITIVE, help="frames per Zarr shard / resumable unit")
+    block_frames: int = setting(256, rule=POSITIVE, help="frames per block file / resumable unit")
     shard: tuple[int, int] | None = setting(  # (i, N): write only shard i of N's blocks (graftcache/extract.py)
         None, rule=SHARD, codec=codecs.SHARD, recipe=False,
         help="write only the i-th of N contiguous ranges of blocks, so that N processes (or machines sharing an "
@@ -148,9 +148,10 @@ POOL_PREFIX = "pool-"
 #: Which episodes of each task a fit holds out (graftcache.fit.data.SPLITS implements each; tests/test_settings.py
 #: keeps the two equal): graftcache's seeded draw (the default), or lerobot's last ceil(n * eval_fraction).
 EVAL_SPLITS = ("graftcache", "lerobot")
-#: Activation checkpointing of the frozen LM and expert (graftcache/backbones/activation_checkpointing.py): `auto`
-#: turns it on when a training step would not fit the device's memory without it (graftcache/fit/step_memory.py).
-CHECKPOINTING_MODES = ("auto", "on", "off")
+#: Whether a fit recomputes: activation checkpointing of the frozen LM and expert
+#: (graftcache/backbones/activation_checkpointing.py). `auto` turns it on when a training step would not fit the
+#: device's memory without it (graftcache/fit/step_memory.py).
+RECOMPUTE_MODES = ("auto", "on", "off")
 #: A results path names a file: "" would be the current folder, and "rdir/" used to write a file named rdir.
 RESULTS_FILE: Rule = (lambda v: bool(v.strip()) and not v.endswith(("/", os.sep)),
                       "must name a file, e.g. results.parquet (not empty, not ending in /)")
@@ -218,11 +219,11 @@ class FitRequest(Checked):
     num_denoise_steps: int | None = setting(None, rule=POSITIVE, cell=ALWAYS, shared=True)
     lora_rank: int = setting(8, rule=LORA_RANK, help=f"rank of the lora control's adapters (1..{MAX_LORA_RANK})",
                              cell=LORA)
-    activation_checkpointing: str = setting(
-        "auto", choices=CHECKPOINTING_MODES,
+    recompute: str = setting(
+        "auto", choices=RECOMPUTE_MODES, formerly="activation_checkpointing",
         help="recompute the frozen LM's and action expert's activations during backward (same gradients, less "
-        "memory, ~1/3 more step time); auto: on when a step would not fit the device's memory without it; rows "
-        "record what it resolved to")
+        "memory, ~1/3 more step time: activation checkpointing); auto: on when a step would not fit the device's "
+        "memory without it; rows record what it resolved to (column activation_checkpointing)")
     device: str = setting("cpu", recipe=False, help="cpu, cuda or cuda:N")
     num_workers: int = setting(  # the numbers do not depend on it
         2, rule=WORKERS,

@@ -21,6 +21,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import typing
+import warnings
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -45,8 +46,9 @@ class Setting:
     metavar: str | None = None
     shown: str | None = None     # the default as the help writes it (else the codec's text of it)
     positional: bool = False
-    recipe: bool = True          # False: a sweep sets it from its grid, never a recipe's settings table
+    recipe: bool = True          # False: a sweep sets it from its product, never a recipe's settings table
     twin: Twin | None = None     # a second flag for the same field, exclusive with the first
+    formerly: str | None = None  # the field's former name: its flag and recipe key still read, with a FutureWarning
     # What a fit's results make of it (FitRequest; graftcache.fit.plan.Cell, graftcache.results.SCHEMA):
     cell: Identity | None = None  # part of each cell's identity, hence of its run_id
     shared: bool = False          # the cells of one backbone pass share it (graftcache.fit.plan.Plan.pass_key)
@@ -146,8 +148,25 @@ def flag_of(cls: type, name: str) -> str:
 
 
 def recipe_keys(cls: type) -> tuple[str, ...]:
-    """The keys a recipe's settings table for `cls` may set: every field not set by the sweep's grid."""
+    """The keys a recipe's settings table for `cls` may set: every field not set by the sweep's product."""
     return tuple(name for name, d in declared(cls).items() if d.setting.recipe)
+
+
+def renamed(cls: type, values: Mapping[str, Any], where: str) -> dict[str, Any]:
+    """`values` (a recipe table) with each key that a field of `cls` was formerly called (its setting's
+    `formerly`) under the field's name, after a FutureWarning naming the place and the new key: recipes written
+    before a rename still read. Both spellings at once is an error naming them."""
+    former = {d.setting.formerly: name for name, d in declared(cls).items() if d.setting.formerly}
+    out: dict[str, Any] = {}
+    for key, value in values.items():
+        name = former.get(key, key)
+        if name in out:
+            raise GraftcacheError(f"{where}: {key} and {name} are one setting ({name}); keep {name} only")
+        if name != key:
+            warnings.warn(f"{where}: {key} is now called {name}; rename it, the old key is deprecated",
+                          FutureWarning, stacklevel=2)
+        out[name] = value
+    return out
 
 
 def value_problem(d: Declared, value: Any) -> str | None:

@@ -12,8 +12,10 @@ import ast
 import dataclasses
 import importlib
 import inspect
+import io
 import re
 import textwrap
+import tokenize
 from pathlib import Path
 
 import pytest
@@ -194,7 +196,7 @@ def glossary(text: str) -> dict[str, tuple[list[str], list[str]]]:
     section = text.split("## Glossary", 1)[1].split("\n## ", 1)[0]
     rows = {}
     for line in section.splitlines():
-        cells = [c.strip() for c in line.strip().strip("|").split("|")] if line.startswith("|") else []
+        cells = [c.strip() for c in re.split(r"(?<!\\)\|", line.strip().strip("|"))] if line.startswith("|") else []
         if len(cells) == 4 and cells[0] not in ("word", "---"):
             cited = re.findall(r"`(graftcache\.[\w.]+)`", cells[2])
             rows[cells[0]] = (cited, re.findall(r"module `?(\w+)`?|`(\w+)`", cells[3]))
@@ -260,6 +262,146 @@ def test_a_retired_name_is_found_wherever_the_code_uses_it() -> None:
     assert "module lean" not in found  # module names match whole, not as prefixes
     assert not names_in("pool_grid(x)", "graftcache.pooling") & {"module pool", "BackbonePool"}
 
+
+
+# ------------------------------------------------------------------------------------------- the glossary's rules
+#: where the glossary's forbidden patterns and dotted names in prose are looked for (besides DOCS_SEARCHED)
+PROSE_DIRS = ("graftcache",)
+#: the docs whose text the forbidden patterns search (their `## Glossary` section, which defines the words, aside)
+DOCS_SEARCHED = ("README.md", "docs/ARCHITECTURE.md")
+
+
+def glossary_rules(text: str) -> dict[str, list[re.Pattern]]:
+    r"""word -> its forbidden patterns, from the table under `## Glossary` whose header is `| word | forbidden | ...`
+    (a `|` inside a pattern is written `\|`, as markdown tables need)."""
+    section = text.split("## Glossary", 1)[1].split("\n## ", 1)[0]
+    table = section.split("| word | forbidden |", 1)[1]
+    rules: dict[str, list[re.Pattern]] = {}
+    for line in table.splitlines()[2:]:
+        if not line.startswith("|"):
+            break
+        cells = [c.strip() for c in re.split(r"(?<!\\)\|", line.strip().strip("|"))]
+        rules.setdefault(cells[0], []).append(re.compile(cells[1].strip("`").replace(r"\|", "|")))
+    return rules
+
+
+def _docstring_lines(tree: ast.AST) -> list[tuple[int, str]]:
+    """(line, text) of every line of the module's, classes' and functions' docstrings."""
+    out = []
+    for node in ast.walk(tree):
+        if isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)) and node.body:
+            first = node.body[0]
+            if isinstance(first, ast.Expr) and isinstance(first.value, ast.Constant) \
+                    and isinstance(first.value.value, str):
+                out += [(first.lineno + i, line) for i, line in enumerate(first.value.value.splitlines())]
+    return out
+
+
+def prose_of(source: str) -> list[tuple[int, str]]:
+    """(line, text) of a Python file's docstrings and comments: what it says in words (stored strings, messages
+    and help texts are values, not names, and are not searched)."""
+    comments = [(t.start[0], t.string) for t in tokenize.generate_tokens(io.StringIO(source).readline)
+                if t.type == tokenize.COMMENT]
+    return sorted(comments + _docstring_lines(ast.parse(source)))
+
+
+def identifiers_of(source: str) -> list[tuple[int, str]]:
+    """(line, name) of every name a Python file defines or uses: classes, functions, arguments, names,
+    attributes, keyword arguments, imported names and aliases."""
+    out = []
+    for node in ast.walk(ast.parse(source)):
+        name = node.name if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)) else \
+            node.arg if isinstance(node, (ast.arg, ast.keyword)) else node.id if isinstance(node, ast.Name) else \
+            node.attr if isinstance(node, ast.Attribute) else \
+            (node.asname or node.name.rsplit(".", 1)[-1]) if isinstance(node, ast.alias) else None
+        if name:
+            out.append((node.lineno if hasattr(node, "lineno") else 0, name))
+    return out
+
+
+def searched_text() -> list[tuple[str, str]]:
+    """('file:line', text) of everything the glossary's rules govern: identifiers, docstrings and comments under
+    PROSE_DIRS, and the lines of DOCS_SEARCHED outside their glossary."""
+    out = []
+    for folder in PROSE_DIRS:
+        for path in sorted((ROOT / folder).rglob("*.py")):
+            source, where = path.read_text(encoding="utf-8"), path.relative_to(ROOT)
+            out += [(f"{where}:{line}", text) for line, text in identifiers_of(source) + prose_of(source)]
+    for doc in DOCS_SEARCHED:
+        text = (ROOT / doc).read_text(encoding="utf-8")
+        glossary_lines = range(0)
+        if "## Glossary" in text:
+            start = text[:text.index("## Glossary")].count("\n")
+            glossary_lines = range(start, start + text.split("## Glossary", 1)[1].split("\n## ", 1)[0].count("\n"))
+        out += [(f"{doc}:{i + 1}", line) for i, line in enumerate(text.splitlines()) if i not in glossary_lines]
+    return out
+
+
+def rule_breaches(rules: dict[str, list[re.Pattern]], searched: list[tuple[str, str]]) -> list[str]:
+    """'file:line: word: the match' for every match of a word's forbidden pattern."""
+    return [f"{where}: {word}: {m.group(0)!r}" for word, patterns in rules.items() for pattern in patterns
+            for where, text in searched if (m := pattern.search(text))]
+
+
+def test_no_word_of_the_glossary_is_used_for_another_idea() -> None:
+    rules = glossary_rules((ROOT / "docs/ARCHITECTURE.md").read_text(encoding="utf-8"))
+    assert {"activation checkpointing", "recompute", "grid", "shard", "loss per sample"} <= set(rules)
+    assert rule_breaches(rules, searched_text()) == []
+
+
+def test_each_overloaded_use_breaks_a_rule() -> None:
+    """Each overloaded use the glossary retired (graftcache issue 41) matches its word's pattern, and the words
+    in their own sense match none."""
+    rules = glossary_rules((ROOT / "docs/ARCHITECTURE.md").read_text(encoding="utf-8"))
+    overloaded = {
+        "activation checkpointing": ["CHECKPOINTING_MODES", "checkpointing", "Checkpointing is graftcache's switch"],
+        "recompute": ["The step measured decides `--activation-checkpointing auto`", "activation checkpointing mode"],
+        "grid": ["False: a sweep sets it from its grid", "every field not set by the sweep's grid"],
+        "shard": ["frames per Zarr shard", "zarr writes each shard file once", "safetensors (single or sharded)"],
+        "spec": ["TinySpec"],
+        "loss per sample": ["per_sample_loss"],
+    }
+    for word, uses in overloaded.items():
+        assert [u for u in uses if not rule_breaches({word: rules[word]}, [("x:1", u)])] == [], word
+    proper = ["ActivationCheckpointing", "activation checkpointing of the frozen LM", "gradient_checkpointing_enable",
+              "token grid", "extract --shard i/N", "the last shard to finish", "BackboneSpec.loss_per_sample",
+              "a block file per array"]
+    assert rule_breaches(rules, [("x:1", u) for u in proper]) == []
+
+
+def dotted_in_prose() -> list[tuple[str, str]]:
+    """('file:line', dotted name) of every graftcache.x.y a docstring or comment under PROSE_DIRS names."""
+    out = []
+    for folder in PROSE_DIRS:
+        for path in sorted((ROOT / folder).rglob("*.py")):
+            for line, text in prose_of(path.read_text(encoding="utf-8")):
+                out += [(f"{path.relative_to(ROOT)}:{line}", d.rstrip(".")) for d in DOTTED.findall(text)]
+    return out
+
+
+def unresolved(cited: list[tuple[str, str]]) -> list[str]:
+    """'file:line: dotted: no attribute' for every cited dotted name that does not import or getattr."""
+    out = []
+    for where, dotted in cited:
+        try:
+            _resolve(dotted)
+        except (AttributeError, AssertionError) as e:
+            out.append(f"{where}: {dotted}: no {e}")
+    return out
+
+
+def test_every_dotted_name_in_a_docstring_or_comment_resolves() -> None:
+    cited = dotted_in_prose()
+    assert len({d for _, d in cited}) >= 100  # the pattern finds the package's citations
+    assert unresolved(cited) == []
+
+
+def test_an_unresolved_dotted_name_is_reported_with_its_line() -> None:
+    source = ('"""Reads graftcache.results.SCHEMA.\n\nand graftcache.results.no_such."""\n'
+              'x = 1  # graftcache.nowhere.y\n')
+    cited = [("f.py:" + str(line), d) for line, text in prose_of(source) for d in DOTTED.findall(text)]
+    assert unresolved(cited) == ["f.py:3: graftcache.results.no_such: no no_such",
+                                 "f.py:4: graftcache.nowhere.y: no nowhere"]
 
 # ------------------------------------------------------------------------------------------------ the backbone lists
 def _specs() -> dict:

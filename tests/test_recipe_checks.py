@@ -68,8 +68,11 @@ BAD = {
     "unknown_encoder": ({"encoders": '[[encoders]]\nname = "no-such-encoder"\n'}, "unknown encoder 'no-such-encoder'"),
     "missing_policy": ({"backbones": '[[backbones]]\nname = "pi05"\npolicy = "/nonexistent/policy"\n'},
                        "policy checkpoint '/nonexistent/policy': no such folder"),
-    "unknown_checkpointing": ({"tables": '[fit]\nactivation_checkpointing = "sometimes"\n'},
-                              "[fit]: activation_checkpointing = 'sometimes' is not one of auto, on, off"),
+    "unknown_recompute": ({"tables": '[fit]\nrecompute = "sometimes"\n'},
+                          "[fit]: recompute = 'sometimes' is not one of auto, on, off"),
+    "both_spellings": ({"tables": '[fit]\nrecompute = "on"\nactivation_checkpointing = "on"\n'},
+                       "[fit]: activation_checkpointing and recompute are one setting (recompute); keep recompute "
+                       "only"),
     "eval_batch_size_zero": ({"tables": '[fit]\neval_batch_size = 0\n'}, "eval_batch_size = 0 must be"),
     "grid_past_memory": ({"tables": '[extract]\ngrids = ["100000x100000"]\n'},
                          "2 camera(s) of grids 100000x100000 x 192 channels needs about"),
@@ -125,7 +128,7 @@ def test_dry_run_refuses_what_the_run_refuses_before_any_work(case: str, v2_pi: 
     _nothing_made(tmp_path)
 
 
-def test_dry_run_of_a_good_recipe_prints_the_grid_and_makes_nothing(v2_pi: Written, tmp_path: Path,
+def test_dry_run_of_a_good_recipe_prints_the_product_and_makes_nothing(v2_pi: Written, tmp_path: Path,
                                                                     capsys: pytest.CaptureFixture) -> None:
     path = _recipe(tmp_path, v2_pi.root)
     assert main(["sweep", "--dry-run", str(path)]) == 0

@@ -17,7 +17,7 @@ from graftcache.cli.common import add_flags, request_from
 from graftcache.errors import GraftcacheError
 from graftcache.recipe import SECTION_KEYS
 from graftcache.requests import CONTROLS, EVAL_SPLITS, OBJECTIVES, ExecutorSettings, ExtractRequest, FitRequest
-from graftcache.settings import Checked, declared, recipe_keys, setting
+from graftcache.settings import Checked, declared, recipe_keys, renamed, setting
 from graftcache.sweep import command_line
 
 FIT = FitRequest(backbone="pi05", encoder="dinov2-s", suite="libero_goal", policy="/ckpt", dataset="/data",
@@ -25,7 +25,7 @@ FIT = FitRequest(backbone="pi05", encoder="dinov2-s", suite="libero_goal", polic
                  controls=("zero-image", "pool-4x4"), objective="align", steps=7, lr=2.5e-4, batch_size=5,
                  buffer_mib=64, eval_fraction=0.25, eval_split_seed=9, eval_split="lerobot", eval_frames=11,
                  num_denoise_steps=3,
-                 lora_rank=2, eval_batch_size=6, activation_checkpointing="on", device="cuda:1", num_workers=0,
+                 lora_rank=2, eval_batch_size=6, recompute="on", device="cuda:1", num_workers=0,
                  cells_per_pass=3,
                  compute_dtype="fp32", results="/r.parquet", out="/o",
                  cache="s3://b/p", progress=False, drop_nonfinite=True, accept_numerics_drift=True, command="x")
@@ -73,7 +73,23 @@ def test_one_declaration_is_a_flag_a_recipe_key_and_a_check() -> None:
     assert "frames scored at once" in parser.format_help()
 
 
-def test_recipe_tables_take_every_field_but_those_the_grid_sets() -> None:
+def test_a_renamed_setting_still_reads_its_former_flag_and_recipe_key_with_a_warning() -> None:
+    """`--activation-checkpointing` and the recipe key `activation_checkpointing` (before `recompute`) still set
+    the field, each with a FutureWarning naming the new spelling; the written command line uses the new one."""
+    parser = build_parser()
+    base = ["fit", "--backbone", "smolvla", "--encoder", "e", "--suite", "libero_spatial"]
+    with pytest.warns(FutureWarning, match="^--activation-checkpointing is now --recompute; the old flag is deprec"):
+        old = parser.parse_args([*base, "--activation-checkpointing", "on"])
+    assert old.recompute == "on" and parser.parse_args(base).recompute == "auto"
+    with pytest.raises(SystemExit):
+        parser.parse_args([*base, "--activation-checkpointing", "sometimes"])  # the same choices
+    with pytest.warns(FutureWarning, match=r"^r\.toml \[fit\]: activation_checkpointing is now called recompute"):
+        assert renamed(FitRequest, {"activation_checkpointing": "off", "steps": 3}, "r.toml [fit]") == \
+            {"recompute": "off", "steps": 3}
+    assert "--recompute on" in command_line("fit", FitRequest, recompute="on")
+
+
+def test_recipe_tables_take_every_field_but_those_the_product_sets() -> None:
     assert "seeds" not in SECTION_KEYS["fit"] and "steps" in SECTION_KEYS["fit"]
     assert "shard" not in SECTION_KEYS["extract"] and "frame_stride" in SECTION_KEYS["extract"]
     assert SECTION_KEYS["executor"] == tuple(f.name for f in fields(ExecutorSettings))

@@ -11,13 +11,13 @@ from importlib import import_module
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from graftcache.backbone_table import BACKBONES
-from graftcache.backbones.tiny import TinySpec
+from graftcache.backbone_table import BACKBONES, backbone_module
 from graftcache.errors import BackboneError
 
 if TYPE_CHECKING:
     from graftcache.backbones.base import BackboneAdapter
     from graftcache.backbones.spec import BackboneSpec
+    from graftcache.backbones.tiny import TinyBuild
 
 
 def get_backbone(name: str) -> type[BackboneAdapter]:
@@ -34,16 +34,17 @@ def get_backbone(name: str) -> type[BackboneAdapter]:
 
 
 def registered_spec(name: str) -> BackboneSpec | None:
-    """The spec of backbone `name` (importing its adapter: torch, ~3 s once), or None for a name outside the registry
-    (a results table typed in from a paper may name any backbone). What tables of all backbones read: their labels
-    (graftcache.analysis.table.backbone_label), their released sizes (graftcache.analysis.ladder)."""
-    return get_backbone(name).spec if name in BACKBONES else None
+    """The spec of backbone `name`, its folder's `spec.py` (data: no adapter, torch or lerobot is imported), or None
+    for a name outside the registry (a results table typed in from a paper may name any backbone). What tables of all
+    backbones read: their labels (graftcache.analysis.table.backbone_label), their released sizes
+    (graftcache.analysis.ladder)."""
+    return import_module(backbone_module(name, "spec")).SPEC if name in BACKBONES else None
 
 
 def load_backbone(name: str, source: str | Path, *, device: str = "cpu", dataset_stats: dict | None = None,
-                  tiny: TinySpec | None = None) -> BackboneAdapter:
+                  tiny: TinyBuild | None = None) -> BackboneAdapter:
     """Load backbone `name` from `source` ("tiny", a hub id in the HF cache, or a checkpoint folder)."""
     return get_backbone(name).load(source, device=device, dataset_stats=dataset_stats, tiny=tiny)
 
 
-__all__ = ["BACKBONES", "TinySpec", "get_backbone", "load_backbone", "registered_spec"]
+__all__ = ["BACKBONES", "get_backbone", "load_backbone", "registered_spec"]

@@ -1,4 +1,6 @@
-"""Activation checkpointing of the frozen language model and action expert (`fit --activation-checkpointing`).
+"""Activation checkpointing of the frozen language model and action expert. graftcache's switch of it is
+"recompute": whether a backbone can (`BackboneSpec.can_recompute`), whether an adapter does now (`recomputing`,
+`set_recompute`) and what a fit asks (`fit --recompute auto|on|off`).
 
 A graft trains only the projector, but its gradient flows back through every layer of the frozen LM and expert,
 so a step keeps every layer's activations for backward: at released size and the paper's batch of 32 that is
@@ -41,51 +43,52 @@ def checkpointed(fn: Callable, owner: nn.Module) -> Callable:
 
 
 class ActivationCheckpointing:
-    """The checkpointing half of a BackboneAdapter (mixed into it): one switch, off after load."""
+    """The activation checkpointing half of a BackboneAdapter (mixed into it): one switch, `set_recompute`, off
+    after load."""
 
-    _activation_checkpointing_on: bool = False
+    _recomputing: bool = False
 
     @property
-    def activation_checkpointing(self) -> bool:
-        """Whether the frozen LM and expert recompute their activations during backward."""
-        return self._activation_checkpointing_on
+    def recomputing(self) -> bool:
+        """Whether the frozen LM and expert recompute their activations during backward now."""
+        return self._recomputing
 
-    def set_activation_checkpointing(self, on: bool) -> None:
-        """Turn checkpointing on or off in the model itself, whatever state it is in (lerobot's own switch may have
+    def set_recompute(self, on: bool) -> None:
+        """Turn recomputing on or off in the model itself, whatever state it is in (lerobot's own switch may have
         turned it on), so that the flag rows record is what runs; the numbers do not change, only the memory a
         training step holds and the FLOPs it spends."""
-        if on or self.supports_activation_checkpointing:
-            self._switch_activation_checkpointing(on)
-        self._activation_checkpointing_on = on
+        if on or self.spec.can_recompute:
+            self._switch_recompute(on)
+        self._recomputing = on
 
-    def _switch_activation_checkpointing(self, on: bool) -> None:
-        """The backbone's own way of turning checkpointing of its LM and expert on or off, from whatever state (none
-        by default: `auto` then keeps it off, `on` is refused in one line)."""
-        raise BackboneError(f"{self.name}: no activation checkpointing for this backbone; use "
-                            "--activation-checkpointing off")
+    def _switch_recompute(self, on: bool) -> None:
+        """The backbone's own way of turning activation checkpointing of its LM and expert on or off, from whatever
+        state (none by default: `auto` then keeps it off, `on` is refused in one line)."""
+        raise BackboneError(f"{self.name}: no activation checkpointing for this backbone; use --recompute "
+                            "off")
 
     @property
-    def activation_checkpointing_patches(self) -> Patches:
-        """What turning checkpointing on changed in the policy (graftcache.backbones.patching), undone to turn it
+    def recompute_patches(self) -> Patches:
+        """What turning recomputing on changed in the policy (graftcache.backbones.patching), undone to turn it
         off."""
-        return self.__dict__.setdefault("_activation_checkpointing_patches", Patches())
+        return self.__dict__.setdefault("_recompute_patches", Patches())
 
 
 class WrappedActivationCheckpointing(ActivationCheckpointing):
     """Activation checkpointing by wrapping callables given as (owner module, attribute) pairs: an instance
-    attribute shadows the class's method while on (recorded in `activation_checkpointing_patches`), undone to turn it
+    attribute shadows the class's method while on (recorded in `recompute_patches`), undone to turn it
     off."""
 
     @abstractmethod
-    def _activation_checkpointing_slots(self) -> Iterator[tuple[nn.Module, str]]:
+    def _recompute_slots(self) -> Iterator[tuple[nn.Module, str]]:
         """(module, attribute) of every callable to checkpoint, e.g. (layer.mlp, "forward")."""
 
-    def _switch_activation_checkpointing(self, on: bool) -> None:
-        patches = self.activation_checkpointing_patches
+    def _switch_recompute(self, on: bool) -> None:
+        patches = self.recompute_patches
         if not on:
             patches.undo()
             return
         if patches.changes:
             return  # wrapped once, however often it is turned on
-        for owner, attribute in self._activation_checkpointing_slots():
+        for owner, attribute in self._recompute_slots():
             patches.set(owner, attribute, checkpointed(getattr(owner, attribute), owner))

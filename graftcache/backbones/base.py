@@ -49,7 +49,7 @@ from graftcache.backbones.lean_load import construct, load_checkpoint, read_head
 from graftcache.backbones.objectives import Objective
 from graftcache.backbones.spec import BackboneSpec
 from graftcache.backbones.surgery import GraftSurgery
-from graftcache.backbones.tiny import TinySpec, read_marker, write_marker
+from graftcache.backbones.tiny import TinyBuild, read_marker, write_marker
 from graftcache.errors import BackboneError
 
 #: Switches of lerobot's policy configs that change how a policy computes behind graftcache's back, and the value
@@ -57,8 +57,8 @@ from graftcache.errors import BackboneError
 #: config sets them, as public fine-tunes do: torch.compile of forward and sample_actions (SmolVLA, pi0, pi0.5,
 #: pi0-FAST; every graft and reset would recompile), lerobot's own gradient checkpointing (pi0, pi0.5, pi0-FAST,
 #: EO-1; EVO1's `enable_gradient_checkpointing`), which rows would record as `activation_checkpointing = off`, and
-#: EVO1's bf16 autocast on CUDA (`use_amp`), under rows that say fp32. Checkpointing is graftcache's switch
-#: (`set_activation_checkpointing`), precision its autocast (--compute-dtype); GR00T's `use_bf16`, which decides
+#: EVO1's bf16 autocast on CUDA (`use_amp`), under rows that say fp32. Recomputing is graftcache's switch
+#: (`set_recompute`), precision its autocast (--compute-dtype); GR00T's `use_bf16`, which decides
 #: either way, follows the caller's autocast (graftcache.backbones.groot.adapter).
 NEUTRAL_CONFIG: dict[str, Any] = {"compile_model": False, "gradient_checkpointing": False,
                                   "enable_gradient_checkpointing": False, "use_amp": False}
@@ -90,7 +90,8 @@ class BackboneAdapter(GraftSurgery, PromptBatches, Objective, ActivationCheckpoi
     def __init_subclass__(cls, **kwargs: Any) -> None:
         """A class naming itself a backbone (`name` in its own body) is a registry entry, checked as it is defined
         (as lerobot's PreTrainedPolicy checks `name` and `config_class`): it lives in its folder's adapter.py,
-        `graftcache.backbones.<name>.adapter` (graftcache.backbone_table), and declares its own BackboneSpec."""
+        `graftcache.backbones.<name>.adapter` (graftcache.backbone_table), and its `spec` is its folder's SPEC
+        (`graftcache.backbones.<name>.spec`, which reports read without importing the adapter)."""
         super().__init_subclass__(**kwargs)
         if "name" not in cls.__dict__:
             return
@@ -98,9 +99,11 @@ class BackboneAdapter(GraftSurgery, PromptBatches, Objective, ActivationCheckpoi
         if cls.__module__ != where:
             raise BackboneError(f"{cls.__qualname__} (in {cls.__module__}) names itself backbone {cls.name!r}: a "
                                 f"backbone's adapter class is defined in {where} (its folder's adapter.py)")
-        if not isinstance(cls.__dict__.get("spec"), BackboneSpec):  # its own: an inherited one holds another's label
-            raise BackboneError(f"{where}.{cls.__qualname__} declares no `spec` of its own (a "
-                                "graftcache.backbones.spec.BackboneSpec)")
+        # its own, the one reports read: an inherited spec holds another backbone's label
+        folder_spec = backbone_module(cls.name, "spec")
+        if cls.__dict__.get("spec") is not getattr(import_module(folder_spec), "SPEC", None):
+            raise BackboneError(f"{where}.{cls.__qualname__}: its `spec` is not {folder_spec}.SPEC (its folder's "
+                                "BackboneSpec); declare `spec = SPEC`")
 
     @classmethod
     def lerobot_type(cls) -> str:
@@ -129,18 +132,8 @@ class BackboneAdapter(GraftSurgery, PromptBatches, Objective, ActivationCheckpoi
         return self.spec.prompt_uses_state
 
     @property
-    def per_sample_loss(self) -> bool:
-        """`loss` gives one value a sample: cells may share a backbone pass."""
-        return self.spec.loss_per_sample
-
-    @property
     def module_paths(self) -> Mapping[str, tuple[str, ...]]:
         return self.spec.module_paths
-
-    @property
-    def supports_activation_checkpointing(self) -> bool:
-        """Whether this backbone has a way to recompute activations (what `auto` may fall back on)."""
-        return self.spec.activation_checkpointing
 
     def __init__(self, policy: nn.Module, preprocessor, postprocessor, *, source: str,
                  random_init: bool, tiny_marker: dict | None = None) -> None:
@@ -156,7 +149,7 @@ class BackboneAdapter(GraftSurgery, PromptBatches, Objective, ActivationCheckpoi
     # ------------------------------------------------------------------------------ construction
     @classmethod
     def load(cls, source: str | Path, *, device: str = "cpu", dataset_stats: dict | None = None,
-             tiny: TinySpec | None = None) -> Self:
+             tiny: TinyBuild | None = None) -> Self:
         """Build "tiny", or load a hub id (HF cache) / checkpoint folder with its saved processors.
 
         `dataset_stats` (lerobot format: {"observation.state"|"action": {"mean", "std", "q01", ...}})
@@ -165,7 +158,7 @@ class BackboneAdapter(GraftSurgery, PromptBatches, Objective, ActivationCheckpoi
         """
         if str(source) == "tiny":
             with quiet():
-                policy, pre, post, marker = cls._build_tiny(tiny or TinySpec(), dataset_stats, device)
+                policy, pre, post, marker = cls._build_tiny(tiny or TinyBuild(), dataset_stats, device)
             neutralise(policy.config)  # those read as the policy runs (use_amp); the tiny builders set none of the rest
             return cls(policy, pre, post, source="tiny", random_init=True, tiny_marker=marker)
         folder = resolve_source(source)
@@ -241,10 +234,10 @@ class BackboneAdapter(GraftSurgery, PromptBatches, Objective, ActivationCheckpoi
         return config
 
     @classmethod
-    def _build_tiny(cls, spec: TinySpec, stats: dict | None, device: str) -> tuple[nn.Module, Any, Any, dict]:
+    def _build_tiny(cls, tiny: TinyBuild, stats: dict | None, device: str) -> tuple[nn.Module, Any, Any, dict]:
         """Random-init tiny policy, processors and the marker that lets it be saved and reloaded: the backbone's own
         `graftcache.backbones.<name>.tiny.build_tiny` (the registry's convention: graftcache/backbone_table.py)."""
-        policy, pre, post, geometry = import_module(backbone_module(cls.name, "tiny")).build_tiny(spec, stats, device)
+        policy, pre, post, geometry = import_module(backbone_module(cls.name, "tiny")).build_tiny(tiny, stats, device)
         return policy, pre, post, {"backbone": cls.name, "geometry": geometry}
 
     @classmethod

@@ -41,8 +41,8 @@ class BackboneSpec:
     flow_time: Literal["noise", "data"] | None = "noise"
     #: `loss` gives one value a sample, so cells may share a backbone pass (fused); False: one mean over the batch.
     loss_per_sample: bool = True
-    #: The frozen LM and expert can recompute activations in backward (`_switch_activation_checkpointing`).
-    activation_checkpointing: bool = False
+    #: The frozen LM and expert can recompute activations in backward (`_switch_recompute`).
+    can_recompute: bool = False
     #: Cells per backbone pass when a request does not say, by device type (graftcache.fit.passes); unlisted: 1.
     cells_per_pass: Mapping[str, int] = field(default_factory=dict)
     #: lerobot's `config.type` of the policy it wraps, which a checkpoint's config.json must name; None: the

@@ -1,5 +1,5 @@
-"""What every tiny backbone shares: its spec (`TinySpec`), the lerobot features and stats it is built from, seeded
-construction, and the marker a tiny checkpoint folder carries so loading knows it is one.
+"""What every tiny backbone shares: what one is built for (`TinyBuild`), the lerobot features and stats it is
+built from, seeded construction, and the marker a tiny checkpoint folder carries so loading knows it is one.
 
 Tiny policies are lerobot's own policy classes at small sizes, so every code path (processors, graft, loss,
 sampling, save/load) is the real one; only the widths and depths shrink. Each backbone's tiny configuration lives in
@@ -28,8 +28,9 @@ TINY_MARKER = "graftcache_tiny.json"
 
 
 @dataclass(frozen=True)
-class TinySpec:
-    """What a tiny backbone must accept: the dataset's cameras and dims, plus chunking and the init seed."""
+class TinyBuild:
+    """What one tiny policy is built for: the dataset's cameras and dims, plus chunking and the init seed. Not a
+    spec (graftcache.backbones.spec.BackboneSpec, which never varies): each build may differ."""
 
     cameras: tuple[str, ...] = ("image", "image2")   # LIBERO: observation.images.image / image2
     state_dim: int = 8
@@ -40,23 +41,24 @@ class TinySpec:
 
 
 
-def visual_features(spec: TinySpec, image_size: int) -> dict:
-    """lerobot input features of a tiny policy: one square camera of `image_size` per spec camera, and the state."""
+def visual_features(tiny: TinyBuild, image_size: int) -> dict:
+    """lerobot input features of a tiny policy: one square camera of `image_size` per camera of the build, and the
+    state."""
     from lerobot.configs.types import FeatureType, PolicyFeature
 
     return {
         **{f"observation.images.{c}": PolicyFeature(FeatureType.VISUAL, (3, image_size, image_size))
-           for c in spec.cameras},
-        "observation.state": PolicyFeature(FeatureType.STATE, (spec.state_dim,)),
+           for c in tiny.cameras},
+        "observation.state": PolicyFeature(FeatureType.STATE, (tiny.state_dim,)),
     }
 
 
 
-def action_features(spec: TinySpec) -> dict:
-    """lerobot output features of a tiny policy: the action of the spec's width."""
+def action_features(tiny: TinyBuild) -> dict:
+    """lerobot output features of a tiny policy: the action of the build's width."""
     from lerobot.configs.types import FeatureType, PolicyFeature
 
-    return {"action": PolicyFeature(FeatureType.ACTION, (spec.action_dim,))}
+    return {"action": PolicyFeature(FeatureType.ACTION, (tiny.action_dim,))}
 
 
 
@@ -70,7 +72,7 @@ def require_stats(stats: dict | None) -> dict:
 
 def seeded_policy(seed: int, construct: Callable[[], nn.Module]) -> nn.Module:
     """`construct()` with the global RNG seeded to `seed` (and restored after) and its prints muted: a tiny
-    policy's weights depend on its spec's seed only."""
+    policy's weights depend on its build's seed only."""
     with torch.random.fork_rng(devices=[]), contextlib.redirect_stdout(io.StringIO()):
         torch.manual_seed(seed)
         return construct()

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import warnings
 from collections.abc import Callable
 from typing import Any
 
@@ -64,6 +65,21 @@ def _with_default(d: Declared, text: str) -> str:
     return f"{text} (default {d.setting.shown or d.codec.write(d.default)})".strip()
 
 
+class _Former(argparse.Action):
+    """A setting's former flag (its `formerly`): stores as the current flag does, after a FutureWarning that names
+    the current one, so command lines written before a rename (recorded in rows, scripts) still parse."""
+
+    def __init__(self, *args: Any, current: str, **kw: Any) -> None:
+        super().__init__(*args, **kw)
+        self.current = current
+
+    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace, values: Any,
+                 option_string: str | None = None) -> None:
+        warnings.warn(f"{option_string} is now {self.current}; the old flag is deprecated", FutureWarning,
+                      stacklevel=2)
+        setattr(namespace, self.dest, values)
+
+
 def add_flag(p: argparse.ArgumentParser | argparse._ActionsContainer, request: type, name: str, *,
              overrides: bool = False, help: str | None = None) -> None:
     """The flag (or positional argument) of field `name` of `request`, as its setting declares it. With
@@ -90,6 +106,9 @@ def add_flag(p: argparse.ArgumentParser | argparse._ActionsContainer, request: t
     else:
         kw["type"] = _parser(d)
         kw["metavar"] = d.setting.metavar or d.codec.metavar
+    if d.setting.formerly:
+        p.add_argument(f"--{d.setting.formerly.replace('_', '-')}", **{**kw, "help": argparse.SUPPRESS,
+                       "default": argparse.SUPPRESS}, action=_Former, current=d.flag)
     twin = d.setting.twin
     if twin is None:
         p.add_argument(d.flag, **kw)

@@ -10,7 +10,7 @@ from graftcache.requests import FitRequest
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("fit", help="fit projector-only grafts (seeds x controls) from a cache, one row per cell",
-                       description="Train only LayerNorm + Linear into a frozen SmolVLA / pi0.5 from cached features, "
+                       description="Train only LayerNorm + Linear into a frozen backbone from cached features, "
                        "across seeds and controls, and score offline action MSE on held-out episodes. Finished cells "
                        "in --results are skipped.")
     add_flags(p, FitRequest)  # every flag is a FitRequest field, declared in graftcache/requests.py

@@ -1,4 +1,4 @@
-"""`graftcache train-tiny`: train a tiny SmolVLA / pi0.5 so that the diagnostic has a
+"""`graftcache train-tiny`: train a tiny backbone (--backbone) so that the diagnostic has a
 backbone whose image tokens matter (no released weights can be fetched offline)."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from graftcache.requests import FitRequest, TinyTrainConfig
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("train-tiny", help="train a tiny backbone on a dataset (all parameters, on pixels)",
-                       description="Train lerobot's SmolVLA or pi0.5 at tiny sizes, all parameters and its own vision "
+                       description="Train a backbone's lerobot policy at tiny sizes, all parameters and its own vision "
                        "tower, on a LeRobot dataset. The checkpoint is cached and found again by --policy tiny.")
     add_flag(p, FitRequest, "backbone")
     p.add_argument("--dataset", default="data/libero_sample")

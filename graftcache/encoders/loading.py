@@ -22,13 +22,13 @@ from graftcache.errors import EncoderError
 from graftcache.hashing import sha256_bytes, sha256_file, sha256_tensors
 from graftcache.hub_cache import repo_dir
 
-# transformers' own preference order: safetensors (single or sharded) before pickled .bin.
+# transformers' own preference order: safetensors (one file, or several listed by an index) before pickled .bin.
 HF_WEIGHT_FILES = ("model.safetensors", "model.safetensors.index.json", "pytorch_model.bin",
                    "pytorch_model.bin.index.json")
 
 
 def sha256_files(paths: Iterable[Path]) -> str:
-    """One file: its sha256. Several (sharded checkpoints): sha256 of the "name sha256" lines, by name."""
+    """One file: its sha256. Several (a checkpoint split over files): sha256 of the "name sha256" lines, by name."""
     paths = sorted(paths, key=lambda p: p.name)
     if len(paths) == 1:
         return sha256_file(paths[0])

@@ -9,7 +9,7 @@ composition (aligned to blocks) is the same as in an uninterrupted run, which ma
 
 One job per module: plan.py (the request resolved into a job.py Job: dataset, encoder, frames), provenance.py
 (index, manifest), frames.py (decode), encode.py (encoder -> stored grids), blocks.py (assembling, encoding and
-writing blocks), write.py (reuse / resume / create, whole or sharded, under the writer locks), checks.py
+writing blocks), write.py (reuse / resume / create, whole or as one shard of N, under the writer locks), checks.py
 (refusals before work and the one-line texts of failures during it).
 """
 

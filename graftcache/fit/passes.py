@@ -10,25 +10,18 @@ up to float rounding of the larger batch. Held-out scoring is shared the same wa
 Which cells run alone (`graftcache.fit.plan.Plan.pass_key` is None for them): the `lora` control (LoRA adapts the
 backbone every row of a pass goes through), the `align` objective (a closed-form ridge: no backbone pass to share),
 controls that train nothing (`native`: scored as loaded) and backbones whose loss is one mean over the batch
-(pi0-FAST's cross-entropy: `graftcache.backbones.base.BackboneAdapter.per_sample_loss`). The `cells_per_pass` a
+(pi0-FAST's cross-entropy: `graftcache.backbones.spec.BackboneSpec.loss_per_sample` False). The `cells_per_pass` a
 request asks for only groups cells; it is an execution setting like the reader count, so no cell (hence no run_id)
 depends on it, and a rerun whose pass is partly done runs only its missing cells. Rows record how many cells their
 pass held (`cells_per_pass`) and, as `wall_s`, their share of the pass's time.
 
-The default (the backbone's spec, `cells_per_pass` by device type) is what benchmarks/bench_fuse.py measured cheapest
-per cell. On CPU (2 AMD EPYC cores shared with other work, load 6-11, 1 thread, bf16; tiny backbones, 4 cells
-of 10 steps of 16 frames plus 32 scored frames, median of interleaved rounds:
-benchmarks/results/bench_fuse_cpu_run1.json, bench_fuse_cpu_run2.json) whole cells at 1 / 2 / 4 cells per pass
-took SmolVLA 4.2 / 5.0 / 5.0 s, then 5.8 / 5.5 / 2.6 s; pi0.5 3.5 / 3.8 / 7.1 s, then 2.1 / 2.1 / 2.3 s:
-rounds of one setting differed up to 3x, so no gain stands out of the noise. The grafted step alone got 10-30%
-cheaper a cell at 4, but at SmolVLA's released geometry (~450M parameters, random init, batch 2 a cell:
-benchmarks/results/bench_fuse_cpu_smolvla_released.json) the step is compute-bound, 3.30 / 3.25 / 3.23 s a
-cell-step, and every cell of a pass holds its own shuffle buffer. So 1 on CPU. On CUDA, measured on an H200
-(benchmarks/results/gpu_check_nvidia-h200_2026-11-26.json, released geometry, random init, bf16, batch 32 a
-cell): SmolVLA's step is latency-bound (3% MFU alone), and 1 / 2 / 4 cells per pass cost 124 / 56 / 47 ms a
-cell-step (14.5 / 32 / 38.5 training cells of 2000 steps per GPU-hour) at 16 / 20 / 29 GB; on an H100 15.4 / 32.3 /
-32.4 (gpu_check_nvidia-h100-80gb-hbm3_2026-11-26.json): so 4. pi0.5 already runs at 29-35% MFU alone and needs
-117 GB at batch 32 without activation checkpointing (out of memory on an H100; 21 GB with it), so 1.
+The default (the backbone's spec, `cells_per_pass` by device type) is what benchmarks/bench_fuse.py and
+benchmarks/gpu_check.py measured cheapest per cell; the numbers are in the files they wrote, not here. On CPU, 1:
+at tiny size no gain stood out of the noise, and at SmolVLA's released size the step is compute-bound while every
+cell of a pass holds its own shuffle buffer (benchmarks/results/bench_fuse_cpu_run1.json, bench_fuse_cpu_run2.json,
+bench_fuse_cpu_smolvla_released.json). On CUDA, 4 for SmolVLA, whose step is latency-bound, and 1 for pi0.5, which
+is near its MFU alone and memory-bound at the paper's batch (benchmarks/results/gpu_check_nvidia-h200_2026-11-26.json,
+gpu_check_nvidia-h100-80gb-hbm3_2026-11-26.json; README.md's GPU table quotes them).
 A pass that would not fit is refused before its first step (graftcache.fit.step_memory,
 naming --cells-per-pass).
 """

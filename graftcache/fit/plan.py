@@ -188,7 +188,7 @@ class Plan:
         if control.name not in self._pass_keys:
             key = None
             adapter = get_backbone(self.req.backbone)
-            if control.fuses and self.objective_of(control).fuses and adapter.per_sample_loss:
+            if control.fuses and self.objective_of(control).fuses and adapter.spec.loss_per_sample:
                 req = self.req
                 grid = control.grid or self.token_grid
                 source = FeatureSource.of(self.source(control), list(self.cameras.values()), grid)

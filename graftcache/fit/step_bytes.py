@@ -63,7 +63,7 @@ def saved_bytes(adapter, raw: Mapping, frames: int, dtype: torch.dtype, route: R
         return t
 
     with _probe(adapter), torch.autograd.graph.saved_tensors_hooks(pack, lambda t: t):
-        adapter.policy.train(adapter.activation_checkpointing)
+        adapter.policy.train(adapter.recomputing)
         _loss(adapter, raw, frames, dtype, route)
     return sum(storages.values())
 

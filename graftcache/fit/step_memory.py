@@ -11,7 +11,7 @@ compute dtype.
   and the shuffle buffer (at least one batch of stored features, graftcache.fit.buffer.buffer_frames): a lower
   bound, since the backward's own peak is higher, so a refusal is never wrong.
 
-The same measurement decides `--activation-checkpointing auto`: on only when the step measured without it would
+The same measurement decides `--recompute auto`: on only when the step measured without it would
 not fit.
 """
 from __future__ import annotations
@@ -37,24 +37,24 @@ def _measuring_batch(low: LowDim, cams: Mapping[str, str], shapes: Mapping[str, 
 
 
 def check_step_memory(adapter, low: LowDim, cams: Mapping[str, str], source: FeatureSource, *,
-                      batch_size: int, buffer_mib: int, dtype: torch.dtype, checkpointing: str = "off",
+                      batch_size: int, buffer_mib: int, dtype: torch.dtype, recompute: str = "off",
                       others: Sequence[tuple[LowDim, FeatureSource, int]] = (), route: Route = alone) -> bool:
-    """Set the adapter's activation checkpointing as `checkpointing` says ("on", "off", or "auto": on only when
+    """Set the adapter's recomputing as `recompute` says ("on", "off", or "auto": on only when
     the step measured without it would not fit) and return whether it is on; BudgetError (one line: the
     estimate, what a frame costs, the limit) when a step of `batch_size` cannot fit even so. `others`: the other
     cells of a backbone pass (graftcache/fit/passes.py), each (train rows, source, buffer MiB) with a shuffle
     buffer of its own and `batch_size` more frames in the step, fed tokens of the first cell's shapes; `route`
     gives the measuring batches' rows to the first cell's projector."""
     shapes = {cam: source.frame_shape(cam) for cam in set(cams.values())}
-    adapter.set_activation_checkpointing(checkpointing == "on")
+    adapter.set_recompute(recompute == "on")
     try:
         _require_step(adapter, low, cams, source, shapes, batch_size, buffer_mib, dtype, others, route)
     except BudgetError:
-        if checkpointing != "auto" or not adapter.supports_activation_checkpointing:
+        if recompute != "auto" or not adapter.spec.can_recompute:
             raise
-        adapter.set_activation_checkpointing(True)
+        adapter.set_recompute(True)
         _require_step(adapter, low, cams, source, shapes, batch_size, buffer_mib, dtype, others, route)
-    return adapter.activation_checkpointing
+    return adapter.recomputing
 
 
 def _require_step(adapter, low: LowDim, cams: Mapping[str, str], source: FeatureSource,
@@ -72,7 +72,7 @@ def _require_step(adapter, low: LowDim, cams: Mapping[str, str], source: Feature
                for rows, src, mib in ((low, source, buffer_mib), *others))
     frames = batch_size * (1 + len(others))
     grid = ", ".join(f"{cam} {t}x{w}" for cam, (t, w) in sorted(shapes.items()))
-    checkpointed = " with activation checkpointing" if adapter.activation_checkpointing else ""
+    checkpointed = " with activation checkpointing" if adapter.recomputing else ""
     what = (f"a training step of --batch-size {batch_size}{checkpointed} ({size(per_frame)} a frame, measured on a "
             f"1- and a 2-frame step of features {grid})")
     hint, buffers = "lower --batch-size", "shuffle buffer"
@@ -80,7 +80,7 @@ def _require_step(adapter, low: LowDim, cams: Mapping[str, str], source: Feature
         what = f"{what} for each of the {1 + len(others)} cells of a backbone pass"
         hint, buffers = "lower --cells-per-pass or --batch-size", "shuffle buffers"
     if not checkpointed:
-        hint += " or pass --activation-checkpointing on"
+        hint += " or pass --recompute on"
     if cuda:  # the 1-frame step's peak holds everything a step needs once; each further frame adds per_frame
         require(what, one + (frames - 1) * per_frame, *available_memory(adapter.device), hint)
         require(f"the {buffers} ({size(held)}) of --batch-size {batch_size}", held,

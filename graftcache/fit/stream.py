@@ -5,9 +5,9 @@ A fit never holds a split's features: at LIBERO scale (pi0.5's 16x16 grid, 768 w
 (graftcache.fit.data.read_grid), check them for NaN/inf and hand them over; the consumer keeps what it needs
 (a bounded shuffle buffer for training, predictions for scoring, sufficient statistics for `align`).
 
-The unit is a `Block`: the wanted frames of one cache block (`rows_by_block`). A block is one zarr shard, the unit
-a block checksum covers (stage 2 reads a block whole the first time it checks it) and the unit a remote root
-copies locally (graftcache.store.readthrough), so a block costs one shard read; benchmarks/bench_stream.py
+The unit is a `Block`: the wanted frames of one cache block (`rows_by_block`). A block is one block file per array,
+the unit a block checksum covers (stage 2 reads a block whole the first time it checks it) and the unit a remote root
+copies locally (graftcache.store.readthrough), so a block costs one read of its file; benchmarks/bench_stream.py
 measures what smaller runs inside a block would save.
 
 Determinism: the block order is a pure function of (seed, epoch), block k is read by worker k mod W, and torch's

@@ -2,9 +2,10 @@
 
 Layout choices (why):
 - Feature arrays are [frames, tokens, C]. The unit of work is a *block* of `block_frames`
-  consecutive frames, and each block is exactly one Zarr shard. A block is written in a single
-  call, so zarr writes each shard file once (atomically: LocalStore writes a temp file and renames
-  it), and a run killed mid-block leaves no half-written block file that looks finished.
+  consecutive frames, and each block is exactly one *block file* per array (what zarr's sharding codec
+  writes; `shards=` below). A block is written in a single call, so zarr writes each block file once
+  (atomically: LocalStore writes a temp file and renames it), and a run killed mid-block leaves no
+  half-written block file that looks finished.
 - Inside a block file, inner zarr chunks hold ~4 MiB of uncompressed features, so random access to a few
   frames (stage 2 batches, `verify`) decompresses little, while a block of 256 frames keeps the
   file count of a 273k-frame LIBERO cache in the low thousands.
@@ -382,7 +383,7 @@ class FeatureCache:
         """`arr[rows]` read one block at a time, each block checked against its checksum the first time this
         handle's reader reads it (whole, which is what the checksum covers); later reads take the rows' span only.
 
-        zarr's orthogonal selection on sharded arrays costs ~50 ms per block file in zarr chunk bookkeeping (4.6 s
+        zarr's orthogonal selection over block files costs ~50 ms per block file in zarr chunk bookkeeping (4.6 s
         for 1k rows here); slicing inside each block file and indexing in numpy reads the same bytes and holds at
         most one block beyond the result in memory.
         """

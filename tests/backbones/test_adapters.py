@@ -12,8 +12,8 @@ import pytest
 import torch
 from helpers.backbones import (
     ENC_DIM,
-    SPEC,
     TASKS,
+    TINY,
     assert_native_control_reproduces,
     backbones_where,
     fixed_noise_time,
@@ -49,9 +49,9 @@ def test_tiny_geometry(name: str) -> None:
     assert adapter.embed_scale == pytest.approx(math.sqrt(adapter.lm_width) if adapter.spec.scaled_embeddings else 1.0)
     assert adapter.cameras == ("image", "image2")
     assert adapter.camera_keys == ("observation.images.image", "observation.images.image2")
-    assert (adapter.state_dim, adapter.action_dim, adapter.chunk_size) == (8, 7, SPEC.chunk_size)
+    assert (adapter.state_dim, adapter.action_dim, adapter.chunk_size) == (8, 7, TINY.chunk_size)
     # pi0-FAST decodes up to a whole chunk of FAST tokens (<bos> "Action: " ... "|" <eos>), no denoising steps
-    steps = SPEC.chunk_size * 7 + 6 if adapter.spec.flow_time is None else SPEC.num_steps
+    steps = TINY.chunk_size * 7 + 6 if adapter.spec.flow_time is None else TINY.num_steps
     assert adapter.num_steps == steps and adapter.random_init and adapter.source == "tiny"
     report = adapter.freeze_report()
     assert report.total == sum(p.numel() for p in adapter.policy.parameters())

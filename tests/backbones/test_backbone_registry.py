@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import inspect
 import types
 from importlib import import_module
@@ -10,8 +11,8 @@ from pathlib import Path
 
 import pytest
 
-from graftcache.backbone_table import BACKBONES, FOLDER, PIECES, backbone_module, missing_pieces
-from graftcache.backbones import get_backbone
+from graftcache.backbone_table import BACKBONES, FOLDER, PIECES, backbone_module, discover, missing_pieces
+from graftcache.backbones import get_backbone, registered_spec
 from graftcache.backbones.activation_checkpointing import ActivationCheckpointing
 from graftcache.backbones.base import BackboneAdapter
 from graftcache.backbones.objectives import FlowObjective, Objective, TokenObjective
@@ -19,10 +20,18 @@ from graftcache.backbones.spec import BackboneSpec
 from graftcache.errors import BackboneError
 
 
-def test_the_registry_lists_the_folders_holding_an_adapter() -> None:
-    folders = {p.name for p in FOLDER.iterdir() if p.is_dir() and (p / "adapter.py").is_file()}
-    assert set(BACKBONES) == folders
-    assert all(BACKBONES[name] == backbone_module(name) for name in BACKBONES)
+def test_the_registry_lists_the_folders_holding_an_adapter(tmp_path: Path) -> None:
+    """Discovery on a made-up package folder: a folder with an adapter.py is a backbone, whatever else it lacks
+    (the next test names its missing pieces); a folder without one, a module and a cache folder are not."""
+    for folder, files in {"alpha": ("adapter.py",), "beta": ("adapter.py", "spec.py", "tiny.py"),
+                          "shared": ("tiny.py",), "__pycache__": ("adapter.cpython-313.pyc",)}.items():
+        (tmp_path / folder).mkdir()
+        for name in files:
+            (tmp_path / folder / name).write_text("")
+    (tmp_path / "adapter.py").write_text("")
+    assert discover(tmp_path) == {"alpha": "graftcache.backbones.alpha.adapter",
+                                  "beta": "graftcache.backbones.beta.adapter"}
+    assert {"smolvla", "pi05"} <= set(BACKBONES) and "tiny" not in BACKBONES  # the package's own: folders, not modules
 
 
 def test_a_folder_lacking_a_piece_is_named(tmp_path: Path) -> None:
@@ -35,7 +44,7 @@ def test_every_registered_backbone_has_every_piece(name: str) -> None:
     assert missing_pieces(FOLDER / name) == [], f"graftcache/backbones/{name}/ lacks a required piece"
     adapter = get_backbone(name)
     assert issubclass(adapter, BackboneAdapter) and not inspect.isabstract(adapter), adapter.__abstractmethods__
-    assert adapter.name == name and adapter.__module__ == backbone_module(name)
+    assert adapter.spec is registered_spec(name)  # what reports read without the adapter is what it runs with
     assert callable(import_module(backbone_module(name, "tiny")).build_tiny)
 
 
@@ -44,8 +53,8 @@ def test_every_registered_backbone_declares_a_spec_its_hooks_agree_with(name: st
     adapter = get_backbone(name)
     spec = adapter.spec
     assert isinstance(spec, BackboneSpec)
-    assert spec.activation_checkpointing == (
-        adapter._switch_activation_checkpointing is not ActivationCheckpointing._switch_activation_checkpointing)
+    assert spec.can_recompute == (
+        adapter._switch_recompute is not ActivationCheckpointing._switch_recompute)
     assert (spec.flow_time is None) == issubclass(adapter, TokenObjective)
     assert issubclass(adapter, FlowObjective) or "_flow_losses" not in dir(adapter)  # no flow loss that only raises
     assert spec.steps_field is not None or adapter.num_steps is not Objective.num_steps
@@ -61,7 +70,9 @@ def test_a_class_naming_itself_a_backbone_elsewhere_or_without_a_spec_of_its_own
 
     with pytest.raises(BackboneError, match=r"is defined in graftcache\.backbones\.stray\.adapter"):
         define("Stray", "tests.elsewhere", name="stray", spec=smolvla.spec)
-    with pytest.raises(BackboneError, match="declares no `spec` of its own"):
+    with pytest.raises(BackboneError, match=r"its `spec` is not graftcache\.backbones\.smolvla\.spec\.SPEC"):
         define("Inherits", backbone_module("smolvla"), name="smolvla")
+    with pytest.raises(BackboneError, match=r"its `spec` is not graftcache\.backbones\.smolvla\.spec\.SPEC"):
+        define("Copied", backbone_module("smolvla"), name="smolvla", spec=dataclasses.replace(smolvla.spec))
     assert define("Helper", "tests.elsewhere").spec is smolvla.spec  # no name of its own: not a registry entry
     assert smolvla.lerobot_type() == "smolvla"  # the registry name unless its spec names another lerobot type

@@ -75,7 +75,7 @@ def test_compile_and_gradient_checkpointing_of_a_checkpoint_s_config_are_off_aft
     adapter = get_backbone(name).load(_saved_with(name, tmp_path / "policy", **switches))
     assert _compiled(adapter.policy) == []
     assert _checkpointing(adapter.policy) == []
-    assert adapter.activation_checkpointing is False
+    assert adapter.recomputing is False
 
 
 def test_evo1_s_amp_and_checkpointing_switches_are_off_after_load(tmp_path: Path,
@@ -112,9 +112,9 @@ def test_groot_computes_in_the_callers_dtype_whatever_use_bf16_says(tmp_path: Pa
     assert not torch.equal(losses[False][0], losses[False][1])  # bf16 computes something else: it did run
 
 
-@pytest.mark.parametrize("name", backbones_where(lambda spec: spec.activation_checkpointing))
+@pytest.mark.parametrize("name", backbones_where(lambda spec: spec.can_recompute))
 def test_checkpointing_off_turns_off_the_policy_s_own_too(name: str) -> None:
-    """`set_activation_checkpointing(False)` makes the model agree with the flag rows record, whatever turned the
+    """`set_recompute(False)` makes the model agree with the flag rows record, whatever turned the
     model's own checkpointing on (lerobot's switch, a second `on`), and on, off, on, off leaves no layer wrapped."""
     adapter: BackboneAdapter = tiny(name)
     switch = getattr(type(adapter.policy.model), "gradient_checkpointing_enable", None)
@@ -125,12 +125,12 @@ def test_checkpointing_off_turns_off_the_policy_s_own_too(name: str) -> None:
     adapter.graft(GraftProjector(ENC_DIM, adapter.lm_width))
     if own_switch:
         assert _checkpointing(adapter.policy)
-        adapter.set_activation_checkpointing(False)
+        adapter.set_recompute(False)
         assert _checkpointing(adapter.policy) == []
     wrapped = []
     for on in (True, True, False, False, True, False):
-        adapter.set_activation_checkpointing(on)
-        assert adapter.activation_checkpointing is on
+        adapter.set_recompute(on)
+        assert adapter.recomputing is on
         wrapped.append(_wrapped(adapter.policy))
     assert _checkpointing(adapter.policy) == []
     assert wrapped[1] == wrapped[0] and wrapped[2] == wrapped[3] == wrapped[5] == []  # a second on wraps nothing twice

@@ -260,10 +260,10 @@ def test_reset_gives_back_every_lerobot_object_and_the_loaded_weights(name: str)
             optimiser.step()
             optimiser.zero_grad()
         adapter.predict(batch)
-        if adapter.supports_activation_checkpointing:
-            adapter.set_activation_checkpointing(True)
+        if adapter.spec.can_recompute:
+            adapter.set_recompute(True)
             adapter.loss(batch).mean().backward()
-            adapter.set_activation_checkpointing(False)
+            adapter.set_recompute(False)
         adapter.reset()
     assert changes, "a graft changes the policy (its image method at least), through graftcache.backbones.patching"
     assert [(c.owner, c.attribute) for c in changes if not c.is_restored()] == []
@@ -348,12 +348,11 @@ def test_reset_after_training_is_bit_identical_to_a_fresh_load_and_keeps_no_copy
 # ----------------------------------------------------------------------------------------- loss, passes
 @pytest.mark.parametrize("name", NAMES)
 def test_loss_has_the_shape_the_spec_says(name: str) -> None:
-    """The flag that lets a backbone's cells share a pass (graftcache.fit.run.Fitter.pass_key) matches its loss:
-    one value a sample, or one mean over the batch."""
+    """The flag that lets a backbone's cells share a pass (`loss_per_sample`, read by graftcache.fit.plan.Plan.pass_key)
+    matches its loss: one value a sample, or one mean over the batch."""
     adapter = grafted(name)
     with torch.no_grad():
         loss = adapter.loss(adapter.prepare(raw_features(adapter, 3)), *fixed_noise_time(adapter, 3))
-    assert adapter.per_sample_loss is adapter.spec.loss_per_sample
     assert loss.shape == ((3,) if adapter.spec.loss_per_sample else ())
 
 
@@ -363,7 +362,7 @@ def test_a_fused_pass_equals_each_projector_alone(name: str) -> None:
     fused over a batch of two samples give each sample the loss its own projector gives it alone, or the backbone is
     kept out of fused passes (spec `loss_per_sample` False)."""
     adapter = tiny(name)
-    if not adapter.spec.loss_per_sample:  # graftcache.fit.run.Fitter.pass_key runs its cells alone
+    if not adapter.spec.loss_per_sample:  # graftcache.fit.plan.Plan.pass_key runs its cells alone
         pytest.skip(f"{name}: one loss a batch, cells never share a pass")
     adapter.policy.eval()  # no dropout (tiny X-VLA's): its draws for a batch of two are not those for one sample
     torch.manual_seed(0)
@@ -392,7 +391,7 @@ def test_activation_checkpointing_keeps_the_gradients_and_never_raises_the_peak(
     more memory (measured as tensors alive at once). How much lower is each backbone's own (its file: the tiny
     step's peak may be set before its LM runs, as in VLA-JEPA and Wall-X)."""
     adapter = grafted(name)
-    if not adapter.spec.activation_checkpointing:
+    if not adapter.spec.can_recompute:
         pytest.skip(f"{name}: no activation checkpointing (spec)")
     plain, checkpointed = activation_checkpointing_peaks(adapter)
     assert checkpointed <= plain, (checkpointed, plain)

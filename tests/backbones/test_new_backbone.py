@@ -1,8 +1,8 @@
 """Adding a backbone is adding its folder and its test file, nothing else (docs/ARCHITECTURE.md, "adding a
 backbone"; issue 41): in a copy of the repository, smolvla's folder copied as `smolvla2` (a second adapter of lerobot's
-smolvla policy: its adapter.py sets its name and the lerobot type it wraps) and its test file added; the copy's own
-registry, CLI choices, contract tests, docs checks and report pick smolvla2 up and pass, run in subprocesses on the
-copy's code."""
+smolvla policy: its adapter.py sets its name and imports its own folder's spec, whose spec.py names the lerobot type it
+wraps) and its test file added; the copy's own registry, CLI choices, contract tests, docs checks and report pick
+smolvla2 up and pass, run in subprocesses on the copy's code."""
 
 from __future__ import annotations
 
@@ -62,11 +62,12 @@ def _copy(repo: Path) -> None:
             (repo / entry.name).symlink_to(entry)
     folder = repo / "graftcache" / "backbones" / NEW
     shutil.copytree(repo / "graftcache" / "backbones" / COPIED, folder, ignore=shutil.ignore_patterns("__pycache__"))
-    adapter = folder / "adapter.py"
-    source = adapter.read_text()
-    assert source.count(f'name = "{COPIED}"') == 1 and source.count("spec = BackboneSpec(\n") == 1
-    adapter.write_text(source.replace(f'name = "{COPIED}"', f'name = "{NEW}"').replace(
-        "spec = BackboneSpec(\n", f'spec = BackboneSpec(\n        lerobot_type="{COPIED}",\n'))
+    adapter, spec = folder / "adapter.py", folder / "spec.py"
+    declared = "SPEC = BackboneSpec(\n"
+    assert adapter.read_text().count(f'name = "{COPIED}"') == 1 and spec.read_text().count(declared) == 1
+    adapter.write_text(adapter.read_text().replace(f'name = "{COPIED}"', f'name = "{NEW}"').replace(
+        f"graftcache.backbones.{COPIED}.spec", f"graftcache.backbones.{NEW}.spec"))
+    spec.write_text(spec.read_text().replace(declared, f'{declared}    lerobot_type="{COPIED}",\n'))
     tests = repo / "tests" / "backbones"
     (tests / f"test_{NEW}.py").write_text((tests / f"test_{COPIED}.py").read_text().replace(f'"{COPIED}"', f'"{NEW}"'))
 

@@ -40,7 +40,7 @@ def _released(name: str):
     from graftcache.backbones import get_backbone
     from graftcache.backbones.pi0_fast.fast import policy_tokenizers
     from graftcache.backbones.pi0_fast.tiny import fit_tiny_fast
-    from graftcache.backbones.tiny import TinySpec
+    from graftcache.backbones.tiny import TinyBuild
     from graftcache.backbones.tiny_assets import PALIGEMMA_DIR
 
     inputs, outputs = _features(LIBERO)
@@ -57,7 +57,7 @@ def _released(name: str):
 
         config = PI0FastConfig(dtype="bfloat16", device="cpu", input_features=inputs, output_features=outputs)
         # construction reads none of the tokenizer's fit
-        fast = fit_tiny_fast(unit_stats(LIBERO), TinySpec(chunk_size=config.chunk_size))
+        fast = fit_tiny_fast(unit_stats(LIBERO), TinyBuild(chunk_size=config.chunk_size))
         with policy_tokenizers(fast, PALIGEMMA_DIR):
             policy = _construct_on_meta(PI0FastPolicy, config, torch.bfloat16)
     adapter = get_backbone(name)(policy, None, None, source="meta", random_init=True)

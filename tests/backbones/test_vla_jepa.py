@@ -114,7 +114,7 @@ def test_loss_and_prediction_are_lerobots_under_the_same_draws() -> None:
 
 def test_loss_masks_padded_steps_per_sample_and_ignores_batch_mates() -> None:
     """Padded steps are masked per sample, and a sample's loss does not depend on the other prompts of its batch
-    (they set its left padding): what lets cells share a backbone pass (per_sample_loss)."""
+    (they set its left padding): what lets cells share a backbone pass (spec loss_per_sample)."""
     adapter = tiny("vla_jepa")
     adapter.policy.eval()
     raw = raw_images(adapter, 3, size=SIZE)
@@ -126,7 +126,7 @@ def test_loss_masks_padded_steps_per_sample_and_ignores_batch_mates() -> None:
         alone = adapter.prepare({k: v[2:] for k, v in raw.items()})  # the shortest task: no padding alone
         single = adapter.loss(alone, noise[2:], time[2:])
     torch.testing.assert_close(loss, torch.stack([error[0, :-3].mean(), error[1].mean(), error[2].mean()]))
-    assert adapter.per_sample_loss
+    assert adapter.spec.loss_per_sample
     torch.testing.assert_close(single, loss[2:], atol=1e-3, rtol=1e-2)  # Qwen runs under bf16 autocast
 
 
@@ -216,12 +216,12 @@ def test_activation_checkpointing_keeps_the_projector_gradients_and_lowers_the_p
                                      model.embodied_replace_prompt)
     grads, peaks = {}, {}
     for on in (False, True, False):  # off again: the switch restores the plain step, KV cache included
-        adapter.set_activation_checkpointing(on)
+        adapter.set_recompute(on)
         adapter.projector.zero_grad(set_to_none=True)
         adapter.loss(batch, noise=noise, time=time).mean().backward()
         grads[on] = [p.grad.clone() for p in adapter.projector.parameters()]
         peaks[on] = peak_tensor_bytes(lambda: model._qwen_last_decoder_hidden(prompt).float().sum().backward())
-    assert adapter.supports_activation_checkpointing and adapter._qwen.language_model.config.use_cache
+    assert adapter.spec.can_recompute and adapter._qwen.language_model.config.use_cache
     for plain, checkpointed in zip(grads[False], grads[True], strict=True):
         torch.testing.assert_close(checkpointed, plain, rtol=0, atol=1e-6)
     assert peaks[True] < 0.6 * peaks[False], peaks  # measured: 7.6 of 16.2 MB

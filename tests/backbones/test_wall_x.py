@@ -161,7 +161,7 @@ def test_activation_checkpointing_keeps_the_gradients() -> None:
     noise, time = fixed_noise_time(adapter, 2)
     grads = []
     for on in (False, True):
-        adapter.set_activation_checkpointing(on)
+        adapter.set_recompute(on)
         adapter.projector.zero_grad()
         adapter.loss(batch, noise, time).mean().backward()
         grads.append([p.grad.clone() for p in adapter.projector.parameters()])

@@ -115,16 +115,16 @@ def test_rows_record_the_encoders_and_the_backbones_weights_apart(world: World, 
                                                        "random_init").row(0) == (False, True, True)
 
 
-def test_checkpointing_and_the_eval_batch_size_change_no_number_and_rows_record_them(world: World,
+def test_recompute_and_the_eval_batch_size_change_no_number_and_rows_record_them(world: World,
                                                                                      tmp_path: Path) -> None:
-    """`--activation-checkpointing on` trains with the same gradients (CPU, fp32: the same rows), `auto` resolves to
+    """`--recompute on` trains with the same gradients (CPU, fp32: the same rows), `auto` resolves to
     off where the step fits; scoring 4 frames one at a time scores them as one batch of 4. Neither changes the
     run_id; rows record both and what scoring cost a frame, and the cell's log line says so."""
     lines: list[str] = []
     plain = Fitter(world.request(controls=("lora",), results=str(tmp_path / "a.parquet"), compute_dtype="fp32"),
                    log=lines.append).run()
     other = Fitter(world.request(controls=("lora",), results=str(tmp_path / "b.parquet"), compute_dtype="fp32",
-                                 activation_checkpointing="on", eval_batch_size=1), log=_quiet).run()
+                                 recompute="on", eval_batch_size=1), log=_quiet).run()
     for a, b in zip(plain, other, strict=True):
         assert a["run_id"] == b["run_id"]
         assert b["train_loss_final"] == pytest.approx(a["train_loss_final"], rel=1e-5)
@@ -135,7 +135,7 @@ def test_checkpointing_and_the_eval_batch_size_change_no_number_and_rows_record_
     assert results.read(tmp_path / "b.parquet")["activation_checkpointing"].to_list() == ["on", "on"]
     done = [ln for ln in lines if " eval_mse " in ln]
     assert len(done) == 2 and all(" ms a frame at --eval-batch-size 64)" in ln for ln in done)
-    assert all(ln.endswith("activation checkpointing off") for ln in done)
+    assert all(ln.endswith("recompute off") for ln in done)
 
 
 def test_pi05_controls_run_too(world: World, tmp_path: Path) -> None:
@@ -449,7 +449,7 @@ def test_a_batch_past_memory_is_refused_before_training(world: World, tmp_path: 
     assert main(args) == 2
     line = capsys.readouterr().err.strip()
     assert "Traceback" not in line and len(line.splitlines()) == 1, line
-    # --activation-checkpointing auto: refused without it, then measured and refused with it
+    # --recompute auto: refused without it, then measured and refused with it
     assert line.startswith("graftcache fit: error: a training step of --batch-size 100000 with activation "
                            "checkpointing (")
     assert "a frame, measured on a 1- and a 2-frame step of features image 16x192, image2 16x192)" in line
@@ -458,10 +458,10 @@ def test_a_batch_past_memory_is_refused_before_training(world: World, tmp_path: 
     assert float(amount) * 1024 ** ["MiB", "GiB", "TiB"].index(unit) >= 100000 * 2 * 16 * 192 * 4 / 2**20
     have, limit = budget.available_memory("cpu")
     assert f"but {limit} is " in line and line.endswith("; lower --batch-size") and not out.exists()
-    assert main([*args, "--activation-checkpointing", "off"]) == 2  # refused as it is, with the other way out
+    assert main([*args, "--recompute", "off"]) == 2  # refused as it is, with the other way out
     line = capsys.readouterr().err.strip()
     assert line.startswith("graftcache fit: error: a training step of --batch-size 100000 (")
-    assert line.endswith("; lower --batch-size or pass --activation-checkpointing on") and not out.exists()
+    assert line.endswith("; lower --batch-size or pass --recompute on") and not out.exists()
 
 
 def test_the_largest_seed_feeds_every_rng_and_its_row(world: World, tmp_path: Path) -> None:

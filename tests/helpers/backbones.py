@@ -7,15 +7,16 @@ from collections.abc import Callable
 import pytest
 import torch
 
-from graftcache.backbones import BACKBONES, TinySpec, get_backbone, load_backbone
+from graftcache.backbones import BACKBONES, get_backbone, load_backbone
 from graftcache.backbones.base import BackboneAdapter
 from graftcache.backbones.spec import BackboneSpec
+from graftcache.backbones.tiny import TinyBuild
 from graftcache.errors import BackboneError
 from graftcache.fit.controls import PassThroughProjector
 from graftcache.graft import GraftProjector, feature_key
 from helpers.memory import peak_tensor_bytes
 
-SPEC = TinySpec()
+TINY = TinyBuild()
 ENC_DIM = 48
 #: The tiny zoo policies' frames (train-tiny's size): each processor makes a 4x4 token grid of them.
 TINY_SIZE = 128
@@ -32,7 +33,7 @@ def backbones_where(predicate: Callable[[BackboneSpec], bool]) -> list[str]:
     return [name for name in sorted(BACKBONES) if predicate(get_backbone(name).spec)]
 
 
-def lowdim_stats(state_dim: int = SPEC.state_dim, action_dim: int = SPEC.action_dim) -> dict:
+def lowdim_stats(state_dim: int = TINY.state_dim, action_dim: int = TINY.action_dim) -> dict:
     """lerobot-format stats with every field the SmolVLA (MEAN_STD) and pi0.5 (QUANTILES) processors read."""
     def fields(n: int, scale: float) -> dict[str, torch.Tensor]:
         return {
@@ -45,7 +46,7 @@ def lowdim_stats(state_dim: int = SPEC.state_dim, action_dim: int = SPEC.action_
 
 
 def tiny(name: str, seed: int = 0) -> BackboneAdapter:
-    return load_backbone(name, "tiny", dataset_stats=lowdim_stats(), tiny=TinySpec(seed=seed))
+    return load_backbone(name, "tiny", dataset_stats=lowdim_stats(), tiny=TinyBuild(seed=seed))
 
 
 def grafted(name: str, enc_dim: int = ENC_DIM, seed: int = 0) -> BackboneAdapter:
@@ -186,8 +187,8 @@ def activation_checkpointing_peaks(adapter: BackboneAdapter, batch: int = 8) -> 
 
     grads, peaks = {}, {}
     for on in (False, True, False):  # off again: the switch restores the plain step
-        adapter.set_activation_checkpointing(on)
-        assert adapter.activation_checkpointing is on
+        adapter.set_recompute(on)
+        assert adapter.recomputing is on
         for p in params:
             p.grad = None
         peaks.setdefault(on, []).append(peak_tensor_bytes(step))

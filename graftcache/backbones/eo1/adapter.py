@@ -38,6 +38,7 @@ from transformers.modeling_outputs import BaseModelOutputWithPooling
 from graftcache.backbones.base import BackboneAdapter
 from graftcache.backbones.batches import ACTION, STATE
 from graftcache.backbones.checkpoint import cached_repo
+from graftcache.backbones.eo1.spec import QWEN_STEP, SPEC
 from graftcache.backbones.eo1.tiny import construct
 from graftcache.backbones.given_draws import shadowed
 from graftcache.backbones.objectives import FlowObjective
@@ -53,12 +54,10 @@ from graftcache.backbones.qwen_vl import (
     tied_head_keys,
     vit_outputs,
 )
-from graftcache.backbones.spec import BackboneSpec
 from graftcache.backbones.tiny_assets import QWEN_VL_DIR
 from graftcache.errors import BackboneError
 from graftcache.graft import feature_key
 
-QWEN_STEP = "EO1QwenProcessorStep"
 SEQUENCE_KEYS = ("input_ids", "attention_mask", "mm_token_type_ids")
 
 
@@ -88,22 +87,7 @@ def processor_kwargs_quiet() -> Iterator[None]:
 
 class EO1Adapter(TowerReads, FlowObjective, BackboneAdapter):
     name = "eo1"
-    spec = BackboneSpec(
-        label="EO-1",
-        lerobot_extra="eo1",
-        image_method="_get_model_inputs",
-        vision_slots=("blocks", "merger"),
-        lm_width="policy.model.vlm_backbone.config.text_config.hidden_size",
-        module_paths={
-            "patch embedding": ("_vision_owner.patch_embed",),
-            "language model": ("policy.model.vlm_backbone.model.language_model",),
-            "action head": tuple(f"policy.model.{m}" for m in (
-                "state_proj", "action_in_proj", "action_out_proj", "action_time_mlp_in", "action_time_mlp_out")),
-        },
-        steps_field="num_denoise_steps",
-        token_steps=("EO1ConversationTemplateStep", QWEN_STEP),
-        prompt_uses_state=True,
-    )
+    spec = SPEC
 
     def _patch_graft(self, graft) -> None:
         """Grafted, Qwen's `get_image_features` projects the cached features (undone by reset)."""

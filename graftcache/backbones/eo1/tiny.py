@@ -20,7 +20,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from graftcache.backbones.patching import patched
-from graftcache.backbones.tiny import TinySpec, action_features, require_stats, seeded_policy, visual_features
+from graftcache.backbones.tiny import TinyBuild, action_features, require_stats, seeded_policy, visual_features
 from graftcache.backbones.tiny_assets import (
     QWEN25_VL_3B,
     QWEN_VL_DIR,
@@ -32,22 +32,22 @@ from graftcache.backbones.tiny_assets import (
 TINY_IMAGE_SIZE = 128  # what train-tiny resizes frames to (requests.TinyTrainConfig.image_size)
 
 
-def _config(spec: TinySpec, vlm_config: dict, vlm_base: str, image_size: int, pixels: tuple[int, int] | None,
+def _config(tiny: TinyBuild, vlm_config: dict, vlm_base: str, image_size: int, pixels: tuple[int, int] | None,
             device: str):
     from lerobot.policies.eo1.configuration_eo1 import EO1Config
 
     kwargs = {} if pixels is None else {"image_min_pixels": pixels[0], "image_max_pixels": pixels[1]}
     return EO1Config(vlm_base=vlm_base, vlm_config=vlm_config, device=device,
-                     input_features=visual_features(spec, image_size), output_features=action_features(spec),
+                     input_features=visual_features(tiny, image_size), output_features=action_features(tiny),
                      **kwargs)
 
 
-def eo1_tiny_config(spec: TinySpec, device: str, image_size: int = TINY_IMAGE_SIZE):
+def eo1_tiny_config(tiny: TinyBuild, device: str, image_size: int = TINY_IMAGE_SIZE):
     """Tiny EO-1 at the dataset's `image_size` (the processor resizes to the tiny pixel bound)."""
-    config = _config(spec, qwen25_vl_ids(), str(QWEN_VL_DIR), image_size, (4 * 28 * 28, QWEN_VL_TINY_PIXELS), device)
-    config.chunk_size = config.n_action_steps = spec.chunk_size
-    config.num_denoise_steps = spec.num_steps
-    config.max_state_dim, config.max_action_dim = max(spec.state_dim, 8), max(spec.action_dim, 8)
+    config = _config(tiny, qwen25_vl_ids(), str(QWEN_VL_DIR), image_size, (4 * 28 * 28, QWEN_VL_TINY_PIXELS), device)
+    config.chunk_size = config.n_action_steps = tiny.chunk_size
+    config.num_denoise_steps = tiny.num_steps
+    config.max_state_dim, config.max_action_dim = max(tiny.state_dim, 8), max(tiny.action_dim, 8)
     config.dtype = "float32"
     config.attn_implementation = "sdpa"
     return config
@@ -57,8 +57,8 @@ def eo1_released_config(cameras: tuple[str, ...], image_size: int, state_dim: in
     """lerobot/eo1-base's geometry for a dataset (IPEC-COMMUNITY/EO-1-3B converted: Qwen/Qwen2.5-VL-3B-Instruct,
     chunk 16, state/action padded to 32, two action-projector layers, 10 denoising steps; lerobot's defaults
     otherwise)."""
-    spec = TinySpec(cameras=cameras, state_dim=state_dim, action_dim=action_dim)
-    config = _config(spec, QWEN25_VL_3B, "Qwen/Qwen2.5-VL-3B-Instruct", image_size, None, device)
+    tiny = TinyBuild(cameras=cameras, state_dim=state_dim, action_dim=action_dim)
+    config = _config(tiny, QWEN25_VL_3B, "Qwen/Qwen2.5-VL-3B-Instruct", image_size, None, device)
     config.chunk_size = 16
     return config
 
@@ -72,13 +72,13 @@ def construct(config):
         return EO1Policy(config)
 
 
-def build_tiny(spec: TinySpec, stats: dict | None, device: str):
-    """Random-init tiny EO-1 and its lerobot pre/post processors (deterministic for `spec.seed`); no geometry (its
+def build_tiny(tiny: TinyBuild, stats: dict | None, device: str):
+    """Random-init tiny EO-1 and its lerobot pre/post processors (deterministic for `tiny.seed`); no geometry (its
     config keeps it)."""
     from lerobot.policies.eo1.processor_eo1 import make_eo1_pre_post_processors
 
-    config = eo1_tiny_config(spec, device)
-    policy = seeded_policy(spec.seed, lambda: construct(config))
+    config = eo1_tiny_config(tiny, device)
+    policy = seeded_policy(tiny.seed, lambda: construct(config))
     pre, post = make_eo1_pre_post_processors(config, dataset_stats=require_stats(stats))
     return policy.to(device), pre, post, None
 

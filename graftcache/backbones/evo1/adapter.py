@@ -45,10 +45,10 @@ from transformers.modeling_outputs import BaseModelOutputWithPooling
 from graftcache.backbones.base import BackboneAdapter, is_empty_camera
 from graftcache.backbones.batches import ACTION
 from graftcache.backbones.checkpoint import cached_repo
+from graftcache.backbones.evo1.spec import SPEC
 from graftcache.backbones.evo1.tiny import INTERNVL_DIR, construct
 from graftcache.backbones.objectives import FlowObjective
 from graftcache.backbones.patching import patched
-from graftcache.backbones.spec import BackboneSpec
 from graftcache.errors import BackboneError
 
 
@@ -61,20 +61,7 @@ def token_grid(image_size: int, vision, downsample_ratio: float) -> tuple[int, i
 
 class Evo1Adapter(FlowObjective, BackboneAdapter):
     name = "evo1"
-    spec = BackboneSpec(
-        label="EVO1",
-        lerobot_extra="evo1",
-        image_method="_collect_image_batches",
-        vision_slots=("vision_tower", "multi_modal_projector"),
-        lm_width="_vision_owner.config.text_config.hidden_size",
-        module_paths={
-            "language model": ("_vision_owner.language_model",),
-            "action head": ("policy.model.action_head",),
-        },
-        steps_field="num_inference_timesteps",
-        prompt_uses_state=True,
-        flow_time="data",
-    )
+    spec = SPEC
 
     def _patch_graft(self, graft) -> None:
         """Grafted, the embedder takes the cached features, InternVL's `get_image_features` projects them, and images

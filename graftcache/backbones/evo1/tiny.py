@@ -30,7 +30,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from graftcache.backbones.patching import patched
-from graftcache.backbones.tiny import TinySpec, action_features, require_stats, seeded_policy, visual_features
+from graftcache.backbones.tiny import TinyBuild, action_features, require_stats, seeded_policy, visual_features
 from graftcache.backbones.tiny_assets import TINY_ROOT, train_bpe
 
 INTERNVL_DIR = TINY_ROOT / "internvl"
@@ -95,37 +95,37 @@ def construct(config):
         return Evo1Policy(config)
 
 
-def _config(spec: TinySpec, vlm: str, image_size: int, device: str, **fields):
+def _config(tiny: TinyBuild, vlm: str, image_size: int, device: str, **fields):
     from lerobot.policies.evo1.configuration_evo1 import Evo1Config
 
-    return Evo1Config(vlm_model_name=vlm, device=device, input_features=visual_features(spec, image_size),
-                      output_features=action_features(spec), **fields)
+    return Evo1Config(vlm_model_name=vlm, device=device, input_features=visual_features(tiny, image_size),
+                      output_features=action_features(tiny), **fields)
 
 
-def evo1_tiny_config(spec: TinySpec, device: str, image_size: int = 128):
+def evo1_tiny_config(tiny: TinyBuild, device: str, image_size: int = 128):
     """Tiny EVO1 for frames of `image_size` (the embedder resizes them to the tower's 112 px). Stage 2 (the
     whole VLM finetuned, as train-tiny trains it): stage 1 would embed without gradients."""
-    return _config(spec, str(INTERNVL_DIR), image_size, device, training_stage="stage2",
+    return _config(tiny, str(INTERNVL_DIR), image_size, device, training_stage="stage2",
                    image_resolution=(TINY_IMAGE_SIZE, TINY_IMAGE_SIZE), vlm_num_layers=2, vlm_dtype="float32",
                    use_flash_attn=False, enable_gradient_checkpointing=False, embed_dim=64, hidden_dim=64,
-                   state_hidden_dim=64, num_heads=4, num_layers=2, chunk_size=spec.chunk_size,
-                   n_action_steps=spec.chunk_size, num_inference_timesteps=spec.num_steps,
-                   max_state_dim=max(spec.state_dim, 8), max_action_dim=max(spec.action_dim, 8))
+                   state_hidden_dim=64, num_heads=4, num_layers=2, chunk_size=tiny.chunk_size,
+                   n_action_steps=tiny.chunk_size, num_inference_timesteps=tiny.num_steps,
+                   max_state_dim=max(tiny.state_dim, 8), max_action_dim=max(tiny.action_dim, 8))
 
 
 def evo1_released_config(cameras: tuple[str, ...], image_size: int, state_dim: int, action_dim: int, device: str,
                          vlm: str = "OpenGVLab/InternVL3-1B-hf"):
     """lerobot's EVO1 defaults for a dataset: InternVL3-1B-hf at 448 px, 14 LM layers, chunk 50, 24 padded dims."""
-    return _config(TinySpec(cameras=cameras, state_dim=state_dim, action_dim=action_dim), vlm, image_size, device)
+    return _config(TinyBuild(cameras=cameras, state_dim=state_dim, action_dim=action_dim), vlm, image_size, device)
 
 
-def build_tiny(spec: TinySpec, stats: dict | None, device: str):
-    """Random-init tiny EVO1 and its lerobot pre/post processors (deterministic for `spec.seed`); no geometry (its
+def build_tiny(tiny: TinyBuild, stats: dict | None, device: str):
+    """Random-init tiny EVO1 and its lerobot pre/post processors (deterministic for `tiny.seed`); no geometry (its
     config keeps it)."""
     from lerobot.policies.evo1.processor_evo1 import make_evo1_pre_post_processors
 
-    config = evo1_tiny_config(spec, device)
-    policy = seeded_policy(spec.seed, lambda: construct(config))
+    config = evo1_tiny_config(tiny, device)
+    policy = seeded_policy(tiny.seed, lambda: construct(config))
     pre, post = make_evo1_pre_post_processors(config, dataset_stats=require_stats(stats))
     return policy.to(device), pre, post, None
 

@@ -41,6 +41,7 @@ from graftcache.backbones.batches import ACTION, STATE
 from graftcache.backbones.checkpoint import cached_repo
 from graftcache.backbones.given_draws import given_noise, shadowed
 from graftcache.backbones.groot.construct import base_config, construct
+from graftcache.backbones.groot.spec import SPEC, VLM_STEP
 from graftcache.backbones.groot.tiny import (
     GROOT_DIR,
     TINY_TARGET,
@@ -60,12 +61,11 @@ from graftcache.backbones.qwen_vl import (
     qwen3_vl_image_features,
     raster_patches,
 )
-from graftcache.backbones.spec import BackboneSpec
 from graftcache.backbones.tiny_assets import QWEN3_VL_MERGE, QWEN3_VL_PATCH, QWEN3_VL_PIXELS, TINY_QWEN3_VL_PIXELS
 from graftcache.errors import BackboneError
 from graftcache.graft import feature_key
 
-VLM_STEP, PACK_STEP = "GrootN17VLMEncodeStep", "GrootN17PackInputsStep"
+PACK_STEP = "GrootN17PackInputsStep"
 #: The normalised action chunk as GR00T's pack step pads it to `max_action_dim` (what its forward reads); the
 #: prepared batch's `action` is the chunk at the dataset's action width, like every other backbone's.
 PADDED_ACTION = "groot_padded_action"
@@ -73,22 +73,7 @@ PADDED_ACTION = "groot_padded_action"
 
 class GrootAdapter(TowerReads, FlowObjective, BackboneAdapter):
     name = "groot"
-    spec = BackboneSpec(
-        label="GR00T N1.7",
-        image_method="_filter_groot_inputs",
-        vision_slots=("blocks", "merger"),
-        lm_width="_groot.backbone.model.config.text_config.hidden_size",
-        module_paths={
-            "patch embedding": ("_vision_owner.patch_embed",),
-            "deepstack mergers": ("_vision_owner.deepstack_merger_list",),
-            "language model": ("_qwen.language_model",),
-            "action head": ("_groot.action_head",),
-        },
-        steps_field="num_inference_timesteps",
-        token_steps=(VLM_STEP,),
-        prompt_uses_state=True,
-        flow_time="data",
-    )
+    spec = SPEC
 
     def _patch_graft(self, graft) -> None:
         """Grafted, Qwen's `get_image_features` projects the cached features (undone by reset)."""

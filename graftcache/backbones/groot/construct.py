@@ -18,7 +18,7 @@ from typing import Any
 
 from graftcache.backbones.checkpoint import cached_repo
 from graftcache.backbones.patching import patched
-from graftcache.backbones.tiny import TinySpec, action_features, visual_features
+from graftcache.backbones.tiny import TinyBuild, action_features, visual_features
 from graftcache.errors import BackboneError
 
 
@@ -71,9 +71,9 @@ def groot_released_config(cameras: tuple[str, ...], image_size: int, state_dim: 
     action padded to 132, the new_embodiment tag)."""
     from lerobot.policies.groot.configuration_groot import GrootConfig
 
-    spec = TinySpec(cameras=cameras, state_dim=state_dim, action_dim=action_dim)
-    return GrootConfig(device=device, input_features=visual_features(spec, image_size),
-                       output_features=action_features(spec))
+    tiny = TinyBuild(cameras=cameras, state_dim=state_dim, action_dim=action_dim)
+    return GrootConfig(device=device, input_features=visual_features(tiny, image_size),
+                       output_features=action_features(tiny))
 
 
 def released_base_config():

@@ -32,7 +32,7 @@ from __future__ import annotations
 import functools
 
 from graftcache.backbones.groot.construct import construct
-from graftcache.backbones.tiny import TinySpec, action_features, require_stats, seeded_policy, visual_features
+from graftcache.backbones.tiny import TinyBuild, action_features, require_stats, seeded_policy, visual_features
 from graftcache.backbones.tiny_assets import TINY_ROOT, write_qwen3_vl
 
 GROOT_DIR = TINY_ROOT / "groot"
@@ -61,15 +61,15 @@ def tiny_base_config():
     return GR00TN17Config(model_name=str(GROOT_DIR), **TINY_GROOT)
 
 
-def groot_tiny_config(spec: TinySpec, device: str, image_size: int = TINY_TARGET):
+def groot_tiny_config(tiny: TinyBuild, device: str, image_size: int = TINY_TARGET):
     """Tiny GrootConfig at the dataset's `image_size` (GR00T's VLM step resizes frames to TINY_TARGET)."""
     from lerobot.policies.groot.configuration_groot import GrootConfig
 
-    dims = max(spec.state_dim, spec.action_dim, 8)
-    return GrootConfig(base_model_path=str(GROOT_DIR), device=device, chunk_size=spec.chunk_size,
-                       n_action_steps=spec.chunk_size, max_state_dim=dims, max_action_dim=dims,
-                       num_inference_timesteps=spec.num_steps, use_bf16=False,
-                       input_features=visual_features(spec, image_size), output_features=action_features(spec))
+    dims = max(tiny.state_dim, tiny.action_dim, 8)
+    return GrootConfig(base_model_path=str(GROOT_DIR), device=device, chunk_size=tiny.chunk_size,
+                       n_action_steps=tiny.chunk_size, max_state_dim=dims, max_action_dim=dims,
+                       num_inference_timesteps=tiny.num_steps, use_bf16=False,
+                       input_features=visual_features(tiny, image_size), output_features=action_features(tiny))
 
 
 def tiny_base_for(config):
@@ -96,13 +96,13 @@ def tiny_image_geometry(pre) -> None:
             step.image_target_size, step.image_crop_size = [TINY_TARGET] * 2, [TINY_CROP] * 2
 
 
-def build_tiny(spec: TinySpec, stats: dict | None, device: str):
-    """Random-init tiny GR00T and its lerobot pre/post processors (deterministic for `spec.seed`); no geometry (its
+def build_tiny(tiny: TinyBuild, stats: dict | None, device: str):
+    """Random-init tiny GR00T and its lerobot pre/post processors (deterministic for `tiny.seed`); no geometry (its
     config keeps it)."""
     from lerobot.policies.groot.processor_groot import make_groot_pre_post_processors
 
-    config = groot_tiny_config(spec, device)
-    policy = seeded_policy(spec.seed, lambda: construct(config, tiny_base_for(config)))
+    config = groot_tiny_config(tiny, device)
+    policy = seeded_policy(tiny.seed, lambda: construct(config, tiny_base_for(config)))
     pre, post = make_groot_pre_post_processors(config, dataset_stats=require_stats(stats))
     tiny_image_geometry(pre)
     return policy.to(device), pre, post, None

@@ -13,7 +13,6 @@ state is not in the prompt but a token of the expert's suffix (`state_proj`), so
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Mapping
 from typing import Any
 
@@ -22,25 +21,14 @@ from torch import nn
 
 from graftcache.backbones.batches import TOKEN_MASK, TOKENS
 from graftcache.backbones.paligemma import pi05_processors, pi05_tiny_sizes
+from graftcache.backbones.pi0.spec import SPEC
 from graftcache.backbones.pi0.tiny import MODELING, PROCESSOR
 from graftcache.backbones.pi05.adapter import PI05Adapter
 
 
 class PI0Adapter(PI05Adapter):
     name = "pi0"
-    spec = dataclasses.replace(
-        PI05Adapter.spec,
-        label="pi0",
-        module_paths={
-            "language model": ("_vision_owner.language_model",),
-            "action expert": ("policy.model.paligemma_with_expert.gemma_expert",),
-            "state projection": ("policy.model.state_proj",),
-            "action/time projections": tuple(f"policy.model.{m}" for m in (
-                "action_in_proj", "action_out_proj", "action_time_mlp_in", "action_time_mlp_out")),
-        },
-        token_steps=("Pi0NewLineProcessor", "TokenizerProcessorStep"),
-        prompt_uses_state=False,
-    )
+    spec = SPEC
 
     # ------------------------------------------------------------------------------ construction
     @classmethod

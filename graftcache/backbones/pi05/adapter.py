@@ -25,7 +25,7 @@ from graftcache.backbones.checkpoint import cached_repo
 from graftcache.backbones.lean_load import openpi_keys
 from graftcache.backbones.objectives import FlowObjective
 from graftcache.backbones.paligemma import paligemma_tiny_tokenizer, pi05_processors, pi05_tiny_sizes
-from graftcache.backbones.spec import BackboneSpec
+from graftcache.backbones.pi05.spec import SPEC
 
 PALIGEMMA_TOKENIZER = "google/paligemma-3b-pt-224"  # hard-coded by processor_pi05.py:145
 
@@ -73,25 +73,7 @@ class PaliGemmaAdapter(BackboneAdapter):
 
 class PI05Adapter(FlowObjective, PaliGemmaAdapter):
     name = "pi05"
-    spec = BackboneSpec(
-        label="pi0.5",
-        lerobot_extra="pi",
-        released_params=3_300_000_000,
-        image_method="_preprocess_images",
-        vision_slots=("vision_tower", "multi_modal_projector"),
-        lm_width="_vision_owner.config.text_config.hidden_size",
-        module_paths={
-            "language model": ("_vision_owner.language_model",),
-            "action expert": ("policy.model.paligemma_with_expert.gemma_expert",),
-            "action/time projections": tuple(f"policy.model.{m}" for m in (
-                "action_in_proj", "action_out_proj", "time_mlp_in", "time_mlp_out")),
-        },
-        steps_field="num_inference_steps",
-        token_steps=("Pi05PrepareStateTokenizerProcessorStep", "TokenizerProcessorStep"),
-        prompt_uses_state=True,
-        cells_per_pass={"cpu": 1, "cuda": 1},
-        activation_checkpointing=True,
-    )
+    spec = SPEC
 
     # ------------------------------------------------------------------------------ construction
     @classmethod
@@ -119,7 +101,7 @@ class PI05Adapter(FlowObjective, PaliGemmaAdapter):
     def _predict_chunk(self, batch: Mapping[str, Any], noise: torch.Tensor, num_steps: int) -> torch.Tensor:
         return self.policy.predict_action_chunk(dict(batch), noise=noise, num_steps=num_steps)
 
-    def _switch_activation_checkpointing(self, on: bool) -> None:
+    def _switch_recompute(self, on: bool) -> None:
         """lerobot's own switch (every LM and expert layer, in training mode)."""
         if on:
             self.policy.model.gradient_checkpointing_enable()

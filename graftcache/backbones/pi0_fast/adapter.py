@@ -39,8 +39,8 @@ from graftcache.backbones.objectives import TokenObjective
 from graftcache.backbones.paligemma import pi05_tiny_sizes
 from graftcache.backbones.patching import patched
 from graftcache.backbones.pi0_fast.fast import FAST_DIR, MODELING, fast_processors, load_fast, policy_tokenizers
+from graftcache.backbones.pi0_fast.spec import SPEC
 from graftcache.backbones.pi05.adapter import PaliGemmaAdapter
-from graftcache.backbones.spec import BackboneSpec
 from graftcache.backbones.tiny_assets import PALIGEMMA_DIR
 
 ACTION_TOKENS = "action.tokens"  # lerobot.utils.constants.ACTION_TOKENS / ACTION_TOKEN_MASK
@@ -49,23 +49,7 @@ ACTION_TOKEN_MASK = "action.token_mask"
 
 class PI0FastAdapter(TokenObjective, PaliGemmaAdapter):
     name = "pi0_fast"
-    spec = BackboneSpec(
-        label="pi0-FAST",
-        lerobot_extra="pi",
-        released_params=2_900_000_000,
-        image_method="_preprocess_images",
-        vision_slots=("vision_tower", "multi_modal_projector"),
-        lm_width="_vision_owner.config.text_config.hidden_size",
-        module_paths={"language model": ("_vision_owner.language_model",),
-                      "LM head": ("policy.model.paligemma_with_expert.paligemma.lm_head",)},
-        steps_field="max_decoding_steps",
-        token_steps=("Pi0FastPrepareStateAndLanguageTokenizerProcessorStep", "TokenizerProcessorStep",
-                     "ActionTokenizerProcessorStep"),
-        prompt_uses_state=True,
-        loss_per_sample=False,
-        flow_time=None,
-        activation_checkpointing=True,
-    )
+    spec = SPEC
 
     # ------------------------------------------------------------------------------ construction
     @classmethod
@@ -132,9 +116,9 @@ class PI0FastAdapter(TokenObjective, PaliGemmaAdapter):
         with _greedy_chunks(self.config, self.chunk_size):
             return self.policy.predict_action_chunk(dict(batch)).to(self.device)
 
-    def _switch_activation_checkpointing(self, on: bool) -> None:
+    def _switch_recompute(self, on: bool) -> None:
         """lerobot's switch minus the vision tower's (after a graft a pass-through, without transformers' method):
-        transformers' own checkpointing of every language-model layer, non-reentrant."""
+        transformers' own activation checkpointing of every language-model layer, non-reentrant."""
         model = self.policy.model
         language_model = model.paligemma_with_expert.paligemma.model.language_model
         model.gradient_checkpointing_enabled = on

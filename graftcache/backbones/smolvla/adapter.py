@@ -23,32 +23,13 @@ from graftcache.backbones.batches import TOKEN_MASK, TOKENS
 from graftcache.backbones.checkpoint import cached_repo
 from graftcache.backbones.objectives import FlowObjective
 from graftcache.backbones.patching import patched
-from graftcache.backbones.spec import BackboneSpec
+from graftcache.backbones.smolvla.spec import SPEC
 from graftcache.backbones.tiny_assets import SMOLVLM_DIR
 
 
 class SmolVLAAdapter(WrappedActivationCheckpointing, FlowObjective, BackboneAdapter):
     name = "smolvla"
-    spec = BackboneSpec(
-        label="SmolVLA",
-        lerobot_extra="smolvla",
-        released_params=450_000_000,
-        image_method="prepare_images",
-        vision_slots=("vision_model", "connector"),
-        lm_width="_vision_owner.config.text_config.hidden_size",
-        module_paths={
-            "language model": ("_vision_owner.text_model",),
-            "action expert": ("policy.model.vlm_with_expert.lm_expert",),
-            "state projection": ("policy.model.state_proj",),
-            "action/time projections": tuple(f"policy.model.{m}" for m in (
-                "action_in_proj", "action_out_proj", "action_time_mlp_in", "action_time_mlp_out")),
-        },
-        steps_field="num_steps",
-        token_steps=("NewLineTaskProcessorStep", "TokenizerProcessorStep"),
-        scaled_embeddings=True,
-        cells_per_pass={"cpu": 1, "cuda": 4},
-        activation_checkpointing=True,
-    )
+    spec = SPEC
 
     # ------------------------------------------------------------------------------ construction
     @classmethod
@@ -112,7 +93,7 @@ class SmolVLAAdapter(WrappedActivationCheckpointing, FlowObjective, BackboneAdap
         with _num_steps(self.config, num_steps):
             return self.policy.predict_action_chunk(dict(batch), noise=noise)
 
-    def _activation_checkpointing_slots(self) -> Iterator[tuple[nn.Module, str]]:
+    def _recompute_slots(self) -> Iterator[tuple[nn.Module, str]]:
         """The attention of every layer (one function of the joint model) and each LM and expert layer's MLP."""
         joint = self.policy.model.vlm_with_expert
         yield joint, "eager_attention_forward"

@@ -6,11 +6,11 @@ Llama text model 192 wide x 4 layers, expert 144 wide (lerobot's 0.75).
 
 from __future__ import annotations
 
-from graftcache.backbones.tiny import TinySpec, action_features, require_stats, seeded_policy, visual_features
+from graftcache.backbones.tiny import TinyBuild, action_features, require_stats, seeded_policy, visual_features
 from graftcache.backbones.tiny_assets import SMOLVLM_DIR, SMOLVLM_GEOMETRY
 
 
-def smolvla_tiny_config(spec: TinySpec, device: str):
+def smolvla_tiny_config(tiny: TinyBuild, device: str):
     from lerobot.policies.smolvla.configuration_smolvla import SmolVLAConfig
 
     size = SMOLVLM_GEOMETRY["image_size"]
@@ -18,21 +18,21 @@ def smolvla_tiny_config(spec: TinySpec, device: str):
         vlm_model_name=str(SMOLVLM_DIR), load_vlm_weights=False,
         num_vlm_layers=SMOLVLM_GEOMETRY["text_layers"],
         resize_imgs_with_padding=(size, size),
-        chunk_size=spec.chunk_size, n_action_steps=spec.chunk_size, num_steps=spec.num_steps,
-        max_state_dim=max(spec.state_dim, 8), max_action_dim=max(spec.action_dim, 8),
+        chunk_size=tiny.chunk_size, n_action_steps=tiny.chunk_size, num_steps=tiny.num_steps,
+        max_state_dim=max(tiny.state_dim, 8), max_action_dim=max(tiny.action_dim, 8),
         device=device,
-        input_features=visual_features(spec, size), output_features=action_features(spec),
+        input_features=visual_features(tiny, size), output_features=action_features(tiny),
     )
 
 
-def build_tiny(spec: TinySpec, stats: dict | None, device: str):
-    """Random-init tiny SmolVLA and its lerobot pre/post processors (deterministic for `spec.seed`); no geometry (its
+def build_tiny(tiny: TinyBuild, stats: dict | None, device: str):
+    """Random-init tiny SmolVLA and its lerobot pre/post processors (deterministic for `tiny.seed`); no geometry (its
     config keeps it)."""
     from lerobot.policies.smolvla.modeling_smolvla import SmolVLAPolicy
     from lerobot.policies.smolvla.processor_smolvla import make_smolvla_pre_post_processors
 
-    config = smolvla_tiny_config(spec, device)
-    policy = seeded_policy(spec.seed, lambda: SmolVLAPolicy(config))
+    config = smolvla_tiny_config(tiny, device)
+    policy = seeded_policy(tiny.seed, lambda: SmolVLAPolicy(config))
     pre, post = make_smolvla_pre_post_processors(config, dataset_stats=require_stats(stats))
     return policy.to(device), pre, post, None
 

@@ -60,7 +60,7 @@ from graftcache.backbones.qwen_vl import (
     raster_patches,
     tied_head_keys,
 )
-from graftcache.backbones.spec import BackboneSpec
+from graftcache.backbones.vla_jepa.spec import SPEC
 from graftcache.backbones.vla_jepa.tiny import QWEN3_VL_DIR, construct
 from graftcache.errors import BackboneError
 from graftcache.graft import feature_key
@@ -93,23 +93,7 @@ def given_draws(head: nn.Module, noise: torch.Tensor, time: torch.Tensor | None 
 
 class VLAJEPAAdapter(WrappedActivationCheckpointing, FlowObjective, BackboneAdapter):
     name = "vla_jepa"
-    spec = BackboneSpec(
-        label="VLA-JEPA",
-        lerobot_extra="vla-jepa",
-        image_method="_prepare_model_inputs",
-        vision_slots=("blocks", "merger"),
-        lm_width="_qwen.config.text_config.hidden_size",
-        module_paths={
-            "patch embedding": ("_vision_owner.patch_embed", "_vision_owner.pos_embed"),
-            "deepstack mergers": ("_vision_owner.deepstack_merger_list",),
-            "language model": ("_qwen.language_model",),
-            "action head": ("policy.model.action_model",),
-        },
-        steps_field="num_inference_timesteps",
-        prompt_uses_state=True,
-        flow_time="data",
-        activation_checkpointing=True,
-    )
+    spec = SPEC
 
     def _patch_graft(self, graft) -> None:
         """Grafted, Qwen's `get_image_features` projects the cached features and the prompt is built for them
@@ -286,15 +270,15 @@ class VLAJEPAAdapter(WrappedActivationCheckpointing, FlowObjective, BackboneAdap
                 given_draws(head, noise):
             return self.policy.predict_action_chunk(dict(batch))
 
-    def _switch_activation_checkpointing(self, on: bool) -> None:
+    def _switch_recompute(self, on: bool) -> None:
         """The wrapped layers, and Qwen's KV cache off meanwhile (as transformers turns it off under its own
-        checkpointing): a recomputed layer would append its keys and values to the cache a second time. The
+        activation checkpointing): a recomputed layer would append its keys and values to the cache a second time. The
         policy's single forward never reads that cache."""
-        super()._switch_activation_checkpointing(on)  # off: every change undone, the cache's switch too
-        if on and not any(change.attribute == "use_cache" for change in self.activation_checkpointing_patches.changes):
-            self.activation_checkpointing_patches.set(self._qwen.language_model.config, "use_cache", False)
+        super()._switch_recompute(on)  # off: every change undone, the cache's switch too
+        if on and not any(change.attribute == "use_cache" for change in self.recompute_patches.changes):
+            self.recompute_patches.set(self._qwen.language_model.config, "use_cache", False)
 
-    def _activation_checkpointing_slots(self) -> Iterator[tuple[nn.Module, str]]:
+    def _recompute_slots(self) -> Iterator[tuple[nn.Module, str]]:
         """Every decoder layer of the Qwen3 LM and every block of the DiT action head."""
         for layer in self._qwen.language_model.layers:
             yield layer, "forward"

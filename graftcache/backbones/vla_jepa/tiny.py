@@ -34,7 +34,7 @@ from pathlib import Path
 import torch
 
 from graftcache.backbones.patching import patched
-from graftcache.backbones.tiny import TinySpec, action_features, require_stats, seeded_policy, visual_features
+from graftcache.backbones.tiny import TinyBuild, action_features, require_stats, seeded_policy, visual_features
 from graftcache.backbones.tiny_assets import QWEN3_VL_DIR, write_qwen3_vl
 
 TINY_IMAGE_SIZE = 128  # what train-tiny resizes frames to (requests.TinyTrainConfig.image_size)
@@ -84,37 +84,37 @@ def construct(config, folder: Path, qwen_config=None):
         return VLAJEPAPolicy(config)
 
 
-def _config(spec: TinySpec, image_size: int, qwen: str, device: str, **kwargs):
+def _config(tiny: TinyBuild, image_size: int, qwen: str, device: str, **kwargs):
     from lerobot.policies.vla_jepa.configuration_vla_jepa import VLAJEPAConfig
 
     return VLAJEPAConfig(qwen_model_name=qwen, enable_world_model=False, device=device,
-                         input_features=visual_features(spec, image_size), output_features=action_features(spec),
-                         action_dim=spec.action_dim, state_dim=spec.state_dim, **kwargs)
+                         input_features=visual_features(tiny, image_size), output_features=action_features(tiny),
+                         action_dim=tiny.action_dim, state_dim=tiny.state_dim, **kwargs)
 
 
-def vla_jepa_tiny_config(spec: TinySpec, device: str, image_size: int = TINY_IMAGE_SIZE):
+def vla_jepa_tiny_config(tiny: TinyBuild, device: str, image_size: int = TINY_IMAGE_SIZE):
     """Tiny VLA-JEPA at the dataset's `image_size` (the tiny processor bounds it to 4x4 merged tokens)."""
-    return _config(spec, image_size, str(QWEN3_VL_DIR), device, torch_dtype="float32", action_model_type="DiT-test",
+    return _config(tiny, image_size, str(QWEN3_VL_DIR), device, torch_dtype="float32", action_model_type="DiT-test",
                    action_num_layers=2, action_hidden_size=32, action_dropout=0.0,
                    num_embodied_action_tokens_per_instruction=4, num_action_tokens_per_timestep=2,
-                   chunk_size=spec.chunk_size, n_action_steps=spec.chunk_size, num_inference_timesteps=spec.num_steps)
+                   chunk_size=tiny.chunk_size, n_action_steps=tiny.chunk_size, num_inference_timesteps=tiny.num_steps)
 
 
 def vla_jepa_released_config(cameras: tuple[str, ...], image_size: int, state_dim: int, action_dim: int,
                              device: str):
     """lerobot/VLA-JEPA-LIBERO's geometry for a dataset: Qwen/Qwen3-VL-2B-Instruct, DiT-B x 16 layers, chunk 7,
     32 embodied-action tokens, 4 denoising steps (lerobot's defaults, which the port set from the checkpoints)."""
-    spec = TinySpec(cameras=cameras, state_dim=state_dim, action_dim=action_dim)
-    return _config(spec, image_size, "Qwen/Qwen3-VL-2B-Instruct", device)
+    tiny = TinyBuild(cameras=cameras, state_dim=state_dim, action_dim=action_dim)
+    return _config(tiny, image_size, "Qwen/Qwen3-VL-2B-Instruct", device)
 
 
-def build_tiny(spec: TinySpec, stats: dict | None, device: str):
-    """Random-init tiny VLA-JEPA and its lerobot pre/post processors (deterministic for `spec.seed`); no geometry (its
+def build_tiny(tiny: TinyBuild, stats: dict | None, device: str):
+    """Random-init tiny VLA-JEPA and its lerobot pre/post processors (deterministic for `tiny.seed`); no geometry (its
     config keeps it)."""
     from lerobot.policies.vla_jepa.processor_vla_jepa import make_vla_jepa_pre_post_processors
 
-    config = vla_jepa_tiny_config(spec, device)
-    policy = seeded_policy(spec.seed, lambda: construct(config, QWEN3_VL_DIR))
+    config = vla_jepa_tiny_config(tiny, device)
+    policy = seeded_policy(tiny.seed, lambda: construct(config, QWEN3_VL_DIR))
     pre, post = make_vla_jepa_pre_post_processors(config, dataset_stats=require_stats(stats))
     return policy.to(device), pre, post, None
 

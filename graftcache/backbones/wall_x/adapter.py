@@ -54,7 +54,7 @@ from graftcache.backbones.qwen_vl import (
     tied_head_keys,
     vit_outputs,
 )
-from graftcache.backbones.spec import BackboneSpec
+from graftcache.backbones.wall_x.spec import SPEC
 from graftcache.backbones.wall_x.tiny import WALLX_DIR, construct, load_processor
 from graftcache.errors import BackboneError
 
@@ -83,22 +83,7 @@ def pixel_bounds(image_processor, pixels: int) -> Iterator[None]:
 
 class WallXAdapter(TowerReads, WrappedActivationCheckpointing, FlowObjective, BackboneAdapter):
     name = "wall_x"
-    spec = BackboneSpec(
-        label="Wall-X",
-        lerobot_extra="wallx",
-        image_method="preprocess_inputs",
-        vision_slots=("blocks", "merger"),
-        lm_width="policy.model.config.text_config.hidden_size",
-        module_paths={
-            "patch embedding": ("_vision_owner.patch_embed",),
-            "language model": ("policy.model.model",),
-            "action head": ("policy.model.action_preprocessor",),
-        },
-        steps_field=None,
-        prompt_uses_state=True,
-        flow_time="data",
-        activation_checkpointing=True,
-    )
+    spec = SPEC
 
     def _patch_graft(self, graft) -> None:
         """Grafted, the ViT's forward projects the cached features (undone by reset)."""
@@ -251,7 +236,7 @@ class WallXAdapter(TowerReads, WrappedActivationCheckpointing, FlowObjective, Ba
         with shadowed(model, predict=predict), given_noise(modeling_wall_x, noise, self.name, draws=("randn",)):
             return self.policy.predict_action_chunk(dict(batch))
 
-    def _activation_checkpointing_slots(self) -> Iterator[tuple[nn.Module, str]]:
+    def _recompute_slots(self) -> Iterator[tuple[nn.Module, str]]:
         """Every decoder layer of the MoE language model (attention and both experts)."""
         for layer in self.policy.model.model.layers:
             yield layer, "forward"

@@ -33,7 +33,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from graftcache.backbones.patching import patched
-from graftcache.backbones.tiny import TinySpec, action_features, require_stats, seeded_policy, visual_features
+from graftcache.backbones.tiny import TinyBuild, action_features, require_stats, seeded_policy, visual_features
 from graftcache.backbones.tiny_assets import QWEN25_VL_3B, QWEN_VL_DIR, TINY_QWEN25_VL, TINY_ROOT, qwen25_vl_ids
 from graftcache.errors import BackboneError
 
@@ -136,31 +136,31 @@ def construct(config, folder: Path):
         return WallXPolicy(config)
 
 
-def wallx_tiny_config(spec: TinySpec, device: str, image_size: int = TINY_IMAGE_SIZE):
+def wallx_tiny_config(tiny: TinyBuild, device: str, image_size: int = TINY_IMAGE_SIZE):
     """Tiny Wall-X at the dataset's `image_size` (lerobot's defaults otherwise: 20-dim padded state and action)."""
     from lerobot.policies.wall_x.configuration_wall_x import WallXConfig
 
-    return WallXConfig(pretrained_name_or_path=str(WALLX_DIR), device=device, chunk_size=spec.chunk_size,
-                       n_action_steps=spec.chunk_size, input_features=visual_features(spec, image_size),
-                       output_features=action_features(spec))
+    return WallXConfig(pretrained_name_or_path=str(WALLX_DIR), device=device, chunk_size=tiny.chunk_size,
+                       n_action_steps=tiny.chunk_size, input_features=visual_features(tiny, image_size),
+                       output_features=action_features(tiny))
 
 
 def wallx_released_config(cameras: tuple[str, ...], image_size: int, state_dim: int, action_dim: int, device: str):
     """lerobot's Wall-X defaults for a dataset (x-square-robot/wall-oss-flow, chunk 32, flow mode)."""
     from lerobot.policies.wall_x.configuration_wall_x import WallXConfig
 
-    spec = TinySpec(cameras=cameras, state_dim=state_dim, action_dim=action_dim)
-    return WallXConfig(device=device, input_features=visual_features(spec, image_size),
-                       output_features=action_features(spec))
+    tiny = TinyBuild(cameras=cameras, state_dim=state_dim, action_dim=action_dim)
+    return WallXConfig(device=device, input_features=visual_features(tiny, image_size),
+                       output_features=action_features(tiny))
 
 
-def build_tiny(spec: TinySpec, stats: dict | None, device: str):
-    """Random-init tiny Wall-X and its lerobot pre/post processors (deterministic for `spec.seed`); no geometry (its
+def build_tiny(tiny: TinyBuild, stats: dict | None, device: str):
+    """Random-init tiny Wall-X and its lerobot pre/post processors (deterministic for `tiny.seed`); no geometry (its
     config keeps it)."""
     from lerobot.policies.wall_x.processor_wall_x import make_wall_x_pre_post_processors
 
-    config = wallx_tiny_config(spec, device)
-    policy = seeded_policy(spec.seed, lambda: construct(config, WALLX_DIR))
+    config = wallx_tiny_config(tiny, device)
+    policy = seeded_policy(tiny.seed, lambda: construct(config, WALLX_DIR))
     pre, post = make_wall_x_pre_post_processors(config, dataset_stats=require_stats(stats))
     return policy.to(device), pre, post, None
 

@@ -34,8 +34,8 @@ from transformers.modeling_outputs import BaseModelOutputWithPooling
 from graftcache.backbones.activation_checkpointing import WrappedActivationCheckpointing
 from graftcache.backbones.base import BackboneAdapter, is_empty_camera
 from graftcache.backbones.batches import ACTION_PAD
-from graftcache.backbones.spec import BackboneSpec
 from graftcache.backbones.tiny_assets import PALIGEMMA_DIR
+from graftcache.backbones.xvla.spec import SPEC
 from graftcache.errors import BackboneError
 
 
@@ -49,20 +49,7 @@ def conv_grid(size: tuple[int, int], vision) -> tuple[int, int]:
 
 class XVLAAdapter(WrappedActivationCheckpointing, BackboneAdapter):
     name = "xvla"
-    spec = BackboneSpec(
-        label="X-VLA",
-        lerobot_extra="xvla",
-        image_method="_prepare_images",
-        vision_slots=("vision_tower", "multi_modal_projector"),
-        lm_width="_vision_owner.config.vision_config.projection_dim",
-        module_paths={
-            "language model": ("_vision_owner.language_model",),
-            "action transformer": ("policy.model.transformer",),
-        },
-        steps_field="num_denoising_steps",
-        token_steps=("TokenizerProcessorStep",),
-        activation_checkpointing=True,
-    )
+    spec = SPEC
 
     def _patch_graft(self, graft) -> None:
         """Grafted, Florence-2's `get_image_features` projects the cached features (undone by reset)."""
@@ -235,7 +222,7 @@ class XVLAAdapter(WrappedActivationCheckpointing, BackboneAdapter):
             action = self._denoise(inputs, enc, x1 * t.view(-1, 1, 1) + action * (1 - t).view(-1, 1, 1), t)
         return self.policy.model.action_space.postprocess(action)
 
-    def _activation_checkpointing_slots(self) -> Iterator[tuple[nn.Module, str]]:
+    def _recompute_slots(self) -> Iterator[tuple[nn.Module, str]]:
         """Every layer of the BART encoder (the LM) and every block of the action transformer."""
         for layer in self._vision_owner.language_model.encoder.layers:
             yield layer, "forward"

@@ -15,7 +15,7 @@ checkpoint needs no geometry in its marker: the folder's config rebuilds it.
 
 from __future__ import annotations
 
-from graftcache.backbones.tiny import TinySpec, action_features, require_stats, seeded_policy, visual_features
+from graftcache.backbones.tiny import TinyBuild, action_features, require_stats, seeded_policy, visual_features
 from graftcache.backbones.tiny_assets import PALIGEMMA_DIR
 
 TINY_IMAGE_SIZE = 128
@@ -47,16 +47,16 @@ def _mean_std():
             "ACTION": NormalizationMode.MEAN_STD}
 
 
-def xvla_tiny_config(spec: TinySpec, device: str):
+def xvla_tiny_config(tiny: TinyBuild, device: str):
     from lerobot.policies.xvla.configuration_xvla import XVLAConfig
 
     return XVLAConfig(
         florence_config=TINY_FLORENCE, tokenizer_name=str(PALIGEMMA_DIR), tokenizer_max_length=48,
         hidden_size=64, depth=2, num_heads=4, len_soft_prompts=4, num_domains=1, max_len_seq=256,
-        action_mode="auto", max_action_dim=max(spec.action_dim, 8), max_state_dim=max(spec.state_dim, 8),
-        chunk_size=spec.chunk_size, n_action_steps=spec.chunk_size, num_denoising_steps=spec.num_steps,
+        action_mode="auto", max_action_dim=max(tiny.action_dim, 8), max_state_dim=max(tiny.state_dim, 8),
+        chunk_size=tiny.chunk_size, n_action_steps=tiny.chunk_size, num_denoising_steps=tiny.num_steps,
         resize_imgs_with_padding=(TINY_IMAGE_SIZE, TINY_IMAGE_SIZE), normalization_mapping=_mean_std(),
-        device=device, input_features=visual_features(spec, TINY_IMAGE_SIZE), output_features=action_features(spec),
+        device=device, input_features=visual_features(tiny, TINY_IMAGE_SIZE), output_features=action_features(tiny),
     )
 
 
@@ -65,19 +65,19 @@ def xvla_released_config(cameras: tuple[str, ...], image_size: int, state_dim: i
     to 20, 10 denoising steps; the policy's other defaults are lerobot's)."""
     from lerobot.policies.xvla.configuration_xvla import XVLAConfig
 
-    spec = TinySpec(cameras=cameras, state_dim=state_dim, action_dim=action_dim)
+    tiny = TinyBuild(cameras=cameras, state_dim=state_dim, action_dim=action_dim)
     return XVLAConfig(florence_config=FLORENCE2_LARGE, action_mode="auto", normalization_mapping=_mean_std(),
-                      device=device, input_features=visual_features(spec, image_size),
-                      output_features=action_features(spec))
+                      device=device, input_features=visual_features(tiny, image_size),
+                      output_features=action_features(tiny))
 
 
-def build_tiny(spec: TinySpec, stats: dict | None, device: str):
-    """Random-init tiny X-VLA and its lerobot pre/post processors (deterministic for `spec.seed`); no geometry (its
+def build_tiny(tiny: TinyBuild, stats: dict | None, device: str):
+    """Random-init tiny X-VLA and its lerobot pre/post processors (deterministic for `tiny.seed`); no geometry (its
     config keeps it)."""
     from lerobot.policies.xvla.modeling_xvla import XVLAPolicy
     from lerobot.policies.xvla.processor_xvla import make_xvla_pre_post_processors
 
-    config = xvla_tiny_config(spec, device)
-    policy = seeded_policy(spec.seed, lambda: XVLAPolicy(config))
+    config = xvla_tiny_config(tiny, device)
+    policy = seeded_policy(tiny.seed, lambda: XVLAPolicy(config))
     pre, post = make_xvla_pre_post_processors(config, dataset_stats=require_stats(stats))
     return policy.to(device), pre, post, None
