@@ -23,7 +23,8 @@ demo-closed-loop: setup-libero
 lint: setup
 	.venv/bin/ruff check .
 
-# one pytest-xdist worker per core, each test module on one worker, the longest first (tests/helpers/parallel.py)
+# one pytest-xdist worker per core, each test module (the tiny zoo's: each backbone) on one worker, the longest first
+# by tests/durations.json (tests/helpers/parallel.py; regenerate it with `python -m devtools.suite_durations`)
 test: setup-libero lint
 	.venv/bin/python -m pytest -q -n auto --dist loadgroup --durations=30
 

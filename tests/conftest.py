@@ -36,8 +36,8 @@ def pytest_configure(config: pytest.Config) -> None:
 
 @pytest.hookimpl(tryfirst=True)  # before xdist's own hook, which reads the groups into the nodeids it schedules by
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """Under xdist: each module runs on one worker (its module- and session-scoped fixtures built once), the
-    longest modules first (tests/helpers/parallel.py)."""
+    """Under xdist: each module (the tiny zoo's tests: each backbone) runs on one worker, its module- and
+    session-scoped fixtures built once, the longest first (tests/helpers/parallel.py)."""
     if os.environ.get("PYTEST_XDIST_WORKER"):
         schedule(items)
 

@@ -7,9 +7,17 @@ arranged:
 - threads: the library gives a model process every core it was granted (graftcache.runtime.granted_cpus reads
   OMP_NUM_THREADS); two workers each taking both cores spin against each other, so each worker (and every process
   it starts, which inherits the variable) is granted its share of the cores;
-- grouping: a module runs on one worker, so its module-scoped fixtures (a trained tiny policy, an extracted cache,
-  a Ray instance) are built once; modules that share session fixtures form one group;
-- order: the longest groups start first, so the run does not end on one worker still busy with a long module.
+- grouping: a module runs on one worker, so its module-scoped fixtures (an extracted cache, a Ray instance) are
+  built once; modules that share session fixtures form one group (GROUPS). The tiny zoo (tests/fixtures/tiny_zoo.py)
+  is the exception: its builds are shared by the workers on disk, so a test taking it runs in its backbone's group
+  (`tiny_zoo-<name>`, its `name` parameter), across modules. The backbones spread over both workers, each one's
+  tests find its builds made by the first of them, and a new backbone adds its cost to the run's work, not all of
+  it to one worker's;
+- order: the longest groups start first, so the run does not end on one worker still busy with a long group. A
+  group's length is estimated from tests/durations.json (seconds per module of a clean-clone run's junit XML, written
+  by `python -m devtools.suite_durations`): each of its tests counts its module's seconds over the module's tests.
+  A module the file does not name counts as the longest when it holds a test marked slow (started early, a long
+  one cannot end the run alone), else as the shortest.
 
 xdist carries a test's group to its scheduler as a suffix of the test's id ("...::test_x@group"), which pytest 9.2
 no longer lets it write (pytest-xdist#1386): the groups were then silently ignored, every module was split across
@@ -21,25 +29,23 @@ idle for minutes at the end: `keep_order` keeps the order `schedule` gives.
 
 from __future__ import annotations
 
+import math
 import os
+from collections import Counter, defaultdict
 from pathlib import Path
 
 import pytest
 
+from devtools.suite_durations import read
+
 TESTS = Path(__file__).resolve().parents[1]
 
 #: modules (paths under tests/) whose session fixtures are shared: they run on one worker, which builds them once
-GROUPS = {"export/test_export": "tiny_policies", "backbones/test_zoo_backbones_cli": "tiny_policies",
-          "rollout/test_rollout": "simulator_cells", "rollout/test_rollout_workers": "simulator_cells"}
+GROUPS = {"rollout/test_rollout": "simulator_cells", "rollout/test_rollout_workers": "simulator_cells"}
 
-#: the longest groups (a GROUPS group ranks as its module listed here), from a clean-clone run's junit times on 2 cores
-#: (2026-11-28, AMD EPYC with avx512_bf16, seconds: demo 332, simulator cells 226, tiny policies 162, remote store
-#: 148, fit 127, ray 125, concurrent writers 114, bad input 106, released geometry 102, encoders 74, gpu check 73),
-#: started first in this order; then the other modules holding a test marked slow, then the rest, in collection order
-LONGEST = ("test_demo", "rollout/test_rollout_workers", "export/test_export", "store/test_store_remote", "fit/test_fit",
-           "executors/test_ray", "test_results_concurrent_writers", "cli/test_bad_input_errors",
-           "backbones/test_released_geometry_checkpoints", "encoders/test_encoders_registry", "test_gpu_check",
-           "fit/test_stream_memory", "extract/test_extract", "extract/test_extract_shards")
+#: the backbone whose tiny-zoo builds the tests taking `tiny_zoo` without a `name` parameter use
+#: (tests/export/test_export.py exports smolvla's cells): they run in its group
+UNNAMED_BACKBONE = "smolvla"
 
 
 def limit_worker_threads() -> None:
@@ -67,15 +73,33 @@ def check_groups(config: pytest.Config, ids: list[str]) -> None:
 
 
 def _module(item: pytest.Item) -> str:
-    """A test module's path under tests/, without ".py" (e.g. "fit/test_fit"), as GROUPS and LONGEST name it."""
+    """A test module's path under tests/, without ".py" (e.g. "fit/test_fit"), as GROUPS and tests/durations.json name
+    it."""
     return item.path.resolve().relative_to(TESTS).with_suffix("").as_posix()
 
 
-def schedule(items: list[pytest.Item]) -> None:
-    """Mark each item with its module's xdist group and move the longest modules to the front (stable, so each
-    module's items keep pytest's order, which groups their fixtures)."""
-    slow = {_module(item) for item in items if item.get_closest_marker("slow")}
-    for item in items:
-        item.add_marker(pytest.mark.xdist_group(GROUPS.get(_module(item), _module(item))))
-    rank = {name: i for i, name in enumerate(LONGEST)}
-    items.sort(key=lambda item: rank.get(_module(item), len(LONGEST) + (_module(item) not in slow)))
+def _group(item: pytest.Item) -> str:
+    """The xdist group `item` runs in: its backbone's for a test of the tiny zoo, else its module's GROUPS group, else
+    its module."""
+    if "tiny_zoo" in getattr(item, "fixturenames", ()):
+        callspec = getattr(item, "callspec", None)
+        return f"tiny_zoo-{callspec.params.get('name', UNNAMED_BACKBONE) if callspec else UNNAMED_BACKBONE}"
+    return GROUPS.get(_module(item), _module(item))
+
+
+def schedule(items: list[pytest.Item], seconds: dict[str, float] | None = None) -> None:
+    """Mark each item with its xdist group and order the groups longest first by `seconds` per module (default:
+    tests/durations.json); the items of a group keep pytest's order, which groups their fixtures."""
+    seconds = read() if seconds is None else seconds
+    modules, groups = [_module(item) for item in items], [_group(item) for item in items]
+    tests = Counter(modules)
+    slow = {module for module, item in zip(modules, items, strict=True) if item.get_closest_marker("slow")}
+    length: dict[str, float] = defaultdict(float)
+    first: dict[str, int] = {}
+    for i, (module, group) in enumerate(zip(modules, groups, strict=True)):
+        length[group] += seconds[module] / tests[module] if module in seconds else math.inf if module in slow else 0
+        first.setdefault(group, i)
+    for item, group in zip(items, groups, strict=True):
+        item.add_marker(pytest.mark.xdist_group(group))
+    order = sorted(range(len(items)), key=lambda i: (-length[groups[i]], first[groups[i]], i))
+    items[:] = [items[i] for i in order]
