@@ -36,8 +36,9 @@ from graftcache.fit.align import fit_ridge
 from graftcache.fit.buffer import ShuffleBuffer
 from graftcache.fit.data import load_lowdim
 from graftcache.fit.feed import SplitFeed
+from graftcache.fit.local import Fitter
 from graftcache.fit.loop import flow_time, raw_batch, train
-from graftcache.fit.run import FitRequest, Fitter
+from graftcache.fit.run import FitRequest
 from graftcache.fit.stream import FeatureSource, read_blocks
 from graftcache.graft import GraftProjector, feature_key
 from graftcache.pooling import pool_grid

@@ -30,8 +30,9 @@ from graftcache.backbones import load_backbone
 from graftcache.backbones.loaded import LoadedBackbones
 from graftcache.extract import ExtractRequest, extract
 from graftcache.fit.data import load_lowdim
+from graftcache.fit.local import Fitter
 from graftcache.fit.loop import Learner, optimise_together, raw_batch
-from graftcache.fit.run import FitRequest, Fitter
+from graftcache.fit.run import FitRequest
 from graftcache.fit.stream import FeatureSource
 from graftcache.graft import FusedProjector, GraftProjector, feature_key
 from graftcache.pretrain import dataset_stats

@@ -25,6 +25,7 @@ from common import machine, median_seconds  # noqa: E402
 
 from graftcache import results  # noqa: E402
 from graftcache.file_lease import FileLease  # noqa: E402
+from graftcache.results import writing  # noqa: E402
 
 
 def fit_row(i: int, writer: int = 0) -> dict:
@@ -73,13 +74,13 @@ def main() -> None:
         append = median_seconds(lambda: results.append(path, [fit_row(next(count))]), args.repeats)
         read = median_seconds(lambda: results.read(path), args.repeats)
         table = results.read(path)
-        held = FileLease(results.lock_path(path))
+        held = FileLease(writing.lock_path(path))
         assert held.try_acquire()
-        write = median_seconds(lambda: results._publish(path, table, held), args.repeats)
+        write = median_seconds(lambda: writing._publish(path, table, held), args.repeats)
         held.release()
 
         def lease() -> None:
-            with FileLease(results.lock_path(path)):
+            with FileLease(writing.lock_path(path)):
                 pass
 
         take = median_seconds(lease, args.repeats)

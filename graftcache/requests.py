@@ -20,14 +20,15 @@ records, and checked whenever a FitRequest is built. A choice is `choices=("auto
 
 A FitRequest setting that changes the numbers says so in the same declaration: `cell=` puts it in each cell's
 identity (graftcache.fit.plan.Cell, hashed into the run_id; `SCHEDULED`: only cells whose objective takes steps),
-`shared=True` makes the cells of a backbone pass share it (the pass key), `column=True` gives rows a column of it.
-One added to cells after the results format its cells hash (graftcache.results.CELL_FORMAT) names the format that
-adds it and what every earlier cell held, e.g.
+`shared=True` makes the cells of a backbone pass share it (the pass key), `column=True` gives rows a column of it
+(every setting in cells is a column: rows record the whole cell they hash). One added to cells after the identity
+version cells hash (graftcache.results.IDENTITY_VERSION) names the results format that adds it and what every
+earlier cell held, e.g.
 
     weight_decay: float = setting(0.0, rule=WEIGHT_DECAY, column=True,
-                                  cell=Identity("scheduled", since=5, before=0.0))
+                                  cell=Identity("scheduled", since=6, before=0.0))
 
-so that earlier cells keep their run_ids, earlier rows read as holding 0.0, and results.FORMAT_VERSION becomes 5;
+so that earlier cells keep their run_ids, earlier rows read as holding 0.0, and results.FORMAT_VERSION becomes 6;
 what is left is its use (here: the optimiser graftcache.fit.loop.learner builds).
 
 Nothing here imports torch or the models, so building the CLI's parser stays cheap: choices are plain data, and
@@ -204,7 +205,8 @@ class FitRequest(Checked):
         help="MiB of training features held in the shuffle buffer: with --num-workers x 2 prefetched cache blocks, "
         "what bounds the fit's memory whatever the suite's size (more mixes episodes better); reading in this "
         "process (--num-workers 0), up to as much again of read blocks is kept for the next cells")
-    eval_fraction: float = setting(0.2, rule=FRACTION, help="held-out share of each task's episodes", cell=ALWAYS)
+    eval_fraction: float = setting(0.2, rule=FRACTION, help="held-out share of each task's episodes", cell=ALWAYS,
+                                   column=True)
     eval_split_seed: int = setting(0, rule=SEED, cell=ALWAYS, column=True)
     eval_split: str = setting(  # added to cells by results format 4 (issue 31); every earlier cell: graftcache's
         EVAL_SPLITS[0], choices=EVAL_SPLITS, flag="--split", cell=Identity(since=4, before=EVAL_SPLITS[0]),
@@ -213,12 +215,12 @@ class FitRequest(Checked):
         "lerobot (the last ceil(n * fraction), as `lerobot-train --dataset.eval_split` holds out, to compare with "
         "lerobot's validation); rows record it (eval_split)")
     eval_frames: int | None = setting(None, rule=POSITIVE, help="cap on scored held-out frames (evenly spaced)",
-                                      cell=ALWAYS)
+                                      cell=ALWAYS, column=True)
     eval_batch_size: int = setting(64, rule=POSITIVE, help="held-out frames denoised at once (memory, not the "
                                    "scores); rows record eval_seconds_per_frame", column=True)
-    num_denoise_steps: int | None = setting(None, rule=POSITIVE, cell=ALWAYS, shared=True)
+    num_denoise_steps: int | None = setting(None, rule=POSITIVE, cell=ALWAYS, shared=True, column=True)
     lora_rank: int = setting(8, rule=LORA_RANK, help=f"rank of the lora control's adapters (1..{MAX_LORA_RANK})",
-                             cell=LORA)
+                             cell=LORA, column=True)  # the column: the cell's (0 but for the lora control)
     recompute: str = setting(
         "auto", choices=RECOMPUTE_MODES, formerly="activation_checkpointing",
         help="recompute the frozen LM's and action expert's activations during backward (same gradients, less "

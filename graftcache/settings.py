@@ -62,7 +62,7 @@ class Identity:
     `when` says for which cells the request's value counts; the others hold the type's zero (0, 0.0), so that
     cells that do not use the setting do not differ by it: "always", "scheduled" (cells whose objective takes
     steps: graftcache.fit.objectives.Objective.scheduled) or "lora" (the lora control's cells). A setting added to
-    cells after results.CELL_FORMAT names the results format that added it (`since`) and the value every earlier
+    cells after results.IDENTITY_VERSION names the results format that added it (`since`) and the value every earlier
     cell held (`before`): it is hashed only where it differs from that, so every earlier cell keeps its run_id, and
     rows of earlier formats read as holding it (graftcache.results.upgrade)."""
 

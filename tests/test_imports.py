@@ -1,5 +1,6 @@
-"""The package's import graph follows the data: no cycles, stage 1 never imports stage 2, and the library never
-imports the developer tools beside it (devtools/: what tests and benchmarks build).
+"""The package's import graph follows the data: no cycles, stage 1 never imports stage 2, the library never imports
+its command line (graftcache/cli/, above it) nor the developer tools beside it (devtools/: what tests and benchmarks
+build).
 
 Read statically with `ast` (module-level and function-level imports alike, `TYPE_CHECKING` blocks
 included), so a cycle hidden behind a lazy import fails here too, not only at whatever import order
@@ -132,6 +133,17 @@ def test_stage_1_never_imports_stage_2() -> None:
     wrong = sorted(f"{m} -> {t}" for m, targets in graph.items() if _in(m, STAGE_1)
                    for t in targets if _in(t, STAGE_2))
     assert not wrong, "stage 1 imports stage 2: " + ", ".join(wrong)
+
+
+def test_the_library_never_imports_the_cli() -> None:
+    """Issue 41, item 3: nothing under graftcache/ outside graftcache/cli/ imports graftcache.cli (but the entry point
+    `python -m graftcache`): the library never parses its own command lines back (an export read a row's cell from
+    the command line it recorded), it reads what rows and run folders record."""
+    graph = import_graph()
+    assert "graftcache.cli" in graph["graftcache.__main__"]  # the check sees such an import
+    wrong = sorted(f"{m} -> {t}" for m, targets in graph.items() if not _in(m, ("cli", "__main__"))
+                   for t in targets if _in(t, ("cli",)))
+    assert not wrong, "the library imports the CLI: " + ", ".join(wrong)
 
 
 def test_the_library_never_imports_devtools() -> None:

@@ -3,10 +3,11 @@ a format 1 cache that records everything format 2 does, is read as format 3 (its
 store.manifest.RENAMED declares); a format 1 cache made before graftcache recorded frame strides, unpooled grids,
 numerics fingerprints or content identities is refused in one line naming the cache and the command that
 rebuilds it; a results file of format 1 or 2 (run_ids of cells of another shape) is refused in one line naming
-the command that wrote it."""
+the command that wrote it; one of format 3 or 4 is read as this format, and its rows' cells are still exported."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -18,7 +19,10 @@ from helpers.tables import row, table
 
 from graftcache import results
 from graftcache.cli import main
-from graftcache.errors import CacheError, ResultsError
+from graftcache.errors import CacheError, ExportError, ResultsError
+from graftcache.export.bundle import cell_of
+from graftcache.fit.plan import Cell
+from graftcache.fit.run import PROJECTOR_SIDECAR
 from graftcache.store import FORMAT_VERSION, BrokenCache, FeatureCache, list_caches, scan_caches
 from graftcache.store.manifest import PREVIOUS_GAPS, RENAMED
 
@@ -78,22 +82,22 @@ def test_a_previous_format_results_file_is_refused_in_one_line(tmp_path: Path, c
     assert results.read(kept)["format_version"].to_list() == [results.FORMAT_VERSION]  # read as they are
 
 
-def test_format_3_rows_are_read_as_format_4_with_their_run_ids(tmp_path: Path) -> None:
+def test_format_3_rows_are_read_as_this_format_with_their_run_ids(tmp_path: Path) -> None:
     """Format 4 added columns and a cell field hashed only off its default (issue 31): a format 3 row names its cell
     by the run_id format 4 gives it, so it is upgraded, not refused: split the graftcache way, arm and gripper
-    MSEs null (not measured then), and appending to it rewrites the file as format 4."""
+    MSEs null (not measured then), and appending to it rewrites the file as this format."""
     old = tmp_path / "old.parquet"
     rows = table([row("smolvla", "libero_spatial", "siglip", seed, 0.5) for seed in (0, 1)])
     previous_results(old, rows, 3)
     assert "eval_split" not in pl.read_parquet(old).columns
     read = results.read(old)
     assert read["run_id"].to_list() == rows["run_id"].to_list()
-    assert read["format_version"].to_list() == [4, 4] and read["eval_split"].to_list() == ["graftcache"] * 2
+    assert read["format_version"].to_list() == [5, 5] and read["eval_split"].to_list() == ["graftcache"] * 2
     assert read["eval_mse_arm"].null_count() == read["eval_mse_gripper"].null_count() == 2
     # random_init is the union of the encoder's and the backbone's: false says both were false
     assert read["encoder_random_init"].to_list() == read["backbone_random_init"].to_list() == [False, False]
     results.append(old, table([row("smolvla", "libero_spatial", "siglip", 2, 0.4, eval_split="graftcache")]))
-    assert pl.read_parquet(old)["format_version"].to_list() == [4, 4, 4]
+    assert pl.read_parquet(old)["format_version"].to_list() == [5, 5, 5]
 
 
 def test_format_4_rows_from_before_the_random_init_split_are_read_with_what_random_init_says(tmp_path: Path) -> None:
@@ -102,9 +106,9 @@ def test_format_4_rows_from_before_the_random_init_split_are_read_with_what_rand
     random-init is unknown); their run_ids stand."""
     old = tmp_path / "old.parquet"
     rows = table([row("smolvla", "libero_spatial", "siglip", seed, 0.5, random_init=seed == 1) for seed in (0, 1)])
-    rows.drop("encoder_random_init", "backbone_random_init").write_parquet(old)
+    previous_results(old, rows.drop("encoder_random_init", "backbone_random_init"), 4)
     read = results.read(old)
-    assert read["run_id"].to_list() == rows["run_id"].to_list() and read["format_version"].to_list() == [4, 4]
+    assert read["run_id"].to_list() == rows["run_id"].to_list() and read["format_version"].to_list() == [5, 5]
     assert read["encoder_random_init"].to_list() == read["backbone_random_init"].to_list() == [False, None]
     assert read["random_init"].to_list() == [False, True]
 
@@ -126,7 +130,7 @@ def test_a_newer_results_file_is_called_newer(tmp_path: Path) -> None:
                              results.FORMAT_VERSION + 1)
     with pytest.raises(ResultsError) as refused:
         results.read(newer)
-    assert str(refused.value).startswith(f"{newer}: 1 row(s) of results format 5, newer than this graftcache's (4, ")
+    assert str(refused.value).startswith(f"{newer}: 1 row(s) of results format 6, newer than this graftcache's (5, ")
     assert "older" not in str(refused.value)
 
 
@@ -140,3 +144,45 @@ def test_a_foreign_parquet_file_is_called_foreign(tmp_path: Path, capsys: pytest
     assert str(refused.value) == line
     assert main(["merge-rows", str(foreign), "--results", str(tmp_path / "r.parquet")]) == 2
     assert capsys.readouterr().err == f"graftcache merge-rows: error: {line}\n"
+
+
+def _cell_row(cell: Cell) -> dict:
+    """The results row of `cell`, its measurements made up (camera names matched: rows spell the mapping out)."""
+    fields = {k: v for k, v in dataclasses.asdict(cell).items() if k not in ("backbone", "suite", "seed")}
+    return row(cell.backbone, cell.suite, "smolvla-native", cell.seed, 1.0,
+               **{**fields, "camera_map": "image=image,image2=image2"}, run_id=cell.run_id)
+
+
+NATIVE = Cell(backbone="smolvla", policy="tiny", cache_key="smolvla-native-00aa", suite="libero_spatial", seed=0,
+              control="native", pool_grid="4x4", objective="eval", steps=0, lr=0.0, batch_size=0, buffer_mib=0,
+              lora_rank=0, eval_fraction=0.2, eval_split_seed=0, eval_frames=None, num_denoise_steps=None,
+              compute_dtype="fp32")
+
+
+def test_format_4_rows_lack_part_of_their_cell_and_are_still_exported(tmp_path: Path) -> None:
+    """Issue 41, item 3: format 5 records every cell field; a format 4 row keeps its run_id and reads with lora_rank 0
+    (not the lora control) and the other added fields null. Its cell is then its run folder's (the sidecar of a
+    graftcache before issue 41 recorded the identity's version as a field), or, for a cell that trained nothing,
+    the row's with the unrecorded fields at their defaults, where that gives its run_id; else one line says so."""
+    lora = dataclasses.replace(NATIVE, control="lora", objective="flow", steps=5, lr=0.01, batch_size=4,
+                               buffer_mib=64, lora_rank=16, eval_fraction=0.3, num_denoise_steps=2,
+                               cache_key="siglip-00aa")
+    odd = dataclasses.replace(NATIVE, eval_fraction=0.3, seed=1)
+    rows = table([_cell_row(c) for c in (NATIVE, lora, odd)])
+    old = previous_results(tmp_path / "old.parquet", rows, 4)
+    read = results.read(old)
+    assert read["run_id"].to_list() == [NATIVE.run_id, lora.run_id, odd.run_id]
+    assert read["format_version"].to_list() == [5] * 3 and read["lora_rank"].to_list() == [0, None, 0]
+    assert read["eval_fraction"].null_count() == 3
+    native_row, lora_row, odd_row = read.iter_rows(named=True)
+    assert cell_of(native_row, None) == NATIVE
+    folder = tmp_path / "runs" / lora.run_id
+    folder.mkdir(parents=True)
+    (folder / PROJECTOR_SIDECAR).write_text(json.dumps({"run_id": lora.run_id, "cell": {
+        **dataclasses.asdict(lora), "format_version": 3}}))
+    assert cell_of(lora_row, folder) == lora
+    with pytest.raises(ExportError, match=f"run {odd.run_id}: its row does not record its whole cell .*eval_fraction"):
+        cell_of(odd_row, None)
+    this = table([_cell_row(c) for c in (NATIVE, lora, odd)])  # as this format writes them: each cell whole
+    assert [cell_of(r, None) for r in this.iter_rows(named=True)] == [NATIVE, lora, odd]
+

@@ -33,6 +33,8 @@ from graftcache.cli import main
 from graftcache.errors import ResultsError
 from graftcache.file_lease import FileLease
 from graftcache.fit.passes import release_all
+from graftcache.results.claims import cell_claim, claims_folder, drop_claims_folder, merge
+from graftcache.results.writing import lock_path
 
 SAMPLE = Path(__file__).resolve().parents[1] / "data" / "libero_sample"
 SUITE, GRID, WIDTH = "libero_spatial", (4, 4), 16
@@ -177,7 +179,7 @@ def test_a_row_the_results_file_cannot_take_is_kept_in_the_run_folder(world: Pat
     assert main(["merge-rows", str(kept), "--results", str(merged)]) == 0  # twice: still one row
     assert results.read(merged).equals(row_kept)
     with pytest.raises(ResultsError, match="no results file at"):
-        results.merge(merged, [tmp_path / "absent.parquet"])
+        merge(merged, [tmp_path / "absent.parquet"])
     (tmp_path / "junk.parquet").write_text("not parquet")
     assert main(["merge-rows", str(tmp_path / "junk.parquet"), "--results", str(merged)]) == 2
     assert f"{tmp_path / 'junk.parquet'}: not a Parquet results table" in one_line_error(capsys)
@@ -358,11 +360,12 @@ def test_merging_rows_twice_or_a_copy_of_them_adds_nothing(tmp_path: Path, capsy
 
 def test_a_writer_waiting_for_a_lock_says_for_what_and_on_whom(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """Issue 29, item 6: a stale, empty or other machine's lock made a writer wait the lease out without a word.
-    The writer says so after results.WAIT_TOLD_S (1 s) of waiting and takes the lease over after its 3 s: with a
-    lease of 1.5 s, one stall of half a second on a loaded machine took it over before a word (seen once in CI)."""
+    The writer says so after graftcache.results.writing.WAIT_TOLD_S (1 s) of waiting and takes the lease over after its
+    3 s: with a lease of 1.5 s, one stall of half a second on a loaded machine took it over before a word (seen once
+    in CI)."""
     monkeypatch.setenv("GRAFTCACHE_LEASE_S", "3")
     path = tmp_path / "results.parquet"
-    lock = results.lock_path(path)
+    lock = lock_path(path)
     for holder, named in ((lambda: _lease_file(lock, "another-host", 1), "another-host pid 1 since"),
                           (lambda: lock.write_bytes(b""), "an empty or unreadable lock file")):
         holder()
@@ -378,10 +381,10 @@ def test_a_writer_waiting_for_a_lock_says_for_what_and_on_whom(tmp_path: Path, m
 def test_a_directory_at_the_locks_path_is_named_as_such(tmp_path: Path) -> None:
     """Issue 29, item 6: it was reported as "cannot write the results file (Is a directory)"."""
     path = tmp_path / "results.parquet"
-    results.lock_path(path).mkdir()
+    lock_path(path).mkdir()
     with pytest.raises(ResultsError) as refused:
         results.append(path, [row("smolvla", SUITE, "e", 0, 1.0)])
-    assert str(refused.value) == (f"{results.lock_path(path)}: is a directory, where the writers of {path} keep "
+    assert str(refused.value) == (f"{lock_path(path)}: is a directory, where the writers of {path} keep "
                                   "their lock file; remove it")
     assert not path.exists()
 
@@ -396,7 +399,7 @@ def test_a_results_path_that_is_a_link_is_followed(tmp_path: Path) -> None:
     results.append(real, [row("smolvla", SUITE, "e", 1, 1.0)])
     assert link.is_symlink() and link.resolve() == real
     assert sorted(results.read(link)["seed"]) == [0, 1] == sorted(results.read(real)["seed"])
-    assert results.claims_folder(link) == results.claims_folder(real)
+    assert claims_folder(link) == claims_folder(real)
     assert sorted(p.name for p in tmp_path.rglob("*")) == ["mine.parquet", "results.parquet", "shared"]
 
 
@@ -404,22 +407,22 @@ def test_claims_are_given_back_whatever_interrupts_them(tmp_path: Path, monkeypa
     """Issue 29, item 6: Ctrl-C left claim files of finished cells and an empty claims folder. A claim is given
     back when the interrupt lands while it is taken or while another is given back, and the folder goes once empty."""
     path = tmp_path / "results.parquet"
-    claims = [results.cell_claim(path, f"cell{i}") for i in range(3)]
+    claims = [cell_claim(path, f"cell{i}") for i in range(3)]
     assert all(c.try_acquire() for c in claims)
     release = claims[0].release
     monkeypatch.setattr(claims[0], "release", lambda: (release(), _raise(KeyboardInterrupt())))
     with pytest.raises(KeyboardInterrupt):
         release_all(claims)
-    assert list(results.claims_folder(path).iterdir()) == []
-    results.drop_claims_folder(path)
+    assert list(claims_folder(path).iterdir()) == []
+    drop_claims_folder(path)
     assert list(tmp_path.iterdir()) == []
 
-    late = results.cell_claim(path, "late")
+    late = cell_claim(path, "late")
     monkeypatch.setattr(threading.Thread, "start", lambda self: _raise(KeyboardInterrupt()))
     with pytest.raises(KeyboardInterrupt):
         late.try_acquire()  # interrupted after its file was made, before the caller knew it held the claim
     monkeypatch.undo()
-    assert list(results.claims_folder(path).iterdir()) == []
+    assert list(claims_folder(path).iterdir()) == []
 
 
 def _raise(e: BaseException) -> None:

@@ -18,7 +18,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from graftcache.fit.run import Fitter
+    from graftcache.fit.local import Fitter
 
     Fitter(request_from(FitRequest, args, command=args.command_line)).run()
     return 0

@@ -17,7 +17,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from graftcache.results import done_run_ids, merge
+    from graftcache.results import done_run_ids
+    from graftcache.results.claims import merge
 
     had = done_run_ids(args.results)
     rows = merge(args.results, args.rows)

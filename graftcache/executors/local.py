@@ -22,6 +22,6 @@ class LocalExecutor:
         numerics probe recomputed once per command), so that cells of different requests (encoders of one token grid and
         width, suites) can share backbone passes (graftcache/fit/passes.py); with one cell per pass, request after
         request as listed."""
-        from graftcache.fit.run import fit_all
+        from graftcache.fit.local import fit_all
 
         fit_all([req for _, req in requests], log, bar.update)

@@ -2,7 +2,7 @@
 
 The driver plans every request (graftcache.fit.plan.Plan: identities, pass keys, nothing loaded) and runs the one
 claim-and-run loop the local executor runs (graftcache.fit.passes.run_passes), with passes going to Ray tasks
-(`RayRunner`) instead of this process: it claims a pass's cells (graftcache.results.cell_claim), submits the pass
+(`RayRunner`) instead of this process: it claims a pass's cells (graftcache.results.claims.cell_claim), submits the pass
 as one task, and appends the task's rows once it finishes, then gives the claims back. So `--cells-per-pass` reaches
 the cluster (a fused pass is one task), two drivers (or a driver and a local fit) writing one results file share
 its cells instead of both computing each, a driver killed mid-sweep resumes from the rows it wrote, and a task whose
@@ -36,8 +36,8 @@ from graftcache.executors.ray_cluster import (
 )
 from graftcache.fit.controls import get_control
 from graftcache.fit.materials import Materials
-from graftcache.fit.passes import Member, run_passes
-from graftcache.fit.plan import Plan
+from graftcache.fit.passes import run_passes
+from graftcache.fit.plan import Plan, Planned
 from graftcache.fit.run import run_pass
 from graftcache.requests import ExecutorSettings, FitRequest
 from graftcache.runtime import set_main_threads
@@ -66,11 +66,11 @@ def _materials(req: FitRequest) -> Materials:
 def fit_cells(cells: Sequence[TaskCell]) -> list[dict[str, Any]]:
     """The rows of one pass of cells, their projectors saved in their run folders (run as `fit_cells_task`)."""
     set_main_threads()  # the CPUs Ray granted this task (it sets OMP_NUM_THREADS from num_cpus)
-    members = []
+    planned = []
     for req, control, seed in cells:
         plan = _materials(req).plan
-        members.append(Member(plan, get_control(control), seed, plan.cell(get_control(control), seed)))
-    return run_pass(members, lambda plan: _materials(plan.req))
+        planned.append((plan, plan.cell(get_control(control), seed)))
+    return run_pass(planned, lambda plan: _materials(plan.req))
 
 
 #: The Ray task of `fit_cells`. The plain function stays the module's attribute so that cloudpickle ships it by
@@ -94,33 +94,33 @@ class RayRunner:
                  bar: Any) -> None:
         self.options, self.labels, self.log, self.bar = options, labels, log, bar
         self.slots = max(1, min(slots(o) for o in options.values()))
-        self._running: dict[ray.ObjectRef, tuple[int, Sequence[Member]]] = {}
+        self._running: dict[ray.ObjectRef, tuple[int, Sequence[Planned]]] = {}
         self._tickets = 0
 
-    def planned(self, members: Sequence[Member]) -> None:
-        self.log(f"ray: {len(members)} cell task(s) to run; the other cells are in the results file already")
+    def planned(self, cells: Sequence[Planned]) -> None:
+        self.log(f"ray: {len(cells)} cell task(s) to run; the other cells are in the results file already")
 
-    def submit(self, members: Sequence[Member]) -> int:
+    def submit(self, cells: Sequence[Planned]) -> int:
         self._tickets += 1
-        device = members[0].plan.req.device
-        cells = [(m.plan.req, m.control.name, m.seed) for m in members]
-        self._running[fit_cells_task.options(**self.options[device]).remote(cells)] = (self._tickets, members)
+        device = cells[0][0].req.device
+        tasks = [(plan.req, cell.control, cell.seed) for plan, cell in cells]
+        self._running[fit_cells_task.options(**self.options[device]).remote(tasks)] = (self._tickets, cells)
         return self._tickets
 
     def next_done(self) -> tuple[int, list[dict[str, Any]]]:
         (ready,), _ = ray.wait(list(self._running), num_returns=1)
-        ticket, members = self._running.pop(ready)
-        first = members[0]
-        rows = result(ready, f"{self.labels[first.plan.req]} seed {first.seed} control {first.control.name}")
-        for m, row in zip(members, rows, strict=True):
-            label = self.labels[m.plan.req]
-            if row["run_id"] != m.cell.run_id:
-                raise ExecutorError(f"{label} seed {m.seed} control {m.control.name}: the worker's cell is "
-                                    f"{row['run_id']}, the driver's {m.cell.run_id}: do the nodes see the same "
+        ticket, cells = self._running.pop(ready)
+        plan, first = cells[0]
+        rows = result(ready, f"{self.labels[plan.req]} seed {first.seed} control {first.control}")
+        for (plan, cell), row in zip(cells, rows, strict=True):
+            label = self.labels[plan.req]
+            if row["run_id"] != cell.run_id:
+                raise ExecutorError(f"{label} seed {cell.seed} control {cell.control}: the worker's cell is "
+                                    f"{row['run_id']}, the driver's {cell.run_id}: do the nodes see the same "
                                     "policy and caches?")
             self.bar.set_postfix_str(label)
-            shared = f", its share of a pass of {len(members)}" if len(members) > 1 else ""
-            self.log(f"{label} seed {m.seed} control {m.control.name}: eval_mse {row['eval_mse']:.4f} "
+            shared = f", its share of a pass of {len(cells)}" if len(cells) > 1 else ""
+            self.log(f"{label} seed {cell.seed} control {cell.control}: eval_mse {row['eval_mse']:.4f} "
                      f"({row['wall_s']:.1f}s on Ray{shared})")
         return ticket, rows
 

@@ -15,7 +15,6 @@ import dataclasses
 import errno
 import json
 import os
-import shlex
 import shutil
 import tempfile
 from collections.abc import Callable
@@ -23,11 +22,13 @@ from pathlib import Path
 from typing import Any
 
 from graftcache import results
-from graftcache.cameras import parse_camera_map, renames
+from graftcache.cameras import parse_camera_map
 from graftcache.errors import ExportError, GraftcacheError
 from graftcache.fit.controls import get_control
 from graftcache.fit.lookup import find_cache
 from graftcache.fit.run import PROJECTOR_SIDECAR, PROJECTOR_WEIGHTS, Cell, saved_cell
+from graftcache.requests import FitRequest
+from graftcache.settings import declared, default_of
 from graftcache.store import cache_root
 from graftcache.store.readthrough import reading_root
 
@@ -44,42 +45,23 @@ def find_row(path: str | Path, run_id: str) -> dict[str, Any]:
 
 
 def cell_of(row: dict[str, Any], folder: Path | None) -> Cell:
-    """The row's Cell, checked to hash to the row's run_id. A cell that trained keeps it beside its projector
-    (`folder`/projector.json, written by its fit, whichever command ran it); one that trained nothing has no run
-    folder, and its fields not in the row (denoising steps, split settings) are read back from the command the row
-    records: a fit command line, or a sweep's, whose recipe gives the request of the row's (backbone, encoder,
-    suite)."""
+    """The row's Cell, checked to hash to the row's run_id: the row records it whole (results format 5). A row
+    upgraded from an older format lacks some of its fields (null); its cell is then the one its fit kept beside its
+    projector (`folder`/projector.json) where it trained one, else (a cell that trained nothing has no run folder)
+    the row's with each unrecorded field at its FitRequest default, where that hashes to the row's run_id."""
+    cell = Cell.of_row(row)
+    if cell.run_id == row["run_id"]:
+        return cell
     recorded = saved_cell(folder) if folder is not None else None
     if recorded is not None:
         return _checked(row, recorded, f"its run folder's {PROJECTOR_SIDECAR}")
-    req = _request_of(row)
-    control = get_control(row["control"])
-    fields = {f.name for f in dataclasses.fields(Cell)} - {"lora_rank", "format_version"}
-    cell = Cell(**{n: (row[n] if n in row else getattr(req, n)) for n in fields},
-                lora_rank=req.lora_rank if control.lora else 0)  # format_version: the cells' (results.CELL_FORMAT)
-    if cell.camera_map is not None and not renames(parse_camera_map(cell.camera_map)):
-        cell = dataclasses.replace(cell, camera_map=None)  # rows spell out a name-matched mapping; cells omit it
-    return _checked(row, cell, "its recorded command")
-
-
-def _request_of(row: dict[str, Any]) -> Any:
-    """The FitRequest behind the row's recorded command: `graftcache fit ...` parsed back, or `graftcache sweep
-    RECIPE`'s request for the row's backbone, encoder and suite."""
-    from graftcache.cli import build_parser
-    from graftcache.cli.common import request_from
-    from graftcache.recipe import load_recipe
-    from graftcache.requests import FitRequest
-
-    argv = shlex.split(row["command"] or "")
-    try:
-        if argv[1:2] == ["sweep"]:
-            recipe = load_recipe(argv[2])
-            return recipe.fit_request(row["backbone"], row["policy"], row["encoder"], row["suite"])
-        return request_from(FitRequest, build_parser().parse_args(argv[1:]))
-    except (SystemExit, ValueError, TypeError, IndexError, GraftcacheError) as e:
-        why = f" ({str(e).splitlines()[0]})" if isinstance(e, GraftcacheError) else ""
-        raise ExportError(f"run {row['run_id']}: its recorded command does not parse back to a fit request{why}: "
-                          f"{row['command']}") from None
+    unrecorded = [f.name for f in dataclasses.fields(Cell) if row[f.name] is None and f.name in declared(FitRequest)]
+    defaults = dataclasses.replace(cell, **{name: default_of(FitRequest, name) for name in unrecorded})
+    if defaults.run_id == row["run_id"]:
+        return defaults
+    raise ExportError(f"run {row['run_id']}: its row does not record its whole cell (a row of results format < 5: "
+                      f"{', '.join(unrecorded) or 'no field'} unrecorded, not at their defaults) and it has no run "
+                      "folder that does; rerun its fit into another --results with this graftcache to export it")
 
 
 def _checked(row: dict[str, Any], cell: Cell, source: str) -> Cell:

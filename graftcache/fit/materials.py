@@ -39,15 +39,10 @@ class Reading:
     source: FeatureSource
     cache: FeatureCache
     encoder: str
-    grid: tuple[int, int]
+    grid: tuple[int, int]                   # what the features are pooled to (graftcache.fit.plan.Plan.grid)
     targets: FeatureSource | None = None    # native tokens, for objectives that need them
     target_rows: np.ndarray | None = None   # the native cache's row of every train frame
     dropped: int = 0  # suite frames dropped for a NaN/inf state or action chunk (--drop-nonfinite)
-
-    @property
-    def width(self) -> int:
-        """The feature width a projector of this reading takes."""
-        return self.source.frame_shape(self.source.cameras[0])[1]
 
 
 class Materials:
@@ -87,14 +82,17 @@ class Materials:
         return None if None in drifts else max(drifts)
 
     def backbone(self) -> BackboneAdapter:
-        """The request's policy, loaded once per process (reset between cells)."""
+        """The request's policy, loaded once per process (reset between cells), its token grid checked against the
+        one the plan read from its config."""
         plan = self.plan
-        return self.backbones.get(plan.req.backbone, plan.policy_folder, str(plan.device))
+        adapter = self.backbones.get(plan.req.backbone, plan.policy_folder, str(plan.device))
+        plan.check_token_grid(adapter.token_grid)
+        return adapter
 
     def reading(self, adapter: BackboneAdapter, control: Control) -> Reading:
         """The splits' low-dim rows a control reads, loaded once per (cache, array) and kept for the next cell."""
         plan, req = self.plan, self.plan.req
-        grid = control.grid or adapter.token_grid
+        grid = plan.grid(control)
         source = plan.source(control)
         key = (source.key, control.extra, None if control.extra else grid)
         if key not in self._readings:

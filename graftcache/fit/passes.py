@@ -32,7 +32,6 @@ import time
 from collections import Counter
 from collections.abc import Callable, Sequence
 from contextlib import ExitStack
-from dataclasses import dataclass
 from typing import Any, Protocol
 
 import torch
@@ -41,8 +40,8 @@ from graftcache import results
 from graftcache.backbones import get_backbone
 from graftcache.errors import ResultsError
 from graftcache.file_lease import FileLease
-from graftcache.fit.controls import Control
-from graftcache.fit.plan import Cell, Plan
+from graftcache.fit.plan import Plan, Planned
+from graftcache.results.claims import append_or_keep, cell_claim, drop_claims_folder
 from graftcache.runtime import set_main_threads
 
 
@@ -53,52 +52,43 @@ def default_cells_per_pass(backbone: str, device: torch.device) -> int:
     return get_backbone(backbone).spec.cells_per_pass.get(device.type, 1)
 
 
-@dataclass(frozen=True)
-class Member:
-    """One missing cell of a planned request, as a pass holds it."""
-
-    plan: Plan
-    control: Control
-    seed: int
-    cell: Cell
-
-    @property
-    def at(self) -> tuple[str, str]:
-        """(results file, run_id): the row's place, the same for a cell two requests share."""
-        return self.plan.req.results, self.cell.run_id
+def place(planned: Planned) -> tuple[str, str]:
+    """(results file, run_id): a cell's row's place, the same for a cell two requests share."""
+    plan, cell = planned
+    return plan.req.results, cell.run_id
 
 
-def plan_passes(members: Sequence[Member]) -> list[list[Member]]:
-    """`members` cut into passes: those of one pass key in runs of their request's `cells_per_pass` (by default the
+def plan_passes(cells: Sequence[Planned]) -> list[list[Planned]]:
+    """`cells` cut into passes: those of one pass key in runs of their request's `cells_per_pass` (by default the
     backbone's spec on its device), each cell with no key alone; passes in the order of their first cell
-    (so with 1 cell per pass, the members' order)."""
+    (so with 1 cell per pass, the cells' order)."""
     groups: dict[Any, list[int]] = {}
-    for i, m in enumerate(members):
-        key = m.plan.pass_key(m.control)
+    for i, (plan, cell) in enumerate(cells):
+        key = plan.pass_key(plan.control(cell))
         groups.setdefault(("alone", i) if key is None else key, []).append(i)
     passes = []
     for at in groups.values():
-        plan = members[at[0]].plan
+        plan = cells[at[0]][0]
         n = (plan.req.cells_per_pass or default_cells_per_pass(plan.req.backbone, plan.device)) if len(at) > 1 else 1
         passes += [at[i:i + n] for i in range(0, len(at), n)]
-    return [[members[i] for i in p] for p in sorted(passes)]
+    return [[cells[i] for i in p] for p in sorted(passes)]
 
 
 class Runner(Protocol):
-    """Where passes run: this process (graftcache.fit.run.LocalRunner) or Ray tasks
+    """Where passes run: this process (graftcache.fit.local.LocalRunner) or Ray tasks
     (graftcache.executors.ray_fit.RayRunner). `run_passes` claims a pass's cells before it submits the pass and
     writes its rows, so every runner computes a cell only under its claim."""
 
     slots: int  # passes in flight at once
 
-    def planned(self, members: Sequence[Member]) -> None:
+    def planned(self, cells: Sequence[Planned]) -> None:
         """The cells left to run once finished ones are skipped (before any is claimed)."""
 
-    def submit(self, members: Sequence[Member]) -> int:
+    def submit(self, cells: Sequence[Planned]) -> int:
         """Start a pass; returns its ticket."""
 
     def next_done(self) -> tuple[int, list[dict[str, Any]]]:
-        """(ticket, rows in member order) of a submitted pass, as one finishes."""
+        """(ticket, rows in the pass's order) of a submitted pass, as one finishes."""
 
     def finished(self, plan: Plan) -> None:
         """`plan` has no cell left to run here: what was kept for its cells may go."""
@@ -109,7 +99,7 @@ class Runner(Protocol):
 
 def _take(claim: FileLease) -> bool:
     """Take a cell's claim; where no claim can be made (a read-only place) the cell runs unclaimed, and its row
-    is then kept by results.append_or_keep."""
+    is then kept by graftcache.results.claims.append_or_keep."""
     try:
         return claim.try_acquire()
     except OSError:
@@ -124,16 +114,17 @@ def release_all(claims: Sequence[FileLease]) -> None:
             stack.callback(claim.release)
 
 
-def _write(members: Sequence[Member], rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
+def _write(cells: Sequence[Planned], rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
     """Append the rows of a pass's cells to their results files, each file's rows at once; the rows a file cannot
-    take are all kept in their cells' run folders (results.append_or_keep), then one ResultsError names them."""
+    take are all kept in their cells' run folders (graftcache.results.claims.append_or_keep), then one ResultsError
+    names them."""
     files: dict[str, list[tuple[dict[str, Any], Any]]] = {}
-    for m, row in zip(members, rows, strict=True):
-        files.setdefault(m.at[0], []).append((row, m.plan.run_folder(m.cell)))
+    for (plan, cell), row in zip(cells, rows, strict=True):
+        files.setdefault(plan.req.results, []).append((row, plan.run_folder(cell)))
     refused = []
     for path, pairs in files.items():
         try:
-            results.append_or_keep(path, pairs)
+            append_or_keep(path, pairs)
         except ResultsError as e:
             refused.append(str(e))
     if refused:
@@ -141,33 +132,33 @@ def _write(members: Sequence[Member], rows: Sequence[dict[str, Any]]) -> list[di
     return list(rows)
 
 
-def missing_cells(plans: Sequence[Plan], visited: Callable[[int], None] = lambda n: None) -> list[Member]:
+def missing_cells(plans: Sequence[Plan], visited: Callable[[int], None] = lambda n: None) -> list[Planned]:
     """The cells of `plans` whose rows their results files lack, each once (a cell two requests share, such as the
     native controls of every encoder, is the first request's); the others are said skipped and `visited`."""
-    members: list[Member] = []
+    missing: list[Planned] = []
     seen: set[tuple[str, str]] = set()
     shared: Counter[str] = Counter()  # control -> cells of an earlier request too
     done = {path: results.done_run_ids(path) for path in {p.req.results for p in plans}}
     for plan in plans:
         finished = []
-        for control, seed, cell in plan.cells():
-            m = Member(plan, control, seed, cell)
-            if m.at in seen:  # a cell two requests share (the native controls of every encoder) runs once
-                shared[control.name] += 1
+        for cell in plan.cells():
+            at = place((plan, cell))
+            if at in seen:  # a cell two requests share (the native controls of every encoder) runs once
+                shared[cell.control] += 1
                 visited(1)
                 continue
-            seen.add(m.at)
+            seen.add(at)
             if cell.run_id in done[plan.req.results]:
-                finished.append((control, seed))
+                finished.append(cell)
                 visited(1)
             else:
-                members.append(m)
+                missing.append((plan, cell))
         if finished:
             plan.skipped(finished)
     if shared:
         which = ", ".join(f"{control} {n}" for control, n in shared.items())
         plans[0].log(f"{shared.total()} cells are cells of earlier requests too ({which}): each computed once")
-    return members
+    return missing
 
 
 def run_passes(plans: Sequence[Plan], runner: Runner,
@@ -176,62 +167,63 @@ def run_passes(plans: Sequence[Plan], runner: Runner,
     finishes; returns the rows written. `visited(n)`: n more cells were run or skipped.
 
     Other processes (fits, sweeps, here or on other machines, under any executor) may write the same results files:
-    a cell is computed only under its claim (results.cell_claim), taken before its pass is submitted and given back
-    once its row is written, so a cell another process is computing is left for later (its pass runs without it),
-    then skipped once its row is in the file (or computed here if that process died)."""
+    a cell is computed only under its claim (graftcache.results.claims.cell_claim), taken before its pass is submitted
+    and given back once its row is written, so a cell another process is computing is left for later (its pass runs
+    without it), then skipped once its row is in the file (or computed here if that process died)."""
     set_main_threads()
-    members = missing_cells(plans, visited)
-    runner.planned(members)
-    claims = {m.at: results.cell_claim(*m.at) for m in members}
-    left = Counter(id(m.plan) for m in members)
+    cells = missing_cells(plans, visited)
+    runner.planned(cells)
+    claims = {place(c): cell_claim(*place(c)) for c in cells}
+    left = Counter(id(plan) for plan, _ in cells)
     rows: list[dict[str, Any]] = []
     told: set[tuple[str, str]] = set()
-    running: dict[int, list[Member]] = {}  # ticket -> the pass's members, their claims held
+    running: dict[int, list[Planned]] = {}  # ticket -> the pass's cells, their claims held
 
-    def done(ms: Sequence[Member]) -> None:
-        visited(len(ms))
-        for m in ms:
-            left[id(m.plan)] -= 1
-            if not left[id(m.plan)]:
-                runner.finished(m.plan)  # its kept blocks and tables go before the next requests' are read
+    def done(ps: Sequence[Planned]) -> None:
+        visited(len(ps))
+        for plan, _ in ps:
+            left[id(plan)] -= 1
+            if not left[id(plan)]:
+                runner.finished(plan)  # its kept blocks and tables go before the next requests' are read
 
     def collect() -> None:
         ticket, got = runner.next_done()
-        ms = running.pop(ticket)
+        ps = running.pop(ticket)
         try:
-            rows.extend(_write(ms, got))
+            rows.extend(_write(ps, got))
         finally:
-            release_all([claims[m.at] for m in ms])
-        done(ms)
+            release_all([claims[place(c)] for c in ps])
+        done(ps)
 
     try:
-        while members:
+        while cells:
             busy = []
-            for planned in plan_passes(members):
+            for planned in plan_passes(cells):
                 got = []
                 try:
-                    for m in planned:
-                        if _take(claims[m.at]):
-                            got.append(m)
+                    for plan, cell in planned:
+                        at = place((plan, cell))
+                        if _take(claims[at]):
+                            got.append((plan, cell))
                             continue
-                        if m.at not in told:
-                            m.plan.log(f"cell {m.cell.run_id} (seed {m.seed} control {m.control.name}) is being "
-                                       f"computed by {claims[m.at].holder()}: waiting for its row")
-                            told.add(m.at)
-                        busy.append(m)
+                        if at not in told:
+                            plan.log(f"cell {cell.run_id} (seed {cell.seed} control {cell.control}) is being "
+                                     f"computed by {claims[at].holder()}: waiting for its row")
+                            told.add(at)
+                        busy.append((plan, cell))
                     fresh = []
-                    for m in got:  # another process may have written its row since
-                        if m.cell.run_id in results.done_run_ids(m.at[0]):
-                            m.plan.skipped([(m.control, m.seed)])
+                    for plan, cell in got:  # another process may have written its row since
+                        if cell.run_id in results.done_run_ids(plan.req.results):
+                            plan.skipped([cell])
                         else:
-                            fresh.append(m)
+                            fresh.append((plan, cell))
                     if fresh:
                         running[runner.submit(fresh)] = fresh
                 except BaseException:
-                    release_all([claims[m.at] for m in got])
+                    release_all([claims[place(c)] for c in got])
                     raise
-                stale = [m for m in got if m not in fresh]
-                release_all([claims[m.at] for m in stale])
+                stale = [c for c in got if c not in fresh]
+                release_all([claims[place(c)] for c in stale])
                 done(stale)
                 while len(running) >= runner.slots:
                     collect()
@@ -239,11 +231,11 @@ def run_passes(plans: Sequence[Plan], runner: Runner,
                 collect()
             if busy:
                 time.sleep(1.0)
-            members = busy
+            cells = busy
     finally:
         if running:
             runner.cancel()
-            release_all([claims[m.at] for ms in running.values() for m in ms])
+            release_all([claims[place(c)] for ps in running.values() for c in ps])
         for path in {path for path, _ in claims}:
-            results.drop_claims_folder(path)
+            drop_claims_folder(path)
     return rows

@@ -3,8 +3,10 @@
 A `Plan` resolves the request (device, compute dtype, cells per pass, objective, controls), finds the caches it reads
 and the policy folder, pairs the cameras and splits the episodes; from these it names every cell
 (`graftcache.fit.plan.Cell`: its run_id), says which cells may share a backbone pass (`Plan.pass_key`) and where a
-cell's run folder is. It reads manifests, indexes and the policy's config only: a finished sweep is skipped from a
-Plan alone, and the ray executor's driver plans what its workers run (graftcache/executors/ray_fit.py).
+cell's run folder is. The backbone's token grid and a control's feature width are computed here once, from the policy's
+config and the cache's layout; the loaded policy's grid is checked against it (`Plan.check_token_grid`). It reads
+manifests, indexes and the policy's config only: a finished sweep is skipped from a Plan alone, and the ray executor's
+driver plans what its workers run (graftcache/executors/ray_fit.py).
 
 What a cell then reads is graftcache.fit.materials.Materials; how a pass of cells runs, graftcache.fit.run.
 """
@@ -25,7 +27,7 @@ from graftcache import results
 from graftcache.backbone_table import native_name
 from graftcache.backbones import get_backbone
 from graftcache.backbones.tiny_record import resolve_policy
-from graftcache.cameras import format_camera_map, match_cameras, renames
+from graftcache.cameras import format_camera_map, match_cameras, parse_camera_map, renames
 from graftcache.codecs import without_none
 from graftcache.errors import FitError
 from graftcache.fit.controls import Control, check_pool_grid, get_control
@@ -35,12 +37,13 @@ from graftcache.fit.objectives import EVAL_ONLY, OBJECTIVES, Objective
 from graftcache.fit.stream import FeatureSource
 from graftcache.pooling import format_grid, parse_grid
 from graftcache.requests import FitRequest
+from graftcache.results.schema import IDENTITY_3_VALUES
 from graftcache.runtime import resolve_compute_dtype, resolve_device
 from graftcache.settings import Declared, declared
 from graftcache.store import FeatureCache, cache_root
 from graftcache.store.readthrough import reading_root
 
-__all__ = ["Cell", "Plan"]
+__all__ = ["Cell", "Plan", "Planned"]
 
 
 #: The FitRequest settings each cell holds, as their declarations say (graftcache/requests.py, `cell=`).
@@ -54,8 +57,20 @@ class _CellMethods:
 
     @property
     def run_id(self) -> str:
-        known = results.FORMAT_3_VALUES
-        return results.make_run_id({k: v for k, v in asdict(self).items() if not (k in known and known[k] == v)})
+        """Every field, but those added since results.IDENTITY_VERSION where they hold what earlier cells held, and
+        the identity's version under the key cells of results format 3 gave it."""
+        known = IDENTITY_3_VALUES
+        fields = {k: v for k, v in asdict(self).items() if not (k in known and known[k] == v)}
+        return results.make_run_id({**fields, "format_version": results.IDENTITY_VERSION})
+
+    @classmethod
+    def of_row(cls, row: Mapping[str, Any]) -> Cell:
+        """The cell a results row records (every field is a column since results format 5): `row`'s inverse, but for
+        `camera_map`, which rows spell out also where every name matched, and cells omit then."""
+        fields = {f.name: row[f.name] for f in dataclasses.fields(cls)}
+        if fields["camera_map"] is not None and not renames(parse_camera_map(fields["camera_map"])):
+            fields["camera_map"] = None
+        return cls(**fields)
 
     def row(self, req: FitRequest, measured: Mapping[str, Any]) -> dict[str, Any]:
         """The results row: each SCHEMA column from what the cell measured, else the cell, else the request
@@ -70,22 +85,21 @@ class _CellMethods:
         return row
 
 
-#: What identifies one results row: every field, by name and value, is hashed into the row's run_id, with the shape
-#: of cells (`format_version`: results.CELL_FORMAT); a change of its shape is a new results.FORMAT_VERSION, whose
-#: results.upgrade says what becomes of older rows. A field added since CELL_FORMAT is hashed only where it differs
-#: from what every earlier cell held (results.ADDED_TO_CELLS), so that a cell format 3 could express keeps its
-#: run_id. Its fields: what a Plan resolves (the policy as rows name it, the cache read, seed, control, the grid the
-#: features are pooled to, resolved so that the run_id hashes what the row writes, the objective as run), then every
-#: FitRequest setting declared into cells (CELL_SETTINGS), then the camera map (canonical text, only when a policy
-#: camera is fed by another name) and the format.
+#: What a fit trains and scores, and what identifies its results row: every field, by name and value, is hashed into the
+#: row's run_id, with the version of that identity (results.IDENTITY_VERSION); a change of its shape is a new
+#: results.FORMAT_VERSION, whose graftcache.results.upgrade says what becomes of older rows. A field added since
+#: IDENTITY_VERSION is hashed only where it differs from what every earlier cell held (results.schema.ADDED_TO_CELLS),
+#: so that a cell identity version 3 could express keeps its run_id. Every field is a results column. Its fields: what a
+#: Plan resolves (the policy as rows name it, the cache read, seed, control, the grid the features are pooled to,
+#: resolved so that the run_id hashes what the row writes, the objective as run), then every FitRequest setting declared
+#: into cells (CELL_SETTINGS), then the camera map (canonical text, only when a policy camera is fed by another name).
 Cell = dataclasses.make_dataclass(
     "Cell",
     [("policy", str), ("cache_key", str), ("seed", int), ("control", str), ("pool_grid", str), ("objective", str),
      *((name, d.hint) for name, d in CELL_SETTINGS.items() if d.setting.cell.since is None),
      ("camera_map", str | None, dataclasses.field(default=None)),
      *((name, d.hint, dataclasses.field(default=d.setting.cell.before))
-       for name, d in CELL_SETTINGS.items() if d.setting.cell.since is not None),
-     ("format_version", int, dataclasses.field(default=results.CELL_FORMAT))],
+       for name, d in CELL_SETTINGS.items() if d.setting.cell.since is not None)],
     bases=(_CellMethods,), frozen=True, module=__name__)
 
 
@@ -156,8 +170,25 @@ class Plan:
 
     @functools.cached_property
     def token_grid(self) -> tuple[int, int]:
-        """The backbone's per-camera token grid, read from the policy's config (nothing is loaded)."""
+        """The backbone's per-camera token grid, read from the policy's config (nothing is loaded): the one its cells
+        hash and are fed; the loaded policy's is checked against it (`check_token_grid`)."""
         return get_backbone(self.req.backbone).read_token_grid(self.policy_folder)
+
+    def check_token_grid(self, loaded: tuple[int, int]) -> None:
+        """Refuse a loaded policy whose token grid is not the one its config gave the cells' run_ids."""
+        if tuple(loaded) != tuple(self.token_grid):
+            raise FitError(f"backbone {self.req.backbone}: the policy loaded from {self.policy_folder} takes a "
+                           f"{format_grid(loaded)} token grid, its config says {format_grid(self.token_grid)}; fix "
+                           f"the adapter's read_token_grid so that both agree")
+
+    def grid(self, control: Control) -> tuple[int, int]:
+        """The grid a control's cells pool the features to: its own, else the backbone's."""
+        return control.grid or self.token_grid
+
+    def width(self, control: Control) -> int:
+        """The feature width a control's projector takes, from the cache's layout (nothing is read)."""
+        source = FeatureSource.of(self.source(control), list(self.cameras.values()), self.grid(control), control.extra)
+        return source.frame_shape(source.cameras[0])[1]
 
     @property
     def policy_id(self) -> str:
@@ -170,14 +201,18 @@ class Plan:
         objective = self.objective_of(control)
         return Cell(
             policy=self.policy_id, cache_key=self.source(control).key, seed=seed, control=control.name,
-            pool_grid=format_grid(control.grid or self.token_grid), objective=objective.name,
+            pool_grid=format_grid(self.grid(control)), objective=objective.name,
             camera_map=format_camera_map(self.cameras) if renames(self.cameras) else None,
             **{name: _cell_value(self.req, name, objective, control) for name in CELL_SETTINGS},
         )
 
-    def cells(self) -> list[tuple[Control, int, Cell]]:
-        """Every (control, seed) of the request with its Cell, in the order a fit visits them."""
-        return [(control, seed, self.cell(control, seed)) for seed in self.req.seeds for control in self.controls]
+    def cells(self) -> list[Cell]:
+        """Every cell of the request (each seed, each control), in the order a fit visits them."""
+        return [self.cell(control, seed) for seed in self.req.seeds for control in self.controls]
+
+    def control(self, cell: Cell) -> Control:
+        """The control a cell of this plan runs."""
+        return next(c for c in self.controls if c.name == cell.control)
 
     def pass_key(self, control: Control) -> tuple | None:
         """What cells must share to train in one pass of the backbone (graftcache/fit/passes.py): the loaded
@@ -189,23 +224,19 @@ class Plan:
             key = None
             adapter = get_backbone(self.req.backbone)
             if control.fuses and self.objective_of(control).fuses and adapter.spec.loss_per_sample:
-                req = self.req
-                grid = control.grid or self.token_grid
-                source = FeatureSource.of(self.source(control), list(self.cameras.values()), grid)
-                width = source.frame_shape(source.cameras[0])[1]
-                key = (str(self.policy_folder), str(self.device), grid, width,
-                       *(getattr(req, name) for name in PASS_SETTINGS))
+                key = (str(self.policy_folder), str(self.device), self.grid(control), self.width(control),
+                       *(getattr(self.req, name) for name in PASS_SETTINGS))
             self._pass_keys[control.name] = key
         return self._pass_keys[control.name]
 
-    def skipped(self, cells: Sequence[tuple[Control, int]]) -> None:
+    def skipped(self, cells: Sequence[Cell]) -> None:
         """Say in one line which of this request's cells are skipped, their rows being in the results file already:
         by control (with the tower a native control reads), the seeds of each."""
         seeds: dict[str, list[str]] = {}
-        for control, seed in cells:
-            source = self.source(control).manifest.encoder_name
-            name = control.name if source == self.req.encoder else f"{control.name} ({source})"
-            seeds.setdefault(name, []).append(str(seed))
+        for cell in cells:
+            source = self.source(self.control(cell)).manifest.encoder_name
+            name = cell.control if source == self.req.encoder else f"{cell.control} ({source})"
+            seeds.setdefault(name, []).append(str(cell.seed))
         which = "; ".join(f"{name}: seed{'s' * (len(s) > 1)} {', '.join(s)}" for name, s in seeds.items())
         self.log(f"skip {self.req.backbone}/{self.req.encoder}/{self.req.suite}: {len(cells)} "
                  f"cell{'s' * (len(cells) > 1)} already in {self.req.results} (control {which})")
@@ -230,3 +261,7 @@ class Plan:
         self.log(f"cannot write run folders beside {self.req.results} ({existing} is not writable): projectors, and "
                  f"rows the results file cannot take, are kept in {runs} (--out names another folder)")
         return runs
+
+
+#: A cell as a pass holds it: with the Plan of its request (what it reads, where its row and run folder go).
+Planned = tuple[Plan, Cell]

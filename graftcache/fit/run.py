@@ -9,7 +9,7 @@ The policy is loaded once per process and reset to its pristine state between pa
 and fitted from cached features only. What a pass reads comes from each cell's request's Materials
 (graftcache/fit/materials.py); which cells exist, are finished or share a pass, from its Plan (graftcache/fit/plan.py,
 nothing loaded); the claims and the results file, from graftcache.fit.passes.run_passes, whichever executor runs
-the passes (`LocalRunner` here; Ray tasks: graftcache/executors/ray_fit.py).
+the passes (graftcache.fit.local.LocalRunner in this process; Ray tasks: graftcache/executors/ray_fit.py).
 
 The parts a cell is made of are registries: its control (fit/controls.py: which cache, which projector,
 which feature transform) and its objective (fit/objectives.py: how the projector is fitted).
@@ -19,9 +19,9 @@ from __future__ import annotations
 
 import json
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from contextlib import ExitStack, closing
-from dataclasses import asdict
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -32,95 +32,114 @@ import graftcache
 from graftcache import results
 from graftcache.backbones.base import BackboneAdapter
 from graftcache.backbones.checkpoint import follow_umask
-from graftcache.backbones.loaded import LoadedBackbones
 from graftcache.cameras import format_camera_map
-from graftcache.encoders.fingerprint import NumericsCheck
+from graftcache.fit.controls import Control
 from graftcache.fit.data import Split
 from graftcache.fit.loop import Scoring, alone, evaluate_together
 from graftcache.fit.materials import Materials, MaterialsOf, Reading
 from graftcache.fit.objectives import Fitting
-from graftcache.fit.passes import Member, run_passes
-from graftcache.fit.plan import Cell, Plan
+from graftcache.fit.plan import Cell, Plan, Planned
 from graftcache.fit.step_memory import check_step_memory
 from graftcache.fit.stream import StreamStats, read_blocks
 from graftcache.graft import FusedProjector
-from graftcache.pooling import format_grid
 from graftcache.requests import FitRequest
 from graftcache.store.readthrough import ReadThroughRoot
 
-__all__ = ["Cell", "FitRequest", "Fitter", "LocalRunner", "run_pass"]
+__all__ = ["Cell", "FitRequest", "run_pass", "save_projector", "saved_cell"]
 
 PROJECTOR_WEIGHTS = "projector.safetensors"  # in a cell's run folder: its trained parameters
 PROJECTOR_SIDECAR = "projector.json"         # beside them: its cell, split and freeze report (save_projector)
 
 
-def run_pass(members: Sequence[Member], materials: MaterialsOf) -> list[dict[str, Any]]:
-    """Fit and score the cells of one pass (one cell, or several of one pass key: `plan_passes`) and return their
-    rows in order, without writing them (graftcache.fit.passes.run_passes writes them, under the cells' claims)."""
-    mats = [materials(m.plan) for m in members]
+@dataclass
+class _InPass:
+    """One cell of a pass and what the pass made for it: the one record of a cell inside `run_pass`."""
+
+    plan: Plan
+    cell: Cell
+    control: Control
+    mat: Materials
+    read: Reading
+    projector: torch.nn.Module
+    trainable: dict[str, torch.nn.Parameter] = field(default_factory=dict)
+    stats: StreamStats = field(default_factory=StreamStats)
+
+    def fitting(self, adapter: BackboneAdapter) -> Fitting:
+        """What the cell's objective fits it from."""
+        r, seed = self.read, self.cell.seed
+        return Fitting(adapter=adapter, req=self.plan.req, control=self.control, params=list(self.trainable.values()),
+                       train=self.mat.feed(r, r.train, self.control, seed), cams=self.plan.cameras,
+                       targets=(r.targets, r.target_rows) if r.targets is not None else None, grid=r.grid, seed=seed,
+                       dtype=self.mat.dtype, stats=self.stats)
+
+    def scoring(self, stack: ExitStack) -> Scoring:
+        """What scores the cell: its held-out split, streamed until `stack` closes."""
+        r = self.read
+        blocks = read_blocks(self.mat.feed(r, r.eval, self.control, self.cell.seed + 1).features(seed=None),
+                             self.plan.req.num_workers, self.stats)
+        return Scoring(r.eval, stack.enter_context(closing(blocks)), self.plan.cameras, self.control.transform)
+
+
+def run_pass(cells: Sequence[Planned], materials: MaterialsOf) -> list[dict[str, Any]]:
+    """Fit and score the cells of one pass (one cell, or several of one pass key: graftcache.fit.passes.plan_passes)
+    and return their rows in order, without writing them (graftcache.fit.passes.run_passes writes them, under the
+    cells' claims)."""
+    mats = [materials(plan) for plan, _ in cells]
     for mat in mats:
         mat.check_numerics()
-    first, plan, req = mats[0], members[0].plan, members[0].plan.req
+    first, (plan, _) = mats[0], cells[0]
+    req = plan.req
     adapter = first.backbone()
-    reads = [mat.reading(adapter, m.control) for m, mat in zip(members, mats, strict=True)]
-    objective = plan.objective_of(members[0].control)  # one for every cell of a pass (their pass key says so)
+    ins = []
+    for (p, cell), mat in zip(cells, mats, strict=True):
+        control = p.control(cell)
+        torch.manual_seed(cell.seed)  # each projector starts where it starts alone
+        ins.append(_InPass(p, cell, control, mat, mat.reading(adapter, control),
+                           control.projector(p.width(control), adapter.lm_width)))
+    lead = ins[0]
+    objective = plan.objective_of(lead.control)  # one for every cell of a pass (their pass key says so)
     t0 = time.perf_counter()
-    projectors = []
-    for m, reading in zip(members, reads, strict=True):
-        torch.manual_seed(m.cell.seed)  # each projector starts where it starts alone
-        projectors.append(m.control.projector(reading.width, adapter.lm_width))
-    one = len(members) == 1
-    grafted = projectors[0] if one else FusedProjector(projectors)
+    one = len(ins) == 1
+    grafted = lead.projector if one else FusedProjector([c.projector for c in ins])
     adapter.graft(grafted)
-    if one and members[0].control.lora:
+    if one and lead.control.lora:
         adapter.add_lora(rank=req.lora_rank)
     route = alone if one else grafted.rows
     # measuring a step (step_memory) feeds the first cell's rows only: the others' projectors get none
-    measuring = alone if one else lambda sizes: grafted.rows([*sizes, *[0] * (len(members) - len(sizes))])
-    first.backbones.describe(adapter, _pass_name(members, reads))
+    measuring = alone if one else lambda sizes: grafted.rows([*sizes, *[0] * (len(ins) - len(sizes))])
+    first.backbones.describe(adapter, _pass_name(ins))
     adapter.set_recompute(False)  # only a training step uses it (what the last pass left)
-    if members[0].control.train and objective.scheduled:  # refused here, not OOM-killed later
-        check_step_memory(adapter, reads[0].train, plan.cameras, reads[0].source, batch_size=req.batch_size,
+    if lead.control.train and objective.scheduled:  # refused here, not OOM-killed later
+        check_step_memory(adapter, lead.read.train, plan.cameras, lead.read.source, batch_size=req.batch_size,
                           buffer_mib=req.buffer_mib, dtype=first.dtype, recompute=req.recompute,
-                          others=[(r.train, r.source, m.plan.req.buffer_mib)
-                                  for m, r in zip(members[1:], reads[1:], strict=True)],
+                          others=[(c.read.train, c.read.source, c.plan.req.buffer_mib) for c in ins[1:]],
                           route=measuring)
     recomputed = "on" if adapter.recomputing else "off"
-    trainables = _trainables(adapter, grafted, projectors)
-    stats = [StreamStats() for _ in members]
-    losses = objective.fit([
-        Fitting(adapter=adapter, req=m.plan.req, control=m.control, params=list(trainable.values()),
-                train=mat.feed(r, r.train, m.control, m.seed), cams=m.plan.cameras,
-                targets=(r.targets, r.target_rows) if r.targets is not None else None, grid=r.grid, seed=m.seed,
-                dtype=mat.dtype, stats=st)
-        for m, mat, r, trainable, st in zip(members, mats, reads, trainables, stats, strict=True)], route)
+    for c, trainable in zip(ins, _trainables(adapter, grafted, [c.projector for c in ins]), strict=True):
+        c.trainable = trainable
+    losses = objective.fit([c.fitting(adapter) for c in ins], route)
     t_eval = time.perf_counter()
     with ExitStack() as stack:
-        scores = evaluate_together(adapter, [
-            Scoring(r.eval, stack.enter_context(closing(read_blocks(
-                mat.feed(r, r.eval, m.control, m.seed + 1).features(seed=None), m.plan.req.num_workers, st))),
-                m.plan.cameras, m.control.transform)
-            for m, mat, r, st in zip(members, mats, reads, stats, strict=True)],
-            batch_size=req.eval_batch_size, dtype=first.dtype, num_denoise_steps=req.num_denoise_steps, route=route)
-    eval_share = (time.perf_counter() - t_eval) / len(members)
-    share = (time.perf_counter() - t0) / len(members)
+        scores = evaluate_together(adapter, [c.scoring(stack) for c in ins], batch_size=req.eval_batch_size,
+                                   dtype=first.dtype, num_denoise_steps=req.num_denoise_steps, route=route)
+    eval_share = (time.perf_counter() - t_eval) / len(ins)
+    share = (time.perf_counter() - t0) / len(ins)
     rows = []
-    for m, mat, r, trainable, loss, score, st in zip(members, mats, reads, trainables, losses, scores, stats,
-                                                     strict=True):
-        if m.control.train:
-            save_projector(m.plan.run_folder(m.cell), adapter, m.cell, m.plan.split, trainable)
-        rows.append(_told(m, _row(m, mat, adapter, r, loss, score, st, share, cells=len(members),
-                                  recomputed=recomputed, eval_s=eval_share)))
+    for c, loss, score in zip(ins, losses, scores, strict=True):
+        if c.control.train:
+            save_projector(c.plan.run_folder(c.cell), adapter, c.cell, c.plan.split, c.trainable)
+        rows.append(_told(c, _row(c, adapter, loss, score, share, cells=len(ins), recomputed=recomputed,
+                                  eval_s=eval_share)))
     return rows
 
 
-def _pass_name(members: Sequence[Member], reads: Sequence[Reading]) -> str:
+def _pass_name(ins: Sequence[_InPass]) -> str:
     """How the log names a pass when the table of what trains is printed."""
-    if len(members) == 1:
-        (m,), (r,) = members, reads
-        return f"cell {m.cell.run_id} ({r.encoder} seed {m.seed} control {m.control.name})"
-    return (f"the {len(members)} cells of a backbone pass, each training its own projector "
-            f"({', '.join(m.cell.run_id for m in members)})")
+    if len(ins) == 1:
+        (c,) = ins
+        return f"cell {c.cell.run_id} ({c.read.encoder} seed {c.cell.seed} control {c.cell.control})"
+    return (f"the {len(ins)} cells of a backbone pass, each training its own projector "
+            f"({', '.join(c.cell.run_id for c in ins)})")
 
 
 def _trainables(adapter: BackboneAdapter, grafted: torch.nn.Module,
@@ -133,17 +152,16 @@ def _trainables(adapter: BackboneAdapter, grafted: torch.nn.Module,
     return [{f"{prefix}.{n}": p for n, p in projector.named_parameters()} for projector in projectors]
 
 
-def _row(m: Member, mat: Materials, adapter: BackboneAdapter, r: Reading, loss: float, score, stats: StreamStats,
-         wall: float, *, cells: int, recomputed: str, eval_s: float) -> dict[str, Any]:
+def _row(c: _InPass, adapter: BackboneAdapter, loss: float, score: Any, wall: float, *, cells: int,
+         recomputed: str, eval_s: float) -> dict[str, Any]:
     """A cell's row from what it measured (`cells`: how many cells its backbone pass trained; `recomputed`:
     on or off as the step ran; `eval_s`: its scoring's seconds, its share of a pass's)."""
-    plan = m.plan
+    plan, r = c.plan, c.read
     if isinstance(plan.root, ReadThroughRoot):  # what the reading processes copied locally for this cell
-        plan.root.fetched_bytes += stats.fetched
-    return m.cell.row(plan.req, {
-        "run_id": m.cell.run_id, "format_version": results.FORMAT_VERSION, "policy_sha256": adapter.policy_sha256,
-        "encoder": r.encoder,
-        "pool_grid": format_grid(r.grid), "train_loss_final": loss, "eval_mse": score.mse,
+        plan.root.fetched_bytes += c.stats.fetched
+    return c.cell.row(plan.req, {  # pool_grid: the cell's (graftcache.fit.plan.Plan.grid), which its run_id hashes
+        "run_id": c.cell.run_id, "format_version": results.FORMAT_VERSION, "policy_sha256": adapter.policy_sha256,
+        "encoder": r.encoder, "train_loss_final": loss, "eval_mse": score.mse,
         "eval_mse_first": score.mse_first, "eval_mse_raw": score.mse_raw, "eval_mse_arm": score.mse_arm,
         "eval_mse_gripper": score.mse_gripper,
         "eval_mse_episodes": [score.per_episode[e] for e in sorted(score.per_episode)],
@@ -155,16 +173,16 @@ def _row(m: Member, mat: Materials, adapter: BackboneAdapter, r: Reading, loss: 
         "random_init": bool(r.cache.manifest.random_init or adapter.random_init),
         "encoder_random_init": bool(r.cache.manifest.random_init),
         "backbone_random_init": bool(adapter.random_init),
-        "n_dropped_nonfinite": r.dropped + len(stats.dropped), "numerics_drift": mat.drift(r),
+        "n_dropped_nonfinite": r.dropped + len(c.stats.dropped), "numerics_drift": c.mat.drift(r),
         "camera_map": format_camera_map(plan.cameras), "graftcache_version": graftcache.__version__,
         "activation_checkpointing": recomputed, "eval_seconds_per_frame": eval_s / score.n_frames,
     })
 
 
-def _told(m: Member, row: dict[str, Any]) -> dict[str, Any]:
+def _told(c: _InPass, row: dict[str, Any]) -> dict[str, Any]:
     """`row`, once its scores are in the log."""
     shared = f" (its share of a pass of {row['cells_per_pass']})" if row["cells_per_pass"] > 1 else ""
-    m.plan.log(f"{row['backbone']}/{row['encoder']}/{row['suite']} seed {row['seed']} control {m.control.name} "
+    c.plan.log(f"{row['backbone']}/{row['encoder']}/{row['suite']} seed {row['seed']} control {c.control.name} "
                f"(cell {row['run_id']}): eval_mse {row['eval_mse']:.4f} (first {row['eval_mse_first']:.4f}, raw "
                f"{row['eval_mse_raw']:.5f}) on {row['n_eval_frames']} frames "
                f"({row['eval_seconds_per_frame'] * 1e3:.1f} ms a frame at --eval-batch-size "
@@ -185,88 +203,10 @@ def save_projector(folder: Path, adapter: BackboneAdapter, cell: Cell, split: Sp
 
 
 def saved_cell(folder: Path) -> Cell | None:
-    """The Cell save_projector recorded in `folder`'s sidecar (None: a sidecar without one)."""
+    """The Cell save_projector recorded in `folder`'s sidecar (None: a sidecar without one). A sidecar written before
+    issue 41 recorded the identity's version among the cell's fields (`format_version`: results.IDENTITY_VERSION),
+    which the run_id hashes anyway; one of another version is no cell of this graftcache's (None)."""
     recorded = json.loads((folder / PROJECTOR_SIDECAR).read_text()).get("cell")
-    return None if recorded is None else Cell(**recorded)
-
-
-class LocalRunner:
-    """Passes in this process, one at a time (graftcache.fit.passes.Runner), each request's Materials made on its
-    first pass and dropped once it has no cell left; the backbones and numerics verdicts are shared by all."""
-
-    slots = 1
-
-    def __init__(self, backbones: LoadedBackbones, numerics: dict[str, NumericsCheck] | None = None) -> None:
-        self.backbones = backbones
-        self.numerics = {} if numerics is None else numerics
-        self._materials: dict[int, Materials] = {}  # id(plan) -> its materials
-        self._queue: list[tuple[int, Sequence[Member]]] = []
-        self._tickets = 0
-
-    def materials(self, plan: Plan) -> Materials:
-        if id(plan) not in self._materials:
-            self._materials[id(plan)] = Materials(plan, self.backbones, self.numerics)
-        return self._materials[id(plan)]
-
-    def planned(self, members: Sequence[Member]) -> None:
-        """Nothing to say: each pass's rows are told as they come."""
-
-    def submit(self, members: Sequence[Member]) -> int:
-        self._tickets += 1
-        self._queue.append((self._tickets, members))
-        return self._tickets
-
-    def next_done(self) -> tuple[int, list[dict[str, Any]]]:
-        ticket, members = self._queue.pop(0)
-        return ticket, run_pass(members, self.materials)
-
-    def finished(self, plan: Plan) -> None:
-        mat = self._materials.pop(id(plan), None)
-        if mat is not None:
-            mat.close()
-
-    def cancel(self) -> None:
-        self._queue.clear()
-
-
-def fit_all(requests: Sequence[FitRequest], log: Callable[[str], None] = print,
-            visited: Callable[[int], None] = lambda n: None) -> list[dict[str, Any]]:
-    """Every missing cell of `requests` in this process, cells of different requests (encoders of one grid and
-    width, suites) sharing backbone passes, each policy loaded and each cache's numerics checked once."""
-    plans = [Plan(req, log) for req in requests]
-    return run_passes(plans, LocalRunner(LoadedBackbones(log)), visited)
-
-
-class Fitter:
-    """The cells of one FitRequest in this process: its Plan, Materials and a LocalRunner; `run()` returns the
-    rows it wrote."""
-
-    def __init__(self, req: FitRequest, log: Callable[[str], None] = print,
-                 backbones: LoadedBackbones | None = None, numerics: dict[str, NumericsCheck] | None = None) -> None:
-        """`backbones` and `numerics` (cache key -> verdict) may be shared by the Fitters of one process, so each
-        policy is loaded and each cache's numerics probe recomputed once per process."""
-        self.plan = Plan(req, log)
-        self.runner = LocalRunner(backbones or LoadedBackbones(log), numerics)
-
-    @property
-    def req(self) -> FitRequest:
-        return self.plan.req
-
-    @property
-    def root(self) -> Any:  # the cache root as read (a ReadThroughRoot counts what it copied)
-        return self.plan.root
-
-    @property
-    def index(self) -> Any:
-        return self.plan.index
-
-    def cells(self) -> list[tuple[Any, int, Cell]]:
-        return self.plan.cells()
-
-    def run_folder(self, cell: Cell) -> Path:
-        return self.plan.run_folder(cell)
-
-    def run(self) -> list[dict[str, Any]]:
-        """Every missing cell, `cells_per_pass` cells to a pass of the backbone where they can share one
-        (graftcache/fit/passes.py), each row appended to the results file as its pass finishes."""
-        return run_passes([self.plan], self.runner)
+    if recorded is None or recorded.pop("format_version", results.IDENTITY_VERSION) != results.IDENTITY_VERSION:
+        return None
+    return Cell(**recorded)

@@ -4,7 +4,7 @@ run cell by cell under the cell's claim and written one row per episode as each 
 Resuming is by episode: a rerun of the same command plans the same episodes (graftcache.rollout.episodes.Episode,
 identified by graftcache.rollout.table.EPISODE_KEY), finds them in the file and runs none, saying so; a run killed
 mid-way (kill -9 included) has written every episode it finished, and its rerun runs the others. Two processes
-sharing a rollouts file take each cell under its claim (graftcache.results.cell_claim, beside the file), and look
+sharing a rollouts file take each cell under its claim (graftcache.results.claims.cell_claim, beside the file), and look
 again at what the file holds once they have it, so no episode is run twice.
 
 Videos (a simulator built to record frames): each episode's video is written whole (a temporary name, synced, then
@@ -31,6 +31,8 @@ from graftcache.errors import RolloutError
 from graftcache.lazy import import_string
 from graftcache.progress import progress
 from graftcache.progress import write as progress_write
+from graftcache.results.claims import cell_claim, drop_claims_folder
+from graftcache.results.writing import WAIT_TOLD_S, fsync
 from graftcache.rollout import table
 from graftcache.rollout.episodes import Episode, Outcome, Simulator
 from graftcache.rollout.graded import Graded
@@ -123,12 +125,12 @@ def write_video(path: Path, outcome: Outcome) -> None:
     tmp = path.with_name(f".{path.stem}.{socket.gethostname()}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp.mp4")
     try:
         lerobot_write_video(tmp, list(outcome.frames), outcome.fps)
-        results.fsync(tmp)
+        fsync(tmp)
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
     try:  # the rename survives a crash once its folder is synced, as the row's append does for the rollouts file
-        results.fsync(path.parent)
+        fsync(path.parent)
     except OSError:
         pass
 
@@ -193,16 +195,16 @@ def roll_out(req: RolloutRequest, sim: Simulator, log: Callable[[str], None] = p
                 for run_id in dict.fromkeys(e.run_id for e in missing):
                     _run_cell(req, sim, by_run[run_id], [e for e in missing if e.run_id == run_id], bar, log)
     finally:  # stopped or failed too: no empty claims folder is left beside the file
-        results.drop_claims_folder(req.rollouts)
+        drop_claims_folder(req.rollouts)
     return _of(req, episodes)
 
 
 def _run_cell(req: RolloutRequest, sim: Simulator, row: Mapping[str, Any], episodes: Sequence[Episode], bar,
               log: Callable[[str], None]) -> None:
     """The cell's episodes that are still missing once its claim is held, each row written as it finishes."""
-    claim = results.cell_claim(req.rollouts, row["run_id"])
+    claim = cell_claim(req.rollouts, row["run_id"])
     claim.acquire(on_wait=lambda holder: log(f"waiting for run {row['run_id']}, being rolled out by {holder}"),
-                  patience=results.WAIT_TOLD_S)
+                  patience=WAIT_TOLD_S)
     try:
         done = set(table.read(req.rollouts)["episode_id"].to_list())
         todo = [e for e in episodes if e.id not in done]

@@ -1,8 +1,8 @@
 """The rollouts file: one row per simulated episode, its schema declared once and validated on every write.
 
-It is kept the way results files are (graftcache.results.append_table: appends under the file's lease, a temporary
-file renamed over it, readers through one descriptor), so several `graftcache rollout` processes may share one file
-and a killed one leaves whole rows only. An episode is identified by `episode_id`, the hash of what decides it
+It is kept the way results files are (graftcache.results.writing.append_table: appends under the file's lease, a
+temporary file renamed over it, readers through one descriptor), so several `graftcache rollout` processes may share
+one file and a killed one leaves whole rows only. An episode is identified by `episode_id`, the hash of what decides it
 (EPISODE_KEY): a rerun of the same command finds its episodes there and adds none; a rerun with another seed,
 step limit, task or perturbation adds its own.
 
@@ -19,9 +19,11 @@ from typing import Any
 
 import polars as pl
 
-from graftcache import results
 from graftcache.errors import GraftcacheError, RolloutError
 from graftcache.hashing import sha256_json
+from graftcache.results.reading import failure_reason, load_table
+from graftcache.results.schema import cast_exactly
+from graftcache.results.writing import append_table
 
 #: The format of rollouts rows (independent of the results' format); a newer one is refused by `read`.
 FORMAT_VERSION = 2
@@ -83,7 +85,7 @@ def validate(rows: pl.DataFrame) -> pl.DataFrame:
     extra = [c for c in rows.columns if c not in SCHEMA]
     if missing or extra:
         raise GraftcacheError(f"rollouts rows do not match the schema: missing {missing}, unexpected {extra}")
-    return pl.DataFrame([results.cast_exactly(rows[c], t) for c, t in SCHEMA.items()])
+    return pl.DataFrame([cast_exactly(rows[c], t) for c, t in SCHEMA.items()])
 
 
 def read(path: str | Path) -> pl.DataFrame:
@@ -93,9 +95,9 @@ def read(path: str | Path) -> pl.DataFrame:
     if not path.exists():
         return empty()
     try:
-        table = results.load_table(path)
+        table = load_table(path)
     except (pl.exceptions.PolarsError, OSError) as e:
-        raise RolloutError(f"{path}: not a Parquet rollouts table ({results.failure_reason(e, path)}); pass another "
+        raise RolloutError(f"{path}: not a Parquet rollouts table ({failure_reason(e, path)}); pass another "
                            "--rollouts") from None
     if "episode_id" not in table.columns:
         what = "a results table" if "eval_mse" in table.columns else "no rollouts table"
@@ -116,4 +118,4 @@ def append(path: str | Path, rows: Iterable[Mapping[str, Any]]) -> pl.DataFrame:
     """Append episodes' rows (dicts of SCHEMA's columns) under the file's lease; an episode already there is
     replaced, never doubled."""
     new = validate(pl.DataFrame([dict(r) for r in rows], schema=SCHEMA))
-    return results.append_table(path, new, read, key="episode_id", what="rollouts file")
+    return append_table(path, new, read, key="episode_id", what="rollouts file")

@@ -17,10 +17,10 @@ here first would instead load each base policy in this process, one after the ot
 
 Rows: a worker writes each episode's video and row as the episode finishes (graftcache.rollout.run.record; appends to
 the rollouts file are made under its lease, safe across processes). Claims: this process holds the claim of each cell
-it has episodes of (graftcache.results.cell_claim, as the one-process rollout does), taken when it first needs the cell
-and without waiting (a cell another rollout holds is left to it and tried again later; once taken, what the file then
-holds is read again) and given back once the cell's last episode is written: two rollouts sharing a file, of any
---workers, never run one episode twice.
+it has episodes of (graftcache.results.claims.cell_claim, as the one-process rollout does), taken when it first needs
+the cell and without waiting (a cell another rollout holds is left to it and tried again later; once taken, what the
+file then holds is read again) and given back once the cell's last episode is written: two rollouts sharing a file, of
+any --workers, never run one episode twice.
 
 Failures: a worker's error is sent here and raised as one RolloutError line naming the run and episode; a worker that
 dies (kill -9, out of memory) is one line naming the episode it was running. Either way the other workers are stopped
@@ -56,7 +56,7 @@ from typing import Any
 from graftcache.errors import GraftcacheError, RolloutError
 from graftcache.file_lease import FileLease
 from graftcache.processes import WORKER_GRACE_S, Terminated, stop
-from graftcache.results import cell_claim
+from graftcache.results.claims import cell_claim
 from graftcache.rollout import table
 from graftcache.rollout.episodes import Episode, Simulator
 from graftcache.rollout.run import RolloutRequest, record, summary

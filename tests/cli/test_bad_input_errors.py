@@ -49,6 +49,7 @@ from safetensors.torch import save_file
 from graftcache import results
 from graftcache.cli.signals import stoppable
 from graftcache.extract import extract
+from graftcache.results.claims import claims_folder
 from graftcache.store import FeatureCache, list_caches, open_root
 from graftcache.store.cache import PROGRESS_DIR
 from graftcache.store.roots import LocalRoot
@@ -631,7 +632,7 @@ def test_sigterm_during_fit_stops_workers_keeps_rows_and_the_rerun_resumes(
     assert_one_line_error(stopped, ("fit", "SIGTERM", "run the same command again to resume"), code=143)
     assert not left, f"worker processes {left} outlived the command by {GONE_WITHIN_S} s"
     assert results.read(out)["seed"].to_list() == [0]  # the finished cell's row stays
-    assert not results.claims_folder(out).exists()  # no claim outlives its cell, nor their folder
+    assert not claims_folder(out).exists()  # no claim outlives its cell, nor their folder
     assert_succeeded(run_cli(args.split(), capsys))
     reference = tmp_path / "reference.parquet"
     assert_succeeded(run_cli(args.replace(str(out), str(reference)).split(), capsys))

@@ -28,7 +28,7 @@ from graftcache.encoders import registry
 from graftcache.errors import NumericsError
 from graftcache.extract import extract
 from graftcache.fit import materials as run_module  # where a request's cells probe their caches
-from graftcache.fit.run import Fitter
+from graftcache.fit.local import Fitter
 from graftcache.store import FeatureCache
 
 ENCODER = "timm:vit_tiny_patch16_224"  # a real ViT architecture, cheap on CPU

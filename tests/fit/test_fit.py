@@ -30,8 +30,11 @@ from graftcache.fit.buffer import ShuffleBuffer
 from graftcache.fit.controls import check_pool_grid, get_control
 from graftcache.fit.data import load_lowdim, split_episodes
 from graftcache.fit.feed import SplitFeed
+from graftcache.fit.local import Fitter
 from graftcache.fit.loop import train
-from graftcache.fit.run import Cell, FitRequest, Fitter
+from graftcache.fit.materials import Materials
+from graftcache.fit.plan import Plan
+from graftcache.fit.run import Cell, FitRequest
 from graftcache.fit.stream import FeatureSource, read_blocks
 from graftcache.graft import GraftProjector
 from graftcache.store import FeatureCache
@@ -68,7 +71,7 @@ def test_every_control_writes_one_schema_valid_row(world: World, tmp_path: Path)
     assert by["native"]["cache_key"] == world.native_keys["smolvla"]
     assert by["none"]["cache_key"] == world.encoder_key and by["none"]["encoder"] == ENCODER
     assert by["pool-2x2"]["pool_grid"] == "2x2" and by["none"]["pool_grid"] == "4x4"
-    cells = {cell.run_id: cell for _, _, cell in fitter.cells()}  # each run_id hashes the grid its row writes
+    cells = {cell.run_id: cell for cell in fitter.plan.cells()}  # each run_id hashes the grid its row writes
     assert {r["run_id"]: r["pool_grid"] for r in by.values()} == {k: c.pool_grid for k, c in cells.items()}
     assert FeatureCache(world.cache / world.encoder_key).manifest.grids == ["14x14"]  # both pooled at read time
     assert by["pool-2x2"]["eval_mse"] != by["none"]["eval_mse"]
@@ -86,7 +89,7 @@ def test_every_control_writes_one_schema_valid_row(world: World, tmp_path: Path)
         # 7-d LIBERO actions: per frame eval_mse averages 6 arm dims and the gripper, so the dims-weighted mean of
         # the two parts is eval_mse (frames and chunk steps weigh the same in all three)
         assert (6 * row["eval_mse_arm"] + row["eval_mse_gripper"]) / 7 == pytest.approx(row["eval_mse"], rel=1e-6)
-        assert row["eval_split"] == "graftcache" and row["format_version"] == results.FORMAT_VERSION == 4
+        assert row["eval_split"] == "graftcache" and row["format_version"] == results.FORMAT_VERSION == 5
     # the policy as loaded, counted before the graft: every control of one backbone records the same size
     assert {r["backbone_params"] for r in by.values()} == {world.policy_params("smolvla")}
     # Prismatic's habit, once per loaded policy: the first cell logs which modules are frozen and which train, and a
@@ -96,7 +99,8 @@ def test_every_control_writes_one_schema_valid_row(world: World, tmp_path: Path)
     changed = {c: [line for line in lines if f"cell {by[c]['run_id']} " in line and "as the table above but" in line]
                for c in by}
     assert {c for c, found in changed.items() if found} == {"native", "native-graft", "lora"}
-    lora = load_file(str(fitter.run_folder(cells[by["lora"]["run_id"]]) / "projector.safetensors"))  # every trainable
+    lora_folder = fitter.plan.run_folder(cells[by["lora"]["run_id"]])
+    lora = load_file(str(lora_folder / "projector.safetensors"))  # every trainable
     assert changed["lora"][0].endswith(f", {sum(t.numel() for t in lora.values()):,} trainable")
     assert "language model" in changed["lora"][0] and "0 trainable" in changed["native"][0]
 
@@ -244,15 +248,15 @@ def test_a_lerobot_split_cell_is_its_own_cell_and_holds_out_the_last_episodes(wo
     default = Fitter(world.request(controls=(), seeds=(0,), results=str(out)), log=_quiet)
     fitter = Fitter(world.request(controls=(), seeds=(0,), results=str(out), eval_split="lerobot"), log=_quiet)
     (row,) = fitter.run()
-    ((_, _, cell),) = fitter.cells()
-    ((_, _, plain),) = default.cells()
+    (cell,) = fitter.plan.cells()
+    (plain,) = default.plan.cells()
     assert row["eval_split"] == "lerobot" and row["run_id"] == cell.run_id != plain.run_id
     assert dataclasses.replace(cell, eval_split="graftcache").run_id == plain.run_id
-    episodes = fitter.index.group_by("task_index").agg(pl.col("episode_index").unique().sort())
+    episodes = fitter.plan.index.group_by("task_index").agg(pl.col("episode_index").unique().sort())
     fraction = world.request().eval_fraction
     last = sorted(e for eps in episodes["episode_index"].to_list()
                   for e in eps[len(eps) - math.ceil(len(eps) * fraction):])
-    sidecar = json.loads((fitter.run_folder(cell) / "projector.json").read_text())
+    sidecar = json.loads((fitter.plan.run_folder(cell) / "projector.json").read_text())
     assert sidecar["split"]["eval_episodes"] == last and sidecar["split"]["rule"] == "lerobot"
     assert row["n_eval_episodes"] <= len(last)
 
@@ -400,8 +404,10 @@ def test_cell_run_ids_are_pinned() -> None:
     format. The run_ids changed on purpose when fits began to stream (issue 12: `buffer_mib` joined the cell),
     with results format 2 (issue 23: every field hashed, `camera_map` and `format_version` included) and with
     format 3 (issue 23: `pool_grid` the resolved grid, never "native"); rows of earlier formats are refused by
-    results.upgrade. Results format 4 (issue 31) kept them: its one new cell field, `eval_split`, is hashed only off
-    its default ("lerobot" below). Each is checked against its fields hashed here, every field by name."""
+    graftcache.results.upgrade. Results format 4 (issue 31) kept them: its one new cell field, `eval_split`, is
+    hashed only off its default ("lerobot" below). Format 5 (issue 41) kept them too: `format_version` is no Cell
+    field any more but the version of its identity (results.IDENTITY_VERSION), hashed under that key. Each is
+    checked against its fields hashed here, every field by name."""
     fields = dict(backbone="smolvla", policy="tiny:tiny-smolvla-0123456789ab", cache_key="siglip-0123456789abcdef",
                   suite="libero_spatial", seed=1, control="none", pool_grid="8x8", objective="flow", steps=300,
                   lr=1e-3, batch_size=16, buffer_mib=2048, lora_rank=0, eval_fraction=0.2, eval_split_seed=0,
@@ -411,11 +417,24 @@ def test_cell_run_ids_are_pinned() -> None:
                               cache_key="smolvla-native-00aa", seed=0),
                "lora": dict(control="lora", lora_rank=8, eval_frames=40, num_denoise_steps=4),
                "mapped": dict(camera_map="image=agentview"), "lerobot": dict(eval_split="lerobot")}
-    assert results.CELL_FORMAT == 3
+    assert results.IDENTITY_VERSION == 3 and "format_version" not in {f.name for f in dataclasses.fields(Cell)}
     assert plain.run_id == _run_id(**fields, camera_map=None, format_version=3)
     for name, change in changes.items():
         got = dataclasses.replace(plain, **change).run_id
         assert got == _run_id(**{"camera_map": None, **fields, **change, "format_version": 3}), name
+
+
+def test_a_loaded_policy_whose_token_grid_is_not_its_configs_is_refused(world: World) -> None:
+    """Issue 41, item 2: cells hash the token grid the policy's config gives (Plan.token_grid) and are fed that one;
+    the loaded policy's is checked against it, so a row's pool_grid never differs from the grid its run_id hashed."""
+    plan = Plan(world.request(), log=_quiet)
+    height, width = plan.token_grid
+    plan.token_grid = (height + 1, width)  # a config that says what the loaded policy does not take
+    with pytest.raises(FitError) as refused:
+        Materials(plan).backbone()
+    assert str(refused.value) == (f"backbone smolvla: the policy loaded from {plan.policy_folder} takes a "
+                                  f"{height}x{width} token grid, its config says {height + 1}x{width}; fix the "
+                                  "adapter's read_token_grid so that both agree")
 
 
 def test_cell_row_takes_each_column_from_measurements_then_cell_then_request() -> None:
@@ -432,6 +451,24 @@ def test_cell_row_takes_each_column_from_measurements_then_cell_then_request() -
     assert row["eval_mse"] == "m-eval_mse" and row["pool_grid"] == "m-pool_grid"
     with pytest.raises(FitError, match="results column 'eval_mse'"):
         cell.row(req, {k: v for k, v in measured.items() if k != "eval_mse"})
+
+
+@pytest.mark.parametrize("camera_map", [None, "image=agentview"])
+def test_a_row_records_the_whole_cell_its_run_id_hashes(camera_map: str | None) -> None:
+    """Issue 41, item 3: export and other tools read a row's cell from the row, never from its command line. Rows
+    spell the camera mapping out also where every name matched (cells then hold None)."""
+    fields = {f.name for f in dataclasses.fields(Cell)}
+    assert fields <= set(results.SCHEMA)
+    cell = Cell(backbone="smolvla", policy="org/p", cache_key="k", suite="libero_goal", seed=2, control="lora",
+                pool_grid="8x8", objective="flow", steps=5, lr=0.01, batch_size=4, buffer_mib=64, lora_rank=16,
+                eval_fraction=0.3, eval_split_seed=3, eval_frames=7, num_denoise_steps=2, compute_dtype="bf16",
+                camera_map=camera_map, eval_split="lerobot")
+    req = FitRequest(backbone="pi05", encoder="siglip", suite="libero_10", seeds=(0,), steps=9, lr=0.5, lora_rank=1,
+                     eval_fraction=0.5, eval_frames=None, num_denoise_steps=None, command="graftcache fit x")
+    measured = {c: f"m-{c}" for c in results.SCHEMA if c not in fields}
+    measured["camera_map"] = camera_map or "image=image,image2=image2"
+    row = cell.row(req, measured)
+    assert Cell.of_row(row) == cell and Cell.of_row(row).run_id == cell.run_id
 
 
 def test_a_batch_past_memory_is_refused_before_training(world: World, tmp_path: Path,

@@ -1,5 +1,5 @@
-"""Caches and results files as graftcache's previous formats (1 and 2; results also 3) left them: the one place tests
-write them (tests/test_previous_formats.py reads them back through the one upgrade path, or sees them refused)."""
+"""Caches and results files as graftcache's previous formats (1 and 2; results also 3 and 4) left them: the one place
+tests write them (tests/test_previous_formats.py reads them back through the one upgrade path, or sees them refused)."""
 
 from __future__ import annotations
 
@@ -37,13 +37,18 @@ def previous_format(folder: Path, root: Path, lacking: str | None = None, versio
 
 #: The columns results format 4 added (issue 31; issue 32 the last two), which rows of formats 1 to 3 lack.
 FORMAT_4_COLUMNS = ("eval_split", "eval_mse_arm", "eval_mse_gripper", "encoder_random_init", "backbone_random_init")
+#: The columns results format 5 added (issue 41: the cell fields rows had not recorded), which rows of formats 1 to 4
+#: lack.
+FORMAT_5_COLUMNS = ("eval_fraction", "eval_frames", "num_denoise_steps", "lora_rank")
 
 
 def previous_results(path: Path, rows: pl.DataFrame, version: int = 1) -> Path:
     """`rows` (a results table of this format) written to `path` as format `version` held them: format 1 had no
     format_version column; format 2 hashed cells whose pool_grid was "native" (the backbone's token grid,
-    unresolved), so its run_ids are of cells of another shape; format 3 lacked FORMAT_4_COLUMNS."""
+    unresolved), so its run_ids are of cells of another shape; format 3 lacked FORMAT_4_COLUMNS, format 4
+    FORMAT_5_COLUMNS."""
     rows = rows.drop(FORMAT_4_COLUMNS) if version <= 3 else rows
+    rows = rows.drop(FORMAT_5_COLUMNS) if version <= 4 else rows
     old = rows.drop("format_version") if version == 1 else rows.with_columns(pl.lit(version).alias("format_version"))
     old.write_parquet(path)
     return path

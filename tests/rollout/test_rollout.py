@@ -26,6 +26,7 @@ from helpers.tables import full_table, write_results
 
 from graftcache import results
 from graftcache.errors import RolloutError
+from graftcache.results.claims import claims_folder
 from graftcache.rollout import table
 from graftcache.rollout.episodes import Episode, Outcome, Suite
 from graftcache.rollout.graded import Graded
@@ -168,7 +169,7 @@ def test_a_run_stopped_mid_way_resumes_to_the_same_rows(tmp_path: Path) -> None:
     assert len(sim.ran) == 15
     drop = ["command"]
     assert resumed.drop(drop).sort("episode_id").equals(expected.drop(drop).sort("episode_id"))
-    assert not results.claims_folder(cut.rollouts).exists()  # claims released, their folder gone
+    assert not claims_folder(cut.rollouts).exists()  # claims released, their folder gone
 
 
 def _decoded(path: Path) -> tuple[int, float]:
@@ -221,7 +222,7 @@ def test_a_failed_run_leaves_no_claims_folder(tmp_path: Path) -> None:
     with pytest.raises(RuntimeError, match="the simulator broke"):
         roll_out(req, Broken(), log=lambda _: None)
     assert table.read(req.rollouts).height == 1  # the episode it finished
-    assert not results.claims_folder(req.rollouts).exists()
+    assert not claims_folder(req.rollouts).exists()
 
 
 def test_seeds_and_episode_counts_past_what_a_seed_holds_are_refused_before_planning(tmp_path: Path) -> None:

@@ -28,6 +28,7 @@ from helpers.tables import write_results
 
 from graftcache import results
 from graftcache.errors import RolloutError
+from graftcache.results.claims import claims_folder
 from graftcache.rollout import table
 from graftcache.rollout.run import RolloutRequest, roll_out
 from graftcache.rollout.select import select_rows
@@ -73,7 +74,7 @@ def test_two_workers_write_the_rows_of_one_each_keeping_to_its_cells(tmp_path: P
     assert sum(n > 1 for n in runners.values()) <= 1 and len(runners) == 6
     assert lines[1] == "2 worker processes, each with a simulator of its own"
     assert sum(line.startswith("rolled out ") for line in lines) == 6  # one line per cell, as one worker says
-    assert not results.claims_folder(req.rollouts).exists() and not multiprocessing.active_children()
+    assert not claims_folder(req.rollouts).exists() and not multiprocessing.active_children()
 
 
 def test_an_error_in_a_worker_is_one_line_naming_the_run_and_episode(tmp_path: Path) -> None:
@@ -88,7 +89,7 @@ def test_an_error_in_a_worker_is_one_line_naming_the_run_and_episode(tmp_path: P
     pid = int(worker.split(", pid ")[1].rstrip(")"))
     assert pid in pids(tmp_path / "traces") and pid != os.getpid()
     assert not multiprocessing.active_children()  # the other worker was stopped
-    assert not results.claims_folder(req.rollouts).exists()
+    assert not claims_folder(req.rollouts).exists()
     # whole rows of episodes the workers finished (the stopped one may have finished one it had no time to write)
     rows = table.read(req.rollouts)
     finished = {(run_id, task, k) for _, run_id, task, k in ran(tmp_path / "traces")}
@@ -157,7 +158,7 @@ def test_kill_9_of_a_two_worker_rollout_leaves_whole_rows_no_worker_and_a_rerun_
     rows = _in_workers(req, tmp_path / "rerun")
     assert len(ran(tmp_path / "rerun")) == EPISODES - written.height
     assert rows.height == EPISODES and rows["episode_id"].n_unique() == EPISODES
-    assert not results.claims_folder(req.rollouts).exists()
+    assert not claims_folder(req.rollouts).exists()
 
 
 def _frames(path: Path) -> Any:

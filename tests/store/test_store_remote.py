@@ -32,7 +32,8 @@ from graftcache.errors import CacheError
 from graftcache.extract import extract
 from graftcache.fit.data import load_lowdim
 from graftcache.fit.feed import SplitFeed
-from graftcache.fit.run import FitRequest, Fitter
+from graftcache.fit.local import Fitter
+from graftcache.fit.run import FitRequest
 from graftcache.fit.stream import FeatureSource, read_blocks
 from graftcache.store import FeatureCache, cache_key, list_caches, open_root, scan_caches
 from graftcache.store.cache import MisplacedCache
@@ -221,9 +222,9 @@ def test_fit_reads_a_remote_cache_through_local_copies(
         fitter = Fitter(req, log=_quiet)
         (rows[name],) = fitter.run()
         if name == "s3":
-            fetched = fitter.root.fetched_bytes
+            fetched = fitter.plan.root.fetched_bytes
     assert rows["s3"]["eval_mse"] == rows["local"]["eval_mse"]
-    mirror = fitter.root.local.path / key
+    mirror = fitter.plan.root.local.path / key
     copied = {p.relative_to(mirror).as_posix(): p.stat().st_size for p in mirror.rglob("*") if p.is_file()}
     assert fetched == sum(copied.values())
     spatial = {int(r) // 2 for r in load_lowdim(FeatureCache(root / key), "libero_spatial", chunk=1).rows}
@@ -232,7 +233,7 @@ def test_fit_reads_a_remote_cache_through_local_copies(
     assert fetched < sum(open_root(s3).sizes(f"{key}/").values())  # the 2x2 grid, the other suite: never read
     refit = Fitter(dataclasses.replace(req, seeds=(1,)), log=_quiet)
     refit.run()
-    assert refit.root.fetched_bytes == 0  # the local copies serve the next run
+    assert refit.plan.root.fetched_bytes == 0  # the local copies serve the next run
     assert (tmp_path / "runs").is_dir() and not [k for k in bucket_objects(s3) if "/runs/" in k]
 
 
