@@ -79,6 +79,7 @@ def run_pass(members: Sequence[Member], materials: MaterialsOf) -> list[dict[str
     measuring = alone if one else lambda sizes: grafted.rows([*sizes, *[0] * (len(members) - len(sizes))])
     first.backbones.describe(adapter, _pass_name(members, reads))
     adapter.set_activation_checkpointing(False)  # only a training step uses it (what the last pass left)
+    attention = adapter.set_attention(req.attention)  # before the step is measured: it changes what a step keeps
     if members[0].control.train and objective.scheduled:  # refused here, not OOM-killed later
         check_step_memory(adapter, reads[0].train, plan.cameras, reads[0].source, batch_size=req.batch_size,
                           buffer_mib=req.buffer_mib, dtype=first.dtype, checkpointing=req.activation_checkpointing,
@@ -110,7 +111,7 @@ def run_pass(members: Sequence[Member], materials: MaterialsOf) -> list[dict[str
         if m.control.train:
             save_projector(m.plan.run_folder(m.cell), adapter, m.cell, m.plan.split, trainable)
         rows.append(_told(m, _row(m, mat, adapter, r, loss, score, st, share, cells=len(members),
-                                  checkpointing=checkpointing, eval_s=eval_share)))
+                                  checkpointing=checkpointing, attention=attention, eval_s=eval_share)))
     return rows
 
 
@@ -134,9 +135,10 @@ def _trainables(adapter: BackboneAdapter, grafted: torch.nn.Module,
 
 
 def _row(m: Member, mat: Materials, adapter: BackboneAdapter, r: Reading, loss: float, score, stats: StreamStats,
-         wall: float, *, cells: int, checkpointing: str, eval_s: float) -> dict[str, Any]:
+         wall: float, *, cells: int, checkpointing: str, attention: str, eval_s: float) -> dict[str, Any]:
     """A cell's row from what it measured (`cells`: how many cells its backbone pass trained; `checkpointing`:
-    on or off as the step ran; `eval_s`: its scoring's seconds, its share of a pass's)."""
+    on or off as the step ran; `attention`: the path the frozen LM and expert attended with; `eval_s`: its scoring's
+    seconds, its share of a pass's)."""
     plan = m.plan
     if isinstance(plan.root, ReadThroughRoot):  # what the reading processes copied locally for this cell
         plan.root.fetched_bytes += stats.fetched
@@ -158,6 +160,7 @@ def _row(m: Member, mat: Materials, adapter: BackboneAdapter, r: Reading, loss: 
         "n_dropped_nonfinite": r.dropped + len(stats.dropped), "numerics_drift": mat.drift(r),
         "camera_map": format_camera_map(plan.cameras), "graftcache_version": graftcache.__version__,
         "activation_checkpointing": checkpointing, "eval_seconds_per_frame": eval_s / score.n_frames,
+        "attention": attention,
     })
 
 
@@ -169,7 +172,7 @@ def _told(m: Member, row: dict[str, Any]) -> dict[str, Any]:
                f"{row['eval_mse_raw']:.5f}) on {row['n_eval_frames']} frames "
                f"({row['eval_seconds_per_frame'] * 1e3:.1f} ms a frame at --eval-batch-size "
                f"{row['eval_batch_size']}), {row['wall_s']:.1f}s{shared}; activation checkpointing "
-               f"{row['activation_checkpointing']}")
+               f"{row['activation_checkpointing']}, {row['attention']} attention")
     return row
 
 

@@ -103,6 +103,7 @@ class EO1Adapter(TowerReads, FlowObjective, BackboneAdapter):
         steps_field="num_denoise_steps",
         token_steps=("EO1ConversationTemplateStep", QWEN_STEP),
         prompt_uses_state=True,
+        attentions=("sdpa",),  # lerobot builds its LM with transformers' sdpa attention
     )
 
     def _patch_graft(self, graft) -> None:

@@ -88,6 +88,7 @@ class GrootAdapter(TowerReads, FlowObjective, BackboneAdapter):
         token_steps=(VLM_STEP,),
         prompt_uses_state=True,
         flow_time="data",
+        attentions=("sdpa",),  # lerobot builds its LM with transformers' sdpa attention
     )
 
     def _patch_graft(self, graft) -> None:

@@ -65,6 +65,7 @@ class PI0FastAdapter(TokenObjective, PaliGemmaAdapter):
         loss_per_sample=False,
         flow_time=None,
         activation_checkpointing=True,
+        attentions=("sdpa", "eager"),  # lerobot leaves pi0-FAST's Gemma at transformers' sdpa
     )
 
     # ------------------------------------------------------------------------------ construction

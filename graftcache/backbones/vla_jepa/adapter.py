@@ -109,6 +109,7 @@ class VLAJEPAAdapter(WrappedActivationCheckpointing, FlowObjective, BackboneAdap
         prompt_uses_state=True,
         flow_time="data",
         activation_checkpointing=True,
+        attentions=("sdpa",),  # lerobot builds its LM with transformers' sdpa attention
     )
 
     def _patch_graft(self, graft) -> None:

@@ -62,6 +62,7 @@ class XVLAAdapter(WrappedActivationCheckpointing, BackboneAdapter):
         steps_field="num_denoising_steps",
         token_steps=("TokenizerProcessorStep",),
         activation_checkpointing=True,
+        attentions=("sdpa",),  # lerobot builds its LM with transformers' sdpa attention
     )
 
     def _patch_graft(self, graft) -> None:
