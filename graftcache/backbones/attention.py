@@ -38,14 +38,17 @@ MASKED = -2.3819763e38
 
 def fused_attention(query: torch.Tensor, key: torch.Tensor, value: torch.Tensor, additive_mask: torch.Tensor | None,
                     scaling: float, dropout: float = 0.0) -> torch.Tensor:
-    """softmax(q k^T * scaling + mask) v for [B, heads, L, D] queries and [B, kv_heads, S, D] keys and values (heads a
-    multiple of kv_heads, each key head serving its group of query heads, as transformers' repeat_kv does), one
-    kernel; returns [B, heads, L, D]."""
+    """softmax(q k^T * scaling + mask) v for [B, heads, L, D] queries and [B, kv_heads, S, D] keys and values, each key
+    head serving its group of heads // kv_heads query heads, as transformers' repeat_kv does; returns [B, heads, L,
+    D]. The keys and values are repeated rather than passed with `enable_gqa`: CUDA has no masked kernel for that
+    (the math kernel would run), which is why transformers' own sdpa attention repeats them where there is a mask."""
+    groups = query.shape[1] // key.shape[1]
+    if groups > 1:
+        key, value = key.repeat_interleave(groups, dim=1), value.repeat_interleave(groups, dim=1)
     if additive_mask is not None:
         additive_mask = additive_mask.to(query.dtype)
-    return functional.scaled_dot_product_attention(
-        query, key.to(query.dtype), value.to(query.dtype), attn_mask=additive_mask, dropout_p=dropout,
-        scale=scaling, enable_gqa=key.shape[1] != query.shape[1])
+    return functional.scaled_dot_product_attention(query, key.to(query.dtype), value.to(query.dtype),
+                                                   attn_mask=additive_mask, dropout_p=dropout, scale=scaling)
 
 
 class Attention:
