@@ -131,7 +131,8 @@ def run_closed_loop_demo(recipe_path: str | Path | None = None, out: str | Path 
                     max_steps=plan.max_steps)
     sim = spawn()  # plans; each worker builds its own
     try:
-        for run_ids, episodes in ((cells.figure, plan.episodes_per_task), (cells.paired, plan.paired_episodes_per_task)):
+        runs = ((cells.figure, plan.episodes_per_task), (cells.paired, plan.paired_episodes_per_task))
+        for run_ids, episodes in runs:
             req = RolloutRequest(results=results, rollouts=rollouts, run_ids=run_ids, tasks=plan.tasks,
                                  episodes_per_task=episodes, max_steps=plan.max_steps, perturb_cm=plan.perturb_cm,
                                  command=command)

@@ -153,6 +153,9 @@ EVAL_SPLITS = ("graftcache", "lerobot")
 #: (graftcache/backbones/activation_checkpointing.py). `auto` turns it on when a training step would not fit the
 #: device's memory without it (graftcache/fit/step_memory.py).
 RECOMPUTE_MODES = ("auto", "on", "off")
+#: How the frozen LM and expert attend (graftcache/backbones/attention.py): `auto` takes the fused path
+#: (scaled_dot_product_attention) where the backbone has one (its spec's `attentions`), else lerobot's own.
+ATTENTION_MODES = ("auto", "eager", "sdpa")
 #: A results path names a file: "" would be the current folder, and "rdir/" used to write a file named rdir.
 RESULTS_FILE: Rule = (lambda v: bool(v.strip()) and not v.endswith(("/", os.sep)),
                       "must name a file, e.g. results.parquet (not empty, not ending in /)")
@@ -226,6 +229,12 @@ class FitRequest(Checked):
         help="recompute the frozen LM's and action expert's activations during backward (same gradients, less "
         "memory, ~1/3 more step time: activation checkpointing); auto: on when a step would not fit the device's "
         "memory without it; rows record what it resolved to (column activation_checkpointing)")
+    attention: str = setting(  # in no cell: both paths give the numbers within attention.TOLERANCE
+        "auto", choices=ATTENTION_MODES,
+        help="how the frozen LM and action expert attend: eager (lerobot's matmul-softmax-matmul, every score matrix "
+        "kept) or sdpa (torch's fused scaled_dot_product_attention: same numbers within float rounding, less memory "
+        "and time); auto: sdpa where the backbone has it; rows record what it resolved to (attention) and keep "
+        "their run_ids")
     device: str = setting("cpu", recipe=False, help="cpu, cuda or cuda:N")
     num_workers: int = setting(  # the numbers do not depend on it
         2, rule=WORKERS,

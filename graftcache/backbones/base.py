@@ -34,6 +34,7 @@ from torch import nn
 
 from graftcache.backbone_table import backbone_module
 from graftcache.backbones.activation_checkpointing import ActivationCheckpointing
+from graftcache.backbones.attention import Attention
 from graftcache.backbones.batches import ACTION, STATE, PromptBatches
 from graftcache.backbones.checkpoint import (
     PREPROCESSOR_FILE,
@@ -80,7 +81,7 @@ def _camera_names(keys: Iterable[str]) -> tuple[str, ...]:
     return tuple(k.removeprefix("observation.images.") for k in keys)
 
 
-class BackboneAdapter(GraftSurgery, PromptBatches, Objective, ActivationCheckpointing, ABC):
+class BackboneAdapter(GraftSurgery, PromptBatches, Objective, ActivationCheckpointing, Attention, ABC):
     """A frozen lerobot VLA policy that a projector can be grafted onto: its registry `name`, its constants as data
     (`spec`), and hooks where its behaviour differs."""
 

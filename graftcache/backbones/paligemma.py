@@ -1,4 +1,5 @@
-"""The PaliGemma family (pi0.5, pi0, pi0-FAST): its tiny sizes, tiny tokenizer and processors with a given tokenizer.
+"""The PaliGemma family (pi0.5, pi0, pi0-FAST): its tiny sizes, tiny tokenizer, processors with a given tokenizer, and
+its attention paths.
 
 pi0.5 hard-codes its sizes (`get_gemma_config` knows two variants; PaliGemma's projector width and
 the 257152-token vocabulary are fixed in `PaliGemmaWithExpertModel.__init__`, lerobot 0.6
@@ -10,6 +11,12 @@ loaded (pi0's and pi0-FAST's modules build PaliGemma the same way).
   Gemma 128 wide x 3 layers, expert 64 wide x 3 layers (8 heads x 1 KV head, as lerobot hard-codes), vocabulary
   shrunk from 257152 to 1024 (the tiny tokenizer has 771 tokens). pi0 and pi0-FAST take pi0.5's geometry;
   pi0-FAST's vocabulary is the tiny tokenizer's 771, so every token it generates decodes.
+
+Attention (graftcache/backbones/attention.py): pi0 and pi0.5 attend through transformers' module global
+`modeling_gemma.eager_attention_forward` (their joint layer calls it, and lerobot sets every Gemma config to eager
+before prefix and denoising calls); `gemma_fused` puts `GemmaAttentionForward` there, which runs the marked
+GemmaAttention modules of one policy fused and every other caller's as before. pi0-FAST is left at the sdpa
+attention transformers builds it with; `gemma_eager` pins its Gemma configs to eager. Gemma 1 has no soft-capping.
 """
 
 from __future__ import annotations
@@ -19,7 +26,11 @@ import functools
 from collections.abc import Iterator
 from dataclasses import dataclass
 
-from graftcache.backbones.patching import patched
+import torch
+from torch import nn
+
+from graftcache.backbones.attention import EAGER, FUSED, fused_attention
+from graftcache.backbones.patching import Patches, patched
 from graftcache.backbones.tiny_assets import PALIGEMMA_DIR
 
 PI05_MODELING = "lerobot.policies.pi05.modeling_pi05"
@@ -102,3 +113,52 @@ def pi05_processors(config, stats: dict | None, tokenizer, processor: str = "ler
         return getattr(module, factory)(config, dataset_stats=stats)
 
 
+
+
+#: Set on a policy's GemmaAttention modules while they attend fused (GemmaAttentionForward reads it).
+FUSED_MARK = "_graftcache_fused_attention"
+
+
+class GemmaAttentionForward:
+    """`modeling_gemma.eager_attention_forward` while a PaliGemma policy attends fused: the fused kernel for attention
+    modules carrying FUSED_MARK, the function it replaced (`eager`) for every other."""
+
+    def __init__(self, eager) -> None:
+        self.eager = eager
+
+    def __call__(self, module: nn.Module, query: torch.Tensor, key: torch.Tensor, value: torch.Tensor,
+                 attention_mask: torch.Tensor | None, scaling: float, dropout: float = 0.0, **kwargs):
+        if not getattr(module, FUSED_MARK, False):
+            return self.eager(module, query, key, value, attention_mask, scaling, dropout, **kwargs)
+        out = fused_attention(query, key, value, attention_mask, scaling, dropout if module.training else 0.0)
+        return out.transpose(1, 2).contiguous(), None  # eager's [B, L, heads, D]; no probabilities were made
+
+
+def _gemma_attentions(policy: nn.Module) -> list[nn.Module]:
+    from transformers.models.gemma.modeling_gemma import GemmaAttention
+
+    return [m for m in policy.modules() if isinstance(m, GemmaAttention)]
+
+
+def gemma_fused(patches: Patches, policy: nn.Module) -> None:
+    """`policy`'s Gemma attention (LM and expert) through the fused kernel: GemmaAttentionForward at the module global
+    (unless another policy's patches put it there already) and every GemmaAttention module marked."""
+    from transformers.models.gemma import modeling_gemma
+
+    if not isinstance(modeling_gemma.eager_attention_forward, GemmaAttentionForward):
+        patches.set(modeling_gemma, "eager_attention_forward",
+                    GemmaAttentionForward(modeling_gemma.eager_attention_forward))
+    for module in _gemma_attentions(policy):
+        patches.set(module, FUSED_MARK, True)
+
+
+def gemma_eager(patches: Patches, policy: nn.Module) -> None:
+    """`policy`'s Gemma configs set to eager (transformers' `_attn_implementation`, which GemmaAttention dispatches
+    on), as lerobot's pi0 and pi0.5 set theirs before every call."""
+    configs = {id(m.config): m.config for m in _gemma_attentions(policy)}
+    for config in configs.values():
+        patches.set(config, "_attn_implementation_internal", "eager")
+
+
+#: How a PaliGemma policy is made to attend with another path than lerobot's own.
+GEMMA_ATTENTIONS = {EAGER: gemma_eager, FUSED: gemma_fused}

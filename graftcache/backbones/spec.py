@@ -2,9 +2,9 @@
 model's pretrained configuration: how reports write its name, its released size, which lerobot policy type it loads
 and which lerobot extra installs it, which policy method makes the images, where the tower and connector sit, where the
 LM width is read, how lerobot scales image tokens, which way its flow time runs, how its loss is reduced, whether its
-LM and expert can recompute activations, and how many cells share a pass by default. What differs in behaviour, not
-data, is a hook on the adapter, each declared once with one signature (`sample_time`, `_grid_of_config`,
-`_flow_losses`, `_predict_chunk`, ...).
+LM and expert can recompute activations, how they can attend, and how many cells share a pass by default. What
+differs in behaviour, not data, is a hook on the adapter, each declared once with one signature (`sample_time`,
+`_grid_of_config`, `_flow_losses`, `_predict_chunk`, ...).
 """
 
 from __future__ import annotations
@@ -43,6 +43,10 @@ class BackboneSpec:
     loss_per_sample: bool = True
     #: The frozen LM and expert can recompute activations in backward (`_switch_recompute`).
     can_recompute: bool = False
+    #: How the frozen LM and expert can attend (graftcache/backbones/attention.py), lerobot's own first: "eager"
+    #: (every score matrix materialised) or "sdpa" (torch's fused scaled_dot_product_attention); another than the
+    #: first is the `_switch_attention` hook's; `--attention auto` takes sdpa where it is listed.
+    attentions: tuple[str, ...] = ("eager",)
     #: Cells per backbone pass when a request does not say, by device type (graftcache.fit.passes); unlisted: 1.
     cells_per_pass: Mapping[str, int] = field(default_factory=dict)
     #: lerobot's `config.type` of the policy it wraps, which a checkpoint's config.json must name; None: the

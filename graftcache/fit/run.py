@@ -109,6 +109,7 @@ def run_pass(cells: Sequence[Planned], materials: MaterialsOf) -> list[dict[str,
     measuring = alone if one else lambda sizes: grafted.rows([*sizes, *[0] * (len(ins) - len(sizes))])
     first.backbones.describe(adapter, _pass_name(ins))
     adapter.set_recompute(False)  # only a training step uses it (what the last pass left)
+    attention = adapter.set_attention(req.attention)  # before the step is measured: it changes what a step keeps
     if lead.control.train and objective.scheduled:  # refused here, not OOM-killed later
         check_step_memory(adapter, lead.read.train, plan.cameras, lead.read.source, batch_size=req.batch_size,
                           buffer_mib=req.buffer_mib, dtype=first.dtype, recompute=req.recompute,
@@ -129,7 +130,7 @@ def run_pass(cells: Sequence[Planned], materials: MaterialsOf) -> list[dict[str,
         if c.control.train:
             save_projector(c.plan.run_folder(c.cell), adapter, c.cell, c.plan.split, c.trainable)
         rows.append(_told(c, _row(c, adapter, loss, score, share, cells=len(ins), recomputed=recomputed,
-                                  eval_s=eval_share)))
+                                  attention=attention, eval_s=eval_share)))
     return rows
 
 
@@ -153,9 +154,10 @@ def _trainables(adapter: BackboneAdapter, grafted: torch.nn.Module,
 
 
 def _row(c: _InPass, adapter: BackboneAdapter, loss: float, score: Any, wall: float, *, cells: int,
-         recomputed: str, eval_s: float) -> dict[str, Any]:
+         recomputed: str, attention: str, eval_s: float) -> dict[str, Any]:
     """A cell's row from what it measured (`cells`: how many cells its backbone pass trained; `recomputed`:
-    on or off as the step ran; `eval_s`: its scoring's seconds, its share of a pass's)."""
+    on or off as the step ran; `attention`: the path the frozen LM and expert attended with; `eval_s`: its
+    scoring's seconds, its share of a pass's)."""
     plan, r = c.plan, c.read
     if isinstance(plan.root, ReadThroughRoot):  # what the reading processes copied locally for this cell
         plan.root.fetched_bytes += c.stats.fetched
@@ -176,6 +178,7 @@ def _row(c: _InPass, adapter: BackboneAdapter, loss: float, score: Any, wall: fl
         "n_dropped_nonfinite": r.dropped + len(c.stats.dropped), "numerics_drift": c.mat.drift(r),
         "camera_map": format_camera_map(plan.cameras), "graftcache_version": graftcache.__version__,
         "activation_checkpointing": recomputed, "eval_seconds_per_frame": eval_s / score.n_frames,
+        "attention": attention,
     })
 
 
@@ -187,7 +190,7 @@ def _told(c: _InPass, row: dict[str, Any]) -> dict[str, Any]:
                f"{row['eval_mse_raw']:.5f}) on {row['n_eval_frames']} frames "
                f"({row['eval_seconds_per_frame'] * 1e3:.1f} ms a frame at --eval-batch-size "
                f"{row['eval_batch_size']}), {row['wall_s']:.1f}s{shared}; recompute "
-               f"{row['activation_checkpointing']}")
+               f"{row['activation_checkpointing']}, {row['attention']} attention")
     return row
 
 

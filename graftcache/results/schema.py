@@ -98,6 +98,8 @@ SCHEMA: dict[str, pl.DataType] = {
     "graftcache_version": pl.String,
     "activation_checkpointing": pl.String,  # "on" | "off": what `--recompute` (auto) resolved to
     "eval_seconds_per_frame": pl.Float64,  # scoring's wall time (reading, prefix, denoising) / n_eval_frames
+    "attention": pl.String,           # "eager" | "sdpa": what `--attention` (auto) resolved to for the frozen LM and
+                                      # expert (graftcache/backbones/attention.py); null: a row written before it
 }
 
 # What a report needs of a table: enough to place every MSE in the (backbone, suite, encoder, control, seed)

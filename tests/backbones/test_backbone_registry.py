@@ -14,6 +14,7 @@ import pytest
 from graftcache.backbone_table import BACKBONES, FOLDER, PIECES, backbone_module, discover, missing_pieces
 from graftcache.backbones import get_backbone, registered_spec
 from graftcache.backbones.activation_checkpointing import ActivationCheckpointing
+from graftcache.backbones.attention import Attention
 from graftcache.backbones.base import BackboneAdapter
 from graftcache.backbones.objectives import FlowObjective, Objective, TokenObjective
 from graftcache.backbones.spec import BackboneSpec
@@ -55,6 +56,7 @@ def test_every_registered_backbone_declares_a_spec_its_hooks_agree_with(name: st
     assert isinstance(spec, BackboneSpec)
     assert spec.can_recompute == (
         adapter._switch_recompute is not ActivationCheckpointing._switch_recompute)
+    assert (len(spec.attentions) > 1) == (adapter._switch_attention is not Attention._switch_attention)
     assert (spec.flow_time is None) == issubclass(adapter, TokenObjective)
     assert issubclass(adapter, FlowObjective) or "_flow_losses" not in dir(adapter)  # no flow loss that only raises
     assert spec.steps_field is not None or adapter.num_steps is not Objective.num_steps

@@ -264,6 +264,9 @@ def test_reset_gives_back_every_lerobot_object_and_the_loaded_weights(name: str)
             adapter.set_recompute(True)
             adapter.loss(batch).mean().backward()
             adapter.set_recompute(False)
+        for mode in (*adapter.spec.attentions[1:], adapter.spec.attentions[0]):  # the other path, then back
+            adapter.set_attention(mode)
+            adapter.loss(batch).mean().backward()
         adapter.reset()
     assert changes, "a graft changes the policy (its image method at least), through graftcache.backbones.patching"
     assert [(c.owner, c.attribute) for c in changes if not c.is_restored()] == []

@@ -119,27 +119,31 @@ def test_rows_record_the_encoders_and_the_backbones_weights_apart(world: World, 
                                                        "random_init").row(0) == (False, True, True)
 
 
-def test_recompute_and_the_eval_batch_size_change_no_number_and_rows_record_them(world: World,
-                                                                                     tmp_path: Path) -> None:
+def test_recompute_attention_and_the_eval_batch_size_change_no_number_and_rows_record_them(
+        world: World, tmp_path: Path) -> None:
     """`--recompute on` trains with the same gradients (CPU, fp32: the same rows), `auto` resolves to
-    off where the step fits; scoring 4 frames one at a time scores them as one batch of 4. Neither changes the
-    run_id; rows record both and what scoring cost a frame, and the cell's log line says so."""
+    off where the step fits; `--attention auto` resolves to the fused path (sdpa), equal to eager within fp32
+    rounding; scoring 4 frames one at a time scores them as one batch of 4. None changes the run_id; rows record
+    each and what scoring cost a frame, and the cell's log line says so."""
     lines: list[str] = []
     plain = Fitter(world.request(controls=("lora",), results=str(tmp_path / "a.parquet"), compute_dtype="fp32"),
                    log=lines.append).run()
     other = Fitter(world.request(controls=("lora",), results=str(tmp_path / "b.parquet"), compute_dtype="fp32",
-                                 recompute="on", eval_batch_size=1), log=_quiet).run()
+                                 recompute="on", attention="eager", eval_batch_size=1),
+                   log=_quiet).run()
     for a, b in zip(plain, other, strict=True):
         assert a["run_id"] == b["run_id"]
         assert b["train_loss_final"] == pytest.approx(a["train_loss_final"], rel=1e-5)
         assert b["eval_mse_episodes"] == pytest.approx(a["eval_mse_episodes"], rel=1e-5)
         assert (a["activation_checkpointing"], b["activation_checkpointing"]) == ("off", "on")
+        assert (a["attention"], b["attention"]) == ("sdpa", "eager")
         assert (a["eval_batch_size"], b["eval_batch_size"]) == (64, 1)
         assert 0 < a["eval_seconds_per_frame"] < a["wall_s"] / a["n_eval_frames"]
-    assert results.read(tmp_path / "b.parquet")["activation_checkpointing"].to_list() == ["on", "on"]
+    assert results.read(tmp_path / "b.parquet").select("activation_checkpointing", "attention").rows() == [
+        ("on", "eager"), ("on", "eager")]
     done = [ln for ln in lines if " eval_mse " in ln]
     assert len(done) == 2 and all(" ms a frame at --eval-batch-size 64)" in ln for ln in done)
-    assert all(ln.endswith("recompute off") for ln in done)
+    assert all(ln.endswith("recompute off, sdpa attention") for ln in done)
 
 
 def test_pi05_controls_run_too(world: World, tmp_path: Path) -> None:

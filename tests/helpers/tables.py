@@ -122,6 +122,7 @@ def row(backbone: str, suite: str, encoder: str, seed: int, eval_mse: float | No
         "activation_checkpointing": "off",
         "eval_batch_size": 64,
         "eval_seconds_per_frame": 0.01,
+        "attention": "eager",
     }
     base.update(over)
     return base

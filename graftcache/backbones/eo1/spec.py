@@ -23,4 +23,5 @@ SPEC = BackboneSpec(
     steps_field="num_denoise_steps",
     token_steps=("EO1ConversationTemplateStep", QWEN_STEP),
     prompt_uses_state=True,
+    attentions=("sdpa",),  # lerobot builds its LM with transformers' sdpa attention
 )

@@ -23,4 +23,5 @@ SPEC = BackboneSpec(
     token_steps=(VLM_STEP,),
     prompt_uses_state=True,
     flow_time="data",
+    attentions=("sdpa",),  # lerobot builds its LM with transformers' sdpa attention
 )

@@ -24,7 +24,8 @@ from graftcache.backbones.batches import TOKEN_MASK, TOKENS
 from graftcache.backbones.checkpoint import cached_repo
 from graftcache.backbones.lean_load import openpi_keys
 from graftcache.backbones.objectives import FlowObjective
-from graftcache.backbones.paligemma import paligemma_tiny_tokenizer, pi05_processors, pi05_tiny_sizes
+from graftcache.backbones.paligemma import GEMMA_ATTENTIONS, paligemma_tiny_tokenizer, pi05_processors, pi05_tiny_sizes
+from graftcache.backbones.patching import Patches
 from graftcache.backbones.pi05.spec import SPEC
 
 PALIGEMMA_TOKENIZER = "google/paligemma-3b-pt-224"  # hard-coded by processor_pi05.py:145
@@ -69,6 +70,10 @@ class PaliGemmaAdapter(BackboneAdapter):
             patch = CONFIG_MAPPING["paligemma"]().vision_config.patch_size
         side = config.image_resolution[0] // patch
         return side, side
+
+    # ------------------------------------------------------------------------------ attention
+    def _switch_attention(self, patches: Patches, mode: str) -> None:
+        GEMMA_ATTENTIONS[mode](patches, self.policy)
 
 
 class PI05Adapter(FlowObjective, PaliGemmaAdapter):

@@ -23,4 +23,5 @@ SPEC = BackboneSpec(
     prompt_uses_state=True,
     cells_per_pass={"cpu": 1, "cuda": 1},
     can_recompute=True,
+    attentions=("eager", "sdpa"),
 )

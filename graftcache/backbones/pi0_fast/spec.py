@@ -21,4 +21,5 @@ SPEC = BackboneSpec(
     loss_per_sample=False,
     flow_time=None,
     can_recompute=True,
+    attentions=("sdpa", "eager"),  # lerobot leaves pi0-FAST's Gemma at transformers' sdpa
 )

@@ -5,11 +5,16 @@ pads/resizes to 512 px and rescales to [-1, 1]; `embed_image` runs SigLIP-B/16 (
 then the connector (pixel shuffle x4 -> Linear(12288 -> 960)) = 64 tokens x 960 per camera, which
 `embed_prefix` multiplies by sqrt(960). The graft replaces SigLIP with a pass-through and the
 connector with the projector; lerobot's sqrt(width) scaling still applies after it.
+
+Attention: every LM and expert layer attends through the joint model's own `eager_attention_forward` (the VLM's
+layers are never called as modules, so transformers' attention switch does not reach them); the fused path shadows
+it on the instance with `_fused` (graftcache/backbones/attention.py).
 """
 
 from __future__ import annotations
 
 import contextlib
+import functools
 from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
@@ -18,11 +23,12 @@ import torch
 from torch import nn
 
 from graftcache.backbones.activation_checkpointing import WrappedActivationCheckpointing
+from graftcache.backbones.attention import MASKED, fused_attention
 from graftcache.backbones.base import BackboneAdapter
 from graftcache.backbones.batches import TOKEN_MASK, TOKENS
 from graftcache.backbones.checkpoint import cached_repo
 from graftcache.backbones.objectives import FlowObjective
-from graftcache.backbones.patching import patched
+from graftcache.backbones.patching import Patches, patched
 from graftcache.backbones.smolvla.spec import SPEC
 from graftcache.backbones.tiny_assets import SMOLVLM_DIR
 
@@ -100,6 +106,22 @@ class SmolVLAAdapter(WrappedActivationCheckpointing, FlowObjective, BackboneAdap
         for layers in (joint.get_vlm_model().text_model.layers, joint.lm_expert.layers):
             for layer in layers:
                 yield layer.mlp, "forward"
+
+    def _switch_attention(self, patches: Patches, mode: str) -> None:
+        """sdpa (the one other path): `_fused` shadows the joint model's eager attention."""
+        joint = self.policy.model.vlm_with_expert
+        patches.set(joint, "eager_attention_forward", functools.partial(_fused, joint))
+
+
+def _fused(joint: nn.Module, attention_mask: torch.Tensor, batch_size: int, head_dim: int, query: torch.Tensor,
+           key: torch.Tensor, value: torch.Tensor) -> torch.Tensor:
+    """lerobot's `SmolVLMWithExpertModel.eager_attention_forward` in one kernel: [B, L, heads, D] queries, [B, S,
+    kv_heads, D] keys and values and a bool [B, L, S] mask (True: attend) in, [B, L, heads * D] out, in the values'
+    dtype; scaled by head_dim ** -0.5, masked scores at a finite minimum, as eager's."""
+    mask = torch.where(attention_mask[:, None], 0.0, MASKED)
+    out = fused_attention(query.transpose(1, 2).to(value.dtype), key.transpose(1, 2), value.transpose(1, 2), mask,
+                          head_dim**-0.5)
+    return out.transpose(1, 2).reshape(batch_size, -1, joint.num_attention_heads * head_dim)
 
 
 

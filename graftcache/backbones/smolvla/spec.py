@@ -24,4 +24,5 @@ SPEC = BackboneSpec(
     scaled_embeddings=True,
     cells_per_pass={"cpu": 1, "cuda": 4},
     can_recompute=True,
+    attentions=("eager", "sdpa"),
 )

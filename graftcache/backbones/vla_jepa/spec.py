@@ -21,4 +21,5 @@ SPEC = BackboneSpec(
     prompt_uses_state=True,
     flow_time="data",
     can_recompute=True,
+    attentions=("sdpa",),  # lerobot builds its LM with transformers' sdpa attention
 )

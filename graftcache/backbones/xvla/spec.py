@@ -18,4 +18,5 @@ SPEC = BackboneSpec(
     steps_field="num_denoising_steps",
     token_steps=("TokenizerProcessorStep",),
     can_recompute=True,
+    attentions=("sdpa",),  # lerobot builds its LM with transformers' sdpa attention
 )
