@@ -91,8 +91,10 @@ def closed_loop_run_ids(results: pl.DataFrame, plan: ClosedLoopPlan = CLOSED_LOO
 def run_closed_loop_demo(recipe_path: str | Path | None = None, out: str | Path | None = None,
                          plan: ClosedLoopPlan = CLOSED_LOOP) -> ReportPaths:
     """Fit the plan's cells (resumable), roll out its episodes (resumable), and write the report with them."""
+    from graftcache.executors import get_executor
+    from graftcache.requests import ExecutorSettings
     from graftcache.rollout.libero import LiberoSimulator, require_simulator
-    from graftcache.rollout.run import EXPORTS_FOLDER, RolloutRequest, default_rollouts, roll_out
+    from graftcache.rollout.run import EXPORTS_FOLDER, RolloutRequest, default_rollouts, roll_out_started
 
     require_simulator()  # before minutes of fitting
     path = Path(recipe_path) if recipe_path else DEFAULT_RECIPE
@@ -111,11 +113,8 @@ def run_closed_loop_demo(recipe_path: str | Path | None = None, out: str | Path 
                          perturb_cm=plan.perturb_cm, command=command)
     spawn = partial(LiberoSimulator, results, rollouts.parent / EXPORTS_FOLDER, cache=recipe.cache, runs=None,
                     max_steps=plan.max_steps)
-    sim = spawn()  # plans; each worker builds its own
-    try:
-        roll_out(req, sim, workers=plan.workers, spawn=spawn)
-    finally:
-        sim.close()
+    # the workers start first: their simulators build while this process builds its own, to plan
+    roll_out_started(req, spawn, get_executor(ExecutorSettings()).rollout_team(req, spawn, plan.workers, write))
     report_dir = Path(out) if out else results.parent / "report"
     commands = {"demo --closed-loop": command, **state.commands}
     paths = write_report(results, report_dir, commands=commands, rollouts=rollouts)

@@ -30,7 +30,8 @@ TESTS = Path(__file__).resolve().parents[1]
 
 #: modules (paths under tests/) whose session fixtures are shared: they run on one worker, which builds them once
 GROUPS = {"export/test_export": "tiny_policies", "backbones/test_zoo_backbones_cli": "tiny_policies",
-          "rollout/test_rollout": "simulator_cells", "rollout/test_rollout_workers": "simulator_cells"}
+          "rollout/test_rollout": "simulator_cells", "rollout/test_rollout_workers": "simulator_cells",
+          "rollout/test_rollout_ray": "simulator_cells"}
 
 #: the longest groups (a GROUPS group ranks as its module listed here), from a clean-clone run's junit times on 2 cores
 #: (2026-11-28, AMD EPYC with avx512_bf16, seconds: demo 332, simulator cells 226, tiny policies 162, remote store
