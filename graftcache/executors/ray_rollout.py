@@ -83,14 +83,17 @@ class _Actor:
 
 
 class Actors:
-    """A rollout's team of Ray actors (graftcache.rollout.run.Team), created when built: `n` of them (None: as many as
-    the cluster runs at once for `--cpus-per-task` / `--gpus-per-task`)."""
+    """A rollout's team of Ray actors (graftcache.rollout.run.Team), created when built: `n` of them, at most (and by
+    default) as many as the cluster runs at once for `--cpus-per-task` / `--gpus-per-task`."""
 
     def __init__(self, req: RolloutRequest, spawn: Callable[[], Simulator], n: int | None,
                  settings: ExecutorSettings, log: Log) -> None:
         connect(settings, log)
         placed = task_options(settings, "cpu")  # a GPU only when asked for: the policy's device is its export's
-        n = n or slots(placed)
+        fits = slots(placed)
+        if n and n > fits:  # an actor that cannot be placed would hold its first episode forever
+            log(f"ray: --workers {n}, but the cluster holds {fits} such actor(s) at once: {fits}")
+        n = min(n or fits, fits)
         options = {"num_cpus": placed["num_cpus"], "num_gpus": placed["num_gpus"],
                    "max_restarts": settings.max_retries, "max_task_retries": settings.max_retries}
         log(f"ray: {n} simulator actor(s), {placed['num_gpus']:g} GPU and {placed['num_cpus']:g} CPU each")

@@ -115,7 +115,6 @@ class Workers:
     the imports and the simulators' builds overlap. `run` hands them the missing episodes; `close` stops them."""
 
     def __init__(self, spawn: Callable[[], Simulator], n: int, req: RolloutRequest) -> None:
-        self.team: list[_Worker] = []
         self.team = _start(n, spawn, req)
 
     def run(self, req: RolloutRequest, rows: Mapping[str, Mapping[str, Any]], missing: Sequence[Episode], bar: Any,
@@ -140,8 +139,11 @@ class Workers:
                     elif worker.process.sentinel in ready:
                         raise RolloutError(_death(worker))
             _finish(busy)
-        finally:  # no claim is left behind, whatever stopped the loop
-            scheduler.release()
+        finally:  # stopped or failed too: no worker outlives the loop, and then no claim is left behind
+            try:
+                _stop(busy)
+            finally:  # a stop raised again while the workers are reaped (graftcache.cli.signals._Stop) keeps no claim
+                scheduler.release()
 
     def close(self) -> None:
         """Every worker stopped (those told to finish have had their time to close their simulators)."""

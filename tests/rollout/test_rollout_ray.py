@@ -49,15 +49,18 @@ def test_ray_actors_skip_what_the_file_holds_and_write_the_rows_of_this_process(
     req = _request(tmp_path / "ray")
     table.append(req.rollouts, one.head(5).to_dicts())  # a rollout killed after 5 episodes
     lines: list[str] = []
-    rows = _on_ray(req, tmp_path / "ray" / "traces", lines, actors=2, delay=0.05)
-    assert "ray: 2 simulator actor(s), 0 GPU and 1 CPU each" in lines
+    rows = _on_ray(req, tmp_path / "ray" / "traces", lines, delay=0.05)
+    import ray
+
+    actors = int(ray.cluster_resources()["CPU"])  # by default as many as the cluster runs at once, 1 CPU each
+    assert f"ray: {actors} simulator actor(s), 0 GPU and 1 CPU each" in lines
     assert f"5 of {EPISODES} episodes already in {req.rollouts}; running the other {EPISODES - 5}" in lines
     assert rows.drop(VARYING).sort("episode_id").equals(one.drop(VARYING).sort("episode_id"))
     episodes = ran(tmp_path / "ray" / "traces")  # run by the actors, each once, none of the 5 written
     assert len(episodes) == len(set(episodes)) == EPISODES - 5
     written = set(one.head(5).select("run_id", "task_index", "episode").rows())
     assert not written & {(run, task, k) for _, run, task, k in episodes}
-    assert len(pids(tmp_path / "ray" / "traces")) == 3  # the planner here, 2 actors
+    assert len(pids(tmp_path / "ray" / "traces")) == actors  # the actors' (the planner's: traces/planner)
     assert sum(line.startswith("rolled out ") for line in lines) == 6  # one line per cell
     assert not results.claims_folder(req.rollouts).exists()
 
