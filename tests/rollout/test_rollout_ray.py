@@ -61,7 +61,8 @@ def test_ray_actors_skip_what_the_file_holds_and_write_the_rows_of_this_process(
     written = set(one.head(5).select("run_id", "task_index", "episode").rows())
     assert not written & {(run, task, k) for _, run, task, k in episodes}
     assert len(pids(tmp_path / "ray" / "traces")) == actors  # the actors' (the planner's: traces/planner)
-    assert sum(line.startswith("rolled out ") for line in lines) == 6  # one line per cell
+    # one line per cell that had episodes to run: the first cell's 4 are among the 5 in the file
+    assert sum(line.startswith("rolled out ") for line in lines) == 5
     assert not results.claims_folder(req.rollouts).exists()
 
 
