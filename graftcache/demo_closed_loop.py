@@ -112,8 +112,10 @@ def _native_once(chosen: pl.DataFrame) -> tuple[str, ...]:
 def run_closed_loop_demo(recipe_path: str | Path | None = None, out: str | Path | None = None,
                          plan: ClosedLoopPlan = CLOSED_LOOP) -> ReportPaths:
     """Fit the plan's cells (resumable), roll out its episodes (resumable), and write the report with them."""
+    from graftcache.executors import get_executor
+    from graftcache.requests import ExecutorSettings
     from graftcache.rollout.libero import LiberoSimulator, require_simulator
-    from graftcache.rollout.run import EXPORTS_FOLDER, RolloutRequest, default_rollouts, roll_out
+    from graftcache.rollout.run import EXPORTS_FOLDER, RolloutRequest, default_rollouts, roll_out_started
 
     require_simulator()  # before minutes of fitting
     path = Path(recipe_path) if recipe_path else DEFAULT_RECIPE
@@ -129,16 +131,12 @@ def run_closed_loop_demo(recipe_path: str | Path | None = None, out: str | Path 
     command = f"graftcache demo --closed-loop --recipe {path}"
     spawn = partial(LiberoSimulator, results, rollouts.parent / EXPORTS_FOLDER, cache=recipe.cache, runs=None,
                     max_steps=plan.max_steps)
-    sim = spawn()  # plans; each worker builds its own
-    try:
-        runs = ((cells.figure, plan.episodes_per_task), (cells.paired, plan.paired_episodes_per_task))
-        for run_ids, episodes in runs:
-            req = RolloutRequest(results=results, rollouts=rollouts, run_ids=run_ids, tasks=plan.tasks,
-                                 episodes_per_task=episodes, max_steps=plan.max_steps, perturb_cm=plan.perturb_cm,
-                                 command=command)
-            roll_out(req, sim, workers=plan.workers, spawn=spawn)
-    finally:
-        sim.close()
+    # per request, the workers start first: their simulators build while this process builds its own, to plan
+    for run_ids, episodes in ((cells.figure, plan.episodes_per_task), (cells.paired, plan.paired_episodes_per_task)):
+        req = RolloutRequest(results=results, rollouts=rollouts, run_ids=run_ids, tasks=plan.tasks,
+                             episodes_per_task=episodes, max_steps=plan.max_steps, perturb_cm=plan.perturb_cm,
+                             command=command)
+        roll_out_started(req, spawn, get_executor(ExecutorSettings()).rollout_team(req, spawn, plan.workers, write))
     report_dir = Path(out) if out else results.parent / "report"
     commands = {"demo --closed-loop": command, **state.commands}
     paths = write_report(results, report_dir, commands=commands, rollouts=rollouts)

@@ -267,9 +267,10 @@ GPU_SHARE: Rule = (lambda v: v >= 0 and (v <= 1 or float(v).is_integer()), "must
 
 @dataclass(frozen=True)
 class ExecutorSettings(Checked):
-    """Where `extract` and `sweep` run their work (graftcache/executors/): in this process, or as Ray tasks on
-    a cluster that sees the same cache root and results folder. Nothing here changes a number: the caches,
-    run_ids and rows are the same under every executor. All but `executor` apply to the ray executor only."""
+    """Where `extract`, `sweep` and `rollout` run their work (graftcache/executors/): in this process, or as Ray
+    tasks (a rollout's: actors) on a cluster that sees the same cache root and results folder. Nothing here changes
+    a number: the caches, run_ids and rows are the same under every executor. All but `executor` apply to the ray
+    executor only."""
 
     executor: str = setting(
         "local", choices=lambda: tuple(import_string("graftcache.executors:EXECUTORS")),

@@ -10,8 +10,10 @@ from functools import partial
 from pathlib import Path
 
 from graftcache.checks import IntList
+from graftcache.cli.common import add_flags, request_from
 from graftcache.cli.report import SCORE_NAMES
 from graftcache.codecs import int_list
+from graftcache.requests import ExecutorSettings
 
 #: LIBERO suites hold 10 tasks (libero_90: 90)
 TASKS = IntList("task", 89, 90)
@@ -89,34 +91,46 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="also write each episode's frames as an mp4, as lerobot-eval writes its videos, to "
                    "videos/RUN_ID/ beside the rollouts file; its row's video column holds the path relative to the "
                    "file (default: no videos; episodes already in the file are not rerun for one)")
-    p.add_argument("--workers", type=_at_least(1), default=1, metavar="N",
+    p.add_argument("--workers", type=_at_least(1), default=None, metavar="N",
                    help="episodes run at once, each in a worker process with a simulator of its own (default: 1, "
                    "in this process); the rows are those of one worker. About one per core: each policy runs on one "
-                   "torch thread")
+                   "torch thread. With --executor ray: Ray actors, each holding a simulator (default: as many as the "
+                   "cluster runs at once)")
     p.add_argument("--cache", default=None, help="cache root the fits read (default: $GRAFTCACHE_HOME or "
                    "~/.cache/graftcache)")
     p.add_argument("--runs", default=None, help="folder of run folders, when the fits wrote them elsewhere (--out)")
+    add_flags(p, ExecutorSettings, skip=("shards",),
+              cpus_per_task="CPUs per Ray actor (one simulator each)", gpus_per_task="GPUs per Ray actor (default 0)",
+              max_retries="restarts of a Ray actor whose process or node died, its episode run again (an episode "
+              "that raised an error is not)")
     p.set_defaults(func=run)
+
+
+def _absolute(path: str | None) -> str | None:
+    """A local path made absolute (the simulator may be built in another process or on another node), a URL or None
+    as given."""
+    from graftcache.store.roots import is_url
+
+    return path if path is None or is_url(path) else str(Path(path).absolute())
 
 
 def run(args: argparse.Namespace) -> int:
     from graftcache import results
+    from graftcache.executors import get_executor
     from graftcache.rollout import table
     from graftcache.rollout.libero import LiberoSimulator
-    from graftcache.rollout.run import EXPORTS_FOLDER, RolloutRequest, default_rollouts, roll_out
+    from graftcache.rollout.run import EXPORTS_FOLDER, RolloutRequest, default_rollouts, roll_out_started
 
-    rollouts = Path(args.rollouts) if args.rollouts else default_rollouts(args.results)
-    req = RolloutRequest(results=Path(args.results), rollouts=rollouts, run_ids=args.run_ids, top=args.top,
-                         suites=args.suites, score=args.score, tasks=args.tasks,
+    rollouts = Path(args.rollouts).absolute() if args.rollouts else default_rollouts(args.results)
+    req = RolloutRequest(results=Path(args.results).absolute(), rollouts=rollouts, run_ids=args.run_ids,
+                         top=args.top, suites=args.suites, score=args.score, tasks=args.tasks,
                          episodes_per_task=args.episodes_per_task, max_steps=args.max_steps, seed=args.seed,
                          perturb_cm=args.perturb_cm, command=args.command_line)
     results.read_for_report(req.results)  # both files checked before the simulator's minutes of imports
     table.read(req.rollouts)
-    spawn = partial(LiberoSimulator, req.results, rollouts.absolute().parent / EXPORTS_FOLDER, cache=args.cache,
-                    runs=args.runs, max_steps=args.max_steps, videos=args.videos)
-    sim = spawn()  # with --workers N, it only plans: each worker builds its own
-    try:
-        roll_out(req, sim, workers=args.workers, spawn=spawn)
-    finally:
-        sim.close()
+    spawn = partial(LiberoSimulator, req.results, rollouts.parent / EXPORTS_FOLDER, cache=_absolute(args.cache),
+                    runs=_absolute(args.runs), max_steps=args.max_steps, videos=args.videos)
+    executor = get_executor(request_from(ExecutorSettings, args))
+    # the team starts first: its simulators build while this process builds its own, to plan
+    roll_out_started(req, spawn, executor.rollout_team(req, spawn, args.workers, print))
     return 0

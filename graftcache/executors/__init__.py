@@ -1,9 +1,11 @@
-"""Executors: where the work of `extract` and `sweep` runs, a registry chosen by name (`--executor`).
+"""Executors: where the work of `extract`, `sweep` and `rollout` runs, a registry chosen by name (`--executor`).
 
-- local  this process, one cache or cell after the other (the default; every executor must write what it writes)
+- local  this process, one cache or cell after the other (the default; every executor must write what it writes);
+         a rollout's episodes here, or in `--workers N` spawned processes (graftcache/rollout/workers.py)
 - ray    Ray tasks on a cluster, started here or joined at `--address`: an extraction becomes one task per shard
          of the cache's blocks (graftcache/executors/ray_extract.py), a sweep's fitting one task per backbone
-         pass of missing cells, under the same claims as the local executor (graftcache/executors/ray_fit.py)
+         pass of missing cells, under the same claims as the local executor (graftcache/executors/ray_fit.py), a
+         rollout's episodes calls of Ray actors that each hold a simulator (graftcache/executors/ray_rollout.py)
 
 Entries are import strings (graftcache.lazy), so Ray is imported only when the ray executor is chosen.
 Every executor does the same two jobs on the same requests; only where they run differs, so the caches,
@@ -22,6 +24,8 @@ from graftcache.requests import ExecutorSettings
 if TYPE_CHECKING:
     from graftcache.extract import ExtractResult
     from graftcache.requests import ExtractRequest, FitRequest
+    from graftcache.rollout.episodes import Simulator
+    from graftcache.rollout.run import RolloutRequest, Team
 
 Log = Callable[[str], None]
 
@@ -32,7 +36,7 @@ EXECUTORS: dict[str, str] = {
 
 
 class Executor(Protocol):
-    """What `extract` and `sweep` hand their work to."""
+    """What `extract`, `sweep` and `rollout` hand their work to."""
 
     def extract(self, req: ExtractRequest, log: Log) -> ExtractResult:
         """One complete cache for `req` (reused, resumed or written)."""
@@ -40,6 +44,11 @@ class Executor(Protocol):
     def fit(self, requests: Sequence[tuple[str, FitRequest]], log: Log, bar: Any) -> None:
         """Every missing cell of the (label, request) pairs, each row appended to its request's results file;
         `bar` (graftcache.progress.progress) advances by one per cell visited, skipped cells included."""
+
+    def rollout_team(self, req: RolloutRequest, spawn: Callable[[], Simulator], workers: int | None,
+                     log: Log) -> Team | None:
+        """The team that will run `req`'s missing episodes (graftcache.rollout.run.Team), started now, `workers`
+        simulators each built by `spawn` (None: the executor's default); None: in the rollout's own process."""
 
 
 def check_executor(name: str) -> None:

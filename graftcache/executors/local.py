@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from typing import Any
+from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING, Any
 
 from graftcache.executors import Log
 from graftcache.extract import ExtractResult, extract
 from graftcache.requests import ExecutorSettings, ExtractRequest, FitRequest
+
+if TYPE_CHECKING:
+    from graftcache.rollout.episodes import Simulator
+    from graftcache.rollout.run import RolloutRequest, Team
 
 
 class LocalExecutor:
@@ -25,3 +29,13 @@ class LocalExecutor:
         from graftcache.fit.local import fit_all
 
         fit_all([req for _, req in requests], log, bar.update)
+
+    def rollout_team(self, req: RolloutRequest, spawn: Callable[[], Simulator], workers: int | None,
+                     log: Log) -> Team | None:
+        """`workers` spawned processes on this machine (graftcache/rollout/workers.py); 1 (the default): none, the
+        episodes run in the rollout's own process."""
+        if (workers or 1) == 1:
+            return None
+        from graftcache.rollout.workers import Workers
+
+        return Workers(spawn, workers, req)

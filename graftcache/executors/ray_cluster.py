@@ -23,11 +23,12 @@ from graftcache.runtime import AUTO, resolve_compute_dtype, resolve_device
 from graftcache.store.roots import is_url, open_root
 
 #: What a worker needs to behave like this process: the offline switches and where hub files, tiny policies
-#: and caches live, plus the object store's endpoint and region. Handed to the workers as the job's runtime_env
-#: when this process starts or joins the cluster. Credentials are not: each node brings its own (AWS_*, ...).
+#: and caches live, plus the object store's endpoint and region, and for rollouts hf-libero's config folder and
+#: MuJoCo's renderer. Handed to the workers as the job's runtime_env when this process starts or joins the
+#: cluster. Credentials are not: each node brings its own (AWS_*, ...).
 FORWARDED_ENV = ("HF_HUB_OFFLINE", "HF_DATASETS_OFFLINE", "TRANSFORMERS_OFFLINE", "HF_HOME", "HF_HUB_CACHE",
                  "HF_LEROBOT_HOME", "GRAFTCACHE_HOME", "TOKENIZERS_PARALLELISM", "AWS_ENDPOINT_URL", "AWS_REGION",
-                 "AWS_DEFAULT_REGION")
+                 "AWS_DEFAULT_REGION", "LIBERO_CONFIG_PATH", "MUJOCO_GL", "PYOPENGL_PLATFORM")
 
 
 def connect(settings: ExecutorSettings, log: Log) -> None:

@@ -21,14 +21,13 @@ import uuid
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import polars as pl
 
 import graftcache
 from graftcache import results
 from graftcache.errors import RolloutError
-from graftcache.lazy import import_string
 from graftcache.progress import progress
 from graftcache.progress import write as progress_write
 from graftcache.results.claims import cell_claim, drop_claims_folder
@@ -49,8 +48,6 @@ MAX_EPISODES_PER_TASK = 1000
 #: --perturb-cm's largest offset, a bound on what is asked rather than a measured limit: the sample slides its targets
 #: up to 3 cm, and an offset that puts the target on a neighbour is refused by the settling check anyway
 MAX_PERTURB_CM = 10.0
-#: what runs the missing episodes with --workers N > 1
-RUN_WORKERS = "graftcache.rollout.workers:run_workers"
 
 
 @dataclass(frozen=True)
@@ -149,29 +146,48 @@ def row_of(episode: Episode, outcome: Outcome, command: str, video: str | None =
             "graftcache_version": graftcache.__version__, "command": command}
 
 
-def record(rollouts: Path, command: str, episode: Episode, outcome: Outcome) -> str | None:
-    """Write a finished episode: its video (when it has frames) before its row, which names it; returns the video's
-    path relative to the rollouts file (None: no video)."""
+def with_video(rollouts: Path, command: str, episode: Episode, outcome: Outcome) -> dict[str, Any]:
+    """A finished episode's row, its video (when it has frames) written first: the row, which names it, is for the
+    caller to append (a Ray actor's row goes back to the driver, graftcache.executors.ray_rollout)."""
     video = None
     if outcome.frames is not None:
         video = video_of(episode)
         write_video(rollouts.parent / video, outcome)
-    table.append(rollouts, [row_of(episode, outcome, command, video)])
-    return video
+    return row_of(episode, outcome, command, video)
+
+
+def record(rollouts: Path, command: str, episode: Episode, outcome: Outcome) -> str | None:
+    """Write a finished episode: its video (when it has frames) before its row, which names it; returns the video's
+    path relative to the rollouts file (None: no video)."""
+    row = with_video(rollouts, command, episode, outcome)
+    table.append(rollouts, [row])
+    return row["video"]
 
 
 def describe(row: Mapping[str, Any]) -> str:
     return f"{row['backbone']}/{row['encoder']}/{row['suite']} seed {row['seed']} control {row['control']}"
 
 
-def roll_out(req: RolloutRequest, sim: Simulator, log: Callable[[str], None] = progress_write, *, workers: int = 1,
-             spawn: Callable[[], Simulator] | None = None) -> pl.DataFrame:
-    """Run the request's missing episodes and return the rollouts file's rows of the request's episodes. `workers`
-    1: every episode in this process, by `sim`; N > 1: N episodes at once in N worker processes, each running its
-    episodes with a simulator of its own, built by `spawn` (picklable; graftcache.rollout.workers), `sim` only
-    planning."""
-    if workers > 1 and spawn is None:
-        raise RolloutError(f"--workers {workers}: this simulator cannot be built in a worker process (no spawn)")
+class Team(Protocol):
+    """Runs a rollout's missing episodes away from this process, each worker with a simulator of its own: spawned
+    processes on this machine (graftcache.rollout.workers.Workers, `--workers N`) or Ray actors
+    (graftcache.executors.ray_rollout.Actors, `--executor ray`), as an executor starts them
+    (graftcache.executors.Executor.rollout_team). A team starts when built, so its simulators build while this
+    process plans; it holds the claims of the cells in flight and gets every episode written."""
+
+    def run(self, req: RolloutRequest, rows: Mapping[str, Mapping[str, Any]], missing: Sequence[Episode], bar: Any,
+            log: Callable[[str], None]) -> None:
+        """Run `missing`, episodes of the cells `rows` holds by run_id; `bar` advances by one per episode written or
+        found written by another rollout."""
+
+    def close(self) -> None:
+        """Every worker stopped; nothing of the team outlives it."""
+
+
+def roll_out(req: RolloutRequest, sim: Simulator, log: Callable[[str], None] = progress_write, *,
+             team: Team | None = None) -> pl.DataFrame:
+    """Run the request's missing episodes and return the rollouts file's rows of the request's episodes: in this
+    process, by `sim`, or by `team` (each of its workers with a simulator of its own), `sim` only planning."""
     rows = select_rows(results.read_for_report(req.results), run_ids=req.run_ids, top=req.top, suites=req.suites,
                        score=req.score)
     episodes = plan(rows, req, sim)
@@ -189,14 +205,31 @@ def roll_out(req: RolloutRequest, sim: Simulator, log: Callable[[str], None] = p
     by_run = {r["run_id"]: r for r in rows.iter_rows(named=True)}
     try:
         with progress(total=len(missing), desc="rollout", unit="episode") as bar:
-            if workers > 1:  # by import string: graftcache.rollout.workers imports this module
-                import_string(RUN_WORKERS)(req, by_run, missing, spawn, workers, bar, log)
+            if team is not None:
+                team.run(req, by_run, missing, bar, log)
             else:
                 for run_id in dict.fromkeys(e.run_id for e in missing):
                     _run_cell(req, sim, by_run[run_id], [e for e in missing if e.run_id == run_id], bar, log)
     finally:  # stopped or failed too: no empty claims folder is left beside the file
         drop_claims_folder(req.rollouts)
     return _of(req, episodes)
+
+
+def roll_out_started(req: RolloutRequest, spawn: Callable[[], Simulator], team: Team | None,
+                     log: Callable[[str], None] = progress_write) -> pl.DataFrame:
+    """`roll_out` with a simulator built by `spawn` here, after `team` was started (None: none), so that the team's
+    workers build theirs meanwhile; the simulator and the team are closed when it ends, however it ends."""
+    try:
+        sim = spawn()  # with a team, it only plans
+        try:
+            return roll_out(req, sim, log, team=team)
+        finally:
+            close = getattr(sim, "close", None)
+            if close is not None:
+                close()
+    finally:
+        if team is not None:
+            team.close()
 
 
 def _run_cell(req: RolloutRequest, sim: Simulator, row: Mapping[str, Any], episodes: Sequence[Episode], bar,

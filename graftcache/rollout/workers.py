@@ -4,6 +4,10 @@ Why processes, started by spawn: MuJoCo's EGL context and torch's thread pools d
 would share one GIL. Each worker builds one simulator (graftcache.rollout.libero.LiberoSimulator, whose env cache and
 last loaded cell it keeps) and runs the episodes this process hands it, one at a time.
 
+Startup: the team is started before this process plans (graftcache.rollout.run.roll_out_started), so that the
+workers' imports and simulator builds overlap this process's own (a simulator to plan with: lerobot's LIBERO imports)
+and its planning; workers left without an episode are stopped when the plan is known.
+
 Granularity: the episode, not the cell, so that a few cells of many episodes still keep every worker busy. This process
 schedules: a worker that finishes gets the next episode of the cell it ran last (its policy stays loaded), else the
 episodes of a cell no worker is serving (one already claimed, else one it claims now), and only then joins another
@@ -105,55 +109,82 @@ def one_line(e: BaseException) -> str:
     return first if isinstance(e, GraftcacheError) else f"{type(e).__name__}: {first}".rstrip(": ")
 
 
-def run_workers(req: RolloutRequest, rows: Mapping[str, Mapping[str, Any]], missing: Sequence[Episode],
-             spawn: Callable[[], Simulator], workers: int, bar: Any, log: Callable[[str], None]) -> None:
-    """Run `missing` (episodes of the cells `rows` holds by run_id) in min(`workers`, episodes) worker processes,
-    each building its simulator with `spawn`; `bar` advances by one per episode written or found written."""
-    cells = {run_id: _Cell(rows[run_id], deque(e for e in missing if e.run_id == run_id))
-             for run_id in dict.fromkeys(e.run_id for e in missing)}
-    team: list[_Worker] = []
-    try:
-        team = _start(min(workers, len(missing)), spawn, req)
-        log(f"{len(team)} worker processes, each with a simulator of its own")
-        scheduler = _Scheduler(req, cells, bar, log)
-        while not all(c.closed for c in cells.values()):
-            for worker in team:
-                if worker.running is None:
-                    scheduler.dispatch(worker)
-            waiting = any(c.claim is None and not c.closed for c in cells.values())
-            ready = wait([w.conn for w in team] + [w.process.sentinel for w in team],
-                         timeout=CLAIM_POLL_S if waiting else None)
-            for worker in team:
-                if worker.conn in ready or worker.conn.poll():
-                    scheduler.finished(worker, _receive(worker))
-                elif worker.process.sentinel in ready:
-                    raise RolloutError(_death(worker))
-        _finish(team)
-    finally:  # stopped or failed too: no worker outlives the rollout, no claim is left behind
+class Workers:
+    """A rollout's team of `n` spawned worker processes (graftcache.rollout.run.Team), started when built: each builds
+    its simulator with `spawn` while the rollout builds its own to plan (graftcache.rollout.run.roll_out_started), so
+    the imports and the simulators' builds overlap. `run` hands them the missing episodes; `close` stops them."""
+
+    def __init__(self, spawn: Callable[[], Simulator], n: int, req: RolloutRequest) -> None:
+        self.team = _start(n, spawn, req)
+
+    def run(self, req: RolloutRequest, rows: Mapping[str, Mapping[str, Any]], missing: Sequence[Episode], bar: Any,
+            log: Callable[[str], None]) -> None:
+        """Run `missing` (episodes of the cells `rows` holds by run_id); `bar` advances by one per episode written or
+        found written. Workers beyond the number of episodes are stopped at once."""
+        cells = cells_of(rows, missing)
+        busy, spare = self.team[: len(missing)], self.team[len(missing):]
+        _stop(spare)
+        log(f"{len(busy)} worker processes, each with a simulator of its own")
+        scheduler = Scheduler(req, cells, bar, log)
         try:
-            _stop(team)
-        finally:  # a stop raised again while the workers are reaped (graftcache.cli.signals._Stop) keeps no claim
-            for cell in cells.values():
-                if cell.claim is not None:
-                    cell.claim.release()
+            while not all(c.closed for c in cells.values()):
+                for worker in busy:
+                    if worker.running is None and (job := scheduler.dispatch(worker)) is not None:
+                        worker.conn.send(job)
+                ready = wait([w.conn for w in busy] + [w.process.sentinel for w in busy],
+                             timeout=CLAIM_POLL_S if scheduler.waiting() else None)
+                for worker in busy:
+                    if worker.conn in ready or worker.conn.poll():
+                        scheduler.finished(worker, _receive(worker))
+                    elif worker.process.sentinel in ready:
+                        raise RolloutError(_death(worker))
+            _finish(busy)
+        finally:  # stopped or failed too: no worker outlives the loop, and then no claim is left behind
+            try:
+                _stop(busy)
+            finally:  # a stop raised again while the workers are reaped (graftcache.cli.signals._Stop) keeps no claim
+                scheduler.release()
+
+    def close(self) -> None:
+        """Every worker stopped (those told to finish have had their time to close their simulators)."""
+        _stop(self.team)
 
 
-class _Scheduler:
+def cells_of(rows: Mapping[str, Mapping[str, Any]], missing: Sequence[Episode]) -> dict[str, _Cell]:
+    """The missing episodes by cell, in the order of their first episode."""
+    return {run_id: _Cell(rows[run_id], deque(e for e in missing if e.run_id == run_id))
+            for run_id in dict.fromkeys(e.run_id for e in missing)}
+
+
+class Scheduler:
     """Which episode an idle worker runs next (see the module docstring), and the bookkeeping of finished ones."""
 
     def __init__(self, req: RolloutRequest, cells: dict[str, _Cell], bar: Any, log: Callable[[str], None]) -> None:
         self.req, self.cells, self.bar, self.log = req, cells, bar, log
 
-    def dispatch(self, worker: _Worker) -> None:
+    def dispatch(self, worker: Any) -> tuple[dict[str, Any], Episode] | None:
+        """The (row, episode) `worker` (anything with `running` and `last`, as _Worker) runs next, marked running;
+        None: nothing to hand it now."""
         cell = self._next_cell(worker)
         if cell is None:
-            return
+            return None
         episode = cell.todo.popleft()
         cell.running += 1
         worker.running, worker.last = episode, episode.run_id
-        worker.conn.send((dict(cell.row), episode))
+        return dict(cell.row), episode
 
-    def _next_cell(self, worker: _Worker) -> _Cell | None:
+    def waiting(self) -> bool:
+        """Whether a cell is left to claim (another rollout holds it): idle workers look again every CLAIM_POLL_S."""
+        return any(c.claim is None and not c.closed for c in self.cells.values())
+
+    def release(self) -> None:
+        """Every claim still held given back (a stopped or failed rollout)."""
+        for cell in self.cells.values():
+            if cell.claim is not None:
+                cell.claim.release()
+                cell.claim = None
+
+    def _next_cell(self, worker: Any) -> _Cell | None:
         held = [c for c in self.cells.values() if c.claim is not None and not c.closed and c.todo]
         if worker.last is not None and self.cells[worker.last] in held:
             return self.cells[worker.last]
@@ -185,7 +216,7 @@ class _Scheduler:
             return False
         return True
 
-    def finished(self, worker: _Worker, outcome: tuple[bool, int, float, bool]) -> None:
+    def finished(self, worker: Any, outcome: tuple[bool, int, float, bool]) -> None:
         episode, worker.running = worker.running, None
         assert episode is not None
         cell = self.cells[episode.run_id]

@@ -22,7 +22,7 @@ from typing import Any
 
 import polars as pl
 import pytest
-from fixtures.simulator_cells import Fitted
+from fixtures.simulator_cells import RolledOut
 from helpers.rollouts import Paced, pids, ran
 from helpers.tables import write_results
 
@@ -30,8 +30,9 @@ from graftcache import results
 from graftcache.errors import RolloutError
 from graftcache.results.claims import claims_folder
 from graftcache.rollout import table
-from graftcache.rollout.run import RolloutRequest, roll_out
+from graftcache.rollout.run import RolloutRequest, roll_out, roll_out_started
 from graftcache.rollout.select import select_rows
+from graftcache.rollout.workers import Workers
 
 EPISODES = 24  # 6 cells x 2 tasks x 2 episodes
 VARYING = ["seconds", "command"]  # what may differ between two runs of the same episodes
@@ -51,8 +52,8 @@ def _first_run(req: RolloutRequest) -> str:
 
 
 def _in_workers(req: RolloutRequest, traces: Path, workers: int = 2, **paced: Any) -> pl.DataFrame:
-    spawn = partial(Paced, traces, **paced)
-    return roll_out(req, Paced(traces / "planner"), log=lambda _: None, workers=workers, spawn=spawn)
+    team = Workers(partial(Paced, traces, **paced), workers, req)
+    return roll_out_started(req, partial(Paced, traces / "planner"), team, log=lambda _: None)
 
 
 def test_two_workers_write_the_rows_of_one_each_keeping_to_its_cells(tmp_path: Path) -> None:
@@ -61,8 +62,8 @@ def test_two_workers_write_the_rows_of_one_each_keeping_to_its_cells(tmp_path: P
     (tmp_path / "two").mkdir()
     lines: list[str] = []
     req = _request(tmp_path / "two")
-    two = roll_out(req, Paced(tmp_path / "two" / "planner"), log=lines.append, workers=2,
-                   spawn=partial(Paced, tmp_path / "two" / "traces", delay=0.05))
+    team = Workers(partial(Paced, tmp_path / "two" / "traces", delay=0.05), 2, req)
+    two = roll_out_started(req, partial(Paced, tmp_path / "two" / "planner"), team, log=lines.append)
     assert one.height == two.height == EPISODES
     assert two.drop(VARYING).sort("episode_id").equals(one.drop(VARYING).sort("episode_id"))
     assert two["seconds"].to_list() == [0.05] * EPISODES  # the workers' outcomes, not the planner's
@@ -119,11 +120,12 @@ import sys
 from functools import partial
 from pathlib import Path
 from helpers.rollouts import Paced
-from graftcache.rollout.run import RolloutRequest, roll_out
+from graftcache.rollout.run import RolloutRequest, roll_out_started
+from graftcache.rollout.workers import Workers
 here = Path(sys.argv[1])
 req = RolloutRequest(results=here / "results.parquet", rollouts=here / "rollouts.parquet", top=1,
                      suites=("libero_object",), tasks=(0, 3), episodes_per_task=2, seed=7, command="killed")
-roll_out(req, Paced(here / "planner"), workers=2, spawn=partial(Paced, here / "traces", delay=0.4))
+roll_out_started(req, partial(Paced, here / "planner"), Workers(partial(Paced, here / "traces", delay=0.4), 2, req))
 """
 
 
@@ -170,33 +172,26 @@ def _frames(path: Path) -> Any:
         return np.stack([f.to_ndarray(format="rgb24") for f in container.decode(video=0)])
 
 
-@pytest.mark.slow  # 4 five-step episodes by 1 and by 2 workers, of the session's fitted cells
-def test_two_workers_give_the_rows_and_frames_of_one_in_the_simulator(simulator_cells: Fitted, tmp_path: Path,
+@pytest.mark.slow  # 4 five-step episodes by 2 workers, of the session's fitted cells (by 1: the session's rollout)
+def test_two_workers_give_the_rows_and_frames_of_one_in_the_simulator(simulator_rollouts: RolledOut, tmp_path: Path,
                                                                       capsys: pytest.CaptureFixture) -> None:
-    """2 cells x 2 episodes of 5 steps in LIBERO, `rollout --workers 1` then `--workers 2` into another file: the same
-    rows (seconds and command aside) and, since 5 failed steps say little, the same decoded frames of every episode:
-    the simulator's states after the reset and each step, which differ between the episodes (init states 0 and 1)."""
+    """2 cells x 2 episodes of 5 steps in LIBERO, rolled out by this process (the session's `simulator_rollouts`) and
+    by `--workers 2` into another file: the same rows (seconds and command aside) and, since 5 failed steps say
+    little, the same decoded frames of every episode: the simulator's states after the reset and each step, which
+    differ between the episodes (init states 0 and 1)."""
     import numpy as np
     from helpers.probes import run_cli
 
-    root, results_path = simulator_cells.root, simulator_cells.results
-    cells = f"{simulator_cells.plain},{simulator_cells.zero_image}"
-    rows = {}
-    for workers in (1, 2):
-        (tmp_path / str(workers)).mkdir()
-        rollouts = tmp_path / str(workers) / "rollouts.parquet"
-        done = run_cli(["rollout", results_path, "--run-ids", cells, "--suites", "libero_object", "--tasks", "0",
-                        "--episodes-per-task", "2", "--max-steps", "5", "--videos", "--cache", root, "--rollouts",
-                        rollouts, "--workers", workers], capsys)
-        assert done.code == 0, done.err[-3000:]
-        rows[workers] = table.read(rollouts).sort("episode_id")
-    one, two = rows[1], rows[2]
+    done = run_cli([*simulator_rollouts.argv, "--rollouts", tmp_path / "rollouts.parquet", "--workers", 2], capsys)
+    assert done.code == 0, done.err[-3000:]
+    one, two = simulator_rollouts.rows, table.read(tmp_path / "rollouts.parquet").sort("episode_id")
     assert one.height == 4 and sorted(one["episode"].to_list()) == [0, 0, 1, 1]
     assert two.drop(VARYING).equals(one.drop(VARYING))
     assert (one["steps"] == 5).all() and not multiprocessing.active_children()
     videos = {(r["run_id"], r["episode"]): r["video"] for r in one.iter_rows(named=True)}
     for video in videos.values():
-        seen = _frames(tmp_path / "1" / video)
-        assert seen.shape == (6, 256, 256, 3) and np.array_equal(_frames(tmp_path / "2" / video), seen)
+        seen = _frames(simulator_rollouts.folder / video)
+        assert seen.shape == (6, 256, 256, 3) and np.array_equal(_frames(tmp_path / video), seen)
     run = one["run_id"][0]
-    assert not np.array_equal(_frames(tmp_path / "1" / videos[run, 0]), _frames(tmp_path / "1" / videos[run, 1]))
+    first, second = (_frames(simulator_rollouts.folder / videos[run, k]) for k in (0, 1))
+    assert not np.array_equal(first, second)

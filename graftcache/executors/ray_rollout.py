@@ -1,0 +1,136 @@
+"""The ray executor's rollout: a rollout's missing episodes run by Ray actors, each holding one simulator.
+
+Why actors, not a task per episode: a simulator's start (lerobot's LIBERO imports, the env's build and first reset)
+and a cell's policy load take longer than a short episode; an actor pays them once and keeps its envs and the cell it
+ran last, as a `--workers` process does (graftcache/rollout/workers.py). The actors are created when the team is built,
+before the driver plans, so their simulators build meanwhile. The driver schedules exactly as `--workers` does, with
+the same graftcache.rollout.workers.Scheduler: an actor that finishes gets the next episode of its cell, else a cell no
+actor serves (claimed without waiting, graftcache.results.cell_claim), and only then joins another's cell.
+
+Rows: an actor writes the episode's video whole (graftcache.rollout.run.with_video) and returns its row; the driver
+appends it as the call finishes. So the rows are those of the local executor for the same episodes (an episode seeds
+itself and runs its policy on graftcache.rollout.libero.POLICY_THREADS threads; seconds aside), a driver killed
+mid-way has written whole rows only (Ray ends the actors of a driver that is gone, and the claims go stale with it),
+and a rerun runs the missing episodes. Every node must see the results file, its run folders and caches (the actors
+export the cells) and the rollouts file's folder (videos, exports) at the same paths, as for fitting.
+
+Failures: an error inside an actor is one RolloutError line naming the run and episode (and the actor); an actor
+whose process or node dies is restarted and its episode run again, up to `--max-retries` times, then one line naming
+the episode.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import ray
+
+from graftcache.errors import RolloutError
+from graftcache.executors import Log
+from graftcache.executors.ray_cluster import connect, result, slots, task_options
+from graftcache.requests import ExecutorSettings
+from graftcache.rollout import table
+from graftcache.rollout.episodes import Episode, Simulator
+from graftcache.rollout.run import RolloutRequest, with_video
+from graftcache.rollout.workers import CLAIM_POLL_S, Scheduler, cells_of, one_line, where
+
+
+class SimulatorHost:
+    """One actor's simulator, built as the actor starts; `run` runs one episode on it, writes its video and returns
+    its row (run as `SimulatorActor`)."""
+
+    def __init__(self, spawn: Callable[[], Simulator], rollouts: Path, command: str, index: int) -> None:
+        self.rollouts, self.command, self.index = rollouts, command, index
+        self.sim: Simulator | None = None
+        self.broken = ""
+        try:
+            self.sim = spawn()
+        except Exception as e:  # said by the first episode handed here, naming the actor
+            self.broken = one_line(e)
+
+    def run(self, row: Mapping[str, Any], episode: Episode) -> dict[str, Any]:
+        if self.sim is None:
+            raise RolloutError(f"ray actor {self.index} ({self._at()}) could not build its simulator: {self.broken}")
+        try:
+            (outcome,) = self.sim.run(row, [episode])
+            return with_video(self.rollouts, self.command, episode, outcome)
+        except Exception as e:
+            raise RolloutError(f"{where(episode)}: {one_line(e)} (ray actor {self.index}, {self._at()})") from None
+
+    @staticmethod
+    def _at() -> str:
+        return f"pid {os.getpid()} on {socket.gethostname()}"
+
+
+#: The Ray actor of `SimulatorHost`, kept apart so that cloudpickle ships the class by reference (see ray_fit).
+SimulatorActor = ray.remote(SimulatorHost)
+
+
+@dataclass
+class _Actor:
+    """An actor as the scheduler sees it (graftcache.rollout.workers.Scheduler: `running`, `last`)."""
+
+    index: int
+    handle: Any
+    running: Episode | None = None
+    last: str | None = None
+
+
+class Actors:
+    """A rollout's team of Ray actors (graftcache.rollout.run.Team), created when built: `n` of them, at most (and by
+    default) as many as the cluster runs at once for `--cpus-per-task` / `--gpus-per-task`."""
+
+    def __init__(self, req: RolloutRequest, spawn: Callable[[], Simulator], n: int | None,
+                 settings: ExecutorSettings, log: Log) -> None:
+        connect(settings, log)
+        placed = task_options(settings, "cpu")  # a GPU only when asked for: the policy's device is its export's
+        fits = slots(placed)
+        if n and n > fits:  # an actor that cannot be placed would hold its first episode forever
+            log(f"ray: --workers {n}, but the cluster holds {fits} such actor(s) at once: {fits}")
+        n = min(n or fits, fits)
+        options = {"num_cpus": placed["num_cpus"], "num_gpus": placed["num_gpus"],
+                   "max_restarts": settings.max_retries, "max_task_retries": settings.max_retries}
+        log(f"ray: {n} simulator actor(s), {placed['num_gpus']:g} GPU and {placed['num_cpus']:g} CPU each")
+        rollouts = req.rollouts.absolute()
+        self.team = [_Actor(i, SimulatorActor.options(**options).remote(spawn, rollouts, req.command, i))
+                     for i in range(n)]
+
+    def run(self, req: RolloutRequest, rows: Mapping[str, Mapping[str, Any]], missing: Sequence[Episode], bar: Any,
+            log: Log) -> None:
+        """Hand `missing` to the actors, an episode per call, and append each row as its call finishes; actors beyond
+        the number of episodes are ended at once."""
+        busy, spare = self.team[: len(missing)], self.team[len(missing):]
+        for actor in spare:
+            ray.kill(actor.handle, no_restart=True)
+        log(f"ray: {len(busy)} simulator actor(s) running {len(missing)} episode(s)")
+        cells = cells_of(rows, missing)
+        scheduler = Scheduler(req, cells, bar, log)
+        calls: dict[ray.ObjectRef, _Actor] = {}
+        try:
+            while not all(c.closed for c in cells.values()):
+                for actor in busy:
+                    if actor.running is None and (job := scheduler.dispatch(actor)) is not None:
+                        calls[actor.handle.run.remote(*job)] = actor
+                if not calls:  # every cell left is another rollout's for now
+                    time.sleep(CLAIM_POLL_S)
+                    continue
+                ready, _ = ray.wait(list(calls), num_returns=1,
+                                    timeout=CLAIM_POLL_S if scheduler.waiting() else None)
+                for ref in ready:
+                    actor = calls.pop(ref)
+                    assert actor.running is not None
+                    row = result(ref, where(actor.running))
+                    table.append(req.rollouts, [row])
+                    scheduler.finished(actor, (row["success"], row["steps"], row["seconds"], row["video"] is not None))
+        finally:  # stopped or failed: the claims given back (the actors are ended by `close`)
+            scheduler.release()
+
+    def close(self) -> None:
+        for actor in self.team:
+            ray.kill(actor.handle, no_restart=True)
