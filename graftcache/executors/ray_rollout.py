@@ -5,7 +5,7 @@ and a cell's policy load take longer than a short episode; an actor pays them on
 ran last, as a `--workers` process does (graftcache/rollout/workers.py). The actors are created when the team is built,
 before the driver plans, so their simulators build meanwhile. The driver schedules exactly as `--workers` does, with
 the same graftcache.rollout.workers.Scheduler: an actor that finishes gets the next episode of its cell, else a cell no
-actor serves (claimed without waiting, graftcache.results.cell_claim), and only then joins another's cell.
+actor serves (claimed without waiting, graftcache.results.claims.cell_claim), and only then joins another's cell.
 
 Rows: an actor writes the episode's video whole (graftcache.rollout.run.with_video) and returns its row; the driver
 appends it as the call finishes. So the rows are those of the local executor for the same episodes (an episode seeds
