@@ -128,7 +128,8 @@ SCHEMA: dict[str, pl.DataType] = {
     "camera_map": pl.String,          # which cache camera fed each policy camera, e.g. "image=agentview,image2=
                                       # eye_in_hand" (graftcache/cameras.py); also when every name matched
     "graftcache_version": pl.String,
-    "activation_checkpointing": pl.String,  # "on" | "off": what `--activation-checkpointing` (auto) resolved to
+    "activation_checkpointing": pl.String,  # the memory plan "off" | "mlp" | "on" (graftcache.requests.MEMORY_PLANS)
+                                      # what `--activation-checkpointing` (auto) resolved to
     "eval_seconds_per_frame": pl.Float64,  # scoring's wall time (reading, prefix, denoising) / n_eval_frames
 }
 

@@ -69,7 +69,7 @@ BAD = {
     "missing_policy": ({"backbones": '[[backbones]]\nname = "pi05"\npolicy = "/nonexistent/policy"\n'},
                        "policy checkpoint '/nonexistent/policy': no such folder"),
     "unknown_checkpointing": ({"tables": '[fit]\nactivation_checkpointing = "sometimes"\n'},
-                              "[fit]: activation_checkpointing = 'sometimes' is not one of auto, on, off"),
+                              "[fit]: activation_checkpointing = 'sometimes' is not one of auto, off, mlp, on"),
     "eval_batch_size_zero": ({"tables": '[fit]\neval_batch_size = 0\n'}, "eval_batch_size = 0 must be"),
     "grid_past_memory": ({"tables": '[extract]\ngrids = ["100000x100000"]\n'},
                          "2 camera(s) of grids 100000x100000 x 192 channels needs about"),

@@ -12,12 +12,24 @@ each layer's parts directly, never the layer, which is where transformers checkp
 (`eager_attention_forward`, whose fp32 [B, heads, L, L] probabilities dominate) and the MLP of every LM and expert
 layer are wrapped in `torch.utils.checkpoint`, in training mode with gradients enabled, like lerobot's. X-VLA the
 same way: every layer of its BART encoder (the LM) and every block of its action transformer.
+
+Memory plans (`PLANS`, least recompute first; `fit --activation-checkpointing` names one, or `auto`): `off` keeps
+every activation; `mlp` recomputes only each LM and expert layer's MLP (`_mlp_slots`, wrapped as above); `on` is the
+whole layer, as described above. Why `mlp` is a plan of its own, from the geometry (per token and layer, a frozen
+Linear keeps no input since its weight needs no gradient, so a gated MLP keeps its gate, its activation and its up
+projection, 3 x ffn values, while eager attention keeps q, k, v, its fp32 scores and their bf16 copy, about
+(heads + kv heads) x head_dim + 1.5 x heads x L x 4 bytes, plus the norms' fp32 inputs): at pi0.5's released Gemma
+2B (width 2048, ffn 16384, 8 heads of 256, 1 KV head, L ~ 970 prefix tokens) the MLP holds ~98 KB of ~165 KB a
+token, about 0.6 of what a layer keeps, and costs ~0.88 of the layer's forward FLOPs to recompute (3 x width x ffn
+against the attention's 4.3 x width^2 + 2 x L x heads x head_dim). The fit does not trust the model for bytes: the
+step is measured under each plan it tries (graftcache/fit/step_memory.py).
 """
 
 from __future__ import annotations
 
 from abc import abstractmethod
 from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 
 import torch
 from torch import nn
@@ -40,35 +52,93 @@ def checkpointed(fn: Callable, owner: nn.Module) -> Callable:
     return run
 
 
-class ActivationCheckpointing:
-    """The checkpointing half of a BackboneAdapter (mixed into it): one switch, off after load."""
+@dataclass(frozen=True)
+class MemoryPlan:
+    """What a training step recomputes in backward instead of keeping: `phrase` completes "a training step ..." in
+    refusals; `install` makes the change on an adapter whose plan is off; `available` says which backbones have it."""
 
-    _activation_checkpointing_on: bool = False
+    phrase: str
+    install: Callable[[ActivationCheckpointing], None]
+    available: Callable[[ActivationCheckpointing], bool]
+
+
+def _recompute_mlps(adapter: ActivationCheckpointing) -> None:
+    for owner, attribute in adapter._mlp_slots():
+        adapter.memory_plan_patches.set(owner, attribute, checkpointed(getattr(owner, attribute), owner))
+
+
+def _has_mlp_slots(adapter: ActivationCheckpointing) -> bool:
+    return type(adapter)._mlp_slots is not ActivationCheckpointing._mlp_slots
+
+
+#: The memory plans, least recompute first (graftcache.requests.MEMORY_PLANS names them for the CLI; tests keep the
+#: two equal): `auto` takes the first one the backbone has whose step fits.
+PLANS: dict[str, MemoryPlan] = {
+    "off": MemoryPlan("", lambda adapter: None, lambda adapter: True),
+    "mlp": MemoryPlan(" with activation checkpointing of each layer's MLP", _recompute_mlps, _has_mlp_slots),
+    "on": MemoryPlan(" with activation checkpointing", lambda adapter: adapter._switch_activation_checkpointing(True),
+                     lambda adapter: adapter.supports_activation_checkpointing),
+}
+
+
+class ActivationCheckpointing:
+    """The activation-checkpointing half of a BackboneAdapter (mixed into it): one memory plan, off after load."""
+
+    _memory_plan: str = "off"
+
+    @property
+    def memory_plan(self) -> str:
+        """The plan of `PLANS` a training step runs under."""
+        return self._memory_plan
+
+    @property
+    def memory_plans(self) -> tuple[str, ...]:
+        """The plans this backbone has, least recompute first."""
+        return tuple(name for name, plan in PLANS.items() if plan.available(self))
 
     @property
     def activation_checkpointing(self) -> bool:
-        """Whether the frozen LM and expert recompute their activations during backward."""
-        return self._activation_checkpointing_on
+        """Whether the frozen LM and expert recompute any activations during backward (a plan other than off)."""
+        return self._memory_plan != "off"
+
+    def set_memory_plan(self, plan: str) -> None:
+        """Put the model under `plan` whatever state it is in (lerobot's own switch may have turned checkpointing on),
+        so that what rows record is what runs; the numbers do not change, only the memory a training step holds and
+        the FLOPs it spends. A plan this backbone lacks is refused in one line."""
+        if plan not in self.memory_plans:
+            raise BackboneError(f"{self.name}: no memory plan {plan!r} for this backbone; use "
+                                f"--activation-checkpointing {' or '.join(self.memory_plans)}")
+        self.memory_plan_patches.undo()
+        if self.supports_activation_checkpointing:
+            self._switch_activation_checkpointing(False)
+        PLANS[plan].install(self)
+        self._memory_plan = plan
 
     def set_activation_checkpointing(self, on: bool) -> None:
-        """Turn checkpointing on or off in the model itself, whatever state it is in (lerobot's own switch may have
-        turned it on), so that the flag rows record is what runs; the numbers do not change, only the memory a
-        training step holds and the FLOPs it spends."""
-        if on or self.supports_activation_checkpointing:
-            self._switch_activation_checkpointing(on)
-        self._activation_checkpointing_on = on
+        """The plan `on` (every layer recomputed) or `off`."""
+        self.set_memory_plan("on" if on else "off")
 
     def _switch_activation_checkpointing(self, on: bool) -> None:
-        """The backbone's own way of turning checkpointing of its LM and expert on or off, from whatever state (none
-        by default: `auto` then keeps it off, `on` is refused in one line)."""
+        """The backbone's own way of turning checkpointing of its whole LM and expert layers on or off, from whatever
+        state (none by default: the plan `on` is then refused in one line)."""
         raise BackboneError(f"{self.name}: no activation checkpointing for this backbone; use "
                             "--activation-checkpointing off")
+
+    def _mlp_slots(self) -> Iterator[tuple[nn.Module, str]]:
+        """(module, attribute) of each LM and expert layer's MLP forward, which the plan `mlp` recomputes (none by
+        default: the backbone has no such plan)."""
+        return iter(())
 
     @property
     def activation_checkpointing_patches(self) -> Patches:
         """What turning checkpointing on changed in the policy (graftcache.backbones.patching), undone to turn it
         off."""
         return self.__dict__.setdefault("_activation_checkpointing_patches", Patches())
+
+    @property
+    def memory_plan_patches(self) -> Patches:
+        """What a plan other than `on` changed in the policy (the `mlp` plan's wrappers), undone by the next plan."""
+        return self.__dict__.setdefault("_memory_plan_patches", Patches())
 
 
 class WrappedActivationCheckpointing(ActivationCheckpointing):
