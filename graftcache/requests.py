@@ -148,9 +148,13 @@ POOL_PREFIX = "pool-"
 #: Which episodes of each task a fit holds out (graftcache.fit.data.SPLITS implements each; tests/test_settings.py
 #: keeps the two equal): graftcache's seeded draw (the default), or lerobot's last ceil(n * eval_fraction).
 EVAL_SPLITS = ("graftcache", "lerobot")
-#: Activation checkpointing of the frozen LM and expert (graftcache/backbones/activation_checkpointing.py): `auto`
-#: turns it on when a training step would not fit the device's memory without it (graftcache/fit/step_memory.py).
-CHECKPOINTING_MODES = ("auto", "on", "off")
+#: The memory plans of a training step, least recompute first (graftcache.backbones.activation_checkpointing.PLANS
+#: implements each; tests/test_settings.py keeps the two equal): off keeps every activation of the frozen LM and
+#: expert, mlp recomputes each layer's MLP in backward, on each layer whole.
+MEMORY_PLANS = ("off", "mlp", "on")
+#: `auto`: the first plan of MEMORY_PLANS the backbone has whose training step fits the device's memory
+#: (graftcache/fit/step_memory.py).
+CHECKPOINTING_MODES = ("auto", *MEMORY_PLANS)
 #: A results path names a file: "" would be the current folder, and "rdir/" used to write a file named rdir.
 RESULTS_FILE: Rule = (lambda v: bool(v.strip()) and not v.endswith(("/", os.sep)),
                       "must name a file, e.g. results.parquet (not empty, not ending in /)")
@@ -220,9 +224,15 @@ class FitRequest(Checked):
                              cell=LORA)
     activation_checkpointing: str = setting(
         "auto", choices=CHECKPOINTING_MODES,
-        help="recompute the frozen LM's and action expert's activations during backward (same gradients, less "
-        "memory, ~1/3 more step time); auto: on when a step would not fit the device's memory without it; rows "
-        "record what it resolved to")
+        help="the memory plan: which activations of the frozen LM and action expert are recomputed during backward "
+        "instead of kept (same gradients, less memory, more step time): off none, mlp each layer's MLP, on each "
+        "layer whole (~1/3 more step time); auto: the first of off, mlp, on the backbone has whose step fits the "
+        "device's memory; rows record what it resolved to")
+    compile: bool = setting(  # an execution setting: the numbers agree within float rounding, in no run_id
+        False, column=True, shared=True,
+        help="torch.compile the frozen backbone's training forward (graftcache/backbones/compiled.py): each training "
+        "pass compiles it once, which pays only over enough steps (benchmarks/gpu_check.py measures compile seconds "
+        "against step seconds). Rows record it (compile)")
     device: str = setting("cpu", recipe=False, help="cpu, cuda or cuda:N")
     num_workers: int = setting(  # the numbers do not depend on it
         2, rule=WORKERS,

@@ -43,6 +43,9 @@ class BackboneSpec:
     loss_per_sample: bool = True
     #: The frozen LM and expert can recompute activations in backward (`_switch_activation_checkpointing`).
     activation_checkpointing: bool = False
+    #: Attribute path from the adapter to the module whose forward the training loss calls, which `fit --compile`
+    #: compiles (graftcache/backbones/compiled.py); None: no compiled forward.
+    compiled_forward: str | None = None
     #: Cells per backbone pass when a request does not say, by device type (graftcache.fit.passes); unlisted: 1.
     cells_per_pass: Mapping[str, int] = field(default_factory=dict)
     #: lerobot's `config.type` of the policy it wraps, which a checkpoint's config.json must name; None: the

@@ -32,7 +32,9 @@ import graftcache
 from graftcache import results
 from graftcache.backbones.base import BackboneAdapter
 from graftcache.backbones.checkpoint import follow_umask
+from graftcache.backbones.compiled import compile_forward
 from graftcache.backbones.loaded import LoadedBackbones
+from graftcache.backbones.patching import Patches
 from graftcache.cameras import format_camera_map
 from graftcache.encoders.fingerprint import NumericsCheck
 from graftcache.fit.data import Split
@@ -78,22 +80,27 @@ def run_pass(members: Sequence[Member], materials: MaterialsOf) -> list[dict[str
     # measuring a step (step_memory) feeds the first cell's rows only: the others' projectors get none
     measuring = alone if one else lambda sizes: grafted.rows([*sizes, *[0] * (len(members) - len(sizes))])
     first.backbones.describe(adapter, _pass_name(members, reads))
-    adapter.set_activation_checkpointing(False)  # only a training step uses it (what the last pass left)
+    adapter.set_memory_plan("off")  # only a training step uses a plan (what the last pass left)
     if members[0].control.train and objective.scheduled:  # refused here, not OOM-killed later
         check_step_memory(adapter, reads[0].train, plan.cameras, reads[0].source, batch_size=req.batch_size,
                           buffer_mib=req.buffer_mib, dtype=first.dtype, checkpointing=req.activation_checkpointing,
                           others=[(r.train, r.source, m.plan.req.buffer_mib)
                                   for m, r in zip(members[1:], reads[1:], strict=True)],
                           route=measuring)
-    checkpointing = "on" if adapter.activation_checkpointing else "off"
+    checkpointing = adapter.memory_plan
     trainables = _trainables(adapter, grafted, projectors)
     stats = [StreamStats() for _ in members]
-    losses = objective.fit([
-        Fitting(adapter=adapter, req=m.plan.req, control=m.control, params=list(trainable.values()),
-                train=mat.feed(r, r.train, m.control, m.seed), cams=m.plan.cameras,
-                targets=(r.targets, r.target_rows) if r.targets is not None else None, grid=r.grid, seed=m.seed,
-                dtype=mat.dtype, stats=st)
-        for m, mat, r, trainable, st in zip(members, mats, reads, trainables, stats, strict=True)], route)
+    # --compile: the training forward compiled for this pass's steps; scoring and the next pass run eagerly
+    compiled = compile_forward(adapter) if req.compile and objective.scheduled else Patches()
+    try:
+        losses = objective.fit([
+            Fitting(adapter=adapter, req=m.plan.req, control=m.control, params=list(trainable.values()),
+                    train=mat.feed(r, r.train, m.control, m.seed), cams=m.plan.cameras,
+                    targets=(r.targets, r.target_rows) if r.targets is not None else None, grid=r.grid, seed=m.seed,
+                    dtype=mat.dtype, stats=st)
+            for m, mat, r, trainable, st in zip(members, mats, reads, trainables, stats, strict=True)], route)
+    finally:
+        compiled.undo()
     t_eval = time.perf_counter()
     with ExitStack() as stack:
         scores = evaluate_together(adapter, [
@@ -136,7 +143,7 @@ def _trainables(adapter: BackboneAdapter, grafted: torch.nn.Module,
 def _row(m: Member, mat: Materials, adapter: BackboneAdapter, r: Reading, loss: float, score, stats: StreamStats,
          wall: float, *, cells: int, checkpointing: str, eval_s: float) -> dict[str, Any]:
     """A cell's row from what it measured (`cells`: how many cells its backbone pass trained; `checkpointing`:
-    on or off as the step ran; `eval_s`: its scoring's seconds, its share of a pass's)."""
+    the memory plan the step ran under; `eval_s`: its scoring's seconds, its share of a pass's)."""
     plan = m.plan
     if isinstance(plan.root, ReadThroughRoot):  # what the reading processes copied locally for this cell
         plan.root.fetched_bytes += stats.fetched

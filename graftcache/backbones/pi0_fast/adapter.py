@@ -65,6 +65,7 @@ class PI0FastAdapter(TokenObjective, PaliGemmaAdapter):
         loss_per_sample=False,
         flow_time=None,
         activation_checkpointing=True,
+        compiled_forward="policy.model",
     )
 
     # ------------------------------------------------------------------------------ construction
