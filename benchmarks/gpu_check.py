@@ -37,8 +37,8 @@ Issue 42's stages (the first a lent GPU runs: `--stages 7,8,9,10`):
 8. SmolVLA at `--smolvla-batches` (32, 64) x attention x `--cells` per pass: training cells per GPU-hour.
 9. Stage 5 again with the allocator capped at `--card-gib` (an 80 GB card on a larger GPU), fused attention where
    the checkout has it, each backbone's memory plan found by `auto` under the cap.
-10. `fit --compile` (graftcache.backbones.compiled) against eager: pi0.5 at the first plan batch, SmolVLA at the first
-   of its batches x the most cells: compile seconds, step seconds, whether a pass's steps pay the compilation back.
+10. `fit --compile` (graftcache.backbones.compiled) against eager, one cell of `--compile-backbones` at the first
+   of its batches: compile seconds, step seconds, graphs and graph breaks, whether a pass's steps pay it back.
 
 With `--tiny` every stage runs on the tiny backbones (stage 2-6's built through the same meta -> device path), so
 the first GPU run cannot fail on a typo. Needs only the repository on PYTHONPATH beside lerobot 0.6.1, its
@@ -610,8 +610,8 @@ def plans_and_attention(report: Report, stage: str, adapter, batches: list[int],
             use_attention(adapter, attention)
             estimates = plan_estimates(adapter, feats, batches[0], dtype)
             out.update(estimates, attention=attention, card_gb=card_gb, weights_gb=weights_gb,
-                       auto_on_card={b: first_plan_that_fits(estimates, adapter.memory_plans, b, card_gb - weights_gb)
-                                     for b in batches})
+                       auto_on_card={f"batch{b}": first_plan_that_fits(estimates, adapter.memory_plans, b,
+                                                                       card_gb - weights_gb) for b in batches})
         estimates = report.data["stages"][stage][f"estimate_{attention}"]
         if estimates.get("status") != "ok":
             continue
@@ -676,7 +676,10 @@ def compile_pays(report: Report, stage: str, adapter, batch: int, cells: int, dt
             plan = adapter.memory_plans[-1]
             eager = time_step(adapter, feats, batch, dtype, cells, repeats, plan)
         torch._dynamo.reset()  # a compilation of its own, not one an earlier check left cached
+        counters = torch._dynamo.utils.counters
+        counters.clear()
         compiled = time_step(adapter, feats, batch, dtype, cells, repeats, plan, compile_backend=backend)
+        out.update(graphs=counters["stats"]["unique_graphs"], graph_breaks=sum(counters["graph_break"].values()))
         compile_s = compiled["first_step_s"] - compiled["step_s"]
         saved = eager["step_s"] - compiled["step_s"]
         steps = steps_per_cell  # the cells of a pass train their steps together: a pass runs steps_per_cell steps
@@ -878,6 +881,7 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--cells", default="1,2,4", help="stage 8's cells per pass")
     p.add_argument("--card-gib", type=float, default=79.1,
                    help="stages 7 and 9: the card to fit (default an 80 GB H100's memory as torch reports it)")
+    p.add_argument("--compile-backbones", default="pi05,smolvla", help="stage 10's backbones (one cell each)")
     p.add_argument("--compile-backend", default="inductor",
                    help="stage 10's torch.compile backend (the CPU dry run in CI: aot_eager, to stay short)")
     p.add_argument("--repeats", type=int, default=3, help="timed steps per measurement, after one warm-up")
@@ -940,9 +944,9 @@ def main(argv: list[str] | None = None) -> dict:
         fused_cells(report, "8_smolvla_fused", adapters["smolvla"], smol_batches, cells, dtype, a.repeats,
                     steps_per_cell)
     if 10 in stages:
-        for name, batch, n in (("pi05", plan_batches[0], 1), ("smolvla", smol_batches[0], max(cells))):
-            if name in adapters:
-                compile_pays(report, "10_compile", adapters[name], batch, n, dtype, a.repeats, steps_per_cell,
+        for name, batch in (("pi05", plan_batches[0]), ("smolvla", smol_batches[0])):
+            if name in adapters and name in a.compile_backbones.split(","):
+                compile_pays(report, "10_compile", adapters[name], batch, 1, dtype, a.repeats, steps_per_cell,
                              a.compile_backend)
     if 3 in stages and "smolvla" in adapters:
         scaling(report, "3_smolvla", adapters["smolvla"], smol_batches, dtype, a.repeats, peak)
