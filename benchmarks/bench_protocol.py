@@ -12,8 +12,8 @@ memory, fp16 like a cache, at each encoder's true width (its registry spec) and 
 (the backbone's token grid, a pool control's grid; the native controls: the native tower's widths): pooling
 runs in the fit's reading workers, off the device. For every distinct cell kind (backbone, tokens, width,
 LoRA, trained or not) it measures:
-- `--steps` flow steps (graftcache.fit.loop.optimise, the fit's own step), with the recipe's activation
-  checkpointing (`auto`: on when a step without it runs out of device memory);
+- `--steps` flow steps (graftcache.fit.loop.optimise, the fit's own step), under the recipe's recompute plan
+  (`auto`: the backbone's plans, least recompute first, until a step does not run out of device memory);
 - scoring of `--eval-frames` held-out frames at the recipe's eval batch size and denoising steps;
 - the FLOPs of one step and of one scoring batch (torch.utils.flop_counter.FlopCounterMode), counted on the
   untimed warm-up.
@@ -200,30 +200,28 @@ def measure_kind(adapter, kind: Kind, settings: Settings, a: argparse.Namespace,
                 steps(1)
             return flops.get_total_flops()
 
-        adapter.set_recompute(settings.checkpointing == "on")
-        if device.type == "cuda":
-            torch.cuda.reset_peak_memory_stats(device)
-        try:
-            out["step_flops"] = counted()
-        except torch.OutOfMemoryError:
-            if settings.checkpointing != "auto":
-                raise
-            out_of_memory = True
-        else:
-            out_of_memory = False
-        if out_of_memory:  # retried here, not in the except block, whose traceback holds the step's activations
+        # auto: the backbone's recompute plans, least recompute first, until a step does not run out of memory
+        plans = adapter.recompute_plans if settings.checkpointing == "auto" else (settings.checkpointing,)
+        for plan in plans:
+            adapter.set_recompute_plan(plan)
+            if device.type == "cuda":
+                torch.cuda.reset_peak_memory_stats(device)
+            try:
+                out["step_flops"] = counted()
+                break
+            except torch.OutOfMemoryError:
+                if plan == plans[-1]:
+                    raise
+            # the next plan is tried after the except block, whose traceback holds the step's activations
             opt.zero_grad(set_to_none=True)
             gc.collect()
             torch.cuda.empty_cache()
-            adapter.set_recompute(True)
-            torch.cuda.reset_peak_memory_stats(device)
-            out["step_flops"] = counted()
         t0 = time.perf_counter()
         steps(a.steps)
         out["step_s"] = (time.perf_counter() - t0) / a.steps
-        out["activation_checkpointing"] = "on" if adapter.recomputing else "off"
+        out["activation_checkpointing"] = adapter.recompute_plan
         out["peak_step_gb"] = torch.cuda.max_memory_allocated(device) / 1e9 if device.type == "cuda" else None
-    adapter.set_recompute(False)
+    adapter.set_recompute_plan("off")
     adapter.policy.eval()
     eb = min(settings.eval_batch_size, a.eval_frames)
 

@@ -11,7 +11,7 @@ check runs.
 
 1. correctness, every backbone of graftcache.backbone_table.BACKBONES at tiny size: graft; two cells in one pass
    (graftcache.graft.FusedProjector) for a few AdamW steps land on the projectors each cell reaches alone;
-   activation checkpointing on gives the projector gradients it gives off; predict in the compute dtype is
+   every recompute plan gives the projector gradients plan off gives; predict in the compute dtype is
    finite; a tiny policy saved to disk and lean-loaded onto the device (graftcache.backbones.lean_load) predicts what
    the in-memory one predicts. Equality checks run in fp32 with TF32 off (what they test is the plumbing, not
    bf16 rounding); the compute-dtype step and predict are checked for finiteness.
@@ -28,6 +28,18 @@ check runs.
    GPU-hours of the paper's protocol from caches, online, and the FLOP bound at 100% and 40% MFU.
 6. The other backbones devtools.released can build (pi0): one step at batch 8 (seconds, memory, MFU); the rest
    are listed as not buildable at released size here.
+Issue 42's stages (the first a lent GPU runs: `--stages 7,8,9,10`):
+7. pi0.5 at `--plan-batches` (8, 16, 32) x attention (eager, sdpa: FitRequest's `attention` setting) x recompute
+   plan (off, mlp, on: graftcache.backbones.activation_checkpointing.PLANS): step seconds, peak memory, MFU (model
+   FLOPs), each plan's estimate (graftcache.fit.step_bytes.frame_bytes), its recomputed FLOPs, and the plan `auto`
+   takes at each batch on a `--card-gib` card.
+8. SmolVLA at `--fused-batches` (stage 3's unless given) x attention x `--cells` per pass: training cells per
+   GPU-hour.
+9. Stage 5 again (`--card-backbones` of it) with the allocator capped at `--card-gib` (an 80 GB card on a larger
+   GPU), fused attention where the backbone has it (`--attention auto`), each backbone's recompute plan found by
+   `auto` under the cap.
+10. `fit --compile` (graftcache.backbones.compiled) against eager, one cell of `--compile-backbones` at the first
+   of its batches: compile seconds, step seconds, graphs and graph breaks, whether a pass's steps pay it back.
 
 With `--tiny` every stage runs on the tiny backbones (stage 2-6's built through the same meta -> device path), so
 the first GPU run cannot fail on a typo. Needs only the repository on PYTHONPATH beside lerobot 0.6.1, its
@@ -68,9 +80,11 @@ import bench_protocol as bp  # noqa: E402  (the GPU peaks, a sync, the protocol'
 from devtools.released import CONFIGS, LIBERO, Recipe, built_on, on_device, unit_stats  # noqa: E402
 from graftcache.backbone_table import BACKBONES  # noqa: E402
 from graftcache.backbones import load_backbone  # noqa: E402
+from graftcache.backbones.compiled import compile_forward  # noqa: E402
+from graftcache.backbones.patching import Patches  # noqa: E402
 from graftcache.backbones.tiny import TinyBuild  # noqa: E402
 from graftcache.fit.loop import Learner, alone, flow_time, optimise_together  # noqa: E402
-from graftcache.fit.step_bytes import peak_step_bytes  # noqa: E402
+from graftcache.fit.step_bytes import frame_bytes  # noqa: E402
 from graftcache.graft import FusedProjector, GraftProjector, feature_key  # noqa: E402
 from graftcache.runtime import autocast, resolve_compute_dtype, resolve_device, resolve_dtype  # noqa: E402
 
@@ -318,8 +332,8 @@ def fused_vs_solo(adapter, feats: torch.Tensor, steps: int, batch: int) -> dict:
 
 
 def checkpointing_gradients(adapter, feats: torch.Tensor, batch: int) -> dict:
-    """The projector's gradients of one loss with activation checkpointing on against off."""
-    if not adapter.spec.can_recompute:
+    """The projector's gradients of one loss under each recompute plan the backbone has against plan off."""
+    if len(adapter.recompute_plans) == 1:
         return {"checkpointing_ok": True, "checkpointing": "not supported by this backbone"}
     (projector,), route = graft_cells(adapter, 1, feats.shape[-1])
     raw = draw_from(adapter, feats, batch)(torch.Generator().manual_seed(0))
@@ -327,16 +341,17 @@ def checkpointing_gradients(adapter, feats: torch.Tensor, batch: int) -> dict:
     noise, t = adapter.sample_noise(batch, generator=g), flow_time(batch, g).to(adapter.device)
     grads = {}
     adapter.policy.train()
-    for on in (False, True):
-        adapter.set_recompute(on)
+    for plan in adapter.recompute_plans:
+        adapter.set_recompute_plan(plan)
         projector.zero_grad(set_to_none=True)
         torch.manual_seed(0)  # the same dropout masks
         adapter.loss(adapter.prepare(raw), noise=noise, time=t).mean().backward()
-        grads[on] = [p.grad.detach().clone() for p in projector.parameters()]
-    adapter.set_recompute(False)
+        grads[plan] = [p.grad.detach().clone() for p in projector.parameters()]
+    adapter.set_recompute_plan("off")
     adapter.reset()
-    rel = max_rel(grads[True], grads[False])
-    return {"checkpointing_max_rel_diff": rel, "checkpointing_ok": rel < 1e-4}
+    rel = max(max_rel(grads[plan], grads["off"]) for plan in adapter.recompute_plans[1:])
+    return {"checkpointing_max_rel_diff": rel, "checkpointing_ok": rel < 1e-4,
+            "plans_checked": list(adapter.recompute_plans[1:])}
 
 
 def compute_dtype_step_and_predict(adapter, feats: torch.Tensor, batch: int, dtype: torch.dtype) -> dict:
@@ -400,25 +415,29 @@ def built(name: str, device: torch.device, tiny: bool, hub: Path):
                     marker=base.tiny_marker)
 
 
-def step_flops(adapter, feats: torch.Tensor, batch: int, dtype: torch.dtype) -> int:
-    """FLOPs of one training step of one cell at `batch` (checkpointing off: model FLOPs, no recomputation)."""
+def step_flops(adapter, feats: torch.Tensor, batch: int, dtype: torch.dtype, plan: str = "off") -> int:
+    """FLOPs of one training step of one cell at `batch` under recompute plan `plan` (off: model FLOPs, no
+    recomputation; another plan's count includes what it recomputes in backward)."""
     (projector,), route = graft_cells(adapter, 1, feats.shape[-1])
-    adapter.set_recompute(False)
+    adapter.set_recompute_plan(plan)
     with FlopCounterMode(display=False) as counter:
         optimise_together(adapter, learners(adapter, [projector], feats, batch), steps=1, batch_size=batch,
                           dtype=dtype, route=route, show=False)
     bp.sync(adapter.device)
+    adapter.set_recompute_plan("off")
     return counter.get_total_flops()
 
 
 def time_step(adapter, feats: torch.Tensor, batch: int, dtype: torch.dtype, cells: int, repeats: int,
-              checkpointing: bool) -> dict:
-    """Median seconds of one step of `cells` fused cells at `batch` each, and the peak device memory; an
-    out-of-memory step is recorded as such (and its memory released outside the except block, where the
-    traceback no longer holds the step's activations)."""
+              plan: str, compile_backend: str | None = None) -> dict:
+    """Median seconds of one step of `cells` fused cells at `batch` each under recompute plan `plan`, and the peak
+    device memory; an out-of-memory step is recorded as such (and its memory released outside the except block,
+    where the traceback no longer holds the step's activations). `compile_backend`: the training forward compiled
+    with it (graftcache.backbones.compiled), the warm-up step's seconds (its compilation) recorded as `first_step_s`."""
     device = adapter.device
     projectors, route = graft_cells(adapter, cells, feats.shape[-1])
-    adapter.set_recompute(checkpointing)
+    adapter.set_recompute_plan(plan)
+    compiled = compile_forward(adapter, compile_backend) if compile_backend else Patches()
     group = learners(adapter, projectors, feats, batch)
     bp.sync(device)
     base = torch.cuda.memory_allocated(device) if device.type == "cuda" else None
@@ -426,40 +445,42 @@ def time_step(adapter, feats: torch.Tensor, batch: int, dtype: torch.dtype, cell
     times: list[float] = []
     oom = None
     try:
-        for i in range(repeats + 1):
+        for _ in range(repeats + 1):
             t0 = time.perf_counter()
             optimise_together(adapter, group, steps=1, batch_size=batch, dtype=dtype, route=route, show=False)
             bp.sync(device)
-            if i:
-                times.append(time.perf_counter() - t0)
+            times.append(time.perf_counter() - t0)
     except torch.OutOfMemoryError as exc:
         oom = str(exc).splitlines()[0][:200]
-    out = {"batch": batch, "cells": cells, "checkpointing": checkpointing, "peak_gb": peak_gb(device)}
+    finally:
+        compiled.undo()
+    out = {"batch": batch, "cells": cells, "plan": plan, "checkpointing": plan != "off", "peak_gb": peak_gb(device)}
     if oom is None:
         out["loss_finite"] = all(math.isfinite(x) for cell in group for x in cell.losses)
     if base is not None:  # what the step adds to the weights (and optimiser state) already there
         out["step_peak_gb"] = round(out["peak_gb"] - base / 1e9, 2)
     del group, projectors
     adapter.reset()
-    adapter.set_recompute(False)
+    adapter.set_recompute_plan("off")
     free(device)
     if oom is not None:
         return {**out, "oom": oom}
-    return {**out, "step_s": statistics.median(times)}
+    return {**out, "step_s": statistics.median(times[1:]), "first_step_s": times[0]}
 
 
-def step_estimate(adapter, feats: torch.Tensor, dtype: torch.dtype, checkpointing: bool) -> dict:
-    """What graftcache.fit.step_memory measures before a CUDA fit: the peak of a 1- and a 2-frame step."""
-    if adapter.device.type != "cuda":
-        return {"status": "skipped", "reason": "the allocator's peak is a CUDA measurement"}
+def step_estimate(adapter, feats: torch.Tensor, dtype: torch.dtype, plan: str) -> dict:
+    """What graftcache.fit.step_memory measures before a fit under recompute plan `plan`
+    (graftcache.fit.step_bytes.frame_bytes): on CUDA the allocator's peak of a 1- and a 2-frame step, elsewhere
+    the bytes autograd saves (a lower bound)."""
     graft_cells(adapter, 1, feats.shape[-1])
-    adapter.set_recompute(checkpointing)
-    one, two = (peak_step_bytes(adapter, draw_from(adapter, feats, f)(torch.Generator().manual_seed(0)), f, dtype)
-                for f in (1, 2))
+    adapter.set_recompute_plan(plan)
+    one, per_frame = frame_bytes(adapter, lambda f: draw_from(adapter, feats, f)(torch.Generator().manual_seed(0)),
+                                 dtype)
     adapter.reset()
-    adapter.set_recompute(False)
+    adapter.set_recompute_plan("off")
     free(adapter.device)
-    return {"one_frame_gb": one / 1e9, "per_frame_gb": (two - one) / 1e9}
+    basis = "cuda allocator peak" if adapter.device.type == "cuda" else "autograd saved bytes (a lower bound)"
+    return {"one_frame_gb": one / 1e9, "per_frame_gb": per_frame / 1e9, "basis": basis}
 
 
 def scaling(report: Report, stage: str, adapter, batches: list[int], dtype: torch.dtype, repeats: int,
@@ -472,21 +493,20 @@ def scaling(report: Report, stage: str, adapter, batches: list[int], dtype: torc
             flops = step_flops(adapter, feats, batches[0], dtype)
             out.update(batch=batches[0], step_flops=flops, flops_per_sample=flops / batches[0])
     per_sample = report.data["stages"][stage]["flops"].get("flops_per_sample")
-    for checkpointing in (False, True):
-        if checkpointing and not adapter.spec.can_recompute:
+    for ckpt in ("off", "on"):
+        if ckpt not in adapter.recompute_plans:
             continue
-        ckpt = "on" if checkpointing else "off"
         with report.check(stage, f"estimate_ckpt_{ckpt}", need_s=15) as out:
             if out is not None:
-                out.update(step_estimate(adapter, feats, dtype, checkpointing))
+                out.update(step_estimate(adapter, feats, dtype, ckpt))
         rule = report.data["stages"][stage][f"estimate_ckpt_{ckpt}"]
         for batch in batches:
-            key = f"batch{batch}_ckpt_{'on' if checkpointing else 'off'}"
+            key = f"batch{batch}_ckpt_{ckpt}"
             with report.check(stage, key, need_s=25) as out:
                 if out is None:
                     continue
-                out.update(time_step(adapter, feats, batch, dtype, 1, repeats, checkpointing))
-                if "one_frame_gb" in rule:  # graftcache.fit.step_memory's CUDA rule against the step's own peak
+                out.update(time_step(adapter, feats, batch, dtype, 1, repeats, ckpt))
+                if adapter.device.type == "cuda" and "one_frame_gb" in rule:  # step_memory's CUDA rule vs the peak
                     out["estimate_gb"] = round(rule["one_frame_gb"] + (batch - 1) * rule["per_frame_gb"], 2)
                 if "step_s" in out and per_sample:
                     achieved = per_sample * batch / out["step_s"]
@@ -511,9 +531,9 @@ def cells_per_pass(report: Report, stage: str, adapter, batch: int, counts: list
             if n > 1 and not adapter.spec.loss_per_sample:
                 out.update(status="skipped", reason="one loss a batch: cells run alone")
                 continue
-            result = time_step(adapter, feats, batch, dtype, n, repeats, False)
+            result = time_step(adapter, feats, batch, dtype, n, repeats, "off")
             if "oom" in result and adapter.spec.can_recompute:
-                result = time_step(adapter, feats, batch, dtype, n, repeats, True)
+                result = time_step(adapter, feats, batch, dtype, n, repeats, "on")
             out.update(result)
             if "step_s" in result:
                 cell_step = result["step_s"] / n
@@ -521,6 +541,146 @@ def cells_per_pass(report: Report, stage: str, adapter, batch: int, counts: list
                            training_cells_per_gpu_hour=3600 / (steps_per_cell * cell_step))
             else:
                 out["status"] = "oom"
+
+
+# ---------------------------------------------------------------------------------------------- stages 7-10
+#: The attention paths stages 7 and 8 compare (FitRequest's `attention` setting, graftcache.backbones.attention).
+ATTENTIONS = ("eager", "sdpa")
+
+
+def plan_estimates(adapter, feats: torch.Tensor, batch: int, dtype: torch.dtype) -> dict:
+    """Per recompute plan: what graftcache.fit.step_memory measures (a 1-frame step's bytes and each further frame's)
+    and a step's FLOPs at `batch` (what it recomputes: `recompute_fraction` of the plain step's); the plans ranked by
+    per-frame bytes, most first, which must be their order of recompute."""
+    out: dict = {}
+    for plan in adapter.recompute_plans:
+        estimate = step_estimate(adapter, feats, dtype, plan)
+        out[plan] = {**estimate, "step_flops": step_flops(adapter, feats, batch, dtype, plan)}
+    base = out["off"]["step_flops"]
+    for plan in adapter.recompute_plans:
+        out[plan]["recompute_fraction"] = out[plan]["step_flops"] / base - 1
+    by_bytes = sorted(adapter.recompute_plans, key=lambda plan: -out[plan]["per_frame_gb"])
+    by_flops = sorted(adapter.recompute_plans, key=lambda plan: out[plan]["step_flops"])
+    out.update(batch=batch, by_per_frame_bytes=by_bytes, by_recompute=by_flops,
+               ranked_ok=by_bytes == by_flops == list(adapter.recompute_plans))
+    return out
+
+
+def first_plan_that_fits(estimates: dict, plans: tuple[str, ...], batch: int, have_gb: float) -> str | None:
+    """What `--recompute auto` picks at `batch` where `have_gb` is free: the first plan whose
+    estimated step fits (None: none does)."""
+    return next((plan for plan in plans
+                 if estimates[plan]["one_frame_gb"] + (batch - 1) * estimates[plan]["per_frame_gb"] <= have_gb), None)
+
+
+def plans_and_attention(report: Report, stage: str, adapter, batches: list[int], dtype: torch.dtype, repeats: int,
+                        peak: float | None, card_gb: float) -> None:
+    """Stage 7: step seconds, peak memory and MFU at each batch, attention path and recompute plan, with each plan's
+    estimate, and which plan `auto` takes at each batch on a card of `card_gb` (the weights already on it)."""
+    width = ENC_WIDTH if adapter.tiny_marker is None else TINY_ENC
+    feats = features(adapter, 64, width)
+    weights_gb = torch.cuda.memory_allocated(adapter.device) / 1e9 if adapter.device.type == "cuda" else 0.0
+    for attention in ATTENTIONS:
+        with report.check(stage, f"estimate_{attention}", need_s=30) as out:
+            if out is None:
+                continue
+            adapter.set_attention(attention)
+            estimates = plan_estimates(adapter, feats, batches[0], dtype)
+            out.update(estimates, attention=attention, card_gb=card_gb, weights_gb=weights_gb,
+                       auto_on_card={f"batch{b}": first_plan_that_fits(estimates, adapter.recompute_plans, b,
+                                                                       card_gb - weights_gb) for b in batches})
+        estimates = report.data["stages"][stage][f"estimate_{attention}"]
+        if estimates.get("status") != "ok":
+            continue
+        per_sample = estimates["off"]["step_flops"] / batches[0]  # model FLOPs: what a plan recomputes is not in MFU
+        for batch in batches:
+            for plan in adapter.recompute_plans:
+                with report.check(stage, f"batch{batch}_{attention}_{plan}", need_s=25) as out:
+                    if out is None:
+                        continue
+                    out.update(time_step(adapter, feats, batch, dtype, 1, repeats, plan), attention=attention)
+                    out["estimate_gb"] = round(estimates[plan]["one_frame_gb"]
+                                               + (batch - 1) * estimates[plan]["per_frame_gb"], 4)
+                    if "step_s" in out:
+                        achieved = per_sample * batch / out["step_s"]
+                        out.update(tflops=round(achieved / 1e12, 3), mfu=round(achieved / peak, 4) if peak else None)
+                    else:
+                        out["status"] = "oom"
+    adapter.set_attention("eager")
+
+
+def fused_cells(report: Report, stage: str, adapter, batches: list[int], counts: list[int], dtype: torch.dtype,
+                repeats: int, steps_per_cell: int) -> None:
+    """Stage 8: cell-step seconds at each attention path, batch and cells per pass, and training cells per
+    GPU-hour at `steps_per_cell` (the first of the backbone's recompute plans whose step does not run out of memory)."""
+    width = ENC_WIDTH if adapter.tiny_marker is None else TINY_ENC
+    feats = features(adapter, 64, width)
+    for attention in ATTENTIONS:
+        for batch in batches:
+            for n in counts:
+                with report.check(stage, f"{attention}_batch{batch}_cells{n}", need_s=30) as out:
+                    if out is None:
+                        continue
+                    adapter.set_attention(attention)
+                    result: dict = {}
+                    for plan in adapter.recompute_plans:
+                        result = time_step(adapter, feats, batch, dtype, n, repeats, plan)
+                        if "oom" not in result:
+                            break
+                    out.update(result, attention=attention)
+                    if "step_s" in result:
+                        cell_step = result["step_s"] / n
+                        out.update(cell_step_s=cell_step, steps_per_cell=steps_per_cell,
+                                   training_cells_per_gpu_hour=3600 / (steps_per_cell * cell_step))
+                    else:
+                        out["status"] = "oom"
+    adapter.set_attention("eager")
+
+
+def compile_pays(report: Report, stage: str, adapter, batch: int, cells: int, dtype: torch.dtype, repeats: int,
+                 steps_per_cell: int, backend: str) -> None:
+    """Stage 10: `fit --compile` (graftcache.backbones.compiled) against the eager step at `batch` x `cells`: the
+    compilation's seconds (the compiled warm-up step's beyond a compiled step), the seconds it saves a step, and
+    whether a cell's steps (`steps_per_cell`, shared by the pass's cells) pay it back."""
+    width = ENC_WIDTH if adapter.tiny_marker is None else TINY_ENC
+    feats = features(adapter, 64, width)
+    with report.check(stage, f"{adapter.name}_batch{batch}_cells{cells}", need_s=120) as out:
+        if out is None:
+            return
+        plan = "off"
+        eager = time_step(adapter, feats, batch, dtype, cells, repeats, plan)
+        if "oom" in eager:  # the plan that keeps least, as a fit that does not fit would
+            plan = adapter.recompute_plans[-1]
+            eager = time_step(adapter, feats, batch, dtype, cells, repeats, plan)
+        torch._dynamo.reset()  # a compilation of its own, not one an earlier check left cached
+        counters = torch._dynamo.utils.counters
+        counters.clear()
+        compiled = time_step(adapter, feats, batch, dtype, cells, repeats, plan, compile_backend=backend)
+        out.update(graphs=counters["stats"]["unique_graphs"], graph_breaks=sum(counters["graph_break"].values()))
+        compile_s = compiled["first_step_s"] - compiled["step_s"]
+        saved = eager["step_s"] - compiled["step_s"]
+        steps = steps_per_cell  # the cells of a pass train their steps together: a pass runs steps_per_cell steps
+        out.update(backend=backend, plan=plan, batch=batch, cells=cells, eager_step_s=eager["step_s"],
+                   compiled_step_s=compiled["step_s"], compile_s=compile_s, saved_s_per_step=saved,
+                   steps_to_pay_back=compile_s / saved if saved > 0 else None, steps_per_pass=steps,
+                   pays_within_a_pass=saved > 0 and compile_s < saved * steps,
+                   eager_peak_gb=eager["peak_gb"], compiled_peak_gb=compiled["peak_gb"])
+
+
+@contextlib.contextmanager
+def card_of(device: torch.device, card_gib: float) -> Iterator[str]:
+    """The CUDA allocator capped at `card_gib` (torch.cuda.set_per_process_memory_fraction) for the block, so a
+    larger GPU runs as a card of that size would (its compute and bandwidth stay the larger one's); says what it did."""
+    if device.type != "cuda":
+        yield "cpu: no device memory to cap"
+        return
+    total = torch.cuda.get_device_properties(device).total_memory
+    fraction = min(1.0, card_gib * 2**30 / total)
+    torch.cuda.set_per_process_memory_fraction(fraction, device)
+    try:
+        yield f"allocator capped at {card_gib:g} GiB ({fraction:.3f} of {total / 2**30:.1f} GiB)"
+    finally:
+        torch.cuda.set_per_process_memory_fraction(1.0, device)
 
 
 # ---------------------------------------------------------------------------------------------- stage 4
@@ -599,9 +759,10 @@ def lean_load(name: str, folder: Path, device: torch.device, hub: Path) -> dict:
 
 # ---------------------------------------------------------------------------------------------- stage 5
 def protocol(report: Report, adapters: dict, device: torch.device, dtype: torch.dtype, dtype_name: str,
-             peak: float | None, tiny: bool, encoders: list[str] | None) -> None:
-    """bench_protocol's per-kind measurements on cli/paper.toml with these adapters, and its projection."""
-    stage = "5_protocol"
+             peak: float | None, tiny: bool, encoders: list[str] | None, stage: str = "5_protocol",
+             attention: str = "eager", backbones: list[str] | None = None) -> None:
+    """bench_protocol's per-kind measurements on cli/paper.toml (or its `backbones` alone) with these adapters on
+    attention path `attention`, and its projection."""
     with report.check(stage, "recipe", need_s=60) as out:
         if out is None:
             return
@@ -614,9 +775,15 @@ def protocol(report: Report, adapters: dict, device: torch.device, dtype: torch.
             if unknown:
                 raise ValueError(f"--encoders {', '.join(unknown)}: not in {PAPER.relative_to(ROOT)}")
             recipe = replace(recipe, encoders=tuple(e for e in recipe.encoders if e.name in encoders))
+        if backbones:  # a subset of the recipe's backbones (stage 9 in the CPU dry run, to stay short)
+            unknown = sorted(set(backbones) - {b.name for b in recipe.backbones})
+            if unknown:
+                raise ValueError(f"--card-backbones {', '.join(unknown)}: not in {PAPER.relative_to(ROOT)}")
+            recipe = replace(recipe, backbones=tuple(b for b in recipe.backbones if b.name in backbones))
         settings = bp.recipe_settings(recipe, 2 if tiny else None)
+        resolved = {b.name: adapters[b.name].set_attention(attention) for b in recipe.backbones if b.name in adapters}
         out.update(recipe=str(PAPER.relative_to(ROOT)), encoders=[e.name for e in recipe.encoders],
-                   settings=settings.__dict__)
+                   settings=settings.__dict__, attention=attention, attention_resolved=resolved)
     if out.get("status") != "ok":
         return
     a = argparse.Namespace(steps=2 if tiny else 4, eval_frames=2 if tiny else 32)
@@ -655,7 +822,7 @@ def protocol(report: Report, adapters: dict, device: torch.device, dtype: torch.
                     out.update({**kind.__dict__, **bp.measure_kind(adapter, kind, settings, a, dtype)})
                 by_kind[kind] = out
                 adapter.reset()
-                adapter.set_recompute(False)
+                adapter.set_recompute_plan("off")
                 free(device)  # each kind starts from the weights alone, as a sweep's cell does
             measured[entry.name][cell] = by_kind[kind]
         adapter.reset()
@@ -674,6 +841,8 @@ def protocol(report: Report, adapters: dict, device: torch.device, dtype: torch.
                    settings=settings.__dict__, decode_s_per_frame=decode,
                    notes="loads excluded (stage 4 times one); online hours exclude video decoding unless "
                          "--decode-ms is given (no PyAV on the device image): a lower bound")
+    for adapter in adapters.values():
+        adapter.set_attention("eager")
 
 
 # ---------------------------------------------------------------------------------------------- main
@@ -683,10 +852,23 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--compute-dtype", default="auto", choices=("auto", "bf16", "fp32"))
     p.add_argument("--tiny", action="store_true", help="tiny backbones everywhere (the CPU dry run)")
     p.add_argument("--budget-s", type=float, default=480.0, help="no stage starts past this many seconds")
-    p.add_argument("--stages", default="1,2,3,4,5,6")
+    p.add_argument("--stages", default="1,2,3,4,5,6,7,8,9,10",
+                   help="comma list; issue 42's are 7 (pi0.5 attention x recompute plans), 8 (SmolVLA attention x "
+                   "cells per pass), 9 (the protocol on an 80 GB card), 10 (torch.compile against eager)")
     p.add_argument("--backbones", default=",".join(BACKBONES), help="stage 1's backbones")
     p.add_argument("--batches", default=None, help="stage 2's batches (default 8,16,32,64; tiny 2,4)")
     p.add_argument("--smolvla-batches", default=None, help="stage 3's batches (default 32,64; tiny 2,4)")
+    p.add_argument("--plan-batches", default=None, help="stage 7's batches (default 8,16,32; tiny 2,4)")
+    p.add_argument("--fused-batches", default=None, help="stage 8's batches (default stage 3's)")
+    p.add_argument("--cells", default="1,2,4", help="stage 8's cells per pass")
+    p.add_argument("--card-gib", type=float, default=79.1,
+                   help="stages 7 and 9: the card to fit (default an 80 GB H100's memory as torch reports it)")
+    p.add_argument("--card-backbones", default=None,
+                   help="stage 9's backbones of the recipe (default all; the CPU dry run: one, to stay short)")
+    p.add_argument("--compile-backbones", default="pi05,smolvla", help="stage 10's backbones (one cell each)")
+    p.add_argument("--compile-backend", default="inductor",
+                   help="stage 10's torch.compile backend (the CPU dry run in CI: eager, dynamo's capture alone, to "
+                   "stay short; tests/backbones/test_compiled.py checks aot_eager's numbers)")
     p.add_argument("--repeats", type=int, default=3, help="timed steps per measurement, after one warm-up")
     p.add_argument("--load-backbone", default="pi05", choices=("pi05", "smolvla"),
                    help="stage 4's checkpoint (smolvla: a released-size dry run a CPU can afford)")
@@ -703,6 +885,9 @@ def main(argv: list[str] | None = None) -> dict:
     dtype = resolve_dtype(dtype_name)
     batches = [int(b) for b in (a.batches or ("2,4" if a.tiny else "8,16,32,64")).split(",")]
     smol_batches = [int(b) for b in (a.smolvla_batches or ("2,4" if a.tiny else "32,64")).split(",")]
+    plan_batches = [int(b) for b in (a.plan_batches or ("2,4" if a.tiny else "8,16,32")).split(",")]
+    fused_batches = [int(b) for b in a.fused_batches.split(",")] if a.fused_batches else smol_batches
+    cells = [int(n) for n in a.cells.split(",")]
     head = header(device, dtype_name)
     head.update(tiny=a.tiny, decode_s_per_frame=None if a.decode_ms is None else a.decode_ms / 1e3,
                 random_init=True, note="every policy here is random-init: costs, not what weights learned")
@@ -721,23 +906,34 @@ def main(argv: list[str] | None = None) -> dict:
         stage_tiny(report, device, dtype, [n for n in a.backbones.split(",") if n])
     adapters: dict = {}
     load_name = a.load_backbone
-    if 2 in stages or 5 in stages or (4 in stages and load_name == "pi05"):
+    if stages & {2, 5, 7, 9, 10} or (4 in stages and load_name == "pi05"):
         with report.check("2_pi05", "build", need_s=30) as info:
             if info is not None:
                 adapters["pi05"] = built("pi05", device, a.tiny, hub)
                 info.update(params=adapters["pi05"].n_params, source=adapters["pi05"].source,
                             device_gb=peak_gb(device))
+    if 7 in stages and "pi05" in adapters:
+        plans_and_attention(report, "7_pi05_plans", adapters["pi05"], plan_batches, dtype, a.repeats, peak,
+                            a.card_gib * 2**30 / 1e9)
     if 2 in stages and "pi05" in adapters:
         scaling(report, "2_pi05", adapters["pi05"], batches, dtype, a.repeats, peak)
     if 4 in stages and load_name in adapters:
         save(report, adapters[load_name], scratch / load_name)
-    if 3 in stages or 5 in stages or (4 in stages and load_name == "smolvla"):
+    if stages & {3, 5, 8, 9, 10} or (4 in stages and load_name == "smolvla"):
         with report.check("3_smolvla", "build", need_s=20) as info:
             if info is not None:
                 adapters["smolvla"] = built("smolvla", device, a.tiny, hub)
                 info.update(params=adapters["smolvla"].n_params, source=adapters["smolvla"].source)
     if 4 in stages and load_name == "smolvla" and "smolvla" in adapters:
         save(report, adapters["smolvla"], scratch / "smolvla")
+    if 8 in stages and "smolvla" in adapters:
+        fused_cells(report, "8_smolvla_fused", adapters["smolvla"], fused_batches, cells, dtype, a.repeats,
+                    steps_per_cell)
+    if 10 in stages:
+        for name, batch in (("pi05", plan_batches[0]), ("smolvla", smol_batches[0])):
+            if name in adapters and name in a.compile_backbones.split(","):
+                compile_pays(report, "10_compile", adapters[name], batch, 1, dtype, a.repeats, steps_per_cell,
+                             a.compile_backend)
     if 3 in stages and "smolvla" in adapters:
         scaling(report, "3_smolvla", adapters["smolvla"], smol_batches, dtype, a.repeats, peak)
         cells_per_pass(report, "3_smolvla", adapters["smolvla"], smol_batches[0], [1, 2, 4], dtype, a.repeats,
@@ -746,9 +942,16 @@ def main(argv: list[str] | None = None) -> dict:
         with report.check("4_lean_load", "load", need_s=60) as info:
             if info is not None:
                 info.update(backbone=load_name, **lean_load(load_name, scratch / load_name, device, hub))
+    encoders = [e for e in a.encoders.split(",") if e] if a.encoders else None
     if 5 in stages:
-        protocol(report, adapters, device, dtype, dtype_name, peak, a.tiny,
-                 [e for e in a.encoders.split(",") if e] if a.encoders else None)
+        protocol(report, adapters, device, dtype, dtype_name, peak, a.tiny, encoders)
+    if 9 in stages:  # the fused path where the backbone has it, each backbone's plan as auto finds it under the cap
+        with card_of(device, a.card_gib) as cap:
+            report.data["stages"]["9_protocol_80gb"] = {"card": {
+                "status": "ok", "card_gib": a.card_gib, "cap": cap, "attention": "auto"}}
+            protocol(report, adapters, device, dtype, dtype_name, peak, a.tiny, encoders, stage="9_protocol_80gb",
+                     attention="auto", backbones=[b for b in a.card_backbones.split(",") if b] if a.card_backbones
+                     else None)
     adapters.clear()
     free(device)
     if 6 in stages:
@@ -768,7 +971,7 @@ def main(argv: list[str] | None = None) -> dict:
                 feats = features(adapter, 64, width)
                 batch = 2 if a.tiny else 8
                 flops = step_flops(adapter, feats, batch, dtype)
-                info.update(time_step(adapter, feats, batch, dtype, 1, a.repeats, False), step_flops=flops)
+                info.update(time_step(adapter, feats, batch, dtype, 1, a.repeats, "off"), step_flops=flops)
                 if "step_s" in info:
                     info["tflops"] = round(flops / info["step_s"] / 1e12, 1)
                     info["mfu"] = round(flops / info["step_s"] / peak, 4) if peak else None

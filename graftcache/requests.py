@@ -149,10 +149,13 @@ POOL_PREFIX = "pool-"
 #: Which episodes of each task a fit holds out (graftcache.fit.data.SPLITS implements each; tests/test_settings.py
 #: keeps the two equal): graftcache's seeded draw (the default), or lerobot's last ceil(n * eval_fraction).
 EVAL_SPLITS = ("graftcache", "lerobot")
-#: Whether a fit recomputes: activation checkpointing of the frozen LM and expert
-#: (graftcache/backbones/activation_checkpointing.py). `auto` turns it on when a training step would not fit the
-#: device's memory without it (graftcache/fit/step_memory.py).
-RECOMPUTE_MODES = ("auto", "on", "off")
+#: The recompute plans of a training step, least recompute first (graftcache.backbones.activation_checkpointing.PLANS
+#: implements each; tests/test_settings.py keeps the two equal): off keeps every activation of the frozen LM and
+#: expert, mlp recomputes each layer's MLP in backward, on each layer whole (activation checkpointing as it was).
+RECOMPUTE_PLANS = ("off", "mlp", "on")
+#: Whether and how a fit recomputes: a plan, or `auto`, the first plan of RECOMPUTE_PLANS the backbone has whose
+#: training step fits the device's memory (graftcache/fit/step_memory.py).
+RECOMPUTE_MODES = ("auto", *RECOMPUTE_PLANS)
 #: How the frozen LM and expert attend (graftcache/backbones/attention.py): `auto` takes the fused path
 #: (scaled_dot_product_attention) where the backbone has one (its spec's `attentions`), else lerobot's own.
 ATTENTION_MODES = ("auto", "eager", "sdpa")
@@ -226,15 +229,22 @@ class FitRequest(Checked):
                              cell=LORA, column=True)  # the column: the cell's (0 but for the lora control)
     recompute: str = setting(
         "auto", choices=RECOMPUTE_MODES, formerly="activation_checkpointing",
-        help="recompute the frozen LM's and action expert's activations during backward (same gradients, less "
-        "memory, ~1/3 more step time: activation checkpointing); auto: on when a step would not fit the device's "
-        "memory without it; rows record what it resolved to (column activation_checkpointing)")
+        help="the recompute plan: which activations of the frozen LM and action expert are recomputed during "
+        "backward instead of kept (same gradients, less memory, more step time; activation checkpointing): off none, "
+        "mlp each layer's MLP, on each layer whole (~1/3 more step time); auto: the first of off, mlp, on the "
+        "backbone has whose step fits the device's memory; rows record what it resolved to (column "
+        "activation_checkpointing)")
     attention: str = setting(  # in no cell: both paths give the numbers within attention.TOLERANCE
         "auto", choices=ATTENTION_MODES,
         help="how the frozen LM and action expert attend: eager (lerobot's matmul-softmax-matmul, every score matrix "
         "kept) or sdpa (torch's fused scaled_dot_product_attention: same numbers within float rounding, less memory "
         "and time); auto: sdpa where the backbone has it; rows record what it resolved to (attention) and keep "
         "their run_ids")
+    compile: bool = setting(  # an execution setting: the numbers agree within float rounding, in no run_id
+        False, column=True, shared=True,
+        help="torch.compile the frozen backbone's training forward (graftcache/backbones/compiled.py): each training "
+        "pass compiles it once, which pays only over enough steps (benchmarks/gpu_check.py measures compile seconds "
+        "against step seconds). Rows record it (compile)")
     device: str = setting("cpu", recipe=False, help="cpu, cuda or cuda:N")
     num_workers: int = setting(  # the numbers do not depend on it
         2, rule=WORKERS,

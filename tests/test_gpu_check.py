@@ -30,7 +30,11 @@ def report(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict, Path]:
         out = tmp / "check.json"
         data = gpu_check.main(["--tiny", "--device", "cpu", "--compute-dtype", "fp32", "--repeats", "1",
                                "--encoders", "dinov2-s", "--budget-s", "3600", "--scratch", str(tmp / "scratch"),
-                               "--out", str(out)])
+                               # issue 42's stages cut to one batch, two cell counts and dynamo's capture alone
+                               # (tests/backbones/test_compiled.py checks a compiled backend's numbers)
+                               "--plan-batches", "2", "--fused-batches", "2", "--cells", "1,2",
+                               "--card-backbones", "pi05",
+                               "--compile-backend", "eager", "--compile-backbones", "pi05", "--out", str(out)])
     return data, out
 
 
@@ -46,6 +50,8 @@ def test_every_backbone_passes_the_correctness_stage(report: tuple[dict, Path]) 
     for name, entry in tiny.items():
         assert entry["status"] == "ok", (name, entry)
         assert entry["fused_ok"] and entry["checkpointing_ok"] and entry["lean_ok"] and entry["compute_dtype_ok"]
+        if "plans_checked" in entry:  # every recompute plan but off, against off
+            assert entry["plans_checked"][-1] == "on" and entry["checkpointing_max_rel_diff"] < 1e-4
         assert entry["native_ok"] and entry["native_encoder_on"] == ["cpu"]
         assert entry["lean_same_sha256"] is True and entry["params"] > 0
         if "fused_max_rel_diff" in entry:  # a backbone whose cells share passes
@@ -96,6 +102,57 @@ def test_the_protocol_projection_adds_up_and_the_zoo_says_what_it_skipped(report
     skipped = set(BACKBONES) - {"smolvla", "pi05", "pi0"}
     assert {n for n, e in zoo.items() if e["status"] == "skipped"} == skipped
     assert all("no released-geometry builder" in zoo[n]["reason"] for n in skipped)
+
+
+@pytest.mark.slow
+def test_issue_42_stages_measure_each_plan_attention_path_cells_and_compile(report: tuple[dict, Path]) -> None:
+    stages = report[0]["stages"]
+    pi05 = stages["7_pi05_plans"]
+    for attention in ("eager", "sdpa"):
+        estimate = pi05[f"estimate_{attention}"]
+        assert estimate["status"] == "ok" and estimate["batch"] == 2 and estimate["attention"] == attention
+        for plan in ("off", "mlp", "on"):  # measured, not modelled: bytes and FLOPs of real steps under each plan
+            assert estimate[plan]["one_frame_gb"] > 0 and estimate[plan]["per_frame_gb"] > 0
+            assert estimate[plan]["step_flops"] > 0 and estimate[plan]["basis"].startswith("autograd saved bytes")
+        # the plans ranked as their estimates say: more recompute, fewer bytes a frame
+        assert estimate["ranked_ok"] and estimate["by_per_frame_bytes"] == estimate["by_recompute"] == [
+            "off", "mlp", "on"]
+        assert estimate["off"]["recompute_fraction"] == 0
+        assert 0 < estimate["mlp"]["recompute_fraction"] < estimate["on"]["recompute_fraction"]
+        assert estimate["auto_on_card"] == {"batch2": "off"}  # a tiny step fits any card
+        for plan in ("off", "mlp", "on"):
+            entry = pi05[f"batch2_{attention}_{plan}"]
+            assert entry["status"] == "ok" and entry["step_s"] > 0 and entry["loss_finite"]
+            assert (entry["batch"], entry["plan"], entry["attention"]) == (2, plan, attention)
+            assert entry["estimate_gb"] == pytest.approx(estimate[plan]["one_frame_gb"]
+                                                         + estimate[plan]["per_frame_gb"], abs=1e-4)
+    # the fused path keeps no score matrices: fewer bytes a frame than eager under the plan that keeps everything
+    assert pi05["estimate_sdpa"]["off"]["per_frame_gb"] < pi05["estimate_eager"]["off"]["per_frame_gb"]
+    smol = stages["8_smolvla_fused"]
+    for attention in ("eager", "sdpa"):
+        for n in (1, 2):
+            entry = smol[f"{attention}_batch2_cells{n}"]
+            assert entry["status"] == "ok" and entry["cells"] == n and entry["plan"] == "off"
+            assert entry["attention"] == attention and entry["batch"] == 2
+            assert entry["cell_step_s"] == pytest.approx(entry["step_s"] / n)
+            assert entry["training_cells_per_gpu_hour"] == pytest.approx(3600 / (2000 * entry["cell_step_s"]))
+    compiled = stages["10_compile"]["pi05_batch2_cells1"]
+    assert compiled["status"] == "ok" and compiled["backend"] == "eager" and compiled["graphs"] >= 1
+    assert compiled["eager_step_s"] > 0 and compiled["compiled_step_s"] > 0 and compiled["compile_s"] > 0
+    assert compiled["saved_s_per_step"] == pytest.approx(compiled["eager_step_s"] - compiled["compiled_step_s"])
+    assert compiled["plan"] == "off" and compiled["graph_breaks"] >= 0
+    card = stages["9_protocol_80gb"]
+    assert card["card"]["cap"] == "cpu: no device memory to cap" and card["card"]["card_gib"] == 79.1
+    assert card["card"]["attention"] == "auto" == card["recipe"]["attention"]
+    assert card["recipe"]["attention_resolved"] == {"pi05": "sdpa"}  # --card-backbones pi05: the recipe's pi05 alone
+    assert stages["5_protocol"]["recipe"]["attention_resolved"] == {"pi05": "eager", "smolvla": "eager"}
+    kinds = [v for k, v in card.items() if k.startswith(("smolvla_", "pi05_"))]
+    assert kinds and all(k["status"] == "ok" and k["eval_s_per_frame"] > 0 for k in kinds)
+    assert {k for k in card if k.startswith("pi05_")} == {k for k in stages["5_protocol"] if k.startswith("pi05_")}
+    assert not any(k.startswith("smolvla_") for k in card)
+    hours = card["projection"]
+    assert hours["projected_h"] == pytest.approx(hours["loads_h"] + hours["training_h"] + hours["evaluation_h"])
+    assert hours["rows"] == 2 * 3 * (1 + 5 + 2)  # one backbone of the paper's two
 
 
 def test_a_spent_budget_skips_every_stage_and_still_writes_the_json(tmp_path: Path,

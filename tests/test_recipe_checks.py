@@ -69,7 +69,7 @@ BAD = {
     "missing_policy": ({"backbones": '[[backbones]]\nname = "pi05"\npolicy = "/nonexistent/policy"\n'},
                        "policy checkpoint '/nonexistent/policy': no such folder"),
     "unknown_recompute": ({"tables": '[fit]\nrecompute = "sometimes"\n'},
-                          "[fit]: recompute = 'sometimes' is not one of auto, on, off"),
+                          "[fit]: recompute = 'sometimes' is not one of auto, off, mlp, on"),
     "both_spellings": ({"tables": '[fit]\nrecompute = "on"\nactivation_checkpointing = "on"\n'},
                        "[fit]: activation_checkpointing and recompute are one setting (recompute); keep recompute "
                        "only"),

@@ -25,7 +25,7 @@ FIT = FitRequest(backbone="pi05", encoder="dinov2-s", suite="libero_goal", polic
                  controls=("zero-image", "pool-4x4"), objective="align", steps=7, lr=2.5e-4, batch_size=5,
                  buffer_mib=64, eval_fraction=0.25, eval_split_seed=9, eval_split="lerobot", eval_frames=11,
                  num_denoise_steps=3,
-                 lora_rank=2, eval_batch_size=6, recompute="on", attention="sdpa",
+                 lora_rank=2, eval_batch_size=6, recompute="mlp", attention="sdpa", compile=True,
                  device="cuda:1", num_workers=0,
                  cells_per_pass=3,
                  compute_dtype="fp32", results="/r.parquet", out="/o",
@@ -117,6 +117,11 @@ def test_plain_choices_name_what_the_registries_implement() -> None:
     assert OBJECTIVES == tuple(IMPLEMENTED)
     assert set(CONTROLS) == set(REGISTERED) - {"none"}
     assert EVAL_SPLITS == tuple(SPLITS)
+
+    from graftcache.backbones.activation_checkpointing import PLANS
+    from graftcache.requests import RECOMPUTE_MODES, RECOMPUTE_PLANS
+
+    assert RECOMPUTE_PLANS == tuple(PLANS) and RECOMPUTE_MODES == ("auto", *PLANS)
 
     from graftcache.analysis.scores import SCORES
     from graftcache.cli.report import SCORE_NAMES

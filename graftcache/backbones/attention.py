@@ -78,16 +78,16 @@ class Attention:
 
     def set_attention(self, mode: str) -> str:
         """Attend with `mode` (auto, eager or sdpa) from whatever state the policy is in, and return what it resolved
-        to. Activation checkpointing wraps the attention as it stands, so it is turned off around the switch and back
-        on after it."""
+        to. Activation checkpointing wraps the attention as it stands, so the recompute plan is set off around the
+        switch and put back after it."""
         resolved = self.resolve_attention(mode)
-        recomputing = self.recomputing
-        self.set_recompute(False)
+        plan = self.recompute_plan
+        self.set_recompute_plan("off")
         self.attention_patches.undo()
         if resolved != self.spec.attentions[0]:
             self._switch_attention(self.attention_patches, resolved)
         self.__dict__["_attention"] = resolved
-        self.set_recompute(recomputing)
+        self.set_recompute_plan(plan)
         return resolved
 
     def _switch_attention(self, patches: Patches, mode: str) -> None:

@@ -59,7 +59,8 @@ from graftcache.errors import BackboneError
 #: pi0-FAST; every graft and reset would recompile), lerobot's own gradient checkpointing (pi0, pi0.5, pi0-FAST,
 #: EO-1; EVO1's `enable_gradient_checkpointing`), which rows would record as `activation_checkpointing = off`, and
 #: EVO1's bf16 autocast on CUDA (`use_amp`), under rows that say fp32. Recomputing is graftcache's switch
-#: (`set_recompute`), precision its autocast (--compute-dtype); GR00T's `use_bf16`, which decides
+#: (`set_recompute_plan`), compiling its `fit --compile` (graftcache/backbones/compiled.py: the training forward,
+#: after the graft), precision its autocast (--compute-dtype); GR00T's `use_bf16`, which decides
 #: either way, follows the caller's autocast (graftcache.backbones.groot.adapter).
 NEUTRAL_CONFIG: dict[str, Any] = {"compile_model": False, "gradient_checkpointing": False,
                                   "enable_gradient_checkpointing": False, "use_amp": False}

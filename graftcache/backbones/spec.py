@@ -47,6 +47,9 @@ class BackboneSpec:
     #: (every score matrix materialised) or "sdpa" (torch's fused scaled_dot_product_attention); another than the
     #: first is the `_switch_attention` hook's; `--attention auto` takes sdpa where it is listed.
     attentions: tuple[str, ...] = ("eager",)
+    #: Attribute path from the adapter to the module whose forward the training loss calls, which `fit --compile`
+    #: compiles (graftcache/backbones/compiled.py); None: no compiled forward.
+    compiled_forward: str | None = None
     #: Cells per backbone pass when a request does not say, by device type (graftcache.fit.passes); unlisted: 1.
     cells_per_pass: Mapping[str, int] = field(default_factory=dict)
     #: lerobot's `config.type` of the policy it wraps, which a checkpoint's config.json must name; None: the

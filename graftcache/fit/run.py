@@ -32,6 +32,8 @@ import graftcache
 from graftcache import results
 from graftcache.backbones.base import BackboneAdapter
 from graftcache.backbones.checkpoint import follow_umask
+from graftcache.backbones.compiled import compile_forward
+from graftcache.backbones.patching import Patches
 from graftcache.cameras import format_camera_map
 from graftcache.fit.controls import Control
 from graftcache.fit.data import Split
@@ -108,17 +110,22 @@ def run_pass(cells: Sequence[Planned], materials: MaterialsOf) -> list[dict[str,
     # measuring a step (step_memory) feeds the first cell's rows only: the others' projectors get none
     measuring = alone if one else lambda sizes: grafted.rows([*sizes, *[0] * (len(ins) - len(sizes))])
     first.backbones.describe(adapter, _pass_name(ins))
-    adapter.set_recompute(False)  # only a training step uses it (what the last pass left)
+    adapter.set_recompute_plan("off")  # only a training step uses a plan (what the last pass left)
     attention = adapter.set_attention(req.attention)  # before the step is measured: it changes what a step keeps
     if lead.control.train and objective.scheduled:  # refused here, not OOM-killed later
         check_step_memory(adapter, lead.read.train, plan.cameras, lead.read.source, batch_size=req.batch_size,
                           buffer_mib=req.buffer_mib, dtype=first.dtype, recompute=req.recompute,
                           others=[(c.read.train, c.read.source, c.plan.req.buffer_mib) for c in ins[1:]],
                           route=measuring)
-    recomputed = "on" if adapter.recomputing else "off"
+    recomputed = adapter.recompute_plan
     for c, trainable in zip(ins, _trainables(adapter, grafted, [c.projector for c in ins]), strict=True):
         c.trainable = trainable
-    losses = objective.fit([c.fitting(adapter) for c in ins], route)
+    # --compile: the training forward compiled for this pass's steps; scoring and the next pass run eagerly
+    compiled = compile_forward(adapter) if req.compile and objective.scheduled else Patches()
+    try:
+        losses = objective.fit([c.fitting(adapter) for c in ins], route)
+    finally:
+        compiled.undo()
     t_eval = time.perf_counter()
     with ExitStack() as stack:
         scores = evaluate_together(adapter, [c.scoring(stack) for c in ins], batch_size=req.eval_batch_size,
@@ -155,8 +162,8 @@ def _trainables(adapter: BackboneAdapter, grafted: torch.nn.Module,
 
 def _row(c: _InPass, adapter: BackboneAdapter, loss: float, score: Any, wall: float, *, cells: int,
          recomputed: str, attention: str, eval_s: float) -> dict[str, Any]:
-    """A cell's row from what it measured (`cells`: how many cells its backbone pass trained; `recomputed`:
-    on or off as the step ran; `attention`: the path the frozen LM and expert attended with; `eval_s`: its
+    """A cell's row from what it measured (`cells`: how many cells its backbone pass trained; `recomputed`: the
+    recompute plan the step ran under; `attention`: the path the frozen LM and expert attended with; `eval_s`: its
     scoring's seconds, its share of a pass's)."""
     plan, r = c.plan, c.read
     if isinstance(plan.root, ReadThroughRoot):  # what the reading processes copied locally for this cell

@@ -7,6 +7,8 @@ Two measures, both of a real forward of the policy's loss on the batch the calle
   it.
 - `peak_step_bytes` (CUDA): the allocator's peak over a whole step, forward and backward, above what was allocated
   before it: everything the step holds at its worst moment, measured rather than modelled.
+`frame_bytes` takes the one the device has on a 1- and a 2-frame batch: what one frame costs under the adapter's
+recompute plan (graftcache.backbones.activation_checkpointing.PLANS).
 
 Either leaves the policy's mode, the global RNG (CPU and device) and the trainable parameters' gradients as they
 were, so the fit that follows computes what it would have computed without it.
@@ -15,7 +17,7 @@ were, so the fit that follows computes what it would have computed without it.
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 
 import torch
 
@@ -63,7 +65,7 @@ def saved_bytes(adapter, raw: Mapping, frames: int, dtype: torch.dtype, route: R
         return t
 
     with _probe(adapter), torch.autograd.graph.saved_tensors_hooks(pack, lambda t: t):
-        adapter.policy.train(adapter.recomputing)
+        adapter.policy.train(adapter.recomputing)  # lerobot recomputes in training mode only
         _loss(adapter, raw, frames, dtype, route)
     return sum(storages.values())
 
@@ -83,3 +85,13 @@ def peak_step_bytes(adapter, raw: Mapping, frames: int, dtype: torch.dtype, rout
         torch.cuda.synchronize(device)
         peak = torch.cuda.max_memory_allocated(device)
     return peak - before
+
+
+def frame_bytes(adapter, batch_of: Callable[[int], Mapping], dtype: torch.dtype,
+                route: Route = alone) -> tuple[int, int]:
+    """(what a 1-frame step holds, what each further frame adds) under the adapter's recompute plan as set, measured on
+    `batch_of(1)` and `batch_of(2)` (raw batches): the CUDA allocator's peak on CUDA, autograd's saved bytes
+    elsewhere."""
+    measure = peak_step_bytes if adapter.device.type == "cuda" else saved_bytes
+    two, one = (measure(adapter, batch_of(frames), frames, dtype, route) for frames in (2, 1))
+    return one, max(0, two - one)

@@ -11,8 +11,9 @@ compute dtype.
   and the shuffle buffer (at least one batch of stored features, graftcache.fit.buffer.buffer_frames): a lower
   bound, since the backward's own peak is higher, so a refusal is never wrong.
 
-The same measurement decides `--recompute auto`: on only when the step measured without it would
-not fit.
+The same measurement decides `--recompute auto`: the backbone's recompute plans are measured in order of recompute
+(graftcache.backbones.activation_checkpointing.PLANS: off, mlp, on) and the first whose step fits is the one the fit
+runs; each plan's per-frame bytes are measured under it, not derived.
 """
 from __future__ import annotations
 
@@ -21,11 +22,12 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 import torch
 
+from graftcache.backbones.activation_checkpointing import PLANS
 from graftcache.budget import BudgetError, available_memory, require, size
 from graftcache.fit.buffer import buffer_frames
 from graftcache.fit.data import LowDim
 from graftcache.fit.loop import Route, alone, raw_batch
-from graftcache.fit.step_bytes import peak_step_bytes, saved_bytes
+from graftcache.fit.step_bytes import frame_bytes
 from graftcache.fit.stream import FeatureSource
 
 
@@ -38,23 +40,25 @@ def _measuring_batch(low: LowDim, cams: Mapping[str, str], shapes: Mapping[str, 
 
 def check_step_memory(adapter, low: LowDim, cams: Mapping[str, str], source: FeatureSource, *,
                       batch_size: int, buffer_mib: int, dtype: torch.dtype, recompute: str = "off",
-                      others: Sequence[tuple[LowDim, FeatureSource, int]] = (), route: Route = alone) -> bool:
-    """Set the adapter's recomputing as `recompute` says ("on", "off", or "auto": on only when
-    the step measured without it would not fit) and return whether it is on; BudgetError (one line: the
-    estimate, what a frame costs, the limit) when a step of `batch_size` cannot fit even so. `others`: the other
+                      others: Sequence[tuple[LowDim, FeatureSource, int]] = (), route: Route = alone) -> str:
+    """Put the adapter under the recompute plan `recompute` names (`--recompute`: a plan, or "auto": the first of the
+    backbone's plans, least recompute first, whose step fits) and return it; BudgetError (one line: the estimate,
+    what a frame costs, the limit) when a step of `batch_size` cannot fit even so. `others`: the other
     cells of a backbone pass (graftcache/fit/passes.py), each (train rows, source, buffer MiB) with a shuffle
     buffer of its own and `batch_size` more frames in the step, fed tokens of the first cell's shapes; `route`
     gives the measuring batches' rows to the first cell's projector."""
     shapes = {cam: source.frame_shape(cam) for cam in set(cams.values())}
-    adapter.set_recompute(recompute == "on")
-    try:
-        _require_step(adapter, low, cams, source, shapes, batch_size, buffer_mib, dtype, others, route)
-    except BudgetError:
-        if recompute != "auto" or not adapter.spec.can_recompute:
-            raise
-        adapter.set_recompute(True)
-        _require_step(adapter, low, cams, source, shapes, batch_size, buffer_mib, dtype, others, route)
-    return adapter.recomputing
+    plans = adapter.recompute_plans if recompute == "auto" else (recompute,)
+    for plan in plans[:-1]:  # the ones a plan that recomputes more may replace
+        adapter.set_recompute_plan(plan)
+        try:
+            _require_step(adapter, low, cams, source, shapes, batch_size, buffer_mib, dtype, others, route)
+            return plan
+        except BudgetError:
+            continue
+    adapter.set_recompute_plan(plans[-1])
+    _require_step(adapter, low, cams, source, shapes, batch_size, buffer_mib, dtype, others, route)
+    return plans[-1]
 
 
 def _require_step(adapter, low: LowDim, cams: Mapping[str, str], source: FeatureSource,
@@ -62,25 +66,22 @@ def _require_step(adapter, low: LowDim, cams: Mapping[str, str], source: Feature
                   others: Sequence[tuple[LowDim, FeatureSource, int]], route: Route) -> None:
     """BudgetError when a step of `batch_size` (per cell of the pass), measured as the adapter is set now, cannot
     fit."""
-    cuda = adapter.device.type == "cuda"
-    measure = peak_step_bytes if cuda else saved_bytes  # a CUDA step's whole peak; elsewhere autograd's share
-    two, one = (measure(adapter, _measuring_batch(low, cams, shapes, f), f, dtype, route) for f in (2, 1))
-    per_frame = max(0, two - one)
+    cuda = adapter.device.type == "cuda"  # a CUDA step's whole peak; elsewhere autograd's share
+    one, per_frame = frame_bytes(adapter, lambda f: _measuring_batch(low, cams, shapes, f), dtype, route)
     if not cuda:  # on CUDA the features' copy on the device is inside the measured peak
         per_frame += sum(tokens * width * 4 for tokens, width in shapes.values())  # the batch's features in fp32
     held = sum(buffer_frames(mib, src.frame_bytes(), batch_size, len(rows)) * src.frame_bytes()
                for rows, src, mib in ((low, source, buffer_mib), *others))
     frames = batch_size * (1 + len(others))
     grid = ", ".join(f"{cam} {t}x{w}" for cam, (t, w) in sorted(shapes.items()))
-    checkpointed = " with activation checkpointing" if adapter.recomputing else ""
-    what = (f"a training step of --batch-size {batch_size}{checkpointed} ({size(per_frame)} a frame, measured on a "
-            f"1- and a 2-frame step of features {grid})")
+    what = (f"a training step of --batch-size {batch_size}{PLANS[adapter.recompute_plan].phrase} ({size(per_frame)} a "
+            f"frame, measured on a 1- and a 2-frame step of features {grid})")
     hint, buffers = "lower --batch-size", "shuffle buffer"
     if others:
         what = f"{what} for each of the {1 + len(others)} cells of a backbone pass"
         hint, buffers = "lower --cells-per-pass or --batch-size", "shuffle buffers"
-    if not checkpointed:
-        hint += " or pass --recompute on"
+    if adapter.recompute_plan != adapter.recompute_plans[-1]:  # the plan that keeps least is left to try
+        hint += f" or pass --recompute {adapter.recompute_plans[-1]}"
     if cuda:  # the 1-frame step's peak holds everything a step needs once; each further frame adds per_frame
         require(what, one + (frames - 1) * per_frame, *available_memory(adapter.device), hint)
         require(f"the {buffers} ({size(held)}) of --batch-size {batch_size}", held,

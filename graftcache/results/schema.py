@@ -96,7 +96,8 @@ SCHEMA: dict[str, pl.DataType] = {
     "camera_map": pl.String,          # which cache camera fed each policy camera, e.g. "image=agentview,image2=
                                       # eye_in_hand" (graftcache/cameras.py); also when every name matched
     "graftcache_version": pl.String,
-    "activation_checkpointing": pl.String,  # "on" | "off": what `--recompute` (auto) resolved to
+    "activation_checkpointing": pl.String,  # the recompute plan "off" | "mlp" | "on" that `--recompute` (auto)
+                                      # resolved to (graftcache.requests.RECOMPUTE_PLANS)
     "eval_seconds_per_frame": pl.Float64,  # scoring's wall time (reading, prefix, denoising) / n_eval_frames
     "attention": pl.String,           # "eager" | "sdpa": what `--attention` (auto) resolved to for the frozen LM and
                                       # expert (graftcache/backbones/attention.py); null: a row written before it

@@ -121,9 +121,9 @@ def test_rows_record_the_encoders_and_the_backbones_weights_apart(world: World, 
 
 def test_recompute_attention_and_the_eval_batch_size_change_no_number_and_rows_record_them(
         world: World, tmp_path: Path) -> None:
-    """`--recompute on` trains with the same gradients (CPU, fp32: the same rows), `auto` resolves to
-    off where the step fits; `--attention auto` resolves to the fused path (sdpa), equal to eager within fp32
-    rounding; scoring 4 frames one at a time scores them as one batch of 4. None changes the run_id; rows record
+    """`--recompute on` and `mlp` (recompute plans) train with the same gradients (CPU, fp32: the same rows), `auto`
+    resolves to off where the step fits; `--attention auto` resolves to the fused path (sdpa), equal to eager within
+    fp32 rounding; scoring 4 frames one at a time scores them as one batch of 4. None changes the run_id; rows record
     each and what scoring cost a frame, and the cell's log line says so."""
     lines: list[str] = []
     plain = Fitter(world.request(controls=("lora",), results=str(tmp_path / "a.parquet"), compute_dtype="fp32"),
@@ -131,6 +131,13 @@ def test_recompute_attention_and_the_eval_batch_size_change_no_number_and_rows_r
     other = Fitter(world.request(controls=("lora",), results=str(tmp_path / "b.parquet"), compute_dtype="fp32",
                                  recompute="on", attention="eager", eval_batch_size=1),
                    log=_quiet).run()
+    mlp = Fitter(world.request(results=str(tmp_path / "c.parquet"), compute_dtype="fp32", recompute="mlp"),
+                 log=_quiet).run()  # the recompute plan of MLPs alone
+    graft = next(r for r in plain if r["control"] == "none")
+    assert [r["activation_checkpointing"] for r in mlp] == ["mlp"] and [r["run_id"] for r in mlp] == [graft["run_id"]]
+    assert mlp[0]["train_loss_final"] == pytest.approx(graft["train_loss_final"], rel=1e-5)
+    assert mlp[0]["eval_mse_episodes"] == pytest.approx(graft["eval_mse_episodes"], rel=1e-5)
+    assert results.read(tmp_path / "c.parquet")["activation_checkpointing"].to_list() == ["mlp"]
     for a, b in zip(plain, other, strict=True):
         assert a["run_id"] == b["run_id"]
         assert b["train_loss_final"] == pytest.approx(a["train_loss_final"], rel=1e-5)

@@ -13,7 +13,7 @@ tokens are made per batch by lerobot's preprocessor, not once per task.
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Iterator, Mapping
 from typing import Any
 
 import torch
@@ -60,6 +60,11 @@ class PaliGemmaAdapter(BackboneAdapter):
     def _vision_owner(self) -> nn.Module:
         return self.policy.model.paligemma_with_expert.paligemma.model  # PaliGemmaModel
 
+    def _mlp_slots(self) -> Iterator[tuple[nn.Module, str]]:
+        """Each language-model layer's MLP (lerobot and transformers call `layer.mlp(...)`)."""
+        for layer in self._vision_owner.language_model.layers:
+            yield layer.mlp, "forward"
+
     @classmethod
     def _grid_of_config(cls, config, marker: dict | None) -> tuple[int, int]:
         if marker is not None:
@@ -105,6 +110,12 @@ class PI05Adapter(FlowObjective, PaliGemmaAdapter):
 
     def _predict_chunk(self, batch: Mapping[str, Any], noise: torch.Tensor, num_steps: int) -> torch.Tensor:
         return self.policy.predict_action_chunk(dict(batch), noise=noise, num_steps=num_steps)
+
+    def _mlp_slots(self) -> Iterator[tuple[nn.Module, str]]:
+        """The language model's MLPs and the action expert's (compute_layer_complete calls `layer.mlp(...)`)."""
+        yield from super()._mlp_slots()
+        for layer in self.policy.model.paligemma_with_expert.gemma_expert.model.layers:
+            yield layer.mlp, "forward"
 
     def _switch_recompute(self, on: bool) -> None:
         """lerobot's own switch (every LM and expert layer, in training mode)."""

@@ -23,5 +23,6 @@ SPEC = BackboneSpec(
     prompt_uses_state=True,
     cells_per_pass={"cpu": 1, "cuda": 1},
     can_recompute=True,
+    compiled_forward="policy.model",
     attentions=("eager", "sdpa"),
 )

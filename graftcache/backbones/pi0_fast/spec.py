@@ -21,5 +21,6 @@ SPEC = BackboneSpec(
     loss_per_sample=False,
     flow_time=None,
     can_recompute=True,
+    compiled_forward="policy.model",
     attentions=("sdpa", "eager"),  # lerobot leaves pi0-FAST's Gemma at transformers' sdpa
 )

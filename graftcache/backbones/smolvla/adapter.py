@@ -103,6 +103,11 @@ class SmolVLAAdapter(WrappedActivationCheckpointing, FlowObjective, BackboneAdap
         """The attention of every layer (one function of the joint model) and each LM and expert layer's MLP."""
         joint = self.policy.model.vlm_with_expert
         yield joint, "eager_attention_forward"
+        yield from self._mlp_slots()
+
+    def _mlp_slots(self) -> Iterator[tuple[nn.Module, str]]:
+        """Each LM and expert layer's MLP."""
+        joint = self.policy.model.vlm_with_expert
         for layers in (joint.get_vlm_model().text_model.layers, joint.lm_expert.layers):
             for layer in layers:
                 yield layer.mlp, "forward"

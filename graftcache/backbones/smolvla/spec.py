@@ -24,5 +24,6 @@ SPEC = BackboneSpec(
     scaled_embeddings=True,
     cells_per_pass={"cpu": 1, "cuda": 4},
     can_recompute=True,
+    compiled_forward="policy.model",
     attentions=("eager", "sdpa"),
 )
