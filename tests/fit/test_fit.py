@@ -438,7 +438,7 @@ def test_cell_run_ids_are_pinned() -> None:
 def test_a_loaded_policy_whose_token_grid_is_not_its_configs_is_refused(world: World) -> None:
     """Issue 41, item 2: cells hash the token grid the policy's config gives (Plan.token_grid) and are fed that one;
     the loaded policy's is checked against it, so a row's pool_grid never differs from the grid its run_id hashed."""
-    plan = Plan(world.request(), log=_quiet)
+    plan = Plan(world.request(cache_key=world.encoder_key), log=_quiet)
     height, width = plan.token_grid
     plan.token_grid = (height + 1, width)  # a config that says what the loaded policy does not take
     with pytest.raises(FitError) as refused:

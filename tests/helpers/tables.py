@@ -123,6 +123,11 @@ def row(backbone: str, suite: str, encoder: str, seed: int, eval_mse: float | No
         "eval_batch_size": 64,
         "eval_seconds_per_frame": 0.01,
         "attention": "eager",
+        "compile": False,
+        "eval_fraction": 0.2,
+        "eval_frames": 120,
+        "num_denoise_steps": 10,
+        "lora_rank": 8 if control == "lora" else 0,  # the cell's: 0 but for the lora control
     }
     base.update(over)
     return base

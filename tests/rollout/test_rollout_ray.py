@@ -20,6 +20,7 @@ from graftcache import results
 from graftcache.errors import RolloutError
 from graftcache.executors import get_executor
 from graftcache.requests import ExecutorSettings
+from graftcache.results.claims import claims_folder
 from graftcache.rollout import table
 from graftcache.rollout.run import RolloutRequest, roll_out, roll_out_started
 from graftcache.rollout.select import select_rows
@@ -63,7 +64,7 @@ def test_ray_actors_skip_what_the_file_holds_and_write_the_rows_of_this_process(
     assert len(pids(tmp_path / "ray" / "traces")) == actors  # the actors' (the planner's: traces/planner)
     # one line per cell that had episodes to run: the first cell's 4 are among the 5 in the file
     assert sum(line.startswith("rolled out ") for line in lines) == 5
-    assert not results.claims_folder(req.rollouts).exists()
+    assert not claims_folder(req.rollouts).exists()
 
 
 @pytest.mark.slow
@@ -77,7 +78,7 @@ def test_an_error_in_a_ray_actor_is_one_line_naming_the_run_and_episode(ray_clus
     head, actor = line.rsplit(" (ray actor 0, pid ", 1)
     assert head == f"run {run}, libero_object task 3 episode 1 (seed 8): RuntimeError: the simulator broke"
     assert int(actor.split(" on ")[0]) in pids(tmp_path / "traces")
-    assert not results.claims_folder(req.rollouts).exists()
+    assert not claims_folder(req.rollouts).exists()
     rows = table.read(req.rollouts)  # whole rows of the episodes before it, that one not among them
     assert 0 < rows.height < EPISODES
     assert (run, 3, 1) not in set(rows.select("run_id", "task_index", "episode").rows())
