@@ -518,10 +518,22 @@ def scaling(report: Report, stage: str, adapter, batches: list[int], dtype: torc
                 break  # larger batches would not fit either
 
 
+def record_cells(out: dict, result: dict, n: int, steps_per_cell: int, **also: str) -> None:
+    """Put one timed step of `n` cells (time_step's `result`) into a check's `out`, with `also`: its seconds a
+    cell-step and training cells per GPU-hour at `steps_per_cell`, or status oom where no step ran."""
+    out.update(result, **also)
+    if "step_s" in result:
+        cell_step = result["step_s"] / n
+        out.update(cell_step_s=cell_step, steps_per_cell=steps_per_cell,
+                   training_cells_per_gpu_hour=3600 / (steps_per_cell * cell_step))
+    else:
+        out["status"] = "oom"
+
+
 def cells_per_pass(report: Report, stage: str, adapter, batch: int, counts: list[int], dtype: torch.dtype,
                    repeats: int, steps_per_cell: int) -> None:
     """Seconds a cell-step against cells per pass at `batch`, and training cells per GPU-hour at
-    `steps_per_cell` (checkpointing on only where off does not fit)."""
+    `steps_per_cell` (recompute on only where off does not fit)."""
     width = ENC_WIDTH if adapter.tiny_marker is None else TINY_ENC
     feats = features(adapter, 64, width)
     for n in counts:
@@ -534,13 +546,7 @@ def cells_per_pass(report: Report, stage: str, adapter, batch: int, counts: list
             result = time_step(adapter, feats, batch, dtype, n, repeats, "off")
             if "oom" in result and adapter.spec.can_recompute:
                 result = time_step(adapter, feats, batch, dtype, n, repeats, "on")
-            out.update(result)
-            if "step_s" in result:
-                cell_step = result["step_s"] / n
-                out.update(cell_step_s=cell_step, steps_per_cell=steps_per_cell,
-                           training_cells_per_gpu_hour=3600 / (steps_per_cell * cell_step))
-            else:
-                out["status"] = "oom"
+            record_cells(out, result, n, steps_per_cell)
 
 
 # ---------------------------------------------------------------------------------------------- stages 7-10
@@ -627,13 +633,7 @@ def fused_cells(report: Report, stage: str, adapter, batches: list[int], counts:
                         result = time_step(adapter, feats, batch, dtype, n, repeats, plan)
                         if "oom" not in result:
                             break
-                    out.update(result, attention=attention)
-                    if "step_s" in result:
-                        cell_step = result["step_s"] / n
-                        out.update(cell_step_s=cell_step, steps_per_cell=steps_per_cell,
-                                   training_cells_per_gpu_hour=3600 / (steps_per_cell * cell_step))
-                    else:
-                        out["status"] = "oom"
+                    record_cells(out, result, n, steps_per_cell, attention=attention)
     adapter.set_attention("eager")
 
 
