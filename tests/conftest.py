@@ -7,9 +7,11 @@ plugins below (tests/fixtures/), plain helpers in tests/helpers/ (imported norma
 from __future__ import annotations
 
 import os
+from collections.abc import Iterator
 
 from helpers.env import OFFLINE, isolated_homes
 from helpers.parallel import check_groups, keep_order, limit_worker_threads, schedule
+from helpers.scheduling import check_scheduling
 
 os.environ.update(OFFLINE)  # before anything imports huggingface_hub
 os.environ.setdefault("TOKENIZERS_PARALLELISM", "false")
@@ -52,3 +54,10 @@ def _isolated_homes(tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytes
     """Point every cache a test could touch (graftcache, HF hub, lerobot) at a per-session temp dir."""
     for name, value in isolated_homes(tmp_path_factory.getbasetemp()).items():
         monkeypatch.setenv(name, value)
+
+
+@pytest.fixture(autouse=True)
+def _scheduling_kept(request: pytest.FixtureRequest) -> Iterator[None]:
+    """A test that leaves this process real-time fails, and the process is put back (tests/helpers/scheduling.py)."""
+    yield
+    check_scheduling(request.node.nodeid)

@@ -25,6 +25,8 @@ import pyarrow.parquet as pq
 import pytest
 from PIL import Image
 
+from helpers.scheduling import scheduling_kept
+
 H = W = 64
 FPS = 10
 LENGTHS = (5, 7, 6)
@@ -95,16 +97,17 @@ def write_lerobot(root: Path, *, video: bool, vcodec: str = "libsvtav1", small_f
     if small_files:
         ds.meta.update_chunk_settings(data_files_size_in_mb=0.001, video_files_size_in_mb=0.001)
     written = Written(root=root, repo_id=repo_id, cameras=cameras)
-    for ep, length in enumerate(lengths):
-        for c, key in enumerate(cameras):
-            written.frames[ep, key] = make_frames(ep, length, c, noise=not video)
-        written.state[ep], written.action[ep] = make_lowdim(ep, length)
-        for t in range(length):
-            frame = {key: written.frames[ep, key][t] for key in cameras}
-            ds.add_frame({**frame, "observation.state": written.state[ep][t], "action": written.action[ep][t],
-                          "task": TASKS[ep]})
-        ds.save_episode(parallel_encoding=False)
-    ds.finalize()
+    with scheduling_kept():  # SVT-AV1 as root leaves this thread real-time (helpers/scheduling.py)
+        for ep, length in enumerate(lengths):
+            for c, key in enumerate(cameras):
+                written.frames[ep, key] = make_frames(ep, length, c, noise=not video)
+            written.state[ep], written.action[ep] = make_lowdim(ep, length)
+            for t in range(length):
+                frame = {key: written.frames[ep, key][t] for key in cameras}
+                ds.add_frame({**frame, "observation.state": written.state[ep][t], "action": written.action[ep][t],
+                              "task": TASKS[ep]})
+            ds.save_episode(parallel_encoding=False)
+        ds.finalize()
     return written
 
 
@@ -178,7 +181,7 @@ def png_bytes(frame: np.ndarray) -> bytes:
 def write_mp4(path: Path, frames: np.ndarray, codec: str = "libx264") -> None:
     """An mp4 like lerobot's (yuv420p, keyframe every 2 frames), written with PyAV."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    with av.open(str(path), "w") as out:
+    with scheduling_kept(), av.open(str(path), "w") as out:
         stream = out.add_stream(codec, FPS, options={"g": "2", "crf": "23"})
         stream.pix_fmt, stream.width, stream.height = "yuv420p", W, H
         for f in frames:
