@@ -131,12 +131,14 @@ def run_closed_loop_demo(recipe_path: str | Path | None = None, out: str | Path 
     command = f"graftcache demo --closed-loop --recipe {path}"
     spawn = partial(LiberoSimulator, results, rollouts.parent / EXPORTS_FOLDER, cache=recipe.cache, runs=None,
                     max_steps=plan.max_steps)
-    # per request, the workers start first: their simulators build while this process builds its own, to plan
-    for run_ids, episodes in ((cells.figure, plan.episodes_per_task), (cells.paired, plan.paired_episodes_per_task)):
-        req = RolloutRequest(results=results, rollouts=rollouts, run_ids=run_ids, tasks=plan.tasks,
-                             episodes_per_task=episodes, max_steps=plan.max_steps, perturb_cm=plan.perturb_cm,
-                             command=command)
-        roll_out_started(req, spawn, get_executor(ExecutorSettings()).rollout_team(req, spawn, plan.workers, write))
+    requests = [RolloutRequest(results=results, rollouts=rollouts, run_ids=run_ids, tasks=plan.tasks,
+                               episodes_per_task=episodes, max_steps=plan.max_steps, perturb_cm=plan.perturb_cm,
+                               command=command)
+                for run_ids, episodes in ((cells.figure, plan.episodes_per_task),
+                                          (cells.paired, plan.paired_episodes_per_task))]
+    # one team for both: its workers start first, their simulators building while this process builds its own, to plan
+    team = get_executor(ExecutorSettings()).rollout_team(requests[0], spawn, plan.workers, write)
+    roll_out_started(requests, spawn, team)
     report_dir = Path(out) if out else results.parent / "report"
     commands = {"demo --closed-loop": command, **state.commands}
     paths = write_report(results, report_dir, commands=commands, rollouts=rollouts)

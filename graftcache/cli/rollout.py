@@ -132,5 +132,5 @@ def run(args: argparse.Namespace) -> int:
                     runs=_absolute(args.runs), max_steps=args.max_steps, videos=args.videos)
     executor = get_executor(request_from(ExecutorSettings, args))
     # the team starts first: its simulators build while this process builds its own, to plan
-    roll_out_started(req, spawn, executor.rollout_team(req, spawn, args.workers, print))
+    roll_out_started([req], spawn, executor.rollout_team(req, spawn, args.workers, print))
     return 0

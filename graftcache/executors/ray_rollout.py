@@ -104,8 +104,10 @@ class Actors:
     def run(self, req: RolloutRequest, rows: Mapping[str, Mapping[str, Any]], missing: Sequence[Episode], bar: Any,
             log: Log) -> None:
         """Hand `missing` to the actors, an episode per call, and append each row as its call finishes; actors beyond
-        the number of episodes are ended at once."""
-        busy, spare = self.team[: len(missing)], self.team[len(missing):]
+        the number of episodes are ended at once, the others kept for the next request (graftcache.rollout.run.Team)
+        until `close`."""
+        self.team, spare = self.team[: len(missing)], self.team[len(missing):]
+        busy = self.team
         for actor in spare:
             ray.kill(actor.handle, no_restart=True)
         log(f"ray: {len(busy)} simulator actor(s) running {len(missing)} episode(s)")

@@ -173,12 +173,15 @@ class Team(Protocol):
     processes on this machine (graftcache.rollout.workers.Workers, `--workers N`) or Ray actors
     (graftcache.executors.ray_rollout.Actors, `--executor ray`), as an executor starts them
     (graftcache.executors.Executor.rollout_team). A team starts when built, so its simulators build while this
-    process plans; it holds the claims of the cells in flight and gets every episode written."""
+    process plans; it holds the claims of the cells in flight and gets every episode written. It serves requests
+    one after another until closed (graftcache.rollout.run.roll_out_started), so a command of several requests
+    pays for one start-up."""
 
     def run(self, req: RolloutRequest, rows: Mapping[str, Mapping[str, Any]], missing: Sequence[Episode], bar: Any,
             log: Callable[[str], None]) -> None:
         """Run `missing`, episodes of the cells `rows` holds by run_id; `bar` advances by one per episode written or
-        found written by another rollout."""
+        found written by another rollout. Workers beyond the number of episodes are ended at once (the team is
+        smaller for the requests that follow)."""
 
     def close(self) -> None:
         """Every worker stopped; nothing of the team outlives it."""
@@ -215,14 +218,23 @@ def roll_out(req: RolloutRequest, sim: Simulator, log: Callable[[str], None] = p
     return _of(req, episodes)
 
 
-def roll_out_started(req: RolloutRequest, spawn: Callable[[], Simulator], team: Team | None,
+def roll_out_started(requests: Sequence[RolloutRequest], spawn: Callable[[], Simulator], team: Team | None,
                      log: Callable[[str], None] = progress_write) -> pl.DataFrame:
-    """`roll_out` with a simulator built by `spawn` here, after `team` was started (None: none), so that the team's
-    workers build theirs meanwhile; the simulator and the team are closed when it ends, however it ends."""
+    """`roll_out` of each request in turn, with one simulator built by `spawn` here, after `team` was started (None:
+    none), so that the team's workers build theirs meanwhile; the simulator and the team are closed when the last
+    ends, however it ends. Returns the rows of every request's episodes, in order.
+
+    Why several requests: requests that differ in what one request holds for all its cells (the closed-loop demo's
+    figure and paired cells differ in episodes per task) share the team's start-up, a simulator's imports and build
+    in each worker. They must share the rollouts file and command, which the team's workers were started with."""
     try:
+        if len({(r.rollouts, r.command) for r in requests}) > 1:
+            raise RolloutError("requests rolled out by one team must share their rollouts file and command: "
+                               + "; ".join(f"{r.rollouts} ({r.command!r})" for r in requests))
         sim = spawn()  # with a team, it only plans
         try:
-            return roll_out(req, sim, log, team=team)
+            rows = pl.concat([roll_out(req, sim, log, team=team) for req in requests])
+            return rows.unique("episode_id", keep="first", maintain_order=True)
         finally:
             close = getattr(sim, "close", None)
             if close is not None:

@@ -6,7 +6,8 @@ last loaded cell it keeps) and runs the episodes this process hands it, one at a
 
 Startup: the team is started before this process plans (graftcache.rollout.run.roll_out_started), so that the
 workers' imports and simulator builds overlap this process's own (a simulator to plan with: lerobot's LIBERO imports)
-and its planning; workers left without an episode are stopped when the plan is known.
+and its planning; workers left without an episode are stopped when the plan is known. One team serves the requests
+of one command in turn (the closed-loop demo's two), so they start once.
 
 Granularity: the episode, not the cell, so that a few cells of many episodes still keep every worker busy. This process
 schedules: a worker that finishes gets the next episode of the cell it ran last (its policy stays loaded), else the
@@ -120,10 +121,12 @@ class Workers:
     def run(self, req: RolloutRequest, rows: Mapping[str, Mapping[str, Any]], missing: Sequence[Episode], bar: Any,
             log: Callable[[str], None]) -> None:
         """Run `missing` (episodes of the cells `rows` holds by run_id); `bar` advances by one per episode written or
-        found written. Workers beyond the number of episodes are stopped at once."""
+        found written. Workers beyond the number of episodes are stopped at once; the others wait for the next
+        request (graftcache.rollout.run.Team) or `close`. A failure stops them all."""
         cells = cells_of(rows, missing)
-        busy, spare = self.team[: len(missing)], self.team[len(missing):]
+        self.team, spare = self.team[: len(missing)], self.team[len(missing):]
         _stop(spare)
+        busy = self.team
         log(f"{len(busy)} worker processes, each with a simulator of its own")
         scheduler = Scheduler(req, cells, bar, log)
         try:
@@ -138,16 +141,20 @@ class Workers:
                         scheduler.finished(worker, _receive(worker))
                     elif worker.process.sentinel in ready:
                         raise RolloutError(_death(worker))
-            _finish(busy)
-        finally:  # stopped or failed too: no worker outlives the loop, and then no claim is left behind
+        except BaseException:  # stopped or failed: no worker outlives the loop, and then no claim is left behind
             try:
                 _stop(busy)
             finally:  # a stop raised again while the workers are reaped (graftcache.cli.signals._Stop) keeps no claim
                 scheduler.release()
+            raise
+        scheduler.release()
 
     def close(self) -> None:
-        """Every worker stopped (those told to finish have had their time to close their simulators)."""
-        _stop(self.team)
+        """Every worker told to finish, given its time to close its simulator (CLOSE_S), then stopped."""
+        try:
+            _finish(self.team)
+        finally:
+            _stop(self.team)
 
 
 def cells_of(rows: Mapping[str, Mapping[str, Any]], missing: Sequence[Episode]) -> dict[str, _Cell]:

@@ -40,7 +40,7 @@ def _on_ray(req: RolloutRequest, traces: Path, lines: list[str], actors: int | N
             **paced: Any) -> pl.DataFrame:
     spawn = partial(Paced, traces, **paced)
     team = get_executor(ExecutorSettings(executor="ray")).rollout_team(req, spawn, actors, lines.append)
-    return roll_out_started(req, partial(Paced, traces / "planner"), team, log=lines.append)
+    return roll_out_started([req], partial(Paced, traces / "planner"), team, log=lines.append)
 
 
 @pytest.mark.slow

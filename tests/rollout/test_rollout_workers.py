@@ -53,7 +53,7 @@ def _first_run(req: RolloutRequest) -> str:
 
 def _in_workers(req: RolloutRequest, traces: Path, workers: int = 2, **paced: Any) -> pl.DataFrame:
     team = Workers(partial(Paced, traces, **paced), workers, req)
-    return roll_out_started(req, partial(Paced, traces / "planner"), team, log=lambda _: None)
+    return roll_out_started([req], partial(Paced, traces / "planner"), team, log=lambda _: None)
 
 
 def test_two_workers_write_the_rows_of_one_each_keeping_to_its_cells(tmp_path: Path) -> None:
@@ -63,7 +63,7 @@ def test_two_workers_write_the_rows_of_one_each_keeping_to_its_cells(tmp_path: P
     lines: list[str] = []
     req = _request(tmp_path / "two")
     team = Workers(partial(Paced, tmp_path / "two" / "traces", delay=0.05), 2, req)
-    two = roll_out_started(req, partial(Paced, tmp_path / "two" / "planner"), team, log=lines.append)
+    two = roll_out_started([req], partial(Paced, tmp_path / "two" / "planner"), team, log=lines.append)
     assert one.height == two.height == EPISODES
     assert two.drop(VARYING).sort("episode_id").equals(one.drop(VARYING).sort("episode_id"))
     assert two["seconds"].to_list() == [0.05] * EPISODES  # the workers' outcomes, not the planner's
@@ -76,6 +76,32 @@ def test_two_workers_write_the_rows_of_one_each_keeping_to_its_cells(tmp_path: P
     assert lines[1] == "2 worker processes, each with a simulator of its own"
     assert sum(line.startswith("rolled out ") for line in lines) == 6  # one line per cell, as one worker says
     assert not claims_folder(req.rollouts).exists() and not multiprocessing.active_children()
+
+
+def test_one_team_serves_requests_in_turn_starting_once(tmp_path: Path) -> None:
+    """The closed-loop demo's use (graftcache.demo_closed_loop): requests differing in episodes per task, one team.
+    The second request runs only what the first left missing; rows as one worker's; two worker processes in all."""
+    (tmp_path / "one").mkdir()
+    one = roll_out(_request(tmp_path / "one"), Paced(tmp_path / "one" / "traces"), log=lambda _: None)
+    (tmp_path / "two").mkdir()
+    first, second = _request(tmp_path / "two", episodes_per_task=1), _request(tmp_path / "two")
+    lines: list[str] = []
+    team = Workers(partial(Paced, tmp_path / "two" / "traces", delay=0.02), 2, first)
+    two = roll_out_started([first, second], partial(Paced, tmp_path / "two" / "planner"), team, log=lines.append)
+    assert two.drop(VARYING).sort("episode_id").equals(one.drop(VARYING).sort("episode_id"))
+    assert len(pids(tmp_path / "two" / "traces")) == 2  # started once, for both requests
+    episodes = ran(tmp_path / "two" / "traces")
+    assert len(episodes) == len(set(episodes)) == EPISODES  # the second ran only the second episode of each task
+    assert Counter(k for *_, k in episodes) == {0: EPISODES // 2, 1: EPISODES // 2}
+    assert f"{EPISODES // 2} of {EPISODES} episodes already in {second.rollouts}; running the other {EPISODES // 2}" \
+        in lines
+    assert not claims_folder(second.rollouts).exists() and not multiprocessing.active_children()
+
+
+def test_requests_of_one_team_must_share_the_rollouts_file(tmp_path: Path) -> None:
+    first, second = _request(tmp_path), _request(tmp_path, rollouts=tmp_path / "other.parquet")
+    with pytest.raises(RolloutError, match="requests rolled out by one team must share their rollouts file"):
+        roll_out_started([first, second], partial(Paced, tmp_path / "planner"), None, log=lambda _: None)
 
 
 def test_an_error_in_a_worker_is_one_line_naming_the_run_and_episode(tmp_path: Path) -> None:
@@ -125,7 +151,7 @@ from graftcache.rollout.workers import Workers
 here = Path(sys.argv[1])
 req = RolloutRequest(results=here / "results.parquet", rollouts=here / "rollouts.parquet", top=1,
                      suites=("libero_object",), tasks=(0, 3), episodes_per_task=2, seed=7, command="killed")
-roll_out_started(req, partial(Paced, here / "planner"), Workers(partial(Paced, here / "traces", delay=0.4), 2, req))
+roll_out_started([req], partial(Paced, here / "planner"), Workers(partial(Paced, here / "traces", delay=0.4), 2, req))
 """
 
 
