@@ -31,6 +31,7 @@ import torch  # noqa: E402
 from common import DEFAULT_DATASET, machine, warm_page_cache  # noqa: E402
 from torch.utils.data import DataLoader, Dataset  # noqa: E402
 
+from devtools.scheduling import scheduling_kept  # noqa: E402
 from graftcache.datasets import LeRobotSource, open_dataset  # noqa: E402
 from graftcache.runtime import single_thread_worker  # noqa: E402
 
@@ -71,22 +72,23 @@ def synthesize(root: Path, episodes: int, length: int) -> Path:
                                use_videos=True)
     rng = np.random.default_rng(0)
     yy, xx = np.mgrid[0:256, 0:256]
-    for ep in range(episodes):
-        scene = texture(rng, 320)
-        for t in range(length):
-            frame = {}
-            for c, key in enumerate(keys):
-                dx = int(12 * np.sin(t / 15)) if c else 0
-                img = scene[20 + dx:276 + dx, 20:276].copy()
-                for k in range(3):
-                    cx, cy = 60 + 1.2 * t + 50 * k, 100 + 40 * k + 20 * np.sin(t / 10 + k)
-                    mask = (xx - cx) ** 2 + (yy - cy) ** 2 < 300 + 100 * k
-                    img[mask] = scene[:256, :256][mask] // 2 + np.array([120, 40 * k, 30], np.uint8)
-                frame[key] = img
-            ds.add_frame({**frame, "observation.state": rng.standard_normal(8).astype(np.float32),
-                          "action": rng.uniform(-1, 1, 7).astype(np.float32), "task": f"synthetic task {ep % 3}"})
-        ds.save_episode()
-    ds.finalize()
+    with scheduling_kept():  # SVT-AV1 as root leaves this thread real-time (devtools/scheduling.py)
+        for ep in range(episodes):
+            scene = texture(rng, 320)
+            for t in range(length):
+                frame = {}
+                for c, key in enumerate(keys):
+                    dx = int(12 * np.sin(t / 15)) if c else 0
+                    img = scene[20 + dx:276 + dx, 20:276].copy()
+                    for k in range(3):
+                        cx, cy = 60 + 1.2 * t + 50 * k, 100 + 40 * k + 20 * np.sin(t / 10 + k)
+                        mask = (xx - cx) ** 2 + (yy - cy) ** 2 < 300 + 100 * k
+                        img[mask] = scene[:256, :256][mask] // 2 + np.array([120, 40 * k, 30], np.uint8)
+                    frame[key] = img
+                ds.add_frame({**frame, "observation.state": rng.standard_normal(8).astype(np.float32),
+                              "action": rng.uniform(-1, 1, 7).astype(np.float32), "task": f"synthetic task {ep % 3}"})
+            ds.save_episode()
+        ds.finalize()
     return root
 
 

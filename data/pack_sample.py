@@ -31,6 +31,8 @@ from lerobot.configs.video import RGBEncoderConfig  # noqa: E402
 from lerobot.datasets.lerobot_dataset import LeRobotDataset  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
+from devtools.scheduling import scheduling_kept  # noqa: E402
+
 CAMERAS = {"observation.images.image": "image", "observation.images.image2": "image2"}  # key -> npz array
 STATE_NAMES = ["eef_x", "eef_y", "eef_z", "eef_axis_angle_x", "eef_axis_angle_y", "eef_axis_angle_z",
                "gripper_qpos_left", "gripper_qpos_right"]
@@ -53,14 +55,15 @@ def pack(manifest: dict, npz_dir: Path, args: argparse.Namespace) -> LeRobotData
                                rgb_encoder=RGBEncoderConfig(vcodec=args.vcodec, g=args.gop, crf=args.crf,
                                                             preset=args.preset),
                                encoder_threads=args.encoder_threads)
-    for rec in tqdm(manifest["episodes"], desc="packing", unit="ep"):
-        z = np.load(npz_dir / rec["file"])
-        for t in range(len(z["action"])):
-            frame = {key: z[arr][t] for key, arr in CAMERAS.items()}
-            ds.add_frame({**frame, "observation.state": z["state"][t], "action": z["action"][t],
-                          "task": str(z["task"])})
-        ds.save_episode(parallel_encoding=False)  # in-process: the machine is shared anyway
-    ds.finalize()
+    with scheduling_kept():  # SVT-AV1 as root leaves this thread real-time (devtools/scheduling.py)
+        for rec in tqdm(manifest["episodes"], desc="packing", unit="ep"):
+            z = np.load(npz_dir / rec["file"])
+            for t in range(len(z["action"])):
+                frame = {key: z[arr][t] for key, arr in CAMERAS.items()}
+                ds.add_frame({**frame, "observation.state": z["state"][t], "action": z["action"][t],
+                              "task": str(z["task"])})
+            ds.save_episode(parallel_encoding=False)  # in-process: the machine is shared anyway
+        ds.finalize()
     return ds
 
 

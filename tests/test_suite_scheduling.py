@@ -1,6 +1,6 @@
-"""tests/helpers/scheduling.py: SVT-AV1 run as root leaves its thread real-time; the test writers put it back, and
-a test that does not is failed by conftest.py. Each case runs in a thread of its own, whose policy is its own, so
-this process's main thread (the one the guard watches) is never touched."""
+"""devtools/scheduling.py and tests/helpers/scheduling.py: SVT-AV1 run as root leaves its thread real-time; the
+test writers put it back, and a test that does not is failed by conftest.py. Each case runs in a thread of its own,
+whose policy is its own, so this process's main thread (the one the guard watches) is never touched."""
 
 from __future__ import annotations
 
@@ -13,7 +13,9 @@ import av
 import numpy as np
 import pytest
 from helpers.datasets import write_mp4
-from helpers.scheduling import STARTED, check_scheduling, current, describe
+from helpers.scheduling import STARTED, check_scheduling
+
+from devtools.scheduling import current, describe
 
 ROOT = os.geteuid() == 0
 FRAMES = np.zeros((4, 64, 64, 3), np.uint8)

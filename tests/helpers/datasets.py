@@ -25,7 +25,7 @@ import pyarrow.parquet as pq
 import pytest
 from PIL import Image
 
-from helpers.scheduling import scheduling_kept
+from devtools.scheduling import scheduling_kept
 
 H = W = 64
 FPS = 10
@@ -97,7 +97,7 @@ def write_lerobot(root: Path, *, video: bool, vcodec: str = "libsvtav1", small_f
     if small_files:
         ds.meta.update_chunk_settings(data_files_size_in_mb=0.001, video_files_size_in_mb=0.001)
     written = Written(root=root, repo_id=repo_id, cameras=cameras)
-    with scheduling_kept():  # SVT-AV1 as root leaves this thread real-time (helpers/scheduling.py)
+    with scheduling_kept():  # SVT-AV1 as root leaves this thread real-time (devtools/scheduling.py)
         for ep, length in enumerate(lengths):
             for c, key in enumerate(cameras):
                 written.frames[ep, key] = make_frames(ep, length, c, noise=not video)
