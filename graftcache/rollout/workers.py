@@ -193,8 +193,9 @@ class Scheduler:
 
     def _next_cell(self, worker: Any) -> _Cell | None:
         held = [c for c in self.cells.values() if c.claim is not None and not c.closed and c.todo]
-        if worker.last is not None and self.cells[worker.last] in held:
-            return self.cells[worker.last]
+        last = self.cells.get(worker.last) if worker.last is not None else None  # an earlier request's cell: None
+        if last in held:
+            return last
         idle = [c for c in held if not c.running]
         if idle:
             return idle[0]

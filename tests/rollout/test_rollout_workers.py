@@ -79,23 +79,35 @@ def test_two_workers_write_the_rows_of_one_each_keeping_to_its_cells(tmp_path: P
 
 
 def test_one_team_serves_requests_in_turn_starting_once(tmp_path: Path) -> None:
-    """The closed-loop demo's use (graftcache.demo_closed_loop): requests differing in episodes per task, one team.
-    The second request runs only what the first left missing; rows as one worker's; two worker processes in all."""
-    (tmp_path / "one").mkdir()
-    one = roll_out(_request(tmp_path / "one"), Paced(tmp_path / "one" / "traces"), log=lambda _: None)
-    (tmp_path / "two").mkdir()
-    first, second = _request(tmp_path / "two", episodes_per_task=1), _request(tmp_path / "two")
+    """The closed-loop demo's use (graftcache.demo_closed_loop): requests of other cells and other episodes per task,
+    one team. A worker's last cell belongs to the request before (a KeyError in the scheduler once); the third request
+    repeats cells of the first and runs only what it left missing. Rows as one process's; two worker processes in
+    all."""
+    path = tmp_path / "results.parquet"
+    write_results(path)
+    cells = select_rows(results.read(path), top=1, suites=["libero_object"])["run_id"].to_list()
+    assert len(cells) == 6
+
+    def requests(folder: Path) -> list[RolloutRequest]:
+        folder.mkdir()
+        over = ({"run_ids": tuple(cells[:3]), "episodes_per_task": 1}, {"run_ids": tuple(cells[3:])},
+                {"run_ids": tuple(cells[:3])})
+        return [_request(folder, results=path, **o) for o in over]
+
+    alone = requests(tmp_path / "one")
+    one = pl.concat([roll_out(r, Paced(tmp_path / "one" / "traces"), log=lambda _: None) for r in alone])
+    reqs = requests(tmp_path / "two")
     lines: list[str] = []
-    team = Workers(partial(Paced, tmp_path / "two" / "traces", delay=0.02), 2, first)
-    two = roll_out_started([first, second], partial(Paced, tmp_path / "two" / "planner"), team, log=lines.append)
-    assert two.drop(VARYING).sort("episode_id").equals(one.drop(VARYING).sort("episode_id"))
-    assert len(pids(tmp_path / "two" / "traces")) == 2  # started once, for both requests
+    team = Workers(partial(Paced, tmp_path / "two" / "traces", delay=0.02), 2, reqs[0])
+    two = roll_out_started(reqs, partial(Paced, tmp_path / "two" / "planner"), team, log=lines.append)
+    assert two.height == EPISODES  # the first request's 6 episodes are the third's first 6: counted once
+    assert two.drop(VARYING).sort("episode_id").equals(one.unique("episode_id").drop(VARYING).sort("episode_id"))
+    assert len(pids(tmp_path / "two" / "traces")) == 2  # started once, for the three requests
     episodes = ran(tmp_path / "two" / "traces")
-    assert len(episodes) == len(set(episodes)) == EPISODES  # the second ran only the second episode of each task
-    assert Counter(k for *_, k in episodes) == {0: EPISODES // 2, 1: EPISODES // 2}
-    assert f"{EPISODES // 2} of {EPISODES} episodes already in {second.rollouts}; running the other {EPISODES // 2}" \
-        in lines
-    assert not claims_folder(second.rollouts).exists() and not multiprocessing.active_children()
+    assert len(episodes) == len(set(episodes)) == EPISODES
+    assert Counter(run for _, run, *_ in episodes) == {run: 4 for run in cells}
+    assert f"6 of 12 episodes already in {reqs[2].rollouts}; running the other 6" in lines
+    assert not claims_folder(reqs[2].rollouts).exists() and not multiprocessing.active_children()
 
 
 def test_requests_of_one_team_must_share_the_rollouts_file(tmp_path: Path) -> None:
