@@ -15,6 +15,7 @@ scene.
 from __future__ import annotations
 
 from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import Any
 
 import gymnasium as gym
@@ -58,15 +59,42 @@ def place_target(env: Any, target: str, init_state: np.ndarray, offset: np.ndarr
         raise RolloutError(f"the task's target {target} is a fixture, not a free object: --perturb-cm moves only "
                            "objects; roll out this task without it")
     joint = problem.objects_dict[target].joints[-1]
-    obs = env.set_init_state(init_state)
-    quat_before = np.array(obs[f"{target}_quat"])
-    qpos = problem.sim.data.get_joint_qpos(joint).copy()
-    qpos[:2] += offset
-    problem.sim.data.set_joint_qpos(joint, qpos)
-    problem.sim.forward()
-    for _ in range(SETTLE_STEPS):
-        obs, _, _, _ = env.step(NOOP)
+    with frames_reused(problem.sim):  # only the last step's images are kept
+        obs = env.set_init_state(init_state)
+        quat_before = np.array(obs[f"{target}_quat"])
+        qpos = problem.sim.data.get_joint_qpos(joint).copy()
+        qpos[:2] += offset
+        problem.sim.data.set_joint_qpos(joint, qpos)
+        problem.sim.forward()
+        for _ in range(SETTLE_STEPS - 1):
+            env.step(NOOP)
+    obs, _, _, _ = env.step(NOOP)
     return obs, settled(qpos[:2], obs[f"{target}_pos"][:2], quat_before, obs[f"{target}_quat"])
+
+
+@contextmanager
+def frames_reused(sim: Any) -> Iterator[None]:
+    """Inside, each camera view robosuite's MjSim `sim` is asked for is rendered once and that image returned again:
+    for steps whose images nobody keeps (the settling before the last step, lerobot's reset before a perturbation
+    replaces its scene). The physics never reads an image, so the scene evolves exactly as it would, and rendering
+    is most of a step's cost (2 cameras at 256 px, ~90 ms each, read back from an offscreen context on CPU)."""
+    render, own = sim.render, "render" in vars(sim)
+    seen: dict[Any, Any] = {}
+
+    def once(*args: Any, **kwargs: Any) -> Any:
+        key = (args, tuple(sorted(kwargs.items())))
+        if key not in seen:
+            seen[key] = render(*args, **kwargs)
+        return seen[key]
+
+    sim.render = once
+    try:
+        yield
+    finally:
+        if own:
+            sim.render = render
+        else:
+            del sim.render
 
 
 def perturb_target(env: Any, target: str, init_state: np.ndarray, max_m: float,
@@ -97,7 +125,12 @@ class PerturbedReset(gym.Wrapper):
         self.offset = np.zeros(2)
 
     def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[Any, dict]:
-        obs, info = self.env.reset(seed=seed, options=options)
+        built = self.env.unwrapped._env  # hf-libero's env, built by the first reset
+        if self.scene is None or built is None:
+            obs, info = self.env.reset(seed=seed, options=options)
+        else:  # lerobot's settled scene is replaced below: its images are not kept
+            with frames_reused(built.env.sim):
+                obs, info = self.env.reset(seed=seed, options=options)
         self.offset = np.zeros(2)
         if self.scene is not None:
             init_state, max_m, episode_seed, task = self.scene
