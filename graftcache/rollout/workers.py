@@ -117,6 +117,7 @@ class Workers:
 
     def __init__(self, spawn: Callable[[], Simulator], n: int, req: RolloutRequest) -> None:
         self.team = _start(n, spawn, req)
+        self.idle = False  # every worker built and waiting, after a request that ended well
 
     def run(self, req: RolloutRequest, rows: Mapping[str, Mapping[str, Any]], missing: Sequence[Episode], bar: Any,
             log: Callable[[str], None]) -> None:
@@ -126,7 +127,7 @@ class Workers:
         cells = cells_of(rows, missing)
         self.team, spare = self.team[: len(missing)], self.team[len(missing):]
         _stop(spare)
-        busy = self.team
+        busy, self.idle = self.team, False
         log(f"{len(busy)} worker processes, each with a simulator of its own")
         scheduler = Scheduler(req, cells, bar, log)
         try:
@@ -148,11 +149,14 @@ class Workers:
                 scheduler.release()
             raise
         scheduler.release()
+        self.idle = True
 
     def close(self) -> None:
-        """Every worker told to finish, given its time to close its simulator (CLOSE_S), then stopped."""
+        """Every worker stopped: idle ones first told to finish and given their time to close their simulators
+        (CLOSE_S); a team that never ran or failed (a stop, an error: nothing to wait for) at once."""
         try:
-            _finish(self.team)
+            if self.idle:
+                _finish(self.team)
         finally:
             _stop(self.team)
 
