@@ -75,9 +75,10 @@ def place_target(env: Any, target: str, init_state: np.ndarray, offset: np.ndarr
 @contextmanager
 def frames_reused(sim: Any) -> Iterator[None]:
     """Inside, each camera view robosuite's MjSim `sim` is asked for is rendered once and that image returned again:
-    for steps whose images nobody keeps (the settling before the last step, lerobot's reset before a perturbation
-    replaces its scene). The physics never reads an image, so the scene evolves exactly as it would, and rendering
-    is most of a step's cost (2 cameras at 256 px, ~90 ms each, read back from an offscreen context on CPU)."""
+    for steps whose images nobody keeps (the settling before its last step). The physics never reads an image, so the
+    scene evolves exactly as it would, and rendering is most of a step's cost (2 cameras at 256 px, ~90 ms each, read
+    back from an offscreen context on CPU). lerobot's reset, whose scene a perturbation replaces, is out of reach:
+    hf-libero resets hard, building a new MjSim each time."""
     render, own = sim.render, "render" in vars(sim)
     seen: dict[Any, Any] = {}
 
@@ -125,12 +126,7 @@ class PerturbedReset(gym.Wrapper):
         self.offset = np.zeros(2)
 
     def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[Any, dict]:
-        built = self.env.unwrapped._env  # hf-libero's env, built by the first reset
-        if self.scene is None or built is None:
-            obs, info = self.env.reset(seed=seed, options=options)
-        else:  # lerobot's settled scene is replaced below: its images are not kept
-            with frames_reused(built.env.sim):
-                obs, info = self.env.reset(seed=seed, options=options)
+        obs, info = self.env.reset(seed=seed, options=options)
         self.offset = np.zeros(2)
         if self.scene is not None:
             init_state, max_m, episode_seed, task = self.scene
