@@ -142,13 +142,11 @@ class Workers:
                         scheduler.finished(worker, _receive(worker))
                     elif worker.process.sentinel in ready:
                         raise RolloutError(_death(worker))
-        except BaseException:  # stopped or failed: no worker outlives the loop, and then no claim is left behind
-            try:
-                _stop(busy)
-            finally:  # a stop raised again while the workers are reaped (graftcache.cli.signals._Stop) keeps no claim
-                scheduler.release()
+        except BaseException:  # stopped or failed: no worker outlives the loop
+            _stop(busy)
             raise
-        scheduler.release()
+        finally:  # and no claim is left behind, also when a stop is raised again while the workers are reaped
+            scheduler.release()  # (graftcache.cli.signals._Stop)
         self.idle = True
 
     def close(self) -> None:
@@ -197,8 +195,8 @@ class Scheduler:
 
     def _next_cell(self, worker: Any) -> _Cell | None:
         held = [c for c in self.cells.values() if c.claim is not None and not c.closed and c.todo]
-        last = self.cells.get(worker.last) if worker.last is not None else None  # an earlier request's cell: None
-        if last in held:
+        last = self.cells.get(worker.last)  # None: no cell yet, or one of an earlier request
+        if last is not None and last in held:
             return last
         idle = [c for c in held if not c.running]
         if idle:
