@@ -16,7 +16,7 @@ simulator's state (graftcache.rollout.graded): how close the end effector comes 
   on one native cell against two zero-image cells, so its power comes from paired episodes alone. Measured on the
   first run of this demo (2026-11-28): tiny pi0.5 on libero_object, 4 episodes, native minus zero-image closest
   approach -0.061 m [-0.166, +0.001], not separated; its 8 episodes, -0.050 [-0.106, -0.011] (-0.048 [-0.099,
-  -0.013] from this session's fits, README). The other three (backbone, suite)s were separated on 4;
+  -0.013] on the refitted cells the README quotes). The other three (backbone, suite)s were separated on 4;
 - every episode on a perturbed scene: libero_object's official init states place the target identically, so a
   policy blind to its cameras could still reach it; the sample's own perturbation (data/render_sample.py, 3 cm) is
   what made its actions depend on the images.
