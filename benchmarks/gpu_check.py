@@ -221,6 +221,12 @@ def features(adapter, frames: int, width: int, seed: int = 0) -> torch.Tensor:
     return torch.randn(frames, tokens, width, generator=g).half()
 
 
+def step_features(adapter) -> torch.Tensor:
+    """The 64 frames of features the timed steps draw from, at the graft's input width: SigLIP-B's (ENC_WIDTH) for a
+    backbone of released size, the tiny encoder's for a tiny one."""
+    return features(adapter, 64, ENC_WIDTH if adapter.tiny_marker is None else TINY_ENC)
+
+
 def lowdim(adapter, batch: int, g: torch.Generator) -> dict:
     """Random raw state and action chunks, LIBERO's prompt (evaluation's batches carry the actions too)."""
     return {"observation.state": torch.randn(batch, adapter.state_dim, generator=g) * 0.5, "task": [TASK] * batch,
@@ -486,8 +492,7 @@ def step_estimate(adapter, feats: torch.Tensor, dtype: torch.dtype, plan: str) -
 def scaling(report: Report, stage: str, adapter, batches: list[int], dtype: torch.dtype, repeats: int,
             peak: float | None) -> None:
     """Step time and memory against batch, checkpointing off and on, with FLOPs and MFU."""
-    width = ENC_WIDTH if adapter.tiny_marker is None else TINY_ENC
-    feats = features(adapter, 64, width)
+    feats = step_features(adapter)
     with report.check(stage, "flops", need_s=20) as out:
         if out is not None:
             flops = step_flops(adapter, feats, batches[0], dtype)
@@ -534,8 +539,7 @@ def cells_per_pass(report: Report, stage: str, adapter, batch: int, counts: list
                    repeats: int, steps_per_cell: int) -> None:
     """Seconds a cell-step against cells per pass at `batch`, and training cells per GPU-hour at
     `steps_per_cell` (recompute on only where off does not fit)."""
-    width = ENC_WIDTH if adapter.tiny_marker is None else TINY_ENC
-    feats = features(adapter, 64, width)
+    feats = step_features(adapter)
     for n in counts:
         with report.check(stage, f"cells_per_pass_{n}", need_s=30) as out:
             if out is None:
@@ -583,8 +587,7 @@ def plans_and_attention(report: Report, stage: str, adapter, batches: list[int],
                         peak: float | None, card_gb: float) -> None:
     """Stage 7: step seconds, peak memory and MFU at each batch, attention path and recompute plan, with each plan's
     estimate, and which plan `auto` takes at each batch on a card of `card_gb` (the weights already on it)."""
-    width = ENC_WIDTH if adapter.tiny_marker is None else TINY_ENC
-    feats = features(adapter, 64, width)
+    feats = step_features(adapter)
     weights_gb = torch.cuda.memory_allocated(adapter.device) / 1e9 if adapter.device.type == "cuda" else 0.0
     for attention in ATTENTIONS:
         with report.check(stage, f"estimate_{attention}", need_s=30) as out:
@@ -619,8 +622,7 @@ def fused_cells(report: Report, stage: str, adapter, batches: list[int], counts:
                 repeats: int, steps_per_cell: int) -> None:
     """Stage 8: cell-step seconds at each attention path, batch and cells per pass, and training cells per
     GPU-hour at `steps_per_cell` (the first of the backbone's recompute plans whose step does not run out of memory)."""
-    width = ENC_WIDTH if adapter.tiny_marker is None else TINY_ENC
-    feats = features(adapter, 64, width)
+    feats = step_features(adapter)
     for attention in ATTENTIONS:
         for batch in batches:
             for n in counts:
@@ -642,8 +644,7 @@ def compile_pays(report: Report, stage: str, adapter, batch: int, cells: int, dt
     """Stage 10: `fit --compile` (graftcache.backbones.compiled) against the eager step at `batch` x `cells`: the
     compilation's seconds (the compiled warm-up step's beyond a compiled step), the seconds it saves a step, and
     whether a cell's steps (`steps_per_cell`, shared by the pass's cells) pay it back."""
-    width = ENC_WIDTH if adapter.tiny_marker is None else TINY_ENC
-    feats = features(adapter, 64, width)
+    feats = step_features(adapter)
     with report.check(stage, f"{adapter.name}_batch{batch}_cells{cells}", need_s=120) as out:
         if out is None:
             return
