@@ -7,7 +7,7 @@ A backbone is a folder `graftcache/backbones/<name>/` holding (the registry's re
 - `spec.py`: `SPEC`, its `graftcache.backbones.spec.BackboneSpec`, the adapter's `spec`: data that imports neither
   torch nor lerobot, so a report reads labels and released sizes without importing any adapter
   (graftcache.backbones.registered_spec);
-- `tiny.py`: `build_tiny(spec, stats, device)`, its tiny configuration (graftcache.backbones.base.BackboneAdapter.load
+- `tiny.py`: `build_tiny(tiny, stats, device)`, its tiny configuration (graftcache.backbones.base.BackboneAdapter.load
   of "tiny" calls it).
 
 Every place that names a backbone (the backbone loader, the native towers in the encoder catalog, the CLI's choices,

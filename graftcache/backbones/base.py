@@ -41,6 +41,7 @@ from graftcache.backbones.checkpoint import (
     follow_umask,
     is_random_release,
     load_processors,
+    local_or_cached,
     quiet,
     resolve_source,
     state_dict_sha256,
@@ -76,6 +77,16 @@ def neutralise(config) -> None:
 def is_empty_camera(key: str) -> bool:
     """lerobot's placeholder camera slots (`empty_cameras`): masked out, never fed real images."""
     return key.rsplit(".", 1)[-1].startswith("empty_camera_")
+
+
+def vlm_folder(name: str, marker: dict | None, shipped: Path, what: str) -> Path:
+    """The folder of the VLM files (config, processor, tokenizer) a policy is built from beside its checkpoint, named
+    by its config (`name`): for a tiny policy (`marker`) the shipped tiny folder, whatever its saved config names,
+    since that path points into the package that saved it (another install, or a moved checkout); else a local
+    folder or the hub id's snapshot in the local HF cache (graftcache.backbones.checkpoint.local_or_cached)."""
+    if marker is not None:
+        return shipped
+    return local_or_cached(name, what)
 
 
 def _camera_names(keys: Iterable[str]) -> tuple[str, ...]:

@@ -42,6 +42,13 @@ def cached_repo(repo_id: str, what: str) -> Path:
         ) from None
 
 
+def local_or_cached(name: str, what: str) -> Path:
+    """`name` as a local folder when it is one, else as a hub id's snapshot in the local HF cache: how lerobot's
+    configs name the files a policy is built from beside its checkpoint (a VLM's config and processor, a
+    tokenizer), which lerobot itself would download."""
+    return Path(name) if Path(name).is_dir() else cached_repo(name, what)
+
+
 def resolve_source(source: str | Path, what: str = "policy checkpoint") -> Path:
     """A local checkpoint folder as given, or a hub id resolved to its cached snapshot folder."""
     path = Path(source).expanduser()

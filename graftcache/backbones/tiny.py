@@ -17,6 +17,7 @@ import json
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import torch
 from torch import nn
@@ -77,6 +78,24 @@ def seeded_policy(seed: int, construct: Callable[[], nn.Module]) -> nn.Module:
         torch.manual_seed(seed)
         return construct()
 
+
+
+def build_seeded(tiny: TinyBuild, stats: dict | None, device: str, config,
+                 construct: Callable[[Any], nn.Module], make_processors: Callable[..., tuple[Any, Any]]
+                 ) -> tuple[nn.Module, Any, Any, None]:
+    """A tiny build whose policy config holds its whole geometry (most backbones' `build_tiny`): the policy
+    constructed from `config` at the build's seed (`seeded_policy`), lerobot's processor factory
+    (`make_processors(config, dataset_stats=...)`) on the dataset's stats, the policy moved to `device`. No geometry
+    for the marker: the saved config rebuilds the policy at its sizes."""
+    policy = seeded_policy(tiny.seed, lambda: construct(config))
+    pre, post = make_processors(config, dataset_stats=require_stats(stats))
+    return policy.to(device), pre, post, None
+
+
+def print_written(folder: Path) -> None:
+    """What `python -m graftcache.backbones.<name>.tiny` prints once it has (re)written its shipped tiny folder: the
+    folder and its files, to look over before committing them."""
+    print(folder, sorted(p.name for p in folder.iterdir()))
 
 
 def write_marker(folder: Path, backbone: str, geometry: Pi05TinyGeometry | None) -> None:

@@ -35,9 +35,8 @@ import torch
 from torch import nn
 from transformers.modeling_outputs import BaseModelOutputWithPooling
 
-from graftcache.backbones.base import BackboneAdapter
+from graftcache.backbones.base import BackboneAdapter, vlm_folder
 from graftcache.backbones.batches import ACTION, STATE
-from graftcache.backbones.checkpoint import cached_repo
 from graftcache.backbones.eo1.spec import QWEN_STEP, SPEC
 from graftcache.backbones.eo1.tiny import construct
 from graftcache.backbones.given_draws import shadowed
@@ -113,13 +112,8 @@ class EO1Adapter(TowerReads, FlowObjective, BackboneAdapter):
 
     @classmethod
     def _qwen_folder(cls, config, marker: dict | None) -> Path:
-        """The Qwen2.5-VL processor folder: the shipped tiny one (a tiny checkpoint's saved path points into the
-        package that saved it), a local folder, or `vlm_base`'s snapshot in the local HF cache."""
-        if marker is not None:
-            return QWEN_VL_DIR
-        if Path(config.vlm_base).is_dir():
-            return Path(config.vlm_base)
-        return cached_repo(config.vlm_base, "EO-1's Qwen2.5-VL processor")
+        """The Qwen2.5-VL processor folder `vlm_base` names (graftcache.backbones.base.vlm_folder)."""
+        return vlm_folder(config.vlm_base, marker, QWEN_VL_DIR, "EO-1's Qwen2.5-VL processor")
 
     @classmethod
     def _processor_overrides(cls, config, marker: dict | None, device: str) -> tuple[dict, dict]:

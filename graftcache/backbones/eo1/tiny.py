@@ -20,7 +20,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from graftcache.backbones.patching import patched
-from graftcache.backbones.tiny import TinyBuild, action_features, require_stats, seeded_policy, visual_features
+from graftcache.backbones.tiny import TinyBuild, action_features, build_seeded, print_written, visual_features
 from graftcache.backbones.tiny_assets import (
     QWEN25_VL_3B,
     QWEN_VL_DIR,
@@ -73,16 +73,11 @@ def construct(config):
 
 
 def build_tiny(tiny: TinyBuild, stats: dict | None, device: str):
-    """Random-init tiny EO-1 and its lerobot pre/post processors (deterministic for `tiny.seed`); no geometry (its
-    config keeps it)."""
+    """Random-init tiny EO-1 and its processors (graftcache.backbones.tiny.build_seeded)."""
     from lerobot.policies.eo1.processor_eo1 import make_eo1_pre_post_processors
 
-    config = eo1_tiny_config(tiny, device)
-    policy = seeded_policy(tiny.seed, lambda: construct(config))
-    pre, post = make_eo1_pre_post_processors(config, dataset_stats=require_stats(stats))
-    return policy.to(device), pre, post, None
+    return build_seeded(tiny, stats, device, eo1_tiny_config(tiny, device), construct, make_eo1_pre_post_processors)
 
 
 if __name__ == "__main__":
-    folder = write_qwen_vl()
-    print(folder, sorted(p.name for p in folder.iterdir()))
+    print_written(write_qwen_vl())

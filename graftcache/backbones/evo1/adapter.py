@@ -42,9 +42,8 @@ import torch
 from torch import nn
 from transformers.modeling_outputs import BaseModelOutputWithPooling
 
-from graftcache.backbones.base import BackboneAdapter, is_empty_camera
+from graftcache.backbones.base import BackboneAdapter, is_empty_camera, vlm_folder
 from graftcache.backbones.batches import ACTION
-from graftcache.backbones.checkpoint import cached_repo
 from graftcache.backbones.evo1.spec import SPEC
 from graftcache.backbones.evo1.tiny import INTERNVL_DIR, construct
 from graftcache.backbones.objectives import FlowObjective
@@ -76,13 +75,8 @@ class Evo1Adapter(FlowObjective, BackboneAdapter):
     # ------------------------------------------------------------------------------ construction
     @classmethod
     def _internvl_folder(cls, config, marker: dict | None) -> Path:
-        """The InternVL config and tokenizer: the shipped tiny folder (a tiny checkpoint's saved path points into
-        the package that saved it), a local folder, or `vlm_model_name`'s snapshot in the local HF cache."""
-        if marker is not None:
-            return INTERNVL_DIR
-        if Path(config.vlm_model_name).is_dir():
-            return Path(config.vlm_model_name)
-        return cached_repo(config.vlm_model_name, "EVO1's InternVL config and tokenizer")
+        """The InternVL config and tokenizer folder `vlm_model_name` names (graftcache.backbones.base.vlm_folder)."""
+        return vlm_folder(config.vlm_model_name, marker, INTERNVL_DIR, "EVO1's InternVL config and tokenizer")
 
     @classmethod
     def _configure(cls, folder: Path, config, marker: dict | None) -> None:

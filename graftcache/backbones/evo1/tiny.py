@@ -30,7 +30,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from graftcache.backbones.patching import patched
-from graftcache.backbones.tiny import TinyBuild, action_features, require_stats, seeded_policy, visual_features
+from graftcache.backbones.tiny import TinyBuild, action_features, build_seeded, print_written, visual_features
 from graftcache.backbones.tiny_assets import TINY_ROOT, train_bpe
 
 INTERNVL_DIR = TINY_ROOT / "internvl"
@@ -120,16 +120,11 @@ def evo1_released_config(cameras: tuple[str, ...], image_size: int, state_dim: i
 
 
 def build_tiny(tiny: TinyBuild, stats: dict | None, device: str):
-    """Random-init tiny EVO1 and its lerobot pre/post processors (deterministic for `tiny.seed`); no geometry (its
-    config keeps it)."""
+    """Random-init tiny EVO1 and its processors (graftcache.backbones.tiny.build_seeded)."""
     from lerobot.policies.evo1.processor_evo1 import make_evo1_pre_post_processors
 
-    config = evo1_tiny_config(tiny, device)
-    policy = seeded_policy(tiny.seed, lambda: construct(config))
-    pre, post = make_evo1_pre_post_processors(config, dataset_stats=require_stats(stats))
-    return policy.to(device), pre, post, None
+    return build_seeded(tiny, stats, device, evo1_tiny_config(tiny, device), construct, make_evo1_pre_post_processors)
 
 
 if __name__ == "__main__":
-    folder = write_internvl()
-    print(folder, sorted(p.name for p in folder.iterdir()))
+    print_written(write_internvl())

@@ -13,10 +13,9 @@ from __future__ import annotations
 import contextlib
 import json
 from collections.abc import Iterator
-from pathlib import Path
 from typing import Any
 
-from graftcache.backbones.checkpoint import cached_repo
+from graftcache.backbones.checkpoint import local_or_cached
 from graftcache.backbones.patching import patched
 from graftcache.backbones.tiny import TinyBuild, action_features, visual_features
 from graftcache.errors import BackboneError
@@ -27,7 +26,7 @@ def base_config(path: str):
     local HF cache (what lerobot's `GR00TN17.from_pretrained` would download)."""
     from lerobot.policies.groot.groot_n1_7 import GR00TN17Config
 
-    folder = Path(path) if Path(path).is_dir() else cached_repo(path, "GR00T's base model config")
+    folder = local_or_cached(path, "GR00T's base model config")
     try:
         return GR00TN17Config(**json.loads((folder / "config.json").read_text()))
     except (OSError, ValueError) as exc:

@@ -32,7 +32,7 @@ from __future__ import annotations
 import functools
 
 from graftcache.backbones.groot.construct import construct
-from graftcache.backbones.tiny import TinyBuild, action_features, require_stats, seeded_policy, visual_features
+from graftcache.backbones.tiny import TinyBuild, action_features, build_seeded, print_written, visual_features
 from graftcache.backbones.tiny_assets import TINY_ROOT, write_qwen3_vl
 
 GROOT_DIR = TINY_ROOT / "groot"
@@ -97,17 +97,16 @@ def tiny_image_geometry(pre) -> None:
 
 
 def build_tiny(tiny: TinyBuild, stats: dict | None, device: str):
-    """Random-init tiny GR00T and its lerobot pre/post processors (deterministic for `tiny.seed`); no geometry (its
-    config keeps it)."""
+    """Random-init tiny GR00T on the tiny base model and its processors (graftcache.backbones.tiny.build_seeded),
+    the VLM step at the tiny frame size."""
     from lerobot.policies.groot.processor_groot import make_groot_pre_post_processors
 
-    config = groot_tiny_config(tiny, device)
-    policy = seeded_policy(tiny.seed, lambda: construct(config, tiny_base_for(config)))
-    pre, post = make_groot_pre_post_processors(config, dataset_stats=require_stats(stats))
+    policy, pre, post, geometry = build_seeded(tiny, stats, device, groot_tiny_config(tiny, device),
+                                               lambda config: construct(config, tiny_base_for(config)),
+                                               make_groot_pre_post_processors)
     tiny_image_geometry(pre)
-    return policy.to(device), pre, post, None
+    return policy, pre, post, geometry
 
 
 if __name__ == "__main__":
-    folder = write_qwen3_vl(GROOT_DIR, GROOT_TEXT)
-    print(folder, sorted(p.name for p in folder.iterdir()))
+    print_written(write_qwen3_vl(GROOT_DIR, GROOT_TEXT))

@@ -33,8 +33,9 @@ from typing import Any
 import torch
 from torch import nn
 
+from graftcache.backbones.base import vlm_folder
 from graftcache.backbones.batches import TOKEN_MASK, TOKENS
-from graftcache.backbones.checkpoint import cached_repo
+from graftcache.backbones.checkpoint import local_or_cached
 from graftcache.backbones.objectives import TokenObjective
 from graftcache.backbones.paligemma import pi05_tiny_sizes
 from graftcache.backbones.patching import patched
@@ -71,12 +72,10 @@ class PI0FastAdapter(TokenObjective, PaliGemmaAdapter):
         """(FAST processor folder, PaliGemma tokenizer folder): the checkpoint's own FAST tokenizer, else the
         one its config names (a folder or a hub id in the local HF cache); the shipped tiny PaliGemma tokenizer
         for tiny policies, else the config's (lerobot's default: google/paligemma-3b-pt-224)."""
-        def local(name: str, what: str) -> Path:
-            return Path(name) if Path(name).is_dir() else cached_repo(name, what)
-
         own = folder / FAST_DIR
-        fast = own if own.is_dir() else local(config.action_tokenizer_name, "pi0-FAST's FAST action tokenizer")
-        text = PALIGEMMA_DIR if marker is not None else local(config.text_tokenizer_name, "pi0-FAST's tokenizer")
+        what = "pi0-FAST's FAST action tokenizer"
+        fast = own if own.is_dir() else local_or_cached(config.action_tokenizer_name, what)
+        text = vlm_folder(config.text_tokenizer_name, marker, PALIGEMMA_DIR, "pi0-FAST's tokenizer")
         return fast, text
 
     @classmethod

@@ -24,9 +24,8 @@ from torch import nn
 
 from graftcache.backbones.activation_checkpointing import WrappedActivationCheckpointing
 from graftcache.backbones.attention import MASKED, fused_attention
-from graftcache.backbones.base import BackboneAdapter
+from graftcache.backbones.base import BackboneAdapter, vlm_folder
 from graftcache.backbones.batches import TOKEN_MASK, TOKENS
-from graftcache.backbones.checkpoint import cached_repo
 from graftcache.backbones.objectives import FlowObjective
 from graftcache.backbones.patching import Patches, patched
 from graftcache.backbones.smolvla.spec import SPEC
@@ -50,13 +49,8 @@ class SmolVLAAdapter(WrappedActivationCheckpointing, FlowObjective, BackboneAdap
 
     @classmethod
     def _vlm_folder(cls, config, marker: dict | None) -> Path:
-        """The SmolVLM config/processor folder the policy is built from (the shipped tiny one, a local
-        folder, or the hub id's snapshot in the local HF cache)."""
-        if marker is not None:
-            return SMOLVLM_DIR
-        if Path(config.vlm_model_name).is_dir():
-            return Path(config.vlm_model_name)
-        return cached_repo(config.vlm_model_name, "SmolVLA's VLM config/processor")
+        """The SmolVLM config/processor folder `vlm_model_name` names (graftcache.backbones.base.vlm_folder)."""
+        return vlm_folder(config.vlm_model_name, marker, SMOLVLM_DIR, "SmolVLA's VLM config/processor")
 
     @classmethod
     def _grid_of_config(cls, config, marker: dict | None) -> tuple[int, int]:

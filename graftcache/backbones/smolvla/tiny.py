@@ -6,7 +6,7 @@ Llama text model 192 wide x 4 layers, expert 144 wide (lerobot's 0.75).
 
 from __future__ import annotations
 
-from graftcache.backbones.tiny import TinyBuild, action_features, require_stats, seeded_policy, visual_features
+from graftcache.backbones.tiny import TinyBuild, action_features, build_seeded, visual_features
 from graftcache.backbones.tiny_assets import SMOLVLM_DIR, SMOLVLM_GEOMETRY
 
 
@@ -26,13 +26,10 @@ def smolvla_tiny_config(tiny: TinyBuild, device: str):
 
 
 def build_tiny(tiny: TinyBuild, stats: dict | None, device: str):
-    """Random-init tiny SmolVLA and its lerobot pre/post processors (deterministic for `tiny.seed`); no geometry (its
-    config keeps it)."""
+    """Random-init tiny SmolVLA and its processors (graftcache.backbones.tiny.build_seeded)."""
     from lerobot.policies.smolvla.modeling_smolvla import SmolVLAPolicy
     from lerobot.policies.smolvla.processor_smolvla import make_smolvla_pre_post_processors
 
-    config = smolvla_tiny_config(tiny, device)
-    policy = seeded_policy(tiny.seed, lambda: SmolVLAPolicy(config))
-    pre, post = make_smolvla_pre_post_processors(config, dataset_stats=require_stats(stats))
-    return policy.to(device), pre, post, None
+    return build_seeded(tiny, stats, device, smolvla_tiny_config(tiny, device), SmolVLAPolicy,
+                        make_smolvla_pre_post_processors)
 

@@ -45,9 +45,8 @@ import torch
 from torch import nn
 
 from graftcache.backbones.activation_checkpointing import WrappedActivationCheckpointing
-from graftcache.backbones.base import BackboneAdapter
+from graftcache.backbones.base import BackboneAdapter, vlm_folder
 from graftcache.backbones.batches import ACTION
-from graftcache.backbones.checkpoint import cached_repo
 from graftcache.backbones.given_draws import given_noise, shadowed
 from graftcache.backbones.objectives import FlowObjective
 from graftcache.backbones.patching import patched
@@ -120,13 +119,8 @@ class VLAJEPAAdapter(WrappedActivationCheckpointing, FlowObjective, BackboneAdap
 
     @classmethod
     def _qwen_folder(cls, config, marker: dict | None) -> Path:
-        """The Qwen3-VL folder (config, processor): the shipped tiny one (a tiny checkpoint's saved path points into
-        the package that saved it), a local folder, or `qwen_model_name`'s snapshot in the local HF cache."""
-        if marker is not None:
-            return QWEN3_VL_DIR
-        if Path(config.qwen_model_name).is_dir():
-            return Path(config.qwen_model_name)
-        return cached_repo(config.qwen_model_name, f"VLA-JEPA's {QWEN_MODEL}")
+        """The Qwen3-VL folder (config, processor) `qwen_model_name` names (graftcache.backbones.base.vlm_folder)."""
+        return vlm_folder(config.qwen_model_name, marker, QWEN3_VL_DIR, f"VLA-JEPA's {QWEN_MODEL}")
 
     @classmethod
     def _make_processors(cls, config, stats: dict, marker: dict | None):

@@ -34,7 +34,7 @@ from pathlib import Path
 import torch
 
 from graftcache.backbones.patching import patched
-from graftcache.backbones.tiny import TinyBuild, action_features, require_stats, seeded_policy, visual_features
+from graftcache.backbones.tiny import TinyBuild, action_features, build_seeded, print_written, visual_features
 from graftcache.backbones.tiny_assets import QWEN3_VL_DIR, write_qwen3_vl
 
 TINY_IMAGE_SIZE = 128  # what train-tiny resizes frames to (requests.TinyTrainConfig.image_size)
@@ -109,16 +109,13 @@ def vla_jepa_released_config(cameras: tuple[str, ...], image_size: int, state_di
 
 
 def build_tiny(tiny: TinyBuild, stats: dict | None, device: str):
-    """Random-init tiny VLA-JEPA and its lerobot pre/post processors (deterministic for `tiny.seed`); no geometry (its
-    config keeps it)."""
+    """Random-init tiny VLA-JEPA, its Qwen3-VL from the shipped tiny folder, and its processors
+    (graftcache.backbones.tiny.build_seeded)."""
     from lerobot.policies.vla_jepa.processor_vla_jepa import make_vla_jepa_pre_post_processors
 
-    config = vla_jepa_tiny_config(tiny, device)
-    policy = seeded_policy(tiny.seed, lambda: construct(config, QWEN3_VL_DIR))
-    pre, post = make_vla_jepa_pre_post_processors(config, dataset_stats=require_stats(stats))
-    return policy.to(device), pre, post, None
+    return build_seeded(tiny, stats, device, vla_jepa_tiny_config(tiny, device),
+                        lambda config: construct(config, QWEN3_VL_DIR), make_vla_jepa_pre_post_processors)
 
 
 if __name__ == "__main__":
-    folder = write_qwen3_vl()
-    print(folder, sorted(p.name for p in folder.iterdir()))
+    print_written(write_qwen3_vl())

@@ -40,9 +40,8 @@ from torch import nn
 from transformers.modeling_outputs import BaseModelOutputWithPooling
 
 from graftcache.backbones.activation_checkpointing import WrappedActivationCheckpointing
-from graftcache.backbones.base import BackboneAdapter
+from graftcache.backbones.base import BackboneAdapter, vlm_folder
 from graftcache.backbones.batches import STATE
-from graftcache.backbones.checkpoint import cached_repo
 from graftcache.backbones.given_draws import given_noise, shadowed
 from graftcache.backbones.objectives import FlowObjective
 from graftcache.backbones.patching import patched
@@ -92,14 +91,9 @@ class WallXAdapter(TowerReads, WrappedActivationCheckpointing, FlowObjective, Ba
     # ------------------------------------------------------------------------------ construction
     @classmethod
     def _base_folder(cls, config, marker: dict | None) -> Path:
-        """Where Wall-X's base config and processor come from (`pretrained_name_or_path`): the shipped tiny folder
-        (a tiny checkpoint's saved path points into the package that saved it), a local folder, or the repo's
-        snapshot in the local HF cache."""
-        if marker is not None:
-            return WALLX_DIR
-        if Path(config.pretrained_name_or_path).is_dir():
-            return Path(config.pretrained_name_or_path)
-        return cached_repo(config.pretrained_name_or_path, "Wall-X's base config and processor")
+        """Wall-X's base config and processor folder `pretrained_name_or_path` names
+        (graftcache.backbones.base.vlm_folder)."""
+        return vlm_folder(config.pretrained_name_or_path, marker, WALLX_DIR, "Wall-X's base config and processor")
 
     @classmethod
     def _construct(cls, config, marker: dict | None) -> nn.Module:

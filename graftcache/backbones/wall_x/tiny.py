@@ -33,7 +33,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from graftcache.backbones.patching import patched
-from graftcache.backbones.tiny import TinyBuild, action_features, require_stats, seeded_policy, visual_features
+from graftcache.backbones.tiny import TinyBuild, action_features, build_seeded, visual_features
 from graftcache.backbones.tiny_assets import QWEN25_VL_3B, QWEN_VL_DIR, TINY_QWEN25_VL, TINY_ROOT, qwen25_vl_ids
 from graftcache.errors import BackboneError
 
@@ -155,14 +155,12 @@ def wallx_released_config(cameras: tuple[str, ...], image_size: int, state_dim: 
 
 
 def build_tiny(tiny: TinyBuild, stats: dict | None, device: str):
-    """Random-init tiny Wall-X and its lerobot pre/post processors (deterministic for `tiny.seed`); no geometry (its
-    config keeps it)."""
+    """Random-init tiny Wall-X, its model from the shipped tiny folder, and its processors
+    (graftcache.backbones.tiny.build_seeded)."""
     from lerobot.policies.wall_x.processor_wall_x import make_wall_x_pre_post_processors
 
-    config = wallx_tiny_config(tiny, device)
-    policy = seeded_policy(tiny.seed, lambda: construct(config, WALLX_DIR))
-    pre, post = make_wall_x_pre_post_processors(config, dataset_stats=require_stats(stats))
-    return policy.to(device), pre, post, None
+    return build_seeded(tiny, stats, device, wallx_tiny_config(tiny, device),
+                        lambda config: construct(config, WALLX_DIR), make_wall_x_pre_post_processors)
 
 
 if __name__ == "__main__":

@@ -15,7 +15,7 @@ checkpoint needs no geometry in its marker: the folder's config rebuilds it.
 
 from __future__ import annotations
 
-from graftcache.backbones.tiny import TinyBuild, action_features, require_stats, seeded_policy, visual_features
+from graftcache.backbones.tiny import TinyBuild, action_features, build_seeded, visual_features
 from graftcache.backbones.tiny_assets import PALIGEMMA_DIR
 
 TINY_IMAGE_SIZE = 128
@@ -72,12 +72,8 @@ def xvla_released_config(cameras: tuple[str, ...], image_size: int, state_dim: i
 
 
 def build_tiny(tiny: TinyBuild, stats: dict | None, device: str):
-    """Random-init tiny X-VLA and its lerobot pre/post processors (deterministic for `tiny.seed`); no geometry (its
-    config keeps it)."""
+    """Random-init tiny X-VLA and its processors (graftcache.backbones.tiny.build_seeded)."""
     from lerobot.policies.xvla.modeling_xvla import XVLAPolicy
     from lerobot.policies.xvla.processor_xvla import make_xvla_pre_post_processors
 
-    config = xvla_tiny_config(tiny, device)
-    policy = seeded_policy(tiny.seed, lambda: XVLAPolicy(config))
-    pre, post = make_xvla_pre_post_processors(config, dataset_stats=require_stats(stats))
-    return policy.to(device), pre, post, None
+    return build_seeded(tiny, stats, device, xvla_tiny_config(tiny, device), XVLAPolicy, make_xvla_pre_post_processors)
