@@ -12,6 +12,7 @@ import pytest
 from helpers.backbones import tiny
 
 from graftcache.backbones import get_backbone, load_backbone
+from graftcache.backbones.base import vlm_folder
 from graftcache.backbones.tiny import TINY_MARKER
 from graftcache.errors import BackboneError
 from graftcache.graft import GraftProjector
@@ -58,3 +59,15 @@ def test_tiny_marker_records_the_pi05_geometry(tmp_path: Path) -> None:
     (folder / TINY_MARKER).write_text("{not json")
     with pytest.raises(BackboneError, match="unreadable tiny-backbone marker"):
         load_backbone("pi05", folder)
+
+
+def test_a_vlm_folder_is_the_shipped_one_for_tiny_policies_else_local_else_cached(tmp_path: Path) -> None:
+    """The precedence every adapter's VLM files follow: a tiny policy's shipped folder even where its saved config
+    names a folder that exists (the path of the install that saved it), a local folder as named, else the HF cache,
+    whose miss is one line naming what was looked for."""
+    shipped, local = tmp_path / "shipped", tmp_path / "local"
+    local.mkdir()
+    assert vlm_folder(str(local), {"backbone": "eo1"}, shipped, "EO-1's processor") == shipped
+    assert vlm_folder(str(local), None, shipped, "EO-1's processor") == local
+    with pytest.raises(BackboneError, match=r"^EO-1's processor 'org/absent' is neither a local folder nor in the "):
+        vlm_folder("org/absent", None, shipped, "EO-1's processor")
