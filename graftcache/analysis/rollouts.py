@@ -11,6 +11,13 @@ out here rather than imported: analysis reads files, it does not depend on the c
 An episode whose run_id is not in the results table is refused (one line naming the file and such a run_id), never
 dropped: rollouts of another results file would otherwise leave the report silently about fewer cells. So is a
 column of the wrong type, and a non-finite graded value (a distance of NaN is a bug upstream, not a measurement).
+
+An episode that appears more than once is refused too (one line naming the file, the episode and its copies), not
+de-duplicated: `graftcache rollout` replaces an episode it reruns, so a second copy comes from rows appended by other
+means (two files concatenated, a copy appended by hand), whose copies may disagree on success; keeping one would
+guess which, and counting both weighs that episode twice in every figure. An episode is its `episode_id` where the
+file has one, else its run_id and PAIR_KEY where every key column but perturbation_m is set (a table without a key
+cannot tell a repeated episode from another one).
 """
 
 from __future__ import annotations
@@ -78,6 +85,29 @@ def _read(path: Path) -> pl.DataFrame:
         raise GraftcacheError(f"{path}: not a Parquet rollouts table ({reason})") from None
 
 
+def _episode_keys(table: pl.DataFrame, rollouts: pl.DataFrame) -> pl.DataFrame:
+    """What identifies each row's episode: `episode_id` where the file has it, else run_id and PAIR_KEY (a null
+    perturbation_m read as 0.0, as the pairing reads it), leaving out rows whose key is incomplete."""
+    if "episode_id" in table.columns:
+        return table.select(pl.col("episode_id").cast(pl.String)).drop_nulls()
+    key = ["run_id", *PAIR_KEY]
+    return rollouts.select(key).with_columns(pl.col("perturbation_m").fill_null(0.0)).drop_nulls()
+
+
+def _refuse_repeats(table: pl.DataFrame, rollouts: pl.DataFrame, path: Path) -> None:
+    """Refuse an episode that appears more than once (the module docstring says why it is not de-duplicated)."""
+    keys = _episode_keys(table, rollouts)
+    counts = keys.group_by(keys.columns, maintain_order=True).len("copies").filter(pl.col("copies") > 1)
+    if not len(counts):
+        return
+    first = counts.row(0, named=True)
+    copies = first.pop("copies")
+    episode = ", ".join(f"{k}={v}" for k, v in first.items())
+    more = f" (and {len(counts) - 1} more repeated episode(s))" if len(counts) > 1 else ""
+    raise GraftcacheError(f"{path}: episode {episode} appears {copies} times{more}: each episode must be one row; "
+                          "keep one copy of each")
+
+
 def read_rollouts(path: str | Path, results: pl.DataFrame) -> pl.DataFrame:
     """The rollouts Parquet file at `path` as one row per episode: run_id, success, GRADED_MEASURES and PAIR_KEY
     (each null where the file lacks it), checked against `results`' run_ids; anything unusable is a
@@ -98,6 +128,7 @@ def read_rollouts(path: str | Path, results: pl.DataFrame) -> pl.DataFrame:
     columns += [_typed(table[c], t, path) if c in table.columns else pl.Series(c, [None] * len(table), dtype=t)
                 for c, t in optional.items()]
     rollouts = pl.DataFrame(columns)
+    _refuse_repeats(table, rollouts, path)
     odd = [c for c, t in GRADED_MEASURES.items() if t == pl.Float64 and (~rollouts[c].is_finite()).any()]
     if odd:
         raise GraftcacheError(f"{path}: non-finite values in column(s) {', '.join(odd)} (null: not measured)")
