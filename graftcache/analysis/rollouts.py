@@ -10,7 +10,8 @@ out here rather than imported: analysis reads files, it does not depend on the c
 
 An episode whose run_id is not in the results table is refused (one line naming the file and such a run_id), never
 dropped: rollouts of another results file would otherwise leave the report silently about fewer cells. So is a
-column of the wrong type, and a non-finite graded value (a distance of NaN is a bug upstream, not a measurement).
+column of the wrong type, a non-finite graded value (a distance of NaN is a bug upstream, not a measurement) and
+one the measure cannot take (RANGES: a negative distance, a goal fraction of 7).
 
 An episode that appears more than once is refused too (one line naming the file, the episode and its copies), not
 de-duplicated: `graftcache rollout` replaces an episode it reruns, so a second copy comes from rows appended by other
@@ -22,6 +23,7 @@ cannot tell a repeated episode from another one).
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import polars as pl
@@ -36,6 +38,12 @@ GRADED_MEASURES: dict[str, pl.DataType] = {
     "target_lift_m": pl.Float64,            # the target's highest height above its settled height
     "grasped": pl.Boolean,                  # target held between both fingers for >= 5 consecutive steps
     "goal_fraction": pl.Float64,            # share of the task's BDDL goal predicates true at the end
+}
+#: The values each graded measure can take (graftcache.rollout.graded defines them: a distance and the clipped lift
+#: are >= 0, a share of goal predicates is in [0, 1]); a value outside is refused, not scored.
+RANGES: dict[str, tuple[float, float]] = {
+    "min_target_distance_m": (0.0, math.inf), "final_target_distance_m": (0.0, math.inf),
+    "target_lift_m": (0.0, math.inf), "goal_fraction": (0.0, 1.0),
 }
 #: Every closed-loop measure and whether higher is better; the report orients each agreement figure by it.
 HIGHER_IS_BETTER: dict[str, bool] = {
@@ -108,6 +116,16 @@ def _refuse_repeats(table: pl.DataFrame, rollouts: pl.DataFrame, path: Path) -> 
                           "keep one copy of each")
 
 
+def _refuse_out_of_range(rollouts: pl.DataFrame, path: Path) -> None:
+    """Refuse the first graded column holding a value outside its RANGES, naming an example."""
+    for column, (low, high) in RANGES.items():
+        outside = rollouts[column].filter((rollouts[column] < low) | (rollouts[column] > high))
+        if len(outside):
+            allowed = f">= {low:g}" if high == math.inf else f"in [{low:g}, {high:g}]"
+            raise GraftcacheError(f"{path}: column {column} holds {outside[0]!r}, not a possible value (the measure "
+                                  f"is {allowed}; graftcache.rollout.graded)")
+
+
 def read_rollouts(path: str | Path, results: pl.DataFrame) -> pl.DataFrame:
     """The rollouts Parquet file at `path` as one row per episode: run_id, success, GRADED_MEASURES and PAIR_KEY
     (each null where the file lacks it), checked against `results`' run_ids; anything unusable is a
@@ -132,6 +150,7 @@ def read_rollouts(path: str | Path, results: pl.DataFrame) -> pl.DataFrame:
     odd = [c for c, t in GRADED_MEASURES.items() if t == pl.Float64 and (~rollouts[c].is_finite()).any()]
     if odd:
         raise GraftcacheError(f"{path}: non-finite values in column(s) {', '.join(odd)} (null: not measured)")
+    _refuse_out_of_range(rollouts, path)
     unknown = rollouts.filter(~pl.col("run_id").is_in(results["run_id"].implode()))["run_id"].unique(
         maintain_order=True)
     if len(unknown):

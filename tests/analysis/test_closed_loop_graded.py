@@ -243,12 +243,28 @@ def test_odd_graded_columns_are_refused_in_one_line_naming_the_file(tmp_path: Pa
                    "column grasped holds Int32 values such as 2, not true/false"),
         "episode": (episodes.with_columns(pl.col("episode").cast(pl.Float64)),
                     "column episode holds Float64 values, not Int64"),
+        "closer": (episodes.with_columns(min_target_distance_m=pl.lit(-0.27)),
+                   "column min_target_distance_m holds -0.27, not a possible value (the measure is >= 0; "
+                   "graftcache.rollout.graded)"),
+        "final": (episodes.with_columns(final_target_distance_m=pl.when(pl.col("episode") == 2).then(-1e-9)
+                                        .otherwise(pl.col("final_target_distance_m"))),
+                  "column final_target_distance_m holds -1e-09, not a possible value (the measure is >= 0; "
+                  "graftcache.rollout.graded)"),
+        "sunk": (episodes.with_columns(target_lift_m=pl.lit(-0.01)),
+                 "column target_lift_m holds -0.01, not a possible value (the measure is >= 0; "
+                 "graftcache.rollout.graded)"),
+        "goal": (episodes.with_columns(goal_fraction=pl.lit(7.0)),
+                 "column goal_fraction holds 7.0, not a possible value (the measure is in [0, 1]; "
+                 "graftcache.rollout.graded)"),
     }
     for name, (frame, line) in cases.items():
         frame.write_parquet(tmp_path / f"{name}.parquet")
         with pytest.raises(GraftcacheError) as refused:
             A.read_rollouts(tmp_path / f"{name}.parquet", results)
         assert str(refused.value) == f"{tmp_path / name}.parquet: {line}", name
+    bounds = episodes.with_columns(goal_fraction=pl.lit(1.0), target_lift_m=pl.lit(0.0), min_target_distance_m=0.0)
+    bounds.write_parquet(tmp_path / "bounds.parquet")
+    assert A.read_rollouts(tmp_path / "bounds.parquet", results)["goal_fraction"].to_list() == [1.0] * 24
     episodes.with_columns(pl.col("grasped").cast(pl.Int8)).write_parquet(tmp_path / "ones.parquet")
     assert A.read_rollouts(tmp_path / "ones.parquet", results)["grasped"].to_list() == episodes["grasped"].to_list()
 
