@@ -21,9 +21,9 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from graftcache import results
 from graftcache.cameras import parse_camera_map
 from graftcache.errors import ExportError, GraftcacheError
+from graftcache.export.locate import check_cache_root, find_row
 from graftcache.fit.controls import get_control
 from graftcache.fit.lookup import find_cache
 from graftcache.fit.run import PROJECTOR_SIDECAR, PROJECTOR_WEIGHTS, Cell, saved_cell, saved_policy_folder
@@ -33,15 +33,6 @@ from graftcache.store import cache_root
 from graftcache.store.readthrough import reading_root
 
 POLICY_PREFIX = "tiny:"  # how rows name a policy trained by train-tiny (graftcache.fit.plan.Plan.policy_id)
-
-
-def find_row(path: str | Path, run_id: str) -> dict[str, Any]:
-    """The results row of `run_id` in the results file at `path`."""
-    table = results.read(path)
-    rows = table.filter(table["run_id"] == run_id)
-    if rows.height == 0:
-        raise ExportError(f"{path}: no row with run_id {run_id}")
-    return rows.row(0, named=True)
 
 
 def cell_of(row: dict[str, Any], folder: Path | None) -> Cell:
@@ -118,6 +109,7 @@ def export_run(run_id: str, results_path: str | Path, out: str | Path, *, cache:
     from graftcache.export.processors import export_pipelines
 
     row = find_row(results_path, run_id)
+    check_cache_root(row, cache)
     control = get_control(row["control"])
     folder = run_folder(row, results_path, cache, runs) if control.train else None
     cell = cell_of(row, folder)
