@@ -445,3 +445,17 @@ def test_the_module_map_describes_only_registered_backbones() -> None:
     named = set(re.findall(r"(?<![\w/.<])(\w+)/(?=[\s,)]|\w+\.py)", entry)) - {"graftcache"}
     assert len(named) >= 5
     assert sorted(named - set(BACKBONES)) == []
+
+
+def test_the_readme_states_the_current_formats_by_their_constants() -> None:
+    """README.md names the cache and results formats by the constants that decide them, never by a digit that goes
+    stale when a format is added (it said results format 4 while the code wrote 5), and mentions no results format
+    past the current one."""
+    from graftcache import results
+
+    readme = " ".join((ROOT / "README.md").read_text(encoding="utf-8").split())
+    assert ("Caches carry a format version (`graftcache.store.manifest.FORMAT_VERSION`), results files their own "
+            "(`graftcache.results.FORMAT_VERSION`)") in readme
+    assert re.findall(r"(?:format version|their own) \(\d+\)", readme) == []
+    named = [int(n) for n in re.findall(r"results (?:files? )?(?:of )?format (\d+)", readme)]
+    assert [n for n in named if n > results.FORMAT_VERSION] == []

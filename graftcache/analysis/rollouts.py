@@ -10,11 +10,20 @@ out here rather than imported: analysis reads files, it does not depend on the c
 
 An episode whose run_id is not in the results table is refused (one line naming the file and such a run_id), never
 dropped: rollouts of another results file would otherwise leave the report silently about fewer cells. So is a
-column of the wrong type, and a non-finite graded value (a distance of NaN is a bug upstream, not a measurement).
+column of the wrong type, a non-finite graded value (a distance of NaN is a bug upstream, not a measurement) and
+one the measure cannot take (RANGES: a negative distance, a goal fraction of 7).
+
+An episode that appears more than once is refused too (one line naming the file, the episode and its copies), not
+de-duplicated: `graftcache rollout` replaces an episode it reruns, so a second copy comes from rows appended by other
+means (two files concatenated, a copy appended by hand), whose copies may disagree on success; keeping one would
+guess which, and counting both weighs that episode twice in every figure. An episode is its `episode_id` where the
+file has one, else its run_id and PAIR_KEY where every key column but perturbation_m is set (a table without a key
+cannot tell a repeated episode from another one).
 """
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import polars as pl
@@ -29,6 +38,12 @@ GRADED_MEASURES: dict[str, pl.DataType] = {
     "target_lift_m": pl.Float64,            # the target's highest height above its settled height
     "grasped": pl.Boolean,                  # target held between both fingers for >= 5 consecutive steps
     "goal_fraction": pl.Float64,            # share of the task's BDDL goal predicates true at the end
+}
+#: The values each graded measure can take (graftcache.rollout.graded defines them: a distance and the clipped lift
+#: are >= 0, a share of goal predicates is in [0, 1]); a value outside is refused, not scored.
+RANGES: dict[str, tuple[float, float]] = {
+    "min_target_distance_m": (0.0, math.inf), "final_target_distance_m": (0.0, math.inf),
+    "target_lift_m": (0.0, math.inf), "goal_fraction": (0.0, 1.0),
 }
 #: Every closed-loop measure and whether higher is better; the report orients each agreement figure by it.
 HIGHER_IS_BETTER: dict[str, bool] = {
@@ -78,6 +93,39 @@ def _read(path: Path) -> pl.DataFrame:
         raise GraftcacheError(f"{path}: not a Parquet rollouts table ({reason})") from None
 
 
+def _episode_keys(table: pl.DataFrame, rollouts: pl.DataFrame) -> pl.DataFrame:
+    """What identifies each row's episode: `episode_id` where the file has it, else run_id and PAIR_KEY (a null
+    perturbation_m read as 0.0, as the pairing reads it), leaving out rows whose key is incomplete."""
+    if "episode_id" in table.columns:
+        return table.select(pl.col("episode_id").cast(pl.String)).drop_nulls()
+    key = ["run_id", *PAIR_KEY]
+    return rollouts.select(key).with_columns(pl.col("perturbation_m").fill_null(0.0)).drop_nulls()
+
+
+def _refuse_repeats(table: pl.DataFrame, rollouts: pl.DataFrame, path: Path) -> None:
+    """Refuse an episode that appears more than once (the module docstring says why it is not de-duplicated)."""
+    keys = _episode_keys(table, rollouts)
+    counts = keys.group_by(keys.columns, maintain_order=True).len("copies").filter(pl.col("copies") > 1)
+    if not len(counts):
+        return
+    first = counts.row(0, named=True)
+    copies = first.pop("copies")
+    episode = ", ".join(f"{k}={v}" for k, v in first.items())
+    more = f" (and {len(counts) - 1} more repeated episode(s))" if len(counts) > 1 else ""
+    raise GraftcacheError(f"{path}: episode {episode} appears {copies} times{more}: each episode must be one row; "
+                          "keep one copy of each")
+
+
+def _refuse_out_of_range(rollouts: pl.DataFrame, path: Path) -> None:
+    """Refuse the first graded column holding a value outside its RANGES, naming an example."""
+    for column, (low, high) in RANGES.items():
+        outside = rollouts[column].filter((rollouts[column] < low) | (rollouts[column] > high))
+        if len(outside):
+            allowed = f">= {low:g}" if high == math.inf else f"in [{low:g}, {high:g}]"
+            raise GraftcacheError(f"{path}: column {column} holds {outside[0]!r}, not a possible value (the measure "
+                                  f"is {allowed}; graftcache.rollout.graded)")
+
+
 def read_rollouts(path: str | Path, results: pl.DataFrame) -> pl.DataFrame:
     """The rollouts Parquet file at `path` as one row per episode: run_id, success, GRADED_MEASURES and PAIR_KEY
     (each null where the file lacks it), checked against `results`' run_ids; anything unusable is a
@@ -98,9 +146,11 @@ def read_rollouts(path: str | Path, results: pl.DataFrame) -> pl.DataFrame:
     columns += [_typed(table[c], t, path) if c in table.columns else pl.Series(c, [None] * len(table), dtype=t)
                 for c, t in optional.items()]
     rollouts = pl.DataFrame(columns)
+    _refuse_repeats(table, rollouts, path)
     odd = [c for c, t in GRADED_MEASURES.items() if t == pl.Float64 and (~rollouts[c].is_finite()).any()]
     if odd:
         raise GraftcacheError(f"{path}: non-finite values in column(s) {', '.join(odd)} (null: not measured)")
+    _refuse_out_of_range(rollouts, path)
     unknown = rollouts.filter(~pl.col("run_id").is_in(results["run_id"].implode()))["run_id"].unique(
         maintain_order=True)
     if len(unknown):

@@ -23,9 +23,10 @@ import torch
 from torch.nn import functional
 
 from graftcache.backbones.patching import Patches
+from graftcache.backbones.spec import FUSED as FUSED  # re-exported: where the attention paths are named
 from graftcache.errors import BackboneError
 
-EAGER, FUSED = "eager", "sdpa"
+EAGER = "eager"  # lerobot's own path for most backbones; FUSED (from the spec) is torch's
 #: How far the fused path's loss, projector gradients and predicted chunk may be from eager's under the same draws and
 #: weights, per compute dtype: |fused - eager| / |eager| (the norms of the whole tensor). fp32: summation order only
 #: (measured on the tiny backbones: <= 5e-6); bf16: eager rounds its probabilities to bf16 before multiplying by the
@@ -68,13 +69,7 @@ class Attention:
     def resolve_attention(cls, mode: str) -> str:
         """`auto` -> the fused path where this backbone has one, else lerobot's own; an explicit path this backbone
         lacks is refused in one line."""
-        paths = cls.spec.attentions
-        if mode == "auto":
-            return FUSED if FUSED in paths else paths[0]
-        if mode not in paths:
-            raise BackboneError(f"{cls.name}: attention {mode!r} is not one of this backbone's ({', '.join(paths)}: "
-                                f"lerobot's own is {paths[0]}); use --attention auto")
-        return mode
+        return cls.spec.resolve_attention(cls.name, mode)
 
     def set_attention(self, mode: str) -> str:
         """Attend with `mode` (auto, eager or sdpa) from whatever state the policy is in, and return what it resolved

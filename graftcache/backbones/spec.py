@@ -13,6 +13,11 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Literal
 
+from graftcache.errors import BackboneError
+
+#: The fused attention path (torch's scaled_dot_product_attention), which `--attention auto` takes where listed.
+FUSED = "sdpa"
+
 
 @dataclass(frozen=True)
 class BackboneSpec:
@@ -62,3 +67,25 @@ class BackboneSpec:
     #: The lerobot extra that installs its policy's dependencies (pyproject.toml's lerobot requirement and README's
     #: set-up name each: tests/test_docs.py); None: they are spelled out in pyproject.toml instead (GR00T).
     lerobot_extra: str | None = None
+
+    def resolve_attention(self, name: str, mode: str) -> str:
+        """`auto` -> the fused path where backbone `name` has one, else lerobot's own; an explicit path it lacks is
+        refused in one line."""
+        paths = self.attentions
+        if mode == "auto":
+            return FUSED if FUSED in paths else paths[0]
+        if mode not in paths:
+            raise BackboneError(f"{name}: attention {mode!r} is not one of this backbone's ({', '.join(paths)}: "
+                                f"lerobot's own is {paths[0]}); use --attention auto")
+        return mode
+
+    def check_execution(self, name: str, *, attention: str, recompute: str, compile: bool) -> None:
+        """Refuse, from this data alone (before the policy loads), what backbone `name` cannot run: an attention
+        path it lacks, a recompute plan where it cannot recompute (mlp and on both need `can_recompute`; whether it
+        has mlp slots is the adapter's, checked when the plan is set), `--compile` without a compiled forward."""
+        self.resolve_attention(name, attention)
+        if recompute in ("mlp", "on") and not self.can_recompute:
+            raise BackboneError(f"{name}: no recompute plan {recompute!r} for this backbone; use --recompute off")
+        if compile and self.compiled_forward is None:
+            raise BackboneError(f"{name}: no compiled forward for this backbone (its spec names none); drop "
+                                "--compile")

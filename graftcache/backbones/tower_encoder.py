@@ -9,7 +9,9 @@ the tower is re-implemented.
 
 The spec is policy-specific (a released SmolVLA tower is SigLIP at 512 px with a 32x32x768 grid, a
 tiny one is far smaller), so the builder returns an encoder whose spec is measured on the loaded
-policy; the manifest records that spec and the policy's weights hash. The catalog (stage 1) names
+policy; the manifest records that spec and the policy's weights hash, and which of two facts about a tiny
+policy's weights holds: trained by train-tiny (`weights.trained_by`, its training record beside the checkpoint) or
+random-init (never trained: `random_init`). The catalog (stage 1) names
 `build_tower_encoder` by import string, so this module is imported only when a native tower is built.
 """
 
@@ -23,7 +25,7 @@ import torch.nn.functional as F
 
 from graftcache.backbone_table import backbone_of_native
 from graftcache.backbones import get_backbone
-from graftcache.backbones.tiny_record import trained_image_size
+from graftcache.backbones.tiny_record import read_record, trained_image_size
 from graftcache.encoders import Encoder, EncoderSpec, LoadRequest, weights_info
 from graftcache.errors import EncoderError
 
@@ -85,7 +87,9 @@ def build_tower_encoder(spec: EncoderSpec, req: LoadRequest) -> TowerEncoder:
     measured = replace(spec, model_id=str(req.policy), image_size=size, grid=(grid.shape[1], grid.shape[2]),
                        width=grid.shape[3], pretrained_source=f"policy:{req.policy}")
     info = weights_info("policy", str(req.policy), adapter.policy_sha256)
-    info["random_init"] = adapter.random_init  # tiny checkpoints: not released weights
+    trained = folder.is_dir() and read_record(folder) is not None
+    info["trained_by"] = "train-tiny" if trained else None
+    info["random_init"] = adapter.random_init and not trained  # a tiny policy train-tiny never trained
     encoder = TowerEncoder(measured, adapter, info)
     encoder.extra_shapes = {"connector": (tokens.shape[1], tokens.shape[2])}
     return encoder

@@ -49,7 +49,7 @@ def run_ls(args: argparse.Namespace) -> int:
     for c in caches:
         m = c.manifest
         try:
-            weights = "random-init" if m.random_init else m.weights.get("source", "?")
+            weights = m.weights_label
             status = "complete" if c.complete else ("incomplete" if c.initialized else "initialising")
             table.add_row(c.key, m.dataset.repo_id or m.dataset.source, m.encoder_name, weights,
                           ",".join(m.grids + list(m.extras)), ",".join(m.cameras),

@@ -21,6 +21,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from graftcache.export.locate import check_cache_root, find_row
+
+    check_cache_root(find_row(args.results, args.run_id), args.cache)  # before torch, lerobot and the policy load
     from graftcache.export.bundle import export_run
 
     export_run(args.run_id, args.results, args.out, cache=args.cache, runs=args.runs)

@@ -120,13 +120,17 @@ def run(args: argparse.Namespace) -> int:
     from graftcache.rollout import table
     from graftcache.rollout.libero import LiberoSimulator
     from graftcache.rollout.run import EXPORTS_FOLDER, RolloutRequest, default_rollouts, roll_out_started
+    from graftcache.rollout.select import check_tasks, select_rows
 
     rollouts = Path(args.rollouts).absolute() if args.rollouts else default_rollouts(args.results)
     req = RolloutRequest(results=Path(args.results).absolute(), rollouts=rollouts, run_ids=args.run_ids,
                          top=args.top, suites=args.suites, score=args.score, tasks=args.tasks,
                          episodes_per_task=args.episodes_per_task, max_steps=args.max_steps, seed=args.seed,
                          perturb_cm=args.perturb_cm, command=args.command_line)
-    results.read_for_report(req.results)  # both files checked before the simulator's minutes of imports
+    # both files, the rows and their tasks checked before the simulator's imports (the team starts them)
+    rows = select_rows(results.read_for_report(req.results), run_ids=req.run_ids, top=req.top, suites=req.suites,
+                       score=req.score)
+    check_tasks(rows, req.tasks)
     table.read(req.rollouts)
     spawn = partial(LiberoSimulator, req.results, rollouts.parent / EXPORTS_FOLDER, cache=_absolute(args.cache),
                     runs=_absolute(args.runs), max_steps=args.max_steps, videos=args.videos)

@@ -21,27 +21,18 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from graftcache import results
 from graftcache.cameras import parse_camera_map
 from graftcache.errors import ExportError, GraftcacheError
+from graftcache.export.locate import check_cache_root, find_row
 from graftcache.fit.controls import get_control
 from graftcache.fit.lookup import find_cache
-from graftcache.fit.run import PROJECTOR_SIDECAR, PROJECTOR_WEIGHTS, Cell, saved_cell
+from graftcache.fit.run import PROJECTOR_SIDECAR, PROJECTOR_WEIGHTS, Cell, saved_cell, saved_policy_folder
 from graftcache.requests import FitRequest
 from graftcache.settings import declared, default_of
 from graftcache.store import cache_root
 from graftcache.store.readthrough import reading_root
 
 POLICY_PREFIX = "tiny:"  # how rows name a policy trained by train-tiny (graftcache.fit.plan.Plan.policy_id)
-
-
-def find_row(path: str | Path, run_id: str) -> dict[str, Any]:
-    """The results row of `run_id` in the results file at `path`."""
-    table = results.read(path)
-    rows = table.filter(table["run_id"] == run_id)
-    if rows.height == 0:
-        raise ExportError(f"{path}: no row with run_id {run_id}")
-    return rows.row(0, named=True)
 
 
 def cell_of(row: dict[str, Any], folder: Path | None) -> Cell:
@@ -71,16 +62,29 @@ def _checked(row: dict[str, Any], cell: Cell, source: str) -> Cell:
     return cell
 
 
-def base_policy(row: dict[str, Any], cache: str | None) -> str:
-    """The row's policy as lerobot-loadable source: train-tiny's folder for `tiny:<name>`, else as the row says."""
+def base_policy(row: dict[str, Any], cache: str | None, folder: Path | None = None) -> str:
+    """The row's policy as lerobot-loadable source: train-tiny's folder for `tiny:<name>`; else the absolute folder
+    the fit loaded, as its run `folder` recorded it (the row names the policy as given, perhaps relative to the
+    folder the fit ran in); else as the row says, a folder resolved from here."""
     policy = row["policy"]
+    recorded = saved_policy_folder(folder) if folder is not None else None
+    if recorded is not None and not policy.startswith(POLICY_PREFIX):
+        if not Path(recorded).is_dir():
+            raise ExportError(f"run {row['run_id']}: its policy folder {recorded} (its fit's --policy {policy}) is "
+                              "gone; restore it there")
+        return recorded
     if policy.startswith(POLICY_PREFIX):
         folder = cache_root(cache) / "policies" / policy.removeprefix(POLICY_PREFIX)
         if not (folder / "config.json").is_file():
             raise ExportError(f"run {row['run_id']}: its policy {policy} is not in {folder.parent} (pass the --cache "
                               f"its fit used)")
         return str(folder.resolve())
-    return str(Path(policy).resolve()) if Path(policy).is_dir() else policy
+    if Path(policy).is_dir():
+        return str(Path(policy).resolve())
+    if policy.startswith((".", "/")):
+        raise ExportError(f"run {row['run_id']}: its policy folder {policy} is not there from {Path.cwd()} and no "
+                          "run folder records where its fit found it; run export from the folder the fit ran in")
+    return policy
 
 
 def run_folder(row: dict[str, Any], results_path: str | Path, cache: str | None, runs: str | None) -> Path:
@@ -105,6 +109,7 @@ def export_run(run_id: str, results_path: str | Path, out: str | Path, *, cache:
     from graftcache.export.processors import export_pipelines
 
     row = find_row(results_path, run_id)
+    check_cache_root(row, cache)
     control = get_control(row["control"])
     folder = run_folder(row, results_path, cache, runs) if control.train else None
     cell = cell_of(row, folder)
@@ -117,7 +122,7 @@ def export_run(run_id: str, results_path: str | Path, out: str | Path, *, cache:
             return out
         raise ExportError(f"{out}: already holds the export of run {run_id}; remove it or choose another --out")
     check_destination(out)
-    policy = base_policy(row, cache)
+    policy = base_policy(row, cache, folder)
     feature_cache = find_cache(reading_root(cache), row["encoder"], key=row["cache_key"])
     adapter_cls = get_backbone(row["backbone"])
     base = adapter_cls.load(policy, device="cpu")

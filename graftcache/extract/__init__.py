@@ -24,7 +24,7 @@ from graftcache.extract.checks import check_disk, check_memory
 from graftcache.extract.encode import encode_frames
 from graftcache.extract.job import Job, Target
 from graftcache.extract.plan import plan
-from graftcache.extract.provenance import build_index, build_manifest
+from graftcache.extract.provenance import build_index, build_manifest, weights_note
 from graftcache.extract.write import ExtractResult, Writing, check_numerics, find_complete, shard_blocks
 from graftcache.requests import ExtractRequest
 from graftcache.runtime import set_main_threads
@@ -42,8 +42,9 @@ def extract(req: ExtractRequest, log: Callable[[str], None] = print) -> ExtractR
     job = plan(req, log)  # the dataset, the encoder and the frames; refused here when they cannot be done
     manifest = build_manifest(job, fingerprint(job.encoder, job.req.compute_dtype, job.device))
     target = Target(root, cache_key(manifest.to_dict()), manifest)
-    if manifest.random_init:
-        log(f"note: encoder {manifest.encoder_name} uses RANDOM-INIT weights (seed {req.seed}); the manifest says so")
+    note = weights_note(manifest)
+    if note:
+        log(note)
 
     done = find_complete(target, job)  # reusing takes no writer lock: a read-only root serves it
     if done is not None:

@@ -72,3 +72,16 @@ def build_manifest(job: Job, numerics: dict[str, Any]) -> Manifest:
              "command": " ".join(sys.argv)},
         extra=dict(req.extra_manifest),
     )
+
+
+def weights_note(manifest: Manifest) -> str | None:
+    """The line that says an encoder's weights are not pretrained ones, and which fact holds: random-init (with its
+    seed, or the policy whose tower it is) or trained by train-tiny (None: real weights)."""
+    name, weights = manifest.encoder_name, manifest.weights
+    if manifest.trained_by is not None:
+        return (f"note: encoder {name} is the tower of a policy trained by {manifest.trained_by} ({weights['ref']}), "
+                "not released weights; the manifest says so")
+    if not manifest.random_init:
+        return None
+    whose = f"policy {weights['ref']}" if weights.get("source") == "policy" else f"seed {weights.get('seed')}"
+    return f"note: encoder {name} uses RANDOM-INIT weights ({whose}); the manifest says so"

@@ -25,7 +25,7 @@ import torch
 
 from graftcache import results
 from graftcache.backbone_table import native_name
-from graftcache.backbones import get_backbone
+from graftcache.backbones import get_backbone, registered_spec
 from graftcache.backbones.tiny_record import resolve_policy
 from graftcache.cameras import format_camera_map, match_cameras, parse_camera_map, renames
 from graftcache.codecs import without_none
@@ -119,6 +119,9 @@ class Plan:
         for its workers' GPUs; the compute dtype must then be resolved already)."""
         self.device = resolve_device(req.device) if check_device else torch.device(req.device)
         self.req = req = dataclasses.replace(req, compute_dtype=resolve_compute_dtype(req.compute_dtype, self.device))
+        spec = registered_spec(req.backbone)  # what the backbone cannot run, refused before anything loads
+        if spec is not None:
+            spec.check_execution(req.backbone, attention=req.attention, recompute=req.recompute, compile=req.compile)
         self.objective = OBJECTIVES[req.objective]
         self.log = log
         self.root = reading_root(req.cache)  # only read: stage 2 never writes into a cache root

@@ -179,8 +179,9 @@ def _row(c: _InPass, adapter: BackboneAdapter, loss: float, score: Any, wall: fl
         "backbone_params": adapter.n_params,
         "n_eval_frames": score.n_frames, "n_eval_episodes": len(score.per_episode), "wall_s": wall,
         "cells_per_pass": cells, "device": str(plan.device),
-        "random_init": bool(r.cache.manifest.random_init or adapter.random_init),
-        "encoder_random_init": bool(r.cache.manifest.random_init),
+        "random_init": bool(r.cache.manifest.random_init or r.cache.manifest.trained_by or adapter.random_init),
+        # results.schema: a tiny policy's tower says True, trained by train-tiny or not
+        "encoder_random_init": bool(r.cache.manifest.random_init or r.cache.manifest.trained_by),
         "backbone_random_init": bool(adapter.random_init),
         "n_dropped_nonfinite": r.dropped + len(c.stats.dropped), "numerics_drift": c.mat.drift(r),
         "camera_map": format_camera_map(plan.cameras), "graftcache_version": graftcache.__version__,
@@ -203,13 +204,23 @@ def _told(c: _InPass, row: dict[str, Any]) -> dict[str, Any]:
 
 def save_projector(folder: Path, adapter: BackboneAdapter, cell: Cell, split: Split,
                    trainable: Mapping[str, torch.Tensor]) -> None:
-    """A cell's trained parameters, named as in the policy, with a JSON sidecar (its cell, split, freeze report)."""
+    """A cell's trained parameters, named as in the policy, with a JSON sidecar (its cell, split, freeze report, and
+    the policy's folder as an absolute path: the cell names the policy as given, `fit --policy P` relative to the
+    folder the fit ran in, and keeps that name, which its run_id hashes; `export` reads the folder from here)."""
     folder.mkdir(parents=True, exist_ok=True)
     save_file({n: p.detach().cpu().contiguous() for n, p in trainable.items()}, str(folder / PROJECTOR_WEIGHTS))
     follow_umask(folder / PROJECTOR_WEIGHTS)
-    sidecar = {"run_id": cell.run_id, "cell": asdict(cell), "split": asdict(split),
+    loaded = Path(adapter.source)
+    sidecar = {"run_id": cell.run_id, "cell": asdict(cell), "policy_folder": str(loaded.resolve()) if loaded.is_dir()
+               else None, "split": asdict(split),
                "freeze": str(adapter.freeze_report()), "graftcache_version": graftcache.__version__}
     (folder / PROJECTOR_SIDECAR).write_text(json.dumps(sidecar, indent=2, default=str))
+
+
+def saved_policy_folder(folder: Path) -> str | None:
+    """The absolute policy folder save_projector recorded in `folder`'s sidecar (None: a hub id, or a sidecar written
+    before it was recorded)."""
+    return json.loads((folder / PROJECTOR_SIDECAR).read_text()).get("policy_folder")
 
 
 def saved_cell(folder: Path) -> Cell | None:

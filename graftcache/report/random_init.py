@@ -4,6 +4,10 @@ Rows record the two apart (`encoder_random_init`, `backbone_random_init`) and th
 grafts ImageNet encoders into tiny train-tiny backbones: every row is random-init somewhere, but the encoders'
 weights are real, and a reader comparing encoders needs to know which are. Rows that record only the union (tables
 from older versions or other tools) are listed as such, never guessed apart.
+
+A native tower (`smolvla-native`) is the policy's own tower: its rows' `encoder_random_init` is the backbone's
+(graftcache.results.schema), random-init or trained by train-tiny alike, so it is listed as the backbone's weights,
+never among the encoders with random-init weights.
 """
 
 from __future__ import annotations
@@ -11,6 +15,7 @@ from __future__ import annotations
 import polars as pl
 
 from graftcache import analysis as A
+from graftcache.backbone_table import NATIVE_SUFFIX
 from graftcache.report.document import Alert, Block
 
 LEAD = ("A random-init encoder's MSEs say nothing about pretrained representations; a random-init or train-tiny "
@@ -36,10 +41,14 @@ def _backbone_words(rows: pl.DataFrame) -> str | None:
 def _encoder_words(rows: pl.DataFrame) -> list[str]:
     """Which encoders ran on random-init weights and which on real ones, and the rows recording only the union."""
     known = rows.drop_nulls("encoder_random_init")
-    rand, real = known.filter(pl.col("encoder_random_init")), known.filter(~pl.col("encoder_random_init"))
+    native = pl.col("encoder").str.ends_with(NATIVE_SUFFIX)
+    own = known.filter(pl.col("encoder_random_init"), native)
+    rand = known.filter(pl.col("encoder_random_init"), ~native)
+    real = known.filter(~pl.col("encoder_random_init"))
     union = rows.filter(pl.col("encoder_random_init").is_null(), pl.col("random_init").fill_null(False))
     return [
         *([f"encoders with random-init weights: {_names(rand)}"] if len(rand) else []),
+        *([f"the policy's own tower, with the backbone's weights: {_names(own)}"] if len(own) else []),
         *([f"real weights: {_names(real)}"] if len(real) else []),
         *([f"encoder and backbone not recorded apart (only random_init), random-init in one or both: "
            f"{_names(union)} ({len(union)} rows)"] if len(union) else []),

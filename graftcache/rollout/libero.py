@@ -18,17 +18,26 @@ Graded progress (graftcache.rollout.graded): the same render callback reads the 
 after every step, and the episode's states are measured when it ends. A perturbed episode
 (graftcache.rollout.perturb): the env is wrapped (PerturbedReset) so that lerobot-eval's reset to the init state is
 followed by the target's seeded offset and settling, before the rollout's first policy step.
+
+The simulator's libraries announce their set-up in every process, for every suite and env they build (robosuite's
+macro-file warning at import, LIBERO's task-order line per suite, lerobot's env-building lines): twelve envs in a
+team of workers made a quarter of a run's log. Those lines (CHATTER) go to the debug logger SIMULATOR_LOG instead,
+filtered here, where every process (a team worker too) imports the simulator and builds its suites and envs
+(`simulator_chatter`); any other line they print passes as it is.
 """
 
 from __future__ import annotations
 
 import importlib.util
+import io
+import logging
 import multiprocessing
+import re
 import sys
 import time
 import warnings
 from collections.abc import Iterator, Mapping, Sequence
-from contextlib import contextmanager
+from contextlib import contextmanager, redirect_stdout
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -47,6 +56,62 @@ INSTALL = "run `make setup-libero` (scripts/setup.sh libero) to install it"
 #: on N cores do not spin against each other. The cost is small: the env step, not the policy, takes most of an
 #: episode (benchmarks/bench_rollout.py measures both).
 POLICY_THREADS = 1
+#: The simulator's set-up announcements (see the module docstring): robosuite's three macro-file lines, LIBERO's
+#: task order, lerobot's create_envs lines.
+CHATTER = re.compile(r"(No private macro file found!|It is recommended to use a private macro file|To setup, run: "
+                     r"python \S*setup_macros\.py|\[info\] using task orders |Creating LIBERO envs \||Restricting to "
+                     r"task_ids=|Built vec env \|)")
+#: Where CHATTER goes, at debug level (shown only where a user configures logging to show it).
+SIMULATOR_LOG = logging.getLogger("graftcache.simulator")
+#: robosuite's own logger (robosuite.utils.log_utils.DefaultLogger), which its import warns through
+ROBOSUITE_LOG = "robosuite_logs"
+
+
+def _demoted(record: logging.LogRecord) -> bool:
+    """A logger filter: a CHATTER record goes to SIMULATOR_LOG at debug level instead of robosuite's handlers."""
+    message = record.getMessage()
+    if CHATTER.match(message):
+        SIMULATOR_LOG.debug(message)
+        return False
+    return True
+
+
+class _ChatterFilter(io.TextIOBase):
+    """A stdout writing each whole line to `out`, but CHATTER lines to SIMULATOR_LOG at debug level."""
+
+    def __init__(self, out: Any) -> None:
+        self.out, self.pending = out, ""
+
+    def write(self, text: str) -> int:
+        *lines, self.pending = (self.pending + text).split("\n")
+        for line in lines:
+            self._line(line, "\n")
+        return len(text)
+
+    def _line(self, line: str, end: str) -> None:
+        if CHATTER.match(line):
+            SIMULATOR_LOG.debug(line)
+        else:
+            self.out.write(line + end)
+
+    def flush(self) -> None:
+        if self.pending:
+            self._line(self.pending, "")
+            self.pending = ""
+        self.out.flush()
+
+
+@contextmanager
+def simulator_chatter() -> Iterator[None]:
+    """Inside the block, the simulator's CHATTER goes to SIMULATOR_LOG: robosuite's logger filtered (from then on:
+    it warns once per process, at import), stdout's lines too."""
+    logging.getLogger(ROBOSUITE_LOG).addFilter(_demoted)  # added once however often (Filterer skips a repeat)
+    out = _ChatterFilter(sys.stdout)
+    try:
+        with redirect_stdout(out):
+            yield
+    finally:
+        out.flush()
 
 
 def require_simulator() -> None:
@@ -55,8 +120,8 @@ def require_simulator() -> None:
         if importlib.util.find_spec(module) is None:
             raise RolloutError(f"the LIBERO simulator is not installed (no Python module {module}); {INSTALL}")
     try:
-        with warnings.catch_warnings():  # robosuite's source has an invalid escape: a SyntaxWarning where no .pyc is
-            warnings.simplefilter("ignore", SyntaxWarning)  # cached (uv installs none), two lines of noise a run
+        with warnings.catch_warnings(), simulator_chatter():  # robosuite's source has an invalid escape: a
+            warnings.simplefilter("ignore", SyntaxWarning)  # SyntaxWarning where no .pyc is cached (uv installs none)
             import lerobot.envs.libero  # noqa: F401  (imports hf-libero, which prompts on stdin without its config)
     except EOFError:
         raise RolloutError("hf-libero asked for its config on stdin ($LIBERO_CONFIG_PATH/config.yaml, default "
@@ -136,7 +201,9 @@ class LiberoSimulator:
     def suite(self, name: str) -> Suite:
         from lerobot.envs.libero import TASK_SUITE_MAX_STEPS, _get_suite
 
-        return Suite(n_tasks=len(_get_suite(name).tasks), max_steps=self.max_steps or TASK_SUITE_MAX_STEPS[name])
+        with simulator_chatter():
+            n_tasks = len(_get_suite(name).tasks)
+        return Suite(n_tasks=n_tasks, max_steps=self.max_steps or TASK_SUITE_MAX_STEPS[name])
 
     def export(self, row: Mapping[str, Any]) -> Path:
         """The cell's export folder, written on first use (graftcache export writes it whole or not at all, and a
@@ -159,7 +226,8 @@ class LiberoSimulator:
         from graftcache.rollout.perturb import PerturbedReset
 
         if (suite, task) not in self._envs:
-            vector = self.env_config(suite, task).create_envs(n_envs=1)[suite][task]
+            with simulator_chatter():
+                vector = self.env_config(suite, task).create_envs(n_envs=1)[suite][task]
             vector.envs[0] = PerturbedReset(vector.envs[0])
             self._envs[suite, task] = vector
         return self._envs[suite, task]

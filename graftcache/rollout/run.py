@@ -48,6 +48,10 @@ MAX_EPISODES_PER_TASK = 1000
 #: --perturb-cm's largest offset, a bound on what is asked rather than a measured limit: the sample slides its targets
 #: up to 3 cm, and an offset that puts the target on a neighbour is refused by the settling check anyway
 MAX_PERTURB_CM = 10.0
+#: --perturb-cm's resolution: a tenth of a millimetre, far below what settling and the simulator's contacts resolve.
+#: A finer value is refused rather than rounded: each value is another episode key, so 1e-300 would make "perturbed"
+#: episodes of the official scenes, and 3.000001 episodes apart from 3's of the same scenes.
+PERTURB_RESOLUTION_CM = 0.01
 
 
 @dataclass(frozen=True)
@@ -82,6 +86,10 @@ class RolloutRequest:
                                f"{MAX_SEED} (an unsigned 32-bit seed)")
         if not 0 <= self.perturb_cm <= MAX_PERTURB_CM:  # NaN fails it too
             raise RolloutError(f"--perturb-cm {self.perturb_cm}: must be 0 to {MAX_PERTURB_CM:g} (cm)")
+        steps = self.perturb_cm / PERTURB_RESOLUTION_CM
+        if abs(steps - round(steps)) > 1e-6 or (steps and not round(steps)):
+            raise RolloutError(f"--perturb-cm {self.perturb_cm:g}: finer than its resolution, "
+                               f"{PERTURB_RESOLUTION_CM:g} cm (0: none)")
 
 
 def default_rollouts(results_path: str | Path) -> Path:

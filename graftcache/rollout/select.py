@@ -18,6 +18,7 @@ import polars as pl
 
 from graftcache.analysis import NATIVE_CONTROL, PLAIN, ZERO_IMAGE, rankings, scored
 from graftcache.cameras import parse_camera_map
+from graftcache.datasets.suites import suite_tasks
 from graftcache.errors import RolloutError
 from graftcache.fit.controls import get_control
 from graftcache.results import conform
@@ -37,7 +38,11 @@ def select_rows(results: pl.DataFrame, *, run_ids: Sequence[str] | None = None, 
                 suites: Sequence[str] | None = None, score: str = "mse") -> pl.DataFrame:
     """The rows to roll out, in (backbone, suite, control, encoder, seed) order: exactly `run_ids` (each must be a
     row, of a suite in `suites` when given), else per (backbone, suite) among `suites` the `top` best encoders'
-    plain, zero-image rows and the native rows. Each is checked by `check_row`."""
+    plain, zero-image rows and the native rows. Each is checked by `check_row`; a name of `suites` that is no LIBERO
+    suite is refused as such (it selected no row before, and was refused as a ranking of nothing)."""
+    odd = [s for s in suites or () if s not in SIMULATOR_SUITES]
+    if odd:
+        raise RolloutError(f"--suites {odd[0]}: not a LIBERO suite ({', '.join(SIMULATOR_SUITES)})")
     if run_ids is not None:
         chosen = _exact(results, run_ids, suites)
     else:
@@ -73,6 +78,17 @@ def _best(table: pl.DataFrame, top: int, score: str) -> pl.DataFrame:
     of_backbone = table.filter(pl.col("control").is_in(list(CONTROLS_OF_BACKBONE))).join(
         best.select("backbone", "suite").unique(), on=["backbone", "suite"], how="semi")
     return pl.concat([of_encoder, of_backbone])
+
+
+def check_tasks(rows: pl.DataFrame, tasks: Sequence[int] | None) -> None:
+    """Refuse, in one line naming the run, a task its suite lacks, counted from the LIBERO benchmark's task lists
+    (graftcache.datasets.suites), so that it is refused before the simulator is imported (its plan checks again)."""
+    counts = {suite: len(names) for suite, names in suite_tasks().items()}
+    for row in rows.iter_rows(named=True):
+        beyond = [t for t in tasks or () if t >= counts[row["suite"]]]
+        if beyond:
+            raise RolloutError(f"run {row['run_id']}: suite {row['suite']} has tasks 0-{counts[row['suite']] - 1}, "
+                               f"not task {beyond[0]}")
 
 
 def check_row(row: dict) -> None:

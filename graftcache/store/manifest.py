@@ -96,6 +96,20 @@ class Manifest:
     def encoder_name(self) -> str:
         return str(self.encoder["name"])
 
+    @property
+    def trained_by(self) -> str | None:
+        """What trained the encoder's weights when they are neither released nor random-init: "train-tiny" for the
+        tower of a tiny policy it trained (`weights.trained_by`). None for every other cache, and for such towers'
+        caches written before it was recorded, whose `random_init` is true for both facts."""
+        return self.weights.get("trained_by")
+
+    @property
+    def weights_label(self) -> str:
+        """The encoder's weights in a word: "trained by train-tiny", "random-init", else their source."""
+        if self.trained_by is not None:
+            return f"trained by {self.trained_by}"
+        return "random-init" if self.random_init else str(self.weights.get("source", "?"))
+
     def to_dict(self) -> dict[str, Any]:
         """The JSON form stored in the group attributes (and hashed into the key)."""
         return asdict(self)

@@ -213,9 +213,9 @@ def test_a_format_1_file_reads_with_graded_measures_null(tmp_path: Path) -> None
     """A format-1 rollouts file (graftcache.rollout.table format 1: no graded columns, no perturbation_m)."""
     results = _results()
     format_1 = _episodes(results).select(
-        pl.lit("0123456789abcdef").alias("episode_id"), pl.lit(1).alias("format_version"), "run_id", "suite",
-        "task_index", "episode", "seed", pl.col("episode").alias("init_state"), "max_steps", "success", "steps",
-        pl.lit(1.5).alias("seconds"), pl.lit(None, dtype=pl.String).alias("video"))
+        pl.format("{}-{}", "run_id", "episode").alias("episode_id"), pl.lit(1).alias("format_version"), "run_id",
+        "suite", "task_index", "episode", "seed", pl.col("episode").alias("init_state"), "max_steps", "success",
+        "steps", pl.lit(1.5).alias("seconds"), pl.lit(None, dtype=pl.String).alias("video"))
     format_1.write_parquet(tmp_path / "old.parquet")
     read = A.read_rollouts(tmp_path / "old.parquet", results)
     assert read.select(*A.GRADED_MEASURES, "perturbation_m").null_count().row(0) == (24,) * 6
@@ -243,11 +243,56 @@ def test_odd_graded_columns_are_refused_in_one_line_naming_the_file(tmp_path: Pa
                    "column grasped holds Int32 values such as 2, not true/false"),
         "episode": (episodes.with_columns(pl.col("episode").cast(pl.Float64)),
                     "column episode holds Float64 values, not Int64"),
+        "closer": (episodes.with_columns(min_target_distance_m=pl.lit(-0.27)),
+                   "column min_target_distance_m holds -0.27, not a possible value (the measure is >= 0; "
+                   "graftcache.rollout.graded)"),
+        "final": (episodes.with_columns(final_target_distance_m=pl.when(pl.col("episode") == 2).then(-1e-9)
+                                        .otherwise(pl.col("final_target_distance_m"))),
+                  "column final_target_distance_m holds -1e-09, not a possible value (the measure is >= 0; "
+                  "graftcache.rollout.graded)"),
+        "sunk": (episodes.with_columns(target_lift_m=pl.lit(-0.01)),
+                 "column target_lift_m holds -0.01, not a possible value (the measure is >= 0; "
+                 "graftcache.rollout.graded)"),
+        "goal": (episodes.with_columns(goal_fraction=pl.lit(7.0)),
+                 "column goal_fraction holds 7.0, not a possible value (the measure is in [0, 1]; "
+                 "graftcache.rollout.graded)"),
     }
     for name, (frame, line) in cases.items():
         frame.write_parquet(tmp_path / f"{name}.parquet")
         with pytest.raises(GraftcacheError) as refused:
             A.read_rollouts(tmp_path / f"{name}.parquet", results)
         assert str(refused.value) == f"{tmp_path / name}.parquet: {line}", name
+    bounds = episodes.with_columns(goal_fraction=pl.lit(1.0), target_lift_m=pl.lit(0.0), min_target_distance_m=0.0)
+    bounds.write_parquet(tmp_path / "bounds.parquet")
+    assert A.read_rollouts(tmp_path / "bounds.parquet", results)["goal_fraction"].to_list() == [1.0] * 24
     episodes.with_columns(pl.col("grasped").cast(pl.Int8)).write_parquet(tmp_path / "ones.parquet")
     assert A.read_rollouts(tmp_path / "ones.parquet", results)["grasped"].to_list() == episodes["grasped"].to_list()
+
+
+def test_a_repeated_episode_is_refused_naming_it_and_its_copies(tmp_path: Path) -> None:
+    """The same episode appended twice (3 episodes would count as 5) is refused, by episode_id where the file has
+    it, else by run_id and the pair key; a table without a key has nothing to tell repeats by and reads."""
+    results = _results()
+    episodes = _episodes(results)
+    ids = episodes.with_columns(episode_id=pl.format("e{}-{}", pl.col("run_id").str.slice(0, 4), pl.col("episode")))
+    repeated = pl.concat([ids, ids[2:3], ids[2:3], ids[7:8]])
+    repeated.write_parquet(tmp_path / "ids.parquet")
+    with pytest.raises(GraftcacheError) as refused:
+        A.read_rollouts(tmp_path / "ids.parquet", results)
+    assert str(refused.value) == (f"{tmp_path / 'ids.parquet'}: episode episode_id={ids['episode_id'][2]} appears 3 "
+                                  "times (and 1 more repeated episode(s)): each episode must be one row; keep one "
+                                  "copy of each")
+    keyed = pl.concat([episodes, episodes[5:6]]).with_columns(pl.lit(None, pl.Float64).alias("perturbation_m"))
+    keyed.write_parquet(tmp_path / "keyed.parquet")
+    with pytest.raises(GraftcacheError) as refused:
+        A.read_rollouts(tmp_path / "keyed.parquet", results)
+    assert str(refused.value) == (f"{tmp_path / 'keyed.parquet'}: episode run_id={episodes['run_id'][5]}, "
+                                  "suite=libero_object, task_index=0, episode=1, seed=1001, max_steps=60, "
+                                  "perturbation_m=0.0 appears 2 times: each episode must be one row; keep one copy "
+                                  "of each")
+    other_seed = pl.concat([episodes, episodes[5:6].with_columns(seed=pl.lit(7, pl.Int64))])
+    other_seed.write_parquet(tmp_path / "seed.parquet")
+    assert len(A.read_rollouts(tmp_path / "seed.parquet", results)) == 25
+    bare = pl.concat([episodes, episodes[5:6]]).select("run_id", "success")
+    bare.write_parquet(tmp_path / "bare.parquet")
+    assert len(A.read_rollouts(tmp_path / "bare.parquet", results)) == 25

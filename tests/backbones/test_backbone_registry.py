@@ -78,3 +78,52 @@ def test_a_class_naming_itself_a_backbone_elsewhere_or_without_a_spec_of_its_own
         define("Copied", backbone_module("smolvla"), name="smolvla", spec=dataclasses.replace(smolvla.spec))
     assert define("Helper", "tests.elsewhere").spec is smolvla.spec  # no name of its own: not a registry entry
     assert smolvla.lerobot_type() == "smolvla"  # the registry name unless its spec names another lerobot type
+
+
+@pytest.mark.parametrize("name", sorted(BACKBONES))
+def test_the_spec_refuses_what_the_backbone_cannot_run_before_it_loads(name: str) -> None:
+    """An attention path the spec does not list, a recompute plan without `can_recompute`, `--compile` without a
+    compiled forward: refused from the spec's data, with the lines the adapter gives once loaded. mlp is refused
+    from the spec only where the backbone cannot recompute at all: every adapter with MLP slots can."""
+    spec, adapter = registered_spec(name), get_backbone(name)
+    ok = {"attention": "auto", "recompute": "off", "compile": False}
+    spec.check_execution(name, **ok)
+    if adapter._mlp_slots is not ActivationCheckpointing._mlp_slots:
+        assert spec.can_recompute
+    for field, value, refused in (
+            ("attention", "sdpa", "sdpa" not in spec.attentions),
+            ("attention", "eager", "eager" not in spec.attentions),
+            ("recompute", "on", not spec.can_recompute), ("recompute", "mlp", not spec.can_recompute),
+            ("compile", True, spec.compiled_forward is None)):
+        if not refused:
+            spec.check_execution(name, **{**ok, field: value})
+            continue
+        with pytest.raises(BackboneError) as said:
+            spec.check_execution(name, **{**ok, field: value})
+        if field == "attention":
+            with pytest.raises(BackboneError) as loaded:
+                adapter.resolve_attention(value)
+            assert str(said.value) == str(loaded.value)
+
+
+def test_fit_refuses_evo1_s_sdpa_recompute_and_compile_before_loading(tmp_path: Path, capsys,
+                                                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    """They were refused after ~20 s of loading the policy and printing its parameter table."""
+    from helpers.probes import run_cli
+
+    from graftcache.fit import plan
+
+    def load(*args: object, **kwargs: object) -> None:
+        raise AssertionError("the backbone was looked up")
+
+    monkeypatch.setattr(plan, "get_backbone", load)
+    fit = ["fit", "--backbone", "evo1", "--policy", "tiny", "--encoder", "resnet18", "--dataset", tmp_path / "none",
+           "--suite", "libero_spatial", "--cache", tmp_path / "cache", "--results", tmp_path / "r.parquet"]
+    for flags, said in ((["--attention", "sdpa"], "attention 'sdpa' is not one of this backbone's (eager: lerobot's "
+                         "own is eager); use --attention auto"),
+                        (["--recompute", "mlp"], "no recompute plan 'mlp' for this backbone; use --recompute off"),
+                        (["--recompute", "on"], "no recompute plan 'on' for this backbone; use --recompute off"),
+                        (["--compile"], "no compiled forward for this backbone (its spec names none); drop --compile")):
+        refused = run_cli([*fit, *flags], capsys)
+        assert (refused.code, refused.err) == (2, f"graftcache fit: error: evo1: {said}\n"), flags
+    assert not (tmp_path / "cache").exists()

@@ -38,11 +38,16 @@ def test_train_tiny_extract_native_and_fit_every_control(name: str, tiny_zoo: Ti
     assert list(manifest.encoder["grid"]) == list(adapter.native_patch_grid(images).shape[1:3])
     assert manifest.extras["connector"] == list(adapter.native_tokens(images).shape[1:])
     assert manifest.extras["connector"][-1] == adapter.lm_width
+    # trained by train-tiny, not random-init: the manifest and the log say which (the rows keep the schema's True)
+    assert (manifest.trained_by, manifest.random_init, manifest.weights["source"]) == ("train-tiny", False, "policy")
+    assert f"encoder {name}-native is the tower of a policy trained by train-tiny ({policy})" in native.out
+    assert "RANDOM-INIT" not in native.out
 
     rows = results.read(table)
     assert sorted(rows["control"]) == sorted(("none", *CONTROLS)) and set(rows["backbone"]) == {name}
     assert all(math.isfinite(v) and v > 0 for v in rows["eval_mse"])
     by_control = {r["control"]: r for r in rows.iter_rows(named=True)}
     assert by_control["native"]["encoder"] == f"{name}-native" and by_control["native"]["objective"] == "eval"
+    assert by_control["native"]["encoder_random_init"] and by_control["native"]["backbone_random_init"]
     assert by_control["pool-2x2"]["pool_grid"] == "2x2" and by_control["none"]["pool_grid"] == f"{grid[0]}x{grid[1]}"
     assert by_control["lora"]["eval_mse"] != by_control["none"]["eval_mse"]  # the adapters trained too

@@ -258,3 +258,55 @@ def test_export_never_writes_over_what_is_there(tiny_zoo: TinyZoo, tmp_path: Pat
     with pytest.raises(ExportError, match=rf"^{both}: holds an incomplete or other export"):
         bundle.place(other, both, "0" * 16)  # what another cell's export finds there: refused, not replaced
     assert export_of(both) == row["run_id"]
+
+
+@pytest.mark.slow
+def test_a_fit_of_a_relative_policy_exports_from_another_folder(tiny_zoo: TinyZoo, tmp_path: Path, capsys,
+                                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    """`fit --policy P` (relative) keeps "P" in its row, which its run_id hashes; its run folder records the folder it
+    loaded, so `export` from elsewhere builds on that policy (it failed before: "policy checkpoint 'P': no such
+    folder"). Where no run folder says so (a sidecar of before), a relative folder missing from here is one line."""
+    from fixtures.tiny_zoo import ENCODER
+
+    done = tiny_zoo.fitted("smolvla", (), capsys)
+    tiny_zoo.candidate(capsys)
+    table = tmp_path / "fit" / "results.parquet"
+    monkeypatch.chdir(done.policy.parent)
+    fit = run_cli(["fit", "--backbone", "smolvla", "--policy", done.policy.name, "--encoder", ENCODER, "--dataset",
+                   str(SAMPLE), "--suite", SUITE, "--seeds", "1", "--steps", "1", "--batch-size", "4",
+                   "--eval-fraction", "0.5", "--eval-frames", "4", "--num-denoise-steps", "2", "--cache",
+                   str(done.cache), "--results", str(table), "--no-progress"], capsys)
+    assert fit.code == 0, fit.err
+    row = results.read(table).row(0, named=True)
+    assert row["policy"] == done.policy.name  # as given: the run_id hashes it
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    export = ["export", row["run_id"], "--results", str(table), "--cache", str(done.cache)]
+    assert run_cli([*export, "--out", "out"], capsys).code == 0
+    assert json.loads((elsewhere / "out" / "config.json").read_text())["base_policy"] == str(done.policy.resolve())
+
+
+def test_export_finds_the_policy_folder_its_fit_recorded(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The base policy of a row naming a relative folder: the absolute one its run folder's sidecar recorded (from
+    any folder), one line where that is gone or where no sidecar records it and the folder is not here; a hub id, as
+    it is."""
+    policy, run = tmp_path / "work" / "ckpt", tmp_path / "runs" / "r1"
+    policy.mkdir(parents=True)
+    run.mkdir(parents=True)
+    (run / "projector.json").write_text(json.dumps({"run_id": "r1", "policy_folder": str(policy)}))
+    monkeypatch.chdir(tmp_path)
+    row = {"run_id": "r1", "policy": "./ckpt"}
+    assert bundle.base_policy(row, None, run) == str(policy)
+    with pytest.raises(ExportError) as refused:
+        bundle.base_policy(row, None, None)
+    assert str(refused.value) == (f"run r1: its policy folder ./ckpt is not there from {tmp_path} and no run folder "
+                                  "records where its fit found it; run export from the folder the fit ran in")
+    monkeypatch.chdir(policy.parent)
+    assert bundle.base_policy(row, None, None) == str(policy)
+    assert bundle.base_policy({"run_id": "r1", "policy": "lerobot/smolvla_base"}, None, None) == "lerobot/smolvla_base"
+    policy.rmdir()
+    with pytest.raises(ExportError) as refused:
+        bundle.base_policy(row, None, run)
+    assert str(refused.value) == (f"run r1: its policy folder {policy} (its fit's --policy ./ckpt) is gone; restore "
+                                  "it there")

@@ -125,6 +125,17 @@ def test_the_banner_says_per_backbone_which_weights_were_random_init():
                      for label, b in (("SmolVLA", "smolvla"), ("pi0.5", "pi05"))]  # ladder order: smaller first
 
 
+def test_the_banner_lists_a_native_tower_with_its_backbone_s_weights_not_as_random_init():
+    """A tiny policy's own tower: its rows' encoder_random_init is true (results.schema) whether train-tiny trained
+    it or not, so the banner says whose weights it has rather than calling them random-init."""
+    shape = {("smolvla", "libero_spatial", e): [1.0, 1.1] for e in ("mobilenetv2", "smolvla-native")}
+    rows = [{**r, "backbone_random_init": True, "encoder_random_init": r["encoder"] == "smolvla-native",
+             "random_init": True} for r in plain_rows(shape)]
+    _, *lines = _banner(rows)
+    assert lines == ["SmolVLA (`smolvla`): backbone random-init or train-tiny weights (all 4 rows); the policy's own "
+                     "tower, with the backbone's weights: smolvla-native; real weights: mobilenetv2"]
+
+
 def test_the_banner_falls_back_to_random_init_where_rows_do_not_record_the_two_apart():
     """A table from before the split (or another tool): only random_init, said as such and never guessed apart;
     rows that record the split beside them are still said apart."""

@@ -407,3 +407,31 @@ def test_rollout_smoke_in_the_simulator(simulator_cells: Fitted, tmp_path: Path,
     assert (mse["backbone"], mse["suite"], mse["cells"]) == ("smolvla", "libero_object", 2)
     assert csv.height == 4 and csv.select("spearman", "kendall_tau_b", "mmrv").null_count().row(0) == (4, 4, 4)
     assert "smolvla,libero_object,eval_mse,success,2" + "," * 10 + "\n" in (out / "closed_loop.csv").read_text()
+
+
+def test_a_suite_or_task_or_perturbation_it_cannot_run_is_refused_before_the_simulator(
+        tmp_path: Path, capsys: pytest.CaptureFixture, monkeypatch: pytest.MonkeyPatch) -> None:
+    """`--suites nope` is "not a LIBERO suite" (it was "no plain-graft row ... to rank"), a task past the suite's
+    and a perturbation finer than its resolution are refused before the team and the simulator start (the first two
+    came after ~14 s of simulator imports, 1e-300 cm made 'perturbed' episodes of the official scenes)."""
+    from helpers.probes import run_cli
+
+    from graftcache.rollout import run as rollout_run
+
+    def started(*args: object, **kwargs: object) -> None:
+        raise AssertionError("the simulator was started")
+
+    monkeypatch.setattr(rollout_run, "roll_out_started", started)
+    results_path = write_results(tmp_path / "results.parquet")
+    run_id = select_rows(full_table(), top=1, suites=["libero_spatial"])["run_id"][0]
+    for flags, said in ((["--suites", "libero_spatial,nope"], "--suites nope: not a LIBERO suite (libero_spatial, "
+                         "libero_object, libero_goal, libero_10, libero_90)"),
+                        (["--suites", "libero_spatial", "--top", "1", "--tasks", "3,10"],
+                         f"run {run_id}: suite libero_spatial has tasks 0-9, not task 10"),
+                        (["--perturb-cm", "1e-300"], "--perturb-cm 1e-300: finer than its resolution, 0.01 cm (0: "
+                         "none)"),
+                        (["--perturb-cm", "3.004"], "--perturb-cm 3.004: finer than its resolution, 0.01 cm (0: "
+                         "none)")):
+        refused = run_cli(["rollout", results_path, *flags], capsys)
+        assert (refused.code, refused.err) == (2, f"graftcache rollout: error: {said}\n"), flags
+    assert _request(tmp_path, perturb_cm=0.07).perturb_cm == 0.07 and _request(tmp_path, perturb_cm=3).perturb_cm == 3

@@ -168,3 +168,27 @@ def test_a_manifest_is_read_typed_and_a_wrong_field_is_refused_by_name() -> None
         with pytest.raises(CacheError) as refused:
             Manifest.read(broken, "here", "k")
         assert str(refused.value) == f"here: manifest {says}"
+
+
+def test_a_manifest_says_trained_by_train_tiny_apart_from_random_init_and_old_ones_read_as_written() -> None:
+    """The tower of a policy train-tiny trained records `weights.trained_by`, not random_init; a cache written before
+    that field (random_init true for both facts) reads as it was written, and its key is unchanged by the field."""
+    from graftcache.extract.provenance import weights_note
+
+    policy = {"source": "policy", "ref": "/p/tiny-smolvla-1", "sha256": "1" * 64, "seed": None}
+    trained = manifest(encoder={"name": "smolvla-native", "width": 8}, random_init=False,
+                       weights={**policy, "random_init": False, "trained_by": "train-tiny"})
+    old = manifest(encoder={"name": "smolvla-native", "width": 8}, random_init=True,
+                   weights={**policy, "random_init": True})
+    seeded = manifest()
+    assert (trained.trained_by, trained.weights_label) == ("train-tiny", "trained by train-tiny")
+    assert (old.trained_by, old.weights_label, seeded.weights_label) == (None, "random-init", "random-init")
+    assert manifest(random_init=False, weights={"source": "hub"}).weights_label == "hub"
+    assert weights_note(trained) == ("note: encoder smolvla-native is the tower of a policy trained by train-tiny "
+                                     "(/p/tiny-smolvla-1), not released weights; the manifest says so")
+    assert weights_note(old) == ("note: encoder smolvla-native uses RANDOM-INIT weights (policy /p/tiny-smolvla-1); "
+                                 "the manifest says so")
+    assert weights_note(seeded) == "note: encoder synthetic uses RANDOM-INIT weights (seed 0); the manifest says so"
+    assert weights_note(manifest(random_init=False, weights={"source": "hub"})) is None
+    assert cache_key(trained.to_dict()) == cache_key(old.to_dict())  # provenance only: the same cache
+    assert Manifest.read(trained.to_dict(), "here", "k") == trained
