@@ -167,7 +167,7 @@ def missing_cells(plans: Sequence[Plan], visited: Callable[[int], None] = lambda
 Copy = tuple[Planned, "dict[str, Any] | Planned"]
 
 
-def twins(cells: Sequence[Planned]) -> tuple[list[Planned], list[Copy]]:
+def plan_copies(cells: Sequence[Planned]) -> tuple[list[Planned], list[Copy]]:
     """`cells` split into those to fit and those whose policy (graftcache.fit.plan.Plan.policy_id: the function
     rolled out and the frames scored) is a run's already: a row of their results file, else the first such cell of
     `cells`. Planned before passes are formed, so that no pass (of this process or a Ray task) fits a policy twice."""
@@ -180,36 +180,36 @@ def twins(cells: Sequence[Planned]) -> tuple[list[Planned], list[Copy]]:
             table = results.read(path)
             known[path] = {r["policy_id"]: r for r in table.reverse().iter_rows(named=True) if r["policy_id"]}
         policy = plan.policy_id(cell)
-        twin = known[path].get(policy) or first.get(policy)
-        if twin is None:
+        original = known[path].get(policy) or first.get(policy)
+        if original is None:
             first[policy] = (plan, cell)
             fit.append((plan, cell))
         else:
-            copies.append(((plan, cell), twin))
+            copies.append(((plan, cell), original))
     return fit, copies
 
 
-def _twin_row(twin: dict[str, Any] | Planned, written: dict[tuple[str, str], dict[str, Any]]) -> dict[str, Any]:
-    """The row a copy is made from: a row of its file, or its twin cell's as written by this command (else as
+def _original_row(original: dict[str, Any] | Planned, written: dict[tuple[str, str], dict[str, Any]]) -> dict[str, Any]:
+    """The row a copy is made from: a row of its file, or its original cell's as written by this command (else as
     its results file holds it: another process computed it)."""
-    if isinstance(twin, dict):
-        return twin
-    if place(twin) not in written:
-        table = results.read(twin[0].req.results).filter(pl.col("run_id") == twin[1].run_id)
+    if isinstance(original, dict):
+        return original
+    if place(original) not in written:
+        table = results.read(original[0].req.results).filter(pl.col("run_id") == original[1].run_id)
         if not table.height:
-            raise ResultsError(f"{twin[0].req.results}: no row of run {twin[1].run_id}, whose policy other cells "
-                               "were to copy")
-        written[place(twin)] = table.row(0, named=True)
-    return written[place(twin)]
+            raise ResultsError(f"{original[0].req.results}: no row of run {original[1].run_id}, whose policy "
+                               "other cells were to copy")
+        written[place(original)] = table.row(0, named=True)
+    return written[place(original)]
 
 
 def _copy(copies: Sequence[Copy], written: dict[tuple[str, str], dict[str, Any]]) -> list[dict[str, Any]]:
-    """Write the rows of `copies` (their twins' rows are at hand), each said in one line; their run folders get
-    the twin's projector."""
+    """Write the rows of `copies` (their originals' rows are at hand), each said in one line; their run folders get
+    the original's projector."""
     made = []
-    for (plan, cell), twin in copies:
-        row = _twin_row(twin, written)
-        folder = plan.runs / row["run_id"] if isinstance(twin, dict) else twin[0].run_folder(twin[1])
+    for (plan, cell), original in copies:
+        row = _original_row(original, written)
+        folder = plan.runs / row["run_id"] if isinstance(original, dict) else original[0].run_folder(original[1])
         trains = plan.control(cell).train
         kept = plan.copy_run_folder(cell, folder) if trains else False
         ignored = ", ".join(plan.control(cell).ignores)
@@ -228,10 +228,13 @@ def run_passes(plans: Sequence[Plan], runner: Runner,
     Other processes (fits, sweeps, here or on other machines, under any executor) may write the same results files:
     a cell is computed only under its claim (graftcache.results.claims.cell_claim), taken before its pass is submitted
     and given back once its row is written, so a cell another process is computing is left for later (its pass runs
-    without it), then skipped once its row is in the file (or computed here if that process died)."""
+    without it), then skipped once its row is in the file (or computed here if that process died).
+
+    A missing cell whose policy is a run's already (`plan_copies`) is not fitted: its row is copied from that run's,
+    at once when the results file holds it, else as soon as the cell of this command that fits it has its row."""
     set_main_threads()
     rows: list[dict[str, Any]] = []
-    cells, copies = twins(missing_cells(plans, visited))
+    cells, copies = plan_copies(missing_cells(plans, visited))
     runner.planned(cells)
     written: dict[tuple[str, str], dict[str, Any]] = {}  # (results file, run_id) -> the row this command wrote
     waiting: dict[tuple[str, str], list[Copy]] = {}  # a cell of this command -> the copies its row makes
@@ -310,7 +313,7 @@ def run_passes(plans: Sequence[Plan], runner: Runner,
             if busy:
                 time.sleep(1.0)
             cells = busy
-        copy_waiting(list(waiting))  # twins whose rows another process wrote
+        copy_waiting(list(waiting))  # originals whose rows another process wrote
     finally:
         if running:
             runner.cancel()

@@ -282,28 +282,29 @@ class Plan:
                  f"cell{'s' * (len(cells) > 1)} already in {self.req.results} (control {which})")
 
     # ---------------------------------------------------------------- a cell of a policy already scored
-    def copied_row(self, cell: Cell, twin: Mapping[str, Any]) -> dict[str, Any]:
+    def copied_row(self, cell: Cell, original: Mapping[str, Any]) -> dict[str, Any]:
         """The row of `cell` made from the row of another run of the same policy (`policy_id`), scored on the same
-        frames: the twin's scores and measurements, with what is the cell's own (its fields and run_id, its
+        frames: the original's scores and measurements, with what is the cell's own (its fields and run_id, its
         encoder, cache and camera map, its command; numerics_drift null: its cache's features were never read)."""
         source = self.source(self.control(cell)).manifest
         own = {**asdict(cell), "run_id": cell.run_id, "format_version": results.FORMAT_VERSION,
                "encoder": source.encoder_name, "command": self.req.command,
                "encoder_random_init": bool(source.random_init),
-               "random_init": bool(source.random_init or twin["backbone_random_init"]), "numerics_drift": None,
+               "random_init": bool(source.random_init or original["backbone_random_init"]), "numerics_drift": None,
                "camera_map": format_camera_map(self.cameras)}
-        return {column: own[column] if column in own else twin[column] for column in results.SCHEMA}
+        return {column: own[column] if column in own else original[column] for column in results.SCHEMA}
 
-    def copy_run_folder(self, cell: Cell, twin: Path) -> bool:
-        """Give `cell` the projector of its twin's run folder `twin` (an export reads it by run_id), its sidecar naming
-        this cell and the run it was copied from; False where the twin's folder holds no projector."""
-        if not (twin / PROJECTOR_WEIGHTS).is_file():
+    def copy_run_folder(self, cell: Cell, original: Path) -> bool:
+        """Give `cell` the projector of the run folder `original` (an export reads it by run_id), its sidecar naming
+        this cell and the run it was copied from; False where that folder holds no projector."""
+        if not (original / PROJECTOR_WEIGHTS).is_file():
             return False
         folder = self.run_folder(cell)
         folder.mkdir(parents=True, exist_ok=True)
-        shutil.copyfile(twin / PROJECTOR_WEIGHTS, folder / PROJECTOR_WEIGHTS)
-        sidecar = json.loads((twin / PROJECTOR_SIDECAR).read_text()) if (twin / PROJECTOR_SIDECAR).is_file() else {}
-        sidecar.update(run_id=cell.run_id, cell=asdict(cell), copied_from=twin.name)
+        shutil.copyfile(original / PROJECTOR_WEIGHTS, folder / PROJECTOR_WEIGHTS)
+        recorded = original / PROJECTOR_SIDECAR
+        sidecar = json.loads(recorded.read_text()) if recorded.is_file() else {}
+        sidecar.update(run_id=cell.run_id, cell=asdict(cell), copied_from=original.name)
         (folder / PROJECTOR_SIDECAR).write_text(json.dumps(sidecar, indent=2, default=str))
         return True
 
