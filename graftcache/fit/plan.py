@@ -285,13 +285,14 @@ class Plan:
     def copied_row(self, cell: Cell, original: Mapping[str, Any]) -> dict[str, Any]:
         """The row of `cell` made from the row of another run of the same policy (`policy_id`), scored on the same
         frames: the original's scores and measurements, with what is the cell's own (its fields and run_id, its
-        encoder, cache and camera map, its command; numerics_drift null: its cache's features were never read)."""
+        encoder, cache and camera map, its command; numerics_drift null: its cache's features were never read;
+        wall_s 0: nothing was fitted for it)."""
         source = self.source(self.control(cell)).manifest
         own = {**asdict(cell), "run_id": cell.run_id, "format_version": results.FORMAT_VERSION,
                "encoder": source.encoder_name, "command": self.req.command,
                "encoder_random_init": bool(source.random_init),
                "random_init": bool(source.random_init or original["backbone_random_init"]), "numerics_drift": None,
-               "camera_map": format_camera_map(self.cameras)}
+               "camera_map": format_camera_map(self.cameras), "wall_s": 0.0}
         return {column: own[column] if column in own else original[column] for column in results.SCHEMA}
 
     def copy_run_folder(self, cell: Cell, original: Path) -> bool:

@@ -719,7 +719,7 @@ def test_a_cell_whose_policy_is_another_runs_is_copied_not_refitted(world: World
         assert any(line.startswith(f"cell {copy['run_id']} ") and f"same policy as run {original['run_id']} " in line
                    for line in copied)
         own = FeatureCache(world.cache / copy["cache_key"]).manifest.random_init  # its cache's, not the original's
-        assert copy["numerics_drift"] is None and copy["encoder_random_init"] is own
+        assert copy["numerics_drift"] is None and copy["encoder_random_init"] is own and copy["wall_s"] == 0.0
         folder = run_folder(copy, path, None, None)
         assert folder == runs / copy["run_id"] and cell_of(copy, folder).run_id == copy["run_id"]
         assert (folder / "projector.safetensors").read_bytes() == \
