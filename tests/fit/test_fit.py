@@ -90,7 +90,7 @@ def test_every_control_writes_one_schema_valid_row(world: World, tmp_path: Path)
         # 7-d LIBERO actions: per frame eval_mse averages 6 arm dims and the gripper, so the dims-weighted mean of
         # the two parts is eval_mse (frames and chunk steps weigh the same in all three)
         assert (6 * row["eval_mse_arm"] + row["eval_mse_gripper"]) / 7 == pytest.approx(row["eval_mse"], rel=1e-6)
-        assert row["eval_split"] == "graftcache" and row["format_version"] == results.FORMAT_VERSION == 5
+        assert row["eval_split"] == "graftcache" and row["format_version"] == results.FORMAT_VERSION == 6
     # the policy as loaded, counted before the graft: every control of one backbone records the same size
     assert {r["backbone_params"] for r in by.values()} == {world.policy_params("smolvla")}
     # Prismatic's habit, once per loaded policy: the first cell logs which modules are frozen and which train, and a
