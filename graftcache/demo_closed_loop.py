@@ -10,8 +10,10 @@ simulator's state (graftcache.rollout.graded): how close the end effector comes 
 - on the figure's (backbone, suite): every row, so the agreement of eval_mse with closed-loop progress rests on
   encoders x seeds plus native-graft and zero-image (>= 24 cells); on the other (backbone, suite)s: the native tower
   against the top encoder's zero-image control of the paired seeds, the check that looking helps in closed loop;
-- the native tower once per (backbone, suite): it trains nothing, so its rows of other seeds are the same policy
-  (same run inputs, same weights) and would be the same episodes counted again;
+- each policy once (graftcache.rollout.select.one_per_policy: one run_id per policy_id, the lowest seed's, then the
+  first encoder's by name): the native tower trains nothing, so its rows of every seed are one policy, and the
+  zero-image rows of one seed are one policy whatever the encoder (their features are zeroed and their caches hold
+  the same frames); rolled out again they would be the same episodes counted again;
 - the paired cells on twice the episodes of the figure's: the figure's agreement rests on 29 cells, the paired check
   on one native cell against two zero-image cells, so its power comes from paired episodes alone. Measured on the
   first run of this demo (2026-11-28): tiny pi0.5 on libero_object, 4 episodes, native minus zero-image closest
@@ -28,6 +30,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
@@ -84,29 +87,24 @@ class ClosedLoopCells:
     paired: tuple[str, ...]
 
 
-def closed_loop_run_ids(results: pl.DataFrame, plan: ClosedLoopPlan = CLOSED_LOOP) -> ClosedLoopCells:
+def closed_loop_run_ids(results: pl.DataFrame, plan: ClosedLoopPlan = CLOSED_LOOP,
+                        log: Callable[[str], None] = write) -> ClosedLoopCells:
     """The cells `demo --closed-loop` rolls out of `results` (see the module docstring): on the figure's
-    (backbone, suite), every row with a closed-loop meaning (not shuffled-image: graftcache.fit.controls) but
-    native's repeats; on the others, native and the top encoder's zero-image rows of `paired_seeds`. A figure's
-    (backbone, suite) missing from `results` is an error: there would be no figure."""
+    (backbone, suite), every row with a closed-loop meaning (not shuffled-image: graftcache.fit.controls), one per
+    policy; on the others, native and the top encoder's zero-image rows of `paired_seeds`. A figure's
+    (backbone, suite) missing from `results` is an error: there would be no figure. Which run stands for a policy
+    of several is said in `log`."""
     backbone, suite = plan.figure
     live = results.filter(pl.col("control").map_elements(lambda c: get_control(c).closed_loop, pl.Boolean))
     figure = live.filter((pl.col("backbone") == backbone) & (pl.col("suite") == suite))
     if not figure.height:
         raise GraftcacheError(f"no row of {backbone} on {suite} in the results: the closed-loop figure has no cells")
     others = live.join(figure.select("run_id"), on="run_id", how="anti")
-    paired = (select_rows(others, top=1).filter(pl.col("control").is_in([NATIVE_CONTROL, ZERO_IMAGE])
-                                               & pl.col("seed").is_in(list(plan.paired_seeds)))
+    paired = (select_rows(others, top=1, log=log).filter(pl.col("control").is_in([NATIVE_CONTROL, ZERO_IMAGE])
+                                                        & pl.col("seed").is_in(list(plan.paired_seeds)))
               if others.height else others)
-    return ClosedLoopCells(figure=_native_once(select_rows(figure, run_ids=figure["run_id"].to_list())),
-                           paired=_native_once(paired))
-
-
-def _native_once(chosen: pl.DataFrame) -> tuple[str, ...]:
-    """`chosen`'s run_ids with its native rows reduced to the lowest seed's of each (backbone, suite)."""
-    native = chosen["control"] == NATIVE_CONTROL
-    once = chosen.filter(native).sort("seed").unique(["backbone", "suite"], keep="first", maintain_order=True)
-    return (*chosen.filter(~native)["run_id"].to_list(), *once["run_id"].to_list())
+    chosen = select_rows(figure, run_ids=figure["run_id"].to_list(), log=log)
+    return ClosedLoopCells(figure=tuple(chosen["run_id"].to_list()), paired=tuple(paired["run_id"].to_list()))
 
 
 def run_closed_loop_demo(recipe_path: str | Path | None = None, out: str | Path | None = None,

@@ -8,6 +8,7 @@ the command that wrote it; one of format 3 or 4 is read as this format, and its 
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 from pathlib import Path
 
@@ -23,6 +24,7 @@ from graftcache.errors import CacheError, ExportError, ResultsError
 from graftcache.export.bundle import cell_of
 from graftcache.fit.plan import Cell
 from graftcache.fit.run import PROJECTOR_SIDECAR
+from graftcache.results.schema import CELL_COLUMNS, make_policy_id
 from graftcache.store import FORMAT_VERSION, BrokenCache, FeatureCache, list_caches, scan_caches
 from graftcache.store.manifest import PREVIOUS_GAPS, RENAMED
 
@@ -92,12 +94,12 @@ def test_format_3_rows_are_read_as_this_format_with_their_run_ids(tmp_path: Path
     assert "eval_split" not in pl.read_parquet(old).columns
     read = results.read(old)
     assert read["run_id"].to_list() == rows["run_id"].to_list()
-    assert read["format_version"].to_list() == [5, 5] and read["eval_split"].to_list() == ["graftcache"] * 2
+    assert read["format_version"].to_list() == [6, 6] and read["eval_split"].to_list() == ["graftcache"] * 2
     assert read["eval_mse_arm"].null_count() == read["eval_mse_gripper"].null_count() == 2
     # random_init is the union of the encoder's and the backbone's: false says both were false
     assert read["encoder_random_init"].to_list() == read["backbone_random_init"].to_list() == [False, False]
     results.append(old, table([row("smolvla", "libero_spatial", "siglip", 2, 0.4, eval_split="graftcache")]))
-    assert pl.read_parquet(old)["format_version"].to_list() == [5, 5, 5]
+    assert pl.read_parquet(old)["format_version"].to_list() == [6, 6, 6]
 
 
 def test_format_4_rows_from_before_the_random_init_split_are_read_with_what_random_init_says(tmp_path: Path) -> None:
@@ -108,7 +110,7 @@ def test_format_4_rows_from_before_the_random_init_split_are_read_with_what_rand
     rows = table([row("smolvla", "libero_spatial", "siglip", seed, 0.5, random_init=seed == 1) for seed in (0, 1)])
     previous_results(old, rows.drop("encoder_random_init", "backbone_random_init"), 4)
     read = results.read(old)
-    assert read["run_id"].to_list() == rows["run_id"].to_list() and read["format_version"].to_list() == [5, 5]
+    assert read["run_id"].to_list() == rows["run_id"].to_list() and read["format_version"].to_list() == [6, 6]
     assert read["encoder_random_init"].to_list() == read["backbone_random_init"].to_list() == [False, None]
     assert read["random_init"].to_list() == [False, True]
 
@@ -130,7 +132,7 @@ def test_a_newer_results_file_is_called_newer(tmp_path: Path) -> None:
                              results.FORMAT_VERSION + 1)
     with pytest.raises(ResultsError) as refused:
         results.read(newer)
-    assert str(refused.value).startswith(f"{newer}: 1 row(s) of results format 6, newer than this graftcache's (5, ")
+    assert str(refused.value).startswith(f"{newer}: 1 row(s) of results format 7, newer than this graftcache's (6, ")
     assert "older" not in str(refused.value)
 
 
@@ -172,7 +174,7 @@ def test_format_4_rows_lack_part_of_their_cell_and_are_still_exported(tmp_path: 
     old = previous_results(tmp_path / "old.parquet", rows, 4)
     read = results.read(old)
     assert read["run_id"].to_list() == [NATIVE.run_id, lora.run_id, odd.run_id]
-    assert read["format_version"].to_list() == [5] * 3 and read["lora_rank"].to_list() == [0, None, 0]
+    assert read["format_version"].to_list() == [6] * 3 and read["lora_rank"].to_list() == [0, None, 0]
     assert read["eval_fraction"].null_count() == 3
     native_row, lora_row, odd_row = read.iter_rows(named=True)
     assert cell_of(native_row, None) == NATIVE
@@ -186,3 +188,37 @@ def test_format_4_rows_lack_part_of_their_cell_and_are_still_exported(tmp_path: 
     this = table([_cell_row(c) for c in (NATIVE, lora, odd)])  # as this format writes them: each cell whole
     assert [cell_of(r, None) for r in this.iter_rows(named=True)] == [NATIVE, lora, odd]
 
+
+
+def _hand_policy_id(fields: dict) -> str:
+    """sha256 of the canonical JSON of `fields` with the policy identity's version, by hand."""
+    text = json.dumps({**fields, "policy_identity": 1}, sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def test_format_5_rows_get_the_policy_id_their_cells_give(tmp_path: Path) -> None:
+    """Format 6 added policy_id: a format 5 row keeps its run_id and gets the hash of the cell it records, less its
+    seed where it trained nothing (native: one policy over seeds, as graftcache.fit.controls declares for new rows);
+    a zero-image row of then keeps its cache_key (its projector started from a random init drawn at the encoder's
+    width), and every trained row its seed."""
+    native_1 = dataclasses.replace(NATIVE, seed=1)
+    zero = [dataclasses.replace(NATIVE, control="zero-image", objective="flow", steps=5, lr=0.01, batch_size=4,
+                                buffer_mib=64, cache_key=key) for key in ("siglip-00aa", "dinov2-00bb")]
+    cells = (NATIVE, native_1, *zero)
+    old = previous_results(tmp_path / "old.parquet", table([_cell_row(c) for c in cells]), 5)
+    assert "policy_id" not in pl.read_parquet(old).columns
+    read = results.read(old)
+    assert read["run_id"].to_list() == [c.run_id for c in cells]
+    without_seed = {k: v for k, v in dataclasses.asdict(NATIVE).items() if k != "seed"}
+    assert read["policy_id"].to_list() == [_hand_policy_id(without_seed)] * 2 + [
+        _hand_policy_id(dataclasses.asdict(c)) for c in zero]
+    assert read["policy_id"].n_unique() == 3
+    assert _hand_policy_id(without_seed) == make_policy_id(without_seed)
+    # a file of both formats: the format 6 row's policy_id is kept as written
+    results.append(old, table([{**_cell_row(dataclasses.replace(NATIVE, seed=2)), "policy_id": "f" * 16}]))
+    assert results.read(old)["policy_id"].to_list()[-1] == "f" * 16
+    assert pl.read_parquet(old)["format_version"].unique().to_list() == [results.FORMAT_VERSION]
+
+
+def test_every_cell_field_is_a_cell_column_policy_ids_are_computed_from() -> None:
+    assert set(CELL_COLUMNS) == {f.name for f in dataclasses.fields(Cell)}

@@ -98,7 +98,8 @@ class RayRunner:
         self._tickets = 0
 
     def planned(self, cells: Sequence[Planned]) -> None:
-        self.log(f"ray: {len(cells)} cell task(s) to run; the other cells are in the results file already")
+        self.log(f"ray: {len(cells)} cell task(s) to run; the other cells are in the results file already, or "
+                 "copied from a run of the same policy")
 
     def submit(self, cells: Sequence[Planned]) -> int:
         self._tickets += 1

@@ -32,7 +32,7 @@ from graftcache.settings import declared, default_of
 from graftcache.store import cache_root
 from graftcache.store.readthrough import reading_root
 
-POLICY_PREFIX = "tiny:"  # how rows name a policy trained by train-tiny (graftcache.fit.plan.Plan.policy_id)
+POLICY_PREFIX = "tiny:"  # how rows name a policy trained by train-tiny (graftcache.fit.plan.Plan.policy_name)
 
 
 def cell_of(row: dict[str, Any], folder: Path | None) -> Cell:

@@ -92,6 +92,21 @@ def pass_through(width: int, lm_width: int) -> nn.Module:
     return PassThroughProjector(lm_width)
 
 
+def zero_image_projector(width: int, lm_width: int) -> nn.Module:
+    """The zero-image control's projector, whose function cannot depend on the encoder's width: the Linear weight and
+    the LayerNorm bias start at zero, so with all-zero features their gradients stay exactly zero (LN(0) is its bias,
+    the Linear's weight gradient is g x LN(0)^T, the LN bias's W^T g) and only the Linear bias, of LM width, trains,
+    from zero. Built without drawing from torch's global generator (a default init draws width x lm_width numbers),
+    so whatever the pass draws next does not depend on the width either."""
+    with torch.random.fork_rng(devices=[]):
+        projector = GraftProjector(width, lm_width)
+    with torch.no_grad():
+        projector.proj.weight.zero_()
+        projector.proj.bias.zero_()
+        projector.norm.bias.zero_()
+    return projector
+
+
 @dataclass(frozen=True)
 class Control:
     name: str
@@ -106,13 +121,19 @@ class Control:
                                     # adapts the backbone itself, which every row of a pass would go through
     grid: tuple[int, int] | None = None  # overrides the backbone's token grid
     closed_loop: bool = True        # has a meaning as a policy run in the simulator (graftcache export, rollout)
+    ignores: tuple[str, ...] = ()   # cell fields its policy's function does not depend on (its policy_id leaves them
+                                    # out, graftcache.fit.plan.Plan.policy_id, or hashes what stands in for them)
 
 
 CONTROLS: dict[str, Control] = {
     "none": Control("none"),
-    NATIVE_CONTROL: Control(NATIVE_CONTROL, projector=pass_through, native_cache=True, extra="connector", train=False),
+    # the tower as released, trained by nothing: the seed changes nothing (scoring's noise is fixed per frame), and
+    # a cell that trains nothing holds no training setting (graftcache.settings.Identity's `when`)
+    NATIVE_CONTROL: Control(NATIVE_CONTROL, projector=pass_through, native_cache=True, extra="connector", train=False,
+                            ignores=("seed",)),
     NATIVE_GRAFT_CONTROL: Control(NATIVE_GRAFT_CONTROL, native_cache=True),
-    "zero-image": Control("zero-image", transform=zero),
+    # zeroed features: the encoder's cache decides nothing but which frames train (what stands in for its key)
+    "zero-image": Control("zero-image", projector=zero_image_projector, transform=zero, ignores=("cache_key",)),
     "shuffled-image": Control("shuffled-image", pairing=shuffle, closed_loop=False),  # other frames: none live
     "lora": Control("lora", lora=True, fuses=False),
 }

@@ -34,6 +34,7 @@ from collections.abc import Callable, Sequence
 from contextlib import ExitStack
 from typing import Any, Protocol
 
+import polars as pl
 import torch
 
 from graftcache import results
@@ -161,6 +162,64 @@ def missing_cells(plans: Sequence[Plan], visited: Callable[[int], None] = lambda
     return missing
 
 
+#: A missing cell whose policy another run already is (or will be, earlier in the same command): that run's row, as
+#: its results file holds it, or that cell, whose row the copy waits for.
+Copy = tuple[Planned, "dict[str, Any] | Planned"]
+
+
+def plan_copies(cells: Sequence[Planned]) -> tuple[list[Planned], list[Copy]]:
+    """`cells` split into those to fit and those whose policy (graftcache.fit.plan.Plan.policy_id: the function
+    rolled out and the frames scored) is a run's already: a row of their results file, else the first such cell of
+    `cells`. Planned before passes are formed, so that no pass (of this process or a Ray task) fits a policy twice."""
+    known: dict[str, dict[str, dict[str, Any]]] = {}  # results file -> policy_id -> its first row there
+    first: dict[str, Planned] = {}  # policy_id -> the cell of `cells` that fits it
+    fit, copies = [], []
+    for plan, cell in cells:
+        path = plan.req.results
+        if path not in known:
+            table = results.read(path)
+            known[path] = {r["policy_id"]: r for r in table.reverse().iter_rows(named=True) if r["policy_id"]}
+        policy = plan.policy_id(cell)
+        original = known[path].get(policy) or first.get(policy)
+        if original is None:
+            first[policy] = (plan, cell)
+            fit.append((plan, cell))
+        else:
+            copies.append(((plan, cell), original))
+    return fit, copies
+
+
+def _original_row(original: dict[str, Any] | Planned, written: dict[tuple[str, str], dict[str, Any]]) -> dict[str, Any]:
+    """The row a copy is made from: a row of its file, or its original cell's as written by this command (else as
+    its results file holds it: another process computed it)."""
+    if isinstance(original, dict):
+        return original
+    if place(original) not in written:
+        table = results.read(original[0].req.results).filter(pl.col("run_id") == original[1].run_id)
+        if not table.height:
+            raise ResultsError(f"{original[0].req.results}: no row of run {original[1].run_id}, whose policy "
+                               "other cells were to copy")
+        written[place(original)] = table.row(0, named=True)
+    return written[place(original)]
+
+
+def _copy(copies: Sequence[Copy], written: dict[tuple[str, str], dict[str, Any]]) -> list[dict[str, Any]]:
+    """Write the rows of `copies` (their originals' rows are at hand), each said in one line; their run folders get
+    the original's projector."""
+    made = []
+    for (plan, cell), original in copies:
+        row = _original_row(original, written)
+        folder = plan.runs / row["run_id"] if isinstance(original, dict) else original[0].run_folder(original[1])
+        trains = plan.control(cell).train
+        kept = plan.copy_run_folder(cell, folder) if trains else False
+        ignored = ", ".join(plan.control(cell).ignores)
+        lost = f"; no projector in {folder}, so this run cannot be exported" if trains and not kept else ""
+        plan.log(f"cell {cell.run_id} (seed {cell.seed} control {cell.control} cache {cell.cache_key}): same policy "
+                 f"as run {row['run_id']} ({cell.control} ignores {ignored}): row copied, not refitted{lost}")
+        made.append(plan.copied_row(cell, row))
+    return _write([c for c, _ in copies], made)
+
+
 def run_passes(plans: Sequence[Plan], runner: Runner,
                visited: Callable[[int], None] = lambda n: None) -> list[dict[str, Any]]:
     """Every missing cell of `plans`, pass by pass on `runner`, each row appended to its results file as its pass
@@ -169,13 +228,25 @@ def run_passes(plans: Sequence[Plan], runner: Runner,
     Other processes (fits, sweeps, here or on other machines, under any executor) may write the same results files:
     a cell is computed only under its claim (graftcache.results.claims.cell_claim), taken before its pass is submitted
     and given back once its row is written, so a cell another process is computing is left for later (its pass runs
-    without it), then skipped once its row is in the file (or computed here if that process died)."""
+    without it), then skipped once its row is in the file (or computed here if that process died).
+
+    A missing cell whose policy is a run's already (`plan_copies`) is not fitted: its row is copied from that run's,
+    at once when the results file holds it, else as soon as the cell of this command that fits it has its row."""
     set_main_threads()
-    cells = missing_cells(plans, visited)
+    rows: list[dict[str, Any]] = []
+    cells, copies = plan_copies(missing_cells(plans, visited))
     runner.planned(cells)
+    written: dict[tuple[str, str], dict[str, Any]] = {}  # (results file, run_id) -> the row this command wrote
+    waiting: dict[tuple[str, str], list[Copy]] = {}  # a cell of this command -> the copies its row makes
+    for copy in copies:
+        if not isinstance(copy[1], dict):
+            waiting.setdefault(place(copy[1]), []).append(copy)
+    ready = [c for c in copies if isinstance(c[1], dict)]
+    if ready:
+        rows.extend(_copy(ready, written))
+        visited(len(ready))
     claims = {place(c): cell_claim(*place(c)) for c in cells}
     left = Counter(id(plan) for plan, _ in cells)
-    rows: list[dict[str, Any]] = []
     told: set[tuple[str, str]] = set()
     running: dict[int, list[Planned]] = {}  # ticket -> the pass's cells, their claims held
 
@@ -193,7 +264,16 @@ def run_passes(plans: Sequence[Plan], runner: Runner,
             rows.extend(_write(ps, got))
         finally:
             release_all([claims[place(c)] for c in ps])
+        written.update((place(c), row) for c, row in zip(ps, got, strict=True))
         done(ps)
+        copy_waiting([place(c) for c in ps])
+
+    def copy_waiting(at: Sequence[tuple[str, str]]) -> None:
+        """The copies of the cells at `at`, whose rows are now in their files."""
+        now = [c for a in at for c in waiting.pop(a, [])]
+        if now:
+            rows.extend(_copy(now, written))
+            visited(len(now))
 
     try:
         while cells:
@@ -225,6 +305,7 @@ def run_passes(plans: Sequence[Plan], runner: Runner,
                 stale = [c for c in got if c not in fresh]
                 release_all([claims[place(c)] for c in stale])
                 done(stale)
+                copy_waiting([place(c) for c in stale])
                 while len(running) >= runner.slots:
                     collect()
             while running:
@@ -232,6 +313,7 @@ def run_passes(plans: Sequence[Plan], runner: Runner,
             if busy:
                 time.sleep(1.0)
             cells = busy
+        copy_waiting(list(waiting))  # originals whose rows another process wrote
     finally:
         if running:
             runner.cancel()

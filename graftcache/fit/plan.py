@@ -15,7 +15,9 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import json
 import os
+import shutil
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict
 from pathlib import Path
@@ -30,20 +32,25 @@ from graftcache.backbones.tiny_record import resolve_policy
 from graftcache.cameras import format_camera_map, match_cameras, parse_camera_map, renames
 from graftcache.codecs import without_none
 from graftcache.errors import FitError
+from graftcache.fit.buffer import MIB
 from graftcache.fit.controls import Control, check_pool_grid, get_control
 from graftcache.fit.data import split_episodes, suite_index_table
 from graftcache.fit.lookup import find_cache
 from graftcache.fit.objectives import EVAL_ONLY, OBJECTIVES, Objective
 from graftcache.fit.stream import FeatureSource
+from graftcache.hashing import sha256_bytes
 from graftcache.pooling import format_grid, parse_grid
 from graftcache.requests import FitRequest
-from graftcache.results.schema import IDENTITY_3_VALUES
+from graftcache.results.schema import IDENTITY_3_VALUES, make_policy_id
 from graftcache.runtime import resolve_compute_dtype, resolve_device
 from graftcache.settings import Declared, declared
 from graftcache.store import FeatureCache, cache_root
 from graftcache.store.readthrough import reading_root
 
 __all__ = ["Cell", "Plan", "Planned"]
+
+PROJECTOR_WEIGHTS = "projector.safetensors"  # in a cell's run folder: its trained parameters
+PROJECTOR_SIDECAR = "projector.json"         # beside them: its cell, split and freeze report (graftcache.fit.run)
 
 
 #: The FitRequest settings each cell holds, as their declarations say (graftcache/requests.py, `cell=`).
@@ -194,7 +201,7 @@ class Plan:
         return source.frame_shape(source.cameras[0])[1]
 
     @property
-    def policy_id(self) -> str:
+    def policy_name(self) -> str:
         """How rows name the policy: as given, or `tiny:<folder>` for the tiny policy trained on this dataset."""
         return self.req.policy if self.req.policy != "tiny" else f"tiny:{Path(self.policy_folder).name}"
 
@@ -203,11 +210,44 @@ class Plan:
         """What identifies a results row (hashed into its run_id); computable without loading anything."""
         objective = self.objective_of(control)
         return Cell(
-            policy=self.policy_id, cache_key=self.source(control).key, seed=seed, control=control.name,
+            policy=self.policy_name, cache_key=self.source(control).key, seed=seed, control=control.name,
             pool_grid=format_grid(self.grid(control)), objective=objective.name,
             camera_map=format_camera_map(self.cameras) if renames(self.cameras) else None,
             **{name: _cell_value(self.req, name, objective, control) for name in CELL_SETTINGS},
         )
+
+    def policy_id(self, cell: Cell) -> str:
+        """What decides the function of the cell's policy and its scores (results.schema.make_policy_id): the cell's
+        fields, less those its control's policy ignores (graftcache.fit.controls.Control.ignores), each replaced by
+        what stands in for it (STAND_INS; a field with no stand-in is simply left out)."""
+        control = self.control(cell)
+        fields = {k: v for k, v in asdict(cell).items() if k not in control.ignores}
+        stand_ins = {STAND_INS[name][0]: STAND_INS[name][1](self, control) for name in control.ignores
+                     if name in STAND_INS}
+        return make_policy_id({**fields, **stand_ins})
+
+    def frames(self, control: Control) -> dict[str, Any]:
+        """What decides which frames a control's cells train and are scored on, in which draws, when its features
+        decide nothing (zero-image): the dataset's content, which of its frames the cache holds at which rows (the
+        suite's index), the cache's block layout (blocks are drawn whole), the shuffle buffer's frames where its MiB
+        hold fewer than the training split (a width's frame bytes then decide them), the native cache align fits
+        to, and the cache's key itself where frames with NaN/inf features are dropped (which ones: its features')."""
+        cache = self.source(control)
+        suite = self.index if cache is self.cache else suite_index_table(cache, self.req.suite)
+        index = suite.select("row", "index").to_numpy().astype("int64")
+        out: dict[str, Any] = {"dataset": cache.manifest.dataset_identity, "frames": sha256_bytes(index.tobytes()),
+                               "block_frames": int(cache.layout["block_frames"])}
+        objective = self.objective_of(control)
+        if objective.scheduled:
+            source = FeatureSource.of(cache, list(self.cameras.values()), self.grid(control), control.extra)
+            held = self.req.buffer_mib * MIB // max(source.frame_bytes(), 1)
+            train = int(suite["episode_index"].is_in(list(self.split.train_episodes)).sum())
+            out["buffer_frames"] = held if held < train else None
+        if objective.needs_native:
+            out["targets"] = self.native_cache.key
+        if self.req.drop_nonfinite:
+            out["features"] = cache.key
+        return out
 
     def cells(self) -> list[Cell]:
         """Every cell of the request (each seed, each control), in the order a fit visits them."""
@@ -244,6 +284,34 @@ class Plan:
         self.log(f"skip {self.req.backbone}/{self.req.encoder}/{self.req.suite}: {len(cells)} "
                  f"cell{'s' * (len(cells) > 1)} already in {self.req.results} (control {which})")
 
+    # ---------------------------------------------------------------- a cell of a policy already scored
+    def copied_row(self, cell: Cell, original: Mapping[str, Any]) -> dict[str, Any]:
+        """The row of `cell` made from the row of another run of the same policy (`policy_id`), scored on the same
+        frames: the original's scores and measurements, with what is the cell's own (its fields and run_id, its
+        encoder, cache and camera map, its command; numerics_drift null: its cache's features were never read;
+        wall_s 0: nothing was fitted for it)."""
+        source = self.source(self.control(cell)).manifest
+        own = {**asdict(cell), "run_id": cell.run_id, "format_version": results.FORMAT_VERSION,
+               "encoder": source.encoder_name, "command": self.req.command,
+               "encoder_random_init": bool(source.random_init),
+               "random_init": bool(source.random_init or original["backbone_random_init"]), "numerics_drift": None,
+               "camera_map": format_camera_map(self.cameras), "wall_s": 0.0}
+        return {column: own[column] if column in own else original[column] for column in results.SCHEMA}
+
+    def copy_run_folder(self, cell: Cell, original: Path) -> bool:
+        """Give `cell` the projector of the run folder `original` (an export reads it by run_id), its sidecar naming
+        this cell and the run it was copied from; False where that folder holds no projector."""
+        if not (original / PROJECTOR_WEIGHTS).is_file():
+            return False
+        folder = self.run_folder(cell)
+        folder.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(original / PROJECTOR_WEIGHTS, folder / PROJECTOR_WEIGHTS)
+        recorded = original / PROJECTOR_SIDECAR
+        sidecar = json.loads(recorded.read_text()) if recorded.is_file() else {}
+        sidecar.update(run_id=cell.run_id, cell=asdict(cell), copied_from=original.name)
+        (folder / PROJECTOR_SIDECAR).write_text(json.dumps(sidecar, indent=2, default=str))
+        return True
+
     # ---------------------------------------------------------------- where a cell's files go
     def run_folder(self, cell: Cell) -> Path:
         """Where a cell's projector (and a row its results file could not take) is kept."""
@@ -264,6 +332,11 @@ class Plan:
         self.log(f"cannot write run folders beside {self.req.results} ({existing} is not writable): projectors, and "
                  f"rows the results file cannot take, are kept in {runs} (--out names another folder)")
         return runs
+
+
+#: A cell field some control's policy ignores -> (the key its policy_id hashes instead, what stands in for it): the
+#: encoder's cache of zero-image cells, whose features are zeroed, by what decides their frames.
+STAND_INS: dict[str, tuple[str, Callable[[Plan, Control], Any]]] = {"cache_key": ("frames", Plan.frames)}
 
 
 #: A cell as a pass holds it: with the Plan of its request (what it reads, where its row and run folder go).

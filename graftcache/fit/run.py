@@ -40,17 +40,16 @@ from graftcache.fit.data import Split
 from graftcache.fit.loop import Scoring, alone, evaluate_together
 from graftcache.fit.materials import Materials, MaterialsOf, Reading
 from graftcache.fit.objectives import Fitting
-from graftcache.fit.plan import Cell, Plan, Planned
+from graftcache.fit.plan import PROJECTOR_SIDECAR, PROJECTOR_WEIGHTS, Cell, Plan, Planned
 from graftcache.fit.step_memory import check_step_memory
 from graftcache.fit.stream import StreamStats, read_blocks
 from graftcache.graft import FusedProjector
 from graftcache.requests import FitRequest
 from graftcache.store.readthrough import ReadThroughRoot
 
-__all__ = ["Cell", "FitRequest", "run_pass", "save_projector", "saved_cell"]
+__all__ = ["PROJECTOR_SIDECAR", "PROJECTOR_WEIGHTS", "Cell", "FitRequest", "run_pass", "save_projector",
+           "saved_cell"]
 
-PROJECTOR_WEIGHTS = "projector.safetensors"  # in a cell's run folder: its trained parameters
-PROJECTOR_SIDECAR = "projector.json"         # beside them: its cell, split and freeze report (save_projector)
 
 
 @dataclass
@@ -169,7 +168,8 @@ def _row(c: _InPass, adapter: BackboneAdapter, loss: float, score: Any, wall: fl
     if isinstance(plan.root, ReadThroughRoot):  # what the reading processes copied locally for this cell
         plan.root.fetched_bytes += c.stats.fetched
     return c.cell.row(plan.req, {  # pool_grid: the cell's (graftcache.fit.plan.Plan.grid), which its run_id hashes
-        "run_id": c.cell.run_id, "format_version": results.FORMAT_VERSION, "policy_sha256": adapter.policy_sha256,
+        "run_id": c.cell.run_id, "policy_id": plan.policy_id(c.cell), "format_version": results.FORMAT_VERSION,
+        "policy_sha256": adapter.policy_sha256,
         "encoder": r.encoder, "train_loss_final": loss, "eval_mse": score.mse,
         "eval_mse_first": score.mse_first, "eval_mse_raw": score.mse_raw, "eval_mse_arm": score.mse_arm,
         "eval_mse_gripper": score.mse_gripper,

@@ -13,7 +13,7 @@ import polars as pl
 
 from graftcache.errors import GraftcacheError, ResultsError
 from graftcache.results.schema import conform, empty, validate
-from graftcache.results.upgrade import upgrade
+from graftcache.results.upgrade import upgrade, with_policy_ids
 
 
 def refuse_directory(path: Path) -> None:
@@ -83,7 +83,7 @@ def read_for_report(path: str | Path) -> pl.DataFrame:
     except (pl.exceptions.PolarsError, OSError) as e:
         raise ResultsError(f"{path}: not a Parquet results table ({failure_reason(e, path)})") from None
     try:
-        table = conform(rows)
+        table = conform(with_policy_ids(rows))
     except GraftcacheError as e:
         raise GraftcacheError(f"{path}: {e}") from None
     if not len(table):

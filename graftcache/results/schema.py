@@ -31,6 +31,14 @@ IDENTITY_VERSION = 3
 ADDED_TO_CELLS: dict[str, tuple[int, Any]] = {
     name: (d.setting.cell.since, d.setting.cell.before) for name, d in declared(FitRequest).items()
     if d.setting.cell is not None and d.setting.cell.since is not None}
+#: Every field of a cell (graftcache.fit.plan.Cell), each a column: what a Plan resolves, the FitRequest settings
+#: declared into cells, the camera map. A row written without a policy_id gets one from them
+#: (graftcache.results.upgrade).
+CELL_COLUMNS: tuple[str, ...] = ("policy", "cache_key", "seed", "control", "pool_grid", "objective",
+                                 *(name for name, d in declared(FitRequest).items() if d.setting.cell is not None),
+                                 "camera_map")
+#: The version of what a policy_id hashes (make_policy_id).
+POLICY_IDENTITY_VERSION = 1
 #: What cells of identity version 3 held in each field added since (ADDED_TO_CELLS).
 IDENTITY_3_VALUES: dict[str, Any] = {name: before for name, (_, before) in ADDED_TO_CELLS.items()}
 #: The format of results rows. Files of an older format go through graftcache.results.upgrade, the one place that
@@ -39,14 +47,17 @@ IDENTITY_3_VALUES: dict[str, Any] = {name: before for name, (_, before) in ADDED
 #: `eval_split`, hashed only off its default, so its cells hash as format 3's: format 3 rows are upgraded. Format 5
 #: (issue 41) added a column for each cell field rows lacked (`eval_fraction`, `eval_frames`, `num_denoise_steps`,
 #: `lora_rank`), so that a row records the whole cell its run_id hashes (graftcache.fit.plan.Cell.of_row); its
-#: run_ids are format 4's. A setting declared into cells by a later format (ADDED_TO_CELLS) makes that format this one.
-FORMAT_VERSION = max(5, *(since for since, _ in ADDED_TO_CELLS.values()))
+#: run_ids are format 4's. Format 6 added `policy_id` (`make_policy_id`): its run_ids are
+#: format 5's. A setting declared into cells by a later format (ADDED_TO_CELLS) makes that format this one.
+FORMAT_VERSION = max(6, *(since for since, _ in ADDED_TO_CELLS.values()))
 
 #: A setting's column type, by its field's type.
 _POLARS: dict[type, pl.DataType] = {int: pl.Int64, float: pl.Float64, str: pl.String, bool: pl.Boolean}
 
 SCHEMA: dict[str, pl.DataType] = {
     "run_id": pl.String,
+    "policy_id": pl.String,           # the policy's function (make_policy_id): rows of one policy_id are one policy,
+                                      # scored on the same frames (a sweep copies such a row instead of refitting it)
     "format_version": pl.Int64,       # FORMAT_VERSION of the row (what its run_id hashes: IDENTITY_VERSION)
     "backbone": pl.String,            # a graftcache.backbone_table.BACKBONES name, e.g. "smolvla"
     "backbone_params": pl.Int64,      # parameters of the policy as loaded (before the graft): the analysis
@@ -118,6 +129,13 @@ def empty() -> pl.DataFrame:
 def make_run_id(cell: Mapping[str, Any]) -> str:
     """Stable id of a cell + seed + control: sha256 of its canonical JSON, 16 hex chars."""
     return sha256_json(dict(cell))[:16]
+
+
+def make_policy_id(fields: Mapping[str, Any]) -> str:
+    """Stable id of a policy as rolled out and scored, 16 hex chars like a run_id: the sha256 of what decides its
+    function and its scores (a cell's fields, less those its control's policy ignores, with what stands in for them:
+    graftcache.fit.plan.Plan.policy_id), under POLICY_IDENTITY_VERSION, so that it never equals a run_id by accident."""
+    return sha256_json({**fields, "policy_identity": POLICY_IDENTITY_VERSION})[:16]
 
 
 def validate(rows: pl.DataFrame) -> pl.DataFrame:

@@ -8,8 +8,17 @@ from pathlib import Path
 import polars as pl
 
 import graftcache
+from graftcache.cameras import parse_camera_map, renames
 from graftcache.errors import ResultsError
-from graftcache.results.schema import ADDED_TO_CELLS, FORMAT_VERSION, IDENTITY_VERSION, REPORT_COLUMNS, SCHEMA
+from graftcache.results.schema import (
+    ADDED_TO_CELLS,
+    CELL_COLUMNS,
+    FORMAT_VERSION,
+    IDENTITY_VERSION,
+    REPORT_COLUMNS,
+    SCHEMA,
+    make_policy_id,
+)
 
 #: The oldest results format read: rows of earlier ones hash cells of another shape into their run_ids.
 OLDEST = IDENTITY_VERSION
@@ -25,6 +34,12 @@ DERIVED: dict[str, pl.Expr] = {
     "backbone_random_init": pl.when(~pl.col("random_init")).then(False),
     "lora_rank": pl.when(pl.col("control") != "lora").then(0),
 }
+
+#: The cell fields the policy_id of a row written without one leaves out, where the row's other columns say its policy
+#: ignored them: a cell evaluated as loaded (objective "eval": the native control) draws nothing from its seed, as
+#: graftcache.fit.controls.Control.ignores declares for the cells written now. A zero-image row of such a format keeps
+#: its cache_key: its projector then started from a random init drawn at the encoder's width.
+IGNORED_BEFORE: dict[str, pl.Expr] = {"seed": pl.col("objective") == "eval"}
 
 
 def upgrade(rows: pl.DataFrame, path: Path) -> pl.DataFrame:
@@ -67,9 +82,34 @@ def _from_older(rows: pl.DataFrame) -> pl.DataFrame:
     lacking = [c for c in SCHEMA if c not in rows.columns]
     added = rows.with_columns(pl.lit(None, dtype=SCHEMA[c]).alias(c) for c in lacking)
     before = pl.col("format_version")  # the row's format (not its cell's IDENTITY_VERSION)
-    return added.with_columns(
+    filled = added.with_columns(
         *(pl.when(before < since).then(pl.col(c).fill_null(pl.lit(v, dtype=SCHEMA[c]))).otherwise(pl.col(c)).alias(c)
           for c, (since, v) in ADDED_TO_CELLS.items()),
         *(how.cast(SCHEMA[c]).alias(c) for c, how in DERIVED.items() if c in lacking),
         format_version=pl.lit(FORMAT_VERSION, dtype=pl.Int64),
     )
+    return with_policy_ids(filled)
+
+
+def with_policy_ids(rows: pl.DataFrame) -> pl.DataFrame:
+    """`rows` with each null policy_id (or the absent column) computed from the cell the row records (`policy_ids`);
+    a table without every cell column is returned as it is."""
+    if not set(CELL_COLUMNS) <= set(rows.columns):
+        return rows
+    if "policy_id" not in rows.columns:
+        rows = rows.with_columns(pl.lit(None, dtype=pl.String).alias("policy_id"))
+    return rows.with_columns(pl.coalesce("policy_id", policy_ids(rows)).alias("policy_id"))
+
+
+def policy_ids(rows: pl.DataFrame) -> pl.Series:
+    """The policy_id of each row from the cell its columns record (graftcache.fit.plan.Cell.of_row: the camera map
+    only where it renames), less the fields IGNORED_BEFORE says its policy ignored. A row of a format that did not
+    record its whole cell (before 5) hashes the nulls it holds: it is then a policy of its own."""
+    ignored = rows.select(**{name: how.fill_null(False) for name, how in IGNORED_BEFORE.items()})
+    out = []
+    for fields, drops in zip(rows.select(CELL_COLUMNS).iter_rows(named=True), ignored.iter_rows(named=True),
+                             strict=True):
+        if fields["camera_map"] is not None and not renames(parse_camera_map(fields["camera_map"])):
+            fields["camera_map"] = None
+        out.append(make_policy_id({k: v for k, v in fields.items() if not drops.get(k)}))
+    return pl.Series("policy_id", out, dtype=pl.String)

@@ -200,7 +200,7 @@ def roll_out(req: RolloutRequest, sim: Simulator, log: Callable[[str], None] = p
     """Run the request's missing episodes and return the rollouts file's rows of the request's episodes: in this
     process, by `sim`, or by `team` (each of its workers with a simulator of its own), `sim` only planning."""
     rows = select_rows(results.read_for_report(req.results), run_ids=req.run_ids, top=req.top, suites=req.suites,
-                       score=req.score)
+                       score=req.score, log=log)
     episodes = plan(rows, req, sim)
     done = set(table.read(req.rollouts)["episode_id"].to_list())
     missing = [e for e in episodes if e.id not in done]

@@ -8,11 +8,15 @@ Every seed's row of those encoders is rolled out (agreement is computed over run
 closed_loop), with each one's zero-image rows (its own control: the same fit with no visual information) and the
 backbone's native rows (its own tower). shuffled-image rows are never picked: they feed other frames' features, which
 no live camera can (graftcache.fit.controls.Control.closed_loop).
+
+A policy is rolled out once (`one_per_policy`): rows of one policy_id (the native tower's of every seed; zero-image
+rows of encoders whose caches hold the same frames) are one function of the simulator's observations, whose
+episodes would only be counted again.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import polars as pl
 
@@ -35,11 +39,13 @@ ORDER = ("backbone", "suite", "control", "encoder", "seed")
 
 
 def select_rows(results: pl.DataFrame, *, run_ids: Sequence[str] | None = None, top: int = 3,
-                suites: Sequence[str] | None = None, score: str = "mse") -> pl.DataFrame:
+                suites: Sequence[str] | None = None, score: str = "mse",
+                log: Callable[[str], None] = print) -> pl.DataFrame:
     """The rows to roll out, in (backbone, suite, control, encoder, seed) order: exactly `run_ids` (each must be a
     row, of a suite in `suites` when given), else per (backbone, suite) among `suites` the `top` best encoders'
-    plain, zero-image rows and the native rows. Each is checked by `check_row`; a name of `suites` that is no LIBERO
-    suite is refused as such (it selected no row before, and was refused as a ranking of nothing)."""
+    plain, zero-image rows and the native rows; of each policy, one row (`one_per_policy`, said in `log`). Each is
+    checked by `check_row`; a name of `suites` that is no LIBERO suite is refused as such (it selected no row before,
+    and was refused as a ranking of nothing)."""
     odd = [s for s in suites or () if s not in SIMULATOR_SUITES]
     if odd:
         raise RolloutError(f"--suites {odd[0]}: not a LIBERO suite ({', '.join(SIMULATOR_SUITES)})")
@@ -53,7 +59,24 @@ def select_rows(results: pl.DataFrame, *, run_ids: Sequence[str] | None = None, 
             raise RolloutError(f"no plain-graft row with a score{where} to rank: nothing to roll out")
     for row in chosen.iter_rows(named=True):
         check_row(row)
-    return chosen.sort(ORDER)
+    return one_per_policy(chosen, log).sort(ORDER)
+
+
+def one_per_policy(chosen: pl.DataFrame, log: Callable[[str], None]) -> pl.DataFrame:
+    """`chosen` with one row per policy (policy_id; a table without one: each run its own): the lowest seed's, then
+    the first encoder's by name, then the lowest run_id; each policy that had several rows is said in one line,
+    naming the run rolled out for them all."""
+    keyed = chosen.with_columns(pl.coalesce("policy_id", "run_id").alias("_policy")) if "policy_id" in chosen.columns \
+        else chosen.with_columns(pl.col("run_id").alias("_policy"))
+    ordered = keyed.sort("seed", "encoder", "run_id")
+    kept = ordered.unique("_policy", keep="first", maintain_order=True)
+    for policy, group in ordered.group_by("_policy", maintain_order=True):
+        if group.height > 1:
+            first, *others = group.iter_rows(named=True)
+            log(f"runs {', '.join(r['run_id'] for r in others)} are the policy of run {first['run_id']} "
+                f"({first['backbone']}/{first['encoder']}/{first['suite']} control {first['control']} seed "
+                f"{first['seed']}, policy {policy[0]}): rolled out once, as run {first['run_id']}")
+    return chosen.join(kept.select("run_id"), on="run_id", how="semi")
 
 
 def _exact(results: pl.DataFrame, run_ids: Sequence[str], suites: Sequence[str] | None) -> pl.DataFrame:

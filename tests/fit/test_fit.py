@@ -22,6 +22,7 @@ from helpers.world import World
 from safetensors.torch import load_file
 
 from graftcache import results
+from graftcache.backbone_table import native_name
 from graftcache.backbones import load_backbone
 from graftcache.cli import main
 from graftcache.errors import FitError
@@ -89,7 +90,7 @@ def test_every_control_writes_one_schema_valid_row(world: World, tmp_path: Path)
         # 7-d LIBERO actions: per frame eval_mse averages 6 arm dims and the gripper, so the dims-weighted mean of
         # the two parts is eval_mse (frames and chunk steps weigh the same in all three)
         assert (6 * row["eval_mse_arm"] + row["eval_mse_gripper"]) / 7 == pytest.approx(row["eval_mse"], rel=1e-6)
-        assert row["eval_split"] == "graftcache" and row["format_version"] == results.FORMAT_VERSION == 5
+        assert row["eval_split"] == "graftcache" and row["format_version"] == results.FORMAT_VERSION == 6
     # the policy as loaded, counted before the graft: every control of one backbone records the same size
     assert {r["backbone_params"] for r in by.values()} == {world.policy_params("smolvla")}
     # Prismatic's habit, once per loaded policy: the first cell logs which modules are frozen and which train, and a
@@ -531,10 +532,11 @@ def _by_run_id(path: Path) -> dict[str, dict]:
 @pytest.mark.slow
 def test_cells_sharing_a_backbone_pass_get_the_rows_they_get_alone(world: World, tmp_path: Path) -> None:
     """Two seeds x (plain graft, zero-image, lora) x two encoders of one grid and width (the encoder at two random
-    inits): 8 cells may share passes (plain and zero-image), lora's 4 run alone. Three cells to a pass gives passes
-    of 3, 3 and 2, whose rows equal the one-at-a-time rows (fp32 on CPU: |delta eval_mse| <= 1e-5) under the same
-    run_ids, with projectors saved under the same names and values; a rerun whose passes are partly done runs only
-    the missing cells."""
+    inits): the second encoder's zero-image cells are the first's policy (their caches hold the same frames), so
+    they are copied, not fitted; 6 cells may share passes (plain and zero-image), lora's 4 run alone. Three cells
+    to a pass gives passes of 3 and 3, whose rows equal the one-at-a-time rows (fp32 on CPU: |delta eval_mse| <=
+    1e-5) under the same run_ids, with projectors saved under the same names and values; a rerun whose passes are
+    partly done runs only the missing cells."""
     from graftcache.executors.local import LocalExecutor
     from graftcache.requests import ExecutorSettings
 
@@ -563,7 +565,8 @@ def test_cells_sharing_a_backbone_pass_get_the_rows_they_get_alone(world: World,
     one, many = _by_run_id(alone), _by_run_id(fused)
     assert set(one) == set(many) and len(one) == 12  # the run_id does not name cells_per_pass
     assert {r["cells_per_pass"] for r in one.values()} == {1}
-    assert sorted(r["cells_per_pass"] for r in many.values()) == [1] * 4 + [2] * 2 + [3] * 6
+    assert sorted(r["cells_per_pass"] for r in many.values()) == [1] * 4 + [3] * 8  # copies: their originals' passes
+    assert sum("row copied, not refitted" in line for line in lines) == 2
     assert {r["control"] for r in many.values() if r["cells_per_pass"] == 1} == {"lora"}
     assert {r["cache_key"] for r in many.values() if r["cells_per_pass"] == 3} == {world.encoder_key, other}
     for run_id, a in one.items():
@@ -641,3 +644,89 @@ def test_a_pass_whose_cells_hold_out_unequal_frames_scores_each_as_alone(world: 
     for run_id, a in alone.items():
         assert abs(a["eval_mse"] - fused[run_id]["eval_mse"]) <= 1e-5
         assert np.allclose(a["eval_mse_episodes"], fused[run_id]["eval_mse_episodes"], rtol=0, atol=1e-5)
+
+
+@pytest.mark.parametrize("objective", ["flow", "align-flow"])
+def test_zero_image_cells_of_caches_of_other_widths_are_one_policy(world: World, tmp_path: Path,
+                                                                   objective: str) -> None:
+    """Zero-image cells of two caches of the same frames but other feature widths (the ViT's 192, the tiny SmolVLA
+    tower's own grid as an encoder's) are one policy: the same policy_id (their cache_keys and run_ids differ),
+    bit-identical scores, and projectors whose Linear weight and LayerNorm bias stayed exactly zero and whose
+    Linear bias, all that trained, is the same tensor. Each cell is fitted here, into its own results file."""
+    tower = native_name("smolvla")
+    rows, plans = {}, {}
+    for encoder in (ENCODER, tower):
+        key = world.encoder_key if encoder == ENCODER else None  # other tests extract the ViT at other inits
+        req = world.request(encoder=encoder, cache_key=key, objective=objective, controls=("zero-image",), seeds=(0,),
+                            steps=4, lr=1e-2, compute_dtype="fp32", num_workers=0,
+                            results=str(tmp_path / f"{encoder}.parquet"), out=str(tmp_path / f"runs-{encoder}"))
+        plans[encoder] = Plan(req, _quiet)
+        rows[encoder] = next(r for r in Fitter(req, log=_quiet).run() if r["control"] == "zero-image")
+    control = get_control("zero-image")
+    assert plans[ENCODER].width(control) != plans[tower].width(control)
+    a, b = rows[ENCODER], rows[tower]
+    assert a["cache_key"] != b["cache_key"] and a["run_id"] != b["run_id"] and a["policy_id"] == b["policy_id"]
+    assert a["train_loss_final"] == b["train_loss_final"] and a["eval_mse"] == b["eval_mse"]
+    assert a["eval_mse_episodes"] == b["eval_mse_episodes"]
+    saved = [load_file(str(tmp_path / f"runs-{e}" / r["run_id"] / "projector.safetensors"))
+             for e, r in rows.items()]
+    prefix = "model.vlm_with_expert.vlm.model.connector."
+    for weights in saved:
+        assert not weights[prefix + "proj.weight"].any() and not weights[prefix + "norm.bias"].any()
+    assert saved[0][prefix + "proj.bias"].abs().sum() > 0  # it trained
+    assert torch.equal(saved[0][prefix + "proj.bias"], saved[1][prefix + "proj.bias"])
+
+
+def test_a_cell_whose_policy_is_another_runs_is_copied_not_refitted(world: World, tmp_path: Path) -> None:
+    """One command, two encoders' requests into one results file, zero-image and native over seeds 0 and 1: the
+    native cell of seed 1 is seed 0's policy and the second encoder's zero-image cells are the first's, so 3 cells
+    are fitted and 3 rows copied, each said in one line; a copy keeps its own run_id, encoder and cache_key, the
+    original's scores, and gets the original's projector in its own run folder (what an export reads). A rerun
+    with a new seed fits it once and copies it for the other encoder from the row the file now holds."""
+    from graftcache.executors.local import LocalExecutor
+    from graftcache.export.bundle import cell_of, run_folder
+    from graftcache.requests import ExecutorSettings
+
+    tower = native_name("smolvla")
+    path, runs = tmp_path / "r.parquet", tmp_path / "runs"
+
+    class Bar:
+        def update(self, k: int) -> None:
+            pass
+
+    def sweep(seeds: tuple[int, ...]) -> list[str]:
+        lines: list[str] = []
+        requests = [(encoder, world.request(encoder=encoder, cache_key=key, controls=("zero-image", "native"),
+                                            seeds=seeds, steps=2, compute_dtype="fp32", num_workers=0,
+                                            results=str(path), out=str(runs)))
+                    for encoder, key in ((ENCODER, world.encoder_key), (tower, None))]
+        LocalExecutor(ExecutorSettings()).fit(requests, lines.append, Bar())
+        return lines
+
+    lines = sweep((0, 1))
+    table = results.read(path)
+    copied = [line for line in lines if "row copied, not refitted" in line]
+    assert len(copied) == 3 and all(" ignores " in line for line in copied)
+    zero = table.filter(pl.col("control") == "zero-image").sort("seed", "encoder")
+    native = table.filter(pl.col("control") == "native").sort("seed")
+    assert native.height == 2 and native["policy_id"].n_unique() == 1 and native["eval_mse"].n_unique() == 1
+    assert zero.height == 4 and zero["policy_id"].n_unique() == 2 and zero["run_id"].n_unique() == 4
+    for seed in (0, 1):
+        pair = zero.filter(pl.col("seed") == seed)
+        assert set(pair["encoder"]) == {ENCODER, tower} and pair["cache_key"].n_unique() == 2
+        assert pair["eval_mse"].n_unique() == 1 and pair["train_loss_final"].n_unique() == 1
+        original, copy = sorted(pair.iter_rows(named=True), key=lambda r: r["cache_key"] != world.encoder_key)
+        assert any(line.startswith(f"cell {copy['run_id']} ") and f"same policy as run {original['run_id']} " in line
+                   for line in copied)
+        own = FeatureCache(world.cache / copy["cache_key"]).manifest.random_init  # its cache's, not the original's
+        assert copy["numerics_drift"] is None and copy["encoder_random_init"] is own and copy["wall_s"] == 0.0
+        folder = run_folder(copy, path, None, None)
+        assert folder == runs / copy["run_id"] and cell_of(copy, folder).run_id == copy["run_id"]
+        assert (folder / "projector.safetensors").read_bytes() == \
+            (runs / original["run_id"] / "projector.safetensors").read_bytes()
+        sidecar = json.loads((folder / "projector.json").read_text())
+        assert sidecar["run_id"] == copy["run_id"] and sidecar["copied_from"] == original["run_id"]
+    assert sum("row copied, not refitted" in line for line in sweep((0, 1, 2))) == 2  # native 2, zero-image 2
+    again = results.read(path).filter(pl.col("seed") == 2)
+    assert again.height == 5  # the plain graft of each encoder, zero-image of each, native once
+    assert again.filter(pl.col("control") == "zero-image")["eval_mse"].n_unique() == 1

@@ -34,6 +34,7 @@ import numpy as np
 import polars as pl
 
 from graftcache.results import FORMAT_VERSION, REPORT_COLUMNS, SCHEMA, make_run_id, validate
+from graftcache.results.upgrade import with_policy_ids
 
 PLAIN_MSE: dict[tuple[str, str, str], list[float]] = {
     ("smolvla", "libero_spatial", "siglip"): [1.0, 1.1, 1.2],
@@ -134,8 +135,9 @@ def row(backbone: str, suite: str, encoder: str, seed: int, eval_mse: float | No
 
 
 def table(rows: list[dict]) -> pl.DataFrame:
-    """Rows -> a validated results table (every SCHEMA column present and typed)."""
-    return validate(pl.DataFrame(rows, schema=SCHEMA))
+    """Rows -> a validated results table (every SCHEMA column present and typed); a row without a policy_id gets the
+    one its cell columns give (graftcache.results.upgrade.with_policy_ids: native rows of every seed are one policy)."""
+    return validate(with_policy_ids(pl.DataFrame(rows, schema=SCHEMA)))
 
 
 def plain_rows(cells: dict[tuple[str, str, str], list[float]] = PLAIN_MSE, **over: Any) -> list[dict]:

@@ -22,7 +22,8 @@ import numpy as np
 import polars as pl
 import pytest
 from fixtures.simulator_cells import Fitted
-from helpers.tables import full_table, write_results
+from helpers.tables import full_table, row, write_results
+from helpers.tables import table as results_table
 
 from graftcache import results
 from graftcache.errors import RolloutError
@@ -80,6 +81,20 @@ def test_run_ids_are_taken_exactly_and_refusals_name_the_run() -> None:
         select_rows(results, run_ids=["0123456789abcdef"])
     with pytest.raises(RolloutError, match=f"^run {b}: fit on libero_object, not among --suites libero_spatial$"):
         select_rows(results, run_ids=[b], suites=["libero_spatial"])
+
+
+def test_run_ids_of_one_policy_are_rolled_out_once_and_the_log_says_which() -> None:
+    """Two zero-image runs of one policy (format 6: zero-image ignores the encoder's cache) asked by run_id: the
+    first encoder's by name is rolled out, for both, in one line; a run of another policy is kept as asked."""
+    rows = [row("smolvla", "libero_spatial", e, 0, 3.0, control="zero-image", policy_id="0123456789abcdef")
+            for e in ("siglip", "dinov2-s")] + [row("smolvla", "libero_spatial", "siglip", 0, 1.0)]
+    results = results_table(rows)
+    siglip, dinov2, plain = results["run_id"].to_list()
+    lines: list[str] = []
+    chosen = select_rows(results, run_ids=[siglip, dinov2, plain], log=lines.append)
+    assert sorted(chosen["run_id"].to_list()) == sorted([dinov2, plain])
+    assert lines == [f"runs {siglip} are the policy of run {dinov2} (smolvla/dinov2-s/libero_spatial control "
+                     "zero-image seed 0, policy 0123456789abcdef): rolled out once, as run " + dinov2]
 
 
 def test_cameras_the_simulator_cannot_feed_are_refused_in_one_line() -> None:
