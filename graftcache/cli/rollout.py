@@ -4,6 +4,7 @@ simulator, one rollouts row per episode (graftcache.rollout)."""
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 from collections.abc import Callable
 from functools import partial
@@ -131,6 +132,7 @@ def run(args: argparse.Namespace) -> int:
     rows = select_rows(results.read_for_report(req.results), run_ids=req.run_ids, top=req.top, suites=req.suites,
                        score=req.score)
     check_tasks(rows, req.tasks)
+    req = dataclasses.replace(req, run_ids=tuple(rows["run_id"].to_list()))  # chosen once (and said once)
     table.read(req.rollouts)
     spawn = partial(LiberoSimulator, req.results, rollouts.parent / EXPORTS_FOLDER, cache=_absolute(args.cache),
                     runs=_absolute(args.runs), max_steps=args.max_steps, videos=args.videos)
