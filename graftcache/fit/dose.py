@@ -66,8 +66,9 @@ def parse_dose(name: str) -> float:
 
 
 def dose_name(level: float) -> str:
-    """The control name of dose `level`, written one way (noise-0.50 and noise-0.5 are one cell)."""
-    return f"{DOSE_PREFIX}{level:g}"
+    """The control name of dose `level`, written one way (noise-0.50 and noise-0.5 are one cell) that reads back as
+    `level` exactly."""
+    return f"{DOSE_PREFIX}{level!r}"
 
 
 def frame_seed(seed: int, key: int) -> int:
@@ -81,6 +82,8 @@ def dosed(features: Features, keys: np.ndarray, level: float, spread: Mapping[st
     cameras in name order, [T, C] each; float32 out, whatever precision came in."""
     keep, add = math.sqrt(1.0 - level), math.sqrt(level)
     cameras = sorted(features)
+    if len(keys) != len(features[cameras[0]]):  # every frame must be keyed, or its noise would be left unset
+        raise FitError(f"{len(keys)} keys for {len(features[cameras[0]])} frames of dose features")
     noise = {c: torch.empty(features[c].shape, dtype=torch.float32) for c in cameras}
     for i, key in enumerate(np.asarray(keys).tolist()):
         g = torch.Generator().manual_seed(frame_seed(seed, key))

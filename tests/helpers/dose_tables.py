@@ -1,4 +1,4 @@
-"""The dose curves' hand table (tests/analysis/test_dose.py, tests/report/test_report_dose.py), answers worked out by
+"""The dose curves' hand table (tests/analysis/test_dose_curves.py, tests/report/test_report_dose.py), answers worked out by
 hand.
 
 smolvla/libero_object, encoder siglip at doses 0 (plain), 0.25, 0.5, 0.75 (noise-A) and 1 (zero-image), seeds 0-2,
