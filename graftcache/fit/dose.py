@@ -38,7 +38,6 @@ from graftcache.errors import FitError, GraftcacheError
 from graftcache.requests import DOSE_PREFIX
 
 if TYPE_CHECKING:
-    from graftcache.fit.controls import Control
     from graftcache.fit.data import LowDim
     from graftcache.fit.stream import FeatureSource
 
@@ -136,14 +135,14 @@ def measure_spread(source: FeatureSource, train: LowDim) -> dict[str, torch.Tens
 
 @dataclass(frozen=True)
 class Seen:
-    """What a cell's policy sees of a batch: its control's transform, then its dose where it has one (`keys`: the
-    frames' cache rows)."""
+    """What a cell's policy sees of a batch: its control's transform (graftcache.fit.controls.Control.transform), then
+    its dose where it has one (`keys`: the frames' cache rows)."""
 
-    control: Control | None = None
+    transform: Callable[[Features], Features] | None = None
     dose: Dose | None = None
 
     def __call__(self, features: Features, keys: np.ndarray) -> Features:
-        out = features if self.control is None else self.control.transform(features)
+        out = features if self.transform is None else self.transform(features)
         return out if self.dose is None else self.dose(out, keys)
 
 

@@ -127,11 +127,11 @@ class Materials:
         """What a cell of `control` and `seed` sees of a batch: its control's transform, and its dose where it has one
         (the spread measured once per cache and grid on the training split, kept for the next cells)."""
         if control.dose is None:
-            return Seen(control)
+            return Seen(control.transform)
         key = (reading.source.key, reading.grid)
         if key not in self._spreads:
             self._spreads[key] = measure_spread(reading.source, reading.train)
-        return Seen(control, Dose(control.dose, self._spreads[key], seed))
+        return Seen(control.transform, Dose(control.dose, self._spreads[key], seed))
 
     def close(self) -> None:
         """Drop what is kept for the next cells (blocks read, low-dim tables) once the request has none left."""

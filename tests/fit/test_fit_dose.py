@@ -117,7 +117,7 @@ def test_fit_and_export_feed_the_same_dosed_features_for_a_seed_and_frame_key() 
     low = _low(np.array([1, 0]))  # split positions 0, 1 are cache rows 1, 0
     cams = {"camera1": "agentview", "camera2": "wrist"}
     fit = learner(low, _Buffer(np.array([1, 0]), clean), cams, [torch.nn.Parameter(torch.zeros(1))], batch_size=2,
-                  lr=1e-3, seed=0, transform=Seen(get_control("noise-0.5"), dose))
+                  lr=1e-3, seed=0, transform=Seen(get_control("noise-0.5").transform, dose))
     batch = fit.draw(torch.Generator())
     want = dosed(clean, np.array([0, 1]), 0.5, dose.spread, seed=5)  # owners 1, 0 -> cache rows 0, 1
     for policy_camera, camera in cams.items():

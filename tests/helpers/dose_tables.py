@@ -1,5 +1,5 @@
-"""The dose curves' hand table (tests/analysis/test_dose_curves.py, tests/report/test_report_dose.py), answers worked out by
-hand.
+"""The dose curves' hand table (tests/analysis/test_dose_curves.py, tests/report/test_report_dose.py), its answers
+worked out by hand.
 
 smolvla/libero_object, encoder siglip at doses 0 (plain), 0.25, 0.5, 0.75 (noise-A) and 1 (zero-image), seeds 0-2,
 4 episodes a seed on shared keys. Offline (OFFLINE) each step rises except the last (0.75 -> 1 falls by 0.06, within
