@@ -36,6 +36,13 @@ def _interval(mean: str, lo: str, hi: str, fmt: str = ".4g") -> Callable[[Row], 
     return cell
 
 
+def _resolves(r: Row) -> str:
+    """Whether the offline difference's interval excludes 0 (a confirmed step need not be resolved offline)."""
+    if r["offline_lo"] is None:
+        return "—"
+    return "yes" if r["offline_lo"] > 0 or r["offline_hi"] < 0 else "no"
+
+
 POINT_COLUMNS: tuple[Column, ...] = (
     BACKBONE, ("suite", col("suite")), ("encoder", col("encoder")), ("dose", col("dose", lambda x: f"{x:g}")),
     ("control", col("control")), ("seeds", col("seeds")),
@@ -48,7 +55,8 @@ STEP_COLUMNS: tuple[Column, ...] = (
     ("step", lambda r: f"{r['dose_from']:g} → {r['dose_to']:g}"),
     ("Δ eval_mse (95% t, seeds)", _interval("offline_diff", "offline_lo", "offline_hi")),
     ("Δ closest approach m (95% t, pairs)", _interval("loop_diff", "loop_lo", "loop_hi", ".3f")),
-    ("pairs", col("loop_pairs")), ("confirmed", col("confirmed", lambda x: "yes" if x else "no")),
+    ("offline resolves", _resolves), ("pairs", col("loop_pairs")),
+    ("confirmed", col("confirmed", lambda x: "yes" if x else "no")),
 )
 
 

@@ -33,7 +33,9 @@ def test_the_report_states_each_curve_and_its_resolution(tmp_path: Path) -> None
     # dinov2-s: only its stand-in blind cells (siglip's zero-image) were rolled out
     assert ("SmolVLA / libero_object / dinov2-s (3 doses): offline monotone, closed loop without a measured step; "
             "resolution undefined: no step confirmed by the closed loop at the 12 episodes spent.") in md
-    assert "| SmolVLA | libero_object | siglip | 0.25 → 0.5 |" in md
+    # the step that sets the resolution: confirmed by 12 pairs, not resolved offline by 3 seeds
+    assert ("| SmolVLA | libero_object | siglip | 0.25 → 0.5 | 0.02 [-0.004841, 0.04484] | 0.011 [0.010, 0.011] | no | "
+            "12 | yes |") in md
     assert (paths.markdown.parent / "dose.png").stat().st_size > 0
     a = A.analyze(pl.read_parquet(results), rollouts=A.read_rollouts(rollouts, pl.read_parquet(results)))
     assert set(a.band["encoder"]) == {"siglip", "dinov2-s", "resnet18"}  # candidates: the plain grafts alone
