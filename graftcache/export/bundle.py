@@ -108,6 +108,9 @@ def export_run(run_id: str, results_path: str | Path, out: str | Path, *, cache:
     row = find_row(results_path, run_id)
     control = get_control(row["control"])
     folder = run_folder(row, results_path, cache, runs) if control.train else None
+    if control.dose is not None and not (folder / SPREAD_FILE).is_file():
+        raise ExportError(f"run {run_id}: {folder / SPREAD_FILE} is missing (the feature spread its dose noise was "
+                          "scaled by); fit the cell again to export it")
     cell = cell_of(row, folder)
     if not control.closed_loop:
         raise ExportError(f"run {run_id}: control {control.name} has no closed-loop meaning (it feeds features of "

@@ -17,7 +17,8 @@ from helpers.world import World
 from safetensors.torch import load_file
 
 from graftcache import results
-from graftcache.errors import FitError
+from graftcache.errors import ExportError, FitError
+from graftcache.export.bundle import export_run
 from graftcache.export.features import CellFeatures
 from graftcache.fit.controls import get_control
 from graftcache.fit.data import LowDim, load_lowdim, read_grid
@@ -173,3 +174,7 @@ def test_a_tiny_fit_records_its_dose_saves_its_spread_and_reproduces(world: Worl
     again.run()
     rerun = {r["control"]: r for r in results.read(tmp_path / "b.parquet").iter_rows(named=True)}["noise-0.5"]
     assert (rerun["run_id"], rerun["eval_mse"]) == (row["run_id"], row["eval_mse"])
+    (folder / SPREAD_FILE).unlink()  # an export needs it: refused in one line, before anything loads
+    with pytest.raises(ExportError, match=rf"^run {row['run_id']}: {folder / SPREAD_FILE} is missing \(the feature "
+                       r"spread its dose noise was scaled by\); fit the cell again to export it$"):
+        export_run(row["run_id"], tmp_path / "a.parquet", tmp_path / "export", runs=str(folder.parent))
