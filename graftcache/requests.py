@@ -146,6 +146,7 @@ NATIVE_CONTROL = "native"              # the policy's own tower, no graft: the o
 NATIVE_GRAFT_CONTROL = "native-graft"  # the policy's own tower through the graft
 CONTROLS = (NATIVE_CONTROL, NATIVE_GRAFT_CONTROL, "zero-image", "shuffled-image", "lora")
 POOL_PREFIX = "pool-"
+DOSE_PREFIX = "noise-"  # noise-A: the candidate's features degraded by dose A in (0, 1) (graftcache/fit/dose.py)
 #: Which episodes of each task a fit holds out (graftcache.fit.data.SPLITS implements each; tests/test_settings.py
 #: keeps the two equal): graftcache's seeded draw (the default), or lerobot's last ceil(n * eval_fraction).
 EVAL_SPLITS = ("graftcache", "lerobot")
@@ -199,7 +200,7 @@ class FitRequest(Checked):
         "instead. For one particular seed use --seed, e.g. --seed 0",
         twin=Twin("--seed", codecs.INTS, "explicit seed list: 0, 0,2, 0-4 or 0-3,7 (exclusive with --seeds)", "LIST"))
     controls: tuple[str, ...] = setting((), rule=CONTROL_LIST, recipe=False, shown="none",
-                                        help=f"comma list: {', '.join(CONTROLS)}, {POOL_PREFIX}HxW")
+                                        help=f"comma list: {', '.join(CONTROLS)}, {POOL_PREFIX}HxW, {DOSE_PREFIX}A")
     objective: str = setting(
         "flow", choices=OBJECTIVES, recipe=False,
         help="flow: the policy's loss; align: closed-form ridge onto the native tokens (cheap screening)")

@@ -38,7 +38,9 @@ Given rollouts (graftcache.analysis.rollouts), the offline scores are set agains
 (success and, where the rollouts record them, the graded measures of progress) per cell
 (graftcache.analysis.closed_loop: Wilson intervals; Spearman, Kendall tau-b and MMRV over run_ids, each with a 95%
 bootstrap interval over each cell's episodes, graftcache.analysis.closed_loop_boot), and the native tower is set
-against zero-image on the same episodes (graftcache.analysis.paired_control).
+against zero-image on the same episodes (graftcache.analysis.paired_control). Where the table holds the dose family
+(`noise-A` controls), each encoder's dose curve is drawn offline and, given rollouts, in the closed loop, and the
+finest offline gap the closed loop confirms is its resolution (graftcache.analysis.dose).
 
 Missing cells are never dropped: they appear as rows with null statistics and a `status`/`note`, and a
 verdict that cannot be reached is "insufficient data". Non-finite eval_mse (a diverged fit) counts as invalid.
@@ -72,6 +74,7 @@ from graftcache.analysis.closed_loop import (
 )
 from graftcache.analysis.closed_loop_boot import N_BOOT
 from graftcache.analysis.controls import CONTROLS_SCHEMA, controls_distance, wrapper_non_neutrality
+from graftcache.analysis.dose import DoseCurves, dose_curves
 from graftcache.analysis.findings import (
     BEATS,
     BEATS_BOTH,
@@ -147,7 +150,7 @@ __all__ = [
     "AGREEMENT_SCHEMA", "CELL_SCHEMA", "CLOSED_LOOP_SCORES", "CONTROL_SCHEMA", "GRADED_MEASURES", "HIGHER_IS_BETTER",
     "MEASURES", "MEASURE_COLUMNS", "N_BOOT", "NATIVE_BETTER", "PAIR_KEY", "ROLLOUT_COLUMNS",
     "STATISTICS", "ZERO_IMAGE_BETTER", "ClosedLoop", "closed_loop", "mmrv", "paired_control", "read_rollouts",
-    "spearman", "wilson",
+    "spearman", "wilson", "DoseCurves", "dose_curves",
     "BEATS", "BEATS_BOTH", "NOT_SEPARATED", "SEPARATED", "beats_image_controls", "native_vs_zero_image",
     "BASIS_MISSING", "CELL", "CONTROLS_SCHEMA", "COUNT_COLUMNS", "DISAGREEMENT_SCHEMA",
     "DOES_NOT_TRANSFER", "EPISODE_COLUMN", "GROUP", "HALVES_FROM", "HEADLINE_SCHEMA", "INSUFFICIENT",
@@ -187,6 +190,7 @@ class Analysis:
     missing: pl.DataFrame
     scores: pl.DataFrame  # where the MSE and CI-MSE rankings disagree (empty without CI-MSE)
     closed_loop: ClosedLoop | None = None  # offline scores vs rollouts' measures (None: no rollouts given)
+    dose: DoseCurves | None = None  # the dose family's curves and resolution (None: no noise-A rows)
 
     @property
     def small(self) -> str | None:
@@ -243,6 +247,7 @@ def analyze(results: pl.DataFrame, *, score: str = "mse", boot: BootSettings = B
     disagreement = score_disagreement(results)
     # every score, before `scored`
     against = None if rollouts is None else closed_loop(results, rollouts, seed=boot.seed)
+    dose = dose_curves(results, rollouts)  # eval_mse, whatever `score` ranks by
     results = scored(results, score)
     ladder = backbone_ladder(results)
     verdicts = transfer_verdicts(results, ladder=ladder, boot=boot)
@@ -267,4 +272,5 @@ def analyze(results: pl.DataFrame, *, score: str = "mse", boot: BootSettings = B
         missing=missing_cells(results),
         scores=disagreement,
         closed_loop=against,
+        dose=dose,
     )

@@ -25,6 +25,7 @@ from graftcache.cameras import parse_camera_map
 from graftcache.errors import ExportError, GraftcacheError
 from graftcache.export.locate import check_cache_root, find_row
 from graftcache.fit.controls import get_control
+from graftcache.fit.dose import SPREAD_FILE
 from graftcache.fit.lookup import find_cache
 from graftcache.fit.run import PROJECTOR_SIDECAR, PROJECTOR_WEIGHTS, Cell, saved_cell, saved_policy_folder
 from graftcache.requests import FitRequest
@@ -112,6 +113,9 @@ def export_run(run_id: str, results_path: str | Path, out: str | Path, *, cache:
     check_cache_root(row, cache)
     control = get_control(row["control"])
     folder = run_folder(row, results_path, cache, runs) if control.train else None
+    if control.dose is not None and not (folder / SPREAD_FILE).is_file():
+        raise ExportError(f"run {run_id}: {folder / SPREAD_FILE} is missing (the feature spread its dose noise was "
+                          "scaled by); fit the cell again to export it")
     cell = cell_of(row, folder)
     if not control.closed_loop:
         raise ExportError(f"run {run_id}: control {control.name} has no closed-loop meaning (it feeds features of "
@@ -134,7 +138,7 @@ def export_run(run_id: str, results_path: str | Path, out: str | Path, *, cache:
         encoder=row["encoder"], control=control.name, pool_grid=row["pool_grid"], cameras=cameras,
         lora_rank=cell.lora_rank, num_denoise_steps=cell.num_denoise_steps,
         compute_dtype=row["compute_dtype"], n_action_steps=int(getattr(base.config, "n_action_steps", 1)),
-        export_format=EXPORT_FORMAT,
+        export_format=EXPORT_FORMAT, dose=control.dose, dose_seed=None if control.dose is None else int(row["seed"]),
         input_features={**image_features, "observation.state": base.config.input_features["observation.state"]},
         output_features=dict(base.config.output_features), device="cpu")
     del base
@@ -149,6 +153,8 @@ def export_run(run_id: str, results_path: str | Path, out: str | Path, *, cache:
                                                           "manifest": feature_cache.manifest.to_dict()}, default=str))
         if control.train:
             shutil.copyfile(folder / PROJECTOR_WEIGHTS, partial / PROJECTOR_FILE)
+        if control.dose is not None:
+            shutil.copyfile(folder / SPREAD_FILE, partial / SPREAD_FILE)
         for pipeline in export_pipelines(run_id, cameras, row["backbone"], policy):
             pipeline.save_pretrained(partial)
         check_processors(partial)
@@ -168,13 +174,14 @@ def export_run(run_id: str, results_path: str | Path, out: str | Path, *, cache:
 
 def required_files(config: dict[str, Any]) -> list[str]:
     """The files a complete export of `config` (its config.json, read) holds (the projector only where its control
-    trains one)."""
+    trains one, the feature spread only for a dose cell)."""
     from graftcache.backbones.checkpoint import POSTPROCESSOR_FILE, PREPROCESSOR_FILE
     from graftcache.export.features import MANIFEST_FILE
     from graftcache.export.modeling_graftcache import PROJECTOR_FILE
 
-    trains = get_control(config.get("control", "none")).train
-    return ["config.json", MANIFEST_FILE, PREPROCESSOR_FILE, POSTPROCESSOR_FILE, *([PROJECTOR_FILE] if trains else [])]
+    control = get_control(config.get("control", "none"))
+    return ["config.json", MANIFEST_FILE, PREPROCESSOR_FILE, POSTPROCESSOR_FILE,
+            *([PROJECTOR_FILE] if control.train else []), *([SPREAD_FILE] if control.dose is not None else [])]
 
 
 def export_of(folder: Path) -> str | None:

@@ -9,9 +9,10 @@ from lerobot.configs.policies import PreTrainedConfig
 from lerobot.optim.optimizers import AdamWConfig
 
 POLICY_TYPE = "graftcache"
-#: The export folder's format: 2 carries the cell's cameras in its preprocessor (relocatable); 1, which config.json
-#: files without the field are, named the export's absolute path there instead.
-EXPORT_FORMAT = 2
+#: The export folder's format: 3 records a dose cell's level and seed (`dose`, `dose_seed`) and carries its feature
+#: spread (graftcache.fit.dose.SPREAD_FILE); 2 carried the cell's cameras in its preprocessor (relocatable); 1, which
+#: config.json files without the field are, named the export's absolute path there instead.
+EXPORT_FORMAT = 3
 
 
 @PreTrainedConfig.register_subclass(POLICY_TYPE)
@@ -32,6 +33,8 @@ class GraftcacheConfig(PreTrainedConfig):
     compute_dtype: str = "fp32"       # the cell's, as its row records it
     n_action_steps: int = 1           # actions executed per predicted chunk (the base policy's own setting)
     accept_numerics_drift: bool = False
+    dose: float | None = None         # a noise-A cell's level A (graftcache/fit/dose.py); None for every other control
+    dose_seed: int | None = None      # the cell's seed, which seeds each frame's dose noise with the frame's key
     export_format: int = 1            # EXPORT_FORMAT for every export written now; absent (1) in older ones
 
     @property

@@ -4,7 +4,9 @@ Extraction (graftcache.extract.encode) runs the encoder on uint8 frames under th
 each stored grid in fp32 and rounds it to the storage dtype; a fit reads the grid at its pool grid
 (graftcache.fit.data.read_grid): stored as such, or pooled in fp32 from the stored unpooled grid and rounded again.
 `CellFeatures` does the same steps on the simulator's (or a dataset's) frames, so a closed-loop step sees what the
-offline score saw, up to the decoding of the pixels.
+offline score saw, up to the decoding of the pixels. A dose cell's features are then degraded as its fit and scoring
+degraded them (graftcache.fit.dose.dosed, with the spread its run folder saved), each predicted chunk's frame keyed by
+the count of chunks since the policy's reset at the episode's start.
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ import json
 import math
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from graftcache.encoders import Encoder
@@ -20,6 +23,7 @@ from graftcache.encoders.fingerprint import compare, encoder_of, fingerprint
 from graftcache.errors import ExportError
 from graftcache.fit.controls import get_control
 from graftcache.fit.controls import zero as zero_features
+from graftcache.fit.dose import SPREAD_FILE, Dose, read_spread
 from graftcache.graft import feature_key
 from graftcache.pooling import format_grid, parse_grid, pool_grid
 from graftcache.runtime import autocast, resolve_dtype
@@ -38,8 +42,10 @@ def to_uint8(images: torch.Tensor) -> torch.Tensor:
 class CellFeatures:
     """One cell's feature path: encoder, stored grid (or the native `connector` tokens), storage rounding, pooling."""
 
-    def __init__(self, encoder: Encoder, manifest: Manifest, pool: str, *, extra: str | None, zero: bool) -> None:
-        self.encoder, self.extra, self.zero = encoder, extra, zero
+    def __init__(self, encoder: Encoder, manifest: Manifest, pool: str, *, extra: str | None, zero: bool,
+                 dose: Dose | None = None) -> None:
+        self.encoder, self.extra, self.zero, self.dose = encoder, extra, zero, dose
+        self.chunks = 0  # chunks predicted since the last reset: the key of the next frame's dose noise
         self.compute = resolve_dtype(manifest.compute_dtype)
         self.storage = resolve_dtype(manifest.storage_dtype)
         self.pool = parse_grid(pool)
@@ -70,14 +76,26 @@ class CellFeatures:
         check_cameras(batch, cameras, where)
         observation = dict(batch)
         frames = {k: observation.pop(k) for k in list(observation) if k.startswith(IMAGE_PREFIX)}
-        for policy_camera, camera in cameras.items():
+        seen = {}
+        for camera in dict.fromkeys(cameras.values()):
             images = frames[IMAGE_PREFIX + camera].to(self.encoder.device)
-            observation[feature_key(policy_camera)] = self(images if images.ndim == 4 else images[None])
+            seen[camera] = self(images if images.ndim == 4 else images[None])
+        if self.dose is not None:  # frame i of the batch: key chunks * B + i (one frame per episode: the count)
+            n = len(next(iter(seen.values())))
+            seen = self.dose(seen, self.chunks * n + np.arange(n))
+        self.chunks += 1
+        for policy_camera, camera in cameras.items():
+            observation[feature_key(policy_camera)] = seen[camera]
         return observation
+
+    def reset(self) -> None:
+        """An episode starts: its dose noise starts again from its first key."""
+        self.chunks = 0
 
     def describe(self) -> str:
         what = self.extra or f"grid {format_grid(self.stored)} pooled to {format_grid(self.pool)}"
-        return f"{self.encoder.spec.name}: {what}" + (" (zeroed: zero-image)" if self.zero else "")
+        dosed = f" (dose {self.dose.level:g}, seed {self.dose.seed})" if self.dose is not None else ""
+        return f"{self.encoder.spec.name}: {what}" + (" (zeroed: zero-image)" if self.zero else "") + dosed
 
 
 def check_cameras(observation: dict, cameras: dict[str, str], where: str) -> None:
@@ -113,5 +131,8 @@ def load_cell_features(folder: Path, config: dict, device: str) -> CellFeatures:
     if check.status == "drift" and not config.get("accept_numerics_drift"):
         raise ExportError(f"{folder}: {check.line()}; refused (set accept_numerics_drift in its config.json to run it)")
     control = get_control(config["control"])
+    dose = None
+    if control.dose is not None:
+        dose = Dose(control.dose, read_spread(folder / SPREAD_FILE), int(config["dose_seed"]))
     return CellFeatures(encoder, manifest, config["pool_grid"], extra=control.extra,
-                        zero=control.transform is zero_features)
+                        zero=control.transform is zero_features, dose=dose)

@@ -92,7 +92,9 @@ class GraftcachePolicy(PreTrainedPolicy):
         return {}
 
     def reset(self) -> None:
+        """lerobot calls it at each episode's start: the queue empties, a dose cell's noise starts again."""
         self._queue.clear()
+        self.features.reset()
 
     def forward(self, batch: dict[str, Tensor]) -> tuple[Tensor, dict | None]:
         raise ExportError("a graftcache export is evaluated, not trained: fit the cell with `graftcache fit`")

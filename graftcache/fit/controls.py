@@ -7,6 +7,8 @@
 - shuffled-image  features of other frames (a fixed pairing of frames within each split, see `shuffle`)
 - pool-HxW        the candidate encoder pooled to another grid
 - lora            LoRA adapters on the LM trained together with the projector
+- noise-A         the candidate's features degraded by dose A in (0, 1), a step between the encoder and the blind
+                  policy (graftcache/fit/dose.py)
 
 Each control owns its projector (how cached features become LM tokens), its feature transform (what it does
 to a batch's features) and its pairing (which frame's features go with which frame's state, action and target:
@@ -24,9 +26,10 @@ import torch
 from torch import nn
 
 from graftcache.errors import FitError
+from graftcache.fit.dose import dose_name, parse_dose
 from graftcache.graft import GraftProjector, PassThroughProjector
 from graftcache.pooling import format_grid, parse_grids
-from graftcache.requests import NATIVE_CONTROL, NATIVE_GRAFT_CONTROL, POOL_PREFIX
+from graftcache.requests import DOSE_PREFIX, NATIVE_CONTROL, NATIVE_GRAFT_CONTROL, POOL_PREFIX
 
 SHUFFLE_SEED_OFFSET = 7919
 SHUFFLE_GROUP = 64  # frames that exchange features as a group (see shuffle)
@@ -123,6 +126,7 @@ class Control:
     closed_loop: bool = True        # has a meaning as a policy run in the simulator (graftcache export, rollout)
     ignores: tuple[str, ...] = ()   # cell fields its policy's function does not depend on (its policy_id leaves them
                                     # out, graftcache.fit.plan.Plan.policy_id, or hashes what stands in for them)
+    dose: float | None = None       # noise-A: features degraded by dose A, seeded per frame (graftcache/fit/dose.py)
 
 
 CONTROLS: dict[str, Control] = {
@@ -159,7 +163,7 @@ def check_pool_grid(control: Control, stored: Sequence[tuple[int, int]], cache: 
 
 
 def get_control(name: str) -> Control:
-    """Registry lookup; `pool-HxW` is parametric."""
+    """Registry lookup; `pool-HxW` and `noise-A` are parametric."""
     if name in CONTROLS:
         return CONTROLS[name]
     if name.startswith(POOL_PREFIX):
@@ -168,4 +172,7 @@ def get_control(name: str) -> Control:
         except Exception:
             raise FitError(f"control {name!r}: expected pool-HxW, e.g. pool-4x4") from None
         return replace(CONTROLS["none"], name=f"{POOL_PREFIX}{format_grid(grid)}", grid=grid)
-    raise FitError(f"unknown control {name!r}; choose from {', '.join(CONTROLS)}, {POOL_PREFIX}HxW")
+    if name.startswith(DOSE_PREFIX):
+        level = parse_dose(name)
+        return replace(CONTROLS["none"], name=dose_name(level), dose=level)
+    raise FitError(f"unknown control {name!r}; choose from {', '.join(CONTROLS)}, {POOL_PREFIX}HxW, {DOSE_PREFIX}A")

@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from graftcache.errors import FitError
-from graftcache.fit.controls import Transform, keep
+from graftcache.fit.dose import AS_IS, FrameTransform
 from graftcache.graft import feature_key
 from graftcache.progress import progress
 from graftcache.runtime import autocast
@@ -169,19 +169,19 @@ def optimise_together(adapter, learners: Sequence[Learner], *, steps: int, batch
 
 
 def learner(low: LowDim, buffer: ShuffleBuffer, cams: Mapping[str, str], params: Sequence[torch.nn.Parameter], *,
-            batch_size: int, lr: float, seed: int, transform: Transform = keep) -> Learner:
+            batch_size: int, lr: float, seed: int, transform: FrameTransform = AS_IS) -> Learner:
     """A fit's learner: AdamW on `params`, batches drawn from `buffer` (its frames go with the low-dim rows of
-    `low`), every random draw from a generator seeded with the cell's `seed`."""
+    `low`; `transform` takes their cache rows), every random draw from a generator seeded with the cell's `seed`."""
 
     def draw(generator: torch.Generator) -> dict:
         owners, features = buffer.draw(batch_size, generator)
-        return raw_batch(low, owners, transform(features), cams)
+        return raw_batch(low, owners, transform(features, low.rows[owners]), cams)
 
     return Learner(draw, torch.optim.AdamW(params, lr=lr, weight_decay=0.0), torch.Generator().manual_seed(seed))
 
 
 def train(adapter, low: LowDim, buffer: ShuffleBuffer, cams: Mapping[str, str], *, steps: int, batch_size: int,
-          lr: float, seed: int, transform: Transform = keep, dtype: torch.dtype = torch.float32,
+          lr: float, seed: int, transform: FrameTransform = AS_IS, dtype: torch.dtype = torch.float32,
           show: bool = True) -> float:
     """Optimise the trainable parameters (projector, LoRA) with AdamW on batches drawn from `buffer` (its
     frames go with the low-dim rows of `low`); returns the mean loss of the last 10% of steps (NaN when
@@ -201,11 +201,11 @@ class Scoring:
     low: LowDim
     blocks: Iterator[Block]
     cams: Mapping[str, str]
-    transform: Transform = keep
+    transform: FrameTransform = AS_IS  # takes the frames' cache rows
 
 
 def evaluate(adapter, low: LowDim, blocks: Iterator[Block], cams: Mapping[str, str], *, batch_size: int,
-             transform: Transform = keep, dtype: torch.dtype = torch.float32,
+             transform: FrameTransform = AS_IS, dtype: torch.dtype = torch.float32,
              num_denoise_steps: int | None = None) -> Score:
     """Offline action MSE of the denoised chunk on the frames of `low` that `blocks` deliver (in cache order,
     re-cut into batches of `batch_size`; fixed noise per frame); only predictions are kept.
@@ -241,7 +241,7 @@ def evaluate_together(adapter, parts: Sequence[Scoring], *, batch_size: int, dty
         for i, (pos, (features,)) in taken:
             part = parts[i]
             noises.append(frame_noise(part.low.rows[pos], adapter.chunk_size, adapter.max_action_dim))
-            raws.append(raw_batch(part.low, pos, part.transform(features), part.cams))
+            raws.append(raw_batch(part.low, pos, part.transform(features, part.low.rows[pos]), part.cams))
             sizes.append(len(pos))
         batch = adapter.prepare(concat_raw(raws))
         owned = dict(zip(open_parts, sizes, strict=True))

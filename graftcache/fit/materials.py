@@ -20,6 +20,7 @@ from graftcache.encoders.fingerprint import NumericsCheck, check_numerics
 from graftcache.fit.buffer import MIB
 from graftcache.fit.controls import Control
 from graftcache.fit.data import LowDim, drop_nonfinite, load_lowdim, suite_index_table
+from graftcache.fit.dose import Dose, Seen, measure_spread
 from graftcache.fit.feed import SplitFeed
 from graftcache.fit.plan import Plan
 from graftcache.fit.stream import BlockMemo, CacheReader, FeatureSource
@@ -56,6 +57,7 @@ class Materials:
         self._numerics = {} if numerics is None else numerics  # cache key -> verdict, before the first cell runs
         self._enforced: set[str] = set()  # verdicts this request has acted on (refused, warned)
         self._readings: dict[tuple, Reading] = {}
+        self._spreads: dict[tuple, dict] = {}  # (cache, grid) -> the dose family's feature spread per camera
         # reading in this process, the blocks cells read are kept for the next cells, up to another --buffer-mib
         req = plan.req
         self._memo = BlockMemo(req.buffer_mib * MIB) if req.num_workers == 0 else None
@@ -120,6 +122,16 @@ class Materials:
         """A split as a cell streams it, paired by the control (seeded per split as the cell's seed says)."""
         return SplitFeed(low, reading.source, int(reading.cache.layout["block_frames"]),
                          control.pairing(len(low), seed), drop=self.plan.req.drop_nonfinite, memo=self._memo)
+
+    def seen(self, reading: Reading, control: Control, seed: int) -> Seen:
+        """What a cell of `control` and `seed` sees of a batch: its control's transform, and its dose where it has one
+        (the spread measured once per cache and grid on the training split, kept for the next cells)."""
+        if control.dose is None:
+            return Seen(control.transform)
+        key = (reading.source.key, reading.grid)
+        if key not in self._spreads:
+            self._spreads[key] = measure_spread(reading.source, reading.train)
+        return Seen(control.transform, Dose(control.dose, self._spreads[key], seed))
 
     def close(self) -> None:
         """Drop what is kept for the next cells (blocks read, low-dim tables) once the request has none left."""

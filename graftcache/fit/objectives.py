@@ -25,6 +25,7 @@ from graftcache.errors import FitError
 from graftcache.fit.align import fit_ridge
 from graftcache.fit.buffer import ShuffleBuffer, buffer_frames
 from graftcache.fit.controls import Control, get_control
+from graftcache.fit.dose import FrameTransform
 from graftcache.fit.feed import SplitFeed
 from graftcache.fit.loop import Route, alone, learner, optimise_together
 from graftcache.fit.stream import FeatureSource, StreamStats, read_blocks
@@ -42,6 +43,7 @@ class Fitting:
     adapter: BackboneAdapter
     req: FitRequest
     control: Control
+    seen: FrameTransform                        # what the cell's policy sees of a batch (its control, its dose)
     params: Sequence[torch.nn.Parameter]        # what this cell trains (its projector; LoRA's too when alone)
     train: SplitFeed                            # the train split, paired by the control
     cams: Mapping[str, str]                     # policy camera -> cache camera
@@ -70,7 +72,7 @@ def _flow(cells: Sequence[Fitting], route: Route) -> list[float]:
     with ExitStack() as stack:
         learners = [learner(f.train.low, stack.enter_context(flow_buffer(f.train, f.req, f.seed, f.stats)), f.cams,
                             f.params, batch_size=f.req.batch_size, lr=f.req.lr, seed=f.seed,
-                            transform=f.control.transform) for f in cells]
+                            transform=f.seen) for f in cells]
         optimise_together(first.adapter, learners, steps=first.req.steps, batch_size=first.req.batch_size,
                           dtype=first.dtype, route=route, show=first.req.progress, leave=False)
     return [one.final_loss for one in learners]
@@ -81,7 +83,7 @@ def _align(f: Fitting) -> float:
 
     def pairs(blocks: Iterator) -> Iterator[tuple[torch.Tensor, torch.Tensor]]:
         for block in blocks:
-            seen, native = f.control.transform(block.features[0]), block.features[1]
+            seen, native = f.seen(block.features[0], f.train.low.rows[block.owners]), block.features[1]
             yield from ((seen[c], native[c]) for c in cameras)
 
     with closing(read_blocks(f.train.with_targets(*f.targets), f.req.num_workers, f.stats)) as blocks:

@@ -37,6 +37,7 @@ from graftcache.backbones.patching import Patches
 from graftcache.cameras import format_camera_map
 from graftcache.fit.controls import Control
 from graftcache.fit.data import Split
+from graftcache.fit.dose import Seen
 from graftcache.fit.loop import Scoring, alone, evaluate_together
 from graftcache.fit.materials import Materials, MaterialsOf, Reading
 from graftcache.fit.objectives import Fitting
@@ -62,13 +63,15 @@ class _InPass:
     mat: Materials
     read: Reading
     projector: torch.nn.Module
+    seen: Seen                      # what its policy sees of a batch (its control's transform, its dose)
     trainable: dict[str, torch.nn.Parameter] = field(default_factory=dict)
     stats: StreamStats = field(default_factory=StreamStats)
 
     def fitting(self, adapter: BackboneAdapter) -> Fitting:
         """What the cell's objective fits it from."""
         r, seed = self.read, self.cell.seed
-        return Fitting(adapter=adapter, req=self.plan.req, control=self.control, params=list(self.trainable.values()),
+        return Fitting(adapter=adapter, req=self.plan.req, control=self.control, seen=self.seen,
+                       params=list(self.trainable.values()),
                        train=self.mat.feed(r, r.train, self.control, seed), cams=self.plan.cameras,
                        targets=(r.targets, r.target_rows) if r.targets is not None else None, grid=r.grid, seed=seed,
                        dtype=self.mat.dtype, stats=self.stats)
@@ -78,7 +81,7 @@ class _InPass:
         r = self.read
         blocks = read_blocks(self.mat.feed(r, r.eval, self.control, self.cell.seed + 1).features(seed=None),
                              self.plan.req.num_workers, self.stats)
-        return Scoring(r.eval, stack.enter_context(closing(blocks)), self.plan.cameras, self.control.transform)
+        return Scoring(r.eval, stack.enter_context(closing(blocks)), self.plan.cameras, self.seen)
 
 
 def run_pass(cells: Sequence[Planned], materials: MaterialsOf) -> list[dict[str, Any]]:
@@ -95,8 +98,9 @@ def run_pass(cells: Sequence[Planned], materials: MaterialsOf) -> list[dict[str,
     for (p, cell), mat in zip(cells, mats, strict=True):
         control = p.control(cell)
         torch.manual_seed(cell.seed)  # each projector starts where it starts alone
-        ins.append(_InPass(p, cell, control, mat, mat.reading(adapter, control),
-                           control.projector(p.width(control), adapter.lm_width)))
+        read = mat.reading(adapter, control)
+        ins.append(_InPass(p, cell, control, mat, read, control.projector(p.width(control), adapter.lm_width),
+                           mat.seen(read, control, cell.seed)))
     lead = ins[0]
     objective = plan.objective_of(lead.control)  # one for every cell of a pass (their pass key says so)
     t0 = time.perf_counter()
@@ -135,6 +139,8 @@ def run_pass(cells: Sequence[Planned], materials: MaterialsOf) -> list[dict[str,
     for c, loss, score in zip(ins, losses, scores, strict=True):
         if c.control.train:
             save_projector(c.plan.run_folder(c.cell), adapter, c.cell, c.plan.split, c.trainable)
+        if c.seen.dose is not None:  # the spread its noise was scaled by, for its export
+            c.seen.dose.save(c.plan.run_folder(c.cell))
         rows.append(_told(c, _row(c, adapter, loss, score, share, cells=len(ins), recomputed=recomputed,
                                   attention=attention, eval_s=eval_share)))
     return rows

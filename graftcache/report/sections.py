@@ -13,6 +13,7 @@ from graftcache import results as R
 from graftcache.critical import WINDOW
 from graftcache.report.closed_loop_section import closed_loop_section
 from graftcache.report.document import Alert, Block, Bullets, Heading, Paragraph
+from graftcache.report.dose_section import dose_section
 from graftcache.report.figures import figure_blocks
 from graftcache.report.findings import findings_blocks
 from graftcache.report.sentences import (
@@ -222,5 +223,5 @@ def provenance_section(a: A.Analysis, commands: Mapping[str, str] | None) -> lis
 
 SECTIONS: tuple[Callable[[A.Analysis, Path], list[Block]], ...] = (
     _transfer_section, _mse_section, _score_section, _seed_section, _wrapper_section, _controls_section,
-    closed_loop_section, _missing_section, _methods_section,
+    closed_loop_section, dose_section, _missing_section, _methods_section,
 )

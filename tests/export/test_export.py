@@ -35,6 +35,7 @@ from graftcache.export import bundle
 from graftcache.export.bundle import export_of
 from graftcache.fit.controls import get_control
 from graftcache.fit.data import load_lowdim, read_grid
+from graftcache.fit.dose import SPREAD_FILE, dosed
 from graftcache.fit.loop import raw_batch
 from graftcache.pooling import parse_grid
 from graftcache.runtime import autocast, resolve_compute_dtype, resolve_dtype
@@ -42,10 +43,11 @@ from graftcache.scoring import frame_noise
 from graftcache.store import FeatureCache
 
 
-def offline_chunk(row: dict, root: Path, policy: Path, run_folder: Path) -> tuple[torch.Tensor, torch.Tensor, dict,
-                                                                                   int]:
+def offline_chunk(row: dict, root: Path, policy: Path, run_folder: Path, dose_key: int | None = None) -> tuple[
+        torch.Tensor, torch.Tensor, dict, int]:
     """(the normalised chunk offline scoring computes for a late frame of the suite, that chunk in raw units as
-    scoring unnormalises it, that frame's observation as lerobot hands it to a policy, its cache row)."""
+    scoring unnormalises it, that frame's observation as lerobot hands it to a policy, its cache row). A dose cell's
+    features are degraded by graftcache.fit.dose.dosed as its frame of key `dose_key` (default: its cache row)."""
     cache = FeatureCache(root / row["cache_key"])
     control = get_control(row["control"])
     adapter = get_backbone(row["backbone"]).load(policy)
@@ -66,7 +68,12 @@ def offline_chunk(row: dict, root: Path, policy: Path, run_folder: Path) -> tupl
         with torch.no_grad():
             for n, t in load_file(str(run_folder / "projector.safetensors")).items():
                 params[n].copy_(t)
-    batch = adapter.prepare(raw_batch(low, pos, control.transform(feats), cams))
+    feats = control.transform(feats)
+    if control.dose is not None:
+        spread = load_file(str(run_folder / SPREAD_FILE))
+        feats = dosed(feats, low.rows[pos] if dose_key is None else np.array([dose_key]), control.dose, spread,
+                      row["seed"])
+    batch = adapter.prepare(raw_batch(low, pos, feats, cams))
     noise = frame_noise(low.rows[pos], adapter.chunk_size, adapter.max_action_dim)
     with autocast(adapter.device, resolve_dtype(row["compute_dtype"])):  # as evaluate_together runs it
         chunk = adapter.predict(batch, noise=noise, num_steps=2).float()
@@ -163,6 +170,59 @@ def test_export_controls_and_refusals(auto_resolution: str, tiny_zoo: TinyZoo, t
     assert len(refused.err.strip().splitlines()) == 1 and not (tmp_path / "shuffled").exists()
 
 
+@pytest.mark.slow
+def test_a_dose_cell_exports_the_features_it_was_scored_on(tiny_zoo: TinyZoo, tmp_path: Path, capsys) -> None:
+    """A noise-0.5 cell records its control, scores otherwise than the plain cell, saves the per-channel spread of its
+    training frames (numpy's, over frames and tokens) and exports with its dose, seed and spread: the exported policy's
+    first chunk of an episode is the offline chunk of the frame keyed 0, its second chunk's frame (key 1) meets other
+    noise, and after lerobot's reset the episode starts again from key 0."""
+    done = tiny_zoo.fitted("smolvla", ("noise-0.5",), capsys)
+    rows = {r["control"]: r for r in results.read(done.table).iter_rows(named=True)}
+    assert set(rows) == {"none", "noise-0.5"}
+    row = rows["noise-0.5"]
+    assert row["eval_mse"] != rows["none"]["eval_mse"]
+    folder = done.table.parent / "runs" / row["run_id"]
+    saved = load_file(str(folder / SPREAD_FILE))
+    cache = FeatureCache(done.cache / row["cache_key"])
+    split = json.loads((folder / "projector.json").read_text())["split"]
+    low = load_lowdim(cache, SUITE, chunk=50).subset(split["train_episodes"])
+    cams = dict(pair.split("=") for pair in row["camera_map"].split(","))
+    assert sorted(saved) == sorted(set(cams.values()))
+    for camera, spread in saved.items():
+        frames = read_grid(cache, camera, parse_grid(row["pool_grid"]), np.sort(low.rows)).double().numpy()
+        want = frames.reshape(-1, frames.shape[-1]).std(axis=0)
+        np.testing.assert_allclose(spread.numpy(), want, rtol=1e-5, atol=1e-6)
+
+    out = tmp_path / "dose"
+    assert run_cli(["export", row["run_id"], "--results", str(done.table), "--out", str(out), "--cache",
+                    str(done.cache)], capsys).code == 0
+    config = json.loads((out / "config.json").read_text())
+    assert (config["control"], config["dose"], config["dose_seed"], config["export_format"]) == ("noise-0.5", 0.5,
+                                                                                                   row["seed"], 3)
+    first, _, observation, row_id = offline_chunk(row, done.cache, done.policy, folder, dose_key=0)
+    second = offline_chunk(row, done.cache, done.policy, folder, dose_key=1)[0]
+    assert not torch.equal(first, second)
+    import lerobot_policy_graftcache  # noqa: F401
+    from lerobot.configs.policies import PreTrainedConfig
+    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
+    from lerobot.policies.factory import make_policy, make_pre_post_processors
+
+    cfg = PreTrainedConfig.from_pretrained(out)
+    cfg.pretrained_path = str(out)
+    policy = make_policy(cfg, ds_meta=LeRobotDatasetMetadata("libero_sample", root=SAMPLE))
+    overrides = {"device_processor": {"device": "cpu"}, "rename_observations_processor": {"rename_map": {}}}
+    pre, _ = make_pre_post_processors(cfg, pretrained_path=str(out), preprocessor_overrides=overrides)
+    noise = frame_noise(np.array([row_id]), policy.adapter.chunk_size, policy.adapter.max_action_dim)
+    atol = TOLERANCE[row["compute_dtype"]] * max(1.0, float(first.abs().max()))
+    policy.reset()
+    chunks = [policy.predict_action_chunk(pre(observation), noise=noise).float() for _ in range(2)]
+    policy.reset()
+    again = policy.predict_action_chunk(pre(observation), noise=noise).float()
+    torch.testing.assert_close(chunks[0], first, rtol=0, atol=atol)
+    torch.testing.assert_close(chunks[1], second, rtol=0, atol=atol)
+    torch.testing.assert_close(again, chunks[0], rtol=0, atol=0)
+
+
 def _chunk(folder: Path, observation: dict, row_id: int) -> torch.Tensor:
     return exported_chunk(folder, observation, row_id)[0]
 
@@ -195,10 +255,15 @@ def test_an_export_runs_wherever_it_is_moved_or_copied(tiny_zoo: TinyZoo, tmp_pa
     assert str(tmp_path) not in json.dumps(saved)  # nothing in it names a place
 
     config = json.loads((copied / "config.json").read_text())
+    config["export_format"] = 2  # as exports before format 3 (the dose family's fields) were written
+    (copied / "config.json").write_text(json.dumps(config))
+    with pytest.raises(ExportError, match=rf"^{copied}: an export of format 2, written by another graftcache \(this "
+                                          rf"one reads 3\); export run {row['run_id']} again$"):
+        _chunk(copied, observation, row_id)
     del config["export_format"]  # as exports before format 2 were written
     (copied / "config.json").write_text(json.dumps(config))
     with pytest.raises(ExportError, match=rf"^{copied}: an export of format 1, written by another graftcache \(this "
-                                          rf"one reads 2\); export run {row['run_id']} again$"):
+                                          rf"one reads 3\); export run {row['run_id']} again$"):
         _chunk(copied, observation, row_id)
 
 
