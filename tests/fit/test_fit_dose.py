@@ -177,4 +177,5 @@ def test_a_tiny_fit_records_its_dose_saves_its_spread_and_reproduces(world: Worl
     (folder / SPREAD_FILE).unlink()  # an export needs it: refused in one line, before anything loads
     with pytest.raises(ExportError, match=rf"^run {row['run_id']}: {folder / SPREAD_FILE} is missing \(the feature "
                        r"spread its dose noise was scaled by\); fit the cell again to export it$"):
-        export_run(row["run_id"], tmp_path / "a.parquet", tmp_path / "export", runs=str(folder.parent))
+        export_run(row["run_id"], tmp_path / "a.parquet", tmp_path / "export", cache=str(world.cache),
+                   runs=str(folder.parent))
