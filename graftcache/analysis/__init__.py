@@ -63,10 +63,13 @@ from graftcache.analysis.agreement import (
 )
 from graftcache.analysis.closed_loop import (
     AGREEMENT_SCHEMA,
+    CANDIDATES,
     CELL_SCHEMA,
+    CELLS_OF,
     CLOSED_LOOP_SCORES,
     MEASURE_COLUMNS,
     STATISTICS,
+    WITH_CONTROLS,
     ClosedLoop,
     closed_loop,
     mmrv,
@@ -92,7 +95,9 @@ from graftcache.analysis.paired_control import (
     paired_control,
 )
 from graftcache.analysis.pairwise import (
+    A_BETTER,
     AGREE,
+    B_BETTER,
     CLOSED_ONLY,
     DISAGREE,
     NEITHER,
@@ -159,11 +164,13 @@ from graftcache.errors import GraftcacheError
 from graftcache.results import conform
 
 __all__ = [
-    "AGREEMENT_SCHEMA", "CELL_SCHEMA", "CLOSED_LOOP_SCORES", "CONTROL_SCHEMA", "GRADED_MEASURES", "HIGHER_IS_BETTER",
+    "AGREEMENT_SCHEMA", "CANDIDATES", "CELLS_OF", "WITH_CONTROLS", "CELL_SCHEMA", "CLOSED_LOOP_SCORES",
+    "CONTROL_SCHEMA", "GRADED_MEASURES", "HIGHER_IS_BETTER",
     "MEASURES", "MEASURE_COLUMNS", "N_BOOT", "NATIVE_BETTER", "PAIR_KEY", "ROLLOUT_COLUMNS",
     "STATISTICS", "ZERO_IMAGE_BETTER", "ClosedLoop", "closed_loop", "mmrv", "paired_control", "read_rollouts",
     "spearman", "wilson",
-    "AGREE", "CLOSED_ONLY", "DISAGREE", "NEITHER", "NOT_RESOLVED", "OFFLINE_ONLY", "PAIRWISE_SCHEMA", "SUMMARY_SCHEMA",
+    "A_BETTER", "AGREE", "B_BETTER", "CLOSED_ONLY", "DISAGREE", "NEITHER", "NOT_RESOLVED", "OFFLINE_ONLY",
+    "PAIRWISE_SCHEMA", "SUMMARY_SCHEMA",
     "pairwise", "pairwise_summary",
     "BEATS", "BEATS_BOTH", "NOT_SEPARATED", "SEPARATED", "beats_image_controls", "native_vs_zero_image",
     "BASIS_MISSING", "CELL", "CONTROLS_SCHEMA", "COUNT_COLUMNS", "DISAGREEMENT_SCHEMA",
