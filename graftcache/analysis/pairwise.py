@@ -131,7 +131,7 @@ def _plain_policies(results: pl.DataFrame) -> pl.DataFrame:
 
 def pairwise(results: pl.DataFrame, rollouts: pl.DataFrame, *, measure: str = "min_target_distance_m",
              level: float = 0.95, seed: int = 0) -> pl.DataFrame:
-    """One PAIRWISE_SCHEMA row per (backbone, suite) of `results`' plain rows and pair of their encoders
+    """One PAIRWISE_SCHEMA row per (backbone, suite) of `results`' plain rows, in that order, and pair of their encoders
     (encoder_a < encoder_b by name): the offline and closed-loop paired differences A - B of `measure` over
     `rollouts` (read_rollouts), each with its paired t interval at `level`, and the verdict (module docstring).
     `seed` is accepted for a uniform signature; nothing here is random."""
@@ -140,7 +140,7 @@ def pairwise(results: pl.DataFrame, rollouts: pl.DataFrame, *, measure: str = "m
     episodes = policy_episodes(results, rollouts)
     lower_is_better = not HIGHER_IS_BETTER[measure]
     records = []
-    for (backbone, suite), group in plain.group_by(GROUP, maintain_order=True):
+    for (backbone, suite), group in plain.sort(GROUP).group_by(GROUP, maintain_order=True):
         for a, b in itertools.combinations(sorted(set(group["encoder"])), 2):
             offline, closed = _offline(group, a, b), _closed(group, episodes, a, b, measure)
             d_off, lo_off, hi_off = paired_t(offline, level)
