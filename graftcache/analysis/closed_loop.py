@@ -166,12 +166,15 @@ def _level(measure: str, value: float) -> str:
     return f"grasped rate is {value:.0%}" if measure == "grasped" else f"{measure} is {value:.4g}"
 
 
-def _why_undefined(cells_of: str, score: str, measure: str, recorded: int, scores: np.ndarray,
+def _why_undefined(chosen: int, score: str, measure: str, recorded: int, scores: np.ndarray,
                    values: np.ndarray) -> str | None:
-    """Why no agreement figure can be given over these cells, or None."""
+    """Why no agreement figure can be given over these cells (`chosen` of them, `recorded` with the measure), or
+    None."""
+    if not chosen:
+        return "no plain graft with rollouts"
     if not recorded:
         return (f"graded measures unavailable: no rollout of these cells records {measure} (format-1 rows, or a "
-                "table without it)" if measure != "success" else f"no {cells_of} cell with rollouts")
+                "table without it)")
     if len(scores) == 0:
         return f"no cell with rollouts has a finite {score}"
     if len(scores) == 1:
@@ -223,7 +226,7 @@ def agreement(cells: pl.DataFrame, episodes: pl.DataFrame, *, seed: int = 0) -> 
                 for score in CLOSED_LOOP_SCORES:
                     valid = have.filter(pl.col(score).is_finite())
                     scores, means = valid[score].to_numpy(), valid[column].to_numpy()
-                    note = _why_undefined(cells_of, score, measure, len(have), scores, means)
+                    note = _why_undefined(len(chosen), score, measure, len(have), scores, means)
                     figures = empty
                     if not note:
                         rng = generator(seed, "closed-loop", backbone, suite, cells_of, score, measure)

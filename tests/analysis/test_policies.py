@@ -92,3 +92,12 @@ def test_a_repeated_episode_key_of_one_policy_counts_once_and_keyless_episodes_a
     assert blind.height == 4 + 3 and set(blind.drop_nulls("seed")["run_id"]) == {first}
     assert blind.drop_nulls("seed")["perturbation_m"].to_list() == [0.0, 0.03, 0.03, 0.03]
     assert policies(results).height == 5
+
+
+def test_a_group_without_plain_grafts_says_so_over_the_candidates() -> None:
+    results, rollouts = _tables()
+    controls = results.filter(pl.col("control") != "none")
+    loop = A.closed_loop(controls, rollouts.filter(pl.col("run_id").is_in(controls["run_id"].implode())))
+    candidates = loop.agreement.filter(pl.col("cells_of") == "candidates")
+    assert set(candidates["note"]) == {"no plain graft with rollouts"} and set(candidates["cells"]) == {0}
+    assert loop.pairwise.height == 0
