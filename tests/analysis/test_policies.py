@@ -36,8 +36,8 @@ CELLS += [("smolvla-native", s, "native", 0.80, .05, "native") for s in (0, 1)]
 def _tables(with_policy_id: bool = True) -> tuple[pl.DataFrame, pl.DataFrame]:
     rows = [row("smolvla", "libero_object", e, s, mse, control=c) for e, s, c, mse, _, _ in CELLS]
     results = A.analyze(table(rows)).results
-    if with_policy_id:
-        results = results.with_columns(policy_id=pl.Series([p for *_, p in CELLS], dtype=pl.String))
+    ids = [p for *_, p in CELLS] if with_policy_id else [None] * len(CELLS)  # None: a user's table without them
+    results = results.with_columns(policy_id=pl.Series(ids, dtype=pl.String))
     episodes = [{"run_id": r["run_id"], "suite": "libero_object", "task_index": 0, "episode": k, "seed": 1000 + k,
                  "max_steps": 40, "perturbation_m": 0.03 if k else None, "success": False,
                  "min_target_distance_m": near + 0.01 * (k - 1.5)}
