@@ -1,7 +1,8 @@
 """Where graftcache's episode reset reaches past the public API of lerobot's LIBERO env and of hf-libero's, in one
 place: what the fast reset (`graftcache rollout --reset soft`) needs of their insides, each reach named here, and the
-versions they were read in (WRITTEN_AGAINST). A newer lerobot may move any of them; `renders_from` refuses to return a
-reset whose observation it did not render, so a moved one fails loudly rather than feeding the policy a blank image.
+versions they were read in (WRITTEN_AGAINST). A newer lerobot may move any of them; a soft reset that rebuilt the
+simulator, or whose observation was not rendered (graftcache.rollout.perturb.PerturbedReset checks `Renders`), is
+refused rather than feeding the policy a blank image.
 
 The fast reset is two things. lerobot's own soft reset (its LIBERO config's `hard_reset=False`: robosuite's
 `sim.reset()` instead of a new MjSim and render context each episode; the init state is set over it either way).
