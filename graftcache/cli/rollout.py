@@ -15,6 +15,7 @@ from graftcache.cli.common import add_flags, request_from
 from graftcache.cli.report import SCORE_NAMES
 from graftcache.codecs import int_list
 from graftcache.requests import ExecutorSettings
+from graftcache.rollout.episodes import RESETS
 
 #: LIBERO suites hold 10 tasks (libero_90: 90)
 TASKS = IntList("task", 89, 90)
@@ -85,6 +86,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    "none), drawn from the episode's seed and task so every cell gets the same scenes, as the bundled "
                    "sample's demonstrations were rendered (X = 3); recorded in each row (default: 0, lerobot-eval's "
                    "official init states)")
+    p.add_argument("--reset", choices=RESETS, default=RESETS[0],
+                   help="how each episode's scene is reset to its init state: soft keeps the simulator and renders "
+                   "only the images the policy sees, hard is lerobot-eval's own reset (a new simulator each "
+                   "episode); both give the same episodes, state for state, so rows do not record it (default: "
+                   f"{RESETS[0]})")
     p.add_argument("--rollouts", default=None, metavar="PATH",
                    help="rollouts Parquet file to append to (default: rollouts.parquet beside RESULTS); exports go "
                    "to exports/RUN_ID beside it")
@@ -127,7 +133,7 @@ def run(args: argparse.Namespace) -> int:
     req = RolloutRequest(results=Path(args.results).absolute(), rollouts=rollouts, run_ids=args.run_ids,
                          top=args.top, suites=args.suites, score=args.score, tasks=args.tasks,
                          episodes_per_task=args.episodes_per_task, max_steps=args.max_steps, seed=args.seed,
-                         perturb_cm=args.perturb_cm, command=args.command_line)
+                         perturb_cm=args.perturb_cm, reset=args.reset, command=args.command_line)
     # both files, the rows and their tasks checked before the simulator's imports (the team starts them)
     rows = select_rows(results.read_for_report(req.results), run_ids=req.run_ids, top=req.top, suites=req.suites,
                        score=req.score)

@@ -11,13 +11,20 @@ from typing import Any, Protocol
 from graftcache.rollout.graded import Graded
 from graftcache.rollout.table import episode_id
 
+#: How an episode's scene is reset to its init state: "soft", lerobot's reset keeping the MjSim with the renders
+#: nobody sees skipped (graftcache.rollout.seam), or "hard", lerobot-eval's own (a new MjSim and render context each
+#: episode). Their episodes are the same, state for state and image for image (tests/rollout/test_soft_reset.py), so
+#: rows do not record which ran, as they do not record how many workers ran them.
+RESETS = ("soft", "hard")
+
 
 @dataclass(frozen=True)
 class Episode:
     """One planned episode: episode k of a task runs from the task's init state k (mod their number) with the
     environment seeded `seed`, the start seed + k, as lerobot-eval runs its episode k with --eval.batch_size=1.
     `perturbation_m`: the target slid by up to that much per planar axis before the first step
-    (graftcache.rollout.perturb, drawn from the seed); 0: the official init state as it is."""
+    (graftcache.rollout.perturb, drawn from the seed); 0: the official init state as it is. `reset`: how the scene
+    gets to its init state (RESETS), not part of the episode's identity: either gives the same episode."""
 
     run_id: str
     suite: str
@@ -26,6 +33,7 @@ class Episode:
     seed: int
     max_steps: int
     perturbation_m: float = 0.0
+    reset: str = field(default=RESETS[0], compare=False)
 
     @property
     def id(self) -> str:

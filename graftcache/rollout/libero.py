@@ -12,7 +12,10 @@ init-state counter is set to k before its reset (lerobot-eval gets there by coun
 global RNGs are seeded from the episode's seed before it (lerobot-eval seeds them once per process), so that an
 episode run again after a kill is the same episode. An episode's video holds every frame its rollout rendered
 (steps + 1: after the reset and after each step); lerobot-eval's keeps the first `steps` (frames[: done_index + 1]),
-dropping the one after the last step, so a graftcache video ends on the state its success was scored on.
+dropping the one after the last step, so a graftcache video ends on the state its success was scored on. An
+episode's reset is by default soft (graftcache.rollout.seam: the simulator kept, the renders nobody sees skipped),
+where lerobot-eval's is hard (a new simulator each episode); both give the same episode, state for state, so each
+(suite, task) has an env per reset kind and rows do not say which ran.
 
 Graded progress (graftcache.rollout.graded): the same render callback reads the simulator's state after the reset and
 after every step, and the episode's states are measured when it ends. A perturbed episode
@@ -195,7 +198,7 @@ class LiberoSimulator:
         require_simulator()
         self.results, self.exports, self.cache, self.runs = results, exports, cache, runs
         self.max_steps, self.videos, self.log = max_steps, videos, log
-        self._envs: dict[tuple[str, int], Any] = {}
+        self._envs: dict[tuple[str, int, str], Any] = {}
         self._cell: tuple[str, tuple[Any, ...]] | None = None  # (run_id, its policy and processors): `loaded`
 
     def suite(self, name: str) -> Suite:
@@ -214,23 +217,25 @@ class LiberoSimulator:
         return export_run(row["run_id"], self.results, self.exports / row["run_id"], cache=self.cache, runs=self.runs,
                           reuse=True, log=self.log)
 
-    def env_config(self, suite: str, task: int) -> Any:
+    def env_config(self, suite: str, task: int, reset: str = "hard") -> Any:
         from lerobot.envs.factory import make_env_config
 
         return make_env_config("libero", task=suite, task_ids=[task], episode_length=self.max_steps,
-                               observation_height=OBSERVATION_SIZE, observation_width=OBSERVATION_SIZE)
+                               observation_height=OBSERVATION_SIZE, observation_width=OBSERVATION_SIZE,
+                               hard_reset=reset == "hard")
 
-    def env(self, suite: str, task: int) -> Any:
-        """The one-env vector env of (suite, task), built once per process, its env wrapped to perturb the scene of
-        a perturbed episode (graftcache.rollout.perturb.PerturbedReset)."""
+    def env(self, suite: str, task: int, reset: str = "hard") -> Any:
+        """The one-env vector env of (suite, task) resetting as `reset` says (graftcache.rollout.episodes.RESETS),
+        built once per process, its env wrapped to perturb the scene of a perturbed episode and to skip a soft
+        reset's unseen renders (graftcache.rollout.perturb.PerturbedReset)."""
         from graftcache.rollout.perturb import PerturbedReset
 
-        if (suite, task) not in self._envs:
+        if (suite, task, reset) not in self._envs:
             with simulator_chatter():
-                vector = self.env_config(suite, task).create_envs(n_envs=1)[suite][task]
-            vector.envs[0] = PerturbedReset(vector.envs[0])
-            self._envs[suite, task] = vector
-        return self._envs[suite, task]
+                vector = self.env_config(suite, task, reset).create_envs(n_envs=1)[suite][task]
+            vector.envs[0] = PerturbedReset(vector.envs[0], soft=reset == "soft")
+            self._envs[suite, task, reset] = vector
+        return self._envs[suite, task, reset]
 
     def loaded(self, row: Mapping[str, Any], suite: str, task: int) -> tuple[Any, ...]:
         """The cell's policy and its four processors, loaded as lerobot-eval loads them; the last cell's are kept, so
@@ -269,7 +274,7 @@ class LiberoSimulator:
             policy, pre, post, env_pre, env_post = self.loaded(row, first.suite, first.task_index)
             with quiet_inner_bars(), torch.no_grad():
                 for episode in episodes:
-                    env = self.env(episode.suite, episode.task_index)
+                    env = self.env(episode.suite, episode.task_index, episode.reset)
                     scene, libero_env = env.envs[0], env.envs[0].unwrapped
                     n_states = len(libero_env._init_states)  # the task's official init states, as the env loaded them
                     libero_env.init_state_id = episode.episode  # lerobot-eval's k-th reset of a fresh env

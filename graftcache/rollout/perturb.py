@@ -22,6 +22,7 @@ import gymnasium as gym
 import numpy as np
 
 from graftcache.errors import RolloutError
+from graftcache.rollout import seam
 from graftcache.rollout.graded import target_of
 
 SETTLE_STEPS = 10           # no-op steps after the target is moved (the sample's and lerobot's settling)
@@ -77,8 +78,8 @@ def frames_reused(sim: Any) -> Iterator[None]:
     """Inside, each camera view robosuite's MjSim `sim` is asked for is rendered once and that image returned again:
     for steps whose images nobody keeps (the settling before its last step). The physics never reads an image, so the
     scene evolves exactly as it would, and rendering is most of a step's cost (2 cameras at 256 px, ~90 ms each, read
-    back from an offscreen context on CPU). lerobot's reset, whose scene a perturbation replaces, is out of reach:
-    hf-libero resets hard, building a new MjSim each time."""
+    back from an offscreen context on CPU). lerobot's reset, whose scene a perturbation replaces, renders nothing
+    with a soft reset (PerturbedReset, graftcache.rollout.seam); a hard one builds a new MjSim, out of reach."""
     render, own = sim.render, "render" in vars(sim)
     seen: dict[Any, Any] = {}
 
@@ -118,15 +119,22 @@ class PerturbedReset(gym.Wrapper):
     its task). Each reset draws from the seed afresh, so a reset done twice gives one scene. It returns the perturbed
     scene's observation (lerobot's formatting of it), so the episode's first step sees the target where it is;
     `offset`: the planar offset the last reset applied, (0, 0) when none. A wrapper, because lerobot's rollout
-    resets the env itself and uses the reset's observation for the first step: there is no seam between the two."""
+    resets the env itself and uses the reset's observation for the first step: there is no seam between the two.
 
-    def __init__(self, env: gym.Env) -> None:
+    `soft`: the env was built with lerobot's soft reset (graftcache.rollout.seam), whose reset then renders only the
+    images that become the observation: its last settling step's, none when a perturbation replaces it."""
+
+    def __init__(self, env: gym.Env, *, soft: bool = False) -> None:
         super().__init__(env)
+        self.soft = soft
         self.scene: tuple[np.ndarray, float, int, int] | None = None
         self.offset = np.zeros(2)
 
     def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[Any, dict]:
-        obs, info = self.env.reset(seed=seed, options=options)
+        if self.soft:
+            obs, info = self._rendering_the_observation_only(seed, options)
+        else:
+            obs, info = self.env.reset(seed=seed, options=options)
         self.offset = np.zeros(2)
         if self.scene is not None:
             init_state, max_m, episode_seed, task = self.scene
@@ -134,4 +142,17 @@ class PerturbedReset(gym.Wrapper):
             raw, self.offset = perturb_target(libero._env, target_of(libero._env.env), init_state, max_m,
                                               rng_of(episode_seed, task))
             obs = libero._format_raw_obs(raw)
+        return obs, info
+
+    def _rendering_the_observation_only(self, seed: int | None, options: dict | None) -> tuple[Any, dict]:
+        """lerobot's reset with the renders nobody sees skipped (seam.renders_from), refused if its observation's
+        images were not all rendered."""
+        kept = None if self.scene is not None else seam.settle_steps(self)
+        seam.release_grippers(self)
+        with seam.renders_from(self, kept) as renders:
+            obs, info = self.env.reset(seed=seed, options=options)
+        if kept is not None and renders.done != seam.cameras(self):
+            raise RolloutError(f"a soft reset rendered {renders.done} camera image(s) where its observation holds "
+                               f"{seam.cameras(self)} (lerobot's reset no longer settles as lerobot "
+                               f"{seam.WRITTEN_AGAINST['lerobot']}'s did); roll out with --reset hard")
         return obs, info

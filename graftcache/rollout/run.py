@@ -33,7 +33,7 @@ from graftcache.progress import write as progress_write
 from graftcache.results.claims import cell_claim, drop_claims_folder
 from graftcache.results.writing import WAIT_TOLD_S, fsync
 from graftcache.rollout import table
-from graftcache.rollout.episodes import Episode, Outcome, Simulator
+from graftcache.rollout.episodes import RESETS, Episode, Outcome, Simulator
 from graftcache.rollout.graded import Graded
 from graftcache.rollout.select import select_rows
 
@@ -60,7 +60,7 @@ class RolloutRequest:
     within `suites`), which tasks (None: all of the suite's), how many episodes each, the step limit (None:
     lerobot's episode length of the suite), the start seed shared by every cell (episodes are paired), and the
     target's perturbation (up to `perturb_cm` per planar axis, drawn from each episode's seed; 0: the official init
-    states)."""
+    states) and how each scene is reset (graftcache.rollout.episodes.RESETS)."""
 
     results: Path
     rollouts: Path
@@ -73,6 +73,7 @@ class RolloutRequest:
     max_steps: int | None = None
     seed: int = 1000
     perturb_cm: float = 0.0
+    reset: str = RESETS[0]
     command: str = ""
 
     def __post_init__(self) -> None:
@@ -90,6 +91,8 @@ class RolloutRequest:
         if abs(steps - round(steps)) > 1e-6 or (steps and not round(steps)):
             raise RolloutError(f"--perturb-cm {self.perturb_cm:g}: finer than its resolution, "
                                f"{PERTURB_RESOLUTION_CM:g} cm (0: none)")
+        if self.reset not in RESETS:
+            raise RolloutError(f"--reset {self.reset}: must be one of {', '.join(RESETS)}")
 
 
 def default_rollouts(results_path: str | Path) -> Path:
@@ -106,8 +109,8 @@ def plan(rows: pl.DataFrame, req: RolloutRequest, simulator: Simulator) -> list[
         if beyond:
             raise RolloutError(f"run {row['run_id']}: suite {row['suite']} has tasks 0-{suite.n_tasks - 1}, not "
                                f"task {beyond[0]}")
-        episodes += [Episode(row["run_id"], row["suite"], t, k, req.seed + k, suite.max_steps, req.perturb_cm / 100)
-                     for t in tasks for k in range(req.episodes_per_task)]
+        episodes += [Episode(row["run_id"], row["suite"], t, k, req.seed + k, suite.max_steps, req.perturb_cm / 100,
+                             req.reset) for t in tasks for k in range(req.episodes_per_task)]
     return episodes
 
 

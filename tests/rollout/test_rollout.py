@@ -290,6 +290,27 @@ def test_perturbations_past_10_cm_or_below_0_are_refused_in_one_line(tmp_path: P
     assert past.code == 2 and past.err.strip() == "graftcache rollout: error: --perturb-cm 12.0: must be 0 to 10 (cm)"
 
 
+def test_the_reset_reaches_the_simulator_and_a_hard_rerun_of_soft_episodes_runs_none(
+        tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """--reset soft (the default) and hard give the same episodes (tests/rollout/test_soft_reset.py), so a rerun
+    with the other finds them all and runs none; the simulator is handed the reset asked; another is refused."""
+    from helpers.probes import run_cli
+
+    soft = Scripted()
+    rows = roll_out(_request(tmp_path), soft, log=lambda _: None)
+    assert {e.reset for e in soft.ran} == {"soft"} and len(soft.ran) == rows.height == 24
+    hard, lines = Scripted(), []
+    again = roll_out(_request(tmp_path, reset="hard"), hard, log=lines.append)
+    assert hard.ran == [] and again.equals(rows) and lines[0].startswith("all 24 episodes of 6 cell(s) are already")
+    (tmp_path / "rollouts.parquet").unlink()
+    roll_out(_request(tmp_path, reset="hard"), hard, log=lambda _: None)
+    assert {e.reset for e in hard.ran} == {"hard"} and len(hard.ran) == 24
+    with pytest.raises(RolloutError, match=r"^--reset warm: must be one of soft, hard$"):
+        _request(tmp_path, reset="warm")
+    refused = run_cli(["rollout", tmp_path / "results.parquet", "--reset", "warm"], capsys)
+    assert refused.code == 2 and "argument --reset: invalid choice: 'warm'" in refused.err
+
+
 def test_a_format_1_rollouts_file_reads_with_its_graded_columns_null(tmp_path: Path) -> None:
     """Rows written before graded progress (format 1: no target, perturbation or measures) read with those columns
     null and their ids unchanged, and a format-2 row appends beside them; a format-1 file missing another column is
