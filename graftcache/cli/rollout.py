@@ -84,6 +84,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    "none), drawn from the episode's seed and task so every cell gets the same scenes, as the bundled "
                    "sample's demonstrations were rendered (X = 3); recorded in each row (default: 0, lerobot-eval's "
                    "official init states)")
+    p.add_argument("--until-resolved", type=_at_least(1), default=None, metavar="CAP",
+                   help="sequential: after the first --episodes-per-task episodes, keep adding as many to the "
+                   "candidate encoders (plain grafts) whose pairwise closed-loop order (closest approach, paired by "
+                   "fit seed and episode) is still unresolved, up to CAP episodes per task a cell; each look's "
+                   "interval is taken so that a pair of equal encoders is called resolved with chance <= 5%% over "
+                   "all looks (Bonferroni), recorded in sequential.json beside the rollouts file for the report "
+                   "(default: off)")
     p.add_argument("--rollouts", default=None, metavar="PATH",
                    help="rollouts Parquet file to append to (default: rollouts.parquet beside RESULTS); exports go "
                    "to exports/RUN_ID beside it")
@@ -130,7 +137,12 @@ def run(args: argparse.Namespace) -> int:
     table.read(req.rollouts)
     spawn = partial(LiberoSimulator, req.results, rollouts.parent / EXPORTS_FOLDER, cache=_absolute(args.cache),
                     runs=_absolute(args.runs), max_steps=args.max_steps, videos=args.videos)
+    expand = None
+    if args.until_resolved is not None:
+        from graftcache.rollout.sequential import Sequential, looks
+
+        expand = partial(looks, seq=Sequential(args.until_resolved), log=print)
     executor = get_executor(request_from(ExecutorSettings, args))
     # the team starts first: its simulators build while this process builds its own, to plan
-    roll_out_started([req], spawn, executor.rollout_team(req, spawn, args.workers, print))
+    roll_out_started([req], spawn, executor.rollout_team(req, spawn, args.workers, print), expand=expand)
     return 0
