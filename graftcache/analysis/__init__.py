@@ -38,7 +38,10 @@ Given rollouts (graftcache.analysis.rollouts), the offline scores are set agains
 (success and, where the rollouts record them, the graded measures of progress) per cell
 (graftcache.analysis.closed_loop: Wilson intervals; Spearman, Kendall tau-b and MMRV over run_ids, each with a 95%
 bootstrap interval over each cell's episodes, graftcache.analysis.closed_loop_boot), and the native tower is set
-against zero-image on the same episodes (graftcache.analysis.paired_control).
+against zero-image on the same episodes (graftcache.analysis.paired_control); each pair of candidate encoders gets a
+verdict from paired t intervals offline (over fit seeds) and in closed loop (over fit seed and episode key), agree /
+disagree / offline only / closed loop only / neither (graftcache.analysis.pairwise). Results rows that hold one
+policy count once (graftcache.analysis.policies).
 
 Missing cells are never dropped: they appear as rows with null statistics and a `status`/`note`, and a
 verdict that cannot be reached is "insufficient data". Non-finite eval_mse (a diverged fit) counts as invalid.
@@ -60,10 +63,13 @@ from graftcache.analysis.agreement import (
 )
 from graftcache.analysis.closed_loop import (
     AGREEMENT_SCHEMA,
+    CANDIDATES,
     CELL_SCHEMA,
+    CELLS_OF,
     CLOSED_LOOP_SCORES,
     MEASURE_COLUMNS,
     STATISTICS,
+    WITH_CONTROLS,
     ClosedLoop,
     closed_loop,
     mmrv,
@@ -87,6 +93,20 @@ from graftcache.analysis.paired_control import (
     NATIVE_BETTER,
     ZERO_IMAGE_BETTER,
     paired_control,
+)
+from graftcache.analysis.pairwise import (
+    A_BETTER,
+    AGREE,
+    B_BETTER,
+    CLOSED_ONLY,
+    DISAGREE,
+    NEITHER,
+    NOT_RESOLVED,
+    OFFLINE_ONLY,
+    PAIRWISE_SCHEMA,
+    SUMMARY_SCHEMA,
+    pairwise,
+    pairwise_summary,
 )
 from graftcache.analysis.rollouts import (
     GRADED_MEASURES,
@@ -144,10 +164,14 @@ from graftcache.errors import GraftcacheError
 from graftcache.results import conform
 
 __all__ = [
-    "AGREEMENT_SCHEMA", "CELL_SCHEMA", "CLOSED_LOOP_SCORES", "CONTROL_SCHEMA", "GRADED_MEASURES", "HIGHER_IS_BETTER",
+    "AGREEMENT_SCHEMA", "CANDIDATES", "CELLS_OF", "WITH_CONTROLS", "CELL_SCHEMA", "CLOSED_LOOP_SCORES",
+    "CONTROL_SCHEMA", "GRADED_MEASURES", "HIGHER_IS_BETTER",
     "MEASURES", "MEASURE_COLUMNS", "N_BOOT", "NATIVE_BETTER", "PAIR_KEY", "ROLLOUT_COLUMNS",
     "STATISTICS", "ZERO_IMAGE_BETTER", "ClosedLoop", "closed_loop", "mmrv", "paired_control", "read_rollouts",
     "spearman", "wilson",
+    "A_BETTER", "AGREE", "B_BETTER", "CLOSED_ONLY", "DISAGREE", "NEITHER", "NOT_RESOLVED", "OFFLINE_ONLY",
+    "PAIRWISE_SCHEMA", "SUMMARY_SCHEMA",
+    "pairwise", "pairwise_summary",
     "BEATS", "BEATS_BOTH", "NOT_SEPARATED", "SEPARATED", "beats_image_controls", "native_vs_zero_image",
     "BASIS_MISSING", "CELL", "CONTROLS_SCHEMA", "COUNT_COLUMNS", "DISAGREEMENT_SCHEMA",
     "DOES_NOT_TRANSFER", "EPISODE_COLUMN", "GROUP", "HALVES_FROM", "HEADLINE_SCHEMA", "INSUFFICIENT",

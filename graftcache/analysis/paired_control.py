@@ -6,20 +6,23 @@ episodes than two independent success rates would need, because both policies fa
 limit and the scene's own difficulty cancels.
 
 The pairing, per (backbone, suite) and closed-loop measure (graftcache.analysis.rollouts.MEASURES):
-- the native side is every cell (run_id) of control `native`, the zero-image side every cell of control
-  `zero-image` (any encoder, any seed); several native seeds and several zero-image rows are usual;
+- the native side is every cell of control `native`, the zero-image side every cell of control `zero-image`; a
+  cell is a policy (graftcache.analysis.policies), so a zero-image policy rolled out under several encoders, or
+  a native tower under several seeds, is one cell, and its episodes count once;
 - an episode key is PAIR_KEY (suite, task_index, episode, seed, max_steps, perturbation_m): the same key is the
   same scene. A null perturbation_m is read as 0.0 (format-1 rows and tables without the column were run from the
-  official init states); an episode with any other key column null cannot be paired and is left out;
+  official init states, policy_episodes reads it so); an episode with any other key column null cannot be paired
+  and is left out;
 - per key that both sides ran (with the measure recorded): d_k = the mean of the measure over the native episodes
   with that key minus its mean over the zero-image episodes with that key. Averaging each side within a key first
-  makes the key one paired observation, whatever the number of seeds on each side;
+  makes the key one paired observation, whatever the number of cells on each side;
 - `difference` is the mean of d_k over the paired keys (in the measure's units: a rate, metres, a fraction), with
   a 95% percentile interval from N_BOOT resamples of the keys (graftcache.analysis.closed_loop_boot);
 - `better` is "native" where the whole interval lies on the native-is-better side (above 0 for a measure where
   higher is better, below 0 for a distance), "zero-image" where it lies on the other, else "not separated";
-- `native_seeds_better` counts the native cells whose own mean of (its value - the zero-image mean of the key),
-  over the keys it shares with zero-image, is on the better side: "on every seed" when it equals `native_seeds`.
+- `native_seeds_better` counts the native cells (`native_seeds`: distinct native policies) whose own mean of (its
+  value - the zero-image mean of the key), over the keys it shares with zero-image, is on the better side: "on
+  every seed" when it equals `native_seeds`.
 Undefined (null, `note` says why) without a cell on either side or without a paired key; the interval and
 `better` also with a single paired key (nothing to resample).
 """
@@ -30,6 +33,7 @@ import polars as pl
 
 from graftcache.analysis.closed_loop_boot import interval, resampled_means
 from graftcache.analysis.findings import NOT_SEPARATED
+from graftcache.analysis.policies import POLICY
 from graftcache.analysis.rollouts import HIGHER_IS_BETTER, MEASURES, PAIR_KEY
 from graftcache.analysis.stats import generator
 from graftcache.analysis.table import GROUP, NATIVE_CONTROL, ZERO_IMAGE
@@ -44,12 +48,11 @@ CONTROL_SCHEMA = {
 }
 
 
-def _pairable(cells: pl.DataFrame, rollouts: pl.DataFrame) -> pl.DataFrame:
+def _pairable(cells: pl.DataFrame, episodes: pl.DataFrame) -> pl.DataFrame:
     """The episodes of native and zero-image cells whose key is whole, with their cell's group and control."""
     sides = cells.filter(pl.col("control").is_in([NATIVE_CONTROL, ZERO_IMAGE])).select(
-        "run_id", *(pl.col(c).alias(f"cell_{c}") for c in GROUP), "control")
-    return rollouts.join(sides, on="run_id", how="inner").with_columns(
-        pl.col("perturbation_m").fill_null(0.0)).drop_nulls([k for k in KEY if k != "perturbation_m"])
+        POLICY, *(pl.col(c).alias(f"cell_{c}") for c in GROUP), "control")
+    return episodes.join(sides, on=POLICY, how="inner").drop_nulls(KEY)
 
 
 def _compare(episodes: pl.DataFrame, measure: str, seed: int, what: tuple[str, ...]) -> dict:
@@ -64,7 +67,7 @@ def _compare(episodes: pl.DataFrame, measure: str, seed: int, what: tuple[str, .
         return {}
     sign = 1.0 if HIGHER_IS_BETTER[measure] else -1.0
     diffs = (per_key["native"] - per_key["zero"]).to_numpy()
-    seeds = native.join(zero, on=KEY, how="inner").group_by("run_id").agg(
+    seeds = native.join(zero, on=KEY, how="inner").group_by(POLICY).agg(
         (pl.col("value") - pl.col("zero")).mean().alias("d"))
     out = {"pairs": len(per_key), "native": per_key["native"].mean(), "zero_image": per_key["zero"].mean(),
            "difference": float(diffs.mean()), "native_seeds": len(seeds),
@@ -77,10 +80,11 @@ def _compare(episodes: pl.DataFrame, measure: str, seed: int, what: tuple[str, .
     return out | {"ci_low": lo, "ci_high": hi, "better": better}
 
 
-def paired_control(cells: pl.DataFrame, rollouts: pl.DataFrame, *, seed: int = 0) -> pl.DataFrame:
+def paired_control(cells: pl.DataFrame, episodes: pl.DataFrame, *, seed: int = 0) -> pl.DataFrame:
     """One CONTROL_SCHEMA row per (backbone, suite) of `cells` (graftcache.analysis.closed_loop.rollout_cells) and
-    MEASURES measure: the native tower against zero-image on the same episodes of `rollouts` (read_rollouts)."""
-    pairable = _pairable(cells, rollouts)
+    MEASURES measure: the native tower against zero-image on the same `episodes`
+    (graftcache.analysis.policies.policy_episodes)."""
+    pairable = _pairable(cells, episodes)
     records = []
     for (backbone, suite), group in cells.group_by(GROUP, maintain_order=True):
         counts = {c: int((group["control"] == c).sum()) for c in (NATIVE_CONTROL, ZERO_IMAGE)}

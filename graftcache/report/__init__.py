@@ -20,7 +20,11 @@ from graftcache.report.closed_loop_csv import (
     CLOSED_LOOP_CSV,
     CLOSED_LOOP_CSV_COLUMNS,
     CLOSED_LOOP_CSV_SCHEMA,
+    PAIRWISE_CSV,
+    PAIRWISE_CSV_COLUMNS,
+    PAIRWISE_CSV_SCHEMA,
     closed_loop_table,
+    pairwise_table,
 )
 from graftcache.report.document import Block, Heading, Image
 from graftcache.report.figures import (
@@ -47,6 +51,7 @@ from graftcache.report.transfer_csv import TRANSFER_CSV, TRANSFER_CSV_COLUMNS, t
 
 __all__ = [
     "CLOSED_LOOP_CSV", "CLOSED_LOOP_CSV_COLUMNS", "CLOSED_LOOP_CSV_SCHEMA", "closed_loop_table", "figure_closed_loop",
+    "PAIRWISE_CSV", "PAIRWISE_CSV_COLUMNS", "PAIRWISE_CSV_SCHEMA", "pairwise_table",
     "FIGURES", "PROXY_NOTE", "TITLE", "TRANSFER_CSV", "TRANSFER_CSV_COLUMNS", "ReportPaths", "bootstrap_sentence",
     "figure_controls", "figure_mse", "figure_rank_bump", "figure_rank_transfer", "headline_sentences",
     "beats_controls_sentences", "reads_images_sentences", "random_init_warning", "render_html", "render_markdown",
@@ -66,6 +71,7 @@ class ReportPaths:
     transfer: Path  # transfer.csv: one row per verdict (graftcache.report.transfer_csv)
     notes: tuple[str, ...] = ()  # how the backbones were ordered where the rows did not say (also in the report)
     closed_loop: Path | None = None  # closed_loop.csv (graftcache.report.closed_loop_csv), given rollouts
+    pairwise: Path | None = None  # pairwise.csv (graftcache.report.closed_loop_csv), given rollouts
 
 
 def write_report(
@@ -79,7 +85,7 @@ def write_report(
 ) -> ReportPaths:
     """Analyse a results table (or Parquet path), ranked by `score` (graftcache.analysis.SCORES), and write
     report.md, report.html, PNG figures and transfer.csv to out_dir; given a rollouts Parquet file
-    (graftcache.analysis.rollouts), the closed-loop section and closed_loop.csv too.
+    (graftcache.analysis.rollouts), the closed-loop section, closed_loop.csv and pairwise.csv too.
 
     The table needs only results.REPORT_COLUMNS; a path is read with results.read_for_report, so an absent,
     empty, non-Parquet or row-less file is a GraftcacheError naming it. `commands` (name -> command line)
@@ -93,7 +99,7 @@ def write_report(
     a = A.analyze(table, score=score, boot=boot, rollouts=episodes)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    for name in (*FIGURES, CLOSED_LOOP_CSV):  # a rerun must not leave a stale file the new report no longer has
+    for name in (*FIGURES, CLOSED_LOOP_CSV, PAIRWISE_CSV):  # a rerun must not leave a file the new report lacks
         (out / name).unlink(missing_ok=True)
     blocks: list[Block] = [Heading(TITLE, 1), *random_init_warning(a), *header(a, source)]
     for section in SECTIONS:
@@ -103,12 +109,13 @@ def write_report(
     md.write_text(render_markdown(blocks, out), encoding="utf-8")
     page.write_text(render_html(blocks, out, TITLE), encoding="utf-8")
     transfer_table(a).write_csv(out / TRANSFER_CSV)
-    closed = None
+    closed = pairs = None
     if a.closed_loop is not None:
-        closed = out / CLOSED_LOOP_CSV
+        closed, pairs = out / CLOSED_LOOP_CSV, out / PAIRWISE_CSV
         closed_loop_table(a).write_csv(closed)
+        pairwise_table(a).write_csv(pairs)
     figures = tuple(out / b.name for b in blocks if isinstance(b, Image))
-    return ReportPaths(md, page, figures, out / TRANSFER_CSV, a.ladder.notes, closed)
+    return ReportPaths(md, page, figures, out / TRANSFER_CSV, a.ladder.notes, closed, pairs)
 
 
 def report_command(results_path: str | Path, out_dir: str | Path, *, command: str | None = None,
@@ -124,6 +131,6 @@ def report_command(results_path: str | Path, out_dir: str | Path, *, command: st
     paths = write_report(path, out_dir, commands={"report": cited}, score=score, rollouts=rollouts)
     for note in paths.notes:
         print(f"note: {note}", file=sys.stderr)
-    written = [paths.markdown, paths.html, paths.transfer, *([paths.closed_loop] if paths.closed_loop else [])]
+    written = [paths.markdown, paths.html, paths.transfer, *(p for p in (paths.closed_loop, paths.pairwise) if p)]
     print("report: " + "\n        ".join(map(str, written)))
     return 0

@@ -1,7 +1,9 @@
 """The report's closed-loop section (only with `report --rollouts`): the validity figure's numbers in words and
-tables. First, prominently, how well eval_mse orders the cells by their closest approach to the target (the graded
-measure the sample's reach -> grasp -> lift policies move first) with its intervals; then the native tower against
-zero-image on the same episodes; then the figure, every (score, measure) agreement and every cell."""
+tables. First, prominently, how well eval_mse orders the candidate encoders (plain grafts) by their closest
+approach to the target (the graded measure the sample's reach -> grasp -> lift policies move first), the question
+a user brings; then the same over every distinct policy, controls included (does looking help?); then the pairwise
+verdicts, the table a user picking an encoder reads; then the native tower against zero-image on the same
+episodes; then the figure, every (cells, score, measure) agreement and every cell."""
 
 from __future__ import annotations
 
@@ -10,6 +12,7 @@ from pathlib import Path
 import polars as pl
 
 from graftcache import analysis as A
+from graftcache.report.closed_loop_pairwise import pairwise_blocks
 from graftcache.report.document import Block, Bullets, Heading, Paragraph
 from graftcache.report.figures import figure_blocks
 from graftcache.report.tables import BACKBONE, NOTE, Column, Row, col, in_backbone_order, num, table_block
@@ -22,33 +25,36 @@ MEASURE_LABELS = {"success": "success", "min_target_distance_m": "closest approa
                   "goal_fraction": "goal fraction"}
 UNITS = {"min_target_distance_m": " m", "final_target_distance_m": " m", "target_lift_m": " m"}
 ABOUT = (
-    "A cell is one results row (one run_id: one seed of an encoder or control) that was rolled out: its success rate "
-    "over its episodes, with a 95% Wilson score interval, and the mean of each graded measure over its episodes that "
-    "record it. Agreement is computed over run_ids, not over seed means: a run_id is the very policy that was scored "
-    "offline and rolled out, so its score and its closed-loop value are one paired measurement. Per backbone, suite, "
+    "A cell is one policy that was rolled out (one seed of an encoder or control; results rows that hold the same "
+    "policy, such as a zero-image control under several encoders, are one cell, their episodes pooled and each "
+    "episode key counted once): its success rate over its episodes, with a 95% Wilson score interval, and the mean of "
+    "each graded measure over its episodes that record it. Agreement is computed over policies, not over seed means: "
+    "a policy is what was scored offline and rolled out, so its score and its closed-loop value are one paired "
+    "measurement. Two agreements per backbone and suite: over the candidates (plain grafts: does the offline score "
+    "order the encoders as the closed loop does?) and over every policy with the controls (does looking help?). Per "
     "offline score (lower is better) and closed-loop measure: Spearman ρ and Kendall τb of −score against the "
     "measure oriented so that higher is better (distances negated), so positive means lower scores go with a better "
     "closed loop for every measure; and MMRV (SIMPLER, arXiv 2405.05941: with proxy S = −score and the oriented "
     "measure R, (1/N) Σ_i max_j |R_i − R_j| [(S_i < S_j) ≠ (R_i < R_j)], in the measure's units, 0 when no pair is "
-    "misordered). Each has a 95% percentile interval from {n_boot} bootstrap replicates that redraw every cell's "
-    "episodes (seed {seed}). `eval_mse_arm` is the error on the first action_dim − 1 dimensions (LIBERO's end "
-    "effector), `eval_mse_gripper` on the last."
+    "misordered). Each has a 95% interval from {n_boot} bootstrap replicates that redraw the cells and, within each "
+    "drawn cell, its episodes (seed {seed}). `eval_mse_arm` is the error on the first action_dim − 1 dimensions "
+    "(LIBERO's end effector), `eval_mse_gripper` on the last."
 )
 UNDEFINED = (
     "A figure shown as — (empty in closed_loop.csv) is undefined, never 0: with fewer than 2 cells, where every cell "
     "has the same value of the measure (e.g. every episode failed: no order to agree with), or where no episode "
     "records a graded measure; ρ and τb also where every cell has the same score. The note says which. Intervals "
-    "are taken over the replicates in which the cells do not all tie (`replicates` in closed_loop.csv)."
+    "are taken over the replicates in which the drawn cells do not all tie (`replicates` in closed_loop.csv)."
 )
 INTERVALS = (
-    "Each interval says how far a rerun with as many episodes per cell would move the figure if each cell's true "
-    "value were its observed mean. Episode noise blurs an order more often than it sharpens one, so near a perfect "
-    "order the interval can sit just below ρ and τb (above MMRV) rather than around them; more episodes per cell "
-    "narrow it."
+    "Each interval says how far the figure moves when other policies of the same kind are drawn and each one's "
+    "episodes are redrawn: the figure ± the 95% quantile of the replicates' distance from it, clipped to the "
+    "statistic's range. Episode noise blurs an order more often than it sharpens one, so the replicates lean towards "
+    "weaker agreement; their percentiles can then leave out the figure itself, and this interval cannot."
 )
 PAIRING = (
     "Per episode key (suite, task, episode, seed, step limit, perturbation) run by both sides: the mean over the "
-    "native cells minus the mean over the zero-image cells (every encoder and seed); then the mean of these paired "
+    "native cells minus the mean over the zero-image cells (every distinct policy); then the mean of these paired "
     "differences over the keys, with a 95% bootstrap interval over the keys. The native tower is better when the "
     "whole interval lies on its better side; the seed count says on how many native seeds alone it is."
 )
@@ -89,17 +95,21 @@ def ungraded_sentence(loop: A.ClosedLoop) -> str | None:
             "(`graded episodes`), and a cell without any has none.")
 
 
-def headline_sentences(loop: A.ClosedLoop) -> list[str]:
-    """eval_mse against the closest approach, per backbone and suite, with intervals or why undefined."""
-    rows = loop.agreement.filter(pl.col("score") == HEADLINE_SCORE, pl.col("measure") == HEADLINE_MEASURE)
+def headline_sentences(loop: A.ClosedLoop, cells_of: str) -> list[str]:
+    """eval_mse against the closest approach over `cells_of` (graftcache.analysis.CELLS_OF), per backbone and
+    suite, with intervals or why undefined."""
+    rows = loop.agreement.filter(pl.col("cells_of") == cells_of, pl.col("score") == HEADLINE_SCORE,
+                                 pl.col("measure") == HEADLINE_MEASURE)
     out = []
     for r in rows.iter_rows(named=True):
-        where = f"{A.backbone_label(r['backbone'])} · {r['suite']}"
+        where = f"{A.backbone_label(r['backbone'])} · {r['suite']} · {cells_of}"
         if r["mmrv"] is None:
             out.append(f"{where}: undefined over {r['cells']} cells ({r['note']}).")
             continue
         cells = loop.cells.filter(pl.col("backbone") == r["backbone"], pl.col("suite") == r["suite"],
                                   pl.col(HEADLINE_SCORE).is_finite(), pl.col(HEADLINE_MEASURE).is_not_null())
+        if cells_of == A.CANDIDATES:
+            cells = cells.filter(pl.col("control") == A.PLAIN)
         lo, hi = cells["graded_episodes"].min(), cells["graded_episodes"].max()
         each = f"{lo}" if lo == hi else f"{lo}–{hi}"
         rho = f"Spearman ρ = {_with_interval(r, 'spearman', '+.2f')}" if r["spearman"] is not None else "ρ —"
@@ -128,8 +138,8 @@ def control_sentence(r: Row) -> str:
 
 
 AGREEMENT_COLUMNS: tuple[Column, ...] = (
-    BACKBONE, ("suite", col("suite")), ("measure", col("measure")), ("score", lambda r: f"`{r['score']}`"),
-    ("cells", col("cells")),
+    BACKBONE, ("suite", col("suite")), ("cells of", col("cells_of")), ("measure", col("measure")),
+    ("score", lambda r: f"`{r['score']}`"), ("cells", col("cells")),
     ("Spearman ρ [95%]", lambda r: _with_interval(r, "spearman", "+.2f")),
     ("Kendall τb [95%]", lambda r: _with_interval(r, "kendall_tau_b", "+.2f")),
     ("MMRV [95%]", lambda r: _with_interval(r, "mmrv", ".3g", _unit(r["measure"]))), NOTE,
@@ -151,7 +161,8 @@ def cell_columns(measures: list[str]) -> tuple[Column, ...]:
     graded = [m for m in measures if m != "success"]
     return (
         BACKBONE, ("suite", col("suite")), ("encoder", col("encoder")), ("control", col("control")),
-        ("seed", col("seed")), ("run_id", col("run_id", lambda x: f"`{x}`")), ("episodes", col("episodes")),
+        ("seed", col("seed")), ("run_id", col("run_id", lambda x: f"`{x}`")), ("rows", col("runs")),
+        ("episodes", col("episodes")),
         ("success (95% Wilson)", _rate),
         *((("graded episodes", col("graded_episodes")),) if graded else ()),
         *((f"{MEASURE_LABELS[m]}{' (m)' if m in UNITS else ''}", col(A.MEASURE_COLUMNS[m], num)) for m in graded),
@@ -170,8 +181,13 @@ def closed_loop_section(a: A.Analysis, out: Path) -> list[Block]:
     blocks: list[Block] = [head, Paragraph(ABOUT.format(n_boot=A.N_BOOT, seed=a.boot.seed))]
     if sentence := ungraded_sentence(loop):
         blocks.append(Paragraph(sentence))
-    blocks += [Heading(f"`{HEADLINE_SCORE}` against the closest approach to the target (`{HEADLINE_MEASURE}`)", 3),
-               Bullets(tuple(headline_sentences(loop))), Paragraph(INTERVALS)]
+    blocks += [Heading(f"Candidates: does `{HEADLINE_SCORE}` order the encoders as the closest approach to the target "
+                       f"(`{HEADLINE_MEASURE}`) does?", 3),
+               Bullets(tuple(headline_sentences(loop, A.CANDIDATES))),
+               Heading("With controls: does looking help?", 3),
+               Bullets(tuple(headline_sentences(loop, A.WITH_CONTROLS))), Paragraph(INTERVALS),
+               Heading("Which encoder wins? Pairwise verdicts", 3),
+               *pairwise_blocks(a, HEADLINE_MEASURE, MEASURE_LABELS[HEADLINE_MEASURE], _unit(HEADLINE_MEASURE))]
     control = loop.control.filter(pl.col("measure").is_in(measures),
                                   (pl.col("native_cells") > 0) | (pl.col("zero_image_cells") > 0))
     blocks += [Heading("Native tower vs zero-image on the same episodes", 3), Paragraph(PAIRING)]
@@ -181,6 +197,7 @@ def closed_loop_section(a: A.Analysis, out: Path) -> list[Block]:
     if len(control):
         blocks.append(table_block(in_backbone_order(a, control), LOOP_CONTROL_COLUMNS))
     agreement = loop.agreement.filter(pl.col("measure").is_in(measures))
-    return [*blocks, *figure_blocks(a, out, "closed_loop.png"), Heading("Every score against every measure", 3),
+    return [*blocks, *figure_blocks(a, out, "closed_loop.png"),
+            Heading("Every score against every measure, over the candidates and with controls", 3),
             Paragraph(UNDEFINED), table_block(in_backbone_order(a, agreement), AGREEMENT_COLUMNS),
             Heading("Cells", 3), table_block(in_backbone_order(a, loop.cells), cell_columns(measures))]

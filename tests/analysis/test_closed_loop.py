@@ -164,36 +164,38 @@ def test_report_rollouts_end_to_end(files: tuple[Path, Path], tmp_path: Path, ca
     assert str(out / "closed_loop.csv") in capsys.readouterr().out
     csv = pl.read_csv(out / "closed_loop.csv", schema=report.CLOSED_LOOP_CSV_SCHEMA)
     assert tuple(csv.columns) == report.CLOSED_LOOP_CSV_COLUMNS == (
-        "backbone", "suite", "score", "measure", "cells", "spearman", "spearman_low", "spearman_high",
+        "backbone", "suite", "cells_of", "score", "measure", "cells", "spearman", "spearman_low", "spearman_high",
         "kendall_tau_b", "kendall_tau_b_low", "kendall_tau_b_high", "mmrv", "mmrv_low", "mmrv_high", "replicates")
     success = csv.filter(pl.col("measure") == "success")
-    spatial = success.filter(pl.col("suite") == "libero_spatial", pl.col("score") == "eval_mse").row(0, named=True)
+    spatial = success.filter(pl.col("suite") == "libero_spatial", pl.col("score") == "eval_mse",
+                             pl.col("cells_of") == "candidates").row(0, named=True)
     assert (spatial["cells"], spatial["spearman"], spatial["kendall_tau_b"], spatial["mmrv"]) == pytest.approx(
         (4, math.sqrt(0.4), 3 / math.sqrt(30), 0.1))
-    for name in ("spearman", "kendall_tau_b", "mmrv"):  # an interval around each figure, from the episodes
+    for name in ("spearman", "kendall_tau_b", "mmrv"):  # an interval around each figure, from cells and episodes
         assert spatial[f"{name}_low"] <= spatial[name] <= spatial[f"{name}_high"], name
         assert spatial[f"{name}_low"] < spatial[f"{name}_high"], name
     failed = success.filter(pl.col("suite") == "libero_object")
-    assert failed.height == 4 and failed.select("spearman", "kendall_tau_b", "mmrv").null_count().row(0) == (4, 4, 4)
-    assert "libero_object,eval_mse,success,3" + "," * 10 + "\n" in (out / "closed_loop.csv").read_text()  # not 0
+    assert failed.height == 8 and failed.select("spearman", "kendall_tau_b", "mmrv").null_count().row(0) == (8, 8, 8)
+    assert "libero_object,candidates,eval_mse,success,3" + "," * 10 + "\n" in (out / "closed_loop.csv").read_text()
     graded = csv.filter(pl.col("measure") != "success")  # these rollouts have no graded columns: kept, undefined
-    assert graded.height == 2 * 4 * 5 and graded["cells"].to_list() == [0] * 40
-    assert graded.select("spearman", "kendall_tau_b", "mmrv").null_count().row(0) == (40, 40, 40)
+    assert graded.height == 2 * 2 * 4 * 5 and graded["cells"].to_list() == [0] * 80
+    assert graded.select("spearman", "kendall_tau_b", "mmrv").null_count().row(0) == (80, 80, 80)
     md = (out / "report.md").read_text()
     assert "## Offline scores vs closed-loop success" in md
-    assert "Agreement is computed over run_ids, not over seed means" in md
-    assert ("| SmolVLA | libero_object | success | `eval_mse` | 3 | — | — | — | every cell's success rate is 0%: no "
-            "order to agree with |") in md
+    assert "Agreement is computed over policies, not over seed means" in md
+    assert ("| SmolVLA | libero_object | candidates | success | `eval_mse` | 3 | — | — | — | every cell's success rate "
+            "is 0%: no order to agree with |") in md
     assert "undefined, never 0" in md
     assert "80% [38%, 96%]" in md  # 4 of 5 with its Wilson interval
     assert ("The graded measures are unavailable for these rollouts: none of the 35 episodes records them "
             "(format-1 rollouts rows, or a table without the graded columns)") in md
-    assert ("SmolVLA · libero_spatial: undefined over 0 cells (graded measures unavailable: no rollout of these "
-            "cells records min_target_distance_m (format-1 rows, or a table without it)).") in md
+    assert ("SmolVLA · libero_spatial · candidates: undefined over 0 cells (graded measures unavailable: no rollout of "
+            "these cells records min_target_distance_m (format-1 rows, or a table without it)).") in md
     assert "| closest approach" not in md  # no graded column in the cells table when no cell has one
     assert (out / "closed_loop.png").is_file()
     assert main(["report", str(files[0]), "--out", str(out)]) == 0  # without rollouts: no stale closed-loop files
     assert not (out / "closed_loop.csv").exists() and not (out / "closed_loop.png").exists()
+    assert not (out / "pairwise.csv").exists()
     assert "## Offline scores vs closed-loop success" not in (out / "report.md").read_text()
 
 

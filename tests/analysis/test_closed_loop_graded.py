@@ -27,7 +27,7 @@ from helpers.tables import row, table
 from scipy import stats
 
 from graftcache import analysis as A
-from graftcache.analysis.closed_loop_boot import mmrv_rows, spearman_rows, tau_b_rows
+from graftcache.analysis.closed_loop_boot import mmrv_rows, spearman_rows, tau_b_rows, two_level
 from graftcache.analysis.stats import generator
 from graftcache.errors import GraftcacheError
 
@@ -95,7 +95,7 @@ def _mmrv_by_loops(score: np.ndarray, good: np.ndarray) -> float:
 
 def test_a_format_2_table_reads_its_graded_columns_and_key_typed(loop: A.ClosedLoop) -> None:
     r = loop.rollouts
-    assert set(A.GRADED_MEASURES) | set(A.PAIR_KEY) | {"run_id", "success"} == set(r.columns)
+    assert set(A.GRADED_MEASURES) | set(A.PAIR_KEY) | {"run_id", "success", "policy_key"} == set(r.columns)
     assert r.schema["grasped"] == pl.Boolean and r.schema["episode"] == pl.Int64
     assert r["min_target_distance_m"].to_list()[:4] == EPISODES["min_target_distance_m"][0]
     assert loop.ungraded == 0
@@ -109,18 +109,26 @@ def test_cells_hold_each_measure_s_mean_over_its_episodes(loop: A.ClosedLoop) ->
     assert cells["graded_episodes"].to_list() == [4] * 6
 
 
+def _zero_share(cells: list[list[float]]) -> float:
+    """The chance that one slot of a replicate (a cell drawn at random, then its 4 episodes with replacement) has
+    a mean of 0, for measures >= 0."""
+    return float(np.mean([(np.mean(np.asarray(c) == 0)) ** 4 for c in cells]))
+
+
 @pytest.mark.parametrize("measure", A.MEASURES)
 def test_agreement_is_scipy_s_on_the_cell_means_oriented_better_is_higher(loop: A.ClosedLoop, measure: str) -> None:
     score = np.array([mse for *_, mse in CELLS])
     good = _means(measure) * (1 if A.HIGHER_IS_BETTER[measure] else -1)
-    r = loop.agreement.filter(pl.col("score") == "eval_mse", pl.col("measure") == measure).row(0, named=True)
+    r = loop.agreement.filter(pl.col("cells_of") == "with controls", pl.col("score") == "eval_mse",
+                              pl.col("measure") == measure).row(0, named=True)
     assert r["cells"] == 6
-    if measure == "success":  # 2 successes in 24 episodes: a replicate misses both with P = (3/4)^8 = 0.10
-        assert 850 < r["replicates"] < 950
-        assert r["note"] == (f"intervals over only {r['replicates']} of 1000 replicates (in the others every cell "
-                             "had one success: no order)")
-    else:  # every cell ties in a replicate only by drawing all zeros in every cell with a positive value: rare
-        assert r["replicates"] >= 990 and r["note"] is None
+    if measure == "success":  # a replicate has no order where each of its 6 drawn cells' 4 redrawn episodes fail
+        tied = _zero_share(SUCCESS) ** 6
+        assert abs(r["replicates"] - 1000 * (1 - tied)) < 4 * math.sqrt(1000 * tied * (1 - tied))
+        assert r["note"] == (f"intervals over only {r['replicates']} of 1000 replicates (in the others every drawn "
+                             "cell had one success: no order)")
+    else:  # every cell ties in a replicate mostly by drawing all zeros in every drawn cell
+        assert r["replicates"] >= 900 and (r["note"] is None) == (r["replicates"] >= 950)
     assert r["spearman"] == pytest.approx(stats.spearmanr(-score, good).statistic)
     assert r["kendall_tau_b"] == pytest.approx(stats.kendalltau(-score, good, variant="b").statistic)
     assert r["mmrv"] == pytest.approx(_mmrv_by_loops(score, good))
@@ -128,61 +136,120 @@ def test_agreement_is_scipy_s_on_the_cell_means_oriented_better_is_higher(loop: 
         assert r["spearman"] == pytest.approx(1 - 6 * 2 / (6 * 35)) and r["kendall_tau_b"] == pytest.approx(13 / 15)
 
 
-def test_the_intervals_are_percentiles_of_scipy_s_figures_over_episode_replicates(loop: A.ClosedLoop) -> None:
-    """Replicates drawn here the documented way: each cell's episodes redrawn with replacement from a generator
-    seeded by (seed 0, run_id, measure); each replicate's figures from scipy."""
-    measure, score = "min_target_distance_m", np.array([mse for *_, mse in CELLS])
-    cells = loop.cells.sort("eval_mse")
-    order = np.argsort(score)
-    draws = []
-    for run_id, i in zip(cells["run_id"], order):
-        values = np.sort(EPISODES[measure][i])  # a cell's episodes are drawn from in sorted order
-        rng = generator(0, "closed-loop", run_id, measure)
-        draws.append(-values[rng.integers(0, 4, size=(A.N_BOOT, 4))].mean(axis=1))
-    reps, s = np.stack(draws, axis=1), score[order]
-    rho = [stats.spearmanr(-s, rep).statistic for rep in reps]
-    tau = [stats.kendalltau(-s, rep, variant="b").statistic for rep in reps]
-    worst = [_mmrv_by_loops(s, rep) for rep in reps[:200]]
-    r = loop.agreement.filter(pl.col("score") == "eval_mse", pl.col("measure") == measure).row(0, named=True)
-    assert r["replicates"] == A.N_BOOT == 1000
-    assert (r["spearman_low"], r["spearman_high"]) == pytest.approx(tuple(np.percentile(rho, [2.5, 97.5])))
-    assert (r["kendall_tau_b_low"], r["kendall_tau_b_high"]) == pytest.approx(tuple(np.percentile(tau, [2.5, 97.5])))
-    assert mmrv_rows(s, reps[:200]) == pytest.approx(worst)
-    assert (r["mmrv_low"], r["mmrv_high"]) == pytest.approx(tuple(np.percentile(mmrv_rows(s, reps), [2.5, 97.5])))
+def test_the_candidates_agreement_leaves_the_controls_out(loop: A.ClosedLoop) -> None:
+    """The five plain cells alone: closest approach .06 .12 .11 .14 .20 at eval_mse 1.0 1.1 1.2 1.3 1.5."""
+    r = loop.agreement.filter(pl.col("cells_of") == "candidates", pl.col("score") == "eval_mse",
+                              pl.col("measure") == "min_target_distance_m").row(0, named=True)
+    score, near = np.array([1.0, 1.1, 1.2, 1.3, 1.5]), np.array([.06, .12, .11, .14, .20])
+    assert r["cells"] == 5
+    assert r["spearman"] == pytest.approx(stats.spearmanr(-score, -near).statistic) == pytest.approx(0.9)
+    assert r["kendall_tau_b"] == pytest.approx(stats.kendalltau(-score, -near, variant="b").statistic)
+
+
+def _two_level_by_hand(score: np.ndarray, episodes: list[np.ndarray], rng: np.random.Generator) -> np.ndarray:
+    """The documented replicates, drawn one slot at a time: (1000, 3) of rho, tau-b and MMRV (scipy and loops),
+    NaN where the drawn cells all tie. The generator is used in the documented order: first the cells of every
+    replicate, then, cell by cell, the episodes of each slot that drew it, in replicate order."""
+    picks = rng.integers(0, len(score), size=(A.N_BOOT, len(score)))
+    means = np.empty(picks.shape)
+    for cell, values in enumerate(episodes):
+        slots = np.nonzero(picks == cell)
+        draws = rng.integers(0, len(values), size=(len(slots[0]), len(values)))
+        for (b, i), draw in zip(zip(*slots), draws):
+            means[b, i] = values[draw].mean()
+    out = np.full((A.N_BOOT, 3), np.nan)
+    for b in range(A.N_BOOT):
+        x, y = score[picks[b]], -means[b]
+        if np.ptp(y) == 0:
+            continue
+        with np.errstate(invalid="ignore", divide="ignore"):
+            out[b] = (stats.spearmanr(-x, y).statistic, stats.kendalltau(-x, y, variant="b").statistic,
+                      _mmrv_by_loops(x, y))
+    return out
+
+
+def test_the_intervals_are_symmetric_over_cell_and_episode_replicates(loop: A.ClosedLoop) -> None:
+    """Replicates drawn here slot by slot: each replicate redraws the cells (in policy order) with replacement,
+    then each drawn cell's episodes (sorted), from the generator seeded by (seed 0, the group, the set of cells,
+    the score, the measure); each replicate's figures from scipy; the interval is the figure +- the 95% quantile
+    of |replicate - figure|, clipped to the statistic's range."""
+    measure = "min_target_distance_m"
+    cells = loop.cells.sort("policy_key")
+    index = {(e, s, c): i for i, (e, s, c, _) in enumerate(CELLS)}
+    order = [index[e, s, c] for e, s, c in cells.select("encoder", "seed", "control").iter_rows()]
+    score = np.array([CELLS[i][3] for i in order])
+    episodes = [np.sort(EPISODES[measure][i]) for i in order]
+    rng = generator(0, "closed-loop", "smolvla", "libero_object", "with controls", "eval_mse", measure)
+    reps = _two_level_by_hand(score, episodes, rng)
+    r = loop.agreement.filter(pl.col("cells_of") == "with controls", pl.col("score") == "eval_mse",
+                              pl.col("measure") == measure).row(0, named=True)
+    assert r["replicates"] == int(np.isfinite(reps[:, 2]).sum())
+    for k, (name, low, high) in enumerate((("spearman", -1, 1), ("kendall_tau_b", -1, 1), ("mmrv", 0, math.inf))):
+        draws = reps[:, k][np.isfinite(reps[:, k])]
+        half = np.quantile(np.abs(draws - r[name]), 0.95)
+        assert (r[f"{name}_low"], r[f"{name}_high"]) == pytest.approx(
+            (max(low, r[name] - half), min(high, r[name] + half))), name
 
 
 def test_the_vectorised_statistics_are_scipy_s_row_by_row_ties_included() -> None:
     rng = np.random.default_rng(3)
-    x = rng.integers(0, 4, size=7).astype(np.float64)  # ties on both sides
+    x = rng.integers(0, 4, size=(50, 7)).astype(np.float64)  # ties on both sides
     rows = rng.integers(0, 3, size=(50, 7)).astype(np.float64)
-    rows = rows[np.ptp(rows, axis=1) > 0]
-    assert spearman_rows(x, rows) == pytest.approx([stats.spearmanr(x, r).statistic for r in rows])
-    assert tau_b_rows(x, rows) == pytest.approx([stats.kendalltau(x, r, variant="b").statistic for r in rows])
-    assert mmrv_rows(x, rows) == pytest.approx([A.mmrv(x, r) for r in rows])
+    keep = (np.ptp(rows, axis=1) > 0) & (np.ptp(x, axis=1) > 0)
+    x, rows = x[keep], rows[keep]
+    assert spearman_rows(x, rows) == pytest.approx([stats.spearmanr(a, b).statistic for a, b in zip(x, rows)])
+    assert tau_b_rows(x, rows) == pytest.approx([stats.kendalltau(a, b, variant="b").statistic
+                                                 for a, b in zip(x, rows)])
+    assert mmrv_rows(x, rows) == pytest.approx([A.mmrv(a, b) for a, b in zip(x, rows)])
 
 
-def _spread_cells(tmp_path: Path, n: int) -> dict:
-    """Six cells whose closest approaches have the same means at any episode count (mean +- an even spread of 4
-    cm): only the episode count changes between calls."""
-    mus = [0.10, 0.15, 0.12, 0.19, 0.14, 0.21]
-    rows = [row("smolvla", "libero_object", f"e{i}", 0, 1.0 + 0.1 * i) for i in range(6)]
+def _spread_cells(tmp_path: Path, mus: list[float], n: int, spread: float) -> dict:
+    """Plain cells e0, e1, ... at eval_mse 1.0, 1.1, ... whose closest approaches are mu +- an even spread over n
+    episodes; their candidates agreement of eval_mse and the closest approach."""
+    rows = [row("smolvla", "libero_object", f"e{i}", 0, 1.0 + 0.1 * i) for i in range(len(mus))]
     results = A.analyze(table(rows)).results
-    offsets = np.linspace(-0.04, 0.04, n)
+    offsets = np.linspace(-spread, spread, n)
     pl.DataFrame([{"run_id": r["run_id"], "success": False, "min_target_distance_m": float(mu + o)}
                   for r, mu in zip(rows, mus) for o in offsets]).write_parquet(tmp_path / f"{n}.parquet")
     loop = A.closed_loop(results, A.read_rollouts(tmp_path / f"{n}.parquet", results))
-    return loop.agreement.filter(pl.col("score") == "eval_mse", pl.col("measure") == "min_target_distance_m").row(
-        0, named=True)
+    return loop.agreement.filter(pl.col("cells_of") == "candidates", pl.col("score") == "eval_mse",
+                                 pl.col("measure") == "min_target_distance_m").row(0, named=True)
 
 
-def test_an_interval_holds_its_figure_and_narrows_with_more_episodes(tmp_path: Path) -> None:
-    few, many = _spread_cells(tmp_path, 4), _spread_cells(tmp_path, 40)
-    assert few["spearman"] == many["spearman"] == pytest.approx(1 - 6 * 10 / (6 * 35))  # ranks 1 3 2 5 4 6
+@pytest.mark.parametrize(("mus", "n", "spread"), [
+    ([0.10, 0.15, 0.12, 0.19, 0.14, 0.21], 4, 0.04), ([0.10, 0.15, 0.12, 0.19, 0.14, 0.21], 40, 0.04),
+    ([0.10, 0.11, 0.12, 0.13], 4, 0.03), ([0.10 + 0.01 * i for i in range(8)], 2, 0.05),  # ordered, noisy
+    ([0.10, 0.20], 6, 0.0), ([0.30, 0.10, 0.20], 3, 0.2), ([0.1, 0.1, 0.1, 0.2], 5, 0.01)])
+def test_every_interval_holds_its_figure(tmp_path: Path, mus: list[float], n: int, spread: float) -> None:
+    r = _spread_cells(tmp_path, mus, n, spread)
     for name in A.STATISTICS:
-        for r in (few, many):
-            assert r[f"{name}_low"] <= r[name] <= r[f"{name}_high"], name
-        assert many[f"{name}_high"] - many[f"{name}_low"] < few[f"{name}_high"] - few[f"{name}_low"], name
-    assert few["spearman_high"] - few["spearman_low"] > 0.3  # 4 episodes of +-4 cm reorder cells 2-3 cm apart
+        assert r[f"{name}_low"] <= r[name] <= r[f"{name}_high"], name
+
+
+def test_a_perfect_order_without_episode_noise_has_a_point_interval(tmp_path: Path) -> None:
+    """Two cells, each with identical episodes, in the order of their scores: every replicate that draws both is
+    perfectly ordered (rho = tau-b = 1, MMRV = 0); one that draws one cell twice has no order and is left out."""
+    r = _spread_cells(tmp_path, [0.10, 0.20], 6, 0.0)
+    picks = generator(0, "closed-loop", "smolvla", "libero_object", "candidates", "eval_mse",
+                      "min_target_distance_m").integers(0, 2, size=(A.N_BOOT, 2))
+    assert r["replicates"] == int((picks[:, 0] != picks[:, 1]).sum())
+    assert [r[f"spearman{p}"] for p in ("", "_low", "_high")] == pytest.approx([1.0, 1.0, 1.0], abs=1e-12)
+    assert [r[f"mmrv{p}"] for p in ("", "_low", "_high")] == [0.0, 0.0, 0.0]
+
+
+def test_where_the_replicates_lie_above_the_figure_the_interval_still_holds_it(tmp_path: Path) -> None:
+    """Eight cells 1 cm apart in the order of their scores, each episode +-5 cm: MMRV is 0, and redrawn episodes
+    can only misorder the cells, so the replicates' 2.5th percentile lies above 0 (a percentile interval would
+    leave out its own figure); the symmetric interval starts at 0, and rho's ends at its figure, 1."""
+    mus = [0.10 + 0.01 * i for i in range(8)]
+    r = _spread_cells(tmp_path, mus, 4, 0.05)
+    rng = generator(0, "closed-loop", "smolvla", "libero_object", "candidates", "eval_mse", "min_target_distance_m")
+    episodes = [np.sort(mu + np.linspace(-0.05, 0.05, 4)) for mu in mus]
+    picks, means = two_level(episodes, rng)
+    score = 1.0 + 0.1 * np.arange(8)
+    assert np.percentile(mmrv_rows(score[picks], -means), 2.5) > 0.001
+    assert r["mmrv"] == 0.0 and r["mmrv_low"] == 0.0 and r["mmrv_high"] > 0.01
+    assert r["spearman"] == pytest.approx(1.0) and r["spearman_high"] == 1.0 and r["spearman_low"] < 0.9
 
 
 def test_degenerate_agreement_is_null_with_its_reason(tmp_path: Path) -> None:
@@ -193,7 +260,8 @@ def test_degenerate_agreement_is_null_with_its_reason(tmp_path: Path) -> None:
     episodes = episodes.with_columns(goal_fraction=pl.when(pl.col("run_id") == one).then(0.5).otherwise(None))
     episodes.write_parquet(tmp_path / "r.parquet")
     loop = A.closed_loop(results, A.read_rollouts(tmp_path / "r.parquet", results))
-    got = {r["measure"]: r for r in loop.agreement.filter(pl.col("score") == "eval_mse").iter_rows(named=True)}
+    got = {r["measure"]: r for r in loop.agreement.filter(pl.col("cells_of") == "with controls",
+                                                          pl.col("score") == "eval_mse").iter_rows(named=True)}
     notes = {m: got[m]["note"] for m in ("min_target_distance_m", "grasped", "goal_fraction")}
     assert notes == {
         "min_target_distance_m": "every cell's min_target_distance_m is 0.1: no order to agree with",
@@ -223,10 +291,11 @@ def test_a_format_1_file_reads_with_graded_measures_null(tmp_path: Path) -> None
     loop = A.closed_loop(results, read)
     assert loop.ungraded == 24 and loop.cells["graded_episodes"].to_list() == [0] * 6
     graded = loop.agreement.filter(pl.col("measure") != "success")
-    assert graded.height == 5 * 4 and graded["spearman"].null_count() == 20
+    assert graded.height == 2 * 5 * 4 and graded["spearman"].null_count() == 40
     assert set(graded["note"]) == {f"graded measures unavailable: no rollout of these cells records {m} (format-1 "
                                    "rows, or a table without it)" for m in A.GRADED_MEASURES}
-    success = loop.agreement.filter(pl.col("measure") == "success", pl.col("score") == "eval_mse").row(0, named=True)
+    success = loop.agreement.filter(pl.col("cells_of") == "with controls", pl.col("measure") == "success",
+                                    pl.col("score") == "eval_mse").row(0, named=True)
     score = np.array([mse for *_, mse in CELLS])
     assert success["spearman"] == pytest.approx(stats.spearmanr(-score, _means("success")).statistic)
 

@@ -58,19 +58,52 @@ def written(tmp_path: Path) -> tuple[report.ReportPaths, A.Analysis]:
     return paths, frame
 
 
+def _head(a: A.Analysis, cells_of: str, suite: str = "libero_spatial") -> dict:
+    return a.closed_loop.agreement.filter(pl.col("cells_of") == cells_of, pl.col("score") == "eval_mse",
+                                          pl.col("measure") == "min_target_distance_m",
+                                          pl.col("suite") == suite).row(0, named=True)
+
+
 def test_the_section_prints_the_headline_agreement_with_its_intervals(written: tuple) -> None:
     paths, a = written
     md = paths.markdown.read_text()
-    head = a.closed_loop.agreement.filter(pl.col("score") == "eval_mse", pl.col("measure") == "min_target_distance_m",
-                                          pl.col("suite") == "libero_spatial").row(0, named=True)
+    head = _head(a, "with controls")
     assert head["spearman"] == pytest.approx(1 - 6 * 2 / (7 * 48))  # one adjacent swap among 7 cells
-    line = (f"SmolVLA · libero_spatial: Spearman ρ = {head['spearman']:+.2f} [{head['spearman_low']:+.2f}, "
-            f"{head['spearman_high']:+.2f}], Kendall τb = {head['kendall_tau_b']:+.2f} "
+    line = (f"SmolVLA · libero_spatial · with controls: Spearman ρ = {head['spearman']:+.2f} "
+            f"[{head['spearman_low']:+.2f}, {head['spearman_high']:+.2f}], Kendall τb = {head['kendall_tau_b']:+.2f} "
             f"[{head['kendall_tau_b_low']:+.2f}, {head['kendall_tau_b_high']:+.2f}], MMRV = {head['mmrv']:.3g} m "
             f"[{head['mmrv_low']:.3g}, {head['mmrv_high']:.3g}] over 7 cells (3 episodes each).")
     assert line in md
-    assert md.index("### `eval_mse` against the closest approach") < md.index("### Every score against every measure")
     assert "The graded measures are unavailable" not in md
+
+
+def test_the_candidates_lead_then_controls_then_the_pairwise_verdicts(written: tuple) -> None:
+    """libero_spatial's four grafts: closest approach .10 .16 .13 .19 at eval_mse .90 .95 1.00 1.10 (one swap):
+    rho = 1 - 6 * 2 / (4 * 15) = 0.8 over the candidates."""
+    paths, a = written
+    md = paths.markdown.read_text()
+    head = _head(a, "candidates")
+    assert head["cells"] == 4 and head["spearman"] == pytest.approx(0.8)
+    assert f"SmolVLA · libero_spatial · candidates: Spearman ρ = +0.80 [{head['spearman_low']:+.2f}, " in md
+    order = ["### Candidates: does `eval_mse` order the encoders", "### With controls: does looking help?",
+             "### Which encoder wins? Pairwise verdicts", "### Native tower vs zero-image on the same episodes",
+             "### Every score against every measure"]
+    assert [md.index(h) for h in order] == sorted(md.index(h) for h in order)
+    # dinov2-s - siglip: offline +.10 and +.15 on the 2 seeds (t interval with 1 df holds 0); closed loop +.03 m on
+    # every one of the 6 (seed, key) pairs: siglip closer
+    assert ("SmolVLA · libero_spatial: 0 of 0 pairs resolved by both agree (1 pair of candidate encoders: 0 offline "
+            "only, 1 closed loop only, 0 neither).") in md
+    assert "| SmolVLA | libero_spatial | dinov2-s | siglip | 2 | +0.125 [" in md and "| closed loop only |" in md
+
+
+def test_pairwise_csv_holds_the_verdicts_typed(written: tuple) -> None:
+    paths, a = written
+    csv = pl.read_csv(paths.pairwise, schema=report.PAIRWISE_CSV_SCHEMA)
+    assert csv.equals(a.closed_loop.pairwise) and csv.height == 2 * len(A.MEASURES)
+    near = csv.filter(pl.col("measure") == "min_target_distance_m", pl.col("suite") == "libero_spatial").row(
+        0, named=True)
+    assert (near["encoder_a"], near["encoder_b"], near["seeds"], near["pairs"]) == ("dinov2-s", "siglip", 2, 6)
+    assert (near["offline"], near["closed"], near["verdict"]) == ("not resolved", "b", "closed loop only")
 
 
 def test_the_section_prints_the_paired_control_line(written: tuple) -> None:
@@ -87,9 +120,10 @@ def test_closed_loop_csv_holds_the_agreement_typed(written: tuple) -> None:
     paths, a = written
     csv = pl.read_csv(paths.closed_loop, schema=report.CLOSED_LOOP_CSV_SCHEMA)
     want = a.closed_loop.agreement.select(report.CLOSED_LOOP_CSV_COLUMNS)
-    assert csv.height == 2 * 4 * 6 and csv.equals(want)
+    assert csv.height == 2 * 2 * 4 * 6 and csv.equals(want)
     near = csv.filter(pl.col("measure") == "min_target_distance_m", pl.col("score") == "eval_mse")
-    assert near["cells"].to_list() == [7, 7] and near["replicates"].to_list() == [1000, 1000]
+    assert near["cells_of"].to_list() == ["candidates", "with controls"] * 2
+    assert near["cells"].to_list() == [4, 7, 4, 7] and min(near["replicates"]) > 950
 
 
 def test_the_figure_draws_both_measures_per_suite_with_controls_marked(written: tuple) -> None:
@@ -97,13 +131,12 @@ def test_the_figure_draws_both_measures_per_suite_with_controls_marked(written: 
     assert (paths.markdown.parent / "closed_loop.png").stat().st_size > 0
     fig = figure_closed_loop(a)
     axes = [ax for ax in fig.axes if ax.get_visible()]
-    assert len(axes) == 4  # (closest approach, success) x 2 suites
-    near, success = axes[2], axes[3]  # libero_spatial
+    assert len(axes) == 6  # (closest approach with controls, over the candidates, success) x 2 suites
+    near, zoomed, success = axes[3:]  # libero_spatial
     low, high = near.get_ylim()
     assert low > high  # distance axis inverted: up is closer
     assert high < 0.05 and low > 0.28  # fitted to the cells (0.07 .. 0.27), not from 0
-    head = a.closed_loop.agreement.filter(pl.col("score") == "eval_mse", pl.col("measure") == "min_target_distance_m",
-                                          pl.col("suite") == "libero_spatial").row(0, named=True)
+    head = _head(a, "with controls")
     assert f"ρ {head['spearman']:+.2f} [{head['spearman_low']:+.2f}, {head['spearman_high']:+.2f}]" in near.get_title()
     markers = {line.get_marker() for line in near.get_lines()}
     assert {"*", "X", "o"} <= markers  # native, zero-image, grafts
@@ -112,6 +145,19 @@ def test_the_figure_draws_both_measures_per_suite_with_controls_marked(written: 
     assert any("native − zero-image: -0.195 m [-0.195, -0.195] over 3 paired episodes" in t.get_text()
                for t in near.texts)
     assert success.get_ylim() == pytest.approx((-0.05, 1.05))
+    low, high = zoomed.get_ylim()
+    assert 0.19 < low < 0.21 and 0.08 < high < 0.10  # fitted to the grafts (0.10 .. 0.19), controls left out
+    assert {line.get_marker() for line in zoomed.get_lines()} == {"o"}
+    assert zoomed.get_title().splitlines()[1].startswith("candidates (4): ρ +0.80")
+
+
+def test_a_panel_that_can_only_say_undefined_is_dropped(tmp_path: Path) -> None:
+    """Every episode failed: the success panels are gone, the distance panels stay."""
+    results, rollouts = _files(tmp_path)
+    pl.read_parquet(rollouts).with_columns(success=pl.lit(False)).write_parquet(rollouts)
+    a = A.analyze(pl.read_parquet(results), rollouts=A.read_rollouts(rollouts, pl.read_parquet(results)))
+    axes = [ax for ax in figure_closed_loop(a).axes if ax.get_visible()]
+    assert len(axes) == 4 and not any("success" in ax.get_ylabel() for ax in axes)
 
 
 def test_a_partly_graded_file_says_how_many_episodes_lack_the_graded_measures(tmp_path: Path) -> None:

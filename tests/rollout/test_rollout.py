@@ -403,7 +403,8 @@ def test_rollout_smoke_in_the_simulator(simulator_cells: Fitted, tmp_path: Path,
     assert shown.code == 0, shown.err[-2000:]
     assert "## Offline scores vs closed-loop success" in (out / "report.md").read_text()
     csv = pl.read_csv(out / "closed_loop.csv").filter(pl.col("measure") == "success")
-    mse = csv.filter(pl.col("score") == "eval_mse").row(0, named=True)
-    assert (mse["backbone"], mse["suite"], mse["cells"]) == ("smolvla", "libero_object", 2)
-    assert csv.height == 4 and csv.select("spearman", "kendall_tau_b", "mmrv").null_count().row(0) == (4, 4, 4)
-    assert "smolvla,libero_object,eval_mse,success,2" + "," * 10 + "\n" in (out / "closed_loop.csv").read_text()
+    mse = csv.filter(pl.col("score") == "eval_mse", pl.col("cells_of") == "with controls").row(0, named=True)
+    assert (mse["backbone"], mse["suite"], mse["cells"]) == ("smolvla", "libero_object", 2)  # plain and zero-image
+    assert csv.height == 8 and csv.select("spearman", "kendall_tau_b", "mmrv").null_count().row(0) == (8, 8, 8)
+    assert ("smolvla,libero_object,with controls,eval_mse,success,2" + "," * 10 + "\n"
+            in (out / "closed_loop.csv").read_text())

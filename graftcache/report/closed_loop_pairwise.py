@@ -1,0 +1,70 @@
+"""The closed-loop section's pairwise verdicts: which of two candidate encoders is better, offline and in closed
+loop, per pair (graftcache.analysis.pairwise), in words and a table, for one measure.
+
+This is the table a user picking an encoder reads: an agreement figure over a cloud of policies says whether
+offline scores and the closed loop go together on average, a pair's verdict says whether the encoder that wins
+offline also wins in the simulator, and where the episodes spent cannot tell."""
+
+from __future__ import annotations
+
+import polars as pl
+
+from graftcache import analysis as A
+from graftcache.report.document import Block, Bullets, Paragraph
+from graftcache.report.tables import BACKBONE, NOTE, Column, Row, col, in_backbone_order, table_block
+
+PAIRWISE = (
+    "For each pair of candidate encoders A and B (plain grafts): offline, the mean over the fit seeds both have of "
+    "eval_mse(A) − eval_mse(B), each seed's two projectors scored on the same eval frames; in closed loop, the mean "
+    "over the (fit seed, episode key) pairs both ran of A's {label} minus B's, the same scene, perturbation and step "
+    "limit. Each with its paired Student-t interval at 95%; a side is resolved where its interval excludes 0, and "
+    "names the better encoder (lower eval_mse; {side} {label}). The verdict: agree or disagree where both sides are "
+    "resolved, offline only or closed loop only where one is, neither where none is."
+)
+
+
+def _better(r: Row, side: str) -> str:
+    call = r[side]
+    return "—" if call is None else {A.A_BETTER: r["encoder_a"], A.B_BETTER: r["encoder_b"]}.get(call, call)
+
+
+def _difference(r: Row, side: str, fmt: str, unit: str) -> str:
+    d, low, high = r[f"{side}_difference"], r[f"{side}_low"], r[f"{side}_high"]
+    if d is None:
+        return "—"
+    return f"{d:{fmt}}{unit}" + ("" if low is None else f" [{low:{fmt}}, {high:{fmt}}]")
+
+
+def pairwise_columns(unit: str) -> tuple[Column, ...]:
+    """The pairwise table: the pair, each side's paired difference with its interval and call, the verdict."""
+    return (
+        BACKBONE, ("suite", col("suite")), ("A", col("encoder_a")), ("B", col("encoder_b")),
+        ("seeds", col("seeds")), ("offline A − B [95%]", lambda r: _difference(r, "offline", "+.3g", "")),
+        ("offline better", lambda r: _better(r, "offline")), ("pairs", col("pairs")),
+        ("closed loop A − B [95%]", lambda r: _difference(r, "closed", "+.3g", unit)),
+        ("closed loop better", lambda r: _better(r, "closed")), ("verdict", lambda r: r["verdict"] or "—"), NOTE,
+    )
+
+
+def summary_sentence(r: Row, table: pl.DataFrame) -> str:
+    """"k of n pairs resolved by both agree" for one (backbone, suite, measure), with the other verdicts' counts."""
+    where = f"{A.backbone_label(r['backbone'])} · {r['suite']}"
+    counts = table.filter(pl.col("backbone") == r["backbone"], pl.col("suite") == r["suite"])["verdict"]
+    rest = ", ".join(f"{int((counts == v).sum())} {v}" for v in (A.OFFLINE_ONLY, A.CLOSED_ONLY, A.NEITHER))
+    undecided = counts.null_count()
+    n = r["encoder_pairs"]
+    return (f"{where}: {r['agree']} of {r['resolved_by_both']} pairs resolved by both agree ({n} pair"
+            f"{'s' if n != 1 else ''} of candidate encoders: {rest}"
+            + (f", {undecided} without a verdict" if undecided else "") + ").")
+
+
+def pairwise_blocks(a: A.Analysis, measure: str, label: str, unit: str) -> list[Block]:
+    """The paragraph, the summary per backbone and suite, and the table, for `measure` (named `label`, `unit`)."""
+    table = in_backbone_order(a, a.closed_loop.pairwise.filter(pl.col("measure") == measure))
+    if not len(table):
+        return [Paragraph("No (backbone, suite) has two candidate encoders: no pair to judge.")]
+    side = "higher" if A.HIGHER_IS_BETTER[measure] else "lower"
+    summary = A.pairwise_summary(table)
+    return [Paragraph(PAIRWISE.format(label=label, side=side)),
+            Bullets(tuple(summary_sentence(r, table) for r in summary.iter_rows(named=True))),
+            table_block(table, pairwise_columns(unit))]
