@@ -41,7 +41,7 @@ from typing import Any
 import polars as pl
 
 from graftcache.analysis import PLAIN
-from graftcache.analysis.pairwise import pairwise
+from graftcache.analysis.pairwise import NOT_RESOLVED, pairwise
 from graftcache.analysis.rollouts import HIGHER_IS_BETTER, read_rollouts
 from graftcache.errors import RolloutError
 from graftcache.results import read_for_report
@@ -53,8 +53,6 @@ from graftcache.rollout.select import select_rows
 SEQUENTIAL_FILE = "sequential.json"
 #: The format of SEQUENTIAL_FILE
 FORMAT_VERSION = 1
-#: The verdict graftcache.analysis.pairwise gives a pair whose closed-loop interval holds 0
-UNRESOLVED = "not resolved"
 
 
 @dataclass(frozen=True)
@@ -89,8 +87,10 @@ def sequential_file(req: RolloutRequest) -> Path:
 
 
 def unresolved(candidates: pl.DataFrame, rollouts: pl.DataFrame, seq: Sequential, level: float) -> pl.DataFrame:
-    """The candidate pairs whose closed-loop interval at `level` holds 0 (graftcache.analysis.pairwise's rows)."""
-    return pairwise(candidates, rollouts, measure=seq.measure, level=level).filter(pl.col("closed") == UNRESOLVED)
+    """The candidate pairs whose closed-loop interval at `level` holds 0, or who have none yet (fewer than 2 paired
+    episodes): graftcache.analysis.pairwise's rows."""
+    verdicts = pairwise(candidates, rollouts, measure=seq.measure, level=level)
+    return verdicts.filter(pl.col("closed").is_null() | (pl.col("closed") == NOT_RESOLVED))
 
 
 def looks(req: RolloutRequest, sim: Simulator, *, seq: Sequential,
