@@ -126,12 +126,19 @@ def _refuse_out_of_range(rollouts: pl.DataFrame, path: Path) -> None:
                                   f"is {allowed}; graftcache.rollout.graded)")
 
 
-def read_rollouts(path: str | Path, results: pl.DataFrame) -> pl.DataFrame:
+def read_rollouts(path: str | Path, results: pl.DataFrame, *, where: pl.Expr | None = None) -> pl.DataFrame:
     """The rollouts Parquet file at `path` as one row per episode: run_id, success, GRADED_MEASURES and PAIR_KEY
     (each null where the file lacks it), checked against `results`' run_ids; anything unusable is a
-    GraftcacheError naming the file."""
+    GraftcacheError naming the file. `where`: only the file's rows it holds true for, on the file's own columns (a
+    sequential rollout's look reads the episodes it decides on, graftcache.rollout.sequential)."""
     path = Path(path)
     table = _read(path)
+    if where is not None:
+        try:
+            table = table.filter(where)
+        except pl.exceptions.PolarsError as e:
+            reason = (str(e).strip().splitlines() or [type(e).__name__])[0]
+            raise GraftcacheError(f"{path}: cannot select its rows ({reason})") from None
     missing = [c for c in ROLLOUT_COLUMNS if c not in table.columns]
     if missing:
         raise GraftcacheError(f"{path}: rollouts table lacks column(s) {', '.join(missing)} (the report needs "

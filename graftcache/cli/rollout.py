@@ -91,6 +91,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    "only the images the policy sees, hard is lerobot-eval's own reset (a new simulator each "
                    "episode); both give the same episodes, state for state, so rows do not record it (default: "
                    f"{RESETS[0]})")
+    p.add_argument("--until-resolved", type=_at_least(1), default=None, metavar="CAP",
+                   help="sequential: after the first --episodes-per-task episodes, keep adding as many to the "
+                   "candidate encoders (plain grafts) whose pairwise closed-loop order (closest approach, paired by "
+                   "fit seed and episode) is still unresolved, up to CAP episodes per task a cell; each look's "
+                   "interval is taken so that a pair of equal encoders is called resolved with chance <= 5%% over "
+                   "all looks (Bonferroni), recorded in sequential.json beside the rollouts file for the report "
+                   "(default: off)")
     p.add_argument("--rollouts", default=None, metavar="PATH",
                    help="rollouts Parquet file to append to (default: rollouts.parquet beside RESULTS); exports go "
                    "to exports/RUN_ID beside it")
@@ -142,7 +149,12 @@ def run(args: argparse.Namespace) -> int:
     table.read(req.rollouts)
     spawn = partial(LiberoSimulator, req.results, rollouts.parent / EXPORTS_FOLDER, cache=_absolute(args.cache),
                     runs=_absolute(args.runs), max_steps=args.max_steps, videos=args.videos)
+    expand = None
+    if args.until_resolved is not None:
+        from graftcache.rollout.sequential import Sequential, looks
+
+        expand = partial(looks, seq=Sequential(args.until_resolved), log=print)
     executor = get_executor(request_from(ExecutorSettings, args))
     # the team starts first: its simulators build while this process builds its own, to plan
-    roll_out_started([req], spawn, executor.rollout_team(req, spawn, args.workers, print))
+    roll_out_started([req], spawn, executor.rollout_team(req, spawn, args.workers, print), expand=expand)
     return 0

@@ -18,7 +18,7 @@ import importlib.metadata
 import os
 import socket
 import uuid
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any, Protocol
@@ -230,10 +230,14 @@ def roll_out(req: RolloutRequest, sim: Simulator, log: Callable[[str], None] = p
 
 
 def roll_out_started(requests: Sequence[RolloutRequest], spawn: Callable[[], Simulator], team: Team | None,
-                     log: Callable[[str], None] = progress_write) -> pl.DataFrame:
+                     log: Callable[[str], None] = progress_write, *,
+                     expand: Callable[[RolloutRequest, Simulator], Iterable[RolloutRequest]] | None = None,
+                     ) -> pl.DataFrame:
     """`roll_out` of each request in turn, with one simulator built by `spawn` here, after `team` was started (None:
     none), so that the team's workers build theirs meanwhile; the simulator and the team are closed when the last
-    ends, however it ends. Returns the rows of every request's episodes, in order.
+    ends, however it ends. Returns the rows of every request's episodes, in order. `expand`: each request becomes
+    the requests it yields, each asked for once the one before was rolled out (a sequential rollout's looks,
+    graftcache.rollout.sequential.looks, decide each from what the last wrote).
 
     Why several requests: requests that differ in what one request holds for all its cells (the closed-loop demo's
     figure and paired cells differ in episodes per task) share the team's start-up, a simulator's imports and build
@@ -244,7 +248,8 @@ def roll_out_started(requests: Sequence[RolloutRequest], spawn: Callable[[], Sim
                                + "; ".join(f"{r.rollouts} ({r.command!r})" for r in requests))
         sim = spawn()  # with a team, it only plans
         try:
-            rows = pl.concat([roll_out(req, sim, log, team=team) for req in requests])
+            each = (r for req in requests for r in expand(req, sim)) if expand is not None else requests
+            rows = pl.concat([roll_out(req, sim, log, team=team) for req in each])
             return rows.unique("episode_id", keep="first", maintain_order=True)
         finally:
             close = getattr(sim, "close", None)
