@@ -91,6 +91,7 @@ from graftcache.analysis.findings import (
 )
 from graftcache.analysis.headline import HEADLINE_SCHEMA, ladder_headline
 from graftcache.analysis.ladder import PARAMS_COLUMN, Ladder, backbone_ladder, format_params
+from graftcache.analysis.looks import FIXED_LEVEL, LOOKS_FILE, Looks, read_looks
 from graftcache.analysis.paired_control import (
     CONTROL_SCHEMA,
     NATIVE_BETTER,
@@ -171,7 +172,7 @@ __all__ = [
     "CONTROL_SCHEMA", "GRADED_MEASURES", "HIGHER_IS_BETTER",
     "MEASURES", "MEASURE_COLUMNS", "N_BOOT", "NATIVE_BETTER", "PAIR_KEY", "ROLLOUT_COLUMNS",
     "STATISTICS", "ZERO_IMAGE_BETTER", "ClosedLoop", "closed_loop", "mmrv", "paired_control", "read_rollouts",
-    "spearman", "wilson", "DoseCurves", "dose_curves",
+    "spearman", "wilson", "DoseCurves", "dose_curves", "FIXED_LEVEL", "LOOKS_FILE", "Looks", "read_looks",
     "A_BETTER", "AGREE", "B_BETTER", "CLOSED_ONLY", "DISAGREE", "NEITHER", "NOT_RESOLVED", "OFFLINE_ONLY",
     "PAIRWISE_SCHEMA", "SUMMARY_SCHEMA",
     "pairwise", "pairwise_summary",
@@ -248,11 +249,11 @@ class Analysis:
 
 
 def analyze(results: pl.DataFrame, *, score: str = "mse", boot: BootSettings = BootSettings(),
-            rollouts: pl.DataFrame | None = None) -> Analysis:
+            rollouts: pl.DataFrame | None = None, looks: Looks | None = None) -> Analysis:
     """All questions at once, on the table conformed to SCHEMA (results.conform: absent columns null), ranked
     by `score` (a SCORES name); with `rollouts` (read_rollouts: run_id, success, the graded measures and the
     episode key per episode), every closed-loop measure against every offline score too, bootstrapped with
-    `boot.seed`.
+    `boot.seed`; `looks`: the record of the sequential rollout that wrote them (graftcache.analysis.looks).
 
     Raises GraftcacheError when rows share (backbone, suite, encoder, control, seed) - the table mixes
     recipes (objective, lr, ...) and must be filtered to one before ranking - and when the backbones cannot be
@@ -270,7 +271,7 @@ def analyze(results: pl.DataFrame, *, score: str = "mse", boot: BootSettings = B
         )
     disagreement = score_disagreement(results)
     # every score, before `scored`
-    against = None if rollouts is None else closed_loop(results, rollouts, seed=boot.seed)
+    against = None if rollouts is None else closed_loop(results, rollouts, seed=boot.seed, looks=looks)
     dose = dose_curves(results, rollouts)  # eval_mse, whatever `score` ranks by
     results = scored(results, score)
     ladder = backbone_ladder(results)

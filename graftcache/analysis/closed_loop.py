@@ -46,6 +46,7 @@ from graftcache.analysis.closed_loop_boot import (
     tau_b_rows,
     two_level,
 )
+from graftcache.analysis.looks import FIXED_LEVEL, Looks
 from graftcache.analysis.paired_control import paired_control
 from graftcache.analysis.pairwise import pairwise
 from graftcache.analysis.policies import POLICY, policies, policy_episodes
@@ -95,6 +96,7 @@ class ClosedLoop:
     control: pl.DataFrame
     pairwise: pl.DataFrame
     rollouts: pl.DataFrame
+    looks: Looks | None = None  # a sequential rollout's record: the closed-loop pairwise intervals are at its level
 
     @property
     def ungraded(self) -> int:
@@ -242,12 +244,16 @@ def agreement(cells: pl.DataFrame, episodes: pl.DataFrame, *, seed: int = 0) -> 
     return pl.DataFrame(records, schema=AGREEMENT_SCHEMA)
 
 
-def closed_loop(results: pl.DataFrame, rollouts: pl.DataFrame, *, seed: int = 0) -> ClosedLoop:
+def closed_loop(results: pl.DataFrame, rollouts: pl.DataFrame, *, seed: int = 0,
+                looks: Looks | None = None) -> ClosedLoop:
     """Cells (one per policy), both agreements, the paired control and the pairwise verdicts of every measure
     from a conformed results table (every SCHEMA column, scores unreplaced) and rollouts
-    (graftcache.analysis.rollouts.read_rollouts); `seed` seeds every bootstrap."""
+    (graftcache.analysis.rollouts.read_rollouts); `seed` seeds every bootstrap. `looks`: the record of the
+    sequential rollout that wrote them (graftcache.analysis.looks), whose level the pairwise closed-loop intervals
+    take; None: 95%."""
     episodes = policy_episodes(results, rollouts)
     cells = rollout_cells(results, episodes)
-    verdicts = pl.concat([pairwise(results, rollouts, measure=m, seed=seed) for m in MEASURES])
+    level = FIXED_LEVEL if looks is None else looks.level
+    verdicts = pl.concat([pairwise(results, rollouts, measure=m, closed_level=level, seed=seed) for m in MEASURES])
     return ClosedLoop(cells, agreement(cells, episodes, seed=seed), paired_control(cells, episodes, seed=seed),
-                      verdicts, episodes)
+                      verdicts, episodes, looks)

@@ -107,11 +107,12 @@ def _closed(plain: pl.DataFrame, episodes: pl.DataFrame, a: str, b: str, measure
     return (both[a] - both[b]).to_numpy()
 
 
-def _check(results: pl.DataFrame, rollouts: pl.DataFrame, measure: str, level: float) -> None:
+def _check(results: pl.DataFrame, rollouts: pl.DataFrame, measure: str, levels: tuple[float, ...]) -> None:
     if measure not in MEASURES:
         raise GraftcacheError(f"pairwise: measure {measure!r} is not one of {', '.join(MEASURES)}")
-    if not 0 < level < 1:
-        raise GraftcacheError(f"pairwise: level {level} is not between 0 and 1")
+    for level in levels:
+        if not 0 < level < 1:
+            raise GraftcacheError(f"pairwise: level {level} is not between 0 and 1")
     for what, table, needs in (("results", results, RESULTS_NEEDS), ("rollouts", rollouts, ("run_id", measure, *KEY))):
         missing = [c for c in needs if c not in table.columns]
         if missing:
@@ -130,12 +131,14 @@ def _plain_policies(results: pl.DataFrame) -> pl.DataFrame:
 
 
 def pairwise(results: pl.DataFrame, rollouts: pl.DataFrame, *, measure: str = "min_target_distance_m",
-             level: float = 0.95, seed: int = 0) -> pl.DataFrame:
+             level: float = 0.95, closed_level: float | None = None, seed: int = 0) -> pl.DataFrame:
     """One PAIRWISE_SCHEMA row per (backbone, suite) of `results`' plain rows, in that order, and pair of their encoders
     (encoder_a < encoder_b by name): the offline and closed-loop paired differences A - B of `measure` over
-    `rollouts` (read_rollouts), each with its paired t interval at `level`, and the verdict (module docstring).
+    `rollouts` (read_rollouts), each with its paired t interval at `level` (the closed loop's at `closed_level` where
+    given: a sequential rollout's looks, graftcache.analysis.looks), and the verdict (module docstring).
     `seed` is accepted for a uniform signature; nothing here is random."""
-    _check(results, rollouts, measure, level)
+    closed_level = level if closed_level is None else closed_level
+    _check(results, rollouts, measure, (level, closed_level))
     plain = _plain_policies(results)
     episodes = policy_episodes(results, rollouts)
     lower_is_better = not HIGHER_IS_BETTER[measure]
@@ -144,7 +147,7 @@ def pairwise(results: pl.DataFrame, rollouts: pl.DataFrame, *, measure: str = "m
         for a, b in itertools.combinations(sorted(set(group["encoder"])), 2):
             offline, closed = _offline(group, a, b), _closed(group, episodes, a, b, measure)
             d_off, lo_off, hi_off = paired_t(offline, level)
-            d_cl, lo_cl, hi_cl = paired_t(closed, level)
+            d_cl, lo_cl, hi_cl = paired_t(closed, closed_level)
             call_off, call_cl = _call(lo_off, hi_off, True), _call(lo_cl, hi_cl, lower_is_better)
             notes = [_side("offline", "seeds both encoders have", len(offline), offline),
                      _side("closed loop", "pairs (fit seed, episode key) both ran", len(closed), closed)]

@@ -96,7 +96,8 @@ def write_report(
     table = R.read_for_report(results) if isinstance(results, (str, Path)) else results
     table = R.conform(table)
     episodes = None if rollouts is None else A.read_rollouts(rollouts, table)
-    a = A.analyze(table, score=score, boot=boot, rollouts=episodes)
+    looks = None if rollouts is None else A.read_looks(rollouts)
+    a = A.analyze(table, score=score, boot=boot, rollouts=episodes, looks=looks)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     for name in (*FIGURES, CLOSED_LOOP_CSV, PAIRWISE_CSV):  # a rerun must not leave a file the new report lacks

@@ -17,7 +17,7 @@ PAIRWISE = (
     "For each pair of candidate encoders A and B (plain grafts): offline, the mean over the fit seeds both have of "
     "eval_mse(A) − eval_mse(B), each seed's two projectors scored on the same eval frames; in closed loop, the mean "
     "over the (fit seed, episode key) pairs both ran of A's {label} minus B's, the same scene, perturbation and step "
-    "limit. Each with its paired Student-t interval at 95%; a side is resolved where its interval excludes 0, and "
+    "limit. Each with its paired Student-t interval ({levels}); a side is resolved where its interval excludes 0, and "
     "names the better encoder (lower eval_mse; {side} {label}). The verdict: agree or disagree where both sides are "
     "resolved, offline only or closed loop only where one is, neither where none is."
 )
@@ -58,6 +58,19 @@ def summary_sentence(r: Row, table: pl.DataFrame) -> str:
             + (f", {undecided} without a verdict" if undecided else "") + ").")
 
 
+def looks_sentence(looks: A.Looks) -> str:
+    """What a sequential rollout's looks spent and decided, and the error rate its levels hold."""
+    last = looks.looks[-1]
+    left = "; ".join(f"{x} vs {y} ({A.backbone_label(b)} · {s})" for b, s, x, y in last.unresolved)
+    return (f"The closed-loop episodes were added sequentially (`rollout --until-resolved {looks.cap}`): looks of "
+            f"{looks.step} episode(s) per task, at most {looks.looks_planned}, each adding episodes only to the "
+            f"candidate pairs whose closed-loop {looks.measure} interval still held 0; every look's interval is "
+            f"taken at {looks.level:.2%} (Bonferroni over the looks), so a pair of equal encoders is called "
+            f"resolved with chance at most {looks.error:.0%} whatever look it stopped at. "
+            f"{len(looks.looks)} look(s) ran, the last at {last.episodes_per_task} episodes per task; "
+            + (f"unresolved after it: {left}." if left else "no pair was left unresolved."))
+
+
 def pairwise_blocks(a: A.Analysis, measure: str, label: str, unit: str) -> list[Block]:
     """The paragraph, the summary per backbone and suite, and the table, for `measure` (named `label`, `unit`)."""
     table = in_backbone_order(a, a.closed_loop.pairwise.filter(pl.col("measure") == measure))
@@ -65,6 +78,13 @@ def pairwise_blocks(a: A.Analysis, measure: str, label: str, unit: str) -> list[
         return [Paragraph("No (backbone, suite) has two candidate encoders: no pair to judge.")]
     side = "higher" if A.HIGHER_IS_BETTER[measure] else "lower"
     summary = A.pairwise_summary(table)
-    return [Paragraph(PAIRWISE.format(label=label, side=side)),
+    looks = a.closed_loop.looks
+    closed = A.FIXED_LEVEL if looks is None else looks.level
+    levels = (f"at {A.FIXED_LEVEL:.0%}" if closed == A.FIXED_LEVEL
+              else f"offline at {A.FIXED_LEVEL:.0%}, in closed loop at {closed:.2%}: the sequential looks' level")
+    blocks: list[Block] = [Paragraph(PAIRWISE.format(label=label, side=side, levels=levels))]
+    if looks is not None:
+        blocks.append(Paragraph(looks_sentence(looks)))
+    return [*blocks,
             Bullets(tuple(summary_sentence(r, table) for r in summary.iter_rows(named=True))),
             table_block(table, pairwise_columns(unit))]

@@ -23,8 +23,8 @@ The design, a group-sequential test with a fixed number of looks:
   kill replays the same decisions from the rows on file and runs only what is missing: resumable like every
   rollout.
 
-What the looks decided goes to SEQUENTIAL_FILE beside the rollouts file (typed, versioned JSON), which the report
-reads to state the error rate and to take the closed-loop intervals at the level the looks used.
+What the looks decided goes beside the rollouts file (graftcache.analysis.looks: typed, versioned JSON), which the
+report reads to state the error rate and to take the closed-loop intervals at the level the looks used.
 """
 
 from __future__ import annotations
@@ -35,12 +35,11 @@ import math
 import os
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
-from pathlib import Path
-from typing import Any
 
 import polars as pl
 
 from graftcache.analysis import PLAIN
+from graftcache.analysis.looks import Look, Looks, looks_file
 from graftcache.analysis.pairwise import NOT_RESOLVED, pairwise
 from graftcache.analysis.rollouts import HIGHER_IS_BETTER, read_rollouts
 from graftcache.errors import RolloutError
@@ -48,11 +47,6 @@ from graftcache.results import read_for_report
 from graftcache.rollout.episodes import Simulator
 from graftcache.rollout.run import MAX_EPISODES_PER_TASK, RolloutRequest, plan
 from graftcache.rollout.select import select_rows
-
-#: Written beside the rollouts file: what the looks of the last sequential rollout into it decided
-SEQUENTIAL_FILE = "sequential.json"
-#: The format of SEQUENTIAL_FILE
-FORMAT_VERSION = 1
 
 
 @dataclass(frozen=True)
@@ -82,14 +76,10 @@ class Sequential:
         return 1 - self.error / self.looks(step)
 
 
-def sequential_file(req: RolloutRequest) -> Path:
-    return req.rollouts.parent / SEQUENTIAL_FILE
-
-
 def unresolved(candidates: pl.DataFrame, rollouts: pl.DataFrame, seq: Sequential, level: float) -> pl.DataFrame:
     """The candidate pairs whose closed-loop interval at `level` holds 0, or who have none yet (fewer than 2 paired
     episodes): graftcache.analysis.pairwise's rows."""
-    verdicts = pairwise(candidates, rollouts, measure=seq.measure, level=level)
+    verdicts = pairwise(candidates, rollouts, measure=seq.measure, closed_level=level)
     return verdicts.filter(pl.col("closed").is_null() | (pl.col("closed") == NOT_RESOLVED))
 
 
@@ -109,7 +99,7 @@ def looks(req: RolloutRequest, sim: Simulator, *, seq: Sequential,
     log(f"sequential rollout: up to {n_looks} look(s) of {step} episode(s) per task (cap {seq.cap}); each pair's "
         f"closed-loop {seq.measure} interval at {level:.2%}, so a pair of equal encoders is called resolved with "
         f"chance <= {seq.error:.0%} over all looks (Bonferroni)")
-    history: list[dict[str, Any]] = []
+    history: list[Look] = []
     current = dataclasses.replace(req, run_ids=tuple(rows["run_id"].to_list()))
     for look in range(1, n_looks + 1):
         yield current
@@ -118,8 +108,7 @@ def looks(req: RolloutRequest, sim: Simulator, *, seq: Sequential,
         rollouts = read_rollouts(req.rollouts, results, where=pl.col("episode_id").is_in(judged))
         open_pairs = unresolved(candidates, rollouts, seq, level).select("backbone", "suite", "encoder_a",
                                                                          "encoder_b")
-        history.append({"look": look, "episodes_per_task": current.episodes_per_task,
-                        "cells": len(current.run_ids), "unresolved": [list(p) for p in open_pairs.rows()]})
+        history.append(Look(look, current.episodes_per_task, len(current.run_ids), tuple(open_pairs.rows())))
         if not open_pairs.height or look == n_looks:
             break
         current = dataclasses.replace(req, run_ids=_cells_of(candidates, open_pairs),
@@ -137,13 +126,11 @@ def _cells_of(candidates: pl.DataFrame, pairs: pl.DataFrame) -> tuple[str, ...]:
     return tuple(candidates.join(named, on=["backbone", "suite", "encoder"], how="semi")["run_id"].to_list())
 
 
-def _write_record(req: RolloutRequest, seq: Sequential, step: int, history: Sequence[dict[str, Any]]) -> None:
-    """SEQUENTIAL_FILE, written whole (a temporary name, then renamed over it)."""
-    record = {"format_version": FORMAT_VERSION, "measure": seq.measure, "error": seq.error, "cap": seq.cap,
-              "step": step, "looks_planned": seq.looks(step), "level": seq.level(step),
-              "seed": req.seed, "perturbation_m": req.perturb_cm / 100, "command": req.command,
-              "looks": list(history)}
-    path = sequential_file(req)
+def _write_record(req: RolloutRequest, seq: Sequential, step: int, history: Sequence[Look]) -> None:
+    """The looks' record beside the rollouts file, written whole (a temporary name, then renamed over it)."""
+    record = Looks(seq.measure, seq.error, seq.cap, step, seq.looks(step), seq.level(step), tuple(history),
+                   req.command)
+    path = looks_file(req.rollouts)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(json.dumps(record, indent=1) + "\n")
+    tmp.write_text(json.dumps(record.as_json(), indent=1) + "\n")
     os.replace(tmp, path)

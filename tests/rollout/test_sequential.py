@@ -21,6 +21,7 @@ import polars as pl
 import pytest
 from helpers.tables import write_results
 
+from graftcache.analysis.looks import LOOKS_FILE
 from graftcache.analysis.pairwise import pairwise
 from graftcache.analysis.rollouts import read_rollouts
 from graftcache.errors import RolloutError
@@ -29,7 +30,7 @@ from graftcache.rollout import table
 from graftcache.rollout.episodes import Episode, Outcome, Suite
 from graftcache.rollout.graded import Graded
 from graftcache.rollout.run import RolloutRequest, roll_out_started
-from graftcache.rollout.sequential import SEQUENTIAL_FILE, Sequential, looks
+from graftcache.rollout.sequential import Sequential, looks
 
 BASE = {"siglip": 0.10, "resnet18": 0.13, "dinov2-s": 0.30}
 
@@ -83,7 +84,7 @@ def _per_cell(req: RolloutRequest) -> pl.DataFrame:
 def test_looks_add_episodes_only_to_unresolved_candidate_pairs(tmp_path: Path) -> None:
     req, seq = _request(tmp_path), Sequential(cap=6)
     lines = _run(req, ByEncoder(), seq)
-    record = json.loads((tmp_path / SEQUENTIAL_FILE).read_text())
+    record = json.loads((tmp_path / LOOKS_FILE).read_text())
     assert (record["looks_planned"], record["level"], record["step"]) == (3, pytest.approx(1 - 0.05 / 3), 2)
     assert lines[0].startswith("sequential rollout: up to 3 look(s) of 2 episode(s) per task (cap 6)")
     counts = _per_cell(req)
@@ -96,7 +97,7 @@ def test_looks_add_episodes_only_to_unresolved_candidate_pairs(tmp_path: Path) -
     for look in record["looks"]:
         n = look["episodes_per_task"]
         episodes = read_rollouts(req.rollouts, results, where=pl.col("episode") < n)
-        expected = pairwise(candidates, episodes, measure=seq.measure, level=record["level"]).filter(
+        expected = pairwise(candidates, episodes, measure=seq.measure, closed_level=record["level"]).filter(
             pl.col("closed") == "not resolved").select("backbone", "suite", "encoder_a", "encoder_b").rows()
         assert sorted(map(tuple, look["unresolved"])) == sorted(expected)
     assert record["looks"][0]["unresolved"], "the scripted siglip/resnet18 pair must be unresolved on the first look"
@@ -115,7 +116,7 @@ def test_a_killed_sequential_rollout_resumes_to_the_same_rows_and_record(tmp_pat
     _run(_request(whole), ByEncoder(), seq)
     with pytest.raises(KeyboardInterrupt):
         _run(_request(cut), ByEncoder(stop_after=60), seq)  # inside the second look (the first has 52 episodes)
-    assert not (cut / SEQUENTIAL_FILE).exists()
+    assert not (cut / LOOKS_FILE).exists()
     again = ByEncoder()
     _run(_request(cut), again, seq)
     assert again.ran and len(again.ran) < len(table.read(whole / "rollouts.parquet"))
@@ -123,8 +124,8 @@ def test_a_killed_sequential_rollout_resumes_to_the_same_rows_and_record(tmp_pat
     assert table.read(cut / "rollouts.parquet").select(key).sort(key).equals(
         table.read(whole / "rollouts.parquet").select(key).sort(key))
     assert table.read(cut / "rollouts.parquet")["episode_id"].is_unique().all()
-    assert json.loads((cut / SEQUENTIAL_FILE).read_text())["looks"] == json.loads(
-        (whole / SEQUENTIAL_FILE).read_text())["looks"]
+    assert json.loads((cut / LOOKS_FILE).read_text())["looks"] == json.loads(
+        (whole / LOOKS_FILE).read_text())["looks"]
 
 
 @pytest.mark.parametrize(("over", "message"), [
@@ -140,3 +141,39 @@ def test_bad_sequential_settings_are_refused_in_one_line(over: dict, message: st
 def test_a_first_look_past_the_cap_is_refused(tmp_path: Path) -> None:
     with pytest.raises(RolloutError, match="^--episodes-per-task 2 is past --until-resolved 1"):
         _run(_request(tmp_path), ByEncoder(), Sequential(cap=1))
+
+
+def test_the_report_takes_the_looks_level_and_states_the_error_rate(tmp_path: Path) -> None:
+    """The closed-loop side of the report's pairwise table is at the looks' level (scipy's t interval of the pair's
+    differences at 1 - 0.05 / 3), not 95%, and the report says how the episodes were spent."""
+    from scipy import stats
+
+    from graftcache import analysis as A
+    from graftcache.report import write_report
+
+    req = _request(tmp_path)
+    _run(req, ByEncoder(), Sequential(cap=6))
+    looks = A.read_looks(req.rollouts)
+    assert looks is not None and (looks.level, len(looks.looks)) == (pytest.approx(1 - 0.05 / 3), 2)
+    write_report(req.results, tmp_path / "report", rollouts=req.rollouts)
+    table = pl.read_csv(tmp_path / "report" / "pairwise.csv").filter(
+        pl.col("measure") == "min_target_distance_m", pl.col("backbone") == "smolvla",
+        pl.col("suite") == "libero_spatial", pl.col("encoder_a") == "resnet18", pl.col("encoder_b") == "siglip",
+    ).row(0, named=True)
+    rollouts = table_of(req)
+    by_cell = {(r["seed_cell"], r["episode"]): r["min_target_distance_m"]
+               for r in rollouts.filter(pl.col("backbone") == "smolvla").iter_rows(named=True)
+               if r["control"] == "none" and r["encoder"] == "resnet18"}
+    diffs = [v - next(r["min_target_distance_m"] for r in rollouts.iter_rows(named=True)
+                      if (r["backbone"], r["control"], r["encoder"], r["seed_cell"], r["episode"])
+                      == ("smolvla", "none", "siglip", s, k)) for (s, k), v in by_cell.items()]
+    low, high = stats.t.interval(looks.level, len(diffs) - 1, loc=sum(diffs) / len(diffs), scale=stats.sem(diffs))
+    assert (table["pairs"], table["closed_low"], table["closed_high"]) == (len(diffs), pytest.approx(low),
+                                                                            pytest.approx(high))
+    text = (tmp_path / "report" / "report.md").read_text()
+    assert "`rollout --until-resolved 6`" in text and "taken at 98.33% (Bonferroni over the looks)" in text
+    assert "chance at most 5% whatever look it stopped at. 2 look(s) ran" in text
+
+
+def table_of(req: RolloutRequest) -> pl.DataFrame:
+    return table.read(req.rollouts).join(read_for_report(req.results), on="run_id", suffix="_cell")
