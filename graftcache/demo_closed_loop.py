@@ -1,24 +1,31 @@
 """`graftcache demo --closed-loop`: the demo's cells in the LIBERO simulator, enough of them, on scenes that make
-the policy look, for the report's first measured offline-vs-closed-loop figure.
+the policy look, to say which encoder wins in closed loop, whether offline MSE picks it, and what offline gap the
+closed loop can resolve at all.
 
-Success is 0% for everything trainable on the bundled sample, so the figure rests on graded progress read from the
+Success is 0% for everything trainable on the bundled sample, so the figures rest on graded progress read from the
 simulator's state (graftcache.rollout.graded): how close the end effector comes to the task's target. What runs
 (CLOSED_LOOP, each number with its reason):
 
 - the demo recipe (cli/demo.toml) with more seeds and without the shuffled-image control, which has no closed-loop
   meaning, into its own results file beside the demo's (the demo's report keeps its own rows);
-- on the figure's (backbone, suite): every row, so the agreement of eval_mse with closed-loop progress rests on
-  encoders x seeds plus native-graft and zero-image (>= 24 cells); on the other (backbone, suite)s: the native tower
-  against the top encoder's zero-image control of the paired seeds, the check that looking helps in closed loop;
+- the dose family on the figure's (backbone, suite) (graftcache.fit.dose): one real-weights encoder's features
+  degraded in four known steps between the encoder and the blind policy, every seed, fitted after the sweep; the
+  report draws offline MSE and closed-loop progress against the dose and states the finest offline gap the closed
+  loop confirms (graftcache.analysis.dose);
+- on the figure's (backbone, suite): every row with a closed-loop meaning, so the candidates' agreement rests on
+  encoders x seeds and the agreement with controls on native-graft, zero-image, native and the doses too; on the
+  other (backbone, suite)s: the native tower against the top encoder's zero-image control of the paired seeds, the
+  check that looking helps in closed loop;
 - each policy once (graftcache.rollout.select.one_per_policy: one run_id per policy_id, the lowest seed's, then the
   first encoder's by name): the native tower trains nothing, so its rows of every seed are one policy, and the
   zero-image rows of one seed are one policy whatever the encoder (their features are zeroed and their caches hold
   the same frames); rolled out again they would be the same episodes counted again;
-- the paired cells on twice the episodes of the figure's: the figure's agreement rests on 29 cells, the paired check
-  on one native cell against two zero-image cells, so its power comes from paired episodes alone. Measured on the
-  first run of this demo (2026-11-28): tiny pi0.5 on libero_object, 4 episodes, native minus zero-image closest
-  approach -0.061 m [-0.166, +0.001], not separated; its 8 episodes, -0.050 [-0.106, -0.011] (-0.048 [-0.099,
-  -0.013] on the refitted cells the README quotes). The other three (backbone, suite)s were separated on 4;
+- the figure's cells in sequential looks (graftcache.rollout.sequential): `episodes_per_task` each, then as many
+  again for the candidate pairs whose closed-loop order is still unresolved, up to `until_resolved`, so episodes go
+  where they decide a pairwise verdict (the report states the error rate the looks hold);
+- the paired cells on twice the figure's first look: the paired check rests on one native cell against two
+  zero-image cells, so its power comes from paired episodes alone (README, "The closed-loop demo", has the
+  measurements behind the count);
 - every episode on a perturbed scene: libero_object's official init states place the target identically, so a
   policy blind to its cameras could still reach it; the sample's own perturbation (data/render_sample.py, 3 cm) is
   what made its actions depend on the images.
@@ -30,7 +37,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
@@ -42,7 +49,7 @@ from graftcache.demo import DEFAULT_RECIPE
 from graftcache.errors import GraftcacheError
 from graftcache.fit.controls import get_control
 from graftcache.progress import write
-from graftcache.recipe import load_recipe
+from graftcache.recipe import Recipe, load_recipe
 from graftcache.report import ReportPaths, write_report
 from graftcache.results import read_for_report
 from graftcache.rollout.select import select_rows
@@ -54,12 +61,12 @@ from graftcache.sweep import run_sweep
 class ClosedLoopPlan:
     """What `demo --closed-loop` fits and rolls out on top of the demo recipe."""
 
-    #: four seeds: with three encoders, 12 plain and 12 zero-image cells on the figure's (backbone, suite)
+    #: four seeds: with three encoders, 12 candidate cells (6 pairs of fit seed x encoder pair a seed's episodes pair)
+    #: and 4 zero-image policies on the figure's (backbone, suite)
     seeds: tuple[int, ...] = (0, 1, 2, 3)
     controls: tuple[str, ...] = ("native", "native-graft", "zero-image")
     results: str = "demo/closed_loop/results.parquet"
-    #: where every cell runs: tiny SmolVLA on libero_object, the faster suite to simulate (0.2 s a step against
-    #: libero_spatial's 0.4, 2-core AMD EPYC)
+    #: where every cell runs: tiny SmolVLA on libero_object, the faster suite to simulate (benchmarks/results)
     figure: tuple[str, str] = ("smolvla", "libero_object")
     #: the seeds whose zero-image rows face the native tower on the other (backbone, suite)s: the demo's own
     paired_seeds: tuple[int, ...] = (0, 1)
@@ -73,6 +80,13 @@ class ClosedLoopPlan:
     #: a policy that learned them has reached and closed on the target
     max_steps: int = 40
     workers: int = 2
+    #: the figure's candidate pairs still unresolved in closed loop after `episodes_per_task` get as many again, up
+    #: to this many (graftcache.rollout.sequential: two looks, each at 97.5%, 5% per pair over both)
+    until_resolved: int = 8
+    #: the dose family (graftcache.fit.dose) on the figure's (backbone, suite): one real-weights encoder, degraded
+    #: in four steps between its plain cells (dose 0) and the zero-image policy (dose 1), on every seed
+    dose_encoder: str = "efficientnet-lite0"
+    doses: tuple[str, ...] = ("noise-0.25", "noise-0.5", "noise-0.75", "noise-0.9")
 
 
 CLOSED_LOOP = ClosedLoopPlan()
@@ -107,13 +121,27 @@ def closed_loop_run_ids(results: pl.DataFrame, plan: ClosedLoopPlan = CLOSED_LOO
     return ClosedLoopCells(figure=tuple(chosen["run_id"].to_list()), paired=tuple(paired["run_id"].to_list()))
 
 
+def _dose_recipe(recipe: Recipe, plan: ClosedLoopPlan) -> Recipe:
+    """The demo recipe narrowed to the dose family's cells: the figure's backbone and suite, the dose encoder, the
+    plan's seeds and doses (and the plain control every fit holds, already in the results)."""
+    backbone, suite = plan.figure
+    backbones = tuple(b for b in recipe.backbones if b.name == backbone)
+    encoders = tuple(e for e in recipe.encoders if e.name == plan.dose_encoder)
+    if not backbones or not encoders:
+        raise GraftcacheError(f"the demo recipe has no backbone {backbone} or no encoder {plan.dose_encoder}: the dose "
+                              "family has no cells")
+    return dataclasses.replace(recipe, backbones=backbones, encoders=encoders, suites=(suite,), controls=plan.doses)
+
+
 def run_closed_loop_demo(recipe_path: str | Path | None = None, out: str | Path | None = None,
                          plan: ClosedLoopPlan = CLOSED_LOOP) -> ReportPaths:
     """Fit the plan's cells (resumable), roll out its episodes (resumable), and write the report with them."""
     from graftcache.executors import get_executor
     from graftcache.requests import ExecutorSettings
+    from graftcache.rollout.episodes import Simulator
     from graftcache.rollout.libero import LiberoSimulator, require_simulator
     from graftcache.rollout.run import EXPORTS_FOLDER, RolloutRequest, default_rollouts, roll_out_started
+    from graftcache.rollout.sequential import Sequential, looks
 
     require_simulator()  # before minutes of fitting
     path = Path(recipe_path) if recipe_path else DEFAULT_RECIPE
@@ -124,6 +152,7 @@ def run_closed_loop_demo(recipe_path: str | Path | None = None, out: str | Path 
     results = cache_root(recipe.cache) / plan.results
     recipe = dataclasses.replace(recipe, seeds=plan.seeds, controls=plan.controls, results=str(results))
     state = run_sweep(recipe)
+    run_sweep(_dose_recipe(recipe, plan))  # its caches and plain cells are the sweep's: only the doses are fitted
     cells = closed_loop_run_ids(read_for_report(results), plan)
     rollouts = default_rollouts(results)
     command = f"graftcache demo --closed-loop --recipe {path}"
@@ -134,9 +163,16 @@ def run_closed_loop_demo(recipe_path: str | Path | None = None, out: str | Path 
                                command=command)
                 for run_ids, episodes in ((cells.figure, plan.episodes_per_task),
                                           (cells.paired, plan.paired_episodes_per_task))]
+    figure = requests[0]
+    sequential = Sequential(cap=plan.until_resolved)
+
+    def expand(req: RolloutRequest, sim: Simulator) -> Iterable[RolloutRequest]:
+        """The figure's request in looks (its unresolved candidate pairs get more episodes), the paired one as it is."""
+        return looks(req, sim, seq=sequential, log=write) if req is figure else (req,)
+
     # one team for both: its workers start first, their simulators building while this process builds its own, to plan
-    team = get_executor(ExecutorSettings()).rollout_team(requests[0], spawn, plan.workers, write)
-    roll_out_started(requests, spawn, team)
+    team = get_executor(ExecutorSettings()).rollout_team(figure, spawn, plan.workers, write)
+    roll_out_started(requests, spawn, team, expand=expand)
     report_dir = Path(out) if out else results.parent / "report"
     commands = {"demo --closed-loop": command, **state.commands}
     paths = write_report(results, report_dir, commands=commands, rollouts=rollouts)

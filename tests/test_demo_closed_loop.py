@@ -68,3 +68,17 @@ def test_every_live_cell_of_the_figure_and_native_against_zero_image_elsewhere()
 def test_a_figure_without_rows_is_refused() -> None:
     with pytest.raises(GraftcacheError, match="no row of smolvla on libero_90"):
         closed_loop_run_ids(_results(), ClosedLoopPlan(figure=("smolvla", "libero_90")))
+
+
+def test_the_dose_recipe_is_the_figure_s_backbone_suite_and_dose_encoder() -> None:
+    from graftcache.demo import DEFAULT_RECIPE
+    from graftcache.demo_closed_loop import CLOSED_LOOP, _dose_recipe
+    from graftcache.recipe import load_recipe
+
+    recipe = load_recipe(DEFAULT_RECIPE)
+    dose = _dose_recipe(recipe, CLOSED_LOOP)
+    assert ([b.name for b in dose.backbones], [e.name for e in dose.encoders], dose.suites) == (
+        ["smolvla"], ["efficientnet-lite0"], ("libero_object",))
+    assert dose.controls == ("noise-0.25", "noise-0.5", "noise-0.75", "noise-0.9") and dose.seeds == recipe.seeds
+    with pytest.raises(GraftcacheError, match="no backbone smolvla or no encoder dinov2-s: the dose family"):
+        _dose_recipe(recipe, ClosedLoopPlan(dose_encoder="dinov2-s"))
