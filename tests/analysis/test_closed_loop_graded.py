@@ -219,7 +219,7 @@ def _spread_cells(tmp_path: Path, mus: list[float], n: int, spread: float) -> di
 @pytest.mark.parametrize(("mus", "n", "spread"), [
     ([0.10, 0.15, 0.12, 0.19, 0.14, 0.21], 4, 0.04), ([0.10, 0.15, 0.12, 0.19, 0.14, 0.21], 40, 0.04),
     ([0.10, 0.11, 0.12, 0.13], 4, 0.03), ([0.10 + 0.01 * i for i in range(8)], 2, 0.05),  # ordered, noisy
-    ([0.10, 0.20], 6, 0.0), ([0.30, 0.10, 0.20], 3, 0.2), ([0.1, 0.1, 0.1, 0.2], 5, 0.01)])
+    ([0.10, 0.20], 6, 0.0), ([0.50, 0.30, 0.40], 3, 0.2), ([0.1, 0.1, 0.1, 0.2], 5, 0.01)])
 def test_every_interval_holds_its_figure(tmp_path: Path, mus: list[float], n: int, spread: float) -> None:
     r = _spread_cells(tmp_path, mus, n, spread)
     for name in A.STATISTICS:

@@ -212,7 +212,8 @@ def test_minimal_schema_file_reports_with_a_seed_level_bootstrap(tmp_path, capsy
     md = (tmp_path / "out" / "report.md").read_text()
     assert "- Per-episode MSEs: none (seed-level bootstrap, see Method)." in md
     assert "- Seed-level bootstrap: no row carries per-episode MSEs (`eval_mse_episodes`)" in md
-    assert "Columns without values (absent or all null): run_id, format_version, backbone_params, policy," in md
+    assert ("Columns without values (absent or all null): run_id, policy_id, format_version, backbone_params, "
+            "policy,") in md
     # a table from before backbone_params: ordered by the released sizes, and the report says so
     assert ("- Backbone order: smolvla: no row records backbone_params (a table from before the column); ordered "
             "by the released size, 450M (its BackboneSpec's released_params).") in md

@@ -1,8 +1,9 @@
 """The report's closed-loop section, figure and closed_loop.csv with graded rollouts (issue 43, item 4).
 
-smolvla on two suites, each with a native tower (2 seeds), two plain grafts (2 seeds each) and a zero-image row
-(1 seed), 3 episodes per cell on the same keys; the closest approach grows with eval_mse except that siglip seed 1
-and dinov2-s seed 0 swap on libero_spatial (GRAFTS below); every native episode comes 0.2 m closer than zero-image's.
+smolvla on two suites, each with a native tower (rows for 2 seeds, as a sweep writes them, that are one policy:
+graftcache.analysis.policies), two plain grafts (2 seeds each) and a zero-image row (1 seed), 3 episodes per row on
+the same keys; the closest approach grows with eval_mse except that siglip seed 1 and dinov2-s seed 0 swap on
+libero_spatial (GRAFTS below); every native episode comes 0.2 m closer than zero-image's.
 """
 
 from __future__ import annotations
@@ -16,12 +17,13 @@ from helpers.tables import row, table
 
 from graftcache import analysis as A
 from graftcache import report
+from graftcache import results as R
 from graftcache.report.closed_loop_figure import figure_closed_loop
 
 # (encoder, seed, control) -> (eval_mse, mean closest approach per suite)
 GRAFTS = {
     ("smolvla-native", 0, "native"): (0.80, {"libero_object": 0.06, "libero_spatial": 0.07}),
-    ("smolvla-native", 1, "native"): (0.82, {"libero_object": 0.08, "libero_spatial": 0.08}),
+    ("smolvla-native", 1, "native"): (0.80, {"libero_object": 0.06, "libero_spatial": 0.07}),  # the same policy
     ("siglip", 0, "none"): (0.90, {"libero_object": 0.10, "libero_spatial": 0.10}),
     ("siglip", 1, "none"): (0.95, {"libero_object": 0.12, "libero_spatial": 0.16}),
     ("dinov2-s", 0, "none"): (1.00, {"libero_object": 0.15, "libero_spatial": 0.13}),
@@ -50,12 +52,16 @@ def _files(tmp_path: Path, graded_for: int = 3) -> tuple[Path, Path]:
     return tmp_path / "results.parquet", tmp_path / "rollouts.parquet"
 
 
+def _analysed(results: Path, rollouts: Path) -> A.Analysis:
+    """The analysis of the files read as the report reads them (each row's policy_id filled from its cell)."""
+    table = R.read_for_report(results)
+    return A.analyze(table, rollouts=A.read_rollouts(rollouts, table))
+
+
 @pytest.fixture
 def written(tmp_path: Path) -> tuple[report.ReportPaths, A.Analysis]:
     results, rollouts = _files(tmp_path)
-    paths = report.write_report(results, tmp_path / "out", rollouts=rollouts)
-    frame = A.analyze(pl.read_parquet(results), rollouts=A.read_rollouts(rollouts, pl.read_parquet(results)))
-    return paths, frame
+    return report.write_report(results, tmp_path / "out", rollouts=rollouts), _analysed(results, rollouts)
 
 
 def _head(a: A.Analysis, cells_of: str, suite: str = "libero_spatial") -> dict:
@@ -68,11 +74,11 @@ def test_the_section_prints_the_headline_agreement_with_its_intervals(written: t
     paths, a = written
     md = paths.markdown.read_text()
     head = _head(a, "with controls")
-    assert head["spearman"] == pytest.approx(1 - 6 * 2 / (7 * 48))  # one adjacent swap among 7 cells
+    assert head["spearman"] == pytest.approx(1 - 6 * 2 / (6 * 35))  # one adjacent swap among 6 policies
     line = (f"SmolVLA · libero_spatial · with controls: Spearman ρ = {head['spearman']:+.2f} "
             f"[{head['spearman_low']:+.2f}, {head['spearman_high']:+.2f}], Kendall τb = {head['kendall_tau_b']:+.2f} "
             f"[{head['kendall_tau_b_low']:+.2f}, {head['kendall_tau_b_high']:+.2f}], MMRV = {head['mmrv']:.3g} m "
-            f"[{head['mmrv_low']:.3g}, {head['mmrv_high']:.3g}] over 7 cells (3 episodes each).")
+            f"[{head['mmrv_low']:.3g}, {head['mmrv_high']:.3g}] over 6 cells (3 episodes each).")
     assert line in md
     assert "The graded measures are unavailable" not in md
 
@@ -109,11 +115,12 @@ def test_pairwise_csv_holds_the_verdicts_typed(written: tuple) -> None:
 def test_the_section_prints_the_paired_control_line(written: tuple) -> None:
     paths, a = written
     md = paths.markdown.read_text()
-    # native means .07 and .08 (libero_spatial) against zero-image .27 on each of the 3 keys: -0.195 m
-    assert ("SmolVLA · libero_spatial · closest approach: native tower 0.075 m vs zero-image 0.27 m on 3 paired "
-            "episodes (2 native, 1 zero-image cells): native − zero-image = -0.195 m [-0.195, -0.195]: the native "
-            "tower is better (lower is better); the native tower is better on 2 of 2 native seeds.") in md
-    assert "| SmolVLA | libero_object | grasped | 2 | 1 | 3 |" in md  # every recorded measure in the table
+    # the native policy's .07 (libero_spatial) against zero-image .27 on each of the 3 keys: -0.2 m; its two rows
+    # are one policy, so one native cell and one seed
+    assert ("SmolVLA · libero_spatial · closest approach: native tower 0.07 m vs zero-image 0.27 m on 3 paired "
+            "episodes (1 native, 1 zero-image cells): native − zero-image = -0.2 m [-0.2, -0.2]: the native "
+            "tower is better (lower is better); the native tower is better on 1 of 1 native seeds.") in md
+    assert "| SmolVLA | libero_object | grasped | 1 | 1 | 3 |" in md  # every recorded measure in the table
 
 
 def test_closed_loop_csv_holds_the_agreement_typed(written: tuple) -> None:
@@ -123,7 +130,7 @@ def test_closed_loop_csv_holds_the_agreement_typed(written: tuple) -> None:
     assert csv.height == 2 * 2 * 4 * 6 and csv.equals(want)
     near = csv.filter(pl.col("measure") == "min_target_distance_m", pl.col("score") == "eval_mse")
     assert near["cells_of"].to_list() == ["candidates", "with controls"] * 2
-    assert near["cells"].to_list() == [4, 7, 4, 7] and min(near["replicates"]) > 950
+    assert near["cells"].to_list() == [4, 6, 4, 6] and min(near["replicates"]) > 950
 
 
 def test_the_figure_draws_both_measures_per_suite_with_controls_marked(written: tuple) -> None:
@@ -141,8 +148,8 @@ def test_the_figure_draws_both_measures_per_suite_with_controls_marked(written: 
     markers = {line.get_marker() for line in near.get_lines()}
     assert {"*", "X", "o"} <= markers  # native, zero-image, grafts
     star = [line for line in near.get_lines() if line.get_marker() == "*"]
-    assert sorted(float(line.get_ydata()[0]) for line in star) == pytest.approx([0.07, 0.08])
-    assert any("native − zero-image: -0.195 m [-0.195, -0.195] over 3 paired episodes" in t.get_text()
+    assert [float(line.get_ydata()[0]) for line in star] == pytest.approx([0.07])  # one native policy
+    assert any("native − zero-image: -0.2 m [-0.2, -0.2] over 3 paired episodes" in t.get_text()
                for t in near.texts)
     assert success.get_ylim() == pytest.approx((-0.05, 1.05))
     low, high = zoomed.get_ylim()
@@ -155,7 +162,7 @@ def test_a_panel_that_can_only_say_undefined_is_dropped(tmp_path: Path) -> None:
     """Every episode failed: the success panels are gone, the distance panels stay."""
     results, rollouts = _files(tmp_path)
     pl.read_parquet(rollouts).with_columns(success=pl.lit(False)).write_parquet(rollouts)
-    a = A.analyze(pl.read_parquet(results), rollouts=A.read_rollouts(rollouts, pl.read_parquet(results)))
+    a = _analysed(results, rollouts)
     axes = [ax for ax in figure_closed_loop(a).axes if ax.get_visible()]
     assert len(axes) == 4 and not any("success" in ax.get_ylabel() for ax in axes)
 
@@ -164,9 +171,10 @@ def test_a_partly_graded_file_says_how_many_episodes_lack_the_graded_measures(tm
     results, rollouts = _files(tmp_path, graded_for=2)
     paths = report.write_report(results, tmp_path / "out", rollouts=rollouts)
     md = paths.markdown.read_text()
-    assert ("The graded measures are unavailable for 14 of 42 episodes (format-1 rollouts rows, or a table without "
+    # 6 policies (the native tower's two rows are one) x 2 suites x 3 episodes, the third of each ungraded
+    assert ("The graded measures are unavailable for 12 of 36 episodes (format-1 rollouts rows, or a table without "
             "the graded columns)") in md
-    a = A.analyze(pl.read_parquet(results), rollouts=A.read_rollouts(rollouts, pl.read_parquet(results)))
+    a = _analysed(results, rollouts)
     cells = a.closed_loop.cells.filter(pl.col("control") == "zero-image")
     assert cells["graded_episodes"].to_list() == [2, 2] and cells["episodes"].to_list() == [3, 3]
     assert cells["min_target_distance_m"].to_list() == pytest.approx([np.mean([0.26, 0.27])] * 2)
