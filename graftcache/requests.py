@@ -215,7 +215,7 @@ class FitRequest(Checked):
     eval_fraction: float = setting(0.2, rule=FRACTION, help="held-out share of each task's episodes", cell=ALWAYS,
                                    column=True)
     eval_split_seed: int = setting(0, rule=SEED, cell=ALWAYS, column=True)
-    eval_split: str = setting(  # added to cells by results format 4 (issue 31); every earlier cell: graftcache's
+    eval_split: str = setting(  # added to cells by results format 4; every earlier cell: graftcache's
         EVAL_SPLITS[0], choices=EVAL_SPLITS, flag="--split", cell=Identity(since=4, before=EVAL_SPLITS[0]),
         column=True,
         help="which --eval-fraction of each task's episodes is held out: graftcache (drawn with --eval-split-seed) or "

@@ -459,3 +459,21 @@ def test_the_readme_states_the_current_formats_by_their_constants() -> None:
     assert re.findall(r"(?:format version|their own) \(\d+\)", readme) == []
     named = [int(n) for n in re.findall(r"results (?:files? )?(?:of )?format (\d+)", readme)]
     assert [n for n in named if n > results.FORMAT_VERSION] == []
+
+
+# ------------------------------------------------------------------------------- prose that goes stale unseen
+#: A date or an issue number in a docstring or comment goes stale without anything failing: it belongs in
+#: benchmarks/results, docs/ or the commit message
+STALE = re.compile(r"\b20\d\d-\d\d-\d\d\b|\b[Ii]ssue #?\d+\b")
+
+
+def test_no_date_or_issue_number_in_code_prose() -> None:
+    found = [f"{path.relative_to(ROOT)}:{line}: {m.group(0)!r}" for path in sorted((ROOT / "graftcache").rglob("*.py"))
+             for line, text in prose_of(path.read_text(encoding="utf-8")) if (m := STALE.search(text))]
+    assert found == []
+
+
+def test_a_date_or_issue_number_in_a_comment_or_docstring_is_found() -> None:
+    source = '"""Measured on 2026-11-28."""\nx = "issue 41"  # since issue 41\ny = "2026-11-28"\n'
+    assert [(line, STALE.search(text).group(0)) for line, text in prose_of(source) if STALE.search(text)] == [
+        (1, "2026-11-28"), (2, "issue 41")]

@@ -20,8 +20,8 @@ benchmarks/gpu_check.py measured cheapest per cell; the numbers are in the files
 at tiny size no gain stood out of the noise, and at SmolVLA's released size the step is compute-bound while every
 cell of a pass holds its own shuffle buffer (benchmarks/results/bench_fuse_cpu_run1.json, bench_fuse_cpu_run2.json,
 bench_fuse_cpu_smolvla_released.json). On CUDA, 4 for SmolVLA, whose step is latency-bound, and 1 for pi0.5, which
-is near its MFU alone and memory-bound at the paper's batch (benchmarks/results/gpu_check_nvidia-h200_2026-11-26.json,
-gpu_check_nvidia-h100-80gb-hbm3_2026-11-26.json; README.md's GPU table quotes them).
+is near its MFU alone and memory-bound at the paper's batch (benchmarks/results/gpu_check_*.json, one per card;
+README.md's GPU table quotes them).
 A pass that would not fit is refused before its first step (graftcache.fit.step_memory,
 naming --cells-per-pass).
 """

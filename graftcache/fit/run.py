@@ -231,8 +231,9 @@ def saved_policy_folder(folder: Path) -> str | None:
 
 def saved_cell(folder: Path) -> Cell | None:
     """The Cell save_projector recorded in `folder`'s sidecar (None: a sidecar without one). A sidecar written before
-    issue 41 recorded the identity's version among the cell's fields (`format_version`: results.IDENTITY_VERSION),
-    which the run_id hashes anyway; one of another version is no cell of this graftcache's (None)."""
+    results format 5 recorded the identity's version among the cell's fields (`format_version`:
+    results.IDENTITY_VERSION), which the run_id hashes anyway; one of another version is no cell of this graftcache's
+    (None)."""
     recorded = json.loads((folder / PROJECTOR_SIDECAR).read_text()).get("cell")
     if recorded is None or recorded.pop("format_version", results.IDENTITY_VERSION) != results.IDENTITY_VERSION:
         return None

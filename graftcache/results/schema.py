@@ -26,7 +26,7 @@ IDENTITY_VERSION = 3
 #: Each FitRequest setting added to cells since IDENTITY_VERSION (its declaration's graftcache.settings.Identity
 #: `since`) -> (the results format that added it, what every cell before it held). Such a setting is hashed only off
 #: that value (graftcache.fit.plan.Cell.run_id), so earlier cells keep their run_ids, and graftcache.results.upgrade
-#: fills its column in earlier rows with it: `eval_split` (format 4, issue 31), every earlier cell split the
+#: fills its column in earlier rows with it: `eval_split` (format 4), every earlier cell split the
 #: graftcache way.
 ADDED_TO_CELLS: dict[str, tuple[int, Any]] = {
     name: (d.setting.cell.since, d.setting.cell.before) for name, d in declared(FitRequest).items()
@@ -42,10 +42,10 @@ POLICY_IDENTITY_VERSION = 1
 #: What cells of identity version 3 held in each field added since (ADDED_TO_CELLS).
 IDENTITY_3_VALUES: dict[str, Any] = {name: before for name, (_, before) in ADDED_TO_CELLS.items()}
 #: The format of results rows. Files of an older format go through graftcache.results.upgrade, the one place that
-#: knows them. Format 3 (issue 23, one word per idea) renamed no column but changed what cells hold (`pool_grid` is
-#: the resolved grid, never "native"), hence every run_id. Format 4 (issue 31) added columns and one cell field,
+#: knows them. Format 3 (one word per idea) renamed no column but changed what cells hold (`pool_grid` is
+#: the resolved grid, never "native"), hence every run_id. Format 4 added columns and one cell field,
 #: `eval_split`, hashed only off its default, so its cells hash as format 3's: format 3 rows are upgraded. Format 5
-#: (issue 41) added a column for each cell field rows lacked (`eval_fraction`, `eval_frames`, `num_denoise_steps`,
+#: added a column for each cell field rows lacked (`eval_fraction`, `eval_frames`, `num_denoise_steps`,
 #: `lora_rank`), so that a row records the whole cell its run_id hashes (graftcache.fit.plan.Cell.of_row); its
 #: run_ids are format 4's. Format 6 added `policy_id` (`make_policy_id`): its run_ids are
 #: format 5's. A setting declared into cells by a later format (ADDED_TO_CELLS) makes that format this one.

@@ -23,7 +23,7 @@ from graftcache.results.schema import (
 #: The oldest results format read: rows of earlier ones hash cells of another shape into their run_ids.
 OLDEST = IDENTITY_VERSION
 
-#: What a row without a column of a later format (of format 3, of format 4 written before issue 32 split random_init,
+#: What a row without a column of a later format (of format 3, of format 4 written before random_init was split,
 #: of format 4 before format 5 recorded every cell field) held in it, where its other columns say so: random_init is
 #: the union of the encoder's and the backbone's, so a row whose random_init is false had neither, and a true one
 #: leaves both unknown (null); a cell holds lora_rank 0 but for the lora control (whose rank only its run folder's
@@ -68,7 +68,7 @@ def upgrade(rows: pl.DataFrame, path: Path) -> pl.DataFrame:
                                "read it with the graftcache that wrote it, or pass another --results")
     old = rows if "format_version" not in rows.columns else rows.filter(pl.col("format_version") < OLDEST)
     recorded = old["command"].drop_nulls().unique(maintain_order=True).to_list() if "command" in old.columns else []
-    commands = [c for c in recorded if c.startswith("graftcache ")]  # graftcache < issue 29 recorded `fit` alone
+    commands = [c for c in recorded if c.startswith("graftcache ")]  # older graftcache recorded `fit` alone
     rebuild = f"`{commands[0]}`" if commands else "the fits or sweeps that wrote them (its rows record no command line)"
     more = f" (and {len(commands) - 1} other command(s) its rows record)" if len(commands) > 1 else ""
     raise ResultsError(f"{path}: {old.height} row(s) of an older results format than {OLDEST} (run_ids "

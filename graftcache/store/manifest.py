@@ -23,7 +23,7 @@ from typing import Any
 from graftcache.store.key import IDENTITY_FIELDS, RefusedPlace, cache_key
 
 FORMAT_VERSION = 3
-#: Manifest keys of formats 1 and 2 -> their format 3 names (issue 23: one word per idea), the one rename map
+#: Manifest keys of formats 1 and 2 -> their format 3 names (one word per idea), the one rename map
 #: `upgrade` and `stored_key` apply; the values are unchanged.
 RENAMED = {
     "native_grid": "unpooled_grid",
