@@ -1,6 +1,7 @@
-"""A fake simulator for `graftcache rollout --workers N` (graftcache.rollout.workers): importable by name, so that a
-spawned worker process can build it (the team pickles its factory by reference), and leaving traces on disk, since
-what a worker ran is not in the test's process."""
+"""Fake simulators: `Scripted`, whose outcomes follow from each episode (the rollout tests'), and one for `graftcache
+rollout --workers N` (graftcache.rollout.workers): importable by name, so that a spawned worker process can build it
+(the team pickles its factory by reference), and leaving traces on disk, since what a worker ran is not in the test's
+process."""
 
 from __future__ import annotations
 
@@ -11,10 +12,44 @@ from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from graftcache.rollout.episodes import Episode, Outcome, Suite
+from graftcache.rollout.graded import Graded
 
 #: (run_id, task_index, episode) of an episode
 Where = tuple[str, int, int]
+
+
+class Scripted:
+    """A Simulator whose episode k succeeds when its seed is even, in k + 3 steps, came within 0.1 * (k + 1) m of its
+    target and, when perturbed by up to P m, slid it by (P / 2, -P / 4); it counts the episodes it ran.
+    `stop_after`: raise after that many episodes (a run killed mid-way). `videos`: record steps + 1 frames of 16x16
+    at 10 fps, as the LIBERO simulator's render callback would. A subclass scripts other outcomes (`outcome`)."""
+
+    def __init__(self, stop_after: int | None = None, videos: bool = False) -> None:
+        self.ran: list[Episode] = []
+        self.stop_after = stop_after
+        self.videos = videos
+
+    def suite(self, name: str) -> Suite:
+        return Suite(n_tasks=10, max_steps=280)
+
+    def run(self, row: Mapping[str, Any], episodes: Sequence[Episode]) -> Iterator[Outcome]:
+        for e in episodes:
+            if self.stop_after is not None and len(self.ran) == self.stop_after:
+                raise KeyboardInterrupt
+            self.ran.append(e)
+            yield self.outcome(row, e)
+
+    def outcome(self, row: Mapping[str, Any], e: Episode) -> Outcome:
+        steps = e.episode + 3
+        frames = np.full((steps + 1, 16, 16, 3), 40 * e.episode, np.uint8) if self.videos else None
+        graded = Graded(target="alphabet_soup_1", min_target_distance_m=0.1 * (e.episode + 1),
+                        final_target_distance_m=0.3, target_lift_m=0.0, grasped=e.episode == 1, goal_fraction=0.0)
+        return Outcome(success=e.seed % 2 == 0, steps=steps, seconds=0.5, init_state=e.episode, frames=frames,
+                       fps=10 if self.videos else None, graded=graded,
+                       target_offset_m=(e.perturbation_m / 2, -e.perturbation_m / 4))
 
 
 class Paced:

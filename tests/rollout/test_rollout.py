@@ -18,10 +18,10 @@ from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import polars as pl
 import pytest
 from fixtures.simulator_cells import Fitted
+from helpers.rollouts import Scripted
 from helpers.tables import full_table, row, write_results
 from helpers.tables import table as results_table
 
@@ -29,7 +29,7 @@ from graftcache import results
 from graftcache.errors import RolloutError
 from graftcache.results.claims import claims_folder
 from graftcache.rollout import table
-from graftcache.rollout.episodes import Episode, Outcome, Suite
+from graftcache.rollout.episodes import Episode, Outcome
 from graftcache.rollout.graded import Graded
 from graftcache.rollout.run import RolloutRequest, roll_out
 from graftcache.rollout.select import select_rows
@@ -106,34 +106,6 @@ def test_cameras_the_simulator_cannot_feed_are_refused_in_one_line() -> None:
     assert line.endswith("its cache cameras agentview, eye_in_hand are not cameras the LIBERO simulator feeds "
                          "(image (agentview), image2 (wrist (eye in hand))); extract and fit it from a dataset whose "
                          "cameras are named image/image2")
-
-
-class Scripted:
-    """A Simulator whose episode k succeeds when its seed is even, in k + 3 steps, came within 0.1 * (k + 1) m of its
-    target and, when perturbed by up to P m, slid it by (P / 2, -P / 4); it counts the episodes it ran.
-    `stop_after`: raise after that many episodes (a run killed mid-way). `videos`: record steps + 1 frames of 16x16
-    at 10 fps, as the LIBERO simulator's render callback would."""
-
-    def __init__(self, stop_after: int | None = None, videos: bool = False) -> None:
-        self.ran: list[Episode] = []
-        self.stop_after = stop_after
-        self.videos = videos
-
-    def suite(self, name: str) -> Suite:
-        return Suite(n_tasks=10, max_steps=280)
-
-    def run(self, row: Mapping[str, Any], episodes: Sequence[Episode]) -> Iterator[Outcome]:
-        for e in episodes:
-            if self.stop_after is not None and len(self.ran) == self.stop_after:
-                raise KeyboardInterrupt
-            self.ran.append(e)
-            steps = e.episode + 3
-            frames = np.full((steps + 1, 16, 16, 3), 40 * e.episode, np.uint8) if self.videos else None
-            graded = Graded(target="alphabet_soup_1", min_target_distance_m=0.1 * (e.episode + 1),
-                            final_target_distance_m=0.3, target_lift_m=0.0, grasped=e.episode == 1, goal_fraction=0.0)
-            yield Outcome(success=e.seed % 2 == 0, steps=steps, seconds=0.5, init_state=e.episode, frames=frames,
-                          fps=10 if self.videos else None, graded=graded,
-                          target_offset_m=(e.perturbation_m / 2, -e.perturbation_m / 4))
 
 
 def _request(tmp_path: Path, **over: Any) -> RolloutRequest:

@@ -12,13 +12,14 @@ from __future__ import annotations
 
 import hashlib
 import json
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Mapping
 from functools import partial
 from pathlib import Path
 from typing import Any
 
 import polars as pl
 import pytest
+from helpers.rollouts import Scripted
 from helpers.tables import write_results
 
 from graftcache.analysis.looks import LOOKS_FILE
@@ -27,7 +28,7 @@ from graftcache.analysis.rollouts import read_rollouts
 from graftcache.errors import RolloutError
 from graftcache.results import read_for_report
 from graftcache.rollout import table
-from graftcache.rollout.episodes import Episode, Outcome, Suite
+from graftcache.rollout.episodes import Episode, Outcome
 from graftcache.rollout.graded import Graded
 from graftcache.rollout.run import RolloutRequest, roll_out_started
 from graftcache.rollout.sequential import Sequential, looks
@@ -40,27 +41,16 @@ def _jitter(*key: object) -> float:
     return 0.04 * (digest[0] / 255 * 2 - 1)
 
 
-class ByEncoder:
+class ByEncoder(Scripted):
     """A Simulator whose closest approach depends on the cell's encoder (the module docstring); `stop_after`: raise
     after that many episodes, as a killed run would."""
 
-    def __init__(self, stop_after: int | None = None) -> None:
-        self.ran: list[Episode] = []
-        self.stop_after = stop_after
-
-    def suite(self, name: str) -> Suite:
-        return Suite(n_tasks=10, max_steps=280)
-
-    def run(self, row: Mapping[str, Any], episodes: Sequence[Episode]) -> Iterator[Outcome]:
-        for e in episodes:
-            if self.stop_after is not None and len(self.ran) == self.stop_after:
-                raise KeyboardInterrupt
-            self.ran.append(e)
-            distance = BASE.get(row["encoder"], 0.5) + _jitter(row["encoder"], row["seed"], e.episode)
-            graded = Graded(target="bowl_1", min_target_distance_m=distance, final_target_distance_m=distance,
-                            target_lift_m=0.0, grasped=False, goal_fraction=0.0)
-            yield Outcome(success=False, steps=5, seconds=0.1, init_state=e.episode, graded=graded,
-                          target_offset_m=(0.0, 0.0))
+    def outcome(self, row: Mapping[str, Any], e: Episode) -> Outcome:
+        distance = BASE.get(row["encoder"], 0.5) + _jitter(row["encoder"], row["seed"], e.episode)
+        graded = Graded(target="bowl_1", min_target_distance_m=distance, final_target_distance_m=distance,
+                        target_lift_m=0.0, grasped=False, goal_fraction=0.0)
+        return Outcome(success=False, steps=5, seconds=0.1, init_state=e.episode, graded=graded,
+                       target_offset_m=(0.0, 0.0))
 
 
 def _request(tmp_path: Path, **over: Any) -> RolloutRequest:
