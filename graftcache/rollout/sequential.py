@@ -62,9 +62,9 @@ class Sequential:
         if not 1 <= self.cap <= MAX_EPISODES_PER_TASK:
             raise RolloutError(f"--until-resolved {self.cap}: must be 1 to {MAX_EPISODES_PER_TASK} episodes per task")
         if not 0 < self.error < 1:
-            raise RolloutError(f"--error {self.error}: must lie strictly between 0 and 1")
+            raise RolloutError(f"sequential error rate {self.error}: must lie strictly between 0 and 1")
         if self.measure not in HIGHER_IS_BETTER:
-            raise RolloutError(f"--measure {self.measure}: not a closed-loop measure; choose from "
+            raise RolloutError(f"sequential measure {self.measure}: not a closed-loop measure; choose from "
                                f"{', '.join(HIGHER_IS_BETTER)}")
 
     def looks(self, step: int) -> int:
@@ -86,8 +86,9 @@ def unresolved(candidates: pl.DataFrame, rollouts: pl.DataFrame, seq: Sequential
 def looks(req: RolloutRequest, sim: Simulator, *, seq: Sequential,
           log: Callable[[str], None]) -> Iterator[RolloutRequest]:
     """The requests of each look, in turn: a caller rolls each out before asking for the next, which is decided
-    from the rows that one wrote (see the module docstring). Writes SEQUENTIAL_FILE once the last look is
-    decided."""
+    from the rows that one wrote (see the module docstring). Writes the looks' record (graftcache.analysis.looks)
+    once the last look is decided. Without two candidate encoders on any (backbone, suite) there is no pair to
+    judge: the request runs as it is, in one look."""
     step = req.episodes_per_task
     if step > seq.cap:
         raise RolloutError(f"--episodes-per-task {step} is past --until-resolved {seq.cap}: the first look would "
@@ -101,8 +102,13 @@ def looks(req: RolloutRequest, sim: Simulator, *, seq: Sequential,
         f"chance <= {seq.error:.0%} over all looks (Bonferroni)")
     history: list[Look] = []
     current = dataclasses.replace(req, run_ids=tuple(rows["run_id"].to_list()))
+    pairs = candidates.group_by("backbone", "suite").agg(pl.col("encoder").n_unique() > 1)["encoder"].any()
     for look in range(1, n_looks + 1):
         yield current
+        if not pairs:
+            log("sequential rollout: no (backbone, suite) has two candidate encoders, no pair to judge: one look")
+            history.append(Look(look, current.episodes_per_task, len(current.run_ids), ()))
+            break
         # judged on every candidate's first episodes_per_task episodes, whichever cells this look ran
         judged = {e.id for e in plan(candidates, current, sim)}
         rollouts = read_rollouts(req.rollouts, results, where=pl.col("episode_id").is_in(judged))

@@ -120,8 +120,8 @@ def test_a_killed_sequential_rollout_resumes_to_the_same_rows_and_record(tmp_pat
 
 @pytest.mark.parametrize(("over", "message"), [
     ({"cap": 0}, "--until-resolved 0: must be 1 to 1000"),
-    ({"cap": 4, "error": 1.0}, "--error 1.0: must lie strictly between 0 and 1"),
-    ({"cap": 4, "measure": "speed"}, "--measure speed: not a closed-loop measure"),
+    ({"cap": 4, "error": 1.0}, "sequential error rate 1.0: must lie strictly between 0 and 1"),
+    ({"cap": 4, "measure": "speed"}, "sequential measure speed: not a closed-loop measure"),
 ])
 def test_bad_sequential_settings_are_refused_in_one_line(over: dict, message: str) -> None:
     with pytest.raises(RolloutError, match=f"^{message}"):
@@ -167,3 +167,14 @@ def test_the_report_takes_the_looks_level_and_states_the_error_rate(tmp_path: Pa
 
 def table_of(req: RolloutRequest) -> pl.DataFrame:
     return table.read(req.rollouts).join(read_for_report(req.results), on="run_id", suffix="_cell")
+
+
+def test_a_request_without_two_candidate_encoders_runs_once(tmp_path: Path) -> None:
+    """Only controls (no pair of candidate encoders to judge): one look, said so, recorded with nothing unresolved."""
+    results = read_for_report(write_results(tmp_path / "results.parquet"))
+    zero = results.filter(pl.col("control") == "zero-image", pl.col("suite") == "libero_spatial")["run_id"][:2]
+    sim = ByEncoder()
+    lines = _run(_request(tmp_path, run_ids=tuple(zero)), sim, Sequential(cap=6))
+    assert len(sim.ran) == 2 * 2 and any("no pair to judge: one look" in line for line in lines)
+    assert json.loads((tmp_path / LOOKS_FILE).read_text())["looks"] == [
+        {"look": 1, "episodes_per_task": 2, "cells": 2, "unresolved": []}]
