@@ -187,7 +187,8 @@ def test_ray_sweep_resumes_and_writes_the_local_rows(ray_cluster: str, local_swe
     results.append(recipe.results, local_sweep.rows.head(1).with_columns(command=command))
     lines: list[str] = []
     run_sweep(recipe, log=lines.append, settings=ExecutorSettings(executor="ray"))
-    assert "ray: 3 cell task(s) to run; the other cells are in the results file already" in lines
+    assert ("ray: 3 cell task(s) to run; the other cells are in the results file already, or copied from a run of "
+            "the same policy") in lines
     _assert_same_rows(recipe, local_sweep.rows)
     runs = Path(recipe.results).parent / "runs"  # projectors of the cells the tasks fitted, none of the skipped one
     assert sorted(p.name for p in runs.iterdir()) == sorted(local_sweep.rows["run_id"][1:])
