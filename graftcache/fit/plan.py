@@ -293,8 +293,8 @@ class Plan:
         source = self.source(self.control(cell)).manifest
         own = {**asdict(cell), "run_id": cell.run_id, "format_version": results.FORMAT_VERSION,
                "encoder": source.encoder_name, "command": self.req.command,
-               "encoder_random_init": bool(source.random_init),
-               "random_init": bool(source.random_init or original["backbone_random_init"]), "numerics_drift": None,
+               "encoder_random_init": source.unreleased,
+               "random_init": source.unreleased or bool(original["backbone_random_init"]), "numerics_drift": None,
                "camera_map": format_camera_map(self.cameras), "wall_s": 0.0}
         return {column: own[column] if column in own else original[column] for column in results.SCHEMA}
 

@@ -185,9 +185,8 @@ def _row(c: _InPass, adapter: BackboneAdapter, loss: float, score: Any, wall: fl
         "backbone_params": adapter.n_params,
         "n_eval_frames": score.n_frames, "n_eval_episodes": len(score.per_episode), "wall_s": wall,
         "cells_per_pass": cells, "device": str(plan.device),
-        "random_init": bool(r.cache.manifest.random_init or r.cache.manifest.trained_by or adapter.random_init),
-        # results.schema: a tiny policy's tower says True, trained by train-tiny or not
-        "encoder_random_init": bool(r.cache.manifest.random_init or r.cache.manifest.trained_by),
+        "random_init": r.cache.manifest.unreleased or bool(adapter.random_init),
+        "encoder_random_init": r.cache.manifest.unreleased,
         "backbone_random_init": bool(adapter.random_init),
         "n_dropped_nonfinite": r.dropped + len(c.stats.dropped), "numerics_drift": c.mat.drift(r),
         "camera_map": format_camera_map(plan.cameras), "graftcache_version": graftcache.__version__,

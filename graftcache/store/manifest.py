@@ -104,6 +104,13 @@ class Manifest:
         return self.weights.get("trained_by")
 
     @property
+    def unreleased(self) -> bool:
+        """The encoder's weights are no released pretraining: random-init, or a tower train-tiny trained. Results
+        rows record it as `encoder_random_init` (graftcache.results.SCHEMA: a tiny policy's tower says True, trained
+        or not), where the manifest, the log and the report say which of the two it is."""
+        return bool(self.random_init or self.trained_by)
+
+    @property
     def weights_label(self) -> str:
         """The encoder's weights in a word: "trained by train-tiny", "random-init", else their source."""
         if self.trained_by is not None:
