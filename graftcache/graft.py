@@ -12,7 +12,7 @@ tower, freezing, undo) is graftcache.backbones.surgery.
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 
 import torch
@@ -95,3 +95,33 @@ class FusedProjector(nn.Module):
                                f"has {self._rows}")
         parts = features.split(self._rows)
         return torch.cat([m(part) for m, part in zip(self.members, parts, strict=True)])
+
+
+def at_width(saved: dict[str, torch.Tensor], build: Callable[[int, int], nn.Module],
+             width: int) -> dict[str, torch.Tensor]:
+    """A fit's saved trainable parameters (full adapter names, one GraftProjector among them) for a projector that
+    takes features `width` wide, as `build` (width, LM width) makes it; `saved` itself where the widths are equal.
+    For the copy of a policy whose function does not depend on the width (the zero-image control's:
+    graftcache.fit.controls.zero_image_projector) made for a cell of another cache's width, which an export grafts at
+    that cell's width. Exact only because every parameter whose shape depends on the width never trained: each must
+    still equal its init, else ValueError names it (the copy would be another policy). Parameters of the width's
+    shape (or outside the projector) are kept as saved."""
+    weights = [n for n in saved if (n == "proj.weight" or n.endswith(".proj.weight"))
+               and n.removesuffix("proj.weight") + "norm.weight" in saved]
+    if len(weights) != 1:
+        raise ValueError(f"no single graft projector among the saved parameters ({len(weights)} found)")
+    prefix = weights[0].removesuffix("proj.weight")
+    lm_width, was = saved[weights[0]].shape
+    if was == width:
+        return saved
+    old, new = build(was, lm_width).state_dict(), build(width, lm_width).state_dict()
+    out = dict(saved)
+    for key, init in old.items():
+        value = saved[prefix + key]
+        if value.shape == new[key].shape:
+            continue
+        if not torch.equal(value, init.to(value.dtype)):
+            raise ValueError(f"{prefix + key} trained away from its init, so the projector's function depends on "
+                             f"its width ({was})")
+        out[prefix + key] = new[key].to(value.dtype).contiguous()
+    return out

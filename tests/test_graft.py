@@ -7,7 +7,7 @@ import torch
 from torch import nn
 
 from graftcache.backbones.surgery import FreezeReport, PassThroughTower, freeze_all_but, freeze_report
-from graftcache.graft import FusedProjector, GraftProjector, PassThroughProjector, feature_key
+from graftcache.graft import FusedProjector, GraftProjector, PassThroughProjector, at_width, feature_key
 
 
 def test_feature_key_strips_the_image_prefix() -> None:
@@ -108,3 +108,28 @@ def test_fused_projector_gives_each_member_its_own_rows_and_gradients() -> None:
         fused(x)
     with pytest.raises(ValueError, match="must share their widths"):
         FusedProjector([GraftProjector(6, 4), GraftProjector(8, 4)])
+
+
+def test_at_width_rebuilds_only_untrained_width_tensors_and_refuses_trained_ones() -> None:
+    """A zero-image projector saved at width 12 becomes one of width 5 that maps zero features to the same tokens
+    (its trained bias kept, the width's tensors at their init); a projector whose width tensors trained is refused
+    by name, and equal widths give the saved dict itself."""
+    from graftcache.fit.controls import zero_image_projector
+
+    trained = zero_image_projector(12, 7)
+    with torch.no_grad():
+        trained.proj.bias.copy_(torch.arange(7.0))
+    saved = {f"model.connector.{k}": v.clone() for k, v in trained.state_dict().items()}
+    saved["model.lora_A"] = torch.ones(3)  # outside the projector: kept as it is
+    assert at_width(saved, zero_image_projector, 12) is saved
+    narrow = at_width(saved, zero_image_projector, 5)
+    assert narrow.keys() == saved.keys() and torch.equal(narrow["model.lora_A"], torch.ones(3))
+    rebuilt = zero_image_projector(5, 7)
+    rebuilt.load_state_dict({k.removeprefix("model.connector."): v for k, v in narrow.items() if "connector" in k})
+    assert torch.equal(rebuilt(torch.zeros(2, 3, 5)), trained(torch.zeros(2, 3, 12)))
+    assert torch.equal(rebuilt(torch.zeros(1, 1, 5))[0, 0], torch.arange(7.0))
+    saved["model.connector.norm.bias"][4] = 0.5  # trained: the function now depends on the width
+    with pytest.raises(ValueError, match=r"model\.connector\.norm\.bias trained away from its init, .*\(12\)"):
+        at_width(saved, zero_image_projector, 5)
+    with pytest.raises(ValueError, match="no single graft projector"):
+        at_width({"model.lora_A": torch.ones(3)}, zero_image_projector, 5)

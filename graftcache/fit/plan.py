@@ -24,10 +24,12 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from safetensors.torch import load_file, save_file
 
 from graftcache import results
 from graftcache.backbone_table import native_name
 from graftcache.backbones import get_backbone, registered_spec
+from graftcache.backbones.checkpoint import follow_umask
 from graftcache.backbones.tiny_record import resolve_policy
 from graftcache.cameras import format_camera_map, match_cameras, parse_camera_map, renames
 from graftcache.codecs import without_none
@@ -38,6 +40,7 @@ from graftcache.fit.data import split_episodes, suite_index_table
 from graftcache.fit.lookup import find_cache
 from graftcache.fit.objectives import EVAL_ONLY, OBJECTIVES, Objective
 from graftcache.fit.stream import FeatureSource
+from graftcache.graft import at_width
 from graftcache.hashing import sha256_bytes
 from graftcache.pooling import format_grid, parse_grid
 from graftcache.requests import FitRequest
@@ -300,12 +303,26 @@ class Plan:
 
     def copy_run_folder(self, cell: Cell, original: Path) -> bool:
         """Give `cell` the projector of the run folder `original` (an export reads it by run_id), its sidecar naming
-        this cell and the run it was copied from; False where that folder holds no projector."""
+        this cell and the run it was copied from; False where that folder holds no projector. A projector of another
+        feature width (a zero-image run of another cache) is rebuilt at the cell's (graftcache.graft.at_width), so
+        that the export grafts it as it grafts the cell's own."""
         if not (original / PROJECTOR_WEIGHTS).is_file():
             return False
         folder = self.run_folder(cell)
         folder.mkdir(parents=True, exist_ok=True)
-        shutil.copyfile(original / PROJECTOR_WEIGHTS, folder / PROJECTOR_WEIGHTS)
+        control = self.control(cell)
+        saved = load_file(str(original / PROJECTOR_WEIGHTS))
+        try:
+            widened = at_width(saved, control.projector, self.width(control))
+        except ValueError as e:
+            raise FitError(f"{original / PROJECTOR_WEIGHTS}: cannot be run {cell.run_id}'s projector: {e}") from None
+        partial = folder / f".{PROJECTOR_WEIGHTS}.partial-{os.getpid()}"
+        if widened is saved:
+            shutil.copyfile(original / PROJECTOR_WEIGHTS, partial)
+        else:
+            save_file(widened, str(partial))
+        follow_umask(partial)
+        os.replace(partial, folder / PROJECTOR_WEIGHTS)
         recorded = original / PROJECTOR_SIDECAR
         sidecar = json.loads(recorded.read_text()) if recorded.is_file() else {}
         sidecar.update(run_id=cell.run_id, cell=asdict(cell), copied_from=original.name)

@@ -681,10 +681,12 @@ def test_a_cell_whose_policy_is_another_runs_is_copied_not_refitted(world: World
     """One command, two encoders' requests into one results file, zero-image and native over seeds 0 and 1: the
     native cell of seed 1 is seed 0's policy and the second encoder's zero-image cells are the first's, so 3 cells
     are fitted and 3 rows copied, each said in one line; a copy keeps its own run_id, encoder and cache_key, the
-    original's scores, and gets the original's projector in its own run folder (what an export reads). A rerun
+    original's scores, and gets the original's projector at its own cache's width in its own run folder (what an
+    export reads: the copy exports, and its projector maps zero features as the original's export does). A rerun
     with a new seed fits it once and copies it for the other encoder from the row the file now holds."""
     from graftcache.executors.local import LocalExecutor
-    from graftcache.export.bundle import cell_of, run_folder
+    from graftcache.export.bundle import cell_of, export_run, run_folder
+    from graftcache.export.modeling_graftcache import GraftcachePolicy
     from graftcache.requests import ExecutorSettings
 
     tower = native_name("smolvla")
@@ -722,10 +724,28 @@ def test_a_cell_whose_policy_is_another_runs_is_copied_not_refitted(world: World
         assert copy["numerics_drift"] is None and copy["encoder_random_init"] is own and copy["wall_s"] == 0.0
         folder = run_folder(copy, path, None, None)
         assert folder == runs / copy["run_id"] and cell_of(copy, folder).run_id == copy["run_id"]
-        assert (folder / "projector.safetensors").read_bytes() == \
-            (runs / original["run_id"] / "projector.safetensors").read_bytes()
+        # the copy's projector is the original's at the copy's own cache width (the ViT's 192, the tower's grid):
+        # the width's tensors at the zero-image init, the Linear bias (all that trained) the original's
+        theirs = load_file(str(runs / original["run_id"] / "projector.safetensors"))
+        mine = load_file(str(folder / "projector.safetensors"))
+        width = FeatureCache(world.cache / copy["cache_key"]).manifest.encoder["width"]
+        prefix = "model.vlm_with_expert.vlm.model.connector."
+        assert theirs.keys() == mine.keys() and mine[prefix + "proj.weight"].shape[1] == width
+        assert theirs[prefix + "proj.weight"].shape[1] != width
+        assert not mine[prefix + "proj.weight"].any() and not mine[prefix + "norm.bias"].any()
+        assert torch.equal(mine[prefix + "norm.weight"], torch.ones(width))
+        assert torch.equal(mine[prefix + "proj.bias"], theirs[prefix + "proj.bias"])
         sidecar = json.loads((folder / "projector.json").read_text())
         assert sidecar["run_id"] == copy["run_id"] and sidecar["copied_from"] == original["run_id"]
+        if seed == 0:  # the copy exports and acts as its original: both projectors map zero features to one tensor
+            out = {}
+            for row in (original, copy):
+                exported = export_run(row["run_id"], path, tmp_path / f"export-{row['run_id']}", cache=str(world.cache),
+                                      runs=str(runs), log=_quiet)
+                projector = GraftcachePolicy.from_pretrained(exported).adapter.projector
+                out[row["run_id"]] = projector(torch.zeros(1, 4, projector.in_features))
+            assert torch.equal(out[original["run_id"]], out[copy["run_id"]])
+            assert out[copy["run_id"]].abs().sum() > 0
     assert sum("row copied, not refitted" in line for line in sweep((0, 1, 2))) == 2  # native 2, zero-image 2
     again = results.read(path).filter(pl.col("seed") == 2)
     assert again.height == 5  # the plain graft of each encoder, zero-image of each, native once
