@@ -26,6 +26,7 @@ def run(args: argparse.Namespace) -> int:
         from graftcache.demo_closed_loop import run_closed_loop_demo
 
         report = run_closed_loop_demo(args.recipe, args.out)
+        print("\n".join(report.findings))
     else:
         from graftcache.demo import run_demo
 

@@ -26,6 +26,7 @@ from graftcache.report.closed_loop_csv import (
     closed_loop_table,
     pairwise_table,
 )
+from graftcache.report.closed_loop_section import closed_loop_findings
 from graftcache.report.document import Block, Heading, Image
 from graftcache.report.figures import (
     FIGURES,
@@ -72,6 +73,8 @@ class ReportPaths:
     notes: tuple[str, ...] = ()  # how the backbones were ordered where the rows did not say (also in the report)
     closed_loop: Path | None = None  # closed_loop.csv (graftcache.report.closed_loop_csv), given rollouts
     pairwise: Path | None = None  # pairwise.csv (graftcache.report.closed_loop_csv), given rollouts
+    #: the closed-loop answers in lines, given rollouts (graftcache.report.closed_loop_section.closed_loop_findings)
+    findings: tuple[str, ...] = ()
 
 
 def write_report(
@@ -116,7 +119,7 @@ def write_report(
         closed_loop_table(a).write_csv(closed)
         pairwise_table(a).write_csv(pairs)
     figures = tuple(out / b.name for b in blocks if isinstance(b, Image))
-    return ReportPaths(md, page, figures, out / TRANSFER_CSV, a.ladder.notes, closed, pairs)
+    return ReportPaths(md, page, figures, out / TRANSFER_CSV, a.ladder.notes, closed, pairs, closed_loop_findings(a))
 
 
 def report_command(results_path: str | Path, out_dir: str | Path, *, command: str | None = None,
@@ -132,6 +135,8 @@ def report_command(results_path: str | Path, out_dir: str | Path, *, command: st
     paths = write_report(path, out_dir, commands={"report": cited}, score=score, rollouts=rollouts)
     for note in paths.notes:
         print(f"note: {note}", file=sys.stderr)
+    for line in paths.findings:
+        print(line)
     written = [paths.markdown, paths.html, paths.transfer, *(p for p in (paths.closed_loop, paths.pairwise) if p)]
     print("report: " + "\n        ".join(map(str, written)))
     return 0

@@ -58,6 +58,25 @@ def summary_sentence(r: Row, table: pl.DataFrame) -> str:
             + (f", {undecided} without a verdict" if undecided else "") + ").")
 
 
+def pair_sentence(r: Row, unit: str) -> str:
+    """One pair's two sides and verdict in a line (what `demo --closed-loop` prints; the table says it in columns)."""
+    return (f"{A.backbone_label(r['backbone'])} · {r['suite']} · {r['encoder_a']} − {r['encoder_b']}: offline "
+            f"{_difference(r, 'offline', '+.3g', '')} over {r['seeds']} seeds (better: {_better(r, 'offline')}), "
+            f"closed loop {_difference(r, 'closed', '+.3g', unit)} over {r['pairs']} pairs (better: "
+            f"{_better(r, 'closed')}): {r['verdict'] or 'no verdict'}.")
+
+
+def pairwise_lines(a: A.Analysis, measure: str, unit: str) -> list[str]:
+    """Per (backbone, suite): the "k of n pairs resolved by both agree" sentence, then each pair's line."""
+    table = in_backbone_order(a, a.closed_loop.pairwise.filter(pl.col("measure") == measure))
+    lines = []
+    for r in A.pairwise_summary(table).iter_rows(named=True):
+        lines.append(summary_sentence(r, table))
+        lines += [pair_sentence(p, unit) for p in table.filter(pl.col("backbone") == r["backbone"],
+                                                               pl.col("suite") == r["suite"]).iter_rows(named=True)]
+    return lines
+
+
 def looks_sentence(looks: A.Looks) -> str:
     """What a sequential rollout's looks spent and decided, and the error rate its levels hold."""
     last = looks.looks[-1]

@@ -12,8 +12,9 @@ from pathlib import Path
 import polars as pl
 
 from graftcache import analysis as A
-from graftcache.report.closed_loop_pairwise import pairwise_blocks
+from graftcache.report.closed_loop_pairwise import pairwise_blocks, pairwise_lines
 from graftcache.report.document import Block, Bullets, Heading, Paragraph
+from graftcache.report.dose_section import resolution_sentence
 from graftcache.report.figures import figure_blocks
 from graftcache.report.tables import BACKBONE, NOTE, Column, Row, col, in_backbone_order, num, table_block
 
@@ -168,6 +169,17 @@ def cell_columns(measures: list[str]) -> tuple[Column, ...]:
         *((f"{MEASURE_LABELS[m]}{' (m)' if m in UNITS else ''}", col(A.MEASURE_COLUMNS[m], num)) for m in graded),
         *((s, col(s, num)) for s in A.CLOSED_LOOP_SCORES),
     )
+
+
+def closed_loop_findings(a: A.Analysis) -> tuple[str, ...]:
+    """The closed-loop answers in lines, for a command to print (the report says each at length): the candidates'
+    agreement, the pairwise verdicts, the dose family's resolution; nothing without rollouts."""
+    if a.closed_loop is None or not len(a.closed_loop.cells):
+        return ()
+    doses = () if a.dose is None else in_backbone_order(a, a.dose.curves).iter_rows(named=True)
+    return (*headline_sentences(a.closed_loop, A.CANDIDATES),
+            *pairwise_lines(a, HEADLINE_MEASURE, _unit(HEADLINE_MEASURE)),
+            *(resolution_sentence(r) for r in doses))
 
 
 def closed_loop_section(a: A.Analysis, out: Path) -> list[Block]:

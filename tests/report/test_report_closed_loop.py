@@ -102,6 +102,28 @@ def test_the_candidates_lead_then_controls_then_the_pairwise_verdicts(written: t
     assert "| SmolVLA | libero_spatial | dinov2-s | siglip | 2 | +0.125 [" in md and "| closed loop only |" in md
 
 
+def test_the_findings_a_command_prints_are_the_candidates_then_each_pair(written: tuple) -> None:
+    """ReportPaths.findings (what `demo --closed-loop` and `report --rollouts` print): per suite the candidates'
+    agreement line as the report writes it, then the pairwise summary and each pair's line, its offline interval the
+    paired t interval of the two seeds' differences (scipy), its closed-loop one +0.03 m on every pair; no dose rows,
+    no resolution line."""
+    from scipy import stats
+
+    paths, a = written
+    md = paths.markdown.read_text()
+    heads = [line for line in paths.findings if " · candidates: " in line]
+    assert len(heads) == 2 and all(f"- {h}" in md for h in heads) and paths.findings[0] == heads[0]
+    offline = np.array([1.00 - 0.90, 1.10 - 0.95])
+    low, high = stats.t.interval(0.95, 1, loc=offline.mean(), scale=stats.sem(offline))
+    pair = (f"SmolVLA · libero_spatial · dinov2-s − siglip: offline {offline.mean():+.3g} [{low:+.3g}, {high:+.3g}] "
+            f"over 2 seeds (better: not resolved), closed loop +0.03 m [+0.03, +0.03] over 6 pairs (better: "
+            f"siglip): closed loop only.")
+    summary = ("SmolVLA · libero_spatial: 0 of 0 pairs resolved by both agree (1 pair of candidate encoders: 0 "
+               "offline only, 1 closed loop only, 0 neither).")
+    assert paths.findings[-2:] == (summary, pair)
+    assert len(paths.findings) == 2 + 2 * 2 and not any("resolution" in line for line in paths.findings)
+
+
 def test_pairwise_csv_holds_the_verdicts_typed(written: tuple) -> None:
     paths, a = written
     csv = pl.read_csv(paths.pairwise, schema=report.PAIRWISE_CSV_SCHEMA)

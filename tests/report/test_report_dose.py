@@ -33,6 +33,9 @@ def test_the_report_states_each_curve_and_its_resolution(tmp_path: Path) -> None
     # dinov2-s: only its stand-in blind cells (siglip's zero-image) were rolled out
     assert ("SmolVLA / libero_object / dinov2-s (3 doses): offline monotone, closed loop without a measured step; "
             "resolution undefined: no step confirmed by the closed loop at the 12 episodes spent.") in md
+    # what a command prints ends with each curve's resolution line, as the report states it
+    assert [line for line in paths.findings if "eval_mse (the smallest" in line or "resolution undefined" in line] \
+        == list(paths.findings[-2:]) and all(f"- {line}" in md for line in paths.findings[-2:])
     # the step that sets the resolution: confirmed by 12 pairs, not resolved offline by 3 seeds
     assert ("| SmolVLA | libero_object | siglip | 0.25 → 0.5 | 0.02 [-0.004841, 0.04484] | 0.011 [0.010, 0.011] | no | "
             "12 | yes |") in md
