@@ -16,7 +16,7 @@ setup-libero:
 demo: setup
 	.venv/bin/graftcache demo
 
-# the demo's cells in the LIBERO simulator, for the offline-vs-closed-loop figure (README, "Closed-loop checks")
+# the demo's cells in the LIBERO simulator, for the offline-vs-closed-loop figure (docs/closed-loop.md)
 demo-closed-loop: setup-libero
 	.venv/bin/graftcache demo --closed-loop
 

@@ -24,8 +24,8 @@ simulator's state (graftcache.rollout.graded): how close the end effector comes 
   again for the candidate pairs whose closed-loop order is still unresolved, up to `until_resolved`, so episodes go
   where they decide a pairwise verdict (the report states the error rate the looks hold);
 - the paired cells on twice the figure's first look: the paired check rests on one native cell against two
-  zero-image cells, so its power comes from paired episodes alone (README, "The closed-loop demo", has the
-  measurements behind the count);
+  zero-image cells, so its power comes from paired episodes alone (docs/closed-loop.md, "The closed-loop demo",
+  has the measurements behind the count);
 - every episode on a perturbed scene: libero_object's official init states place the target identically, so a
   policy blind to its cameras could still reach it; the sample's own perturbation (data/render_sample.py, 3 cm) is
   what made its actions depend on the images.

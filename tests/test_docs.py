@@ -1,5 +1,5 @@
-"""The docs cite only code that exists: every path, dotted name and contract member in
-docs/ARCHITECTURE.md, README.md and data/README.md is looked up, so a doc that drifts fails here.
+"""The docs cite only code that exists: every path, dotted name and contract member in README.md, data/README.md
+and every page under docs/ is looked up, so a doc that drifts fails here.
 
 The citation convention (stated at the top of docs/ARCHITECTURE.md): paths from the repository root,
 Python objects as dotted names from the package, and contract blocks headed `graftcache.x.Class ...:`
@@ -21,7 +21,10 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-DOCS = ("docs/ARCHITECTURE.md", "README.md", "data/README.md")
+#: the reference pages README.md sends readers to (README.md, "Read on")
+PAGES = tuple(sorted(str(p.relative_to(ROOT)) for p in (ROOT / "docs").glob("*.md")))
+DOCS = ("README.md", "data/README.md", *PAGES)
+README_LINES = 150
 # the repository's top-level folders: a citation starting with one of them is a path that must exist
 TOP_DIRS = (".ci", "benchmarks", "cli", "data", "docs", "graftcache", "notebooks", "scripts", "tests")
 FILE_SUFFIXES = ("py", "md", "html", "toml", "json", "ipynb", "sh", "parquet", "png", "safetensors", "txt")
@@ -134,6 +137,15 @@ def problems(text: str) -> list[str]:
                 if member and not _has_member(owner, member.group(1)):
                     out.append(f"{head.group(2)} has no member {member.group(1)}")
     return out
+
+
+def test_the_readme_is_short_and_sends_readers_to_every_page() -> None:
+    """README.md is read to the end (at most README_LINES lines) and the reference lives under docs/: its "Read on"
+    list names every page there, and every page it names exists (test_every_citation_resolves)."""
+    readme = (ROOT / "README.md").read_text(encoding="utf-8")
+    assert len(readme.splitlines()) <= README_LINES
+    read_on = readme.split("## Read on", 1)[1]
+    assert [page for page in PAGES if f"`{page}`" not in read_on] == []
 
 
 def test_top_level_folders_exist() -> None:
@@ -268,7 +280,7 @@ def test_a_retired_name_is_found_wherever_the_code_uses_it() -> None:
 #: where the glossary's forbidden patterns and dotted names in prose are looked for (besides DOCS_SEARCHED)
 PROSE_DIRS = ("graftcache",)
 #: the docs whose text the forbidden patterns search (their `## Glossary` section, which defines the words, aside)
-DOCS_SEARCHED = ("README.md", "docs/ARCHITECTURE.md")
+DOCS_SEARCHED = ("README.md", *PAGES)
 
 
 def glossary_rules(text: str) -> dict[str, list[re.Pattern]]:
@@ -420,13 +432,15 @@ def _lerobot_extras() -> set[str]:
     return set(lerobot.split("[", 1)[1].split("]", 1)[0].split(","))
 
 
-def test_the_readme_names_every_backbone_and_the_extra_that_installs_it() -> None:
-    """README.md's list of backbones and of lerobot extras are the registry's: each spec's label and extra."""
+def test_the_readme_names_every_backbone_and_the_set_up_the_extra_that_installs_it() -> None:
+    """README.md's list of backbones and docs/setup.md's of lerobot extras are the registry's: each spec's label and
+    extra."""
     readme = (ROOT / "README.md").read_text(encoding="utf-8")
+    setup = (ROOT / "docs/setup.md").read_text(encoding="utf-8")
     specs = _specs()
     assert [n for n, s in specs.items() if s.label not in readme] == [], "README.md lacks their BackboneSpec.label"
-    assert [n for n, s in specs.items() if s.lerobot_extra and f"`{s.lerobot_extra}`" not in readme] == [], \
-        "README.md's set-up does not name their BackboneSpec.lerobot_extra"
+    assert [n for n, s in specs.items() if s.lerobot_extra and f"`{s.lerobot_extra}`" not in setup] == [], \
+        "docs/setup.md does not name their BackboneSpec.lerobot_extra"
 
 
 def test_pyproject_installs_every_backbone_s_lerobot_extra() -> None:
@@ -447,17 +461,18 @@ def test_the_module_map_describes_only_registered_backbones() -> None:
     assert sorted(named - set(BACKBONES)) == []
 
 
-def test_the_readme_states_the_current_formats_by_their_constants() -> None:
-    """README.md names the cache and results formats by the constants that decide them, never by a digit that goes
-    stale when a format is added (it said results format 4 while the code wrote 5), and mentions no results format
-    past the current one."""
+def test_the_docs_state_the_current_formats_by_their_constants() -> None:
+    """docs/commands.md names the cache and results formats by the constants that decide them, never by a digit that
+    goes stale when a format is added (it said results format 4 while the code wrote 5), and no page mentions a
+    results format past the current one."""
     from graftcache import results
 
-    readme = " ".join((ROOT / "README.md").read_text(encoding="utf-8").split())
+    readme = " ".join((ROOT / "docs/commands.md").read_text(encoding="utf-8").split())
     assert ("Caches carry a format version (`graftcache.store.manifest.FORMAT_VERSION`), results files their own "
             "(`graftcache.results.FORMAT_VERSION`)") in readme
     assert re.findall(r"(?:format version|their own) \(\d+\)", readme) == []
-    named = [int(n) for n in re.findall(r"results (?:files? )?(?:of )?format (\d+)", readme)]
+    every = " ".join(" ".join((ROOT / doc).read_text(encoding="utf-8").split()) for doc in DOCS)
+    named = [int(n) for n in re.findall(r"results (?:files? )?(?:of )?format (\d+)", every)]
     assert [n for n in named if n > results.FORMAT_VERSION] == []
 
 

@@ -21,7 +21,7 @@ at tiny size no gain stood out of the noise, and at SmolVLA's released size the 
 cell of a pass holds its own shuffle buffer (benchmarks/results/bench_fuse_cpu_run1.json, bench_fuse_cpu_run2.json,
 bench_fuse_cpu_smolvla_released.json). On CUDA, 4 for SmolVLA, whose step is latency-bound, and 1 for pi0.5, which
 is near its MFU alone and memory-bound at the paper's batch (benchmarks/results/gpu_check_*.json, one per card;
-README.md's GPU table quotes them).
+docs/scale.md's GPU table quotes them).
 A pass that would not fit is refused before its first step (graftcache.fit.step_memory,
 naming --cells-per-pass).
 """
