@@ -148,7 +148,7 @@ def export_run(run_id: str, results_path: str | Path, out: str | Path, *, cache:
     except OSError as e:  # named by the folder the user chose, not by the temporary name it could not make
         raise OSError(e.errno, e.strerror, str(out.parent)) from None
     try:
-        config._save_pretrained(partial)
+        config.save_pretrained(partial)
         (partial / MANIFEST_FILE).write_text(json.dumps({"key": feature_cache.key,
                                                           "manifest": feature_cache.manifest.to_dict()}, default=str))
         if control.train:

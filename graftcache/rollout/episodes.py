@@ -1,6 +1,6 @@
-"""What a rollout plans and what an episode returns, as plain data, and the seam between the rollout's bookkeeping
-(graftcache.rollout.run) and whatever runs the episodes (graftcache.rollout.libero.LiberoSimulator, or a test's
-fake): a `Simulator` says what a suite is and runs a cell's episodes."""
+"""What a rollout plans and what an episode returns, as plain data, and the interface between the rollout's
+bookkeeping (graftcache.rollout.run) and whatever runs the episodes (graftcache.rollout.libero.LiberoSimulator, or a
+test's fake): a `Simulator` says what a suite is and runs a cell's episodes."""
 
 from __future__ import annotations
 

@@ -4,10 +4,10 @@ never moves). The measures follow SIMPLER's partial-success measures (Li et al. 
 Manipulation Policies in Simulation", arXiv 2405.05941: grasped, consecutive grasp steps, lifted, moved towards the
 goal), read from the state rather than the images, so they are exact.
 
-`read_state` is the thin reader of the simulator (LIBERO's problem env: a robosuite env built from the task's BDDL),
-called after the reset and after every step; everything else is pure functions over the recorded `State`s, tested
-on hand-built sequences. The target is the task's first object of interest (`obj_of_interest[0]`, parsed from its
-BDDL: the object to pick first).
+graftcache.rollout.seam.read_state is the thin reader of the simulator (LIBERO's problem env: a robosuite env built
+from the task's BDDL), called after the reset and after every step; here are pure functions over the recorded
+`State`s, tested on hand-built sequences. The target is the task's first object of interest (`obj_of_interest[0]`,
+parsed from its BDDL: the object to pick first).
 """
 
 from __future__ import annotations
@@ -100,19 +100,3 @@ def measure(target: str, states: Sequence[State]) -> Graded:
 def target_of(sim: Any) -> str:
     """The task's first object of interest (its BDDL's :obj_of_interest), the object the measures follow."""
     return sim.obj_of_interest[0]
-
-
-def read_state(sim: Any, target: str) -> State:
-    """The State of LIBERO's problem env `sim` (lerobot LiberoEnv._env.env) now, read from MuJoCo's data: the grip
-    site's and the target body's world positions (what robosuite's `robot0_eef_pos` and `<target>_pos` observe),
-    robosuite's own `_check_grasp` over both fingers' whole geoms (finger and pad) against the target's contact
-    geoms, and LIBERO's own `_eval_predicate` on each goal predicate (what `_check_success` conjoins)."""
-    data = sim.sim.data
-    robot = sim.robots[0]
-    fingers = robot.gripper.important_geoms
-    goals = sim.parsed_problem["goal_state"]
-    return State(eef=tuple(float(v) for v in data.site_xpos[robot.eef_site_id]),
-                 target=tuple(float(v) for v in data.body_xpos[sim.obj_body_id[target]]),
-                 grasping=bool(sim._check_grasp(gripper=[fingers["left_finger"], fingers["right_finger"]],
-                                                object_geoms=sim.get_object(target))),
-                 goals_met=sum(bool(sim._eval_predicate(g)) for g in goals), goals=len(goals))

@@ -48,8 +48,9 @@ from typing import Any
 import numpy as np
 
 from graftcache.errors import RolloutError
+from graftcache.rollout import seam
 from graftcache.rollout.episodes import Episode, Outcome, Suite
-from graftcache.rollout.graded import State, measure, read_state, target_of
+from graftcache.rollout.graded import State, measure, target_of
 
 #: the observation size of LIBERO's datasets (lerobot's env defaults to 360)
 OBSERVATION_SIZE = 256
@@ -138,17 +139,11 @@ def quiet_inner_bars() -> Iterator[None]:
     """lerobot's rollout draws a bar of its own per episode; off a terminal (a log) it would write a redraw per step,
     so it is disabled there and the rollout's own sparse lines remain (graftcache.progress); in a team worker too
     (graftcache.rollout.workers), where N of them would fight over the rollout's own bar."""
-    from lerobot.scripts import lerobot_eval
-    from tqdm import trange
-
     if sys.stderr.isatty() and multiprocessing.parent_process() is None:
         yield
         return
-    lerobot_eval.trange = lambda *args, **kwargs: trange(*args, **{**kwargs, "disable": True})  # it passes its own
-    try:
+    with seam.inner_bars_off():
         yield
-    finally:
-        lerobot_eval.trange = trange
 
 
 @contextmanager
@@ -175,7 +170,7 @@ def record_frame(frames: list[np.ndarray], env: Any) -> None:
 def problem_of(env: Any) -> Any:
     """LIBERO's problem env (the robosuite env built from the task's BDDL) inside lerobot's one-env vector env:
     LiberoEnv -> hf-libero's OffScreenRenderEnv -> its env."""
-    return env.envs[0].unwrapped._env.env
+    return seam.problem(env.envs[0])
 
 
 def observe(states: list[State], frames: list[np.ndarray] | None, env: Any) -> None:
@@ -184,7 +179,7 @@ def observe(states: list[State], frames: list[np.ndarray] | None, env: Any) -> N
     if frames is not None:
         record_frame(frames, env)
     sim = problem_of(env)
-    states.append(read_state(sim, target_of(sim)))
+    states.append(seam.read_state(sim, target_of(sim)))
 
 
 class LiberoSimulator:
@@ -202,10 +197,10 @@ class LiberoSimulator:
         self._cell: tuple[str, tuple[Any, ...]] | None = None  # (run_id, its policy and processors): `loaded`
 
     def suite(self, name: str) -> Suite:
-        from lerobot.envs.libero import TASK_SUITE_MAX_STEPS, _get_suite
+        from lerobot.envs.libero import TASK_SUITE_MAX_STEPS
 
         with simulator_chatter():
-            n_tasks = len(_get_suite(name).tasks)
+            n_tasks = seam.suite_tasks(name)
         return Suite(n_tasks=n_tasks, max_steps=self.max_steps or TASK_SUITE_MAX_STEPS[name])
 
     def export(self, row: Mapping[str, Any]) -> Path:
@@ -275,11 +270,10 @@ class LiberoSimulator:
             with quiet_inner_bars(), torch.no_grad():
                 for episode in episodes:
                     env = self.env(episode.suite, episode.task_index, episode.reset)
-                    scene, libero_env = env.envs[0], env.envs[0].unwrapped
-                    n_states = len(libero_env._init_states)  # the task's official init states, as the env loaded them
-                    libero_env.init_state_id = episode.episode  # lerobot-eval's k-th reset of a fresh env
-                    scene.scene = ((libero_env._init_states[episode.episode % n_states], episode.perturbation_m,
-                                    episode.seed, episode.task_index) if episode.perturbation_m else None)
+                    scene = env.envs[0]
+                    index, init_state = seam.start_from(scene, episode.episode)  # lerobot-eval's k-th reset
+                    scene.scene = ((init_state, episode.perturbation_m, episode.seed, episode.task_index)
+                                   if episode.perturbation_m else None)
                     set_seed(episode.seed)
                     frames: list[np.ndarray] | None = [] if self.videos else None
                     states: list[State] = []
@@ -290,7 +284,7 @@ class LiberoSimulator:
                     seconds = time.perf_counter() - start
                     done = int(torch.argmax(data["done"][0].to(int)))  # eval_policy's first done step
                     yield Outcome(success=bool(data["success"][0, : done + 1].any()), steps=done + 1,
-                                  seconds=seconds, init_state=episode.episode % n_states,
+                                  seconds=seconds, init_state=index,
                                   frames=np.stack(frames[: done + 2]) if frames is not None else None,  # all of them
                                   fps=env.unwrapped.metadata["render_fps"] if self.videos else None,
                                   graded=measure(target_of(problem_of(env)), states[: done + 2]),

@@ -15,7 +15,6 @@ scene.
 from __future__ import annotations
 
 from collections.abc import Iterator
-from contextlib import contextmanager
 from typing import Any
 
 import gymnasium as gym
@@ -60,7 +59,7 @@ def place_target(env: Any, target: str, init_state: np.ndarray, offset: np.ndarr
         raise RolloutError(f"the task's target {target} is a fixture, not a free object: --perturb-cm moves only "
                            "objects; roll out this task without it")
     joint = problem.objects_dict[target].joints[-1]
-    with frames_reused(problem.sim):  # only the last step's images are kept
+    with seam.frames_reused(problem.sim):  # only the last step's images are kept
         obs = env.set_init_state(init_state)
         quat_before = np.array(obs[f"{target}_quat"])
         qpos = problem.sim.data.get_joint_qpos(joint).copy()
@@ -71,32 +70,6 @@ def place_target(env: Any, target: str, init_state: np.ndarray, offset: np.ndarr
             env.step(NOOP)
     obs, _, _, _ = env.step(NOOP)
     return obs, settled(qpos[:2], obs[f"{target}_pos"][:2], quat_before, obs[f"{target}_quat"])
-
-
-@contextmanager
-def frames_reused(sim: Any) -> Iterator[None]:
-    """Inside, each camera view robosuite's MjSim `sim` is asked for is rendered once and that image returned again:
-    for steps whose images nobody keeps (the settling before its last step). The physics never reads an image, so the
-    scene evolves exactly as it would, and rendering is most of a step's cost (2 cameras at 256 px, ~90 ms each, read
-    back from an offscreen context on CPU). lerobot's reset, whose scene a perturbation replaces, renders nothing
-    with a soft reset (PerturbedReset, graftcache.rollout.seam); a hard one builds a new MjSim, out of reach."""
-    render, own = sim.render, "render" in vars(sim)
-    seen: dict[Any, Any] = {}
-
-    def once(*args: Any, **kwargs: Any) -> Any:
-        key = (args, tuple(sorted(kwargs.items())))
-        if key not in seen:
-            seen[key] = render(*args, **kwargs)
-        return seen[key]
-
-    sim.render = once
-    try:
-        yield
-    finally:
-        if own:
-            sim.render = render
-        else:
-            del sim.render
 
 
 def perturb_target(env: Any, target: str, init_state: np.ndarray, max_m: float,
@@ -138,10 +111,10 @@ class PerturbedReset(gym.Wrapper):
         self.offset = np.zeros(2)
         if self.scene is not None:
             init_state, max_m, episode_seed, task = self.scene
-            libero = self.env.unwrapped
-            raw, self.offset = perturb_target(libero._env, target_of(libero._env.env), init_state, max_m,
+            libero = seam.libero_env(self)
+            raw, self.offset = perturb_target(libero, target_of(libero.env), init_state, max_m,
                                               rng_of(episode_seed, task))
-            obs = libero._format_raw_obs(raw)
+            obs = seam.observation(self, raw)
         return obs, info
 
     def _rendering_the_observation_only(self, seed: int | None, options: dict | None) -> tuple[Any, dict]:

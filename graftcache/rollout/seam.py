@@ -1,16 +1,30 @@
-"""Where graftcache's episode reset reaches past the public API of lerobot's LIBERO env and of hf-libero's, in one
-place: what the fast reset (`graftcache rollout --reset soft`) needs of their insides, each reach named here, and the
-versions they were read in (WRITTEN_AGAINST). A newer lerobot may move any of them; a soft reset that rebuilt the
-simulator, or whose observation was not rendered (graftcache.rollout.perturb.PerturbedReset checks `Renders`), is
-refused rather than feeding the policy a blank image.
+"""Every reach of graftcache's past the public API of lerobot, hf-libero and robosuite, in one module: a private
+attribute read, an attribute of theirs written, a function of theirs patched. The rest of graftcache calls the
+functions here (tests/rollout/test_seam.py fails on a reach anywhere else; lerobot's VLAs, which the backbone
+adapters under graftcache/backbones/ reach into, are a house of their own). Their insides move between releases
+without notice, so the versions this module was read in (WRITTEN_AGAINST) are checked as it is imported: another
+installed version is refused in one line naming both and the pin, before any episode, rather than failing deep in
+one with a traceback.
 
-The fast reset is two things. lerobot's own soft reset (its LIBERO config's `hard_reset=False`: robosuite's
-`sim.reset()` instead of a new MjSim and render context each episode; the init state is set over it either way).
-And renders skipped: lerobot's reset renders both cameras on robosuite's reset, on setting the init state and on each
-of its settling no-op steps, and only the last step's images become the observation. The physics never reads an
-image, so skipping the others leaves every state as it was; `renders_from` gates the MjSim's render by robosuite's
-step counter, which a soft reset keeps counting on the same MjSim (a hard reset builds a new one, whose renders it
-cannot reach: there the gate is not installed).
+What is reached, and why:
+- lerobot's LiberoEnv: its hf-libero env (`_env`, built by `_ensure_env`), its init states (`_init_states`) and the
+  counter its reset reads them by (`init_state_id`: episode k starts from init state k whatever ran before), its
+  formatting of a raw observation (`_format_raw_obs`, for a perturbed scene's), its settling steps and cameras; the
+  suites it is built from (`lerobot.envs.libero._get_suite`); lerobot-eval's per-episode bar
+  (`lerobot.scripts.lerobot_eval.trange`, patched off).
+- LIBERO's problem env (robosuite's, built from the task's BDDL): the grasp check and the goal predicates the graded
+  measures read (`_check_grasp`, `_eval_predicate`).
+- robosuite's MjSim render (patched, for the renders nobody sees) and each gripper's held command.
+
+The fast reset (`graftcache rollout --reset soft`) is two things. lerobot's own soft reset (its LIBERO config's
+`hard_reset=False`: robosuite's `sim.reset()` instead of a new MjSim and render context each episode; the init state
+is set over it either way). And renders skipped: lerobot's reset renders both cameras on robosuite's reset, on setting
+the init state and on each of its settling no-op steps, and only the last step's images become the observation. The
+physics never reads an image, so skipping the others leaves every state as it was; `renders_from` gates the MjSim's
+render by robosuite's step counter, which a soft reset keeps counting on the same MjSim (a hard reset builds a new
+one, whose renders it cannot reach: there the gate is not installed). A soft reset that rebuilt the simulator, or
+whose observation was not rendered (graftcache.rollout.perturb.PerturbedReset checks `Renders`), is refused rather
+than feeding the policy a blank image.
 """
 
 from __future__ import annotations
@@ -18,14 +32,46 @@ from __future__ import annotations
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
+from importlib import metadata
 from typing import Any
 
 import numpy as np
 
 from graftcache.errors import RolloutError
+from graftcache.rollout.graded import State
 
 #: the versions whose insides this module was read in
 WRITTEN_AGAINST = {"lerobot": "0.6.1", "hf-libero": "0.1.4", "robosuite": "1.4.0"}
+
+
+def installed(distribution: str) -> str | None:
+    """The installed version of `distribution`, None when it is not installed."""
+    try:
+        return metadata.version(distribution)
+    except metadata.PackageNotFoundError:
+        return None
+
+
+def check_versions() -> None:
+    """Refuse, in one line naming both versions and the pin, an installed lerobot, hf-libero or robosuite other than
+    WRITTEN_AGAINST's. One not installed passes: graftcache.rollout.libero.require_simulator names its set-up."""
+    other = {name: found for name, want in WRITTEN_AGAINST.items() if (found := installed(name)) not in (None, want)}
+    if other:
+        written = ", ".join(f"{name} {WRITTEN_AGAINST[name]}" for name in other)
+        found = ", ".join(f"{name} {version}" for name, version in other.items())
+        pins = " ".join(f"{name}=={WRITTEN_AGAINST[name]}" for name in other)
+        raise RolloutError(f"graftcache/rollout/seam.py was written against {written}, not the installed {found}: "
+                           f"pin {pins}")
+
+
+check_versions()
+
+
+def suite_tasks(name: str) -> int:
+    """The number of tasks of LIBERO suite `name`, in the benchmark lerobot builds its envs from."""
+    from lerobot.envs.libero import _get_suite
+
+    return len(_get_suite(name).tasks)
 
 
 def libero_env(scene: Any) -> Any:
@@ -36,9 +82,65 @@ def libero_env(scene: Any) -> Any:
     return lerobot_env._env
 
 
+def problem(scene: Any) -> Any:
+    """LIBERO's problem env (the robosuite env built from the task's BDDL) inside lerobot's LiberoEnv `scene`."""
+    return libero_env(scene).env
+
+
 def settle_steps(scene: Any) -> int:
     """The no-op steps lerobot's reset settles the scene with (LiberoEnv.num_steps_wait)."""
     return int(scene.unwrapped.num_steps_wait)
+
+
+def cameras(scene: Any) -> int:
+    """The camera images an observation of `scene` holds (lerobot's LiberoEnv.camera_name)."""
+    return len(scene.unwrapped.camera_name)
+
+
+def start_from(scene: Any, k: int) -> tuple[int, np.ndarray]:
+    """Make lerobot's next reset of `scene` the k-th reset of a freshly built env, as lerobot-eval's episode k is:
+    LiberoEnv.init_state_id, which its reset reads and then advances, set to k. Returns the init state that reset
+    sets: its index among the task's official init states as the env loaded them (k modulo their number), and it."""
+    lerobot_env = scene.unwrapped
+    states = lerobot_env._init_states
+    lerobot_env.init_state_id = k
+    return k % len(states), states[k % len(states)]
+
+
+def observation(scene: Any, raw: dict) -> Any:
+    """lerobot's observation of hf-libero's raw observation `raw` (LiberoEnv._format_raw_obs), as its reset and
+    step return it."""
+    return scene.unwrapped._format_raw_obs(raw)
+
+
+@contextmanager
+def inner_bars_off() -> Iterator[None]:
+    """Inside, lerobot's rollout draws no bar of its own: lerobot-eval's trange, which it calls once per episode,
+    made disabled (over the arguments it passes)."""
+    from lerobot.scripts import lerobot_eval
+    from tqdm import trange
+
+    lerobot_eval.trange = lambda *args, **kwargs: trange(*args, **{**kwargs, "disable": True})
+    try:
+        yield
+    finally:
+        lerobot_eval.trange = trange
+
+
+def read_state(sim: Any, target: str) -> State:
+    """The State of LIBERO's problem env `sim` (`problem`) now, read from MuJoCo's data: the grip site's and the
+    target body's world positions (what robosuite's `robot0_eef_pos` and `<target>_pos` observe), robosuite's own
+    `_check_grasp` over both fingers' whole geoms (finger and pad) against the target's contact geoms, and LIBERO's
+    own `_eval_predicate` on each goal predicate (what `_check_success` conjoins)."""
+    data = sim.sim.data
+    robot = sim.robots[0]
+    fingers = robot.gripper.important_geoms
+    goals = sim.parsed_problem["goal_state"]
+    return State(eef=tuple(float(v) for v in data.site_xpos[robot.eef_site_id]),
+                 target=tuple(float(v) for v in data.body_xpos[sim.obj_body_id[target]]),
+                 grasping=bool(sim._check_grasp(gripper=[fingers["left_finger"], fingers["right_finger"]],
+                                                object_geoms=sim.get_object(target))),
+                 goals_met=sum(bool(sim._eval_predicate(g)) for g in goals), goals=len(goals))
 
 
 @dataclass
@@ -56,12 +158,12 @@ def renders_from(scene: Any, step: int | None) -> Iterator[Renders]:
     policy step in progress after) is below `step` (None: all of them), and rendered from it on. Blank images
     must never reach a policy: the caller checks `Renders.done` against the images it keeps. The MjSim must outlive
     the block (a soft reset: a hard one replaces it, and the gate with it)."""
-    problem = libero_env(scene).env
-    sim, counts = problem.sim, Renders()
+    problem_env = problem(scene)
+    sim, counts = problem_env.sim, Renders()
     render, own = sim.render, "render" in vars(sim)
 
     def gated(*args: Any, camera_name: str, width: int, height: int, depth: bool = False, **kwargs: Any) -> Any:
-        if step is not None and problem.timestep >= step:
+        if step is not None and problem_env.timestep >= step:
             counts.done += 1
             return render(*args, camera_name=camera_name, width=width, height=height, depth=depth, **kwargs)
         if depth or args or kwargs:
@@ -74,7 +176,7 @@ def renders_from(scene: Any, step: int | None) -> Iterator[Renders]:
     try:
         yield counts
     finally:
-        rebuilt = problem.sim is not sim
+        rebuilt = problem_env.sim is not sim
         if own:
             sim.render = render
         else:
@@ -85,14 +187,35 @@ def renders_from(scene: Any, step: int | None) -> Iterator[Renders]:
                            "--reset hard")
 
 
+@contextmanager
+def frames_reused(sim: Any) -> Iterator[None]:
+    """Inside, each camera view robosuite's MjSim `sim` is asked for is rendered once and that image returned again:
+    for steps whose images nobody keeps (a perturbation's settling before its last step). The physics never reads
+    an image, so the scene evolves exactly as it would, and rendering is most of a step's cost (2 cameras at 256 px,
+    read back from an offscreen context on CPU). lerobot's reset, whose scene a perturbation replaces, renders
+    nothing with a soft reset (`renders_from`); a hard one builds a new MjSim, out of reach."""
+    render, own = sim.render, "render" in vars(sim)
+    seen: dict[Any, Any] = {}
+
+    def once(*args: Any, **kwargs: Any) -> Any:
+        key = (args, tuple(sorted(kwargs.items())))
+        if key not in seen:
+            seen[key] = render(*args, **kwargs)
+        return seen[key]
+
+    sim.render = once
+    try:
+        yield
+    finally:
+        if own:
+            sim.render = render
+        else:
+            del sim.render
+
+
 def release_grippers(scene: Any) -> None:
     """Forget the gripper command each robot's gripper holds (robosuite's gripper.current_action, which its grippers
     integrate each step), as a hard reset's newly built grippers start: robosuite 1.4.0's soft reset keeps the last
     episode's, so the settling steps would open the gripper from where the last episode left it."""
     for robot in libero_env(scene).robots:
         robot.gripper.current_action = np.zeros(robot.gripper.dof)
-
-
-def cameras(scene: Any) -> int:
-    """The camera images an observation of `scene` holds (lerobot's LiberoEnv.camera_name)."""
-    return len(scene.unwrapped.camera_name)

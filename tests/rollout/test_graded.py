@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from graftcache.rollout.graded import GRASP_STATES, State, longest_run, measure, target_lift
-from graftcache.rollout.perturb import MAX_DRAWS, frames_reused, offsets, rng_of, settled
+from graftcache.rollout.perturb import MAX_DRAWS, offsets, rng_of, settled
 
 
 def _state(eef: tuple[float, float, float], target: tuple[float, float, float], grasping: bool = False,
@@ -92,25 +92,3 @@ def test_settled_means_within_5_mm_and_the_same_orientation() -> None:
     assert settled(np.array([0.0, 0.0]), np.array([0.0, 0.0]), q, np.array([0, 0, np.sin(half), np.cos(half)]))
 
 
-class _Sim:
-    """robosuite's MjSim as a camera sensor calls it: render(camera_name=, width=, height=, depth=)."""
-
-    def __init__(self) -> None:
-        self.calls: list[str] = []
-
-    def render(self, *, camera_name: str, width: int, height: int, depth: bool = False) -> np.ndarray:
-        self.calls.append(camera_name)
-        return np.full((height, width, 3), len(self.calls), np.uint8)
-
-
-def test_frames_reused_renders_each_view_once_inside_and_every_time_after() -> None:
-    sim = _Sim()
-    with frames_reused(sim):
-        first = [sim.render(camera_name=c, width=4, height=2) for c in ("agentview", "wrist", "agentview", "wrist")]
-        other_size = sim.render(camera_name="wrist", width=8, height=8)
-    assert sim.calls == ["agentview", "wrist", "wrist"]  # each (view, size) once
-    assert first[2] is first[0] and first[3] is first[1] and int(first[1][0, 0, 0]) == 2
-    assert other_size.shape == (8, 8, 3)
-    assert "render" not in vars(sim)  # the class's method again
-    after = sim.render(camera_name="agentview", width=4, height=2)
-    assert sim.calls[-1] == "agentview" and int(after[0, 0, 0]) == 4

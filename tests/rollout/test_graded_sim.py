@@ -45,9 +45,10 @@ def test_the_samples_scripted_grasp_replayed_reaches_grasps_and_lifts(simulator:
     from it (carried), 0 of 1 goal predicates (not in the basket). The assertions leave margins a few mm to cm
     wide around these for another CPU's floating point, and each is one no policy that fails to reach would meet:
     the soup starts 33 cm away."""
-    from graftcache.rollout.graded import longest_run, measure, read_state, target_of
+    from graftcache.rollout.graded import longest_run, measure, target_of
     from graftcache.rollout.libero import problem_of
     from graftcache.rollout.perturb import place_target
+    from graftcache.rollout.seam import read_state
 
     entry = json.loads((SAMPLE / "render_manifest.json").read_text())["episodes"][REPLAYED]
     assert (entry["suite"], entry["task_id"], entry["episode"]) == ("libero_object", 0, 0)
@@ -92,9 +93,10 @@ def test_a_perturbed_scene_puts_the_target_at_its_offset_settled(simulator: Any)
     official scene's place plus the applied offset (within 5 mm), the offset is one of the episode's seeded draws
     (the first that settled: the first here, (+0.68, -2.91) cm), the scene stays put under no-op steps, and the
     reset's observation (the policy's first input) shows the moved scene."""
-    from graftcache.rollout.graded import read_state, target_of
+    from graftcache.rollout.graded import target_of
     from graftcache.rollout.libero import problem_of
     from graftcache.rollout.perturb import NOOP, offsets, rng_of
+    from graftcache.rollout.seam import read_state
 
     env = simulator.env("libero_object", 0)
     scene, libero = env.envs[0], env.envs[0].unwrapped

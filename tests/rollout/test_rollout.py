@@ -1,7 +1,7 @@
 """`graftcache rollout` (issue 31, item 3): which rows it runs, how it resumes, and (slow) the CI smoke in the real
 LIBERO simulator.
 
-The selection and resume tests run without the simulator: a fake (`Scripted`) stands behind the Simulator seam
+The selection and resume tests run without the simulator: a fake (`Scripted`) stands behind the Simulator interface
 (graftcache.rollout.episodes.Simulator) and scripts each episode's outcome from its seed. The hand-built results
 table is tests/helpers/tables.py's: on smolvla/libero_spatial siglip (mean 1.1) < dinov2-s (2.1) < resnet18 (3.1),
 with zero-image rows of siglip and resnet18, shuffled-image of siglip, native 1.0 and native-graft; on

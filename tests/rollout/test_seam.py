@@ -1,18 +1,207 @@
-"""graftcache.rollout.seam's gate on a simulator's renders and its release of the gripper's command, on a stand-in
-for lerobot's LiberoEnv (the real simulator's episodes: tests/rollout/test_soft_reset.py): blanks until the step the
-caller keeps, the real render from it on, the counts the caller checks, the render put back, and a rebuilt
-simulator refused."""
+"""graftcache.rollout.seam, the one module that reaches past lerobot's, hf-libero's and robosuite's public API.
+
+Its boundary: no other module of graftcache (lerobot's VLAs' adapters, graftcache/backbones/, are a house of their
+own) reads a private attribute of another library's, imports a private name of one, or writes an attribute of the
+simulator's libraries, read statically with `ast`; the reader is shown each kind of reach it must find. Its version
+check: another installed lerobot, hf-libero or robosuite is refused at import, in one line naming both versions and
+the pin, through `graftcache rollout` too. Its gate on a simulator's renders, its reuse of rendered frames and its
+release of the gripper's command, on stand-ins for lerobot's LiberoEnv and robosuite's MjSim (the real simulator's
+episodes: tests/rollout/test_soft_reset.py): blanks until the step the caller keeps, the real render from it on,
+the counts the caller checks, the render put back, and a rebuilt simulator refused."""
 
 from __future__ import annotations
 
-from types import SimpleNamespace
+import ast
+import importlib.util
+import sys
+from importlib import metadata
+from pathlib import Path
+from types import ModuleType, SimpleNamespace
 from typing import Any
 
 import numpy as np
 import pytest
+from helpers.probes import run_cli
+from helpers.tables import write_results
 
+import graftcache
+import graftcache.rollout
 from graftcache.errors import RolloutError
 from graftcache.rollout import seam
+
+PACKAGE = Path(graftcache.__file__).parent
+SEAM = PACKAGE / "rollout" / "seam.py"
+#: lerobot's VLAs, whose insides the backbone adapters reach into: a house of their own
+BACKBONES = PACKAGE / "backbones"
+#: the simulator's libraries: an attribute of theirs is written only by the seam
+SIMULATOR = ("lerobot", "libero", "robosuite", "mujoco")
+#: the standard library's private names graftcache uses: argparse's action classes (type hints), os._exit
+STANDARD = {"_SubParsersAction", "_ActionsContainer", "_exit"}
+
+
+def _private(name: str) -> bool:
+    return name.startswith("_") and not name.startswith("__")
+
+
+def _own_names(trees: list[ast.Module]) -> set[str]:
+    """The private names graftcache defines: its functions and classes, its module-level names, its attributes set
+    on self or cls."""
+    own = set()
+    for node in (n for tree in trees for n in ast.walk(tree)):
+        if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef | ast.ClassDef):
+            own.add(node.name)
+        elif isinstance(node, ast.Name) and isinstance(node.ctx, ast.Store):
+            own.add(node.id)
+        elif isinstance(node, ast.Attribute) and isinstance(node.ctx, ast.Store) and \
+                isinstance(node.value, ast.Name) and node.value.id in ("self", "cls"):
+            own.add(node.attr)
+    return {name for name in own if _private(name)}
+
+
+def _simulator_modules(tree: ast.Module) -> set[str]:
+    """The local names bound to the simulator's libraries' modules or objects by `tree`'s imports."""
+    bound = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import | ast.ImportFrom):
+            module = node.module if isinstance(node, ast.ImportFrom) else None
+            for alias in node.names:
+                source = module or alias.name
+                if source.split(".")[0] in SIMULATOR:
+                    bound.add(alias.asname or alias.name.split(".")[0])
+    return bound
+
+
+def reaches(tree: ast.Module, own: set[str], written: set[str],
+            forbidden: set[str]) -> list[tuple[int, str, str]]:
+    """(line, name reached, how) for each reach past another library's public API in `tree`: a private name
+    imported from outside graftcache, a private attribute read or written on anything but self or cls that graftcache
+    does not define (or one of `forbidden`, the seam's own reaches, whoever defines it), an attribute written on a
+    simulator library's module or object, or of a name in `written` (what the seam writes on the simulator's
+    objects), by assignment or setattr."""
+    found, modules = [], _simulator_modules(tree)
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom) and not (node.module or "").startswith("graftcache") and not node.level:
+            found += [(node.lineno, a.name, f"from {node.module} import {a.name}") for a in node.names
+                      if _private(a.name) and a.name not in STANDARD]
+        elif isinstance(node, ast.Attribute):
+            on = ast.unparse(node.value)
+            stored = isinstance(node.ctx, ast.Store | ast.Del)
+            if _private(node.attr) and on not in ("self", "cls") and (node.attr in forbidden or
+                                                                     node.attr not in own | STANDARD):
+                found.append((node.lineno, node.attr, f"{on}.{node.attr}"))
+            elif stored and (node.attr in written or on.split(".")[0] in modules):
+                found.append((node.lineno, node.attr, f"{on}.{node.attr} ="))
+        elif isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id in ("setattr", "delattr"):
+            name = node.args[1] if len(node.args) > 1 else None
+            if isinstance(name, ast.Constant) and (_private(name.value) or name.value in written):
+                found.append((node.lineno, name.value, ast.unparse(node)))
+    return found
+
+
+def _seam_writes(tree: ast.Module, own_fields: set[str]) -> set[str]:
+    """The attributes the seam writes on objects that are not its own (its own dataclass's fields aside)."""
+    return {n.attr for n in ast.walk(tree) if isinstance(n, ast.Attribute) and isinstance(n.ctx, ast.Store | ast.Del)
+            and ast.unparse(n.value) not in ("self", "cls") and n.attr not in own_fields}
+
+
+def boundary() -> tuple[set[str], set[str], set[str]]:
+    """graftcache's own private names, the attributes the seam writes, and the private names the seam reaches."""
+    trees = {path: ast.parse(path.read_text(), str(path)) for path in PACKAGE.rglob("*.py")}
+    own = _own_names(list(trees.values()))
+    written = _seam_writes(trees[SEAM], set(seam.Renders.__dataclass_fields__))
+    forbidden = {name for _, name, _ in reaches(trees[SEAM], own, set(), set()) if _private(name)}
+    return own, written, forbidden
+
+
+def test_no_module_but_the_seam_reaches_past_the_simulators_api() -> None:
+    own, written, forbidden = boundary()
+    assert {"_env", "_init_states", "_format_raw_obs", "_get_suite", "_check_grasp"} <= forbidden
+    assert {"trange", "init_state_id", "render", "current_action"} <= written
+    found = [f"{path.relative_to(PACKAGE.parent)}:{line}: {how}" for path in sorted(PACKAGE.rglob("*.py"))
+             if path != SEAM for line, name, how in reaches(ast.parse(path.read_text()), own, written, forbidden)
+             if BACKBONES not in path.parents or name in forbidden]
+    assert found == [], "reaches past lerobot's, hf-libero's or robosuite's API outside graftcache/rollout/seam.py"
+
+
+def test_the_boundary_reader_finds_each_kind_of_reach() -> None:
+    source = """
+from lerobot.envs.libero import _get_suite, TASK_SUITE_MAX_STEPS
+from lerobot.scripts import lerobot_eval
+import argparse
+
+
+def f(env, sub: argparse._SubParsersAction):
+    self._mine, env._mine = 1, 2
+    states = env.unwrapped._init_states
+    env.unwrapped.init_state_id = 3
+    lerobot_eval.trange = None
+    setattr(env, "_env", None)
+    env._cache = env.render()
+"""
+    own, written, forbidden = {"_mine", "_cache"}, {"init_state_id"}, {"_cache"}
+    assert reaches(ast.parse(source), own, written, forbidden) == [
+        (2, "_get_suite", "from lerobot.envs.libero import _get_suite"),
+        (9, "_init_states", "env.unwrapped._init_states"), (10, "init_state_id", "env.unwrapped.init_state_id ="),
+        (11, "trange", "lerobot_eval.trange ="), (12, "_env", "setattr(env, '_env', None)"),
+        (13, "_cache", "env._cache")]
+
+
+def _imported_afresh() -> ModuleType:
+    """graftcache.rollout.seam executed again in a module of its own (sys.modules untouched), as an import runs it."""
+    spec = importlib.util.find_spec("graftcache.rollout.seam")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _installed(monkeypatch: pytest.MonkeyPatch, **versions: str) -> None:
+    """importlib.metadata answering `versions` (distribution names with _ for -) for those distributions."""
+    real = metadata.version
+    faked = {name.replace("_", "-"): version for name, version in versions.items()}
+    monkeypatch.setattr(metadata, "version", lambda name: faked.get(name) or real(name))
+
+
+def test_another_installed_version_is_refused_at_import_naming_both_and_the_pin(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    assert seam.WRITTEN_AGAINST == {name: metadata.version(name) for name in seam.WRITTEN_AGAINST}  # this venv's
+    assert _imported_afresh().WRITTEN_AGAINST == seam.WRITTEN_AGAINST  # imports as it is
+    _installed(monkeypatch, lerobot="0.7.0")
+    with pytest.raises(RolloutError) as refused:
+        _imported_afresh()
+    assert str(refused.value) == ("graftcache/rollout/seam.py was written against lerobot 0.6.1, not the installed "
+                                  "lerobot 0.7.0: pin lerobot==0.6.1")
+    _installed(monkeypatch, hf_libero="0.2.0", robosuite="1.5.1")
+    with pytest.raises(RolloutError) as refused:
+        seam.check_versions()
+    assert str(refused.value) == ("graftcache/rollout/seam.py was written against lerobot 0.6.1, hf-libero 0.1.4, "
+                                  "robosuite 1.4.0, not the installed lerobot 0.7.0, hf-libero 0.2.0, robosuite 1.5.1: "
+                                  "pin lerobot==0.6.1 hf-libero==0.1.4 robosuite==1.4.0")
+
+
+def test_a_library_not_installed_is_left_to_the_simulators_set_up(monkeypatch: pytest.MonkeyPatch) -> None:
+    real = metadata.version
+
+    def version(name: str) -> str:
+        if name == "hf-libero":
+            raise metadata.PackageNotFoundError(name)
+        return real(name)
+
+    monkeypatch.setattr(metadata, "version", version)
+    assert seam.installed("hf-libero") is None
+    seam.check_versions()
+
+
+def test_graftcache_rollout_says_it_in_one_line(tmp_path: Path, capsys: pytest.CaptureFixture,
+                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    """The seam is imported with the simulator (graftcache.rollout.libero), before anything runs: exit 2, one line."""
+    for name in ("seam", "libero", "perturb"):
+        monkeypatch.delitem(sys.modules, f"graftcache.rollout.{name}", raising=False)
+        monkeypatch.delattr(graftcache.rollout, name, raising=False)
+    _installed(monkeypatch, robosuite="1.5.1")
+    done = run_cli(["rollout", write_results(tmp_path / "results.parquet")], capsys)
+    assert (done.code, done.err.splitlines()) == (2, [
+        "graftcache rollout: error: graftcache/rollout/seam.py was written against robosuite 1.4.0, not the installed "
+        "robosuite 1.5.1: pin robosuite==1.4.0"])
 
 
 class Sim:
@@ -74,3 +263,27 @@ def test_release_grippers_zeroes_the_held_command() -> None:
     scene = _scene()
     seam.release_grippers(scene)
     assert np.array_equal(scene.gripper.current_action, np.zeros(2))
+
+
+class _Sim:
+    """robosuite's MjSim as a camera sensor calls it: render(camera_name=, width=, height=, depth=)."""
+
+    def __init__(self) -> None:
+        self.calls: list[str] = []
+
+    def render(self, *, camera_name: str, width: int, height: int, depth: bool = False) -> np.ndarray:
+        self.calls.append(camera_name)
+        return np.full((height, width, 3), len(self.calls), np.uint8)
+
+
+def test_frames_reused_renders_each_view_once_inside_and_every_time_after() -> None:
+    sim = _Sim()
+    with seam.frames_reused(sim):
+        first = [sim.render(camera_name=c, width=4, height=2) for c in ("agentview", "wrist", "agentview", "wrist")]
+        other_size = sim.render(camera_name="wrist", width=8, height=8)
+    assert sim.calls == ["agentview", "wrist", "wrist"]  # each (view, size) once
+    assert first[2] is first[0] and first[3] is first[1] and int(first[1][0, 0, 0]) == 2
+    assert other_size.shape == (8, 8, 3)
+    assert "render" not in vars(sim)  # the class's method again
+    after = sim.render(camera_name="agentview", width=4, height=2)
+    assert sim.calls[-1] == "agentview" and int(after[0, 0, 0]) == 4
