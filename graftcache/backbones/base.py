@@ -48,7 +48,7 @@ from graftcache.backbones.checkpoint import (
     weights_file,
 )
 from graftcache.backbones.lean_load import construct, load_checkpoint, read_header
-from graftcache.backbones.objectives import Objective
+from graftcache.backbones.policy_loss import PolicyLoss
 from graftcache.backbones.spec import BackboneSpec
 from graftcache.backbones.surgery import GraftSurgery
 from graftcache.backbones.tiny import TinyBuild, read_marker, write_marker
@@ -93,7 +93,7 @@ def _camera_names(keys: Iterable[str]) -> tuple[str, ...]:
     return tuple(k.removeprefix("observation.images.") for k in keys)
 
 
-class BackboneAdapter(GraftSurgery, PromptBatches, Objective, ActivationCheckpointing, Attention, ABC):
+class BackboneAdapter(GraftSurgery, PromptBatches, PolicyLoss, ActivationCheckpointing, Attention, ABC):
     """A frozen lerobot VLA policy that a projector can be grafted onto: its registry `name`, its constants as data
     (`spec`), and hooks where its behaviour differs."""
 

@@ -16,7 +16,7 @@ from graftcache.backbones import get_backbone, registered_spec
 from graftcache.backbones.activation_checkpointing import ActivationCheckpointing
 from graftcache.backbones.attention import Attention
 from graftcache.backbones.base import BackboneAdapter
-from graftcache.backbones.objectives import FlowObjective, Objective, TokenObjective
+from graftcache.backbones.policy_loss import FlowLoss, PolicyLoss, TokenLoss
 from graftcache.backbones.spec import BackboneSpec
 from graftcache.errors import BackboneError
 
@@ -57,9 +57,9 @@ def test_every_registered_backbone_declares_a_spec_its_hooks_agree_with(name: st
     assert spec.can_recompute == (
         adapter._switch_recompute is not ActivationCheckpointing._switch_recompute)
     assert (len(spec.attentions) > 1) == (adapter._switch_attention is not Attention._switch_attention)
-    assert (spec.flow_time is None) == issubclass(adapter, TokenObjective)
-    assert issubclass(adapter, FlowObjective) or "_flow_losses" not in dir(adapter)  # no flow loss that only raises
-    assert spec.steps_field is not None or adapter.num_steps is not Objective.num_steps
+    assert (spec.flow_time is None) == issubclass(adapter, TokenLoss)
+    assert issubclass(adapter, FlowLoss) or "_flow_losses" not in dir(adapter)  # no flow loss that only raises
+    assert spec.steps_field is not None or adapter.num_steps is not PolicyLoss.num_steps
     assert all(n >= 1 for n in spec.cells_per_pass.values())
 
 

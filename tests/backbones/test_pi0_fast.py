@@ -13,8 +13,8 @@ from helpers.backbones import fixed_noise_time, grafted, raw_features, raw_image
 from scipy.fft import dct, idct
 
 from graftcache.backbones import load_backbone
-from graftcache.backbones.objectives import FlowObjective
 from graftcache.backbones.pi0_fast.fast import FAST_DIR
+from graftcache.backbones.policy_loss import FlowLoss
 from graftcache.errors import BackboneError
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")  # tests/fixtures/torch_threads.py
@@ -57,7 +57,7 @@ def test_fast_loss_is_lerobots_cross_entropy_and_trains_the_projector() -> None:
         losses.append(value.item())
     # image tokens move a random tiny LM's FAST-token predictions only a little: steadily, though
     assert all(b < a for a, b in itertools.pairwise(losses)) and losses[-1] < 0.98 * losses[0], losses
-    assert not isinstance(adapter, FlowObjective) and not hasattr(adapter, "_flow_losses")  # a token objective only
+    assert not isinstance(adapter, FlowLoss) and not hasattr(adapter, "_flow_losses")  # a token objective only
 
 
 def test_fast_predict_decodes_greedily_whatever_the_noise() -> None:

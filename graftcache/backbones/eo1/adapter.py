@@ -40,8 +40,8 @@ from graftcache.backbones.batches import ACTION, STATE
 from graftcache.backbones.eo1.spec import QWEN_STEP, SPEC
 from graftcache.backbones.eo1.tiny import construct
 from graftcache.backbones.given_draws import shadowed
-from graftcache.backbones.objectives import FlowObjective
 from graftcache.backbones.patching import patched
+from graftcache.backbones.policy_loss import FlowLoss
 from graftcache.backbones.qwen_vl import (
     TowerReads,
     cached_token_count,
@@ -84,7 +84,7 @@ def processor_kwargs_quiet() -> Iterator[None]:
         logger.setLevel(level)
 
 
-class EO1Adapter(TowerReads, FlowObjective, BackboneAdapter):
+class EO1Adapter(TowerReads, FlowLoss, BackboneAdapter):
     name = "eo1"
     spec = SPEC
 

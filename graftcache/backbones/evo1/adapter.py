@@ -46,8 +46,8 @@ from graftcache.backbones.base import BackboneAdapter, is_empty_camera, vlm_fold
 from graftcache.backbones.batches import ACTION
 from graftcache.backbones.evo1.spec import SPEC
 from graftcache.backbones.evo1.tiny import INTERNVL_DIR, construct
-from graftcache.backbones.objectives import FlowObjective
 from graftcache.backbones.patching import patched
+from graftcache.backbones.policy_loss import FlowLoss
 from graftcache.errors import BackboneError
 
 
@@ -58,7 +58,7 @@ def token_grid(image_size: int, vision, downsample_ratio: float) -> tuple[int, i
     return side, side
 
 
-class Evo1Adapter(FlowObjective, BackboneAdapter):
+class Evo1Adapter(FlowLoss, BackboneAdapter):
     name = "evo1"
     spec = SPEC
 

@@ -49,8 +49,8 @@ from graftcache.backbones.groot.tiny import (
     tiny_image_geometry,
     vlm_step_name,
 )
-from graftcache.backbones.objectives import FlowObjective
 from graftcache.backbones.patching import patched
+from graftcache.backbones.policy_loss import FlowLoss
 from graftcache.backbones.qwen_vl import (
     TowerReads,
     cached_token_count,
@@ -71,7 +71,7 @@ PACK_STEP = "GrootN17PackInputsStep"
 PADDED_ACTION = "groot_padded_action"
 
 
-class GrootAdapter(TowerReads, FlowObjective, BackboneAdapter):
+class GrootAdapter(TowerReads, FlowLoss, BackboneAdapter):
     name = "groot"
     spec = SPEC
 

@@ -23,10 +23,10 @@ from graftcache.backbones.base import BackboneAdapter
 from graftcache.backbones.batches import TOKEN_MASK, TOKENS
 from graftcache.backbones.checkpoint import cached_repo
 from graftcache.backbones.lean_load import openpi_keys
-from graftcache.backbones.objectives import FlowObjective
 from graftcache.backbones.paligemma import GEMMA_ATTENTIONS, paligemma_tiny_tokenizer, pi05_processors, pi05_tiny_sizes
 from graftcache.backbones.patching import Patches
 from graftcache.backbones.pi05.spec import SPEC
+from graftcache.backbones.policy_loss import FlowLoss
 
 PALIGEMMA_TOKENIZER = "google/paligemma-3b-pt-224"  # hard-coded by processor_pi05.py:145
 
@@ -81,7 +81,7 @@ class PaliGemmaAdapter(BackboneAdapter):
         GEMMA_ATTENTIONS[mode](patches, self.policy)
 
 
-class PI05Adapter(FlowObjective, PaliGemmaAdapter):
+class PI05Adapter(FlowLoss, PaliGemmaAdapter):
     name = "pi05"
     spec = SPEC
 

@@ -36,19 +36,19 @@ from torch import nn
 from graftcache.backbones.base import vlm_folder
 from graftcache.backbones.batches import TOKEN_MASK, TOKENS
 from graftcache.backbones.checkpoint import local_or_cached
-from graftcache.backbones.objectives import TokenObjective
 from graftcache.backbones.paligemma import pi05_tiny_sizes
 from graftcache.backbones.patching import patched
 from graftcache.backbones.pi0_fast.fast import FAST_DIR, MODELING, fast_processors, load_fast, policy_tokenizers
 from graftcache.backbones.pi0_fast.spec import SPEC
 from graftcache.backbones.pi05.adapter import PaliGemmaAdapter
+from graftcache.backbones.policy_loss import TokenLoss
 from graftcache.backbones.tiny_assets import PALIGEMMA_DIR
 
 ACTION_TOKENS = "action.tokens"  # lerobot.utils.constants.ACTION_TOKENS / ACTION_TOKEN_MASK
 ACTION_TOKEN_MASK = "action.token_mask"
 
 
-class PI0FastAdapter(TokenObjective, PaliGemmaAdapter):
+class PI0FastAdapter(TokenLoss, PaliGemmaAdapter):
     name = "pi0_fast"
     spec = SPEC
 

@@ -26,13 +26,13 @@ from graftcache.backbones.activation_checkpointing import WrappedActivationCheck
 from graftcache.backbones.attention import MASKED, fused_attention
 from graftcache.backbones.base import BackboneAdapter, vlm_folder
 from graftcache.backbones.batches import TOKEN_MASK, TOKENS
-from graftcache.backbones.objectives import FlowObjective
 from graftcache.backbones.patching import Patches, patched
+from graftcache.backbones.policy_loss import FlowLoss
 from graftcache.backbones.smolvla.spec import SPEC
 from graftcache.backbones.tiny_assets import SMOLVLM_DIR
 
 
-class SmolVLAAdapter(WrappedActivationCheckpointing, FlowObjective, BackboneAdapter):
+class SmolVLAAdapter(WrappedActivationCheckpointing, FlowLoss, BackboneAdapter):
     name = "smolvla"
     spec = SPEC
 

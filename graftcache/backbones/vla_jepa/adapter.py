@@ -48,8 +48,8 @@ from graftcache.backbones.activation_checkpointing import WrappedActivationCheck
 from graftcache.backbones.base import BackboneAdapter, vlm_folder
 from graftcache.backbones.batches import ACTION
 from graftcache.backbones.given_draws import given_noise, shadowed
-from graftcache.backbones.objectives import FlowObjective
 from graftcache.backbones.patching import patched
+from graftcache.backbones.policy_loss import FlowLoss
 from graftcache.backbones.qwen_vl import (
     check_slots,
     image_token_counts,
@@ -90,7 +90,7 @@ def given_draws(head: nn.Module, noise: torch.Tensor, time: torch.Tensor | None 
         yield
 
 
-class VLAJEPAAdapter(WrappedActivationCheckpointing, FlowObjective, BackboneAdapter):
+class VLAJEPAAdapter(WrappedActivationCheckpointing, FlowLoss, BackboneAdapter):
     name = "vla_jepa"
     spec = SPEC
 

@@ -16,7 +16,7 @@ pixel bounds set to the cached grid, so input ids, M-RoPE positions, masks and M
 then puts the features where the pixels were. Wall-X casts `pixel_values` to the ViT's dtype (bf16) before the
 ViT: the features reach the projector rounded the same way.
 
-Objective: Wall-X's flow loss only. In flow mode (`prediction_mode='diffusion'`) its prompt's assistant turn holds
+Policy loss: Wall-X's flow loss only. In flow mode (`prediction_mode='diffusion'`) its prompt's assistant turn holds
 only `<|action|>` tokens, which `preprocesser_call` masks out of the labels, so `labels` is None and the model's
 cross-entropy term is never computed: the loss is `flow_loss_weight` x the flow MSE. Wall-X draws its time and
 noise inside `ActionHead.forward` / `predict` (`sample_time`, `torch.randn_like`, `torch.randn`); `loss` and
@@ -43,8 +43,8 @@ from graftcache.backbones.activation_checkpointing import WrappedActivationCheck
 from graftcache.backbones.base import BackboneAdapter, vlm_folder
 from graftcache.backbones.batches import STATE
 from graftcache.backbones.given_draws import given_noise, shadowed
-from graftcache.backbones.objectives import FlowObjective
 from graftcache.backbones.patching import patched
+from graftcache.backbones.policy_loss import FlowLoss
 from graftcache.backbones.qwen_vl import (
     TowerReads,
     merged_grid,
@@ -80,7 +80,7 @@ def pixel_bounds(image_processor, pixels: int) -> Iterator[None]:
         yield
 
 
-class WallXAdapter(TowerReads, WrappedActivationCheckpointing, FlowObjective, BackboneAdapter):
+class WallXAdapter(TowerReads, WrappedActivationCheckpointing, FlowLoss, BackboneAdapter):
     name = "wall_x"
     spec = SPEC
 

@@ -1,5 +1,5 @@
-"""The policy's own objectives on a (grafted) backbone: masked flow loss or token cross-entropy, and deterministic
-prediction.
+"""The policy's own loss on a (grafted) backbone: masked flow loss or token cross-entropy, and deterministic
+prediction. (A fit's objective, what its projector is trained toward, is graftcache.fit.objectives'.)
 
 lerobot's policies return the unreduced per-element loss from `model.forward`, so padded action steps
 are masked here, once, the same way for both backbones.
@@ -16,10 +16,10 @@ import torch
 from graftcache.backbones.batches import ACTION, ACTION_PAD, STATE
 
 
-class Objective(ABC):
-    """The objective half of a BackboneAdapter (mixed into it; uses its policy, chunking and device): what every
-    objective shares (the start noise, the steps of prediction, the normalised chunk predicted, unnormalising) and
-    the one member each must have, `loss`. Flow backbones take `FlowObjective`, pi0-FAST `TokenObjective`."""
+class PolicyLoss(ABC):
+    """The loss half of a BackboneAdapter (mixed into it; uses its policy, chunking and device): what every
+    policy loss shares (the start noise, the steps of prediction, the normalised chunk predicted, unnormalising) and
+    the one member each must have, `loss`. Flow backbones take `FlowLoss`, pi0-FAST `TokenLoss`."""
 
     def sample_noise(self, batch_size: int, generator: torch.Generator | None = None) -> torch.Tensor:
         """Flow-matching start noise [B, chunk, max_action_dim] (on CPU from `generator`, then moved)."""
@@ -58,7 +58,7 @@ class Objective(ABC):
         return self.postprocessor(self.postprocessor_input(self.config, actions))
 
 
-class FlowObjective(Objective):
+class FlowLoss(PolicyLoss):
     """Flow matching: the policy's own per-element flow loss, padded action steps masked here, once, the same way
     for every flow backbone. `time` is the noise level (1 = pure noise) whichever way the policy's own t runs
     (`spec.flow_time`)."""
@@ -91,7 +91,7 @@ class FlowObjective(Objective):
         return (per_step * valid).sum(dim=1) / valid.sum(dim=1).clamp(min=1.0)
 
 
-class TokenObjective(Objective):
+class TokenLoss(PolicyLoss):
     """Cross-entropy on action tokens (pi0-FAST): no flow time, and lerobot's loss is one token-weighted mean over
     the batch (`spec.loss_per_sample` False: its cells never share a pass). Prediction decodes tokens; the noise a
     caller passes is ignored."""
