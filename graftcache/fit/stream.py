@@ -180,7 +180,7 @@ class BlockMemo:
 
 
 @dataclass(frozen=True)
-class Planned:
+class BlockRead:
     """One block to read: per source, the split positions whose features it reads (source i reads
     `reads[i]`), and `owners`: the position whose low-dim row (or target) each frame goes with."""
 
@@ -227,7 +227,7 @@ class StreamStats:
 class BlockStream(IterableDataset):
     """The planned blocks, once in plan order (`seed` None), or forever in a new seeded order each epoch."""
 
-    def __init__(self, low: LowDim, sources: Sequence[tuple[FeatureSource, np.ndarray]], plan: Sequence[Planned],
+    def __init__(self, low: LowDim, sources: Sequence[tuple[FeatureSource, np.ndarray]], plan: Sequence[BlockRead],
                  *, seed: int | None = None, drop: bool = False, memo: BlockMemo | None = None) -> None:
         """`low`: the split the positions index; `sources`: (source, its cache row of every split position);
         `drop`: drop frames with NaN/inf features instead of refusing them; `memo`: blocks kept across streams
@@ -240,7 +240,7 @@ class BlockStream(IterableDataset):
     def __getstate__(self) -> dict:
         return {**self.__dict__, "memo": None}  # a worker reads for itself; the memo stays with its process
 
-    def order(self) -> Iterator[Planned]:
+    def order(self) -> Iterator[BlockRead]:
         if self.seed is None:
             yield from self.plan
             return
@@ -251,11 +251,11 @@ class BlockStream(IterableDataset):
     def __iter__(self) -> Iterator[Block | Failure]:
         info = get_worker_info()
         worker, workers = (info.id, info.num_workers) if info is not None else (0, 1)
-        for k, planned in enumerate(self.order()):
+        for k, block in enumerate(self.order()):
             if k % workers != worker:
                 continue
             try:
-                yield self.read(planned)
+                yield self.read(block)
             except GraftcacheError as e:
                 yield Failure(type(e), str(e))
                 return
@@ -264,14 +264,14 @@ class BlockStream(IterableDataset):
         """The blocks the readers of this stream's sources have checked."""
         return frozenset().union(*(src.reader.checks.done for src, _ in self.sources))
 
-    def read(self, planned: Planned) -> Block:
+    def read(self, block: BlockRead) -> Block:
         before = self._checked()
         roots = [src.open().root for src, _ in self.sources] if get_worker_info() is not None else []
         fetched = sum(getattr(r, "fetched_bytes", 0) for r in roots)
         feats = tuple(self.memo.read(src, rows[pos]) if self.memo is not None else src.read(rows[pos])
-                      for (src, rows), pos in zip(self.sources, planned.reads, strict=True))
-        bad = np.zeros(len(planned.owners), dtype=bool)
-        for (src, _), pos, per_camera in zip(self.sources, planned.reads, feats, strict=True):
+                      for (src, rows), pos in zip(self.sources, block.reads, strict=True))
+        bad = np.zeros(len(block.owners), dtype=bool)
+        for (src, _), pos, per_camera in zip(self.sources, block.reads, feats, strict=True):
             for camera, values in per_camera.items():
                 rows_bad = nonfinite_rows(values)
                 if rows_bad.any() and not self.drop:
@@ -284,7 +284,7 @@ class BlockStream(IterableDataset):
             keep = torch.from_numpy(~bad)
             feats = tuple({c: v[keep] for c, v in per_camera.items()} for per_camera in feats)
         fetched = sum(getattr(r, "fetched_bytes", 0) for r in roots) - fetched
-        return Block(planned.owners[~bad], feats, self.low.rows[planned.owners[bad]], fetched,
+        return Block(block.owners[~bad], feats, self.low.rows[block.owners[bad]], fetched,
                      self._checked() - before)
 
 
