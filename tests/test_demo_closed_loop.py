@@ -1,18 +1,24 @@
-"""`graftcache demo --closed-loop`'s choice of cells (graftcache/demo_closed_loop.py), on tests/helpers/tables.py's
-hand-built results with native repeats and pi05 zero-image rows added. The command itself (fits, then 30 minutes
-in the simulator) is measured by hand and quoted in the README, not run in CI; its pieces (rollout, graded progress,
-workers, report) are tested in tests/rollout and tests/report."""
+"""`graftcache demo --closed-loop`: its choice of cells (graftcache/demo_closed_loop.py), on tests/helpers/tables.py's
+hand-built results with native repeats and pi05 zero-image rows added; and what its report finds on the demo's own
+rows (tests/fixtures/closed_loop_demo/), pinned. The command itself (fits, then minutes in the simulator) is measured
+by hand and quoted in docs/closed-loop.md, not run in CI; its pieces (rollout, graded progress, workers, report) are
+tested in tests/rollout and tests/report."""
 
 from __future__ import annotations
 
 import hashlib
+from pathlib import Path
 
 import polars as pl
 import pytest
 from helpers.tables import control_rows, plain_rows, row, table
+from scipy import stats
 
+from graftcache import analysis as A
+from graftcache.analysis.rollouts import PAIR_KEY
 from graftcache.demo_closed_loop import ClosedLoopPlan, closed_loop_run_ids
 from graftcache.errors import GraftcacheError
+from graftcache.results import read_for_report
 
 PLAN = ClosedLoopPlan(figure=("smolvla", "libero_spatial"), paired_seeds=(0, 1))
 
@@ -82,3 +88,117 @@ def test_the_dose_recipe_is_the_figure_s_backbone_suite_and_dose_encoder() -> No
     assert dose.controls == ("noise-0.25", "noise-0.5", "noise-0.75", "noise-0.9") and dose.seeds == recipe.seeds
     with pytest.raises(GraftcacheError, match="no backbone smolvla or no encoder dinov2-s: the dose family"):
         _dose_recipe(recipe, ClosedLoopPlan(dose_encoder="dinov2-s"))
+
+
+# ------------------------------------------------------------------------------ the closed-loop demo's own rows
+#: `make demo-closed-loop`'s results.parquet, rollouts.parquet and sequential.json as written (from scratch after
+#: `make demo`, a 2-core Intel Xeon with avx512_bf16: docs/closed-loop.md quotes the run), read as the report reads them
+DEMO_ROWS = Path(__file__).parent / "fixtures" / "closed_loop_demo"
+FIGURE = ("smolvla", "libero_object")
+VIT = "timm:vit_tiny_patch16_224"
+
+
+@pytest.fixture(scope="module")
+def demo() -> tuple[pl.DataFrame, pl.DataFrame, A.Analysis]:
+    table = read_for_report(DEMO_ROWS / "results.parquet")
+    rollouts = A.read_rollouts(DEMO_ROWS / "rollouts.parquet", table)
+    return table, rollouts, A.analyze(table, rollouts=rollouts, looks=A.read_looks(DEMO_ROWS / "rollouts.parquet"))
+
+
+def _figure(frame: pl.DataFrame) -> pl.DataFrame:
+    return frame.filter(pl.col("backbone") == FIGURE[0], pl.col("suite") == FIGURE[1])
+
+
+def test_the_demo_counts_each_policy_once(demo: tuple) -> None:
+    """The figure's zero-image rows: 3 encoders x 4 seeds, one policy per seed (12 rows, 4 policies); native: 4
+    rows, one policy; so the closed-loop cells are 12 candidates + 4 zero-image + 4 native-graft + 1 native + 4
+    doses x 4 seeds = 37; each policy was rolled out under one of its run_ids, so no episode repeats."""
+    table, rollouts, a = demo
+    rows = _figure(table)
+    zero = rows.filter(pl.col("control") == "zero-image")
+    assert zero.height == 12 and zero.group_by("seed").agg(pl.col("policy_id").n_unique())["policy_id"].to_list() \
+        == [1, 1, 1, 1]
+    assert rows.filter(pl.col("control") == "native")["policy_id"].n_unique() == 1
+    cells = _figure(a.closed_loop.cells)
+    counts = dict(cells.group_by("control").len().iter_rows())
+    assert counts == {"none": 12, "zero-image": 4, "native-graft": 4, "native": 1, "noise-0.25": 4, "noise-0.5": 4,
+                      "noise-0.75": 4, "noise-0.9": 4}
+    episodes = a.closed_loop.rollouts
+    assert episodes.height == episodes.unique(["policy_key", *PAIR_KEY]).height == rollouts.height
+    ran = rollouts.join(table.select("run_id", "policy_id"), on="run_id")  # each policy under one run_id
+    assert ran.group_by("policy_id").agg(pl.col("run_id").n_unique())["run_id"].max() == 1
+
+
+def test_the_demo_s_agreements_hold_their_figures(demo: tuple) -> None:
+    """Candidates (12 plain grafts): Spearman +0.39, its interval reaching below 0 (offline MSE does not order the
+    encoders beyond doubt); with controls (37 policies): +0.51, its interval above 0. Each interval holds its
+    figure, and the candidates' Spearman is scipy's over the cells' eval_mse and mean closest approach."""
+    _, _, a = demo
+    agreement = _figure(a.closed_loop.agreement).filter(pl.col("score") == "eval_mse",
+                                                        pl.col("measure") == "min_target_distance_m")
+    got = {r["cells_of"]: r for r in agreement.iter_rows(named=True)}
+    cand, ctrl = got[A.CANDIDATES], got[A.WITH_CONTROLS]
+    assert (cand["cells"], ctrl["cells"]) == (12, 37)
+    plain = _figure(a.closed_loop.cells).filter(pl.col("control") == "none")
+    rho = stats.spearmanr(plain["eval_mse"], plain["min_target_distance_m"]).statistic  # oriented: + is agreement
+    assert cand["spearman"] == pytest.approx(rho) and round(rho, 2) == 0.39
+    assert cand["spearman_low"] < 0 < cand["spearman"] and round(ctrl["spearman"], 2) == 0.51
+    assert ctrl["spearman_low"] > 0
+    for r in (cand, ctrl):
+        for name in ("spearman", "kendall_tau_b", "mmrv"):
+            assert r[f"{name}_low"] <= r[name] <= r[f"{name}_high"]
+
+
+def test_the_demo_s_pairwise_verdicts(demo: tuple) -> None:
+    """On the figure's (backbone, suite): efficientnet-lite0 beats the random-init ViT offline and in closed loop
+    (agree), mobilenetv2 beats it in both after the second look (agree, 32 pairs), and efficientnet-lite0 beats
+    mobilenetv2 in closed loop only; each closed-loop side recomputed here from the episodes, paired by fit seed
+    and episode key, with scipy's t interval at the looks' level (97.5%)."""
+    table, _, a = demo
+    pairs = _figure(a.closed_loop.pairwise).filter(pl.col("measure") == "min_target_distance_m")
+    verdicts = {(r["encoder_a"], r["encoder_b"]): (r["offline"], r["closed"], r["verdict"], r["pairs"])
+                for r in pairs.iter_rows(named=True)}
+    assert verdicts == {("efficientnet-lite0", "mobilenetv2"): ("not resolved", "a", "closed loop only", 16),
+                        ("efficientnet-lite0", VIT): ("a", "a", "agree", 16),
+                        ("mobilenetv2", VIT): ("a", "a", "agree", 32)}
+    assert a.closed_loop.looks.level == pytest.approx(0.975) and len(a.closed_loop.looks.looks) == 2
+    plain = _figure(table).filter(pl.col("control") == "none").select("run_id", "encoder", pl.col("seed").alias("fit"))
+    episodes = pl.read_parquet(DEMO_ROWS / "rollouts.parquet").join(plain, on="run_id")
+    key = ["fit", "task_index", "episode", "seed", "perturbation_m"]
+    for r in pairs.iter_rows(named=True):
+        side = [episodes.filter(pl.col("encoder") == e).select(*key, pl.col("min_target_distance_m").alias(e))
+                for e in (r["encoder_a"], r["encoder_b"])]
+        both = side[0].join(side[1], on=key)
+        diffs = (both[r["encoder_a"]] - both[r["encoder_b"]]).to_numpy()
+        low, high = stats.t.interval(0.975, len(diffs) - 1, loc=diffs.mean(), scale=stats.sem(diffs))
+        assert len(diffs) == r["pairs"] and r["closed_difference"] == pytest.approx(diffs.mean())
+        assert (r["closed_low"], r["closed_high"]) == pytest.approx((low, high))
+    summary = A.pairwise_summary(pairs).row(0, named=True)
+    assert (summary["encoder_pairs"], summary["resolved_by_both"], summary["agree"]) == (3, 2, 2)
+
+
+def test_the_demo_s_dose_resolution(demo: tuple) -> None:
+    """efficientnet-lite0's dose curve on the figure: the closed loop confirms only the steps 0.75 -> 0.9 and
+    0.9 -> 1 (zero-image), so the resolution is the offline gap of the first, about 0.058 eval_mse."""
+    _, _, a = demo
+    steps = a.dose.steps.filter(pl.col("confirmed"))
+    assert [(r["dose_from"], r["dose_to"]) for r in steps.iter_rows(named=True)] == [(0.75, 0.9), (0.9, 1.0)]
+    curve = a.dose.curves.row(0, named=True)
+    assert curve["resolution"] == pytest.approx(steps["offline_diff"].min()) and round(curve["resolution"], 3) == 0.058
+
+
+def test_the_demo_s_figure_names_every_marker_it_draws(demo: tuple) -> None:
+    """The validity figure's legend names the three encoders, the native tower, native-graft and zero-image, and the
+    doses' triangles (noise-A cells, in their encoder's colour); the candidates' panels of the (backbone, suite)s
+    without rolled-out plain grafts are blank, saying so."""
+    from graftcache.report.closed_loop_figure import figure_closed_loop
+
+    fig = figure_closed_loop(demo[2])
+    labels = [t.get_text() for t in fig.legends[0].get_texts()]
+    assert labels[:3] == ["efficientnet-lite0", "mobilenetv2", VIT]
+    assert labels[-1] == "other controls (noise-0.25, noise-0.5, noise-0.75, ...), in their encoder's colour"
+    assert len(labels) == 7
+    blank = [t.get_text() for ax in fig.axes if not ax.axison for t in ax.texts]
+    assert sorted(blank) == ["SmolVLA · libero_spatial\nno candidates cell rolled out",
+                             "pi0.5 · libero_object\nno candidates cell rolled out",
+                             "pi0.5 · libero_spatial\nno candidates cell rolled out"]

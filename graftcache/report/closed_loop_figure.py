@@ -7,7 +7,9 @@ cluster the controls would otherwise squeeze into a corner, though it holds the 
 encoder?); and the success rate. Each cell (one policy: one seed) is a dot, so the seed spread is seen, not averaged
 away; the controls are marked apart from the plain grafts (native tower, native-graft, zero-image), and the
 candidates' box is outlined in the wide panel. A panel whose agreement is undefined in every row (success 0
-everywhere, a graded measure no episode records) is dropped: it could only say so, and the report's text does. The
+everywhere, a graded measure no episode records) is dropped: it could only say so, and the report's text does; a
+row's panel of a set none of whose cells was rolled out there (no plain graft, say) is left blank but for a line
+saying so. The
 distance axis is inverted so that up is better in every panel, and every value axis is fitted to its data rather
 than started at 0.
 """
@@ -154,6 +156,11 @@ def figure_closed_loop(a: A.Analysis) -> Figure | None:
         candidates = cells.filter(pl.col("control") == A.PLAIN)
         for ax, (measure, cells_of) in zip(row, panels):
             shown = candidates if cells_of == A.CANDIDATES else cells
+            if not len(shown):  # nothing of this set was rolled out here: the panel could only say so
+                ax.axis("off")
+                ax.text(0.5, 0.5, f"{A.backbone_label(backbone)} · {suite}\nno {cells_of} cell rolled out",
+                        transform=ax.transAxes, ha="center", va="center", color="0.4", fontsize=8)
+                continue
             _panel(ax, shown, score, measure, colors)
             ax.set_title(f"{A.backbone_label(backbone)} · {suite}\n"
                          f"{agreement_title(agree.get((backbone, suite, measure, cells_of)))}", fontsize=7.5)
@@ -165,6 +172,11 @@ def figure_closed_loop(a: A.Analysis) -> Figure | None:
     handles = [Line2D([], [], ls="", marker="o", color=colors[e], label=e) for e in encoders]
     handles += [Line2D([], [], ls="", marker=m, color=c, markersize=s * 0.8, label=label)
                 for control, (m, c, s, label) in CONTROL_MARKS.items() if control in present]
+    others = sorted(present - set(CONTROL_MARKS) - {A.PLAIN})
+    if others:  # noise-A doses, pool-HxW, lora: the encoder's colour, one marker
+        shown = ", ".join(others[:3]) + (", ..." if len(others) > 3 else "")
+        handles.append(Line2D([], [], ls="", marker=OTHER_CONTROL_MARKER, color="0.5", label=f"other controls "
+                              f"({shown}), in their encoder's colour"))
     fig.legend(handles=handles, loc="outside lower center", ncols=min(len(handles), 4), fontsize=7,
                title="one dot per policy; grafts by encoder, controls by marker", title_fontsize=7)
     return fig

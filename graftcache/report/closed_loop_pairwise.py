@@ -67,8 +67,11 @@ def pair_sentence(r: Row, unit: str) -> str:
 
 
 def pairwise_lines(a: A.Analysis, measure: str, unit: str) -> list[str]:
-    """Per (backbone, suite): the "k of n pairs resolved by both agree" sentence, then each pair's line."""
+    """Per (backbone, suite) whose candidate pairs ran paired episodes: the "k of n pairs resolved by both agree"
+    sentence, then each pair's line (a command's printout; the report's table has every pair)."""
     table = in_backbone_order(a, a.closed_loop.pairwise.filter(pl.col("measure") == measure))
+    rolled = table.group_by("backbone", "suite").agg(pl.col("pairs").max()).filter(pl.col("pairs") > 0)
+    table = table.join(rolled.select("backbone", "suite"), on=["backbone", "suite"], how="semi")
     lines = []
     for r in A.pairwise_summary(table).iter_rows(named=True):
         lines.append(summary_sentence(r, table))

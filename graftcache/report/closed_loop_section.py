@@ -96,11 +96,14 @@ def ungraded_sentence(loop: A.ClosedLoop) -> str | None:
             "(`graded episodes`), and a cell without any has none.")
 
 
-def headline_sentences(loop: A.ClosedLoop, cells_of: str) -> list[str]:
+def headline_sentences(loop: A.ClosedLoop, cells_of: str, *, rolled_only: bool = False) -> list[str]:
     """eval_mse against the closest approach over `cells_of` (graftcache.analysis.CELLS_OF), per backbone and
-    suite, with intervals or why undefined."""
+    suite, with intervals or why undefined; `rolled_only`: only the (backbone, suite)s with cells of `cells_of`
+    rolled out (a command's printout leaves out the others, which the report lists)."""
     rows = loop.agreement.filter(pl.col("cells_of") == cells_of, pl.col("score") == HEADLINE_SCORE,
                                  pl.col("measure") == HEADLINE_MEASURE)
+    if rolled_only:
+        rows = rows.filter(pl.col("cells") > 0)
     out = []
     for r in rows.iter_rows(named=True):
         where = f"{A.backbone_label(r['backbone'])} · {r['suite']} · {cells_of}"
@@ -177,7 +180,7 @@ def closed_loop_findings(a: A.Analysis) -> tuple[str, ...]:
     if a.closed_loop is None or not len(a.closed_loop.cells):
         return ()
     doses = () if a.dose is None else in_backbone_order(a, a.dose.curves).iter_rows(named=True)
-    return (*headline_sentences(a.closed_loop, A.CANDIDATES),
+    return (*headline_sentences(a.closed_loop, A.CANDIDATES, rolled_only=True),
             *pairwise_lines(a, HEADLINE_MEASURE, _unit(HEADLINE_MEASURE)),
             *(resolution_sentence(r) for r in doses))
 

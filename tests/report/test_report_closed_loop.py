@@ -189,6 +189,22 @@ def test_a_panel_that_can_only_say_undefined_is_dropped(tmp_path: Path) -> None:
     assert len(axes) == 4 and not any("success" in ax.get_ylabel() for ax in axes)
 
 
+def test_a_row_without_rolled_out_candidates_has_a_blank_candidates_panel(tmp_path: Path) -> None:
+    """libero_spatial's plain grafts not rolled out (only its native and zero-image cells): its candidates panel is
+    off, saying so, instead of an empty frame saying the graded measures are unavailable (they are recorded);
+    libero_object's three panels are drawn."""
+    results, rollouts = _files(tmp_path)
+    table = R.read_for_report(results)
+    plain = table.filter(pl.col("suite") == "libero_spatial", pl.col("control") == "none")["run_id"]
+    pl.read_parquet(rollouts).filter(~pl.col("run_id").is_in(plain.implode())).write_parquet(rollouts)
+    fig = figure_closed_loop(_analysed(results, rollouts))
+    blank = [ax for ax in fig.axes if not ax.axison and ax.texts]
+    said = [t.get_text() for ax in blank for t in ax.texts]
+    assert said == ["SmolVLA · libero_spatial\nno candidates cell rolled out"]
+    drawn = [ax for ax in fig.axes if ax.axison]
+    assert len(drawn) == 5 and not any("unavailable" in t.get_text() for ax in fig.axes for t in ax.texts)
+
+
 def test_a_partly_graded_file_says_how_many_episodes_lack_the_graded_measures(tmp_path: Path) -> None:
     results, rollouts = _files(tmp_path, graded_for=2)
     paths = report.write_report(results, tmp_path / "out", rollouts=rollouts)
