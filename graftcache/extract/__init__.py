@@ -7,7 +7,7 @@ while the next block is encoded, under the write protocol (write.py). Blocks alr
 are never decoded again, so a rerun after Ctrl-C or SIGKILL continues from what is durably written, and batch
 composition (aligned to blocks) is the same as in an uninterrupted run, which makes the final bytes identical.
 
-One job per module: plan.py (the request resolved into a job.py Job: dataset, encoder, frames), provenance.py
+One job per module: resolve.py (the request resolved into a job.py Job: dataset, encoder, frames), provenance.py
 (index, manifest), frames.py (decode), encode.py (encoder -> stored grids), blocks.py (assembling, encoding and
 writing blocks), write.py (reuse / resume / create, whole or as one shard of N, under the writer locks), checks.py
 (refusals before work and the one-line texts of failures during it).
@@ -23,8 +23,8 @@ from graftcache.extract.blocks import fill
 from graftcache.extract.checks import check_disk, check_memory
 from graftcache.extract.encode import encode_frames
 from graftcache.extract.job import Job, Target
-from graftcache.extract.plan import plan
 from graftcache.extract.provenance import build_index, build_manifest, weights_note
+from graftcache.extract.resolve import resolve_job
 from graftcache.extract.write import ExtractResult, Writing, check_numerics, find_complete, shard_blocks
 from graftcache.requests import ExtractRequest
 from graftcache.runtime import set_main_threads
@@ -39,7 +39,7 @@ def extract(req: ExtractRequest, log: Callable[[str], None] = print) -> ExtractR
     t0 = time.perf_counter()
     root = open_root(req.cache)  # a --cache that cannot be a root is refused before any work
     set_main_threads()
-    job = plan(req, log)  # the dataset, the encoder and the frames; refused here when they cannot be done
+    job = resolve_job(req, log)  # the dataset, the encoder and the frames; refused here when they cannot be done
     manifest = build_manifest(job, fingerprint(job.encoder, job.req.compute_dtype, job.device))
     target = Target(root, cache_key(manifest.to_dict()), manifest)
     note = weights_note(manifest)

@@ -1,6 +1,6 @@
 """What one extraction computes and where it writes: the `Job` (a request resolved against its dataset and
-loaded encoder: cameras, episodes, the frames to cache; made by graftcache.extract.plan) and the `Target` (the
-cache key and its manifest in a root)."""
+loaded encoder: cameras, episodes, the frames to cache; made by graftcache.extract.resolve.resolve_job) and the
+`Target` (the cache key and its manifest in a root)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Planning: a request resolved against its dataset and loaded encoder into a `Job` (cameras, episodes, grids,
+"""A request resolved against its dataset and loaded encoder into a `Job` (cameras, episodes, grids,
 the frames to cache), with every refusal that needs no decoding made here, before any work."""
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from graftcache.runtime import resolve_compute_dtype, resolve_device
 from graftcache.store.cache import STORAGE_DTYPES
 
 
-def plan(req: ExtractRequest, log: Callable[[str], None]) -> Job:
+def resolve_job(req: ExtractRequest, log: Callable[[str], None]) -> Job:
     """Open the dataset, load the encoder and choose the frames; every refusal that needs no decoding is here."""
     device = resolve_device(req.device)
     req = replace(req, compute_dtype=resolve_compute_dtype(req.compute_dtype, device))  # never "auto" in a key
