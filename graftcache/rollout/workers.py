@@ -135,8 +135,11 @@ class Workers:
                 for worker in busy:
                     if worker.running is None and (job := scheduler.dispatch(worker)) is not None:
                         worker.conn.send(job)
+                if all(c.closed for c in cells.values()):  # another rollout wrote what was left: no report is owed
+                    break
+                running = any(w.running is not None for w in busy)
                 ready = wait([w.conn for w in busy] + [w.process.sentinel for w in busy],
-                             timeout=CLAIM_POLL_S if scheduler.waiting() else None)
+                             timeout=None if running and not scheduler.waiting() else CLAIM_POLL_S)
                 for worker in busy:
                     if worker.conn in ready or worker.conn.poll():
                         scheduler.finished(worker, _receive(worker))

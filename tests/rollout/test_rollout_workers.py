@@ -14,10 +14,12 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from collections import Counter
 from functools import partial
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import polars as pl
@@ -30,7 +32,7 @@ from graftcache import results
 from graftcache.errors import RolloutError
 from graftcache.results.claims import claims_folder
 from graftcache.rollout import table
-from graftcache.rollout.run import RolloutRequest, roll_out, roll_out_started
+from graftcache.rollout.run import RolloutRequest, plan, roll_out, roll_out_started
 from graftcache.rollout.select import select_rows
 from graftcache.rollout.workers import Workers
 
@@ -233,3 +235,27 @@ def test_two_workers_give_the_rows_and_frames_of_one_in_the_simulator(simulator_
     run = one["run_id"][0]
     first, second = (_frames(simulator_rollouts.folder / videos[run, k]) for k in (0, 1))
     assert not np.array_equal(first, second)
+
+
+def test_a_team_whose_episodes_another_rollout_wrote_meanwhile_ends(tmp_path: Path) -> None:
+    """A second rollout sharing the file plans while the first still runs: every episode it found missing is written
+    by the time it holds the cells' claims. Its team closes both cells without running one and returns (it waited
+    forever for a worker's report once)."""
+    req = _request(tmp_path)
+    first = roll_out(req, Paced(tmp_path / "first"), log=lambda _: None)
+    rows = {r["run_id"]: r for r in select_rows(results.read(req.results), top=1, suites=["libero_object"])
+            .iter_rows(named=True)}
+    stale = plan(pl.DataFrame(list(rows.values())), req, Paced(tmp_path / "planner"))
+    assert len(stale) == EPISODES and first.height == EPISODES
+    team = Workers(partial(Paced, tmp_path / "second"), 2, req)
+    bar = SimpleNamespace(update=lambda n: counted.append(n), set_postfix_str=lambda _: None)
+    counted: list[int] = []
+    runner = threading.Thread(target=team.run, args=(req, rows, stale, bar, lambda _: None), daemon=True)
+    try:
+        runner.start()
+        runner.join(10)
+        assert not runner.is_alive(), "the team waited for a report no worker owed it"
+    finally:
+        team.close()
+    assert sum(counted) == EPISODES and ran(tmp_path / "second") == []
+    assert table.read(req.rollouts).height == EPISODES and not multiprocessing.active_children()
