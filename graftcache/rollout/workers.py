@@ -30,10 +30,10 @@ any --workers, never run one episode twice.
 Failures: a worker's error is sent here and raised as one RolloutError line naming the run and episode; a worker that
 dies (kill -9, out of memory) is one line naming the episode it was running. Either way the other workers are stopped
 and the claims given back; every row written is whole and a rerun runs the missing episodes. Ctrl-C or SIGTERM here
-stops every worker (graftcache.processes.stop: SIGTERM, then SIGKILL); the workers ignore the
-terminal's SIGINT, so the stop is this process's one line. A kill -9 of this process: the kernel sends each worker
-SIGTERM (Linux PR_SET_PDEATHSIG; elsewhere the closed pipe ends it after its episode), this process's claims go stale
-with its pid, and a rerun runs the episodes that were not written.
+stops every worker (graftcache.processes.stop: SIGTERM, then SIGKILL after a grace period, whatever the worker does
+with SIGTERM); the workers ignore the terminal's SIGINT, so the stop is this process's one line. A kill -9 of this
+process: the kernel sends each worker SIGKILL (Linux PR_SET_PDEATHSIG; elsewhere the closed pipe ends it after its
+episode), this process's claims go stale with its pid, and a rerun runs the episodes that were not written.
 
 Determinism: an episode seeds its RNGs from its own seed and starts from its own init state, and its policy runs at
 graftcache.rollout.libero.POLICY_THREADS torch threads whatever N, so N workers write the rows one would (seconds and
@@ -360,9 +360,11 @@ def _terminated(signum: int, frame: Any) -> None:
 
 
 def _die_with(parent: int) -> None:
-    """SIGTERM to this worker when its parent dies (Linux), so a kill -9 of the rollout leaves no worker running."""
+    """SIGKILL to this worker when its parent dies (Linux), so a kill -9 of the rollout leaves no worker running:
+    SIGKILL, since SIGTERM is lost where a library swallows what its handler raises (hf-libero's reset loop ends in
+    `finally: continue`), and an orphan has no one left to escalate."""
     if sys.platform.startswith("linux"):
-        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
+        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
     if os.getppid() != parent:  # died before the prctl
         raise Terminated()
 

@@ -9,6 +9,7 @@ request is test_rollout.py's: top 1 on libero_object of tests/helpers/tables.py,
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing
 import os
 import signal
@@ -259,3 +260,83 @@ def test_a_team_whose_episodes_another_rollout_wrote_meanwhile_ends(tmp_path: Pa
         team.close()
     assert sum(counted) == EPISODES and ran(tmp_path / "second") == []
     assert table.read(req.rollouts).height == EPISODES and not multiprocessing.active_children()
+
+
+CONSOLE = """
+import sys
+from functools import partial
+from pathlib import Path
+import graftcache.cli.rollout
+from graftcache.cli import main
+from helpers.rollouts import Paced
+from graftcache.rollout.run import RolloutRequest, roll_out_started
+from graftcache.rollout.workers import Workers
+here, spin = Path(sys.argv[1]), sys.argv[2]
+
+def run(args):  # the console script's rollout, over Paced simulators, one of whose episodes spins in the reset loop
+    req = RolloutRequest(results=here / "results.parquet", rollouts=here / "rollouts.parquet", top=1,
+                         suites=("libero_object",), tasks=(0, 3), episodes_per_task=2, seed=7, command="stopped")
+    team = Workers(partial(Paced, here / "traces", delay=0.2, spin=(spin, 0, 0)), 2, req)
+    roll_out_started([req], partial(Paced, here / "planner"), team)
+    return 0
+
+graftcache.cli.rollout.run = run
+sys.argv = ["graftcache", "rollout", str(here / "results.parquet")]
+sys.exit(main())
+"""
+
+
+def _spinning_console(tmp_path: Path) -> tuple[subprocess.Popen, list[int]]:
+    """`graftcache rollout --workers 2` as the console script runs it, in a session of its own (a terminal's process
+    group), once one worker spins in hf-libero's reset loop; and the pids of its two workers."""
+    req = _request(tmp_path)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    with open(tmp_path / "stderr.txt", "wb") as err:  # a file: a worker that outlives the console keeps it open
+        console = subprocess.Popen([sys.executable, "-c", CONSOLE, str(tmp_path), _first_run(req)], env=env,
+                                   stdout=subprocess.DEVNULL, stderr=err, start_new_session=True)
+    deadline = time.monotonic() + 120
+    while not list((tmp_path / "traces").glob("spinning-*")) or len(pids(tmp_path / "traces")) < 2:
+        assert console.poll() is None, (tmp_path / "stderr.txt").read_text()[-2000:]
+        assert time.monotonic() < deadline
+        time.sleep(0.05)
+    return console, pids(tmp_path / "traces")
+
+
+def _all_gone(workers: list[int], within: float) -> bool:
+    deadline = time.monotonic() + within
+    while not all(_gone(p) for p in workers):
+        if time.monotonic() > deadline:
+            for pid in workers:  # the test's own clean-up: nothing it started outlives it
+                with contextlib.suppress(ProcessLookupError):
+                    os.kill(pid, signal.SIGKILL)
+            return False
+        time.sleep(0.05)
+    return True
+
+
+def test_ctrl_c_stops_a_worker_spinning_in_the_reset_loop(tmp_path: Path) -> None:
+    """Ctrl-C (SIGINT to the terminal's process group) while a worker spins in hf-libero's reset loop, which swallows
+    the SIGTERM of the stop: the stop goes on to SIGKILL after its grace period, and the command ends in its one line
+    (it printed the line, then hung until a second Ctrl-C)."""
+    console, workers = _spinning_console(tmp_path)
+    os.killpg(console.pid, signal.SIGINT)
+    try:
+        console.wait(timeout=30)
+    except subprocess.TimeoutExpired:
+        os.killpg(console.pid, signal.SIGKILL)
+        console.wait()
+        _all_gone(workers, 0)
+        pytest.fail("the stopped rollout did not exit")
+    lines = (tmp_path / "stderr.txt").read_text().strip().splitlines()
+    assert console.returncode == 130, lines[-20:]
+    assert lines[-1] == "graftcache rollout: interrupted; run the same command again to resume", lines[-20:]
+    assert _all_gone(workers, 5)
+
+
+def test_kill_9_of_the_rollout_ends_a_worker_spinning_in_the_reset_loop(tmp_path: Path) -> None:
+    """A worker dies with its rollout even where it swallows SIGTERM (hf-libero's reset loop): the kernel's signal
+    on the parent's death is SIGKILL."""
+    console, workers = _spinning_console(tmp_path)
+    os.kill(console.pid, signal.SIGKILL)
+    console.wait()
+    assert _all_gone(workers, 10), "a worker outlived its rollout"
