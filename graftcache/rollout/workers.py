@@ -110,6 +110,17 @@ def one_line(e: BaseException) -> str:
     return first if isinstance(e, GraftcacheError) else f"{type(e).__name__}: {first}".rstrip(": ")
 
 
+def team_size(asked: int, log: Callable[[str], None]) -> int:
+    """`asked` workers, at most one per CPU this process may run on, the cap said in one line: each worker is a
+    simulator and a policy of its own, busy on a core, so more only share the cores and fill the memory. The team is
+    started before the episodes are known; once they are, workers beyond them are stopped (`Workers.run`)."""
+    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    if asked <= cpus:
+        return asked
+    log(f"--workers {asked}: starting {cpus}, one per CPU this process may run on")
+    return cpus
+
+
 class Workers:
     """A rollout's team of `n` spawned worker processes (graftcache.rollout.run.Team), started when built: each builds
     its simulator with `spawn` while the rollout builds its own to plan (graftcache.rollout.run.roll_out_started), so

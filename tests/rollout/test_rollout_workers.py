@@ -31,6 +31,8 @@ from helpers.tables import write_results
 
 from graftcache import results
 from graftcache.errors import RolloutError
+from graftcache.executors.local import LocalExecutor
+from graftcache.requests import ExecutorSettings
 from graftcache.results.claims import claims_folder
 from graftcache.rollout import table
 from graftcache.rollout.run import RolloutRequest, plan, roll_out, roll_out_started
@@ -340,3 +342,17 @@ def test_kill_9_of_the_rollout_ends_a_worker_spinning_in_the_reset_loop(tmp_path
     os.kill(console.pid, signal.SIGKILL)
     console.wait()
     assert _all_gone(workers, 10), "a worker outlived its rollout"
+
+
+def test_a_team_asked_for_more_workers_than_cpus_starts_one_per_cpu_and_says_so(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """--workers 5 on a process that may run on 2 CPUs: 2 simulators start, said in one line, and they write the rows
+    (--workers 1000 started up to 1000 before planning)."""
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1})
+    req = _request(tmp_path)
+    lines: list[str] = []
+    team = LocalExecutor(ExecutorSettings()).rollout_team(req, partial(Paced, tmp_path / "traces"), 5, lines.append)
+    rows = roll_out_started([req], partial(Paced, tmp_path / "planner"), team, log=lines.append)
+    assert lines[0] == "--workers 5: starting 2, one per CPU this process may run on"
+    assert len(pids(tmp_path / "traces")) == 2 and rows.height == EPISODES
+    assert not multiprocessing.active_children()
