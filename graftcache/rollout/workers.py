@@ -341,6 +341,7 @@ def serve(conn: Connection, spawn: Callable[[], Simulator], rollouts: Path, comm
     signal.signal(signal.SIGTERM, _terminated)
     try:
         _die_with(parent)
+        _thread_locked_bars()
         try:
             sim = spawn()
         except Exception as e:
@@ -367,7 +368,25 @@ def serve(conn: Connection, spawn: Callable[[], Simulator], rollouts: Path, comm
 
 
 def _terminated(signum: int, frame: Any) -> None:
+    """A stop: raised, and from now on nothing that it cuts short is printed. An object whose `__init__` it
+    interrupts can fail in its `__del__` (robosuite's MjRenderContext), which Python would print as "Exception
+    ignored in ..." on the terminal before the rollout's one line."""
+    sys.unraisablehook = _dropped
     raise Terminated()
+
+
+def _dropped(unraisable: Any) -> None:
+    """sys.unraisablehook of a stopped worker: its debris is not printed (see `_terminated`)."""
+
+
+def _thread_locked_bars() -> None:
+    """tqdm's bars (lerobot's rollout loop opens one, disabled here) share a lock that is by default a
+    multiprocessing semaphore, registered with the rollout's resource tracker: a worker killed by SIGKILL (a stop's
+    escalation, its parent's death) never unregisters it, and the tracker warns of a "leaked semaphore" on the
+    terminal after the rollout's last line. A worker draws no bar of another process: a thread lock serves."""
+    from tqdm import tqdm
+
+    tqdm.set_lock(threading.RLock())
 
 
 def _die_with(parent: int) -> None:

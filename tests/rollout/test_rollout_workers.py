@@ -273,12 +273,13 @@ from graftcache.cli import main
 from helpers.rollouts import Paced
 from graftcache.rollout.run import RolloutRequest, roll_out_started
 from graftcache.rollout.workers import Workers
-here, spin = Path(sys.argv[1]), sys.argv[2]
+here, spin, built = Path(sys.argv[1]), sys.argv[2], sys.argv[3:]
 
 def run(args):  # the console script's rollout, over Paced simulators, one of whose episodes spins in the reset loop
     req = RolloutRequest(results=here / "results.parquet", rollouts=here / "rollouts.parquet", top=1,
                          suites=("libero_object",), tasks=(0, 3), episodes_per_task=2, seed=7, command="stopped")
-    team = Workers(partial(Paced, here / "traces", delay=0.2, spin=(spin, 0, 0)), 2, req)
+    debris = (built[0], 0, 0) if built else None  # the other worker's first episode: stopped mid-build
+    team = Workers(partial(Paced, here / "traces", delay=0.2, spin=(spin, 0, 0), debris=debris), 2, req)
     roll_out_started([req], partial(Paced, here / "planner"), team)
     return 0
 
@@ -288,16 +289,19 @@ sys.exit(main())
 """
 
 
-def _spinning_console(tmp_path: Path) -> tuple[subprocess.Popen, list[int]]:
+def _spinning_console(tmp_path: Path, debris: bool = False) -> tuple[subprocess.Popen, list[int]]:
     """`graftcache rollout --workers 2` as the console script runs it, in a session of its own (a terminal's process
-    group), once one worker spins in hf-libero's reset loop; and the pids of its two workers."""
+    group), once one worker spins in hf-libero's reset loop (and, with `debris`, the other is building a HalfBuilt);
+    and the pids of its two workers."""
     req = _request(tmp_path)
+    cells = select_rows(results.read(req.results), top=1, suites=["libero_object"])["run_id"].to_list()
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
     with open(tmp_path / "stderr.txt", "wb") as err:  # a file: a worker that outlives the console keeps it open
-        console = subprocess.Popen([sys.executable, "-c", CONSOLE, str(tmp_path), _first_run(req)], env=env,
+        console = subprocess.Popen([sys.executable, "-c", CONSOLE, str(tmp_path), *cells[: 1 + debris]], env=env,
                                    stdout=subprocess.DEVNULL, stderr=err, start_new_session=True)
     deadline = time.monotonic() + 120
-    while not list((tmp_path / "traces").glob("spinning-*")) or len(pids(tmp_path / "traces")) < 2:
+    markers = ("spinning-*", "building-*") if debris else ("spinning-*",)
+    while not all(list((tmp_path / "traces").glob(m)) for m in markers) or len(pids(tmp_path / "traces")) < 2:
         assert console.poll() is None, (tmp_path / "stderr.txt").read_text()[-2000:]
         assert time.monotonic() < deadline
         time.sleep(0.05)
@@ -356,3 +360,28 @@ def test_a_team_asked_for_more_workers_than_cpus_starts_one_per_cpu_and_says_so(
     assert lines[0] == "--workers 5: starting 2, one per CPU this process may run on"
     assert len(pids(tmp_path / "traces")) == 2 and rows.height == EPISODES
     assert not multiprocessing.active_children()
+
+
+def test_a_stopped_team_prints_nothing_after_its_workers(tmp_path: Path) -> None:
+    """SIGTERM to the console while one worker spins in hf-libero's reset loop (so it ends by SIGKILL) and the other
+    is stopped mid-build of an object whose `__del__` then fails (robosuite's MjRenderContext): exit 143, and stderr
+    holds none of the workers' debris, neither "Exception ignored ... __del__" nor the resource tracker's
+    "leaked semaphore" warning (the killed worker's tqdm lock), before or after the command's one line."""
+    console, workers = _spinning_console(tmp_path, debris=True)
+    console.send_signal(signal.SIGTERM)
+    try:
+        console.wait(timeout=30)
+    finally:
+        if console.poll() is None:
+            os.killpg(console.pid, signal.SIGKILL)
+    deadline = time.monotonic() + 15
+    with contextlib.suppress(ProcessLookupError):  # the resource tracker speaks once the last of the session is gone
+        while time.monotonic() < deadline:
+            os.killpg(console.pid, 0)
+            time.sleep(0.1)
+    err = (tmp_path / "stderr.txt").read_text()
+    assert console.returncode == 143, err[-3000:]
+    assert "Exception ignored" not in err and "leaked" not in err and "Traceback" not in err, err[-3000:]
+    assert err.strip().splitlines()[-1] == ("graftcache rollout: terminated (SIGTERM); run the same command again "
+                                            "to resume")
+    assert _all_gone(workers, 5)
