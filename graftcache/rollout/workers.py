@@ -296,10 +296,30 @@ def _start(n: int, spawn: Callable[[], Simulator], req: RolloutRequest) -> list[
             here, there = context.Pipe()
             process = context.Process(target=serve, args=(there, spawn, req.rollouts, req.command, os.getpid()),
                                       name=f"graftcache-rollout-{i}", daemon=True)
-            process.start()
+            with _sigterm_held():
+                process.start()
             there.close()
             team.append(_Worker(i, process, here))
     return team
+
+
+@contextmanager
+def _sigterm_held() -> Iterator[None]:
+    """A SIGTERM held while one worker starts, then delivered: raised between its spawn and the data it is then sent,
+    the stop would leave a process that is no team member yet (no stop reaches it) and that dies reading the rest,
+    printing an EOFError traceback. (SIGINT is ignored meanwhile, `_sigint_ignored`.) A Python handler holds it, not
+    the signal mask, which the process's other threads do not share."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    held: list[int] = []
+    previous = signal.signal(signal.SIGTERM, lambda signum, frame: held.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+        if held:
+            signal.raise_signal(signal.SIGTERM)
 
 
 @contextmanager

@@ -385,3 +385,60 @@ def test_a_stopped_team_prints_nothing_after_its_workers(tmp_path: Path) -> None
     assert err.strip().splitlines()[-1] == ("graftcache rollout: terminated (SIGTERM); run the same command again "
                                             "to resume")
     assert _all_gone(workers, 5)
+
+
+STARTING = """
+import os, signal, sys
+from functools import partial
+from pathlib import Path
+from multiprocessing import util
+import graftcache.cli.rollout
+from graftcache.cli import main
+from helpers.rollouts import Paced
+from graftcache.rollout.run import RolloutRequest
+from graftcache.rollout.workers import Workers
+here, spawned = Path(sys.argv[1]), []
+spawn = util.spawnv_passfds
+
+def spawn_then_stop(*args):  # SIGTERM as the second worker's process exists, before it was sent what to run
+    spawned.append(spawn(*args))
+    if len(spawned) == 2:
+        os.kill(os.getpid(), signal.SIGTERM)
+    return spawned[-1]
+
+def run(args):
+    req = RolloutRequest(results=here / "results.parquet", rollouts=here / "rollouts.parquet", command="stopped")
+    util.spawnv_passfds = spawn_then_stop
+    Workers(partial(Paced, here / "traces"), 3, req)
+    return 0
+
+graftcache.cli.rollout.run = run
+sys.argv = ["graftcache", "rollout", str(here / "results.parquet")]
+sys.exit(main())
+"""
+
+
+def test_a_stop_while_the_team_starts_leaves_no_worker_and_no_traceback(tmp_path: Path) -> None:
+    """SIGTERM while the team's workers are being spawned, just after one's process exists: it is held until that
+    worker has what to run, then stops the command in its one line (exit 143) and every worker with it, quietly
+    (the half-started one printed an EOFError traceback, reading what it was never sent)."""
+    write_results(tmp_path / "results.parquet")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    with open(tmp_path / "stderr.txt", "wb") as err:
+        console = subprocess.Popen([sys.executable, "-c", STARTING, str(tmp_path)], env=env,
+                                   stdout=subprocess.DEVNULL, stderr=err, start_new_session=True)
+    try:
+        console.wait(timeout=60)
+        deadline = time.monotonic() + 20
+        with contextlib.suppress(ProcessLookupError):  # every process of its session gone: workers, resource tracker
+            while True:
+                os.killpg(console.pid, 0)
+                assert time.monotonic() < deadline, "a worker outlived its stopped rollout"
+                time.sleep(0.1)
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(console.pid, signal.SIGKILL)
+    err = (tmp_path / "stderr.txt").read_text()
+    assert console.returncode == 143, err[-3000:]
+    assert err.strip().splitlines() == ["graftcache rollout: terminated (SIGTERM); run the same command again to "
+                                        "resume"]
