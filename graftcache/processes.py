@@ -21,13 +21,26 @@ class Terminated(KeyboardInterrupt):
 
 
 def stop(processes: Sequence[BaseProcess]) -> None:
-    """SIGTERM every live one of `processes`, then SIGKILL (and reap) those still alive WORKER_GRACE_S later."""
+    """SIGTERM every live one of `processes`, then SIGKILL (and reap) those still alive WORKER_GRACE_S later.
+
+    A stop raised while this runs (graftcache.cli.signals raises the command's stop again until the command has
+    taken it) is held until every process is reaped, then raised: cut short, the SIGKILL would never come, and a
+    worker that swallows SIGTERM (hf-libero's reset loop ends in `finally: continue`) would keep the command's exit
+    waiting on it forever (multiprocessing joins its children at exit)."""
+    held: KeyboardInterrupt | None = None
     alive = [p for p in processes if p.is_alive()]
     for process in alive:
         process.terminate()
     deadline = time.monotonic() + WORKER_GRACE_S
     for process in alive:
-        process.join(max(0.0, deadline - time.monotonic()))
-        if process.is_alive():
-            process.kill()
-            process.join()
+        while True:
+            try:
+                process.join(max(0.0, deadline - time.monotonic()))
+                if process.is_alive():
+                    process.kill()
+                    process.join()
+                break
+            except KeyboardInterrupt as e:
+                held = e
+    if held is not None:
+        raise held

@@ -107,8 +107,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    "file (default: no videos; episodes already in the file are not rerun for one)")
     p.add_argument("--workers", type=_at_least(1), default=None, metavar="N",
                    help="episodes run at once, each in a worker process with a simulator of its own (default: 1, "
-                   "in this process); the rows are those of one worker. About one per core: each policy runs on one "
-                   "torch thread. With --executor ray: Ray actors, each holding a simulator (default: as many as the "
+                   "in this process); the rows are those of one worker. At most one per CPU (more are capped, said in "
+                   "one line): each policy runs on one torch thread. With --executor ray: Ray actors, each holding a "
+                   "simulator (default: as many as the "
                    "cluster runs at once)")
     p.add_argument("--cache", default=None, help="cache root the fits read (default: $GRAFTCACHE_HOME or "
                    "~/.cache/graftcache)")

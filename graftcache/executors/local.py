@@ -32,10 +32,11 @@ class LocalExecutor:
 
     def rollout_team(self, req: RolloutRequest, spawn: Callable[[], Simulator], workers: int | None,
                      log: Log) -> Team | None:
-        """`workers` spawned processes on this machine (graftcache/rollout/workers.py); 1 (the default): none, the
-        episodes run in the rollout's own process."""
+        """`workers` spawned processes on this machine (graftcache/rollout/workers.py), at most one per CPU
+        (graftcache.rollout.workers.team_size); 1 (the default): none, the episodes run in the rollout's own
+        process."""
         if (workers or 1) == 1:
             return None
-        from graftcache.rollout.workers import Workers
+        from graftcache.rollout.workers import Workers, team_size
 
-        return Workers(spawn, workers, req)
+        return Workers(spawn, team_size(workers, log), req)

@@ -9,7 +9,10 @@ from __future__ import annotations
 
 import math
 import os
+import signal
+import threading
 from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -41,10 +44,27 @@ def connect(settings: ExecutorSettings, log: Log) -> None:
     local = {} if settings.address else {"include_dashboard": False}
     log(f"ray: {'joining ' + settings.address if settings.address else 'starting a local Ray instance'}")
     try:
-        ray.init(address=settings.address, runtime_env={"env_vars": env}, **local)
+        with _own_stops():
+            ray.init(address=settings.address, runtime_env={"env_vars": env}, **local)
     except (ConnectionError, RuntimeError, ValueError) as e:
         raise ExecutorError(f"--address {settings.address}: cannot start or join Ray "
                             f"({' '.join(str(e).split())[:300]})") from None
+
+
+@contextmanager
+def _own_stops() -> Iterator[None]:
+    """This process's SIGINT and SIGTERM handlers (the command's one-line stop, graftcache.cli.signals) kept over
+    ray.init, which replaces them: its driver's core worker installs a C++ handler that answers SIGTERM with a stack
+    dump and an abort (exit 134). Set again from Python, the command's handlers are the ones the kernel calls."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    saved = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for signum, handler in saved.items():
+            signal.signal(signum, handler if handler is not None else signal.SIG_DFL)
 
 
 def task_options(settings: ExecutorSettings, device: str) -> dict[str, Any]:

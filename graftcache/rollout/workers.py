@@ -30,10 +30,10 @@ any --workers, never run one episode twice.
 Failures: a worker's error is sent here and raised as one RolloutError line naming the run and episode; a worker that
 dies (kill -9, out of memory) is one line naming the episode it was running. Either way the other workers are stopped
 and the claims given back; every row written is whole and a rerun runs the missing episodes. Ctrl-C or SIGTERM here
-stops every worker (graftcache.processes.stop: SIGTERM, then SIGKILL); the workers ignore the
-terminal's SIGINT, so the stop is this process's one line. A kill -9 of this process: the kernel sends each worker
-SIGTERM (Linux PR_SET_PDEATHSIG; elsewhere the closed pipe ends it after its episode), this process's claims go stale
-with its pid, and a rerun runs the episodes that were not written.
+stops every worker (graftcache.processes.stop: SIGTERM, then SIGKILL after a grace period, whatever the worker does
+with SIGTERM); the workers ignore the terminal's SIGINT, so the stop is this process's one line. A kill -9 of this
+process: the kernel sends each worker SIGKILL (Linux PR_SET_PDEATHSIG; elsewhere the closed pipe ends it after its
+episode), this process's claims go stale with its pid, and a rerun runs the episodes that were not written.
 
 Determinism: an episode seeds its RNGs from its own seed and starts from its own init state, and its policy runs at
 graftcache.rollout.libero.POLICY_THREADS torch threads whatever N, so N workers write the rows one would (seconds and
@@ -110,6 +110,17 @@ def one_line(e: BaseException) -> str:
     return first if isinstance(e, GraftcacheError) else f"{type(e).__name__}: {first}".rstrip(": ")
 
 
+def team_size(asked: int, log: Callable[[str], None]) -> int:
+    """`asked` workers, at most one per CPU this process may run on, the cap said in one line: each worker is a
+    simulator and a policy of its own, busy on a core, so more only share the cores and fill the memory. The team is
+    started before the episodes are known; once they are, workers beyond them are stopped (`Workers.run`)."""
+    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    if asked <= cpus:
+        return asked
+    log(f"--workers {asked}: starting {cpus}, one per CPU this process may run on")
+    return cpus
+
+
 class Workers:
     """A rollout's team of `n` spawned worker processes (graftcache.rollout.run.Team), started when built: each builds
     its simulator with `spawn` while the rollout builds its own to plan (graftcache.rollout.run.roll_out_started), so
@@ -135,8 +146,11 @@ class Workers:
                 for worker in busy:
                     if worker.running is None and (job := scheduler.dispatch(worker)) is not None:
                         worker.conn.send(job)
+                if all(c.closed for c in cells.values()):  # another rollout wrote what was left: no report is owed
+                    break
+                running = any(w.running is not None for w in busy)
                 ready = wait([w.conn for w in busy] + [w.process.sentinel for w in busy],
-                             timeout=CLAIM_POLL_S if scheduler.waiting() else None)
+                             timeout=None if running and not scheduler.waiting() else CLAIM_POLL_S)
                 for worker in busy:
                     if worker.conn in ready or worker.conn.poll():
                         scheduler.finished(worker, _receive(worker))
@@ -282,10 +296,30 @@ def _start(n: int, spawn: Callable[[], Simulator], req: RolloutRequest) -> list[
             here, there = context.Pipe()
             process = context.Process(target=serve, args=(there, spawn, req.rollouts, req.command, os.getpid()),
                                       name=f"graftcache-rollout-{i}", daemon=True)
-            process.start()
+            with _sigterm_held():
+                process.start()
             there.close()
             team.append(_Worker(i, process, here))
     return team
+
+
+@contextmanager
+def _sigterm_held() -> Iterator[None]:
+    """A SIGTERM held while one worker starts, then delivered: raised between its spawn and the data it is then sent,
+    the stop would leave a process that is no team member yet (no stop reaches it) and that dies reading the rest,
+    printing an EOFError traceback. (SIGINT is ignored meanwhile, `_sigint_ignored`.) A Python handler holds it, not
+    the signal mask, which the process's other threads do not share."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    held: list[int] = []
+    previous = signal.signal(signal.SIGTERM, lambda signum, frame: held.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+        if held:
+            signal.raise_signal(signal.SIGTERM)
 
 
 @contextmanager
@@ -327,6 +361,7 @@ def serve(conn: Connection, spawn: Callable[[], Simulator], rollouts: Path, comm
     signal.signal(signal.SIGTERM, _terminated)
     try:
         _die_with(parent)
+        _thread_locked_bars()
         try:
             sim = spawn()
         except Exception as e:
@@ -353,13 +388,33 @@ def serve(conn: Connection, spawn: Callable[[], Simulator], rollouts: Path, comm
 
 
 def _terminated(signum: int, frame: Any) -> None:
+    """A stop: raised, and from now on nothing that it cuts short is printed. An object whose `__init__` it
+    interrupts can fail in its `__del__` (robosuite's MjRenderContext), which Python would print as "Exception
+    ignored in ..." on the terminal before the rollout's one line."""
+    sys.unraisablehook = _dropped
     raise Terminated()
 
 
+def _dropped(unraisable: Any) -> None:
+    """sys.unraisablehook of a stopped worker: its debris is not printed (see `_terminated`)."""
+
+
+def _thread_locked_bars() -> None:
+    """tqdm's bars (lerobot's rollout loop opens one, disabled here) share a lock that is by default a
+    multiprocessing semaphore, registered with the rollout's resource tracker: a worker killed by SIGKILL (a stop's
+    escalation, its parent's death) never unregisters it, and the tracker warns of a "leaked semaphore" on the
+    terminal after the rollout's last line. A worker draws no bar of another process: a thread lock serves."""
+    from tqdm import tqdm
+
+    tqdm.set_lock(threading.RLock())
+
+
 def _die_with(parent: int) -> None:
-    """SIGTERM to this worker when its parent dies (Linux), so a kill -9 of the rollout leaves no worker running."""
+    """SIGKILL to this worker when its parent dies (Linux), so a kill -9 of the rollout leaves no worker running:
+    SIGKILL, since SIGTERM is lost where a library swallows what its handler raises (hf-libero's reset loop ends in
+    `finally: continue`), and an orphan has no one left to escalate."""
     if sys.platform.startswith("linux"):
-        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
+        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
     if os.getppid() != parent:  # died before the prctl
         raise Terminated()
 

@@ -10,9 +10,11 @@ import signal
 import time
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
+from tqdm import tqdm
 
 from graftcache.rollout.episodes import Episode, Outcome, Suite
 from graftcache.rollout.graded import Graded
@@ -56,10 +58,14 @@ class Paced:
     """A Simulator whose episode k succeeds when its seed is even, in k + 3 steps (test_rollout.py's Scripted), taking
     `delay` seconds. Each process that builds one writes its pid to `traces`/pids/, and each episode it runs as a line
     "pid run_id task episode" to `traces`/ran-<pid>.txt. `fail`: that episode raises; `die`: its process kills itself
-    with SIGKILL there (a worker killed mid-episode)."""
+    with SIGKILL there (a worker killed mid-episode); `spin`: there it enters hf-libero's own reset loop with a scene
+    that never places (`spin_in_reset`), as a worker whose scene will not build does, and writes
+    `traces`/spinning-<pid>; `debris`: there it builds a `HalfBuilt` that a stop cuts short, writing
+    `traces`/building-<pid>. Each episode steps under a disabled tqdm bar, as lerobot's rollout loop does."""
 
-    def __init__(self, traces: Path, delay: float = 0.0, fail: Where | None = None, die: Where | None = None) -> None:
-        self.traces, self.delay, self.fail, self.die = traces, delay, fail, die
+    def __init__(self, traces: Path, delay: float = 0.0, fail: Where | None = None, die: Where | None = None,
+                 spin: Where | None = None, debris: Where | None = None) -> None:
+        self.traces, self.delay, self.fail, self.die, self.spin, self.debris = traces, delay, fail, die, spin, debris
         (traces / "pids").mkdir(parents=True, exist_ok=True)
         (traces / "pids" / str(os.getpid())).touch()
 
@@ -71,12 +77,47 @@ class Paced:
             at = (e.run_id, e.task_index, e.episode)
             if at == self.die:
                 os.kill(os.getpid(), signal.SIGKILL)
+            tqdm(total=1, disable=True).close()  # its class's lock: a multiprocessing semaphore unless set
+            if at == self.spin:
+                spin_in_reset(self.traces / f"spinning-{os.getpid()}")
+            if at == self.debris:
+                HalfBuilt(self.traces / f"building-{os.getpid()}")
             if at == self.fail:
                 raise RuntimeError("the simulator broke\nat its second line")
             time.sleep(self.delay)
             with open(self.traces / f"ran-{os.getpid()}.txt", "a") as f:
                 f.write(f"{os.getpid()} {e.run_id} {e.task_index} {e.episode}\n")
             yield Outcome(success=e.seed % 2 == 0, steps=e.episode + 3, seconds=self.delay, init_state=e.episode)
+
+
+class HalfBuilt:
+    """As robosuite's MjRenderContext: `__del__` frees what `__init__` sets up last, so an `__init__` that a stop cut
+    short leaves an object whose `__del__` raises (Python prints it as "Exception ignored in ...")."""
+
+    def __init__(self, marker: Path) -> None:
+        marker.touch()
+        while True:  # building, until stopped
+            time.sleep(0.05)
+        self.context = object()
+
+    def __del__(self) -> None:
+        del self.context
+
+
+def spin_in_reset(marker: Path) -> None:
+    """hf-libero's ControlEnv.reset, the real loop (`while not success: try: reset ... finally: continue`), over a
+    scene whose every placement fails: it never returns, and its `finally: continue` swallows whatever a signal's
+    handler raises in it (a KeyboardInterrupt, graftcache.processes.Terminated). `marker` is written once the loop
+    runs (hf-libero's imports take seconds, and a stop during them ends the process as any other would)."""
+    from libero.libero.envs.env_wrapper import ControlEnv
+    from robosuite.utils.errors import RandomizationError
+
+    def unplaceable() -> None:
+        marker.touch()
+        time.sleep(0.01)  # a placement's work, so the spin leaves the shared cores some room
+        raise RandomizationError("cannot place all objects")
+
+    ControlEnv.reset(SimpleNamespace(env=SimpleNamespace(reset=unplaceable)))
 
 
 def ran(traces: Path) -> list[tuple[int, str, int, int]]:

@@ -6,6 +6,11 @@ build by name, and the slow one the session's fitted cells in LIBERO (tests/fixt
 
 from __future__ import annotations
 
+import os
+import signal
+import subprocess
+import sys
+import time
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -100,3 +105,46 @@ def test_ray_actors_give_the_rows_of_this_process_in_the_simulator(ray_cluster: 
     rows = table.read(tmp_path / "rollouts.parquet").sort("episode_id")
     assert rows.drop(VARYING).equals(simulator_rollouts.rows.drop(VARYING))
     assert all((tmp_path / video).is_file() for video in rows["video"])
+
+
+CONSOLE = """
+import sys, time
+import graftcache.cli.rollout
+from graftcache.cli import main
+from graftcache.executors.ray_cluster import connect
+from graftcache.requests import ExecutorSettings
+
+def run(args):  # the console script's rollout, connected to a Ray instance of its own, until stopped
+    connect(ExecutorSettings(executor="ray"), print)
+    print("connected", flush=True)
+    time.sleep(300)
+    return 0
+
+graftcache.cli.rollout.run = run
+sys.argv = ["graftcache", "rollout", "results.parquet"]
+sys.exit(main())
+"""
+
+
+def test_sigterm_to_a_ray_driver_is_the_commands_one_line(tmp_path: Path) -> None:
+    """SIGTERM to `rollout --executor ray` once it started its Ray instance: exit 143 and the command's one line, as
+    with the local executor (Ray's C++ handler answered it with a stack dump and an abort, exit 134)."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    with open(tmp_path / "out.txt", "wb") as out, open(tmp_path / "err.txt", "wb") as err:
+        driver = subprocess.Popen([sys.executable, "-c", CONSOLE], env=env, stdout=out, stderr=err, cwd=tmp_path)
+    try:
+        deadline = time.monotonic() + 180
+        while "connected" not in (tmp_path / "out.txt").read_text():
+            assert driver.poll() is None, (tmp_path / "err.txt").read_text()[-2000:]
+            assert time.monotonic() < deadline
+            time.sleep(0.1)
+        driver.send_signal(signal.SIGTERM)
+        code = driver.wait(timeout=60)
+    finally:
+        if driver.poll() is None:
+            driver.kill()
+    err = (tmp_path / "err.txt").read_text()
+    assert code == 143, err[-2000:]
+    assert "SIGTERM received" not in err
+    last = err.strip().splitlines()[-1]
+    assert last == "graftcache rollout: terminated (SIGTERM); run the same command again to resume"

@@ -9,15 +9,18 @@ request is test_rollout.py's: top 1 on libero_object of tests/helpers/tables.py,
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing
 import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from collections import Counter
 from functools import partial
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import polars as pl
@@ -28,9 +31,11 @@ from helpers.tables import write_results
 
 from graftcache import results
 from graftcache.errors import RolloutError
+from graftcache.executors.local import LocalExecutor
+from graftcache.requests import ExecutorSettings
 from graftcache.results.claims import claims_folder
 from graftcache.rollout import table
-from graftcache.rollout.run import RolloutRequest, roll_out, roll_out_started
+from graftcache.rollout.run import RolloutRequest, plan, roll_out, roll_out_started
 from graftcache.rollout.select import select_rows
 from graftcache.rollout.workers import Workers
 
@@ -233,3 +238,207 @@ def test_two_workers_give_the_rows_and_frames_of_one_in_the_simulator(simulator_
     run = one["run_id"][0]
     first, second = (_frames(simulator_rollouts.folder / videos[run, k]) for k in (0, 1))
     assert not np.array_equal(first, second)
+
+
+def test_a_team_whose_episodes_another_rollout_wrote_meanwhile_ends(tmp_path: Path) -> None:
+    """A second rollout sharing the file plans while the first still runs: every episode it found missing is written
+    by the time it holds the cells' claims. Its team closes both cells without running one and returns (it waited
+    forever for a worker's report once)."""
+    req = _request(tmp_path)
+    first = roll_out(req, Paced(tmp_path / "first"), log=lambda _: None)
+    rows = {r["run_id"]: r for r in select_rows(results.read(req.results), top=1, suites=["libero_object"])
+            .iter_rows(named=True)}
+    stale = plan(pl.DataFrame(list(rows.values())), req, Paced(tmp_path / "planner"))
+    assert len(stale) == EPISODES and first.height == EPISODES
+    team = Workers(partial(Paced, tmp_path / "second"), 2, req)
+    bar = SimpleNamespace(update=lambda n: counted.append(n), set_postfix_str=lambda _: None)
+    counted: list[int] = []
+    runner = threading.Thread(target=team.run, args=(req, rows, stale, bar, lambda _: None), daemon=True)
+    try:
+        runner.start()
+        runner.join(10)
+        assert not runner.is_alive(), "the team waited for a report no worker owed it"
+    finally:
+        team.close()
+    assert sum(counted) == EPISODES and ran(tmp_path / "second") == []
+    assert table.read(req.rollouts).height == EPISODES and not multiprocessing.active_children()
+
+
+CONSOLE = """
+import sys
+from functools import partial
+from pathlib import Path
+import graftcache.cli.rollout
+from graftcache.cli import main
+from helpers.rollouts import Paced
+from graftcache.rollout.run import RolloutRequest, roll_out_started
+from graftcache.rollout.workers import Workers
+here, spin, built = Path(sys.argv[1]), sys.argv[2], sys.argv[3:]
+
+def run(args):  # the console script's rollout, over Paced simulators, one of whose episodes spins in the reset loop
+    req = RolloutRequest(results=here / "results.parquet", rollouts=here / "rollouts.parquet", top=1,
+                         suites=("libero_object",), tasks=(0, 3), episodes_per_task=2, seed=7, command="stopped")
+    debris = (built[0], 0, 0) if built else None  # the other worker's first episode: stopped mid-build
+    team = Workers(partial(Paced, here / "traces", delay=0.2, spin=(spin, 0, 0), debris=debris), 2, req)
+    roll_out_started([req], partial(Paced, here / "planner"), team)
+    return 0
+
+graftcache.cli.rollout.run = run
+sys.argv = ["graftcache", "rollout", str(here / "results.parquet")]
+sys.exit(main())
+"""
+
+
+def _spinning_console(tmp_path: Path, debris: bool = False) -> tuple[subprocess.Popen, list[int]]:
+    """`graftcache rollout --workers 2` as the console script runs it, in a session of its own (a terminal's process
+    group), once one worker spins in hf-libero's reset loop (and, with `debris`, the other is building a HalfBuilt);
+    and the pids of its two workers."""
+    req = _request(tmp_path)
+    cells = select_rows(results.read(req.results), top=1, suites=["libero_object"])["run_id"].to_list()
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    with open(tmp_path / "stderr.txt", "wb") as err:  # a file: a worker that outlives the console keeps it open
+        console = subprocess.Popen([sys.executable, "-c", CONSOLE, str(tmp_path), *cells[: 1 + debris]], env=env,
+                                   stdout=subprocess.DEVNULL, stderr=err, start_new_session=True)
+    deadline = time.monotonic() + 120
+    markers = ("spinning-*", "building-*") if debris else ("spinning-*",)
+    while not all(list((tmp_path / "traces").glob(m)) for m in markers) or len(pids(tmp_path / "traces")) < 2:
+        assert console.poll() is None, (tmp_path / "stderr.txt").read_text()[-2000:]
+        assert time.monotonic() < deadline
+        time.sleep(0.05)
+    return console, pids(tmp_path / "traces")
+
+
+def _all_gone(workers: list[int], within: float) -> bool:
+    deadline = time.monotonic() + within
+    while not all(_gone(p) for p in workers):
+        if time.monotonic() > deadline:
+            for pid in workers:  # the test's own clean-up: nothing it started outlives it
+                with contextlib.suppress(ProcessLookupError):
+                    os.kill(pid, signal.SIGKILL)
+            return False
+        time.sleep(0.05)
+    return True
+
+
+def test_ctrl_c_stops_a_worker_spinning_in_the_reset_loop(tmp_path: Path) -> None:
+    """Ctrl-C (SIGINT to the terminal's process group) while a worker spins in hf-libero's reset loop, which swallows
+    the SIGTERM of the stop: the stop goes on to SIGKILL after its grace period, and the command ends in its one line
+    (it printed the line, then hung until a second Ctrl-C)."""
+    console, workers = _spinning_console(tmp_path)
+    os.killpg(console.pid, signal.SIGINT)
+    try:
+        console.wait(timeout=30)
+    except subprocess.TimeoutExpired:
+        os.killpg(console.pid, signal.SIGKILL)
+        console.wait()
+        _all_gone(workers, 0)
+        pytest.fail("the stopped rollout did not exit")
+    lines = (tmp_path / "stderr.txt").read_text().strip().splitlines()
+    assert console.returncode == 130, lines[-20:]
+    assert lines[-1] == "graftcache rollout: interrupted; run the same command again to resume", lines[-20:]
+    assert _all_gone(workers, 5)
+
+
+def test_kill_9_of_the_rollout_ends_a_worker_spinning_in_the_reset_loop(tmp_path: Path) -> None:
+    """A worker dies with its rollout even where it swallows SIGTERM (hf-libero's reset loop): the kernel's signal
+    on the parent's death is SIGKILL."""
+    console, workers = _spinning_console(tmp_path)
+    os.kill(console.pid, signal.SIGKILL)
+    console.wait()
+    assert _all_gone(workers, 10), "a worker outlived its rollout"
+
+
+def test_a_team_asked_for_more_workers_than_cpus_starts_one_per_cpu_and_says_so(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """--workers 5 on a process that may run on 2 CPUs: 2 simulators start, said in one line, and they write the rows
+    (--workers 1000 started up to 1000 before planning)."""
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1})
+    req = _request(tmp_path)
+    lines: list[str] = []
+    team = LocalExecutor(ExecutorSettings()).rollout_team(req, partial(Paced, tmp_path / "traces"), 5, lines.append)
+    rows = roll_out_started([req], partial(Paced, tmp_path / "planner"), team, log=lines.append)
+    assert lines[0] == "--workers 5: starting 2, one per CPU this process may run on"
+    assert len(pids(tmp_path / "traces")) == 2 and rows.height == EPISODES
+    assert not multiprocessing.active_children()
+
+
+def test_a_stopped_team_prints_nothing_after_its_workers(tmp_path: Path) -> None:
+    """SIGTERM to the console while one worker spins in hf-libero's reset loop (so it ends by SIGKILL) and the other
+    is stopped mid-build of an object whose `__del__` then fails (robosuite's MjRenderContext): exit 143, and stderr
+    holds none of the workers' debris, neither "Exception ignored ... __del__" nor the resource tracker's
+    "leaked semaphore" warning (the killed worker's tqdm lock), before or after the command's one line."""
+    console, workers = _spinning_console(tmp_path, debris=True)
+    console.send_signal(signal.SIGTERM)
+    try:
+        console.wait(timeout=30)
+    finally:
+        if console.poll() is None:
+            os.killpg(console.pid, signal.SIGKILL)
+    deadline = time.monotonic() + 15
+    with contextlib.suppress(ProcessLookupError):  # the resource tracker speaks once the last of the session is gone
+        while time.monotonic() < deadline:
+            os.killpg(console.pid, 0)
+            time.sleep(0.1)
+    err = (tmp_path / "stderr.txt").read_text()
+    assert console.returncode == 143, err[-3000:]
+    assert "Exception ignored" not in err and "leaked" not in err and "Traceback" not in err, err[-3000:]
+    assert err.strip().splitlines()[-1] == ("graftcache rollout: terminated (SIGTERM); run the same command again "
+                                            "to resume")
+    assert _all_gone(workers, 5)
+
+
+STARTING = """
+import os, signal, sys
+from functools import partial
+from pathlib import Path
+from multiprocessing import util
+import graftcache.cli.rollout
+from graftcache.cli import main
+from helpers.rollouts import Paced
+from graftcache.rollout.run import RolloutRequest
+from graftcache.rollout.workers import Workers
+here, spawned = Path(sys.argv[1]), []
+spawn = util.spawnv_passfds
+
+def spawn_then_stop(*args):  # SIGTERM as the second worker's process exists, before it was sent what to run
+    spawned.append(spawn(*args))
+    if len(spawned) == 2:
+        os.kill(os.getpid(), signal.SIGTERM)
+    return spawned[-1]
+
+def run(args):
+    req = RolloutRequest(results=here / "results.parquet", rollouts=here / "rollouts.parquet", command="stopped")
+    util.spawnv_passfds = spawn_then_stop
+    Workers(partial(Paced, here / "traces"), 3, req)
+    return 0
+
+graftcache.cli.rollout.run = run
+sys.argv = ["graftcache", "rollout", str(here / "results.parquet")]
+sys.exit(main())
+"""
+
+
+def test_a_stop_while_the_team_starts_leaves_no_worker_and_no_traceback(tmp_path: Path) -> None:
+    """SIGTERM while the team's workers are being spawned, just after one's process exists: it is held until that
+    worker has what to run, then stops the command in its one line (exit 143) and every worker with it, quietly
+    (the half-started one printed an EOFError traceback, reading what it was never sent)."""
+    write_results(tmp_path / "results.parquet")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    with open(tmp_path / "stderr.txt", "wb") as err:
+        console = subprocess.Popen([sys.executable, "-c", STARTING, str(tmp_path)], env=env,
+                                   stdout=subprocess.DEVNULL, stderr=err, start_new_session=True)
+    try:
+        console.wait(timeout=60)
+        deadline = time.monotonic() + 20
+        with contextlib.suppress(ProcessLookupError):  # every process of its session gone: workers, resource tracker
+            while True:
+                os.killpg(console.pid, 0)
+                assert time.monotonic() < deadline, "a worker outlived its stopped rollout"
+                time.sleep(0.1)
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(console.pid, signal.SIGKILL)
+    err = (tmp_path / "stderr.txt").read_text()
+    assert console.returncode == 143, err[-3000:]
+    assert err.strip().splitlines() == ["graftcache rollout: terminated (SIGTERM); run the same command again to "
+                                        "resume"]
