@@ -58,7 +58,7 @@ from graftcache.sweep import run_sweep
 
 
 @dataclass(frozen=True)
-class ClosedLoopPlan:
+class ClosedLoopDemo:
     """What `demo --closed-loop` fits and rolls out on top of the demo recipe."""
 
     #: four seeds: with three encoders, 12 candidate cells (6 pairs of fit seed x encoder pair a seed's episodes pair)
@@ -89,7 +89,7 @@ class ClosedLoopPlan:
     doses: tuple[str, ...] = ("noise-0.25", "noise-0.5", "noise-0.75", "noise-0.9")
 
 
-CLOSED_LOOP = ClosedLoopPlan()
+CLOSED_LOOP = ClosedLoopDemo()
 
 
 @dataclass(frozen=True)
@@ -101,41 +101,41 @@ class ClosedLoopCells:
     paired: tuple[str, ...]
 
 
-def closed_loop_run_ids(results: pl.DataFrame, plan: ClosedLoopPlan = CLOSED_LOOP,
+def closed_loop_run_ids(results: pl.DataFrame, demo: ClosedLoopDemo = CLOSED_LOOP,
                         log: Callable[[str], None] = write) -> ClosedLoopCells:
     """The cells `demo --closed-loop` rolls out of `results` (see the module docstring): on the figure's
     (backbone, suite), every row with a closed-loop meaning (not shuffled-image: graftcache.fit.controls), one per
     policy; on the others, native and the top encoder's zero-image rows of `paired_seeds`. A figure's
     (backbone, suite) missing from `results` is an error: there would be no figure. Which run stands for a policy
     of several is said in `log`."""
-    backbone, suite = plan.figure
+    backbone, suite = demo.figure
     live = results.filter(pl.col("control").map_elements(lambda c: get_control(c).closed_loop, pl.Boolean))
     figure = live.filter((pl.col("backbone") == backbone) & (pl.col("suite") == suite))
     if not figure.height:
         raise GraftcacheError(f"no row of {backbone} on {suite} in the results: the closed-loop figure has no cells")
     others = live.join(figure.select("run_id"), on="run_id", how="anti")
     paired = (select_rows(others, top=1, log=log).filter(pl.col("control").is_in([NATIVE_CONTROL, ZERO_IMAGE])
-                                                        & pl.col("seed").is_in(list(plan.paired_seeds)))
+                                                        & pl.col("seed").is_in(list(demo.paired_seeds)))
               if others.height else others)
     chosen = select_rows(figure, run_ids=figure["run_id"].to_list(), log=log)
     return ClosedLoopCells(figure=tuple(chosen["run_id"].to_list()), paired=tuple(paired["run_id"].to_list()))
 
 
-def _dose_recipe(recipe: Recipe, plan: ClosedLoopPlan) -> Recipe:
+def _dose_recipe(recipe: Recipe, demo: ClosedLoopDemo) -> Recipe:
     """The demo recipe narrowed to the dose family's cells: the figure's backbone and suite, the dose encoder, the
-    plan's seeds and doses (and the plain control every fit holds, already in the results)."""
-    backbone, suite = plan.figure
+    demo's seeds and doses (and the plain control every fit holds, already in the results)."""
+    backbone, suite = demo.figure
     backbones = tuple(b for b in recipe.backbones if b.name == backbone)
-    encoders = tuple(e for e in recipe.encoders if e.name == plan.dose_encoder)
+    encoders = tuple(e for e in recipe.encoders if e.name == demo.dose_encoder)
     if not backbones or not encoders:
-        raise GraftcacheError(f"the demo recipe has no backbone {backbone} or no encoder {plan.dose_encoder}: the dose "
+        raise GraftcacheError(f"the demo recipe has no backbone {backbone} or no encoder {demo.dose_encoder}: the dose "
                               "family has no cells")
-    return dataclasses.replace(recipe, backbones=backbones, encoders=encoders, suites=(suite,), controls=plan.doses)
+    return dataclasses.replace(recipe, backbones=backbones, encoders=encoders, suites=(suite,), controls=demo.doses)
 
 
 def run_closed_loop_demo(recipe_path: str | Path | None = None, out: str | Path | None = None,
-                         plan: ClosedLoopPlan = CLOSED_LOOP) -> ReportPaths:
-    """Fit the plan's cells (resumable), roll out its episodes (resumable), and write the report with them."""
+                         demo: ClosedLoopDemo = CLOSED_LOOP) -> ReportPaths:
+    """Fit the demo's cells (resumable), roll out its episodes (resumable), and write the report with them."""
     from graftcache.executors import get_executor
     from graftcache.requests import ExecutorSettings
     from graftcache.rollout.episodes import Simulator
@@ -149,29 +149,29 @@ def run_closed_loop_demo(recipe_path: str | Path | None = None, out: str | Path 
         raise GraftcacheError(f"{path}: demo recipe not found (run from a checkout of graftcache, or pass --recipe)")
     t0 = time.perf_counter()
     recipe = load_recipe(path)
-    results = cache_root(recipe.cache) / plan.results
-    recipe = dataclasses.replace(recipe, seeds=plan.seeds, controls=plan.controls, results=str(results))
+    results = cache_root(recipe.cache) / demo.results
+    recipe = dataclasses.replace(recipe, seeds=demo.seeds, controls=demo.controls, results=str(results))
     state = run_sweep(recipe)
-    run_sweep(_dose_recipe(recipe, plan))  # its caches and plain cells are the sweep's: only the doses are fitted
-    cells = closed_loop_run_ids(read_for_report(results), plan)
+    run_sweep(_dose_recipe(recipe, demo))  # its caches and plain cells are the sweep's: only the doses are fitted
+    cells = closed_loop_run_ids(read_for_report(results), demo)
     rollouts = default_rollouts(results)
     command = f"graftcache demo --closed-loop --recipe {path}"
     spawn = partial(LiberoSimulator, results, rollouts.parent / EXPORTS_FOLDER, cache=recipe.cache, runs=None,
-                    max_steps=plan.max_steps)
-    requests = [RolloutRequest(results=results, rollouts=rollouts, run_ids=run_ids, tasks=plan.tasks,
-                               episodes_per_task=episodes, max_steps=plan.max_steps, perturb_cm=plan.perturb_cm,
+                    max_steps=demo.max_steps)
+    requests = [RolloutRequest(results=results, rollouts=rollouts, run_ids=run_ids, tasks=demo.tasks,
+                               episodes_per_task=episodes, max_steps=demo.max_steps, perturb_cm=demo.perturb_cm,
                                command=command)
-                for run_ids, episodes in ((cells.figure, plan.episodes_per_task),
-                                          (cells.paired, plan.paired_episodes_per_task))]
+                for run_ids, episodes in ((cells.figure, demo.episodes_per_task),
+                                          (cells.paired, demo.paired_episodes_per_task))]
     figure = requests[0]
-    sequential = Sequential(cap=plan.until_resolved)
+    sequential = Sequential(cap=demo.until_resolved)
 
     def expand(req: RolloutRequest, sim: Simulator) -> Iterable[RolloutRequest]:
         """The figure's request in looks (its unresolved candidate pairs get more episodes), the paired one as it is."""
         return looks(req, sim, seq=sequential, log=write) if req is figure else (req,)
 
     # one team for both: its workers start first, their simulators building while this process builds its own, to plan
-    team = get_executor(ExecutorSettings()).rollout_team(figure, spawn, plan.workers, write)
+    team = get_executor(ExecutorSettings()).rollout_team(figure, spawn, demo.workers, write)
     roll_out_started(requests, spawn, team, expand=expand)
     report_dir = Path(out) if out else results.parent / "report"
     commands = {"demo --closed-loop": command, **state.commands}

@@ -16,11 +16,11 @@ from scipy import stats
 
 from graftcache import analysis as A
 from graftcache.analysis.rollouts import PAIR_KEY
-from graftcache.demo_closed_loop import ClosedLoopPlan, closed_loop_run_ids
+from graftcache.demo_closed_loop import ClosedLoopDemo, closed_loop_run_ids
 from graftcache.errors import GraftcacheError
 from graftcache.results import read_for_report
 
-PLAN = ClosedLoopPlan(figure=("smolvla", "libero_spatial"), paired_seeds=(0, 1))
+DEMO = ClosedLoopDemo(figure=("smolvla", "libero_spatial"), paired_seeds=(0, 1))
 
 
 def _one_policy_per_seed(r: dict) -> dict:
@@ -43,7 +43,7 @@ def test_every_live_cell_of_the_figure_and_native_against_zero_image_elsewhere()
     the first encoder by name; each choice said in one line."""
     results = _results()
     lines: list[str] = []
-    cells = closed_loop_run_ids(results, PLAN, lines.append)
+    cells = closed_loop_run_ids(results, DEMO, lines.append)
     chosen = results.filter(pl.col("run_id").is_in([*cells.figure, *cells.paired]))
     keys = set(chosen.select("backbone", "suite", "encoder", "control", "seed").rows())
     paired = results.filter(pl.col("run_id").is_in(cells.paired))
@@ -73,7 +73,7 @@ def test_every_live_cell_of_the_figure_and_native_against_zero_image_elsewhere()
 
 def test_a_figure_without_rows_is_refused() -> None:
     with pytest.raises(GraftcacheError, match="no row of smolvla on libero_90"):
-        closed_loop_run_ids(_results(), ClosedLoopPlan(figure=("smolvla", "libero_90")))
+        closed_loop_run_ids(_results(), ClosedLoopDemo(figure=("smolvla", "libero_90")))
 
 
 def test_the_dose_recipe_is_the_figure_s_backbone_suite_and_dose_encoder() -> None:
@@ -87,7 +87,7 @@ def test_the_dose_recipe_is_the_figure_s_backbone_suite_and_dose_encoder() -> No
         ["smolvla"], ["efficientnet-lite0"], ("libero_object",))
     assert dose.controls == ("noise-0.25", "noise-0.5", "noise-0.75", "noise-0.9") and dose.seeds == recipe.seeds
     with pytest.raises(GraftcacheError, match="no backbone smolvla or no encoder dinov2-s: the dose family"):
-        _dose_recipe(recipe, ClosedLoopPlan(dose_encoder="dinov2-s"))
+        _dose_recipe(recipe, ClosedLoopDemo(dose_encoder="dinov2-s"))
 
 
 # ------------------------------------------------------------------------------ the closed-loop demo's own rows
