@@ -46,3 +46,8 @@ class ExportError(GraftcacheError):
 class RolloutError(GraftcacheError):
     """A cell that cannot be rolled out in the simulator (none installed, cameras it cannot feed, a shuffled-image
     control), or a rollouts file that cannot be read or written."""
+
+
+class Deprecation(FutureWarning):
+    """A former flag or recipe key that still reads (graftcache.settings.Setting.formerly): the CLI prints it as one
+    line naming the new spelling (graftcache.cli.main), not as a warning located in argparse or the TOML reader."""

@@ -28,7 +28,7 @@ from typing import Any
 
 from graftcache.checks import Rule, number_problem, problem, storable_problem
 from graftcache.codecs import Codec, codec_for, without_none
-from graftcache.errors import GraftcacheError
+from graftcache.errors import Deprecation, GraftcacheError
 
 KEY = "graftcache.setting"
 
@@ -164,7 +164,7 @@ def renamed(cls: type, values: Mapping[str, Any], where: str) -> dict[str, Any]:
             raise GraftcacheError(f"{where}: {key} and {name} are one setting ({name}); keep {name} only")
         if name != key:
             warnings.warn(f"{where}: {key} is now called {name}; rename it, the old key is deprecated",
-                          FutureWarning, stacklevel=2)
+                          Deprecation, stacklevel=2)
         out[name] = value
     return out
 

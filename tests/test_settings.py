@@ -90,6 +90,19 @@ def test_a_renamed_setting_still_reads_its_former_flag_and_recipe_key_with_a_war
     assert "--recompute on" in command_line("fit", FitRequest, recompute="on")
 
 
+def test_the_console_script_says_a_former_flag_in_one_line() -> None:
+    """The console script prints a former flag's Deprecation as one line naming the new spelling, not as a warning
+    located in argparse.py (whose line number told the user nothing)."""
+    import os
+    import subprocess
+    import sys
+
+    done = subprocess.run([sys.executable, "-m", "graftcache", "fit", "--activation-checkpointing", "on", "--help"],
+                          capture_output=True, text=True, env={**os.environ, "HF_HUB_OFFLINE": "1"}, timeout=120)
+    assert done.returncode == 0 and done.stderr.splitlines() == [
+        "graftcache: warning: --activation-checkpointing is now --recompute; the old flag is deprecated"]
+
+
 def test_recipe_tables_take_every_field_but_those_the_product_sets() -> None:
     assert "seeds" not in SECTION_KEYS["fit"] and "steps" in SECTION_KEYS["fit"]
     assert "shard" not in SECTION_KEYS["extract"] and "frame_stride" in SECTION_KEYS["extract"]

@@ -13,8 +13,10 @@ import errno
 import os
 import shlex
 import sys
-from collections.abc import Sequence
+import warnings
+from collections.abc import Callable, Sequence
 from importlib import import_module
+from typing import TextIO
 
 from graftcache import __version__
 
@@ -38,10 +40,26 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _one_line(shown: Callable[..., None]) -> Callable[..., None]:
+    """`warnings.showwarning` printing a graftcache Deprecation as one line (the others as `shown` does): its place
+    in argparse or the TOML reader tells a user nothing; the new spelling does."""
+    from graftcache.errors import Deprecation
+
+    def show(message: Warning | str, category: type[Warning], filename: str, lineno: int, file: TextIO | None = None,
+             line: str | None = None) -> None:
+        if issubclass(category, Deprecation):
+            print(f"graftcache: warning: {message}", file=sys.stderr if file is None else file)
+        else:
+            shown(message, category, filename, lineno, file, line)
+    return show
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run one command. `argv` None: this is the process's own entry point (the console script,
     `python -m graftcache`), which also keeps signals to one line during interpreter teardown."""
     os.environ.setdefault("TOKENIZERS_PARALLELISM", "false")
+    if argv is None:
+        warnings.showwarning = _one_line(warnings.showwarning)
     from graftcache.cli.signals import STOP, describe, exit_code, settle_io, stoppable
 
     command, started = "", False

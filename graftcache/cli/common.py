@@ -16,6 +16,7 @@ from collections.abc import Callable
 from typing import Any
 
 from graftcache.codecs import BadText
+from graftcache.errors import Deprecation
 from graftcache.settings import Declared, declared, shown, value_problem
 
 
@@ -75,7 +76,7 @@ class _Former(argparse.Action):
 
     def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace, values: Any,
                  option_string: str | None = None) -> None:
-        warnings.warn(f"{option_string} is now {self.current}; the old flag is deprecated", FutureWarning,
+        warnings.warn(f"{option_string} is now {self.current}; the old flag is deprecated", Deprecation,
                       stacklevel=2)
         setattr(namespace, self.dest, values)
 
