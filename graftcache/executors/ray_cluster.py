@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import os
+import secrets
 import signal
 import threading
 from collections.abc import Iterator, Mapping
@@ -23,7 +24,7 @@ from graftcache.errors import ExecutorError, GraftcacheError
 from graftcache.executors import Log
 from graftcache.requests import ExecutorSettings
 from graftcache.runtime import AUTO, resolve_compute_dtype, resolve_device
-from graftcache.store.roots import is_url, open_root
+from graftcache.store.roots import cache_root, is_url, open_root
 
 #: What a worker needs to behave like this process: the offline switches and where hub files, tiny policies
 #: and caches live, plus the object store's endpoint and region, and for rollouts hf-libero's config folder and
@@ -42,6 +43,8 @@ def connect(settings: ExecutorSettings, log: Log) -> None:
     env = {name: os.environ[name] for name in FORWARDED_ENV if name in os.environ}
     # a local instance started for one command needs no dashboard (a cluster's own `ray start` has one)
     local = {} if settings.address else {"include_dashboard": False}
+    if not settings.address:
+        use_local_token()
     log(f"ray: {'joining ' + settings.address if settings.address else 'starting a local Ray instance'}")
     try:
         with _own_stops():
@@ -49,6 +52,28 @@ def connect(settings: ExecutorSettings, log: Log) -> None:
     except (ConnectionError, RuntimeError, ValueError) as e:
         raise ExecutorError(f"--address {settings.address}: cannot start or join Ray "
                             f"({' '.join(str(e).split())[:300]})") from None
+
+
+#: Ray's own settings of its token authentication: where one is given, Ray's choice stands
+RAY_AUTH_ENV = ("RAY_AUTH_TOKEN", "RAY_AUTH_TOKEN_PATH", "RAY_AUTH_MODE")
+
+
+def use_local_token() -> Path | None:
+    """The token a Ray instance started here authenticates with, kept in the local cache folder
+    (graftcache.store.cache_root: ray/auth_token, made once, readable by this user only) instead of the
+    ~/.ray/auth_token Ray writes otherwise: graftcache writes nothing outside its folders. None where Ray's own
+    settings (RAY_AUTH_ENV) say otherwise."""
+    if any(name in os.environ for name in RAY_AUTH_ENV):
+        return None
+    path = cache_root() / "ray" / "auth_token"
+    if not path.is_file():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        partial = path.with_name(f".{path.name}.{os.getpid()}")
+        partial.write_text(secrets.token_hex(32))
+        partial.chmod(0o600)
+        os.replace(partial, path)  # two commands starting at once: either token, whole
+    os.environ["RAY_AUTH_TOKEN_PATH"] = str(path)
+    return path
 
 
 @contextmanager

@@ -132,6 +132,37 @@ def test_ray_is_imported_only_when_chosen() -> None:
     assert done.returncode == 0, done.stderr
 
 
+def test_a_local_ray_instance_keeps_its_token_in_the_cache_folder(tmp_path: Path) -> None:
+    """A Ray instance the ray executor starts here authenticates with a token in the local cache folder
+    (ray/auth_token, 0600, made once and kept), and nothing is written to ~/.ray (Ray's default); where Ray's own
+    settings name a token or a mode, they stand."""
+    home, cache = tmp_path / "home", tmp_path / "cache"
+    home.mkdir()
+    env = {k: v for k, v in os.environ.items() if not k.startswith("RAY_AUTH")}
+    env.update(HOME=str(home), GRAFTCACHE_HOME=str(cache), RAY_USAGE_STATS_ENABLED="0")
+    script = textwrap.dedent("""
+        import os, ray
+        from graftcache.executors.ray_cluster import connect
+        from graftcache.requests import ExecutorSettings
+        connect(ExecutorSettings(), lambda line: None)
+        print(ray.get(ray.remote(lambda: 6 * 7).remote()), os.environ["RAY_AUTH_TOKEN_PATH"])
+        ray.shutdown()
+    """)
+    outputs = [subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=300)
+               for _ in range(2)]
+    token = cache / "ray" / "auth_token"
+    assert [o.stdout.split() for o in outputs] == [["42", str(token)]] * 2, outputs[0].stderr[-2000:]
+    assert token.stat().st_mode & 0o777 == 0o600 and len(token.read_text()) == 64
+    assert not (home / ".ray").exists()
+    from graftcache.executors.ray_cluster import use_local_token
+
+    os.environ["RAY_AUTH_MODE"] = "disabled"
+    try:
+        assert use_local_token() is None
+    finally:
+        del os.environ["RAY_AUTH_MODE"]
+
+
 def test_ray_task_options_refuse_what_ray_cannot_place() -> None:
     from graftcache.executors.ray_cluster import task_options
 
