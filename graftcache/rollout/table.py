@@ -8,7 +8,8 @@ step limit, task or perturbation adds its own.
 
 Format 2 added the graded progress of each episode (graftcache.rollout.graded: the definitions, after SIMPLER, arXiv
 2405.05941) and the target's perturbation (graftcache.rollout.perturb); a format-1 file is read with those columns
-null (GRADED_COLUMNS), its episode_ids unchanged (an episode without a perturbation hashes as format 1 hashed it).
+null (FORMAT_2_COLUMNS), its episode_ids unchanged (an episode without a perturbation hashes as format 1 hashed
+it).
 """
 
 from __future__ import annotations
@@ -61,9 +62,10 @@ SCHEMA: dict[str, pl.DataType] = {
 }
 
 
-#: The columns format 2 added: a format-1 row reads with them null.
-GRADED_COLUMNS = ("target", "perturbation_m", "target_offset_x_m", "target_offset_y_m", "min_target_distance_m",
-                  "final_target_distance_m", "target_lift_m", "grasped", "goal_fraction")
+#: The columns format 2 added (the graded measures, the target and the perturbation): a format-1 row reads with them
+#: null
+FORMAT_2_COLUMNS = ("target", "perturbation_m", "target_offset_x_m", "target_offset_y_m", "min_target_distance_m",
+                    "final_target_distance_m", "target_lift_m", "grasped", "goal_fraction")
 
 
 def episode_id(fields: Mapping[str, Any]) -> str:
@@ -105,7 +107,7 @@ def read(path: str | Path) -> pl.DataFrame:
     if "format_version" in table.columns and (table["format_version"] > FORMAT_VERSION).any():
         raise RolloutError(f"{path}: rollouts rows of format {table['format_version'].max()}, newer than this "
                            f"graftcache's ({FORMAT_VERSION}): pass another --rollouts")
-    old = [c for c in GRADED_COLUMNS if c not in table.columns]
+    old = [c for c in FORMAT_2_COLUMNS if c not in table.columns]
     if old and "format_version" in table.columns and (table["format_version"] < 2).all():
         table = table.with_columns(pl.lit(None, SCHEMA[c]).alias(c) for c in old)  # format 1: not measured
     try:

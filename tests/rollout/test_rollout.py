@@ -295,7 +295,7 @@ def test_a_format_1_rollouts_file_reads_with_its_graded_columns_null(tmp_path: P
     pl.DataFrame([old], schema_overrides={"video": pl.String}).write_parquet(path)
     rows = table.read(path)
     assert rows.schema == pl.Schema(table.SCHEMA) and rows.height == 1
-    assert rows.select(table.GRADED_COLUMNS).row(0) == (None,) * 9
+    assert rows.select(table.FORMAT_2_COLUMNS).row(0) == (None,) * 9
     assert {k: v for k, v in rows.row(0, named=True).items() if k in old} == old
     new = {**old, "episode_id": "1111111111111111", "format_version": 2, "target": "alphabet_soup_1",
            "perturbation_m": 0.0, "target_offset_x_m": 0.0, "target_offset_y_m": 0.0, "min_target_distance_m": 0.04,
