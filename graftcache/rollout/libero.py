@@ -264,6 +264,8 @@ class LiberoSimulator:
         from lerobot.scripts.lerobot_eval import rollout
         from lerobot.utils.random_utils import set_seed
 
+        from graftcache.rollout.perturb import Perturbation
+
         first = episodes[0]
         with policy_threads():
             policy, pre, post, env_pre, env_post = self.loaded(row, first.suite, first.task_index)
@@ -272,8 +274,8 @@ class LiberoSimulator:
                     env = self.env(episode.suite, episode.task_index, episode.reset)
                     scene = env.envs[0]
                     index, init_state = seam.start_from(scene, episode.episode)  # lerobot-eval's k-th reset
-                    scene.scene = ((init_state, episode.perturbation_m, episode.seed, episode.task_index)
-                                   if episode.perturbation_m else None)
+                    scene.perturbation = (Perturbation(init_state, episode.perturbation_m, episode.seed,
+                                                       episode.task_index) if episode.perturbation_m else None)
                     set_seed(episode.seed)
                     frames: list[np.ndarray] | None = [] if self.videos else None
                     states: list[State] = []

@@ -15,6 +15,7 @@ scene.
 from __future__ import annotations
 
 from collections.abc import Iterator
+from dataclasses import dataclass
 from typing import Any
 
 import gymnasium as gym
@@ -86,10 +87,21 @@ def perturb_target(env: Any, target: str, init_state: np.ndarray, max_m: float,
 
 
 
+@dataclass(frozen=True)
+class Perturbation:
+    """What the next reset of a PerturbedReset perturbs: the target of init state `init_state` slid by up to `max_m`
+    per axis, drawn from the episode's `seed` and `task` (rng_of)."""
+
+    init_state: np.ndarray
+    max_m: float
+    seed: int
+    task: int
+
+
 class PerturbedReset(gym.Wrapper):
-    """lerobot's LiberoEnv whose reset (lerobot-eval's: the official init state, settled) is followed, when `scene` is
-    set, by the target's perturbation: `scene` = (the init state, the largest offset in metres, the episode's seed,
-    its task). Each reset draws from the seed afresh, so a reset done twice gives one scene. It returns the perturbed
+    """lerobot's LiberoEnv whose reset (lerobot-eval's: the official init state, settled) is followed, when
+    `perturbation` is set, by the target's perturbation. Each reset draws from the episode's seed afresh, so a reset
+    done twice gives one scene. It returns the perturbed
     scene's observation (lerobot's formatting of it), so the episode's first step sees the target where it is;
     `offset`: the planar offset the last reset applied, (0, 0) when none. A wrapper, because lerobot's rollout
     resets the env itself and uses the reset's observation for the first step: there is no seam between the two.
@@ -100,7 +112,7 @@ class PerturbedReset(gym.Wrapper):
     def __init__(self, env: gym.Env, *, soft: bool = False) -> None:
         super().__init__(env)
         self.soft = soft
-        self.scene: tuple[np.ndarray, float, int, int] | None = None
+        self.perturbation: Perturbation | None = None
         self.offset = np.zeros(2)
 
     def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[Any, dict]:
@@ -109,18 +121,17 @@ class PerturbedReset(gym.Wrapper):
         else:
             obs, info = self.env.reset(seed=seed, options=options)
         self.offset = np.zeros(2)
-        if self.scene is not None:
-            init_state, max_m, episode_seed, task = self.scene
+        if (p := self.perturbation) is not None:
             libero = seam.libero_env(self)
-            raw, self.offset = perturb_target(libero, target_of(libero.env), init_state, max_m,
-                                              rng_of(episode_seed, task))
+            raw, self.offset = perturb_target(libero, target_of(libero.env), p.init_state, p.max_m,
+                                              rng_of(p.seed, p.task))
             obs = seam.observation(self, raw)
         return obs, info
 
     def _rendering_the_observation_only(self, seed: int | None, options: dict | None) -> tuple[Any, dict]:
         """lerobot's reset with the renders nobody sees skipped (seam.renders_from), refused if its observation's
         images were not all rendered."""
-        kept = None if self.scene is not None else seam.settle_steps(self)
+        kept = None if self.perturbation is not None else seam.settle_steps(self)
         seam.release_grippers(self)
         with seam.renders_from(self, kept) as renders:
             obs, info = self.env.reset(seed=seed, options=options)
