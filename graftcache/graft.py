@@ -16,6 +16,7 @@ from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 FEATURE_PREFIX = "observation.vis_feats."
@@ -36,6 +37,10 @@ class GraftProjector(nn.Module):
     Kept in float32 whatever the backbone's dtype: the cache may hold fp16/bf16 features and the
     optimiser state of a few hundred thousand parameters is cheap. The backbones cast its output to
     their own layer dtype.
+
+    The norm's scale and shift are applied after torch's layer_norm, not inside it: its fused backward sums their
+    gradients over rows in one partial sum per intra-op thread, so a fit's numbers depended on the thread count;
+    the gradients of a product and a sum are reduced over rows with each output column summed whole by one thread.
     """
 
     def __init__(self, enc_dim: int, lm_width: int) -> None:
@@ -45,7 +50,9 @@ class GraftProjector(nn.Module):
         self.in_features, self.out_features = enc_dim, lm_width
 
     def forward(self, features: torch.Tensor) -> torch.Tensor:
-        return self.proj(self.norm(features.to(self.proj.weight.dtype)))
+        norm = self.norm
+        normed = F.layer_norm(features.to(self.proj.weight.dtype), norm.normalized_shape, eps=norm.eps)
+        return self.proj(normed * norm.weight + norm.bias)
 
 
 class PassThroughProjector(nn.Module):

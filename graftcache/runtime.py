@@ -18,6 +18,7 @@ from collections.abc import Callable
 
 import torch
 
+from graftcache import MKL_CBWR
 from graftcache.dtypes import AUTO, COMPUTE_DTYPES
 from graftcache.errors import GraftcacheError
 
@@ -76,11 +77,16 @@ def cpu_has_bf16() -> bool:
         if forced not in ("0", "1"):
             raise GraftcacheError(f"${CPU_BF16_ENV}={forced!r}: expected 1 (bf16 in hardware), 0 (none) or unset")
         return forced == "1"
-    probes: list[Callable[[], bool]] = [
-        getattr(torch.cpu, name) for name in ("_is_avx512_bf16_supported", "_is_amx_tile_supported")
-        if hasattr(torch.cpu, name)
-    ]
-    return any(bool(probe()) for probe in probes)
+    return cpu_bf16_unit() is not None
+
+
+#: The CPU's bf16 units oneDNN computes on, the first found wins -> torch's probe of it (absent in older torch).
+BF16_UNITS: dict[str, str] = {"amx": "_is_amx_tile_supported", "avx512_bf16": "_is_avx512_bf16_supported"}
+
+
+def cpu_bf16_unit() -> str | None:
+    """The bf16 unit of this CPU (a BF16_UNITS name) as torch reports it; None where torch finds none."""
+    return next((unit for unit, probe in BF16_UNITS.items() if getattr(torch.cpu, probe, lambda: False)()), None)
 
 
 def cuda_has_bf16(device: torch.device) -> bool:
@@ -124,3 +130,22 @@ def autocast(device: torch.device, dtype: torch.dtype):
     if dtype == torch.float32 or (device.type == "cpu" and dtype == torch.float16):
         return torch.autocast(device.type, enabled=False)
     return torch.autocast(device.type, dtype=dtype)
+
+
+def kernels(device: torch.device) -> str:
+    """Which kernels computed on `device`: what a run's numbers depend on beyond its cell and dtype, recorded in its
+    row. On one set of kernels a run's scores are equal whatever the thread count; other kernels sum in another
+    order (oneDNN's bf16 products on AMX tiles against those on AVX512-BF16 or AVX2), so their rows of one run_id
+    differ (graftcache.results.agreement). On CPU: ATen's vector ISA, the bf16 unit oneDNN finds (`cpu_bf16_unit`),
+    a oneDNN ISA cap and an MKL mode other than graftcache's where set; on CUDA the GPU's compute capability."""
+    if device.type == "cuda":
+        major, minor = torch.cuda.get_device_capability(device)
+        return f"cuda:sm_{major}{minor}"
+    parts = [torch.backends.cpu.get_cpu_capability().lower(), *filter(None, [cpu_bf16_unit()])]
+    cap = os.environ.get("ONEDNN_MAX_CPU_ISA") or os.environ.get("DNNL_MAX_CPU_ISA")
+    if cap:
+        parts.append(f"onednn<={cap}")
+    blas = os.environ.get("MKL_CBWR", "")
+    if blas != MKL_CBWR:
+        parts.append(f"mkl_cbwr={blas or 'unset'}")
+    return "cpu:" + "+".join(parts)

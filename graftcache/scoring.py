@@ -55,14 +55,19 @@ def masked_mse(pred: torch.Tensor, target: torch.Tensor, pad: torch.Tensor) -> t
     return (per_step * valid).sum(-1) / valid.sum(-1).clamp(min=1.0)
 
 
+def deterministic_mean(values: torch.Tensor) -> float:
+    """The mean of every element, summed in float64 by numpy in one thread: torch's float32 sum of a tensor past
+    its parallel grain adds one partial sum per intra-op thread, so a score would depend on the thread count."""
+    return float(np.mean(values.detach().cpu().numpy(), dtype=np.float64))
+
+
 def critical_mse(pred: torch.Tensor, target: torch.Tensor, critical: torch.Tensor) -> float | None:
     """Mean squared error over the (frame, step) pairs `critical` [N, chunk] marks, all action dims; None
     when it marks none."""
-    n = int(critical.sum())
-    if not n:
+    if not bool(critical.any()):
         return None
     per_step = ((pred - target) ** 2).mean(dim=-1)
-    return float((per_step * critical.float()).sum() / n)
+    return deterministic_mean(per_step[critical])
 
 
 def score_chunks(pred_norm: torch.Tensor, target_norm: torch.Tensor, pred_raw: torch.Tensor,
@@ -79,9 +84,9 @@ def score_chunks(pred_norm: torch.Tensor, target_norm: torch.Tensor, pred_raw: t
     per_ep, ci_per_ep = {}, {}
     for e in np.unique(episodes):
         at = torch.from_numpy(episodes == e)
-        per_ep[int(e)] = float(per_frame[at].mean())
+        per_ep[int(e)] = deterministic_mean(per_frame[at])
         ci_per_ep[int(e)] = critical_mse(pred_norm[at], target_norm[at], critical[at])
     ci = critical_mse(pred_norm, target_norm, critical)
-    return Score(float(per_frame.mean()), float(first.mean()), float(raw.mean()),
-                 None if arm is None else float(arm.mean()), float(gripper.mean()), len(per_frame), per_ep, ci,
-                 ci_per_ep)
+    return Score(deterministic_mean(per_frame), deterministic_mean(first), deterministic_mean(raw),
+                 None if arm is None else deterministic_mean(arm), deterministic_mean(gripper), len(per_frame), per_ep,
+                 ci, ci_per_ep)

@@ -73,3 +73,28 @@ def test_ci_mse_is_none_without_a_critical_step():
     score = score_chunks(pred, actions * 0, pred, actions * 0, pad, low.episode_index[pos],
                          critical=low.critical_chunks(pos))
     assert score.ci_mse is None and score.ci_per_episode == {1: None} and score.mse == pytest.approx(1.0)
+
+
+def test_scores_do_not_depend_on_the_thread_count():
+    """A held-out set past torch's parallel grain (2000 frames x 50 steps x 7 dims, more critical pairs than one
+    thread sums alone): every score is the same bits on one intra-op thread and on two, and the mean numpy takes
+    in float64 of the squared errors it selects."""
+    g = torch.Generator().manual_seed(0)
+    n, chunk, dims = 2000, 50, 7
+    pred, target = torch.randn(n, chunk, dims, generator=g), torch.randn(n, chunk, dims, generator=g)
+    pad = torch.zeros(n, chunk, dtype=torch.bool)
+    pad[:, 45:] = True
+    critical = torch.rand(n, chunk, generator=g) < 0.5
+    episodes = np.repeat(np.arange(4), n // 4)
+    scores, threads = {}, torch.get_num_threads()
+    try:
+        for t in (1, 2):
+            torch.set_num_threads(t)
+            scores[t] = score_chunks(pred, target, pred, target, pad, episodes, critical=critical)
+    finally:
+        torch.set_num_threads(threads)
+    assert scores[1] == scores[2]
+    squared = ((pred - target) ** 2).double().numpy()
+    keep = (critical & ~pad).numpy()
+    assert scores[1].ci_mse == pytest.approx(squared.mean(-1)[keep].mean(), rel=1e-6)
+    assert scores[1].mse == pytest.approx(squared[:, :45].mean(), rel=1e-6)

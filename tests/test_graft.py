@@ -91,6 +91,37 @@ def test_projector_gradients_flow(dtype: torch.dtype) -> None:
     assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in proj.proj.parameters())
 
 
+@pytest.mark.parametrize("bf16", [False, True])
+def test_projector_gradients_do_not_depend_on_the_thread_count(bf16: bool) -> None:
+    """The projector's gradients, its norm's scale and shift among them, are the same bits on one intra-op thread and
+    on two (torch's fused layer norm summed those two in one partial sum per thread), so a fit's numbers do not
+    depend on the cores it ran on; in fp32 they are the gradients float64 computes."""
+    torch.manual_seed(0)
+    proj = GraftProjector(96, 32)
+    with torch.no_grad():
+        proj.norm.weight.uniform_(0.5, 1.5)
+        proj.norm.bias.uniform_(-0.5, 0.5)
+    x = torch.randn(64, 32, 96)  # 2048 rows, as a batch of cached tokens
+    grads, threads = {}, torch.get_num_threads()
+    try:
+        for n in (1, 2):
+            torch.set_num_threads(n)
+            proj.zero_grad()
+            with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+                out = proj(x)
+            out.float().square().mean().backward()
+            grads[n] = [p.grad.clone() for p in proj.parameters()]
+    finally:
+        torch.set_num_threads(threads)
+    assert all(torch.equal(a, b) for a, b in zip(grads[1], grads[2], strict=True))
+    if not bf16:
+        reference = GraftProjector(96, 32).double()
+        reference.load_state_dict(proj.state_dict())
+        reference(x.double()).square().mean().backward()
+        for ours, exact in zip(grads[1], reference.parameters(), strict=True):
+            torch.testing.assert_close(ours.double(), exact.grad, rtol=1e-4, atol=1e-7)
+
+
 def test_fused_projector_gives_each_member_its_own_rows_and_gradients() -> None:
     torch.manual_seed(0)
     members = [GraftProjector(6, 4) for _ in range(3)]

@@ -94,12 +94,12 @@ def test_format_3_rows_are_read_as_this_format_with_their_run_ids(tmp_path: Path
     assert "eval_split" not in pl.read_parquet(old).columns
     read = results.read(old)
     assert read["run_id"].to_list() == rows["run_id"].to_list()
-    assert read["format_version"].to_list() == [6, 6] and read["eval_split"].to_list() == ["graftcache"] * 2
+    assert read["format_version"].to_list() == [7, 7] and read["eval_split"].to_list() == ["graftcache"] * 2
     assert read["eval_mse_arm"].null_count() == read["eval_mse_gripper"].null_count() == 2
     # random_init is the union of the encoder's and the backbone's: false says both were false
     assert read["encoder_random_init"].to_list() == read["backbone_random_init"].to_list() == [False, False]
     results.append(old, table([row("smolvla", "libero_spatial", "siglip", 2, 0.4, eval_split="graftcache")]))
-    assert pl.read_parquet(old)["format_version"].to_list() == [6, 6, 6]
+    assert pl.read_parquet(old)["format_version"].to_list() == [7, 7, 7]
 
 
 def test_format_4_rows_from_before_the_random_init_split_are_read_with_what_random_init_says(tmp_path: Path) -> None:
@@ -110,7 +110,7 @@ def test_format_4_rows_from_before_the_random_init_split_are_read_with_what_rand
     rows = table([row("smolvla", "libero_spatial", "siglip", seed, 0.5, random_init=seed == 1) for seed in (0, 1)])
     previous_results(old, rows.drop("encoder_random_init", "backbone_random_init"), 4)
     read = results.read(old)
-    assert read["run_id"].to_list() == rows["run_id"].to_list() and read["format_version"].to_list() == [6, 6]
+    assert read["run_id"].to_list() == rows["run_id"].to_list() and read["format_version"].to_list() == [7, 7]
     assert read["encoder_random_init"].to_list() == read["backbone_random_init"].to_list() == [False, None]
     assert read["random_init"].to_list() == [False, True]
 
@@ -132,7 +132,7 @@ def test_a_newer_results_file_is_called_newer(tmp_path: Path) -> None:
                              results.FORMAT_VERSION + 1)
     with pytest.raises(ResultsError) as refused:
         results.read(newer)
-    assert str(refused.value).startswith(f"{newer}: 1 row(s) of results format 7, newer than this graftcache's (6, ")
+    assert str(refused.value).startswith(f"{newer}: 1 row(s) of results format 8, newer than this graftcache's (7, ")
     assert "older" not in str(refused.value)
 
 
@@ -174,7 +174,7 @@ def test_format_4_rows_lack_part_of_their_cell_and_are_still_exported(tmp_path: 
     old = previous_results(tmp_path / "old.parquet", rows, 4)
     read = results.read(old)
     assert read["run_id"].to_list() == [NATIVE.run_id, lora.run_id, odd.run_id]
-    assert read["format_version"].to_list() == [6] * 3 and read["lora_rank"].to_list() == [0, None, 0]
+    assert read["format_version"].to_list() == [7] * 3 and read["lora_rank"].to_list() == [0, None, 0]
     assert read["eval_fraction"].null_count() == 3
     native_row, lora_row, odd_row = read.iter_rows(named=True)
     assert cell_of(native_row, None) == NATIVE
@@ -222,3 +222,15 @@ def test_format_5_rows_get_the_policy_id_their_cells_give(tmp_path: Path) -> Non
 
 def test_every_cell_field_is_a_cell_column_policy_ids_are_computed_from() -> None:
     assert set(CELL_COLUMNS) == {f.name for f in dataclasses.fields(Cell)}
+
+
+def test_format_6_rows_are_read_with_their_kernels_unknown(tmp_path: Path) -> None:
+    """Format 7 added `kernels`, what a row's numbers depend on beyond its cell: a format 6 row keeps its run_id and
+    policy_id, and its kernels are unknown (null), not the reading machine's."""
+    rows = table([row("smolvla", "libero_spatial", "siglip", seed, 0.5) for seed in (0, 1)])
+    old = previous_results(tmp_path / "old.parquet", rows, 6)
+    assert "kernels" not in pl.read_parquet(old).columns
+    read = results.read(old)
+    assert read["run_id"].to_list() == rows["run_id"].to_list()
+    assert read["policy_id"].to_list() == rows["policy_id"].to_list()
+    assert read["format_version"].to_list() == [7, 7] and read["kernels"].to_list() == [None, None]

@@ -46,6 +46,7 @@ from graftcache.fit.step_memory import check_step_memory
 from graftcache.fit.stream import StreamStats, read_blocks
 from graftcache.graft import FusedProjector
 from graftcache.requests import FitRequest
+from graftcache.runtime import kernels
 from graftcache.store.readthrough import ReadThroughRoot
 
 __all__ = ["PROJECTOR_SIDECAR", "PROJECTOR_WEIGHTS", "Cell", "FitRequest", "run_pass", "save_projector",
@@ -191,7 +192,7 @@ def _row(c: _InPass, adapter: BackboneAdapter, loss: float, score: Any, wall: fl
         "n_dropped_nonfinite": r.dropped + len(c.stats.dropped), "numerics_drift": c.mat.drift(r),
         "camera_map": format_camera_map(plan.cameras), "graftcache_version": graftcache.__version__,
         "activation_checkpointing": recomputed, "eval_seconds_per_frame": eval_s / score.n_frames,
-        "attention": attention,
+        "attention": attention, "kernels": kernels(plan.device),
     })
 
 

@@ -6,7 +6,7 @@ merged later (`merge`, `graftcache merge-rows`)."""
 from __future__ import annotations
 
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from contextlib import suppress
 from pathlib import Path
 from typing import Any
@@ -15,6 +15,7 @@ import polars as pl
 
 from graftcache.errors import ResultsError
 from graftcache.file_lease import FileLease
+from graftcache.results.agreement import disagreement
 from graftcache.results.reading import read, target
 from graftcache.results.schema import from_rows, validate
 from graftcache.results.writing import append
@@ -74,16 +75,23 @@ def append_or_keep(path: str | Path, rows: Sequence[tuple[Mapping[str, Any], str
         raise ResultsError("; ".join([str(e), *lost, *where])) from None
 
 
-def merge(path: str | Path, kept: Sequence[str | Path]) -> pl.DataFrame:
+def merge(path: str | Path, kept: Sequence[str | Path], log: Callable[[str], None] = print) -> pl.DataFrame:
     """Append the rows of results files `kept` (rows `keep_row` kept, or another results file) to `path`; a
     run_id already in `path` is replaced, and of one run_id in several of `kept` the last is taken, so merging
-    twice (or a file and its copy) changes nothing. Returns the merged rows, one per run_id."""
+    twice (or a file and its copy) changes nothing. Rows of one run_id (in `path` or `kept`) that score apart
+    (graftcache.results.agreement: computed on other kernels) are said in one line to `log`. Returns the merged
+    rows, one per run_id."""
     tables = [read(k) if Path(k).is_file() else None for k in kept]
     absent = [str(k) for k, t in zip(kept, tables) if t is None]
     if absent:
         raise ResultsError(f"no results file at {', '.join(absent)}")
-    rows = pl.concat(tables).unique(subset="run_id", keep="last", maintain_order=True)
+    incoming = pl.concat(tables)
+    rows = incoming.unique(subset="run_id", keep="last", maintain_order=True)
     if not len(rows):
         raise ResultsError(f"no rows in {', '.join(map(str, kept))}")
+    had = read(path)
+    differ = disagreement(pl.concat([had.filter(pl.col("run_id").is_in(rows["run_id"].implode())), incoming]))
+    if differ:
+        log(f"{path}: {differ}; the last merged is kept")
     append(path, rows)
     return rows

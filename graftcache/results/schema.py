@@ -48,8 +48,10 @@ IDENTITY_3_VALUES: dict[str, Any] = {name: before for name, (_, before) in ADDED
 #: added a column for each cell field rows lacked (`eval_fraction`, `eval_frames`, `num_denoise_steps`,
 #: `lora_rank`), so that a row records the whole cell its run_id hashes (graftcache.fit.plan.Cell.of_row); its
 #: run_ids are format 4's. Format 6 added `policy_id` (`make_policy_id`): its run_ids are
-#: format 5's. A setting declared into cells by a later format (ADDED_TO_CELLS) makes that format this one.
-FORMAT_VERSION = max(6, *(since for since, _ in ADDED_TO_CELLS.values()))
+#: format 5's. Format 7 added `kernels` (what a row's numbers depend on beyond its cell: rows of one run_id computed on
+#: other kernels differ, graftcache.results.agreement): its run_ids are format 6's, and an older row's kernels are
+#: unknown (null). A setting declared into cells by a later format (ADDED_TO_CELLS) makes that format this one.
+FORMAT_VERSION = max(7, *(since for since, _ in ADDED_TO_CELLS.values()))
 
 #: A setting's column type, by its field's type.
 _POLARS: dict[type, pl.DataType] = {int: pl.Int64, float: pl.Float64, str: pl.String, bool: pl.Boolean}
@@ -112,6 +114,9 @@ SCHEMA: dict[str, pl.DataType] = {
     "eval_seconds_per_frame": pl.Float64,  # scoring's wall time (reading, prefix, denoising) / n_eval_frames
     "attention": pl.String,           # "eager" | "sdpa": what `--attention` (auto) resolved to for the frozen LM and
                                       # expert (graftcache/backbones/attention.py); null: a row written before it
+    "kernels": pl.String,             # the kernels that computed the row (graftcache.runtime.kernels), e.g.
+                                      # "cpu:avx512+amx": rows of one run_id and compute_dtype on equal kernels are
+                                      # equal whatever the thread count; null: a row of format 6 or older
 }
 
 # What a report needs of a table: enough to place every MSE in the (backbone, suite, encoder, control, seed)

@@ -38,6 +38,7 @@ from graftcache.fit.plan import Plan
 from graftcache.fit.run import Cell, FitRequest
 from graftcache.fit.stream import FeatureSource, read_blocks
 from graftcache.graft import GraftProjector
+from graftcache.runtime import kernels
 from graftcache.store import FeatureCache
 
 ENCODER = "timm:vit_tiny_patch16_224"
@@ -90,7 +91,7 @@ def test_every_control_writes_one_schema_valid_row(world: World, tmp_path: Path)
         # 7-d LIBERO actions: per frame eval_mse averages 6 arm dims and the gripper, so the dims-weighted mean of
         # the two parts is eval_mse (frames and chunk steps weigh the same in all three)
         assert (6 * row["eval_mse_arm"] + row["eval_mse_gripper"]) / 7 == pytest.approx(row["eval_mse"], rel=1e-6)
-        assert row["eval_split"] == "graftcache" and row["format_version"] == results.FORMAT_VERSION == 6
+        assert row["eval_split"] == "graftcache" and row["format_version"] == results.FORMAT_VERSION == 7
     # the policy as loaded, counted before the graft: every control of one backbone records the same size
     assert {r["backbone_params"] for r in by.values()} == {world.policy_params("smolvla")}
     # Prismatic's habit, once per loaded policy: the first cell logs which modules are frozen and which train, and a
@@ -218,6 +219,30 @@ def test_rows_do_not_depend_on_how_many_processes_read_the_cache(world: World, t
     for a, b in zip(rows[0], rows[2], strict=True):
         assert a["run_id"] == b["run_id"] and a["train_loss_final"] == b["train_loss_final"]
         assert a["eval_mse"] == b["eval_mse"] and a["eval_mse_episodes"] == b["eval_mse_episodes"]
+
+
+SCORES = ("train_loss_final", "eval_mse", "eval_mse_first", "eval_mse_raw", "eval_mse_arm", "eval_mse_gripper",
+          "eval_mse_episodes", "eval_ci_mse", "eval_ci_mse_episodes")
+
+
+def test_a_runs_scores_do_not_depend_on_the_thread_count(world: World, tmp_path: Path, auto_resolution: str,
+                                                          monkeypatch: pytest.MonkeyPatch) -> None:
+    """A fit on one intra-op thread and one on two (what graftcache.runtime.set_main_threads grants a fit:
+    $OMP_NUM_THREADS) write the same scores bit for bit, and rows naming the kernels that computed them: rows of one
+    run_id from machines of other core counts are one result."""
+    rows, threads = {}, torch.get_num_threads()
+    try:
+        for n in (1, 2):
+            monkeypatch.setenv("OMP_NUM_THREADS", str(n))
+            rows[n] = Fitter(world.request(steps=6, results=str(tmp_path / f"{n}.parquet"),
+                                           out=str(tmp_path / f"runs{n}")), log=_quiet).run()
+            assert torch.get_num_threads() == n
+    finally:
+        torch.set_num_threads(threads)
+    (one,), (two,) = rows[1], rows[2]
+    assert one["run_id"] == two["run_id"] and one["compute_dtype"] == auto_resolution
+    assert one["kernels"] == two["kernels"] == kernels(torch.device("cpu"))
+    assert {c: one[c] for c in SCORES} == {c: two[c] for c in SCORES}
 
 
 def test_split_holds_out_episodes_within_each_task() -> None:

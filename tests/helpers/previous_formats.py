@@ -42,16 +42,19 @@ FORMAT_4_COLUMNS = ("eval_split", "eval_mse_arm", "eval_mse_gripper", "encoder_r
 FORMAT_5_COLUMNS = ("eval_fraction", "eval_frames", "num_denoise_steps", "lora_rank")
 #: The column results format 6 added (the policy's identity), which rows of formats 1 to 5 lack.
 FORMAT_6_COLUMNS = ("policy_id",)
+#: The column results format 7 added (the kernels that computed the row), which rows of formats 1 to 6 lack.
+FORMAT_7_COLUMNS = ("kernels",)
 
 
 def previous_results(path: Path, rows: pl.DataFrame, version: int = 1) -> Path:
     """`rows` (a results table of this format) written to `path` as format `version` held them: format 1 had no
     format_version column; format 2 hashed cells whose pool_grid was "native" (the backbone's token grid,
     unresolved), so its run_ids are of cells of another shape; format 3 lacked FORMAT_4_COLUMNS, format 4
-    FORMAT_5_COLUMNS, format 5 FORMAT_6_COLUMNS."""
+    FORMAT_5_COLUMNS, format 5 FORMAT_6_COLUMNS, format 6 FORMAT_7_COLUMNS."""
     rows = rows.drop(FORMAT_4_COLUMNS) if version <= 3 else rows
     rows = rows.drop(FORMAT_5_COLUMNS) if version <= 4 else rows
     rows = rows.drop(FORMAT_6_COLUMNS) if version <= 5 else rows
+    rows = rows.drop(FORMAT_7_COLUMNS) if version <= 6 else rows
     old = rows.drop("format_version") if version == 1 else rows.with_columns(pl.lit(version).alias("format_version"))
     old.write_parquet(path)
     return path

@@ -124,6 +124,7 @@ def row(backbone: str, suite: str, encoder: str, seed: int, eval_mse: float | No
         "eval_batch_size": 64,
         "eval_seconds_per_frame": 0.01,
         "attention": "eager",
+        "kernels": "cpu:avx2",
         "compile": False,
         "eval_fraction": 0.2,
         "eval_frames": 120,
