@@ -3,9 +3,10 @@
 Why actors, not a task per episode: a simulator's start (lerobot's LIBERO imports, the env's build and first reset)
 and a cell's policy load take longer than a short episode; an actor pays them once and keeps its envs and the cell it
 ran last, as a `--workers` process does (graftcache/rollout/workers.py). The actors are created when the team is built,
-before the driver plans, so their simulators build meanwhile. The driver schedules exactly as `--workers` does, with
-the same graftcache.rollout.workers.Scheduler: an actor that finishes gets the next episode of its cell, else a cell no
-actor serves (claimed without waiting, graftcache.results.claims.cell_claim), and only then joins another's cell.
+before the driver plans, so their simulators build meanwhile. The driver schedules as for every team, through
+graftcache.rollout.schedule.drive with this team its transport: an actor that finishes gets the next episode of its
+cell, else a cell no actor serves (claimed without waiting, graftcache.results.claims.cell_claim), and only then joins
+another's cell.
 
 Rows: an actor writes the episode's video whole (graftcache.rollout.run.with_video) and returns its row; the driver
 appends it as the call finishes. So the rows are those of the local executor for the same episodes (an episode seeds
@@ -23,7 +24,6 @@ from __future__ import annotations
 
 import os
 import socket
-import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -38,7 +38,7 @@ from graftcache.requests import ExecutorSettings
 from graftcache.rollout import table
 from graftcache.rollout.episodes import Episode, Simulator
 from graftcache.rollout.run import RolloutRequest, with_video
-from graftcache.rollout.workers import CLAIM_POLL_S, Scheduler, cells_of, one_line, where
+from graftcache.rollout.schedule import EpisodeReport, Job, Scheduler, drive, one_line, pause, where
 
 
 class SimulatorHost:
@@ -74,7 +74,7 @@ SimulatorActor = ray.remote(SimulatorHost)
 
 @dataclass
 class _Actor:
-    """An actor as the scheduler sees it (graftcache.rollout.workers.Scheduler: `running`, `last`)."""
+    """An actor as the scheduler sees it (graftcache.rollout.schedule.Worker)."""
 
     index: int
     handle: Any
@@ -100,6 +100,9 @@ class Actors:
         rollouts = req.rollouts.absolute()
         self.team = [_Actor(i, SimulatorActor.options(**options).remote(spawn, rollouts, req.command, i))
                      for i in range(n)]
+        self.workers = self.team  # those `run` hands episodes to (graftcache.rollout.schedule.Transport)
+        self.rollouts = req.rollouts
+        self.calls: dict[ray.ObjectRef, _Actor] = {}
 
     def run(self, req: RolloutRequest, rows: Mapping[str, Mapping[str, Any]], missing: Sequence[Episode], bar: Any,
             log: Log) -> None:
@@ -107,31 +110,32 @@ class Actors:
         the number of episodes are ended at once, the others kept for the next request (graftcache.rollout.run.Team)
         until `close`."""
         self.team, spare = self.team[: len(missing)], self.team[len(missing):]
-        busy = self.team
         for actor in spare:
             ray.kill(actor.handle, no_restart=True)
-        log(f"ray: {len(busy)} simulator actor(s) running {len(missing)} episode(s)")
-        cells = cells_of(rows, missing)
-        scheduler = Scheduler(req, cells, bar, log)
-        calls: dict[ray.ObjectRef, _Actor] = {}
-        try:
-            while not all(c.closed for c in cells.values()):
-                for actor in busy:
-                    if actor.running is None and (job := scheduler.dispatch(actor)) is not None:
-                        calls[actor.handle.run.remote(*job)] = actor
-                if not calls:  # every cell left is another rollout's for now
-                    time.sleep(CLAIM_POLL_S)
-                    continue
-                ready, _ = ray.wait(list(calls), num_returns=1,
-                                    timeout=CLAIM_POLL_S if scheduler.waiting() else None)
-                for ref in ready:
-                    actor = calls.pop(ref)
-                    assert actor.running is not None
-                    row = result(ref, where(actor.running))
-                    table.append(req.rollouts, [row])
-                    scheduler.finished(actor, (row["success"], row["steps"], row["seconds"], row["video"] is not None))
-        finally:  # stopped or failed: the claims given back (the actors are ended by `close`)
-            scheduler.release()
+        self.workers, self.rollouts, self.calls = self.team, req.rollouts, {}
+        log(f"ray: {len(self.workers)} simulator actor(s) running {len(missing)} episode(s)")
+        drive(Scheduler(req.rollouts, rows, missing, bar, log), self)
+
+    def send(self, worker: _Actor, job: Job) -> None:
+        self.calls[worker.handle.run.remote(*job)] = worker
+
+    def receive(self, timeout: float | None) -> list[tuple[_Actor, EpisodeReport]]:
+        """The calls finished, each row appended here as it comes (the actor wrote its video)."""
+        if not self.calls:  # every cell left is another rollout's for now
+            pause(timeout)
+            return []
+        ready, _ = ray.wait(list(self.calls), num_returns=1, timeout=timeout)
+        reports = []
+        for ref in ready:
+            actor = self.calls.pop(ref)
+            assert actor.running is not None
+            row = result(ref, where(actor.running))
+            table.append(self.rollouts, [row])
+            reports.append((actor, EpisodeReport.of(row)))
+        return reports
+
+    def stop(self) -> None:
+        """Nothing here: the actors are ended by `close`, and a call in flight writes no row (the driver does)."""
 
     def close(self) -> None:
         for actor in self.team:

@@ -30,16 +30,16 @@ from graftcache import results
 from graftcache.errors import RolloutError
 from graftcache.progress import progress
 from graftcache.progress import write as progress_write
-from graftcache.results.claims import cell_claim, drop_claims_folder
-from graftcache.results.writing import WAIT_TOLD_S, fsync
+from graftcache.results.claims import drop_claims_folder
+from graftcache.results.writing import fsync
 from graftcache.rollout import table
 from graftcache.rollout.episodes import RESETS, Episode, Outcome, Simulator
 from graftcache.rollout.graded import Graded
+from graftcache.rollout.schedule import VIDEOS_FOLDER, EpisodeReport, Job, Scheduler, drive, pause, where
 from graftcache.rollout.select import select_rows
 
 ROLLOUTS_FILE = "rollouts.parquet"  # the default: beside the results file
 EXPORTS_FOLDER = "exports"          # beside the rollouts file: one export folder per run_id
-VIDEOS_FOLDER = "videos"            # beside the rollouts file: videos/RUN_ID/<episode>.mp4 (video_of)
 GRADED_FIELDS = tuple(f.name for f in fields(Graded))  # the row's columns of an Outcome's `graded`
 MAX_SEED = 2**32 - 1                # numpy's and gymnasium's seeds are unsigned 32-bit integers
 #: LIBERO has 50 official init states per task (episode k starts from state k mod 50): 1,000 episodes a task is
@@ -167,41 +167,87 @@ def with_video(rollouts: Path, command: str, episode: Episode, outcome: Outcome)
     return row_of(episode, outcome, command, video)
 
 
-def record(rollouts: Path, command: str, episode: Episode, outcome: Outcome) -> str | None:
-    """Write a finished episode: its video (when it has frames) before its row, which names it; returns the video's
-    path relative to the rollouts file (None: no video)."""
+def record(rollouts: Path, command: str, episode: Episode, outcome: Outcome) -> EpisodeReport:
+    """Write a finished episode, its video (when it has frames) before its row, which names it, and report it."""
     row = with_video(rollouts, command, episode, outcome)
     table.append(rollouts, [row])
-    return row["video"]
+    return EpisodeReport.of(row)
 
 
-def describe(row: Mapping[str, Any]) -> str:
-    return f"{row['backbone']}/{row['encoder']}/{row['suite']} seed {row['seed']} control {row['control']}"
+def run_one(sim: Simulator, row: Mapping[str, Any], episode: Episode, rollouts: Path, command: str) -> EpisodeReport:
+    """Run one episode on `sim` and `record` it as the simulator yields it, before its generator is resumed to its
+    end: an error the simulator raises after its episode leaves the episode written."""
+    reports = [record(rollouts, command, episode, outcome) for outcome in sim.run(row, [episode])]
+    if len(reports) != 1:
+        raise RolloutError(f"{where(episode)}: the simulator gave {len(reports)} outcomes for one episode")
+    return reports[0]
 
 
 class Team(Protocol):
-    """Runs a rollout's missing episodes away from this process, each worker with a simulator of its own: spawned
-    processes on this machine (graftcache.rollout.workers.Workers, `--workers N`) or Ray actors
-    (graftcache.executors.ray_rollout.Actors, `--executor ray`), as an executor starts them
-    (graftcache.executors.Executor.rollout_team). A team starts when built, so its simulators build while this
+    """Runs a rollout's missing episodes, each worker with a simulator of its own: spawned processes on this
+    machine (graftcache.rollout.workers.Workers, `--workers N`) or Ray actors (graftcache.executors.ray_rollout.Actors,
+    `--executor ray`), as an executor starts them (graftcache.executors.Executor.rollout_team), else this process's
+    team of one (InProcess), and each of them the transport of the one loop (graftcache.rollout.schedule.drive).
+    A team starts when built, so its simulators build while this
     process plans; it holds the claims of the cells in flight and gets every episode written. It serves requests
     one after another until closed (graftcache.rollout.run.roll_out_started), so a command of several requests
     pays for one start-up."""
 
     def run(self, req: RolloutRequest, rows: Mapping[str, Mapping[str, Any]], missing: Sequence[Episode], bar: Any,
             log: Callable[[str], None]) -> None:
-        """Run `missing`, episodes of the cells `rows` holds by run_id; `bar` advances by one per episode written or
-        found written by another rollout. Workers beyond the number of episodes are ended at once (the team is
-        smaller for the requests that follow)."""
+        """Run `missing`, episodes of the cells `rows` holds by run_id, through graftcache.rollout.schedule.drive
+        (the team its transport); `bar` advances by one per episode written or found written by another rollout.
+        Workers beyond the number of episodes are ended at once (the team is smaller for the requests that
+        follow)."""
 
     def close(self) -> None:
         """Every worker stopped; nothing of the team outlives it."""
 
 
+@dataclass
+class _Here:
+    """The team of one's worker (graftcache.rollout.schedule.Worker)."""
+
+    running: Episode | None = None
+    last: str | None = None
+
+
+class InProcess:
+    """The team of one (`roll_out` without a team): this process's simulator runs each episode as it is sent, so
+    episodes go through the loop the other teams' do (graftcache.rollout.schedule.drive). An error of the simulator
+    is raised as it is."""
+
+    def __init__(self, sim: Simulator, req: RolloutRequest) -> None:
+        self.sim, self.rollouts, self.command = sim, req.rollouts, req.command
+        self.workers = (_Here(),)
+        self.reports: list[tuple[_Here, EpisodeReport]] = []
+
+    def run(self, req: RolloutRequest, rows: Mapping[str, Mapping[str, Any]], missing: Sequence[Episode], bar: Any,
+            log: Callable[[str], None]) -> None:
+        drive(Scheduler(req.rollouts, rows, missing, bar, log), self)
+
+    def send(self, worker: _Here, job: Job) -> None:
+        row, episode = job
+        self.reports.append((worker, run_one(self.sim, row, episode, self.rollouts, self.command)))
+
+    def receive(self, timeout: float | None) -> list[tuple[_Here, EpisodeReport]]:
+        if not self.reports:  # only cells another rollout holds are left
+            pause(timeout)
+        reports, self.reports = self.reports, []
+        return reports
+
+    def stop(self) -> None:
+        """Nothing runs once the loop has stopped: each episode ran within `send`."""
+
+    def close(self) -> None:
+        """Nothing to stop: the simulator is its caller's."""
+
+
 def roll_out(req: RolloutRequest, sim: Simulator, log: Callable[[str], None] = progress_write, *,
              team: Team | None = None) -> pl.DataFrame:
     """Run the request's missing episodes and return the rollouts file's rows of the request's episodes: in this
-    process, by `sim`, or by `team` (each of its workers with a simulator of its own), `sim` only planning."""
+    process, by `sim` (the team of one, InProcess), or by `team` (each of its workers with a simulator of its own),
+    `sim` only planning."""
     rows = select_rows(results.read_for_report(req.results), run_ids=req.run_ids, top=req.top, suites=req.suites,
                        score=req.score, log=log)
     episodes = plan(rows, req, sim)
@@ -219,11 +265,7 @@ def roll_out(req: RolloutRequest, sim: Simulator, log: Callable[[str], None] = p
     by_run = {r["run_id"]: r for r in rows.iter_rows(named=True)}
     try:
         with progress(total=len(missing), desc="rollout", unit="episode") as bar:
-            if team is not None:
-                team.run(req, by_run, missing, bar, log)
-            else:
-                for run_id in dict.fromkeys(e.run_id for e in missing):
-                    _run_cell(req, sim, by_run[run_id], [e for e in missing if e.run_id == run_id], bar, log)
+            (team or InProcess(sim, req)).run(req, by_run, missing, bar, log)
     finally:  # stopped or failed too: no empty claims folder is left beside the file
         drop_claims_folder(req.rollouts)
     return _of(req, episodes)
@@ -258,38 +300,6 @@ def roll_out_started(requests: Sequence[RolloutRequest], spawn: Callable[[], Sim
     finally:
         if team is not None:
             team.close()
-
-
-def _run_cell(req: RolloutRequest, sim: Simulator, row: Mapping[str, Any], episodes: Sequence[Episode], bar,
-              log: Callable[[str], None]) -> None:
-    """The cell's episodes that are still missing once its claim is held, each row written as it finishes."""
-    claim = cell_claim(req.rollouts, row["run_id"])
-    claim.acquire(on_wait=lambda holder: log(f"waiting for run {row['run_id']}, being rolled out by {holder}"),
-                  patience=WAIT_TOLD_S)
-    try:
-        done = set(table.read(req.rollouts)["episode_id"].to_list())
-        todo = [e for e in episodes if e.id not in done]
-        bar.update(len(episodes) - len(todo))  # written by another process while this one waited for the claim
-        if not todo:
-            return
-        wins = steps = videos = 0
-        seconds = 0.0
-        for n, (episode, outcome) in enumerate(zip(todo, sim.run(row, todo), strict=True), 1):
-            videos += record(req.rollouts, req.command, episode, outcome) is not None
-            wins, steps, seconds = wins + outcome.success, steps + outcome.steps, seconds + outcome.seconds
-            bar.set_postfix_str(f"run {row['run_id']}: {wins}/{n} succeeded")
-            bar.update(1)
-        log(summary(req.rollouts, row, wins, len(todo), steps, seconds, videos))
-    finally:
-        claim.release()
-
-
-def summary(rollouts: Path, row: Mapping[str, Any], wins: int, episodes: int, steps: int, seconds: float,
-            videos: int) -> str:
-    """The line a cell's rolled-out episodes end with."""
-    kept = f"; {videos} video(s) in {rollouts.parent / VIDEOS_FOLDER / row['run_id']}" if videos else ""
-    return (f"rolled out {describe(row)} (run {row['run_id']}): {wins}/{episodes} succeeded, {episodes} episode(s) in "
-            f"{seconds:.0f} s ({seconds / max(steps, 1):.2f} s a step){kept}")
 
 
 def _of(req: RolloutRequest, episodes: Sequence[Episode]) -> pl.DataFrame:

@@ -10,9 +10,9 @@ and its planning; workers left without an episode are stopped when the plan is k
 of one command in turn (the closed-loop demo's two), so they start once.
 
 Granularity: the episode, not the cell, so that a few cells of many episodes still keep every worker busy. This process
-schedules: a worker that finishes gets the next episode of the cell it ran last (its policy stays loaded), else the
-episodes of a cell no worker is serving (one already claimed, else one it claims now), and only then joins another
-worker's cell. With many cells each worker keeps to its own and loads each policy once.
+schedules, as for every team (graftcache.rollout.schedule.drive, this team its transport): a worker that finishes gets
+the next episode of the cell it ran last (its policy stays loaded), else the episodes of a cell no worker is serving,
+and only then joins another worker's cell. With many cells each worker keeps to its own and loads each policy once.
 
 Exports: a worker exports a cell when it first runs one of its episodes (LiberoSimulator.export, reuse=True), which is
 safe for concurrent writers: each writes a temporary folder and renames it in place, and the slower one keeps the
@@ -21,11 +21,9 @@ cell only when more workers than cells are left: one export's time lost, never a
 here first would instead load each base policy in this process, one after the other, before any episode starts.
 
 Rows: a worker writes each episode's video and row as the episode finishes (graftcache.rollout.run.record; appends to
-the rollouts file are made under its lease, safe across processes). Claims: this process holds the claim of each cell
-it has episodes of (graftcache.results.claims.cell_claim, as the one-process rollout does), taken when it first needs
-the cell and without waiting (a cell another rollout holds is left to it and tried again later; once taken, what the
-file then holds is read again) and given back once the cell's last episode is written: two rollouts sharing a file, of
-any --workers, never run one episode twice.
+the rollouts file are made under its lease, safe across processes) and sends back its report
+(graftcache.rollout.schedule.EpisodeReport). Claims: this process holds them, as for every team
+(graftcache.rollout.schedule.Scheduler): two rollouts sharing a file, of any --workers, never run one episode twice.
 
 Failures: a worker's error is sent here and raised as one RolloutError line naming the run and episode; a worker that
 dies (kill -9, out of memory) is one line naming the episode it was running. Either way the other workers are stopped
@@ -49,7 +47,6 @@ import signal
 import sys
 import threading
 import time
-from collections import deque
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager, suppress
 from dataclasses import dataclass
@@ -58,36 +55,15 @@ from multiprocessing.process import BaseProcess
 from pathlib import Path
 from typing import Any
 
-from graftcache.errors import GraftcacheError, RolloutError
-from graftcache.file_lease import FileLease
+from graftcache.errors import RolloutError
 from graftcache.processes import WORKER_GRACE_S, Terminated, stop
-from graftcache.results.claims import cell_claim
-from graftcache.rollout import table
 from graftcache.rollout.episodes import Episode, Simulator
-from graftcache.rollout.run import RolloutRequest, record, summary
+from graftcache.rollout.run import RolloutRequest, run_one
+from graftcache.rollout.schedule import EpisodeReport, Job, Scheduler, drive, one_line, where
 
-#: how often cells that other rollouts hold are tried again while nothing else is left to hand out
-CLAIM_POLL_S = 1.0
 #: how long workers told to finish get to close their simulators before they are stopped
 CLOSE_S = 30.0
 PR_SET_PDEATHSIG = 1  # linux/prctl.h
-
-
-@dataclass
-class _Cell:
-    """A cell's episodes as this process hands them out, and what its finished ones gave (its summary line)."""
-
-    row: Mapping[str, Any]
-    todo: deque[Episode]
-    claim: FileLease | None = None
-    closed: bool = False
-    running: int = 0
-    told: bool = False  # whether the wait for another rollout's claim of it was said
-    done: int = 0
-    wins: int = 0
-    steps: int = 0
-    seconds: float = 0.0
-    videos: int = 0
 
 
 @dataclass
@@ -97,17 +73,6 @@ class _Worker:
     conn: Connection
     running: Episode | None = None
     last: str | None = None  # the run_id of the cell it ran last (whose policy it holds)
-
-
-def where(episode: Episode) -> str:
-    return (f"run {episode.run_id}, {episode.suite} task {episode.task_index} episode {episode.episode} "
-            f"(seed {episode.seed})")
-
-
-def one_line(e: BaseException) -> str:
-    """An error as one line: a GraftcacheError's own words, anything else with its type."""
-    first = (str(e).strip().splitlines() or [""])[0]
-    return first if isinstance(e, GraftcacheError) else f"{type(e).__name__}: {first}".rstrip(": ")
 
 
 def team_size(asked: int, log: Callable[[str], None]) -> int:
@@ -128,6 +93,7 @@ class Workers:
 
     def __init__(self, spawn: Callable[[], Simulator], n: int, req: RolloutRequest) -> None:
         self.team = _start(n, spawn, req)
+        self.workers = self.team  # those `run` hands episodes to (graftcache.rollout.schedule.Transport)
         self.idle = False  # every worker built and waiting, after a request that ended well
 
     def run(self, req: RolloutRequest, rows: Mapping[str, Mapping[str, Any]], missing: Sequence[Episode], bar: Any,
@@ -135,33 +101,31 @@ class Workers:
         """Run `missing` (episodes of the cells `rows` holds by run_id); `bar` advances by one per episode written or
         found written. Workers beyond the number of episodes are stopped at once; the others wait for the next
         request (graftcache.rollout.run.Team) or `close`. A failure stops them all."""
-        cells = cells_of(rows, missing)
         self.team, spare = self.team[: len(missing)], self.team[len(missing):]
         _stop(spare)
-        busy, self.idle = self.team, False
-        log(f"{len(busy)} worker processes, each with a simulator of its own")
-        scheduler = Scheduler(req, cells, bar, log)
-        try:
-            while not all(c.closed for c in cells.values()):
-                for worker in busy:
-                    if worker.running is None and (job := scheduler.dispatch(worker)) is not None:
-                        worker.conn.send(job)
-                if all(c.closed for c in cells.values()):  # another rollout wrote what was left: no report is owed
-                    break
-                running = any(w.running is not None for w in busy)
-                ready = wait([w.conn for w in busy] + [w.process.sentinel for w in busy],
-                             timeout=None if running and not scheduler.waiting() else CLAIM_POLL_S)
-                for worker in busy:
-                    if worker.conn in ready or worker.conn.poll():
-                        scheduler.finished(worker, _receive(worker))
-                    elif worker.process.sentinel in ready:
-                        raise RolloutError(_death(worker))
-        except BaseException:  # stopped or failed: no worker outlives the loop
-            _stop(busy)
-            raise
-        finally:  # and no claim is left behind, also when a stop is raised again while the workers are reaped
-            scheduler.release()  # (graftcache.cli.signals._Stop)
+        self.workers, self.idle = self.team, False
+        log(f"{len(self.workers)} worker processes, each with a simulator of its own")
+        drive(Scheduler(req.rollouts, rows, missing, bar, log), self)
         self.idle = True
+
+    def send(self, worker: _Worker, job: Job) -> None:
+        worker.conn.send(job)
+
+    def receive(self, timeout: float | None) -> list[tuple[_Worker, EpisodeReport]]:
+        """The reports the workers sent, waiting up to `timeout` for one; a worker's death (its pipe closed, its
+        process ended) is raised, running or idle."""
+        ready = wait([w.conn for w in self.workers] + [w.process.sentinel for w in self.workers], timeout=timeout)
+        reports = []
+        for worker in self.workers:
+            if worker.conn in ready or worker.conn.poll():
+                reports.append((worker, _receive(worker)))
+            elif worker.process.sentinel in ready:
+                raise RolloutError(_death(worker))
+        return reports
+
+    def stop(self) -> None:
+        """Stopped or failed: no worker outlives the loop (nor writes a row once its cell's claim is given back)."""
+        _stop(self.workers)
 
     def close(self) -> None:
         """Every worker stopped: idle ones first told to finish and given their time to close their simulators
@@ -173,96 +137,7 @@ class Workers:
             _stop(self.team)
 
 
-def cells_of(rows: Mapping[str, Mapping[str, Any]], missing: Sequence[Episode]) -> dict[str, _Cell]:
-    """The missing episodes by cell, in the order of their first episode."""
-    return {run_id: _Cell(rows[run_id], deque(e for e in missing if e.run_id == run_id))
-            for run_id in dict.fromkeys(e.run_id for e in missing)}
-
-
-class Scheduler:
-    """Which episode an idle worker runs next (see the module docstring), and the bookkeeping of finished ones."""
-
-    def __init__(self, req: RolloutRequest, cells: dict[str, _Cell], bar: Any, log: Callable[[str], None]) -> None:
-        self.req, self.cells, self.bar, self.log = req, cells, bar, log
-
-    def dispatch(self, worker: Any) -> tuple[dict[str, Any], Episode] | None:
-        """The (row, episode) `worker` (anything with `running` and `last`, as _Worker) runs next, marked running;
-        None: nothing to hand it now."""
-        cell = self._next_cell(worker)
-        if cell is None:
-            return None
-        episode = cell.todo.popleft()
-        cell.running += 1
-        worker.running, worker.last = episode, episode.run_id
-        return dict(cell.row), episode
-
-    def waiting(self) -> bool:
-        """Whether a cell is left to claim (another rollout holds it): idle workers look again every CLAIM_POLL_S."""
-        return any(c.claim is None and not c.closed for c in self.cells.values())
-
-    def release(self) -> None:
-        """Every claim still held given back (a stopped or failed rollout)."""
-        for cell in self.cells.values():
-            if cell.claim is not None:
-                cell.claim.release()
-                cell.claim = None
-
-    def _next_cell(self, worker: Any) -> _Cell | None:
-        held = [c for c in self.cells.values() if c.claim is not None and not c.closed and c.todo]
-        last = self.cells.get(worker.last)  # None: no cell yet, or one of an earlier request
-        if last is not None and last in held:
-            return last
-        idle = [c for c in held if not c.running]
-        if idle:
-            return idle[0]
-        for cell in self.cells.values():
-            if cell.claim is None and not cell.closed and self._claim(cell):
-                return cell
-        return min(held, key=lambda c: c.running) if held else None
-
-    def _claim(self, cell: _Cell) -> bool:
-        """Take the cell's claim if no other rollout holds it, and drop the episodes the file holds by then; False:
-        held elsewhere (said once), or nothing left to run (the claim given back, the cell closed)."""
-        run_id = cell.row["run_id"]
-        lease = cell_claim(self.req.rollouts, run_id)
-        if not lease.try_acquire():
-            if not cell.told:
-                self.log(f"waiting for run {run_id}, being rolled out by {lease.holder()}")
-                cell.told = True
-            return False
-        cell.claim = lease
-        done = set(table.read(self.req.rollouts)["episode_id"].to_list())
-        left = deque(e for e in cell.todo if e.id not in done)
-        self.bar.update(len(cell.todo) - len(left))  # written by another rollout while it held the claim
-        cell.todo = left
-        if not left:
-            self._close(cell)
-            return False
-        return True
-
-    def finished(self, worker: Any, outcome: tuple[bool, int, float, bool]) -> None:
-        episode, worker.running = worker.running, None
-        assert episode is not None
-        cell = self.cells[episode.run_id]
-        success, steps, seconds, video = outcome
-        cell.running -= 1
-        cell.done, cell.wins, cell.steps = cell.done + 1, cell.wins + success, cell.steps + steps
-        cell.seconds, cell.videos = cell.seconds + seconds, cell.videos + video
-        self.bar.set_postfix_str(f"run {episode.run_id}: {cell.wins}/{cell.done} succeeded")
-        self.bar.update(1)
-        if not cell.todo and not cell.running:
-            self.log(summary(self.req.rollouts, cell.row, cell.wins, cell.done, cell.steps, cell.seconds,
-                             cell.videos))
-            self._close(cell)
-
-    def _close(self, cell: _Cell) -> None:
-        if cell.claim is not None:
-            cell.claim.release()
-            cell.claim = None
-        cell.closed = True
-
-
-def _receive(worker: _Worker) -> tuple[bool, int, float, bool]:
+def _receive(worker: _Worker) -> EpisodeReport:
     """A worker's report of its episode; its failure raised as one line naming the episode."""
     try:
         kind, *body = worker.conn.recv()
@@ -274,7 +149,7 @@ def _receive(worker: _Worker) -> tuple[bool, int, float, bool]:
     if kind == "failed":
         raise RolloutError(f"{where(worker.running)}: {body[0]} (rollout worker {worker.index}, pid "
                            f"{worker.process.pid})")
-    return tuple(body)  # type: ignore[return-value]
+    return body[0]
 
 
 def _death(worker: _Worker) -> str:
@@ -353,8 +228,8 @@ def _stop(team: Sequence[_Worker]) -> None:
 
 # ---------------------------------------------------------------------------------------------- in the worker
 def serve(conn: Connection, spawn: Callable[[], Simulator], rollouts: Path, command: str, parent: int) -> None:
-    """A worker's life: build the simulator, then run each (row, episode) sent, write its video and row, and report
-    (success, steps, seconds, whether a video was written), until None or the pipe's end. An error is reported as one
+    """A worker's life: build the simulator, then run each (row, episode) sent, write its video and row, and send
+    its EpisodeReport, until None or the pipe's end. An error is reported as one
     line ("failed"; "broken": building the simulator) and ends the worker; a stop (SIGTERM, its parent's death) ends
     it quietly."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -371,12 +246,11 @@ def serve(conn: Connection, spawn: Callable[[], Simulator], rollouts: Path, comm
             while (job := conn.recv()) is not None:
                 row, episode = job
                 try:
-                    (outcome,) = sim.run(row, [episode])
-                    video = record(rollouts, command, episode, outcome)
+                    report = run_one(sim, row, episode, rollouts, command)
                 except Exception as e:
                     conn.send(("failed", one_line(e)))
                     return
-                conn.send(("done", outcome.success, outcome.steps, outcome.seconds, video is not None))
+                conn.send(("done", report))
         finally:
             close = getattr(sim, "close", None)
             if close is not None:

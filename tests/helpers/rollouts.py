@@ -5,6 +5,7 @@ process."""
 
 from __future__ import annotations
 
+import importlib.metadata
 import os
 import signal
 import time
@@ -14,8 +15,12 @@ from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
+import polars as pl
 from tqdm import tqdm
 
+import graftcache
+from graftcache.hashing import sha256_json
+from graftcache.rollout import table
 from graftcache.rollout.episodes import Episode, Outcome, Suite
 from graftcache.rollout.graded import Graded
 
@@ -129,3 +134,21 @@ def ran(traces: Path) -> list[tuple[int, str, int, int]]:
 def pids(traces: Path) -> list[int]:
     """The processes that built a Paced simulator writing to `traces`."""
     return sorted(int(p.name) for p in (traces / "pids").iterdir()) if (traces / "pids").is_dir() else []
+
+
+def paced_rows(run_ids: Sequence[str], tasks: Sequence[int], episodes: int, seed: int) -> pl.DataFrame:
+    """The rows a Paced simulator's episodes give, from its definition (episode k: seed + k, success when the seed
+    is even, k + 3 steps, init state k) and the rollouts schema by hand, `seconds` and `command` aside: nothing
+    graded, no video, no perturbation."""
+    rows = []
+    for run_id, task, k in ((r, t, k) for r in run_ids for t in tasks for k in range(episodes)):
+        key = {"run_id": run_id, "suite": "libero_object", "task_index": task, "episode": k, "seed": seed + k,
+               "max_steps": 280}
+        rows.append({"episode_id": sha256_json(key)[:16], "format_version": 2, **key, "init_state": k,
+                     "success": (seed + k) % 2 == 0, "steps": k + 3, "video": None, "target": None,
+                     "perturbation_m": 0.0, "target_offset_x_m": None, "target_offset_y_m": None,
+                     "min_target_distance_m": None, "final_target_distance_m": None, "target_lift_m": None,
+                     "grasped": None, "goal_fraction": None, "lerobot_version": importlib.metadata.version("lerobot"),
+                     "graftcache_version": graftcache.__version__})
+    schema = {c: t for c, t in table.SCHEMA.items() if c not in ("seconds", "command")}
+    return pl.DataFrame(rows, schema=schema).sort("episode_id")

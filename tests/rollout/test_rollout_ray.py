@@ -18,7 +18,7 @@ from typing import Any
 import polars as pl
 import pytest
 from fixtures.simulator_cells import RolledOut
-from helpers.rollouts import Paced, pids, ran
+from helpers.rollouts import Paced, paced_rows, pids, ran
 from helpers.tables import write_results
 
 from graftcache import results
@@ -62,6 +62,8 @@ def test_ray_actors_skip_what_the_file_holds_and_write_the_rows_of_this_process(
     assert f"ray: {actors} simulator actor(s), 0 GPU and 1 CPU each" in lines
     assert f"5 of {EPISODES} episodes already in {req.rollouts}; running the other {EPISODES - 5}" in lines
     assert rows.drop(VARYING).sort("episode_id").equals(one.drop(VARYING).sort("episode_id"))
+    cells = select_rows(results.read(req.results), top=1, suites=["libero_object"])["run_id"].to_list()
+    assert rows.drop(VARYING).sort("episode_id").equals(paced_rows(cells, (0, 3), 2, 7))  # test_schedule.py's
     episodes = ran(tmp_path / "ray" / "traces")  # run by the actors, each once, none of the 5 written
     assert len(episodes) == len(set(episodes)) == EPISODES - 5
     written = set(one.head(5).select("run_id", "task_index", "episode").rows())
