@@ -58,12 +58,17 @@ def summary_sentence(r: Row, table: pl.DataFrame) -> str:
             + (f", {undecided} without a verdict" if undecided else "") + ").")
 
 
+def _call_words(r: Row, side: str) -> str:
+    """A side's call in words: the better encoder, else why there is none."""
+    return f"better: {_better(r, side)}" if r[side] in (A.A_BETTER, A.B_BETTER) else (r[side] or "no call")
+
+
 def pair_sentence(r: Row, unit: str) -> str:
     """One pair's two sides and verdict in a line (what `demo --closed-loop` prints; the table says it in columns)."""
     return (f"{A.backbone_label(r['backbone'])} · {r['suite']} · {r['encoder_a']} − {r['encoder_b']}: offline "
-            f"{_difference(r, 'offline', '+.3g', '')} over {r['seeds']} seeds (better: {_better(r, 'offline')}), "
-            f"closed loop {_difference(r, 'closed', '+.3g', unit)} over {r['pairs']} pairs (better: "
-            f"{_better(r, 'closed')}): {r['verdict'] or 'no verdict'}.")
+            f"{_difference(r, 'offline', '+.3g', '')} over {r['seeds']} seeds ({_call_words(r, 'offline')}), "
+            f"closed loop {_difference(r, 'closed', '+.3g', unit)} over {r['pairs']} pairs "
+            f"({_call_words(r, 'closed')}): {r['verdict'] or 'no verdict'}.")
 
 
 def pairwise_lines(a: A.Analysis, measure: str, unit: str) -> list[str]:

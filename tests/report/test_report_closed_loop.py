@@ -116,7 +116,7 @@ def test_the_findings_a_command_prints_are_the_candidates_then_each_pair(written
     offline = np.array([1.00 - 0.90, 1.10 - 0.95])
     low, high = stats.t.interval(0.95, 1, loc=offline.mean(), scale=stats.sem(offline))
     pair = (f"SmolVLA · libero_spatial · dinov2-s − siglip: offline {offline.mean():+.3g} [{low:+.3g}, {high:+.3g}] "
-            f"over 2 seeds (better: not resolved), closed loop +0.03 m [+0.03, +0.03] over 6 pairs (better: "
+            f"over 2 seeds (not resolved), closed loop +0.03 m [+0.03, +0.03] over 6 pairs (better: "
             f"siglip): closed loop only.")
     summary = ("SmolVLA · libero_spatial: 0 of 0 pairs resolved by both agree (1 pair of candidate encoders: 0 "
                "offline only, 1 closed loop only, 0 neither).")
