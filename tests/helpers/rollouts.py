@@ -23,9 +23,25 @@ from graftcache.hashing import sha256_json
 from graftcache.rollout import table
 from graftcache.rollout.episodes import Episode, Outcome, Suite
 from graftcache.rollout.graded import Graded
+from graftcache.rollout.run import RolloutRequest
+from helpers.tables import write_results
 
 #: (run_id, task_index, episode) of an episode
 Where = tuple[str, int, int]
+#: what may differ between two runs of the same episodes
+VARYING = ["seconds", "command"]
+
+
+def paced_request(folder: Path, **over: Any) -> RolloutRequest:
+    """The team tests' request: helpers.tables' results (written into `folder` once), their top cell of each
+    (backbone, encoder) on libero_object, tasks 0 and 3, 2 episodes each, seed 7; `over` replaces fields."""
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / "results.parquet"
+    if not path.exists():
+        write_results(path)
+    fields = {"results": path, "rollouts": folder / "rollouts.parquet", "top": 1, "suites": ("libero_object",),
+              "tasks": (0, 3), "episodes_per_task": 2, "seed": 7, "command": "graftcache rollout results.parquet"}
+    return RolloutRequest(**{**fields, **over})
 
 
 class Scripted:

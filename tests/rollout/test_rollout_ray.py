@@ -18,8 +18,7 @@ from typing import Any
 import polars as pl
 import pytest
 from fixtures.simulator_cells import RolledOut
-from helpers.rollouts import Paced, paced_rows, pids, ran
-from helpers.tables import write_results
+from helpers.rollouts import VARYING, Paced, paced_request, paced_rows, pids, ran
 
 from graftcache import results
 from graftcache.errors import RolloutError
@@ -31,14 +30,6 @@ from graftcache.rollout.run import RolloutRequest, roll_out, roll_out_started
 from graftcache.rollout.select import select_rows
 
 EPISODES = 24  # test_rollout_workers.py's request: 6 cells x 2 tasks x 2 episodes
-VARYING = ["seconds", "command"]  # what may differ between two runs of the same episodes
-
-
-def _request(folder: Path) -> RolloutRequest:
-    folder.mkdir(parents=True, exist_ok=True)
-    path = write_results(folder / "results.parquet")
-    return RolloutRequest(results=path, rollouts=folder / "rollouts.parquet", top=1, suites=("libero_object",),
-                          tasks=(0, 3), episodes_per_task=2, seed=7, command="graftcache rollout results.parquet")
 
 
 def _on_ray(req: RolloutRequest, traces: Path, lines: list[str], actors: int | None = None,
@@ -51,8 +42,8 @@ def _on_ray(req: RolloutRequest, traces: Path, lines: list[str], actors: int | N
 @pytest.mark.slow
 def test_ray_actors_skip_what_the_file_holds_and_write_the_rows_of_this_process(ray_cluster: str,
                                                                                 tmp_path: Path) -> None:
-    one = roll_out(_request(tmp_path / "one"), Paced(tmp_path / "one" / "traces"), log=lambda _: None)
-    req = _request(tmp_path / "ray")
+    one = roll_out(paced_request(tmp_path / "one"), Paced(tmp_path / "one" / "traces"), log=lambda _: None)
+    req = paced_request(tmp_path / "ray")
     table.append(req.rollouts, one.head(5).to_dicts())  # a rollout killed after 5 episodes
     lines: list[str] = []
     rows = _on_ray(req, tmp_path / "ray" / "traces", lines, delay=0.05)
@@ -76,7 +67,7 @@ def test_ray_actors_skip_what_the_file_holds_and_write_the_rows_of_this_process(
 
 @pytest.mark.slow
 def test_an_error_in_a_ray_actor_is_one_line_naming_the_run_and_episode(ray_cluster: str, tmp_path: Path) -> None:
-    req = _request(tmp_path)
+    req = paced_request(tmp_path)
     run = select_rows(results.read(req.results), top=1, suites=["libero_object"])["run_id"][0]
     with pytest.raises(RolloutError) as failed:
         _on_ray(req, tmp_path / "traces", [], actors=1, fail=(run, 3, 1))

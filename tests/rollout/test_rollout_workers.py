@@ -26,7 +26,7 @@ from typing import Any
 import polars as pl
 import pytest
 from fixtures.simulator_cells import RolledOut
-from helpers.rollouts import Paced, pids, ran
+from helpers.rollouts import VARYING, Paced, paced_request, pids, ran
 from helpers.tables import write_results
 
 from graftcache import results
@@ -40,16 +40,6 @@ from graftcache.rollout.select import select_rows
 from graftcache.rollout.workers import Workers
 
 EPISODES = 24  # 6 cells x 2 tasks x 2 episodes
-VARYING = ["seconds", "command"]  # what may differ between two runs of the same episodes
-
-
-def _request(tmp_path: Path, **over: Any) -> RolloutRequest:
-    path = tmp_path / "results.parquet"
-    if not path.exists():
-        write_results(path)
-    fields = {"results": path, "rollouts": tmp_path / "rollouts.parquet", "top": 1, "suites": ("libero_object",),
-              "tasks": (0, 3), "episodes_per_task": 2, "seed": 7, "command": "graftcache rollout results.parquet"}
-    return RolloutRequest(**{**fields, **over})
 
 
 def _first_run(req: RolloutRequest) -> str:
@@ -63,10 +53,10 @@ def _in_workers(req: RolloutRequest, traces: Path, workers: int = 2, **paced: An
 
 def test_two_workers_write_the_rows_of_one_each_keeping_to_its_cells(tmp_path: Path) -> None:
     (tmp_path / "one").mkdir()
-    one = roll_out(_request(tmp_path / "one"), Paced(tmp_path / "one" / "traces"), log=lambda _: None)
+    one = roll_out(paced_request(tmp_path / "one"), Paced(tmp_path / "one" / "traces"), log=lambda _: None)
     (tmp_path / "two").mkdir()
     lines: list[str] = []
-    req = _request(tmp_path / "two")
+    req = paced_request(tmp_path / "two")
     team = Workers(partial(Paced, tmp_path / "two" / "traces", delay=0.05), 2, req)
     two = roll_out_started([req], partial(Paced, tmp_path / "two" / "planner"), team, log=lines.append)
     assert one.height == two.height == EPISODES
@@ -97,7 +87,7 @@ def test_one_team_serves_requests_in_turn_starting_once(tmp_path: Path) -> None:
         folder.mkdir()
         over = ({"run_ids": tuple(cells[:3]), "episodes_per_task": 1}, {"run_ids": tuple(cells[3:])},
                 {"run_ids": tuple(cells[:3])})
-        return [_request(folder, results=path, **o) for o in over]
+        return [paced_request(folder, results=path, **o) for o in over]
 
     alone = requests(tmp_path / "one")
     one = pl.concat([roll_out(r, Paced(tmp_path / "one" / "traces"), log=lambda _: None) for r in alone])
@@ -116,13 +106,13 @@ def test_one_team_serves_requests_in_turn_starting_once(tmp_path: Path) -> None:
 
 
 def test_requests_of_one_team_must_share_the_rollouts_file(tmp_path: Path) -> None:
-    first, second = _request(tmp_path), _request(tmp_path, rollouts=tmp_path / "other.parquet")
+    first, second = paced_request(tmp_path), paced_request(tmp_path, rollouts=tmp_path / "other.parquet")
     with pytest.raises(RolloutError, match="requests rolled out by one team must share their rollouts file"):
         roll_out_started([first, second], partial(Paced, tmp_path / "planner"), None, log=lambda _: None)
 
 
 def test_an_error_in_a_worker_is_one_line_naming_the_run_and_episode(tmp_path: Path) -> None:
-    req = _request(tmp_path)
+    req = paced_request(tmp_path)
     run = _first_run(req)
     with pytest.raises(RolloutError) as failed:
         _in_workers(req, tmp_path / "traces", fail=(run, 3, 1))
@@ -142,7 +132,7 @@ def test_an_error_in_a_worker_is_one_line_naming_the_run_and_episode(tmp_path: P
 
 
 def test_a_worker_killed_mid_episode_is_one_line_and_a_rerun_runs_exactly_the_rest(tmp_path: Path) -> None:
-    req = _request(tmp_path)
+    req = paced_request(tmp_path)
     run = _first_run(req)
     with pytest.raises(RolloutError) as failed:
         _in_workers(req, tmp_path / "killed", die=(run, 3, 0))
@@ -181,7 +171,7 @@ def _gone(pid: int) -> bool:
 
 
 def test_kill_9_of_a_two_worker_rollout_leaves_whole_rows_no_worker_and_a_rerun_runs_the_rest(tmp_path: Path) -> None:
-    req = _request(tmp_path)
+    req = paced_request(tmp_path)
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
     rollout = subprocess.Popen([sys.executable, "-c", ROLLOUT, str(tmp_path)], env=env, stdout=subprocess.DEVNULL,
                                stderr=subprocess.PIPE)
@@ -244,7 +234,7 @@ def test_a_team_whose_episodes_another_rollout_wrote_meanwhile_ends(tmp_path: Pa
     """A second rollout sharing the file plans while the first still runs: every episode it found missing is written
     by the time it holds the cells' claims. Its team closes both cells without running one and returns (it waited
     forever for a worker's report once)."""
-    req = _request(tmp_path)
+    req = paced_request(tmp_path)
     first = roll_out(req, Paced(tmp_path / "first"), log=lambda _: None)
     rows = {r["run_id"]: r for r in select_rows(results.read(req.results), top=1, suites=["libero_object"])
             .iter_rows(named=True)}
@@ -293,7 +283,7 @@ def _spinning_console(tmp_path: Path, debris: bool = False) -> tuple[subprocess.
     """`graftcache rollout --workers 2` as the console script runs it, in a session of its own (a terminal's process
     group), once one worker spins in hf-libero's reset loop (and, with `debris`, the other is building a HalfBuilt);
     and the pids of its two workers."""
-    req = _request(tmp_path)
+    req = paced_request(tmp_path)
     cells = select_rows(results.read(req.results), top=1, suites=["libero_object"])["run_id"].to_list()
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
     with open(tmp_path / "stderr.txt", "wb") as err:  # a file: a worker that outlives the console keeps it open
@@ -353,7 +343,7 @@ def test_a_team_asked_for_more_workers_than_cpus_starts_one_per_cpu_and_says_so(
     """--workers 5 on a process that may run on 2 CPUs: 2 simulators start, said in one line, and they write the rows
     (--workers 1000 started up to 1000 before planning)."""
     monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1})
-    req = _request(tmp_path)
+    req = paced_request(tmp_path)
     lines: list[str] = []
     team = LocalExecutor(ExecutorSettings()).rollout_team(req, partial(Paced, tmp_path / "traces"), 5, lines.append)
     rows = roll_out_started([req], partial(Paced, tmp_path / "planner"), team, log=lines.append)

@@ -18,8 +18,7 @@ from typing import Any
 
 import polars as pl
 import pytest
-from helpers.rollouts import Paced, paced_rows, ran
-from helpers.tables import write_results
+from helpers.rollouts import VARYING, Paced, paced_request, paced_rows, ran
 
 from graftcache import results
 from graftcache.results.claims import cell_claim, claims_folder
@@ -29,15 +28,6 @@ from graftcache.rollout.run import RolloutRequest, plan, roll_out, roll_out_star
 from graftcache.rollout.schedule import EpisodeReport, Job, Scheduler, drive
 from graftcache.rollout.select import select_rows
 from graftcache.rollout.workers import Workers
-
-VARYING = ["seconds", "command"]  # what may differ between two runs of the same episodes
-
-
-def _request(folder: Path) -> RolloutRequest:
-    folder.mkdir(parents=True, exist_ok=True)
-    path = write_results(folder / "results.parquet")
-    return RolloutRequest(results=path, rollouts=folder / "rollouts.parquet", top=1, suites=("libero_object",),
-                          tasks=(0, 3), episodes_per_task=2, seed=7, command="graftcache rollout results.parquet")
 
 
 def _cells(req: RolloutRequest) -> pl.DataFrame:
@@ -63,7 +53,7 @@ class _Instant:
 
 
 def test_each_claim_reads_the_rollouts_file_once(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    req = _request(tmp_path)
+    req = paced_request(tmp_path)
     cells = _cells(req)
     episodes = plan(cells, req, Paced(tmp_path / "traces"))
     written = [e for e in episodes if e.run_id == cells["run_id"][1]][:3]  # another rollout wrote 3 of cell 2's 4
@@ -84,8 +74,8 @@ def test_each_claim_reads_the_rollouts_file_once(tmp_path: Path, monkeypatch: py
 
 
 def test_one_process_and_two_workers_write_the_rows_the_simulator_defines(tmp_path: Path) -> None:
-    alone = roll_out(_request(tmp_path / "one"), Paced(tmp_path / "one" / "traces"), log=lambda _: None)
-    req = _request(tmp_path / "two")
+    alone = roll_out(paced_request(tmp_path / "one"), Paced(tmp_path / "one" / "traces"), log=lambda _: None)
+    req = paced_request(tmp_path / "two")
     team = Workers(partial(Paced, tmp_path / "two" / "traces"), 2, req)
     two = roll_out_started([req], partial(Paced, tmp_path / "two" / "planner"), team, log=lambda _: None)
     expected = paced_rows(_cells(req)["run_id"].to_list(), (0, 3), 2, 7)
@@ -96,7 +86,7 @@ def test_one_process_and_two_workers_write_the_rows_the_simulator_defines(tmp_pa
 
 
 def test_a_cell_another_rollout_holds_is_said_once_and_run_once_given_back(tmp_path: Path) -> None:
-    req = _request(tmp_path)
+    req = paced_request(tmp_path)
     first = _cells(req)["run_id"][0]
     other = cell_claim(req.rollouts, first)
     assert other.try_acquire()

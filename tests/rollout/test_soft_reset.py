@@ -13,10 +13,9 @@ from typing import Any
 import numpy as np
 import pytest
 from fixtures.simulator_cells import RolledOut
+from helpers.rollouts import VARYING
 
 from graftcache.rollout import table
-
-VARYING = ["seconds", "command"]  # what may differ between two runs of the same episodes
 
 
 def _frames(path: Path) -> Any:
