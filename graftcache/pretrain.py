@@ -155,6 +155,7 @@ def train_tiny(backbone: str, dataset: str, *, cfg: TinyTrainConfig = DEFAULT_TI
                log: Callable[[str], None] = print) -> Path:
     """Train (or reuse) the tiny `backbone` on `dataset` (all parameters); returns the checkpoint folder."""
     set_main_threads()
+    get_backbone(backbone)  # another lerobot release than the adapters' is refused before any decoding
     dev = resolve_device(device)
     cfg = replace(cfg, compute_dtype=resolve_compute_dtype(cfg.compute_dtype, dev))
     compute = resolve_dtype(cfg.compute_dtype)

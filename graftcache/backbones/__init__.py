@@ -2,7 +2,9 @@
 
 Each backbone is a folder of this package (graftcache.backbone_table.BACKBONES lists them); its adapter class is the
 one class its `adapter.py` defines with that `name`. Adapters are imported on first use: importing lerobot costs
-~5 s, which commands such as `graftcache ls` should not pay.
+seconds, which commands such as `graftcache ls` should not pay. Adapters call private methods of lerobot's policies
+and processors, read in one lerobot release (graftcache.upstream.WRITTEN_AGAINST): another installed release is
+refused before an adapter is imported, in one line, rather than by an adapter failing in a traceback mid-fit.
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ from typing import TYPE_CHECKING
 
 from graftcache.backbone_table import BACKBONES, backbone_module
 from graftcache.errors import BackboneError
+from graftcache.upstream import refuse_others
 
 if TYPE_CHECKING:
     from graftcache.backbones.base import BackboneAdapter
@@ -22,9 +25,10 @@ if TYPE_CHECKING:
 
 def get_backbone(name: str) -> type[BackboneAdapter]:
     """The adapter class registered under `name`: the class `graftcache.backbones.<name>.adapter` defines whose
-    `name` is `name` (exactly one)."""
+    `name` is `name` (exactly one), once the installed lerobot is the release the adapters were read in."""
     if name not in BACKBONES:
         raise BackboneError(f"unknown backbone {name!r}; choose one of {', '.join(BACKBONES)}")
+    refuse_others(("lerobot",), f"graftcache/backbones/{name}/", BackboneError)
     module = import_module(BACKBONES[name])
     found = [v for v in vars(module).values()
              if isinstance(v, type) and v.__module__ == module.__name__ and v.__dict__.get("name") == name]

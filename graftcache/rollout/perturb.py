@@ -24,6 +24,7 @@ import numpy as np
 from graftcache.errors import RolloutError
 from graftcache.rollout import seam
 from graftcache.rollout.graded import target_of
+from graftcache.upstream import WRITTEN_AGAINST
 
 SETTLE_STEPS = 10           # no-op steps after the target is moved (the sample's and lerobot's settling)
 SETTLE_TOL_M = 0.005        # the target must settle within 5 mm of where it was put ...
@@ -138,5 +139,5 @@ class PerturbedReset(gym.Wrapper):
         if kept is not None and renders.done != seam.cameras(self):
             raise RolloutError(f"a soft reset rendered {renders.done} camera image(s) where its observation holds "
                                f"{seam.cameras(self)} (lerobot's reset no longer settles as lerobot "
-                               f"{seam.WRITTEN_AGAINST['lerobot']}'s did); roll out with --reset hard")
+                               f"{WRITTEN_AGAINST['lerobot']}'s did); roll out with --reset hard")
         return obs, info

@@ -2,9 +2,9 @@
 attribute read, an attribute of theirs written, a function of theirs patched. The rest of graftcache calls the
 functions here (tests/rollout/test_seam.py fails on a reach anywhere else; lerobot's VLAs, which the backbone
 adapters under graftcache/backbones/ reach into, are a house of their own). Their insides move between releases
-without notice, so the versions this module was read in (WRITTEN_AGAINST) are checked as it is imported: another
-installed version is refused in one line naming both and the pin, before any episode, rather than failing deep in
-one with a traceback.
+without notice, so the versions this module was read in (graftcache.upstream.WRITTEN_AGAINST, one table for both
+houses) are checked as it is imported: another installed version is refused in one line naming both and the pin,
+before any episode, rather than failing deep in one with a traceback.
 
 What is reached, and why:
 - lerobot's LiberoEnv: its hf-libero env (`_env`, built by `_ensure_env`), its init states (`_init_states`) and the
@@ -32,36 +32,22 @@ from __future__ import annotations
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
-from importlib import metadata
 from typing import Any
 
 import numpy as np
 
 from graftcache.errors import RolloutError
 from graftcache.rollout.graded import State
+from graftcache.upstream import WRITTEN_AGAINST, refuse_others
 
-#: the versions whose insides this module was read in
-WRITTEN_AGAINST = {"lerobot": "0.6.1", "hf-libero": "0.1.4", "robosuite": "1.4.0"}
-
-
-def installed(distribution: str) -> str | None:
-    """The installed version of `distribution`, None when it is not installed."""
-    try:
-        return metadata.version(distribution)
-    except metadata.PackageNotFoundError:
-        return None
+#: the simulator's libraries, whose releases this module was read in (graftcache.upstream.WRITTEN_AGAINST)
+LIBRARIES = ("lerobot", "hf-libero", "robosuite")
 
 
 def check_versions() -> None:
     """Refuse, in one line naming both versions and the pin, an installed lerobot, hf-libero or robosuite other than
-    WRITTEN_AGAINST's. One not installed passes: graftcache.rollout.libero.require_simulator names its set-up."""
-    other = {name: found for name, want in WRITTEN_AGAINST.items() if (found := installed(name)) not in (None, want)}
-    if other:
-        written = ", ".join(f"{name} {WRITTEN_AGAINST[name]}" for name in other)
-        found = ", ".join(f"{name} {version}" for name, version in other.items())
-        pins = " ".join(f"{name}=={WRITTEN_AGAINST[name]}" for name in other)
-        raise RolloutError(f"graftcache/rollout/seam.py was written against {written}, not the installed {found}: "
-                           f"pin {pins}")
+    the one this module was read in (graftcache.upstream.refuse_others)."""
+    refuse_others(LIBRARIES, "graftcache/rollout/seam.py", RolloutError)
 
 
 check_versions()

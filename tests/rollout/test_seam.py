@@ -28,6 +28,7 @@ import graftcache
 import graftcache.rollout
 from graftcache.errors import RolloutError
 from graftcache.rollout import seam
+from graftcache.upstream import WRITTEN_AGAINST, installed
 
 PACKAGE = Path(graftcache.__file__).parent
 SEAM = PACKAGE / "rollout" / "seam.py"
@@ -163,8 +164,8 @@ def _installed(monkeypatch: pytest.MonkeyPatch, **versions: str) -> None:
 
 def test_another_installed_version_is_refused_at_import_naming_both_and_the_pin(
         monkeypatch: pytest.MonkeyPatch) -> None:
-    assert seam.WRITTEN_AGAINST == {name: metadata.version(name) for name in seam.WRITTEN_AGAINST}  # this venv's
-    assert _imported_afresh().WRITTEN_AGAINST == seam.WRITTEN_AGAINST  # imports as it is
+    assert {name: metadata.version(name) for name in seam.LIBRARIES} == WRITTEN_AGAINST  # this venv's
+    assert _imported_afresh().LIBRARIES == seam.LIBRARIES  # imports as it is
     _installed(monkeypatch, lerobot="0.7.0")
     with pytest.raises(RolloutError) as refused:
         _imported_afresh()
@@ -187,7 +188,7 @@ def test_a_library_not_installed_is_left_to_the_simulators_set_up(monkeypatch: p
         return real(name)
 
     monkeypatch.setattr(metadata, "version", version)
-    assert seam.installed("hf-libero") is None
+    assert installed("hf-libero") is None
     seam.check_versions()
 
 
