@@ -492,3 +492,57 @@ def test_a_date_or_issue_number_in_a_comment_or_docstring_is_found() -> None:
     source = '"""Measured on 2026-11-28."""\nx = "issue 41"  # since issue 41\ny = "2026-11-28"\n'
     assert [(line, STALE.search(text).group(0)) for line, text in prose_of(source) if STALE.search(text)] == [
         (1, "2026-11-28"), (2, "issue 41")]
+
+
+# ---------------------------------------------------------------------------------------- the commands the docs show
+def shown_commands(text: str) -> list[tuple[int, str]]:
+    """(line, command) of each `graftcache ...` line inside the fenced code blocks of a doc, its `\\` continuations
+    joined and its trailing `# comment` dropped."""
+    out, fenced, pending = [], False, None
+    for number, line in enumerate(text.splitlines(), 1):
+        if line.lstrip().startswith("```"):
+            fenced = not fenced
+            continue
+        if not fenced:
+            continue
+        if pending is not None:
+            pending = (pending[0], pending[1] + " " + line.strip())
+        elif line.strip().startswith("graftcache "):
+            pending = (number, line.strip())
+        if pending is not None and not pending[1].endswith("\\"):
+            out.append((pending[0], re.sub(r"\s+#.*$", "", pending[1])))
+            pending = None
+        elif pending is not None:
+            pending = (pending[0], pending[1][:-1].rstrip())
+    return out
+
+
+def test_every_command_the_docs_show_parses_and_names_real_controls() -> None:
+    """Each `graftcache ...` line of a doc's code blocks is a command line the CLI takes (its words after `graftcache`
+    parsed by graftcache.cli.build_parser, placeholders such as KEY taken as values), and each control it names is
+    a registered control: a renamed flag, subcommand or control breaks the doc here, not in a reader's shell."""
+    import shlex
+
+    from graftcache.cli import build_parser
+    from graftcache.fit.controls import get_control
+
+    parser, shown, broken = build_parser(), 0, []
+    for doc in ("README.md", *PAGES):
+        for line, command in shown_commands((ROOT / doc).read_text(encoding="utf-8")):
+            shown += 1
+            words = shlex.split(command)[1:]
+            try:
+                args = parser.parse_args(words)
+                for control in getattr(args, "controls", None) or ():
+                    get_control(control)
+            except SystemExit:
+                broken.append(f"{doc}:{line}: {command}")
+            except Exception as e:  # the refusal is the finding
+                broken.append(f"{doc}:{line}: {command}: {e}")
+    assert shown > 20
+    assert broken == []
+
+
+def test_shown_commands_joins_continuations_and_drops_comments() -> None:
+    text = "graftcache ls\n```bash\ngraftcache fit --a 1 \\\n    --b 2   # two flags\ncd x\ngraftcache ls # list\n```\n"
+    assert shown_commands(text) == [(3, "graftcache fit --a 1 --b 2"), (6, "graftcache ls")]
