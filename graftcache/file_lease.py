@@ -11,7 +11,7 @@ two processes never both compute a cell. Both may live on a shared file system, 
 
 The file holds {owner, host, pid, since}. Its holder dies without removing it, so a lease goes stale: at once
 when its host is this one and its pid is gone, else when its heartbeat (the holder touches the file's mtime
-every LEASE_S / 3 seconds from a thread) has not moved for LEASE_S seconds of the *waiter's* clock (the mtime
+every LEASE_S / 3 from a thread) has not moved for LEASE_S seconds of the *waiter's* clock (the mtime
 is only compared with itself, never with a clock of another machine). A stale file is renamed away and
 checked to be the one judged stale before it is deleted; a live lease taken by mistake (two waiters breaking
 at once) is linked back. A holder checks `holds()` before it publishes, so one presumed dead (a frozen
@@ -32,7 +32,8 @@ from pathlib import Path
 
 from graftcache.store.lease import lease_seconds
 
-POLL_S = 0.005  # first wait between tries; doubles up to MAX_POLL_S (a results append holds it ~20 ms)
+#: first wait between tries; doubles up to MAX_POLL_S (a results append holds the lease briefly: docs/measured.md)
+POLL_S = 0.005
 MAX_POLL_S = 0.1
 
 

@@ -28,8 +28,8 @@ _SIGNED = {2: torch.int16, 4: torch.int32, 8: torch.int64}
 def nonfinite_rows(values: np.ndarray | torch.Tensor) -> np.ndarray:
     """Bool [N]: rows of `values` ([N, ...], any float dtype incl. bf16 tensors) holding a NaN or an inf.
 
-    Read from the bits (magnitude >= the all-ones exponent), not with `torch.isfinite`: on CPU that runs ~30x
-    slower on fp16 tensors, and stage 2 checks every block of features it streams."""
+    Read from the bits (magnitude >= the all-ones exponent), not with `torch.isfinite`: on CPU that runs many
+    times slower on fp16 tensors (docs/measured.md), and stage 2 checks every block of features it streams."""
     t = values if isinstance(values, torch.Tensor) else torch.from_numpy(np.ascontiguousarray(values))
     if not t.is_floating_point() or t.numel() == 0:
         return np.zeros(t.shape[0], dtype=bool)

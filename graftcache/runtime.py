@@ -1,13 +1,13 @@
 """Process-level runtime settings: torch threads, devices and compute dtypes.
 
 Why this exists: with torch on a 2-core machine, two intra-op threads in a data worker made a
-256x256 to_tensor 70x slower than one thread. Data workers therefore always run single-threaded,
-while the main process keeps the cores for the model.
+256x256 to_tensor many times slower than one thread (docs/measured.md). Data workers therefore always run
+single-threaded, while the main process keeps the cores for the model.
 
-Why `auto` is the default compute dtype: bf16 autocast is ~2x faster than fp32 where the hardware
-computes bf16 in hardware (CUDA GPUs with bf16, x86 CPUs with AVX512-BF16 or AMX), and 3-4x *slower*
-where torch emulates it (measured: MobileNetV2 on an AMD EPYC without AVX512-BF16, 4.7 vs 17.4
-img/s). A default tuned to one CPU is wrong on the next machine, so `auto` asks the hardware, and
+Why `auto` is the default compute dtype: bf16 autocast is faster than fp32 where the hardware computes bf16
+(CUDA GPUs with bf16, x86 CPUs with AVX512-BF16 or AMX), and several times *slower* where torch emulates it
+(docs/measured.md: MobileNetV2 on an AMD EPYC without AVX512-BF16). A default tuned to one CPU is wrong on the
+next machine, so `auto` asks the hardware, and
 only the resolved dtype (never "auto") is written into manifests, cache keys and results rows.
 """
 

@@ -477,21 +477,34 @@ def test_the_docs_state_the_current_formats_by_their_constants() -> None:
 
 
 # ------------------------------------------------------------------------------- prose that goes stale unseen
-#: A date or an issue number in a docstring or comment goes stale without anything failing: it belongs in
-#: benchmarks/results, docs/ or the commit message
-STALE = re.compile(r"\b20\d\d-\d\d-\d\d\b|\b[Ii]ssue #?\d+\b")
+#: A date, an issue number or a measured figure (a timing, a rate, a speed ratio) in a docstring or comment goes stale
+#: without anything failing: it belongs in benchmarks/results, docs/measured.md or the commit message
+STALE = re.compile(r"\b20\d\d-\d\d-\d\d\b|\b[Ii]ssue #?\d+\b"
+                   r"|\b\d[\d.,]*\s?(?:ms|s|sec|seconds|minutes|min|hours)\b(?!-)"
+                   r"|\b\d[\d.,]*\s?(?:img|images|frames|episodes?|it|samples|steps|[KMG]i?B)/s\b"
+                   r"|\b\d[\d.]*x (?:faster|slower)\b")
 
 
-def test_no_date_or_issue_number_in_code_prose() -> None:
-    found = [f"{path.relative_to(ROOT)}:{line}: {m.group(0)!r}" for path in sorted((ROOT / "graftcache").rglob("*.py"))
-             for line, text in prose_of(path.read_text(encoding="utf-8")) if (m := STALE.search(text))]
+def toml_comments(text: str) -> list[tuple[int, str]]:
+    """(line, comment) of a recipe: what follows each `#` (no recipe value holds one)."""
+    return [(i, line.split("#", 1)[1]) for i, line in enumerate(text.splitlines(), 1) if "#" in line]
+
+
+def test_no_date_issue_number_or_measured_figure_in_code_prose_or_recipe_comments() -> None:
+    prose = [(path, prose_of(path.read_text(encoding="utf-8"))) for path in sorted((ROOT / "graftcache").rglob("*.py"))]
+    prose += [(path, toml_comments(path.read_text(encoding="utf-8"))) for path in sorted((ROOT / "cli").glob("*.toml"))]
+    found = [f"{path.relative_to(ROOT)}:{line}: {m.group(0)!r}" for path, lines in prose for line, text in lines
+             if (m := STALE.search(text))]
     assert found == []
 
 
-def test_a_date_or_issue_number_in_a_comment_or_docstring_is_found() -> None:
-    source = '"""Measured on 2026-11-28."""\nx = "issue 41"  # since issue 41\ny = "2026-11-28"\n'
+def test_a_date_issue_number_or_measured_figure_in_a_comment_or_docstring_is_found() -> None:
+    source = ('"""Measured on 2026-11-28."""\nx = "issue 41"  # since issue 41\ny = "2026-11-28"\n'
+              '# ~1.2 s a cell\n# 250 frames/s\n# 30x slower\n# 3 seconds\n# a 10-minute budget, 8 steps, 4 MiB\n')
     assert [(line, STALE.search(text).group(0)) for line, text in prose_of(source) if STALE.search(text)] == [
-        (1, "2026-11-28"), (2, "issue 41")]
+        (1, "2026-11-28"), (2, "issue 41"), (4, "1.2 s"), (5, "250 frames/s"), (6, "30x slower"), (7, "3 seconds")]
+    assert toml_comments('steps = 20  # 12 ms a sample\n# a line\nlr = 1e-3\n') == [(1, " 12 ms a sample"),
+                                                                                    (2, " a line")]
 
 
 # ---------------------------------------------------------------------------------------- the commands the docs show

@@ -3,7 +3,7 @@ by tensor, straight onto the target device in each parameter's own dtype.
 
 Why not lerobot's `from_pretrained`: it constructs and randomly initialises every parameter in fp32 (pi0.5:
 4.1B parameters, 16.6 GB), casts the LM to bf16, reads the whole checkpoint into a second state dict and copies
-it over: 18.7 GB of host memory and ~3 minutes for a 9.4 GB checkpoint. Here:
+it over: more host memory than the policy twice over, and minutes of copying (docs/measured.md). Here:
 
 - `construct` runs the policy's own constructor with every parameter created on the meta device
   (`parameters_on_meta`), so names, shapes, dtypes (pi0.5's bf16 LM beside its fp32 vision path and norms),
@@ -56,9 +56,9 @@ def parameters_on_meta() -> Iterator[None]:
 
 def construct(build: Callable[[], nn.Module], config) -> nn.Module:
     """`build()` (a policy constructor reading `config`) with its parameters on the meta device and no
-    initialisation run (transformers' `no_init_weights`: on meta tensors it computes nothing, slowly: 5 s of
-    pi0.5's construction). lerobot's policies move themselves to `config.device`, which a meta parameter
-    cannot leave: it is None meanwhile."""
+    initialisation run (transformers' `no_init_weights`: on meta tensors it computes nothing, slowly:
+    docs/measured.md). lerobot's policies move themselves to `config.device`, which a meta parameter cannot leave:
+    it is None meanwhile."""
     from transformers.initialization import no_init_weights
 
     with patched(config, device=None), parameters_on_meta(), no_init_weights():

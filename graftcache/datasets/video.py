@@ -1,7 +1,7 @@
 """Decode one episode of one camera from an mp4 with PyAV, frame-exactly.
 
 Why not lerobot's decoder: `LeRobotDataset.__getitem__` reopens the file and seeks once per item
-(~250 frames/s here); an episode is a contiguous span of the file, so one seek to the keyframe before
+(docs/measured.md); an episode is a contiguous span of the file, so one seek to the keyframe before
 it and one sequential decode gives every frame at the decoder's full speed (AV1 via libdav1d).
 
 Frames are matched to the episode by presentation time: frame k is the one at

@@ -138,7 +138,7 @@ class BlockMemo:
 
     The cells of one (backbone, encoder, suite) read the same blocks again and again: every control and seed,
     for training and for scoring. On a small cache that is a large share of a cell (the demo's 8x8x1280 unpooled
-    grids: ~0.45 s of a ~2.9 s cell on 2 cores of an AMD EPYC). Only reading in this process can keep them:
+    grids: docs/measured.md). Only reading in this process can keep them:
     workers are new processes for each stream, so a memo never travels to one (BlockStream drops it when
     pickled).
     """

@@ -5,8 +5,8 @@ on NFS where flock may not) around read -> merge -> write a temporary file -> fs
 and it renames only while it still holds the lease. A rename is atomic, and readers read the file through one open
 descriptor, so a reader sees the old table or the new one, never a torn file. Why not one part per writer that
 readers merge: every reader of a `.parquet` path (the report, notebooks, users' own polars code) would need to
-change, to save a cost paid once per cell (22 ms a row at 10k rows on 2 AMD EPYC cores, most of it the fsync:
-benchmarks/bench_results.py), which the cell's minutes of training dwarf.
+change, to save a cost paid once per cell (mostly the fsync: benchmarks/bench_results.py, docs/measured.md), which
+the cell's minutes of training dwarf.
 
 A results path that is a symbolic link is followed (graftcache.results.reading.target): the file it points to is
 replaced, with its lease and claims beside it, and the link stays (replacing the path itself would turn the link into

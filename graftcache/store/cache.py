@@ -91,10 +91,9 @@ class BlockChecks:
 
 
 def _compressor(itemsize: int) -> BloscCodec:
-    """Blosc zstd level 1 with byte shuffle. Measured on cached MobileNetV2 fp16 features (2-core Xeon):
-    level 1 encodes at ~225 MB/s with ratio 1.51, level 3 at ~85 MB/s with ratio 1.48, lz4 at ~750 MB/s
-    with ratio 1.05. Compression runs beside the encoder on the same cores, so level 3 cost extraction
-    ~8% of its throughput for no smaller files."""
+    """Blosc zstd level 1 with byte shuffle: on fp16 features it compresses as well as level 3 at a fraction of
+    its cost, and far better than lz4 (docs/measured.md). Compression runs beside the encoder on the same cores,
+    so a slower level costs extraction throughput for no smaller files."""
     return BloscCodec(cname="zstd", clevel=1, shuffle="shuffle", typesize=itemsize)
 
 
@@ -383,8 +382,8 @@ class FeatureCache:
         """`arr[rows]` read one block at a time, each block checked against its checksum the first time this
         handle's reader reads it (whole, which is what the checksum covers); later reads take the rows' span only.
 
-        zarr's orthogonal selection over block files costs ~50 ms per block file in zarr chunk bookkeeping (4.6 s
-        for 1k rows here); slicing inside each block file and indexing in numpy reads the same bytes and holds at
+        zarr's orthogonal selection over block files costs time per block file in zarr chunk bookkeeping
+        (docs/measured.md); slicing inside each block file and indexing in numpy reads the same bytes and holds at
         most one block beyond the result in memory.
         """
         arr = self.group[name]

@@ -5,7 +5,7 @@ Every obstore call of graftcache runs inside `mapped(where)`: ObjectRoot's whole
 (graftcache.store.roots) and Zarr's reads and writes of a cache (`NamedObjectStore`). A missing object stays a
 missing object (None, "no feature cache here"); a missing bucket, refused credentials or an endpoint that does not
 answer become StoreError. How long an unanswered request is retried is $GRAFTCACHE_STORE_RETRY_S
-(graftcache.store.roots.retry_config): obstore's default is 10 retries within 3 minutes.
+(graftcache.store.roots.retry_config): obstore's own default budget otherwise.
 """
 
 from __future__ import annotations
