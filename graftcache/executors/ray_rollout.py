@@ -35,10 +35,11 @@ from graftcache.errors import RolloutError
 from graftcache.executors import Log
 from graftcache.executors.ray_cluster import connect, result, slots, task_options
 from graftcache.requests import ExecutorSettings
-from graftcache.rollout.episodes import Episode, Simulator
+from graftcache.rollout.episodes import Episode, EpisodeReport, Simulator, where
 from graftcache.rollout.record import append, with_video
 from graftcache.rollout.request import RolloutRequest
-from graftcache.rollout.schedule import EpisodeReport, Job, one_line, pause, where
+from graftcache.rollout.schedule import Job, one_line
+from graftcache.rollout.teams import pause
 
 
 class SimulatorHost:

@@ -1,7 +1,7 @@
-"""The episodes a rollout request asks (`episodes_of`) and what an episode returns, as plain data, and the interface
-between the rollout's bookkeeping (graftcache.rollout.roll_out) and whatever runs the episodes
-(graftcache.rollout.libero.LiberoSimulator, or a test's fake): a `Simulator` says what a suite is and runs a cell's
-episodes."""
+"""The episodes a rollout request asks (`episodes_of`), what an episode returns (Outcome) and what a written one
+reports (EpisodeReport), as plain data, and the interface between the rollout's bookkeeping
+(graftcache.rollout.roll_out) and whatever runs the episodes (graftcache.rollout.libero.LiberoSimulator, or a test's
+fake): a `Simulator` says what a suite is and runs a cell's episodes."""
 
 from __future__ import annotations
 
@@ -59,6 +59,23 @@ class Outcome:
 
 
 @dataclass(frozen=True)
+class EpisodeReport:
+    """What a finished (and written) episode tells the one loop (graftcache.rollout.schedule.drive), wherever it
+    ran: what its cell's summary line tallies. `video`: its path relative to the rollouts file; None: none
+    recorded."""
+
+    success: bool
+    steps: int
+    seconds: float
+    video: str | None
+
+    @classmethod
+    def of(cls, row: Mapping[str, Any]) -> EpisodeReport:
+        """The report of the episode whose rollouts row is `row` (graftcache.rollout.record.row_of)."""
+        return cls(row["success"], row["steps"], row["seconds"], row["video"])
+
+
+@dataclass(frozen=True)
 class Suite:
     """What the simulator says of a suite: how many tasks it has and lerobot's episode length for it."""
 
@@ -91,3 +108,9 @@ def episodes_of(rows: pl.DataFrame, req: RolloutRequest, simulator: Simulator) -
         episodes += [Episode(row["run_id"], row["suite"], t, k, req.seed + k, suite.max_steps, req.perturb_cm / 100,
                              req.reset) for t in tasks for k in range(req.episodes_per_task)]
     return episodes
+
+
+def where(episode: Episode) -> str:
+    """The episode in the words of a one-line error or log line."""
+    return (f"run {episode.run_id}, {episode.suite} task {episode.task_index} episode {episode.episode} "
+            f"(seed {episode.seed})")

@@ -23,9 +23,9 @@ import graftcache
 from graftcache.errors import RolloutError
 from graftcache.results.writing import append_table, fsync
 from graftcache.rollout import rollouts_file
-from graftcache.rollout.episodes import Episode, Outcome, Simulator
+from graftcache.rollout.episodes import Episode, EpisodeReport, Outcome, Simulator, where
 from graftcache.rollout.graded import Graded
-from graftcache.rollout.schedule import VIDEOS_FOLDER, EpisodeReport, where
+from graftcache.rollout.schedule import VIDEOS_FOLDER
 
 GRADED_FIELDS = tuple(f.name for f in fields(Graded))  # the row's columns of an Outcome's `graded`
 

@@ -15,7 +15,6 @@ episode twice.
 
 from __future__ import annotations
 
-import time
 from collections import deque
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -26,7 +25,7 @@ from graftcache.errors import GraftcacheError
 from graftcache.file_lease import FileLease
 from graftcache.results.claims import cell_claim
 from graftcache.rollout import rollouts_file
-from graftcache.rollout.episodes import Episode
+from graftcache.rollout.episodes import Episode, EpisodeReport
 
 #: how often cells that other rollouts hold are tried again while nothing else is left to hand out
 CLAIM_POLL_S = 1.0
@@ -34,22 +33,6 @@ VIDEOS_FOLDER = "videos"  # beside the rollouts file: videos/RUN_ID/<episode>.mp
 
 #: what a worker is sent: the cell's results row and the episode to run
 Job = tuple[dict[str, Any], Episode]
-
-
-@dataclass(frozen=True)
-class EpisodeReport:
-    """What a finished (and written) episode tells the loop, wherever it ran: what its cell's summary line tallies.
-    `video`: its path relative to the rollouts file; None: none recorded."""
-
-    success: bool
-    steps: int
-    seconds: float
-    video: str | None
-
-    @classmethod
-    def of(cls, row: Mapping[str, Any]) -> EpisodeReport:
-        """The report of the episode whose rollouts row is `row` (graftcache.rollout.record.row_of)."""
-        return cls(row["success"], row["steps"], row["seconds"], row["video"])
 
 
 class Worker(Protocol):
@@ -74,11 +57,6 @@ class Transport(Protocol):
 
     def stop(self) -> None:
         """The loop was stopped or failed: end what the workers run, before their cells' claims are given back."""
-
-
-def where(episode: Episode) -> str:
-    return (f"run {episode.run_id}, {episode.suite} task {episode.task_index} episode {episode.episode} "
-            f"(seed {episode.seed})")
 
 
 def one_line(e: BaseException) -> str:
@@ -230,7 +208,3 @@ def drive(scheduler: Scheduler, transport: Transport) -> None:
     finally:
         scheduler.release()
 
-
-def pause(timeout: float | None) -> None:
-    """A transport's wait when nothing of its own can end it: `timeout` (a poll for another rollout's claims)."""
-    time.sleep(CLAIM_POLL_S if timeout is None else timeout)

@@ -4,14 +4,15 @@ processes (graftcache.rollout.workers.Workers) and Ray actors (graftcache.execut
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Protocol
 
-from graftcache.rollout.episodes import Episode, Simulator
+from graftcache.rollout.episodes import Episode, EpisodeReport, Simulator
 from graftcache.rollout.record import run_one
 from graftcache.rollout.request import RolloutRequest
-from graftcache.rollout.schedule import EpisodeReport, Job, Transport, Worker, pause
+from graftcache.rollout.schedule import CLAIM_POLL_S, Job, Transport, Worker
 
 
 class Team(Transport, Protocol):
@@ -67,3 +68,8 @@ class InProcess:
 
     def close(self) -> None:
         """Nothing to stop: the simulator is its caller's."""
+
+
+def pause(timeout: float | None) -> None:
+    """A team's wait when nothing of its own can end it: `timeout` (a poll for another rollout's claims)."""
+    time.sleep(CLAIM_POLL_S if timeout is None else timeout)

@@ -23,7 +23,7 @@ here first would instead load each base policy in this process, one after the ot
 
 Rows: a worker writes each episode's video and row as the episode finishes (graftcache.rollout.record.record; appends to
 the rollouts file are made under its lease, safe across processes) and sends back its report
-(graftcache.rollout.schedule.EpisodeReport). Claims: this process holds them, as for every team
+(graftcache.rollout.episodes.EpisodeReport). Claims: this process holds them, as for every team
 (graftcache.rollout.schedule.Scheduler): two rollouts sharing a file, of any --workers, never run one episode twice.
 
 Failures: a worker's error is sent here and raised as one RolloutError line naming the run and episode; a worker that
@@ -58,10 +58,10 @@ from typing import Any
 
 from graftcache.errors import RolloutError
 from graftcache.processes import WORKER_GRACE_S, Terminated, stop
-from graftcache.rollout.episodes import Episode, Simulator
+from graftcache.rollout.episodes import Episode, EpisodeReport, Simulator, where
 from graftcache.rollout.record import run_one
 from graftcache.rollout.request import RolloutRequest
-from graftcache.rollout.schedule import EpisodeReport, Job, one_line, where
+from graftcache.rollout.schedule import Job, one_line
 
 #: how long workers told to finish get to close their simulators before they are stopped
 CLOSE_S = 30.0

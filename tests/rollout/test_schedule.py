@@ -1,6 +1,7 @@
 """The one loop every rollout's episodes go through (graftcache.rollout.schedule.drive): each claim reads the rollouts
-file once, this process's team of one and a team of worker processes write the same rows (those the fake simulator's
-definition gives, by hand: tests/helpers/rollouts.py paced_rows; Ray's: test_rollout_ray.py), and a cell another
+file once (here the loop alone; the whole command's reads: test_chain.py), this process's team of one and a team of
+worker processes write the same rows (those the fake simulator's definition gives, by hand: tests/helpers/rollouts.py
+paced_rows; Ray's: test_rollout_ray.py), and a cell another
 rollout holds is said once and polled until it is given back.
 
 The request is test_rollout_workers.py's: top 1 on libero_object of tests/helpers/tables.py, 6 cells x tasks 0, 3 x
@@ -23,10 +24,10 @@ from helpers.rollouts import VARYING, Paced, paced_request, paced_rows, ran, rol
 from graftcache import results
 from graftcache.results.claims import cell_claim, claims_folder
 from graftcache.rollout import record, rollouts_file
-from graftcache.rollout.episodes import Episode, episodes_of
+from graftcache.rollout.episodes import Episode, EpisodeReport, episodes_of
 from graftcache.rollout.request import RolloutRequest
 from graftcache.rollout.roll_out import roll_out_started
-from graftcache.rollout.schedule import EpisodeReport, Job, Scheduler, drive
+from graftcache.rollout.schedule import Job, Scheduler, drive
 from graftcache.rollout.select import select, select_rows
 from graftcache.rollout.workers import Workers
 
