@@ -7,8 +7,8 @@ last loaded cell it keeps) and runs the episodes this process hands it, one at a
 Startup: the team is started before this process asks for the request's episodes
 (graftcache.rollout.roll_out.roll_out_started), so that the workers' imports and simulator builds overlap this
 process's own (a simulator that says what its suites are: lerobot's LIBERO imports); workers left without an episode
-are stopped once the episodes are known. One team serves the requests
-of one command in turn (the closed-loop demo's two), so they start once.
+are stopped once the episodes are known. One team serves the requests of one command in turn (the closed-loop demo's
+two), so they start once.
 
 Granularity: the episode, not the cell, so that a few cells of many episodes still keep every worker busy. This process
 schedules, as for every team (graftcache.rollout.schedule.drive, this team its transport): a worker that finishes gets

@@ -21,7 +21,7 @@ from typing import Any
 
 import polars as pl
 import pytest
-from helpers.probes import run_cli
+from helpers.probes import Outcome, run_cli
 from helpers.rollouts import Scripted
 from helpers.tables import write_results
 
@@ -69,25 +69,33 @@ def _rule(frame: FrameType) -> bool:
             and caller is not None and caller.f_globals.get("__name__") == "graftcache.settings")
 
 
-def test_a_rollout_is_one_chain_of_modules_reading_each_file_as_often_as_it_must(
-        tmp_path: Path, capsys: pytest.CaptureFixture, monkeypatch: pytest.MonkeyPatch) -> None:
-    results_path = write_results(tmp_path / "results.parquet")
-    rollouts = tmp_path / "rollouts.parquet"
-    monkeypatch.setattr(libero, "LiberoSimulator", lambda *args, **kwargs: Scripted())
-    # every import done and every lazy one taken before the trace: a module's body is no call of the chain
-    warm = run_cli(["rollout", results_path, *FLAGS, "--rollouts", tmp_path / "warm" / "rollouts.parquet"], capsys)
+def _traced(folder: Path, flags: list[str], capsys: pytest.CaptureFixture) -> tuple[Outcome, Trace]:
+    """`graftcache rollout RESULTS FLAGS` run under a Trace, into an empty rollouts file beside the results (an absent
+    one is read as no rows without opening it, so every read of it is counted), after a run of the same flags into
+    another file: every import done and every lazy one taken, so that no module's body counts as a call."""
+    results_path = folder / "results.parquet"
+    warm = run_cli(["rollout", results_path, *flags, "--rollouts", folder / "warm" / "rollouts.parquet"], capsys)
     assert warm.code == 0, warm.err
-    # an empty rollouts file (an absent one is read as no rows without opening it): every read of it is counted
-    pl.read_parquet(tmp_path / "warm" / "rollouts.parquet").clear().write_parquet(rollouts)
+    pl.read_parquet(folder / "warm" / "rollouts.parquet").clear().write_parquet(folder / "rollouts.parquet")
     trace = Trace()
     sys.setprofile(trace)
     try:
-        done = run_cli(["rollout", results_path, *FLAGS], capsys)
+        done = run_cli(["rollout", results_path, *flags], capsys)
     finally:
         sys.setprofile(None)
     assert done.code == 0, done.err
     assert not trace.revisits, "\n".join(" -> ".join(stack) for stack in sorted(trace.revisits))
     assert [path for path, _ in trace.reads if path == results_path] == [results_path]
+    assert trace.selections == 1
+    return done, trace
+
+
+def test_a_rollout_is_one_chain_of_modules_reading_each_file_as_often_as_it_must(
+        tmp_path: Path, capsys: pytest.CaptureFixture, monkeypatch: pytest.MonkeyPatch) -> None:
+    results_path = write_results(tmp_path / "results.parquet")
+    rollouts = tmp_path / "rollouts.parquet"
+    monkeypatch.setattr(libero, "LiberoSimulator", lambda *args, **kwargs: Scripted())
+    _, trace = _traced(tmp_path, list(FLAGS), capsys)
     assert {path for path, _ in trace.reads} == {results_path, rollouts}
     rollout_reads = [functions for path, functions in trace.reads if path == rollouts]
     appends = [f for f in rollout_reads if writing.append_table.__name__ in f]
@@ -96,7 +104,6 @@ def test_a_rollout_is_one_chain_of_modules_reading_each_file_as_often_as_it_must
     assert len(appends) == CELLS * 2 * 2  # one per episode written: 6 cells x 2 tasks x 2 episodes
     assert len(claims) == CELLS  # once per claim, one claim per cell
     assert len(owed) == 3, owed  # the command's check, the request's written episodes, the rows it returns
-    assert trace.selections == 1
     assert pl.read_parquet(rollouts).height == CELLS * 2 * 2
 
 
@@ -104,19 +111,7 @@ def test_a_sequential_rollout_visits_no_module_twice_and_selects_once(
         tmp_path: Path, capsys: pytest.CaptureFixture, monkeypatch: pytest.MonkeyPatch) -> None:
     """`--until-resolved`: the looks (graftcache.rollout.sequential.looks) narrow the command's selection, look after
     look, in the same chain."""
-    results_path = write_results(tmp_path / "results.parquet")
+    write_results(tmp_path / "results.parquet")
     monkeypatch.setattr(libero, "LiberoSimulator", lambda *args, **kwargs: Scripted())
-    flags = [*FLAGS, "--top", "2", "--until-resolved", "6"]
-    warm = run_cli(["rollout", results_path, *flags, "--rollouts", tmp_path / "warm" / "rollouts.parquet"], capsys)
-    assert warm.code == 0, warm.err
-    trace = Trace()
-    sys.setprofile(trace)
-    try:
-        done = run_cli(["rollout", results_path, *flags], capsys)
-    finally:
-        sys.setprofile(None)
-    assert done.code == 0, done.err
+    done, _ = _traced(tmp_path, [*FLAGS, "--top", "2", "--until-resolved", "6"], capsys)
     assert "look 1:" in done.out  # a second look ran
-    assert not trace.revisits, "\n".join(" -> ".join(stack) for stack in sorted(trace.revisits))
-    assert [path for path, _ in trace.reads if path == results_path] == [results_path]
-    assert trace.selections == 1
