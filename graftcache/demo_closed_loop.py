@@ -140,7 +140,9 @@ def run_closed_loop_demo(recipe_path: str | Path | None = None, out: str | Path 
     from graftcache.requests import ExecutorSettings
     from graftcache.rollout.episodes import Simulator
     from graftcache.rollout.libero import LiberoSimulator, require_simulator
-    from graftcache.rollout.run import EXPORTS_FOLDER, RolloutRequest, default_rollouts, roll_out_started
+    from graftcache.rollout.request import EXPORTS_FOLDER, RolloutRequest, default_rollouts
+    from graftcache.rollout.roll_out import roll_out_started
+    from graftcache.rollout.select import Selection, select
     from graftcache.rollout.sequential import Sequential, looks
 
     require_simulator()  # before minutes of fitting
@@ -153,26 +155,27 @@ def run_closed_loop_demo(recipe_path: str | Path | None = None, out: str | Path 
     recipe = dataclasses.replace(recipe, seeds=demo.seeds, controls=demo.controls, results=str(results))
     state = run_sweep(recipe)
     run_sweep(_dose_recipe(recipe, demo))  # its caches and plain cells are the sweep's: only the doses are fitted
-    cells = closed_loop_run_ids(read_for_report(results), demo)
+    table = read_for_report(results)
+    cells = closed_loop_run_ids(table, demo)
     rollouts = default_rollouts(results)
     command = f"graftcache demo --closed-loop --recipe {path}"
     spawn = partial(LiberoSimulator, results, rollouts.parent / EXPORTS_FOLDER, cache=recipe.cache, runs=None,
                     max_steps=demo.max_steps)
-    requests = [RolloutRequest(results=results, rollouts=rollouts, run_ids=run_ids, tasks=demo.tasks,
-                               episodes_per_task=episodes, max_steps=demo.max_steps, perturb_cm=demo.perturb_cm,
-                               command=command)
-                for run_ids, episodes in ((cells.figure, demo.episodes_per_task),
-                                          (cells.paired, demo.paired_episodes_per_task))]
-    figure = requests[0]
+    selections = [select(RolloutRequest(results=results, rollouts=rollouts, run_ids=run_ids, tasks=demo.tasks,
+                                        episodes_per_task=episodes, max_steps=demo.max_steps,
+                                        perturb_cm=demo.perturb_cm, command=command), table, write)
+                  for run_ids, episodes in ((cells.figure, demo.episodes_per_task),
+                                            (cells.paired, demo.paired_episodes_per_task))]
+    figure = selections[0]
     sequential = Sequential(cap=demo.until_resolved)
 
-    def expand(req: RolloutRequest, sim: Simulator) -> Iterable[RolloutRequest]:
+    def expand(sel: Selection, sim: Simulator) -> Iterable[Selection]:
         """The figure's request in looks (its unresolved candidate pairs get more episodes), the paired one as it is."""
-        return looks(req, sim, seq=sequential, log=write) if req is figure else (req,)
+        return looks(sel, sim, seq=sequential, log=write) if sel is figure else (sel,)
 
-    # one team for both: its workers start first, their simulators building while this process builds its own, to plan
-    team = get_executor(ExecutorSettings()).rollout_team(figure, spawn, demo.workers, write)
-    roll_out_started(requests, spawn, team, expand=expand)
+    # one team for both: its workers start first, their simulators building while this process builds its own
+    team = get_executor(ExecutorSettings()).rollout_team(figure.req, spawn, demo.workers, write)
+    roll_out_started(selections, spawn, team, expand=expand)
     report_dir = Path(out) if out else results.parent / "report"
     commands = {"demo --closed-loop": command, **state.commands}
     paths = write_report(results, report_dir, commands=commands, rollouts=rollouts)

@@ -2,11 +2,12 @@
 `success`, and where the file has them, the graded measures of closed-loop progress and the episode's key.
 
 Only `run_id` and `success` are required, so episodes a user ran with other tools join as well as those
-`graftcache rollout` writes. The graded columns (GRADED_MEASURES; format-2 rollouts rows, graftcache.rollout.table)
-and the key that pairs one episode across cells (PAIR_KEY) are read when present and null when absent: a format-1
-file, or a user's table without them, still reads, and the report says that its graded measures are unavailable
-rather than leaving those rollouts out. The column names and types are the rollouts contract's, written
-out here rather than imported: analysis reads files, it does not depend on the code that writes them.
+`graftcache rollout` writes. The graded columns (GRADED_MEASURES; format-2 rollouts rows,
+graftcache.rollout.rollouts_file) and the key that pairs one episode across cells (PAIR_KEY) are read when present
+and null when absent: a format-1 file, or a user's table without them, still reads, and the report says that its
+graded measures are unavailable rather than leaving those rollouts out. The column names and types are the rollouts
+contract's, written out here rather than imported: analysis reads files, it does not depend on the code that writes
+them.
 
 An episode whose run_id is not in the results table is refused (one line naming the file and such a run_id), never
 dropped: rollouts of another results file would otherwise leave the report silently about fewer cells. So is a

@@ -4,7 +4,6 @@ simulator, one rollouts row per episode (graftcache.rollout)."""
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import math
 from collections.abc import Callable
 from functools import partial
@@ -15,7 +14,7 @@ from graftcache.cli.common import add_flags, request_from
 from graftcache.cli.report import SCORE_NAMES
 from graftcache.codecs import int_list
 from graftcache.requests import ExecutorSettings
-from graftcache.rollout.episodes import RESETS
+from graftcache.rollout.request import RESETS
 
 #: LIBERO suites hold 10 tasks (libero_90: 90)
 TASKS = IntList("task", 89, 90)
@@ -130,24 +129,23 @@ def _absolute(path: str | None) -> str | None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from graftcache import results
     from graftcache.executors import get_executor
-    from graftcache.rollout import table
+    from graftcache.rollout import rollouts_file
     from graftcache.rollout.libero import LiberoSimulator
-    from graftcache.rollout.run import EXPORTS_FOLDER, RolloutRequest, default_rollouts, roll_out_started
-    from graftcache.rollout.select import check_tasks, select_rows
+    from graftcache.rollout.request import EXPORTS_FOLDER, RolloutRequest, default_rollouts
+    from graftcache.rollout.roll_out import roll_out_started
+    from graftcache.rollout.select import check_tasks, select
 
     rollouts = Path(args.rollouts).absolute() if args.rollouts else default_rollouts(args.results)
     req = RolloutRequest(results=Path(args.results).absolute(), rollouts=rollouts, run_ids=args.run_ids,
                          top=args.top, suites=args.suites, score=args.score, tasks=args.tasks,
                          episodes_per_task=args.episodes_per_task, max_steps=args.max_steps, seed=args.seed,
                          perturb_cm=args.perturb_cm, reset=args.reset, command=args.command_line)
-    # both files, the rows and their tasks checked before the simulator's imports (the team starts them)
-    rows = select_rows(results.read_for_report(req.results), run_ids=req.run_ids, top=req.top, suites=req.suites,
-                       score=req.score)
-    check_tasks(rows, req.tasks)
-    req = dataclasses.replace(req, run_ids=tuple(rows["run_id"].to_list()))  # chosen once (and said once)
-    table.read(req.rollouts)
+    # both files, the rows and their tasks checked before the simulator's imports (the team starts them); the rows
+    # are chosen once (and said once), and handed on
+    sel = select(req)
+    check_tasks(sel.rows, req.tasks)
+    rollouts_file.read(req.rollouts)
     spawn = partial(LiberoSimulator, req.results, rollouts.parent / EXPORTS_FOLDER, cache=_absolute(args.cache),
                     runs=_absolute(args.runs), max_steps=args.max_steps, videos=args.videos)
     expand = None
@@ -156,6 +154,6 @@ def run(args: argparse.Namespace) -> int:
 
         expand = partial(looks, seq=Sequential(args.until_resolved), log=print)
     executor = get_executor(request_from(ExecutorSettings, args))
-    # the team starts first: its simulators build while this process builds its own, to plan
-    roll_out_started([req], spawn, executor.rollout_team(req, spawn, args.workers, print), expand=expand)
+    # the team starts first: its simulators build while this process builds its own, which says what its suites are
+    roll_out_started([sel], spawn, executor.rollout_team(sel.req, spawn, args.workers, print), expand=expand)
     return 0

@@ -25,7 +25,8 @@ if TYPE_CHECKING:
     from graftcache.extract import ExtractResult
     from graftcache.requests import ExtractRequest, FitRequest
     from graftcache.rollout.episodes import Simulator
-    from graftcache.rollout.run import RolloutRequest, Team
+    from graftcache.rollout.request import RolloutRequest
+    from graftcache.rollout.teams import Team
 
 Log = Callable[[str], None]
 
@@ -47,7 +48,7 @@ class Executor(Protocol):
 
     def rollout_team(self, req: RolloutRequest, spawn: Callable[[], Simulator], workers: int | None,
                      log: Log) -> Team | None:
-        """The team that will run `req`'s missing episodes (graftcache.rollout.run.Team), started now, `workers`
+        """The team that will run `req`'s missing episodes (graftcache.rollout.teams.Team), started now, `workers`
         simulators each built by `spawn` (None: the executor's default); None: in the rollout's own process."""
 
 

@@ -11,7 +11,8 @@ from graftcache.requests import ExecutorSettings, ExtractRequest, FitRequest
 
 if TYPE_CHECKING:
     from graftcache.rollout.episodes import Simulator
-    from graftcache.rollout.run import RolloutRequest, Team
+    from graftcache.rollout.request import RolloutRequest
+    from graftcache.rollout.teams import Team
 
 
 class LocalExecutor:

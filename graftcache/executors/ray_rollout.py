@@ -3,12 +3,12 @@
 Why actors, not a task per episode: a simulator's start (lerobot's LIBERO imports, the env's build and first reset)
 and a cell's policy load take longer than a short episode; an actor pays them once and keeps its envs and the cell it
 ran last, as a `--workers` process does (graftcache/rollout/workers.py). The actors are created when the team is built,
-before the driver plans, so their simulators build meanwhile. The driver schedules as for every team, through
-graftcache.rollout.schedule.drive with this team its transport: an actor that finishes gets the next episode of its
-cell, else a cell no actor serves (claimed without waiting, graftcache.results.claims.cell_claim), and only then joins
-another's cell.
+before the driver asks for the request's episodes, so their simulators build meanwhile. The driver schedules as for
+every team, through graftcache.rollout.schedule.drive with this team its transport: an actor that finishes gets the
+next episode of its cell, else a cell no actor serves (claimed without waiting, graftcache.results.claims.cell_claim),
+and only then joins another's cell.
 
-Rows: an actor writes the episode's video whole (graftcache.rollout.run.with_video) and returns its row; the driver
+Rows: an actor writes the episode's video whole (graftcache.rollout.record.with_video) and returns its row; the driver
 appends it as the call finishes. So the rows are those of the local executor for the same episodes (an episode seeds
 itself and runs its policy on graftcache.rollout.libero.POLICY_THREADS threads; seconds aside), a driver killed
 mid-way has written whole rows only (Ray ends the actors of a driver that is gone, and the claims go stale with it),
@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import os
 import socket
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -35,10 +35,11 @@ from graftcache.errors import RolloutError
 from graftcache.executors import Log
 from graftcache.executors.ray_cluster import connect, result, slots, task_options
 from graftcache.requests import ExecutorSettings
-from graftcache.rollout import table
-from graftcache.rollout.episodes import Episode, Simulator
-from graftcache.rollout.run import RolloutRequest, with_video
-from graftcache.rollout.schedule import EpisodeReport, Job, Scheduler, drive, one_line, pause, where
+from graftcache.rollout.episodes import Episode, EpisodeReport, Simulator, where
+from graftcache.rollout.record import append, with_video
+from graftcache.rollout.request import RolloutRequest
+from graftcache.rollout.schedule import Job, one_line
+from graftcache.rollout.teams import pause
 
 
 class SimulatorHost:
@@ -83,7 +84,7 @@ class _Actor:
 
 
 class Actors:
-    """A rollout's team of Ray actors (graftcache.rollout.run.Team), created when built: `n` of them, at most (and by
+    """A rollout's team of Ray actors (graftcache.rollout.teams.Team), created when built: `n` of them, at most (and by
     default) as many as the cluster runs at once for `--cpus-per-task` / `--gpus-per-task`."""
 
     def __init__(self, req: RolloutRequest, spawn: Callable[[], Simulator], n: int | None,
@@ -100,21 +101,19 @@ class Actors:
         rollouts = req.rollouts.absolute()
         self.team = [_Actor(i, SimulatorActor.options(**options).remote(spawn, rollouts, req.command, i))
                      for i in range(n)]
-        self.workers = self.team  # those `run` hands episodes to (graftcache.rollout.schedule.Transport)
+        self.workers = self.team  # those the loop hands episodes to (graftcache.rollout.schedule.Transport)
         self.rollouts = req.rollouts
         self.calls: dict[ray.ObjectRef, _Actor] = {}
 
-    def run(self, req: RolloutRequest, rows: Mapping[str, Mapping[str, Any]], missing: Sequence[Episode], bar: Any,
-            log: Log) -> None:
-        """Hand `missing` to the actors, an episode per call, and append each row as its call finishes; actors beyond
-        the number of episodes are ended at once, the others kept for the next request (graftcache.rollout.run.Team)
-        until `close`."""
-        self.team, spare = self.team[: len(missing)], self.team[len(missing):]
+    def begin(self, req: RolloutRequest, episodes: int, log: Log) -> None:
+        """Actors beyond `episodes` ended at once, the others kept for the next request
+        (graftcache.rollout.teams.Team) until `close`; the loop hands them the episodes, an episode per call, and each
+        row is appended here as its call finishes (`receive`)."""
+        self.team, spare = self.team[:episodes], self.team[episodes:]
         for actor in spare:
             ray.kill(actor.handle, no_restart=True)
         self.workers, self.rollouts, self.calls = self.team, req.rollouts, {}
-        log(f"ray: {len(self.workers)} simulator actor(s) running {len(missing)} episode(s)")
-        drive(Scheduler(req.rollouts, rows, missing, bar, log), self)
+        log(f"ray: {len(self.workers)} simulator actor(s) running {episodes} episode(s)")
 
     def send(self, worker: _Actor, job: Job) -> None:
         self.calls[worker.handle.run.remote(*job)] = worker
@@ -130,7 +129,7 @@ class Actors:
             actor = self.calls.pop(ref)
             assert actor.running is not None
             row = result(ref, where(actor.running))
-            table.append(self.rollouts, [row])
+            append(self.rollouts, [row])
             reports.append((actor, EpisodeReport.of(row)))
         return reports
 

@@ -90,7 +90,7 @@ def append(path: str | Path, rows: Iterable[Mapping[str, Any]] | pl.DataFrame,
 def append_table(path: str | Path, new: pl.DataFrame, read_table: Callable[[Path], pl.DataFrame], *, key: str,
                  log: Callable[[str], None] = _to_stderr, what: str = "results file") -> pl.DataFrame:
     """`append`'s lease -> read -> merge -> publish loop for any table kept this way (the rollouts file too,
-    graftcache.rollout.table): `new` (validated) replaces the rows of `read_table(path)` that share its `key`
+    graftcache.rollout.rollouts_file): `new` (validated) replaces the rows of `read_table(path)` that share its `key`
     values, of rows of one key in `new` the last is kept, and a failure is a ResultsError naming the `what`."""
     path = target(path)
     new = new.unique(subset=key, keep="last", maintain_order=True)

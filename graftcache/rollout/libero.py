@@ -220,7 +220,7 @@ class LiberoSimulator:
                                hard_reset=reset == "hard")
 
     def env(self, suite: str, task: int, reset: str = "hard") -> Any:
-        """The one-env vector env of (suite, task) resetting as `reset` says (graftcache.rollout.episodes.RESETS),
+        """The one-env vector env of (suite, task) resetting as `reset` says (graftcache.rollout.request.RESETS),
         built once per process, its env wrapped to perturb the scene of a perturbed episode and to skip a soft
         reset's unseen renders (graftcache.rollout.perturb.PerturbedReset)."""
         from graftcache.rollout.perturb import PerturbedReset

@@ -1,5 +1,5 @@
 """The one loop every rollout's episodes go through (`drive`), whoever runs them: this process (the team of one,
-graftcache.rollout.run.InProcess), worker processes (graftcache.rollout.workers.Workers) or Ray actors
+graftcache.rollout.teams.InProcess), worker processes (graftcache.rollout.workers.Workers) or Ray actors
 (graftcache.executors.ray_rollout.Actors). The team is the loop's transport: it sends a worker an episode and gives
 back the reports of the episodes finished; the `Scheduler` decides which episode a free worker runs next and holds
 the claims and tallies of the cells. So claims, the reread of the rollouts file, the bar and each cell's summary line
@@ -15,7 +15,6 @@ episode twice.
 
 from __future__ import annotations
 
-import time
 from collections import deque
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -25,31 +24,15 @@ from typing import Any, Protocol
 from graftcache.errors import GraftcacheError
 from graftcache.file_lease import FileLease
 from graftcache.results.claims import cell_claim
-from graftcache.rollout import table
-from graftcache.rollout.episodes import Episode
+from graftcache.rollout import rollouts_file
+from graftcache.rollout.episodes import Episode, EpisodeReport
 
 #: how often cells that other rollouts hold are tried again while nothing else is left to hand out
 CLAIM_POLL_S = 1.0
-VIDEOS_FOLDER = "videos"  # beside the rollouts file: videos/RUN_ID/<episode>.mp4 (graftcache.rollout.run.video_of)
+VIDEOS_FOLDER = "videos"  # beside the rollouts file: videos/RUN_ID/<episode>.mp4 (graftcache.rollout.record.video_of)
 
 #: what a worker is sent: the cell's results row and the episode to run
 Job = tuple[dict[str, Any], Episode]
-
-
-@dataclass(frozen=True)
-class EpisodeReport:
-    """What a finished (and written) episode tells the loop, wherever it ran: what its cell's summary line tallies.
-    `video`: its path relative to the rollouts file; None: none recorded."""
-
-    success: bool
-    steps: int
-    seconds: float
-    video: str | None
-
-    @classmethod
-    def of(cls, row: Mapping[str, Any]) -> EpisodeReport:
-        """The report of the episode whose rollouts row is `row` (graftcache.rollout.run.row_of)."""
-        return cls(row["success"], row["steps"], row["seconds"], row["video"])
 
 
 class Worker(Protocol):
@@ -74,11 +57,6 @@ class Transport(Protocol):
 
     def stop(self) -> None:
         """The loop was stopped or failed: end what the workers run, before their cells' claims are given back."""
-
-
-def where(episode: Episode) -> str:
-    return (f"run {episode.run_id}, {episode.suite} task {episode.task_index} episode {episode.episode} "
-            f"(seed {episode.seed})")
 
 
 def one_line(e: BaseException) -> str:
@@ -191,7 +169,7 @@ class Scheduler:
                 cell.told = True
             return False
         cell.claim = lease
-        done = set(table.read(self.rollouts)["episode_id"].to_list())
+        done = set(rollouts_file.read(self.rollouts)["episode_id"].to_list())
         left = deque(e for e in cell.todo if e.id not in done)
         self.bar.update(len(cell.todo) - len(left))  # written by another rollout while it held the claim
         cell.todo = left
@@ -230,7 +208,3 @@ def drive(scheduler: Scheduler, transport: Transport) -> None:
     finally:
         scheduler.release()
 
-
-def pause(timeout: float | None) -> None:
-    """A transport's wait when nothing of its own can end it: `timeout` (a poll for another rollout's claims)."""
-    time.sleep(CLAIM_POLL_S if timeout is None else timeout)

@@ -16,7 +16,9 @@ episodes would only be counted again.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 
 import polars as pl
 
@@ -25,7 +27,8 @@ from graftcache.cameras import parse_camera_map
 from graftcache.datasets.suites import suite_tasks
 from graftcache.errors import RolloutError
 from graftcache.fit.controls import get_control
-from graftcache.results import conform
+from graftcache.results import conform, read_for_report
+from graftcache.rollout.request import RolloutRequest
 
 #: Controls rolled out beside the top encoders' plain grafts (CONTROLS_OF_ENCODER: the selected encoders' own rows)
 CONTROLS_OF_ENCODER = (ZERO_IMAGE,)
@@ -36,6 +39,32 @@ SIMULATOR_CAMERAS = {"image": "agentview", "image2": "wrist (eye in hand)"}
 #: The LIBERO suites lerobot's env builds (its TASK_SUITE_MAX_STEPS), as plain data
 SIMULATOR_SUITES = ("libero_spatial", "libero_object", "libero_goal", "libero_10", "libero_90")
 ORDER = ("backbone", "suite", "control", "encoder", "seed")
+
+
+@dataclass(frozen=True, eq=False)
+class Selection:
+    """A request with what it selected, handed on so that nothing after it reads the results file or selects again:
+    `rows` (select_rows of `results`, in ORDER), `results` (the results table they were selected from, which a
+    sequential rollout's looks join their rollouts to, graftcache.rollout.sequential) and `req`, whose run_ids are
+    `rows`' (chosen once, and said once)."""
+
+    req: RolloutRequest
+    rows: pl.DataFrame
+    results: pl.DataFrame
+
+    def narrowed(self, rows: pl.DataFrame, **fields: object) -> Selection:
+        """This selection with `rows`, some of its own, and the request's `fields` replaced: a later request of the
+        same command (a sequential rollout's next look) that selects no row again."""
+        req = dataclasses.replace(self.req, run_ids=tuple(rows["run_id"].to_list()), **fields)
+        return Selection(req, rows, self.results)
+
+
+def select(req: RolloutRequest, results: pl.DataFrame | None = None,
+           log: Callable[[str], None] = print) -> Selection:
+    """The rows `req` asks of `results` (None: its results file, read here), each checked runnable (select_rows)."""
+    table = read_for_report(req.results) if results is None else results
+    rows = select_rows(table, run_ids=req.run_ids, top=req.top, suites=req.suites, score=req.score, log=log)
+    return Selection(dataclasses.replace(req, run_ids=tuple(rows["run_id"].to_list())), rows, table)
 
 
 def select_rows(results: pl.DataFrame, *, run_ids: Sequence[str] | None = None, top: int = 3,
@@ -105,7 +134,8 @@ def _best(table: pl.DataFrame, top: int, score: str) -> pl.DataFrame:
 
 def check_tasks(rows: pl.DataFrame, tasks: Sequence[int] | None) -> None:
     """Refuse, in one line naming the run, a task its suite lacks, counted from the LIBERO benchmark's task lists
-    (graftcache.datasets.suites), so that it is refused before the simulator is imported (its plan checks again)."""
+    (graftcache.datasets.suites), so that it is refused before the simulator is imported
+    (graftcache.rollout.episodes.episodes_of checks again)."""
     counts = {suite: len(names) for suite, names in suite_tasks().items()}
     for row in rows.iter_rows(named=True):
         beyond = [t for t in tasks or () if t >= counts[row["suite"]]]

@@ -29,7 +29,6 @@ report reads to state the error rate and to take the closed-loop intervals at th
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
 import os
@@ -43,10 +42,9 @@ from graftcache.analysis.looks import Look, Looks, looks_file
 from graftcache.analysis.pairwise import NOT_RESOLVED, pairwise
 from graftcache.analysis.rollouts import HIGHER_IS_BETTER, read_rollouts
 from graftcache.errors import RolloutError
-from graftcache.results import read_for_report
-from graftcache.rollout.episodes import Simulator
-from graftcache.rollout.run import MAX_EPISODES_PER_TASK, RolloutRequest, plan
-from graftcache.rollout.select import select_rows
+from graftcache.rollout.episodes import Simulator, episodes_of
+from graftcache.rollout.request import MAX_EPISODES_PER_TASK, RolloutRequest
+from graftcache.rollout.select import Selection
 
 
 @dataclass(frozen=True)
@@ -83,53 +81,52 @@ def unresolved(candidates: pl.DataFrame, rollouts: pl.DataFrame, seq: Sequential
     return verdicts.filter(pl.col("closed").is_null() | (pl.col("closed") == NOT_RESOLVED))
 
 
-def looks(req: RolloutRequest, sim: Simulator, *, seq: Sequential,
-          log: Callable[[str], None]) -> Iterator[RolloutRequest]:
-    """The requests of each look, in turn: a caller rolls each out before asking for the next, which is decided
+def looks(sel: Selection, sim: Simulator, *, seq: Sequential,
+          log: Callable[[str], None]) -> Iterator[Selection]:
+    """The selections of each look, in turn: a caller rolls each out before asking for the next, which is decided
     from the rows that one wrote (see the module docstring). Writes the looks' record (graftcache.analysis.looks)
     once the last look is decided. Without two candidate encoders on any (backbone, suite) there is no pair to
     judge: the request runs as it is, in one look."""
+    req = sel.req
     step = req.episodes_per_task
     if step > seq.cap:
         raise RolloutError(f"--episodes-per-task {step} is past --until-resolved {seq.cap}: the first look would "
                            "already pass the cap")
-    results = read_for_report(req.results)
-    rows = select_rows(results, run_ids=req.run_ids, top=req.top, suites=req.suites, score=req.score)
-    candidates = rows.filter(pl.col("control") == PLAIN)
+    candidates = sel.rows.filter(pl.col("control") == PLAIN)
     n_looks, level = seq.looks(step), seq.level(step)
     log(f"sequential rollout: up to {n_looks} look(s) of {step} episode(s) per task (cap {seq.cap}); each pair's "
         f"closed-loop {seq.measure} interval at {level:.2%}, so a pair of equal encoders is called resolved with "
         f"chance <= {seq.error:.0%} over all looks (Bonferroni)")
     history: list[Look] = []
-    current = dataclasses.replace(req, run_ids=tuple(rows["run_id"].to_list()))
+    current = sel
     pairs = candidates.group_by("backbone", "suite").agg(pl.col("encoder").n_unique() > 1)["encoder"].any()
     for look in range(1, n_looks + 1):
         yield current
+        asked = current.req
         if not pairs:
             log("sequential rollout: no (backbone, suite) has two candidate encoders, no pair to judge: one look")
-            history.append(Look(look, current.episodes_per_task, len(current.run_ids), ()))
+            history.append(Look(look, asked.episodes_per_task, current.rows.height, ()))
             break
         # judged on every candidate's first episodes_per_task episodes, whichever cells this look ran
-        judged = {e.id for e in plan(candidates, current, sim)}
-        rollouts = read_rollouts(req.rollouts, results, where=pl.col("episode_id").is_in(judged))
+        judged = {e.id for e in episodes_of(candidates, asked, sim)}
+        rollouts = read_rollouts(req.rollouts, sel.results, where=pl.col("episode_id").is_in(judged))
         open_pairs = unresolved(candidates, rollouts, seq, level).select("backbone", "suite", "encoder_a",
                                                                          "encoder_b")
-        history.append(Look(look, current.episodes_per_task, len(current.run_ids), tuple(open_pairs.rows())))
+        history.append(Look(look, asked.episodes_per_task, current.rows.height, tuple(open_pairs.rows())))
         if not open_pairs.height or look == n_looks:
             break
-        current = dataclasses.replace(req, run_ids=_cells_of(candidates, open_pairs),
-                                      episodes_per_task=min(seq.cap, (look + 1) * step))
+        current = sel.narrowed(_cells_of(candidates, open_pairs), episodes_per_task=min(seq.cap, (look + 1) * step))
         log(f"look {look}: {open_pairs.height} pair(s) unresolved ("
             + "; ".join(f"{a} vs {b} on {backbone}/{suite}" for backbone, suite, a, b in open_pairs.rows())
-            + f"): {len(current.run_ids)} cell(s) to {current.episodes_per_task} episodes per task")
+            + f"): {current.rows.height} cell(s) to {current.req.episodes_per_task} episodes per task")
     _write_record(req, seq, step, history)
 
 
-def _cells_of(candidates: pl.DataFrame, pairs: pl.DataFrame) -> tuple[str, ...]:
-    """The run_ids of the candidate cells of every encoder named by `pairs` on its (backbone, suite)."""
+def _cells_of(candidates: pl.DataFrame, pairs: pl.DataFrame) -> pl.DataFrame:
+    """The candidate cells (rows) of every encoder named by `pairs` on its (backbone, suite)."""
     named = pl.concat([pairs.select("backbone", "suite", pl.col(side).alias("encoder"))
                        for side in ("encoder_a", "encoder_b")]).unique()
-    return tuple(candidates.join(named, on=["backbone", "suite", "encoder"], how="semi")["run_id"].to_list())
+    return candidates.join(named, on=["backbone", "suite", "encoder"], how="semi")
 
 
 def _write_record(req: RolloutRequest, seq: Sequential, step: int, history: Sequence[Look]) -> None:

@@ -4,10 +4,11 @@ Why processes, started by spawn: MuJoCo's EGL context and torch's thread pools d
 would share one GIL. Each worker builds one simulator (graftcache.rollout.libero.LiberoSimulator, whose env cache and
 last loaded cell it keeps) and runs the episodes this process hands it, one at a time.
 
-Startup: the team is started before this process plans (graftcache.rollout.run.roll_out_started), so that the
-workers' imports and simulator builds overlap this process's own (a simulator to plan with: lerobot's LIBERO imports)
-and its planning; workers left without an episode are stopped when the plan is known. One team serves the requests
-of one command in turn (the closed-loop demo's two), so they start once.
+Startup: the team is started before this process asks for the request's episodes
+(graftcache.rollout.roll_out.roll_out_started), so that the workers' imports and simulator builds overlap this
+process's own (a simulator that says what its suites are: lerobot's LIBERO imports); workers left without an episode
+are stopped once the episodes are known. One team serves the requests of one command in turn (the closed-loop demo's
+two), so they start once.
 
 Granularity: the episode, not the cell, so that a few cells of many episodes still keep every worker busy. This process
 schedules, as for every team (graftcache.rollout.schedule.drive, this team its transport): a worker that finishes gets
@@ -20,9 +21,9 @@ folder already there (graftcache.export.bundle.place). Since a fresh cell goes t
 cell only when more workers than cells are left: one export's time lost, never a wrong folder. Exporting every cell
 here first would instead load each base policy in this process, one after the other, before any episode starts.
 
-Rows: a worker writes each episode's video and row as the episode finishes (graftcache.rollout.run.record; appends to
+Rows: a worker writes each episode's video and row as the episode finishes (graftcache.rollout.record.record; appends to
 the rollouts file are made under its lease, safe across processes) and sends back its report
-(graftcache.rollout.schedule.EpisodeReport). Claims: this process holds them, as for every team
+(graftcache.rollout.episodes.EpisodeReport). Claims: this process holds them, as for every team
 (graftcache.rollout.schedule.Scheduler): two rollouts sharing a file, of any --workers, never run one episode twice.
 
 Failures: a worker's error is sent here and raised as one RolloutError line naming the run and episode; a worker that
@@ -47,7 +48,7 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager, suppress
 from dataclasses import dataclass
 from multiprocessing.connection import Connection, wait
@@ -57,9 +58,10 @@ from typing import Any
 
 from graftcache.errors import RolloutError
 from graftcache.processes import WORKER_GRACE_S, Terminated, stop
-from graftcache.rollout.episodes import Episode, Simulator
-from graftcache.rollout.run import RolloutRequest, run_one
-from graftcache.rollout.schedule import EpisodeReport, Job, Scheduler, drive, one_line, where
+from graftcache.rollout.episodes import Episode, EpisodeReport, Simulator, where
+from graftcache.rollout.record import run_one
+from graftcache.rollout.request import RolloutRequest
+from graftcache.rollout.schedule import Job, one_line
 
 #: how long workers told to finish get to close their simulators before they are stopped
 CLOSE_S = 30.0
@@ -87,26 +89,23 @@ def team_size(asked: int, log: Callable[[str], None]) -> int:
 
 
 class Workers:
-    """A rollout's team of `n` spawned worker processes (graftcache.rollout.run.Team), started when built: each builds
-    its simulator with `spawn` while the rollout builds its own to plan (graftcache.rollout.run.roll_out_started), so
-    the imports and the simulators' builds overlap. `run` hands them the missing episodes; `close` stops them."""
+    """A rollout's team of `n` spawned worker processes (graftcache.rollout.teams.Team), started when built: each
+    builds its simulator with `spawn` while the rollout builds its own (graftcache.rollout.roll_out.roll_out_started),
+    so the imports and the simulators' builds overlap. The one loop hands them the missing episodes
+    (graftcache.rollout.schedule.drive, this team its transport); `close` stops them."""
 
     def __init__(self, spawn: Callable[[], Simulator], n: int, req: RolloutRequest) -> None:
         self.team = _start(n, spawn, req)
-        self.workers = self.team  # those `run` hands episodes to (graftcache.rollout.schedule.Transport)
-        self.idle = False  # every worker built and waiting, after a request that ended well
+        self.workers = self.team  # those the loop hands episodes to (graftcache.rollout.schedule.Transport)
+        self.idle = False  # every worker built and serving requests: set when one begins, cleared by a stop
 
-    def run(self, req: RolloutRequest, rows: Mapping[str, Mapping[str, Any]], missing: Sequence[Episode], bar: Any,
-            log: Callable[[str], None]) -> None:
-        """Run `missing` (episodes of the cells `rows` holds by run_id); `bar` advances by one per episode written or
-        found written. Workers beyond the number of episodes are stopped at once; the others wait for the next
-        request (graftcache.rollout.run.Team) or `close`. A failure stops them all."""
-        self.team, spare = self.team[: len(missing)], self.team[len(missing):]
+    def begin(self, req: RolloutRequest, episodes: int, log: Callable[[str], None]) -> None:
+        """Workers beyond `episodes` stopped at once; the others run the request's episodes, then wait for the next
+        request (graftcache.rollout.teams.Team) or `close`. A failure stops them all (`stop`)."""
+        self.team, spare = self.team[:episodes], self.team[episodes:]
         _stop(spare)
-        self.workers, self.idle = self.team, False
+        self.workers, self.idle = self.team, True
         log(f"{len(self.workers)} worker processes, each with a simulator of its own")
-        drive(Scheduler(req.rollouts, rows, missing, bar, log), self)
-        self.idle = True
 
     def send(self, worker: _Worker, job: Job) -> None:
         worker.conn.send(job)
@@ -125,6 +124,7 @@ class Workers:
 
     def stop(self) -> None:
         """Stopped or failed: no worker outlives the loop (nor writes a row once its cell's claim is given back)."""
+        self.idle = False
         _stop(self.workers)
 
     def close(self) -> None:

@@ -278,7 +278,7 @@ AGREEMENT_FIGURES = [f"{s}{part}" for s in A.STATISTICS for part in ("", "_low",
 
 
 def test_a_format_1_file_reads_with_graded_measures_null(tmp_path: Path) -> None:
-    """A format-1 rollouts file (graftcache.rollout.table format 1: no graded columns, no perturbation_m)."""
+    """A format-1 rollouts file (graftcache.rollout.rollouts_file format 1: no graded columns, no perturbation_m)."""
     results = _results()
     format_1 = _episodes(results).select(
         pl.format("{}-{}", "run_id", "episode").alias("episode_id"), pl.lit(1).alias("format_version"), "run_id",

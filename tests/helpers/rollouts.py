@@ -9,7 +9,7 @@ import importlib.metadata
 import os
 import signal
 import time
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -20,10 +20,12 @@ from tqdm import tqdm
 
 import graftcache
 from graftcache.hashing import sha256_json
-from graftcache.rollout import table
+from graftcache.rollout import rollouts_file
 from graftcache.rollout.episodes import Episode, Outcome, Suite
 from graftcache.rollout.graded import Graded
-from graftcache.rollout.run import RolloutRequest
+from graftcache.rollout.request import RolloutRequest
+from graftcache.rollout.roll_out import roll_out
+from graftcache.rollout.select import select
 from helpers.tables import write_results
 
 #: (run_id, task_index, episode) of an episode
@@ -42,6 +44,12 @@ def paced_request(folder: Path, **over: Any) -> RolloutRequest:
     fields = {"results": path, "rollouts": folder / "rollouts.parquet", "top": 1, "suites": ("libero_object",),
               "tasks": (0, 3), "episodes_per_task": 2, "seed": 7, "command": "graftcache rollout results.parquet"}
     return RolloutRequest(**{**fields, **over})
+
+
+def rolled(req: RolloutRequest, sim: Any, log: Callable[[str], None], **team: Any) -> pl.DataFrame:
+    """`roll_out` of `req` with its rows selected as the command selects them (graftcache.rollout.select.select),
+    both saying what they do in `log`."""
+    return roll_out(select(req, log=log), sim, log, **team)
 
 
 class Scripted:
@@ -166,5 +174,5 @@ def paced_rows(run_ids: Sequence[str], tasks: Sequence[int], episodes: int, seed
                      "min_target_distance_m": None, "final_target_distance_m": None, "target_lift_m": None,
                      "grasped": None, "goal_fraction": None, "lerobot_version": importlib.metadata.version("lerobot"),
                      "graftcache_version": graftcache.__version__})
-    schema = {c: t for c, t in table.SCHEMA.items() if c not in ("seconds", "command")}
+    schema = {c: t for c, t in rollouts_file.SCHEMA.items() if c not in ("seconds", "command")}
     return pl.DataFrame(rows, schema=schema).sort("episode_id")

@@ -21,17 +21,17 @@ from typing import Any
 import polars as pl
 import pytest
 from fixtures.simulator_cells import Fitted
-from helpers.rollouts import Scripted
+from helpers.rollouts import Scripted, rolled
 from helpers.tables import full_table, row, write_results
 from helpers.tables import table as results_table
 
 from graftcache import results
 from graftcache.errors import RolloutError
 from graftcache.results.claims import claims_folder
-from graftcache.rollout import table
+from graftcache.rollout import record, rollouts_file
 from graftcache.rollout.episodes import Episode, Outcome
 from graftcache.rollout.graded import Graded
-from graftcache.rollout.run import RolloutRequest, roll_out
+from graftcache.rollout.request import RolloutRequest
 from graftcache.rollout.select import select_rows
 
 
@@ -119,10 +119,10 @@ def test_rows_are_typed_and_a_rerun_adds_nothing_and_says_so(tmp_path: Path) -> 
     req = _request(tmp_path)
     lines: list[str] = []
     sim = Scripted()
-    rows = roll_out(req, sim, log=lines.append)
+    rows = rolled(req, sim, log=lines.append)
     # top 1 on libero_object: smolvla siglip and pi05 dinov2-s, 3 seeds each (no controls there): 6 cells x 2 tasks
     # x 2 episodes
-    assert rows.height == len(sim.ran) == 24 and rows.schema == pl.Schema(table.SCHEMA)
+    assert rows.height == len(sim.ran) == 24 and rows.schema == pl.Schema(rollouts_file.SCHEMA)
     first = rows.filter(pl.col("task_index") == 3, pl.col("episode") == 1).row(0, named=True)
     assert (first["suite"], first["seed"], first["init_state"], first["max_steps"]) == ("libero_object", 8, 1, 280)
     assert (first["success"], first["steps"], first["seconds"], first["video"]) == (True, 4, 0.5, None)
@@ -135,24 +135,24 @@ def test_rows_are_typed_and_a_rerun_adds_nothing_and_says_so(tmp_path: Path) -> 
     assert rows.group_by("run_id").len()["len"].to_list() == [4] * 6  # every cell on the same 4 episodes
     assert lines[0] == f"rolling out 6 cell(s), 24 episode(s) into {req.rollouts}"
     lines.clear()
-    again = roll_out(req, Scripted(), log=lines.append)
+    again = rolled(req, Scripted(), log=lines.append)
     assert lines == [f"all 24 episodes of 6 cell(s) are already in {req.rollouts}: nothing to run"]
     assert again.sort("episode_id").equals(rows.sort("episode_id"))
-    assert table.read(req.rollouts).height == 24
-    more = roll_out(_request(tmp_path, episodes_per_task=3), Scripted(), log=lines.append)
+    assert rollouts_file.read(req.rollouts).height == 24
+    more = rolled(_request(tmp_path, episodes_per_task=3), Scripted(), log=lines.append)
     assert more.height == 36 and f"24 of 36 episodes already in {req.rollouts}; running the other 12" in lines
 
 
 def test_a_run_stopped_mid_way_resumes_to_the_same_rows(tmp_path: Path) -> None:
     for name in ("whole", "cut"):
         (tmp_path / name).mkdir()
-    expected = roll_out(_request(tmp_path / "whole"), Scripted(), log=lambda _: None)
+    expected = rolled(_request(tmp_path / "whole"), Scripted(), log=lambda _: None)
     cut = _request(tmp_path / "cut")
     with pytest.raises(KeyboardInterrupt):
-        roll_out(cut, Scripted(stop_after=9), log=lambda _: None)
-    assert table.read(cut.rollouts).height == 9  # each finished episode was written as it finished
+        rolled(cut, Scripted(stop_after=9), log=lambda _: None)
+    assert rollouts_file.read(cut.rollouts).height == 9  # each finished episode was written as it finished
     sim = Scripted()
-    resumed = roll_out(cut, sim, log=lambda _: None)
+    resumed = rolled(cut, sim, log=lambda _: None)
     assert len(sim.ran) == 15
     drop = ["command"]
     assert resumed.drop(drop).sort("episode_id").equals(expected.drop(drop).sort("episode_id"))
@@ -173,7 +173,7 @@ def test_videos_are_written_whole_beside_the_rollouts_file_before_their_rows(tmp
     stale = tmp_path / "videos" / run / "libero_object_task3_ep1_seed8_max280.mp4"
     stale.parent.mkdir(parents=True)
     stale.write_bytes(b"a video a killed run wrote before its row")  # its row is missing: rerun, overwritten
-    rows = roll_out(req, Scripted(videos=True), log=lambda _: None)
+    rows = rolled(req, Scripted(videos=True), log=lambda _: None)
     row = rows.filter(pl.col("run_id") == run, pl.col("episode") == 1).row(0, named=True)
     assert row["video"] == f"videos/{run}/libero_object_task3_ep1_seed8_max280.mp4"
     for r in rows.iter_rows(named=True):
@@ -184,7 +184,7 @@ def test_videos_are_written_whole_beside_the_rollouts_file_before_their_rows(tmp
 
 def test_a_task_the_suite_lacks_names_the_run_and_suite(tmp_path: Path) -> None:
     with pytest.raises(RolloutError, match=r"^run \w{16}: suite libero_object has tasks 0-9, not task 12$"):
-        roll_out(_request(tmp_path, tasks=(0, 12)), Scripted(), log=lambda _: None)
+        rolled(_request(tmp_path, tasks=(0, 12)), Scripted(), log=lambda _: None)
     assert not (tmp_path / "rollouts.parquet").exists()
 
 
@@ -207,14 +207,14 @@ def test_a_failed_run_leaves_no_claims_folder(tmp_path: Path) -> None:
 
     req = _request(tmp_path)
     with pytest.raises(RuntimeError, match="the simulator broke"):
-        roll_out(req, Broken(), log=lambda _: None)
-    assert table.read(req.rollouts).height == 1  # the episode it finished
+        rolled(req, Broken(), log=lambda _: None)
+    assert rollouts_file.read(req.rollouts).height == 1  # the episode it finished
     assert not claims_folder(req.rollouts).exists()
 
 
-def test_seeds_and_episode_counts_past_what_a_seed_holds_are_refused_before_planning(tmp_path: Path) -> None:
+def test_seeds_and_episode_counts_past_what_a_seed_holds_are_refused_before_any_episode(tmp_path: Path) -> None:
     """Episode k is seeded seed + k, an unsigned 32-bit seed for numpy and the simulator (2**40 reached set_seed's
-    ValueError traceback); 10**9 episodes a task were planned and hashed one by one."""
+    ValueError traceback); 10**9 episodes a task were listed and hashed one by one."""
     assert _request(tmp_path, seed=2**32 - 2, episodes_per_task=2).seed == 2**32 - 2  # seeds 2**32 - 2, 2**32 - 1
     with pytest.raises(RolloutError, match=r"^--seed 4294967294: episodes are seeded 4294967294 to 4294967296, which "
                                            r"must lie in 0 to 4294967295 \(an unsigned 32-bit seed\)$"):
@@ -226,12 +226,12 @@ def test_seeds_and_episode_counts_past_what_a_seed_holds_are_refused_before_plan
 def test_perturbed_episodes_are_other_episodes_recorded_in_their_rows(tmp_path: Path) -> None:
     """--perturb-cm 3: the same cells and seeds again, as new episodes (ids of their own, videos of their own), each
     row recording the largest offset asked and the one applied; the official-init rows keep their format-1 ids."""
-    official = roll_out(_request(tmp_path, tasks=(0,)), Scripted(), log=lambda _: None)
+    official = rolled(_request(tmp_path, tasks=(0,)), Scripted(), log=lambda _: None)
     lines: list[str] = []
-    perturbed = roll_out(_request(tmp_path, tasks=(0,), perturb_cm=3.0), Scripted(videos=True), log=lines.append)
+    perturbed = rolled(_request(tmp_path, tasks=(0,), perturb_cm=3.0), Scripted(videos=True), log=lines.append)
     assert lines[0] == f"rolling out 6 cell(s), 12 episode(s) into {tmp_path / 'rollouts.parquet'}, targets slid up " \
                        "to 3 cm"
-    assert perturbed.height == official.height == 12 and table.read(tmp_path / "rollouts.parquet").height == 24
+    assert perturbed.height == official.height == 12 and rollouts_file.read(tmp_path / "rollouts.parquet").height == 24
     assert set(perturbed["perturbation_m"].to_list()) == {0.03} and set(official["perturbation_m"]) == {0.0}
     assert set(zip(perturbed["target_offset_x_m"], perturbed["target_offset_y_m"], strict=True)) == {(0.015, -0.0075)}
     row = official.row(0, named=True)
@@ -269,13 +269,13 @@ def test_the_reset_reaches_the_simulator_and_a_hard_rerun_of_soft_episodes_runs_
     from helpers.probes import run_cli
 
     soft = Scripted()
-    rows = roll_out(_request(tmp_path), soft, log=lambda _: None)
+    rows = rolled(_request(tmp_path), soft, log=lambda _: None)
     assert {e.reset for e in soft.ran} == {"soft"} and len(soft.ran) == rows.height == 24
     hard, lines = Scripted(), []
-    again = roll_out(_request(tmp_path, reset="hard"), hard, log=lines.append)
+    again = rolled(_request(tmp_path, reset="hard"), hard, log=lines.append)
     assert hard.ran == [] and again.equals(rows) and lines[0].startswith("all 24 episodes of 6 cell(s) are already")
     (tmp_path / "rollouts.parquet").unlink()
-    roll_out(_request(tmp_path, reset="hard"), hard, log=lambda _: None)
+    rolled(_request(tmp_path, reset="hard"), hard, log=lambda _: None)
     assert {e.reset for e in hard.ran} == {"hard"} and len(hard.ran) == 24
     with pytest.raises(RolloutError, match=r"^--reset warm: must be one of soft, hard$"):
         _request(tmp_path, reset="warm")
@@ -293,21 +293,21 @@ def test_a_format_1_rollouts_file_reads_with_its_graded_columns_null(tmp_path: P
            "success": False, "steps": 60, "seconds": 120.5, "video": None, "lerobot_version": "0.6.1",
            "graftcache_version": "0.1.0", "command": "graftcache rollout results.parquet"}
     pl.DataFrame([old], schema_overrides={"video": pl.String}).write_parquet(path)
-    rows = table.read(path)
-    assert rows.schema == pl.Schema(table.SCHEMA) and rows.height == 1
-    assert rows.select(table.FORMAT_2_COLUMNS).row(0) == (None,) * 9
+    rows = rollouts_file.read(path)
+    assert rows.schema == pl.Schema(rollouts_file.SCHEMA) and rows.height == 1
+    assert rows.select(rollouts_file.FORMAT_2_COLUMNS).row(0) == (None,) * 9
     assert {k: v for k, v in rows.row(0, named=True).items() if k in old} == old
     new = {**old, "episode_id": "1111111111111111", "format_version": 2, "target": "alphabet_soup_1",
            "perturbation_m": 0.0, "target_offset_x_m": 0.0, "target_offset_y_m": 0.0, "min_target_distance_m": 0.04,
            "final_target_distance_m": 0.2, "target_lift_m": 0.0, "grasped": False, "goal_fraction": 0.0}
-    table.append(path, [new])
-    both = table.read(path).sort("format_version")
+    record.append(path, [new])
+    both = rollouts_file.read(path).sort("format_version")
     assert both["min_target_distance_m"].to_list() == [None, 0.04] and both["target"].to_list() == [
         None, "alphabet_soup_1"]
     pl.DataFrame([old]).drop("seconds").write_parquet(path)
     with pytest.raises(RolloutError, match=r"^.*rollouts\.parquet: rollouts rows do not match the schema: missing "
                                            r"\['seconds'\], unexpected \[\]; pass another --rollouts$"):
-        table.read(path)
+        rollouts_file.read(path)
 
 
 def test_the_files_are_checked_before_the_simulator_is_imported(tmp_path: Path, capsys: pytest.CaptureFixture,
@@ -358,7 +358,7 @@ def test_rollout_smoke_in_the_simulator(simulator_cells: Fitted, tmp_path: Path,
                rollouts_path]
     first = run_cli(rollout, capsys)
     assert first.code == 0, first.err[-3000:]
-    rows = table.read(rollouts_path).sort("run_id")
+    rows = rollouts_file.read(rollouts_path).sort("run_id")
     assert rows["run_id"].to_list() == sorted([a, b])
     for r in rows.iter_rows(named=True):
         assert (r["suite"], r["task_index"], r["episode"], r["seed"], r["init_state"]) == ("libero_object", 0, 0,
@@ -404,7 +404,7 @@ def test_rollout_smoke_in_the_simulator(simulator_cells: Fitted, tmp_path: Path,
     again = run_cli(rollout, capsys)
     assert again.code == 0, again.err[-2000:]
     assert f"all 2 episodes of 2 cell(s) are already in {rollouts_path}: nothing to run" in again.out
-    assert table.read(rollouts_path).sort("run_id").equals(rows)
+    assert rollouts_file.read(rollouts_path).sort("run_id").equals(rows)
 
     out = tmp_path / "report"
     shown = run_cli(["report", results_path, "--out", out, "--rollouts", rollouts_path], capsys)
@@ -425,7 +425,7 @@ def test_a_suite_or_task_or_perturbation_it_cannot_run_is_refused_before_the_sim
     came after ~14 s of simulator imports, 1e-300 cm made 'perturbed' episodes of the official scenes)."""
     from helpers.probes import run_cli
 
-    from graftcache.rollout import run as rollout_run
+    from graftcache.rollout import roll_out as rollout_run
 
     def started(*args: object, **kwargs: object) -> None:
         raise AssertionError("the simulator was started")

@@ -18,16 +18,17 @@ from typing import Any
 import polars as pl
 import pytest
 from fixtures.simulator_cells import RolledOut
-from helpers.rollouts import VARYING, Paced, paced_request, paced_rows, pids, ran
+from helpers.rollouts import VARYING, Paced, paced_request, paced_rows, pids, ran, rolled
 
 from graftcache import results
 from graftcache.errors import RolloutError
 from graftcache.executors import get_executor
 from graftcache.requests import ExecutorSettings
 from graftcache.results.claims import claims_folder
-from graftcache.rollout import table
-from graftcache.rollout.run import RolloutRequest, roll_out, roll_out_started
-from graftcache.rollout.select import select_rows
+from graftcache.rollout import record, rollouts_file
+from graftcache.rollout.request import RolloutRequest
+from graftcache.rollout.roll_out import roll_out_started
+from graftcache.rollout.select import select, select_rows
 
 EPISODES = 24  # test_rollout_workers.py's request: 6 cells x 2 tasks x 2 episodes
 
@@ -36,15 +37,15 @@ def _on_ray(req: RolloutRequest, traces: Path, lines: list[str], actors: int | N
             **paced: Any) -> pl.DataFrame:
     spawn = partial(Paced, traces, **paced)
     team = get_executor(ExecutorSettings(executor="ray")).rollout_team(req, spawn, actors, lines.append)
-    return roll_out_started([req], partial(Paced, traces / "planner"), team, log=lines.append)
+    return roll_out_started([select(req)], partial(Paced, traces / "driver"), team, log=lines.append)
 
 
 @pytest.mark.slow
 def test_ray_actors_skip_what_the_file_holds_and_write_the_rows_of_this_process(ray_cluster: str,
                                                                                 tmp_path: Path) -> None:
-    one = roll_out(paced_request(tmp_path / "one"), Paced(tmp_path / "one" / "traces"), log=lambda _: None)
+    one = rolled(paced_request(tmp_path / "one"), Paced(tmp_path / "one" / "traces"), log=lambda _: None)
     req = paced_request(tmp_path / "ray")
-    table.append(req.rollouts, one.head(5).to_dicts())  # a rollout killed after 5 episodes
+    record.append(req.rollouts, one.head(5).to_dicts())  # a rollout killed after 5 episodes
     lines: list[str] = []
     rows = _on_ray(req, tmp_path / "ray" / "traces", lines, delay=0.05)
     import ray
@@ -59,7 +60,7 @@ def test_ray_actors_skip_what_the_file_holds_and_write_the_rows_of_this_process(
     assert len(episodes) == len(set(episodes)) == EPISODES - 5
     written = set(one.head(5).select("run_id", "task_index", "episode").rows())
     assert not written & {(run, task, k) for _, run, task, k in episodes}
-    assert len(pids(tmp_path / "ray" / "traces")) == actors  # the actors' (the planner's: traces/planner)
+    assert len(pids(tmp_path / "ray" / "traces")) == actors  # the actors' (the driver's: traces/driver)
     # one line per cell that had episodes to run: the first cell's 4 are among the 5 in the file
     assert sum(line.startswith("rolled out ") for line in lines) == 5
     assert not claims_folder(req.rollouts).exists()
@@ -77,7 +78,7 @@ def test_an_error_in_a_ray_actor_is_one_line_naming_the_run_and_episode(ray_clus
     assert head == f"run {run}, libero_object task 3 episode 1 (seed 8): RuntimeError: the simulator broke"
     assert int(actor.split(" on ")[0]) in pids(tmp_path / "traces")
     assert not claims_folder(req.rollouts).exists()
-    rows = table.read(req.rollouts)  # whole rows of the episodes before it, that one not among them
+    rows = rollouts_file.read(req.rollouts)  # whole rows of the episodes before it, that one not among them
     assert 0 < rows.height < EPISODES
     assert (run, 3, 1) not in set(rows.select("run_id", "task_index", "episode").rows())
 
@@ -95,7 +96,7 @@ def test_ray_actors_give_the_rows_of_this_process_in_the_simulator(ray_cluster: 
 
     actors = int(ray.cluster_resources()["CPU"])  # as many as the cluster runs at once, 1 CPU each
     assert f"ray: {actors} simulator actor(s), 0 GPU and 1 CPU each" in done.out
-    rows = table.read(tmp_path / "rollouts.parquet").sort("episode_id")
+    rows = rollouts_file.read(tmp_path / "rollouts.parquet").sort("episode_id")
     assert rows.drop(VARYING).equals(simulator_rollouts.rows.drop(VARYING))
     assert all((tmp_path / video).is_file() for video in rows["video"])
 

@@ -26,7 +26,7 @@ from typing import Any
 import polars as pl
 import pytest
 from fixtures.simulator_cells import RolledOut
-from helpers.rollouts import VARYING, Paced, paced_request, pids, ran
+from helpers.rollouts import VARYING, Paced, paced_request, pids, ran, rolled
 from helpers.tables import write_results
 
 from graftcache import results
@@ -34,9 +34,12 @@ from graftcache.errors import RolloutError
 from graftcache.executors.local import LocalExecutor
 from graftcache.requests import ExecutorSettings
 from graftcache.results.claims import claims_folder
-from graftcache.rollout import table
-from graftcache.rollout.run import RolloutRequest, plan, roll_out, roll_out_started
-from graftcache.rollout.select import select_rows
+from graftcache.rollout import rollouts_file
+from graftcache.rollout.episodes import episodes_of
+from graftcache.rollout.request import RolloutRequest
+from graftcache.rollout.roll_out import roll_out_started
+from graftcache.rollout.schedule import Scheduler, drive
+from graftcache.rollout.select import select, select_rows
 from graftcache.rollout.workers import Workers
 
 EPISODES = 24  # 6 cells x 2 tasks x 2 episodes
@@ -48,20 +51,20 @@ def _first_run(req: RolloutRequest) -> str:
 
 def _in_workers(req: RolloutRequest, traces: Path, workers: int = 2, **paced: Any) -> pl.DataFrame:
     team = Workers(partial(Paced, traces, **paced), workers, req)
-    return roll_out_started([req], partial(Paced, traces / "planner"), team, log=lambda _: None)
+    return roll_out_started([select(req)], partial(Paced, traces / "driver"), team, log=lambda _: None)
 
 
 def test_two_workers_write_the_rows_of_one_each_keeping_to_its_cells(tmp_path: Path) -> None:
     (tmp_path / "one").mkdir()
-    one = roll_out(paced_request(tmp_path / "one"), Paced(tmp_path / "one" / "traces"), log=lambda _: None)
+    one = rolled(paced_request(tmp_path / "one"), Paced(tmp_path / "one" / "traces"), log=lambda _: None)
     (tmp_path / "two").mkdir()
     lines: list[str] = []
     req = paced_request(tmp_path / "two")
     team = Workers(partial(Paced, tmp_path / "two" / "traces", delay=0.05), 2, req)
-    two = roll_out_started([req], partial(Paced, tmp_path / "two" / "planner"), team, log=lines.append)
+    two = roll_out_started([select(req)], partial(Paced, tmp_path / "two" / "driver"), team, log=lines.append)
     assert one.height == two.height == EPISODES
     assert two.drop(VARYING).sort("episode_id").equals(one.drop(VARYING).sort("episode_id"))
-    assert two["seconds"].to_list() == [0.05] * EPISODES  # the workers' outcomes, not the planner's
+    assert two["seconds"].to_list() == [0.05] * EPISODES  # the workers' outcomes, not the driver's
     episodes = ran(tmp_path / "two" / "traces")
     assert len(episodes) == EPISODES and len({p for p, *_ in episodes}) == 2  # both workers ran episodes, none twice
     assert len(set(episodes)) == EPISODES
@@ -90,11 +93,12 @@ def test_one_team_serves_requests_in_turn_starting_once(tmp_path: Path) -> None:
         return [paced_request(folder, results=path, **o) for o in over]
 
     alone = requests(tmp_path / "one")
-    one = pl.concat([roll_out(r, Paced(tmp_path / "one" / "traces"), log=lambda _: None) for r in alone])
+    one = pl.concat([rolled(r, Paced(tmp_path / "one" / "traces"), log=lambda _: None) for r in alone])
     reqs = requests(tmp_path / "two")
     lines: list[str] = []
     team = Workers(partial(Paced, tmp_path / "two" / "traces", delay=0.02), 2, reqs[0])
-    two = roll_out_started(reqs, partial(Paced, tmp_path / "two" / "planner"), team, log=lines.append)
+    two = roll_out_started([select(r) for r in reqs], partial(Paced, tmp_path / "two" / "driver"), team,
+                           log=lines.append)
     assert two.height == EPISODES  # the first request's 6 episodes are the third's first 6: counted once
     assert two.drop(VARYING).sort("episode_id").equals(one.unique("episode_id").drop(VARYING).sort("episode_id"))
     assert len(pids(tmp_path / "two" / "traces")) == 2  # started once, for the three requests
@@ -108,7 +112,8 @@ def test_one_team_serves_requests_in_turn_starting_once(tmp_path: Path) -> None:
 def test_requests_of_one_team_must_share_the_rollouts_file(tmp_path: Path) -> None:
     first, second = paced_request(tmp_path), paced_request(tmp_path, rollouts=tmp_path / "other.parquet")
     with pytest.raises(RolloutError, match="requests rolled out by one team must share their rollouts file"):
-        roll_out_started([first, second], partial(Paced, tmp_path / "planner"), None, log=lambda _: None)
+        roll_out_started([select(first), select(second)], partial(Paced, tmp_path / "driver"), None,
+                         log=lambda _: None)
 
 
 def test_an_error_in_a_worker_is_one_line_naming_the_run_and_episode(tmp_path: Path) -> None:
@@ -125,7 +130,7 @@ def test_an_error_in_a_worker_is_one_line_naming_the_run_and_episode(tmp_path: P
     assert not multiprocessing.active_children()  # the other worker was stopped
     assert not claims_folder(req.rollouts).exists()
     # whole rows of episodes the workers finished (the stopped one may have finished one it had no time to write)
-    rows = table.read(req.rollouts)
+    rows = rollouts_file.read(req.rollouts)
     finished = {(run_id, task, k) for _, run_id, task, k in ran(tmp_path / "traces")}
     assert 0 < rows.height < EPISODES and set(rows.select("run_id", "task_index", "episode").rows()) <= finished
     assert (run, 3, 1) not in finished
@@ -140,7 +145,7 @@ def test_a_worker_killed_mid_episode_is_one_line_and_a_rerun_runs_exactly_the_re
     assert str(failed.value).split(") ", 1)[1] == (
         f"died (killed by signal 9) while running run {run}, libero_object task 3 episode 0 (seed 7); the episodes "
         "written are kept: rerun the command to run the others")
-    written = table.read(req.rollouts)
+    written = rollouts_file.read(req.rollouts)
     assert 0 < written.height < EPISODES
     rows = _in_workers(req, tmp_path / "rerun")
     assert len(ran(tmp_path / "rerun")) == EPISODES - written.height
@@ -153,12 +158,15 @@ import sys
 from functools import partial
 from pathlib import Path
 from helpers.rollouts import Paced
-from graftcache.rollout.run import RolloutRequest, roll_out_started
+from graftcache.rollout.request import RolloutRequest
+from graftcache.rollout.roll_out import roll_out_started
+from graftcache.rollout.select import select
 from graftcache.rollout.workers import Workers
 here = Path(sys.argv[1])
 req = RolloutRequest(results=here / "results.parquet", rollouts=here / "rollouts.parquet", top=1,
                      suites=("libero_object",), tasks=(0, 3), episodes_per_task=2, seed=7, command="killed")
-roll_out_started([req], partial(Paced, here / "planner"), Workers(partial(Paced, here / "traces", delay=0.4), 2, req))
+roll_out_started([select(req)], partial(Paced, here / "driver"),
+                 Workers(partial(Paced, here / "traces", delay=0.4), 2, req))
 """
 
 
@@ -176,7 +184,7 @@ def test_kill_9_of_a_two_worker_rollout_leaves_whole_rows_no_worker_and_a_rerun_
     rollout = subprocess.Popen([sys.executable, "-c", ROLLOUT, str(tmp_path)], env=env, stdout=subprocess.DEVNULL,
                                stderr=subprocess.PIPE)
     deadline = time.monotonic() + 120
-    while table.read(req.rollouts).height < 3:  # a few episodes in, both workers busy
+    while rollouts_file.read(req.rollouts).height < 3:  # a few episodes in, both workers busy
         assert rollout.poll() is None, rollout.stderr.read().decode()[-2000:]
         assert time.monotonic() < deadline
         time.sleep(0.05)
@@ -188,7 +196,7 @@ def test_kill_9_of_a_two_worker_rollout_leaves_whole_rows_no_worker_and_a_rerun_
     while not all(_gone(p) for p in workers):  # the kernel's SIGTERM to each (PR_SET_PDEATHSIG)
         assert time.monotonic() < deadline, "a worker outlived its rollout"
         time.sleep(0.05)
-    written = table.read(req.rollouts)  # whole rows only, each episode once
+    written = rollouts_file.read(req.rollouts)  # whole rows only, each episode once
     assert 3 <= written.height < EPISODES and written["episode_id"].n_unique() == written.height
     rows = _in_workers(req, tmp_path / "rerun")
     assert len(ran(tmp_path / "rerun")) == EPISODES - written.height
@@ -217,7 +225,7 @@ def test_two_workers_give_the_rows_and_frames_of_one_in_the_simulator(simulator_
 
     done = run_cli([*simulator_rollouts.argv, "--rollouts", tmp_path / "rollouts.parquet", "--workers", 2], capsys)
     assert done.code == 0, done.err[-3000:]
-    one, two = simulator_rollouts.rows, table.read(tmp_path / "rollouts.parquet").sort("episode_id")
+    one, two = simulator_rollouts.rows, rollouts_file.read(tmp_path / "rollouts.parquet").sort("episode_id")
     assert one.height == 4 and sorted(one["episode"].to_list()) == [0, 0, 1, 1]
     assert two.drop(VARYING).equals(one.drop(VARYING))
     assert (one["steps"] == 5).all() and not multiprocessing.active_children()
@@ -231,19 +239,23 @@ def test_two_workers_give_the_rows_and_frames_of_one_in_the_simulator(simulator_
 
 
 def test_a_team_whose_episodes_another_rollout_wrote_meanwhile_ends(tmp_path: Path) -> None:
-    """A second rollout sharing the file plans while the first still runs: every episode it found missing is written
-    by the time it holds the cells' claims. Its team closes both cells without running one and returns (it waited
-    forever for a worker's report once)."""
+    """A second rollout sharing the file asks for its episodes while the first still runs: every episode it found
+    missing is written by the time it holds the cells' claims. Its team closes both cells without running one and
+    returns (it waited forever for a worker's report once)."""
     req = paced_request(tmp_path)
-    first = roll_out(req, Paced(tmp_path / "first"), log=lambda _: None)
+    first = rolled(req, Paced(tmp_path / "first"), log=lambda _: None)
     rows = {r["run_id"]: r for r in select_rows(results.read(req.results), top=1, suites=["libero_object"])
             .iter_rows(named=True)}
-    stale = plan(pl.DataFrame(list(rows.values())), req, Paced(tmp_path / "planner"))
+    stale = episodes_of(pl.DataFrame(list(rows.values())), req, Paced(tmp_path / "driver"))
     assert len(stale) == EPISODES and first.height == EPISODES
     team = Workers(partial(Paced, tmp_path / "second"), 2, req)
     bar = SimpleNamespace(update=lambda n: counted.append(n), set_postfix_str=lambda _: None)
     counted: list[int] = []
-    runner = threading.Thread(target=team.run, args=(req, rows, stale, bar, lambda _: None), daemon=True)
+    def run() -> None:  # the second rollout's loop, as graftcache.rollout.roll_out.roll_out drives it
+        team.begin(req, len(stale), lambda _: None)
+        drive(Scheduler(req.rollouts, rows, stale, bar, lambda _: None), team)
+
+    runner = threading.Thread(target=run, daemon=True)
     try:
         runner.start()
         runner.join(10)
@@ -251,7 +263,7 @@ def test_a_team_whose_episodes_another_rollout_wrote_meanwhile_ends(tmp_path: Pa
     finally:
         team.close()
     assert sum(counted) == EPISODES and ran(tmp_path / "second") == []
-    assert table.read(req.rollouts).height == EPISODES and not multiprocessing.active_children()
+    assert rollouts_file.read(req.rollouts).height == EPISODES and not multiprocessing.active_children()
 
 
 CONSOLE = """
@@ -261,7 +273,9 @@ from pathlib import Path
 import graftcache.cli.rollout
 from graftcache.cli import main
 from helpers.rollouts import Paced
-from graftcache.rollout.run import RolloutRequest, roll_out_started
+from graftcache.rollout.request import RolloutRequest
+from graftcache.rollout.roll_out import roll_out_started
+from graftcache.rollout.select import select
 from graftcache.rollout.workers import Workers
 here, spin, built = Path(sys.argv[1]), sys.argv[2], sys.argv[3:]
 
@@ -270,7 +284,7 @@ def run(args):  # the console script's rollout, over Paced simulators, one of wh
                          suites=("libero_object",), tasks=(0, 3), episodes_per_task=2, seed=7, command="stopped")
     debris = (built[0], 0, 0) if built else None  # the other worker's first episode: stopped mid-build
     team = Workers(partial(Paced, here / "traces", delay=0.2, spin=(spin, 0, 0), debris=debris), 2, req)
-    roll_out_started([req], partial(Paced, here / "planner"), team)
+    roll_out_started([select(req)], partial(Paced, here / "driver"), team)
     return 0
 
 graftcache.cli.rollout.run = run
@@ -341,12 +355,12 @@ def test_kill_9_of_the_rollout_ends_a_worker_spinning_in_the_reset_loop(tmp_path
 def test_a_team_asked_for_more_workers_than_cpus_starts_one_per_cpu_and_says_so(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """--workers 5 on a process that may run on 2 CPUs: 2 simulators start, said in one line, and they write the rows
-    (--workers 1000 started up to 1000 before planning)."""
+    (--workers 1000 started up to 1000 before the episodes were known)."""
     monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1})
     req = paced_request(tmp_path)
     lines: list[str] = []
     team = LocalExecutor(ExecutorSettings()).rollout_team(req, partial(Paced, tmp_path / "traces"), 5, lines.append)
-    rows = roll_out_started([req], partial(Paced, tmp_path / "planner"), team, log=lines.append)
+    rows = roll_out_started([select(req)], partial(Paced, tmp_path / "driver"), team, log=lines.append)
     assert lines[0] == "--workers 5: starting 2, one per CPU this process may run on"
     assert len(pids(tmp_path / "traces")) == 2 and rows.height == EPISODES
     assert not multiprocessing.active_children()
@@ -385,7 +399,7 @@ from multiprocessing import util
 import graftcache.cli.rollout
 from graftcache.cli import main
 from helpers.rollouts import Paced
-from graftcache.rollout.run import RolloutRequest
+from graftcache.rollout.request import RolloutRequest
 from graftcache.rollout.workers import Workers
 here, spawned = Path(sys.argv[1]), []
 spawn = util.spawnv_passfds

@@ -1,6 +1,7 @@
 """The one loop every rollout's episodes go through (graftcache.rollout.schedule.drive): each claim reads the rollouts
-file once, this process's team of one and a team of worker processes write the same rows (those the fake simulator's
-definition gives, by hand: tests/helpers/rollouts.py paced_rows; Ray's: test_rollout_ray.py), and a cell another
+file once (here the loop alone; the whole command's reads: test_chain.py), this process's team of one and a team of
+worker processes write the same rows (those the fake simulator's definition gives, by hand: tests/helpers/rollouts.py
+paced_rows; Ray's: test_rollout_ray.py), and a cell another
 rollout holds is said once and polled until it is given back.
 
 The request is test_rollout_workers.py's: top 1 on libero_object of tests/helpers/tables.py, 6 cells x tasks 0, 3 x
@@ -18,15 +19,16 @@ from typing import Any
 
 import polars as pl
 import pytest
-from helpers.rollouts import VARYING, Paced, paced_request, paced_rows, ran
+from helpers.rollouts import VARYING, Paced, paced_request, paced_rows, ran, rolled
 
 from graftcache import results
 from graftcache.results.claims import cell_claim, claims_folder
-from graftcache.rollout import table
-from graftcache.rollout.episodes import Episode
-from graftcache.rollout.run import RolloutRequest, plan, roll_out, roll_out_started
-from graftcache.rollout.schedule import EpisodeReport, Job, Scheduler, drive
-from graftcache.rollout.select import select_rows
+from graftcache.rollout import record, rollouts_file
+from graftcache.rollout.episodes import Episode, EpisodeReport, episodes_of
+from graftcache.rollout.request import RolloutRequest
+from graftcache.rollout.roll_out import roll_out_started
+from graftcache.rollout.schedule import Job, Scheduler, drive
+from graftcache.rollout.select import select, select_rows
 from graftcache.rollout.workers import Workers
 
 
@@ -55,14 +57,14 @@ class _Instant:
 def test_each_claim_reads_the_rollouts_file_once(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     req = paced_request(tmp_path)
     cells = _cells(req)
-    episodes = plan(cells, req, Paced(tmp_path / "traces"))
+    episodes = episodes_of(cells, req, Paced(tmp_path / "traces"))
     written = [e for e in episodes if e.run_id == cells["run_id"][1]][:3]  # another rollout wrote 3 of cell 2's 4
     theirs = paced_rows([cells["run_id"][1]], (0, 3), 2, 7).filter(pl.col("episode_id").is_in([e.id for e in written]))
     assert theirs.height == 3
-    table.append(req.rollouts, theirs.with_columns(seconds=pl.lit(0.5), command=pl.lit("")).to_dicts())
+    record.append(req.rollouts, theirs.with_columns(seconds=pl.lit(0.5), command=pl.lit("")).to_dicts())
     reads: list[Path] = []
-    real = table.read
-    monkeypatch.setattr(table, "read", lambda path: reads.append(Path(path)) or real(path))
+    real = rollouts_file.read
+    monkeypatch.setattr(rollouts_file, "read", lambda path: reads.append(Path(path)) or real(path))
     transport, lines = _Instant(), []
     scheduler = Scheduler(req.rollouts, {r["run_id"]: r for r in cells.iter_rows(named=True)}, episodes,
                           SimpleNamespace(update=lambda n: None, set_postfix_str=lambda s: None), lines.append)
@@ -74,10 +76,10 @@ def test_each_claim_reads_the_rollouts_file_once(tmp_path: Path, monkeypatch: py
 
 
 def test_one_process_and_two_workers_write_the_rows_the_simulator_defines(tmp_path: Path) -> None:
-    alone = roll_out(paced_request(tmp_path / "one"), Paced(tmp_path / "one" / "traces"), log=lambda _: None)
+    alone = rolled(paced_request(tmp_path / "one"), Paced(tmp_path / "one" / "traces"), log=lambda _: None)
     req = paced_request(tmp_path / "two")
     team = Workers(partial(Paced, tmp_path / "two" / "traces"), 2, req)
-    two = roll_out_started([req], partial(Paced, tmp_path / "two" / "planner"), team, log=lambda _: None)
+    two = roll_out_started([select(req)], partial(Paced, tmp_path / "two" / "driver"), team, log=lambda _: None)
     expected = paced_rows(_cells(req)["run_id"].to_list(), (0, 3), 2, 7)
     assert alone.height == two.height == expected.height == 24
     assert alone.drop(VARYING).sort("episode_id").equals(expected)
@@ -93,7 +95,7 @@ def test_a_cell_another_rollout_holds_is_said_once_and_run_once_given_back(tmp_p
     threading.Timer(2.5, other.release).start()
     lines: list[str] = []
     start = time.monotonic()
-    rows = roll_out(req, Paced(tmp_path / "traces"), log=lines.append)
+    rows = rolled(req, Paced(tmp_path / "traces"), log=lines.append)
     assert time.monotonic() - start >= 2.5
     waits = [line for line in lines if line.startswith("waiting for ")]
     assert len(waits) == 1 and waits[0].startswith(f"waiting for run {first}, being rolled out by ")

@@ -27,10 +27,12 @@ from graftcache.analysis.pairwise import pairwise
 from graftcache.analysis.rollouts import read_rollouts
 from graftcache.errors import RolloutError
 from graftcache.results import read_for_report
-from graftcache.rollout import table
+from graftcache.rollout import rollouts_file
 from graftcache.rollout.episodes import Episode, Outcome
 from graftcache.rollout.graded import Graded
-from graftcache.rollout.run import RolloutRequest, roll_out_started
+from graftcache.rollout.request import RolloutRequest
+from graftcache.rollout.roll_out import roll_out_started
+from graftcache.rollout.select import select
 from graftcache.rollout.sequential import Sequential, looks
 
 BASE = {"siglip": 0.10, "resnet18": 0.13, "dinov2-s": 0.30}
@@ -62,12 +64,12 @@ def _request(tmp_path: Path, **over: Any) -> RolloutRequest:
 
 def _run(req: RolloutRequest, sim: ByEncoder, seq: Sequential) -> list[str]:
     lines: list[str] = []
-    roll_out_started([req], lambda: sim, None, lines.append, expand=partial(looks, seq=seq, log=lines.append))
+    roll_out_started([select(req)], lambda: sim, None, lines.append, expand=partial(looks, seq=seq, log=lines.append))
     return lines
 
 
 def _per_cell(req: RolloutRequest) -> pl.DataFrame:
-    rows = table.read(req.rollouts).join(read_for_report(req.results), on="run_id", suffix="_cell")
+    rows = rollouts_file.read(req.rollouts).join(read_for_report(req.results), on="run_id", suffix="_cell")
     return rows.group_by("backbone", "control", "encoder", "seed_cell").agg(n=pl.len())
 
 
@@ -109,11 +111,11 @@ def test_a_killed_sequential_rollout_resumes_to_the_same_rows_and_record(tmp_pat
     assert not (cut / LOOKS_FILE).exists()
     again = ByEncoder()
     _run(_request(cut), again, seq)
-    assert again.ran and len(again.ran) < len(table.read(whole / "rollouts.parquet"))
+    assert again.ran and len(again.ran) < len(rollouts_file.read(whole / "rollouts.parquet"))
     key = ["run_id", "episode_id", "min_target_distance_m"]
-    assert table.read(cut / "rollouts.parquet").select(key).sort(key).equals(
-        table.read(whole / "rollouts.parquet").select(key).sort(key))
-    assert table.read(cut / "rollouts.parquet")["episode_id"].is_unique().all()
+    assert rollouts_file.read(cut / "rollouts.parquet").select(key).sort(key).equals(
+        rollouts_file.read(whole / "rollouts.parquet").select(key).sort(key))
+    assert rollouts_file.read(cut / "rollouts.parquet")["episode_id"].is_unique().all()
     assert json.loads((cut / LOOKS_FILE).read_text())["looks"] == json.loads(
         (whole / LOOKS_FILE).read_text())["looks"]
 
@@ -166,7 +168,7 @@ def test_the_report_takes_the_looks_level_and_states_the_error_rate(tmp_path: Pa
 
 
 def table_of(req: RolloutRequest) -> pl.DataFrame:
-    return table.read(req.rollouts).join(read_for_report(req.results), on="run_id", suffix="_cell")
+    return rollouts_file.read(req.rollouts).join(read_for_report(req.results), on="run_id", suffix="_cell")
 
 
 def test_a_request_without_two_candidate_encoders_runs_once(tmp_path: Path) -> None:

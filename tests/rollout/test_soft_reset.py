@@ -15,7 +15,7 @@ import pytest
 from fixtures.simulator_cells import RolledOut
 from helpers.rollouts import VARYING
 
-from graftcache.rollout import table
+from graftcache.rollout import rollouts_file
 
 
 def _frames(path: Path) -> Any:
@@ -38,7 +38,7 @@ def test_soft_and_hard_resets_give_the_same_rows_and_frames(simulator_rollouts: 
     assert "--reset" not in simulator_rollouts.argv  # the session's rollout ran the default
     done = run_cli([*simulator_rollouts.argv, "--rollouts", tmp_path / "rollouts.parquet", "--reset", "hard"], capsys)
     assert done.code == 0, done.err[-3000:]
-    soft, hard = simulator_rollouts.rows, table.read(tmp_path / "rollouts.parquet").sort("episode_id")
+    soft, hard = simulator_rollouts.rows, rollouts_file.read(tmp_path / "rollouts.parquet").sort("episode_id")
     assert soft.height == 4 and soft["min_target_distance_m"].null_count() == 0
     assert hard.drop(VARYING).equals(soft.drop(VARYING))
     for video in soft["video"]:

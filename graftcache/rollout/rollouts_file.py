@@ -1,4 +1,5 @@
-"""The rollouts file: one row per simulated episode, its schema declared once and validated on every write.
+"""The rollouts file: one row per simulated episode, its schema declared once and validated on every read and write
+(rows are written by graftcache.rollout.record.append).
 
 It is kept the way results files are (graftcache.results.writing.append_table: appends under the file's lease, a
 temporary file renamed over it, readers through one descriptor), so several `graftcache rollout` processes may share
@@ -14,7 +15,7 @@ it).
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Mapping
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -24,7 +25,6 @@ from graftcache.errors import GraftcacheError, RolloutError
 from graftcache.hashing import sha256_json
 from graftcache.results.reading import failure_reason, load_table
 from graftcache.results.schema import cast_exactly
-from graftcache.results.writing import append_table
 
 #: The format of rollouts rows (independent of the results' format); a newer one is refused by `read`.
 FORMAT_VERSION = 2
@@ -115,9 +115,3 @@ def read(path: str | Path) -> pl.DataFrame:
     except GraftcacheError as e:
         raise RolloutError(f"{path}: {e}; pass another --rollouts") from None
 
-
-def append(path: str | Path, rows: Iterable[Mapping[str, Any]]) -> pl.DataFrame:
-    """Append episodes' rows (dicts of SCHEMA's columns) under the file's lease; an episode already there is
-    replaced, never doubled."""
-    new = validate(pl.DataFrame([dict(r) for r in rows], schema=SCHEMA))
-    return append_table(path, new, read, key="episode_id", what="rollouts file")
