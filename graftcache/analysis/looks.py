@@ -40,21 +40,21 @@ class Look:
 
 @dataclass(frozen=True)
 class Looks:
-    """A sequential rollout's record: looks of `step` episodes per task up to `cap`, at most `looks_planned` of
-    them, each judged on `measure` at `level` = 1 - `error` / `looks_planned`."""
+    """A sequential rollout's record: looks of `step` episodes per task up to `cap`, at most `max_looks` of
+    them, each judged on `measure` at `level` = 1 - `error` / `max_looks`."""
 
     measure: str
     error: float
     cap: int
     step: int
-    looks_planned: int
+    max_looks: int
     level: float
     looks: tuple[Look, ...]
     command: str = ""
 
     def as_json(self) -> dict:
         return {"format_version": FORMAT_VERSION, "measure": self.measure, "error": self.error, "cap": self.cap,
-                "step": self.step, "looks_planned": self.looks_planned, "level": self.level, "command": self.command,
+                "step": self.step, "looks_planned": self.max_looks, "level": self.level, "command": self.command,
                 "looks": [{"look": k.look, "episodes_per_task": k.episodes_per_task, "cells": k.cells,
                            "unresolved": [list(p) for p in k.unresolved]} for k in self.looks]}
 

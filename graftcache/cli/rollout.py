@@ -156,6 +156,6 @@ def run(args: argparse.Namespace) -> int:
 
         expand = partial(looks, seq=Sequential(args.until_resolved), log=print)
     executor = get_executor(request_from(ExecutorSettings, args))
-    # the team starts first: its simulators build while this process builds its own, to plan
+    # the team starts first: its simulators build while this process builds its own, to list the episodes with
     roll_out_started([req], spawn, executor.rollout_team(req, spawn, args.workers, print), expand=expand)
     return 0

@@ -90,7 +90,7 @@ def looks_sentence(looks: A.Looks) -> str:
     last = looks.looks[-1]
     left = "; ".join(f"{x} vs {y} ({A.backbone_label(b)} · {s})" for b, s, x, y in last.unresolved)
     return (f"The closed-loop episodes were added sequentially (`rollout --until-resolved {looks.cap}`): looks of "
-            f"{looks.step} episode(s) per task, at most {looks.looks_planned}, each adding episodes only to the "
+            f"{looks.step} episode(s) per task, at most {looks.max_looks}, each adding episodes only to the "
             f"candidate pairs whose closed-loop {looks.measure} interval still held 0; every look's interval is "
             f"taken at {looks.level:.2%} (Bonferroni over the looks), so a pair of equal encoders is called "
             f"resolved with chance at most {looks.error:.0%} whatever look it stopped at. "
