@@ -27,7 +27,7 @@ import numpy as np
 import torch
 from common import DEFAULT_DATASET, machine, median_seconds, warm_page_cache
 
-from graftcache.backbone_table import native_name
+from graftcache.backbone_registry import native_name
 from graftcache.backbones import load_backbone
 from graftcache.cameras import match_cameras
 from graftcache.encoders import load_encoder

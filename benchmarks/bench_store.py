@@ -11,7 +11,7 @@ in the venv) in its own process on 127.0.0.1, so client and server do not share 
 
 Fit data path = one pass of a fit's feature stream over one suite (`graftcache.fit.stream`, read in this process:
 features of both cameras, low-dim rows), every block checked against its checksum as stage 2 does. For S3: "cold"
-starts from an empty local read-through copy, "warm" reuses it. Push/pull = `graftcache.store.transfer.copy_cache`
+starts from an empty local read-through copy, "warm" reuses it. Push/pull = `graftcache.store.push_pull.copy_cache`
 (copy + verify at the destination + publish); the plain copy moves the same objects with the same 8 threads, no checks.
 """
 
@@ -43,9 +43,9 @@ from graftcache.fit.data import load_lowdim  # noqa: E402
 from graftcache.fit.feed import SplitFeed  # noqa: E402
 from graftcache.fit.stream import FeatureSource, read_blocks  # noqa: E402
 from graftcache.store import FeatureCache, open_root  # noqa: E402
+from graftcache.store.push_pull import COPY_THREADS, copy_cache  # noqa: E402
 from graftcache.store.readthrough import ReadThroughRoot  # noqa: E402
 from graftcache.store.roots import Root  # noqa: E402
-from graftcache.store.transfer import COPY_THREADS, copy_cache  # noqa: E402
 
 GRID, CHUNK, BLOCK = (8, 8), 50, 256
 

@@ -9,7 +9,7 @@ driver, torch, CUDA and the libraries named at the top) and a run cut short keep
 would start past `--budget-s` is skipped and says so; an error in one check is recorded in one line and the next
 check runs.
 
-1. correctness, every backbone of graftcache.backbone_table.BACKBONES at tiny size: graft; two cells in one pass
+1. correctness, every backbone of graftcache.backbone_registry.BACKBONES at tiny size: graft; two cells in one pass
    (graftcache.graft.FusedProjector) for a few AdamW steps land on the projectors each cell reaches alone;
    every recompute plan gives the projector gradients plan off gives; predict in the compute dtype is
    finite; a tiny policy saved to disk and lean-loaded onto the device (graftcache.backbones.lean_load) predicts what
@@ -78,7 +78,7 @@ sys.path[:0] = [str(ROOT), str(ROOT / "benchmarks")]
 import bench_protocol as bp  # noqa: E402  (the GPU peaks, a sync, the protocol's measurements)
 
 from devtools.released import CONFIGS, LIBERO, Recipe, built_on, on_device, unit_stats  # noqa: E402
-from graftcache.backbone_table import BACKBONES  # noqa: E402
+from graftcache.backbone_registry import BACKBONES  # noqa: E402
 from graftcache.backbones import load_backbone  # noqa: E402
 from graftcache.backbones.compiled import compile_forward  # noqa: E402
 from graftcache.backbones.patching import Patches  # noqa: E402
@@ -380,7 +380,7 @@ def compute_dtype_step_and_predict(adapter, feats: torch.Tensor, batch: int, dty
 
 def lean_roundtrip(name: str, adapter, tiny: TinyBuild, device: torch.device) -> dict:
     """The tiny policy saved to disk and lean-loaded onto the device: the same weights (sha256) and chunk."""
-    from graftcache.backbone_table import native_name
+    from graftcache.backbone_registry import native_name
     from graftcache.encoders import load_encoder
 
     adapter.reset()

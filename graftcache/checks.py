@@ -1,7 +1,7 @@
 """Range rules for request fields: each names its test and the phrase that says what is wrong.
 
 A request field names its rule in its setting (graftcache.settings.setting(rule=...)); `Checked` applies it when
-the request is built and to a recipe's tables, and the CLI when it parses the flag, so each range is declared once.
+the request is built and to a recipe's sections, and the CLI when it parses the flag, so each range is declared once.
 """
 
 from __future__ import annotations

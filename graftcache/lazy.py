@@ -1,6 +1,6 @@
 """Registry entries named by import string ("package.module:attribute"), imported on first use.
 
-Why: a registry lower in the package (the encoder catalog, the backbone table) can name an
+Why: a registry lower in the package (the encoder catalog, the backbone registry) can name an
 implementation that lives higher up or pulls in lerobot, without importing it until it is used, so the
 import graph stays a DAG and light commands stay light.
 """

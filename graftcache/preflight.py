@@ -17,7 +17,7 @@ from typing import Any
 
 import polars as pl
 
-from graftcache.backbone_table import native_name
+from graftcache.backbone_registry import native_name
 from graftcache.datasets import DatasetMeta, open_dataset, suite_of
 from graftcache.encoders import get_spec
 from graftcache.errors import GraftcacheError

@@ -18,7 +18,7 @@ Recipe keys (unknown keys are errors, so a typo never silently falls back to a d
 reads) is for storing pooled grids as well or instead, e.g. ["unpooled", "4x4"] (graftcache.sweep.encoder_grids).
 
 Every value is checked against the type of the request field it sets (a string where a number, list
-or boolean belongs is an error naming file, table and key), and against its range and choices: each declared once,
+or boolean belongs is an error naming file, section and key), and against its range and choices: each declared once,
 on the field (graftcache/requests.py), as for the CLI's flags.
 
 Relative paths in `dataset` are resolved against the recipe's folder when they exist there, so a
@@ -34,7 +34,7 @@ from dataclasses import dataclass, field, fields, make_dataclass
 from pathlib import Path
 from typing import Any
 
-from graftcache.backbone_table import BACKBONES
+from graftcache.backbone_registry import BACKBONES
 from graftcache.cameras import parse_camera_map
 from graftcache.codecs import matches, type_name
 from graftcache.errors import GraftcacheError
@@ -65,10 +65,10 @@ class BackboneEntry:
     policy: str = "tiny"
 
 
-#: The request each settings table overrides; its own defaults apply to anything the table leaves out.
+#: The request each settings section overrides; its own defaults apply to anything the section leaves out.
 SECTIONS: dict[str, type] = {"extract": ExtractRequest, "fit": FitRequest, "train_tiny": TinyTrainConfig,
                              "executor": ExecutorSettings}
-#: Settings a recipe's [extract] / [fit] / [train_tiny] / [executor] tables may set: every field of the request
+#: Settings a recipe's [extract] / [fit] / [train_tiny] / [executor] sections may set: every field of the request
 #: but those the sweep sets from its product (dataset, encoder, backbone, seeds, ...; nor `shard`: a sweep needs whole
 #: caches), as each field declares (graftcache/requests.py, `recipe=False`).
 SECTION_KEYS: dict[str, tuple[str, ...]] = {section: recipe_keys(cls) for section, cls in SECTIONS.items()}
@@ -102,13 +102,13 @@ class _RecipeMethods:
 
     def fit_request(self, backbone: str, policy: str, encoder: str, suite: str, **resolved: Any) -> FitRequest:
         """The FitRequest of one (backbone, encoder, suite) of the recipe product: the top-level settings, the [fit]
-        table, and what the sweep resolved (`resolved`: cache keys, ...)."""
+        section, and what the sweep resolved (`resolved`: cache keys, ...)."""
         return FitRequest(backbone=backbone, policy=policy, encoder=encoder, suite=suite,
                           **{k: getattr(self, k) for k in TOP_LEVEL}, progress=False,
                           command=f"graftcache sweep {self.path}", **resolved, **self.fit)
 
     def extract_request(self, encoder: str, **kw: Any) -> ExtractRequest:
-        """The ExtractRequest of one of the sweep's caches: the [extract] table, overridden by `kw`."""
+        """The ExtractRequest of one of the sweep's caches: the [extract] section, overridden by `kw`."""
         return ExtractRequest(dataset=self.dataset, encoder=encoder, device=self.device, cache=self.cache,
                               **{**self.extract, **kw})
 
@@ -121,7 +121,7 @@ def _top_level(name: str) -> tuple:
 
 
 #: One sweep, as read from a TOML file: its name, product axes (suites, backbones, encoders, and seeds, controls,
-#: objective among the TOP_LEVEL settings), and per-stage settings tables: request overrides.
+#: objective among the TOP_LEVEL settings), and per-stage settings sections: request overrides.
 Recipe = make_dataclass(
     "Recipe",
     [("name", str), *(_top_level(k) for k in TOP_LEVEL if k in _REQUIRED),
@@ -153,7 +153,7 @@ def _tuples(value: Any) -> Any:
 
 
 def _build(cls: type, data: Mapping[str, Any], where: str) -> Any:
-    """A frozen dataclass from a TOML table; unknown, missing or mistyped keys name the place in the recipe."""
+    """A frozen dataclass from a recipe section; unknown, missing or mistyped keys name the place in the recipe."""
     known = {f.name for f in fields(cls)}
     unknown = sorted(set(data) - known)
     if unknown:
@@ -165,15 +165,15 @@ def _build(cls: type, data: Mapping[str, Any], where: str) -> Any:
 
 
 def _section(data: Mapping[str, Any], section: str, where: str) -> dict[str, Any]:
-    """A settings table as request overrides; keys outside SECTION_KEYS[section] or of the wrong type,
+    """A settings section as request overrides; keys outside SECTION_KEYS[section] or of the wrong type,
     and values the request refuses, name the place."""
-    table = renamed(SECTIONS[section], data.get(section, {}), f"{where} [{section}]")
-    unknown = sorted(set(table) - set(SECTION_KEYS[section]))
+    given = renamed(SECTIONS[section], data.get(section, {}), f"{where} [{section}]")
+    unknown = sorted(set(given) - set(SECTION_KEYS[section]))
     if unknown:
         raise RecipeError(f"{where} [{section}]: unknown key(s) {', '.join(unknown)}; known: "
                           f"{', '.join(sorted(SECTION_KEYS[section]))}")
     cls = SECTIONS[section]
-    values = _typed(cls, table, f"{where} [{section}]")
+    values = _typed(cls, given, f"{where} [{section}]")
     try:
         cls.check(values)
     except GraftcacheError as e:

@@ -3,7 +3,7 @@ setting.
 
 Each field declares, with `setting(...)` (graftcache/settings.py), everything about it that is used outside
 Python: its default, help, flag, choices, range rule (graftcache/checks.py), how its flag's text is read and
-written (graftcache/codecs.py; by default from the field's type), and whether a sweep recipe's settings table
+written (graftcache/codecs.py; by default from the field's type), and whether a sweep recipe's settings section
 may set it (`recipe=False`: the sweep sets it from its product). From these the CLI builds its flags
 (graftcache.cli.common.add_flags), the recipe reader its schema (graftcache.recipe), the sweep the command lines
 it records (graftcache.sweep.command_line), and `Checked` the checks every construction runs.
@@ -13,7 +13,7 @@ Adding a setting is one declaration here. E.g. a FitRequest field
     eval_batch_size: int | None = setting(None, rule=POSITIVE, help="frames scored at once (default: --batch-size)")
 
 is at once `graftcache fit --eval-batch-size N` (an int > 0; `--eval-batch-size 0` is a one-line usage error),
-a key of a recipe's [fit] table (type and range checked there too), written into the command lines a sweep
+a key of a recipe's [fit] section (type and range checked there too), written into the command lines a sweep
 records, and checked whenever a FitRequest is built. A choice is `choices=("auto", "on", "off")`; a switch is a
 `bool` field (default False: `--name`; default True: `--no-name`). A field the command sets itself takes
 `flag=None`; one the sweep's product sets takes `recipe=False`.
@@ -43,7 +43,7 @@ from dataclasses import asdict, dataclass
 from typing import Any
 
 from graftcache import codecs
-from graftcache.backbone_table import BACKBONES, native_name
+from graftcache.backbone_registry import BACKBONES, native_name
 from graftcache.cameras import SYNTAX, valid_camera_map
 from graftcache.checks import (
     EPISODES,

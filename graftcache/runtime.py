@@ -136,7 +136,7 @@ def kernels(device: torch.device) -> str:
     """Which kernels computed on `device`: what a run's numbers depend on beyond its cell and dtype, recorded in its
     row. On one set of kernels a run's scores are equal whatever the thread count; other kernels sum in another
     order (oneDNN's bf16 products on AMX tiles against those on AVX512-BF16 or AVX2), so their rows of one run_id
-    differ (graftcache.results.agreement). On CPU: ATen's vector ISA, the bf16 unit oneDNN finds (`cpu_bf16_unit`),
+    differ (graftcache.results.same_result). On CPU: ATen's vector ISA, the bf16 unit oneDNN finds (`cpu_bf16_unit`),
     a oneDNN ISA cap and an MKL mode other than graftcache's where set; on CUDA the GPU's compute capability."""
     if device.type == "cuda":
         major, minor = torch.cuda.get_device_capability(device)

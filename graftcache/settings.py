@@ -4,8 +4,8 @@ recipe may set it, in one place (`setting(...)` on the dataclass field, graftcac
 Everything else is derived from that declaration:
 
 - the CLI's flags (graftcache.cli.common.add_flags): name, default, help, choices, metavar, parser;
-- the range and choice checks (`Checked`), applied when a request is built and on a recipe's tables;
-- the sweep recipe's schema: which keys a settings table takes (`recipe_keys`) and their types (codecs.matches);
+- the range and choice checks (`Checked`), applied when a request is built and on a recipe's sections;
+- the sweep recipe's schema: which keys a settings section takes (`recipe_keys`) and their types (codecs.matches);
 - the command line written into rows and reports (`write_flags`, graftcache.sweep.command_line).
 
 Why not draccus (lerobot's config library, `--policy.type=...`): it would replace argparse with flags spelled
@@ -46,7 +46,7 @@ class Setting:
     metavar: str | None = None
     shown: str | None = None     # the default as the help writes it (else the codec's text of it)
     positional: bool = False
-    recipe: bool = True          # False: a sweep sets it from its product, never a recipe's settings table
+    recipe: bool = True          # False: a sweep sets it from its product, never a recipe's settings section
     twin: Twin | None = None     # a second flag for the same field, exclusive with the first
     formerly: str | None = None  # the field's former name: its flag and recipe key still read, with a FutureWarning
     # What a fit's results make of it (FitRequest; graftcache.fit.plan.Cell, graftcache.results.SCHEMA):
@@ -148,12 +148,12 @@ def flag_of(cls: type, name: str) -> str:
 
 
 def recipe_keys(cls: type) -> tuple[str, ...]:
-    """The keys a recipe's settings table for `cls` may set: every field not set by the sweep's product."""
+    """The keys a recipe's settings section for `cls` may set: every field not set by the sweep's product."""
     return tuple(name for name, d in declared(cls).items() if d.setting.recipe)
 
 
 def renamed(cls: type, values: Mapping[str, Any], where: str) -> dict[str, Any]:
-    """`values` (a recipe table) with each key that a field of `cls` was formerly called (its setting's
+    """`values` (a recipe section) with each key that a field of `cls` was formerly called (its setting's
     `formerly`) under the field's name, after a FutureWarning naming the place and the new key: recipes written
     before a rename still read. Both spellings at once is an error naming them."""
     former = {d.setting.formerly: name for name, d in declared(cls).items() if d.setting.formerly}
@@ -209,7 +209,7 @@ def write_flags(cls: type, values: Mapping[str, Any]) -> list[str]:
 
 class Checked:
     """Mixin for request dataclasses: every field's choices and rule, checked at construction and on a dict of
-    overrides (a recipe's table), so a count of 0 or a negative seed is a one-line error naming the field before
+    overrides (a recipe's section), so a count of 0 or a negative seed is a one-line error naming the field before
     any work starts, whichever way the request was made."""
 
     def __post_init__(self) -> None:

@@ -7,7 +7,7 @@ therefore continues where it stopped, and rerunning a finished one only reads. W
 and policy is kept as the equivalent command line, for the report.
 
 Each encoder is extracted once, at its own patch grid (`extract --grids unpooled`) unless the recipe's [extract]
-table names `grids`: one cache serves every backbone, pool control and the align objective, each pooled from
+section names `grids`: one cache serves every backbone, pool control and the align objective, each pooled from
 it at read time (graftcache.fit.data.read_grid). A native tower's cache serves its own backbone only, so it
 stores that backbone's token grid, the one grid its controls read (a released SmolVLA tower's own grid is
 32x32, sixteen times the 8x8 that native-graft reads).
@@ -20,7 +20,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
-from graftcache.backbone_table import native_name
+from graftcache.backbone_registry import native_name
 from graftcache.cameras import match_cameras
 from graftcache.errors import GraftcacheError
 from graftcache.executors import Executor, get_executor
@@ -93,7 +93,7 @@ def _extract(recipe: Recipe, executor: Executor, encoder: str, grids: tuple[str,
 
 
 def _extract_settings(recipe: Recipe, grids: tuple[str, ...]) -> dict[str, Any]:
-    """The recipe's [extract] table with the grids a cache stores: request fields, and the command's flags."""
+    """The recipe's [extract] section with the grids a cache stores: request fields, and the command's flags."""
     return {**recipe.extract, "grids": grids}
 
 
@@ -167,7 +167,7 @@ def check_sweep(recipe: Recipe) -> list[str]:
 def run_sweep(recipe: Recipe, log: Callable[[str], None] = write,
               settings: ExecutorSettings | None = None) -> SweepState:
     """Policies, then caches, then every missing cell, on the executor `settings` name (default: the recipe's
-    [executor] table); one progress bar over the recipe's cells."""
+    [executor] section); one progress bar over the recipe's cells."""
     check_sweep(recipe)  # what a later step would refuse, refused before the first (what --dry-run runs)
     settings = settings or recipe.executor_settings
     executor = get_executor(settings)

@@ -260,7 +260,8 @@ def test_the_glossary_names_code_that_exists_and_no_retired_name_is_used() -> No
     assert {"native", "cell", "grid", "run", "pool", "checkpoint", "shard", "construct"} <= set(rows)
     assert all(cited for cited, _ in rows.values())  # every word points at code (resolved by the citation test)
     retired = {name for _, names in rows.values() for name in names}
-    assert {"BackbonePool", "NativeEncoder", "module recompute", "module lean", "module draws"} <= retired
+    assert {"BackbonePool", "NativeEncoder", "module recompute", "module lean", "module draws", "plan_passes",
+            "looks_planned", "module backbone_table"} <= retired
     assert retired_in_code(retired) == []
 
 
@@ -357,7 +358,8 @@ def rule_breaches(rules: dict[str, list[re.Pattern]], searched: list[tuple[str, 
 
 def test_no_word_of_the_glossary_is_used_for_another_idea() -> None:
     rules = glossary_rules((ROOT / "docs/ARCHITECTURE.md").read_text(encoding="utf-8"))
-    assert {"activation checkpointing", "recompute", "grid", "shard", "loss per sample"} <= set(rules)
+    assert {"activation checkpointing", "recompute", "grid", "shard", "loss per sample", "plan", "objective",
+            "table"} <= set(rules)
     assert rule_breaches(rules, searched_text()) == []
 
 
@@ -372,12 +374,33 @@ def test_each_overloaded_use_breaks_a_rule() -> None:
         "shard": ["frames per Zarr shard", "zarr writes each shard file once", "safetensors (single or sharded)"],
         "spec": ["TinySpec"],
         "loss per sample": ["per_sample_loss"],
+        "plan": ["plan_passes", "plan_copies", "plan_blocks", "_plan", "_plan_windows", "looks_planned", "planned",
+                 "One planned episode", "the selected cells' episodes planned", "started before planning",
+                 "a rerun of the same command plans the same episodes", "the team of this process plans",
+                 "with a team, it only plans", "builds its own, to plan", "The driver plans every request",
+                 "Planned before passes are formed", "Planning a fit", "workers start before the rollout plans"],
+        "objective": ["X-VLA's objective is not lerobot's velocity flow", "None: no flow time (a token objective)",
+                      "pi0-FAST's own objective", "It mixes in its objective", "# ----------------------- objectives",
+                      "each adds its construction, processors and objective",
+                      "one lerobot VLA policy, frozen, with the graft surgery and the objectives"],
+        "table": ["graftcache.backbone_table.BACKBONES", "the encoder catalog, the backbone table",
+                  "over the recipe's [fit] table", "a recipe's `[executor]` table", "A settings table as overrides",
+                  "applied on a recipe's tables", "A frozen dataclass from a TOML table",
+                  "the table of what trains", "the whole table the first time", "the variant table"],
     }
     for word, uses in overloaded.items():
         assert [u for u in uses if not rule_breaches({word: rules[word]}, [("x:1", u)])] == [], word
     proper = ["ActivationCheckpointing", "activation checkpointing of the frozen LM", "gradient_checkpointing_enable",
               "token grid", "extract --shard i/N", "the last shard to finish", "BackboneSpec.loss_per_sample",
-              "a block file per array"]
+              "a block file per array",
+              "the cell's plan", "Plan.pass_key", "graftcache.fit.plan.Planned", "Planned", "PLANS", "recompute plan",
+              "the recompute plans off, mlp, on", "set_recompute_plan", "recompute_plan_patches", "RECOMPUTE_PLANS",
+              "a planar offset", "the requests' plans", "The plans this backbone has, least recompute first",
+              "the flow objective minimises the policy loss", "its objective (fit/objectives.py)",
+              "the align objective", "the request's objective", "cells whose objective takes steps",
+              "A fit's objective", "OBJECTIVES", "the results table", "the rollouts table", "report/tables.py",
+              "a report table", "the low-dim table", "pq.read_table", "suite_index_table",
+              "No `native` rows in the table", "the recipe's [fit] section"]
     assert rule_breaches(rules, [("x:1", u) for u in proper]) == []
 
 
@@ -417,7 +440,7 @@ def test_an_unresolved_dotted_name_is_reported_with_its_line() -> None:
 
 # ------------------------------------------------------------------------------------------------ the backbone lists
 def _specs() -> dict:
-    from graftcache.backbone_table import BACKBONES
+    from graftcache.backbone_registry import BACKBONES
     from graftcache.backbones import get_backbone
 
     return {name: get_backbone(name).spec for name in BACKBONES}
@@ -452,7 +475,7 @@ def test_pyproject_installs_every_backbone_s_lerobot_extra() -> None:
 
 def test_the_module_map_describes_only_registered_backbones() -> None:
     """The module map's backbones entry names backbone folders (`smolvla/`, `groot/construct.py`): each is one."""
-    from graftcache.backbone_table import BACKBONES
+    from graftcache.backbone_registry import BACKBONES
 
     text = (ROOT / "docs/ARCHITECTURE.md").read_text(encoding="utf-8")
     entry = text.split("    graftcache/backbones/", 1)[1].split("\n    graftcache/", 1)[0]

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from graftcache.backbone_table import BACKBONES
+from graftcache.backbone_registry import BACKBONES
 
 BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
 

@@ -69,7 +69,7 @@ def test_one_declaration_is_a_flag_a_recipe_key_and_a_check() -> None:
     with pytest.raises(GraftcacheError, match="^eval_batch_size = 0 must be > 0$"):
         Request(eval_batch_size=0)
     with pytest.raises(GraftcacheError, match="^mode = 'maybe' is not one of auto, on, off$"):
-        Request.check({"mode": "maybe"})  # a recipe table's overrides
+        Request.check({"mode": "maybe"})  # a recipe section's overrides
     assert recipe_keys(Request) == ("eval_batch_size", "mode")
     assert "frames scored at once" in parser.format_help()
 
@@ -156,7 +156,7 @@ def _numeric_fields() -> list[tuple[type, str, type]]:
                          ids=lambda x: x if isinstance(x, str) else getattr(x, "__name__", ""))
 def test_every_numeric_setting_refuses_what_nothing_downstream_can_take(cls: type, name: str, kind: type) -> None:
     """NaN, infinities, ints past Int64 (the columns and manifests that record them), a float or a bool where an
-    int belongs: refused as a request is built, whichever way (Python, a recipe's table, a flag), in one phrase
+    int belongs: refused as a request is built, whichever way (Python, a recipe's section, a flag), in one phrase
     naming the field, before any work."""
     from graftcache.cli.common import _parser
     from graftcache.codecs import BadText

@@ -75,7 +75,7 @@ def test_zoo_recipe_names_every_backbone_by_a_hub_id() -> None:
     9 backbones x 4 encoders x 2 suites x 3 seeds x (plain + 6 controls) = 1512 cells; rows per (backbone, suite,
     seed): 4 encoders x (plain, zero-image, shuffled-image, pool-4x4, lora) + native + native-graft = 22, x 9 x 2 x
     3 = 1188."""
-    from graftcache.backbone_table import BACKBONES
+    from graftcache.backbone_registry import BACKBONES
 
     text = (ROOT / "cli" / "zoo.toml").read_text()
     recipe = load_recipe(ROOT / "cli" / "zoo.toml")

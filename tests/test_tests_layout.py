@@ -11,7 +11,7 @@ from pathlib import Path
 from helpers.parallel import GROUPS, TESTS
 
 from devtools.suite_durations import read
-from graftcache.backbone_table import BACKBONES
+from graftcache.backbone_registry import BACKBONES
 
 PACKAGE = TESTS.parent / "graftcache"
 #: folders of tests/ that hold no tests: pytest plugins and plain helpers

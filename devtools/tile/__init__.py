@@ -133,14 +133,14 @@ def tile(request: TileRequest) -> Path:
     if meta.codebase_version != "v3.0" or set(meta.camera_storage.values()) != {"video"}:
         raise DatasetError(f"{meta.root}: tile needs a v3.0 dataset whose cameras are all videos "
                            f"(found {meta.codebase_version}, storage {meta.camera_storage})")
-    plan = parts_of(request, meta)
+    parts = parts_of(request, meta)
     source_eps = _source_episodes(meta)
-    windows = _plan_windows(plan, source_eps, np.random.default_rng(request.seed), meta.root)
+    windows = _draw_windows(parts, source_eps, np.random.default_rng(request.seed), meta.root)
     partial = dest.with_name(f".{dest.name}.partial")
     shutil.rmtree(partial, ignore_errors=True)
     partial.mkdir(parents=True)
     try:
-        tasks = tuple(dict.fromkeys(t for part in plan for t in part.tasks))
+        tasks = tuple(dict.fromkeys(t for part in parts for t in part.tasks))
         info = json.loads((meta.root / "meta" / "info.json").read_text())
         table = _write_data(partial, meta, windows, tasks, info["fps"])
         _write_episodes(partial, meta, source_eps, windows)
@@ -150,7 +150,7 @@ def tile(request: TileRequest) -> Path:
         _link_videos(partial, meta)
         (partial / RECORD).write_text(json.dumps({
             "source": str(meta.root.resolve()), "seed": request.seed,
-            "parts": [{"tasks": len(p.tasks), "episodes": p.episodes, "frames": p.frames} for p in plan],
+            "parts": [{"tasks": len(p.tasks), "episodes": p.episodes, "frames": p.frames} for p in parts],
             "note": "episodes are windows of the source's frames; videos are links to the source's files",
         }, indent=2) + "\n")
     except BaseException:
@@ -169,14 +169,14 @@ def parts_of(request: TileRequest, meta: DatasetMeta) -> tuple[TilePart, ...]:
     return scaled_parts(meta, request.episodes, request.frames)
 
 
-def _plan_windows(plan: Sequence[TilePart], source_eps: _Episodes, rng: np.random.Generator,
+def _draw_windows(parts: Sequence[TilePart], source_eps: _Episodes, rng: np.random.Generator,
                  root: Path) -> tuple[Window, ...]:
     """Every new episode's task, length and source window, part by part, in episode order."""
     runs = [(int(source_eps.position[source_eps.run == r][0]),
              int(source_eps.length[source_eps.run == r].sum())) for r in np.unique(source_eps.run)]
     longest = max(length for _, length in runs)
     windows = []
-    for part in plan:
+    for part in parts:
         lengths = _lengths(part, rng)
         if lengths.max() > longest:
             raise DatasetError(f"{root}: an episode of {int(lengths.max())} frames ({part.frames} frames over "

@@ -79,7 +79,7 @@ from graftcache.analysis.closed_loop import (
     wilson,
 )
 from graftcache.analysis.closed_loop_boot import N_BOOT
-from graftcache.analysis.controls import CONTROLS_SCHEMA, controls_distance, wrapper_non_neutrality
+from graftcache.analysis.control_gaps import CONTROLS_SCHEMA, controls_distance, wrapper_non_neutrality
 from graftcache.analysis.dose import DoseCurves, dose_curves
 from graftcache.analysis.findings import (
     BEATS,

@@ -41,7 +41,8 @@ class Look:
 @dataclass(frozen=True)
 class Looks:
     """A sequential rollout's record: looks of `step` episodes per task up to `cap`, at most `max_looks` of
-    them, each judged on `measure` at `level` = 1 - `error` / `max_looks` (stored as "looks_planned")."""
+    them, each judged on `measure` at `level` = 1 - `error` / `max_looks` (its stored key keeps the
+    name sequential.json has always had, so older records read unchanged)."""
 
     measure: str
     error: float

@@ -1,6 +1,6 @@
-"""Backbone registry: a name from graftcache.backbone_table -> adapter class (see base.BackboneAdapter).
+"""Backbone registry: a name from graftcache.backbone_registry -> adapter class (see base.BackboneAdapter).
 
-Each backbone is a folder of this package (graftcache.backbone_table.BACKBONES lists them); its adapter class is the
+Each backbone is a folder of this package (graftcache.backbone_registry.BACKBONES lists them); its adapter class is the
 one class its `adapter.py` defines with that `name`. Adapters are imported on first use: importing lerobot costs
 seconds, which commands such as `graftcache ls` should not pay. Adapters call private methods of lerobot's policies
 and processors, read in one lerobot release (graftcache.upstream.WRITTEN_AGAINST): another installed release is
@@ -13,7 +13,7 @@ from importlib import import_module
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from graftcache.backbone_table import BACKBONES, backbone_module
+from graftcache.backbone_registry import BACKBONES, backbone_module
 from graftcache.errors import BackboneError
 from graftcache.upstream import refuse_others
 

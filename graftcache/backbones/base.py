@@ -1,9 +1,9 @@
-"""The backbone interface: one lerobot VLA policy, frozen, with the graft surgery and the objectives.
+"""The backbone interface: one lerobot VLA policy, frozen, with the graft surgery and its policy loss.
 
 An adapter wraps lerobot's own policy object and its own pre/post processors (normalisation stats
 included); it re-implements no model code. It adds what graftcache needs around them, one job per
 module: loading, geometry and the native tower here; `graft`/`reset`/`add_lora` in surgery.py;
-`prepare`/`task_tokens` in batches.py; `loss`/`predict` in objectives.py:
+`prepare`/`task_tokens` in batches.py; `loss`/`predict` in policy_loss.py:
 
 - `load(source)`: "tiny", a hub id from the local HF cache, or a local checkpoint folder;
 - `graft(projector)`: vision tower -> pass-through, connector -> projector, everything else frozen;
@@ -32,7 +32,7 @@ from typing import Any, ClassVar, Self
 import torch
 from torch import nn
 
-from graftcache.backbone_table import backbone_module
+from graftcache.backbone_registry import backbone_module
 from graftcache.backbones.activation_checkpointing import ActivationCheckpointing
 from graftcache.backbones.attention import Attention
 from graftcache.backbones.batches import ACTION, STATE, PromptBatches
@@ -103,7 +103,7 @@ class BackboneAdapter(GraftSurgery, PromptBatches, PolicyLoss, ActivationCheckpo
     def __init_subclass__(cls, **kwargs: Any) -> None:
         """A class naming itself a backbone (`name` in its own body) is a registry entry, checked as it is defined
         (as lerobot's PreTrainedPolicy checks `name` and `config_class`): it lives in its folder's adapter.py,
-        `graftcache.backbones.<name>.adapter` (graftcache.backbone_table), and its `spec` is its folder's SPEC
+        `graftcache.backbones.<name>.adapter` (graftcache.backbone_registry), and its `spec` is its folder's SPEC
         (`graftcache.backbones.<name>.spec`, which reports read without importing the adapter)."""
         super().__init_subclass__(**kwargs)
         if "name" not in cls.__dict__:
@@ -249,7 +249,7 @@ class BackboneAdapter(GraftSurgery, PromptBatches, PolicyLoss, ActivationCheckpo
     @classmethod
     def _build_tiny(cls, tiny: TinyBuild, stats: dict | None, device: str) -> tuple[nn.Module, Any, Any, dict]:
         """Random-init tiny policy, processors and the marker that lets it be saved and reloaded: the backbone's own
-        `graftcache.backbones.<name>.tiny.build_tiny` (the registry's convention: graftcache/backbone_table.py)."""
+        `graftcache.backbones.<name>.tiny.build_tiny` (the registry's convention: graftcache/backbone_registry.py)."""
         policy, pre, post, geometry = import_module(backbone_module(cls.name, "tiny")).build_tiny(tiny, stats, device)
         return policy, pre, post, {"backbone": cls.name, "geometry": geometry}
 

@@ -87,7 +87,7 @@ def openpi_keys(policy: nn.Module, file_keys: Iterable[str]) -> dict[str, str]:
     return {k if k.startswith("model.") else f"model.{k}": str(v) for k, v in fixed.items()}
 
 
-def _plan(policy: nn.Module, path: Path, header: dict[str, dict], keys: dict[str, str]) -> list[tuple[str, list[str]]]:
+def _reads(policy: nn.Module, path: Path, header: dict[str, dict], keys: dict[str, str]) -> list[tuple[str, list[str]]]:
     """[(file key, policy names sharing one tensor)] in file order; BackboneError unless every tensor of the
     state dict has a same-shaped entry. Of tied names, the last one the checkpoint holds is read (as
     load_state_dict, copying in state-dict order, leaves it)."""
@@ -95,7 +95,7 @@ def _plan(policy: nn.Module, path: Path, header: dict[str, dict], keys: dict[str
     tied: dict[int, list[str]] = {}
     for name, tensor in state.items():
         tied.setdefault(id(tensor), []).append(name)
-    plan, missing, wrong = [], [], []
+    reads, missing, wrong = [], [], []
     for names in tied.values():
         found = [n for n in names if keys.get(n) in header]
         if not found:
@@ -104,14 +104,14 @@ def _plan(policy: nn.Module, path: Path, header: dict[str, dict], keys: dict[str
         key = keys[found[-1]]
         if tuple(header[key]["shape"]) != tuple(state[names[0]].shape):
             wrong.append(f"{names[0]} {tuple(state[names[0]].shape)} vs {tuple(header[key]['shape'])}")
-        plan.append((key, names))
+        reads.append((key, names))
     if missing or wrong:
         unexpected = [k for k in keys if k not in state]  # named only: lerobot drops some keys on purpose
         detail = "; ".join([*(f"missing {k}" for k in missing[:3]), *(f"shape {w}" for w in wrong[:3]),
                             *(f"unexpected {k}" for k in unexpected[:3])])
         raise BackboneError(f"{path}: checkpoint does not match the policy ({len(missing)} missing, {len(wrong)} "
                             f"mis-shaped, {len(unexpected)} unexpected): {detail}")
-    return sorted(plan, key=lambda entry: header[entry[0]]["data_offsets"][0])
+    return sorted(reads, key=lambda entry: header[entry[0]]["data_offsets"][0])
 
 
 def read_into(f, offset: int, target: torch.Tensor) -> None:
@@ -139,7 +139,7 @@ def load_checkpoint(policy: nn.Module, path: Path, keys: dict[str, str], device:
     each tensor cast to its parameter's dtype (as load_state_dict's copy casts) and moved to `device`; the
     constructor's own buffers follow it there."""
     start, header = read_header(path)
-    plan = _plan(policy, path, header, keys)
+    reads = _reads(policy, path, header, keys)
     state = policy.state_dict(keep_vars=True)
 
     def direct(key: str, names: list[str]) -> bool:  # read into its own memory, nothing copied after
@@ -150,10 +150,10 @@ def load_checkpoint(policy: nn.Module, path: Path, keys: dict[str, str], device:
         return end - begin
 
     # Every other tensor (a cast, another device) passes through one reused host buffer, pinned for CUDA.
-    staging = torch.empty(max((nbytes(k) for k, names in plan if not direct(k, names)), default=0),
+    staging = torch.empty(max((nbytes(k) for k, names in reads if not direct(k, names)), default=0),
                           dtype=torch.uint8, pin_memory=device.type == "cuda")
     with path.open("rb", buffering=0) as f:
-        for key, names in plan:
+        for key, names in reads:
             entry, like = header[key], state[names[0]]
             dtype, offset = DTYPES[entry["dtype"]], start + entry["data_offsets"][0]
             if direct(key, names):

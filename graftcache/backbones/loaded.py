@@ -36,16 +36,16 @@ class LoadedBackbones:
         return adapter
 
     def describe(self, adapter: BackboneAdapter, cells: str) -> None:
-        """Log which modules of the grafted `adapter` train, for `cells` (who grafted it): the whole table the first
-        time a loaded policy is grafted, then only a table not logged of it yet, as what differs from the first
-        (a sweep's cells log each kind of graft once, not a table per cell)."""
+        """Log which modules of the grafted `adapter` train, for `cells` (who grafted it): its whole freeze report
+        the first time a loaded policy is grafted, then only a report not logged of it yet, as what differs from the
+        first (a sweep's cells log each kind of graft once, not a report per cell)."""
         report = adapter.freeze_report()
         said = self._said.setdefault(id(adapter), [])
         if not said:
             self.log(f"{adapter.name} as grafted for {cells}, parameters per module (said once per loaded policy; "
                      f"a later graft of it says what differs):\n{report}")
         elif report not in said:
-            self.log(f"{adapter.name} as grafted for {cells}: as the table above but {report.changes(said[0])}")
+            self.log(f"{adapter.name} as grafted for {cells}: as the report above but {report.changes(said[0])}")
         if report not in said:
             said.append(report)
 

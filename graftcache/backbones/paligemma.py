@@ -4,7 +4,7 @@ its attention paths.
 pi0.5 hard-codes its sizes (`get_gemma_config` knows two variants; PaliGemma's projector width and
 the 257152-token vocabulary are fixed in `PaliGemmaWithExpertModel.__init__`, lerobot 0.6
 modeling_pi05.py:158-242), so `pi05_tiny_sizes` rebinds three module-level names of lerobot's
-modeling_pi05 (the variant table and its PiGemma model classes) while a tiny policy is constructed or
+modeling_pi05 (the variant configs and its PiGemma model classes) while a tiny policy is constructed or
 loaded (pi0's and pi0-FAST's modules build PaliGemma the same way).
 
 - tiny geometry (`Pi05TinyGeometry`): SigLIP 96 wide x 2 layers at 56 px / patch 14 -> 4x4 = 16 tokens per camera,

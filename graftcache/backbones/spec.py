@@ -42,7 +42,7 @@ class BackboneSpec:
     #: lerobot multiplies image tokens by sqrt(LM width) after the connector (SmolVLA); else by 1.
     scaled_embeddings: bool = False
     #: What the policy's own flow time t is: "noise" (t = 1 at pure noise, graftcache's convention for `time`) or
-    #: "data" (t = 1 at the action: graftcache's time is 1 - t); None: no flow time (a token objective).
+    #: "data" (t = 1 at the action: graftcache's time is 1 - t); None: no flow time (a token loss).
     flow_time: Literal["noise", "data"] | None = "noise"
     #: `loss` gives one value a sample, so cells may share a backbone pass (fused); False: one mean over the batch.
     loss_per_sample: bool = True
@@ -82,7 +82,8 @@ class BackboneSpec:
     def check_execution(self, name: str, *, attention: str, recompute: str, compile: bool) -> None:
         """Refuse, from this data alone (before the policy loads), what backbone `name` cannot run: an attention
         path it lacks, a recompute plan where it cannot recompute (mlp and on both need `can_recompute`; whether it
-        has mlp slots is the adapter's, checked when the plan is set), `--compile` without a compiled forward."""
+        has mlp slots is the adapter's, checked when the recompute plan is set), `--compile` without a compiled
+        forward."""
         self.resolve_attention(name, attention)
         if recompute in ("mlp", "on") and not self.can_recompute:
             raise BackboneError(f"{name}: no recompute plan {recompute!r} for this backbone; use --recompute off")

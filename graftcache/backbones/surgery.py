@@ -82,7 +82,7 @@ class FreezeReport:
 
     def changes(self, base: FreezeReport) -> str:
         """What differs from `base` (another graft of the same policy), row by row and the total, on one line: a
-        log says the whole table once per loaded policy and then only this (e.g. LoRA's trainable share of the
+        log says the whole report once per loaded policy and then only this (e.g. LoRA's trainable share of the
         language model, a wider encoder's projector)."""
         before = {r.module: r for r in base.rows}
         rows = [r for r in self.rows if before.get(r.module) != r]

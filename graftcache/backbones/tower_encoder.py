@@ -23,7 +23,7 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 
-from graftcache.backbone_table import backbone_of_native
+from graftcache.backbone_registry import backbone_of_native
 from graftcache.backbones import get_backbone
 from graftcache.backbones.tiny_record import read_record, trained_image_size
 from graftcache.encoders import Encoder, EncoderSpec, LoadRequest, weights_info

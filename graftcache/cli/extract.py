@@ -26,7 +26,7 @@ def _policy(args: argparse.Namespace) -> str | None:
     """`--policy tiny` names the tiny backbone trained on this dataset by train-tiny: find its folder."""
     if args.policy != "tiny":
         return args.policy
-    from graftcache.backbone_table import backbone_of_native
+    from graftcache.backbone_registry import backbone_of_native
     from graftcache.backbones.tiny_record import resolve_policy
     from graftcache.fit.lookup import dataset_identity
     from graftcache.store import cache_root

@@ -17,9 +17,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("recipe", help="TOML recipe, e.g. cli/paper.toml")
     p.add_argument("--dry-run", action="store_true",
                    help="run every check the sweep runs before its first step (recipe, dataset, suites' "
-                   "splits, encoders, memory) and print the plan; train, extract and fit nothing")
-    add_flags(p, ExecutorSettings, overrides=True)  # over the recipe's [executor] table (else the defaults shown)
-    add_flag(p, FitRequest, "cells_per_pass", overrides=True)  # over the recipe's [fit] table
+                   "splits, encoders, memory) and print what it found; train, extract and fit nothing")
+    add_flags(p, ExecutorSettings, overrides=True)  # over the recipe's [executor] section (else the defaults shown)
+    add_flag(p, FitRequest, "cells_per_pass", overrides=True)  # over the recipe's [fit] section
     p.set_defaults(func=run)
 
 
@@ -28,7 +28,7 @@ def run(args: argparse.Namespace) -> int:
     from graftcache.sweep import check_sweep, run_sweep
 
     recipe = load_recipe(args.recipe)
-    if "cells_per_pass" in vars(args):  # --cells-per-pass, over the recipe's [fit] table
+    if "cells_per_pass" in vars(args):  # --cells-per-pass, over the recipe's [fit] section
         recipe = dataclasses.replace(recipe, fit={**recipe.fit, "cells_per_pass": args.cells_per_pass})
     settings = dataclasses.replace(recipe.executor_settings, **given(ExecutorSettings, args))
     if args.dry_run:

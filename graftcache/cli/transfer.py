@@ -33,7 +33,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from graftcache.encoders.fingerprint import check_numerics
     from graftcache.store import FeatureCache, open_root
-    from graftcache.store.transfer import copy_cache
+    from graftcache.store.push_pull import copy_cache
 
     _, _, other, from_cache = DIRECTIONS[args.command]
     here, there = open_root(args.cache), open_root(getattr(args, other))

@@ -28,7 +28,7 @@ from typing import Any
 
 import transformers
 
-from graftcache.backbone_table import BACKBONES, native_name
+from graftcache.backbone_registry import BACKBONES, native_name
 from graftcache.encoders import hf_family, timm_family, wheels
 from graftcache.encoders.hf_archs import HF_ARCHS
 from graftcache.encoders.registry import register_encoder, register_family

@@ -1,6 +1,6 @@
 """The ray executor's fitting: a Ray task per backbone pass (1..N cells), under the same claims as the local executor.
 
-The driver plans every request (graftcache.fit.plan.Plan: identities, pass keys, nothing loaded) and runs the one
+The driver makes every request's Plan (graftcache.fit.plan.Plan: identities, pass keys, nothing loaded) and runs the one
 claim-and-run loop the local executor runs (graftcache.fit.passes.run_passes), with passes going to Ray tasks
 (`RayRunner`) instead of this process: it claims a pass's cells (graftcache.results.claims.cell_claim), submits the pass
 as one task, and appends the task's rows once it finishes, then gives the claims back. So `--cells-per-pass` reaches
@@ -66,11 +66,11 @@ def _materials(req: FitRequest) -> Materials:
 def fit_cells(cells: Sequence[TaskCell]) -> list[dict[str, Any]]:
     """The rows of one pass of cells, their projectors saved in their run folders (run as `fit_cells_task`)."""
     set_main_threads()  # the CPUs Ray granted this task (it sets OMP_NUM_THREADS from num_cpus)
-    planned = []
+    of_pass = []
     for req, control, seed in cells:
         plan = _materials(req).plan
-        planned.append((plan, plan.cell(get_control(control), seed)))
-    return run_pass(planned, lambda plan: _materials(plan.req))
+        of_pass.append((plan, plan.cell(get_control(control), seed)))
+    return run_pass(of_pass, lambda plan: _materials(plan.req))
 
 
 #: The Ray task of `fit_cells`. The plain function stays the module's attribute so that cloudpickle ships it by
@@ -97,7 +97,7 @@ class RayRunner:
         self._running: dict[ray.ObjectRef, tuple[int, Sequence[Planned]]] = {}
         self._tickets = 0
 
-    def planned(self, cells: Sequence[Planned]) -> None:
+    def to_run(self, cells: Sequence[Planned]) -> None:
         self.log(f"ray: {len(cells)} cell task(s) to run; the other cells are in the results file already, or "
                  "copied from a run of the same policy")
 
@@ -148,7 +148,7 @@ def fit(requests: Sequence[tuple[str, FitRequest]], settings: ExecutorSettings, 
             dtypes[req.compute_dtype, req.device] = worker_compute_dtype(req.compute_dtype, req.device,
                                                                          options[req.device])
         req = shared_request(req, dtypes[req.compute_dtype, req.device])
-        # planning reads the caches' index and the policy's config only: the driver needs no GPU
+        # a Plan reads the caches' index and the policy's config only: the driver needs no GPU
         plan = Plan(req, log=log, check_device=False)
         plans.append(plan)
         labels[plan.req] = label

@@ -9,7 +9,7 @@ composition (aligned to blocks) is the same as in an uninterrupted run, which ma
 
 One job per module: resolve.py (the request resolved into a job.py Job: dataset, encoder, frames), provenance.py
 (index, manifest), frames.py (decode), encode.py (encoder -> stored grids), blocks.py (assembling, encoding and
-writing blocks), write.py (reuse / resume / create, whole or as one shard of N, under the writer locks), checks.py
+writing blocks), write.py (reuse / resume / create, whole or as one shard of N, under the writer locks), refusals.py
 (refusals before work and the one-line texts of failures during it).
 """
 
@@ -20,10 +20,10 @@ from collections.abc import Callable
 
 from graftcache.encoders.fingerprint import fingerprint
 from graftcache.extract.blocks import fill
-from graftcache.extract.checks import check_disk, check_memory
 from graftcache.extract.encode import encode_frames
 from graftcache.extract.job import Job, Target
 from graftcache.extract.provenance import build_index, build_manifest, weights_note
+from graftcache.extract.refusals import check_disk, check_memory
 from graftcache.extract.resolve import resolve_job
 from graftcache.extract.write import ExtractResult, Writing, check_numerics, find_complete, shard_blocks
 from graftcache.requests import ExtractRequest

@@ -1,4 +1,4 @@
-"""Blocks: which episodes the unwritten blocks need (`plan_blocks`), assembling decoded episodes into blocks of
+"""Blocks: which episodes the unwritten blocks need (`episodes_for_blocks`), assembling decoded episodes into blocks of
 `block_frames` frames, encoding each whole block (`fill`), and writing it on a background thread (`BlockWriter`)
 while the next one is encoded. Batches are aligned to blocks, so a resumed run encodes the same batches as an
 uninterrupted one and writes the same bytes."""
@@ -14,9 +14,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 import polars as pl
 
-from graftcache.extract.checks import check_features
 from graftcache.extract.encode import encode_frames
 from graftcache.extract.frames import episode_stream
+from graftcache.extract.refusals import check_features
 from graftcache.pooling import parse_grid
 from graftcache.progress import progress
 from graftcache.store import FeatureCache
@@ -25,7 +25,7 @@ if TYPE_CHECKING:
     from graftcache.extract.job import Job
 
 
-def plan_blocks(index: pl.DataFrame, cache: FeatureCache, todo: Sequence[int]) -> tuple[list[int], np.ndarray]:
+def episodes_for_blocks(index: pl.DataFrame, cache: FeatureCache, todo: Sequence[int]) -> tuple[list[int], np.ndarray]:
     """Episodes that have frames in the blocks `todo`, and each cache row's block id."""
     bf = int(cache.layout["block_frames"])
     rows_block = np.arange(index.height) // bf
@@ -38,7 +38,7 @@ def fill(cache: FeatureCache, job: Job, blocks: Sequence[int]) -> int:
     writer; returns the frames encoded."""
     req, index, cameras = job.req, job.index, job.cameras
     todo = sorted(set(blocks) - cache.blocks_done())
-    needed, rows_block = plan_blocks(index, cache, todo)
+    needed, rows_block = episodes_for_blocks(index, cache, todo)
     grids = list(map(parse_grid, req.grids))
     ep_rows = {ep: np.flatnonzero(index["episode_index"].to_numpy() == ep) for ep in needed}
     shapes = {cam: job.source.meta.image_shape[cam] for cam in cameras}

@@ -11,9 +11,9 @@ import polars as pl
 from graftcache.datasets import open_dataset
 from graftcache.encoders import get_spec, load_encoder
 from graftcache.errors import DatasetError, EncoderError, GraftcacheError
-from graftcache.extract.checks import check_memory, check_policy_cameras
 from graftcache.extract.job import Job
 from graftcache.extract.provenance import build_index
+from graftcache.extract.refusals import check_memory, check_policy_cameras
 from graftcache.nonfinite import DROP_FLAG, KEEP_FLAG, lowdim_problem
 from graftcache.pooling import format_grid, resolve_grids
 from graftcache.requests import ExtractRequest

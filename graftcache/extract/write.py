@@ -13,8 +13,8 @@ from pathlib import Path
 from graftcache.encoders.fingerprint import compare
 from graftcache.errors import CacheError
 from graftcache.extract.blocks import fill
-from graftcache.extract.checks import out_of_space
 from graftcache.extract.job import Job, Target
+from graftcache.extract.refusals import out_of_space
 from graftcache.pooling import format_grid, parse_grid
 from graftcache.store import FeatureCache, Manifest, Root
 from graftcache.store.cache import ArraySpec

@@ -34,15 +34,15 @@ class SplitFeed:
         """Each block's frames' features, with the frames that see them: forever in a new order each epoch
         (`seed`), or once in cache order (None)."""
         seen_by = np.argsort(self.pairing) if self.pairing is not None else None
-        plan = [BlockRead(pos if seen_by is None else seen_by[pos], (pos,)) for pos in self._blocks()]
-        return BlockStream(self.low, [(self.source, self.low.rows)], plan, seed=seed, drop=self.drop,
+        to_read = [BlockRead(pos if seen_by is None else seen_by[pos], (pos,)) for pos in self._blocks()]
+        return BlockStream(self.low, [(self.source, self.low.rows)], to_read, seed=seed, drop=self.drop,
                            memo=self.memo)
 
     def with_targets(self, targets: FeatureSource, target_rows: np.ndarray) -> BlockStream:
         """Once in cache order: each block's frames' targets (`targets` at `target_rows`, one per frame) as the
         second source, the features those frames see as the first."""
-        plan = [BlockRead(pos, (pos if self.pairing is None else self.pairing[pos], pos)) for pos in self._blocks()]
-        return BlockStream(self.low, [(self.source, self.low.rows), (targets, target_rows)], plan, drop=self.drop,
+        to_read = [BlockRead(pos, (pos if self.pairing is None else self.pairing[pos], pos)) for pos in self._blocks()]
+        return BlockStream(self.low, [(self.source, self.low.rows), (targets, target_rows)], to_read, drop=self.drop,
                            memo=self.memo)
 
     @property

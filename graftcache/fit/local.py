@@ -38,7 +38,7 @@ class LocalRunner:
             self._materials[id(plan)] = Materials(plan, self.backbones, self.numerics)
         return self._materials[id(plan)]
 
-    def planned(self, cells: Sequence[Planned]) -> None:
+    def to_run(self, cells: Sequence[Planned]) -> None:
         """Nothing to say: each pass's rows are told as they come."""
 
     def submit(self, cells: Sequence[Planned]) -> int:

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from graftcache.backbone_table import NATIVE_SUFFIX
+from graftcache.backbone_registry import NATIVE_SUFFIX
 from graftcache.datasets import open_dataset
 from graftcache.encoders import get_spec
 from graftcache.errors import FitError

@@ -1,4 +1,4 @@
-"""What the cells of one planned request read: the loaded backbone, the caches' numerics verdicts, and per control
+"""What the cells of one Plan read: the loaded backbone, the caches' numerics verdicts, and per control
 the splits' low-dim rows and the feature streams (`Reading`), kept for the request's next cells.
 
 A `Materials` belongs to one process (a fit, a sweep's local executor, a Ray worker): the backbones (a LoadedBackbones)
@@ -47,7 +47,7 @@ class Reading:
 
 
 class Materials:
-    """The loaded things a planned request's cells read, loaded on first use and kept for its next cells."""
+    """The loaded things a Plan's cells read, loaded on first use and kept for its next cells."""
 
     def __init__(self, plan: Plan, backbones: LoadedBackbones | None = None,
                  numerics: dict[str, NumericsCheck] | None = None) -> None:
@@ -140,5 +140,5 @@ class Materials:
             self._memo = BlockMemo(self._memo.budget)
 
 
-#: How a runner finds the materials of a planned request (one per Plan in a process).
+#: How a runner finds a Plan's materials (one per Plan in a process).
 MaterialsOf = Callable[[Plan], Materials]

@@ -53,13 +53,13 @@ def default_cells_per_pass(backbone: str, device: torch.device) -> int:
     return get_backbone(backbone).spec.cells_per_pass.get(device.type, 1)
 
 
-def place(planned: Planned) -> tuple[str, str]:
+def place(c: Planned) -> tuple[str, str]:
     """(results file, run_id): a cell's row's place, the same for a cell two requests share."""
-    plan, cell = planned
+    plan, cell = c
     return plan.req.results, cell.run_id
 
 
-def plan_passes(cells: Sequence[Planned]) -> list[list[Planned]]:
+def group_passes(cells: Sequence[Planned]) -> list[list[Planned]]:
     """`cells` cut into passes: those of one pass key in runs of their request's `cells_per_pass` (by default the
     backbone's spec on its device), each cell with no key alone; passes in the order of their first cell
     (so with 1 cell per pass, the cells' order)."""
@@ -82,7 +82,7 @@ class Runner(Protocol):
 
     slots: int  # passes in flight at once
 
-    def planned(self, cells: Sequence[Planned]) -> None:
+    def to_run(self, cells: Sequence[Planned]) -> None:
         """The cells left to run once finished ones are skipped (before any is claimed)."""
 
     def submit(self, cells: Sequence[Planned]) -> int:
@@ -167,10 +167,10 @@ def missing_cells(plans: Sequence[Plan], visited: Callable[[int], None] = lambda
 Copy = tuple[Planned, "dict[str, Any] | Planned"]
 
 
-def plan_copies(cells: Sequence[Planned]) -> tuple[list[Planned], list[Copy]]:
+def separate_copies(cells: Sequence[Planned]) -> tuple[list[Planned], list[Copy]]:
     """`cells` split into those to fit and those whose policy (graftcache.fit.plan.Plan.policy_id: the function
     rolled out and the frames scored) is a run's already: a row of their results file, else the first such cell of
-    `cells`. Planned before passes are formed, so that no pass (of this process or a Ray task) fits a policy twice."""
+    `cells`. Separated before passes are formed, so that no pass (of this process or a Ray task) fits a policy twice."""
     known: dict[str, dict[str, dict[str, Any]]] = {}  # results file -> policy_id -> its first row there
     first: dict[str, Planned] = {}  # policy_id -> the cell of `cells` that fits it
     fit, copies = [], []
@@ -230,12 +230,12 @@ def run_passes(plans: Sequence[Plan], runner: Runner,
     and given back once its row is written, so a cell another process is computing is left for later (its pass runs
     without it), then skipped once its row is in the file (or computed here if that process died).
 
-    A missing cell whose policy is a run's already (`plan_copies`) is not fitted: its row is copied from that run's,
+    A missing cell whose policy is a run's already (`separate_copies`) is not fitted: its row is copied from that run's,
     at once when the results file holds it, else as soon as the cell of this command that fits it has its row."""
     set_main_threads()
     rows: list[dict[str, Any]] = []
-    cells, copies = plan_copies(missing_cells(plans, visited))
-    runner.planned(cells)
+    cells, copies = separate_copies(missing_cells(plans, visited))
+    runner.to_run(cells)
     written: dict[tuple[str, str], dict[str, Any]] = {}  # (results file, run_id) -> the row this command wrote
     waiting: dict[tuple[str, str], list[Copy]] = {}  # a cell of this command -> the copies its row makes
     for copy in copies:
@@ -278,10 +278,10 @@ def run_passes(plans: Sequence[Plan], runner: Runner,
     try:
         while cells:
             busy = []
-            for planned in plan_passes(cells):
+            for group in group_passes(cells):
                 got = []
                 try:
-                    for plan, cell in planned:
+                    for plan, cell in group:
                         at = place((plan, cell))
                         if _take(claims[at]):
                             got.append((plan, cell))

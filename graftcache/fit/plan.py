@@ -1,4 +1,4 @@
-"""Planning a fit: what one FitRequest's cells are, without loading anything.
+"""A fit's Plan: what one FitRequest's cells are, without loading anything.
 
 A `Plan` resolves the request (device, compute dtype, cells per pass, objective, controls), finds the caches it reads
 and the policy folder, pairs the cameras and splits the episodes; from these it names every cell
@@ -6,7 +6,7 @@ and the policy folder, pairs the cameras and splits the episodes; from these it 
 cell's run folder is. The backbone's token grid and a control's feature width are computed here once, from the policy's
 config and the cache's layout; the loaded policy's grid is checked against it (`Plan.check_token_grid`). It reads
 manifests, indexes and the policy's config only: a finished sweep is skipped from a Plan alone, and the ray executor's
-driver plans what its workers run (graftcache/executors/ray_fit.py).
+driver makes the Plans whose cells its workers run (graftcache/executors/ray_fit.py).
 
 What a cell then reads is graftcache.fit.materials.Materials; how a pass of cells runs, graftcache.fit.run.
 """
@@ -27,7 +27,7 @@ import torch
 from safetensors.torch import load_file, save_file
 
 from graftcache import results
-from graftcache.backbone_table import native_name
+from graftcache.backbone_registry import native_name
 from graftcache.backbones import get_backbone, registered_spec
 from graftcache.backbones.checkpoint import follow_umask
 from graftcache.backbones.tiny_record import resolve_policy
@@ -125,8 +125,8 @@ class Plan:
     """The cells of one FitRequest, named and grouped without loading anything."""
 
     def __init__(self, req: FitRequest, log: Callable[[str], None] = print, *, check_device: bool = True) -> None:
-        """`check_device` False: plan for a device this machine need not have (the ray executor's driver plans
-        for its workers' GPUs; the compute dtype must then be resolved already)."""
+        """`check_device` False: a Plan for a device this machine need not have (the ray executor's driver makes
+        the Plans of its workers' GPUs; the compute dtype must then be resolved already)."""
         self.device = resolve_device(req.device) if check_device else torch.device(req.device)
         self.req = req = dataclasses.replace(req, compute_dtype=resolve_compute_dtype(req.compute_dtype, self.device))
         spec = registered_spec(req.backbone)  # what the backbone cannot run, refused before anything loads

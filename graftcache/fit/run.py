@@ -86,7 +86,7 @@ class _InPass:
 
 
 def run_pass(cells: Sequence[Planned], materials: MaterialsOf) -> list[dict[str, Any]]:
-    """Fit and score the cells of one pass (one cell, or several of one pass key: graftcache.fit.passes.plan_passes)
+    """Fit and score the cells of one pass (one cell, or several of one pass key: graftcache.fit.passes.group_passes)
     and return their rows in order, without writing them (graftcache.fit.passes.run_passes writes them, under the
     cells' claims)."""
     mats = [materials(plan) for plan, _ in cells]
@@ -148,7 +148,7 @@ def run_pass(cells: Sequence[Planned], materials: MaterialsOf) -> list[dict[str,
 
 
 def _pass_name(ins: Sequence[_InPass]) -> str:
-    """How the log names a pass when the table of what trains is printed."""
+    """How the log names a pass when its freeze report (what trains) is logged."""
     if len(ins) == 1:
         (c,) = ins
         return f"cell {c.cell.run_id} ({c.read.encoder} seed {c.cell.seed} control {c.cell.control})"

@@ -225,16 +225,16 @@ class StreamStats:
 
 
 class BlockStream(IterableDataset):
-    """The planned blocks, once in plan order (`seed` None), or forever in a new seeded order each epoch."""
+    """The blocks of `to_read`, once in their order (`seed` None), or forever in a new seeded order each epoch."""
 
-    def __init__(self, low: LowDim, sources: Sequence[tuple[FeatureSource, np.ndarray]], plan: Sequence[BlockRead],
+    def __init__(self, low: LowDim, sources: Sequence[tuple[FeatureSource, np.ndarray]], to_read: Sequence[BlockRead],
                  *, seed: int | None = None, drop: bool = False, memo: BlockMemo | None = None) -> None:
         """`low`: the split the positions index; `sources`: (source, its cache row of every split position);
         `drop`: drop frames with NaN/inf features instead of refusing them; `memo`: blocks kept across streams
         when read in this process."""
-        if seed is not None and not plan:
+        if seed is not None and not to_read:
             raise FitError("nothing to stream: the split has no frames")
-        self.low, self.sources, self.plan, self.seed, self.drop = low, tuple(sources), list(plan), seed, drop
+        self.low, self.sources, self.to_read, self.seed, self.drop = low, tuple(sources), list(to_read), seed, drop
         self.memo = memo
 
     def __getstate__(self) -> dict:
@@ -242,11 +242,11 @@ class BlockStream(IterableDataset):
 
     def order(self) -> Iterator[BlockRead]:
         if self.seed is None:
-            yield from self.plan
+            yield from self.to_read
             return
         for epoch in itertools.count():
-            for i in np.random.default_rng((self.seed, epoch)).permutation(len(self.plan)):
-                yield self.plan[i]
+            for i in np.random.default_rng((self.seed, epoch)).permutation(len(self.to_read)):
+                yield self.to_read[i]
 
     def __iter__(self) -> Iterator[Block | Failure]:
         info = get_worker_info()

@@ -15,7 +15,7 @@ from __future__ import annotations
 import polars as pl
 
 from graftcache import analysis as A
-from graftcache.backbone_table import NATIVE_SUFFIX
+from graftcache.backbone_registry import NATIVE_SUFFIX
 from graftcache.report.document import Alert, Block
 
 LEAD = ("A random-init encoder's MSEs say nothing about pretrained representations; a random-init or train-tiny "

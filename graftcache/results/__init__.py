@@ -6,7 +6,7 @@ number of processes append to.
 - graftcache.results.reading  a results file as a table (strict, or conformed for a report)
 - graftcache.results.writing  appends under the file's lease
 - graftcache.results.claims   a cell's claim while it is computed; rows the file cannot take, kept and merged
-- graftcache.results.agreement  when rows of one run_id are one result: the tolerance a merge checks them against
+- graftcache.results.same_result  when rows of one run_id are one result: the tolerance a merge checks them against
 
 The table's names most callers use are here too.
 """

@@ -15,8 +15,8 @@ import polars as pl
 
 from graftcache.errors import ResultsError
 from graftcache.file_lease import FileLease
-from graftcache.results.agreement import disagreement
 from graftcache.results.reading import read, target
+from graftcache.results.same_result import disagreement
 from graftcache.results.schema import from_rows, validate
 from graftcache.results.writing import append
 
@@ -79,7 +79,7 @@ def merge(path: str | Path, kept: Sequence[str | Path], log: Callable[[str], Non
     """Append the rows of results files `kept` (rows `keep_row` kept, or another results file) to `path`; a
     run_id already in `path` is replaced, and of one run_id in several of `kept` the last is taken, so merging
     twice (or a file and its copy) changes nothing. Rows of one run_id (in `path` or `kept`) that score apart
-    (graftcache.results.agreement: computed on other kernels) are said in one line to `log`. Returns the merged
+    (graftcache.results.same_result: computed on other kernels) are said in one line to `log`. Returns the merged
     rows, one per run_id."""
     tables = [read(k) if Path(k).is_file() else None for k in kept]
     absent = [str(k) for k, t in zip(kept, tables) if t is None]

@@ -49,7 +49,7 @@ IDENTITY_3_VALUES: dict[str, Any] = {name: before for name, (_, before) in ADDED
 #: `lora_rank`), so that a row records the whole cell its run_id hashes (graftcache.fit.plan.Cell.of_row); its
 #: run_ids are format 4's. Format 6 added `policy_id` (`make_policy_id`): its run_ids are
 #: format 5's. Format 7 added `kernels` (what a row's numbers depend on beyond its cell: rows of one run_id computed on
-#: other kernels differ, graftcache.results.agreement): its run_ids are format 6's, and an older row's kernels are
+#: other kernels differ, graftcache.results.same_result): its run_ids are format 6's, and an older row's kernels are
 #: unknown (null). A setting declared into cells by a later format (ADDED_TO_CELLS) makes that format this one.
 FORMAT_VERSION = max(7, *(since for since, _ in ADDED_TO_CELLS.values()))
 
@@ -61,7 +61,7 @@ SCHEMA: dict[str, pl.DataType] = {
     "policy_id": pl.String,           # the policy's function (make_policy_id): rows of one policy_id are one policy,
                                       # scored on the same frames (a sweep copies such a row instead of refitting it)
     "format_version": pl.Int64,       # FORMAT_VERSION of the row (what its run_id hashes: IDENTITY_VERSION)
-    "backbone": pl.String,            # a graftcache.backbone_table.BACKBONES name, e.g. "smolvla"
+    "backbone": pl.String,            # a graftcache.backbone_registry.BACKBONES name, e.g. "smolvla"
     "backbone_params": pl.Int64,      # parameters of the policy as loaded (before the graft): the analysis
                                       # orders backbones by it (graftcache/analysis/ladder.py)
     "policy": pl.String,              # hub id, local path or "tiny"

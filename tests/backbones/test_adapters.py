@@ -1,8 +1,8 @@
 """The adapters of the policies whose images lerobot prepares itself and embeds with its VLM's `embed_image`
 (spec `image_method` `prepare_images` or `_preprocess_images`: SmolVLA and the PaliGemma policies): geometry, batches,
-graft surgery, objectives, native tower. What every backbone does alike is tests/backbones/test_contract.py.
+graft surgery, policy loss, native tower. What every backbone does alike is tests/backbones/test_contract.py.
 
-Flow tests run on those with a flow time (FLOW); a token objective's own tests are its backbone's file."""
+Flow tests run on those with a flow time (FLOW); a token loss's own tests are its backbone's file."""
 
 from __future__ import annotations
 

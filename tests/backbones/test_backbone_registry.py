@@ -1,5 +1,5 @@
 """The backbone registry is the folders of graftcache/backbones/: every registered backbone has every required piece
-(graftcache.backbone_table.PIECES: its adapter class, its tiny configuration), found by convention."""
+(graftcache.backbone_registry.PIECES: its adapter class, its tiny configuration), found by convention."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from graftcache.backbone_table import BACKBONES, FOLDER, PIECES, backbone_module, discover, missing_pieces
+from graftcache.backbone_registry import BACKBONES, FOLDER, PIECES, backbone_module, discover, missing_pieces
 from graftcache.backbones import get_backbone, registered_spec
 from graftcache.backbones.activation_checkpointing import ActivationCheckpointing
 from graftcache.backbones.attention import Attention

@@ -1,4 +1,4 @@
-"""The backbone contract: what every registered backbone (graftcache.backbone_table.BACKBONES, the folders of
+"""The backbone contract: what every registered backbone (graftcache.backbone_registry.BACKBONES, the folders of
 graftcache/backbones/) does the same way, one test each, parametrised over the registry, so a new backbone folder is
 tested here without naming it anywhere. Where a case is about some backbones, its spec (BackboneSpec) selects them.
 
@@ -43,7 +43,7 @@ from helpers.policies import assert_same_policy, checksum, kinds, lerobot_from_p
 from safetensors.torch import load_file, save_file
 
 from devtools.released import hub_cache, publish
-from graftcache.backbone_table import BACKBONES, native_name
+from graftcache.backbone_registry import BACKBONES, native_name
 from graftcache.backbones import get_backbone, load_backbone
 from graftcache.backbones.checkpoint import state_dict_sha256
 from graftcache.backbones.lean_load import construct

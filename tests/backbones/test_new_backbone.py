@@ -30,7 +30,7 @@ CHECKS = textwrap.dedent(f"""
     from pathlib import Path
     import graftcache
     assert Path(graftcache.__file__).resolve().is_relative_to(Path.cwd().resolve()), graftcache.__file__
-    from graftcache.backbone_table import BACKBONES
+    from graftcache.backbone_registry import BACKBONES
     from graftcache.cli import build_parser
     assert "{NEW}" in BACKBONES
     commands = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction)).choices

@@ -1,6 +1,6 @@
 """pi0 as a backbone, with pi0-FAST where they share PaliGemma: both policies' released geometry on the meta device
 (3-4B parameters are never materialised here: shapes only, counted against the architectures' own formulas) and
-what activation checkpointing saves. pi0-FAST's own objective: tests/backbones/test_pi0_fast.py."""
+what activation checkpointing saves. pi0-FAST's own policy loss: tests/backbones/test_pi0_fast.py."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""pi0-FAST as a backbone: its own objective (lerobot's cross-entropy on FAST tokens, greedy decoding for scoring)
+"""pi0-FAST as a backbone: its own policy loss (lerobot's cross-entropy on FAST tokens, greedy decoding for scoring)
 and its FAST tokenizer. Its released geometry beside pi0's: tests/backbones/test_pi0.py."""
 
 from __future__ import annotations
@@ -57,7 +57,7 @@ def test_fast_loss_is_lerobots_cross_entropy_and_trains_the_projector() -> None:
         losses.append(value.item())
     # image tokens move a random tiny LM's FAST-token predictions only a little: steadily, though
     assert all(b < a for a, b in itertools.pairwise(losses)) and losses[-1] < 0.98 * losses[0], losses
-    assert not isinstance(adapter, FlowLoss) and not hasattr(adapter, "_flow_losses")  # a token objective only
+    assert not isinstance(adapter, FlowLoss) and not hasattr(adapter, "_flow_losses")  # a token loss only
 
 
 def test_fast_predict_decodes_greedily_whatever_the_noise() -> None:

@@ -13,7 +13,7 @@ import torch
 from fixtures.tiny_zoo import CONTROLS, TinyZoo
 
 from graftcache import results
-from graftcache.backbone_table import BACKBONES
+from graftcache.backbone_registry import BACKBONES
 from graftcache.backbones import get_backbone
 from graftcache.store import FeatureCache
 

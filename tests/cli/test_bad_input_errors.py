@@ -52,8 +52,8 @@ from graftcache.extract import extract
 from graftcache.results.claims import claims_folder
 from graftcache.store import FeatureCache, list_caches, open_root
 from graftcache.store.cache import PROGRESS_DIR
+from graftcache.store.push_pull import copy_cache
 from graftcache.store.roots import LocalRoot
-from graftcache.store.transfer import copy_cache
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 

@@ -61,7 +61,7 @@ def test_a_report_reads_backbone_labels_and_released_sizes_without_a_model_libra
     them by (the table records no backbone_params), imports no model library."""
     from helpers.tables import minimal_table
 
-    from graftcache.backbone_table import BACKBONES
+    from graftcache.backbone_registry import BACKBONES
     from graftcache.backbones import registered_spec
 
     sized = [name for name in BACKBONES if registered_spec(name).released_params]

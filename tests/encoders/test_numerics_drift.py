@@ -21,7 +21,7 @@ from transformers.models.smolvlm import modeling_smolvlm
 
 import graftcache.extract
 from graftcache import results
-from graftcache.backbone_table import native_name
+from graftcache.backbone_registry import native_name
 from graftcache.cli import main
 from graftcache.encoders import fingerprint as fp
 from graftcache.encoders import registry

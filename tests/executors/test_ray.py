@@ -1,7 +1,7 @@
 """Executors. The ray executor on a local Ray instance (tests/fixtures/ray_cluster.py): a sweep writes the
 local executor's rows, a worker SIGKILLed mid-cell costs only its own cell, a sharded extraction writes the local
 extraction's bytes, and an error raised in a task is the command's one line. Without a cluster: how settings
-reach the executors (recipe table, flags) and that Ray is imported only when chosen."""
+reach the executors (recipe section, flags) and that Ray is imported only when chosen."""
 
 from __future__ import annotations
 
@@ -75,7 +75,7 @@ class LocalSweep:
         path = self.folder / f"{name}.toml"
         text = textwrap.dedent(RECIPE).format(dataset=self.dataset, cache=self.folder / "cache",
                                               results=self.folder / name / "results.parquet", steps=STEPS)
-        if cells_per_pass is not None:  # into the [fit] table
+        if cells_per_pass is not None:  # into the [fit] section
             text = text.replace("[train_tiny]", f"cells_per_pass = {cells_per_pass}\n[train_tiny]")
         path.write_text(text)
         return load_recipe(path)

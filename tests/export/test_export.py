@@ -26,7 +26,7 @@ from helpers.probes import run_cli
 from safetensors.torch import load_file
 
 from graftcache import results
-from graftcache.backbone_table import BACKBONES
+from graftcache.backbone_registry import BACKBONES
 from graftcache.backbones import get_backbone
 from graftcache.datasets import open_dataset
 from graftcache.encoders.fingerprint import TOLERANCE

@@ -22,7 +22,7 @@ from helpers.world import World
 from safetensors.torch import load_file
 
 from graftcache import results
-from graftcache.backbone_table import native_name
+from graftcache.backbone_registry import native_name
 from graftcache.backbones import load_backbone
 from graftcache.cli import main
 from graftcache.errors import FitError
@@ -98,7 +98,7 @@ def test_every_control_writes_one_schema_valid_row(world: World, tmp_path: Path)
     # later cell only a graft that differs (the native tower's width, no projector, LoRA), as what differs
     tables = [line for line in lines if "parameters per module" in line]
     assert len(tables) == 1 and f"cell {by['none']['run_id']} " in tables[0] and "graft projector" in tables[0]
-    changed = {c: [line for line in lines if f"cell {by[c]['run_id']} " in line and "as the table above but" in line]
+    changed = {c: [line for line in lines if f"cell {by[c]['run_id']} " in line and "as the report above but" in line]
                for c in by}
     assert {c for c, found in changed.items() if found} == {"native", "native-graft", "lora"}
     lora_folder = fitter.plan.run_folder(cells[by["lora"]["run_id"]])

@@ -15,7 +15,7 @@ from typing import Any
 
 from safetensors import safe_open
 
-from graftcache.backbone_table import native_name
+from graftcache.backbone_registry import native_name
 from graftcache.extract import extract
 from graftcache.requests import FitRequest
 from graftcache.store import FeatureCache

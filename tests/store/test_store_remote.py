@@ -37,8 +37,8 @@ from graftcache.fit.run import FitRequest
 from graftcache.fit.stream import FeatureSource, read_blocks
 from graftcache.store import FeatureCache, cache_key, list_caches, open_root, scan_caches
 from graftcache.store.cache import MisplacedCache
+from graftcache.store.push_pull import copy_cache
 from graftcache.store.readthrough import reading_root
-from graftcache.store.transfer import copy_cache
 
 ENCODER = "timm:vit_tiny_patch16_224"
 GRAFTCACHE = Path(sys.executable).with_name("graftcache")

@@ -204,7 +204,7 @@ class EO1Adapter(TowerReads, FlowLoss, BackboneAdapter):
             out.pop(key, None)
         return out
 
-    # ------------------------------------------------------------------------------ objectives
+    # ----------------------------------------------------------------------------- policy loss
     def _flow_losses(self, batch: Mapping[str, Any], noise: torch.Tensor, time: torch.Tensor) -> torch.Tensor:
         """lerobot's EO-1 forward with the given draws; the per-element loss from the action head's velocity."""
         model = self.policy.model

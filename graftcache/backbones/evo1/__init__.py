@@ -1,1 +1,1 @@
-"""The evo1 backbone (graftcache/backbone_table.py): adapter.py, its adapter; tiny.py, its tiny configuration."""
+"""The evo1 backbone (graftcache/backbone_registry.py): adapter.py, its adapter; tiny.py, its tiny configuration."""

@@ -181,7 +181,7 @@ class Evo1Adapter(FlowLoss, BackboneAdapter):
         """The projector's tokens [B, T, D], what InternVL scatters into a camera's `<IMG_CONTEXT>` slots."""
         return self._vision_owner.get_image_features(pixel_values=self._native_pixels(images)).pooler_output.float()
 
-    # ------------------------------------------------------------------------------ objectives
+    # ----------------------------------------------------------------------------- policy loss
     def prepare(self, raw: Mapping[str, Any]) -> dict[str, Any]:
         """lerobot's preprocessor, with its padding of the action chunk (and of the mask saying so) to
         `max_action_dim` cut back to the real dims: the policy pads them again itself (`_prepare_actions`), and

@@ -253,7 +253,7 @@ class GrootAdapter(TowerReads, FlowLoss, BackboneAdapter):
             batch[ACTION] = batch[ACTION][..., : self.action_dim]
         return batch
 
-    # ------------------------------------------------------------------------------ objectives
+    # ----------------------------------------------------------------------------- policy loss
     def sample_time(self, batch_size: int) -> torch.Tensor:
         """GR00T's own Beta sampler, as a noise level (1 = pure noise)."""
         return self.noise_level(self._groot.action_head.sample_time(batch_size, self.device, torch.float32))

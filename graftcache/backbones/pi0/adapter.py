@@ -44,7 +44,7 @@ class PI0Adapter(PI05Adapter):
     def _make_processors(cls, config, stats: dict, marker: dict | None):
         return pi05_processors(config, stats, cls._tokenizer(marker), PROCESSOR, "make_pi0_pre_post_processors")
 
-    # ------------------------------------------------------------------------------ objectives
+    # ----------------------------------------------------------------------------- policy loss
     def _flow_losses(self, batch: Mapping[str, Any], noise, time) -> torch.Tensor:
         policy = self.policy
         images, img_masks = policy._preprocess_images(batch)

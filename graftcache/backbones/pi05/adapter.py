@@ -33,7 +33,7 @@ PALIGEMMA_TOKENIZER = "google/paligemma-3b-pt-224"  # hard-coded by processor_pi
 
 class PaliGemmaAdapter(BackboneAdapter):
     """What the PaliGemma policies (pi0.5, pi0, pi0-FAST) share: openpi's checkpoint keys, the PaliGemma tokenizer, the
-    tower and its grid; each adds its construction, processors and objective."""
+    tower and its grid; each adds its construction, processors and policy loss."""
 
     # ------------------------------------------------------------------------------ construction
     @classmethod
@@ -100,7 +100,7 @@ class PI05Adapter(FlowLoss, PaliGemmaAdapter):
         return pi05_processors(config, stats, cls._tokenizer(marker))
 
 
-    # ------------------------------------------------------------------------------ objectives
+    # ----------------------------------------------------------------------------- policy loss
     def _flow_losses(self, batch: Mapping[str, Any], noise, time) -> torch.Tensor:
         policy = self.policy
         images, img_masks = policy._preprocess_images(batch)

@@ -1,1 +1,1 @@
-"""The pi0_fast backbone (graftcache/backbone_table.py): adapter.py, its adapter; tiny.py, its tiny configuration."""
+"""The pi0_fast backbone (graftcache/backbone_registry.py): adapter.py, its adapter; tiny.py, its tiny configuration."""

@@ -101,7 +101,7 @@ class PI0FastAdapter(TokenLoss, PaliGemmaAdapter):
         self.policy.action_tokenizer.save_pretrained(folder / FAST_DIR)
         return folder
 
-    # ------------------------------------------------------------------------------ objectives
+    # ----------------------------------------------------------------------------- policy loss
     def loss(self, batch: Mapping[str, Any], noise: torch.Tensor | None = None,
              time: torch.Tensor | None = None) -> torch.Tensor:
         """lerobot's pi0-FAST loss: cross-entropy on the FAST tokens of the chunk, one token-weighted mean over

@@ -1,1 +1,1 @@
-"""The smolvla backbone (graftcache/backbone_table.py): adapter.py, its adapter; tiny.py, its tiny configuration."""
+"""The smolvla backbone (graftcache/backbone_registry.py): adapter.py, its adapter; tiny.py, its tiny configuration."""

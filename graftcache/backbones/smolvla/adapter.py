@@ -80,7 +80,7 @@ class SmolVLAAdapter(WrappedActivationCheckpointing, FlowLoss, BackboneAdapter):
     def _vision_owner(self) -> nn.Module:
         return self.policy.model.vlm_with_expert.get_vlm_model()
 
-    # ------------------------------------------------------------------------------ objectives
+    # ----------------------------------------------------------------------------- policy loss
     def _flow_losses(self, batch: Mapping[str, Any], noise, time) -> torch.Tensor:
         policy = self.policy
         images, img_masks = policy.prepare_images(batch)

@@ -8,7 +8,7 @@ cross-attends to the embodied-action states and is trained by flow matching (`ac
 the real action steps, repeated over 8 noise draws per sample); inference integrates it from noise in 4 Euler steps.
 The world model - a frozen V-JEPA2 video encoder and an action-conditioned predictor fed the action-token states -
 only adds `0.1 * wm_loss` (L1 on the next V-JEPA2 frame embeddings of an 8-frame clip) in training; inference never
-runs it. graftcache builds the policy without it (graftcache.backbones.vla_jepa.tiny.construct): the fit's objective
+runs it. graftcache builds the policy without it (graftcache.backbones.vla_jepa.tiny.construct): its policy loss
 is the policy's own action loss, `action_loss`, with one noise draw per sample and step (the 8 repeats are a variance
 reduction of the same expectation; graftcache's steps draw their own noise), and the world-model term, which needs
 future video the cache does not hold and a second 300M-parameter encoder, is left out.
@@ -230,7 +230,7 @@ class VLAJEPAAdapter(WrappedActivationCheckpointing, FlowLoss, BackboneAdapter):
         inputs["pixel_values"] = torch.cat(features)
         return inputs
 
-    # ------------------------------------------------------------------------------ objectives
+    # ----------------------------------------------------------------------------- policy loss
     def sample_time(self, batch_size: int) -> torch.Tensor:
         """The action head's own draw, as a noise level (1 - its t)."""
         return self.noise_level(self.policy.model.action_model.sample_time(batch_size, self.device, torch.float32))

@@ -1,1 +1,1 @@
-"""The wall_x backbone (graftcache/backbone_table.py): adapter.py, its adapter; tiny.py, its tiny configuration."""
+"""The wall_x backbone (graftcache/backbone_registry.py): adapter.py, its adapter; tiny.py, its tiny configuration."""

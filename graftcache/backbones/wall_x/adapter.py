@@ -196,7 +196,7 @@ class WallXAdapter(TowerReads, WrappedActivationCheckpointing, FlowLoss, Backbon
         inputs["pixel_values"] = torch.stack(images, dim=1).flatten(0, 2)
         return inputs
 
-    # ------------------------------------------------------------------------------ objectives
+    # ----------------------------------------------------------------------------- policy loss
     def sample_time(self, batch_size: int) -> torch.Tensor:
         """Wall-X's own draw, as a noise level (graftcache's convention: 1 - its t)."""
         return self.noise_level(self.policy.model.action_preprocessor.sample_time(batch_size, self.device))

@@ -15,7 +15,7 @@ extra spatial-mean token is part of the connector the graft replaces (the `nativ
 cached connector tokens are 1 + grid). The projector's width is `projection_dim` (= the BART width), and no
 scale follows it (BART scales only the word embeddings it looks up).
 
-X-VLA's objective is not lerobot's velocity flow: it predicts the clean chunk from x_t = t*noise + (1-t)*action
+X-VLA's policy loss is not lerobot's velocity flow: it predicts the clean chunk from x_t = t*noise + (1-t)*action
 and scores it with the action space's own loss (`action_space.compute_loss`: MSE on the real dims for the
 "auto" space). `loss` and `predict` therefore call the model's own parts (`forward_vlm`, `action_space`,
 `transformer`) with the given noise and time instead of the policy's `forward`/`generate_actions`, which draw
@@ -170,7 +170,7 @@ class XVLAAdapter(WrappedActivationCheckpointing, BackboneAdapter):
             masks = torch.cat([masks, masks.new_zeros(masks.shape[0], missing)], dim=1)
         return images, masks
 
-    # ------------------------------------------------------------------------------ objectives
+    # ----------------------------------------------------------------------------- policy loss
     def _encode(self, batch: Mapping[str, Any]) -> tuple[dict, dict[str, torch.Tensor], torch.dtype]:
         """(model inputs, `forward_vlm`'s outputs, the model's dtype) for a prepared batch."""
         model = self.policy.model

@@ -11,7 +11,7 @@ from helpers.tables import row, table
 
 from graftcache import results
 from graftcache.cli import main
-from graftcache.results.agreement import TOLERANCE, disagreement
+from graftcache.results.same_result import TOLERANCE, disagreement
 
 AMX, AVX512_BF16 = "cpu:avx512+amx", "cpu:avx512+avx512_bf16"
 
