@@ -35,8 +35,8 @@ process: the kernel sends each worker SIGKILL (Linux PR_SET_PDEATHSIG; elsewhere
 episode), this process's claims go stale with its pid, and a rerun runs the episodes that were not written.
 
 Determinism: an episode seeds its RNGs from its own seed and starts from its own init state, and its policy runs at
-graftcache.rollout.libero.POLICY_THREADS torch threads whatever N, so N workers write the rows one would (seconds and
-command aside).
+graftcache.rollout.simulator_setup.POLICY_THREADS torch threads whatever N, so N workers write the rows one would
+(seconds and command aside).
 """
 
 from __future__ import annotations
