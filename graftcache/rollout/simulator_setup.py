@@ -53,10 +53,19 @@ def _demoted(record: logging.LogRecord) -> bool:
 
 
 class _ChatterFilter(io.TextIOBase):
-    """A stdout writing each whole line to `out`, but CHATTER lines to SIMULATOR_LOG at debug level."""
+    """A stdout writing each whole line to `out`, but CHATTER lines to SIMULATOR_LOG at debug level. It may outlive
+    its block: a module imported inside it that binds sys.stdout keeps it (torch imports sympy.strategies.core, whose
+    `from sys import stdout` runs then) until the interpreter's exit, when it is collected."""
 
     def __init__(self, out: Any) -> None:
         self.out, self.pending = out, ""
+
+    @property
+    def closed(self) -> bool:
+        """Closed when `out` is: a stream that is collected flushes itself unless closed, and the filter collected at
+        exit, after `out` (pytest's capture, say) was closed, would raise from that flush, printed as "Exception
+        ignored"."""
+        return bool(self.out.closed)
 
     def write(self, text: str) -> int:
         *lines, self.pending = (self.pending + text).split("\n")

@@ -1,14 +1,42 @@
 """The set-up of a process around the LIBERO simulator (graftcache.rollout.simulator_setup): the simulator's set-up
-chatter goes to the debug log, in a process that builds real envs (slow)."""
+chatter goes to the debug log, in a process that builds real envs (slow); the stdout filter that does it outlives
+its block quietly."""
 
 from __future__ import annotations
 
+import gc
+import io
 import os
+import sys
 from pathlib import Path
+from typing import Any
 
 import pytest
 
+from graftcache.rollout.simulator_setup import simulator_chatter
+
 os.environ.setdefault("MUJOCO_GL", "egl")  # before MuJoCo is imported (in the test's subprocess): Mesa's EGL
+
+
+def test_the_chatter_filter_outliving_its_stream_is_collected_quietly(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A module imported inside the block that binds sys.stdout then keeps the filter (sympy.strategies.core, which
+    torch imports: `from sys import stdout`) until the interpreter's exit, by when the stream it wraps may be closed
+    (pytest's capture): the filter is closed with it, and its collection raises nothing. It printed "Exception ignored
+    in ... _ChatterFilter ... I/O operation on closed file" at the exit of the slow simulator tests."""
+    stream = io.TextIOWrapper(io.BytesIO(), encoding="utf-8")  # as pytest's capture (a StringIO flushes closed)
+    monkeypatch.setattr(sys, "stdout", stream)
+    with simulator_chatter():
+        kept = sys.stdout  # what such a module binds
+        print("a line", end="")
+    stream.flush()
+    assert stream.buffer.getvalue() == b"a line" and not kept.closed
+    stream.close()
+    assert kept.closed
+    unraisable: list[Any] = []
+    monkeypatch.setattr(sys, "unraisablehook", unraisable.append)
+    del kept
+    gc.collect()
+    assert unraisable == []
 
 
 CHATTY = """
@@ -33,7 +61,6 @@ def test_the_simulator_s_set_up_chatter_goes_to_the_debug_log(tmp_path: Path) ->
     lerobot's env-building lines (3 per env) printed 14 lines around these two envs: none reach stdout or stderr, and
     each is in the debug log where it is asked for; the process's own lines pass."""
     import subprocess
-    import sys
 
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
     quiet, debug = (subprocess.run([sys.executable, "-c", CHATTY, mode], capture_output=True, text=True, env=env,
