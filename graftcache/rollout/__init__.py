@@ -13,6 +13,6 @@ simulator: its libraries checked, their chatter quieted, the policy's threads), 
 rollout calls after the reset and every step: the state read, the frame kept), graded.py (graded progress from the
 simulator's state), perturb.py (the target's seeded perturbation, --perturb-cm), seam.py (every reach past lerobot's,
 hf-libero's and robosuite's public API, and the versions it was read in), workers.py (`--workers N`: episodes in N
-spawned processes, each with its own simulator), sequential.py (`--until-resolved`: looks that add episodes to the
-pairs still unresolved).
+spawned processes, each with its own simulator), worker_process.py (a worker's loop, in the spawned process),
+sequential.py (`--until-resolved`: looks that add episodes to the pairs still unresolved).
 """
