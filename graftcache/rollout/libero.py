@@ -136,10 +136,10 @@ class LiberoSimulator:
             with quiet_inner_bars(), torch.no_grad():
                 for episode in episodes:
                     env = self.env(episode.suite, episode.task_index, episode.reset)
-                    scene = env.envs[0]
-                    index, init_state = seam.start_from(scene, episode.episode)  # lerobot-eval's k-th reset
-                    scene.perturbation = (Perturbation(init_state, episode.perturbation_m, episode.seed,
-                                                       episode.task_index) if episode.perturbation_m else None)
+                    task_env = env.envs[0]
+                    index, init_state = seam.start_from(task_env, episode.episode)  # lerobot-eval's k-th reset
+                    task_env.perturbation = (Perturbation(init_state, episode.perturbation_m, episode.seed,
+                                                          episode.task_index) if episode.perturbation_m else None)
                     set_seed(episode.seed)
                     frames: list[np.ndarray] | None = [] if self.videos else None
                     states: list[State] = []
@@ -154,7 +154,7 @@ class LiberoSimulator:
                                   frames=np.stack(frames[: done + 2]) if frames is not None else None,  # all of them
                                   fps=env.unwrapped.metadata["render_fps"] if self.videos else None,
                                   graded=measure(target_of(problem_of(env)), states[: done + 2]),
-                                  target_offset_m=(float(scene.offset[0]), float(scene.offset[1])))
+                                  target_offset_m=(float(task_env.offset[0]), float(task_env.offset[1])))
 
     def close(self) -> None:
         self._cell = None

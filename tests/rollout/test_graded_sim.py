@@ -99,17 +99,17 @@ def test_a_perturbed_scene_puts_the_target_at_its_offset_settled(simulator: Any)
     from graftcache.rollout.seam import read_state
 
     env = simulator.env("libero_object", 0)
-    scene, libero = env.envs[0], env.envs[0].unwrapped
-    libero.init_state_id, scene.perturbation = 1, None
+    task_env, libero = env.envs[0], env.envs[0].unwrapped
+    libero.init_state_id, task_env.perturbation = 1, None
     official_obs, _ = env.reset(seed=[1001])
     sim = problem_of(env)
     target = target_of(sim)
     official = np.array(read_state(sim, target).target)
-    assert tuple(scene.offset) == (0.0, 0.0)
+    assert tuple(task_env.offset) == (0.0, 0.0)
 
-    libero.init_state_id, scene.perturbation = 1, Perturbation(libero._init_states[1], 0.03, 1001, 0)
+    libero.init_state_id, task_env.perturbation = 1, Perturbation(libero._init_states[1], 0.03, 1001, 0)
     perturbed_obs, _ = env.reset(seed=[1001])
-    offset = scene.offset.copy()
+    offset = task_env.offset.copy()
     draws = list(offsets(rng_of(1001, 0), 0.03))
     assert any(np.array_equal(offset, d) for d in draws) and np.abs(offset).max() > 0.01
     placed = np.array(read_state(sim, target).target)
