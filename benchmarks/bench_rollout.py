@@ -71,7 +71,7 @@ def step_costs(results: Path, cache: Path, exports: Path, run_id: str, max_steps
     """Per reset: mean seconds of the env's reset, of a step of the env's step (physics and both cameras' rendering)
     and of the policy's call (select_action, the model's call amortised over its action chunk; the processors
     excluded), and the whole episode, of one in-process episode after a warm-up one, at the rollout's policy threads
-    (graftcache.rollout.libero.POLICY_THREADS)."""
+    (graftcache.rollout.simulator_setup.POLICY_THREADS)."""
     import gymnasium as gym
     import polars as pl
 

@@ -3,7 +3,7 @@
 A policy names its image inputs (`observation.images.<name>`), a cache the dataset cameras it holds. LIBERO's
 own releases disagree (the wrist camera is `image2` in some, `wrist_image` in others; lerobot 0.6 datasets may
 say `agentview` / `eye_in_hand`), so pairing by position would be a guess that silently feeds the wrist view
-into the scene slot. When the names differ, the user says which camera feeds which slot (`--camera-map
+into the third-person slot. When the names differ, the user says which camera feeds which slot (`--camera-map
 POLICY=CACHE[,...]`, a recipe's `camera_map`); every results row records the mapping its cell used, in the
 canonical text `format_camera_map` writes (the same syntax the flag takes).
 

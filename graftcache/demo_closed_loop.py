@@ -139,11 +139,12 @@ def run_closed_loop_demo(recipe_path: str | Path | None = None, out: str | Path 
     from graftcache.executors import get_executor
     from graftcache.requests import ExecutorSettings
     from graftcache.rollout.episodes import Simulator
-    from graftcache.rollout.libero import LiberoSimulator, require_simulator
+    from graftcache.rollout.libero import LiberoSimulator
     from graftcache.rollout.request import EXPORTS_FOLDER, RolloutRequest, default_rollouts
     from graftcache.rollout.roll_out import roll_out_started
     from graftcache.rollout.select import Selection, select
     from graftcache.rollout.sequential import Sequential, looks
+    from graftcache.rollout.simulator_setup import require_simulator
 
     require_simulator()  # before minutes of fitting
     path = Path(recipe_path) if recipe_path else DEFAULT_RECIPE

@@ -30,7 +30,8 @@ def installed(distribution: str) -> str | None:
 def refuse_others(distributions: Sequence[str], reader: str, error: type[GraftcacheError]) -> None:
     """Raise `error`, one line naming `reader` (the code that reaches), both versions and the pin, when any of
     `distributions` is installed at another version than WRITTEN_AGAINST's. One not installed passes: whoever
-    imports it names its set-up (graftcache.rollout.libero.require_simulator; lerobot is a core dependency)."""
+    imports it names its set-up (graftcache.rollout.simulator_setup.require_simulator; lerobot is a core
+    dependency)."""
     other = {name: found for name in distributions
              if (found := installed(name)) not in (None, WRITTEN_AGAINST[name])}
     if other:

@@ -108,7 +108,7 @@ class _Stop:
 
     def _resend(self) -> None:
         """Trip the signal's Python handler again, not the signal itself: a real signal every half second cut the
-        file reads of MuJoCo's scene compiler (EINTR), which started over each time and never finished."""
+        file reads of MuJoCo's model compiler (EINTR), which started over each time and never finished."""
         while True:
             threading.Event().wait(REDELIVER_S_UNHANDLED)
             with self.lock:

@@ -10,9 +10,9 @@ and only then joins another's cell.
 
 Rows: an actor writes the episode's video whole (graftcache.rollout.record.with_video) and returns its row; the driver
 appends it as the call finishes. So the rows are those of the local executor for the same episodes (an episode seeds
-itself and runs its policy on graftcache.rollout.libero.POLICY_THREADS threads; seconds aside), a driver killed
-mid-way has written whole rows only (Ray ends the actors of a driver that is gone, and the claims go stale with it),
-and a rerun runs the missing episodes. Every node must see the results file, its run folders and caches (the actors
+itself and runs its policy on graftcache.rollout.simulator_setup.POLICY_THREADS threads; seconds aside), a driver
+killed mid-way has written whole rows only (Ray ends the actors of a driver that is gone, and the claims go stale with
+it), and a rerun runs the missing episodes. Every node must see the results file, its run folders and caches (the actors
 export the cells) and the rollouts file's folder (videos, exports) at the same paths, as for fitting.
 
 Failures: an error inside an actor is one RolloutError line naming the run and episode (and the actor); an actor

@@ -17,169 +17,33 @@ episode's reset is by default soft (graftcache.rollout.seam: the simulator kept,
 where lerobot-eval's is hard (a new simulator each episode); both give the same episode, state for state, so each
 (suite, task) has an env per reset kind and rows do not say which ran.
 
-Graded progress (graftcache.rollout.graded): the same render callback reads the simulator's state after the reset and
-after every step, and the episode's states are measured when it ends. A perturbed episode
-(graftcache.rollout.perturb): the env is wrapped (PerturbedReset) so that lerobot-eval's reset to the init state is
-followed by the target's seeded offset and settling, before the rollout's first policy step.
+Graded progress (graftcache.rollout.graded): the same render callback (graftcache.rollout.render_callback.observe)
+reads the simulator's state after the reset and after every step, and the episode's states are measured when it ends.
+A perturbed episode (graftcache.rollout.perturb): the env is wrapped (PerturbedReset) so that lerobot-eval's reset to
+the init state is followed by the target's seeded offset and settling, before the rollout's first policy step.
 
-The simulator's libraries announce their set-up in every process, for every suite and env they build (robosuite's
-macro-file warning at import, LIBERO's task-order line per suite, lerobot's env-building lines): twelve envs in a
-team of workers made a quarter of a run's log. Those lines (CHATTER) go to the debug logger SIMULATOR_LOG instead,
-filtered here, where every process (a team worker too) imports the simulator and builds its suites and envs
-(`simulator_chatter`); any other line they print passes as it is.
+The process's set-up around the simulator (its libraries checked, their chatter quieted, the policy's threads):
+graftcache.rollout.simulator_setup.
 """
 
 from __future__ import annotations
 
-import importlib.util
-import io
-import logging
-import multiprocessing
-import re
-import sys
 import time
-import warnings
 from collections.abc import Iterator, Mapping, Sequence
-from contextlib import contextmanager, redirect_stdout
 from functools import partial
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from graftcache.errors import RolloutError
 from graftcache.rollout import seam
 from graftcache.rollout.episodes import Episode, Outcome, Suite
 from graftcache.rollout.graded import State, measure, target_of
+from graftcache.rollout.render_callback import observe, problem_of
+from graftcache.rollout.simulator_setup import policy_threads, quiet_inner_bars, require_simulator, simulator_chatter
 
 #: the observation size of LIBERO's datasets (lerobot's env defaults to 360)
 OBSERVATION_SIZE = 256
-INSTALL = "run `make setup-libero` (scripts/setup.sh libero) to install it"
-#: torch's intra-op threads while an episode's policy runs, whatever `rollout --workers` is: the rows of N workers are
-#: those of one (a thread count may change a reduction's order, hence an action, hence the episode), and N workers
-#: on N cores do not spin against each other. The cost is small: the env step, not the policy, takes most of an
-#: episode (benchmarks/bench_rollout.py measures both).
-POLICY_THREADS = 1
-#: The simulator's set-up announcements (see the module docstring): robosuite's three macro-file lines, LIBERO's
-#: task order, lerobot's create_envs lines.
-CHATTER = re.compile(r"(No private macro file found!|It is recommended to use a private macro file|To setup, run: "
-                     r"python \S*setup_macros\.py|\[info\] using task orders |Creating LIBERO envs \||Restricting to "
-                     r"task_ids=|Built vec env \|)")
-#: Where CHATTER goes, at debug level (shown only where a user configures logging to show it).
-SIMULATOR_LOG = logging.getLogger("graftcache.simulator")
-#: robosuite's own logger (robosuite.utils.log_utils.DefaultLogger), which its import warns through
-ROBOSUITE_LOG = "robosuite_logs"
-
-
-def _demoted(record: logging.LogRecord) -> bool:
-    """A logger filter: a CHATTER record goes to SIMULATOR_LOG at debug level instead of robosuite's handlers."""
-    message = record.getMessage()
-    if CHATTER.match(message):
-        SIMULATOR_LOG.debug(message)
-        return False
-    return True
-
-
-class _ChatterFilter(io.TextIOBase):
-    """A stdout writing each whole line to `out`, but CHATTER lines to SIMULATOR_LOG at debug level."""
-
-    def __init__(self, out: Any) -> None:
-        self.out, self.pending = out, ""
-
-    def write(self, text: str) -> int:
-        *lines, self.pending = (self.pending + text).split("\n")
-        for line in lines:
-            self._line(line, "\n")
-        return len(text)
-
-    def _line(self, line: str, end: str) -> None:
-        if CHATTER.match(line):
-            SIMULATOR_LOG.debug(line)
-        else:
-            self.out.write(line + end)
-
-    def flush(self) -> None:
-        if self.pending:
-            self._line(self.pending, "")
-            self.pending = ""
-        self.out.flush()
-
-
-@contextmanager
-def simulator_chatter() -> Iterator[None]:
-    """Inside the block, the simulator's CHATTER goes to SIMULATOR_LOG: robosuite's logger filtered (from then on:
-    it warns once per process, at import), stdout's lines too."""
-    logging.getLogger(ROBOSUITE_LOG).addFilter(_demoted)  # added once however often (Filterer skips a repeat)
-    out = _ChatterFilter(sys.stdout)
-    try:
-        with redirect_stdout(out):
-            yield
-    finally:
-        out.flush()
-
-
-def require_simulator() -> None:
-    """Refuse, in one line naming how to install it, an environment without lerobot's LIBERO env."""
-    for module in ("libero", "robosuite", "mujoco"):
-        if importlib.util.find_spec(module) is None:
-            raise RolloutError(f"the LIBERO simulator is not installed (no Python module {module}); {INSTALL}")
-    try:
-        with warnings.catch_warnings(), simulator_chatter():  # robosuite's source has an invalid escape: a
-            warnings.simplefilter("ignore", SyntaxWarning)  # SyntaxWarning where no .pyc is cached (uv installs none)
-            import lerobot.envs.libero  # noqa: F401  (imports hf-libero, which prompts on stdin without its config)
-    except EOFError:
-        raise RolloutError("hf-libero asked for its config on stdin ($LIBERO_CONFIG_PATH/config.yaml, default "
-                           f"~/.libero, is missing); {INSTALL}, which writes it") from None
-    except ImportError as e:
-        raise RolloutError(f"the LIBERO simulator cannot be imported ({e}); {INSTALL}") from None
-
-
-@contextmanager
-def quiet_inner_bars() -> Iterator[None]:
-    """lerobot's rollout draws a bar of its own per episode; off a terminal (a log) it would write a redraw per step,
-    so it is disabled there and the rollout's own sparse lines remain (graftcache.progress); in a team worker too
-    (graftcache.rollout.workers), where N of them would fight over the rollout's own bar."""
-    if sys.stderr.isatty() and multiprocessing.parent_process() is None:
-        yield
-        return
-    with seam.inner_bars_off():
-        yield
-
-
-@contextmanager
-def policy_threads() -> Iterator[None]:
-    """torch at POLICY_THREADS intra-op threads inside the block, the process's own count again after it."""
-    import torch
-
-    before = torch.get_num_threads()
-    torch.set_num_threads(POLICY_THREADS)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(before)
-
-
-def record_frame(frames: list[np.ndarray], env: Any) -> None:
-    """lerobot's rollout's render callback: keep the frame lerobot-eval's (eval_policy's render_frame) would keep
-    of a one-env vector env."""
-    import gymnasium as gym
-
-    frames.append(env.envs[0].render() if isinstance(env, gym.vector.SyncVectorEnv) else env.call("render")[0])
-
-
-def problem_of(env: Any) -> Any:
-    """LIBERO's problem env (the robosuite env built from the task's BDDL) inside lerobot's one-env vector env:
-    LiberoEnv -> hf-libero's OffScreenRenderEnv -> its env."""
-    return seam.problem(env.envs[0])
-
-
-def observe(states: list[State], frames: list[np.ndarray] | None, env: Any) -> None:
-    """lerobot's rollout's render callback (after the reset and after every step): the simulator's state for the
-    graded measures, and the frame when recording."""
-    if frames is not None:
-        record_frame(frames, env)
-    sim = problem_of(env)
-    states.append(seam.read_state(sim, target_of(sim)))
 
 
 class LiberoSimulator:
@@ -272,10 +136,10 @@ class LiberoSimulator:
             with quiet_inner_bars(), torch.no_grad():
                 for episode in episodes:
                     env = self.env(episode.suite, episode.task_index, episode.reset)
-                    scene = env.envs[0]
-                    index, init_state = seam.start_from(scene, episode.episode)  # lerobot-eval's k-th reset
-                    scene.perturbation = (Perturbation(init_state, episode.perturbation_m, episode.seed,
-                                                       episode.task_index) if episode.perturbation_m else None)
+                    task_env = env.envs[0]
+                    index, init_state = seam.start_from(task_env, episode.episode)  # lerobot-eval's k-th reset
+                    task_env.perturbation = (Perturbation(init_state, episode.perturbation_m, episode.seed,
+                                                          episode.task_index) if episode.perturbation_m else None)
                     set_seed(episode.seed)
                     frames: list[np.ndarray] | None = [] if self.videos else None
                     states: list[State] = []
@@ -290,7 +154,7 @@ class LiberoSimulator:
                                   frames=np.stack(frames[: done + 2]) if frames is not None else None,  # all of them
                                   fps=env.unwrapped.metadata["render_fps"] if self.videos else None,
                                   graded=measure(target_of(problem_of(env)), states[: done + 2]),
-                                  target_offset_m=(float(scene.offset[0]), float(scene.offset[1])))
+                                  target_offset_m=(float(task_env.offset[0]), float(task_env.offset[1])))
 
     def close(self) -> None:
         self._cell = None

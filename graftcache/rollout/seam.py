@@ -60,43 +60,43 @@ def suite_tasks(name: str) -> int:
     return len(_get_suite(name).tasks)
 
 
-def libero_env(scene: Any) -> Any:
-    """hf-libero's OffScreenRenderEnv inside lerobot's LiberoEnv `scene` (any gym wrapper of it), built on first
+def libero_env(env: Any) -> Any:
+    """hf-libero's OffScreenRenderEnv inside lerobot's LiberoEnv `env` (any gym wrapper of it), built on first
     use as lerobot's reset builds it (LiberoEnv._ensure_env, LiberoEnv._env)."""
-    lerobot_env = scene.unwrapped
+    lerobot_env = env.unwrapped
     lerobot_env._ensure_env()
     return lerobot_env._env
 
 
-def problem(scene: Any) -> Any:
-    """LIBERO's problem env (the robosuite env built from the task's BDDL) inside lerobot's LiberoEnv `scene`."""
-    return libero_env(scene).env
+def problem(env: Any) -> Any:
+    """LIBERO's problem env (the robosuite env built from the task's BDDL) inside lerobot's LiberoEnv `env`."""
+    return libero_env(env).env
 
 
-def settle_steps(scene: Any) -> int:
+def settle_steps(env: Any) -> int:
     """The no-op steps lerobot's reset settles the scene with (LiberoEnv.num_steps_wait)."""
-    return int(scene.unwrapped.num_steps_wait)
+    return int(env.unwrapped.num_steps_wait)
 
 
-def cameras(scene: Any) -> int:
-    """The camera images an observation of `scene` holds (lerobot's LiberoEnv.camera_name)."""
-    return len(scene.unwrapped.camera_name)
+def cameras(env: Any) -> int:
+    """The camera images an observation of `env` holds (lerobot's LiberoEnv.camera_name)."""
+    return len(env.unwrapped.camera_name)
 
 
-def start_from(scene: Any, k: int) -> tuple[int, np.ndarray]:
-    """Make lerobot's next reset of `scene` the k-th reset of a freshly built env, as lerobot-eval's episode k is:
+def start_from(env: Any, k: int) -> tuple[int, np.ndarray]:
+    """Make lerobot's next reset of `env` the k-th reset of a freshly built env, as lerobot-eval's episode k is:
     LiberoEnv.init_state_id, which its reset reads and then advances, set to k. Returns the init state that reset
     sets: its index among the task's official init states as the env loaded them (k modulo their number), and it."""
-    lerobot_env = scene.unwrapped
+    lerobot_env = env.unwrapped
     states = lerobot_env._init_states
     lerobot_env.init_state_id = k
     return k % len(states), states[k % len(states)]
 
 
-def observation(scene: Any, raw: dict) -> Any:
+def observation(env: Any, raw: dict) -> Any:
     """lerobot's observation of hf-libero's raw observation `raw` (LiberoEnv._format_raw_obs), as its reset and
     step return it."""
-    return scene.unwrapped._format_raw_obs(raw)
+    return env.unwrapped._format_raw_obs(raw)
 
 
 @contextmanager
@@ -138,13 +138,13 @@ class Renders:
 
 
 @contextmanager
-def renders_from(scene: Any, step: int | None) -> Iterator[Renders]:
-    """Inside, the camera renders of `scene`'s MjSim (robosuite's env.sim.render, which its camera sensors call)
+def renders_from(env: Any, step: int | None) -> Iterator[Renders]:
+    """Inside, the camera renders of `env`'s MjSim (robosuite's env.sim.render, which its camera sensors call)
     are answered with a blank image while robosuite's step counter (env.timestep: 0 after a reset, the settling or
     policy step in progress after) is below `step` (None: all of them), and rendered from it on. Blank images
     must never reach a policy: the caller checks `Renders.done` against the images it keeps. The MjSim must outlive
     the block (a soft reset: a hard one replaces it, and the gate with it)."""
-    problem_env = problem(scene)
+    problem_env = problem(env)
     sim, counts = problem_env.sim, Renders()
     render, own = sim.render, "render" in vars(sim)
 
@@ -177,7 +177,7 @@ def renders_from(scene: Any, step: int | None) -> Iterator[Renders]:
 def frames_reused(sim: Any) -> Iterator[None]:
     """Inside, each camera view robosuite's MjSim `sim` is asked for is rendered once and that image returned again:
     for steps whose images nobody keeps (a perturbation's settling before its last step). The physics never reads
-    an image, so the scene evolves exactly as it would, and rendering is most of a step's cost (2 cameras at 256 px,
+    an image, so the state evolves exactly as it would, and rendering is most of a step's cost (2 cameras at 256 px,
     read back from an offscreen context on CPU). lerobot's reset, whose scene a perturbation replaces, renders
     nothing with a soft reset (`renders_from`); a hard one builds a new MjSim, out of reach."""
     render, own = sim.render, "render" in vars(sim)
@@ -199,9 +199,9 @@ def frames_reused(sim: Any) -> Iterator[None]:
             del sim.render
 
 
-def release_grippers(scene: Any) -> None:
+def release_grippers(env: Any) -> None:
     """Forget the gripper command each robot's gripper holds (robosuite's gripper.current_action, which its grippers
     integrate each step), as a hard reset's newly built grippers start: robosuite 1.4.0's soft reset keeps the last
     episode's, so the settling steps would open the gripper from where the last episode left it."""
-    for robot in libero_env(scene).robots:
+    for robot in libero_env(env).robots:
         robot.gripper.current_action = np.zeros(robot.gripper.dof)

@@ -1,4 +1,5 @@
-"""`graftcache rollout --workers N`: N episodes busy at once on this machine, each in a worker process of its own.
+"""`graftcache rollout --workers N`: N episodes busy at once on this machine, each in a worker process of its own;
+this module is the rollout's side of the team, graftcache.rollout.worker_process the worker's.
 
 Why processes, started by spawn: MuJoCo's EGL context and torch's thread pools do not survive a fork, and threads
 would share one GIL. Each worker builds one simulator (graftcache.rollout.libero.LiberoSimulator, whose env cache and
@@ -31,41 +32,35 @@ dies (kill -9, out of memory) is one line naming the episode it was running. Eit
 and the claims given back; every row written is whole and a rerun runs the missing episodes. Ctrl-C or SIGTERM here
 stops every worker (graftcache.processes.stop: SIGTERM, then SIGKILL after a grace period, whatever the worker does
 with SIGTERM); the workers ignore the terminal's SIGINT, so the stop is this process's one line. A kill -9 of this
-process: the kernel sends each worker SIGKILL (Linux PR_SET_PDEATHSIG; elsewhere the closed pipe ends it after its
-episode), this process's claims go stale with its pid, and a rerun runs the episodes that were not written.
+process: the kernel sends each worker SIGKILL (Linux PR_SET_PDEATHSIG, graftcache.rollout.worker_process; elsewhere
+the closed pipe ends it after its episode), this process's claims go stale with its pid, and a rerun runs the
+episodes that were not written.
 
 Determinism: an episode seeds its RNGs from its own seed and starts from its own init state, and its policy runs at
-graftcache.rollout.libero.POLICY_THREADS torch threads whatever N, so N workers write the rows one would (seconds and
-command aside).
+graftcache.rollout.simulator_setup.POLICY_THREADS torch threads whatever N, so N workers write the rows one would
+(seconds and command aside).
 """
 
 from __future__ import annotations
 
-import ctypes
 import multiprocessing
 import os
-import signal
-import sys
-import threading
 import time
-from collections.abc import Callable, Iterator, Sequence
-from contextlib import contextmanager, suppress
+from collections.abc import Callable, Sequence
+from contextlib import suppress
 from dataclasses import dataclass
 from multiprocessing.connection import Connection, wait
 from multiprocessing.process import BaseProcess
-from pathlib import Path
-from typing import Any
 
 from graftcache.errors import RolloutError
-from graftcache.processes import WORKER_GRACE_S, Terminated, stop
+from graftcache.processes import WORKER_GRACE_S, sigint_ignored, sigterm_held, stop
 from graftcache.rollout.episodes import Episode, EpisodeReport, Simulator, where
-from graftcache.rollout.record import run_one
 from graftcache.rollout.request import RolloutRequest
-from graftcache.rollout.schedule import Job, one_line
+from graftcache.rollout.schedule import Job
+from graftcache.rollout.worker_process import serve
 
 #: how long workers told to finish get to close their simulators before they are stopped
 CLOSE_S = 30.0
-PR_SET_PDEATHSIG = 1  # linux/prctl.h
 
 
 @dataclass
@@ -162,51 +157,21 @@ def _death(worker: _Worker) -> str:
 
 
 def _start(n: int, spawn: Callable[[], Simulator], req: RolloutRequest) -> list[_Worker]:
-    """n spawned workers, each with its end of a pipe. They start with SIGINT ignored (inherited across exec), so a
-    Ctrl-C at the terminal, which reaches the whole process group, stops them through this process only."""
+    """n spawned workers (graftcache.rollout.worker_process.serve), each with its end of a pipe. They start with
+    SIGINT ignored (graftcache.processes.sigint_ignored), so a Ctrl-C at the terminal stops them through this process
+    only, and a SIGTERM here waits until each has started (graftcache.processes.sigterm_held)."""
     context = multiprocessing.get_context("spawn")
     team = []
-    with _sigint_ignored():
+    with sigint_ignored():
         for i in range(n):
             here, there = context.Pipe()
             process = context.Process(target=serve, args=(there, spawn, req.rollouts, req.command, os.getpid()),
                                       name=f"graftcache-rollout-{i}", daemon=True)
-            with _sigterm_held():
+            with sigterm_held():
                 process.start()
             there.close()
             team.append(_Worker(i, process, here))
     return team
-
-
-@contextmanager
-def _sigterm_held() -> Iterator[None]:
-    """A SIGTERM held while one worker starts, then delivered: raised between its spawn and the data it is then sent,
-    the stop would leave a process that is no team member yet (no stop reaches it) and that dies reading the rest,
-    printing an EOFError traceback. (SIGINT is ignored meanwhile, `_sigint_ignored`.) A Python handler holds it, not
-    the signal mask, which the process's other threads do not share."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    held: list[int] = []
-    previous = signal.signal(signal.SIGTERM, lambda signum, frame: held.append(signum))
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, previous)
-        if held:
-            signal.raise_signal(signal.SIGTERM)
-
-
-@contextmanager
-def _sigint_ignored() -> Iterator[None]:
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGINT, previous)
 
 
 def _finish(team: Sequence[_Worker]) -> None:
@@ -224,71 +189,3 @@ def _stop(team: Sequence[_Worker]) -> None:
     stop([w.process for w in team])
     for worker in team:
         worker.conn.close()
-
-
-# ---------------------------------------------------------------------------------------------- in the worker
-def serve(conn: Connection, spawn: Callable[[], Simulator], rollouts: Path, command: str, parent: int) -> None:
-    """A worker's life: build the simulator, then run each (row, episode) sent, write its video and row, and send
-    its EpisodeReport, until None or the pipe's end. An error is reported as one
-    line ("failed"; "broken": building the simulator) and ends the worker; a stop (SIGTERM, its parent's death) ends
-    it quietly."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, _terminated)
-    try:
-        _die_with(parent)
-        _thread_locked_bars()
-        try:
-            sim = spawn()
-        except Exception as e:
-            conn.send(("broken", one_line(e)))
-            return
-        try:
-            while (job := conn.recv()) is not None:
-                row, episode = job
-                try:
-                    report = run_one(sim, row, episode, rollouts, command)
-                except Exception as e:
-                    conn.send(("failed", one_line(e)))
-                    return
-                conn.send(("done", report))
-        finally:
-            close = getattr(sim, "close", None)
-            if close is not None:
-                close()
-    except (KeyboardInterrupt, EOFError, OSError):  # stopped, or the rollout that started it is gone
-        return
-    finally:  # a stop while the interpreter exits has nothing left to unwind (it would print from an atexit hook)
-        signal.signal(signal.SIGTERM, signal.SIG_DFL)
-
-
-def _terminated(signum: int, frame: Any) -> None:
-    """A stop: raised, and from now on nothing that it cuts short is printed. An object whose `__init__` it
-    interrupts can fail in its `__del__` (robosuite's MjRenderContext), which Python would print as "Exception
-    ignored in ..." on the terminal before the rollout's one line."""
-    sys.unraisablehook = _dropped
-    raise Terminated()
-
-
-def _dropped(unraisable: Any) -> None:
-    """sys.unraisablehook of a stopped worker: its debris is not printed (see `_terminated`)."""
-
-
-def _thread_locked_bars() -> None:
-    """tqdm's bars (lerobot's rollout loop opens one, disabled here) share a lock that is by default a
-    multiprocessing semaphore, registered with the rollout's resource tracker: a worker killed by SIGKILL (a stop's
-    escalation, its parent's death) never unregisters it, and the tracker warns of a "leaked semaphore" on the
-    terminal after the rollout's last line. A worker draws no bar of another process: a thread lock serves."""
-    from tqdm import tqdm
-
-    tqdm.set_lock(threading.RLock())
-
-
-def _die_with(parent: int) -> None:
-    """SIGKILL to this worker when its parent dies (Linux), so a kill -9 of the rollout leaves no worker running:
-    SIGKILL, since SIGTERM is lost where a library swallows what its handler raises (hf-libero's reset loop ends in
-    `finally: continue`), and an orphan has no one left to escalate."""
-    if sys.platform.startswith("linux"):
-        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
-    if os.getppid() != parent:  # died before the prctl
-        raise Terminated()
-

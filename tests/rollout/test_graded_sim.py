@@ -46,8 +46,8 @@ def test_the_samples_scripted_grasp_replayed_reaches_grasps_and_lifts(simulator:
     wide around these for another CPU's floating point, and each is one no policy that fails to reach would meet:
     the soup starts 33 cm away."""
     from graftcache.rollout.graded import longest_run, measure, target_of
-    from graftcache.rollout.libero import problem_of
     from graftcache.rollout.perturb import place_target
+    from graftcache.rollout.render_callback import problem_of
     from graftcache.rollout.seam import read_state
 
     entry = json.loads((SAMPLE / "render_manifest.json").read_text())["episodes"][REPLAYED]
@@ -94,22 +94,22 @@ def test_a_perturbed_scene_puts_the_target_at_its_offset_settled(simulator: Any)
     (the first that settled: the first here, (+0.68, -2.91) cm), the scene stays put under no-op steps, and the
     reset's observation (the policy's first input) shows the moved scene."""
     from graftcache.rollout.graded import target_of
-    from graftcache.rollout.libero import problem_of
     from graftcache.rollout.perturb import NOOP, Perturbation, offsets, rng_of
+    from graftcache.rollout.render_callback import problem_of
     from graftcache.rollout.seam import read_state
 
     env = simulator.env("libero_object", 0)
-    scene, libero = env.envs[0], env.envs[0].unwrapped
-    libero.init_state_id, scene.perturbation = 1, None
+    task_env, libero = env.envs[0], env.envs[0].unwrapped
+    libero.init_state_id, task_env.perturbation = 1, None
     official_obs, _ = env.reset(seed=[1001])
     sim = problem_of(env)
     target = target_of(sim)
     official = np.array(read_state(sim, target).target)
-    assert tuple(scene.offset) == (0.0, 0.0)
+    assert tuple(task_env.offset) == (0.0, 0.0)
 
-    libero.init_state_id, scene.perturbation = 1, Perturbation(libero._init_states[1], 0.03, 1001, 0)
+    libero.init_state_id, task_env.perturbation = 1, Perturbation(libero._init_states[1], 0.03, 1001, 0)
     perturbed_obs, _ = env.reset(seed=[1001])
-    offset = scene.offset.copy()
+    offset = task_env.offset.copy()
     draws = list(offsets(rng_of(1001, 0), 0.03))
     assert any(np.array_equal(offset, d) for d in draws) and np.abs(offset).max() > 0.01
     placed = np.array(read_state(sim, target).target)
@@ -123,44 +123,3 @@ def test_a_perturbed_scene_puts_the_target_at_its_offset_settled(simulator: Any)
     assert abs(float(np.dot(after[f"{target}_quat"], quat))) > 0.9999
     official_pixels = official_obs["pixels"]["image"]
     assert not np.array_equal(perturbed_obs["pixels"]["image"], official_pixels)  # the first step sees it moved
-
-
-CHATTY = """
-import logging, sys
-from pathlib import Path
-from graftcache.rollout.libero import LiberoSimulator
-logging.basicConfig(level=logging.WARNING)  # as lerobot configures it: robosuite's warnings reach the root's handler
-if sys.argv[1] == "debug":
-    logging.getLogger("graftcache.simulator").setLevel(logging.DEBUG)
-sim = LiberoSimulator(Path("results.parquet"), Path("exports"), cache=None, runs=None, max_steps=10)
-print("tasks", sim.suite("libero_object").n_tasks)
-sim.env("libero_object", 0)
-sim.env("libero_object", 1)
-print("built")
-sim.close()
-"""
-
-
-@pytest.mark.slow  # a process importing the simulator and building two envs: ~40 s on 2 busy cores
-def test_the_simulator_s_set_up_chatter_goes_to_the_debug_log(tmp_path: Path) -> None:
-    """robosuite's macro-file warning (3 lines, in each process), LIBERO's task-order line (per suite built) and
-    lerobot's env-building lines (3 per env) printed 14 lines around these two envs: none reach stdout or stderr, and
-    each is in the debug log where it is asked for; the process's own lines pass."""
-    import subprocess
-    import sys
-
-    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
-    quiet, debug = (subprocess.run([sys.executable, "-c", CHATTY, mode], capture_output=True, text=True, env=env,
-                                   cwd=tmp_path, timeout=600) for mode in ("quiet", "debug"))
-    assert quiet.returncode == 0, quiet.stderr[-3000:]
-    assert (quiet.stdout, quiet.stderr) == ("tasks 10\nbuilt\n", "")
-    assert debug.stdout == "tasks 10\nbuilt\n"
-    logged = [line.removeprefix("DEBUG:graftcache.simulator:") for line in debug.stderr.splitlines()]
-    assert [line for line in logged if line.startswith(("No private", "[info] using", "Creating", "Built"))] == [
-        "No private macro file found!", "[info] using task orders [0, 1, 2, 3, 4, 5, 6, 7, 8, 9]",
-        "Creating LIBERO envs | suites=['libero_object'] | n_envs(per task)=1 | init_states=True",
-        "[info] using task orders [0, 1, 2, 3, 4, 5, 6, 7, 8, 9]",
-        "Built vec env | suite=libero_object | task_id=0 | n_envs=1",
-        "Creating LIBERO envs | suites=['libero_object'] | n_envs(per task)=1 | init_states=True",
-        "[info] using task orders [0, 1, 2, 3, 4, 5, 6, 7, 8, 9]",
-        "Built vec env | suite=libero_object | task_id=1 | n_envs=1"]

@@ -189,12 +189,12 @@ def test_a_task_the_suite_lacks_names_the_run_and_suite(tmp_path: Path) -> None:
 
 
 def test_a_missing_simulator_is_one_line_naming_the_set_up(monkeypatch: pytest.MonkeyPatch) -> None:
-    from graftcache.rollout import libero
+    from graftcache.rollout.simulator_setup import require_simulator
 
     real = importlib.util.find_spec
     monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "libero" else real(name, *a))
     with pytest.raises(RolloutError) as refused:
-        libero.require_simulator()
+        require_simulator()
     assert str(refused.value) == ("the LIBERO simulator is not installed (no Python module libero); run `make "
                                   "setup-libero` (scripts/setup.sh libero) to install it")
 

@@ -217,7 +217,7 @@ class Sim:
         return np.full((height, width, 3), 7, np.uint8)
 
 
-def _scene(settle: int = 3) -> SimpleNamespace:
+def _fake_env(settle: int = 3) -> SimpleNamespace:
     sim = Sim()
     gripper = SimpleNamespace(dof=2, current_action=np.array([-0.4, 0.4]))
     problem = SimpleNamespace(sim=sim, timestep=0)
@@ -229,41 +229,41 @@ def _scene(settle: int = 3) -> SimpleNamespace:
 
 
 def test_renders_are_blank_before_the_kept_step_and_real_from_it() -> None:
-    scene = _scene()
-    with seam.renders_from(scene, seam.settle_steps(scene)) as renders:
+    env = _fake_env()
+    with seam.renders_from(env, seam.settle_steps(env)) as renders:
         images = []
         for step in range(5):  # robosuite's step counter: 0 at the reset, then each step's
-            scene.problem.timestep = step
-            images += [scene.sim.render(camera_name=c, width=4, height=2) for c in ("agentview", "eye_in_hand")]
+            env.problem.timestep = step
+            images += [env.sim.render(camera_name=c, width=4, height=2) for c in ("agentview", "eye_in_hand")]
     assert [im.shape for im in images] == [(2, 4, 3)] * 10 and all(im.dtype == np.uint8 for im in images)
     assert [int(im.max()) for im in images] == [0] * 6 + [7] * 4
-    assert scene.sim.rendered == [("agentview", 3), ("eye_in_hand", 3), ("agentview", 4), ("eye_in_hand", 4)]
-    assert (renders.done, renders.skipped) == (4, 6) and seam.cameras(scene) == 2
-    assert "render" not in vars(scene.sim)  # the class's render again
-    assert int(scene.sim.render(camera_name="agentview", width=1, height=1).max()) == 7
+    assert env.sim.rendered == [("agentview", 3), ("eye_in_hand", 3), ("agentview", 4), ("eye_in_hand", 4)]
+    assert (renders.done, renders.skipped) == (4, 6) and seam.cameras(env) == 2
+    assert "render" not in vars(env.sim)  # the class's render again
+    assert int(env.sim.render(camera_name="agentview", width=1, height=1).max()) == 7
 
 
 def test_none_renders_nothing_and_a_depth_render_is_refused() -> None:
-    scene = _scene()
-    with seam.renders_from(scene, None) as renders:
-        scene.problem.timestep = 99
-        assert not scene.sim.render(camera_name="agentview", width=2, height=2).any()
+    env = _fake_env()
+    with seam.renders_from(env, None) as renders:
+        env.problem.timestep = 99
+        assert not env.sim.render(camera_name="agentview", width=2, height=2).any()
         with pytest.raises(RolloutError, match="depth or segmentation of agentview.*--reset hard"):
-            scene.sim.render(camera_name="agentview", width=2, height=2, depth=True)
-    assert (renders.done, renders.skipped, scene.sim.rendered) == (0, 1, [])
+            env.sim.render(camera_name="agentview", width=2, height=2, depth=True)
+    assert (renders.done, renders.skipped, env.sim.rendered) == (0, 1, [])
 
 
 def test_a_simulator_rebuilt_inside_is_refused() -> None:
-    scene = _scene()
+    env = _fake_env()
     with pytest.raises(RolloutError, match="rebuilt during a soft reset.*--reset hard"):
-        with seam.renders_from(scene, 3):
-            scene.problem.sim = Sim()  # what a hard reset does
+        with seam.renders_from(env, 3):
+            env.problem.sim = Sim()  # what a hard reset does
 
 
 def test_release_grippers_zeroes_the_held_command() -> None:
-    scene = _scene()
-    seam.release_grippers(scene)
-    assert np.array_equal(scene.gripper.current_action, np.zeros(2))
+    env = _fake_env()
+    seam.release_grippers(env)
+    assert np.array_equal(env.gripper.current_action, np.zeros(2))
 
 
 class _Sim:
