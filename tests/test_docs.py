@@ -359,7 +359,7 @@ def rule_breaches(rules: dict[str, list[re.Pattern]], searched: list[tuple[str, 
 def test_no_word_of_the_glossary_is_used_for_another_idea() -> None:
     rules = glossary_rules((ROOT / "docs/ARCHITECTURE.md").read_text(encoding="utf-8"))
     assert {"activation checkpointing", "recompute", "grid", "shard", "loss per sample", "plan", "objective",
-            "table"} <= set(rules)
+            "table", "scene", "team"} <= set(rules)
     assert rule_breaches(rules, searched_text()) == []
 
 
@@ -387,6 +387,9 @@ def test_each_overloaded_use_breaks_a_rule() -> None:
                   "over the recipe's [fit] table", "a recipe's `[executor]` table", "A settings table as overrides",
                   "applied on a recipe's tables", "A frozen dataclass from a TOML table",
                   "the table of what trains", "the whole table the first time", "the variant table"],
+        "scene": ["scene", "scenes", "feeds the wrist view into the scene slot", "MuJoCo's scene compiler",
+                  "hf-libero builds a scene inside"],
+        "team": ["a worker pool", "the process pool", "a pool of simulators", "actor_pool"],
     }
     for word, uses in overloaded.items():
         assert [u for u in uses if not rule_breaches({word: rules[word]}, [("x:1", u)])] == [], word
@@ -400,7 +403,9 @@ def test_each_overloaded_use_breaks_a_rule() -> None:
               "the align objective", "the request's objective", "cells whose objective takes steps",
               "A fit's objective", "OBJECTIVES", "the results table", "the rollouts table", "report/tables.py",
               "a report table", "the low-dim table", "pq.read_table", "suite_index_table",
-              "No `native` rows in the table", "the recipe's [fit] section"]
+              "No `native` rows in the table", "the recipe's [fit] section",
+              "the scene of init state k", "the same scene, perturbation and step limit", "perturbed scenes",
+              "the third-person slot", "task_env", "the team of one", "pool_grid", "the pool-4x4 control"]
     assert rule_breaches(rules, [("x:1", u) for u in proper]) == []
 
 

@@ -9,7 +9,7 @@ SIGTERM, so none outlives the command; forked workers get the default SIGTERM ac
 they die at once instead of running this handler. While a whole process is still starting (importing torch) or
 already tearing down, there is nothing to keep: a signal is one line and an immediate exit (`_exit_at_once`).
 
-A stop must not be lost either: libraries the command runs swallow it now and then (hf-libero builds a scene inside
+A stop must not be lost either: libraries the command runs swallow it now and then (hf-libero builds a task's env inside
 bare `except: continue` loops, so a SIGTERM landing there was dropped and the rollout finished with exit 0). So the
 stop, once raised, is raised again every REDELIVER_S_UNHANDLED until the command has taken it (`_Stop`): a swallowed
 one is raised again in ordinary code, and one taken is never raised twice.
