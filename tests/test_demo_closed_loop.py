@@ -2,12 +2,17 @@
 hand-built results with native repeats and pi05 zero-image rows added; and what its report finds on the demo's own
 rows (tests/fixtures/closed_loop_demo/), pinned. The command itself (fits, then minutes in the simulator) is measured
 by hand and quoted in docs/closed-loop.md, not run in CI; its pieces (rollout, graded progress, workers, report) are
-tested in tests/rollout and tests/report."""
+tested in tests/rollout and tests/report, and its rollout wiring by a rerun over its own rows that must run nothing."""
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
+import json
+import shutil
+from collections.abc import Iterator
 from pathlib import Path
+from types import SimpleNamespace
 
 import polars as pl
 import pytest
@@ -16,9 +21,11 @@ from scipy import stats
 
 from graftcache import analysis as A
 from graftcache.analysis.rollouts import PAIR_KEY
-from graftcache.demo_closed_loop import ClosedLoopDemo, closed_loop_run_ids
+from graftcache.demo import DEFAULT_RECIPE
+from graftcache.demo_closed_loop import CLOSED_LOOP, ClosedLoopDemo, closed_loop_run_ids
 from graftcache.errors import GraftcacheError
 from graftcache.results import read_for_report
+from graftcache.rollout.episodes import Suite
 
 DEMO = ClosedLoopDemo(figure=("smolvla", "libero_spatial"), paired_seeds=(0, 1))
 
@@ -77,8 +84,7 @@ def test_a_figure_without_rows_is_refused() -> None:
 
 
 def test_the_dose_recipe_is_the_figure_s_backbone_suite_and_dose_encoder() -> None:
-    from graftcache.demo import DEFAULT_RECIPE
-    from graftcache.demo_closed_loop import CLOSED_LOOP, _dose_recipe
+    from graftcache.demo_closed_loop import _dose_recipe
     from graftcache.recipe import load_recipe
 
     recipe = load_recipe(DEFAULT_RECIPE)
@@ -202,3 +208,58 @@ def test_the_demo_s_figure_names_every_marker_it_draws(demo: tuple) -> None:
     assert sorted(blank) == ["SmolVLA · libero_spatial\nno candidates cell rolled out",
                              "pi0.5 · libero_object\nno candidates cell rolled out",
                              "pi0.5 · libero_spatial\nno candidates cell rolled out"]
+
+
+class _Recorded:
+    """The LIBERO simulator's stand-in for a rerun of the demo: what a suite is (the demo's step limit, as
+    LiberoSimulator built with `max_steps` says), and every episode it is asked to run, counted (none may be)."""
+
+    ran: list = []
+
+    def __init__(self, *args: object, max_steps: int, **kwargs: object) -> None:
+        self.max_steps = max_steps
+
+    def suite(self, name: str) -> Suite:
+        return Suite(n_tasks=10, max_steps=self.max_steps)
+
+    def run(self, row: dict, episodes: list) -> Iterator:
+        _Recorded.ran += episodes
+        return iter(())
+
+
+@pytest.mark.slow
+def test_a_rerun_over_the_demo_s_own_rows_runs_no_episode_and_looks_as_it_did(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The command's rollout wiring (its two selections from one results read, the figure's sequential looks, one
+    team for both) over the demo's recorded rows: every episode each look asks for is in the rollouts file, so the
+    rerun runs none and decides its looks as the first run did (the record beside the file unchanged), and the report
+    is written from the same files. The fits are the sweep's, which resumes from the results file (tests/test_sweep.py);
+    here the sweep is skipped."""
+    import graftcache.demo_closed_loop as demo_module
+    from graftcache.rollout import libero, simulator_setup
+
+    home = tmp_path / "home"
+    monkeypatch.setenv("GRAFTCACHE_HOME", str(home))
+    folder = (home / CLOSED_LOOP.results).parent
+    folder.mkdir(parents=True)
+    for name in ("results.parquet", "rollouts.parquet", "sequential.json"):
+        shutil.copyfile(DEMO_ROWS / name, folder / name)
+    before = {name: (folder / name).read_bytes() for name in ("results.parquet", "rollouts.parquet")}
+    looks_before = json.loads((folder / "sequential.json").read_text())
+    reports: list[dict] = []
+    monkeypatch.setattr(demo_module, "run_sweep", lambda recipe: SimpleNamespace(commands={}))
+    monkeypatch.setattr(demo_module, "write_report", lambda results, out, **kw: reports.append(
+        {"results": results, "out": out, **kw}) or "paths")
+    monkeypatch.setattr(simulator_setup, "require_simulator", lambda: None)
+    monkeypatch.setattr(libero, "LiberoSimulator", _Recorded)
+    _Recorded.ran = []
+
+    paths = demo_module.run_closed_loop_demo(out=tmp_path / "report",
+                                             demo=dataclasses.replace(CLOSED_LOOP, workers=1))
+    assert paths == "paths" and _Recorded.ran == []
+    assert {name: (folder / name).read_bytes() for name in before} == before
+    looks_after = json.loads((folder / "sequential.json").read_text())
+    assert looks_after.pop("command").endswith("--recipe " + str(DEFAULT_RECIPE))  # where this checkout's recipe is
+    assert looks_after == {k: v for k, v in looks_before.items() if k != "command"}
+    assert [(r["results"], r["out"], r["rollouts"]) for r in reports] == [
+        (folder / "results.parquet", tmp_path / "report", folder / "rollouts.parquet")]
