@@ -13,9 +13,10 @@ from __future__ import annotations
 import ast
 import inspect
 import textwrap
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from importlib import import_module
+from pathlib import Path
 
 from helpers.reaches import PACKAGE, own_names, package_trees, private, reaches
 
@@ -61,7 +62,7 @@ def _shared_declaration(source: str) -> tuple[str, ...]:
 
 def homes() -> list[Home]:
     """Every backbone folder's home, then every shared module's."""
-    def code(paths) -> dict[str, str]:
+    def code(paths: Iterable[Path]) -> dict[str, str]:
         return {path.relative_to(FOLDER).as_posix(): path.read_text() for path in sorted(paths)}
 
     folders = [Home(name, code((FOLDER / name).rglob("*.py")), spec.lerobot_reaches,
@@ -121,6 +122,8 @@ def missing(name: str) -> str | None:
         except ModuleNotFoundError as error:
             if not error.name or not (module == error.name or module.startswith(f"{error.name}.")):
                 raise  # the module exists but its own import failed: not a moved name
+    else:
+        return "lerobot is not installed"
     rest = parts[cut:]
     for index, attribute in enumerate(rest):
         if hasattr(found_object, attribute):
