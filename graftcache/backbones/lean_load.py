@@ -38,6 +38,14 @@ DTYPES = {"F64": torch.float64, "F32": torch.float32, "BF16": torch.bfloat16, "F
           "I64": torch.int64, "I32": torch.int32, "I16": torch.int16, "I8": torch.int8, "U8": torch.uint8,
           "BOOL": torch.bool}
 
+#: lerobot's internals this module reaches (graftcache.backbones.spec.BackboneSpec.lerobot_reaches says why they are
+#: declared): the openpi ports' key fix-up `openpi_keys` calls, one per PaliGemma policy.
+LEROBOT_REACHES = (
+    "lerobot.policies.pi0.modeling_pi0.PI0Policy._fix_pytorch_state_dict_keys",
+    "lerobot.policies.pi05.modeling_pi05.PI05Policy._fix_pytorch_state_dict_keys",
+    "lerobot.policies.pi0_fast.modeling_pi0_fast.PI0FastPolicy._fix_pytorch_state_dict_keys",
+)
+
 
 @contextlib.contextmanager
 def parameters_on_meta() -> Iterator[None]:

@@ -67,6 +67,12 @@ class BackboneSpec:
     #: The lerobot extra that installs its policy's dependencies (pyproject.toml's lerobot requirement and README's
     #: set-up name each: tests/test_docs.py); None: they are spelled out in pyproject.toml instead (GR00T).
     lerobot_extra: str | None = None
+    #: lerobot's internals this backbone's folder reaches (its private functions, methods and attributes), fully
+    #: qualified ("lerobot.policies.evo1.modeling_evo1.Evo1Policy._prepare_state"): what a lerobot upgrade must
+    #: re-read. tests/backbones/test_lerobot_reaches.py fails on a reach in the folder's code not listed here, on a
+    #: listed one no longer used, and on one the installed lerobot lacks. Shared modules of graftcache/backbones/
+    #: declare theirs beside their code (`LEROBOT_REACHES`).
+    lerobot_reaches: tuple[str, ...] = ()
 
     def resolve_attention(self, name: str, mode: str) -> str:
         """`auto` -> the fused path where backbone `name` has one, else lerobot's own; an explicit path it lacks is

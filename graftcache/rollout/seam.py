@@ -1,7 +1,9 @@
 """Every reach of graftcache's past the public API of lerobot, hf-libero and robosuite, in one module: a private
 attribute read, an attribute of theirs written, a function of theirs patched. The rest of graftcache calls the
 functions here (tests/rollout/test_seam.py fails on a reach anywhere else; lerobot's VLAs, which the backbone
-adapters under graftcache/backbones/ reach into, are a house of their own). Their insides move between releases
+adapters under graftcache/backbones/ reach into, are a house of their own: each backbone declares its reaches,
+graftcache.backbones.spec.BackboneSpec.lerobot_reaches, which tests/backbones/test_lerobot_reaches.py checks against
+its code and the installed lerobot). Their insides move between releases
 without notice, so the versions this module was read in (graftcache.upstream.WRITTEN_AGAINST, one table for both
 houses) are checked as it is imported: another installed version is refused in one line naming both and the pin,
 before any episode, rather than failing deep in one with a traceback.

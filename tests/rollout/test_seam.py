@@ -1,8 +1,10 @@
 """graftcache.rollout.seam, the one module that reaches past lerobot's, hf-libero's and robosuite's public API.
 
-Its boundary: no other module of graftcache (lerobot's VLAs' adapters, graftcache/backbones/, are a house of their
-own) reads a private attribute of another library's, imports a private name of one, or writes an attribute of the
-simulator's libraries, read statically with `ast`; the reader is shown each kind of reach it must find. Its version
+Its boundary: no other module of graftcache (graftcache/backbones/, whose adapters reach into lerobot's VLAs, is a
+house of its own: each backbone declares its reaches, checked against its code and the installed lerobot by
+tests/backbones/test_lerobot_reaches.py) reads a private attribute of another library's, imports a private name of
+one, or writes an attribute of the simulator's libraries, read statically with `ast` (tests/helpers/reaches.py, the
+reader both houses share); the reader is shown each kind of reach it must find. Its version
 check: another installed lerobot, hf-libero or robosuite is refused at import, in one line naming both versions and
 the pin, through `graftcache rollout` too. Its gate on a simulator's renders, its reuse of rendered frames and its
 release of the gripper's command, on stand-ins for lerobot's LiberoEnv and robosuite's MjSim (the real simulator's
@@ -22,6 +24,7 @@ from typing import Any
 import numpy as np
 import pytest
 from helpers.probes import run_cli
+from helpers.reaches import PACKAGE, own_names, package_trees, private, reaches
 from helpers.tables import write_results
 
 import graftcache
@@ -30,73 +33,10 @@ from graftcache.errors import RolloutError
 from graftcache.rollout import seam
 from graftcache.upstream import WRITTEN_AGAINST, installed
 
-PACKAGE = Path(graftcache.__file__).parent
 SEAM = PACKAGE / "rollout" / "seam.py"
-#: lerobot's VLAs, whose insides the backbone adapters reach into: a house of their own
+#: lerobot's VLAs, whose insides the backbone adapters reach into: each reach declared by its backbone and checked
+#: against the installed lerobot (tests/backbones/test_lerobot_reaches.py)
 BACKBONES = PACKAGE / "backbones"
-#: the simulator's libraries: an attribute of theirs is written only by the seam
-SIMULATOR = ("lerobot", "libero", "robosuite", "mujoco")
-#: the standard library's private names graftcache uses: argparse's action classes (type hints), os._exit
-STANDARD = {"_SubParsersAction", "_ActionsContainer", "_exit"}
-
-
-def _private(name: str) -> bool:
-    return name.startswith("_") and not name.startswith("__")
-
-
-def _own_names(trees: list[ast.Module]) -> set[str]:
-    """The private names graftcache defines: its functions and classes, its module-level names, its attributes set
-    on self or cls."""
-    own = set()
-    for node in (n for tree in trees for n in ast.walk(tree)):
-        if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef | ast.ClassDef):
-            own.add(node.name)
-        elif isinstance(node, ast.Name) and isinstance(node.ctx, ast.Store):
-            own.add(node.id)
-        elif isinstance(node, ast.Attribute) and isinstance(node.ctx, ast.Store) and \
-                isinstance(node.value, ast.Name) and node.value.id in ("self", "cls"):
-            own.add(node.attr)
-    return {name for name in own if _private(name)}
-
-
-def _simulator_modules(tree: ast.Module) -> set[str]:
-    """The local names bound to the simulator's libraries' modules or objects by `tree`'s imports."""
-    bound = set()
-    for node in ast.walk(tree):
-        if isinstance(node, ast.Import | ast.ImportFrom):
-            module = node.module if isinstance(node, ast.ImportFrom) else None
-            for alias in node.names:
-                source = module or alias.name
-                if source.split(".")[0] in SIMULATOR:
-                    bound.add(alias.asname or alias.name.split(".")[0])
-    return bound
-
-
-def reaches(tree: ast.Module, own: set[str], written: set[str],
-            forbidden: set[str]) -> list[tuple[int, str, str]]:
-    """(line, name reached, how) for each reach past another library's public API in `tree`: a private name
-    imported from outside graftcache, a private attribute read or written on anything but self or cls that graftcache
-    does not define (or one of `forbidden`, the seam's own reaches, whoever defines it), an attribute written on a
-    simulator library's module or object, or of a name in `written` (what the seam writes on the simulator's
-    objects), by assignment or setattr."""
-    found, modules = [], _simulator_modules(tree)
-    for node in ast.walk(tree):
-        if isinstance(node, ast.ImportFrom) and not (node.module or "").startswith("graftcache") and not node.level:
-            found += [(node.lineno, a.name, f"from {node.module} import {a.name}") for a in node.names
-                      if _private(a.name) and a.name not in STANDARD]
-        elif isinstance(node, ast.Attribute):
-            on = ast.unparse(node.value)
-            stored = isinstance(node.ctx, ast.Store | ast.Del)
-            if _private(node.attr) and on not in ("self", "cls") and (node.attr in forbidden or
-                                                                     node.attr not in own | STANDARD):
-                found.append((node.lineno, node.attr, f"{on}.{node.attr}"))
-            elif stored and (node.attr in written or on.split(".")[0] in modules):
-                found.append((node.lineno, node.attr, f"{on}.{node.attr} ="))
-        elif isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id in ("setattr", "delattr"):
-            name = node.args[1] if len(node.args) > 1 else None
-            if isinstance(name, ast.Constant) and (_private(name.value) or name.value in written):
-                found.append((node.lineno, name.value, ast.unparse(node)))
-    return found
 
 
 def _seam_writes(tree: ast.Module, own_fields: set[str]) -> set[str]:
@@ -107,10 +47,10 @@ def _seam_writes(tree: ast.Module, own_fields: set[str]) -> set[str]:
 
 def boundary() -> tuple[set[str], set[str], set[str]]:
     """graftcache's own private names, the attributes the seam writes, and the private names the seam reaches."""
-    trees = {path: ast.parse(path.read_text(), str(path)) for path in PACKAGE.rglob("*.py")}
-    own = _own_names(list(trees.values()))
+    trees = package_trees()
+    own = own_names(list(trees.values()))
     written = _seam_writes(trees[SEAM], set(seam.Renders.__dataclass_fields__))
-    forbidden = {name for _, name, _ in reaches(trees[SEAM], own, set(), set()) if _private(name)}
+    forbidden = {name for _, name, _ in reaches(trees[SEAM], own, set(), set()) if private(name)}
     return own, written, forbidden
 
 

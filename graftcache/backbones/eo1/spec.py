@@ -24,4 +24,8 @@ SPEC = BackboneSpec(
     token_steps=("EO1ConversationTemplateStep", QWEN_STEP),
     prompt_uses_state=True,
     attentions=("sdpa",),  # lerobot builds its LM with transformers' sdpa attention
+    lerobot_reaches=(
+        "lerobot.policies.eo1.modeling_eo1.EO1Policy._get_model_inputs",
+        "lerobot.policies.eo1.processor_eo1.EO1QwenProcessorStep._processor",
+    ),
 )

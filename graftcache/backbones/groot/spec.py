@@ -24,4 +24,13 @@ SPEC = BackboneSpec(
     prompt_uses_state=True,
     flow_time="data",
     attentions=("sdpa",),  # lerobot builds its LM with transformers' sdpa attention
+    lerobot_reaches=(
+        "lerobot.policies.groot.modeling_groot.GrootPolicy._filter_groot_inputs",
+        "lerobot.policies.groot.modeling_groot.GrootPolicy._groot_model",
+        "lerobot.policies.groot.processor_groot.GrootN17PackInputsStep._ordered_image_keys",
+        "lerobot.policies.groot.processor_groot.GrootN17VLMEncodeStep._build_sample_images",
+        "lerobot.policies.groot.processor_groot.GrootN17VLMEncodeStep._registry_name",
+        "lerobot.policies.groot.processor_groot._load_n1_7_checkpoint_processor_assets",
+        "lerobot.policies.groot.processor_groot._to_uint8_np_bthwc",
+    ),
 )

@@ -19,4 +19,7 @@ SPEC = dataclasses.replace(
     },
     token_steps=("Pi0NewLineProcessor", "TokenizerProcessorStep"),
     prompt_uses_state=False,
+    lerobot_reaches=(
+        "lerobot.policies.pi0.modeling_pi0.PI0Policy._preprocess_images",
+    ),
 )

@@ -25,4 +25,7 @@ SPEC = BackboneSpec(
     can_recompute=True,
     compiled_forward="policy.model",
     attentions=("eager", "sdpa"),
+    lerobot_reaches=(
+        "lerobot.policies.pi05.modeling_pi05.PI05Policy._preprocess_images",
+    ),
 )

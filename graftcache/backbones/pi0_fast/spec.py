@@ -23,4 +23,7 @@ SPEC = BackboneSpec(
     can_recompute=True,
     compiled_forward="policy.model",
     attentions=("sdpa", "eager"),  # lerobot leaves pi0-FAST's Gemma at transformers' sdpa
+    lerobot_reaches=(
+        "lerobot.policies.pi0_fast.modeling_pi0_fast.PI0FastPolicy._preprocess_images",
+    ),
 )

@@ -22,4 +22,8 @@ SPEC = BackboneSpec(
     flow_time="data",
     can_recompute=True,
     attentions=("sdpa",),  # lerobot builds its LM with transformers' sdpa attention
+    lerobot_reaches=(
+        "lerobot.policies.vla_jepa.modeling_vla_jepa.VLAJEPAPolicy._prepare_model_inputs",
+        "lerobot.policies.vla_jepa.modeling_vla_jepa._get_autocast_context",
+    ),
 )

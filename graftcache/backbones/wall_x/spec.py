@@ -20,4 +20,8 @@ SPEC = BackboneSpec(
     prompt_uses_state=True,
     flow_time="data",
     can_recompute=True,
+    lerobot_reaches=(
+        "lerobot.policies.wall_x.modeling_wall_x._resize_wall_x_image_batch",
+        "lerobot.policies.wall_x.modeling_wall_x._wall_x_resize_dimensions",
+    ),
 )

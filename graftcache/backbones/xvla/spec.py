@@ -19,4 +19,11 @@ SPEC = BackboneSpec(
     token_steps=("TokenizerProcessorStep",),
     can_recompute=True,
     attentions=("sdpa",),  # lerobot builds its LM with transformers' sdpa attention
+    lerobot_reaches=(
+        "lerobot.policies.xvla.modeling_xvla.XVLAModel._get_target_dtype",
+        "lerobot.policies.xvla.modeling_xvla.XVLAPolicy._build_model_inputs",
+        "lerobot.policies.xvla.modeling_xvla.XVLAPolicy._prepare_action_targets",
+        "lerobot.policies.xvla.modeling_xvla.XVLAPolicy._prepare_images",
+        "lerobot.policies.xvla.modeling_xvla._is_vendored_florence_state_dict",
+    ),
 )
