@@ -99,9 +99,9 @@ class Actors:
                    "max_restarts": settings.max_retries, "max_task_retries": settings.max_retries}
         log(f"ray: {n} simulator actor(s), {placed['num_gpus']:g} GPU and {placed['num_cpus']:g} CPU each")
         rollouts = req.rollouts.absolute()
-        self.team = [_Actor(i, SimulatorActor.options(**options).remote(spawn, rollouts, req.command, i))
-                     for i in range(n)]
-        self.workers = self.team  # those the loop hands episodes to (graftcache.rollout.schedule.Transport)
+        # those the loop hands episodes to (graftcache.rollout.schedule.Transport)
+        self.workers = [_Actor(i, SimulatorActor.options(**options).remote(spawn, rollouts, req.command, i))
+                        for i in range(n)]
         self.rollouts = req.rollouts
         self.calls: dict[ray.ObjectRef, _Actor] = {}
 
@@ -109,10 +109,10 @@ class Actors:
         """Actors beyond `episodes` ended at once, the others kept for the next request
         (graftcache.rollout.teams.Team) until `close`; the loop hands them the episodes, an episode per call, and each
         row is appended here as its call finishes (`receive`)."""
-        self.team, spare = self.team[:episodes], self.team[episodes:]
+        self.workers, spare = self.workers[:episodes], self.workers[episodes:]
         for actor in spare:
             ray.kill(actor.handle, no_restart=True)
-        self.workers, self.rollouts, self.calls = self.team, req.rollouts, {}
+        self.rollouts, self.calls = req.rollouts, {}
         log(f"ray: {len(self.workers)} simulator actor(s) running {episodes} episode(s)")
 
     def send(self, worker: _Actor, job: Job) -> None:
@@ -137,5 +137,5 @@ class Actors:
         """Nothing here: the actors are ended by `close`, and a call in flight writes no row (the driver does)."""
 
     def close(self) -> None:
-        for actor in self.team:
+        for actor in self.workers:
             ray.kill(actor.handle, no_restart=True)

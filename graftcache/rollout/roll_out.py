@@ -22,7 +22,6 @@ from graftcache.progress import write as progress_write
 from graftcache.results.claims import drop_claims_folder
 from graftcache.rollout import rollouts_file
 from graftcache.rollout.episodes import Episode, Simulator, episodes_of
-from graftcache.rollout.request import RolloutRequest
 from graftcache.rollout.schedule import Scheduler, drive
 from graftcache.rollout.select import Selection
 from graftcache.rollout.teams import InProcess, Team
@@ -35,12 +34,13 @@ def roll_out(sel: Selection, sim: Simulator, log: Callable[[str], None] = progre
     own), `sim` then only saying what its suites are (graftcache.rollout.episodes.episodes_of)."""
     req = sel.req
     episodes = episodes_of(sel.rows, req, sim)
-    done = set(rollouts_file.read(req.rollouts)["episode_id"].to_list())
+    written = rollouts_file.read(req.rollouts)
+    done = set(written["episode_id"].to_list())
     missing = [e for e in episodes if e.id not in done]
     cells = sel.rows.height
     if not missing:
         log(f"all {len(episodes)} episodes of {cells} cell(s) are already in {req.rollouts}: nothing to run")
-        return _of(req, episodes)
+        return _of(written, episodes)
     if len(missing) < len(episodes):
         log(f"{len(episodes) - len(missing)} of {len(episodes)} episodes already in {req.rollouts}; running the "
             f"other {len(missing)}")
@@ -54,7 +54,7 @@ def roll_out(sel: Selection, sim: Simulator, log: Callable[[str], None] = progre
             drive(Scheduler(req.rollouts, by_run, missing, bar, log), runner)
     finally:  # stopped or failed too: no empty claims folder is left beside the file
         drop_claims_folder(req.rollouts)
-    return _of(req, episodes)
+    return _of(rollouts_file.read(req.rollouts), episodes)
 
 
 def roll_out_started(selections: Sequence[Selection], spawn: Callable[[], Simulator], team: Team | None,
@@ -87,6 +87,6 @@ def roll_out_started(selections: Sequence[Selection], spawn: Callable[[], Simula
             team.close()
 
 
-def _of(req: RolloutRequest, episodes: Sequence[Episode]) -> pl.DataFrame:
-    ids = [e.id for e in episodes]
-    return rollouts_file.read(req.rollouts).filter(pl.col("episode_id").is_in(ids))
+def _of(rows: pl.DataFrame, episodes: Sequence[Episode]) -> pl.DataFrame:
+    """The rollouts rows of `episodes`."""
+    return rows.filter(pl.col("episode_id").is_in([e.id for e in episodes]))

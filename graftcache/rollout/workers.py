@@ -90,16 +90,15 @@ class Workers:
     (graftcache.rollout.schedule.drive, this team its transport); `close` stops them."""
 
     def __init__(self, spawn: Callable[[], Simulator], n: int, req: RolloutRequest) -> None:
-        self.team = _start(n, spawn, req)
-        self.workers = self.team  # those the loop hands episodes to (graftcache.rollout.schedule.Transport)
+        self.workers = _start(n, spawn, req)  # those the loop hands episodes to (graftcache.rollout.schedule.Transport)
         self.idle = False  # every worker built and serving requests: set when one begins, cleared by a stop
 
     def begin(self, req: RolloutRequest, episodes: int, log: Callable[[str], None]) -> None:
         """Workers beyond `episodes` stopped at once; the others run the request's episodes, then wait for the next
         request (graftcache.rollout.teams.Team) or `close`. A failure stops them all (`stop`)."""
-        self.team, spare = self.team[:episodes], self.team[episodes:]
+        self.workers, spare = self.workers[:episodes], self.workers[episodes:]
         _stop(spare)
-        self.workers, self.idle = self.team, True
+        self.idle = True
         log(f"{len(self.workers)} worker processes, each with a simulator of its own")
 
     def send(self, worker: _Worker, job: Job) -> None:
@@ -127,9 +126,9 @@ class Workers:
         (CLOSE_S); a team that never ran or failed (a stop, an error: nothing to wait for) at once."""
         try:
             if self.idle:
-                _finish(self.team)
+                _finish(self.workers)
         finally:
-            _stop(self.team)
+            _stop(self.workers)
 
 
 def _receive(worker: _Worker) -> EpisodeReport:
