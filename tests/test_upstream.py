@@ -5,24 +5,17 @@ lerobot before it imports an adapter, so `graftcache train-tiny` says it in one 
 
 from __future__ import annotations
 
-from importlib import metadata
 from pathlib import Path
 
 import pytest
 from helpers.probes import run_cli
+from helpers.versions import installed_as, not_installed
 
 from graftcache import upstream
 from graftcache.backbones import get_backbone, load_backbone, registered_spec
 from graftcache.errors import BackboneError, GraftcacheError
 
 SAMPLE = Path(__file__).resolve().parents[1] / "data" / "libero_sample"
-
-
-def _installed(monkeypatch: pytest.MonkeyPatch, **versions: str) -> None:
-    """importlib.metadata answering `versions` (distribution names with _ for -), the real version otherwise."""
-    real = metadata.version
-    faked = {name.replace("_", "-"): version for name, version in versions.items()}
-    monkeypatch.setattr(metadata, "version", lambda name: faked.get(name) or real(name))
 
 
 def test_the_table_is_this_environments_pins() -> None:
@@ -37,7 +30,7 @@ def test_the_table_is_this_environments_pins() -> None:
 def test_another_release_is_refused_naming_the_reader_both_versions_and_the_pin(
         monkeypatch: pytest.MonkeyPatch) -> None:
     upstream.refuse_others(("lerobot", "robosuite"), "reader.py", GraftcacheError)  # the pins: passes
-    _installed(monkeypatch, lerobot="0.7.0", robosuite="1.5.1")
+    installed_as(monkeypatch, lerobot="0.7.0", robosuite="1.5.1")
     with pytest.raises(BackboneError) as refused:
         upstream.refuse_others(("lerobot", "hf-libero", "robosuite"), "reader.py", BackboneError)
     assert str(refused.value) == ("reader.py was written against lerobot 0.6.1, robosuite 1.4.0, not the installed "
@@ -46,14 +39,7 @@ def test_another_release_is_refused_naming_the_reader_both_versions_and_the_pin(
 
 
 def test_a_distribution_not_installed_passes(monkeypatch: pytest.MonkeyPatch) -> None:
-    real = metadata.version
-
-    def version(name: str) -> str:
-        if name == "robosuite":
-            raise metadata.PackageNotFoundError(name)
-        return real(name)
-
-    monkeypatch.setattr(metadata, "version", version)
+    not_installed(monkeypatch, "robosuite")
     assert upstream.installed("robosuite") is None
     upstream.refuse_others(("robosuite",), "reader.py", GraftcacheError)
 
@@ -61,7 +47,7 @@ def test_a_distribution_not_installed_passes(monkeypatch: pytest.MonkeyPatch) ->
 def test_the_backbone_registry_refuses_another_lerobot_before_importing_an_adapter(
         monkeypatch: pytest.MonkeyPatch) -> None:
     assert get_backbone("smolvla").name == "smolvla"  # the pinned release: as always
-    _installed(monkeypatch, lerobot="0.7.0")
+    installed_as(monkeypatch, lerobot="0.7.0")
     for call in (lambda: get_backbone("xvla"), lambda: load_backbone("evo1", "tiny")):
         with pytest.raises(BackboneError) as refused:
             call()
@@ -73,7 +59,7 @@ def test_the_backbone_registry_refuses_another_lerobot_before_importing_an_adapt
 
 def test_train_tiny_says_it_in_one_line(tmp_path: Path, capsys: pytest.CaptureFixture,
                                         monkeypatch: pytest.MonkeyPatch) -> None:
-    _installed(monkeypatch, lerobot="0.7.0")
+    installed_as(monkeypatch, lerobot="0.7.0")
     out = run_cli(["train-tiny", "--backbone", "pi0", "--dataset", SAMPLE, "--cache", tmp_path / "cache",
                    "--out", tmp_path / "policy"], capsys)
     assert out.code == 2

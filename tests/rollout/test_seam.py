@@ -26,6 +26,7 @@ import pytest
 from helpers.probes import run_cli
 from helpers.reaches import PACKAGE, own_names, package_trees, private, reaches
 from helpers.tables import write_results
+from helpers.versions import installed_as, not_installed
 
 import graftcache
 import graftcache.rollout
@@ -95,23 +96,16 @@ def _imported_afresh() -> ModuleType:
     return module
 
 
-def _installed(monkeypatch: pytest.MonkeyPatch, **versions: str) -> None:
-    """importlib.metadata answering `versions` (distribution names with _ for -) for those distributions."""
-    real = metadata.version
-    faked = {name.replace("_", "-"): version for name, version in versions.items()}
-    monkeypatch.setattr(metadata, "version", lambda name: faked.get(name) or real(name))
-
-
 def test_another_installed_version_is_refused_at_import_naming_both_and_the_pin(
         monkeypatch: pytest.MonkeyPatch) -> None:
     assert {name: metadata.version(name) for name in seam.LIBRARIES} == WRITTEN_AGAINST  # this venv's
     assert _imported_afresh().LIBRARIES == seam.LIBRARIES  # imports as it is
-    _installed(monkeypatch, lerobot="0.7.0")
+    installed_as(monkeypatch, lerobot="0.7.0")
     with pytest.raises(RolloutError) as refused:
         _imported_afresh()
     assert str(refused.value) == ("graftcache/rollout/seam.py was written against lerobot 0.6.1, not the installed "
                                   "lerobot 0.7.0: pin lerobot==0.6.1")
-    _installed(monkeypatch, hf_libero="0.2.0", robosuite="1.5.1")
+    installed_as(monkeypatch, hf_libero="0.2.0", robosuite="1.5.1")
     with pytest.raises(RolloutError) as refused:
         seam.check_versions()
     assert str(refused.value) == ("graftcache/rollout/seam.py was written against lerobot 0.6.1, hf-libero 0.1.4, "
@@ -120,14 +114,7 @@ def test_another_installed_version_is_refused_at_import_naming_both_and_the_pin(
 
 
 def test_a_library_not_installed_is_left_to_the_simulators_set_up(monkeypatch: pytest.MonkeyPatch) -> None:
-    real = metadata.version
-
-    def version(name: str) -> str:
-        if name == "hf-libero":
-            raise metadata.PackageNotFoundError(name)
-        return real(name)
-
-    monkeypatch.setattr(metadata, "version", version)
+    not_installed(monkeypatch, "hf-libero")
     assert installed("hf-libero") is None
     seam.check_versions()
 
@@ -138,7 +125,7 @@ def test_graftcache_rollout_says_it_in_one_line(tmp_path: Path, capsys: pytest.C
     for name in ("seam", "libero", "perturb"):
         monkeypatch.delitem(sys.modules, f"graftcache.rollout.{name}", raising=False)
         monkeypatch.delattr(graftcache.rollout, name, raising=False)
-    _installed(monkeypatch, robosuite="1.5.1")
+    installed_as(monkeypatch, robosuite="1.5.1")
     done = run_cli(["rollout", write_results(tmp_path / "results.parquet")], capsys)
     assert (done.code, done.err.splitlines()) == (2, [
         "graftcache rollout: error: graftcache/rollout/seam.py was written against robosuite 1.4.0, not the installed "
