@@ -29,9 +29,7 @@ import tempfile
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-SAMPLE = ROOT / "data" / "libero_sample"
-ENCODER = "timm:vit_tiny_patch16_224"
+from closed_loop_cells import export_cells, fit_cells
 
 
 def cpu() -> str:
@@ -50,20 +48,6 @@ def graftcache(*argv: object, check: bool = True) -> subprocess.CompletedProcess
     if check and done.returncode:
         sys.exit(f"graftcache {argv[0]} failed:\n{done.stderr[-3000:]}")
     return done
-
-
-def fit_cells(folder: Path) -> tuple[Path, Path]:
-    """Two fitted cells of the sample's libero_object task 0 (the CI smoke's), into `folder`."""
-    cache, policy, results = folder / "cache", folder / "policy", folder / "results.parquet"
-    graftcache("train-tiny", "--backbone", "smolvla", "--dataset", SAMPLE, "--steps", 1, "--out", policy,
-               "--cache", cache)
-    graftcache("extract", "--encoder", ENCODER, "--random-init", "--dataset", SAMPLE, "--episodes", "18-21",
-               "--frame-stride", 8, "--num-workers", 0, "--batch-size", 16, "--no-progress", "--cache", cache)
-    graftcache("fit", "--backbone", "smolvla", "--policy", policy, "--encoder", ENCODER, "--dataset", SAMPLE,
-               "--suite", "libero_object", "--seeds", 1, "--controls", "zero-image", "--steps", 2, "--batch-size", 4,
-               "--eval-fraction", 0.5, "--eval-frames", 4, "--num-denoise-steps", 2, "--cache", cache, "--results",
-               results, "--no-progress")
-    return results, cache
 
 
 def step_costs(results: Path, cache: Path, exports: Path, run_id: str, max_steps: int,
@@ -128,10 +112,8 @@ def main() -> None:
         results, cache = (args.results, args.cache) if args.results else fit_cells(tmp_path)
         import polars as pl
 
-        cells = pl.read_parquet(results).filter(pl.col("suite") == "libero_object")["run_id"].to_list()
         exports = tmp_path / "exports"
-        for run_id in cells:
-            graftcache("export", run_id, "--results", results, "--out", exports / run_id, "--cache", cache)
+        cells = export_cells(results, cache, exports)
         episodes = len(cells) * args.episodes_per_task
         print(f"{len(cells)} cell(s) x libero_object task 0 x {args.episodes_per_task} episode(s) = {episodes} "
               f"episodes of {args.max_steps} steps, {args.repeats} repeat(s)", flush=True)
