@@ -40,6 +40,9 @@ Issue 42's stages (the first a lent GPU runs: `--stages 7,8,9,10`):
    `auto` under the cap.
 10. `fit --compile` (graftcache.backbones.compiled) against eager, one cell of `--compile-backbones` at the first
    of its batches: compile seconds, step seconds, graphs and graph breaks, whether a pass's steps pay it back.
+11. The closed loop (benchmarks/gpu_closed_loop.py): `graftcache rollout --workers N` of two tiny cells with the
+   policy on the device and MuJoCo through EGL against the CPU path on the same episodes: episodes per hour, the
+   renderer each arm got, rows compared (run with benchmarks/device/run_closed_loop.sh).
 
 With `--tiny` every stage runs on the tiny backbones (stage 2-6's built through the same meta -> device path), so
 the first GPU run cannot fail on a typo. Needs only the repository on PYTHONPATH beside lerobot 0.6.1, its
@@ -76,6 +79,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT), str(ROOT / "benchmarks")]
 
 import bench_protocol as bp  # noqa: E402  (the GPU peaks, a sync, the protocol's measurements)
+from gpu_closed_loop import stage_closed_loop  # noqa: E402
 
 from devtools.released import CONFIGS, LIBERO, Recipe, built_on, on_device, unit_stats  # noqa: E402
 from graftcache.backbone_registry import BACKBONES  # noqa: E402
@@ -853,9 +857,10 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--compute-dtype", default="auto", choices=("auto", "bf16", "fp32"))
     p.add_argument("--tiny", action="store_true", help="tiny backbones everywhere (the CPU dry run)")
     p.add_argument("--budget-s", type=float, default=480.0, help="no stage starts past this many seconds")
-    p.add_argument("--stages", default="1,2,3,4,5,6,7,8,9,10",
+    p.add_argument("--stages", default="1,2,3,4,5,6,7,8,9,10,11",
                    help="comma list; issue 42's are 7 (pi0.5 attention x recompute plans), 8 (SmolVLA attention x "
-                   "cells per pass), 9 (the protocol on an 80 GB card), 10 (torch.compile against eager)")
+                   "cells per pass), 9 (the protocol on an 80 GB card), 10 (torch.compile against eager); 11 is the "
+                   "closed loop (benchmarks/gpu_closed_loop.py)")
     p.add_argument("--backbones", default=",".join(BACKBONES), help="stage 1's backbones")
     p.add_argument("--batches", default=None, help="stage 2's batches (default 8,16,32,64; tiny 2,4)")
     p.add_argument("--smolvla-batches", default=None, help="stage 3's batches (default 32,64; tiny 2,4)")
@@ -877,6 +882,19 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--decode-ms", type=float, default=None,
                    help="video decode per frame (a CPU measurement) for stage 5's online protocol")
     p.add_argument("--scratch", type=Path, default=None, help="local disk for stage 4's checkpoint and the hub")
+    p.add_argument("--closed-loop-cells", type=Path, default=None,
+                   help="stage 11's cells, a folder benchmarks/closed_loop_cells.py wrote (default: fitted into "
+                   "--scratch first, which needs the data layer a GPU image lacks)")
+    p.add_argument("--closed-loop-workers", default=None,
+                   help="stage 11's worker counts (default: the machine's cores; tiny 2)")
+    p.add_argument("--closed-loop-episodes", type=int, default=None,
+                   help="stage 11's episodes per cell (default: the most workers; tiny 1)")
+    p.add_argument("--closed-loop-steps", type=int, default=None,
+                   help="stage 11's steps per episode (default 40, the closed-loop demo's; tiny 3)")
+    p.add_argument("--cpu-gl", default="egl",
+                   help="stage 11's CPU path's MUJOCO_GL (default egl: Mesa's on a CPU machine; where only the "
+                   "GPU's EGL is installed it renders there, which the arm's renderer says)")
+    p.add_argument("--device-gl", default="egl", help="stage 11's device path's MUJOCO_GL (default egl)")
     p.add_argument("--out", type=Path, default=None,
                    help="JSON (default benchmarks/results/gpu_check_<gpu>_<date>.json)")
     a = p.parse_args(argv)
@@ -979,6 +997,12 @@ def main(argv: list[str] | None = None) -> dict:
                 del adapter
                 free(device)
         report.write()
+    if 11 in stages:
+        most = os.cpu_count() or 1
+        workers = [int(n) for n in (a.closed_loop_workers or ("2" if a.tiny else str(most))).split(",")]
+        stage_closed_loop(report, a.device, a.closed_loop_cells, scratch, workers,
+                          a.closed_loop_episodes or (1 if a.tiny else max(workers)),
+                          a.closed_loop_steps or (3 if a.tiny else 40), a.cpu_gl, a.device_gl)
     report.data["done"] = True
     report.write()
     print(f"gpu_check: done in {report.elapsed():.0f} s -> {out}", flush=True)

@@ -69,6 +69,9 @@ CAMERA_MAP: Rule = (valid_camera_map, f"must be {SYNTAX}, each policy camera onc
 GRIDS: Rule = (valid_grid_names, f"must name grids: {UNPOOLED} or HxW, e.g. {UNPOOLED},4x4")
 CACHE_HELP = "cache root: a folder or an s3:// gs:// az:// URL (default: $GRAFTCACHE_HOME or ~/.cache/graftcache)"
 PROGRESS_HELP = "no progress bars or lines"
+#: The devices a command's models run on (graftcache.runtime.resolve_device checks one; `rollout --device` takes them
+#: too)
+DEVICE_HELP = "cpu, cuda or cuda:N"
 
 
 def compute_dtype(**fit: Any) -> Any:
@@ -112,7 +115,7 @@ class ExtractRequest(Checked):
         None, rule=CAMERA_MAP, codec=codecs.CAMERA_MAP, recipe=False,
         help="native towers: which dataset camera feeds each policy camera where the names differ (checked before "
         "decoding; the cache keeps the dataset's camera names)")
-    device: str = setting("cpu", recipe=False, help="cpu, cuda or cuda:N")
+    device: str = setting("cpu", recipe=False, help=DEVICE_HELP)
     batch_size: int = setting(32, rule=POSITIVE)
     num_workers: int = setting(2, rule=WORKERS, help="decode worker processes (0: decode in-process; at most 1024)")
     block_frames: int = setting(256, rule=POSITIVE, help="frames per block file / resumable unit")
@@ -246,7 +249,7 @@ class FitRequest(Checked):
         help="torch.compile the frozen backbone's training forward (graftcache/backbones/compiled.py): each training "
         "pass compiles it once, which pays only over enough steps (benchmarks/gpu_check.py measures compile seconds "
         "against step seconds). Rows record it (compile)")
-    device: str = setting("cpu", recipe=False, help="cpu, cuda or cuda:N")
+    device: str = setting("cpu", recipe=False, help=DEVICE_HELP)
     num_workers: int = setting(  # the numbers do not depend on it
         2, rule=WORKERS,
         help="processes reading and pooling cached features ahead of the model (0: in this process; at most 1024)")

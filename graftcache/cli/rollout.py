@@ -9,12 +9,13 @@ from collections.abc import Callable
 from functools import partial
 from pathlib import Path
 
+from graftcache.analysis.looks import LOOKS_FILE
 from graftcache.checks import IntList
 from graftcache.cli.common import add_flags, request_from
 from graftcache.cli.report import SCORE_NAMES
 from graftcache.codecs import int_list
-from graftcache.requests import ExecutorSettings
-from graftcache.rollout.request import RESETS
+from graftcache.requests import DEVICE_HELP, ExecutorSettings
+from graftcache.rollout.request import EXPORTS_FOLDER, RESETS, ROLLOUTS_FILE
 
 #: LIBERO suites hold 10 tasks (libero_90: 90)
 TASKS = IntList("task", 89, 90)
@@ -90,16 +91,21 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    "only the images the policy sees, hard is lerobot-eval's own reset (a new simulator each "
                    "episode); both give the same episodes, state for state, so rows do not record it (default: "
                    f"{RESETS[0]})")
+    p.add_argument("--device", default="cpu", metavar="DEVICE",
+                   help=f"where each episode's policy runs: {DEVICE_HELP} (default: cpu). Its actions are computed "
+                   "on that device's kernels, which each row records (column kernels): rows of one episode from "
+                   "other kernels may differ. With --executor ray and cuda, each actor holds --gpus-per-task GPUs "
+                   "(default 1; a fraction shares one)")
     p.add_argument("--until-resolved", type=_at_least(1), default=None, metavar="CAP",
                    help="sequential: after the first --episodes-per-task episodes, keep adding as many to the "
                    "candidate encoders (plain grafts) whose pairwise closed-loop order (closest approach, paired by "
                    "fit seed and episode) is still unresolved, up to CAP episodes per task a cell; each look's "
                    "interval is taken so that a pair of equal encoders is called resolved with chance <= 5%% over "
-                   "all looks (Bonferroni), recorded in sequential.json beside the rollouts file for the report "
+                   f"all looks (Bonferroni), recorded in {LOOKS_FILE} beside the rollouts file for the report "
                    "(default: off)")
     p.add_argument("--rollouts", default=None, metavar="PATH",
-                   help="rollouts Parquet file to append to (default: rollouts.parquet beside RESULTS); exports go "
-                   "to exports/RUN_ID beside it")
+                   help=f"rollouts Parquet file to append to (default: {ROLLOUTS_FILE} beside RESULTS); exports go "
+                   f"to {EXPORTS_FOLDER}/RUN_ID beside it")
     p.add_argument("--videos", action="store_true",
                    help="also write each episode's frames as an mp4, as lerobot-eval writes its videos, to "
                    "videos/RUN_ID/ beside the rollouts file; its row's video column holds the path relative to the "
@@ -132,22 +138,25 @@ def run(args: argparse.Namespace) -> int:
     from graftcache.executors import get_executor
     from graftcache.rollout import rollouts_file
     from graftcache.rollout.libero import LiberoSimulator
-    from graftcache.rollout.request import EXPORTS_FOLDER, RolloutRequest, default_rollouts
+    from graftcache.rollout.request import RolloutRequest, default_rollouts
     from graftcache.rollout.roll_out import roll_out_started
     from graftcache.rollout.select import check_tasks, select
+    from graftcache.runtime import resolve_device
 
     rollouts = Path(args.rollouts).absolute() if args.rollouts else default_rollouts(args.results)
     req = RolloutRequest(results=Path(args.results).absolute(), rollouts=rollouts, run_ids=args.run_ids,
                          top=args.top, suites=args.suites, score=args.score, tasks=args.tasks,
                          episodes_per_task=args.episodes_per_task, max_steps=args.max_steps, seed=args.seed,
-                         perturb_cm=args.perturb_cm, reset=args.reset, command=args.command_line)
+                         perturb_cm=args.perturb_cm, reset=args.reset, device=args.device,
+                         command=args.command_line)
     # both files, the rows and their tasks checked before the simulator's imports (the team starts them); the rows
     # are chosen once (and said once), and handed on
     sel = select(req)
     check_tasks(sel.rows, req.tasks)
     rollouts_file.read(req.rollouts)
+    resolve_device(req.device)  # a device this machine lacks, refused before any simulator starts
     spawn = partial(LiberoSimulator, req.results, rollouts.parent / EXPORTS_FOLDER, cache=_absolute(args.cache),
-                    runs=_absolute(args.runs), max_steps=args.max_steps, videos=args.videos)
+                    runs=_absolute(args.runs), max_steps=args.max_steps, videos=args.videos, device=req.device)
     expand = None
     if args.until_resolved is not None:
         from graftcache.rollout.sequential import Sequential, looks

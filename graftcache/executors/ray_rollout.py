@@ -90,7 +90,7 @@ class Actors:
     def __init__(self, req: RolloutRequest, spawn: Callable[[], Simulator], n: int | None,
                  settings: ExecutorSettings, log: Log) -> None:
         connect(settings, log)
-        placed = task_options(settings, "cpu")  # a GPU only when asked for: the policy's device is its export's
+        placed = task_options(settings, req.device)  # GPUs for an actor whose policy runs on CUDA
         fits = slots(placed)
         if n and n > fits:  # an actor that cannot be placed would hold its first episode forever
             log(f"ray: --workers {n}, but the cluster holds {fits} such actor(s) at once: {fits}")

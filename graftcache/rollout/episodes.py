@@ -46,7 +46,7 @@ class Outcome:
     rendered for the episode, (steps + 1, H, W, 3) uint8 (one after the reset, one after each step), shown at `fps`
     frames a second; None: nothing recorded. `graded`: the episode's graded progress from the simulator's state
     (graftcache.rollout.graded); `target_offset_m`: the planar (x, y) offset applied to the target, (0, 0) when
-    none; None for either: not measured."""
+    none; `kernels`: where the policy computed (graftcache.runtime.kernels); None for any: not measured."""
 
     success: bool
     steps: int
@@ -56,6 +56,7 @@ class Outcome:
     fps: float | None = None
     graded: Graded | None = None
     target_offset_m: tuple[float, float] | None = None
+    kernels: str | None = None
 
 
 @dataclass(frozen=True)

@@ -50,13 +50,14 @@ class LiberoSimulator:
     """graftcache.rollout.episodes.Simulator over lerobot's LIBERO env. `exports`: where cells are exported (one
     folder per run_id, reused when it holds the run's export); `results`, `cache`, `runs`: as `graftcache export`
     takes them. `max_steps`: the step limit, None for lerobot's episode length of each suite. `videos`: record each
-    episode's frames (Outcome.frames)."""
+    episode's frames (Outcome.frames). `device`: where each cell's policy runs (its export says cpu:
+    lerobot's make_policy builds it on the config's device, and the processors move each batch there)."""
 
     def __init__(self, results: str | Path, exports: Path, *, cache: str | None, runs: str | None,
-                 max_steps: int | None, videos: bool = False, log=print) -> None:
+                 max_steps: int | None, videos: bool = False, device: str = "cpu", log=print) -> None:
         require_simulator()
         self.results, self.exports, self.cache, self.runs = results, exports, cache, runs
-        self.max_steps, self.videos, self.log = max_steps, videos, log
+        self.max_steps, self.videos, self.device, self.log = max_steps, videos, device, log
         self._envs: dict[tuple[str, int, str], Any] = {}
         self._cell: tuple[str, tuple[Any, ...]] | None = None  # (run_id, its policy and processors): `loaded`
 
@@ -111,7 +112,7 @@ class LiberoSimulator:
         self._cell = None  # the previous cell's policy is freed before the next one loads
         folder = self.export(row)
         config = PreTrainedConfig.from_pretrained(folder)
-        config.pretrained_path = str(folder)
+        config.pretrained_path, config.device = str(folder), self.device
         env_config = self.env_config(suite, task)
         policy = make_policy(config, env_cfg=env_config, rename_map={})
         policy.eval()
@@ -129,6 +130,7 @@ class LiberoSimulator:
         from lerobot.utils.random_utils import set_seed
 
         from graftcache.rollout.perturb import Perturbation
+        from graftcache.runtime import kernels, resolve_device
 
         first = episodes[0]
         with policy_threads():
@@ -154,7 +156,8 @@ class LiberoSimulator:
                                   frames=np.stack(frames[: done + 2]) if frames is not None else None,  # all of them
                                   fps=env.unwrapped.metadata["render_fps"] if self.videos else None,
                                   graded=measure(target_of(problem_of(env)), states[: done + 2]),
-                                  target_offset_m=(float(task_env.offset[0]), float(task_env.offset[1])))
+                                  target_offset_m=(float(task_env.offset[0]), float(task_env.offset[1])),
+                                  kernels=kernels(resolve_device(self.device)))
 
     def close(self) -> None:
         self._cell = None

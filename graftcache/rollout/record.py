@@ -8,7 +8,6 @@ episode rerun because its row is missing overwrites its video. Rows are appended
 
 from __future__ import annotations
 
-import importlib.metadata
 import os
 import socket
 import uuid
@@ -26,6 +25,7 @@ from graftcache.rollout import rollouts_file
 from graftcache.rollout.episodes import Episode, EpisodeReport, Outcome, Simulator, where
 from graftcache.rollout.graded import Graded
 from graftcache.rollout.schedule import VIDEOS_FOLDER
+from graftcache.upstream import installed
 
 GRADED_FIELDS = tuple(f.name for f in fields(Graded))  # the row's columns of an Outcome's `graded`
 
@@ -70,7 +70,7 @@ def row_of(episode: Episode, outcome: Outcome, command: str, video: str | None =
             "seed": episode.seed, "init_state": outcome.init_state, "max_steps": episode.max_steps,
             "success": outcome.success, "steps": outcome.steps, "seconds": outcome.seconds, "video": video,
             "perturbation_m": episode.perturbation_m, "target_offset_x_m": offset_x, "target_offset_y_m": offset_y,
-            **graded, "lerobot_version": importlib.metadata.version("lerobot"),
+            **graded, "kernels": outcome.kernels, "lerobot_version": installed("lerobot"),
             "graftcache_version": graftcache.__version__, "command": command}
 
 

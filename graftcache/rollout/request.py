@@ -3,10 +3,12 @@ episodes and a perturbation's resolution can hold, and where its files go by def
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
 from graftcache.errors import RolloutError
+from graftcache.requests import DEVICE_HELP
 
 ROLLOUTS_FILE = "rollouts.parquet"  # the default: beside the results file
 EXPORTS_FOLDER = "exports"          # beside the rollouts file: one export folder per run_id
@@ -21,6 +23,9 @@ MAX_PERTURB_CM = 10.0
 #: A finer value is refused rather than rounded: each value is another episode key, so 1e-300 would make "perturbed"
 #: episodes of the official scenes, and 3.000001 episodes apart from 3's of the same scenes.
 PERTURB_RESOLUTION_CM = 0.01
+#: The devices an episode's policy may run on (graftcache.requests.DEVICE_HELP); runtime.resolve_device then says
+#: whether this machine has it
+DEVICE = re.compile(r"cpu|cuda(:\d+)?")
 #: How an episode's scene is reset to its init state: "soft", lerobot's reset keeping the MjSim with the renders
 #: nobody sees skipped (graftcache.rollout.seam), or "hard", lerobot-eval's own (a new MjSim and render context each
 #: episode). Their episodes are the same, state for state and image for image (tests/rollout/test_soft_reset.py), so
@@ -34,7 +39,8 @@ class RolloutRequest:
     within `suites`), which tasks (None: all of the suite's), how many episodes each, the step limit (None:
     lerobot's episode length of the suite), the start seed shared by every cell (episodes are paired), and the
     target's perturbation (up to `perturb_cm` per planar axis, drawn from each episode's seed; 0: the official init
-    states) and how each scene is reset (RESETS)."""
+    states), how each scene is reset (RESETS) and where each episode's policy runs (`device`: its rows record the
+    kernels that computed it)."""
 
     results: Path
     rollouts: Path
@@ -48,6 +54,7 @@ class RolloutRequest:
     seed: int = 1000
     perturb_cm: float = 0.0
     reset: str = RESETS[0]
+    device: str = "cpu"
     command: str = ""
 
     def __post_init__(self) -> None:
@@ -67,6 +74,8 @@ class RolloutRequest:
                                f"{PERTURB_RESOLUTION_CM:g} cm (0: none)")
         if self.reset not in RESETS:
             raise RolloutError(f"--reset {self.reset}: must be one of {', '.join(RESETS)}")
+        if not DEVICE.fullmatch(self.device):
+            raise RolloutError(f"--device {self.device}: must be {DEVICE_HELP}")
 
 
 def default_rollouts(results_path: str | Path) -> Path:

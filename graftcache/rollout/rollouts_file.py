@@ -11,6 +11,10 @@ Format 2 added the graded progress of each episode (graftcache.rollout.graded: t
 2405.05941) and the target's perturbation (graftcache.rollout.perturb); a format-1 file is read with those columns
 null (FORMAT_2_COLUMNS), its episode_ids unchanged (an episode without a perturbation hashes as format 1 hashed
 it).
+
+Format 3 added `kernels`: where the episode's policy computed (graftcache.runtime.kernels of `rollout --device`), since
+an action computed on other kernels differs in its last bits and the episode after it may differ; rows of formats 1 and
+2 (all computed on a CPU) read with it null.
 """
 
 from __future__ import annotations
@@ -27,7 +31,7 @@ from graftcache.results.reading import failure_reason, load_table
 from graftcache.results.schema import cast_exactly
 
 #: The format of rollouts rows (independent of the results' format); a newer one is refused by `read`.
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3
 #: The fields that decide an episode, hashed into its `episode_id`, with `perturbation_m` when it is not 0.
 EPISODE_KEY = ("run_id", "suite", "task_index", "episode", "seed", "max_steps")
 
@@ -56,6 +60,8 @@ SCHEMA: dict[str, pl.DataType] = {
     "target_lift_m": pl.Float64,      # the target's highest height above its settled height after the reset (>= 0)
     "grasped": pl.Boolean,            # both gripper fingers touching the target for >= 5 consecutive states
     "goal_fraction": pl.Float64,      # share of the task's BDDL goal predicates true at the last state
+    "kernels": pl.String,             # format 3: where its policy computed (graftcache.runtime.kernels), e.g.
+                                      # "cpu:avx512+amx" or "cuda:sm_90"; null: not recorded
     "lerobot_version": pl.String,
     "graftcache_version": pl.String,
     "command": pl.String,             # the command line that ran it
@@ -66,6 +72,8 @@ SCHEMA: dict[str, pl.DataType] = {
 #: null
 FORMAT_2_COLUMNS = ("target", "perturbation_m", "target_offset_x_m", "target_offset_y_m", "min_target_distance_m",
                     "final_target_distance_m", "target_lift_m", "grasped", "goal_fraction")
+#: The columns each format added: a file whose rows all predate a format reads with that format's columns null
+ADDED_COLUMNS: dict[int, tuple[str, ...]] = {2: FORMAT_2_COLUMNS, 3: ("kernels",)}
 
 
 def episode_id(fields: Mapping[str, Any]) -> str:
@@ -107,9 +115,10 @@ def read(path: str | Path) -> pl.DataFrame:
     if "format_version" in table.columns and (table["format_version"] > FORMAT_VERSION).any():
         raise RolloutError(f"{path}: rollouts rows of format {table['format_version'].max()}, newer than this "
                            f"graftcache's ({FORMAT_VERSION}): pass another --rollouts")
-    old = [c for c in FORMAT_2_COLUMNS if c not in table.columns]
-    if old and "format_version" in table.columns and (table["format_version"] < 2).all():
-        table = table.with_columns(pl.lit(None, SCHEMA[c]).alias(c) for c in old)  # format 1: not measured
+    for version, added in ADDED_COLUMNS.items():
+        old = [c for c in added if c not in table.columns]
+        if old and "format_version" in table.columns and (table["format_version"] < version).all():
+            table = table.with_columns(pl.lit(None, SCHEMA[c]).alias(c) for c in old)  # not recorded then
     try:
         return validate(table)
     except GraftcacheError as e:

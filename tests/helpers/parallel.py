@@ -42,7 +42,8 @@ TESTS = Path(__file__).resolve().parents[1]
 
 #: modules (paths under tests/) whose session fixtures are shared: they run on one worker, which builds them once
 GROUPS = {"rollout/test_rollout": "simulator_cells", "rollout/test_rollout_workers": "simulator_cells",
-          "rollout/test_rollout_ray": "simulator_cells", "rollout/test_soft_reset": "simulator_cells"}
+          "rollout/test_rollout_ray": "simulator_cells", "rollout/test_soft_reset": "simulator_cells",
+          "test_gpu_check_closed_loop": "simulator_cells"}
 
 #: the backbone whose tiny-zoo builds the tests taking `tiny_zoo` without a `name` parameter use
 #: (tests/export/test_export.py exports smolvla's cells): they run in its group

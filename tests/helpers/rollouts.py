@@ -80,7 +80,7 @@ class Scripted:
                         final_target_distance_m=0.3, target_lift_m=0.0, grasped=e.episode == 1, goal_fraction=0.0)
         return Outcome(success=e.seed % 2 == 0, steps=steps, seconds=0.5, init_state=e.episode, frames=frames,
                        fps=10 if self.videos else None, graded=graded,
-                       target_offset_m=(e.perturbation_m / 2, -e.perturbation_m / 4))
+                       target_offset_m=(e.perturbation_m / 2, -e.perturbation_m / 4), kernels="scripted")
 
 
 class Paced:
@@ -168,11 +168,13 @@ def paced_rows(run_ids: Sequence[str], tasks: Sequence[int], episodes: int, seed
     for run_id, task, k in ((r, t, k) for r in run_ids for t in tasks for k in range(episodes)):
         key = {"run_id": run_id, "suite": "libero_object", "task_index": task, "episode": k, "seed": seed + k,
                "max_steps": 280}
-        rows.append({"episode_id": sha256_json(key)[:16], "format_version": 2, **key, "init_state": k,
+        rows.append({"episode_id": sha256_json(key)[:16], "format_version": rollouts_file.FORMAT_VERSION, **key,
+                     "init_state": k,
                      "success": (seed + k) % 2 == 0, "steps": k + 3, "video": None, "target": None,
                      "perturbation_m": 0.0, "target_offset_x_m": None, "target_offset_y_m": None,
                      "min_target_distance_m": None, "final_target_distance_m": None, "target_lift_m": None,
-                     "grasped": None, "goal_fraction": None, "lerobot_version": importlib.metadata.version("lerobot"),
+                     "grasped": None, "goal_fraction": None, "kernels": None,
+                     "lerobot_version": importlib.metadata.version("lerobot"),
                      "graftcache_version": graftcache.__version__})
     schema = {c: t for c, t in rollouts_file.SCHEMA.items() if c not in ("seconds", "command")}
     return pl.DataFrame(rows, schema=schema).sort("episode_id")

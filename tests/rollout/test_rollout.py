@@ -127,7 +127,8 @@ def test_rows_are_typed_and_a_rerun_adds_nothing_and_says_so(tmp_path: Path) -> 
     assert (first["suite"], first["seed"], first["init_state"], first["max_steps"]) == ("libero_object", 8, 1, 280)
     assert (first["success"], first["steps"], first["seconds"], first["video"]) == (True, 4, 0.5, None)
     assert first["lerobot_version"] == importlib.metadata.version("lerobot")
-    assert first["command"] == "graftcache rollout results.parquet" and first["format_version"] == 2
+    assert first["command"] == "graftcache rollout results.parquet" and first["format_version"] == 3
+    assert first["kernels"] == "scripted"  # the simulator's Outcome's, as it said them
     assert (first["target"], first["perturbation_m"], first["target_offset_x_m"], first["target_offset_y_m"]) == (
         "alphabet_soup_1", 0.0, 0.0, 0.0)  # official init states
     assert (first["min_target_distance_m"], first["final_target_distance_m"], first["target_lift_m"],
@@ -281,6 +282,45 @@ def test_the_reset_reaches_the_simulator_and_a_hard_rerun_of_soft_episodes_runs_
         _request(tmp_path, reset="warm")
     refused = run_cli(["rollout", tmp_path / "results.parquet", "--reset", "warm"], capsys)
     assert refused.code == 2 and "argument --reset: invalid choice: 'warm'" in refused.err
+
+
+def test_a_device_is_checked_before_any_simulator_starts(tmp_path: Path, capsys: pytest.CaptureFixture,
+                                                        monkeypatch: pytest.MonkeyPatch) -> None:
+    """--device takes what the other commands take (cpu, cuda, cuda:N); one this machine lacks is refused in one line
+    before the simulator's imports, with no rollouts file written."""
+    import torch
+    from helpers.probes import run_cli
+
+    for device in ("cpu", "cuda", "cuda:1"):
+        assert _request(tmp_path, device=device).device == device
+    for device in ("tpu", "cuda:", "CPU", "cuda:0,1"):
+        with pytest.raises(RolloutError, match=rf"^--device {device}: must be cpu, cuda or cuda:N$"):
+            _request(tmp_path, device=device)
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    monkeypatch.setattr("graftcache.rollout.libero.LiberoSimulator.__init__", None)  # never reached
+    refused = run_cli(["rollout", tmp_path / "results.parquet", "--device", "cuda", "--top", "1"], capsys)
+    assert refused.code == 2, refused.err
+    assert refused.err.strip() == "graftcache rollout: error: --device cuda: CUDA is not available on this machine"
+    assert not (tmp_path / "rollouts.parquet").exists()
+
+
+def test_a_format_2_rollouts_file_reads_with_its_kernels_null(tmp_path: Path) -> None:
+    """Rows written before rows recorded their policy's kernels (format 2) read with kernels null, everything else
+    as written; a file mixing format 2 and 3 rows is not filled (its format-2 rows would have lost the column)."""
+    path = tmp_path / "rollouts.parquet"
+    row = {c: None for c in rollouts_file.SCHEMA if c != "kernels"}
+    row.update(episode_id="0123456789abcdef", format_version=2, run_id="fedcba9876543210", suite="libero_object",
+               task_index=0, episode=0, seed=1000, init_state=0, max_steps=60, success=False, steps=60, seconds=1.5,
+               perturbation_m=0.0, lerobot_version="0.6.1", graftcache_version="0.1.0", command="graftcache rollout")
+    schema = {c: t for c, t in rollouts_file.SCHEMA.items() if c != "kernels"}
+    pl.DataFrame([row], schema=schema).write_parquet(path)
+    rows = rollouts_file.read(path)
+    assert rows.schema == pl.Schema(rollouts_file.SCHEMA) and rows["kernels"].to_list() == [None]
+    assert {k: v for k, v in rows.row(0, named=True).items() if k != "kernels"} == row
+    pl.DataFrame([row, {**row, "episode_id": "1111111111111111", "format_version": 3}],
+                 schema=schema).write_parquet(path)
+    with pytest.raises(RolloutError, match=r"missing \['kernels'\]"):
+        rollouts_file.read(path)
 
 
 def test_a_format_1_rollouts_file_reads_with_its_graded_columns_null(tmp_path: Path) -> None:
