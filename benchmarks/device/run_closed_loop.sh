@@ -65,7 +65,8 @@ printf '%s\n' "benchmark_root: $benchmark" "bddl_files: $benchmark/bddl_files" "
 export PYTHONPATH="$site:$PWD" HF_HUB_OFFLINE=1 PYTHONUNBUFFERED=1 MUJOCO_GL=egl PYOPENGL_PLATFORM=egl
 vendor=/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json
 [ -f "$vendor" ] && export __EGL_VENDOR_LIBRARY_FILENAMES=$vendor
-echo "run_closed_loop: unpacked in $(( $(date +%s) - t0 )) s"
+# robosuite picks its EGL device by CUDA_VISIBLE_DEVICES's index, when set (a GPU UUID there would break it)
+echo "run_closed_loop: unpacked in $(( $(date +%s) - t0 )) s; CUDA_VISIBLE_DEVICES=${CUDA_VISIBLE_DEVICES-unset}"
 timeout 10 python3 -c "
 import mujoco
 from OpenGL import GL
