@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 DEVICE = Path(__file__).resolve().parents[1] / "benchmarks" / "device"
-SCRIPTS = ("bundle.sh", "run.sh", "bundle_closed_loop.sh", "run_closed_loop.sh")
+SCRIPTS = ("bundle.sh", "run.sh", "bundle_closed_loop.sh", "run_closed_loop.sh", "cp312_wheels.sh")
 
 
 @pytest.fixture

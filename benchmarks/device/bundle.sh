@@ -13,17 +13,8 @@ out=.whl/bundle.tar.xz
 packages=(lerobot draccus gymnasium farama-notifications av dm-tree datasets multiprocess dill mergedeep
           qwen-vl-utils diffusers pytz num2words jmespath transformers tokenizers)
 sdists=(docopt)  # pure Python published without a wheel (num2words needs it): built here
-pin() { echo "$1==$(.venv/bin/python -c "import importlib.metadata as m; print(m.version('$1'))")"; }
-pins=()
-for p in "${packages[@]}"; do pins+=("$(pin "$p")"); done
-mkdir -p .whl/wheels
-.venv/bin/python -m pip download -q --disable-pip-version-check --no-deps --only-binary=:all: --python-version 3.12 \
-  --implementation cp --platform manylinux_2_28_x86_64 --platform manylinux_2_24_x86_64 \
-  --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64 -d .whl/wheels "${pins[@]}"
-for p in "${sdists[@]}"; do
-  pins+=("$(pin "$p")")
-  .venv/bin/python -m pip wheel -q --disable-pip-version-check --no-deps -w .whl/wheels "$(pin "$p")"
-done
+source benchmarks/device/cp312_wheels.sh
+cp312_wheels .whl/wheels
 site=$(mktemp -d)
 trap 'rm -rf "$site"' EXIT
 for w in .whl/wheels/*.whl; do .venv/bin/python -m zipfile -e "$w" "$site"; done

@@ -33,18 +33,8 @@ fi
 if [ -f "$out" ] && [ "$out" -nt "$0" ] && [ "$out" -nt "$list" ] && [ "$out" -nt "$cells/results.parquet" ]; then
   echo "bundle: $out is up to date"; exit 0
 fi
-pin() { echo "$1==$(.venv/bin/python -c "import importlib.metadata as m; print(m.version('$1'))")"; }
-pins=()
-for p in "${packages[@]}"; do pins+=("$(pin "$p")"); done
-mkdir -p .whl/closed_loop_wheels
-.venv/bin/python -m pip download -q --disable-pip-version-check --no-deps --only-binary=:all: --python-version 3.12 \
-  --implementation cp --platform manylinux_2_28_x86_64 --platform manylinux_2_27_x86_64 \
-  --platform manylinux_2_24_x86_64 --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64 \
-  -d .whl/closed_loop_wheels "${pins[@]}"
-for p in "${sdists[@]}"; do
-  pins+=("$(pin "$p")")
-  .venv/bin/python -m pip wheel -q --disable-pip-version-check --no-deps -w .whl/closed_loop_wheels "$(pin "$p")"
-done
+source benchmarks/device/cp312_wheels.sh
+cp312_wheels .whl/closed_loop_wheels
 stage=$(mktemp -d)
 trap 'rm -rf "$stage"' EXIT
 site=$stage/site
