@@ -103,6 +103,12 @@ class ClosedLoop:
         """Episodes that record no graded measure (format-1 rows, or a table without the columns)."""
         return int(self.rollouts.select(pl.all_horizontal(pl.col(GRADED_MEASURES).is_null()).sum()).item())
 
+    @property
+    def kernels(self) -> dict[str | None, int]:
+        """Episodes per set of kernels their policy computed on (None: not recorded), most first."""
+        counts = self.rollouts.group_by("kernels").len().sort(["len", "kernels"], descending=[True, False])
+        return dict(counts.iter_rows())
+
 
 def wilson(successes: int, n: int, z: float = Z95) -> tuple[float, float]:
     """Wilson score interval of a success rate: unlike the normal interval it stays inside [0, 1] and is not a

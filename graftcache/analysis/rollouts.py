@@ -52,6 +52,9 @@ HIGHER_IS_BETTER: dict[str, bool] = {
     "grasped": True, "goal_fraction": True,
 }
 MEASURES = tuple(HIGHER_IS_BETTER)
+#: Where an episode's policy computed (rollouts format 3; graftcache.runtime.kernels): read where the file has it, so
+#: that the report can say when the episodes it compares were computed on other kernels (null: not recorded).
+PROVENANCE: dict[str, pl.DataType] = {"kernels": pl.String}
 #: What decides an episode apart from the policy: the same key in two cells is the same scene, seed and limit.
 PAIR_KEY: dict[str, pl.DataType] = {
     "suite": pl.String, "task_index": pl.Int64, "episode": pl.Int64, "seed": pl.Int64, "max_steps": pl.Int64,
@@ -128,8 +131,8 @@ def _refuse_out_of_range(rollouts: pl.DataFrame, path: Path) -> None:
 
 
 def read_rollouts(path: str | Path, results: pl.DataFrame, *, where: pl.Expr | None = None) -> pl.DataFrame:
-    """The rollouts Parquet file at `path` as one row per episode: run_id, success, GRADED_MEASURES and PAIR_KEY
-    (each null where the file lacks it), checked against `results`' run_ids; anything unusable is a
+    """The rollouts Parquet file at `path` as one row per episode: run_id, success, GRADED_MEASURES, PAIR_KEY and
+    PROVENANCE (each null where the file lacks it), checked against `results`' run_ids; anything unusable is a
     GraftcacheError naming the file. `where`: only the file's rows it holds true for, on the file's own columns (a
     sequential rollout's look reads the episodes it decides on, graftcache.rollout.sequential)."""
     path = Path(path)
@@ -149,7 +152,7 @@ def read_rollouts(path: str | Path, results: pl.DataFrame, *, where: pl.Expr | N
     nulls = [c for c in ROLLOUT_COLUMNS if table[c].null_count()]
     if nulls:
         raise GraftcacheError(f"{path}: null values in column(s) {', '.join(nulls)}")
-    optional = {**GRADED_MEASURES, **PAIR_KEY}
+    optional = {**GRADED_MEASURES, **PAIR_KEY, **PROVENANCE}
     columns = [table["run_id"].cast(pl.String), _boolean(table["success"], path)]
     columns += [_typed(table[c], t, path) if c in table.columns else pl.Series(c, [None] * len(table), dtype=t)
                 for c, t in optional.items()]

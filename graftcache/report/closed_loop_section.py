@@ -96,6 +96,21 @@ def ungraded_sentence(loop: A.ClosedLoop) -> str | None:
             "(`graded episodes`), and a cell without any has none.")
 
 
+def kernels_sentence(loop: A.ClosedLoop) -> str | None:
+    """What the report says of episodes computed on more than one set of kernels (`rollout --device`, another CPU):
+    an action on other kernels differs in its last bits and the episode after it may drift, so cells compared across
+    them hold that drift beside their difference. Nothing where every episode records the same kernels, or none."""
+    kernels = loop.kernels
+    if len(kernels) < 2 or set(kernels) == {None}:
+        return None
+    counts = ", ".join(f"{name or 'not recorded'}: {n}" for name, n in kernels.items())
+    return (f"These episodes' policies computed on {len(kernels)} sets of kernels (episodes: {counts}; the rollouts "
+            "column `kernels`). An action computed on other kernels differs in its last bits and its episode may "
+            "drift from there, so a difference between cells rolled out on different kernels holds that drift too "
+            "(`benchmarks/gpu_closed_loop.py` measures it for one pair of paths); roll the cells compared out on one "
+            "device to leave it out.")
+
+
 def headline_sentences(loop: A.ClosedLoop, cells_of: str, *, rolled_only: bool = False) -> list[str]:
     """eval_mse against the closest approach over `cells_of` (graftcache.analysis.CELLS_OF), per backbone and
     suite, with intervals or why undefined; `rolled_only`: only the (backbone, suite)s with cells of `cells_of`
@@ -194,8 +209,9 @@ def closed_loop_section(a: A.Analysis, out: Path) -> list[Block]:
         return [head, Paragraph("No results row has rollouts.")]
     measures = recorded_measures(loop)
     blocks: list[Block] = [head, Paragraph(ABOUT.format(n_boot=A.N_BOOT, seed=a.boot.seed))]
-    if sentence := ungraded_sentence(loop):
-        blocks.append(Paragraph(sentence))
+    for sentence in (ungraded_sentence(loop), kernels_sentence(loop)):
+        if sentence:
+            blocks.append(Paragraph(sentence))
     blocks += [Heading(f"Candidates: does `{HEADLINE_SCORE}` order the encoders as the closest approach to the target "
                        f"(`{HEADLINE_MEASURE}`) does?", 3),
                Bullets(tuple(headline_sentences(loop, A.CANDIDATES))),

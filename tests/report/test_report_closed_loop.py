@@ -216,3 +216,26 @@ def test_a_partly_graded_file_says_how_many_episodes_lack_the_graded_measures(tm
     cells = a.closed_loop.cells.filter(pl.col("control") == "zero-image")
     assert cells["graded_episodes"].to_list() == [2, 2] and cells["episodes"].to_list() == [3, 3]
     assert cells["min_target_distance_m"].to_list() == pytest.approx([np.mean([0.26, 0.27])] * 2)
+
+
+def test_episodes_on_other_kernels_are_said_with_their_counts(tmp_path: Path) -> None:
+    """A file whose episodes record two sets of kernels (one suite's first episodes run with `rollout --device cuda`)
+    gets one paragraph counting the episodes on each, most first; a file without the column, or with one set of
+    kernels, gets none."""
+    results, rollouts = _files(tmp_path)
+    sentence = "These episodes' policies computed on"
+    assert sentence not in report.write_report(results, tmp_path / "none", rollouts=rollouts).markdown.read_text()
+    table = pl.read_parquet(rollouts)
+    cuda = (pl.col("suite") == "libero_spatial") & (pl.col("episode") == 0)
+    table.with_columns(kernels=pl.when(cuda).then(pl.lit("cuda:sm_90")).otherwise(pl.lit("cpu:avx2"))).write_parquet(
+        rollouts)
+    a = _analysed(results, rollouts)
+    assert a.closed_loop.kernels == {"cpu:avx2": 30, "cuda:sm_90": 6}  # 6 policies x 2 suites x 3 episodes
+    md = report.write_report(results, tmp_path / "mixed", rollouts=rollouts).markdown.read_text()
+    assert (f"{sentence} 2 sets of kernels (episodes: cpu:avx2: 30, cuda:sm_90: 6; the rollouts column "
+            "`kernels`).") in md
+    table.with_columns(kernels=pl.lit("cpu:avx2")).write_parquet(rollouts)
+    assert sentence not in report.write_report(results, tmp_path / "one", rollouts=rollouts).markdown.read_text()
+    table.with_columns(kernels=pl.when(cuda).then(pl.lit("cuda:sm_90"))).write_parquet(rollouts)
+    md = report.write_report(results, tmp_path / "unrecorded", rollouts=rollouts).markdown.read_text()
+    assert f"{sentence} 2 sets of kernels (episodes: not recorded: 30, cuda:sm_90: 6;" in md
