@@ -51,3 +51,10 @@ class RolloutError(GraftcacheError):
 class Deprecation(FutureWarning):
     """A former flag or recipe key that still reads (graftcache.settings.Setting.formerly): the CLI prints it as one
     line naming the new spelling (graftcache.cli.main), not as a warning located in argparse or the TOML reader."""
+
+
+def first_line(error: BaseException) -> str:
+    """The first line of an exception's message, else its type's name: what a one-line message quotes of an error a
+    library raised (polars, the OS, Ray and safetensors often append pages of detail)."""
+    text = str(error).strip()
+    return text.splitlines()[0] if text else type(error).__name__

@@ -117,6 +117,7 @@ from graftcache.analysis.rollouts import (
     HIGHER_IS_BETTER,
     MEASURES,
     PAIR_KEY,
+    PROVENANCE,
     ROLLOUT_COLUMNS,
     read_rollouts,
 )
@@ -170,7 +171,7 @@ from graftcache.results import conform
 __all__ = [
     "AGREEMENT_SCHEMA", "CANDIDATES", "CELLS_OF", "WITH_CONTROLS", "CELL_SCHEMA", "CLOSED_LOOP_SCORES",
     "CONTROL_SCHEMA", "GRADED_MEASURES", "HIGHER_IS_BETTER",
-    "MEASURES", "MEASURE_COLUMNS", "N_BOOT", "NATIVE_BETTER", "PAIR_KEY", "ROLLOUT_COLUMNS",
+    "MEASURES", "MEASURE_COLUMNS", "N_BOOT", "NATIVE_BETTER", "PAIR_KEY", "PROVENANCE", "ROLLOUT_COLUMNS",
     "STATISTICS", "ZERO_IMAGE_BETTER", "ClosedLoop", "closed_loop", "mmrv", "paired_control", "read_rollouts",
     "spearman", "wilson", "DoseCurves", "dose_curves", "FIXED_LEVEL", "LOOKS_FILE", "Looks", "read_looks",
     "A_BETTER", "AGREE", "B_BETTER", "CLOSED_ONLY", "DISAGREE", "NEITHER", "NOT_RESOLVED", "OFFLINE_ONLY",

@@ -29,7 +29,7 @@ from pathlib import Path
 
 import polars as pl
 
-from graftcache.errors import GraftcacheError
+from graftcache.errors import GraftcacheError, first_line
 
 ROLLOUT_COLUMNS = ("run_id", "success")
 #: The graded measures of progress, per episode, from the simulator's state (null where a row lacks them).
@@ -93,8 +93,7 @@ def _read(path: Path) -> pl.DataFrame:
     try:
         return pl.read_parquet(path)
     except (pl.exceptions.PolarsError, OSError) as e:
-        reason = (str(e).strip().splitlines() or [type(e).__name__])[0]
-        raise GraftcacheError(f"{path}: not a Parquet rollouts table ({reason})") from None
+        raise GraftcacheError(f"{path}: not a Parquet rollouts table ({first_line(e)})") from None
 
 
 def _episode_keys(table: pl.DataFrame, rollouts: pl.DataFrame) -> pl.DataFrame:
@@ -141,8 +140,7 @@ def read_rollouts(path: str | Path, results: pl.DataFrame, *, where: pl.Expr | N
         try:
             table = table.filter(where)
         except pl.exceptions.PolarsError as e:
-            reason = (str(e).strip().splitlines() or [type(e).__name__])[0]
-            raise GraftcacheError(f"{path}: cannot select its rows ({reason})") from None
+            raise GraftcacheError(f"{path}: cannot select its rows ({first_line(e)})") from None
     missing = [c for c in ROLLOUT_COLUMNS if c not in table.columns]
     if missing:
         raise GraftcacheError(f"{path}: rollouts table lacks column(s) {', '.join(missing)} (the report needs "

@@ -18,7 +18,7 @@ from graftcache.datasets import images, v2, v3, video
 from graftcache.datasets.layout import EpisodeFiles, Layout
 from graftcache.datasets.meta import DatasetMeta, EpisodeMeta, parse_features
 from graftcache.datasets.resolve import resolve_source
-from graftcache.errors import DatasetError
+from graftcache.errors import DatasetError, first_line
 
 #: codebase_version -> reader of that layout.
 READERS: dict[str, Callable[[Path, dict[str, Any], Sequence[str]], Layout]] = {
@@ -157,7 +157,7 @@ class LeRobotSource:
             df = pl.concat(frames).collect().sort("episode_index", "frame_index")
         except pl.exceptions.PolarsError as e:
             raise DatasetError(f"{m.root}: cannot read low-dim columns from {len(paths)} data file(s): "
-                               f"{str(e).splitlines()[0]}") from None
+                               f"{first_line(e)}") from None
         counts = dict(df.group_by("episode_index").len().iter_rows())
         tasks = dict(df.group_by("episode_index").agg(pl.col("task_index").unique().sort()).iter_rows())
         for ep, files in chosen:

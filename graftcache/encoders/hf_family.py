@@ -20,7 +20,6 @@ from torch import nn
 from graftcache.encoders.encoder import Encoder, feature_map_to_grid, tokens_to_grid
 from graftcache.encoders.hf_archs import HFArch, arch_of
 from graftcache.encoders.loading import (
-    first_line,
     hf_weight_files,
     hub_snapshot,
     missing_hub_weights,
@@ -31,7 +30,7 @@ from graftcache.encoders.loading import (
     sha256_state_dict,
 )
 from graftcache.encoders.spec import EncoderSpec, LoadRequest, weights_info
-from graftcache.errors import EncoderError
+from graftcache.errors import EncoderError, first_line
 from graftcache.hashing import sha256_file
 
 _RESAMPLE = {2: "bilinear", 3: "bicubic"}  # PIL resample codes in preprocessor_config.json

@@ -18,7 +18,7 @@ from safetensors import SafetensorError
 from safetensors.torch import load_file
 
 from graftcache.encoders.spec import EncoderSpec
-from graftcache.errors import EncoderError
+from graftcache.errors import EncoderError, first_line
 from graftcache.hashing import sha256_bytes, sha256_file, sha256_tensors
 from graftcache.hub_cache import repo_dir
 
@@ -97,12 +97,6 @@ def read_safetensors(spec: EncoderSpec, path: Path) -> dict[str, torch.Tensor]:
         return load_file(path)
     except SafetensorError as e:
         raise EncoderError(f"encoder {spec.name!r}: {path} is not a safetensors file ({first_line(e)})") from None
-
-
-def first_line(error: BaseException) -> str:
-    """The first line of an exception's message (library errors often append pages of detail)."""
-    text = str(error).strip()
-    return text.splitlines()[0] if text else type(error).__name__
 
 
 def key_mismatch(expected: Mapping[str, torch.Tensor], found: Mapping[str, torch.Tensor],

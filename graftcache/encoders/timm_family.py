@@ -23,7 +23,6 @@ from torch import nn
 
 from graftcache.encoders.encoder import Encoder, feature_map_to_grid, tokens_to_grid
 from graftcache.encoders.loading import (
-    first_line,
     hub_snapshot,
     key_mismatch,
     missing_hub_weights,
@@ -32,7 +31,7 @@ from graftcache.encoders.loading import (
     sha256_state_dict,
 )
 from graftcache.encoders.spec import INTERPOLATIONS, EncoderSpec, LoadRequest, weights_info
-from graftcache.errors import EncoderError
+from graftcache.errors import EncoderError, first_line
 from graftcache.hashing import sha256_file
 
 CNN_TOKENS = "timm forward_features(): last feature map, before global pooling and head"

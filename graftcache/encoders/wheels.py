@@ -18,10 +18,9 @@ from typing import Any
 import torch
 from torch import nn
 
-from graftcache.encoders.loading import first_line
 from graftcache.encoders.spec import EncoderSpec, weights_info
 from graftcache.encoders.timm_family import create
-from graftcache.errors import EncoderError
+from graftcache.errors import EncoderError, first_line
 from graftcache.hashing import sha256_file
 
 

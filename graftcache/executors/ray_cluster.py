@@ -20,7 +20,7 @@ from typing import Any
 import ray
 import ray.exceptions
 
-from graftcache.errors import ExecutorError, GraftcacheError
+from graftcache.errors import ExecutorError, GraftcacheError, first_line
 from graftcache.executors import Log
 from graftcache.requests import ExecutorSettings
 from graftcache.runtime import AUTO, resolve_compute_dtype, resolve_device
@@ -154,8 +154,7 @@ def result(ref: ray.ObjectRef, tag: str) -> Any:
             raise e.cause from None
         raise
     except ray.exceptions.RayError as e:
-        first = (str(e).strip().splitlines() or [type(e).__name__])[0]
-        raise ExecutorError(f"{tag}: {type(e).__name__}: {first}") from None
+        raise ExecutorError(f"{tag}: {type(e).__name__}: {first_line(e)}") from None
 
 
 def finished[R](tasks: Mapping[ray.ObjectRef, R]) -> Iterator[tuple[R, Any]]:

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import polars as pl
 
-from graftcache.errors import GraftcacheError, ResultsError
+from graftcache.errors import GraftcacheError, ResultsError, first_line
 from graftcache.results.schema import conform, empty, validate
 from graftcache.results.upgrade import upgrade, with_policy_ids
 
@@ -49,7 +49,7 @@ def failure_reason(e: BaseException, path: Path) -> str:
         return e.strerror
     if path.is_file() and not path.stat().st_size:
         return "empty file"
-    return (str(e).strip().splitlines() or [type(e).__name__])[0]
+    return first_line(e)
 
 
 def read(path: str | Path) -> pl.DataFrame:

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
 
-from graftcache.errors import GraftcacheError
+from graftcache.errors import GraftcacheError, first_line
 from graftcache.file_lease import FileLease
 from graftcache.results.claims import cell_claim
 from graftcache.rollout import rollouts_file
@@ -61,8 +61,9 @@ class Transport(Protocol):
 
 def one_line(e: BaseException) -> str:
     """An error as one line: a GraftcacheError's own words, anything else with its type."""
-    first = (str(e).strip().splitlines() or [""])[0]
-    return first if isinstance(e, GraftcacheError) else f"{type(e).__name__}: {first}".rstrip(": ")
+    if isinstance(e, GraftcacheError) or not str(e).strip():
+        return first_line(e)
+    return f"{type(e).__name__}: {first_line(e)}"
 
 
 def describe(row: Mapping[str, Any]) -> str:

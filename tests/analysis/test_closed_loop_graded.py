@@ -95,7 +95,9 @@ def _mmrv_by_loops(score: np.ndarray, good: np.ndarray) -> float:
 
 def test_a_format_2_table_reads_its_graded_columns_and_key_typed(loop: A.ClosedLoop) -> None:
     r = loop.rollouts
-    assert set(A.GRADED_MEASURES) | set(A.PAIR_KEY) | {"run_id", "success", "policy_key"} == set(r.columns)
+    assert set(A.GRADED_MEASURES) | set(A.PAIR_KEY) | set(A.PROVENANCE) | {"run_id", "success", "policy_key"} == set(
+        r.columns)
+    assert r["kernels"].null_count() == len(r)  # a format-2 table records none
     assert r.schema["grasped"] == pl.Boolean and r.schema["episode"] == pl.Int64
     assert r["min_target_distance_m"].to_list()[:4] == EPISODES["min_target_distance_m"][0]
     assert loop.ungraded == 0

@@ -22,6 +22,7 @@ import pytest
 from helpers.rollouts import VARYING, Paced, paced_request, paced_rows, ran, rolled
 
 from graftcache import results
+from graftcache.errors import RolloutError
 from graftcache.results.claims import cell_claim, claims_folder
 from graftcache.rollout import record, rollouts_file
 from graftcache.rollout.episodes import Episode, EpisodeReport, episodes_of
@@ -102,3 +103,20 @@ def test_a_cell_another_rollout_holds_is_said_once_and_run_once_given_back(tmp_p
     assert rows.height == 24
     done = [run for _, run, _, _ in ran(tmp_path / "traces")]
     assert len(done) == 24 and done[-4:] == [first] * 4  # the other cells first, then the one given back
+
+
+@pytest.mark.parametrize("error, line", [
+    (RolloutError("run abc: the simulator broke\n  at step 3"), "run abc: the simulator broke"),
+    (RolloutError(""), "RolloutError"),
+    (ValueError("\n  bad action width 9\nTraceback ..."), "ValueError: bad action width 9"),
+    (KeyError(), "KeyError"),
+    (OSError(28, "No space left on device"), "OSError: [Errno 28] No space left on device"),
+])
+def test_an_error_is_said_in_its_first_line_with_its_type_unless_it_is_graftcache_s(error: BaseException,
+                                                                                      line: str) -> None:
+    """What a failed episode's line quotes (graftcache.errors.first_line, shared by every one-line message that
+    quotes a library's error): graftcache's own words as they are, anything else with its type; never a later line,
+    never an empty quote."""
+    from graftcache.rollout.schedule import one_line
+
+    assert one_line(error) == line
