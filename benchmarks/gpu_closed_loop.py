@@ -28,7 +28,7 @@ SUITE, TASK = "libero_object", 0
 #: the rows' columns that do not decide or describe the episode: left out of the comparison
 VARYING = ("seconds", "command", "kernels")
 #: graded distances of one episode on other kernels within this many metres count as the same episode: a tenth of the
-#: 1-2 cm that paired episodes resolve between encoders (docs/closed-loop.md), so a drift below it cannot move a verdict
+#: smallest differences paired episodes resolved between encoders (docs/measured.md), below any verdict's reach
 TOLERANCE_M = 0.002
 DISTANCES = ("min_target_distance_m", "final_target_distance_m", "target_lift_m")
 #: what MuJoCo's GL context reports, asked in a fresh process under an arm's MUJOCO_GL
