@@ -101,7 +101,7 @@ def kernels_sentence(loop: A.ClosedLoop) -> str | None:
     an action on other kernels differs in its last bits and the episode after it may drift, so cells compared across
     them hold that drift beside their difference. Nothing where every episode records the same kernels, or none."""
     kernels = loop.kernels
-    if len(kernels) < 2 or set(kernels) == {None}:
+    if len(kernels) < 2:
         return None
     counts = ", ".join(f"{name or 'not recorded'}: {n}" for name, n in kernels.items())
     return (f"These episodes' policies computed on {len(kernels)} sets of kernels (episodes: {counts}; the rollouts "

@@ -133,6 +133,7 @@ class LiberoSimulator:
         from graftcache.runtime import kernels, resolve_device
 
         first = episodes[0]
+        computed_on = kernels(resolve_device(self.device))
         with policy_threads():
             policy, pre, post, env_pre, env_post = self.loaded(row, first.suite, first.task_index)
             with quiet_inner_bars(), torch.no_grad():
@@ -157,7 +158,7 @@ class LiberoSimulator:
                                   fps=env.unwrapped.metadata["render_fps"] if self.videos else None,
                                   graded=measure(target_of(problem_of(env)), states[: done + 2]),
                                   target_offset_m=(float(task_env.offset[0]), float(task_env.offset[1])),
-                                  kernels=kernels(resolve_device(self.device)))
+                                  kernels=computed_on)
 
     def close(self) -> None:
         self._cell = None
