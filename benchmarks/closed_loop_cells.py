@@ -11,6 +11,7 @@ data layer's packages, only rolls them out.
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -18,7 +19,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 SAMPLE = ROOT / "data" / "libero_sample"
 ENCODER = "timm:vit_tiny_patch16_224"
-SUITE = "libero_object"
+SUITE, TASK = "libero_object", 0  # the sample's first libero_object task: its episodes 18-21
 RESULTS, CACHE, EXPORTS = "results.parquet", "cache", "exports"
 
 
@@ -53,6 +54,22 @@ def export_cells(results: Path, cache: Path, exports: Path) -> list[str]:
     for run_id in cells:
         graftcache("export", run_id, "--results", results, "--out", exports / run_id, "--cache", cache)
     return cells
+
+
+def prepared(cells: Path, folder: Path) -> Path:
+    """A rollouts file in `folder`, the cells' exports (where they have them) copied beside it, where a rollout
+    looks first: no measured run pays for an export."""
+    if (cells / EXPORTS).is_dir():
+        shutil.copytree(cells / EXPORTS, folder / EXPORTS)
+    return folder / "rollouts.parquet"
+
+
+def rollout_argv(cells: Path, rollouts: Path, *, episodes: int, steps: int, workers: int,
+                 flags: tuple[object, ...] = ()) -> list[str]:
+    """`graftcache rollout` of the cells on their task into `rollouts` (made by `prepared`), with `flags` added."""
+    return [str(a) for a in (sys.executable, "-m", "graftcache", "rollout", cells / RESULTS, "--cache", cells / CACHE,
+                             "--rollouts", rollouts, "--suites", SUITE, "--tasks", TASK, "--episodes-per-task",
+                             episodes, "--max-steps", steps, "--workers", workers, *flags)]
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -16,15 +16,16 @@ key), across kernels they may drift, and the JSON says by how much against TOLER
 from __future__ import annotations
 
 import os
-import shutil
 import statistics
 import subprocess
 import sys
 import time
 from dataclasses import dataclass
+from functools import cache
 from pathlib import Path
 
-SUITE, TASK = "libero_object", 0
+from closed_loop_cells import RESULTS, SUITE, prepared, rollout_argv
+
 #: the rows' columns that do not decide or describe the episode: left out of the comparison
 VARYING = ("seconds", "command", "kernels")
 #: graded distances of one episode on other kernels within this many metres count as the same episode: a tenth of the
@@ -64,10 +65,11 @@ def arms(device: str, workers: list[int], cpu_gl: str, device_gl: str) -> list[A
             for name, d, gl in (("device", device, device_gl), ("cpu", "cpu", cpu_gl))]
 
 
-def renderer(arm: Arm) -> str:
-    """The GL vendor and renderer MuJoCo gets under `arm`'s MUJOCO_GL, or why none (one line)."""
-    done = subprocess.run([sys.executable, "-c", RENDERER], env=arm.env(), capture_output=True, text=True,
-                          timeout=60)
+@cache
+def renderer(gl: str) -> str:
+    """The GL vendor and renderer MuJoCo gets under MUJOCO_GL `gl`, or why none (one line); asked once a backend."""
+    env = Arm("", "cpu", gl, 1).env()
+    done = subprocess.run([sys.executable, "-c", RENDERER], env=env, capture_output=True, text=True, timeout=60)
     if done.returncode:
         return "unavailable: " + (done.stderr.strip().splitlines() or ["no error output"])[-1][:300]
     return done.stdout.strip()
@@ -77,15 +79,12 @@ def roll_out(arm: Arm, cells: Path, folder: Path, episodes: int, steps: int, tim
     """Run `arm` into `folder`/rollouts.parquet: its measures (the rows stay in the file)."""
     import polars as pl
 
-    run_ids = pl.read_parquet(cells / "results.parquet").filter(pl.col("suite") == SUITE)["run_id"].to_list()
-    if (cells / "exports").is_dir():
-        shutil.copytree(cells / "exports", folder / "exports")
-    rollouts = folder / "rollouts.parquet"
-    argv = [sys.executable, "-m", "graftcache", "rollout", cells / "results.parquet", "--run-ids", ",".join(run_ids),
-            "--suites", SUITE, "--tasks", TASK, "--episodes-per-task", episodes, "--max-steps", steps, "--cache",
-            cells / "cache", "--rollouts", rollouts, "--workers", arm.workers, "--device", arm.device]
+    run_ids = pl.read_parquet(cells / RESULTS).filter(pl.col("suite") == SUITE)["run_id"].to_list()
+    rollouts = prepared(cells, folder)
+    argv = rollout_argv(cells, rollouts, episodes=episodes, steps=steps, workers=arm.workers,
+                        flags=("--run-ids", ",".join(run_ids), "--device", arm.device))
     t0 = time.perf_counter()
-    done = subprocess.run([str(a) for a in argv], env=arm.env(), capture_output=True, text=True, timeout=timeout_s)
+    done = subprocess.run(argv, env=arm.env(), capture_output=True, text=True, timeout=timeout_s)
     wall = time.perf_counter() - t0
     if done.returncode:
         raise RuntimeError((done.stderr.strip().splitlines() or [f"exit {done.returncode}"])[-1])
@@ -130,17 +129,17 @@ def stage_closed_loop(report, device: str, cells: Path | None, scratch: Path, wo
             out["fitted_into"] = str(cells)
         if report.data["stages"][stage]["cells"]["status"] != "ok":
             return
-    done: dict[str, Path] = {}
+    first: Path | None = None  # the first arm's rows, which every later arm's are compared with
     for arm in arms(device, workers, cpu_gl, device_gl):
         with report.check(stage, arm.key, need_s=60) as out:
             if out is None:
                 continue
             folder = scratch / "closed-loop" / arm.key
-            out["renderer"] = renderer(arm)
+            out["renderer"] = renderer(arm.gl)
             out.update(roll_out(arm, cells, folder, episodes, steps, timeout_s=max(report.left(), 60.0)))
-            if done:
-                out["rows"] = compared(folder / "rollouts.parquet", next(iter(done.values())))
-            done[arm.key] = folder / "rollouts.parquet"
+            if first is not None:
+                out["rows"] = compared(folder / "rollouts.parquet", first)
+            first = first or folder / "rollouts.parquet"
     entries = report.data["stages"][stage]
     for n in workers:
         fast, slow = entries.get(f"device_w{n}", {}), entries.get(f"cpu_w{n}", {})

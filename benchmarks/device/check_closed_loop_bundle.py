@@ -28,6 +28,7 @@ import tempfile
 from pathlib import Path
 
 import trace_closed_loop_files as tracing
+from closed_loop_cells import SUITE, prepared
 
 HERE, ROOT = tracing.HERE, tracing.ROOT
 BUNDLE = ROOT / ".whl" / "closed_loop.tar.xz"
@@ -95,7 +96,7 @@ def rolled_out(cells: Path, folder: Path, reset: str, workers: int, perturb_cm: 
                python: list[str], env: dict[str, str]) -> Path:
     """One rollout of `run_id` into `folder`; its rollouts file."""
     folder.mkdir()
-    rollouts = tracing.prepared(cells, folder)
+    rollouts = prepared(cells, folder)
     command = tracing.rollout_command(cells, rollouts, reset, workers, perturb_cm, run_ids=[run_id])
     done = subprocess.run([*python, *command[1:]], cwd=ROOT, env=env, capture_output=True, text=True)
     if done.returncode:
@@ -115,7 +116,7 @@ def main() -> None:
         origin = Path((work / "bundle" / "closed_loop" / "cells.origin").read_text().strip())
         shadow, left_out = shadow_site(work / "shadow", device_distributions())
         run_id = pl.read_parquet(origin / "results.parquet").filter(
-            (pl.col("suite") == tracing.SUITE) & (pl.col("control") == "none"))["run_id"][0]
+            (pl.col("suite") == SUITE) & (pl.col("control") == "none"))["run_id"][0]
         base = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "LIBERO_CONFIG_PATH")}
         full_env = {**base, "PYTHONPATH": str(ROOT), "HF_HUB_OFFLINE": "1"}
         device_env = {**base, "PYTHONPATH": f"{site}:{ROOT}:{shadow}", "HF_HUB_OFFLINE": "1",

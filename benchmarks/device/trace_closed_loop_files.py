@@ -35,6 +35,10 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parents[1]
+sys.path.insert(0, str(HERE.parent))  # benchmarks/: the cells and their rollout
+
+from closed_loop_cells import prepared, rollout_argv  # noqa: E402
+
 LIST = HERE / "closed_loop_files.txt"
 #: the device image's Python packages, as KINDS.md of the device tool lists them (benchmarks/device/README.md)
 IMAGE_PACKAGES = HERE / "image_packages.txt"
@@ -42,8 +46,8 @@ IMAGE_PACKAGES = HERE / "image_packages.txt"
 PACKAGES = ("robosuite", "libero", "bddl")
 #: the rollouts traced: (reset, workers, perturbation in cm)
 RUNS = (("soft", 1, 0), ("hard", 2, 3))
-#: what each rollout runs: gpu_check's closed-loop stage's suite and task, a short episode
-SUITE, TASK, EPISODES, STEPS = "libero_object", 0, 2, 5
+#: each rollout's length: short episodes of the cells' task (gpu_check's closed-loop stage's)
+EPISODES, STEPS = 2, 5
 CODE_SUFFIXES = (".py", ".pyc", ".so")
 #: an open or openat call's path, in a line of `strace -f` (which starts with the pid)
 CALL = re.compile(r'^(\d+)\s+open(?:at)?\((?:[^,"]*, )?"([^"]*)"')
@@ -52,18 +56,11 @@ OPENED = re.compile(r"\)\s*=\s*\d+(?: <[^>]*>)?$")
 
 
 def rollout_command(cells: Path, rollouts: Path, reset: str, workers: int, perturb_cm: float,
-                    episodes: int = EPISODES, run_ids: list[str] | None = None) -> list[str]:
-    """`graftcache rollout` of `cells` into `rollouts` (beside which the cells' exports must be copied first)."""
-    return [sys.executable, "-m", "graftcache", "rollout", str(cells / "results.parquet"), "--cache",
-            str(cells / "cache"), "--rollouts", str(rollouts), "--suites", SUITE, "--tasks", str(TASK),
-            "--episodes-per-task", str(episodes), "--max-steps", str(STEPS), "--workers", str(workers), "--reset",
-            reset, "--perturb-cm", str(perturb_cm), *(["--run-ids", ",".join(run_ids)] if run_ids else [])]
-
-
-def prepared(cells: Path, folder: Path) -> Path:
-    """A rollouts file in `folder` with the cells' exports copied beside it (where a rollout looks first)."""
-    shutil.copytree(cells / "exports", folder / "exports")
-    return folder / "rollouts.parquet"
+                    run_ids: list[str] | None = None) -> list[str]:
+    """One of RUNS: `graftcache rollout` of `cells` into `rollouts` (closed_loop_cells.prepared)."""
+    return rollout_argv(cells, rollouts, episodes=EPISODES, steps=STEPS, workers=workers,
+                        flags=("--reset", reset, "--perturb-cm", perturb_cm,
+                               *(["--run-ids", ",".join(run_ids)] if run_ids else [])))
 
 
 def package_roots() -> dict[str, Path]:
